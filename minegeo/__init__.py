@@ -1,0 +1,66 @@
+"""minegeo: survey-grade localization in a mine's official coordinate system.
+
+Subpackages
+-----------
+io            point clouds, trajectories and ground control points (PLY, PCD, LAS/LAZ, XYZ/CSV, TUM, KITTI)
+geometry      downsampling (voxel, octree), neighbour search, normals
+features      FPFH descriptors
+registration  correspondences, RANSAC, ICP variants
+survey        least-squares adjustment, Helmert transformations, resection, error ellipses
+mast          beacon positioning of a 2D scanner (Simela et al.)
+synth         seeded synthetic mine world with sensors and ground truth
+report        result JSON and human-readable reports
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import time
+
+__version__ = "0.1.0"
+__all__ = ["__version__", "warmup", "show_versions"]
+
+logging.getLogger(__name__).addHandler(logging.NullHandler())
+
+#: Modules that expose ``_warmup()``: compile their Numba kernels on tiny inputs.
+_WARMUP_MODULES = (
+    "minegeo.synth",
+    "minegeo.geometry",
+    "minegeo.features",
+    "minegeo.registration",
+    "minegeo.survey",
+    "minegeo.mast",
+)
+
+
+def warmup(verbose: bool = False) -> dict[str, float]:
+    """Compile (or load from cache) every Numba kernel on tiny inputs.
+
+    Returns
+    -------
+    dict
+        Seconds spent per subpackage, so compile time can be reported apart from run time.
+    """
+    log = logging.getLogger(__name__)
+    out: dict[str, float] = {}
+    for name in _WARMUP_MODULES:
+        t0 = time.perf_counter()
+        try:
+            mod = importlib.import_module(name)
+        except ImportError:  # subpackage not present in this build
+            continue
+        fn = getattr(mod, "_warmup", None)
+        if fn is not None:
+            fn()
+        out[name] = time.perf_counter() - t0
+        if verbose:
+            log.info("warmup %s: %.2f s", name, out[name])
+    return out
+
+
+def show_versions() -> str:
+    """Text block with minegeo's and its dependencies' versions (also returned for logging)."""
+    from minegeo._provenance import versions
+
+    return "\n".join(f"{k:>10}: {v}" for k, v in versions().items())

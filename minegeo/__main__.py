@@ -1,0 +1,5 @@
+import sys
+
+from minegeo.cli import main
+
+sys.exit(main())

@@ -1,0 +1,51 @@
+"""Typed errors raised by minegeo.
+
+Every error a user can cause (bad input, unreadable file, degenerate geometry)
+is a :class:`MinegeoError` subclass whose message a surveyor can act on. The
+CLI turns these into a one-line message and a non-zero exit code; anything
+else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+
+class MinegeoError(Exception):
+    """Base class of every error minegeo raises for a user-caused problem."""
+
+
+class InputError(MinegeoError, ValueError):
+    """Input data are malformed: wrong shape or dtype, NaN/inf, empty, out of range."""
+
+
+class TooFewPointsError(InputError):
+    """Fewer points (or observations) than the method needs."""
+
+
+class DegenerateGeometryError(MinegeoError, ValueError):
+    """Geometry does not determine the answer (collinear control, planar-only scan, ...)."""
+
+
+class FileFormatError(MinegeoError, OSError):
+    """A file is unreadable, truncated, or its header does not match its contents."""
+
+    def __init__(self, path, problem: str):
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+class CRSError(MinegeoError, ValueError):
+    """Unknown or unsuitable coordinate reference system."""
+
+
+class ConvergenceError(MinegeoError, RuntimeError):
+    """An iterative solver did not converge within its limits."""
+
+
+class OptionalDependencyError(MinegeoError, ImportError):
+    """An optional extra (e.g. laspy, matplotlib) is needed for this operation."""
+
+    def __init__(self, package: str, extra: str):
+        super().__init__(
+            f"this needs the optional package '{package}': install it with pip install 'minegeo[{extra}]'"
+        )
