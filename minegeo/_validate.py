@@ -1,0 +1,66 @@
+"""Input validation shared by every public function (kernels never validate)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from minegeo.errors import InputError, TooFewPointsError
+
+__all__ = ["as_points", "as_matrix", "as_transform", "check_positive"]
+
+
+def as_points(arr, name: str = "points", dim: int = 3, min_points: int = 1) -> np.ndarray:
+    """Return ``arr`` as a C-contiguous float64 ``(n, dim)`` array, or raise a typed error.
+
+    Raises
+    ------
+    InputError
+        Wrong shape, non-numeric, or containing NaN/inf (the first bad row is named).
+    TooFewPointsError
+        Fewer than ``min_points`` rows.
+    """
+    try:
+        a = np.asarray(arr, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be numeric, got {type(arr).__name__}: {exc}") from None
+    if a.ndim != 2 or a.shape[1] != dim:
+        raise InputError(f"{name} must have shape (n, {dim}), got {a.shape}")
+    if a.shape[0] < min_points:
+        raise TooFewPointsError(f"{name} has {a.shape[0]} point(s); at least {min_points} are needed")
+    finite = np.isfinite(a).all(axis=1)
+    if not finite.all():
+        bad = np.flatnonzero(~finite)
+        raise InputError(
+            f"{name} contains {bad.size} row(s) with NaN or inf (first at row {int(bad[0])}); "
+            "remove or fix them before processing"
+        )
+    return np.ascontiguousarray(a)
+
+
+def as_matrix(arr, shape: tuple, name: str) -> np.ndarray:
+    """Return a finite float64 array of exactly ``shape`` (``-1`` entries are free)."""
+    a = np.asarray(arr, dtype=np.float64)
+    if a.ndim != len(shape) or any(s != -1 and s != t for s, t in zip(shape, a.shape, strict=True)):
+        raise InputError(f"{name} must have shape {shape}, got {a.shape}")
+    if not np.isfinite(a).all():
+        raise InputError(f"{name} contains NaN or inf")
+    return np.ascontiguousarray(a)
+
+
+def as_transform(T, name: str = "T", atol: float = 1e-6) -> np.ndarray:
+    """Validate a 4x4 rigid transform (orthonormal rotation, det +1, last row 0 0 0 1)."""
+    T = as_matrix(T, (4, 4), name)
+    R = T[:3, :3]
+    if not np.allclose(T[3], [0, 0, 0, 1], atol=atol):
+        raise InputError(f"{name} last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    if not np.allclose(R.T @ R, np.eye(3), atol=atol) or np.linalg.det(R) < 0:
+        raise InputError(f"{name} rotation block is not a proper rotation (orthonormal, det=+1)")
+    return T
+
+
+def check_positive(value, name: str, allow_zero: bool = False) -> float:
+    """Return ``float(value)`` if finite and > 0 (or >= 0), else raise :class:`InputError`."""
+    v = float(value)
+    if not np.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
+        raise InputError(f"{name} must be {'>= 0' if allow_zero else '> 0'} and finite, got {value!r}")
+    return v
