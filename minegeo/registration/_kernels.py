@@ -1,0 +1,337 @@
+"""Numba kernels of :mod:`minegeo.registration` (contiguous float64 arrays in, no checks).
+
+Every reduction over points uses *fixed chunking*: the points are cut into chunks of
+``CHUNK`` consecutive rows, each chunk's partial sums are computed independently
+(``prange`` over chunks), and the partials are then added serially in chunk order.
+The floating-point summation order therefore depends only on the number of points,
+never on the number of threads, so results are bit-identical on 1 or N threads.
+
+The public, validated, documented functions live in ``estimation.py``,
+``evaluation.py`` and ``icp.py``; read their docstrings for the mathematics.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from minegeo._jit import njit, njit_parallel, prange
+
+#: Rows per reduction chunk (fixed so that summation order is thread-count independent).
+CHUNK = 1024
+
+
+@njit
+def n_chunks(m):
+    """Number of ``CHUNK``-row chunks covering ``m`` rows (0 for m = 0)."""
+    return (m + CHUNK - 1) // CHUNK
+
+
+@njit_parallel
+def transform_points_kernel(P, T):
+    """``out_i = R p_i + t`` for (n, 3) ``P`` and a 4x4 ``T`` (sum order x, y, z, t as Eigen)."""
+    n = P.shape[0]
+    out = np.empty((n, 3))
+    for i in prange(n):
+        x = P[i, 0]
+        y = P[i, 1]
+        z = P[i, 2]
+        for r in range(3):
+            out[i, r] = T[r, 0] * x + T[r, 1] * y + T[r, 2] * z + T[r, 3]
+    return out
+
+
+@njit_parallel
+def rotate_vectors_kernel(V, R):
+    """``out_i = R v_i`` for (n, 3) ``V`` (normals) and a 3x3 ``R``."""
+    n = V.shape[0]
+    out = np.empty((n, 3))
+    for i in prange(n):
+        x = V[i, 0]
+        y = V[i, 1]
+        z = V[i, 2]
+        for r in range(3):
+            out[i, r] = R[r, 0] * x + R[r, 1] * y + R[r, 2] * z
+    return out
+
+
+@njit_parallel
+def gate_nearest_kernel(P, Q, nn_idx, d2):
+    """Squared distance to the proposed nearest target and the strict gate ``sq < d2``.
+
+    ``nn_idx[i] >= Q.shape[0]`` marks "no neighbour found" (pykdtree convention).
+    Returns ``(sq, valid)``; ``sq`` is ``inf`` where there is no neighbour.
+    The squared distance is recomputed here as ``dx*dx + dy*dy + dz*dz`` (nanoflann's
+    L2 order) so that the gate does not depend on the search library's arithmetic.
+    """
+    n = P.shape[0]
+    m = Q.shape[0]
+    sq = np.empty(n)
+    valid = np.zeros(n, dtype=np.bool_)
+    for i in prange(n):
+        j = nn_idx[i]
+        if j < 0 or j >= m:
+            sq[i] = np.inf
+            continue
+        dx = P[i, 0] - Q[j, 0]
+        dy = P[i, 1] - Q[j, 1]
+        dz = P[i, 2] - Q[j, 2]
+        s = dx * dx + dy * dy + dz * dz
+        sq[i] = s
+        if s < d2:
+            valid[i] = True
+    return sq, valid
+
+
+@njit_parallel
+def sum_kernel(x):
+    """Deterministic chunked sum of a 1-D array."""
+    m = x.shape[0]
+    nc = n_chunks(m)
+    part = np.zeros(nc)
+    for c in prange(nc):
+        s = 0.0
+        for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
+            s += x[i]
+        part[c] = s
+    tot = 0.0
+    for c in range(nc):
+        tot += part[c]
+    return tot
+
+
+@njit_parallel
+def weighted_moments_kernel(P, Q, w):
+    """Weighted means and centred second moments of corresponding rows of ``P`` and ``Q``.
+
+    Returns ``(sum_w, mu_p (3,), mu_q (3,), W (3,3), var_p)`` with
+    ``W = sum_i w_i (p_i - mu_p)(q_i - mu_q)^T / sum_w`` (Baek 2022 Eq. 10, centred) and
+    ``var_p = sum_i w_i |p_i - mu_p|^2 / sum_w``. Two passes (means, then centred sums).
+    """
+    m = P.shape[0]
+    nc = n_chunks(m)
+    part = np.zeros((nc, 7))
+    for c in prange(nc):
+        for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
+            wi = w[i]
+            part[c, 0] += wi
+            for k in range(3):
+                part[c, 1 + k] += wi * P[i, k]
+                part[c, 4 + k] += wi * Q[i, k]
+    tot = np.zeros(7)
+    for c in range(nc):
+        for k in range(7):
+            tot[k] += part[c, k]
+    sw = tot[0]
+    mu_p = np.zeros(3)
+    mu_q = np.zeros(3)
+    if sw > 0.0:
+        for k in range(3):
+            mu_p[k] = tot[1 + k] / sw
+            mu_q[k] = tot[4 + k] / sw
+    part2 = np.zeros((nc, 10))
+    for c in prange(nc):
+        for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
+            wi = w[i]
+            a0 = P[i, 0] - mu_p[0]
+            a1 = P[i, 1] - mu_p[1]
+            a2 = P[i, 2] - mu_p[2]
+            b0 = Q[i, 0] - mu_q[0]
+            b1 = Q[i, 1] - mu_q[1]
+            b2 = Q[i, 2] - mu_q[2]
+            part2[c, 0] += wi * a0 * b0
+            part2[c, 1] += wi * a0 * b1
+            part2[c, 2] += wi * a0 * b2
+            part2[c, 3] += wi * a1 * b0
+            part2[c, 4] += wi * a1 * b1
+            part2[c, 5] += wi * a1 * b2
+            part2[c, 6] += wi * a2 * b0
+            part2[c, 7] += wi * a2 * b1
+            part2[c, 8] += wi * a2 * b2
+            part2[c, 9] += wi * (a0 * a0 + a1 * a1 + a2 * a2)
+    tot2 = np.zeros(10)
+    for c in range(nc):
+        for k in range(10):
+            tot2[k] += part2[c, k]
+    W = np.zeros((3, 3))
+    var_p = 0.0
+    if sw > 0.0:
+        for r in range(3):
+            for k in range(3):
+                W[r, k] = tot2[3 * r + k] / sw
+        var_p = tot2[9] / sw
+    return sw, mu_p, mu_q, W, var_p
+
+
+@njit
+def umeyama_from_moments(mu_p, mu_q, W, var_p, with_scale):
+    """Closed-form similarity from the moments (Baek 2022 Eqs. 11-13; Umeyama 1991).
+
+    ``W = U S V^T`` (Eq. 11), ``R = V diag(1, 1, d) U^T`` with ``d = sign det(V U^T)``
+    (Eq. 12 with the reflection fix), ``c = tr(S diag(1,1,d)) / var_p`` if scaling, and
+    ``t = mu_q - c R mu_p`` (Eq. 13). Returns ``(T 4x4, c, singular values S)``.
+    """
+    U, S, Vt = np.linalg.svd(W)
+    V = Vt.T
+    d = 1.0
+    if np.linalg.det(V) * np.linalg.det(U) < 0.0:
+        d = -1.0
+    D = np.eye(3)
+    D[2, 2] = d
+    R = V @ D @ U.T
+    c = 1.0
+    if with_scale:
+        if var_p > 0.0:
+            c = (S[0] + S[1] + d * S[2]) / var_p
+        else:
+            c = 1.0
+    T = np.eye(4)
+    for r in range(3):
+        for k in range(3):
+            T[r, k] = c * R[r, k]
+        T[r, 3] = mu_q[r] - c * (R[r, 0] * mu_p[0] + R[r, 1] * mu_p[1] + R[r, 2] * mu_p[2])
+    return T, c, S
+
+
+@njit
+def umeyama_small_kernel(P, Q, with_scale):
+    """Serial, allocation-light Umeyama for tiny samples (RANSAC minimal sets), unit weights.
+
+    Same mathematics as :func:`weighted_moments_kernel` + :func:`umeyama_from_moments`,
+    callable from other njit code. Returns ``(T 4x4, scale)``; identity for 0 rows
+    (Open3D semantics).
+    """
+    m = P.shape[0]
+    if m == 0:
+        return np.eye(4), 1.0
+    mu_p = np.zeros(3)
+    mu_q = np.zeros(3)
+    for i in range(m):
+        for k in range(3):
+            mu_p[k] += P[i, k]
+            mu_q[k] += Q[i, k]
+    for k in range(3):
+        mu_p[k] /= m
+        mu_q[k] /= m
+    W = np.zeros((3, 3))
+    var_p = 0.0
+    for i in range(m):
+        for r in range(3):
+            a = P[i, r] - mu_p[r]
+            var_p += a * a
+            for k in range(3):
+                W[r, k] += a * (Q[i, k] - mu_q[k])
+    for r in range(3):
+        for k in range(3):
+            W[r, k] /= m
+    var_p /= m
+    T, c, _ = umeyama_from_moments(mu_p, mu_q, W, var_p, with_scale)
+    return T, c
+
+
+@njit_parallel
+def point_to_plane_system_kernel(P, Q, N):
+    """Gauss-Newton normal equations of point-to-plane ICP (Low 2004; Open3D §7).
+
+    For each pair: ``r_i = (p_i - q_i) . n_i`` and ``J_i = [p_i x n_i, n_i]`` (1x6).
+    Returns ``(H = sum J^T J (6x6), g = sum J^T r (6,), sum r^2)``.
+    """
+    m = P.shape[0]
+    nc = n_chunks(m)
+    part = np.zeros((nc, 28))
+    for c in prange(nc):
+        J = np.empty(6)
+        for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
+            px = P[i, 0]
+            py = P[i, 1]
+            pz = P[i, 2]
+            nx = N[i, 0]
+            ny = N[i, 1]
+            nz = N[i, 2]
+            r = (px - Q[i, 0]) * nx + (py - Q[i, 1]) * ny + (pz - Q[i, 2]) * nz
+            J[0] = py * nz - pz * ny
+            J[1] = pz * nx - px * nz
+            J[2] = px * ny - py * nx
+            J[3] = nx
+            J[4] = ny
+            J[5] = nz
+            k = 0
+            for a in range(6):
+                for b in range(a, 6):
+                    part[c, k] += J[a] * J[b]
+                    k += 1
+            for a in range(6):
+                part[c, 21 + a] += J[a] * r
+            part[c, 27] += r * r
+    tot = np.zeros(28)
+    for c in range(nc):
+        for k in range(28):
+            tot[k] += part[c, k]
+    H = np.zeros((6, 6))
+    k = 0
+    for a in range(6):
+        for b in range(a, 6):
+            H[a, b] = tot[k]
+            H[b, a] = tot[k]
+            k += 1
+    g = np.zeros(6)
+    for a in range(6):
+        g[a] = tot[21 + a]
+    return H, g, tot[27]
+
+
+@njit_parallel
+def point_to_point_information_kernel(Q):
+    """``sum_i G_i^T G_i`` with ``G_i = [-[q_i]x, I3]`` (3x6), Open3D's
+    ``GetInformationMatrixFromPointClouds`` rows evaluated at the target points ``q_i``.
+
+    Closed form from the moments: top-left ``sum(|q|^2 I - q q^T)``, top-right
+    ``[sum q]x``, bottom-left ``-[sum q]x``, bottom-right ``m I``.
+    """
+    m = Q.shape[0]
+    nc = n_chunks(m)
+    part = np.zeros((nc, 9))
+    for c in prange(nc):
+        for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
+            x = Q[i, 0]
+            y = Q[i, 1]
+            z = Q[i, 2]
+            part[c, 0] += x
+            part[c, 1] += y
+            part[c, 2] += z
+            part[c, 3] += x * x
+            part[c, 4] += y * y
+            part[c, 5] += z * z
+            part[c, 6] += x * y
+            part[c, 7] += x * z
+            part[c, 8] += y * z
+    s = np.zeros(9)
+    for c in range(nc):
+        for k in range(9):
+            s[k] += part[c, k]
+    H = np.zeros((6, 6))
+    H[0, 0] = s[4] + s[5]
+    H[1, 1] = s[3] + s[5]
+    H[2, 2] = s[3] + s[4]
+    H[0, 1] = -s[6]
+    H[1, 0] = -s[6]
+    H[0, 2] = -s[7]
+    H[2, 0] = -s[7]
+    H[1, 2] = -s[8]
+    H[2, 1] = -s[8]
+    # top-right block = [S]x with S = sum q ; bottom-left = its transpose (= -[S]x)
+    sx = s[0]
+    sy = s[1]
+    sz = s[2]
+    H[0, 4] = -sz
+    H[0, 5] = sy
+    H[1, 3] = sz
+    H[1, 5] = -sx
+    H[2, 3] = -sy
+    H[2, 4] = sx
+    for a in range(3):
+        for b in range(3, 6):
+            H[b, a] = H[a, b]
+    H[3, 3] = m
+    H[4, 4] = m
+    H[5, 5] = m
+    return H
