@@ -6,6 +6,8 @@ umeyama, kabsch            closed-form rigid / similarity fit (Baek 2022 Eqs. 10
 pose_covariance            σ² I⁻¹ from a 6x6 information matrix
 evaluate_registration      fitness and inlier RMSE (Baek 2022 Eq. 19, Open3D semantics)
 build_target_index         reusable KD-tree over a target cloud
+ICPParams, register_icp    point-to-point / point-to-plane ICP with information matrix
+ICPResult, constraint_analysis
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import numpy as np
 
 from minegeo.registration.estimation import kabsch, pose_covariance, umeyama
 from minegeo.registration.evaluation import build_target_index, evaluate_registration
+from minegeo.registration.icp import ICPParams, ICPResult, constraint_analysis, register_icp
 
 __all__ = [
     "umeyama",
@@ -21,6 +24,10 @@ __all__ = [
     "pose_covariance",
     "evaluate_registration",
     "build_target_index",
+    "ICPParams",
+    "ICPResult",
+    "register_icp",
+    "constraint_analysis",
 ]
 
 
