@@ -1,0 +1,993 @@
+"""Numba kernels of :mod:`minegeo.geometry` (contiguous float64/int64 arrays in, no checks).
+
+The public wrappers in ``neighbors.py``, ``normals.py``, ``voxel.py`` and ``octree.py``
+validate inputs, document the maths and call these kernels. Everything here is
+deterministic: parallel loops (``prange``) only run over independent queries, voxels or
+leaves, each writing its own output rows, so the thread count never changes a result.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from minegeo._jit import njit, njit_parallel, prange
+
+# ---------------------------------------------------------------------------------------
+# uniform hash grid (neighbour search)
+# ---------------------------------------------------------------------------------------
+
+_HASH_MULT = np.uint64(11400714819323198485)  # 2**64 / golden ratio (Fibonacci hashing)
+_EMPTY = -1
+_BLOCK = 256  # queries per parallel work item (buffers are allocated once per block)
+
+
+@njit_parallel
+def grid_cell_keys(points, origin, inv_cell, nx, ny, out_keys):
+    """Linear cell key ``ix + nx*(iy + ny*iz)`` with ``i = floor((p - origin) * inv_cell)``."""
+    n = points.shape[0]
+    for i in prange(n):
+        ix = np.int64(np.floor((points[i, 0] - origin[0]) * inv_cell))
+        iy = np.int64(np.floor((points[i, 1] - origin[1]) * inv_cell))
+        iz = np.int64(np.floor((points[i, 2] - origin[2]) * inv_cell))
+        out_keys[i] = ix + nx * (iy + ny * iz)
+
+
+@njit
+def _hash_slot(key, bits):
+    h = np.uint64(key) * _HASH_MULT
+    return np.int64(h >> np.uint64(64 - bits))
+
+
+@njit
+def grid_build_table(cell_keys, bits, table_keys, table_vals):
+    """Open-addressing (linear probing) table: cell key -> cell number (position in ``cell_keys``)."""
+    mask = (np.int64(1) << bits) - 1
+    for c in range(cell_keys.shape[0]):
+        key = cell_keys[c]
+        s = _hash_slot(key, bits)
+        while table_keys[s] != _EMPTY:
+            s = (s + 1) & mask
+        table_keys[s] = key
+        table_vals[s] = c
+
+
+@njit
+def _grid_lookup(key, bits, table_keys, table_vals):
+    mask = (np.int64(1) << bits) - 1
+    s = _hash_slot(key, bits)
+    while True:
+        k = table_keys[s]
+        if k == key:
+            return table_vals[s]
+        if k == _EMPTY:
+            return -1
+        s = (s + 1) & mask
+
+
+@njit
+def _insert_sorted(buf_pos, buf_sq, count, cap, pos, sq, order):
+    """Insert (sq, original index) into the ascending buffer; keep at most ``cap`` entries.
+
+    Ordering is lexicographic on (squared distance, original point index), so ties are
+    broken by the lowest index. Returns the new count.
+    """
+    idx = order[pos]
+    if count == cap:
+        wsq = buf_sq[cap - 1]
+        if sq > wsq or (sq == wsq and idx > order[buf_pos[cap - 1]]):
+            return count
+        j = cap - 1
+    else:
+        j = count
+        count += 1
+    while j > 0:
+        psq = buf_sq[j - 1]
+        if psq < sq or (psq == sq and order[buf_pos[j - 1]] < idx):
+            break
+        buf_sq[j] = psq
+        buf_pos[j] = buf_pos[j - 1]
+        j -= 1
+    buf_sq[j] = sq
+    buf_pos[j] = pos
+    return count
+
+
+@njit
+def _cell_range(qc, r, o, inv_cell, ncell):
+    lo = np.int64(np.floor(((qc - r) - o) * inv_cell))
+    hi = np.int64(np.floor(((qc + r) - o) * inv_cell))
+    if lo < 0:
+        lo = 0
+    if hi > ncell - 1:
+        hi = ncell - 1
+    return lo, hi
+
+
+@njit
+def _box_sq(qc, lo_edge, cell):
+    """Squared distance from coordinate ``qc`` to the interval [lo_edge, lo_edge + cell]."""
+    if qc < lo_edge:
+        d = lo_edge - qc
+        return d * d
+    hi_edge = lo_edge + cell
+    if qc > hi_edge:
+        d = qc - hi_edge
+        return d * d
+    return 0.0
+
+
+@njit
+def hybrid_one(q0, q1, q2, r, r2, cap, pts, order, cell_start, origin, cell, inv_cell,
+               nx, ny, nz, bits, table_keys, table_vals, buf_pos, buf_sq):
+    """The <= ``cap`` nearest grid points with squared distance strictly < ``r2``.
+
+    Results go to ``buf_pos`` (positions in the cell-sorted arrays) and ``buf_sq``,
+    ascending in (sq, original index). Returns the count. The query's own cell is
+    scanned first so the buffer fills with close points early; a cell is skipped when
+    its box is farther than r (or, once the buffer is full, than the current worst).
+    """
+    x0, x1 = _cell_range(q0, r, origin[0], inv_cell, nx)
+    y0, y1 = _cell_range(q1, r, origin[1], inv_cell, ny)
+    z0, z1 = _cell_range(q2, r, origin[2], inv_cell, nz)
+    if x0 > x1 or y0 > y1 or z0 > z1:
+        return 0
+    cx = np.int64(np.floor((q0 - origin[0]) * inv_cell))
+    cy = np.int64(np.floor((q1 - origin[1]) * inv_cell))
+    cz = np.int64(np.floor((q2 - origin[2]) * inv_cell))
+    count = 0
+    slack = 1.0 + 1e-12
+    # pass 0: the query's own cell (if inside the grid); pass 1: all other cells
+    for pas in range(2):
+        for iz in range(z0, z1 + 1):
+            dz = _box_sq(q2, origin[2] + iz * cell, cell)
+            for iy in range(y0, y1 + 1):
+                dy = _box_sq(q1, origin[1] + iy * cell, cell)
+                for ix in range(x0, x1 + 1):
+                    own = ix == cx and iy == cy and iz == cz
+                    if (pas == 0) != own:
+                        continue
+                    bd = dz + dy + _box_sq(q0, origin[0] + ix * cell, cell)
+                    if bd > r2 * slack:
+                        continue
+                    if count == cap and bd > buf_sq[cap - 1] * slack:
+                        continue
+                    c = _grid_lookup(ix + nx * (iy + ny * iz), bits, table_keys, table_vals)
+                    if c < 0:
+                        continue
+                    for pos in range(cell_start[c], cell_start[c + 1]):
+                        d0 = pts[pos, 0] - q0
+                        d1 = pts[pos, 1] - q1
+                        d2 = pts[pos, 2] - q2
+                        sq = d0 * d0 + d1 * d1 + d2 * d2
+                        if sq < r2:
+                            count = _insert_sorted(buf_pos, buf_sq, count, cap, pos, sq, order)
+    return count
+
+
+@njit
+def count_one(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell,
+              nx, ny, nz, bits, table_keys, table_vals):
+    """Number of grid points with squared distance strictly < ``r2`` (radius search size)."""
+    x0, x1 = _cell_range(q0, r, origin[0], inv_cell, nx)
+    y0, y1 = _cell_range(q1, r, origin[1], inv_cell, ny)
+    z0, z1 = _cell_range(q2, r, origin[2], inv_cell, nz)
+    count = 0
+    slack = 1.0 + 1e-12
+    for iz in range(z0, z1 + 1):
+        dz = _box_sq(q2, origin[2] + iz * cell, cell)
+        for iy in range(y0, y1 + 1):
+            dy = _box_sq(q1, origin[1] + iy * cell, cell)
+            for ix in range(x0, x1 + 1):
+                if dz + dy + _box_sq(q0, origin[0] + ix * cell, cell) > r2 * slack:
+                    continue
+                c = _grid_lookup(ix + nx * (iy + ny * iz), bits, table_keys, table_vals)
+                if c < 0:
+                    continue
+                for pos in range(cell_start[c], cell_start[c + 1]):
+                    d0 = pts[pos, 0] - q0
+                    d1 = pts[pos, 1] - q1
+                    d2 = pts[pos, 2] - q2
+                    if d0 * d0 + d1 * d1 + d2 * d2 < r2:
+                        count += 1
+    return count
+
+
+@njit_parallel
+def grid_radius_count(queries, r, pts, cell_start, origin, cell, inv_cell, nx, ny, nz,
+                      bits, table_keys, table_vals, out_counts):
+    r2 = r * r
+    for i in prange(queries.shape[0]):
+        out_counts[i] = count_one(queries[i, 0], queries[i, 1], queries[i, 2], r, r2, pts,
+                                  cell_start, origin, cell, inv_cell, nx, ny, nz, bits,
+                                  table_keys, table_vals)
+
+
+@njit_parallel
+def grid_hybrid(queries, r, cap, pts, order, cell_start, origin, cell, inv_cell, nx, ny, nz,
+                bits, table_keys, table_vals, out_idx, out_sq, out_counts):
+    """Hybrid search for every query: rows of ``out_idx``/``out_sq`` padded with -1/inf."""
+    nq = queries.shape[0]
+    r2 = r * r
+    nblocks = (nq + _BLOCK - 1) // _BLOCK
+    for b in prange(nblocks):
+        buf_pos = np.empty(max(cap, 1), dtype=np.int64)
+        buf_sq = np.empty(max(cap, 1), dtype=np.float64)
+        for i in range(b * _BLOCK, min(nq, (b + 1) * _BLOCK)):
+            cnt = 0
+            if cap > 0:
+                cnt = hybrid_one(queries[i, 0], queries[i, 1], queries[i, 2], r, r2, cap, pts,
+                                 order, cell_start, origin, cell, inv_cell, nx, ny, nz, bits,
+                                 table_keys, table_vals, buf_pos, buf_sq)
+            for j in range(cnt):
+                out_idx[i, j] = order[buf_pos[j]]
+                out_sq[i, j] = buf_sq[j]
+            for j in range(cnt, out_idx.shape[1]):
+                out_idx[i, j] = -1
+                out_sq[i, j] = np.inf
+            out_counts[i] = cnt
+
+
+@njit_parallel
+def knn_finalize(points, queries, idx, out_idx, out_sq, out_counts):
+    """Recompute squared distances of kNN candidates exactly and sort rows by (sq, index).
+
+    ``idx`` entries < 0 or >= n are missing neighbours (padded with -1 / inf).
+    """
+    n = points.shape[0]
+    nq, k = idx.shape
+    for i in prange(nq):
+        cnt = 0
+        for j in range(k):
+            p = idx[i, j]
+            if p < 0 or p >= n:
+                continue
+            d0 = points[p, 0] - queries[i, 0]
+            d1 = points[p, 1] - queries[i, 1]
+            d2 = points[p, 2] - queries[i, 2]
+            sq = d0 * d0 + d1 * d1 + d2 * d2
+            # insertion sort on (sq, index)
+            m = cnt
+            while m > 0 and (out_sq[i, m - 1] > sq or (out_sq[i, m - 1] == sq and out_idx[i, m - 1] > p)):
+                out_sq[i, m] = out_sq[i, m - 1]
+                out_idx[i, m] = out_idx[i, m - 1]
+                m -= 1
+            out_sq[i, m] = sq
+            out_idx[i, m] = p
+            cnt += 1
+        for j in range(cnt, k):
+            out_idx[i, j] = -1
+            out_sq[i, j] = np.inf
+        out_counts[i] = cnt
+
+
+# ---------------------------------------------------------------------------------------
+# 3x3 symmetric eigen-solvers
+# ---------------------------------------------------------------------------------------
+
+
+@njit
+def _ev0(a00, a01, a02, a11, a12, a22, lam):
+    """Eberly's ComputeEigenvector0 (as in Open3D 0.20): most robust row cross product."""
+    r00 = a00 - lam
+    r01 = a01
+    r02 = a02
+    r10 = a01
+    r11 = a11 - lam
+    r12 = a12
+    r20 = a02
+    r21 = a12
+    r22 = a22 - lam
+    # r0 x r1
+    x0 = r01 * r12 - r02 * r11
+    x1 = r02 * r10 - r00 * r12
+    x2 = r00 * r11 - r01 * r10
+    # r0 x r2
+    y0 = r01 * r22 - r02 * r21
+    y1 = r02 * r20 - r00 * r22
+    y2 = r00 * r21 - r01 * r20
+    # r1 x r2
+    z0 = r11 * r22 - r12 * r21
+    z1 = r12 * r20 - r10 * r22
+    z2 = r10 * r21 - r11 * r20
+    d0 = x0 * x0 + x1 * x1 + x2 * x2
+    d1 = y0 * y0 + y1 * y1 + y2 * y2
+    d2 = z0 * z0 + z1 * z1 + z2 * z2
+    dmax = d0
+    imax = 0
+    if d1 > dmax:
+        dmax = d1
+        imax = 1
+    if d2 > dmax:
+        imax = 2
+    if imax == 0:
+        s = np.sqrt(d0)
+        return x0 / s, x1 / s, x2 / s
+    elif imax == 1:
+        s = np.sqrt(d1)
+        return y0 / s, y1 / s, y2 / s
+    s = np.sqrt(d2)
+    return z0 / s, z1 / s, z2 / s
+
+
+@njit
+def _ev1(a00, a01, a02, a11, a12, a22, e0, e1, e2, lam):
+    """Eberly's ComputeEigenvector1 (as in Open3D 0.20)."""
+    if abs(e0) > abs(e1):
+        inv = 1.0 / np.sqrt(e0 * e0 + e2 * e2)
+        u0 = -e2 * inv
+        u1 = 0.0
+        u2 = e0 * inv
+    else:
+        inv = 1.0 / np.sqrt(e1 * e1 + e2 * e2)
+        u0 = 0.0
+        u1 = e2 * inv
+        u2 = -e1 * inv
+    # V = e x U
+    v0 = e1 * u2 - e2 * u1
+    v1 = e2 * u0 - e0 * u2
+    v2 = e0 * u1 - e1 * u0
+    au0 = a00 * u0 + a01 * u1 + a02 * u2
+    au1 = a01 * u0 + a11 * u1 + a12 * u2
+    au2 = a02 * u0 + a12 * u1 + a22 * u2
+    av0 = a00 * v0 + a01 * v1 + a02 * v2
+    av1 = a01 * v0 + a11 * v1 + a12 * v2
+    av2 = a02 * v0 + a12 * v1 + a22 * v2
+    m00 = u0 * au0 + u1 * au1 + u2 * au2 - lam
+    m01 = u0 * av0 + u1 * av1 + u2 * av2
+    m11 = v0 * av0 + v1 * av1 + v2 * av2 - lam
+    am00 = abs(m00)
+    am01 = abs(m01)
+    am11 = abs(m11)
+    if am00 >= am11:
+        if max(am00, am01) > 0.0:
+            if am00 >= am01:
+                m01 /= m00
+                m00 = 1.0 / np.sqrt(1.0 + m01 * m01)
+                m01 *= m00
+            else:
+                m00 /= m01
+                m01 = 1.0 / np.sqrt(1.0 + m00 * m00)
+                m00 *= m01
+            return m01 * u0 - m00 * v0, m01 * u1 - m00 * v1, m01 * u2 - m00 * v2
+        return u0, u1, u2
+    if max(am11, am01) > 0.0:
+        if am11 >= am01:
+            m01 /= m11
+            m11 = 1.0 / np.sqrt(1.0 + m01 * m01)
+            m01 *= m11
+        else:
+            m11 /= m01
+            m01 = 1.0 / np.sqrt(1.0 + m11 * m11)
+            m11 *= m01
+        return m11 * u0 - m01 * v0, m11 * u1 - m01 * v1, m11 * u2 - m01 * v2
+    return u0, u1, u2
+
+
+@njit
+def fast_eigen3x3(c00, c01, c02, c11, c12, c22, out):
+    """Open3D 0.20 ``FastEigen3x3`` (Eberly's robust closed form), ported operation by operation.
+
+    Writes the eigenvector of the smallest eigenvalue to ``out[0:3]`` (the zero vector
+    when the largest signed entry is 0) and the three eigenvalues, ascending, to
+    ``out[3:6]`` (not part of Open3D's output; used for curvature).
+    """
+    s = max(c00, c01, c02, c11, c12, c22)  # largest signed entry of the symmetric matrix
+    if s == 0.0:
+        for j in range(6):
+            out[j] = 0.0
+        return
+    a00 = c00 / s
+    a01 = c01 / s
+    a02 = c02 / s
+    a11 = c11 / s
+    a12 = c12 / s
+    a22 = c22 / s
+    norm = a01 * a01 + a02 * a02 + a12 * a12
+    if norm > 0.0:
+        q = (a00 + a11 + a22) / 3.0
+        b00 = a00 - q
+        b11 = a11 - q
+        b22 = a22 - q
+        p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + norm * 2.0) / 6.0)
+        k00 = b11 * b22 - a12 * a12
+        k01 = a01 * b22 - a12 * a02
+        k02 = a01 * a12 - b11 * a02
+        det = (b00 * k00 - a01 * k01 + a02 * k02) / (p * p * p)
+        half_det = det * 0.5
+        half_det = min(max(half_det, -1.0), 1.0)
+        angle = np.arccos(half_det) / 3.0
+        beta2 = np.cos(angle) * 2.0
+        beta0 = np.cos(angle + 2.09439510239319549) * 2.0
+        beta1 = -(beta0 + beta2)
+        l0 = q + p * beta0
+        l1 = q + p * beta1
+        l2 = q + p * beta2
+        if half_det >= 0.0:
+            v20, v21, v22 = _ev0(a00, a01, a02, a11, a12, a22, l2)
+            if l2 < l0 and l2 < l1:
+                n0, n1, n2 = v20, v21, v22
+            else:
+                v10, v11, v12 = _ev1(a00, a01, a02, a11, a12, a22, v20, v21, v22, l1)
+                if l1 < l0 and l1 < l2:
+                    n0, n1, n2 = v10, v11, v12
+                else:
+                    n0 = v11 * v22 - v12 * v21
+                    n1 = v12 * v20 - v10 * v22
+                    n2 = v10 * v21 - v11 * v20
+        else:
+            v00, v01, v02 = _ev0(a00, a01, a02, a11, a12, a22, l0)
+            if l0 < l1 and l0 < l2:
+                n0, n1, n2 = v00, v01, v02
+            else:
+                v10, v11, v12 = _ev1(a00, a01, a02, a11, a12, a22, v00, v01, v02, l1)
+                if l1 < l0 and l1 < l2:
+                    n0, n1, n2 = v10, v11, v12
+                else:
+                    n0 = v01 * v12 - v02 * v11
+                    n1 = v02 * v10 - v00 * v12
+                    n2 = v00 * v11 - v01 * v10
+        e0 = l0 * s
+        e1 = l1 * s
+        e2 = l2 * s
+    else:
+        if c00 < c11 and c00 < c22:
+            n0, n1, n2 = 1.0, 0.0, 0.0
+        elif c11 < c00 and c11 < c22:
+            n0, n1, n2 = 0.0, 1.0, 0.0
+        else:
+            n0, n1, n2 = 0.0, 0.0, 1.0
+        e0 = c00
+        e1 = c11
+        e2 = c22
+    out[0] = n0
+    out[1] = n1
+    out[2] = n2
+    # eigenvalues ascending (three-element sorting network)
+    if e0 > e1:
+        e0, e1 = e1, e0
+    if e1 > e2:
+        e1, e2 = e2, e1
+    if e0 > e1:
+        e0, e1 = e1, e0
+    out[3] = e0
+    out[4] = e1
+    out[5] = e2
+
+
+_EPS = 2.220446049250313e-16
+
+
+@njit
+def jacobi_eigh3(A, V, w):
+    """Cyclic Jacobi eigen-decomposition of the symmetric 3x3 ``A`` (overwritten).
+
+    On return ``w`` holds the eigenvalues ascending and the columns of ``V`` the matching
+    orthonormal eigenvectors. A rotation (p, q) is applied while
+    ``|a_pq| > eps * sqrt(|a_pp a_qq|)`` (Demmel-Veselic stopping rule, which gives
+    eigenvalues to high relative accuracy); the sweep loop ends when no rotation was
+    needed (at most 50 sweeps; 3x3 matrices converge in a handful).
+    Rotation formulas: Numerical Recipes 3rd ed., Sec. 11.1, Eqs. 11.1.8-11.1.18.
+    """
+    for i in range(3):
+        for j in range(3):
+            V[i, j] = 1.0 if i == j else 0.0
+    for _sweep in range(50):
+        rotated = False
+        for k in range(3):
+            if k == 0:
+                p = 0
+                q = 1
+                r = 2
+            elif k == 1:
+                p = 0
+                q = 2
+                r = 1
+            else:
+                p = 1
+                q = 2
+                r = 0
+            apq = A[p, q]
+            if apq == 0.0:
+                continue
+            app = A[p, p]
+            aqq = A[q, q]
+            if abs(apq) <= _EPS * np.sqrt(abs(app * aqq)):
+                A[p, q] = 0.0
+                A[q, p] = 0.0
+                continue
+            rotated = True
+            theta = (aqq - app) / (2.0 * apq)
+            if abs(theta) > 1e150:
+                t = 0.5 / theta
+            else:
+                t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+            c = 1.0 / np.sqrt(t * t + 1.0)
+            s = t * c
+            arp = A[r, p]
+            arq = A[r, q]
+            A[r, p] = c * arp - s * arq
+            A[p, r] = A[r, p]
+            A[r, q] = s * arp + c * arq
+            A[q, r] = A[r, q]
+            A[p, p] = app - t * apq
+            A[q, q] = aqq + t * apq
+            A[p, q] = 0.0
+            A[q, p] = 0.0
+            for m in range(3):
+                vmp = V[m, p]
+                vmq = V[m, q]
+                V[m, p] = c * vmp - s * vmq
+                V[m, q] = s * vmp + c * vmq
+        if not rotated:
+            break
+    # sort ascending, permuting the eigenvector columns along
+    i0 = 0
+    i1 = 1
+    i2 = 2
+    if A[i0, i0] > A[i1, i1]:
+        i0, i1 = i1, i0
+    if A[i1, i1] > A[i2, i2]:
+        i1, i2 = i2, i1
+    if A[i0, i0] > A[i1, i1]:
+        i0, i1 = i1, i0
+    d0 = A[i0, i0]
+    d1 = A[i1, i1]
+    d2 = A[i2, i2]
+    for m in range(3):
+        t0 = V[m, i0]
+        t1 = V[m, i1]
+        t2 = V[m, i2]
+        A[m, 0] = t0  # reuse A as scratch for the permuted columns
+        A[m, 1] = t1
+        A[m, 2] = t2
+    for m in range(3):
+        V[m, 0] = A[m, 0]
+        V[m, 1] = A[m, 1]
+        V[m, 2] = A[m, 2]
+    w[0] = d0
+    w[1] = d1
+    w[2] = d2
+
+
+# ---------------------------------------------------------------------------------------
+# normals (PCA of a neighbourhood; Baek et al. 2022, Eq. 2)
+# ---------------------------------------------------------------------------------------
+
+STATUS_OK = 0
+STATUS_TOO_FEW = 1
+STATUS_COLLINEAR = 2
+STATUS_COINCIDENT = 3
+
+
+@njit
+def _normal_from_neighbors(points, nbr, cnt, qi, mode_open3d, degenerate_ratio, A, V, w, tmp,
+                           out_n, out_eval, out_status):
+    """PCA normal of point ``qi`` from the ``cnt`` neighbour indices in ``nbr``.
+
+    mode_open3d: raw-moment covariance in absolute coordinates + FastEigen3x3 (Open3D 0.20).
+    otherwise: covariance centred on the query point then on the neighbourhood mean
+    (two-pass), eigen-decomposed with cyclic Jacobi.
+    """
+    if cnt < 3:
+        out_n[qi, 0] = 0.0
+        out_n[qi, 1] = 0.0
+        out_n[qi, 2] = 1.0
+        out_eval[qi, 0] = np.nan
+        out_eval[qi, 1] = np.nan
+        out_eval[qi, 2] = np.nan
+        out_status[qi] = STATUS_TOO_FEW
+        return
+    if mode_open3d:
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        s00 = 0.0
+        s01 = 0.0
+        s02 = 0.0
+        s11 = 0.0
+        s12 = 0.0
+        s22 = 0.0
+        for j in range(cnt):
+            p = nbr[j]
+            x = points[p, 0]
+            y = points[p, 1]
+            z = points[p, 2]
+            s0 += x
+            s1 += y
+            s2 += z
+            s00 += x * x
+            s01 += x * y
+            s02 += x * z
+            s11 += y * y
+            s12 += y * z
+            s22 += z * z
+        fn = float(cnt)
+        s0 /= fn
+        s1 /= fn
+        s2 /= fn
+        s00 /= fn
+        s01 /= fn
+        s02 /= fn
+        s11 /= fn
+        s12 /= fn
+        s22 /= fn
+        c00 = s00 - s0 * s0
+        c11 = s11 - s1 * s1
+        c22 = s22 - s2 * s2
+        c01 = s01 - s0 * s1
+        c02 = s02 - s0 * s2
+        c12 = s12 - s1 * s2
+        fast_eigen3x3(c00, c01, c02, c11, c12, c22, tmp)
+        n0 = tmp[0]
+        n1 = tmp[1]
+        n2 = tmp[2]
+        if n0 == 0.0 and n1 == 0.0 and n2 == 0.0:
+            n2 = 1.0
+        l0 = tmp[3]
+        l1 = tmp[4]
+        l2 = tmp[5]
+    else:
+        q0 = points[qi, 0]
+        q1 = points[qi, 1]
+        q2 = points[qi, 2]
+        m0 = 0.0
+        m1 = 0.0
+        m2 = 0.0
+        for j in range(cnt):
+            p = nbr[j]
+            m0 += points[p, 0] - q0
+            m1 += points[p, 1] - q1
+            m2 += points[p, 2] - q2
+        fn = float(cnt)
+        m0 /= fn
+        m1 /= fn
+        m2 /= fn
+        c00 = 0.0
+        c01 = 0.0
+        c02 = 0.0
+        c11 = 0.0
+        c12 = 0.0
+        c22 = 0.0
+        for j in range(cnt):
+            p = nbr[j]
+            x = (points[p, 0] - q0) - m0
+            y = (points[p, 1] - q1) - m1
+            z = (points[p, 2] - q2) - m2
+            c00 += x * x
+            c01 += x * y
+            c02 += x * z
+            c11 += y * y
+            c12 += y * z
+            c22 += z * z
+        A[0, 0] = c00 / fn
+        A[0, 1] = c01 / fn
+        A[0, 2] = c02 / fn
+        A[1, 0] = A[0, 1]
+        A[1, 1] = c11 / fn
+        A[1, 2] = c12 / fn
+        A[2, 0] = A[0, 2]
+        A[2, 1] = A[1, 2]
+        A[2, 2] = c22 / fn
+        jacobi_eigh3(A, V, w)
+        n0 = V[0, 0]
+        n1 = V[1, 0]
+        n2 = V[2, 0]
+        nn = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        n0 /= nn
+        n1 /= nn
+        n2 /= nn
+        l0 = w[0]
+        l1 = w[1]
+        l2 = w[2]
+    status = STATUS_OK
+    if l2 <= 0.0:
+        status = STATUS_COINCIDENT
+        if not mode_open3d:
+            n0 = 0.0
+            n1 = 0.0
+            n2 = 1.0
+    elif l1 <= degenerate_ratio * l2:
+        status = STATUS_COLLINEAR
+    out_n[qi, 0] = n0
+    out_n[qi, 1] = n1
+    out_n[qi, 2] = n2
+    out_eval[qi, 0] = l0
+    out_eval[qi, 1] = l1
+    out_eval[qi, 2] = l2
+    out_status[qi] = status
+
+
+@njit_parallel
+def normals_hybrid_fused(points, r, cap, mode_open3d, degenerate_ratio, pts, order, cell_start,
+                         origin, cell, inv_cell, nx, ny, nz, bits, table_keys, table_vals,
+                         out_n, out_eval, out_status, out_counts):
+    """Hybrid search + PCA for every point without materialising the (n, max_nn) neighbourhoods."""
+    n = points.shape[0]
+    r2 = r * r
+    nblocks = (n + _BLOCK - 1) // _BLOCK
+    for b in prange(nblocks):
+        buf_pos = np.empty(cap, dtype=np.int64)
+        buf_sq = np.empty(cap, dtype=np.float64)
+        nbr = np.empty(cap, dtype=np.int64)
+        A = np.empty((3, 3))
+        V = np.empty((3, 3))
+        w = np.empty(3)
+        tmp = np.empty(6)
+        for i in range(b * _BLOCK, min(n, (b + 1) * _BLOCK)):
+            cnt = hybrid_one(points[i, 0], points[i, 1], points[i, 2], r, r2, cap, pts, order,
+                             cell_start, origin, cell, inv_cell, nx, ny, nz, bits, table_keys,
+                             table_vals, buf_pos, buf_sq)
+            for j in range(cnt):
+                nbr[j] = order[buf_pos[j]]
+            out_counts[i] = cnt
+            _normal_from_neighbors(points, nbr, cnt, i, mode_open3d, degenerate_ratio, A, V, w,
+                                   tmp, out_n, out_eval, out_status)
+
+
+@njit_parallel
+def normals_from_neighborhoods(points, row0, idx, counts, mode_open3d, degenerate_ratio,
+                               out_n, out_eval, out_status):
+    """PCA normals of points ``row0 .. row0+len(idx)-1`` from padded neighbourhood rows."""
+    nq = idx.shape[0]
+    nblocks = (nq + _BLOCK - 1) // _BLOCK
+    for b in prange(nblocks):
+        A = np.empty((3, 3))
+        V = np.empty((3, 3))
+        w = np.empty(3)
+        tmp = np.empty(6)
+        for i in range(b * _BLOCK, min(nq, (b + 1) * _BLOCK)):
+            _normal_from_neighbors(points, idx[i], counts[i], row0 + i, mode_open3d,
+                                   degenerate_ratio, A, V, w, tmp, out_n, out_eval, out_status)
+
+
+@njit_parallel
+def orient_normals(points, normals, targets, target_index, skip):
+    """Flip n_i when n_i . (s_k - p_i) < 0 with s_k = targets[target_index[i]]; skip[i] leaves it."""
+    n = points.shape[0]
+    for i in prange(n):
+        if skip[i]:
+            continue
+        t = target_index[i]
+        d = (normals[i, 0] * (targets[t, 0] - points[i, 0])
+             + normals[i, 1] * (targets[t, 1] - points[i, 1])
+             + normals[i, 2] * (targets[t, 2] - points[i, 2]))
+        if d < 0.0:
+            normals[i, 0] = -normals[i, 0]
+            normals[i, 1] = -normals[i, 1]
+            normals[i, 2] = -normals[i, 2]
+        elif d == 0.0:
+            # perpendicular to the line of sight: make the largest-magnitude component positive
+            a0 = abs(normals[i, 0])
+            a1 = abs(normals[i, 1])
+            a2 = abs(normals[i, 2])
+            k = 0
+            if a1 > a0:
+                k = 1
+                a0 = a1
+            if a2 > a0:
+                k = 2
+            if normals[i, k] < 0.0:
+                normals[i, 0] = -normals[i, 0]
+                normals[i, 1] = -normals[i, 1]
+                normals[i, 2] = -normals[i, 2]
+
+
+# ---------------------------------------------------------------------------------------
+# voxel downsampling (Open3D VoxelDownSample semantics)
+# ---------------------------------------------------------------------------------------
+
+
+@njit_parallel
+def voxel_keys(points, origin, voxel, out_keys):
+    """Integer voxel coordinates ``floor((p - origin) / voxel)`` (Open3D's formula)."""
+    for i in prange(points.shape[0]):
+        for a in range(3):
+            out_keys[i, a] = np.int64(np.floor((points[i, a] - origin[a]) / voxel))
+
+
+@njit_parallel
+def voxel_reduce(points, normals, has_normals, order, starts, out_points, out_normals):
+    """Per-voxel mean in input order; normals summed skipping NaN rows and divided by the count."""
+    nv = starts.shape[0] - 1
+    for v in prange(nv):
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        t0 = 0.0
+        t1 = 0.0
+        t2 = 0.0
+        for j in range(starts[v], starts[v + 1]):
+            i = order[j]
+            s0 += points[i, 0]
+            s1 += points[i, 1]
+            s2 += points[i, 2]
+            if has_normals:
+                a = normals[i, 0]
+                b = normals[i, 1]
+                c = normals[i, 2]
+                if not (np.isnan(a) or np.isnan(b) or np.isnan(c)):
+                    t0 += a
+                    t1 += b
+                    t2 += c
+        cnt = float(starts[v + 1] - starts[v])
+        out_points[v, 0] = s0 / cnt
+        out_points[v, 1] = s1 / cnt
+        out_points[v, 2] = s2 / cnt
+        if has_normals:
+            out_normals[v, 0] = t0 / cnt
+            out_normals[v, 1] = t1 / cnt
+            out_normals[v, 2] = t2 / cnt
+
+
+@njit_parallel
+def voxel_reduce_columns(values, order, starts, out):
+    """Per-voxel mean of the columns of ``values`` (n, k), summed in input order."""
+    nv = starts.shape[0] - 1
+    k = values.shape[1]
+    for v in prange(nv):
+        cnt = float(starts[v + 1] - starts[v])
+        for c in range(k):
+            s = 0.0
+            for j in range(starts[v], starts[v + 1]):
+                s += values[order[j], c]
+            out[v, c] = s / cnt
+
+
+# ---------------------------------------------------------------------------------------
+# linear octree (Morton codes)
+# ---------------------------------------------------------------------------------------
+
+
+@njit_parallel
+def octree_codes(points, origin, size, depth, out_codes, out_inside):
+    """Morton code of the leaf containing each point, descending like Open3D's Octree.
+
+    At each level the child index is ``ix + 2 iy + 4 iz`` with ``i = 1`` when the
+    coordinate is >= the cell midpoint ``o + s/2`` (Open3D ``OctreeInternalNode``);
+    the child origin is ``o + i * s/2``. Points outside [origin, origin + size) get
+    ``out_inside = False`` and code -1.
+    """
+    for i in prange(points.shape[0]):
+        x = points[i, 0]
+        y = points[i, 1]
+        z = points[i, 2]
+        inside = True
+        for a in range(3):
+            c = points[i, a]
+            if not (c >= origin[a] and c < origin[a] + size):
+                inside = False
+        if not inside:
+            out_codes[i] = -1
+            out_inside[i] = False
+            continue
+        ox = origin[0]
+        oy = origin[1]
+        oz = origin[2]
+        s = size
+        code = np.int64(0)
+        for _lvl in range(depth):
+            h = s / 2.0
+            bx = 0 if x < ox + h else 1
+            by = 0 if y < oy + h else 1
+            bz = 0 if z < oz + h else 1
+            code = (code << 3) | (bx + 2 * by + 4 * bz)
+            ox = ox + bx * h
+            oy = oy + by * h
+            oz = oz + bz * h
+            s = h
+        out_codes[i] = code
+        out_inside[i] = True
+
+
+@njit
+def morton_decode(code, level):
+    """Integer cell coordinates (ix, iy, iz) of a node code at ``level``."""
+    ix = np.int64(0)
+    iy = np.int64(0)
+    iz = np.int64(0)
+    for b in range(level):
+        c = (code >> (3 * b)) & 7
+        ix |= (c & 1) << b
+        iy |= ((c >> 1) & 1) << b
+        iz |= ((c >> 2) & 1) << b
+    return ix, iy, iz
+
+
+@njit_parallel
+def octree_nearest_to_centre(points, order, starts, codes, level, origin, size, out_index):
+    """For every occupied node (range ``starts[k]:starts[k+1]`` of ``order``) the point closest
+    to the node centre; ties keep the lowest original index."""
+    nn = starts.shape[0] - 1
+    cs = size / float(np.int64(1) << level)
+    for k in prange(nn):
+        ix, iy, iz = morton_decode(codes[k], level)
+        c0 = origin[0] + (ix + 0.5) * cs
+        c1 = origin[1] + (iy + 0.5) * cs
+        c2 = origin[2] + (iz + 0.5) * cs
+        best = -1
+        bsq = np.inf
+        for j in range(starts[k], starts[k + 1]):
+            i = order[j]
+            d0 = points[i, 0] - c0
+            d1 = points[i, 1] - c1
+            d2 = points[i, 2] - c2
+            sq = d0 * d0 + d1 * d1 + d2 * d2
+            if sq < bsq or (sq == bsq and i < best):
+                bsq = sq
+                best = i
+        out_index[k] = best
+
+
+@njit
+def octree_region_query(points, order, node_codes, node_pstart, node_pend, node_cstart, node_cend,
+                        level_off, depth, origin, size, is_sphere, c0, c1, c2, r2, b_lo, b_hi, out):
+    """Indices of points inside a sphere (sq < r2, strict) or an axis-aligned box (closed).
+
+    Depth-first traversal from the root over the flattened linear octree (global node ids;
+    ``level_off[l]`` is the first node of level l; a node's points are
+    ``order[node_pstart:node_pend]`` and its children the nodes ``node_cstart:node_cend``).
+    A node is pruned when its cube does not meet the region (with a 1e-12 relative slack,
+    so rounding never prunes a node that holds an answer); every candidate point is then
+    tested exactly. Returns the count written to ``out``.
+    """
+    count = 0
+    stack_level = np.empty(8 * depth + 8, dtype=np.int64)
+    stack_node = np.empty(8 * depth + 8, dtype=np.int64)
+    stack_level[0] = 0
+    stack_node[0] = level_off[0]
+    top = 1
+    slack = 1e-12 * size
+    while top > 0:
+        top -= 1
+        lvl = stack_level[top]
+        node = stack_node[top]
+        cs = size / float(np.int64(1) << lvl)
+        ix, iy, iz = morton_decode(node_codes[node], lvl)
+        lo0 = origin[0] + ix * cs - slack
+        lo1 = origin[1] + iy * cs - slack
+        lo2 = origin[2] + iz * cs - slack
+        hi0 = lo0 + cs + 2 * slack
+        hi1 = lo1 + cs + 2 * slack
+        hi2 = lo2 + cs + 2 * slack
+        if is_sphere:
+            d = 0.0
+            if c0 < lo0:
+                d += (lo0 - c0) ** 2
+            elif c0 > hi0:
+                d += (c0 - hi0) ** 2
+            if c1 < lo1:
+                d += (lo1 - c1) ** 2
+            elif c1 > hi1:
+                d += (c1 - hi1) ** 2
+            if c2 < lo2:
+                d += (lo2 - c2) ** 2
+            elif c2 > hi2:
+                d += (c2 - hi2) ** 2
+            if d >= r2:
+                continue
+        elif (hi0 < b_lo[0] or lo0 > b_hi[0] or hi1 < b_lo[1] or lo1 > b_hi[1]
+              or hi2 < b_lo[2] or lo2 > b_hi[2]):
+            continue
+        if lvl == depth:
+            for j in range(node_pstart[node], node_pend[node]):
+                i = order[j]
+                if is_sphere:
+                    d0 = points[i, 0] - c0
+                    d1 = points[i, 1] - c1
+                    d2 = points[i, 2] - c2
+                    ok = d0 * d0 + d1 * d1 + d2 * d2 < r2
+                else:
+                    ok = (points[i, 0] >= b_lo[0] and points[i, 0] <= b_hi[0]
+                          and points[i, 1] >= b_lo[1] and points[i, 1] <= b_hi[1]
+                          and points[i, 2] >= b_lo[2] and points[i, 2] <= b_hi[2])
+                if ok:
+                    out[count] = i
+                    count += 1
+        else:
+            for c in range(node_cend[node] - 1, node_cstart[node] - 1, -1):
+                stack_level[top] = lvl + 1
+                stack_node[top] = c
+                top += 1
+    return count
