@@ -1,5 +1,29 @@
-"""minegeo.io: point clouds, trajectories and ground control points."""
+"""minegeo.io: point clouds, trajectories and ground control points.
 
+Point clouds: PLY, PCD (incl. LZF ``binary_compressed``), LAS/LAZ (optional laspy),
+XYZ/TXT/CSV, Leica PTS, 3DTK ``.3d``; ``.zip`` holding one of them. Trajectories: TUM,
+KITTI, GeoSLAM-style text, CSV. Control points: CSV. See ``docs/io.md``.
+"""
+
+from minegeo.io._quat import matrix_to_quat, quat_to_matrix
+from minegeo.io.pointcloud import cloud_info, read_point_cloud, write_point_cloud
 from minegeo.io.types import ControlPoints, PointCloud, Trajectory
 
-__all__ = ["PointCloud", "Trajectory", "ControlPoints"]
+__all__ = [
+    "PointCloud",
+    "Trajectory",
+    "ControlPoints",
+    "read_point_cloud",
+    "write_point_cloud",
+    "cloud_info",
+    "quat_to_matrix",
+    "matrix_to_quat",
+]
+
+
+def _warmup() -> None:
+    """Compile the LZF kernels (PCD binary_compressed) on a tiny input."""
+    from minegeo.io._lzf import lzf_compress, lzf_decompress
+
+    data = bytes(range(64)) * 4
+    lzf_decompress(lzf_compress(data), len(data))

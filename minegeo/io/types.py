@@ -36,6 +36,9 @@ class PointCloud:
         Coordinate reference system, e.g. ``"EPSG:5186"``; None for a local frame.
     frame : str
         Name of the frame the points are expressed in (``"map"``, ``"scan"``, ``"sensor"``...).
+    metadata : dict
+        Free-form facts about where the cloud came from (not per point): e.g. ``format``,
+        ``units`` (``"cm"`` for 3DTK scans), LAS ``las_scale``/``las_offset``, ``source``.
     """
 
     points: np.ndarray
@@ -44,6 +47,7 @@ class PointCloud:
     origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
     crs: str | None = None
     frame: str = "local"
+    metadata: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.points = as_points(self.points, "points", min_points=0)
@@ -82,6 +86,7 @@ class PointCloud:
             origin=self.origin.copy(),
             crs=self.crs,
             frame=self.frame,
+            metadata=dict(self.metadata),
         )
 
 

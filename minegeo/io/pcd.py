@@ -1,0 +1,340 @@
+"""PCD (Point Cloud Library) point clouds: ``DATA ascii``, ``binary`` and ``binary_compressed``.
+
+Header keys: ``VERSION FIELDS SIZE TYPE COUNT WIDTH HEIGHT VIEWPOINT POINTS DATA``
+(``COUNT`` defaults to 1, ``POINTS`` to ``WIDTH*HEIGHT``; lines starting with ``#`` are
+comments). Data layouts (PCL ``pcd_io.cpp``):
+
+* ``ascii``: one point per line, fields in order, ``COUNT`` values per field.
+* ``binary``: packed little-endian records (array of structures), no padding.
+* ``binary_compressed``: ``uint32 compressed_size, uint32 uncompressed_size``, then one
+  LZF stream of the *structure of arrays* layout (all values of field 1, then field 2...).
+
+Conventions: normals ``normal_x normal_y normal_z``; colour either PCL's packed ``rgb``
+/``rgba`` (4 bytes ``0xAARRGGBB``, stored as float or uint) or separate ``red green blue``
+fields (16-bit values, as in LAS-derived files, are divided by 256) -> ``attributes["rgb"]``;
+fields with ``COUNT > 1`` (e.g. descriptors) become ``(n, COUNT)`` attributes; PCL padding
+fields named ``_`` are dropped. Organized clouds (``HEIGHT > 1``) are read row by row and
+the grid is recorded in ``metadata`` (``width``, ``height``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from minegeo import __version__
+from minegeo.errors import FileFormatError, InputError
+from minegeo.io._common import (
+    RawCloud,
+    check_float32_precision,
+    find_xyz,
+    global_values,
+    one_line_crs,
+    rgb_of,
+    writable_attributes,
+)
+from minegeo.io._lzf import lzf_compress, lzf_decompress
+from minegeo.io._text import format_table, parse_table
+from minegeo.io.types import PointCloud
+
+__all__ = ["read_pcd_bytes", "write_pcd_bytes", "PCD_ENCODINGS"]
+
+PCD_ENCODINGS = ("ascii", "binary", "binary_compressed")
+_KEYS = ("VERSION", "FIELDS", "COLUMNS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
+_VALID = {("F", 4), ("F", 8), ("I", 1), ("I", 2), ("I", 4), ("I", 8), ("U", 1), ("U", 2), ("U", 4), ("U", 8)}
+_MAX_HEADER_LINES = 64
+
+
+def _np_code(t: str, s: int) -> str:
+    return {"F": "f", "I": "i", "U": "u"}[t] + str(s)
+
+
+def _parse_header(path, data: bytes):
+    pos = 0
+    hdr: dict[str, list[str]] = {}
+    comments: list[str] = []
+    lineno = 0
+    while True:
+        lineno += 1
+        if lineno > _MAX_HEADER_LINES:
+            raise FileFormatError(path, "PCD header has no DATA line in its first 64 lines (not a PCD file?)")
+        nl = data.find(b"\n", pos)
+        if nl < 0:
+            if not data[pos:].strip():
+                what = "empty file" if not data.strip() else "PCD header ends before its DATA line"
+                raise FileFormatError(path, f"{what} (truncated?)")
+            nl = len(data)
+        line = data[pos:nl].decode("latin-1").strip()
+        pos = nl + 1
+        if not line:
+            continue
+        if line.startswith("#"):
+            comments.append(line[1:].strip())
+            continue
+        tok = line.split()
+        key = tok[0].upper()
+        if key not in _KEYS:
+            raise FileFormatError(path, f"line {lineno}: unknown PCD header keyword {tok[0]!r} (not a PCD file?)")
+        hdr["FIELDS" if key == "COLUMNS" else key] = tok[1:]
+        if key == "DATA":
+            return hdr, comments, min(pos, len(data)), lineno
+
+
+def _int(path, hdr, key, default=None) -> int:
+    if key not in hdr:
+        if default is None:
+            raise FileFormatError(path, f"PCD header has no {key} line")
+        return default
+    v = hdr[key]
+    if len(v) != 1 or not v[0].isdigit():
+        raise FileFormatError(path, f"PCD {key} must be one non-negative integer, got {' '.join(v)!r}")
+    return int(v[0])
+
+
+def read_pcd_bytes(path, data: bytes) -> RawCloud:
+    """Parse PCD bytes (``path`` only names the file in errors); see the module docstring."""
+    hdr, comments, body, header_lines = _parse_header(path, data)
+    names = hdr.get("FIELDS")
+    if not names:
+        raise FileFormatError(path, "PCD header has no FIELDS")
+    k = len(names)
+    sizes = hdr.get("SIZE", [])
+    types = [t.upper() for t in hdr.get("TYPE", [])]
+    counts = hdr.get("COUNT", ["1"] * k)
+    if not (len(sizes) == len(types) == len(counts) == k):
+        raise FileFormatError(
+            path,
+            f"PCD header lists {k} FIELDS but {len(sizes)} SIZE, {len(types)} TYPE, {len(counts)} COUNT entries",
+        )
+    try:
+        sizes_i = [int(s) for s in sizes]
+        counts_i = [int(c) for c in counts]
+    except ValueError:
+        raise FileFormatError(path, "PCD SIZE/COUNT entries must be integers") from None
+    for nm, t, s, c in zip(names, types, sizes_i, counts_i, strict=True):
+        if (t, s) not in _VALID or c < 1:
+            raise FileFormatError(path, f"PCD field {nm!r}: unsupported TYPE {t} SIZE {s} COUNT {c}")
+    width = _int(path, hdr, "WIDTH")
+    height = _int(path, hdr, "HEIGHT", 1)
+    n = _int(path, hdr, "POINTS", width * height)
+    if n != width * height:
+        raise FileFormatError(path, f"PCD POINTS ({n}) differs from WIDTH*HEIGHT ({width}*{height})")
+    mode = (hdr.get("DATA") or [""])[0].lower()
+    if mode not in PCD_ENCODINGS:
+        raise FileFormatError(path, f"unknown PCD DATA type {mode!r} (expected ascii, binary or binary_compressed)")
+    # unique names for padding fields
+    uniq = []
+    for j, nm in enumerate(names):
+        uniq.append(f"__pad{j}" if nm == "_" or nm in uniq else nm)
+    ix, iy, iz = find_xyz(path, uniq)
+    codes = [_np_code(t, s) for t, s in zip(types, sizes_i, strict=True)]
+    cols: dict[str, np.ndarray] = {}
+    line_of_row = None
+    if mode == "ascii":
+        ncols = sum(counts_i)
+        table = parse_table(
+            path,
+            data[body:].decode("latin-1"),
+            ncols=ncols,
+            first_line=header_lines + 1,
+            expected_rows=n,
+            comments="#",
+        )
+        j = 0
+        for nm, code, c in zip(uniq, codes, counts_i, strict=True):
+            block = table[:, j : j + c]
+            j += c
+            if code[0] != "f":
+                if np.any(block != np.round(block)):
+                    raise FileFormatError(path, f"PCD integer field {nm!r} holds non-integer values")
+            elif nm.lower() in ("rgb", "rgba"):
+                block = block.astype(np.float32)  # packed colour: the float's bits matter
+            cols[nm] = block[:, 0].astype(code) if c == 1 else block.astype(code)
+        line_of_row = (header_lines + 1, 1)
+    else:
+        dt = np.dtype(
+            [(nm, "<" + code, (c,)) if c > 1 else (nm, "<" + code) for nm, code, c in zip(uniq, codes, counts_i, strict=True)]
+        )
+        need = n * dt.itemsize
+        if mode == "binary":
+            have = len(data) - body
+            if have < need:
+                raise FileFormatError(
+                    path, f"file truncated: header declares {n} points ({need} bytes) but {have} bytes follow"
+                )
+            if have > need and data[body + need :].strip(b" \t\r\n\0"):
+                raise FileFormatError(path, f"{have - need} bytes after the last point: header POINTS ({n}) is wrong")
+            arr = np.frombuffer(data, dtype=dt, count=n, offset=body)
+            for nm in uniq:
+                cols[nm] = arr[nm].astype(arr.dtype[nm].base.newbyteorder("="))
+        else:
+            if len(data) - body < 8:
+                raise FileFormatError(path, "file truncated: binary_compressed PCD has no size header")
+            csize, usize = (int(v) for v in np.frombuffer(data, dtype="<u4", count=2, offset=body))
+            if usize != need:
+                raise FileFormatError(
+                    path,
+                    f"binary_compressed PCD: uncompressed size {usize} bytes does not match "
+                    f"{n} points x {dt.itemsize} bytes (wrong POINTS or fields)",
+                )
+            if len(data) - body - 8 < csize:
+                raise FileFormatError(
+                    path, f"file truncated: {csize} compressed bytes declared, {len(data) - body - 8} present"
+                )
+            try:
+                raw = lzf_decompress(memoryview(data)[body + 8 : body + 8 + csize], usize) if usize else b""
+            except InputError as exc:
+                raise FileFormatError(path, f"binary_compressed PCD: {exc}") from None
+            off = 0
+            for nm, code, c in zip(uniq, codes, counts_i, strict=True):
+                nbytes = n * c * int(code[1:])
+                a = np.frombuffer(raw, dtype="<" + code, count=n * c, offset=off).astype(code)
+                off += nbytes
+                cols[nm] = a if c == 1 else a.reshape(n, c)
+    for nm in [u for u in uniq if u.startswith("__pad")]:
+        cols.pop(nm)
+    # packed colour
+    low = {nm.lower(): nm for nm in cols}
+    for key in ("rgb", "rgba"):
+        if key in low and cols[low[key]].ndim == 1 and cols[low[key]].dtype.itemsize == 4:
+            packed = np.ascontiguousarray(cols.pop(low[key])).view(np.uint32)
+            cols["red"] = ((packed >> 16) & 0xFF).astype(np.uint8)
+            cols["green"] = ((packed >> 8) & 0xFF).astype(np.uint8)
+            cols["blue"] = (packed & 0xFF).astype(np.uint8)
+            if key == "rgba":
+                cols["alpha"] = ((packed >> 24) & 0xFF).astype(np.uint8)
+            break
+    xyz = [uniq[ix], uniq[iy], uniq[iz]]
+    values = np.column_stack([np.asarray(cols.pop(k), dtype=np.float64) for k in xyz]) if n else np.empty((0, 3))
+    meta = {
+        "format": "pcd",
+        "encoding": mode,
+        "width": width,
+        "height": height,
+        "dtype": str(np.result_type(*(np.dtype(codes[i]) for i in (ix, iy, iz)))),
+    }
+    if "VIEWPOINT" in hdr:
+        meta["viewpoint"] = hdr["VIEWPOINT"]
+    if "VERSION" in hdr:
+        meta["version"] = " ".join(hdr["VERSION"])
+    mg = {}
+    for c in comments:
+        tok = c.split(None, 2)
+        if len(tok) == 3 and tok[0] == "minegeo":
+            mg[tok[1]] = tok[2]
+    file_origin = np.zeros(3)
+    if "origin" in mg:
+        try:
+            file_origin = np.array([float(t) for t in mg["origin"].split()]).reshape(3)
+        except ValueError:
+            raise FileFormatError(path, f"malformed '# minegeo origin {mg['origin']}'") from None
+    return RawCloud(values, cols, file_origin, mg.get("crs"), mg.get("frame"), meta, line_of_row)
+
+
+def _pcd_code(v: np.ndarray) -> tuple[str, int]:
+    dt = v.dtype
+    if dt == np.bool_:
+        return "U", 1
+    kind = {"f": "F", "i": "I", "u": "U"}.get(dt.kind)
+    if kind is None:
+        raise InputError(f"dtype {dt} cannot be written to PCD")
+    return kind, dt.itemsize
+
+
+def write_pcd_bytes(
+    cloud: PointCloud,
+    encoding: str = "binary",
+    dtype: str = "float64",
+    coordinates: str = "global",
+) -> bytes:
+    """Serialise ``cloud`` as PCD v0.7.
+
+    Parameters
+    ----------
+    encoding : {"ascii", "binary", "binary_compressed"}
+    dtype : {"float64", "float32"}
+        Coordinate and normal type (float32 refused if it would move points by > 1 mm).
+    coordinates : {"global", "local"}
+        As for PLY: ``"local"`` records the origin in a ``# minegeo origin`` header comment.
+
+    Notes
+    -----
+    Colour is written as PCL's packed ``rgb`` field (``F 4`` in binary modes, ``U 4`` in
+    ascii so the text is exact). 2-D attributes keep their column count (``COUNT``).
+    """
+    if encoding not in PCD_ENCODINGS:
+        raise InputError(f"PCD encoding must be one of {PCD_ENCODINGS}, got {encoding!r}")
+    if dtype not in ("float64", "float32"):
+        raise InputError(f"dtype must be 'float64' or 'float32', got {dtype!r}")
+    n = len(cloud)
+    values, rec_origin = global_values(cloud, coordinates)
+    fs = 8 if dtype == "float64" else 4
+    if fs == 4:
+        check_float32_precision(values)
+    fields: list[tuple[str, str, int, int, np.ndarray]] = [
+        (nm, "F", fs, 1, values[:, j]) for j, nm in enumerate("xyz")
+    ]
+    if cloud.normals is not None:
+        fields += [(nm, "F", fs, 1, cloud.normals[:, j]) for j, nm in enumerate(("normal_x", "normal_y", "normal_z"))]
+    rgb = rgb_of(cloud)
+    if rgb is not None:
+        packed = (rgb[:, 0].astype(np.uint32) << 16) | (rgb[:, 1].astype(np.uint32) << 8) | rgb[:, 2]
+        if encoding == "ascii":
+            fields.append(("rgb", "U", 4, 1, packed))
+        else:
+            fields.append(("rgb", "F", 4, 1, packed.view(np.float32)))
+    for name, v in cloud.attributes.items():
+        if name == "rgb":
+            continue
+        v = np.asarray(v)
+        writable_attributes(PointCloud(np.zeros((n, 3)), attributes={name: v}))  # validates name/dtype
+        t, s = _pcd_code(v)
+        if v.dtype == np.bool_:
+            v = v.astype(np.uint8)
+        if v.ndim == 1:
+            fields.append((name, t, s, 1, v))
+        else:
+            fields.append((name, t, s, v.shape[1], v))
+    header = [f"# .PCD v0.7 - Point Cloud Data file format (minegeo {__version__})"]
+    if cloud.crs:
+        header.append(f"# minegeo crs {one_line_crs(cloud.crs)}")
+    header.append(f"# minegeo frame {cloud.frame}")
+    if coordinates == "local" and np.any(rec_origin != 0):
+        header.append("# minegeo origin " + " ".join(repr(float(v)) for v in rec_origin))
+    header += [
+        "VERSION 0.7",
+        "FIELDS " + " ".join(f[0] for f in fields),
+        "SIZE " + " ".join(str(f[2]) for f in fields),
+        "TYPE " + " ".join(f[1] for f in fields),
+        "COUNT " + " ".join(str(f[3]) for f in fields),
+        f"WIDTH {n}",
+        "HEIGHT 1",
+        "VIEWPOINT 0 0 0 1 0 0 0",
+        f"POINTS {n}",
+        f"DATA {encoding}",
+    ]
+    head = ("\n".join(header) + "\n").encode("ascii")
+    if encoding == "ascii":
+        cols, fmts = [], []
+        for _, t, s, c, v in fields:
+            fmt = "%d" if t != "F" else ("%.17g" if s == 8 else "%.9g")
+            if t in ("I", "U") and s == 8 and v.size and np.abs(v).max() > 2**53:
+                raise InputError("64-bit integers above 2^53 cannot be written exactly as PCD ascii")
+            if c == 1:
+                cols.append(v)
+                fmts.append(fmt)
+            else:
+                cols += [v[:, j] for j in range(c)]
+                fmts += [fmt] * c
+        return head + format_table(cols, fmts).encode("ascii")
+    dt = np.dtype(
+        [(f"f{j}", "<" + _np_code(t, s), (c,)) if c > 1 else (f"f{j}", "<" + _np_code(t, s)) for j, (_, t, s, c, _) in enumerate(fields)]
+    )
+    if encoding == "binary":
+        arr = np.empty(n, dtype=dt)
+        for j, f in enumerate(fields):
+            arr[f"f{j}"] = f[4]
+        return head + arr.tobytes()
+    soa = b"".join(np.ascontiguousarray(np.asarray(f[4]).astype("<" + _np_code(f[1], f[2]))).tobytes() for f in fields)
+    comp = lzf_compress(soa) if soa else b""
+    sizes = np.array([len(comp), len(soa)], dtype="<u4").tobytes()
+    return head + sizes + comp

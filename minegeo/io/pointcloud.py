@@ -1,0 +1,320 @@
+"""Point-cloud file entry points: :func:`read_point_cloud`, :func:`write_point_cloud`, :func:`cloud_info`.
+
+Formats (chosen from the file suffix unless ``format`` is given):
+
+=========  =========================  ==========================================
+format     suffixes                   module
+=========  =========================  ==========================================
+ply        .ply                       :mod:`minegeo.io.ply`
+pcd        .pcd                       :mod:`minegeo.io.pcd`
+las / laz  .las / .laz                :mod:`minegeo.io.las` (optional laspy)
+xyz        .xyz .txt                  :mod:`minegeo.io.xyz`
+csv        .csv                       :mod:`minegeo.io.xyz`
+pts        .pts                       :mod:`minegeo.io.xyz` (Leica PTS)
+3d         .3d                        :mod:`minegeo.io.xyz` (3DTK scans, centimetres)
+=========  =========================  ==========================================
+
+A ``.zip`` holding exactly one point-cloud file (e.g. ``scan.pcd.zip``) is read directly.
+Files are read whole into memory and parsed with vectorised NumPy (structured dtypes for
+binary data, NumPy's C tokenizer for text): no Python loop runs over points.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from minegeo._provenance import atomic_write_bytes, sha256_file
+from minegeo.errors import FileFormatError, InputError
+from minegeo.io._common import assemble
+from minegeo.io.types import PointCloud
+
+log = logging.getLogger(__name__)
+
+__all__ = ["read_point_cloud", "write_point_cloud", "cloud_info", "detect_format", "POINT_CLOUD_FORMATS"]
+
+_SUFFIX = {
+    ".ply": "ply",
+    ".pcd": "pcd",
+    ".las": "las",
+    ".laz": "laz",
+    ".xyz": "xyz",
+    ".txt": "xyz",
+    ".csv": "csv",
+    ".pts": "pts",
+    ".3d": "3d",
+    ".zip": "zip",
+}
+POINT_CLOUD_FORMATS = ("ply", "pcd", "las", "laz", "xyz", "csv", "pts", "3d")
+
+
+def detect_format(path, format: str | None = None) -> str:
+    """Format name from ``format`` or the file suffix; raise :class:`FileFormatError` if unknown."""
+    if format is not None:
+        f = str(format).lower().lstrip(".")
+        f = {"txt": "xyz"}.get(f, f)
+        if f not in POINT_CLOUD_FORMATS and f != "zip":
+            raise InputError(f"unknown point-cloud format {format!r}; choose one of {', '.join(POINT_CLOUD_FORMATS)}")
+        return f
+    suffix = Path(str(path)).suffix.lower()
+    if suffix not in _SUFFIX:
+        raise FileFormatError(
+            path,
+            f"unknown point-cloud file extension {suffix or '(none)'!r}; known: "
+            f"{' '.join(sorted(_SUFFIX))} (or pass format=...)",
+        )
+    return _SUFFIX[suffix]
+
+
+def _read_raw(name: str, data: bytes, fmt: str, columns=None):
+    if fmt == "ply":
+        from minegeo.io.ply import read_ply_bytes
+
+        return read_ply_bytes(name, data)
+    if fmt == "pcd":
+        from minegeo.io.pcd import read_pcd_bytes
+
+        return read_pcd_bytes(name, data)
+    if fmt in ("las", "laz"):
+        from minegeo.io.las import read_las_bytes
+
+        return read_las_bytes(name, data)
+    from minegeo.io.xyz import read_text_bytes
+
+    return read_text_bytes(name, data, fmt, columns=columns)
+
+
+def _unzip(path: Path, data: bytes) -> tuple[str, bytes, str]:
+    import io
+
+    try:
+        zf = zipfile.ZipFile(io.BytesIO(data))
+    except zipfile.BadZipFile as exc:
+        raise FileFormatError(path, f"not a readable zip archive ({exc})") from None
+    members = [
+        m
+        for m in zf.infolist()
+        if not m.is_dir() and not m.filename.startswith("__MACOSX/") and Path(m.filename).suffix.lower() in _SUFFIX
+    ]
+    members = [m for m in members if _SUFFIX[Path(m.filename).suffix.lower()] != "zip"]
+    if len(members) != 1:
+        names = ", ".join(m.filename for m in zf.infolist()) or "(nothing)"
+        raise FileFormatError(path, f"zip must hold exactly one point-cloud file, it holds: {names}")
+    m = members[0]
+    try:
+        inner = zf.read(m)
+    except (zipfile.BadZipFile, OSError, EOFError) as exc:
+        raise FileFormatError(path, f"zip member {m.filename!r} is damaged ({exc})") from None
+    return f"{path}!{m.filename}", inner, _SUFFIX[Path(m.filename).suffix.lower()]
+
+
+def read_point_cloud(
+    path,
+    format: str | None = None,
+    origin=None,
+    *,
+    drop_nonfinite: bool = False,
+    scale: float | None = None,
+    columns=None,
+) -> PointCloud:
+    """Read a point cloud file into a float64 :class:`~minegeo.io.types.PointCloud`.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file (opened read-only, never modified). A ``.zip`` with one point-cloud file
+        inside is read directly.
+    format : str, optional
+        ``ply pcd las laz xyz csv pts 3d`` (default: from the suffix).
+    origin : None, "auto", "file" or (3,) array_like, optional
+        Local origin (m) to subtract so that large projected coordinates keep their
+        precision: ``points = global - origin`` and ``cloud.origin = origin``.
+        ``None``: no subtraction (origin 0). ``"auto"``: 0 if all coordinates lie within
+        +-10 km, else the bounding-box centre rounded to whole metres. ``"file"``: the
+        offset stored in the file (LAS header offset, or the ``minegeo origin`` comment of a
+        file written with ``coordinates="local"``). For LAS the points are computed as
+        ``X * scale + (offset - origin)`` with ``X`` the stored integers.
+    drop_nonfinite : bool
+        Points with NaN/inf coordinates are an error by default (the message names the
+        first one and its line); ``True`` drops them, logs how many, and records the
+        count in ``metadata["dropped_nonfinite"]`` (organised PCD clouds mark missing
+        returns with NaN).
+    scale : float, optional
+        Multiply coordinates by this unit factor after reading (e.g. ``0.01`` for 3DTK
+        scans in centimetres -> metres); ``metadata["units"]`` is updated. Applied before
+        ``origin`` is subtracted, so ``origin`` is in the scaled unit.
+    columns : list of str, optional
+        Column names for text formats without a header (e.g. ``["x","y","z","intensity"]``).
+
+    Returns
+    -------
+    PointCloud
+        ``points`` float64 (n, 3) relative to ``origin``; ``normals``; ``attributes``
+        (``rgb`` (n, 3) uint8, ``intensity`` and other fields with their stored dtypes);
+        ``crs``; ``metadata`` (``format``, ``encoding``, ``source``, ``units``, LAS
+        ``las_scale``/``las_offset``...).
+
+    Raises
+    ------
+    FileFormatError
+        Unknown extension, wrong or unknown header, truncated data, point count that differs
+        from the header, non-numeric values, NaN coordinates, empty file; the message names
+        the file and the problem (and the line for text data).
+    OptionalDependencyError
+        LAS/LAZ without laspy installed.
+    FileNotFoundError
+        The file does not exist.
+    """
+    p = Path(path)
+    fmt = detect_format(p, format)
+    if p.is_dir():
+        raise FileFormatError(p, "is a directory, not a point-cloud file")
+    data = p.read_bytes()
+    name = str(p)
+    if fmt == "zip":
+        if data[:4] != b"PK\x03\x04":
+            raise FileFormatError(p, "not a zip archive (bad signature)")
+        name, data, fmt = _unzip(p, data)
+    if len(data) == 0:
+        raise FileFormatError(name, "empty file")
+    raw = _read_raw(name, data, fmt, columns=columns)
+    del data
+    cloud = assemble(name, raw, origin=origin, drop_nonfinite=drop_nonfinite, scale=scale)
+    cloud.metadata["source"] = name
+    log.debug("read %d points from %s (%s)", len(cloud), name, fmt)
+    return cloud
+
+
+def write_point_cloud(
+    path,
+    cloud: PointCloud,
+    format: str | None = None,
+    binary: bool = True,
+    dtype: str = "float64",
+    *,
+    encoding: str | None = None,
+    coordinates: str = "global",
+    las_scale=None,
+    las_offset=None,
+    header: bool = True,
+) -> Path:
+    """Write ``cloud`` atomically (temporary file + rename); inputs are never touched.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file; its suffix selects the format unless ``format`` is given.
+    cloud : PointCloud
+    format : str, optional
+        ``ply pcd las laz xyz csv pts 3d``.
+    binary : bool
+        PLY: ``binary_little_endian`` (True) or ``ascii``; PCD: ``binary`` or ``ascii``.
+    dtype : {"float64", "float32"}
+        Coordinate/normal storage type for PLY, PCD and text. float32 is refused if it would
+        move any point by more than 1 mm (write ``coordinates="local"`` instead).
+    encoding : str, optional
+        Overrides ``binary``: PLY ``ascii | binary_little_endian | binary_big_endian``;
+        PCD ``ascii | binary | binary_compressed`` (LZF).
+    coordinates : {"global", "local"}
+        ``"global"`` (default) writes ``points + origin``; ``"local"`` writes ``points`` and
+        records ``origin`` in the header (PLY/PCD/XYZ/CSV), restored by
+        ``read_point_cloud(..., origin="file")``. LAS always stores global coordinates.
+    las_scale, las_offset
+        LAS/LAZ integer resolution and offset (m); default: as read, else 0.001 and a
+        whole-metre offset below the data.
+    header : bool
+        XYZ/CSV: write the ``# minegeo`` lines and column names.
+
+    Returns
+    -------
+    Path
+        The written file.
+    """
+    if not isinstance(cloud, PointCloud):
+        raise InputError(f"cloud must be a PointCloud, got {type(cloud).__name__}")
+    p = Path(path)
+    fmt = detect_format(p, format)
+    if fmt == "zip":
+        raise InputError("writing .zip archives is not supported; write the point-cloud file itself")
+    if fmt == "ply":
+        from minegeo.io.ply import write_ply_bytes
+
+        enc = encoding or ("binary_little_endian" if binary else "ascii")
+        data = write_ply_bytes(cloud, encoding=enc, dtype=dtype, coordinates=coordinates)
+    elif fmt == "pcd":
+        from minegeo.io.pcd import write_pcd_bytes
+
+        enc = encoding or ("binary" if binary else "ascii")
+        data = write_pcd_bytes(cloud, encoding=enc, dtype=dtype, coordinates=coordinates)
+    elif fmt in ("las", "laz"):
+        from minegeo.io.las import write_las_bytes
+
+        if coordinates != "global":
+            raise InputError("LAS/LAZ always store global coordinates (integer * scale + offset)")
+        data = write_las_bytes(cloud, compress=(fmt == "laz"), las_scale=las_scale, las_offset=las_offset)
+    else:
+        from minegeo.io.xyz import write_text_bytes
+
+        data = write_text_bytes(cloud, fmt=fmt, dtype=dtype, coordinates=coordinates, header=header)
+    if p.exists() and _same_file(p, cloud.metadata.get("source")):
+        raise InputError(f"refusing to overwrite the input file {p}; write to a new path")
+    atomic_write_bytes(p, data)
+    log.debug("wrote %d points to %s (%s)", len(cloud), p, fmt)
+    return p
+
+
+def _same_file(p: Path, source) -> bool:
+    if not source:
+        return False
+    src = str(source).split("!", 1)[0]
+    try:
+        return os.path.samefile(p, src)
+    except OSError:
+        return False
+
+
+def cloud_info(path, format: str | None = None) -> dict:
+    """Summary of a point-cloud file for ``minegeo info`` and result JSONs.
+
+    Returns
+    -------
+    dict
+        ``path``, ``format``, ``encoding``, ``points``, ``bounds_min``/``bounds_max``
+        (global coordinates, m or file units), ``extent``, ``attributes`` (name -> dtype
+        and shape), ``normals``, ``crs``, ``recorded_origin``, ``units``, ``size_bytes``,
+        ``sha256`` and the reader's ``metadata``.
+    """
+    p = Path(path)
+    cloud = read_point_cloud(p, format=format)
+    n = len(cloud)
+    g = cloud.global_points
+    attrs = {"normals": {"dtype": "float64", "shape": [n, 3]}} if cloud.normals is not None else {}
+    for k, v in cloud.attributes.items():
+        attrs[k] = {"dtype": str(v.dtype), "shape": list(v.shape)}
+        if v.size and np.issubdtype(v.dtype, np.number):
+            attrs[k]["min"] = float(np.nanmin(v)) if np.isfinite(v).any() else None
+            attrs[k]["max"] = float(np.nanmax(v)) if np.isfinite(v).any() else None
+    meta = dict(cloud.metadata)
+    info = {
+        "path": str(p),
+        "format": meta.get("format"),
+        "encoding": meta.get("encoding"),
+        "points": n,
+        "bounds_min": g.min(axis=0).tolist() if n else None,
+        "bounds_max": g.max(axis=0).tolist() if n else None,
+        "extent": (g.max(axis=0) - g.min(axis=0)).tolist() if n else None,
+        "normals": cloud.normals is not None,
+        "attributes": attrs,
+        "crs": cloud.crs,
+        "frame": cloud.frame,
+        "recorded_origin": meta.get("recorded_origin", [0.0, 0.0, 0.0]),
+        "units": meta.get("units", "m (assumed)"),
+        "size_bytes": p.stat().st_size,
+        "sha256": sha256_file(p),
+        "metadata": meta,
+    }
+    return info
