@@ -25,6 +25,7 @@ logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 #: Modules that expose ``_warmup()``: compile their Numba kernels on tiny inputs.
 _WARMUP_MODULES = (
+    "minegeo.io",
     "minegeo.synth",
     "minegeo.geometry",
     "minegeo.features",
