@@ -24,6 +24,8 @@ from minegeo.geometry.normals import (
     NormalsResult,
     estimate_normals,
 )
+from minegeo.geometry.octree import MAX_OCTREE_DEPTH, Octree, OctreeDownsampleResult, octree_downsample
+from minegeo.geometry.voxel import VoxelResult, voxel_downsample
 
 __all__ = [
     "NeighborIndex",
@@ -35,6 +37,12 @@ __all__ = [
     "STATUS_TOO_FEW",
     "STATUS_COLLINEAR",
     "STATUS_COINCIDENT",
+    "voxel_downsample",
+    "VoxelResult",
+    "Octree",
+    "OctreeDownsampleResult",
+    "octree_downsample",
+    "MAX_OCTREE_DEPTH",
 ]
 
 
@@ -49,3 +57,10 @@ def _warmup() -> None:
     for mode in ("accurate", "open3d"):
         estimate_normals(pts, NormalParams(radius_m=0.5, max_nn=8, mode=mode), orient_towards=np.zeros(3))
         estimate_normals(pts, NormalParams(max_nn=5, mode=mode))
+    vr = voxel_downsample(pts, 0.3, normals=pts, attributes={"i": pts[:, 0]})
+    assert vr.points.shape[0] > 0
+    tree = Octree(pts, 3)
+    tree.downsample()
+    tree.radius(pts[0], 0.3)
+    tree.box(pts[0] - 0.2, pts[0] + 0.2)
+    tree.leaf_of(pts[:3])
