@@ -32,6 +32,7 @@ _WARMUP_MODULES = (
     "minegeo.registration",
     "minegeo.survey",
     "minegeo.mast",
+    "minegeo.localize",
 )
 
 

@@ -23,6 +23,9 @@ VERBS: dict[str, str] = {
     "demo": "minegeo._demo",
     "adjust": "minegeo.survey._cli",
     "mast": "minegeo.mast._cli",
+    "georef": "minegeo.localize._cli_georef",
+    "prepare-map": "minegeo.localize._cli_prepare",
+    "localize": "minegeo.localize._cli_localize",
     "warmup": "minegeo._cli_warmup",
 }
 

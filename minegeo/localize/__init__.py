@@ -1,0 +1,1 @@
+"""minegeo.localize: georeferencing a map and global localization of scans in it."""
