@@ -6,7 +6,9 @@ KITTI, GeoSLAM-style text, CSV. Control points: CSV. See ``docs/io.md``.
 """
 
 from minegeo.io._quat import matrix_to_quat, quat_to_matrix
+from minegeo.io.gcp import read_gcps, write_gcps
 from minegeo.io.pointcloud import cloud_info, read_point_cloud, write_point_cloud
+from minegeo.io.trajectory import read_trajectory, read_transform, write_trajectory
 from minegeo.io.types import ControlPoints, PointCloud, Trajectory
 
 __all__ = [
@@ -16,6 +18,11 @@ __all__ = [
     "read_point_cloud",
     "write_point_cloud",
     "cloud_info",
+    "read_trajectory",
+    "write_trajectory",
+    "read_transform",
+    "read_gcps",
+    "write_gcps",
     "quat_to_matrix",
     "matrix_to_quat",
 ]

@@ -204,7 +204,7 @@ def read_pcd_bytes(path, data: bytes) -> RawCloud:
                 cols["alpha"] = ((packed >> 24) & 0xFF).astype(np.uint8)
             break
     xyz = [uniq[ix], uniq[iy], uniq[iz]]
-    values = np.column_stack([np.asarray(cols.pop(k), dtype=np.float64) for k in xyz]) if n else np.empty((0, 3))
+    values = np.column_stack([np.asarray(cols.pop(k), dtype=np.float64) for k in xyz]).reshape(-1, 3)
     meta = {
         "format": "pcd",
         "encoding": mode,

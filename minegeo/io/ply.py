@@ -164,7 +164,7 @@ def read_ply_bytes(path, data: bytes) -> RawCloud:
         cols = {p[0]: arr[p[0]].astype(np.dtype(p[1]).newbyteorder("=")) for p in vert["props"]}
         line_of_row = None
     xyz = [pnames[ix], pnames[iy], pnames[iz]]
-    values = np.column_stack([np.asarray(cols.pop(k), dtype=np.float64) for k in xyz]) if n else np.empty((0, 3))
+    values = np.column_stack([np.asarray(cols.pop(k), dtype=np.float64) for k in xyz]).reshape(-1, 3)
     mg = _minegeo_comments(comments)
     file_origin = np.zeros(3)
     if "origin" in mg:

@@ -200,7 +200,8 @@ def write_text_bytes(
     dropped: list[str] = []
 
     def afmt(v):
-        return "%d" if np.issubdtype(v.dtype, np.integer) else ("%.9g" if v.dtype == np.float32 else "%.17g")
+        # text has no dtype: print floats with 17 digits so float32 values come back exactly as float64
+        return "%d" if np.issubdtype(v.dtype, np.integer) else "%.17g"
 
     if fmt in ("xyz", "csv"):
         if cloud.normals is not None:
