@@ -464,7 +464,7 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
         reasons = "; ".join(sorted({r.get("rejected", "") for r in evaluated}))
         return _fail(f"beacon panels were recognised but no consistent alignment was found ({reasons})",
                      p, details, arrays, best_option)
-    good.sort(key=lambda r: (-r["n_explained"], r["icp"].rms_m))
+    good.sort(key=lambda r: (-r["n_explained"], -len(r["assignment"]), r["icp"].rms_m))
     best = good[0]
     for other in good[1:]:
         dpos = float(np.hypot(*(other["pose"][:2] - best["pose"][:2])))
