@@ -442,7 +442,9 @@ def adjust(
             converged = True
             break
         sd = opts.sigma0_apriori * np.sqrt(np.clip(np.diag(Qxx), 0.0, None))
-        small = np.all((np.abs(delta) <= opts.tol_rel * sd) | (np.abs(delta) <= opts.tol_abs))
+        # negligible against the parameter's precision, or at the float64 resolution of x
+        floor = np.maximum(opts.tol_abs, 16.0 * np.spacing(np.abs(x)))
+        small = np.all((np.abs(delta) <= opts.tol_rel * sd) | (np.abs(delta) <= floor))
         f, B = fun(x)
         f = np.asarray(f, dtype=np.float64).ravel()
         B = np.asarray(B, dtype=np.float64)
