@@ -60,7 +60,7 @@ def read_las_bytes(path, data: bytes) -> RawCloud:
     try:
         las = laspy.read(io.BytesIO(data))
     except Exception as exc:  # laspy raises several types (LaspyException, ValueError, ...)
-        raise FileFormatError(path, f"unreadable LAS/LAZ ({type(exc).__name__}: {exc})") from None
+        raise FileFormatError(path, f"unreadable LAS/LAZ: truncated or corrupt ({type(exc).__name__}: {exc})") from None
     hdr = las.header
     n = len(las.points)
     if hdr.point_count != n:

@@ -1,0 +1,169 @@
+"""Trajectory formats (TUM, KITTI, GeoSLAM-style, CSV), quaternion helpers, CTU real files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import shared_data
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from minegeo.errors import FileFormatError, InputError
+from minegeo.geometry.se3 import exp_so3
+from minegeo.io import Trajectory, matrix_to_quat, quat_to_matrix, read_trajectory, read_transform, write_trajectory
+
+
+def _traj(rng, m=30, origin=(0.0, 0.0, 0.0)):
+    poses = np.tile(np.eye(4), (m, 1, 1))
+    for i in range(m):
+        poses[i, :3, :3] = exp_so3(rng.normal(size=3) * 1.5)
+        poses[i, :3, 3] = rng.normal(size=3) * 100
+    return Trajectory(times_s=1.6e9 + np.cumsum(rng.uniform(0.05, 0.2, m)), poses=poses, origin=origin)
+
+
+@settings(max_examples=30, deadline=None)
+@given(w=hnp.arrays(np.float64, 3, elements=st.floats(-3.1, 3.1)))
+def test_quat_matrix_roundtrip_and_scipy(w):
+    from scipy.spatial.transform import Rotation
+
+    R = exp_so3(w)
+    q = matrix_to_quat(R)
+    assert q[3] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-15
+    np.testing.assert_allclose(quat_to_matrix(q), R, atol=1e-14)
+    qs = Rotation.from_matrix(R).as_quat()
+    np.testing.assert_allclose(q, qs * np.sign(qs[3]) if qs[3] != 0 else q, atol=1e-12)
+    np.testing.assert_allclose(quat_to_matrix(q[[3, 0, 1, 2]], order="wxyz"), R, atol=1e-14)
+
+
+def test_quat_edge_cases():
+    # rotations by pi about each axis exercise every Shepperd branch
+    for axis in np.eye(3):
+        R = exp_so3(axis * np.pi)
+        np.testing.assert_allclose(quat_to_matrix(matrix_to_quat(R)), R, atol=1e-14)
+    with pytest.raises(InputError, match="not unit length"):
+        quat_to_matrix([0.0, 0.0, 0.0, 0.0])
+    with pytest.raises(InputError, match="proper rotation"):
+        matrix_to_quat(np.diag([1.0, 1.0, -1.0]))
+
+
+@pytest.mark.parametrize("fmt", ["tum", "geoslam", "csv"])
+def test_quaternion_formats_roundtrip(tmp_path, rng, fmt):
+    t = _traj(rng)
+    p = tmp_path / f"t.{fmt}.txt"
+    write_trajectory(p, t, format=fmt)
+    back = read_trajectory(p)  # format detected from the content
+    np.testing.assert_array_equal(back.times_s, t.times_s)
+    np.testing.assert_array_equal(back.poses[:, :3, 3], t.poses[:, :3, 3])
+    np.testing.assert_allclose(back.poses, t.poses, rtol=0, atol=1e-14)
+    assert read_trajectory(p, format=fmt).poses.shape == (30, 4, 4)
+
+
+def test_kitti_roundtrip_exact(tmp_path, rng):
+    t = _traj(rng)
+    t = Trajectory(np.arange(len(t), dtype=float), t.poses)
+    write_trajectory(tmp_path / "00.txt", t, format="kitti")
+    back = read_trajectory(tmp_path / "00.txt")
+    np.testing.assert_array_equal(back.poses, t.poses)
+    np.testing.assert_array_equal(back.times_s, np.arange(len(t)))
+
+
+def test_geoslam_is_scalar_first_and_tolerant(tmp_path):
+    # 90 deg about z: w = cos45, z = sin45; GeoSLAM order is q0(w) q1 q2 q3
+    s = np.sqrt(0.5)
+    p = tmp_path / "scan_traj.txt"
+    p.write_text(f"Time X Y Z q0 q1 q2 q3 Intensity\n0.0 1 2 3 {s} 0 0 {s} 7\n0.1 1 2 3 1 0 0 0 7\n")
+    t = read_trajectory(p)
+    np.testing.assert_allclose(t.poses[0, :3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15)
+    np.testing.assert_array_equal(t.positions[0], [1, 2, 3])
+
+
+def test_global_local_and_origin(tmp_path, rng):
+    t = _traj(rng, origin=(500000.0, 4000000.0, 0.0))
+    write_trajectory(tmp_path / "g.tum", t)
+    back = read_trajectory(tmp_path / "g.tum", origin=(500000.0, 4000000.0, 0.0))
+    np.testing.assert_allclose(back.positions, t.positions, rtol=0, atol=1e-9)
+    write_trajectory(tmp_path / "l.tum", t, coordinates="local")
+    np.testing.assert_array_equal(read_trajectory(tmp_path / "l.tum").positions, t.positions)
+
+
+@pytest.mark.parametrize(
+    "content,match",
+    [
+        ("", "empty"),
+        ("# only a comment\n", "no numeric pose"),
+        ("1 2 3 4 5 6 7\n", "7 numbers per line"),
+        ("0 0 0 0 0 0 0 1\n1 0 0 0 0 0 0\n", "line 2: expected 8 values, found 7"),
+        ("0 0 0 0 0 0 0 1\n1 nan 0 0 0 0 0 1\n", "NaN"),
+        ("0 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 2\n", "not unit length"),
+        ("0 0 0 0 0 0 0 1\n1 0 0 0 0 0 x 1\n", "line 2: 'x' is not a number"),
+        ("time_s,x,y,z,qw\n0,0,0,0,1\n", "names no quaternion|lacks"),
+    ],
+)
+def test_trajectory_errors(tmp_path, content, match):
+    p = tmp_path / "bad.txt"
+    p.write_text(content)
+    with pytest.raises(FileFormatError, match=match) as ei:
+        read_trajectory(p)
+    assert "bad.txt" in str(ei.value)
+
+
+def test_kitti_non_orthonormal(tmp_path):
+    p = tmp_path / "k.txt"
+    p.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n2 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(FileFormatError, match="pose 1: rotation block is not orthonormal"):
+        read_trajectory(p)
+
+
+CTU = {
+    "bull_rock_cave/0_front": 323,
+    "bull_rock_cave/1_back": 325,
+    "subt_finals/uav21_2": None,
+    "subt_finals/uav21_3": None,
+    "subt_finals/uav21_4": None,
+    "subt_finals/uav21_5": None,
+    "subt_finals/uav21_6": None,
+    "subt_finals/uav22_1": None,
+    "subt_finals/uav22_2": None,
+    "subt_finals/uav22_3": None,
+    "subt_finals/uav24_1": None,
+}
+
+
+@pytest.mark.parametrize("flight", sorted(CTU))
+def test_ctu_ground_truth_trajectories(flight):
+    p = shared_data("ctu_cave_mine_uav_trajectories", *flight.split("/"), "trajectory_groundtruth.txt")
+    t = read_trajectory(p)
+    if CTU[flight] is not None:
+        assert len(t) == CTU[flight]
+    assert len(t) > 10
+    # trajectories start at the zero pose (SOURCE.md)
+    np.testing.assert_allclose(t.poses[0], np.eye(4), atol=1e-8)  # file stores ~5e-9 quaternion parts
+    assert np.all(np.diff(t.times_s) > 0)
+    R = t.poses[:, :3, :3]
+    np.testing.assert_allclose(np.einsum("mji,mjk->mik", R, R), np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
+    T_map_fcu = read_transform(p.parent / "fcu_in_map.mat")
+    assert T_map_fcu.shape == (4, 4)
+    np.testing.assert_allclose(T_map_fcu[:3, :3].T @ T_map_fcu[:3, :3], np.eye(3), atol=1e-6)
+
+
+def test_ctu_path_length_matches_mission_data():
+    p = shared_data("ctu_cave_mine_uav_trajectories", "bull_rock_cave", "0_front", "trajectory_groundtruth.txt")
+    t = read_trajectory(p)
+    steps = np.linalg.norm(np.diff(t.positions, axis=0), axis=1).sum()
+    # mission_data.txt: 731.4 s flight, 475.5 m (on-board, denser sampling); the GT poses are sparser
+    assert 350 < steps < 480
+    assert abs((t.times_s[-1] - t.times_s[0]) - 739.4) < 1.0
+
+
+def test_read_transform_variants(tmp_path):
+    p = tmp_path / "T.txt"
+    p.write_text("1 0 0 1\n0 1 0 2\n0 0 1 3\n")
+    np.testing.assert_array_equal(read_transform(p)[:3, 3], [1, 2, 3])
+    p.write_text("[[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]]")
+    np.testing.assert_array_equal(read_transform(p)[3], [0, 0, 0, 1])
+    p.write_text("1 0 0 1\n0 1 0 2\n")
+    with pytest.raises(FileFormatError, match="12 or 16"):
+        read_transform(p)
+    T = read_transform(shared_data("small_gicp_pair", "T_target_source.txt"))
+    np.testing.assert_allclose(T[0, 3], 0.488882)
