@@ -11,7 +11,14 @@ from hypothesis.extra import numpy as hnp
 
 from minegeo.errors import FileFormatError, InputError
 from minegeo.geometry.se3 import exp_so3
-from minegeo.io import Trajectory, matrix_to_quat, quat_to_matrix, read_trajectory, read_transform, write_trajectory
+from minegeo.io import (
+    Trajectory,
+    matrix_to_quat,
+    quat_to_matrix,
+    read_trajectory,
+    read_transform,
+    write_trajectory,
+)
 
 
 def _traj(rng, m=30, origin=(0.0, 0.0, 0.0)):
