@@ -13,7 +13,7 @@ level ``p`` scales both semi-axes by ``k``:
   ``k = 2.4477``.
 * **σ0 estimated** (covariance scaled with σ̂0 from r degrees of freedom):
   ``k = sqrt(2·F(2, r, p))`` (Ghilani 2010, Ch. 19, "confidence ellipse", Table of F);
-  at r = 10, 95 %: k = 3.2059.
+  at r = 10, 95 %: k = sqrt(2·4.1028) = 2.8645.
 
 The relative ellipse between points i and j uses the covariance of the coordinate difference
 ``Σ_Δ = Σ_ii + Σ_jj − Σ_ij − Σ_ji``.
