@@ -1,0 +1,872 @@
+"""The synthetic mine: drift network, rough rock surface and structures as a signed distance field.
+
+Field convention
+----------------
+``MineWorld.sdf(p)`` is **positive in free space (air), negative in rock or inside a
+solid structure, and zero on the surface** (metres). It is
+
+.. math::
+
+    f(p) = \\min\\Big( \\underbrace{\\max_i g_i(p) + n(p)}_{\\text{rock}},\\;
+                       \\min_j s_j(p) \\Big)
+
+where ``g_i`` is the inner distance of void primitive *i* (horseshoe drift segments,
+roof fall-out cavities, sump pits; the union of voids is a max), ``n`` the seeded
+multi-scale roughness (blast overbreak >= 0 up to about 0.3 m plus cm texture) and
+``s_j`` the exact distance to solid structure *j* (rock bolts, roof straps, pipes,
+cables, ventilation duct, railings, the parked vehicle). The field is an exact
+distance for the structures and a Lipschitz-bounded estimate (constant below about
+2) for the rough rock, which is what sphere tracing needs (Hart 1996, Eq. 2).
+
+Drift profile (Baek et al. 2022, Sec. 3.1: tunnel width and height about 4.5 m,
+rampway slope 6-8 degrees): flat floor, vertical walls up to ``wall_height_m`` and a
+half-circle arched roof of radius ``width_m / 2``. A drift is a 3D centreline
+polyline *on the floor*; each segment is swept with the profile, with rounded
+(vertical-axis) caps at the vertices so bends and T/X/Y junctions are the union of
+the segments. Far from all primitives (deeper than ~1 m into rock) the field is
+clamped to -1.2 m; it stays exact in free space.
+
+References
+----------
+Hart, J. C. (1996). Sphere tracing: a geometric method for the antialiased ray tracing
+of implicit surfaces. The Visual Computer 12(10), 527-545.
+Baek, J., Park, J., Cho, S., Lee, C. (2022). 3D global localization in the underground
+mine environment using mobile LiDAR mapping and point cloud registration. Sensors 22, 2873.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from minegeo._validate import as_points, as_transform
+from minegeo.errors import InputError
+from minegeo.synth import _kernels as K
+
+__all__ = ["WorldParams", "Drift", "Intersection", "MineWorld", "build_world", "PRESETS"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class WorldParams:
+    """Parameters of the generated mine (all lengths in metres, angles in degrees).
+
+    Attributes
+    ----------
+    n_levels : int
+        Number of mining levels, joined in sequence by ramps.
+    main_length_m : float
+        Length of each level's main drift (haulage drive).
+    crosscut_spacing_m : float
+        Spacing of the cross-cuts between the main drift and the parallel drive.
+    n_crosscuts : int
+        Cross-cuts per level (>= 2 so the parallel drive closes loops).
+    parallel_offset_m : float
+        Horizontal distance between main drift and parallel drive.
+    level_spacing_m : float
+        Vertical distance between consecutive level floors.
+    ramp_slope_deg : tuple(float, float)
+        Range the seeded ramp slope is drawn from (the paper: 6-8 degrees).
+    width_m, wall_height_m : float
+        Drift width and wall height; the roof is a half circle, so the height is
+        ``wall_height_m + width_m / 2`` (4.5 m by default).
+    ring_radius_m : float
+        Radius of the ring roadway (a loop) at the end of each level but the last.
+    overbreak_m : tuple(float, float)
+        Amplitudes of the two overbreak octaves (long ~6 m and medium ~1.5 m wavelength);
+        their sum (0.28 m) is the maximum overbreak in ordinary sections.
+    texture_m : tuple(float, float)
+        Amplitudes of the signed texture octaves (~0.35 m and ~0.1 m wavelength).
+    bolt_spacing_m : float
+        Distance between rings of rock bolts along a drift.
+    trace_step_factor : float
+        Sphere-tracing step as a fraction of the field value (< 1 / Lipschitz bound).
+    grid_cell_m : float
+        Cell size of the acceleration grid.
+    """
+
+    n_levels: int = 2
+    main_length_m: float = 80.0
+    crosscut_spacing_m: float = 32.0
+    n_crosscuts: int = 3
+    parallel_offset_m: float = 24.0
+    level_spacing_m: float = 15.0
+    ramp_slope_deg: tuple = (6.0, 8.0)
+    width_m: float = 4.5
+    wall_height_m: float = 2.25
+    ring_radius_m: float = 14.0
+    ramp_turn_radius_m: float = 15.0
+    overbreak_m: tuple = (0.2, 0.08)
+    texture_m: tuple = (0.015, 0.004)
+    bolt_spacing_m: float = 1.5
+    stubs_per_level: int = 0
+    stub_length_m: float = 15.0
+    trace_step_factor: float = 0.45
+    grid_cell_m: float = 2.0
+
+
+#: Named presets: ``small`` (seconds, for tests) and ``paper`` (several km, map ~1e7 points).
+PRESETS: dict[str, WorldParams] = {
+    "small": WorldParams(),
+    "paper": WorldParams(
+        n_levels=4,
+        main_length_m=520.0,
+        crosscut_spacing_m=52.0,
+        n_crosscuts=10,
+        parallel_offset_m=40.0,
+        level_spacing_m=25.0,
+        ring_radius_m=16.0,
+        ramp_turn_radius_m=22.0,
+        stubs_per_level=8,
+        stub_length_m=22.0,
+    ),
+}
+
+
+@dataclass(frozen=True, eq=False)
+class Drift:
+    """One drift (edge of the network): a floor centreline polyline from node ``a`` to ``b``.
+
+    ``kind`` is one of ``main``, ``parallel``, ``crosscut``, ``branch``, ``ring``, ``ramp``,
+    ``stub``; ``level`` is the level index (a ramp belongs to its upper level).
+    """
+
+    name: str
+    a: int
+    b: int
+    centreline: np.ndarray
+    kind: str
+    level: int
+
+    @property
+    def length_m(self) -> float:
+        return float(np.linalg.norm(np.diff(self.centreline, axis=0), axis=1).sum())
+
+
+@dataclass(frozen=True)
+class Intersection:
+    """A junction of three or more drifts: ``type`` is ``"T"``, ``"X"`` or ``"Y"``."""
+
+    node: int
+    position: tuple
+    type: str
+    degree: int
+    level: int
+
+
+@dataclass(frozen=True, eq=False)
+class MineWorld:
+    """A generated mine: geometry (drift graph), structures and the arrays of its field.
+
+    Build with :meth:`MineWorld.build` / :func:`build_world`; the object is immutable
+    (use :meth:`with_vehicle` to move the parked vehicle). Coordinates are the local
+    *world* (= map) frame in metres: x east-ish, y north-ish, z up, the first level's
+    floor at z = 0.
+
+    Attributes
+    ----------
+    preset, seed : str, int
+    params : WorldParams
+    nodes : (m, 3) float64
+        Junction / end points of the drift graph (floor level).
+    drifts : tuple[Drift]
+    intersections : tuple[Intersection]
+    dead_ends : tuple[int]
+        Node ids of degree 1.
+    features : dict
+        Named places used to pick scan sections: ``irregular_roof``, ``curve``, ``regular``,
+        ``sump``, ``meshed`` (each ``{"drift": index, "s_m": arc length}``), the vehicle
+        ``parking`` poses (4x4) and the ``ramp_slopes_deg`` actually built.
+    T_world_vehicle : (4, 4) float64 or None
+        Pose of the parked vehicle (None: no vehicle in the world).
+    """
+
+    preset: str
+    seed: int
+    params: WorldParams
+    nodes: np.ndarray
+    drifts: tuple
+    intersections: tuple
+    dead_ends: tuple
+    features: dict
+    T_world_vehicle: np.ndarray | None
+    _arrays: dict = field(repr=False)
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def build(cls, preset: str = "small", seed: int = 0, params: WorldParams | None = None) -> MineWorld:
+        """Generate the mine of a preset (``"small"`` or ``"paper"``) for a seed; see :func:`build_world`."""
+        return build_world(preset, seed, params=params)
+
+    # ------------------------------------------------------------------ queries
+    def sdf(self, points, with_noise: bool = True, with_structures: bool = True) -> np.ndarray:
+        """Field value (m) at ``points`` (n, 3) in the world frame: > 0 air, < 0 rock/solid, 0 surface.
+
+        ``with_noise=False`` gives the smooth design profile (no overbreak/texture),
+        ``with_structures=False`` the bare rock.
+        """
+        P = as_points(points, "points", min_points=0)
+        out = np.empty(P.shape[0])
+        a = self._arrays
+        K.sdf_many(P, a["grid_f"], a["grid_i"], a["void_prims"], a["void_type"], a["v_start"], a["v_items"],
+                   a["solid_prims"], a["solid_type"], a["s_start"], a["s_items"], a["waves"], a["octaves"],
+                   a["zones"], *self._vehicle_args(), bool(with_noise), bool(with_structures), out)
+        return out
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(min, max) corners (m) of the box containing all the open space (with overbreak margin)."""
+        return self._arrays["bounds_min"].copy(), self._arrays["bounds_max"].copy()
+
+    @property
+    def total_length_m(self) -> float:
+        """Summed centreline length of all drifts (m)."""
+        return float(sum(d.length_m for d in self.drifts))
+
+    def adjacency(self) -> dict[int, list[tuple[int, int]]]:
+        """Node -> list of (drift index, other node)."""
+        adj: dict[int, list[tuple[int, int]]] = {i: [] for i in range(len(self.nodes))}
+        for k, d in enumerate(self.drifts):
+            adj[d.a].append((k, d.b))
+            adj[d.b].append((k, d.a))
+        return adj
+
+    def n_independent_loops(self) -> int:
+        """Cyclomatic number of the drift graph (edges - nodes + components): > 0 means loops exist."""
+        parent = list(range(len(self.nodes)))
+
+        def find(i):
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        for d in self.drifts:
+            ra, rb = find(d.a), find(d.b)
+            if ra != rb:
+                parent[ra] = rb
+        comps = len({find(i) for i in range(len(self.nodes))})
+        return len(self.drifts) - len(self.nodes) + comps
+
+    def with_vehicle(self, T_world_vehicle) -> MineWorld:
+        """The same world with the parked vehicle at ``T_world_vehicle`` (4x4), or removed (None)."""
+        T = None if T_world_vehicle is None else as_transform(T_world_vehicle, "T_world_vehicle")
+        return replace(self, T_world_vehicle=T)
+
+    def cast(self, origins, directions, max_range_m: float, with_noise: bool = True) -> np.ndarray:
+        """Ranges (m) along unit ``directions`` from ``origins`` to the first surface; NaN = no return.
+
+        Sphere tracing with bisection refinement to 1e-4 m (see ``_kernels.cast_rays``).
+        """
+        O = as_points(origins, "origins", min_points=0)
+        D = as_points(directions, "directions", min_points=0)
+        if O.shape != D.shape:
+            raise InputError(f"origins {O.shape} and directions {D.shape} must have the same shape")
+        out = np.empty(O.shape[0])
+        a = self._arrays
+        K.cast_rays(O, D, float(max_range_m), float(self.params.trace_step_factor), 1e-3, 4000, 1e-4,
+                    a["grid_f"], a["grid_i"], a["void_prims"], a["void_type"], a["v_start"], a["v_items"],
+                    a["solid_prims"], a["solid_type"], a["s_start"], a["s_items"], a["waves"], a["octaves"],
+                    a["zones"], *self._vehicle_args(), bool(with_noise), a["noise_min"], out, self._iters(out))
+        return out
+
+    def _iters(self, out):
+        it = np.empty(out.shape[0], np.int64)
+        self.__dict__.setdefault("_last_iters", None)
+        object.__setattr__(self, "_last_iters", it)
+        return it
+
+    def _vehicle_args(self):
+        a = self._arrays
+        if self.T_world_vehicle is None:
+            return np.eye(4), np.zeros((0, 8)), np.zeros(0, np.int64), np.zeros(4)
+        T = self.T_world_vehicle
+        Tinv = np.eye(4)
+        Tinv[:3, :3] = T[:3, :3].T
+        Tinv[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+        c = T[:3, :3] @ a["veh_centre"] + T[:3, 3]
+        sphere = np.array([c[0], c[1], c[2], a["veh_radius"]])
+        return np.ascontiguousarray(Tinv), a["veh_prims"], a["veh_type"], sphere
+
+    def summary(self) -> dict:
+        """Short JSON-able description (counts, lengths, intersection types)."""
+        kinds: dict[str, float] = {}
+        for d in self.drifts:
+            kinds[d.kind] = kinds.get(d.kind, 0.0) + d.length_m
+        types: dict[str, int] = {}
+        for it in self.intersections:
+            types[it.type] = types.get(it.type, 0) + 1
+        return {
+            "preset": self.preset,
+            "seed": self.seed,
+            "n_levels": self.params.n_levels,
+            "n_drifts": len(self.drifts),
+            "total_length_m": round(self.total_length_m, 3),
+            "length_by_kind_m": {k: round(v, 3) for k, v in sorted(kinds.items())},
+            "intersections_by_type": dict(sorted(types.items())),
+            "n_dead_ends": len(self.dead_ends),
+            "n_loops": self.n_independent_loops(),
+            "ramp_slopes_deg": self.features["ramp_slopes_deg"],
+            "n_void_primitives": int(self._arrays["void_prims"].shape[0]),
+            "n_solid_primitives": int(self._arrays["solid_prims"].shape[0]),
+        }
+
+
+# ====================================================================== layout
+def _wiggle(P: np.ndarray, rng: np.random.Generator, amp_m: float) -> np.ndarray:
+    """Add a smooth seeded lateral meander (zero at both ends) to a straight polyline."""
+    if amp_m <= 0 or len(P) < 3:
+        return P
+    d = P[-1, :2] - P[0, :2]
+    L = float(np.linalg.norm(d))
+    if L < 1e-9:
+        return P
+    n = np.array([-d[1], d[0]]) / L
+    s = np.linspace(0.0, 1.0, len(P))
+    off = np.zeros(len(P))
+    for k in (1, 2, 3):
+        off += rng.uniform(-1, 1) * amp_m / k * np.sin(k * np.pi * s)
+    Q = P.copy()
+    Q[:, :2] += off[:, None] * n[None, :]
+    return Q
+
+
+def _straight(a, b, step_m: float = 2.0) -> np.ndarray:
+    a = np.asarray(a, float)
+    b = np.asarray(b, float)
+    L = float(np.linalg.norm(b[:2] - a[:2]))
+    n = max(1, int(math.ceil(L / step_m)))
+    s = np.linspace(0.0, 1.0, n + 1)[:, None]
+    return a[None, :] * (1 - s) + b[None, :] * s
+
+
+def _arc(centre, radius, ang0, ang1, z0, z1, step_m: float = 2.0) -> np.ndarray:
+    L = abs(ang1 - ang0) * radius
+    n = max(2, int(math.ceil(L / step_m)))
+    t = np.linspace(0.0, 1.0, n + 1)
+    ang = ang0 + (ang1 - ang0) * t
+    return np.column_stack([centre[0] + radius * np.cos(ang), centre[1] + radius * np.sin(ang), z0 + (z1 - z0) * t])
+
+
+class _Graph:
+    def __init__(self):
+        self.nodes: list[np.ndarray] = []
+        self.edges: list[tuple[int, int, np.ndarray, str, int]] = []
+
+    def node(self, xyz) -> int:
+        self.nodes.append(np.asarray(xyz, float).copy())
+        return len(self.nodes) - 1
+
+    def edge(self, a: int, b: int, poly: np.ndarray, kind: str, level: int) -> int:
+        poly = np.asarray(poly, float).copy()
+        poly[0] = self.nodes[a]
+        poly[-1] = self.nodes[b]
+        self.edges.append((a, b, poly, kind, level))
+        return len(self.edges) - 1
+
+
+def _layout(p: WorldParams, rng: np.random.Generator):
+    """Seeded drift graph: levels of main drift + parallel drive + cross-cuts (loops), an
+    X cross-cut, a Y branch ending in a sump, a ring roadway, stubs, and ramps between levels."""
+    g = _Graph()
+    feats: dict = {"ramp_slopes_deg": [], "sump": None}
+    start = g.node([0.0, 0.0, 0.0])
+    sx = 1.0
+    y_level = 0.0
+    for lev in range(p.n_levels):
+        A = g.nodes[start]
+        z = A[2]
+        last = lev == p.n_levels - 1
+        Lm = p.main_length_m * (1.0 + rng.uniform(-0.04, 0.04)) * (0.65 if last and p.n_levels > 1 else 1.0)
+        ncc = max(2, p.n_crosscuts if not last else max(2, p.n_crosscuts // 2))
+        span = Lm - 2 * p.crosscut_spacing_m / 3 if ncc > 1 else Lm / 2
+        base = np.linspace(p.crosscut_spacing_m / 3.0, p.crosscut_spacing_m / 3.0 + span * 0.85, ncc)
+        cc_x = np.sort(base + rng.uniform(-2.0, 2.0, ncc))
+        x_cross = int(ncc // 2)  # this cross-cut continues to the far side: X junction
+        y_x = 0.5 * (cc_x[0] + cc_x[1]) + rng.uniform(-2.0, 2.0)  # Y branch between the first two
+        stub_x = []
+        if p.stubs_per_level:
+            stub_x = list(np.linspace(cc_x[1] + 0.5 * p.crosscut_spacing_m, cc_x[-1] - 0.5 * p.crosscut_spacing_m,
+                                      p.stubs_per_level))
+        marks = sorted([(x, "cc", i) for i, x in enumerate(cc_x)] + [(y_x, "y", 0)]
+                       + [(x, "stub", i) for i, x in enumerate(stub_x)])
+        prev = start
+        main_nodes = {}
+        side = -1.0  # parallel drive on the -y side; X extension, Y branch and stubs on the +y side
+        for x, what, i in marks + [(Lm, "end", 0)]:
+            nid = g.node([A[0] + sx * x, y_level, z])
+            poly = _wiggle(_straight(g.nodes[prev], g.nodes[nid]), rng, 0.6)
+            g.edge(prev, nid, poly, "main", lev)
+            main_nodes[(what, i)] = nid
+            prev = nid
+        end_node = prev
+        # parallel drive and cross-cuts
+        par_nodes = []
+        for i, x in enumerate(cc_x):
+            mn = main_nodes[("cc", i)]
+            pn = g.node([A[0] + sx * x + rng.uniform(-1.5, 1.5), y_level + side * p.parallel_offset_m, z])
+            g.edge(mn, pn, _wiggle(_straight(g.nodes[mn], g.nodes[pn]), rng, 0.4), "crosscut", lev)
+            par_nodes.append(pn)
+            if i == x_cross:
+                xn = g.node([A[0] + sx * x, y_level - side * 12.0, z])
+                g.edge(mn, xn, _straight(g.nodes[mn], g.nodes[xn]), "crosscut", lev)
+        for i in range(len(par_nodes) - 1):
+            a, b = par_nodes[i], par_nodes[i + 1]
+            g.edge(a, b, _wiggle(_straight(g.nodes[a], g.nodes[b]), rng, 0.8), "parallel", lev)
+        # stubs (stope accesses) on the far side
+        for i, x in enumerate(stub_x):
+            mn = main_nodes[("stub", i)]
+            sn = g.node([A[0] + sx * x + rng.uniform(-2, 2), y_level - side * p.stub_length_m, z])
+            g.edge(mn, sn, _straight(g.nodes[mn], g.nodes[sn]), "stub", lev)
+        # Y branch: leaves the main drift at ~40 degrees, gently curved, dead end with a sump
+        mn = main_nodes[("y", 0)]
+        ang = math.radians(rng.uniform(35.0, 45.0))
+        Lb = 26.0
+        hdg = np.array([sx * math.cos(ang), -side * math.sin(ang)])
+        mid = g.nodes[mn][:2] + hdg * Lb * 0.5
+        hdg2 = np.array([sx * math.cos(ang * 1.6), -side * math.sin(ang * 1.6)])
+        endp = mid + hdg2 * Lb * 0.5
+        bn = g.node([endp[0], endp[1], z])
+        poly = np.vstack([_straight(g.nodes[mn], [mid[0], mid[1], z], 2.0)[:-1],
+                          _straight([mid[0], mid[1], z], g.nodes[bn], 2.0)])
+        ybranch = g.edge(mn, bn, poly, "branch", lev)
+        if feats["sump"] is None:
+            feats["sump"] = {"drift": ybranch, "level": lev}
+        if last:
+            break
+        # ring roadway (a loop) beyond the end of the main drift, then the ramp down
+        Rr = p.ring_radius_m
+        E = g.nodes[end_node]
+        C = E[:2] + np.array([sx * Rr, 0.0])
+        F = g.node([C[0] + sx * Rr, C[1], z])
+        a0 = math.pi if sx > 0 else 0.0
+        g.edge(end_node, F, _arc(C, Rr, a0, a0 - math.pi * (1 if sx > 0 else -1), z, z), "ring", lev)
+        g.edge(end_node, F, _arc(C, Rr, a0, a0 + math.pi * (1 if sx > 0 else -1), z, z), "ring", lev)
+        slope = math.radians(rng.uniform(*p.ramp_slope_deg))
+        feats["ramp_slopes_deg"].append(math.degrees(slope))
+        dz = p.level_spacing_m
+        Lr = dz / math.tan(slope)
+        Rt = p.ramp_turn_radius_m
+        Fp = g.nodes[F]
+        l1 = 12.0
+        l_arc = math.pi * Rt
+        l3 = Lr - l1 - l_arc
+        if l3 < 5.0:
+            raise InputError("level spacing too small for the ramp geometry")
+        z1 = z - dz * l1 / Lr
+        z2 = z - dz * (l1 + l_arc) / Lr
+        P1 = np.array([Fp[0] + sx * l1, Fp[1], z1])
+        seg1 = _straight(Fp, P1)
+        Ct = np.array([P1[0], P1[1] - Rt])
+        th0 = math.pi / 2
+        th1 = th0 - sx * math.pi  # turn towards -y and back
+        seg2 = _arc(Ct, Rt, th0, th1, z1, z2)
+        P3 = np.array([P1[0] - sx * l3, P1[1] - 2 * Rt, z - dz])
+        seg3 = _straight(seg2[-1], P3)
+        ramp_poly = np.vstack([seg1[:-1], seg2[:-1], seg3])
+        nxt = g.node(P3)
+        g.edge(F, nxt, ramp_poly, "ramp", lev)
+        start = nxt
+        y_level = P3[1]
+        sx = -sx
+    return g, feats
+
+
+def _classify(g: _Graph):
+    """Intersections (degree >= 3) typed T/X/Y from the directions the drifts leave the node."""
+    inc: dict[int, list[np.ndarray]] = {i: [] for i in range(len(g.nodes))}
+    for a, b, poly, _k, _l in g.edges:
+        da = poly[min(2, len(poly) - 1), :2] - poly[0, :2]
+        db = poly[max(-3, -len(poly)), :2] - poly[-1, :2]
+        inc[a].append(da / np.linalg.norm(da))
+        inc[b].append(db / np.linalg.norm(db))
+    out, dead = [], []
+    for i, dirs in inc.items():
+        deg = len(dirs)
+        if deg == 1:
+            dead.append(i)
+        if deg < 3:
+            continue
+        if deg >= 4:
+            typ = "X"
+        else:
+            typ = "Y"
+            for u in range(3):
+                for v in range(u + 1, 3):
+                    if np.dot(dirs[u], dirs[v]) < -0.94:  # collinear pair (within ~20 deg)
+                        w = 3 - u - v
+                        c = abs(float(np.dot(dirs[w], dirs[u])))
+                        typ = "T" if c < 0.5 else "Y"  # third leg within 60-120 deg: T
+        level = 0
+        for a, b, _p, _k, lev in g.edges:
+            if i in (a, b):
+                level = lev
+                break
+        out.append(Intersection(i, tuple(float(x) for x in g.nodes[i]), typ, deg, level))
+    return tuple(out), tuple(dead)
+
+
+# ====================================================================== primitives
+def _noise_arrays(p: WorldParams, rng: np.random.Generator):
+    specs = [  # (wavelength m, amplitude m, mode, n waves)
+        (6.0, p.overbreak_m[0], 0, 8),
+        (1.5, p.overbreak_m[1], 0, 8),
+        (0.35, p.texture_m[0], 1, 8),
+        (0.1, p.texture_m[1], 1, 6),
+    ]
+    waves, octs, k0 = [], [], 0
+    for lam, amp, mode, n in specs:
+        v = rng.normal(size=(n, 3))
+        v[:, 2] *= 0.8
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        kmag = 2 * np.pi / lam * rng.uniform(0.8, 1.25, n)
+        ph = rng.uniform(0, 2 * np.pi, n)
+        waves.append(np.column_stack([v * kmag[:, None], ph]))
+        octs.append([k0, n, amp, mode])
+        k0 += n
+    return np.ascontiguousarray(np.vstack(waves)), np.ascontiguousarray(np.array(octs, float))
+
+
+def _frames(poly: np.ndarray):
+    """Per-segment unit horizontal tangent and left normal of a polyline."""
+    d = np.diff(poly[:, :2], axis=0)
+    L = np.linalg.norm(d, axis=1)
+    t = d / L[:, None]
+    n = np.column_stack([-t[:, 1], t[:, 0]])
+    return t, n, L
+
+
+def _resample(poly: np.ndarray, step_m: float):
+    """Points every ``step_m`` of horizontal arc length along a polyline, with tangent/normal."""
+    t, n, L = _frames(poly)
+    cum = np.concatenate([[0.0], np.cumsum(L)])
+    s = np.arange(step_m / 2, cum[-1] - 1e-9, step_m)
+    k = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(L) - 1)
+    u = (s - cum[k]) / L[k]
+    P = poly[k] * (1 - u)[:, None] + poly[k + 1] * u[:, None]
+    return P, t[k], n[k], s
+
+
+def _offset_polyline(poly: np.ndarray, lateral_m: float, height_m: float) -> np.ndarray:
+    """Polyline offset sideways (mitred at vertices) and raised: for pipes, cables, the duct."""
+    t, n, _ = _frames(poly)
+    nv = np.zeros((len(poly), 2))
+    nv[0], nv[-1] = n[0], n[-1]
+    for i in range(1, len(poly) - 1):
+        m = n[i - 1] + n[i]
+        m /= np.linalg.norm(m)
+        nv[i] = m / max(0.5, float(np.dot(m, n[i])))
+    Q = poly.copy()
+    Q[:, :2] += lateral_m * nv
+    Q[:, 2] += height_m
+    return Q
+
+
+def _capsule_chain(Q: np.ndarray, r: float) -> list:
+    return [[*Q[i], *Q[i + 1], r, 0.0] for i in range(len(Q) - 1)]
+
+
+def _vehicle_model():
+    """A parked utility vehicle / loader in its own frame (x forward, z up, origin on the floor)."""
+    boxes = [
+        [0.0, 0.0, 0.95, 2.4, 0.95, 0.45, 0.0],  # chassis
+        [-1.2, 0.4, 1.95, 0.7, 0.5, 0.55, 0.0],  # cab
+        [2.95, 0.0, 0.55, 0.35, 1.05, 0.4, 0.0],  # bucket
+        [-2.1, 0.0, 1.55, 0.3, 0.8, 0.2, 0.0],  # engine cover
+    ]
+    prims = [[*b, 0.0] for b in boxes]
+    types = [1] * len(boxes)
+    for x in (-1.5, 1.5):
+        prims.append([x, -0.55, 0.6, x, 0.55, 0.6, 0.6, 0.0])  # wheel axles as capsules
+        types.append(0)
+    return np.array(prims, float), np.array(types, np.int64)
+
+
+def _build_grid(bmin, bmax, cell, void_boxes, solid_boxes, margin):
+    dims = np.maximum(1, np.ceil((bmax - bmin) / cell).astype(np.int64))
+    ncell = int(np.prod(dims))
+
+    def csr(boxes):
+        lists_c, lists_i = [], []
+        for i, (lo, hi) in enumerate(boxes):
+            i0 = np.clip(np.floor((lo - margin - bmin) / cell).astype(np.int64), 0, dims - 1)
+            i1 = np.clip(np.floor((hi + margin - bmin) / cell).astype(np.int64), 0, dims - 1)
+            ix, iy, iz = np.meshgrid(np.arange(i0[0], i1[0] + 1), np.arange(i0[1], i1[1] + 1),
+                                     np.arange(i0[2], i1[2] + 1), indexing="ij")
+            c = ((ix * dims[1] + iy) * dims[2] + iz).ravel()
+            lists_c.append(c)
+            lists_i.append(np.full(c.size, i, np.int64))
+        if not lists_c:
+            return np.zeros(ncell + 1, np.int64), np.zeros(0, np.int64)
+        c = np.concatenate(lists_c)
+        it = np.concatenate(lists_i)
+        order = np.lexsort((it, c))
+        c, it = c[order], it[order]
+        counts = np.bincount(c, minlength=ncell)
+        start = np.zeros(ncell + 1, np.int64)
+        np.cumsum(counts, out=start[1:])
+        return start, np.ascontiguousarray(it)
+
+    v_start, v_items = csr(void_boxes)
+    s_start, s_items = csr(solid_boxes)
+    grid_f = np.array([bmin[0], bmin[1], bmin[2], cell], float)
+    return grid_f, dims, v_start, v_items, s_start, s_items
+
+
+def _prim_box(prim, typ, solid: bool):
+    p = np.asarray(prim, float)
+    if solid:
+        if typ == 0:
+            lo = np.minimum(p[0:3], p[3:6]) - p[6]
+            hi = np.maximum(p[0:3], p[3:6]) + p[6]
+        else:
+            r = np.hypot(p[3], p[4])
+            lo = p[0:3] - np.array([r, r, p[5]])
+            hi = p[0:3] + np.array([r, r, p[5]])
+        return lo, hi
+    if typ == 0:
+        R, hw = p[6], p[7]
+        lo = np.minimum(p[0:3], p[3:6]) - np.array([R, R, 0.0])
+        hi = np.maximum(p[0:3], p[3:6]) + np.array([R, R, hw + R])
+        return lo, hi
+    if typ == 1:
+        return p[0:3] - p[3:6], p[0:3] + p[3:6]
+    r = np.hypot(p[3], p[4])
+    return p[0:3] - np.array([r, r, p[5]]), p[0:3] + np.array([r, r, p[5]])
+
+
+def _assemble(void, vtype, solid, stype, waves, octaves, zones, cell, ob_max):
+    void = np.ascontiguousarray(np.array(void, float).reshape(-1, 8))
+    vtype = np.ascontiguousarray(np.array(vtype, np.int64))
+    solid = np.ascontiguousarray(np.array(solid, float).reshape(-1, 8))
+    stype = np.ascontiguousarray(np.array(stype, np.int64))
+    vboxes = [_prim_box(void[i], vtype[i], False) for i in range(len(void))]
+    sboxes = [_prim_box(solid[i], stype[i], True) for i in range(len(solid))]
+    lo = np.min([b[0] for b in vboxes], axis=0) - ob_max
+    hi = np.max([b[1] for b in vboxes], axis=0) + ob_max
+    margin = K.GRID_MARGIN_M
+    gmin = lo - margin
+    gmax = hi + margin
+    grid_f, dims, v_start, v_items, s_start, s_items = _build_grid(gmin, gmax, cell, vboxes, sboxes, margin)
+    return {
+        "grid_f": grid_f, "grid_i": dims.astype(np.int64), "void_prims": void, "void_type": vtype,
+        "v_start": v_start, "v_items": v_items, "solid_prims": solid, "solid_type": stype,
+        "s_start": s_start, "s_items": s_items, "waves": waves, "octaves": octaves,
+        "zones": np.ascontiguousarray(np.array(zones, float).reshape(-1, 5)),
+        "bounds_min": lo, "bounds_max": hi,
+        "noise_min": -float(np.sum(octaves[octaves[:, 3] == 1, 2])) - 1e-9,
+    }
+
+
+def _smooth_field(a, P):
+    """Smooth design field (no roughness, no structures) at points P."""
+    P = np.ascontiguousarray(P, dtype=float)
+    out = np.empty(P.shape[0])
+    K.sdf_many(P, a["grid_f"], a["grid_i"], a["void_prims"], a["void_type"], a["v_start"], a["v_items"],
+               a["solid_prims"], a["solid_type"], a["s_start"], a["s_items"], a["waves"], a["octaves"], a["zones"],
+               np.eye(4), np.zeros((0, 8)), np.zeros(0, np.int64), np.zeros(4), False, False, out)
+    return out
+
+
+def _cast_arrays(a, O, D, max_range, step_factor, with_solids=True):
+    out = np.empty(O.shape[0])
+    ss = a["s_start"] if with_solids else np.zeros_like(a["s_start"])
+    K.cast_rays(np.ascontiguousarray(O), np.ascontiguousarray(D), float(max_range), step_factor, 1e-3, 4000, 1e-4,
+                a["grid_f"], a["grid_i"], a["void_prims"], a["void_type"], a["v_start"], a["v_items"],
+                a["solid_prims"], a["solid_type"], ss, a["s_items"], a["waves"], a["octaves"], a["zones"],
+                np.eye(4), np.zeros((0, 8)), np.zeros(0, np.int64), np.zeros(4), True, a["noise_min"], out, np.empty(out.shape[0], np.int64))
+    return out
+
+
+def build_world(preset: str = "small", seed: int = 0, params: WorldParams | None = None) -> MineWorld:
+    """Generate a seeded, deterministic synthetic underground mine.
+
+    Parameters
+    ----------
+    preset : {"small", "paper"}
+        ``small``: two levels, ~0.6 km of drifts (tests, seconds). ``paper``: four levels,
+        several km of drifts, comparable to the Gwan-in mine of Baek et al. (2022, Sec. 3.1).
+    seed : int
+        Every random choice (layout jitter, ramp slope in 6-8 degrees, roughness phases,
+        structure placement, vehicle parking) derives from ``np.random.default_rng(seed)``.
+    params : WorldParams, optional
+        Overrides the preset's parameters.
+
+    Returns
+    -------
+    MineWorld
+        With a parked vehicle at ``features["parking"][0]``.
+
+    Raises
+    ------
+    InputError
+        Unknown preset or negative seed.
+    """
+    if params is None:
+        if preset not in PRESETS:
+            raise InputError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+        params = PRESETS[preset]
+    seed = int(seed)
+    if seed < 0:
+        raise InputError(f"seed must be a non-negative integer, got {seed}")
+    rng = np.random.default_rng(seed)
+    g, feats = _layout(params, rng)
+    R = params.width_m / 2.0
+    hw = params.wall_height_m
+    H = hw + R
+
+    # ---- void primitives: drift segments, roof fall-outs, sump pit
+    void, vtype, seg_owner = [], [], []
+    for k, (_a, _b, poly, _kind, _lev) in enumerate(g.edges):
+        for i in range(len(poly) - 1):
+            void.append([*poly[i], *poly[i + 1], R, hw])
+            vtype.append(0)
+            seg_owner.append(k)
+    # section types on the first level's main drift: irregular roof, meshed, regular
+    main0 = [k for k, e in enumerate(g.edges) if e[3] == "main" and e[4] == 0]
+    main_len = [float(np.linalg.norm(np.diff(g.edges[k][2][:, :2], axis=0), axis=1).sum()) for k in main0]
+    long_mains = [k for k, _L in sorted(zip(main0, main_len, strict=True), key=lambda z: -z[1])]
+    irr = long_mains[0]
+    reg = long_mains[1] if len(long_mains) > 1 else long_mains[0]
+    poly = g.edges[irr][2]
+    P, t, n, s = _resample(poly, 1.0)
+    mid = len(P) // 2
+    zones = []
+    sel = range(max(0, mid - 8), min(len(P), mid + 8))
+    for j in sel:
+        if rng.uniform() < 0.75:
+            c = P[j] + np.array([*(n[j] * rng.uniform(-0.9, 0.9)), H - rng.uniform(0.2, 0.5)])
+            void.append([c[0], c[1], c[2], rng.uniform(0.8, 1.6), rng.uniform(0.8, 1.6), rng.uniform(0.45, 0.9), 0, 0])
+            vtype.append(1)
+    zc = P[mid] + np.array([0, 0, H - 0.5])
+    zones.append([*zc, 6.0, 0.9])
+    feats["irregular_roof"] = {"drift": irr, "s_m": float(s[mid])}
+    feats["regular"] = {"drift": reg, "s_m": float(np.linalg.norm(np.diff(g.edges[reg][2], axis=0), axis=1).sum() / 2)}
+    # a second, milder rough zone somewhere else on the first level
+    par0 = [k for k, e in enumerate(g.edges) if e[3] == "parallel" and e[4] == 0]
+    if par0:
+        Pp, _, _, _ = _resample(g.edges[par0[0]][2], 1.0)
+        zones.append([*(Pp[len(Pp) // 2] + np.array([0, 0, 2.0])), 8.0, 0.5])
+    # sump pit near the end of the Y branch, offset to one side of the centreline
+    sb = feats["sump"]["drift"]
+    bpoly = g.edges[sb][2]
+    Pb, tb, nb, sbs = _resample(bpoly, 0.5)
+    j = max(0, len(Pb) - 1 - int(5.0 / 0.5))
+    side = 1.0
+    pit_c = Pb[j] + np.array([*(nb[j] * side * 1.45), -0.65])
+    yaw = math.atan2(tb[j][1], tb[j][0])
+    void.append([pit_c[0], pit_c[1], pit_c[2], 1.8, 0.7, 0.85, yaw, 0.0])
+    vtype.append(2)
+    feats["sump"].update({"s_m": float(sbs[j]), "centre": [float(x) for x in Pb[j]]})
+
+    waves, octaves = _noise_arrays(params, rng)
+    ob_max = float(sum(params.overbreak_m) * 2.0 + sum(params.texture_m))
+    base = _assemble(void, vtype, [], [], waves, octaves, zones, params.grid_cell_m, ob_max)
+
+    # ---- solid structures
+    solid, stype = [], []
+    # rock bolts: rings every bolt_spacing_m, 5 bolts over the arch, placed on the rough surface
+    Os, Ds, bolt_ok_kinds = [], [], ("main", "parallel", "ramp", "ring", "crosscut", "branch")
+    mesh_edge = reg
+    strap_rings = []
+    for k, (_a, _b, poly, kind, _lev) in enumerate(g.edges):
+        if kind not in bolt_ok_kinds:
+            continue
+        P, t, n, s = _resample(poly, params.bolt_spacing_m)
+        # skip rings within 3 m of a junction/end so bolts do not float in intersections
+        L = s[-1] + params.bolt_spacing_m / 2 if len(s) else 0
+        keep = (s > 3.0) & (s < L - 3.0)
+        for j in np.flatnonzero(keep):
+            ring = []
+            for ang in (-60.0, -30.0, 0.0, 30.0, 60.0):
+                a = math.radians(ang + rng.uniform(-5, 5))
+                d = np.array([*(n[j] * math.sin(a)), math.cos(a)])
+                Os.append(P[j] + np.array([0, 0, hw]))
+                Ds.append(d)
+                ring.append(len(Os) - 1)
+            if k == mesh_edge:
+                strap_rings.append(ring)
+    if Os:
+        O = np.array(Os)
+        D = np.array(Ds)
+        r = _cast_arrays(base, O, D, 6.0, params.trace_step_factor, with_solids=False)
+        ok = np.isfinite(r)
+        hit = O + D * np.where(ok, r, 0.0)[:, None]
+        for i in np.flatnonzero(ok):
+            a = hit[i] + D[i] * 0.03  # 3 cm inside the rock
+            b = hit[i] - D[i] * 0.07  # plate + nut stand 7 cm proud
+            solid.append([*a, *b, 0.06, 0.0])
+            stype.append(0)
+        for ring in strap_rings:  # "mesh": steel straps linking the bolt heads of a ring
+            for u, v in zip(ring[:-1], ring[1:], strict=True):
+                if ok[u] and ok[v]:
+                    a = hit[u] - D[u] * 0.05
+                    b = hit[v] - D[v] * 0.05
+                    solid.append([*a, *b, 0.025, 0.0])
+                    stype.append(0)
+        feats["meshed"] = {"drift": mesh_edge, "s_m": feats["regular"]["s_m"]}
+    # services along main drifts and ramps: pipe (left wall), two cables (right wall), duct under the roof
+    for (_a, _b, poly, kind, _lev) in g.edges:
+        if kind not in ("main", "ramp"):
+            continue
+        _, nseg, _ = _frames(poly)
+        for lat, hgt, rad in ((R - 0.35, 1.9, 0.08), (-(R - 0.2), 2.55, 0.025), (-(R - 0.2), 2.7, 0.02)):
+            Q = _offset_polyline(poly, lat, hgt)
+            mids = 0.5 * (Q[:-1] + Q[1:])
+            behind = mids + np.column_stack([nseg * math.copysign(0.8, lat), np.zeros(len(mids))])
+            open_ = _smooth_field(base, behind) > 0.0  # no wall behind: a junction mouth, the service is routed over it
+            for i in np.flatnonzero(~open_):
+                solid.append([*Q[i], *Q[i + 1], rad, 0.0])
+                stype.append(0)
+        solid.extend(_capsule_chain(_offset_polyline(poly, -0.9, H - 0.85), 0.4))
+        stype.extend([0] * (len(poly) - 1))
+    # railings along the sump pit (posts every ~1.2 m, rails at 0.5 m and 1.05 m)
+    c, yawp = pit_c, yaw
+    ca, sa = math.cos(yawp), math.sin(yawp)
+    along = np.array([ca, sa, 0.0])
+    across = np.array([-sa, ca, 0.0])
+    floor_z = Pb[j][2]
+    edge_c = np.array([c[0], c[1], floor_z]) - across * side * (0.7 + 0.12)
+    posts = [edge_c + along * x for x in np.linspace(-1.8, 1.8, 4)]
+    for q in posts:
+        solid.append([q[0], q[1], floor_z - 0.05, q[0], q[1], floor_z + 1.05, 0.03, 0.0])
+        stype.append(0)
+    for hgt in (0.5, 1.05):
+        a = posts[0] + np.array([0, 0, hgt])
+        b = posts[-1] + np.array([0, 0, hgt])
+        solid.append([*a, *b, 0.025, 0.0])
+        stype.append(0)
+    arrays = _assemble(void, vtype, solid, stype, waves, octaves, zones, params.grid_cell_m, ob_max)
+    vp, vt = _vehicle_model()
+    arrays["veh_prims"], arrays["veh_type"] = np.ascontiguousarray(vp), np.ascontiguousarray(vt)
+    arrays["veh_centre"] = np.array([0.3, 0.0, 1.2])
+    arrays["veh_radius"] = 3.8
+
+    # ---- curves, parking places for the vehicle (beside the centreline on a main drift)
+    ring_edges = [k for k, e in enumerate(g.edges) if e[3] in ("ring", "ramp")]
+    ce = ring_edges[0]
+    feats["curve"] = {"drift": ce, "s_m": float(np.linalg.norm(np.diff(g.edges[ce][2], axis=0), axis=1).sum() / 2)}
+    parking = []
+    for k in (main0[0], par0[-1] if par0 else main0[-1]):
+        P, t, n, s = _resample(g.edges[k][2], 0.5)
+        jj = len(P) // 2
+        T = np.eye(4)
+        xa = np.array([t[jj][0], t[jj][1], 0.0])
+        ya = np.array([n[jj][0], n[jj][1], 0.0])
+        T[:3, 0], T[:3, 1], T[:3, 2] = xa, ya, [0, 0, 1]
+        T[:3, 3] = P[jj] + ya * 0.95 + np.array([0, 0, 0.01])
+        parking.append(T)
+        feats.setdefault("parking_sites", []).append({"drift": k, "s_m": float(s[jj])})
+    feats["parking"] = parking
+    intersections, dead = _classify(g)
+    drifts = tuple(Drift(f"{kind}_L{lev}_{k:03d}", a, b, poly, kind, lev)
+                   for k, (a, b, poly, kind, lev) in enumerate(g.edges))
+    world = MineWorld(preset=str(preset), seed=seed, params=params, nodes=np.array(g.nodes), drifts=drifts,
+                      intersections=intersections, dead_ends=dead, features=feats,
+                      T_world_vehicle=parking[0].copy(), _arrays=arrays)
+    log.info("synthetic mine %s seed %d: %d drifts, %.0f m, %d intersections, %d solids",
+             preset, seed, len(drifts), world.total_length_m, len(intersections), len(solid))
+    return world
