@@ -165,7 +165,8 @@ def assemble(
         values = values[keep]
     o = resolve_origin(path, origin, RawCloud(values, {}, raw.file_origin))
     shift = raw.file_origin - o
-    points = values + shift if np.any(shift != 0) else values.astype(np.float64, copy=True)
+    # ``values`` is a fresh array owned by this call: no copy needed when there is no shift
+    points = values + shift if np.any(shift != 0) else np.asarray(values, dtype=np.float64)
     fields = {k: (v[keep] if keep is not None else v) for k, v in raw.fields.items()}
     normals, attrs = map_fields(path, fields, meta)
     if np.any(raw.file_origin != 0):

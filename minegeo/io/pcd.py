@@ -164,8 +164,9 @@ def read_pcd_bytes(path, data: bytes) -> RawCloud:
             if have > need and data[body + need :].strip(b" \t\r\n\0"):
                 raise FileFormatError(path, f"{have - need} bytes after the last point: header POINTS ({n}) is wrong")
             arr = np.frombuffer(data, dtype=dt, count=n, offset=body)
-            for nm in uniq:
-                cols[nm] = arr[nm].astype(arr.dtype[nm].base.newbyteorder("="))
+            for j, nm in enumerate(uniq):
+                # x, y, z stay views into the buffer (converted once below)
+                cols[nm] = arr[nm] if j in (ix, iy, iz) else arr[nm].astype(arr.dtype[nm].base.newbyteorder("="))
         else:
             if len(data) - body < 8:
                 raise FileFormatError(path, "file truncated: binary_compressed PCD has no size header")
@@ -203,8 +204,12 @@ def read_pcd_bytes(path, data: bytes) -> RawCloud:
             if key == "rgba":
                 cols["alpha"] = ((packed >> 24) & 0xFF).astype(np.uint8)
             break
-    xyz = [uniq[ix], uniq[iy], uniq[iz]]
-    values = np.column_stack([np.asarray(cols.pop(k), dtype=np.float64) for k in xyz]).reshape(-1, 3)
+    values = np.empty((n, 3), dtype=np.float64)
+    for j, k in enumerate((uniq[ix], uniq[iy], uniq[iz])):
+        col = cols.pop(k)
+        if col.ndim != 1:
+            raise FileFormatError(path, f"PCD coordinate field {k!r} has COUNT > 1")
+        values[:, j] = col
     meta = {
         "format": "pcd",
         "encoding": mode,

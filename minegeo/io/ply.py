@@ -161,10 +161,16 @@ def read_ply_bytes(path, data: bytes) -> RawCloud:
                     path, f"{have - need} bytes after the last vertex: header vertex count ({n}) is wrong"
                 )
         arr = np.frombuffer(data, dtype=dt, count=n, offset=offset)
-        cols = {p[0]: arr[p[0]].astype(np.dtype(p[1]).newbyteorder("=")) for p in vert["props"]}
+        xyz_set = {pnames[ix], pnames[iy], pnames[iz]}
+        # x, y, z stay views into the buffer (converted once below); other fields to native order
+        cols = {
+            p[0]: arr[p[0]] if p[0] in xyz_set else arr[p[0]].astype(np.dtype(p[1]).newbyteorder("="))
+            for p in vert["props"]
+        }
         line_of_row = None
-    xyz = [pnames[ix], pnames[iy], pnames[iz]]
-    values = np.column_stack([np.asarray(cols.pop(k), dtype=np.float64) for k in xyz]).reshape(-1, 3)
+    values = np.empty((n, 3), dtype=np.float64)
+    for j, k in enumerate((pnames[ix], pnames[iy], pnames[iz])):
+        values[:, j] = cols.pop(k)
     mg = _minegeo_comments(comments)
     file_origin = np.zeros(3)
     if "origin" in mg:

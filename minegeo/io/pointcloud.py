@@ -170,15 +170,18 @@ def read_point_cloud(
         The file does not exist.
     """
     p = Path(path)
-    fmt = detect_format(p, format)
+    is_zip = p.suffix.lower() == ".zip" or (format is not None and str(format).lower() == "zip")
+    fmt = "zip" if is_zip else detect_format(p, format)
     if p.is_dir():
         raise FileFormatError(p, "is a directory, not a point-cloud file")
     data = p.read_bytes()
     name = str(p)
-    if fmt == "zip":
+    if is_zip:
         if data[:4] != b"PK\x03\x04":
             raise FileFormatError(p, "not a zip archive (bad signature)")
         name, data, fmt = _unzip(p, data)
+        if format is not None and str(format).lower() != "zip":
+            fmt = detect_format(name, format)
     if len(data) == 0:
         raise FileFormatError(name, "empty file")
     raw = _read_raw(name, data, fmt, columns=columns)
