@@ -164,3 +164,12 @@ def test_cli_info_bad_file_one_line_exit_2(tmp_path, capsys, name, content, matc
     assert err.startswith("minegeo info: error:") and name in err
     assert pytest.importorskip("re").search(match, err), err
     assert "Traceback" not in captured.err + captured.out
+
+
+@settings(max_examples=30, deadline=None)
+@given(data=st.binary(max_size=3000), reps=st.integers(1, 30))
+def test_lzf_kernel_matches_naive_decoder(data, reps):
+    from reference.naive_lzf import naive_lzf_decompress
+
+    d = data * reps
+    assert naive_lzf_decompress(lzf_compress(d)) == d
