@@ -21,15 +21,37 @@ _EMPTY = -1
 _BLOCK = 256  # queries per parallel work item (buffers are allocated once per block)
 
 
+@njit
+def _spread21(v):
+    """Spread the low 21 bits of ``v`` to every third bit (Morton interleave helper)."""
+    v = v & 0x1FFFFF
+    v = (v | (v << 32)) & 0x1F00000000FFFF
+    v = (v | (v << 16)) & 0x1F0000FF0000FF
+    v = (v | (v << 8)) & 0x100F00F00F00F00F
+    v = (v | (v << 4)) & 0x10C30C30C30C30C3
+    v = (v | (v << 2)) & 0x1249249249249249
+    return v
+
+
+@njit
+def cell_key(ix, iy, iz, nx, ny, morton):
+    """Cell key: Morton code (z-order, for memory locality) when every axis has < 2^21 cells,
+    else the linear key ``ix + nx*(iy + ny*iz)``."""
+    if morton:
+        return _spread21(ix) | (_spread21(iy) << 1) | (_spread21(iz) << 2)
+    return ix + nx * (iy + ny * iz)
+
+
 @njit_parallel
-def grid_cell_keys(points, origin, inv_cell, nx, ny, out_keys):
-    """Linear cell key ``ix + nx*(iy + ny*iz)`` with ``i = floor((p - origin) * inv_cell)``."""
+def grid_cell_keys(points, origin, inv_cell, nx, ny, nz, morton, out_keys):
+    """Cell key of ``i = floor((p - origin) * inv_cell)``, clamped into the grid (for queries
+    outside it; indexed points are always inside)."""
     n = points.shape[0]
     for i in prange(n):
-        ix = np.int64(np.floor((points[i, 0] - origin[0]) * inv_cell))
-        iy = np.int64(np.floor((points[i, 1] - origin[1]) * inv_cell))
-        iz = np.int64(np.floor((points[i, 2] - origin[2]) * inv_cell))
-        out_keys[i] = ix + nx * (iy + ny * iz)
+        ix = min(max(np.int64(np.floor((points[i, 0] - origin[0]) * inv_cell)), 0), nx - 1)
+        iy = min(max(np.int64(np.floor((points[i, 1] - origin[1]) * inv_cell)), 0), ny - 1)
+        iz = min(max(np.int64(np.floor((points[i, 2] - origin[2]) * inv_cell)), 0), nz - 1)
+        out_keys[i] = cell_key(ix, iy, iz, nx, ny, morton)
 
 
 @njit
@@ -118,7 +140,7 @@ def _box_sq(qc, lo_edge, cell):
 
 @njit
 def hybrid_one(q0, q1, q2, r, r2, cap, pts, order, cell_start, origin, cell, inv_cell,
-               nx, ny, nz, bits, table_keys, table_vals, buf_pos, buf_sq):
+               nx, ny, nz, morton, bits, table_keys, table_vals, buf_pos, buf_sq):
     """The <= ``cap`` nearest grid points with squared distance strictly < ``r2``.
 
     Results go to ``buf_pos`` (positions in the cell-sorted arrays) and ``buf_sq``,
@@ -151,7 +173,7 @@ def hybrid_one(q0, q1, q2, r, r2, cap, pts, order, cell_start, origin, cell, inv
                         continue
                     if count == cap and bd > buf_sq[cap - 1] * slack:
                         continue
-                    c = _grid_lookup(ix + nx * (iy + ny * iz), bits, table_keys, table_vals)
+                    c = _grid_lookup(cell_key(ix, iy, iz, nx, ny, morton), bits, table_keys, table_vals)
                     if c < 0:
                         continue
                     for pos in range(cell_start[c], cell_start[c + 1]):
@@ -166,7 +188,7 @@ def hybrid_one(q0, q1, q2, r, r2, cap, pts, order, cell_start, origin, cell, inv
 
 @njit
 def count_one(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell,
-              nx, ny, nz, bits, table_keys, table_vals):
+              nx, ny, nz, morton, bits, table_keys, table_vals):
     """Number of grid points with squared distance strictly < ``r2`` (radius search size)."""
     x0, x1 = _cell_range(q0, r, origin[0], inv_cell, nx)
     y0, y1 = _cell_range(q1, r, origin[1], inv_cell, ny)
@@ -180,7 +202,7 @@ def count_one(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell,
             for ix in range(x0, x1 + 1):
                 if dz + dy + _box_sq(q0, origin[0] + ix * cell, cell) > r2 * slack:
                     continue
-                c = _grid_lookup(ix + nx * (iy + ny * iz), bits, table_keys, table_vals)
+                c = _grid_lookup(cell_key(ix, iy, iz, nx, ny, morton), bits, table_keys, table_vals)
                 if c < 0:
                     continue
                 for pos in range(cell_start[c], cell_start[c + 1]):
@@ -193,30 +215,40 @@ def count_one(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell,
 
 
 @njit_parallel
-def grid_radius_count(queries, r, pts, cell_start, origin, cell, inv_cell, nx, ny, nz,
-                      bits, table_keys, table_vals, out_counts):
+def grid_radius_count(queries, qorder, r, pts, cell_start, origin, cell, inv_cell, nx, ny, nz,
+                      morton, bits, table_keys, table_vals, out_counts):
+    """Radius-search sizes; queries visited in ``qorder`` (grid order, for cache locality)."""
     r2 = r * r
-    for i in prange(queries.shape[0]):
-        out_counts[i] = count_one(queries[i, 0], queries[i, 1], queries[i, 2], r, r2, pts,
-                                  cell_start, origin, cell, inv_cell, nx, ny, nz, bits,
-                                  table_keys, table_vals)
+    nq = queries.shape[0]
+    nblocks = (nq + _BLOCK - 1) // _BLOCK
+    for b in prange(nblocks):
+        for t in range(b * _BLOCK, min(nq, (b + 1) * _BLOCK)):
+            i = qorder[t]
+            out_counts[i] = count_one(queries[i, 0], queries[i, 1], queries[i, 2], r, r2, pts,
+                                      cell_start, origin, cell, inv_cell, nx, ny, nz, morton, bits,
+                                      table_keys, table_vals)
 
 
 @njit_parallel
-def grid_hybrid(queries, r, cap, pts, order, cell_start, origin, cell, inv_cell, nx, ny, nz,
-                bits, table_keys, table_vals, out_idx, out_sq, out_counts):
-    """Hybrid search for every query: rows of ``out_idx``/``out_sq`` padded with -1/inf."""
+def grid_hybrid(queries, qorder, r, cap, pts, order, cell_start, origin, cell, inv_cell, nx, ny, nz,
+                morton, bits, table_keys, table_vals, out_idx, out_sq, out_counts):
+    """Hybrid search for every query: rows of ``out_idx``/``out_sq`` padded with -1/inf.
+
+    Queries are visited in ``qorder`` (sorted by grid cell, so consecutive queries touch
+    the same memory); each writes only its own output row.
+    """
     nq = queries.shape[0]
     r2 = r * r
     nblocks = (nq + _BLOCK - 1) // _BLOCK
     for b in prange(nblocks):
         buf_pos = np.empty(max(cap, 1), dtype=np.int64)
         buf_sq = np.empty(max(cap, 1), dtype=np.float64)
-        for i in range(b * _BLOCK, min(nq, (b + 1) * _BLOCK)):
+        for t in range(b * _BLOCK, min(nq, (b + 1) * _BLOCK)):
+            i = qorder[t]
             cnt = 0
             if cap > 0:
                 cnt = hybrid_one(queries[i, 0], queries[i, 1], queries[i, 2], r, r2, cap, pts,
-                                 order, cell_start, origin, cell, inv_cell, nx, ny, nz, bits,
+                                 order, cell_start, origin, cell, inv_cell, nx, ny, nz, morton, bits,
                                  table_keys, table_vals, buf_pos, buf_sq)
             for j in range(cnt):
                 out_idx[i, j] = order[buf_pos[j]]
@@ -562,22 +594,23 @@ STATUS_COINCIDENT = 3
 
 
 @njit
-def _normal_from_neighbors(points, nbr, cnt, qi, mode_open3d, degenerate_ratio, A, V, w, tmp,
+def _normal_from_neighbors(points, nbr, cnt, qi, oi, mode_open3d, degenerate_ratio, A, V, w, tmp,
                            out_n, out_eval, out_status):
-    """PCA normal of point ``qi`` from the ``cnt`` neighbour indices in ``nbr``.
+    """PCA normal of the point at row ``qi`` of ``points`` from the ``cnt`` neighbour rows in
+    ``nbr``; results go to output row ``oi``.
 
     mode_open3d: raw-moment covariance in absolute coordinates + FastEigen3x3 (Open3D 0.20).
     otherwise: covariance centred on the query point then on the neighbourhood mean
     (two-pass), eigen-decomposed with cyclic Jacobi.
     """
     if cnt < 3:
-        out_n[qi, 0] = 0.0
-        out_n[qi, 1] = 0.0
-        out_n[qi, 2] = 1.0
-        out_eval[qi, 0] = np.nan
-        out_eval[qi, 1] = np.nan
-        out_eval[qi, 2] = np.nan
-        out_status[qi] = STATUS_TOO_FEW
+        out_n[oi, 0] = 0.0
+        out_n[oi, 1] = 0.0
+        out_n[oi, 2] = 1.0
+        out_eval[oi, 0] = np.nan
+        out_eval[oi, 1] = np.nan
+        out_eval[oi, 2] = np.nan
+        out_status[oi] = STATUS_TOO_FEW
         return
     if mode_open3d:
         s0 = 0.0
@@ -690,39 +723,41 @@ def _normal_from_neighbors(points, nbr, cnt, qi, mode_open3d, degenerate_ratio, 
             n2 = 1.0
     elif l1 <= degenerate_ratio * l2:
         status = STATUS_COLLINEAR
-    out_n[qi, 0] = n0
-    out_n[qi, 1] = n1
-    out_n[qi, 2] = n2
-    out_eval[qi, 0] = l0
-    out_eval[qi, 1] = l1
-    out_eval[qi, 2] = l2
-    out_status[qi] = status
+    out_n[oi, 0] = n0
+    out_n[oi, 1] = n1
+    out_n[oi, 2] = n2
+    out_eval[oi, 0] = l0
+    out_eval[oi, 1] = l1
+    out_eval[oi, 2] = l2
+    out_status[oi] = status
 
 
 @njit_parallel
-def normals_hybrid_fused(points, r, cap, mode_open3d, degenerate_ratio, pts, order, cell_start,
-                         origin, cell, inv_cell, nx, ny, nz, bits, table_keys, table_vals,
+def normals_hybrid_fused(r, cap, mode_open3d, degenerate_ratio, pts, order, cell_start,
+                         origin, cell, inv_cell, nx, ny, nz, morton, bits, table_keys, table_vals,
                          out_n, out_eval, out_status, out_counts):
-    """Hybrid search + PCA for every point without materialising the (n, max_nn) neighbourhoods."""
-    n = points.shape[0]
+    """Hybrid search + PCA for every indexed point without materialising the neighbourhoods.
+
+    Points are visited in grid order (``pts`` is the cell-sorted copy, ``order`` maps its
+    rows back to input rows), so neighbouring queries share cache lines.
+    """
+    n = pts.shape[0]
     r2 = r * r
     nblocks = (n + _BLOCK - 1) // _BLOCK
     for b in prange(nblocks):
         buf_pos = np.empty(cap, dtype=np.int64)
         buf_sq = np.empty(cap, dtype=np.float64)
-        nbr = np.empty(cap, dtype=np.int64)
         A = np.empty((3, 3))
         V = np.empty((3, 3))
         w = np.empty(3)
         tmp = np.empty(6)
-        for i in range(b * _BLOCK, min(n, (b + 1) * _BLOCK)):
-            cnt = hybrid_one(points[i, 0], points[i, 1], points[i, 2], r, r2, cap, pts, order,
-                             cell_start, origin, cell, inv_cell, nx, ny, nz, bits, table_keys,
+        for t in range(b * _BLOCK, min(n, (b + 1) * _BLOCK)):
+            cnt = hybrid_one(pts[t, 0], pts[t, 1], pts[t, 2], r, r2, cap, pts, order,
+                             cell_start, origin, cell, inv_cell, nx, ny, nz, morton, bits, table_keys,
                              table_vals, buf_pos, buf_sq)
-            for j in range(cnt):
-                nbr[j] = order[buf_pos[j]]
+            i = order[t]
             out_counts[i] = cnt
-            _normal_from_neighbors(points, nbr, cnt, i, mode_open3d, degenerate_ratio, A, V, w,
+            _normal_from_neighbors(pts, buf_pos, cnt, t, i, mode_open3d, degenerate_ratio, A, V, w,
                                    tmp, out_n, out_eval, out_status)
 
 
@@ -738,7 +773,7 @@ def normals_from_neighborhoods(points, row0, idx, counts, mode_open3d, degenerat
         w = np.empty(3)
         tmp = np.empty(6)
         for i in range(b * _BLOCK, min(nq, (b + 1) * _BLOCK)):
-            _normal_from_neighbors(points, idx[i], counts[i], row0 + i, mode_open3d,
+            _normal_from_neighbors(points, idx[i], counts[i], row0 + i, row0 + i, mode_open3d,
                                    degenerate_ratio, A, V, w, tmp, out_n, out_eval, out_status)
 
 

@@ -99,6 +99,7 @@ class _Grid:
     nx: int
     ny: int
     nz: int
+    morton: bool  # cell keys are Morton codes (else linear keys)
     pts: np.ndarray  # points sorted by cell key
     order: np.ndarray  # pts[j] = points[order[j]]
     cell_start: np.ndarray  # (ncells + 1,)
@@ -109,7 +110,15 @@ class _Grid:
     def args(self):
         """Positional kernel arguments after ``pts``/``order`` (see ``_kernels.hybrid_one``)."""
         return (self.cell_start, self.origin, self.cell, 1.0 / self.cell, self.nx, self.ny, self.nz,
-                self.bits, self.table_keys, self.table_vals)
+                self.morton, self.bits, self.table_keys, self.table_vals)
+
+    def query_order(self, queries: np.ndarray, is_self: bool) -> np.ndarray:
+        """Visiting order of the queries: sorted by grid cell (cache locality), stable."""
+        if is_self:
+            return self.order
+        keys = np.empty(queries.shape[0], dtype=np.int64)
+        K.grid_cell_keys(queries, self.origin, 1.0 / self.cell, self.nx, self.ny, self.nz, self.morton, keys)
+        return np.argsort(keys, kind="stable").astype(np.int64)
 
 
 def _build_grid(points: np.ndarray, cell: float) -> _Grid:
@@ -122,9 +131,10 @@ def _build_grid(points: np.ndarray, cell: float) -> _Grid:
             f"the neighbour-search grid would need {nx}x{ny}x{nz} cells of {cell} m: the cloud "
             "extent is too large for this radius; use a larger radius or split the cloud"
         )
+    morton = max(nx, ny, nz) <= 1 << 21
     n = points.shape[0]
     keys = np.empty(n, dtype=np.int64)
-    K.grid_cell_keys(points, origin, inv, nx, ny, keys)
+    K.grid_cell_keys(points, origin, inv, nx, ny, nz, morton, keys)
     order = np.argsort(keys, kind="stable").astype(np.int64)
     sk = keys[order]
     change = np.flatnonzero(sk[1:] != sk[:-1]) + 1
@@ -136,7 +146,7 @@ def _build_grid(points: np.ndarray, cell: float) -> _Grid:
     table_vals = np.empty(1 << bits, dtype=np.int64)
     K.grid_build_table(cell_keys, bits, table_keys, table_vals)
     pts = np.ascontiguousarray(points[order])
-    return _Grid(cell, origin, nx, ny, nz, pts, order, cell_start, bits, table_keys, table_vals)
+    return _Grid(cell, origin, nx, ny, nz, morton, pts, order, cell_start, bits, table_keys, table_vals)
 
 
 def _check_int(value, name: str, minimum: int = 1) -> int:
@@ -218,7 +228,8 @@ class NeighborIndex:
         idx = np.empty((m, cap), dtype=np.int64)
         sq = np.empty((m, cap), dtype=np.float64)
         cnt = np.empty(m, dtype=np.int64)
-        K.grid_hybrid(q, r, cap, g.pts, g.order, *g.args(), idx, sq, cnt)
+        qorder = g.query_order(q, q is self.points)
+        K.grid_hybrid(q, qorder, r, cap, g.pts, g.order, *g.args(), idx, sq, cnt)
         return Neighborhoods(idx, sq, cnt, kind, r, cap if kind == "hybrid" else None)
 
     def iter_hybrid(self, queries, radius_m: float, max_nn: int, chunk_size: int = 1 << 18
@@ -240,7 +251,7 @@ class NeighborIndex:
         r = check_positive(radius_m, "radius_m")
         g = self._grid(r)
         cnt = np.empty(q.shape[0], dtype=np.int64)
-        K.grid_radius_count(q, r, g.pts, *g.args(), cnt)
+        K.grid_radius_count(q, g.query_order(q, q is self.points), r, g.pts, *g.args(), cnt)
         return cnt
 
     def radius(self, queries, radius_m: float, max_nn: int | None = None) -> Neighborhoods:

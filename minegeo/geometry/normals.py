@@ -239,13 +239,13 @@ def estimate_normals(points, params: NormalParams | None = None, orient_towards=
     else:
         if index is None:
             index = NeighborIndex(pts)
-        elif len(index) != n:
-            raise InputError("index was built on a different cloud (point count differs)")
+        elif index.points is not pts and not np.array_equal(index.points, pts):
+            raise InputError("index was built on a different cloud than points")
         if params.radius_m is not None:
             r = float(params.radius_m)
             g = index._grid(r)
             counts = np.empty(n, dtype=np.int64)
-            K.normals_hybrid_fused(pts, r, int(params.max_nn), mode_o3d, ratio, g.pts, g.order,
+            K.normals_hybrid_fused(r, int(params.max_nn), mode_o3d, ratio, g.pts, g.order,
                                    *g.args(), normals, evals, status, counts)
         else:
             counts = np.empty(n, dtype=np.int64)
