@@ -50,7 +50,7 @@ import numpy as np
 
 from minegeo.errors import DegenerateGeometryError, FileFormatError, InputError, TooFewPointsError
 from minegeo.survey.angles import RHO_ARCSEC, parse_angle, wrap_2pi, wrap_pi
-from minegeo.survey.ellipse import ErrorEllipse, point_ellipses, relative_ellipse
+from minegeo.survey.ellipse import ErrorEllipse, ellipse_scale, point_ellipses, relative_ellipse
 from minegeo.survey.lsq import LSQOptions, LSQResult, adjust
 
 __all__ = [
@@ -770,12 +770,17 @@ class NetworkResult:
     observations : list[ObservationResult]
         In input order; baselines contribute one entry per component.
     relative_ellipses : list[(str, str, ErrorEllipse, ErrorEllipse)]
-        Standard and 95 % relative ellipses between observed pairs of adjusted points (2D/3D).
+        Standard and 95 % relative ellipses between observed pairs of points that are both
+        adjusted (2D/3D; with one end fixed the relative ellipse equals the absolute one).
     sigma0_known : bool
         Whether the covariance was scaled with the a-priori σ0 (then 95 % ellipses use χ²(2)).
     ellipse_note : str
     unused_points : tuple[str, ...]
         Points in the coordinate list without observations (not adjusted).
+    local_origin : dict[str, float]
+        Round values subtracted from the coordinates during the adjustment (x, y[, z]).
+    datum_defects : tuple[str, ...]
+        Free network: the datum defects removed by the inner constraints.
     """
 
     network: Network
@@ -787,6 +792,8 @@ class NetworkResult:
     sigma0_known: bool
     ellipse_note: str
     unused_points: tuple
+    local_origin: dict = field(default_factory=dict)
+    datum_defects: tuple = ()
 
     @property
     def sigma0(self) -> float:
@@ -1378,8 +1385,8 @@ def _collect(net: Network, model: _Model, res: LSQResult, confidence: float, def
                 seen.add(key)
                 ia = [model.index.get((a, ax)) for ax in ("x", "y")]
                 ib = [model.index.get((b, ax)) for ax in ("x", "y")]
-                if all(i is None for i in ia + ib):
-                    continue
+                if all(i is None for i in ia) or all(i is None for i in ib):
+                    continue  # one end fixed: the relative ellipse is the absolute one
                 idx = ia + ib
                 C4 = np.zeros((4, 4))
                 for i1, q1 in enumerate(idx):
@@ -1389,8 +1396,6 @@ def _collect(net: Network, model: _Model, res: LSQResult, confidence: float, def
                 e1 = relative_ellipse(C4, 0, 1)
                 if not sigma0_known and dof < 1:
                     continue
-                from minegeo.survey.ellipse import ellipse_scale
-
                 kk, basis = ellipse_scale(confidence, dof, sigma0_known)
                 rel.append((key[0], key[1], e1, e1.scaled(kk, confidence, basis)))
     note = (
@@ -1400,7 +1405,19 @@ def _collect(net: Network, model: _Model, res: LSQResult, confidence: float, def
     )
     if defects:
         note += f"; free-network datum removes: {', '.join(defects)}"
-    return NetworkResult(net, res, points, orient, obs_res, rel, sigma0_known, note, model.unused)
+    return NetworkResult(
+        net,
+        res,
+        points,
+        orient,
+        obs_res,
+        rel,
+        sigma0_known,
+        note,
+        model.unused,
+        dict(model.origin),
+        tuple(defects),
+    )
 
 
 # --------------------------------------------------------------------------------------------

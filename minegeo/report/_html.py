@@ -1,0 +1,96 @@
+"""Tiny dependency-free HTML helpers for minegeo reports (shared; use from any report module).
+
+Usage::
+
+    from minegeo.report._html import page, table, esc, kv_table
+    body = [("Summary", kv_table([("sigma0", "1.02"), ("chi-square test", "PASSED")])),
+            ("Points", table(["id", "E (m)"], [["A", "1000.000"]], numeric=[1]))]
+    html = page("My report", body, subtitle="input.dat")
+
+* :func:`esc` — HTML-escape any value (``None`` -> empty).
+* :func:`table` — ``<table>`` from headers and rows; ``numeric`` column indices are right
+  aligned in a monospace font; ``row_classes`` marks rows (``"flag"`` renders red).
+* :func:`kv_table` — two-column key/value table.
+* :func:`page` — full standalone page (inline CSS, no scripts, prints well) from
+  ``[(section title, section html), ...]``; section titles become ``<h2>`` with anchors.
+* :func:`badge` — coloured PASSED/FAILED style label (``ok=True/False/None``).
+"""
+
+from __future__ import annotations
+
+import html
+import re
+
+__all__ = ["esc", "table", "kv_table", "page", "badge"]
+
+_CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:2em auto;max-width:1200px;color:#222;padding:0 1em}
+h1{font-size:1.5em;border-bottom:2px solid #444;padding-bottom:.2em}
+h2{font-size:1.15em;margin-top:1.6em;border-bottom:1px solid #bbb}
+table{border-collapse:collapse;margin:.5em 0 1em 0;font-size:.9em}
+th,td{border:1px solid #ccc;padding:.2em .5em;text-align:left;vertical-align:top}
+th{background:#f0f0f0}
+td.num{text-align:right;font-family:ui-monospace,Menlo,Consolas,monospace;white-space:nowrap}
+tr.flag td{background:#fde8e8}
+.badge{display:inline-block;padding:.1em .6em;border-radius:.3em;font-weight:bold;color:#fff}
+.ok{background:#2e7d32}.bad{background:#c62828}.na{background:#777}
+.sub{color:#555}
+pre{background:#f7f7f7;padding:.6em;overflow-x:auto}
+@media print{body{margin:0;max-width:none}}
+"""
+
+
+def esc(value) -> str:
+    """HTML-escaped text of ``value`` (``None`` -> ``""``)."""
+    return "" if value is None else html.escape(str(value), quote=True)
+
+
+def badge(text: str, ok: bool | None) -> str:
+    """Coloured label: green when ``ok``, red when False, grey when None."""
+    cls = "na" if ok is None else ("ok" if ok else "bad")
+    return f'<span class="badge {cls}">{esc(text)}</span>'
+
+
+def table(headers, rows, numeric=(), row_classes=None, raw_cols=()) -> str:
+    """HTML table. ``numeric``: right-aligned monospace column indices; ``raw_cols``: cells already HTML."""
+    num = set(numeric)
+    raw = set(raw_cols)
+    out = ["<table><thead><tr>" + "".join(f"<th>{esc(h)}</th>" for h in headers) + "</tr></thead><tbody>"]
+    for i, row in enumerate(rows):
+        cls = row_classes[i] if row_classes else ""
+        cells = []
+        for j, c in enumerate(row):
+            txt = c if j in raw else esc(c)
+            cells.append(f'<td class="num">{txt}</td>' if j in num else f"<td>{txt}</td>")
+        out.append(
+            f'<tr class="{esc(cls)}">' + "".join(cells) + "</tr>"
+            if cls
+            else "<tr>" + "".join(cells) + "</tr>"
+        )
+    out.append("</tbody></table>")
+    return "\n".join(out)
+
+
+def kv_table(items) -> str:
+    """Two-column key/value table from ``[(key, value), ...]`` (values are escaped)."""
+    return (
+        "<table><tbody>"
+        + "".join(f"<tr><th>{esc(k)}</th><td>{esc(v)}</td></tr>" for k, v in items)
+        + "</tbody></table>"
+    )
+
+
+def _anchor(title: str) -> str:
+    return re.sub(r"[^a-z0-9]+", "-", title.lower()).strip("-")
+
+
+def page(title: str, sections, subtitle: str = "") -> str:
+    """Standalone HTML page from ``[(section title, html), ...]`` with a table of contents."""
+    toc = "".join(f'<li><a href="#{_anchor(t)}">{esc(t)}</a></li>' for t, _ in sections)
+    body = "\n".join(f'<h2 id="{_anchor(t)}">{esc(t)}</h2>\n{h}' for t, h in sections)
+    sub = f'<p class="sub">{esc(subtitle)}</p>' if subtitle else ""
+    return (
+        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+        f"<title>{esc(title)}</title><style>{_CSS}</style></head><body>\n"
+        f"<h1>{esc(title)}</h1>{sub}<ol>{toc}</ol>\n{body}\n</body></html>\n"
+    )

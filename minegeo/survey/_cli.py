@@ -1,0 +1,97 @@
+"""``minegeo adjust NETWORK --out DIR``: least-squares adjustment of a survey network.
+
+NETWORK is a text file in the Krumm/GNU Gama example format (``[Coordinates]``, ``[Datum]``,
+``[Distances]``, ``[Angles,dms,s]``, ``[Directions]``, ``[LevelledHeightDifferences]``, …; see
+``docs/survey.md``) or the equivalent JSON (``.json``). Writes ``DIR/result.json`` (points with
+standard deviations, σ̂0, dof, χ² test, observations with residuals / standardised residuals /
+redundancy numbers / flags, ellipses, parameters, versions, input sha256),
+``DIR/report.txt`` and ``DIR/report.html``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+from minegeo._provenance import StageTimer, provenance
+from minegeo.errors import InputError
+
+HELP = "adjust a survey network (Krumm/Gama text or JSON) by least squares: coordinates, sigma0, chi-square, residuals, ellipses"
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("network", help="network file: Krumm/Gama text format (.dat) or JSON (.json)")
+    parser.add_argument(
+        "--out", required=True, help="output directory (result.json, report.txt, report.html)"
+    )
+    parser.add_argument(
+        "--variance",
+        choices=("aposteriori", "apriori"),
+        default="aposteriori",
+        help="scale covariances with the estimated sigma0 (default, like adjustment packages) or the a-priori sigma0 = 1",
+    )
+    parser.add_argument(
+        "--confidence", type=float, default=0.95, help="confidence level of the ellipses (default 0.95)"
+    )
+    parser.add_argument(
+        "--alpha",
+        type=float,
+        default=0.05,
+        help="significance of the two-tailed chi-square test (default 0.05)",
+    )
+    parser.add_argument(
+        "--alpha-w", type=float, default=0.001, help="significance of Baarda's w-test (default 0.001 -> 3.29)"
+    )
+    parser.add_argument(
+        "--alpha-tau", type=float, default=0.05, help="overall significance of Pope's tau-test (default 0.05)"
+    )
+    parser.add_argument("--max-iterations", type=int, default=50, help="Gauss-Newton iterations (default 50)")
+
+
+def run(args) -> int:
+    from minegeo.report.survey_report import write_survey_report
+    from minegeo.survey.lsq import LSQOptions
+    from minegeo.survey.network import adjust_network, read_network
+
+    path = Path(args.network)
+    if not path.is_file():
+        raise FileNotFoundError(2, "network file not found", str(path))
+    if not 0 < args.confidence < 1:
+        raise InputError(f"--confidence must be between 0 and 1, got {args.confidence}")
+    timer = StageTimer()
+    with timer("read"):
+        net = read_network(path)
+    opts = LSQOptions(
+        variance=args.variance,
+        alpha_global=args.alpha,
+        alpha_w=args.alpha_w,
+        alpha_tau=args.alpha_tau,
+        max_iterations=args.max_iterations,
+    )
+    with timer("adjust"):
+        res = adjust_network(net, opts, confidence=args.confidence)
+    params = {
+        "variance": args.variance,
+        "confidence": args.confidence,
+        "alpha_global": args.alpha,
+        "alpha_w": args.alpha_w,
+        "alpha_tau": args.alpha_tau,
+        "max_iterations": args.max_iterations,
+        "timings_s": timer.as_dict(),
+    }
+    prov = provenance(seed=None, origin=res.local_origin, inputs=[path])
+    paths = write_survey_report(res, args.out, params, prov)
+    lsq = res.lsq
+    chi = lsq.chi2
+    print(f"adjusted {len(res.points)} point(s) from {len(lsq.v)} observation equation(s); dof = {lsq.dof}")
+    print(
+        f"sigma0 = {lsq.sigma0:.4f}; chi-square test {chi.verdict} ({chi.statistic:.3f} in [{chi.lower:.3f}, {chi.upper:.3f}])"
+    )
+    flagged = [o for o in res.observations if o.flag and o.flag != "weak r_i"]
+    if flagged:
+        print(f"{len(flagged)} observation(s) flagged by data snooping; see {paths['report_txt']}")
+    print(f"wrote {paths['result']}, {paths['report_txt']}, {paths['report_html']}")
+    return 0
