@@ -31,13 +31,19 @@ from __future__ import annotations
 import itertools
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from minegeo._provenance import StageTimer
 from minegeo._validate import check_positive
-from minegeo.errors import DegenerateGeometryError, InputError, MinegeoError, TooFewPointsError
+from minegeo.errors import (
+    ConvergenceError,
+    DegenerateGeometryError,
+    InputError,
+    MinegeoError,
+    TooFewPointsError,
+)
 from minegeo.mast._kernels import _cast_rays
 from minegeo.mast.beacons import Beacon
 from minegeo.mast.icp import icp_point_to_line, rot2
@@ -78,6 +84,9 @@ class MastParams:
         final adjustment (their panel is uncertain); ``3 r sigma_beta`` is added.
     residual_gate_sigmas : float
         Returns whose distance to their panel exceeds this many sigma are rejected.
+    min_fit_fraction : float
+        A beacon is dropped if fewer than this fraction of the returns predicted on its
+        panels fit them (beacon moved, knocked off or occluded).
     min_beacons : int
         Beacons that must contribute returns (the paper uses two).
     min_returns_per_beacon : int
@@ -103,6 +112,7 @@ class MastParams:
     icp_max_iterations: int = 100
     edge_margin_m: float = 0.005
     residual_gate_sigmas: float = 5.0
+    min_fit_fraction: float = 0.5
     min_beacons: int = 2
     min_returns_per_beacon: int = 3
     helmert_scale_tolerance: float = 0.25
@@ -297,19 +307,43 @@ def _associate_by_rays(pose, bearing_rad, range_m, panels, sig_r, sig_b, sig_p, 
     nu = np.abs(np.einsum("ij,ij->i", n, dirs))
     dadz = range_m * (n[:, 0] * np.cos(phi) - n[:, 1] * np.sin(phi))
     sd = np.sqrt((nu * sig_r) ** 2 + (dadz * sig_b) ** 2 + sig_p**2)
+    pred = ok.copy()
     ok &= np.abs(d) <= gate_sigmas * sd
-    return ok, np.where(ok, idx, -1), d, nrm
+    return ok, np.where(ok, idx, -1), d, nrm, np.where(pred, idx, -1)
+
+
+def _associate(pose, bearing_rad, range_m, panels, beacon_of_panel, sig_r, sig_b, p: MastParams):
+    """Ray-based association plus the per-beacon check that the beacon is really there.
+
+    A beacon whose predicted returns mostly do not fit its panels (fewer than
+    ``min_fit_fraction``) is dropped: it was moved, knocked off, or is occluded.
+    """
+    ok, idx, d, nrm, pred = _associate_by_rays(
+        pose, bearing_rad, range_m, panels, sig_r, sig_b, p.sigma_panel_m, p.edge_margin_m,
+        p.residual_gate_sigmas,
+    )
+    nb = int(beacon_of_panel.max()) + 1
+    bp = np.where(pred >= 0, beacon_of_panel[np.maximum(pred, 0)], -1)
+    bf = np.where(ok, beacon_of_panel[np.maximum(idx, 0)], -1)
+    n_pred = np.bincount(bp[bp >= 0], minlength=nb)
+    n_fit = np.bincount(bf[bf >= 0], minlength=nb)
+    dropped = []
+    for b in range(nb):
+        if n_pred[b] > 0 and n_fit[b] < p.min_fit_fraction * n_pred[b]:
+            ok &= bf != b
+            dropped.append((b, int(n_fit[b]), int(n_pred[b])))
+    idx = np.where(ok, idx, -1)
+    return ok, idx, d, nrm, dropped
 
 
 def _final_adjustment(pose0, bearing_rad, range_m, panels, beacon_of_panel, sig_r, sig_b, p: MastParams):
     pose = np.array(pose0, dtype=np.float64)
     prev = None
     res = None
+    dropped: list = []
     for _ in range(4):
-        ok, idx, _, nrm = _associate_by_rays(
-            pose, bearing_rad, range_m, panels, sig_r, sig_b, p.sigma_panel_m, p.edge_margin_m,
-            p.residual_gate_sigmas,
-        )
+        ok, idx, _, nrm, dropped = _associate(pose, bearing_rad, range_m, panels, beacon_of_panel,
+                                              sig_r, sig_b, p)
         if prev is not None and np.array_equal(ok, prev):
             break
         prev = ok
@@ -320,7 +354,7 @@ def _final_adjustment(pose0, bearing_rad, range_m, panels, beacon_of_panel, sig_
         )
         res = resect_scanner_pose(obs, pose, sig_r, sig_b, p.sigma_panel_m, LSQOptions(variance=p.variance))
         pose = res.x.copy()
-    return pose, res, ok, idx
+    return pose, res, ok, idx, dropped
 
 
 def _fail(reason: str, params: MastParams, details: dict, arrays=None, option=None, iters=0) -> MastResult:
@@ -439,18 +473,21 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
             T0 = np.eye(3)
             T0[:2, :2] = R0
             T0[:2, 2] = hr.scale * (R0 @ c_src) + hr.params[2:] - R0 @ c_src
+            # ICP first on the beacons of this hypothesis only (a beacon that is listed but
+            # missing must not pull the pose), then on all beacons with the tight gates.
+            hyp_panels = np.isin(beacon_of_panel, list(h.values()))
             try:
-                icp = icp_point_to_line(xy, panels, T0, p.icp_gates_m, p.icp_max_iterations,
-                                        margin_m=0.0)
+                icp1 = icp_point_to_line(xy, panels[hyp_panels], T0, p.icp_gates_m, p.icp_max_iterations)
+                icp = icp_point_to_line(xy, panels, icp1.T_mine_scan, p.icp_gates_m[-1:],
+                                        p.icp_max_iterations)
             except (TooFewPointsError, DegenerateGeometryError) as exc:
                 rec["rejected"] = f"ICP: {exc}"
                 evaluated.append(rec)
                 continue
+            icp = replace(icp, iterations=icp1.iterations + icp.iterations,
+                          beta_cum_rad=icp1.beta_cum_rad + icp.beta_cum_rad)
             pose = _pose_from_T(icp.T_mine_scan)
-            ok, idx, _, _ = _associate_by_rays(
-                pose, bearing_rad, rng_m, panels, sig_r, sig_b, p.sigma_panel_m, p.edge_margin_m,
-                p.residual_gate_sigmas,
-            )
+            ok, idx, _, _, _ = _associate(pose, bearing_rad, rng_m, panels, beacon_of_panel, sig_r, sig_b, p)
             rec.update(pose=pose, icp=icp, n_explained=int(ok.sum()), used=used,
                        beacons_hit=sorted(set(beacon_of_panel[idx[ok]].tolist())))
             evaluated.append(rec)
@@ -488,13 +525,17 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
                       "converged": icp.converged, "beta_cum_deg": -math.degrees(icp.beta_cum_rad)}
     with timer("adjustment"):
         try:
-            pose, res, ok, idx = _final_adjustment(best["pose"], bearing_rad, rng_m, panels, beacon_of_panel,
-                                                   sig_r, sig_b, p)
-        except (TooFewPointsError, DegenerateGeometryError) as exc:
+            pose, res, ok, idx, dropped = _final_adjustment(best["pose"], bearing_rad, rng_m, panels,
+                                                            beacon_of_panel, sig_r, sig_b, p)
+        except (TooFewPointsError, DegenerateGeometryError, ConvergenceError) as exc:
             return _fail(f"final adjustment impossible: {exc}", p, details, arrays, seg_option, icp.iterations)
     counts = np.bincount(beacon_of_panel[idx[ok]], minlength=len(bl))
     used_b = [bl[i].beacon_id for i in range(len(bl)) if counts[i] >= p.min_returns_per_beacon]
     details["returns_per_beacon"] = {bl[i].beacon_id: int(counts[i]) for i in range(len(bl))}
+    details["beacons_dropped"] = [
+        f"{bl[b].beacon_id}: only {nf} of {npred} returns predicted on its panels fit them "
+        "(moved, missing or occluded beacon?)" for b, nf, npred in dropped
+    ]
     details["beacons_used"] = used_b
     arrays.update(
         used=ok, panel=idx, panels_mine=panels + np.tile(origin, 2), bearing_deg=bearing, range_m=rng_m,

@@ -106,7 +106,7 @@ class SegmentationParams:
     gap_floor_m: float = 0.02
     min_points: int = 4
     n_confirm: int = 3
-    refine_window: int = 6
+    refine_window: int = 24
     split_gain: float = 30.0
     length_short_fraction: float = 0.25
     length_long_fraction: float = 0.10
