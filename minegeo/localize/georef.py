@@ -673,12 +673,20 @@ def georeference(gcps: ControlPoints, crs=None, params: GeorefParams | None = No
     opts = LSQOptions(
         variance=p.variance, alpha_w=p.blunder_alpha, alpha_global=p.chi2_alpha, max_iterations=100
     )
+    # with a unit mismatch a rigid fit is meaningless (and may not converge): the numbers of a
+    # failed result then come from a diagnostic 7-parameter fit that shows the actual scale
+    fit_similarity = p.model == "similarity" or bool(failed and "unit check" in failed[0])
+    if fit_similarity and p.model == "rigid":
+        failed.append(
+            "model 'rigid' was requested; the parameters shown come from a diagnostic 7-parameter fit "
+            "(to show the actual scale) and must not be used"
+        )
     t_fit = time.perf_counter()
     h = helmert3d(
         src,
         dst,
         sigma_used,
-        estimate_scale=(p.model == "similarity"),
+        estimate_scale=fit_similarity,
         convention=p.convention,
         options=opts,
     )
@@ -747,7 +755,7 @@ def georeference(gcps: ControlPoints, crs=None, params: GeorefParams | None = No
         )
 
     gf = grid_scale_factors(info.user_input, *(crs_enh.mean(axis=0))) if info.kind != "geocentric" else None
-    if gf is not None and p.model == "rigid":
+    if gf is not None and not fit_similarity:
         lever = extent * abs(gf["combined_factor"] - 1.0)
         if lever > 3.0 * float(np.median(sig_enh)):
             warnings.append(
@@ -773,7 +781,7 @@ def georeference(gcps: ControlPoints, crs=None, params: GeorefParams | None = No
         status=status,
         reason=reason,
         warnings=warnings,
-        model=p.model,
+        model="similarity" if fit_similarity else "rigid",
         convention=p.convention,
         crs=info.user_input,
         crs_info=info,
@@ -781,7 +789,7 @@ def georeference(gcps: ControlPoints, crs=None, params: GeorefParams | None = No
         T_geo_map=T_geo,
         T_crs_map=T_crs,
         scale=s,
-        scale_std=float(std[6]) if p.model == "similarity" else 0.0,
+        scale_std=float(std[6]) if fit_similarity else 0.0,
         R=R,
         rotation_pv_rad=omega,
         rotation_rad=rot,

@@ -72,10 +72,12 @@ def plot_georef_png(result, cloud_geo=None, max_cloud_points: int = 20000, seed:
         ax.scatter(pts[:, 0], pts[:, 1], s=0.2, c="0.75", linewidths=0, label="map (georeferenced)")
     span = float(np.max(np.ptp(en, axis=0))) if len(en) > 1 else 1.0
     vmax = float(np.max(np.linalg.norm(v, axis=1))) if len(v) else 0.0
-    k = 0.1 * span / vmax if vmax > 0 else 1.0
-    # a round exaggeration factor
+    k = 1.0
     if vmax > 0:
-        k = 10 ** math.floor(math.log10(k)) * (5 if k / 10 ** math.floor(math.log10(k)) >= 5 else 1)
+        # a round exaggeration factor (1, 2, 5 x 10^m) making the longest vector ~15-35 % of the span
+        raw = 0.3 * span / vmax
+        dec = 10.0 ** math.floor(math.log10(raw))
+        k = dec * max(m for m in (1.0, 2.0, 5.0) if m * dec <= raw)
     flagged = np.asarray(result.blunder, dtype=bool) | np.array([bool(f) for f in result.flags])
     ax.scatter(en[~flagged, 0], en[~flagged, 1], marker="^", s=50, c="tab:blue", label="GCP", zorder=3)
     if flagged.any():
@@ -159,6 +161,9 @@ def georef_report_html(
         f"rotation convention <b>{conv}</b>: R = exp([ω]×) with ω the position-vector rotation vector"
         + ("" if r.convention == "position_vector" else "; reported rotations are −ω")
         + ". Residuals v = fitted − observed.</p>",
+        "<p class='small'>r<sub>E</sub>, r<sub>N</sub>, r<sub>H</sub>: components of the rotation vector (for small "
+        "angles the EPSG rotations about E, N, H). Their standard deviations are those of small rotations about the "
+        "E, N, H axes at the solution.</p>",
         "<table><tr><th class='l'>parameter</th><th>value</th><th>std. dev.</th></tr>",
         f"<tr><td class='l'>T<sub>E</sub></td><td>{r.translation_m[0]:.4f} m</td><td>{sd[0] * 1000:.2f} mm</td></tr>",
         f"<tr><td class='l'>T<sub>N</sub></td><td>{r.translation_m[1]:.4f} m</td><td>{sd[1] * 1000:.2f} mm</td></tr>",
@@ -166,7 +171,7 @@ def georef_report_html(
     ]
     for j, ax in enumerate("ENH"):
         out.append(
-            f"<tr><td class='l'>r<sub>{ax}</sub> (about {ax})</td><td>{r.rotation_rad[j]:.9f} rad = "
+            f"<tr><td class='l'>r<sub>{ax}</sub></td><td>{r.rotation_rad[j]:.9f} rad = "
             f"{r.rotation_arcsec[j]:.4f}″ = {_e(r.rotation_dms[j])}</td><td>{rs[j]:.3f}″</td></tr>"
         )
     if r.model == "similarity":
