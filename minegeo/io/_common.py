@@ -36,7 +36,7 @@ class RawCloud:
     crs: str | None = None
     frame: str | None = None
     metadata: dict = field(default_factory=dict)
-    line_of_row: tuple | None = None  # (first_line, step) for ASCII: row i is line first + i*step
+    line_of_row: object = None  # text formats: callable row -> 1-based line number (error messages)
 
 
 def find_xyz(path, names: list[str]) -> tuple[int, int, int]:
@@ -118,10 +118,8 @@ def resolve_origin(path, origin, raw: RawCloud) -> np.ndarray:
 
 
 def _row_label(raw: RawCloud, i: int) -> str:
-    if raw.line_of_row is not None:
-        first, step = raw.line_of_row
-        return f"point {i} (line {first + i * step})"
-    return f"point {i}"
+    line = raw.line_of_row(i) if callable(raw.line_of_row) else None
+    return f"point {i} (line {line})" if line else f"point {i}"
 
 
 def assemble(

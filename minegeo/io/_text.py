@@ -13,7 +13,7 @@ import numpy as np
 
 from minegeo.errors import FileFormatError
 
-__all__ = ["parse_table", "format_table", "line_offsets", "is_number"]
+__all__ = ["parse_table", "format_table", "line_offsets", "is_number", "data_line_locator"]
 
 #: rows formatted per ``%`` operation when writing text (bounds memory, no per-row loop)
 _CHUNK_ROWS = 200_000
@@ -37,6 +37,26 @@ def line_offsets(data: bytes | memoryview, start: int, nlines: int) -> int:
     if nl.size < nlines:
         return len(data)
     return start + int(nl[nlines - 1]) + 1
+
+
+def data_line_locator(text: str, first_line: int, comments: str | None = "#"):
+    """Return ``f(row) -> line number`` of the ``row``-th data row of ``text`` (error path only).
+
+    Blank lines and comment lines are skipped exactly as :func:`parse_table` skips them.
+    """
+
+    def locate(row: int) -> int | None:
+        count = -1
+        for i, line in enumerate(io.StringIO(text)):
+            s = line.strip()
+            if not s or (comments and s.startswith(comments)):
+                continue
+            count += 1
+            if count == row:
+                return first_line + i
+        return None
+
+    return locate
 
 
 def _diagnose(path, text: str, ncols: int | None, delimiter: str | None, first_line: int) -> str | None:

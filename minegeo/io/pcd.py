@@ -33,7 +33,7 @@ from minegeo.io._common import (
     writable_attributes,
 )
 from minegeo.io._lzf import lzf_compress, lzf_decompress
-from minegeo.io._text import format_table, parse_table
+from minegeo.io._text import data_line_locator, format_table, parse_table
 from minegeo.io.types import PointCloud
 
 __all__ = ["read_pcd_bytes", "write_pcd_bytes", "PCD_ENCODINGS"]
@@ -131,9 +131,10 @@ def read_pcd_bytes(path, data: bytes) -> RawCloud:
     line_of_row = None
     if mode == "ascii":
         ncols = sum(counts_i)
+        text = data[body:].decode("latin-1")
         table = parse_table(
             path,
-            data[body:].decode("latin-1"),
+            text,
             ncols=ncols,
             first_line=header_lines + 1,
             expected_rows=n,
@@ -149,7 +150,7 @@ def read_pcd_bytes(path, data: bytes) -> RawCloud:
             elif nm.lower() in ("rgb", "rgba"):
                 block = block.astype(np.float32)  # packed colour: the float's bits matter
             cols[nm] = block[:, 0].astype(code) if c == 1 else block.astype(code)
-        line_of_row = (header_lines + 1, 1)
+        line_of_row = data_line_locator(text, header_lines + 1)
     else:
         dt = np.dtype(
             [(nm, "<" + code, (c,)) if c > 1 else (nm, "<" + code) for nm, code, c in zip(uniq, codes, counts_i, strict=True)]

@@ -26,7 +26,7 @@ from minegeo.io._common import (
     rgb_of,
     writable_attributes,
 )
-from minegeo.io._text import format_table, parse_table
+from minegeo.io._text import data_line_locator, format_table, parse_table
 from minegeo.io.types import PointCloud
 
 __all__ = ["read_ply_bytes", "write_ply_bytes", "PLY_ENCODINGS"]
@@ -138,7 +138,7 @@ def read_ply_bytes(path, data: bytes) -> RawCloud:
                 path, f"header declares {n} vertices but {table.shape[0]} data lines were found (file truncated?)"
             )
         cols = {p[0]: table[:, j].astype(p[1]) for j, p in enumerate(vert["props"])}
-        line_of_row = (header_lines + 1 + text_lines, 1)
+        line_of_row = data_line_locator(text, header_lines + 1 + text_lines, comments=None)
     else:
         endian = "<" if fmt == "binary_little_endian" else ">"
         offset = body_start

@@ -43,7 +43,7 @@ from minegeo.io._common import (
     rgb_of,
     writable_attributes,
 )
-from minegeo.io._text import format_table, is_number, parse_table
+from minegeo.io._text import data_line_locator, format_table, is_number, parse_table
 from minegeo.io.types import PointCloud
 
 log = logging.getLogger(__name__)
@@ -161,8 +161,8 @@ def read_text_bytes(path, data: bytes, fmt: str = "xyz", columns=None) -> RawClo
         meta["units"] = mg["units"]
     meta["dtype"] = "text"
     meta["columns"] = names
-    # line of row i: exact only when there are no blank/comment lines inside the data
-    return RawCloud(values, fields, file_origin, mg.get("crs"), mg.get("frame"), meta, (lineno, 1))
+    locate = data_line_locator(text[start:], lineno)
+    return RawCloud(values, fields, file_origin, mg.get("crs"), mg.get("frame"), meta, locate)
 
 
 def write_text_bytes(

@@ -154,9 +154,9 @@ def test_corrupt_lzf(tmp_path):
 
 def test_nan_rows_rejected_with_line_or_dropped(tmp_path, caplog):
     p = tmp_path / "n.xyz"
-    p.write_text("# x y z\n1 2 3\n4 nan 6\n7 8 9\nnan nan nan\n")
+    p.write_text("# x y z\n1 2 3\n\n# a comment inside the data\n4 nan 6\n7 8 9\nnan nan nan\n")
     msg = _err(p, "NaN")
-    assert "2 point(s)" in msg and "point 1 (line 3)" in msg
+    assert "2 point(s)" in msg and "point 1 (line 5)" in msg
     with caplog.at_level(logging.WARNING, logger="minegeo.io"):
         c = read_point_cloud(p, drop_nonfinite=True)
     assert len(c) == 2 and c.metadata["dropped_nonfinite"] == 2

@@ -112,3 +112,27 @@ def test_las_without_laspy(tmp_path, rng, monkeypatch):
     monkeypatch.delitem(sys.modules, "laspy", raising=False)
     with pytest.raises(OptionalDependencyError, match="laspy"):
         read_point_cloud(tmp_path / "a.las")
+
+
+def test_las12_geotiff_crs_and_8bit_colour(tmp_path, rng):
+    """Older files: LAS 1.2 point format 3, CRS as GeoTIFF keys, colour stored as 8-bit values."""
+    import pyproj
+
+    n = 50
+    hdr = laspy.LasHeader(point_format=3, version="1.2")
+    hdr.scales = [0.01, 0.01, 0.01]
+    hdr.offsets = [E0, N0, 0.0]
+    hdr.add_crs(pyproj.CRS("EPSG:5186"))
+    las = laspy.LasData(hdr)
+    X = rng.integers(0, 100_000, (n, 3))
+    las.X, las.Y, las.Z = X[:, 0], X[:, 1], X[:, 2]
+    rgb8 = rng.integers(0, 256, (n, 3))
+    las.red, las.green, las.blue = rgb8[:, 0], rgb8[:, 1], rgb8[:, 2]
+    las.write(tmp_path / "old.las")
+    assert any("GeoKeyDirectory" in type(v).__name__ for v in laspy.read(tmp_path / "old.las").header.vlrs)
+    c = read_point_cloud(tmp_path / "old.las", origin="auto")
+    assert c.crs == "EPSG:5186"
+    assert c.metadata["las_version"] == "1.2" and c.metadata["las_point_format"] == 3
+    np.testing.assert_array_equal(c.attributes["rgb"], rgb8)  # all <= 255: kept as stored
+    assert np.all(c.origin == np.round(c.origin)) and c.origin[0] > 1e5
+    np.testing.assert_allclose(c.points + c.origin, X * 0.01 + [E0, N0, 0.0], rtol=0, atol=1e-9)
