@@ -230,6 +230,19 @@ def writable_attributes(cloud: PointCloud) -> list[tuple[str, np.ndarray]]:
     return out
 
 
+def check_unique_names(names: list[str]) -> None:
+    """Refuse to write two columns with the same (case-insensitive) name, e.g. an attribute ``nx``
+    next to the normals, which would make the file ambiguous to read back."""
+    seen: dict[str, str] = {}
+    for nm in names:
+        key = nm.lower()
+        if key in seen:
+            raise InputError(
+                f"attribute {nm!r} clashes with the column {seen[key]!r} (coordinates, normals or colour); rename it"
+            )
+        seen[key] = nm
+
+
 def rgb_of(cloud: PointCloud) -> np.ndarray | None:
     """The ``rgb`` attribute as (n, 3) uint8, or None."""
     rgb = cloud.attributes.get("rgb")

@@ -26,6 +26,7 @@ from minegeo.errors import FileFormatError, InputError
 from minegeo.io._common import (
     RawCloud,
     check_float32_precision,
+    check_unique_names,
     find_xyz,
     global_values,
     one_line_crs,
@@ -300,6 +301,7 @@ def write_pcd_bytes(
             fields.append((name, t, s, 1, v))
         else:
             fields.append((name, t, s, v.shape[1], v))
+    check_unique_names([f[0] for f in fields])
     header = [f"# .PCD v0.7 - Point Cloud Data file format (minegeo {__version__})"]
     if cloud.crs:
         header.append(f"# minegeo crs {one_line_crs(cloud.crs)}")

@@ -20,6 +20,7 @@ from minegeo.errors import FileFormatError, InputError
 from minegeo.io._common import (
     RawCloud,
     check_float32_precision,
+    check_unique_names,
     find_xyz,
     global_values,
     one_line_crs,
@@ -238,6 +239,7 @@ def write_ply_bytes(
             else:
                 code = "f8"
         cols.append((name, code, v))
+    check_unique_names([nm for nm, _, _ in cols])
     header = ["ply", f"format {encoding} 1.0", f"comment minegeo {__version__}"]
     if cloud.crs:
         header.append(f"comment minegeo crs {one_line_crs(cloud.crs)}")

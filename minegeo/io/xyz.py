@@ -37,6 +37,7 @@ from minegeo.errors import FileFormatError, InputError
 from minegeo.io._common import (
     RawCloud,
     check_float32_precision,
+    check_unique_names,
     find_xyz,
     global_values,
     one_line_crs,
@@ -228,6 +229,7 @@ def write_text_bytes(
         dropped = list(amap) + (["rgb"] if rgb is not None else []) + (["normals"] if cloud.normals is not None else [])
     if dropped:
         log.warning("%s format cannot store %s: not written", fmt, ", ".join(dropped))
+    check_unique_names([c[0] for c in cols])
     delim = "," if fmt == "csv" else " "
     lines: list[str] = []
     if fmt == "pts":

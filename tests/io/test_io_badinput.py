@@ -201,3 +201,12 @@ def test_bad_arguments(tmp_path, rng):
         write_point_cloud(tmp_path / "b.ply", rng.normal(size=(5, 3)))
     with pytest.raises(FileNotFoundError):
         read_point_cloud(tmp_path / "missing.ply")
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".pcd", ".xyz", ".csv"])
+def test_attribute_name_clash_refused(tmp_path, rng, suffix):
+    name = "Normal_X" if suffix == ".pcd" else "NX"  # PCD names normals normal_x ..
+    c = PointCloud(rng.normal(size=(4, 3)), normals=np.tile([0.0, 0, 1], (4, 1)), attributes={name: np.zeros(4)})
+    with pytest.raises(InputError, match="clashes"):
+        write_point_cloud(tmp_path / f"a{suffix}", c)
+    assert not list(tmp_path.iterdir())
