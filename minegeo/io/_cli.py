@@ -89,7 +89,7 @@ def _print_cloud(info: dict) -> None:
     print(f"extent    {_fmt_vec(info['extent'])}")
     print(f"units     {info['units']}")
     print(f"crs       {info['crs'] or 'none (local frame)'}")
-    if any(info["recorded_origin"]):
+    if any(info["recorded_origin"]) and "las_offset" not in info["metadata"]:
         print(f"origin    {_fmt_vec(info['recorded_origin'])} (recorded in the file)")
     meta = info["metadata"]
     if "las_scale" in meta:

@@ -6,10 +6,11 @@ offsets"). minegeo reads the integers and forms ``X * scale`` (small numbers, ex
 float64 rounding) and adds ``offset - origin`` as one float64 vector, so projected
 coordinates of 10^6-10^7 m lose nothing when a local origin is subtracted.
 
-Reading: ``intensity`` (uint16), colour ``red green blue`` -> ``attributes["rgb"]``
-(16-bit values divided by 256 when any exceeds 255), ``gps_time``, every other standard
-dimension that is not all zero (e.g. ``classification``, ``return_number``), and every
-extra-bytes dimension (``nx ny nz`` become normals). The CRS (WKT or GeoTIFF keys) is
+Reading: colour ``red green blue`` -> ``attributes["rgb"]`` (16-bit values divided by 256
+when any exceeds 255), every other standard dimension that is not all zero (``intensity``
+uint16, ``gps_time``, ``classification``, ``return_number``...; LAS stores every standard
+field, so all zeros means "not recorded"), and every extra-bytes dimension (``nx ny nz``
+become normals). The CRS (WKT or GeoTIFF keys) is
 read with pyproj and reported as ``"EPSG:<code>"`` when it has one, else as WKT.
 
 Writing: LAS 1.4, point format 6 (7 with colour), a WKT CRS VLR, the scale/offset that the
@@ -75,7 +76,9 @@ def read_las_bytes(path, data: bytes) -> RawCloud:
         if dim in ("X", "Y", "Z"):
             continue
         arr = np.asarray(las[dim])
-        if dim in ("red", "green", "blue", "intensity", "gps_time") or (arr.size and np.any(arr != 0)):
+        # colour whenever the point format has it; other dimensions only when they carry data
+        # (LAS always stores every standard field: all zeros means "not recorded")
+        if dim in ("red", "green", "blue") or (arr.size and np.any(arr != 0)):
             fields[dim] = arr.copy()
     for dim in extra:
         fields[dim] = np.asarray(las[dim]).copy()
