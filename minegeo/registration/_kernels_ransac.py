@@ -1,0 +1,397 @@
+"""Numba kernels for feature-based RANSAC (Baek et al. 2022, Sec. 2.3.2, Eqs. 7-8, 10-13, 19).
+
+Kernels take C-contiguous float64/int64 arrays and do no checking; the public
+functions in :mod:`minegeo.registration.ransac` and
+:mod:`minegeo.registration.correspondences` validate and document.
+
+Fixed-radius nearest-neighbour search uses a uniform grid of cubic cells with
+edge ``cell >= radius`` stored in an open-addressing hash table (so memory is
+proportional to the number of occupied cells, not to the map's extent): the
+nearest point within ``radius`` of a query is always in the 3 x 3 x 3 block of
+cells around it, so the search is exact.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from minegeo._jit import njit, njit_parallel, prange
+
+# Hypothesis status codes returned by :func:`ransac_batch_kernel`.
+ST_EDGE = 0  #: rejected by the edge-length test (Eq. 7)
+ST_DEGENERATE = 1  #: sample (near) collinear: rotation undetermined
+ST_DISTANCE = 2  #: rejected by the distance check on the sample
+ST_NORMAL = 3  #: rejected by the normal-angle check on the sample
+ST_EVALUATED = 4  #: scored on the whole cloud (n_inliers, sse valid)
+ST_PRUNED = 5  #: passed the checks; scoring stopped once it could not reach the bound
+
+_HASH_MULT = np.int64(-7046029254386353131)  # 0x9E3779B97F4A7C15 as signed int64
+_EMPTY = np.int64(-1)
+
+
+# ----------------------------------------------------------------------------- grid
+
+
+@njit
+def _hash_slot(key, mask):
+    h = key * _HASH_MULT
+    h ^= h >> np.int64(29)
+    return h & mask
+
+
+@njit
+def grid_build_table(cell_keys_unique, table_bits):
+    """Open-addressing table mapping a cell key to its row in the unique-cell arrays."""
+    size = np.int64(1) << np.int64(table_bits)
+    mask = size - np.int64(1)
+    keys = np.full(size, _EMPTY, dtype=np.int64)
+    slots = np.full(size, _EMPTY, dtype=np.int64)
+    for u in range(cell_keys_unique.shape[0]):
+        key = cell_keys_unique[u]
+        s = _hash_slot(key, mask)
+        while keys[s] != _EMPTY:
+            s = (s + np.int64(1)) & mask
+        keys[s] = key
+        slots[s] = u
+    return keys, slots
+
+
+@njit
+def _grid_lookup(key, tkeys, tslots, mask):
+    s = _hash_slot(key, mask)
+    while True:
+        k = tkeys[s]
+        if k == key:
+            return tslots[s]
+        if k == _EMPTY:
+            return np.int64(-1)
+        s = (s + np.int64(1)) & mask
+
+
+@njit
+def grid_nearest(x, y, z, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cstart, ccount, r2):
+    """Nearest grid point strictly within squared radius ``r2`` of ``(x, y, z)``.
+
+    Two storages of the same grid: *dense* (``dstart.size > 1``: ``dstart[key]`` is
+    the first stored point of cell ``key``, so the three cells of a row along x are
+    one contiguous range) or *hashed* (``tkeys/tslots`` map an occupied cell to its
+    ``cstart/ccount``). Returns ``(index into gpts or -1, squared distance or inf)``;
+    ties keep the first point met (storage order).
+    """
+    best = np.int64(-1)
+    bd = np.inf
+    nx = gdims[0]
+    ny = gdims[1]
+    nz = gdims[2]
+    fx = (x - gorigin[0]) / gcell
+    fy = (y - gorigin[1]) / gcell
+    fz = (z - gorigin[2]) / gcell
+    if not (fx > -2.0 and fy > -2.0 and fz > -2.0 and fx < nx + 1.0 and fy < ny + 1.0 and fz < nz + 1.0):
+        return best, bd
+    cx = np.int64(math.floor(fx))
+    cy = np.int64(math.floor(fy))
+    cz = np.int64(math.floor(fz))
+    x0 = max(cx - 1, 0)
+    x1 = min(cx + 2, nx)
+    if x0 >= x1:
+        return best, bd
+    dense = dstart.shape[0] > 1
+    mask = tkeys.shape[0] - 1
+    for iz in range(max(cz - 1, 0), min(cz + 2, nz)):
+        for iy in range(max(cy - 1, 0), min(cy + 2, ny)):
+            base = (iz * ny + iy) * nx
+            if dense:
+                for j in range(dstart[base + x0], dstart[base + x1]):
+                    dx = gpts[j, 0] - x
+                    dy = gpts[j, 1] - y
+                    dz = gpts[j, 2] - z
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 < r2 and d2 < bd:
+                        bd = d2
+                        best = j
+            else:
+                for ix in range(x0, x1):
+                    u = _grid_lookup(base + ix, tkeys, tslots, mask)
+                    if u < 0:
+                        continue
+                    s0 = cstart[u]
+                    for j in range(s0, s0 + ccount[u]):
+                        dx = gpts[j, 0] - x
+                        dy = gpts[j, 1] - y
+                        dz = gpts[j, 2] - z
+                        d2 = dx * dx + dy * dy + dz * dz
+                        if d2 < r2 and d2 < bd:
+                            bd = d2
+                            best = j
+    return best, bd
+
+
+@njit_parallel
+def grid_nearest_batch(queries, R, t, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cstart, ccount, r2):
+    """For every query ``R q + t``: nearest grid point within ``sqrt(r2)`` (index, sq distance)."""
+    n = queries.shape[0]
+    idx = np.full(n, -1, dtype=np.int64)
+    sq = np.full(n, np.inf)
+    for i in prange(n):
+        px = queries[i, 0]
+        py = queries[i, 1]
+        pz = queries[i, 2]
+        x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
+        y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
+        z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+        j, d2 = grid_nearest(x, y, z, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cstart, ccount, r2)
+        idx[i] = j
+        sq[i] = d2
+    return idx, sq
+
+
+# ----------------------------------------------------------------------------- model
+
+
+@njit
+def umeyama_rigid(P, Q, rel_tol):
+    """Least-squares rigid motion ``Q ~ R P + t`` from paired rows (Eqs. 10-13, Umeyama 1991).
+
+    ``Sigma = (1/n) sum (q_i - q_bar)(p_i - p_bar)^T = U D V^T``,
+    ``R = U diag(1, 1, s) V^T`` with ``s = sign(det U det V)`` (reflection fix),
+    ``t = q_bar - R p_bar``. Returns ``(R, t, ok)``; ``ok`` is False when the
+    second singular value is below ``rel_tol`` times the first (collinear or
+    coincident points: rotation undetermined).
+    """
+    n = P.shape[0]
+    pm = np.zeros(3)
+    qm = np.zeros(3)
+    for i in range(n):
+        for a in range(3):
+            pm[a] += P[i, a]
+            qm[a] += Q[i, a]
+    for a in range(3):
+        pm[a] /= n
+        qm[a] /= n
+    S = np.zeros((3, 3))
+    for i in range(n):
+        for a in range(3):
+            qa = Q[i, a] - qm[a]
+            for b in range(3):
+                S[a, b] += qa * (P[i, b] - pm[b])
+    for a in range(3):
+        for b in range(3):
+            S[a, b] /= n
+    U, D, Vt = np.linalg.svd(S)
+    ok = D[0] > 0.0 and D[1] > rel_tol * D[0]
+    s = 1.0
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
+        s = -1.0
+    R = np.zeros((3, 3))
+    for a in range(3):
+        for b in range(3):
+            R[a, b] = U[a, 0] * Vt[0, b] + U[a, 1] * Vt[1, b] + s * U[a, 2] * Vt[2, b]
+    t = np.zeros(3)
+    for a in range(3):
+        t[a] = qm[a] - (R[a, 0] * pm[0] + R[a, 1] * pm[1] + R[a, 2] * pm[2])
+    return R, t, ok
+
+
+@njit
+def _edge_ok(P, Q, a, b, sim):
+    dxs = P[a, 0] - P[b, 0]
+    dys = P[a, 1] - P[b, 1]
+    dzs = P[a, 2] - P[b, 2]
+    dxt = Q[a, 0] - Q[b, 0]
+    dyt = Q[a, 1] - Q[b, 1]
+    dzt = Q[a, 2] - Q[b, 2]
+    ls = math.sqrt(dxs * dxs + dys * dys + dzs * dzs)
+    lt = math.sqrt(dxt * dxt + dyt * dyt + dzt * dzt)
+    return not (ls < sim * lt or lt < sim * ls)
+
+
+@njit
+def _check_one(h, csrc, ctgt, csrc_n, ctgt_n, samples, sim, all_pairs, dist_thr, use_normals, cos_normal,
+               degenerate_tol, status, Ts):
+    n = samples.shape[1]
+    P = np.empty((n, 3))
+    Q = np.empty((n, 3))
+    for a in range(n):
+        c = samples[h, a]
+        for d in range(3):
+            P[a, d] = csrc[c, d]
+            Q[a, d] = ctgt[c, d]
+    if all_pairs:
+        for a in range(n):
+            for b in range(a + 1, n):
+                if not _edge_ok(P, Q, a, b, sim):
+                    return
+    else:
+        for a in range(n):
+            if not _edge_ok(P, Q, a, (a + 1) % n, sim):
+                return
+    R, t, good = umeyama_rigid(P, Q, degenerate_tol)
+    for a in range(3):
+        for b in range(3):
+            Ts[h, a, b] = R[a, b]
+        Ts[h, a, 3] = t[a]
+    Ts[h, 3, 3] = 1.0
+    if not good:
+        status[h] = ST_DEGENERATE
+        return
+    for a in range(n):
+        ex = R[0, 0] * P[a, 0] + R[0, 1] * P[a, 1] + R[0, 2] * P[a, 2] + t[0] - Q[a, 0]
+        ey = R[1, 0] * P[a, 0] + R[1, 1] * P[a, 1] + R[1, 2] * P[a, 2] + t[1] - Q[a, 1]
+        ez = R[2, 0] * P[a, 0] + R[2, 1] * P[a, 1] + R[2, 2] * P[a, 2] + t[2] - Q[a, 2]
+        if math.sqrt(ex * ex + ey * ey + ez * ez) > dist_thr:
+            status[h] = ST_DISTANCE
+            return
+    if use_normals:
+        for a in range(n):
+            c = samples[h, a]
+            nx = R[0, 0] * csrc_n[c, 0] + R[0, 1] * csrc_n[c, 1] + R[0, 2] * csrc_n[c, 2]
+            ny = R[1, 0] * csrc_n[c, 0] + R[1, 1] * csrc_n[c, 1] + R[1, 2] * csrc_n[c, 2]
+            nz = R[2, 0] * csrc_n[c, 0] + R[2, 1] * csrc_n[c, 1] + R[2, 2] * csrc_n[c, 2]
+            if ctgt_n[c, 0] * nx + ctgt_n[c, 1] * ny + ctgt_n[c, 2] * nz < cos_normal:
+                status[h] = ST_NORMAL
+                return
+    status[h] = ST_EVALUATED
+
+
+@njit
+def ransac_check_kernel(csrc, ctgt, csrc_n, ctgt_n, samples, sim, all_pairs, dist_thr, use_normals, cos_normal,
+                        degenerate_tol):
+    """Prune and fit a batch of RANSAC samples (one hypothesis per row of ``samples``); serial.
+
+    For hypothesis h with sampled correspondence rows ``samples[h]`` (n >= 3):
+
+    1. edge-length test, Eq. 7: every compared edge must satisfy
+       ``min(l_s, l_t) >= sim * max(l_s, l_t)`` (polygon edges of Eq. 7, or all
+       pairs when ``all_pairs``);
+    2. rigid model by SVD (Eqs. 10-13), rejected if the sample is collinear;
+    3. distance check ``|R p + t - q| <= dist_thr`` for every sampled pair;
+    4. optional normal check ``n_q . (R n_p) >= cos_normal``.
+
+    Returns ``status (B,) int64`` (ST_* codes; ST_EVALUATED means "passed, to be
+    scored") and ``T (B, 4, 4)`` (zeros when the edge test failed). Serial on
+    purpose: about a microsecond per sample, less than a parallel launch costs.
+    """
+    B = samples.shape[0]
+    status = np.full(B, ST_EDGE, dtype=np.int64)
+    Ts = np.zeros((B, 4, 4))
+    for h in range(B):
+        _check_one(h, csrc, ctgt, csrc_n, ctgt_n, samples, sim, all_pairs, dist_thr, use_normals, cos_normal,
+                   degenerate_tol, status, Ts)
+    return status, Ts
+
+
+@njit
+def _score_one(h, src, eval_order, Ts, prune_count, r2, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cstart, ccount,
+               n_inl, sse, pruned):
+    N = src.shape[0]
+    R = Ts[h, :3, :3]
+    t0 = Ts[h, 0, 3]
+    t1 = Ts[h, 1, 3]
+    t2 = Ts[h, 2, 3]
+    cnt = np.int64(0)
+    acc = 0.0
+    for m in range(N):
+        if (m & 63) == 0 and cnt + (N - m) < prune_count:
+            pruned[h] = 1
+            break
+        i = eval_order[m]
+        px = src[i, 0]
+        py = src[i, 1]
+        pz = src[i, 2]
+        x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t0
+        y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t1
+        z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t2
+        j, d2 = grid_nearest(x, y, z, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cstart, ccount, r2)
+        if j >= 0:
+            cnt += 1
+            acc += d2
+    n_inl[h] = cnt
+    sse[h] = acc
+
+
+@njit_parallel
+def ransac_score_kernel(src, eval_order, Ts, prune_count, dist_thr, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots,
+                        cstart, ccount):
+    """Score hypotheses ``Ts (G, 4, 4)`` on the whole source cloud (Eq. 19 ingredients); parallel.
+
+    For each source point (in ``eval_order``) the nearest target point strictly
+    within ``dist_thr`` after ``R p + t``: ``n_inl`` counts them and ``sse`` sums
+    their squared distances (serially within a hypothesis, so the value does not
+    depend on threads). Scoring stops early (``pruned = 1``) once
+    ``n_inl + remaining < prune_count``: such a hypothesis provably has fewer than
+    ``prune_count`` inliers.
+    """
+    G = Ts.shape[0]
+    n_inl = np.zeros(G, dtype=np.int64)
+    sse = np.zeros(G)
+    pruned = np.zeros(G, dtype=np.int64)
+    r2 = dist_thr * dist_thr
+    for h in prange(G):
+        _score_one(h, src, eval_order, Ts, prune_count, r2, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cstart,
+                   ccount, n_inl, sse, pruned)
+    return n_inl, sse, pruned
+
+
+@njit
+def ransac_score_serial(src, eval_order, Ts, prune_count, dist_thr, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots,
+                        cstart, ccount):
+    """Serial twin of :func:`ransac_score_kernel` (identical results; no thread launch)."""
+    G = Ts.shape[0]
+    n_inl = np.zeros(G, dtype=np.int64)
+    sse = np.zeros(G)
+    pruned = np.zeros(G, dtype=np.int64)
+    r2 = dist_thr * dist_thr
+    for h in range(G):
+        _score_one(h, src, eval_order, Ts, prune_count, r2, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cstart,
+                   ccount, n_inl, sse, pruned)
+    return n_inl, sse, pruned
+
+
+@njit_parallel
+def feature_nn_kernel(A, BT, a2, b2, tol_factor):
+    """Exact nearest column of ``BT`` (dim, nb) for every row of ``A`` (na, dim); parallel over rows.
+
+    Candidate distances use the expansion ``|a|^2 + |b|^2 - 2 a.b`` (vectorisable),
+    whose rounding error is below ``delta = tol_factor * (|a|^2 + max|b|^2) / 2``;
+    every column within ``2 delta`` of the row minimum is re-evaluated directly
+    as ``sum (a_c - b_c)^2`` and the smallest (lowest index on ties) is returned.
+    Returns ``(index (na,) int64, sq distance (na,))``.
+    """
+    na = A.shape[0]
+    dim = A.shape[1]
+    nb = BT.shape[1]
+    b2max = 0.0
+    for j in range(nb):
+        if b2[j] > b2max:
+            b2max = b2[j]
+    idx = np.full(na, -1, dtype=np.int64)
+    best = np.full(na, np.inf)
+    for i in prange(na):
+        acc = np.zeros(nb)
+        for c in range(dim):
+            a = -2.0 * A[i, c]
+            for j in range(nb):
+                acc[j] += a * BT[c, j]
+        m = np.inf
+        for j in range(nb):
+            v = acc[j] + b2[j]
+            acc[j] = v
+            if v < m:
+                m = v
+        thr = m + tol_factor * (a2[i] + b2max)
+        bd = np.inf
+        bi = np.int64(-1)
+        for j in range(nb):
+            if acc[j] <= thr:
+                d2 = 0.0
+                for c in range(dim):
+                    e = A[i, c] - BT[c, j]
+                    d2 += e * e
+                if d2 < bd:
+                    bd = d2
+                    bi = j
+        idx[i] = bi
+        best[i] = bd
+    return idx, best

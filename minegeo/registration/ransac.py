@@ -1,0 +1,692 @@
+"""Global registration by RANSAC on descriptor correspondences.
+
+Baek et al. (2022), Sec. 2.3.2 ("Match Area Search Using RANSAC"), Eqs. 7-9, with
+the rigid model of Eqs. 10-13 and the inlier RMSE of Eq. 19; parameter defaults
+from Table 3. Open3D's ``registration_ransac_based_on_feature_matching`` (spec
+``open3d_oracle.md`` Sec. 5-9) is the reference implementation; the differences
+are listed in ``docs/registration_features.md``.
+
+References
+----------
+Baek, J. et al. (2022). 3D global localization in the underground mine environment
+using mobile LiDAR mapping and point cloud registration. Sensors 22, 2873.
+
+Buch, A. G. et al. (2013). Pose estimation using local structure-specific shape and
+appearance context. ICRA 2013 (edge-length pruning).
+
+Fischler, M. A., Bolles, R. C. (1981). Random sample consensus. CACM 24(6).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from minegeo._validate import as_points, check_positive
+from minegeo.errors import DegenerateGeometryError, InputError, TooFewPointsError
+from minegeo.registration import _kernels_ransac as K
+from minegeo.registration.correspondences import feature_correspondences
+
+__all__ = [
+    "RansacParams",
+    "RansacResult",
+    "register_ransac",
+    "required_iterations",
+    "hypothesis_distance",
+]
+
+log = logging.getLogger(__name__)
+
+_MODES = ("minegeo", "open3d")
+_EDGE_PAIRS = ("all", "polygon")
+#: Relative singular-value floor below which a sample is treated as collinear.
+_DEGENERATE_TOL = 1e-9
+#: Hypotheses scored per parallel call (fixed, so results never depend on the thread count).
+_SCORE_GROUP = 16
+#: Point queries per call above which scoring runs in parallel (a parallel launch costs
+#: ~0.05-20 ms depending on machine load; the results are identical either way).
+_PARALLEL_WORK = 400_000
+#: Largest dense cell table of the target grid (8 bytes per cell).
+_DENSE_MAX_CELLS = 8_000_000
+#: Relative smallest/largest singular value of a centred cloud below which it is flat.
+_FLAT_TOL = 1e-6
+
+
+@dataclass(frozen=True)
+class RansacParams:
+    """Parameters of :func:`register_ransac` (defaults: Baek et al. 2022, Table 3).
+
+    Parameters
+    ----------
+    distance_threshold_m : float
+        epsilon_distance (m): a source point transformed by a hypothesis is an
+        inlier if its nearest target point is strictly closer than this; the
+        same value is used for the distance check on the sample (Table 3: 2.5 m
+        at a 0.5 m voxel; Open3D's tutorial uses 1.5 voxels).
+    ransac_n : int
+        Correspondences per sample, n in Eq. 8 (Table 3: 4; Open3D default 3).
+    edge_length_similarity : float
+        Edge-length test of Eq. 7: an edge pair passes when
+        ``min(d_p, d_q) >= s * max(d_p, d_q)``, i.e. ``eta <= 1 - s`` (Table 3: 0.9).
+    edge_pairs : {"all", "polygon"}
+        Edges compared: the closed polygon 1-2, 2-3, ..., n-1 (Eq. 7) or all
+        pairs (Open3D). Identical for n = 3; "all" prunes more for n >= 4 and
+        never rejects an exact sample, so it is the default.
+    normal_angle_threshold_rad : float or None
+        Optional normal check: reject a sample if ``n_q . (R n_p) < cos(angle)``
+        for any pair (signed, as Open3D; needs consistently oriented normals).
+    max_iterations : int
+        Hard maximum of hypotheses drawn, N_max (Table 3: 4.0e8).
+    max_validations : int or None
+        Stop after this many hypotheses passed the checks and were scored
+        (Table 3: 500, Open3D <= 0.11's "max_validation"); None disables.
+    confidence : float
+        p of Eq. 8 (not given in the paper; Open3D's default 0.999).
+    mutual_filter : bool
+        Keep only mutual descriptor nearest neighbours (Open3D rule, 10 % fallback).
+    mode : {"minegeo", "open3d"}
+        "minegeo": samples of n distinct correspondences, collinear samples
+        rejected, final least-squares refit on the inliers (``refit_iterations``).
+        "open3d": samples drawn with replacement, no refit (the minimal-sample
+        estimate is returned), as Open3D 0.20.
+    refit_iterations : int
+        Least-squares refits (Eqs. 10-13 on all inliers) of the best and of the
+        runner-up hypothesis; a refit is kept only if it scores better.
+    batch_size : int
+        Hypotheses drawn and scored per parallel batch. The result does not
+        depend on the thread count; it does depend on ``batch_size`` through the
+        order of random draws, so it is part of the recorded parameters.
+    distinct_distance_m : float or None
+        Two hypotheses are *distinct* if they place the source centroid more than
+        this far apart (default ``2 * distance_threshold_m``) ...
+    distinct_angle_deg : float
+        ... or their rotations differ by more than this angle (deg).
+    """
+
+    distance_threshold_m: float = 2.5
+    ransac_n: int = 4
+    edge_length_similarity: float = 0.9
+    edge_pairs: str = "all"
+    normal_angle_threshold_rad: float | None = None
+    max_iterations: int = 400_000_000
+    max_validations: int | None = 500
+    confidence: float = 0.999
+    mutual_filter: bool = False
+    mode: str = "minegeo"
+    refit_iterations: int = 3
+    batch_size: int = 4096
+    distinct_distance_m: float | None = None
+    distinct_angle_deg: float = 10.0
+
+    def __post_init__(self):
+        check_positive(self.distance_threshold_m, "RansacParams.distance_threshold_m")
+        if int(self.ransac_n) != self.ransac_n or self.ransac_n < 3:
+            raise InputError(f"RansacParams.ransac_n must be an integer >= 3, got {self.ransac_n!r}")
+        if not 0.0 <= float(self.edge_length_similarity) <= 1.0:
+            raise InputError(
+                f"RansacParams.edge_length_similarity must be in [0, 1], got {self.edge_length_similarity!r}"
+            )
+        if self.edge_pairs not in _EDGE_PAIRS:
+            raise InputError(f"RansacParams.edge_pairs must be one of {_EDGE_PAIRS}, got {self.edge_pairs!r}")
+        if self.normal_angle_threshold_rad is not None and not (
+            0.0 <= float(self.normal_angle_threshold_rad) <= math.pi
+        ):
+            raise InputError(
+                "RansacParams.normal_angle_threshold_rad must be in [0, pi] (radians) or None, "
+                f"got {self.normal_angle_threshold_rad!r}"
+            )
+        if int(self.max_iterations) != self.max_iterations or self.max_iterations < 1:
+            raise InputError(f"RansacParams.max_iterations must be an integer >= 1, got {self.max_iterations!r}")
+        if self.max_validations is not None and (
+            int(self.max_validations) != self.max_validations or self.max_validations < 1
+        ):
+            raise InputError(
+                f"RansacParams.max_validations must be an integer >= 1 or None, got {self.max_validations!r}"
+            )
+        if not 0.0 <= float(self.confidence) <= 1.0:
+            raise InputError(f"RansacParams.confidence must be in [0, 1], got {self.confidence!r}")
+        if self.mode not in _MODES:
+            raise InputError(f"RansacParams.mode must be one of {_MODES}, got {self.mode!r}")
+        if int(self.refit_iterations) != self.refit_iterations or self.refit_iterations < 0:
+            raise InputError(f"RansacParams.refit_iterations must be an integer >= 0, got {self.refit_iterations!r}")
+        if int(self.batch_size) != self.batch_size or self.batch_size < 1:
+            raise InputError(f"RansacParams.batch_size must be an integer >= 1, got {self.batch_size!r}")
+        if self.distinct_distance_m is not None:
+            check_positive(self.distinct_distance_m, "RansacParams.distinct_distance_m")
+        check_positive(self.distinct_angle_deg, "RansacParams.distinct_angle_deg")
+
+    @classmethod
+    def open3d_compatible(
+        cls,
+        distance_threshold_m: float,
+        ransac_n: int = 3,
+        max_iterations: int = 100_000,
+        confidence: float = 0.999,
+        mutual_filter: bool = False,
+        **kwargs,
+    ) -> RansacParams:
+        """Settings equivalent to Open3D's tutorial call (EdgeLength(0.9) + Distance(d) checkers)."""
+        return cls(
+            distance_threshold_m=distance_threshold_m,
+            ransac_n=ransac_n,
+            edge_length_similarity=kwargs.pop("edge_length_similarity", 0.9),
+            edge_pairs="all",
+            max_iterations=max_iterations,
+            max_validations=None,
+            confidence=confidence,
+            mutual_filter=mutual_filter,
+            mode="open3d",
+            refit_iterations=0,
+            **kwargs,
+        )
+
+    @property
+    def distinct_distance(self) -> float:
+        """Distinctness distance in metres (``distinct_distance_m`` or ``2 * distance_threshold_m``)."""
+        return float(self.distinct_distance_m if self.distinct_distance_m is not None else 2 * self.distance_threshold_m)
+
+
+@dataclass(frozen=True)
+class RansacResult:
+    """Outcome of :func:`register_ransac`.
+
+    Attributes
+    ----------
+    T_target_source : ndarray (4, 4)
+        Best rigid transform, ``p_target = R p_source + t`` (Eq. 9). Identity if
+        no hypothesis passed the checks (``status == "failed"``).
+    fitness : float
+        Inliers / source points (Open3D's fitness).
+    inlier_rmse_m : float
+        Eq. 19 over the inlier pairs (m); 0 when there are none.
+    n_inliers : int
+        Source points with a target point strictly within ``distance_threshold_m``.
+    iterations : int
+        Hypotheses drawn (including those rejected by the checks).
+    n_validations : int
+        Hypotheses that passed the checks and were scored.
+    converged : bool
+        True if stopping came from Eq. 8 (requested confidence reached).
+    status : str
+        ``"converged"``, ``"max_iterations"``, ``"max_validations"`` or ``"failed"``.
+    reason : str
+        Human-readable explanation of ``status``.
+    second_best_fitness, second_best_rmse_m : float
+        Score of the runner-up: the best hypothesis *distinct* from the best
+        (see :class:`RansacParams` ``distinct_*``), refitted like the best; NaN if
+        none was scored.
+    second_best_n_inliers : int
+        Its inlier count (-1 if none).
+    second_best_distance_m : float
+        Distance between where the best and the runner-up place the source
+        centroid (m); NaN if none.
+    second_best_rotation_deg : float
+        Rotation angle between the two hypotheses (deg); NaN if none.
+    second_best_T_target_source : ndarray (4, 4) or None
+        The runner-up transform.
+    ambiguity_ratio : float
+        ``second_best_n_inliers / n_inliers`` (0 if no runner-up); close to 1
+        means another, distinct placement explains the data almost as well
+        (e.g. a symmetric corridor) and the result should be flagged.
+    correspondences : ndarray (k, 2)
+        Putative (source, target) descriptor matches the samples were drawn from.
+    inlier_pairs : ndarray (n_inliers, 2)
+        (source, target) nearest-neighbour pairs of the final transform.
+    mutual_applied : bool
+        Whether the mutual filter was applied to ``correspondences``.
+    params : RansacParams
+    seed : int or None
+    timings_s : dict
+        Seconds per stage (``correspondences``, ``grid``, ``hypotheses``, ``refit``, ``total``).
+    """
+
+    T_target_source: np.ndarray
+    fitness: float
+    inlier_rmse_m: float
+    n_inliers: int
+    iterations: int
+    n_validations: int
+    converged: bool
+    status: str
+    reason: str
+    second_best_fitness: float
+    second_best_rmse_m: float
+    second_best_n_inliers: int
+    second_best_distance_m: float
+    second_best_rotation_deg: float
+    second_best_T_target_source: np.ndarray | None
+    ambiguity_ratio: float
+    correspondences: np.ndarray
+    inlier_pairs: np.ndarray
+    mutual_applied: bool
+    params: RansacParams
+    seed: int | None
+    timings_s: dict = field(default_factory=dict)
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def required_iterations(w: float, n: int, confidence: float) -> float:
+    """Eq. 8: ``N = log(1 - p) / log(1 - w^n)`` (may be inf; NaN-free).
+
+    Parameters
+    ----------
+    w : float
+        Inlier fraction of the putative correspondences under the current best.
+    n : int
+        Sample size.
+    confidence : float
+        Desired success probability p.
+
+    Returns
+    -------
+    float
+        ``inf`` when ``w = 0`` or ``p = 1`` (never stop early), 0 when ``w = 1``.
+    """
+    wn = float(w) ** int(n)
+    if wn <= 0.0 or confidence >= 1.0:
+        return math.inf
+    if wn >= 1.0:
+        return 0.0
+    if confidence <= 0.0:
+        return 0.0
+    return math.log(1.0 - confidence) / math.log(1.0 - wn)
+
+
+def hypothesis_distance(T1, T2, center) -> tuple[float, float]:
+    """(distance (m) between ``T1 c`` and ``T2 c``, rotation angle between them (deg))."""
+    T1 = np.asarray(T1, dtype=np.float64)
+    T2 = np.asarray(T2, dtype=np.float64)
+    c = np.asarray(center, dtype=np.float64)
+    d = (T1[:3, :3] - T2[:3, :3]) @ c + T1[:3, 3] - T2[:3, 3]
+    cosang = (np.trace(T1[:3, :3].T @ T2[:3, :3]) - 1.0) / 2.0
+    return float(np.linalg.norm(d)), float(np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0))))
+
+
+def _distances_to(Ts: np.ndarray, T: np.ndarray, c: np.ndarray):
+    """Vectorised :func:`hypothesis_distance` of a stack ``Ts`` (m, 4, 4) to ``T``."""
+    d = np.einsum("mij,j->mi", Ts[:, :3, :3] - T[None, :3, :3], c) + Ts[:, :3, 3] - T[None, :3, 3]
+    tr = np.einsum("mij,ij->m", Ts[:, :3, :3], T[:3, :3])
+    ang = np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
+    return np.linalg.norm(d, axis=1), ang
+
+
+class _Grid:
+    """Uniform grid over the target points (cell edge = search radius) for exact radius-NN.
+
+    Dense cell table (one start offset per cell; rows of three cells along x are one
+    contiguous range) when it has at most ``_DENSE_MAX_CELLS`` cells, otherwise a hash
+    table of the occupied cells (memory proportional to the occupied cells only).
+    """
+
+    def __init__(self, points: np.ndarray, cell: float):
+        self.origin = points.min(axis=0)
+        self.cell = float(cell)
+        c = np.floor((points - self.origin) / self.cell).astype(np.int64)
+        dims = c.max(axis=0) + 1
+        ncells = float(dims[0]) * float(dims[1]) * float(dims[2])
+        if ncells > 4e18:
+            raise InputError(
+                f"distance threshold {cell} m is too small for the target's extent "
+                f"{np.ptp(points, axis=0).tolist()} m (grid index overflow)"
+            )
+        self.dims = dims.astype(np.int64)
+        key = (c[:, 2] * dims[1] + c[:, 1]) * dims[0] + c[:, 0]
+        self.order = np.argsort(key, kind="stable")
+        ks = key[self.order]
+        self.points = np.ascontiguousarray(points[self.order])
+        if ncells <= _DENSE_MAX_CELLS:
+            counts = np.bincount(ks, minlength=int(ncells))
+            self.dstart = np.zeros(int(ncells) + 1, dtype=np.int64)
+            np.cumsum(counts, out=self.dstart[1:])
+            self.tkeys = np.full(1, -1, dtype=np.int64)
+            self.tslots = np.full(1, -1, dtype=np.int64)
+            self.start = np.zeros(1, dtype=np.int64)
+            self.count = np.zeros(1, dtype=np.int64)
+        else:
+            uniq, start, count = np.unique(ks, return_index=True, return_counts=True)
+            self.start = start.astype(np.int64)
+            self.count = count.astype(np.int64)
+            bits = max(4, int(math.ceil(math.log2(2 * uniq.size + 1))))
+            self.tkeys, self.tslots = K.grid_build_table(uniq.astype(np.int64), bits)
+            self.dstart = np.zeros(1, dtype=np.int64)
+
+    def args(self):
+        return (self.points, self.origin, self.cell, self.dims, self.dstart, self.tkeys, self.tslots, self.start,
+                self.count)
+
+    def nearest(self, queries: np.ndarray, T: np.ndarray, radius: float):
+        """Nearest target index (original numbering, -1 if none within radius) and sq distance."""
+        R = np.ascontiguousarray(T[:3, :3])
+        t = np.ascontiguousarray(T[:3, 3])
+        j, d2 = K.grid_nearest_batch(queries, R, t, *self.args(), radius * radius)
+        out = np.where(j >= 0, self.order[np.maximum(j, 0)], -1)
+        return out, d2
+
+
+def _check_not_flat(points: np.ndarray, name: str) -> None:
+    c = points - points.mean(axis=0)
+    s = np.linalg.svd(c, compute_uv=False)
+    if s[0] == 0.0:
+        raise DegenerateGeometryError(f"all {name} points coincide: no registration is possible")
+    if s[1] <= _FLAT_TOL * s[0]:
+        raise DegenerateGeometryError(
+            f"all {name} points lie on a line: rotation about it and position along it are undetermined"
+        )
+    if s[2] <= _FLAT_TOL * s[0]:
+        raise DegenerateGeometryError(
+            f"all {name} points lie on a plane: position within the plane is undetermined by geometry alone"
+        )
+
+
+def _draw_samples(rng: np.random.Generator, R: int, B: int, n: int, replace: bool) -> np.ndarray:
+    S = rng.integers(0, R, size=(B, n), dtype=np.int64)
+    if replace:
+        return S
+    while True:
+        srt = np.sort(S, axis=1)
+        dup = np.any(srt[:, 1:] == srt[:, :-1], axis=1)
+        nd = int(dup.sum())
+        if nd == 0:
+            return S
+        S[dup] = rng.integers(0, R, size=(nd, n), dtype=np.int64)
+
+
+def _score(grid: _Grid, src: np.ndarray, T: np.ndarray, d: float):
+    j, d2 = grid.nearest(src, T, d)
+    m = j >= 0
+    cnt = int(m.sum())
+    sse = float(np.sum(d2[m])) if cnt else 0.0
+    return cnt, sse, j
+
+
+def _better(c1, s1, c2, s2) -> bool:
+    """Open3D's order: more inliers, then lower RMSE (strict)."""
+    if c1 > c2:
+        return True
+    return c1 == c2 and c1 > 0 and s1 < s2
+
+
+def _refit(grid, src, tgt, T, cnt, sse, d, iterations):
+    """Least-squares refit (Eqs. 10-13) on the inliers, kept only while the score improves."""
+    for _ in range(iterations):
+        _, _, j = _score(grid, src, T, d)
+        m = j >= 0
+        if m.sum() < 3:
+            break
+        R, t, ok = K.umeyama_rigid(np.ascontiguousarray(src[m]), np.ascontiguousarray(tgt[j[m]]), _DEGENERATE_TOL)
+        if not ok:
+            break
+        T2 = np.eye(4)
+        T2[:3, :3] = R
+        T2[:3, 3] = t
+        c2, s2, _ = _score(grid, src, T2, d)
+        if _better(c2, s2, cnt, sse):
+            T, cnt, sse = T2, c2, s2
+        else:
+            break
+    return T, cnt, sse
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def register_ransac(
+    source_points,
+    target_points,
+    source_features=None,
+    target_features=None,
+    params: RansacParams | None = None,
+    seed: int | None = 0,
+    source_normals=None,
+    target_normals=None,
+    correspondences=None,
+) -> RansacResult:
+    """Global rigid registration by RANSAC on descriptor matches (Baek 2022, Sec. 2.3.2).
+
+    Parameters
+    ----------
+    source_points : array_like (n, 3)
+        Source (e.g. local scan) points, m, in the source frame.
+    target_points : array_like (m, 3)
+        Target (e.g. prior map) points, m, in the target frame. Use a local origin
+        for projected coordinates.
+    source_features, target_features : array_like (n, d), (m, d)
+        Descriptors (e.g. FPFH). Not needed when ``correspondences`` is given.
+    params : RansacParams, optional
+        Defaults to Baek et al. (2022) Table 3.
+    seed : int
+        Seed of ``np.random.default_rng``; every random draw comes from it, so
+        equal inputs and seed give bit-identical results on any thread count.
+    source_normals, target_normals : array_like, optional
+        Needed only for the normal-angle check.
+    correspondences : array_like (k, 2), optional
+        Putative (source, target) index pairs to sample from instead of
+        descriptor matches.
+
+    Returns
+    -------
+    RansacResult
+
+    Raises
+    ------
+    InputError
+        Bad shapes, NaN/inf rows, mismatched features, missing normals for the
+        normal check, out-of-range correspondences.
+    TooFewPointsError
+        Fewer points or correspondences than ``ransac_n``.
+    DegenerateGeometryError
+        A cloud is collinear or coplanar (the pose is not determined).
+
+    Notes
+    -----
+    Each iteration draws ``n`` putative pairs, prunes them with the edge-length
+    test (Eq. 7), fits ``R, t`` by SVD (Eqs. 10-13, reflection-corrected), checks
+    the sample residuals against epsilon_distance, and scores the hypothesis on
+    the whole source cloud: inlier count, then inlier RMSE (Eq. 19). After each
+    improvement the iteration budget is lowered to Eq. 8,
+    ``N = log(1-p) / log(1-w^n)``, with ``w`` the fraction of putative pairs the
+    new best explains, capped by ``max_iterations`` (and ``max_validations``).
+    Hypotheses are evaluated in parallel batches but accepted in draw order,
+    so the result equals that of the sequential algorithm on the same draws.
+    """
+    p = RansacParams() if params is None else params
+    t_all = time.perf_counter()
+    timings: dict[str, float] = {}
+    n = int(p.ransac_n)
+    src = as_points(source_points, "source_points", min_points=n)
+    tgt = as_points(target_points, "target_points", min_points=n)
+    use_normals = p.normal_angle_threshold_rad is not None
+    if use_normals:
+        if source_normals is None or target_normals is None:
+            raise InputError("the normal-angle check needs source_normals and target_normals")
+    src_n = None if source_normals is None else as_points(source_normals, "source_normals", min_points=n)
+    tgt_n = None if target_normals is None else as_points(target_normals, "target_normals", min_points=n)
+    if src_n is not None and src_n.shape[0] != src.shape[0]:
+        raise InputError(f"source_normals has {src_n.shape[0]} rows but source_points has {src.shape[0]}")
+    if tgt_n is not None and tgt_n.shape[0] != tgt.shape[0]:
+        raise InputError(f"target_normals has {tgt_n.shape[0]} rows but target_points has {tgt.shape[0]}")
+    _check_not_flat(src, "source")
+    _check_not_flat(tgt, "target")
+
+    t0 = time.perf_counter()
+    mutual_applied = False
+    if correspondences is not None:
+        corr = np.asarray(correspondences)
+        if corr.ndim != 2 or corr.shape[1] != 2 or not np.issubdtype(corr.dtype, np.integer):
+            raise InputError(f"correspondences must be an integer array of shape (k, 2), got {corr.shape} {corr.dtype}")
+        corr = np.ascontiguousarray(corr, dtype=np.int64)
+        if corr.size and (
+            corr[:, 0].min() < 0 or corr[:, 0].max() >= src.shape[0] or corr[:, 1].min() < 0 or corr[:, 1].max() >= tgt.shape[0]
+        ):
+            raise InputError("correspondences refer to points that do not exist")
+    else:
+        if source_features is None or target_features is None:
+            raise InputError("give source_features and target_features, or correspondences")
+        fs = np.asarray(source_features, dtype=np.float64)
+        ft = np.asarray(target_features, dtype=np.float64)
+        if fs.ndim != 2 or fs.shape[0] != src.shape[0]:
+            raise InputError(f"source_features must have one row per source point ({src.shape[0]}), got {fs.shape}")
+        if ft.ndim != 2 or ft.shape[0] != tgt.shape[0]:
+            raise InputError(f"target_features must have one row per target point ({tgt.shape[0]}), got {ft.shape}")
+        fm = feature_correspondences(fs, ft, mutual_filter=p.mutual_filter)
+        corr = fm.pairs
+        mutual_applied = fm.mutual_applied
+    timings["correspondences"] = time.perf_counter() - t0
+    n_corr = corr.shape[0]
+    if n_corr < n:
+        raise TooFewPointsError(f"only {n_corr} putative correspondence(s); RANSAC with ransac_n={n} needs at least {n}")
+
+    t0 = time.perf_counter()
+    d = float(p.distance_threshold_m)
+    grid = _Grid(tgt, d)
+    csrc = np.ascontiguousarray(src[corr[:, 0]])
+    ctgt = np.ascontiguousarray(tgt[corr[:, 1]])
+    dummy = np.zeros((1, 3))
+    csrc_n = np.ascontiguousarray(src_n[corr[:, 0]]) if use_normals else dummy
+    ctgt_n = np.ascontiguousarray(tgt_n[corr[:, 1]]) if use_normals else dummy
+    cos_normal = math.cos(p.normal_angle_threshold_rad) if use_normals else -2.0
+    eval_order = np.random.default_rng(0).permutation(src.shape[0]).astype(np.int64)
+    center = src.mean(axis=0)
+    timings["grid"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    replace = p.mode == "open3d"
+    B = int(p.batch_size)
+    stop_at = int(p.max_iterations)
+    best_T = np.eye(4)
+    best_c, best_s = 0, 0.0
+    n_valid = 0
+    iterations = 0
+    stop_reason = "max_iterations"
+    store_T: list[np.ndarray] = []
+    store_c: list[np.ndarray] = []
+    store_s: list[np.ndarray] = []
+    prune = 0
+    it0 = 0
+    G = _SCORE_GROUP
+    while it0 < stop_at:
+        nb = min(B, stop_at - it0)
+        S = _draw_samples(rng, n_corr, nb, n, replace)
+        status, Ts = K.ransac_check_kernel(
+            csrc, ctgt, csrc_n, ctgt_n, S, float(p.edge_length_similarity), p.edge_pairs == "all", d,
+            use_normals, cos_normal, _DEGENERATE_TOL,
+        )
+        passed = np.flatnonzero(status == K.ST_EVALUATED)
+        for g0 in range(0, passed.size, G):
+            grp = passed[g0 : g0 + G]
+            grp = grp[it0 + grp < stop_at]
+            if grp.size == 0:
+                break
+            score = K.ransac_score_kernel if grp.size * src.shape[0] > _PARALLEL_WORK else K.ransac_score_serial
+            cnts, sses, pruned = score(src, eval_order, np.ascontiguousarray(Ts[grp]), np.int64(prune), d, *grid.args())
+            n_keep = grp.size
+            for q, h in enumerate(grp):
+                it = it0 + int(h)
+                if it >= stop_at:
+                    n_keep = q
+                    break
+                n_valid += 1
+                if not pruned[q] and _better(int(cnts[q]), float(sses[q]), best_c, best_s):
+                    best_c, best_s, best_T = int(cnts[q]), float(sses[q]), Ts[h].copy()
+                    res = csrc @ best_T[:3, :3].T + best_T[:3, 3] - ctgt
+                    w = float(np.count_nonzero(np.einsum("ij,ij->i", res, res) < d * d)) / n_corr
+                    k = required_iterations(w, n, float(p.confidence))
+                    if k < stop_at:
+                        new_stop = max(it + 1, int(math.ceil(k)))
+                        if new_stop < stop_at:
+                            stop_at = new_stop
+                            stop_reason = "converged"
+                if p.max_validations is not None and n_valid >= p.max_validations:
+                    if it + 1 < stop_at:
+                        stop_at = it + 1
+                        stop_reason = "max_validations"
+                    n_keep = q + 1
+                    break
+            keep = np.flatnonzero(pruned[:n_keep] == 0)
+            if keep.size:
+                store_T.append(Ts[grp[keep]])
+                store_c.append(cnts[keep])
+                store_s.append(sses[keep])
+            if best_c > 0 and store_T:
+                allT = np.concatenate(store_T)
+                allc = np.concatenate(store_c)
+                dist, ang = _distances_to(allT, best_T, center)
+                distinct = (dist > p.distinct_distance) | (ang > p.distinct_angle_deg)
+                prune = int(allc[distinct].max()) if distinct.any() else 0
+        iterations = min(it0 + nb, stop_at)
+        it0 += nb
+    timings["hypotheses"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    allT = np.concatenate(store_T) if store_T else np.zeros((0, 4, 4))
+    allc = np.concatenate(store_c) if store_c else np.zeros(0, dtype=np.int64)
+    alls = np.concatenate(store_s) if store_s else np.zeros(0)
+    refits = int(p.refit_iterations) if p.mode == "minegeo" else 0
+    if best_c == 0:
+        status_s = "failed"
+        reason = (
+            f"no hypothesis out of {iterations} passed the checks and explained any source point "
+            f"({n_valid} scored); the clouds may not overlap or the descriptors do not match"
+        )
+        T = np.eye(4)
+        cnt, sse = 0, 0.0
+    else:
+        T, cnt, sse = _refit(grid, src, tgt, best_T, best_c, best_s, d, refits)
+        status_s = stop_reason
+        if stop_reason == "converged":
+            reason = f"Eq. 8 reached confidence {p.confidence} after {iterations} iterations"
+        elif stop_reason == "max_validations":
+            reason = f"stopped after {n_valid} scored hypotheses (max_validations)"
+        else:
+            reason = f"stopped at max_iterations={p.max_iterations} before Eq. 8 was satisfied"
+    # runner-up: best scored hypothesis distinct from the best hypothesis
+    sb_T = None
+    sb_c, sb_s = -1, math.nan
+    sb_dist = sb_ang = math.nan
+    if best_c > 0 and allT.shape[0]:
+        dist, ang = _distances_to(allT, best_T, center)
+        distinct = (dist > p.distinct_distance) | (ang > p.distinct_angle_deg)
+        cand = np.flatnonzero(distinct & (allc > 0))
+        if cand.size:
+            # highest count, then lowest sse, then earliest draw (lexsort: last key primary)
+            o = np.lexsort((cand, alls[cand], -allc[cand]))
+            h = cand[o[0]]
+            sb_T, sb_c, sb_s = _refit(grid, src, tgt, allT[h].copy(), int(allc[h]), float(alls[h]), d, refits)
+            sb_dist, sb_ang = hypothesis_distance(T, sb_T, center)
+    j_final = _score(grid, src, T, d)[2] if cnt > 0 else np.full(src.shape[0], -1)
+    inl = np.flatnonzero(j_final >= 0)
+    inlier_pairs = np.stack([inl, j_final[inl]], axis=1).astype(np.int64)
+    timings["refit"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_all
+    N = src.shape[0]
+    return RansacResult(
+        T_target_source=T,
+        fitness=cnt / N,
+        inlier_rmse_m=math.sqrt(sse / cnt) if cnt else 0.0,
+        n_inliers=int(cnt),
+        iterations=int(iterations),
+        n_validations=int(n_valid),
+        converged=status_s == "converged",
+        status=status_s,
+        reason=reason,
+        second_best_fitness=(sb_c / N) if sb_c >= 0 else math.nan,
+        second_best_rmse_m=math.sqrt(sb_s / sb_c) if sb_c > 0 else math.nan,
+        second_best_n_inliers=int(sb_c),
+        second_best_distance_m=sb_dist,
+        second_best_rotation_deg=sb_ang,
+        second_best_T_target_source=sb_T,
+        ambiguity_ratio=(sb_c / cnt) if (sb_c > 0 and cnt > 0) else 0.0,
+        correspondences=corr,
+        inlier_pairs=inlier_pairs,
+        mutual_applied=mutual_applied,
+        params=p,
+        seed=seed,
+        timings_s=timings,
+    )
