@@ -41,8 +41,19 @@ Angles (:mod:`minegeo.survey.angles`): ``parse_dms``, ``parse_angle``, ``format_
 ``format_gon``, ``azimuth``, ``azimuth_distance``, ``polar_to_rect``, ``azimuth_to_bearing``,
 ``bearing_to_azimuth``, ``wrap_2pi``, ``wrap_pi``, unit conversions.
 
-Networks (:mod:`minegeo.survey.network`), resection (:mod:`minegeo.survey.resection`) and the
-survey report are documented in ``docs/survey.md``.
+Networks (:mod:`minegeo.survey.network`): ``read_network(path)`` (Krumm/Gama text or JSON),
+``parse_krumm(text)``, ``network_from_dict(d)``, ``adjust_network(net, options=None,
+confidence=0.95) -> NetworkResult`` (``points`` {id: PointResult x, y, h, sx_m, sy_m, sh_m,
+cov, ellipse_standard, ellipse_95}, ``observations``, ``orientations``, ``relative_ellipses``,
+``lsq``, ``local_origin``).
+
+Resection (:mod:`minegeo.survey.resection`): ``resection_2d(control, directions=, distances=,
+angles=, sigma_...)``, ``intersection_2d(control, angles=, azimuths=, ...)``,
+``trilateration_2d(control, distances, sigma_distance_m=...)`` -> ``StationResult`` (e_m, n_m,
+cov, se_m, sn_m, orientation_rad, ellipses, status/reason, network).
+
+Report: :mod:`minegeo.report.survey_report` (``write_survey_report``), documented with the
+formats in ``docs/survey.md``.
 
 Coordinates are (Easting, Northing[, height]) in metres; azimuths clockwise from grid north.
 This package has no Numba kernels (small dense problems, NumPy/SciPy only).
@@ -93,6 +104,17 @@ from minegeo.survey.lsq import (
     chi2_global_test,
     weights_from_sigmas,
 )
+from minegeo.survey.network import (
+    Datum,
+    Network,
+    NetworkResult,
+    Observation,
+    adjust_network,
+    network_from_dict,
+    parse_krumm,
+    read_network,
+)
+from minegeo.survey.resection import StationResult, intersection_2d, resection_2d, trilateration_2d
 
 __all__ = [
     "azimuth",
@@ -130,6 +152,18 @@ __all__ = [
     "adjust_observations",
     "chi2_global_test",
     "weights_from_sigmas",
+    "Datum",
+    "Network",
+    "NetworkResult",
+    "Observation",
+    "adjust_network",
+    "network_from_dict",
+    "parse_krumm",
+    "read_network",
+    "StationResult",
+    "intersection_2d",
+    "resection_2d",
+    "trilateration_2d",
 ]
 
 

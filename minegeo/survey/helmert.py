@@ -452,10 +452,28 @@ class Helmert3DResult:
     def ds_ppm(self) -> float:
         return (self.scale - 1.0) * 1e6
 
-    def transform(self, points) -> np.ndarray:
-        """Apply the estimated transformation (reduced form, exact rotation)."""
+    def transform(self, points, with_cov: bool = False):
+        """Apply the estimated transformation (reduced form, exact rotation).
+
+        With ``with_cov=True`` returns ``(xyz (m,3), cov (m,3,3))``: covariance from the parameter
+        uncertainty only, ``J = [I, −s[R·x̃]×, R·x̃]`` per point (x̃ = point − src_origin).
+        """
         p = as_points(points, "points", dim=3)
-        return (self.scale * ((p - self.src_origin) @ self.R.T)) + self._t_reduced + self.dst_origin
+        rx = (p - self.src_origin) @ self.R.T
+        out = self.scale * rx + self._t_reduced + self.dst_origin
+        if not with_cov:
+            return out
+        S = self.lsq.Sigma_xx
+        u = S.shape[0]
+        covs = np.empty((p.shape[0], 3, 3))
+        for i in range(p.shape[0]):
+            J = np.zeros((3, u))
+            J[:, :3] = np.eye(3)
+            J[:, 3:6] = -self.scale * hat(rx[i])
+            if self.estimate_scale:
+                J[:, 6] = rx[i]
+            covs[i] = J @ S @ J.T
+        return out, covs
 
     @property
     def _t_reduced(self):

@@ -158,3 +158,26 @@ def test_helmert2d_weight_scaling_invariance(theta, s, tx, ty, k):
     r2 = helmert2d(src, dst, sigma_dst=sig * k)
     np.testing.assert_allclose(r1.params, r2.params, rtol=1e-9, atol=1e-7)
     np.testing.assert_allclose(r1.cov, r2.cov, rtol=1e-6, atol=1e-10 * np.abs(r1.cov).max())
+
+
+def test_helmert3d_point_covariance_matches_numeric_jacobian():
+    rng = np.random.default_rng(11)
+    src = rng.uniform(-50, 50, size=(8, 3)) + [4.5e5, 5.2e6, 200.0]
+    R = exp_so3([0.0, 0.0, -2.09661182])
+    dst = 1.00002 * (src @ R.T) + [586601.143, 4462104.996, 273.405] + rng.normal(scale=0.003, size=(8, 3))
+    h = helmert3d(src, dst, sigma_dst=0.003)
+    q = np.array([[4.5e5 + 80.0, 5.2e6 - 60.0, 210.0]])
+    xyz, cov = h.transform(q, with_cov=True)
+    # numeric Jacobian of the transformed point w.r.t. the reduced parameters
+    eps = 1e-7
+    x0 = h.lsq.x.copy()
+
+    def f(x):
+        Rk = exp_so3(x[3:6] - x0[3:6]) @ h.R  # rotation covariance = small left rotation at R̂
+        return (1.0 + x[6]) * ((q[0] - h.src_origin) @ Rk.T) + x[:3]  # without the 1e6 m origin
+
+    J = np.column_stack(
+        [(f(x0 + eps * np.eye(7)[k]) - f(x0 - eps * np.eye(7)[k])) / (2 * eps) for k in range(7)]
+    )
+    np.testing.assert_allclose(cov[0], J @ h.lsq.Sigma_xx @ J.T, rtol=1e-4, atol=1e-12)
+    np.testing.assert_allclose(xyz[0] - h.dst_origin, f(x0), atol=1e-6)
