@@ -82,11 +82,12 @@ def _warmup() -> None:
     """Compile the Numba kernels of this package on tiny inputs."""
     import numpy as np
 
-    from minegeo.mast._kernels import _cast_rays, _grow_segments, _nearest_segment
+    from minegeo.mast._kernels import _cast_rays, _grow_segments, _nearest_segment, _split_segments
 
     segs = np.array([[1.0, -1.0, 1.0, 1.0], [2.0, -1.0, 2.0, 1.0]])
     dirs = np.array([[1.0, 0.0], [0.0, 1.0]])
     _cast_rays(np.zeros(2), dirs, segs, 10.0)
     _nearest_segment(np.array([[1.1, 0.0], [0.0, 0.0]]), segs, 0.0)
     xy = np.column_stack([np.linspace(0, 1, 8), np.zeros(8)])
-    _grow_segments(xy, np.full(8, 0.01), np.full(8, 1.0), 3, 2, 3)
+    se = _grow_segments(xy, np.full(8, 0.01), np.full(8, 1.0), 3, 2, 3)
+    _split_segments(xy, np.ascontiguousarray(se), np.full(len(se), 1e-4), 30.0, 3)
