@@ -182,8 +182,21 @@ def georef_report_html(
     else:
         out.append("<tr><td class='l'>scale s</td><td>1 (fixed)</td><td>—</td></tr>")
     eu = r.euler_zyx_rad
+    out.append("</table>")
+    if r.model == "similarity" and r.scale_std > 0:
+        zs = abs(r.scale - 1.0) / r.scale_std
+        gtxt = ""
+        if gf:
+            zg = abs(r.scale - gf["combined_factor"]) / r.scale_std
+            gtxt = (
+                f" Against the grid's combined factor ({gf['combined_ppm']:+.1f} ppm): |s − k·R/(R+h)|/σ<sub>s</sub> = "
+                f"{zg:.2f}."
+            )
+        out.append(
+            f"<p>Scale test: |s − 1|/σ<sub>s</sub> = {zs:.2f} ({'significant' if zs > 1.96 else 'not significant'} "
+            "at 95 %; if not significant, the 6-parameter rigid model is an option)." + gtxt + "</p>"
+        )
     out += [
-        "</table>",
         f"<p>Equivalent angles R = Rz(yaw)·Ry(pitch)·Rx(roll): roll {_e(r.euler_zyx_dms[0])}, pitch "
         f"{_e(r.euler_zyx_dms[1])}, <b>yaw {_e(r.euler_zyx_dms[2])}</b> ({math.degrees(eu[2]):.6f}°, rotation of the "
         "map about the vertical, counter-clockwise from map x to grid east).</p>",
