@@ -227,3 +227,15 @@ def test_ten_million_points_binary_ply(tmp_path):
     assert back.points[123456, 0] == 123456 * 1e-3 and back.points[-1, 1] == -(n - 1) * 1e-3
     assert back.attributes["intensity"][70000] == 70000 % 65536
     np.testing.assert_array_equal(back.points, pts)
+
+
+@pytest.mark.parametrize(
+    "name,kw",
+    [("a.ply", {}), ("b.ply", {"encoding": "ascii"}), ("c.pcd", {"encoding": "binary_compressed"}), ("d.xyz", {}), ("e.csv", {})],
+)
+def test_writing_is_byte_deterministic(tmp_path, name, kw):
+    rng = np.random.default_rng(7)
+    c = PointCloud(rng.normal(size=(300, 3)), normals=rng.normal(size=(300, 3)), attributes={"intensity": rng.random(300)})
+    write_point_cloud(tmp_path / f"1{name}", c, **kw)
+    write_point_cloud(tmp_path / f"2{name}", c, **kw)
+    assert (tmp_path / f"1{name}").read_bytes() == (tmp_path / f"2{name}").read_bytes()
