@@ -187,6 +187,27 @@ def hybrid_one(q0, q1, q2, r, r2, cap, pts, order, cell_start, origin, cell, inv
 
 
 @njit
+def search_one(q0, q1, q2, knn, r, cap, pts, order, cell_start, origin, cell, inv_cell,
+               nx, ny, nz, morton, bits, table_keys, table_vals, buf_pos, buf_sq):
+    """Hybrid search (``knn`` False) or exact kNN (``knn`` True, ``cap`` = k <= number of points).
+
+    kNN: hybrid searches with radius R = r, 2r, 4r, ... until ``cap`` points are found
+    strictly inside R. Every point outside R has sq >= R² > the k-th squared distance,
+    so the result is exactly the k nearest, ties broken by the lowest index.
+    """
+    if not knn:
+        return hybrid_one(q0, q1, q2, r, r * r, cap, pts, order, cell_start, origin, cell, inv_cell,
+                          nx, ny, nz, morton, bits, table_keys, table_vals, buf_pos, buf_sq)
+    R = r
+    while True:
+        cnt = hybrid_one(q0, q1, q2, R, R * R, cap, pts, order, cell_start, origin, cell, inv_cell,
+                         nx, ny, nz, morton, bits, table_keys, table_vals, buf_pos, buf_sq)
+        if cnt >= cap:
+            return cnt
+        R *= 2.0
+
+
+@njit
 def count_one(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell,
               nx, ny, nz, morton, bits, table_keys, table_vals):
     """Number of grid points with squared distance strictly < ``r2`` (radius search size)."""
@@ -230,7 +251,7 @@ def grid_radius_count(queries, qorder, r, pts, cell_start, origin, cell, inv_cel
 
 
 @njit_parallel
-def grid_hybrid(queries, qorder, r, cap, pts, order, cell_start, origin, cell, inv_cell, nx, ny, nz,
+def grid_hybrid(queries, qorder, knn, r, cap, pts, order, cell_start, origin, cell, inv_cell, nx, ny, nz,
                 morton, bits, table_keys, table_vals, out_idx, out_sq, out_counts):
     """Hybrid search for every query: rows of ``out_idx``/``out_sq`` padded with -1/inf.
 
@@ -238,7 +259,6 @@ def grid_hybrid(queries, qorder, r, cap, pts, order, cell_start, origin, cell, i
     the same memory); each writes only its own output row.
     """
     nq = queries.shape[0]
-    r2 = r * r
     nblocks = (nq + _BLOCK - 1) // _BLOCK
     for b in prange(nblocks):
         buf_pos = np.empty(max(cap, 1), dtype=np.int64)
@@ -247,7 +267,7 @@ def grid_hybrid(queries, qorder, r, cap, pts, order, cell_start, origin, cell, i
             i = qorder[t]
             cnt = 0
             if cap > 0:
-                cnt = hybrid_one(queries[i, 0], queries[i, 1], queries[i, 2], r, r2, cap, pts,
+                cnt = search_one(queries[i, 0], queries[i, 1], queries[i, 2], knn, r, cap, pts,
                                  order, cell_start, origin, cell, inv_cell, nx, ny, nz, morton, bits,
                                  table_keys, table_vals, buf_pos, buf_sq)
             for j in range(cnt):
@@ -257,39 +277,6 @@ def grid_hybrid(queries, qorder, r, cap, pts, order, cell_start, origin, cell, i
                 out_idx[i, j] = -1
                 out_sq[i, j] = np.inf
             out_counts[i] = cnt
-
-
-@njit_parallel
-def knn_finalize(points, queries, idx, out_idx, out_sq, out_counts):
-    """Recompute squared distances of kNN candidates exactly and sort rows by (sq, index).
-
-    ``idx`` entries < 0 or >= n are missing neighbours (padded with -1 / inf).
-    """
-    n = points.shape[0]
-    nq, k = idx.shape
-    for i in prange(nq):
-        cnt = 0
-        for j in range(k):
-            p = idx[i, j]
-            if p < 0 or p >= n:
-                continue
-            d0 = points[p, 0] - queries[i, 0]
-            d1 = points[p, 1] - queries[i, 1]
-            d2 = points[p, 2] - queries[i, 2]
-            sq = d0 * d0 + d1 * d1 + d2 * d2
-            # insertion sort on (sq, index)
-            m = cnt
-            while m > 0 and (out_sq[i, m - 1] > sq or (out_sq[i, m - 1] == sq and out_idx[i, m - 1] > p)):
-                out_sq[i, m] = out_sq[i, m - 1]
-                out_idx[i, m] = out_idx[i, m - 1]
-                m -= 1
-            out_sq[i, m] = sq
-            out_idx[i, m] = p
-            cnt += 1
-        for j in range(cnt, k):
-            out_idx[i, j] = -1
-            out_sq[i, j] = np.inf
-        out_counts[i] = cnt
 
 
 # ---------------------------------------------------------------------------------------
@@ -733,7 +720,7 @@ def _normal_from_neighbors(points, nbr, cnt, qi, oi, mode_open3d, degenerate_rat
 
 
 @njit_parallel
-def normals_hybrid_fused(r, cap, mode_open3d, degenerate_ratio, pts, order, cell_start,
+def normals_hybrid_fused(knn, r, cap, mode_open3d, degenerate_ratio, pts, order, cell_start,
                          origin, cell, inv_cell, nx, ny, nz, morton, bits, table_keys, table_vals,
                          out_n, out_eval, out_status, out_counts):
     """Hybrid search + PCA for every indexed point without materialising the neighbourhoods.
@@ -742,7 +729,6 @@ def normals_hybrid_fused(r, cap, mode_open3d, degenerate_ratio, pts, order, cell
     rows back to input rows), so neighbouring queries share cache lines.
     """
     n = pts.shape[0]
-    r2 = r * r
     nblocks = (n + _BLOCK - 1) // _BLOCK
     for b in prange(nblocks):
         buf_pos = np.empty(cap, dtype=np.int64)
@@ -752,7 +738,7 @@ def normals_hybrid_fused(r, cap, mode_open3d, degenerate_ratio, pts, order, cell
         w = np.empty(3)
         tmp = np.empty(6)
         for t in range(b * _BLOCK, min(n, (b + 1) * _BLOCK)):
-            cnt = hybrid_one(pts[t, 0], pts[t, 1], pts[t, 2], r, r2, cap, pts, order,
+            cnt = search_one(pts[t, 0], pts[t, 1], pts[t, 2], knn, r, cap, pts, order,
                              cell_start, origin, cell, inv_cell, nx, ny, nz, morton, bits, table_keys,
                              table_vals, buf_pos, buf_sq)
             i = order[t]

@@ -11,12 +11,12 @@ Every row is sorted by ascending squared distance; the query point itself is inc
 when it belongs to the cloud (distance 0). Unlike Open3D, ties are broken by the lowest
 point index, so results are fully deterministic.
 
-Radius and hybrid searches use a uniform hash grid written in Numba (cell edge = the
-search radius unless ``cell_size_m`` is given): points are sorted by their linear cell key,
+All searches use a uniform hash grid written in Numba (cell edge = the search radius,
+or for kNN about the median k-th neighbour distance, unless ``cell_size_m`` is given): points are sorted by their linear cell key,
 an open-addressing table maps occupied cell keys to point ranges, and every query scans
 only the cells whose box lies closer than ``r`` (and, once ``max_nn`` candidates are held,
-closer than the current worst). kNN uses pykdtree for the candidate set; squared distances
-are recomputed and rows re-sorted by (distance, index) in Numba.
+closer than the current worst). kNN repeats the hybrid search with a doubling radius
+until k points lie strictly inside it, which makes it exact.
 
 Memory: a result holds ``n_queries * kmax * 16`` bytes (int64 indices + float64 squared
 distances), e.g. 4.8 GB for 10^7 queries with kmax = 30. Use :meth:`NeighborIndex.iter_hybrid`
@@ -178,14 +178,17 @@ class NeighborIndex:
         self.points = as_points(points, "points", min_points=1)
         self.cell_size_m = None if cell_size_m is None else check_positive(cell_size_m, "cell_size_m")
         self._grids: dict[float, _Grid] = {}
-        self._kdtree = None
+        self._knn_cells: dict[int, tuple[float, float]] = {}
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
 
     # -- internals -----------------------------------------------------------------------
     def _grid(self, radius_m: float) -> _Grid:
-        cell = self.cell_size_m if self.cell_size_m is not None else radius_m
+        """Grid for a radius search (cell = ``cell_size_m`` or the radius)."""
+        return self._grid_cell(self.cell_size_m if self.cell_size_m is not None else radius_m)
+
+    def _grid_cell(self, cell: float) -> _Grid:
         g = self._grids.get(cell)
         if g is None:
             if len(self._grids) >= 2:  # keep memory bounded: at most two cached grids
@@ -193,6 +196,38 @@ class NeighborIndex:
             g = _build_grid(self.points, cell)
             self._grids[cell] = g
         return g
+
+    def _knn_cell(self, k: int) -> tuple[float, float]:
+        """(grid cell, initial kNN radius) ≈ (median, 90th percentile) of the k-th neighbour distance.
+
+        Estimated deterministically from up to 512 evenly spaced sample points searched
+        exactly on a provisional grid of cell ``max_extent / n^(1/3)``. Only speed depends
+        on this choice; kNN results are exact for any cell.
+        """
+        h = self._knn_cells.get(k)
+        if h is not None:
+            return h
+        n = self.points.shape[0]
+        ext = float(np.max(self.points.max(axis=0) - self.points.min(axis=0)))
+        h0 = ext / max(n, 1) ** (1.0 / 3.0) if ext > 0 else 1.0
+        g0 = _build_grid(self.points, h0)
+        sample = np.ascontiguousarray(self.points[np.unique(np.linspace(0, n - 1, min(n, 512)).astype(np.int64))])
+        kk = min(k, n)
+        m = sample.shape[0]
+        idx = np.empty((m, kk), dtype=np.int64)
+        sq = np.empty((m, kk), dtype=np.float64)
+        cnt = np.empty(m, dtype=np.int64)
+        K.grid_hybrid(sample, g0.query_order(sample, False), True, h0, kk, g0.pts, g0.order, *g0.args(),
+                      idx, sq, cnt)
+        dk = np.sqrt(sq[:, kk - 1])
+        med, p90 = float(np.median(dk)), float(np.quantile(dk, 0.9))
+        cell = med if med > 0 and np.isfinite(med) else h0
+        if self.cell_size_m is not None:
+            cell = self.cell_size_m
+        r0 = max(p90 * 1.01, cell) if np.isfinite(p90) else cell
+        h = (cell, r0)
+        self._knn_cells[k] = h
+        return h
 
     def _queries(self, queries) -> np.ndarray:
         if queries is None:
@@ -229,7 +264,7 @@ class NeighborIndex:
         sq = np.empty((m, cap), dtype=np.float64)
         cnt = np.empty(m, dtype=np.int64)
         qorder = g.query_order(q, q is self.points)
-        K.grid_hybrid(q, qorder, r, cap, g.pts, g.order, *g.args(), idx, sq, cnt)
+        K.grid_hybrid(q, qorder, False, r, cap, g.pts, g.order, *g.args(), idx, sq, cnt)
         return Neighborhoods(idx, sq, cnt, kind, r, cap if kind == "hybrid" else None)
 
     def iter_hybrid(self, queries, radius_m: float, max_nn: int, chunk_size: int = 1 << 18
@@ -275,26 +310,20 @@ class NeighborIndex:
     def knn(self, queries, k: int) -> Neighborhoods:
         """The ``k`` nearest points of each query (all points when the cloud has fewer than k).
 
-        Candidates come from pykdtree; squared distances are recomputed in float64 and rows
-        sorted by (distance, index). When several points tie at the k-th distance, which of
-        them is kept follows pykdtree's traversal (deterministic, but not by index).
+        Exact, on the same hash grid: hybrid searches with a radius doubling from the
+        median k-th neighbour distance until k points lie strictly inside it. Rows are
+        sorted by (squared distance, index), so ties — including at the k-th place — go
+        to the lowest index (Open3D keeps its traversal order there).
         """
         q = self._queries(queries)
         k = _check_int(k, "k")
-        n = self.points.shape[0]
-        kk = min(k, n)
-        if self._kdtree is None:
-            from pykdtree.kdtree import KDTree
-
-            self._kdtree = KDTree(self.points)
+        kk = min(k, self.points.shape[0])
+        cell, r0 = self._knn_cell(kk)
+        g = self._grid_cell(cell)
         m = q.shape[0]
-        if m == 0:
-            return Neighborhoods(np.full((0, kk), -1, np.int64), np.full((0, kk), np.inf),
-                                 np.zeros(0, np.int64), "knn", None, k)
-        _, cand = self._kdtree.query(q, k=kk)
-        cand = np.ascontiguousarray(np.asarray(cand, dtype=np.int64).reshape(m, kk))
         idx = np.empty((m, kk), dtype=np.int64)
         sq = np.empty((m, kk), dtype=np.float64)
         cnt = np.empty(m, dtype=np.int64)
-        K.knn_finalize(self.points, q, cand, idx, sq, cnt)
+        K.grid_hybrid(q, g.query_order(q, q is self.points), True, r0, kk, g.pts, g.order, *g.args(),
+                      idx, sq, cnt)
         return Neighborhoods(idx, sq, cnt, "knn", None, k)

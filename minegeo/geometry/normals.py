@@ -63,7 +63,6 @@ STATUS_COLLINEAR = K.STATUS_COLLINEAR
 STATUS_COINCIDENT = K.STATUS_COINCIDENT
 
 _MODES = ("accurate", "open3d")
-_KNN_CHUNK = 1 << 18
 
 
 @dataclass(frozen=True)
@@ -241,19 +240,16 @@ def estimate_normals(points, params: NormalParams | None = None, orient_towards=
             index = NeighborIndex(pts)
         elif index.points is not pts and not np.array_equal(index.points, pts):
             raise InputError("index was built on a different cloud than points")
+        counts = np.empty(n, dtype=np.int64)
         if params.radius_m is not None:
-            r = float(params.radius_m)
+            knn, r, cap = False, float(params.radius_m), int(params.max_nn)
             g = index._grid(r)
-            counts = np.empty(n, dtype=np.int64)
-            K.normals_hybrid_fused(r, int(params.max_nn), mode_o3d, ratio, g.pts, g.order,
-                                   *g.args(), normals, evals, status, counts)
         else:
-            counts = np.empty(n, dtype=np.int64)
-            for s in range(0, n, _KNN_CHUNK):
-                nb = index.knn(pts[s : s + _KNN_CHUNK], int(params.max_nn))
-                counts[s : s + nb.counts.shape[0]] = nb.counts
-                K.normals_from_neighborhoods(pts, s, nb.indices, nb.counts, mode_o3d, ratio,
-                                             normals, evals, status)
+            knn, cap = True, min(int(params.max_nn), n)
+            cell, r = index._knn_cell(cap)
+            g = index._grid_cell(cell)
+        K.normals_hybrid_fused(knn, r, cap, mode_o3d, ratio, g.pts, g.order, *g.args(),
+                               normals, evals, status, counts)
     timings["search_and_pca"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
