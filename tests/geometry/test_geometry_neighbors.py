@@ -56,6 +56,8 @@ def test_ties_are_broken_by_index_and_radius_is_strict():
     assert np.all(nb.counts == 1)
     nb = idx.hybrid(pts, 1.5, 4)  # many ties at distance 1: lowest indices win
     _assert_rows_equal(nb, naive_neighbors(pts, pts, 1.5, 4))
+    for k in (3, 7, 20):  # kNN is exact and lexicographic too, also at the k-th place
+        _assert_rows_equal(idx.knn(pts, k), naive_neighbors(pts, pts, None, k))
 
 
 def test_knn_matches_bruteforce(cloud):

@@ -79,6 +79,17 @@ def test_radius_and_hybrid_equal_kdtreeflann(which, bunny, tunnel):
                 assert set(np.asarray(ii).tolist()) == set(hyb.row(i).tolist())
 
 
+def test_knn_equals_kdtreeflann(bunny):
+    o3d = require_open3d()
+    tree = o3d.geometry.KDTreeFlann(_o3d_cloud(o3d, bunny))
+    nb = NeighborIndex(bunny).knn(None, 10)
+    for i in range(bunny.shape[0]):
+        _, ii, dd = tree.search_knn_vector_3d(bunny[i], 10)
+        np.testing.assert_allclose(np.asarray(dd), nb.sq_distances[i], rtol=1e-12, atol=0)
+        if np.count_nonzero(np.asarray(dd) == dd[-1]) == 1:  # untied cut-off: same set
+            assert set(np.asarray(ii).tolist()) == set(nb.row(i).tolist())
+
+
 @pytest.mark.parametrize("which", ["bunny", "tunnel"])
 @pytest.mark.parametrize("search", ["hybrid", "knn"])
 def test_normals_equal_open3d(which, search, bunny, tunnel):
