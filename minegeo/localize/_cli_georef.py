@@ -33,6 +33,8 @@ def add_arguments(parser) -> None:
                         help="sigma0 scaling the parameter covariance (default aposteriori)")
     parser.add_argument("--max-scale-deviation", type=float, default=0.01,
                         help="unit rule: fail when the GCP distance ratio differs from 1 by more (default 0.01)")
+    parser.add_argument("--max-sigma0", type=float, default=10.0,
+                        help="fail when sigma0 exceeds this (residuals >> stated GCP sigmas; default 10)")
     parser.add_argument("--force", action="store_true",
                         help="write MAP_GEO even when the fit failed (never for production use)")
 
@@ -52,6 +54,7 @@ def run(args) -> int:
         sigma_local_m=args.sigma_local_m,
         variance=args.variance,
         max_scale_deviation=args.max_scale_deviation,
+        max_sigma0=args.max_sigma0,
     )
     map_path = Path(args.map)
     out_path = Path(args.out)

@@ -64,7 +64,14 @@ from pathlib import Path
 
 import numpy as np
 
-from minegeo.errors import CRSError, DegenerateGeometryError, FileFormatError, InputError, TooFewPointsError
+from minegeo.errors import (
+    ConvergenceError,
+    CRSError,
+    DegenerateGeometryError,
+    FileFormatError,
+    InputError,
+    TooFewPointsError,
+)
 from minegeo.geometry.se3 import hat, log_so3
 from minegeo.io.types import ControlPoints, PointCloud
 from minegeo.localize.crs import (
@@ -151,6 +158,10 @@ class GeorefParams:
     min_geometry_ratio : float
         Warn when the GCPs are nearly collinear: second/first singular value of the centred
         map coordinates below this ratio.
+    max_sigma0 : float
+        Status ``failed`` when σ̂0 exceeds this: the residuals are that many times larger than
+        the stated GCP sigmas (a gross blunder, mismatched ids, or sigmas far too optimistic) —
+        such a fit must not georeference a map.
     """
 
     model: str = "similarity"
@@ -163,6 +174,7 @@ class GeorefParams:
     origin_step_m: float = 1000.0
     allow_geocentric: bool = False
     min_geometry_ratio: float = 0.05
+    max_sigma0: float = 10.0
 
     def __post_init__(self):
         if self.model not in _MODELS:
@@ -188,6 +200,8 @@ class GeorefParams:
             raise InputError(f"origin_step_m must be > 0, got {self.origin_step_m!r}")
         if not (0 <= self.min_geometry_ratio < 1):
             raise InputError(f"min_geometry_ratio must be in [0, 1), got {self.min_geometry_ratio!r}")
+        if not (self.max_sigma0 > 1):
+            raise InputError(f"max_sigma0 must be > 1, got {self.max_sigma0!r}")
 
     def as_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -486,10 +500,20 @@ class GeorefResult:
 
 
 # ---------------------------------------------------------------------------- helpers
-def unit_diagnosis(scale: float) -> str:
-    """Name the likely unit mismatch for a rotation-free scale estimate (CRS units per map unit)."""
+def unit_diagnosis(scale: float, scale_horizontal: float | None = None) -> str:
+    """Name the likely unit mismatch for a rotation-free scale estimate (CRS units per map unit).
+
+    ``scale_horizontal`` (the same ratio from E, N and map x, y only) recognises longitude/latitude
+    in degrees given together with heights in metres.
+    """
     if not (math.isfinite(scale) and scale > 0):
         return "the control coordinates have no spread in one of the two systems"
+    sh = scale if scale_horizontal is None or not math.isfinite(scale_horizontal) else scale_horizontal
+    if 2e-6 < sh < 2e-5:  # 1 degree ~ 111 km of latitude, 111 km x cos(lat) of longitude
+        return (
+            "the CRS coordinates look like degrees of longitude/latitude, not projected metres: convert "
+            "them to the projected grid first"
+        )
     best = None
     for ratio, text in _UNIT_GUESSES:
         if not text:
@@ -633,7 +657,8 @@ def georeference(gcps: ControlPoints, crs=None, params: GeorefParams | None = No
     if not (abs(s_spread - 1.0) <= p.max_scale_deviation):
         failed.append(
             f"unit check failed: the distances between GCPs are {s_spread:.6g} times larger in the CRS "
-            f"than in the map (allowed 1 ± {p.max_scale_deviation:g}); {unit_diagnosis(s_spread)}"
+            f"than in the map (allowed 1 ± {p.max_scale_deviation:g}); "
+            f"{unit_diagnosis(s_spread, _spread_scale(src_c[:, :2], dst_c[:, :2]))}"
         )
     s_test = s_spread if math.isfinite(s_spread) and s_spread > 0 else 1.0
     rms_proper, Q0 = _procrustes_rms(src_c, dst_c, s_test, proper=True)
@@ -681,26 +706,46 @@ def georeference(gcps: ControlPoints, crs=None, params: GeorefParams | None = No
             "model 'rigid' was requested; the parameters shown come from a diagnostic 7-parameter fit "
             "(to show the actual scale) and must not be used"
         )
+    # a diagnostic fit of grossly mis-scaled data is solved on CRS coordinates divided by the
+    # rotation-free scale estimate k (scale near 1: Gauss-Newton converges), then scaled back
+    k_unit = s_test if fit_similarity and failed and "unit check" in failed[0] else 1.0
     t_fit = time.perf_counter()
-    h = helmert3d(
-        src,
-        dst,
-        sigma_used,
-        estimate_scale=fit_similarity,
-        convention=p.convention,
-        options=opts,
-    )
+    try:
+        h = helmert3d(
+            src,
+            dst if k_unit == 1.0 else dst / k_unit,
+            sigma_used if k_unit == 1.0 else sigma_used / k_unit,
+            estimate_scale=fit_similarity,
+            convention=p.convention,
+            options=opts,
+        )
+    except ConvergenceError:
+        if not failed:
+            raise
+        # the input is already known to be wrong and not even a diagnostic fit exists
+        raise InputError(
+            "georeferencing impossible: " + "; ".join(failed) + " (no similarity transformation fits these "
+            "coordinates at all, e.g. longitude/latitude with heights in metres)"
+        ) from None
     t_fit = time.perf_counter() - t_fit
     lsq = h.lsq
-    s = float(h.scale)
+    s = float(h.scale) * k_unit
     R = np.asarray(h.R, dtype=np.float64)
-    t_geo = np.asarray(h.T, dtype=np.float64)
+    t_geo = np.asarray(h.T, dtype=np.float64) * k_unit
+    resid = np.asarray(h.residuals, dtype=np.float64).reshape(n, 3) * k_unit
+    cov = np.asarray(h.cov, dtype=np.float64)
+    if k_unit != 1.0:
+        dk = np.ones(cov.shape[0])
+        dk[:3] = k_unit
+        if cov.shape[0] == 7:
+            dk[6] = k_unit
+        cov = cov * dk[:, None] * dk[None, :]
     T_geo = np.eye(4)
     T_geo[:3, :3] = s * R
     T_geo[:3, 3] = t_geo
     T_crs = T_geo.copy()
     T_crs[:3, 3] = t_geo + origin
-    std = h.std
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     omega = log_so3(R)
     rot = omega if p.convention == "position_vector" else -omega
 
@@ -750,10 +795,24 @@ def georeference(gcps: ControlPoints, crs=None, params: GeorefParams | None = No
         j = int(np.argmax(aw[i]))
         warnings.append(
             f"GCP {gcps.ids[i]} is a suspected blunder (|w| = {aw[i, j]:.2f} > {lsq.w_critical:.2f} in "
-            f"{'ENH'[j]}, residual {h.residuals[i, j] * 1000:.1f} mm): check its coordinates and "
+            f"{'ENH'[j]}, residual {resid[i, j] * 1000:.1f} mm): check its coordinates and "
             "identification, remove it and re-run"
         )
 
+    if np.isfinite(lsq.sigma0) and lsq.sigma0 > p.max_sigma0:
+        sb = f" (suspected: GCP {gcps.ids[int(np.flatnonzero(blunder)[0])]})" if blunder.any() else ""
+        failed.append(
+            f"the GCPs do not fit a {'similarity' if fit_similarity else 'rigid'} transformation: sigma0 = "
+            f"{lsq.sigma0:.1f} > {p.max_sigma0:g}, the residuals (RMS {np.sqrt(np.mean(resid**2)) * 1000:.0f} mm) "
+            f"are far larger than the stated GCP sigmas. Look for a gross blunder{sb}, mismatched GCP ids, a "
+            "wrong CRS, or sigmas that are far too optimistic"
+        )
+    name_l = info.name.lower()
+    if info.epsg == 3857 or "pseudo-mercator" in name_l or "pseudo mercator" in name_l:
+        warnings.append(
+            f"{info.name} is a web-map projection with large scale distortion, not a survey grid: use the "
+            "mine's projected CRS (national TM grid or UTM zone)"
+        )
     gf = grid_scale_factors(info.user_input, *(crs_enh.mean(axis=0))) if info.kind != "geocentric" else None
     if gf is not None and not fit_similarity:
         lever = extent * abs(gf["combined_factor"] - 1.0)
@@ -797,12 +856,12 @@ def georeference(gcps: ControlPoints, crs=None, params: GeorefParams | None = No
         euler_zyx_rad=_euler_zyx(R),
         translation_m=t_geo + origin,
         translation_std_m=std[:3].copy(),
-        cov=np.asarray(h.cov, dtype=np.float64),
+        cov=cov,
         gcp_ids=list(gcps.ids),
         gcp_local_xyz=src.copy(),
         gcp_crs_enh=crs_enh.copy(),
         sigma_used_m=sigma_used,
-        residuals_m=np.asarray(h.residuals, dtype=np.float64).reshape(n, 3),
+        residuals_m=resid,
         w=w,
         redundancy=red,
         w_critical=float(lsq.w_critical),

@@ -292,6 +292,37 @@ def test_swapped_easting_northing_fails():
     assert r.status == "failed" and "swapped" in r.reason
 
 
+def test_gross_blunder_fails_and_names_the_gcp():
+    rng = np.random.default_rng(21)
+    x, X, _, sig = _problem(n=8, seed=2)
+    X = X + rng.normal(0.0, 1.0, X.shape) * sig
+    X[4, 0] += 1.5
+    r = georeference(_gcps(x, X, sig))
+    assert r.status == "failed" and r.sigma0 > 10
+    assert "do not fit" in r.reason and "G04" in r.reason
+    assert r.suspected_blunder_id == "G04"
+    # the same data with honest (large) sigmas is a warning, not a failure
+    r2 = georeference(_gcps(x, X, sig), params=GeorefParams(max_sigma0=1e3))
+    assert r2.status == "warning"
+
+
+def test_degrees_given_as_projected_coordinates_fail():
+    x, X, _, sig = _problem()
+    lonlat = (X - X.mean(axis=0)) / 100_000.0 + [127.0, 37.5, 0.0]
+    r = georeference(_gcps(x, lonlat, sig, crs="EPSG:5186"))  # all three scaled: a (tiny) similarity
+    assert r.status == "failed" and "degrees" in r.reason
+    assert abs(r.scale - 1e-5) < 1e-9  # the diagnostic fit shows the actual scale
+    lonlat[:, 2] = X[:, 2]  # degrees with heights in metres: no similarity fits at all
+    with pytest.raises(InputError, match="degrees"):
+        georeference(_gcps(x, lonlat, sig, crs="EPSG:5186"))
+
+
+def test_pseudo_mercator_warns():
+    x, X, _, sig = _problem(t=(14150000.0, 4500000.0, 100.0))
+    r = georeference(_gcps(x, X, sig, crs="EPSG:3857"))
+    assert any("web-map projection" in w for w in r.warnings)
+
+
 def test_outside_area_of_use_warns():
     x, X, _, sig = _problem()
     r = georeference(_gcps(x, X, sig, crs="EPSG:5186"))  # UTM numbers given as Korean TM
