@@ -173,3 +173,24 @@ def test_cli_refuses_to_overwrite_input_map(tmp_path, synth_gcps, capsys):
     rc = main(["georef", "--map", str(mp), "--gcps", str(gp), "--out", str(mp), "--report", str(tmp_path / "r")])
     assert rc == 2 and "input map" in capsys.readouterr().err
     assert mp.read_bytes() == before
+
+
+def test_report_html_flags_escapes_and_no_plot_fallback():
+    from minegeo.localize import georeference
+    from minegeo.report.georef_report import georef_report_html, plot_georef_png
+
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-100, 100, (7, 3))
+    X = x + [300000.0, 4100000.0, 50.0] + rng.normal(0, 0.005, (7, 3))
+    X[3, 1] += 0.1
+    ids = ["A1", "A2", "A3", "<b>bad</b>", "A5", "A6", "A7"]
+    r = georeference(ControlPoints(ids, x, X, 0.005, crs="EPSG:32652"))
+    assert r.suspected_blunder_id == "<b>bad</b>"
+    html = georef_report_html(r, png=None)
+    assert "matplotlib is not installed" in html
+    assert "&lt;b&gt;bad&lt;/b&gt;" in html and "<b>bad</b>" not in html
+    assert "class='flag'" in html and "suspected blunder" in html
+    assert "WARNING" in html and "FAILED" in html
+    png = plot_georef_png(r)
+    if png is not None:
+        assert png[:8] == b"\x89PNG\r\n\x1a\n"
