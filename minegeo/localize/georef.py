@@ -51,6 +51,10 @@ Refusals and status (never a confident wrong answer):
   units (km, feet, mm) or the GCP ids are mismatched: status ``failed``, with the likely
   unit named;
 * the map and CRS coordinates are mirror images (e.g. E and N swapped) -> status ``failed``;
+* ``σ̂0 > max_sigma0`` (default 10: residuals ten times the stated GCP sigmas — a gross blunder,
+  mismatched ids, or wildly optimistic sigmas) -> status ``failed`` naming the suspected GCP;
+* no similarity fits at all after a failed unit check (e.g. degrees with heights in metres) ->
+  :class:`~minegeo.errors.InputError`;
 * χ² test failed or a GCP failed the w-test -> status ``warning`` with the suspected GCP.
 """
 
@@ -448,6 +452,10 @@ class GeorefResult:
                 a = np.asarray(d[key], dtype=np.float64)
                 return a.reshape(shape) if shape is not None else a
 
+            def num(key, default=float("nan")):
+                v = d.get(key, default)
+                return float("nan") if v is None else float(v)
+
             def col(key):
                 return np.array(
                     [[np.nan if x is None else x for x in r[key]] for r in g], dtype=np.float64
@@ -465,7 +473,7 @@ class GeorefResult:
                 T_geo_map=arr("T_geo_map", (4, 4)),
                 T_crs_map=arr("T_crs_map", (4, 4)),
                 scale=float(d["scale"]),
-                scale_std=float(d.get("scale_std", 0.0) or 0.0),
+                scale_std=num("scale_std", 0.0),
                 R=arr("R", (3, 3)),
                 rotation_pv_rad=arr("rotation_pv_rad", (3,)),
                 rotation_rad=arr("rotation_rad", (3,)),
@@ -481,16 +489,16 @@ class GeorefResult:
                 residuals_m=col("residual_enh_m"),
                 w=col("w"),
                 redundancy=col("redundancy"),
-                w_critical=float(d["w_critical"]),
+                w_critical=num("w_critical"),
                 flags=[str(r.get("flags", "")) for r in g],
                 blunder=np.array([bool(r.get("suspected_blunder", False)) for r in g], dtype=bool),
-                sigma0=float("nan") if d.get("sigma0") is None else float(d["sigma0"]),
+                sigma0=num("sigma0"),
                 dof=int(d["dof"]),
-                vtwv=float(d["vtwv"]),
+                vtwv=num("vtwv"),
                 chi2=dict(d["chi2"]),
                 variance_used=str(d.get("variance_used", "aposteriori")),
-                scale_estimate_spread=float(d.get("scale_estimate_spread", float("nan"))),
-                geometry_ratio=float(d.get("geometry_ratio", float("nan"))),
+                scale_estimate_spread=num("scale_estimate_spread"),
+                geometry_ratio=num("geometry_ratio"),
                 grid_factors=d.get("grid_factors"),
                 params=GeorefParams(**d.get("params", {})),
                 timings_s=dict(d.get("timings_s", {})),
