@@ -97,6 +97,7 @@ __all__ = [
     "georeference",
     "apply_georef",
     "map_to_crs",
+    "crs_to_map",
     "point_covariance_crs",
     "unit_diagnosis",
     "sidecar_path",
@@ -909,6 +910,19 @@ def map_to_crs(points_map, result: GeorefResult, map_origin=None, *, allow_faile
     if map_origin is not None:
         b = A @ np.asarray(map_origin, dtype=np.float64).reshape(3) + b
     return p @ A.T + b
+
+
+def crs_to_map(points_geo, result: GeorefResult, map_origin=None, *, allow_failed: bool = False) -> np.ndarray:
+    """Inverse of :func:`map_to_crs`: ``geo`` coordinates (CRS − ``result.origin``) -> map coordinates.
+
+    ``p_map = Rᵀ(p_geo − t_geo)/s − o_map`` (``o_map`` = the map cloud's own origin, if any).
+    """
+    _check_usable(result, allow_failed)
+    q = np.asarray(points_geo, dtype=np.float64).reshape(-1, 3)
+    p = (q - result.T_geo_map[:3, 3]) @ result.R / result.scale
+    if map_origin is not None:
+        p = p - np.asarray(map_origin, dtype=np.float64).reshape(3)
+    return p
 
 
 def apply_georef(cloud: PointCloud, result: GeorefResult, *, allow_failed: bool = False) -> PointCloud:

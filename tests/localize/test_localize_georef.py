@@ -15,6 +15,7 @@ from minegeo.localize import (
     GeorefParams,
     GeorefResult,
     apply_georef,
+    crs_to_map,
     georeference,
     local_origin,
     map_to_crs,
@@ -117,6 +118,8 @@ def test_apply_georef_respects_map_origin_and_normals():
     np.testing.assert_allclose(c1.normals, nrm @ R.T, atol=1e-12)
     np.testing.assert_array_equal(c1.attributes["intensity"], np.arange(50))
     np.testing.assert_allclose(map_to_crs(p, r) + r.origin, p @ r.T_crs_map[:3, :3].T + r.T_crs_map[:3, 3], atol=1e-8)
+    np.testing.assert_allclose(crs_to_map(map_to_crs(p, r), r), p, atol=1e-9)
+    np.testing.assert_allclose(crs_to_map(map_to_crs(p - o, r, o), r, o), p - o, atol=1e-9)
 
 
 # ------------------------------------------------------------------------------ Monte Carlo
