@@ -162,3 +162,37 @@ def test_epsg_9621_similarity_guidance_note_7_2():
     out = gn @ r.T_crs_map[:3, :3].T + r.T_crs_map[:3, 3]
     np.testing.assert_allclose(out[0, :2], [299905.060, 4499796.515], atol=5e-4)
     assert r.crs_info.epsg == 25831
+
+
+@pytest.mark.parametrize("model", ["rigid", "similarity"])
+def test_niosh_mine_fiducials_real_layout(model):
+    """Real surveyed fiducial layout of the DARPA SubT EX course (NIOSH mine portal) -> UTM 17N.
+
+    The UTM coordinates are computed from DARPA's published EX->UTM matrix (only the matrix is
+    published) plus 3 mm survey noise, so this checks the fit on a real, weak mine-portal geometry
+    (17 marks within 30 m x 3.5 m x 2.6 m) against a known answer: yaw −2.09661182 rad, scale 1.
+    """
+    import csv
+
+    d = shared_data("subt_tunnel_niosh_mine")
+    rows = [r for r in csv.DictReader(open(d / "fiducials_local_derived.csv", encoding="utf-8")) if r["course"] == "EX"]
+    x = np.array([[float(r[k]) for k in ("x_m", "y_m", "z_m")] for r in rows])
+    T = np.loadtxt(d / "darpa_to_utm17n_approx_derived.txt", comments="#")[4:8]
+    assert abs(np.arctan2(T[1, 0], T[0, 0]) + 2.09661182) < 1e-8
+    rng = np.random.default_rng(17)
+    X = x @ T[:3, :3].T + T[:3, 3] + rng.normal(0.0, 0.003, x.shape)
+    g = ControlPoints([r["name"] for r in rows], x, X, 0.003, crs="EPSG:32617")
+    r = georeference(g, params=GeorefParams(model=model))
+    assert r.status in ("ok", "warning") and not r.blunder.any()
+    assert r.chi2["verdict"] == "PASSED"
+    assert 0.05 < r.geometry_ratio < 0.2  # elongated portal layout, not flagged as collinear
+    assert abs(r.euler_zyx_rad[2] + 2.09661182) < 3 * r.rotation_std_rad[2]
+    assert np.all(np.abs(r.translation_m - T[:3, 3]) < 3 * r.translation_std_m)
+    # grid factors at the mine: UTM k = k0 (1 + x^2 / 2R^2) with x = E - 500 km (to 2 ppm)
+    k_tm = 0.9996 * (1 + (X[:, 0].mean() - 500000.0) ** 2 / (2 * 6371000.0**2))
+    assert abs(r.grid_factors["point_scale_factor"] - k_tm) < 2e-6
+    assert abs(r.grid_factors["lat_deg"] - 40.30497) < 1e-3
+    if model == "rigid":
+        # DARPA's matrix has no scale although the combined grid factor is about -351 ppm:
+        # minegeo says what that costs over this GCP extent
+        assert any("combined scale factor" in w for w in r.warnings)
