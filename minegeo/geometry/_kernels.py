@@ -208,6 +208,113 @@ def search_one(q0, q1, q2, knn, r, cap, pts, order, cell_start, origin, cell, in
 
 
 @njit
+def _lex_less(sa, pa, sb, pb, order):
+    """(sa, order[pa]) < (sb, order[pb]) lexicographically (index looked up only on a tie)."""
+    return sa < sb or (sa == sb and order[pa] < order[pb])
+
+
+@njit
+def select_smallest(buf_pos, buf_sq, m, k, order):
+    """Reorder ``buf_*[:m]`` so that its first ``k`` entries are the k smallest by (sq, index).
+
+    Hoare quickselect with the middle element as pivot (deterministic); keys are unique
+    because indices are. The first k entries are not sorted.
+    """
+    lo = 0
+    hi = m - 1
+    target = k - 1
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        ps = buf_sq[mid]
+        pp = buf_pos[mid]
+        i = lo
+        j = hi
+        while i <= j:
+            while _lex_less(buf_sq[i], buf_pos[i], ps, pp, order):
+                i += 1
+            while _lex_less(ps, pp, buf_sq[j], buf_pos[j], order):
+                j -= 1
+            if i <= j:
+                ts = buf_sq[i]
+                buf_sq[i] = buf_sq[j]
+                buf_sq[j] = ts
+                tp = buf_pos[i]
+                buf_pos[i] = buf_pos[j]
+                buf_pos[j] = tp
+                i += 1
+                j -= 1
+        if target <= j:
+            hi = j
+        elif target >= i:
+            lo = i
+        else:
+            break
+
+
+@njit
+def collect_one(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell,
+                nx, ny, nz, morton, bits, table_keys, table_vals, buf_pos, buf_sq):
+    """All grid points with sq < r2, unsorted (cell traversal order) into ``buf_*``.
+
+    Returns the count, or -1 when more than ``len(buf_pos)`` points qualify.
+    """
+    x0, x1 = _cell_range(q0, r, origin[0], inv_cell, nx)
+    y0, y1 = _cell_range(q1, r, origin[1], inv_cell, ny)
+    z0, z1 = _cell_range(q2, r, origin[2], inv_cell, nz)
+    cap = buf_pos.shape[0]
+    count = 0
+    slack = 1.0 + 1e-12
+    for iz in range(z0, z1 + 1):
+        dz = _box_sq(q2, origin[2] + iz * cell, cell)
+        for iy in range(y0, y1 + 1):
+            dy = _box_sq(q1, origin[1] + iy * cell, cell)
+            for ix in range(x0, x1 + 1):
+                if dz + dy + _box_sq(q0, origin[0] + ix * cell, cell) > r2 * slack:
+                    continue
+                c = _grid_lookup(cell_key(ix, iy, iz, nx, ny, morton), bits, table_keys, table_vals)
+                if c < 0:
+                    continue
+                for pos in range(cell_start[c], cell_start[c + 1]):
+                    d0 = pts[pos, 0] - q0
+                    d1 = pts[pos, 1] - q1
+                    d2 = pts[pos, 2] - q2
+                    sq = d0 * d0 + d1 * d1 + d2 * d2
+                    if sq < r2:
+                        if count == cap:
+                            return -1
+                        buf_pos[count] = pos
+                        buf_sq[count] = sq
+                        count += 1
+    return count
+
+
+@njit
+def search_set_one(q0, q1, q2, knn, r, cap, pts, order, cell_start, origin, cell, inv_cell,
+                   nx, ny, nz, morton, bits, table_keys, table_vals, big_pos, big_sq, buf_pos, buf_sq):
+    """Same neighbour *set* as :func:`search_one`, in unspecified (deterministic) order.
+
+    Collects every point inside the radius unsorted into ``big_*`` and quickselects the
+    ``cap`` smallest by (sq, index) when there are more: O(m) instead of the O(m·cap)
+    sorted insertion. Falls back to :func:`search_one` (sorted, into ``buf_*``) when the
+    big buffer overflows. Returns (count, use_big).
+    """
+    R = r
+    while True:
+        m = collect_one(q0, q1, q2, R, R * R, pts, cell_start, origin, cell, inv_cell, nx, ny, nz,
+                        morton, bits, table_keys, table_vals, big_pos, big_sq)
+        if m < 0:
+            cnt = search_one(q0, q1, q2, knn, R, cap, pts, order, cell_start, origin, cell, inv_cell,
+                             nx, ny, nz, morton, bits, table_keys, table_vals, buf_pos, buf_sq)
+            return cnt, False
+        if m > cap:
+            select_smallest(big_pos, big_sq, m, cap, order)
+            return cap, True
+        if not knn or m == cap:
+            return m, True
+        R *= 2.0
+
+
+@njit
 def count_one(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell,
               nx, ny, nz, morton, bits, table_keys, table_vals):
     """Number of grid points with squared distance strictly < ``r2`` (radius search size)."""
@@ -723,28 +830,41 @@ def _normal_from_neighbors(points, nbr, cnt, qi, oi, mode_open3d, degenerate_rat
 def normals_hybrid_fused(knn, r, cap, mode_open3d, degenerate_ratio, pts, order, cell_start,
                          origin, cell, inv_cell, nx, ny, nz, morton, bits, table_keys, table_vals,
                          out_n, out_eval, out_status, out_counts):
-    """Hybrid search + PCA for every indexed point without materialising the neighbourhoods.
+    """Neighbour search + PCA for every indexed point without materialising the neighbourhoods.
 
     Points are visited in grid order (``pts`` is the cell-sorted copy, ``order`` maps its
-    rows back to input rows), so neighbouring queries share cache lines.
+    rows back to input rows), so neighbouring queries share cache lines. Mode "open3d"
+    sums neighbours sorted by (distance, index) like Open3D; mode "accurate" uses the same
+    neighbour set in collection order (:func:`search_set_one`), which skips the sort.
     """
     n = pts.shape[0]
     nblocks = (n + _BLOCK - 1) // _BLOCK
+    big = max(4 * cap, 128)
     for b in prange(nblocks):
         buf_pos = np.empty(cap, dtype=np.int64)
         buf_sq = np.empty(cap, dtype=np.float64)
+        big_pos = np.empty(big, dtype=np.int64)
+        big_sq = np.empty(big, dtype=np.float64)
         A = np.empty((3, 3))
         V = np.empty((3, 3))
         w = np.empty(3)
         tmp = np.empty(6)
         for t in range(b * _BLOCK, min(n, (b + 1) * _BLOCK)):
-            cnt = search_one(pts[t, 0], pts[t, 1], pts[t, 2], knn, r, cap, pts, order,
-                             cell_start, origin, cell, inv_cell, nx, ny, nz, morton, bits, table_keys,
-                             table_vals, buf_pos, buf_sq)
             i = order[t]
+            if mode_open3d:
+                cnt = search_one(pts[t, 0], pts[t, 1], pts[t, 2], knn, r, cap, pts, order,
+                                 cell_start, origin, cell, inv_cell, nx, ny, nz, morton, bits,
+                                 table_keys, table_vals, buf_pos, buf_sq)
+                _normal_from_neighbors(pts, buf_pos, cnt, t, i, mode_open3d, degenerate_ratio, A, V,
+                                       w, tmp, out_n, out_eval, out_status)
+            else:
+                cnt, use_big = search_set_one(pts[t, 0], pts[t, 1], pts[t, 2], knn, r, cap, pts, order,
+                                              cell_start, origin, cell, inv_cell, nx, ny, nz, morton,
+                                              bits, table_keys, table_vals, big_pos, big_sq, buf_pos,
+                                              buf_sq)
+                _normal_from_neighbors(pts, big_pos if use_big else buf_pos, cnt, t, i, mode_open3d,
+                                       degenerate_ratio, A, V, w, tmp, out_n, out_eval, out_status)
             out_counts[i] = cnt
-            _normal_from_neighbors(pts, buf_pos, cnt, t, i, mode_open3d, degenerate_ratio, A, V, w,
-                                   tmp, out_n, out_eval, out_status)
 
 
 @njit_parallel

@@ -48,16 +48,39 @@ def test_accurate_mode_matches_naive_eigh(tunnel):
     np.testing.assert_allclose(np.linalg.norm(res.normals, axis=1), 1.0, atol=1e-14)
 
 
+def test_crowded_neighbourhoods_take_the_fallback_path_correctly():
+    """More than max(4·max_nn, 128) points inside r: the unsorted collector overflows and the
+    sorted search takes over; the neighbour sets must still be the max_nn nearest."""
+    rng = np.random.default_rng(4)
+    pts = rng.normal(size=(400, 3)) * [1.0, 1.0, 0.05]
+    for p in (NormalParams(radius_m=10.0, max_nn=6), NormalParams(radius_m=0.3, max_nn=6), NormalParams(max_nn=6)):
+        res = estimate_normals(pts, p)
+        naive_nb = naive_neighbors(pts, pts, p.radius_m, 6)
+        nrm, _ = naive_normals(pts, [i for i, _ in naive_nb])
+        ok = res.status == STATUS_OK
+        assert ok.sum() > 300
+        np.testing.assert_array_equal(res.counts, [i.size for i, _ in naive_nb])
+        assert _angle_up_to_sign(res.normals[ok], nrm[ok]).max() < 1e-8
+
+
 def test_knn_mode_and_given_neighborhoods_agree(tunnel):
     pts, _ = tunnel
-    nb = NeighborIndex(pts).knn(pts, 15)
-    a = estimate_normals(pts, NormalParams(max_nn=15))
-    b = estimate_normals(pts, NormalParams(max_nn=15), neighborhoods=nb)
-    assert a.normals.tobytes() == b.normals.tobytes()
-    nbh = NeighborIndex(pts).hybrid(pts, 0.4, 20)
-    c = estimate_normals(pts, NormalParams(radius_m=0.4, max_nn=20))
-    d = estimate_normals(pts, NormalParams(radius_m=0.4, max_nn=20), neighborhoods=nbh)
-    assert c.normals.tobytes() == d.normals.tobytes()
+    for mode in ("accurate", "open3d"):
+        nb = NeighborIndex(pts).knn(pts, 15)
+        a = estimate_normals(pts, NormalParams(max_nn=15, mode=mode))
+        b = estimate_normals(pts, NormalParams(max_nn=15, mode=mode), neighborhoods=nb)
+        nbh = NeighborIndex(pts).hybrid(pts, 0.4, 20)
+        c = estimate_normals(pts, NormalParams(radius_m=0.4, max_nn=20, mode=mode))
+        d = estimate_normals(pts, NormalParams(radius_m=0.4, max_nn=20, mode=mode), neighborhoods=nbh)
+        np.testing.assert_array_equal(a.counts, b.counts)
+        np.testing.assert_array_equal(c.counts, d.counts)
+        if mode == "open3d":  # both sum in (distance, index) order: bit-identical
+            assert a.normals.tobytes() == b.normals.tobytes()
+            assert c.normals.tobytes() == d.normals.tobytes()
+        else:  # the fused path sums the same neighbours in collection order
+            np.testing.assert_allclose(a.normals, b.normals, atol=1e-12)
+            np.testing.assert_allclose(c.normals, d.normals, atol=1e-12)
+            np.testing.assert_allclose(c.eigenvalues, d.eigenvalues, rtol=1e-10, atol=1e-18)
 
 
 def _fast(C):
