@@ -21,7 +21,8 @@ least squares then refines it together with ``x, y``.
 
 Template matching of beacon ids: several (cluster of lines -> beacon) assignments can
 pass Table 1 (two beacons of the same design look alike). Every consistent
-assignment is aligned and refined; the one that explains the most returns wins, and
+assignment is aligned and refined; the one that explains returns on the most beacons
+(up to ``min_beacons``), then the most returns, wins, and
 if a substantially different pose explains the scan about as well the result is
 ``failed`` with reason "ambiguous" (never a silent guess).
 """
@@ -488,12 +489,13 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
                           beta_cum_rad=icp1.beta_cum_rad + icp.beta_cum_rad)
             pose = _pose_from_T(icp.T_mine_scan)
             ok, idx, _, _, _ = _associate(pose, bearing_rad, rng_m, panels, beacon_of_panel, sig_r, sig_b, p)
+            per_b = np.bincount(beacon_of_panel[idx[ok]], minlength=len(bl))
             rec.update(pose=pose, icp=icp, n_explained=int(ok.sum()), used=used,
-                       beacons_hit=sorted(set(beacon_of_panel[idx[ok]].tolist())))
+                       n_beacons=int(min((per_b >= p.min_returns_per_beacon).sum(), p.min_beacons)))
             evaluated.append(rec)
     good = [r for r in evaluated if "pose" in r]
     details["hypotheses"] = [
-        {k: v for k, v in r.items() if k in ("assignment", "rejected", "helmert_scale", "n_explained")}
+        {k: v for k, v in r.items() if k in ("assignment", "rejected", "helmert_scale", "n_explained", "n_beacons")}
         for r in evaluated
     ]
     best_option = min(m.option for m in matches)
@@ -501,9 +503,12 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
         reasons = "; ".join(sorted({r.get("rejected", "") for r in evaluated}))
         return _fail(f"beacon panels were recognised but no consistent alignment was found ({reasons})",
                      p, details, arrays, best_option)
-    good.sort(key=lambda r: (-r["n_explained"], -len(r["assignment"]), r["icp"].rms_m))
+    # prefer poses that explain returns on enough beacons, then the most returns
+    good.sort(key=lambda r: (-r["n_beacons"], -r["n_explained"], -len(r["assignment"]), r["icp"].rms_m))
     best = good[0]
     for other in good[1:]:
+        if other["n_beacons"] < best["n_beacons"]:
+            break
         dpos = float(np.hypot(*(other["pose"][:2] - best["pose"][:2])))
         dang = abs(math.remainder(other["pose"][2] - best["pose"][2], 2 * math.pi))
         if other["n_explained"] >= p.ambiguity_ratio * best["n_explained"] and (dpos > 0.05 or dang > 0.01):

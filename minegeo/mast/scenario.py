@@ -68,6 +68,10 @@ class MastScenarioOptions:
     and ``scanner_azimuth_deg`` override the position and the paper's azimuth rule.
     ``beacon_ids`` are the ids of (Beacon 1, Beacon 2). ``mine_origin_m`` is added to
     every written mine coordinate (to exercise large projected coordinates).
+    ``visible_beacons`` (ids) removes the others from the scene (not from the beacon
+    list). Both beacons run P1 -> P3 northwards (mirror images of each other, which
+    makes them distinguishable); ``point_symmetric_beacons`` instead turns Beacon 1 through
+    180 deg so the pair is point-symmetric and cannot be told apart by shape.
     """
 
     position: int = 4
@@ -87,6 +91,7 @@ class MastScenarioOptions:
     wall_half_length_m: float = 15.0
     beacon_ids: tuple = ("B1", "B2")
     visible_beacons: tuple | None = None
+    point_symmetric_beacons: bool = False
     mine_origin_m: tuple = (0.0, 0.0)
 
     def __post_init__(self) -> None:
@@ -189,7 +194,11 @@ def build_mast_world(options: MastScenarioOptions, rng: np.random.Generator) -> 
     g = math.radians(o.beacon1_rotation_deg)
     c2 = np.array(_B2_CENTRE)
     c1 = c2 + o.beacon_spacing_m * np.array([math.cos(g), -math.sin(g)])
-    b1 = place_beacon(design, o.beacon_ids[0], c1, o.beacon1_rotation_deg, front="left")
+    if o.point_symmetric_beacons:
+        # Beacon 1 = Beacon 2 turned through 180 deg: identical shape seen from the drift
+        b1 = place_beacon(design, o.beacon_ids[0], c1, o.beacon1_rotation_deg + 180.0, front="right")
+    else:
+        b1 = place_beacon(design, o.beacon_ids[0], c1, o.beacon1_rotation_deg, front="left")
     b2 = place_beacon(design, o.beacon_ids[1], c2, 0.0, front="right")
     beacons = [b1, b2]
     half_chord = 0.5 * float(np.linalg.norm(b1.vertices_m[3] - b1.vertices_m[0]))

@@ -107,7 +107,7 @@ class SegmentationParams:
     min_points: int = 4
     n_confirm: int = 3
     refine_window: int = 24
-    split_gain: float = 30.0
+    split_gain: float = 20.0
     length_short_fraction: float = 0.25
     length_long_fraction: float = 0.10
     length_abs_tolerance_m: float = 0.01

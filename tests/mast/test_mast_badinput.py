@@ -105,3 +105,11 @@ def test_bad_files(tmp_path):
     s.write_text("bearing_deg,range_m\n1,x\n")
     with pytest.raises(FileFormatError, match="line 2"):
         read_scan_csv(s)
+
+
+@pytest.mark.parametrize("position", [1, 4])
+def test_point_symmetric_identical_beacons_are_reported_ambiguous(position):
+    sc = simulate_mast_scenario(1, position=position, point_symmetric_beacons=True)
+    res = locate_scanner(sc.scan, sc.beacons)
+    assert res.status == "failed"
+    assert "ambiguous" in res.reason and res.x_m is None

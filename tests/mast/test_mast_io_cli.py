@@ -72,3 +72,18 @@ def test_cli_failed_status_and_user_error(tmp_path, capsys):
                "--out", str(out)])
     assert rc == 2
     assert "error" in capsys.readouterr().err
+
+
+def test_scenario_files_bit_identical_under_seed(tmp_path):
+    a = write_mast_scenario(tmp_path / "a", seed=9, position=5, beacon1_rotation_deg=10.0, sigma_bearing_deg=0.01)
+    b = write_mast_scenario(tmp_path / "b", seed=9, position=5, beacon1_rotation_deg=10.0, sigma_bearing_deg=0.01)
+    for key in ("scan", "beacons"):
+        assert a[key].read_bytes() == b[key].read_bytes()
+    c = write_mast_scenario(tmp_path / "c", seed=10, position=5, beacon1_rotation_deg=10.0, sigma_bearing_deg=0.01)
+    assert a["scan"].read_bytes() != c["scan"].read_bytes()
+
+
+def test_warmup_compiles():
+    from minegeo.mast import _warmup
+
+    _warmup()
