@@ -96,7 +96,8 @@ def _warmup() -> None:
     out = np.empty(2)
     K.sdf_many(P, a["grid_f"], a["grid_i"], a["void_prims"], a["void_type"], start, v_items, a["solid_prims"],
                a["solid_type"], s_start, s_items, a["waves"], a["octaves"], a["zones"], *veh, True, True, out)
+    K.noise_parts_many(P, a["waves"], a["octaves"], a["zones"], np.empty(2), np.empty(2))
     D = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     K.cast_rays(P[:1].repeat(2, 0), D, 10.0, 0.45, 1e-3, 100, 1e-4, a["grid_f"], a["grid_i"], a["void_prims"],
                 a["void_type"], start, v_items, a["solid_prims"], a["solid_type"], s_start, s_items, a["waves"],
-                a["octaves"], a["zones"], *veh, True, -0.011, out, np.empty(2, np.int64))
+                a["octaves"], a["zones"], *veh, True, -0.011, 0.8, out, np.empty(2, np.int64))

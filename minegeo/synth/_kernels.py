@@ -137,12 +137,13 @@ def _solid_sdf(px, py, pz, S, i, typ):
 
 
 @njit
-def _noise(px, py, pz, waves, octaves, zones):
-    """Seeded multi-scale roughness (m): random-phase sums of plane waves per octave.
+def _noise_parts(px, py, pz, waves, octaves, zones):
+    """Seeded multi-scale roughness (m), returned as (overbreak part, texture part).
 
-    For an octave with ``N`` waves, ``S = sqrt(2/N) sum_k sin(w_k . p + phi_k)`` has unit
-    variance; it is squashed by ``S / sqrt(1 + S^2)`` into (-1, 1). Overbreak octaves
-    (mode 0) contribute ``a (1 + squash) / 2`` in [0, a], multiplied by the zone factor
+    Random-phase sums of plane waves per octave: for an octave with ``N`` waves,
+    ``S = sqrt(2/N) sum_k sin(w_k . p + phi_k)`` has unit variance and is squashed by
+    ``S / sqrt(1 + S^2)`` into (-1, 1). Overbreak octaves (mode 0) contribute
+    ``a (1 + squash) / 2`` in [0, a], multiplied by the zone factor
     ``1 + sum_j b_j exp(-|p - c_j|^2 / r_j^2)``; texture octaves (mode 1) ``a squash``.
     """
     mult = 1.0
@@ -154,7 +155,8 @@ def _noise(px, py, pz, waves, octaves, zones):
         d2 = dx * dx + dy * dy + dz * dz
         if d2 < 9.0 * r2:
             mult += zones[j, 4] * math.exp(-d2 / r2)
-    total = 0.0
+    ob = 0.0
+    tex = 0.0
     for o in range(octaves.shape[0]):
         k0 = int(octaves[o, 0])
         n = int(octaves[o, 1])
@@ -164,10 +166,26 @@ def _noise(px, py, pz, waves, octaves, zones):
         S = acc * math.sqrt(2.0 / n)
         sq = S / math.sqrt(1.0 + S * S)
         if octaves[o, 3] == 0.0:
-            total += mult * octaves[o, 2] * 0.5 * (1.0 + sq)
+            ob += mult * octaves[o, 2] * 0.5 * (1.0 + sq)
         else:
-            total += octaves[o, 2] * sq
-    return total
+            tex += octaves[o, 2] * sq
+    return ob, tex
+
+
+@njit
+def _noise(px, py, pz, waves, octaves, zones):
+    """Total roughness (m): overbreak + texture (see :func:`_noise_parts`)."""
+    ob, tex = _noise_parts(px, py, pz, waves, octaves, zones)
+    return ob + tex
+
+
+@njit_parallel
+def noise_parts_many(P, waves, octaves, zones, out_ob, out_tex):
+    """Overbreak and texture parts of the roughness at every row of ``P``."""
+    for i in prange(P.shape[0]):
+        ob, tex = _noise_parts(P[i, 0], P[i, 1], P[i, 2], waves, octaves, zones)
+        out_ob[i] = ob
+        out_tex[i] = tex
 
 
 @njit
@@ -262,15 +280,18 @@ def _field_parts(px, py, pz, grid_f, grid_i, void_prims, void_type, v_start, v_i
 def cast_rays(O, D, max_range, step_factor, min_step, max_iter, tol,
               grid_f, grid_i, void_prims, void_type, v_start, v_items,
               solid_prims, solid_type, s_start, s_items, waves, octaves, zones,
-              veh_T_inv, veh_prims, veh_type, veh_sphere, with_noise, noise_min, out_t, out_iter):
+              veh_T_inv, veh_prims, veh_type, veh_sphere, with_noise, noise_min, ob_factor, out_t, out_iter):
     """Sphere tracing (Hart 1996) of rays ``O + t D`` (unit D) against the field.
 
-    Two regimes per step. Far from the rock (``g + n_min > 0.1`` with ``g`` the smooth
-    void distance, Lipschitz <= 1/cos(8 deg), and ``n_min`` the lowest roughness value)
+    Three regimes per step. Far from the rock (``g + n_min > 0.1`` with ``g`` the smooth
+    void distance, Lipschitz <= 1/cos(8 deg), and ``n_min`` the lowest texture value)
     the cheap bound ``b = min(g + n_min, s)`` (``s``: exact structure distance) is a
     lower bound of the rough field, and ``t <- t + 0.97 b`` cannot cross the surface.
-    Near the rock the full field ``f`` is evaluated and ``t <- t + max(step_factor f,
-    min_step)``. When ``f <= 0`` the crossing is bracketed and refined by bisection
+    Closer, the overbreak ``n_ob`` is evaluated: ``b2 = g + n_ob + n_min`` bounds the
+    field from below and has Lipschitz constant ``1/ob_factor`` (smooth part plus the
+    slowly varying overbreak), so ``t <- t + min(ob_factor b2, 0.97 s)`` is safe while
+    ``b2, s > 0.02 m``. At the last centimetres the full field ``f`` (with the
+    fast-varying texture) is used: ``t <- t + max(step_factor f, min_step)``. When ``f <= 0`` the crossing is bracketed and refined by bisection
     until the bracket is below ``tol``; the free-space end of the bracket is returned,
     so ``|f(hit)| <= ~tol``. ``out_t[i]`` is the range (m) or NaN when nothing is hit
     within ``max_range`` (or the origin is in rock, or ``max_iter`` is reached);
@@ -302,8 +323,11 @@ def cast_rays(O, D, max_range, step_factor, min_step, max_iter, tol,
                 step = 0.97 * lb
             else:
                 f = base
+                lb2 = base
                 if with_noise:
-                    f += _noise(px, py, pz, waves, octaves, zones)
+                    ob, tex = _noise_parts(px, py, pz, waves, octaves, zones)
+                    f += ob + tex
+                    lb2 += ob + noise_min
                 if s < f:
                     f = s
                 if f <= 0.0:
@@ -325,9 +349,15 @@ def cast_rays(O, D, max_range, step_factor, min_step, max_iter, tol,
                             hi = mid
                     result = lo
                     break
-                step = step_factor * f
-                if step < min_step:
-                    step = min_step
+                if lb2 > 0.02 and s > 0.02:
+                    # smooth part + overbreak with its own Lipschitz bound: larger safe steps
+                    step = ob_factor * lb2
+                    if 0.97 * s < step:
+                        step = 0.97 * s
+                else:
+                    step = step_factor * f
+                    if step < min_step:
+                        step = min_step
             if t >= max_range:
                 break
             t_prev = t

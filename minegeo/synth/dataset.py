@@ -100,10 +100,10 @@ def build_map(world: MineWorld, seed: int = 0, *, sensor=None, spacing_m: float 
     seed : int
         Seeds the carrier's sway and the range noise.
     sensor : sensor model, optional
-        Default: a Velodyne16 (0.2 deg for ``paper``, a 2 degree azimuth step for ``small``
+        Default: a Velodyne16 (0.2 deg for ``paper``; a 3 degree azimuth step for ``small``
         so tests stay fast).
     spacing_m : float, optional
-        Distance between recorded frames (default 6 m small, 12 m paper).
+        Distance between recorded frames (default 8 m small, 12 m paper).
 
     Returns
     -------
@@ -113,9 +113,9 @@ def build_map(world: MineWorld, seed: int = 0, *, sensor=None, spacing_m: float 
     """
     small = world.preset != "paper"
     if sensor is None:
-        sensor = Velodyne16(azimuth_step_deg=2.0) if small else Velodyne16()
+        sensor = Velodyne16(azimuth_step_deg=3.0) if small else Velodyne16()
     if spacing_m is None:
-        spacing_m = 6.0 if small else 12.0
+        spacing_m = 8.0 if small else 12.0
     if spacing_m <= 0:
         raise InputError("spacing_m must be > 0")
     P, first = survey_path(world)
@@ -279,20 +279,30 @@ def make_gcps(world: MineWorld, n: int = 10, seed: int = 0, crs: str = "EPSG:518
     for i, tgt in enumerate(targets):
         j = int(np.clip(np.searchsorted(cum, tgt, side="right") - 1, 0, len(drifts) - 1))
         k, d = drifts[j]
-        s_m = 3.0 + (tgt - cum[j])
         P = d.centreline
         S = _arc_lengths(P)
-        q = np.array([np.interp(s_m, S, P[:, a]) for a in range(3)])
-        m = int(np.clip(np.searchsorted(S, s_m, side="right") - 1, 0, len(P) - 2))
-        tdir = P[m + 1, :2] - P[m, :2]
-        tdir /= np.linalg.norm(tdir)
-        side = 1.0 if i % 2 == 0 else -1.0
-        nrm = side * np.array([-tdir[1], tdir[0], 0.0])
-        o = q + np.array([0.0, 0.0, rng.uniform(1.2, 1.6)])
-        r = world.cast(o[None], nrm[None], 6.0)[0]
-        if not np.isfinite(r):
-            raise InputError("could not place a control point on the wall (no wall within 6 m)")
-        pts.append(o + r * nrm)
+        h = rng.uniform(1.2, 1.6)
+        side0 = 1.0 if i % 2 == 0 else -1.0
+        placed = None
+        # try the drawn place first, then nearby places / the other wall (junction mouths have no wall)
+        for ds in (0.0, 2.0, -2.0, 4.0, -4.0, 6.0, -6.0):
+            for side in (side0, -side0):
+                s_m = float(np.clip(3.0 + (tgt - cum[j]) + ds, 0.5, S[-1] - 0.5))
+                q = np.array([np.interp(s_m, S, P[:, a]) for a in range(3)])
+                m = int(np.clip(np.searchsorted(S, s_m, side="right") - 1, 0, len(P) - 2))
+                tdir = P[m + 1, :2] - P[m, :2]
+                tdir /= np.linalg.norm(tdir)
+                nrm = side * np.array([-tdir[1], tdir[0], 0.0])
+                o = q + np.array([0.0, 0.0, h])
+                r = world.cast(o[None], nrm[None], 3.5)[0]
+                if np.isfinite(r) and world.sdf((o + (r + 0.05) * nrm)[None], with_structures=False)[0] < 0:
+                    placed = o + r * nrm  # on rock, not on a pipe or the vehicle
+                    break
+            if placed is not None:
+                break
+        if placed is None:
+            raise InputError(f"could not place control point {i + 1} on a wall of drift {d.name}")
+        pts.append(placed)
     local = np.array(pts)
     enh = local @ T[:3, :3].T + T[:3, 3] + rng.normal(0.0, sigma_m, local.shape)
     ids = [f"GCP{i + 1:02d}" for i in range(n)]
@@ -334,11 +344,10 @@ class ScanSpec:
 #: Scans written per preset (section types of Baek et al. 2022, Sec. 3.2: a-f).
 SCAN_PLANS: dict[str, tuple] = {
     "small": (
-        ScanSpec("irregular_roof", 20.0, "zebrevo", "walk", 60_000),
-        ScanSpec("intersection:X", 10.0, "velodyne16", "walk", 60_000),
-        ScanSpec("curve", 30.0, "velodyne16", "drive", 60_000),
-        ScanSpec("regular", 20.0, "velodyne16", "walk", 60_000, vehicle="moved", noise_sigma_m=0.06),
-        ScanSpec("sump", 10.0, "flash", "handheld", 60_000),
+        ScanSpec("irregular_roof", 20.0, "zebrevo", "walk", 30_000),
+        ScanSpec("intersection:X", 10.0, "velodyne16", "walk", 30_000),
+        ScanSpec("curve", 30.0, "velodyne16", "drive", 30_000, vehicle="moved", noise_sigma_m=0.05),
+        ScanSpec("sump", 10.0, "flash", "handheld", 30_000),
     ),
     "paper": (
         ScanSpec("irregular_roof", 20.0, "zebrevo", "walk", 2_000_000),

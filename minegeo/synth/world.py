@@ -50,6 +50,10 @@ __all__ = ["WorldParams", "Drift", "Intersection", "MineWorld", "build_world", "
 
 log = logging.getLogger(__name__)
 
+#: smallest sphere-tracing step (m): rock slivers thinner than this along a ray may be missed
+#: (the thinnest structure is a cable of 2 cm radius); crossings are refined to 1e-4 m.
+MIN_STEP_M = 0.005
+
 
 @dataclass(frozen=True)
 class WorldParams:
@@ -259,7 +263,8 @@ class MineWorld:
     def cast(self, origins, directions, max_range_m: float, with_noise: bool = True) -> np.ndarray:
         """Ranges (m) along unit ``directions`` from ``origins`` to the first surface; NaN = no return.
 
-        Sphere tracing with bisection refinement to 1e-4 m (see ``_kernels.cast_rays``).
+        Sphere tracing with bisection refinement to 1e-4 m (see ``_kernels.cast_rays``);
+        the smallest step is ``MIN_STEP_M`` (5 mm).
         """
         O = as_points(origins, "origins", min_points=0)
         D = as_points(directions, "directions", min_points=0)
@@ -267,10 +272,11 @@ class MineWorld:
             raise InputError(f"origins {O.shape} and directions {D.shape} must have the same shape")
         out = np.empty(O.shape[0])
         a = self._arrays
-        K.cast_rays(O, D, float(max_range_m), float(self.params.trace_step_factor), 1e-3, 4000, 1e-4,
+        K.cast_rays(O, D, float(max_range_m), float(min(self.params.trace_step_factor, a["step_factor"])), MIN_STEP_M, 4000, 1e-4,
                     a["grid_f"], a["grid_i"], a["void_prims"], a["void_type"], a["v_start"], a["v_items"],
                     a["solid_prims"], a["solid_type"], a["s_start"], a["s_items"], a["waves"], a["octaves"],
-                    a["zones"], *self._vehicle_args(), bool(with_noise), a["noise_min"], out, self._iters(out))
+                    a["zones"], *self._vehicle_args(), bool(with_noise), a["noise_min"], a["ob_factor"], out,
+                    self._iters(out))
         return out
 
     def _iters(self, out):
@@ -425,9 +431,9 @@ def _layout(p: WorldParams, rng: np.random.Generator):
         mn = main_nodes[("y", 0)]
         ang = math.radians(rng.uniform(35.0, 45.0))
         Lb = 26.0
-        hdg = np.array([sx * math.cos(ang), -side * math.sin(ang)])
+        hdg = np.array([-sx * math.cos(ang), -side * math.sin(ang)])  # back towards the level start
         mid = g.nodes[mn][:2] + hdg * Lb * 0.5
-        hdg2 = np.array([sx * math.cos(ang * 1.6), -side * math.sin(ang * 1.6)])
+        hdg2 = np.array([-sx * math.cos(ang * 1.6), -side * math.sin(ang * 1.6)])
         endp = mid + hdg2 * Lb * 0.5
         bn = g.node([endp[0], endp[1], z])
         poly = np.vstack([_straight(g.nodes[mn], [mid[0], mid[1], z], 2.0)[:-1],
@@ -651,7 +657,7 @@ def _assemble(void, vtype, solid, stype, waves, octaves, zones, cell, ob_max):
     gmin = lo - margin
     gmax = hi + margin
     grid_f, dims, v_start, v_items, s_start, s_items = _build_grid(gmin, gmax, cell, vboxes, sboxes, margin)
-    return {
+    out = {
         "grid_f": grid_f, "grid_i": dims.astype(np.int64), "void_prims": void, "void_type": vtype,
         "v_start": v_start, "v_items": v_items, "solid_prims": solid, "solid_type": stype,
         "s_start": s_start, "s_items": s_items, "waves": waves, "octaves": octaves,
@@ -659,6 +665,44 @@ def _assemble(void, vtype, solid, stype, waves, octaves, zones, cell, ob_max):
         "bounds_min": lo, "bounds_max": hi,
         "noise_min": -float(np.sum(octaves[octaves[:, 3] == 1, 2])) - 1e-9,
     }
+    out["ob_factor"], out["step_factor"], out["lipschitz"] = _lipschitz(out)
+    return out
+
+
+def _lipschitz(a, n: int = 4000, h: float = 1e-5):
+    """Numerical Lipschitz estimates of the roughness (finite differences at seeded points).
+
+    Returns the step factor of the overbreak bound ``1 / (1.02 + 1.5 L_ob)``, the
+    full-field step factor ``min(0.45, 1 / (1.02 + 1.5 L_all))`` and the estimates; the
+    1.5 safety factor covers the maximum not being sampled exactly. 1.02 bounds the
+    smooth drift field (1/cos of the steepest ramp).
+    """
+    rng = np.random.default_rng(12345)
+    lo, hi = a["bounds_min"], a["bounds_max"]
+    P = rng.uniform(lo, hi, size=(n, 3))
+    if a["zones"].shape[0]:
+        zc = a["zones"][rng.integers(0, a["zones"].shape[0], n)]
+        P = np.vstack([P, zc[:, :3] + rng.normal(0.0, 1.0, (n, 3)) * zc[:, 3:4]])
+    P = np.ascontiguousarray(P)
+
+    def parts(Q):
+        ob = np.empty(Q.shape[0])
+        tex = np.empty(Q.shape[0])
+        K.noise_parts_many(np.ascontiguousarray(Q), a["waves"], a["octaves"], a["zones"], ob, tex)
+        return ob, tex
+
+    ob0, tx0 = parts(P)
+    g_ob = np.zeros((P.shape[0], 3))
+    g_all = np.zeros((P.shape[0], 3))
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = h
+        ob1, tx1 = parts(P + e)
+        g_ob[:, k] = (ob1 - ob0) / h
+        g_all[:, k] = (ob1 + tx1 - ob0 - tx0) / h
+    L_ob = float(np.linalg.norm(g_ob, axis=1).max())
+    L_all = float(np.linalg.norm(g_all, axis=1).max())
+    return 1.0 / (1.02 + 1.5 * L_ob), min(0.45, 1.0 / (1.02 + 1.5 * L_all)), {"overbreak": L_ob, "total": L_all}
 
 
 def _smooth_field(a, P):
@@ -674,10 +718,10 @@ def _smooth_field(a, P):
 def _cast_arrays(a, O, D, max_range, step_factor, with_solids=True):
     out = np.empty(O.shape[0])
     ss = a["s_start"] if with_solids else np.zeros_like(a["s_start"])
-    K.cast_rays(np.ascontiguousarray(O), np.ascontiguousarray(D), float(max_range), step_factor, 1e-3, 4000, 1e-4,
+    K.cast_rays(np.ascontiguousarray(O), np.ascontiguousarray(D), float(max_range), step_factor, MIN_STEP_M, 4000, 1e-4,
                 a["grid_f"], a["grid_i"], a["void_prims"], a["void_type"], a["v_start"], a["v_items"],
                 a["solid_prims"], a["solid_type"], ss, a["s_items"], a["waves"], a["octaves"], a["zones"],
-                np.eye(4), np.zeros((0, 8)), np.zeros(0, np.int64), np.zeros(4), True, a["noise_min"], out, np.empty(out.shape[0], np.int64))
+                np.eye(4), np.zeros((0, 8)), np.zeros(0, np.int64), np.zeros(4), True, a["noise_min"], a["ob_factor"], out, np.empty(out.shape[0], np.int64))
     return out
 
 
