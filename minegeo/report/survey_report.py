@@ -402,8 +402,7 @@ def _stats_items(res):
             else "n/a (needs r ≥ 2)",
         ),
         ("Σ redundancy numbers", f"{sum(lsq.redundancy):.3f}"),
-        ("ellipses", res.ellipse_note),
-    ]
+    ] + ([("ellipses", res.ellipse_note)] if res.network.dim >= 2 else [])
 
 
 def _text_table(headers, rows) -> list[str]:

@@ -181,3 +181,11 @@ def test_helmert3d_point_covariance_matches_numeric_jacobian():
     )
     np.testing.assert_allclose(cov[0], J @ h.lsq.Sigma_xx @ J.T, rtol=1e-4, atol=1e-12)
     np.testing.assert_allclose(xyz[0] - h.dst_origin, f(x0), atol=1e-6)
+
+
+def test_epsg_9621_similarity_guidance_note_example():
+    # EPSG GN 7-2, EPSG:23031 -> 25831 (operation EPSG:5166): XT0, YT0, M, θ (clockwise)
+    shared_data("proj_helmert_gigs", "proj_cs2cs_similarity_epsg_gn7-2_excerpt.yaml")
+    th = 1.56504 / RHO_ARCSEC
+    fwd = apply_helmert2d([[300000.0, 4500000.0]], -129.549, -208.185, 1.0000015504, -th)[0]
+    assert [f"{v:.3f}" for v in fwd] == ["299905.060", "4499796.515"]
