@@ -98,6 +98,7 @@ __all__ = [
     "apply_georef",
     "map_to_crs",
     "crs_to_map",
+    "pose_to_crs",
     "point_covariance_crs",
     "unit_diagnosis",
     "sidecar_path",
@@ -923,6 +924,37 @@ def crs_to_map(points_geo, result: GeorefResult, map_origin=None, *, allow_faile
     if map_origin is not None:
         p = p - np.asarray(map_origin, dtype=np.float64).reshape(3)
     return p
+
+
+def pose_to_crs(T_map_body, result: GeorefResult, *, allow_failed: bool = False) -> np.ndarray:
+    """Express body poses (sensor, vehicle) given in the map frame in the ``geo`` frame.
+
+    ``T_geo_body = [[R·R_map_body, s·R·t_map_body + t_geo], [0, 1]]``: the position goes through
+    the full similarity, the orientation only through the rotation ``R`` — a pose stays rigid even
+    when the map-to-CRS scale ``s != 1``. Add ``result.origin`` to the translation for full CRS
+    coordinates (printing only).
+
+    Parameters
+    ----------
+    T_map_body : array_like (4, 4) or (m, 4, 4)
+    result : GeorefResult
+
+    Returns
+    -------
+    ndarray (4, 4) or (m, 4, 4)
+        ``T_geo_body``.
+    """
+    _check_usable(result, allow_failed)
+    T = np.asarray(T_map_body, dtype=np.float64)
+    single = T.ndim == 2
+    T = T.reshape(-1, 4, 4)
+    if not np.isfinite(T).all():
+        raise InputError("T_map_body contains NaN or inf")
+    out = np.zeros_like(T)
+    out[:, :3, :3] = np.einsum("ij,mjk->mik", result.R, T[:, :3, :3])
+    out[:, :3, 3] = T[:, :3, 3] @ result.T_geo_map[:3, :3].T + result.T_geo_map[:3, 3]
+    out[:, 3, 3] = 1.0
+    return out[0] if single else out
 
 
 def apply_georef(cloud: PointCloud, result: GeorefResult, *, allow_failed: bool = False) -> PointCloud:

@@ -20,6 +20,7 @@ from minegeo.localize import (
     local_origin,
     map_to_crs,
     point_covariance_crs,
+    pose_to_crs,
     validate_crs,
 )
 
@@ -391,3 +392,18 @@ def test_permutation_and_sigma_scaling_invariance(seed, k):
     np.testing.assert_allclose(rk.T_geo_map, r.T_geo_map, atol=1e-9)
     assert abs(rk.sigma0 * k - r.sigma0) < 1e-9 * max(1.0, r.sigma0)
     np.testing.assert_allclose(rk.translation_std_m, r.translation_std_m, rtol=1e-6)
+
+
+def test_pose_to_crs_keeps_poses_rigid():
+    from minegeo.geometry.se3 import make_transform
+
+    x, X, R, sig = _problem(scale=1.0003)
+    r = georeference(_gcps(x, X, sig))
+    Tb = make_transform(exp_so3([0.1, 0.2, -0.3]), [10.0, -5.0, 2.0])
+    P = pose_to_crs(Tb, r)
+    np.testing.assert_allclose(P[:3, :3] @ P[:3, :3].T, np.eye(3), atol=1e-12)  # rigid despite s != 1
+    np.testing.assert_allclose(P[:3, :3], R @ Tb[:3, :3], atol=1e-12)
+    np.testing.assert_allclose(P[:3, 3], map_to_crs(Tb[:3, 3], r)[0], atol=1e-12)
+    many = pose_to_crs(np.stack([Tb, Tb]), r)
+    assert many.shape == (2, 4, 4)
+    np.testing.assert_array_equal(many[1], P)
