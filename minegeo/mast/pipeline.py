@@ -35,6 +35,7 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy import stats
 
 from minegeo._provenance import StageTimer
 from minegeo._validate import check_positive
@@ -241,7 +242,7 @@ def _cluster_matches(matches: list[PanelMatch], max_size_m: float) -> list[int]:
     return cid
 
 
-def _hypotheses(matches, clusters, n_beacons, limit):
+def _hypotheses(matches, clusters, limit):
     """Consistent (cluster -> beacon) assignments, best first."""
     cl_ids = sorted(set(clusters))
     cands = []
@@ -428,7 +429,7 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
         rng_m = scan.range_m[order]
         xy = scan_to_xy(bearing, rng_m)
         segs = segment_scan(xy, rng_m, bearing, sig_r, sig_bd, p.segmentation)
-        matches = identify_panels(segs, xy, bl, p.segmentation)
+        matches = identify_panels(segs, bl, p.segmentation)
     details["n_lines"] = len(segs)
     details["panel_matches"] = [
         {"beacon_id": m.beacon_id, "option": m.option, "panels": [f"P{m.panel_a + 1}", f"P{m.panel_b + 1}"],
@@ -445,7 +446,7 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
         )
     size = max(float(b.panel_lengths_m.sum()) for b in bl)
     clusters = _cluster_matches(matches, size)
-    hyps = _hypotheses(matches, clusters, len(bl), p.max_hypotheses)
+    hyps = _hypotheses(matches, clusters, p.max_hypotheses)
     bearing_rad = np.radians(bearing)
     evaluated = []
     with timer("alignment"):
@@ -561,8 +562,6 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
     cov = J @ S @ J.T
     known = res.variance_used == "apriori"
     ell = error_ellipse(S[:2, :2], p.confidence, res.dof, sigma0_known=known)
-    from scipy import stats
-
     tq = stats.norm.ppf(0.5 + p.confidence / 2) if known else stats.t.ppf(0.5 + p.confidence / 2, res.dof)
     az = wrap_deg(math.degrees(a))
     arrays["points_mine"] = np.column_stack(

@@ -270,7 +270,6 @@ def _templates(beacons: list[Beacon]) -> list[dict]:
 
 def identify_panels(
     segments: list[LineSegment],
-    xy: np.ndarray,
     beacons: list[Beacon],
     params: SegmentationParams | None = None,
 ) -> list[PanelMatch]:

@@ -62,7 +62,7 @@ def test_table1_options_all_reachable_and_follow_the_table():
         b = _seg(W[1] + b0 * (W[2] - W[1]), W[1] + b1 * (W[2] - W[1]), 10, 20)
         flags = _flags(a, b, W, p)
         expected = next((o for o in sorted(TABLE1_OPTIONS) if TABLE1_OPTIONS[o] <= flags), None)
-        got = [m for m in identify_panels([a, b], np.zeros((21, 2)), [beacon], p) if m.panel_a == 0]
+        got = [m for m in identify_panels([a, b], [beacon], p) if m.panel_a == 0]
         if expected is None:
             assert not got
             continue
@@ -80,9 +80,9 @@ def test_allowed_options_restrict_identification():
     W = beacon.scan_order_vertices()
     a = _seg(W[0], W[1], 0, 10)
     b = _seg(W[1], W[2], 10, 20)
-    full = identify_panels([a, b], np.zeros((21, 2)), [beacon])
+    full = identify_panels([a, b], [beacon])
     assert [m.option for m in full] == [1]
-    only5 = identify_panels([a, b], np.zeros((21, 2)), [beacon], SegmentationParams(options=(5,)))
+    only5 = identify_panels([a, b], [beacon], SegmentationParams(options=(5,)))
     assert [m.option for m in only5] == [5] and only5[0].identified == (True, False)
     with pytest.raises(InputError):
         SegmentationParams(options=(7,))
@@ -95,7 +95,7 @@ def test_deflection_sign_and_lengths_separate_beacons_and_panels():
     b, r = sc.scan.bearing_deg[o], sc.scan.range_m[o]
     xy = scan_to_xy(b, r)
     segs = segment_scan(xy, r, b, 0.003)
-    matches = identify_panels(segs, xy, sc.beacons)
+    matches = identify_panels(segs, sc.beacons)
     labels = sc.hit_label[o]
     assert any(m.option == 1 for m in matches)
     for m in matches:
