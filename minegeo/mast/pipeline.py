@@ -551,7 +551,8 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
         return _fail(
             f"only {len(used_b)} beacon(s) ({', '.join(used_b) or 'none'}) have at least "
             f"{p.min_returns_per_beacon} returns; {', '.join(missing)} out of view or not reached "
-            f"(min_beacons={p.min_beacons})",
+            f"(min_beacons={p.min_beacons})"
+            + ("; " + "; ".join(details["beacons_dropped"]) if details["beacons_dropped"] else ""),
             p, details, arrays, seg_option, icp.iterations,
         )
     if not res.converged:
