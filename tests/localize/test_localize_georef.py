@@ -310,6 +310,16 @@ def test_gross_blunder_fails_and_names_the_gcp():
     assert r2.status == "warning"
 
 
+def test_swapped_gcp_ids_fail():
+    """Two GCPs' CRS coordinates exchanged (a labelling mistake in the field book): failed."""
+    x, X, _, sig = _problem(n=8)
+    X[[2, 5]] = X[[5, 2]]
+    r = georeference(_gcps(x, X, sig))
+    assert r.status == "failed" and "mismatched GCP ids" in r.reason
+    with pytest.raises(InputError):
+        apply_georef(PointCloud(x), r)
+
+
 def test_degrees_given_as_projected_coordinates_fail():
     x, X, _, sig = _problem()
     lonlat = (X - X.mean(axis=0)) / 100_000.0 + [127.0, 37.5, 0.0]
