@@ -28,7 +28,7 @@ import numpy as np
 from minegeo.errors import DegenerateGeometryError, InputError, MinegeoError, TooFewPointsError
 from minegeo.survey.ellipse import ErrorEllipse
 from minegeo.survey.lsq import LSQOptions
-from minegeo.survey.network import Datum, Network, NetworkResult, Observation, _Model, adjust_network
+from minegeo.survey.network import Datum, Network, NetworkResult, Observation, adjust_network
 
 __all__ = ["StationResult", "resection_2d", "intersection_2d", "trilateration_2d"]
 
@@ -127,7 +127,7 @@ def _solve(points, obs, unknown, approx, options, on_ambiguity, n_unknowns_hint)
     if approx is not None:
         starts.append(tuple(float(t) for t in approx[:2]))
     else:
-        starts = _candidate_starts(points, obs, unknown, ctrl, fixed)
+        starts = _candidate_starts(points, obs, unknown, ctrl)
     sols = []
     last_err: MinegeoError | None = None
     for e0, n0 in starts:
@@ -142,6 +142,14 @@ def _solve(points, obs, unknown, approx, options, on_ambiguity, n_unknowns_hint)
         p = res.points[unknown]
         sols.append((res.lsq.vtwv, p.x, p.y, res))
     if not sols:
+        if isinstance(last_err, DegenerateGeometryError) and any(
+            o.kind in ("direction", "angle") for o in obs
+        ):
+            raise DegenerateGeometryError(
+                f"{last_err}. For a resection from directions/angles this happens when the station lies on "
+                "(or very near) the circle through the control points (danger circle): add a distance or "
+                "another control point off that circle"
+            ) from None
         if last_err is not None:
             raise last_err
         raise DegenerateGeometryError("no approximate position led to a converged adjustment")
@@ -203,7 +211,44 @@ def _collinear(ctrl: np.ndarray) -> bool:
     return bool(sv[1] <= 1e-9 * max(sv[0], 1e-300))
 
 
-def _candidate_starts(points, obs, unknown, ctrl, fixed, grid: int = 41, keep: int = 6):
+def _grid_misclosures(points, obs, unknown, E, N):
+    """Weighted misclosures of every observation for the unknown point at each grid node (vectorised)."""
+
+    def xy(p):
+        if p == unknown:
+            return E, N
+        return points[p]["x"], points[p]["y"]
+
+    def az(a, b):
+        (xa, ya), (xb, yb) = xy(a), xy(b)
+        return np.arctan2(xb - xa, yb - ya)
+
+    out = []
+    sets: dict = {}
+    for o in obs:
+        if o.kind == "distance":
+            (xa, ya), (xb, yb) = xy(o.station), xy(o.target)
+            f = np.hypot(xb - xa, yb - ya) - o.value
+        elif o.kind == "azimuth":
+            f = az(o.station, o.target) - o.value
+        elif o.kind == "angle":
+            f = az(o.station, o.target) - az(o.station, o.backsight) - o.value
+        else:  # direction: orientation removed per set below
+            sets.setdefault(o.set_id, []).append((len(out), az(o.station, o.target) - o.value))
+            out.append(None)
+            continue
+        if o.kind != "distance":
+            f = np.mod(f + np.pi, 2 * np.pi) - np.pi
+        out.append(f / float(o.sigma))
+    for members in sets.values():
+        d = np.stack([m for _, m in members])
+        mean = np.arctan2(np.sin(d).mean(axis=0), np.cos(d).mean(axis=0))
+        for (i, m), o_i in zip(members, [obs[i] for i, _ in members], strict=True):
+            out[i] = (np.mod(m - mean + np.pi, 2 * np.pi) - np.pi) / float(o_i.sigma)
+    return np.stack(out)
+
+
+def _candidate_starts(points, obs, unknown, ctrl, grid: int = 61, keep: int = 6):
     """Local minima of vᵀWv on a grid over the control area (plus the distances' reach)."""
     lo, hi = ctrl.min(axis=0), ctrl.max(axis=0)
     span = float(max(np.max(hi - lo), 1.0))
@@ -211,44 +256,19 @@ def _candidate_starts(points, obs, unknown, ctrl, fixed, grid: int = 41, keep: i
     pad = max(span, reach)
     es = np.linspace(lo[0] - pad, hi[0] + pad, grid)
     ns = np.linspace(lo[1] - pad, hi[1] + pad, grid)
-    pts = dict(points)
-    pts[unknown] = {"x": float(es[1]), "y": float(ns[1])}
-    model = _Model(Network(pts, Datum("fix", fixed), list(obs), 2))
-    lv = model.observed_vector()
-    ang = model.angular_mask()
-    W = model.W
-    cost = np.full((grid, grid), np.inf)
-    iu = [model.index[(unknown, "x")], model.index[(unknown, "y")]]
-    has_orient = len(model.names) > 2
-    for i, e in enumerate(es):
-        for j, n in enumerate(ns):
-            x = model.x0.copy()
-            x[iu[0]] = e - model.origin["x"]
-            x[iu[1]] = n - model.origin["y"]
-            if np.min(np.hypot(ctrl[:, 0] - e, ctrl[:, 1] - n)) < 1e-6 * span:
-                continue
-            try:
-                F, _ = model.evaluate(x)
-            except MinegeoError:
-                continue
-            f = F - lv
-            if ang.any():
-                f[ang] = np.mod(f[ang] + np.pi, 2 * np.pi) - np.pi
-            if has_orient:  # best orientation per set: circular mean of the direction misclosures
-                for sid in model.set_index:
-                    rows = [r for r, (o, _k) in enumerate(model.rows) if o is not None and o.set_id == sid]
-                    m = math.atan2(np.mean(np.sin(f[rows])), np.mean(np.cos(f[rows])))
-                    f[rows] = np.mod(f[rows] - m + np.pi, 2 * np.pi) - np.pi
-            cost[i, j] = float(f @ (W * f)) if W.ndim == 1 else float(f @ W @ f)
+    E, N = np.meshgrid(es, ns, indexing="ij")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cost = np.sum(_grid_misclosures(points, obs, unknown, E, N) ** 2, axis=0)
+    near = np.min(np.hypot(E[..., None] - ctrl[:, 0], N[..., None] - ctrl[:, 1]), axis=-1) < 1e-6 * span
+    cost[near | ~np.isfinite(cost)] = np.inf
     cand = []
     for i in range(grid):
         for j in range(grid):
             c = cost[i, j]
             if not np.isfinite(c):
                 continue
-            nb = cost[max(i - 1, 0) : i + 2, max(j - 1, 0) : j + 2]
-            if c <= np.min(nb):
-                cand.append((c, es[i], ns[j]))
+            if c <= np.min(cost[max(i - 1, 0) : i + 2, max(j - 1, 0) : j + 2]):
+                cand.append((c, float(es[i]), float(ns[j])))
     cand.sort()
     return [(e, n) for _, e, n in cand[:keep]] or [
         (float(np.mean(ctrl[:, 0])) + 0.1 * span, float(np.mean(ctrl[:, 1])) + 0.1 * span)

@@ -202,3 +202,11 @@ def test_network_weight_scaling_on_published_example():
         assert abs(r1.points[p].x - r2.points[p].x) < 1e-9
         assert abs(r1.points[p].sx_m - r2.points[p].sx_m) < 1e-12
     assert abs(r1.lsq.chi2.statistic / r2.lsq.chi2.statistic - 49.0) < 1e-6
+
+
+def test_danger_circle_resection_is_refused():
+    ctrl = {"A": (100.0, 0.0), "B": (0.0, 100.0), "C": (-100.0, 0.0)}
+    P = (100 * math.cos(-1.0), 100 * math.sin(-1.0))  # on the circle through A, B, C
+    dirs = {k: math.atan2(v[0] - P[0], v[1] - P[1]) % (2 * math.pi) for k, v in ctrl.items()}
+    with pytest.raises(DegenerateGeometryError, match="danger circle"):
+        resection_2d(ctrl, directions=dirs, sigma_direction_rad=1e-5)
