@@ -1071,7 +1071,8 @@ def write_georeferenced_map(path, cloud_geo: PointCloud, result: GeorefResult, *
         "T_geo_map": result.T_geo_map.tolist(),
         "frames": "points in the file are geo = CRS - origin (PLY/PCD/text) or full CRS (LAS); "
         "T_crs_map maps the original map frame into the CRS",
-        "georef": result.as_dict(),
+        # no timings: the sidecar is bit-identical for the same inputs (timings are in result.json)
+        "georef": {k: v for k, v in result.as_dict().items() if k != "timings_s"},
     }
     if extra:
         side.update(extra)

@@ -96,6 +96,13 @@ def test_cli_las_output_and_deterministic(tmp_path, synth_gcps, capsys):
         outs.append(out)
     capsys.readouterr()
     assert outs[0].read_bytes() == outs[1].read_bytes()
+    # re-running into the same path rewrites bit-identical map and sidecar files
+    side0 = sidecar_path(outs[0]).read_bytes()
+    map0 = outs[0].read_bytes()
+    assert main(["georef", "--map", str(mp), "--gcps", str(gp), "--out", str(outs[0]),
+                 "--report", str(tmp_path / "rep0")]) == 0
+    capsys.readouterr()
+    assert sidecar_path(outs[0]).read_bytes() == side0 and outs[0].read_bytes() == map0
     a = json.loads((tmp_path / "rep0" / "result.json").read_text())["result"]
     b = json.loads((tmp_path / "rep1" / "result.json").read_text())["result"]
     a.pop("timings_s")
