@@ -13,6 +13,50 @@ import numpy as np
 from minegeo._jit import njit, njit_parallel, prange
 
 # ---------------------------------------------------------------------------------------
+# stable radix argsort (grid cells, voxels, Morton codes)
+# ---------------------------------------------------------------------------------------
+
+_RADIX_BITS = 11
+_RADIX_SIZE = 1 << _RADIX_BITS
+
+
+@njit
+def radix_argsort(keys):
+    """Stable argsort of non-negative int64 keys: LSD radix sort with 11-bit digits.
+
+    Equal keys keep ascending index order (identical to ``np.argsort(kind="stable")``).
+    Passes = ceil(bit length of max key / 11); each pass is a counting sort, O(n).
+    """
+    n = keys.shape[0]
+    idx = np.arange(n, dtype=np.int64)
+    if n <= 1:
+        return idx
+    maxk = keys.max()
+    kcur = keys.copy()
+    ktmp = np.empty(n, dtype=np.int64)
+    itmp = np.empty(n, dtype=np.int64)
+    counts = np.empty(_RADIX_SIZE + 1, dtype=np.int64)
+    mask = _RADIX_SIZE - 1
+    shift = 0
+    while shift < 63 and (maxk >> shift) > 0:
+        counts[:] = 0
+        for i in range(n):
+            counts[((kcur[i] >> shift) & mask) + 1] += 1
+        for d in range(_RADIX_SIZE):
+            counts[d + 1] += counts[d]
+        for i in range(n):
+            d = (kcur[i] >> shift) & mask
+            p = counts[d]
+            counts[d] = p + 1
+            itmp[p] = idx[i]
+            ktmp[p] = kcur[i]
+        idx, itmp = itmp, idx
+        kcur, ktmp = ktmp, kcur
+        shift += _RADIX_BITS
+    return idx
+
+
+# ---------------------------------------------------------------------------------------
 # uniform hash grid (neighbour search)
 # ---------------------------------------------------------------------------------------
 

@@ -118,7 +118,7 @@ class _Grid:
             return self.order
         keys = np.empty(queries.shape[0], dtype=np.int64)
         K.grid_cell_keys(queries, self.origin, 1.0 / self.cell, self.nx, self.ny, self.nz, self.morton, keys)
-        return np.argsort(keys, kind="stable").astype(np.int64)
+        return K.radix_argsort(keys)
 
 
 def _build_grid(points: np.ndarray, cell: float) -> _Grid:
@@ -135,7 +135,7 @@ def _build_grid(points: np.ndarray, cell: float) -> _Grid:
     n = points.shape[0]
     keys = np.empty(n, dtype=np.int64)
     K.grid_cell_keys(points, origin, inv, nx, ny, nz, morton, keys)
-    order = np.argsort(keys, kind="stable").astype(np.int64)
+    order = K.radix_argsort(keys)
     sk = keys[order]
     change = np.flatnonzero(sk[1:] != sk[:-1]) + 1
     cell_start = np.concatenate(([0], change, [n])).astype(np.int64)

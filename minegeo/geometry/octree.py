@@ -92,7 +92,7 @@ class Octree:
         K.octree_codes(self.points, self.origin, self.size, self.max_depth, codes, inside)
         if not inside.all():  # pragma: no cover - the cube contains the cloud by construction
             raise InputError("internal octree error: a point fell outside the bounding cube")
-        self.order = np.ascontiguousarray(np.argsort(codes, kind="stable"), dtype=np.int64)
+        self.order = K.radix_argsort(codes)
         sc = codes[self.order]
         L = self.max_depth
         codes_l, pstart_l, pend_l = [], [], []

@@ -114,7 +114,7 @@ def voxel_downsample(points, voxel_size_m: float, normals=None, attributes=None)
     dims = keys.max(axis=0) + 1
     if int(dims[0]) * int(dims[1]) * int(dims[2]) < 2**62:
         lin = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-        order = np.argsort(lin, kind="stable")
+        order = K.radix_argsort(np.ascontiguousarray(lin))
         sl = lin[order]
         change = np.flatnonzero(sl[1:] != sl[:-1]) + 1
     else:  # pragma: no cover - needs > 2^62 cells

@@ -94,3 +94,14 @@ def test_bad_input(cloud):
         voxel_downsample(pts, 0.1, attributes={"i": np.zeros(5)})
     one = voxel_downsample(np.array([[1.0, 2.0, 3.0]]), 0.5)
     np.testing.assert_array_equal(one.points, [[1.0, 2.0, 3.0]])
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), bits=st.integers(1, 62), n=st.integers(0, 3000))
+def test_radix_argsort_equals_numpy_stable(seed, bits, n):
+    from minegeo.geometry._kernels import radix_argsort
+
+    rng = np.random.default_rng(seed)
+    keys = rng.integers(0, 2**bits, n, dtype=np.int64)
+    keys[: n // 3] = keys[0] if n else 0  # plenty of ties
+    np.testing.assert_array_equal(radix_argsort(keys), np.argsort(keys, kind="stable"))
