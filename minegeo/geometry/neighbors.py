@@ -11,17 +11,19 @@ Every row is sorted by ascending squared distance; the query point itself is inc
 when it belongs to the cloud (distance 0). Unlike Open3D, ties are broken by the lowest
 point index, so results are fully deterministic.
 
-All searches use a uniform hash grid written in Numba (cell edge = the search radius,
-or for kNN about the median k-th neighbour distance, unless ``cell_size_m`` is given): points are sorted by their linear cell key,
-an open-addressing table maps occupied cell keys to point ranges, and every query scans
-only the cells whose box lies closer than ``r`` (and, once ``max_nn`` candidates are held,
-closer than the current worst). kNN repeats the hybrid search with a doubling radius
-until k points lie strictly inside it, which makes it exact.
+All searches use a uniform hash grid written in Numba. The cell edge is the search radius,
+or for kNN about the median k-th neighbour distance, unless ``cell_size_m`` is given.
+Points are sorted by their cell key (a Morton code, for memory locality); an
+open-addressing table maps occupied cell keys to point ranges; every query scans only
+the cells whose box lies closer than ``r`` (and, once ``max_nn`` candidates are held,
+closer than the current worst), keeping candidates sorted by (distance, index). Queries
+are visited in grid order. kNN repeats the hybrid search with a doubling radius until k
+points lie strictly inside it, which makes it exact.
 
 Memory: a result holds ``n_queries * kmax * 16`` bytes (int64 indices + float64 squared
 distances), e.g. 4.8 GB for 10^7 queries with kmax = 30. Use :meth:`NeighborIndex.iter_hybrid`
-to stream, or :func:`minegeo.geometry.estimate_normals`,
-which never materialises the neighbourhoods. The index itself costs about 48 bytes per
+to stream, or :func:`minegeo.geometry.estimate_normals`, which never materialises the
+neighbourhoods. The index itself costs about 48 bytes per
 point (sorted copy of the points, permutation, cell keys) plus the hash table.
 """
 
