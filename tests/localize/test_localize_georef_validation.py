@@ -196,3 +196,25 @@ def test_niosh_mine_fiducials_real_layout(model):
         # DARPA's matrix has no scale although the combined grid factor is about -351 ppm:
         # minegeo says what that costs over this GCP extent
         assert any("combined scale factor" in w for w in r.warnings)
+
+
+def test_gigs_5101_tm_inverse_used_by_grid_factors():
+    """The pyproj path behind the grid-factor and area-of-use checks reproduces IOGP GIGS 5101
+    (Transverse Mercator, the method of EPSG:5186) reference points: (E, N) -> (lon, lat)."""
+    from minegeo.localize.crs import grid_scale_factors
+
+    path = shared_data("proj_helmert_gigs", "gigs_5101.1-jhs.gie")
+    text = path.read_text(encoding="utf-8")
+    first = text.split("operation")[1]  # the forward block: accept (lon, lat) -> expect (E, N)
+    lines = [ln.split() for ln in first.splitlines()]
+    acc = [tuple(map(float, t[1:3])) for t in lines if t and t[0] == "accept"]
+    exp = [tuple(map(float, t[1:3])) for t in lines if t and t[0] == "expect"]
+    pairs = [(a, e) for a, e in zip(acc, exp, strict=True) if abs(a[1]) <= 60 and abs(a[0] + 2) <= 5][:12]
+    assert len(pairs) >= 5
+    crs = "+proj=tmerc +lat_0=49 +lon_0=-2 +k_0=0.9996012717 +x_0=400000 +y_0=-100000 +ellps=WGS84 +units=m +no_defs"
+    for (lon, lat), (e, n) in pairs:
+        gf = grid_scale_factors(crs, e, n, 0.0)
+        # GIGS tolerance 0.03 m ~ 3e-7 degrees
+        assert abs(gf["lon_deg"] - lon) < 5e-7 and abs(gf["lat_deg"] - lat) < 5e-7, (lon, lat, gf)
+        assert gf["point_scale_factor"] >= 0.9996012717 - 1e-9  # TM: k >= k0 (pyproj numerical factors)
+        assert gf["height_factor"] == 1.0
