@@ -85,6 +85,8 @@ def network_result_dict(res, parameters: dict | None = None, provenance: dict | 
         }
         if ob.backsight:
             e["backsight"] = ob.backsight
+        if o.component:
+            e["component"] = o.component
         if ob.set_id is not None:
             e["set"] = ob.set_id
         if ang:
@@ -193,6 +195,7 @@ def _obs_rows(res):
             sig_txt = _fmt(o.sigma * 1000.0, ".2f")
             unit = ("m", "mm")
         frm = f"{ob.backsight}" if kind == "angle" else ob.station
+        tgt = ob.target if not o.component else f"{ob.target} {o.component}"
         at = ob.station if kind == "angle" else ""
         key = (kind, unit)
         row = [
@@ -209,9 +212,9 @@ def _obs_rows(res):
             o.flag,
         ]
         if kind == "angle":
-            row = [at, frm, ob.target] + row[3:]
+            row = [at, frm, tgt] + row[3:]
         else:
-            row = [frm, ob.target] + row[3:]
+            row = [frm, tgt] + row[3:]
         groups.setdefault(key, []).append((row, bool(o.flag and o.flag != "weak r_i")))
     out = []
     for (kind, unit), rows in groups.items():

@@ -742,17 +742,22 @@ class PointResult:
 
 @dataclass(frozen=True)
 class ObservationResult:
-    """Observation with its adjustment statistics (residual v = adjusted − observed)."""
+    """One observation equation with its statistics (residual v = adjusted − observed).
+
+    ``component`` is "dx"/"dy"/"dz" for the rows of a GNSS baseline, else None. Values in
+    metres or radians; ``sigma`` is the a-priori standard deviation of this row.
+    """
 
     obs: Observation
-    observed: object
-    adjusted: object
-    residual: object
-    sigma: object
+    observed: float
+    adjusted: float
+    residual: float
+    sigma: float
     redundancy: float
     w: float
     tau: float
     flag: str
+    component: str | None = None
 
 
 @dataclass(frozen=True)
@@ -1362,7 +1367,7 @@ def _collect(net: Network, model: _Model, res: LSQResult, confidence: float, def
         sig = float(o.sigma) if o.kind != "baseline" else math.sqrt(float(np.asarray(o.sigma)[k, k]))
         obs_res.append(
             ObservationResult(
-                obs=o if k is None else o,
+                obs=o,
                 observed=lv[r],
                 adjusted=F[r] if o.kind not in _ANGULAR else wrap_2pi(F[r]),
                 residual=res.v[r],
@@ -1371,6 +1376,7 @@ def _collect(net: Network, model: _Model, res: LSQResult, confidence: float, def
                 w=float(res.w[r]),
                 tau=float(res.tau[r]),
                 flag=res.flags[r],
+                component=None if k is None else ("dx", "dy", "dz")[k],
             )
         )
     # relative ellipses between observed pairs of adjusted points
