@@ -189,3 +189,16 @@ def test_epsg_9621_similarity_guidance_note_example():
     th = 1.56504 / RHO_ARCSEC
     fwd = apply_helmert2d([[300000.0, 4500000.0]], -129.549, -208.185, 1.0000015504, -th)[0]
     assert [f"{v:.3f}" for v in fwd] == ["299905.060", "4499796.515"]
+
+
+def test_estimated_rotations_follow_the_requested_epsg_convention():
+    rng = np.random.default_rng(5)
+    src = rng.uniform(-3e5, 3e5, size=(10, 3)) + [3.9e6, 0.9e6, 4.9e6]
+    tx, ty, tz, rx, ry, rz, ds = 446.448, -125.157, 542.06, 0.1502, 0.247, 0.8421, -20.4894
+    for conv in ("position_vector", "coordinate_frame"):
+        dst = apply_helmert7(src, tx, ty, tz, rx, ry, rz, ds, conv)
+        h = helmert3d(src, dst, convention=conv)
+        # the EPSG matrix is not exactly orthogonal: agreement to its linearisation level (~1e-12 rad)
+        np.testing.assert_allclose(h.rotations_arcsec, [rx, ry, rz], atol=1e-6)
+        assert abs(h.ds_ppm - ds) < 2e-5
+        np.testing.assert_allclose(h.T, [tx, ty, tz], atol=1e-4)
