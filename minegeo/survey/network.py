@@ -705,7 +705,7 @@ def read_network(path) -> Network:
     """
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")  # tolerate a byte-order mark
     except UnicodeDecodeError:
         text = p.read_text(encoding="latin-1")
     if p.suffix.lower() == ".json":
