@@ -350,37 +350,33 @@ def ransac_score_serial(src, eval_order, Ts, prune_count, dist_thr, gpts, gorigi
 
 
 @njit_parallel
-def feature_nn_kernel(A, BT, a2, b2, tol_factor):
+def feature_nn_kernel(A, BT, A32, BT32, b2_32, tol):
     """Exact nearest column of ``BT`` (dim, nb) for every row of ``A`` (na, dim); parallel over rows.
 
-    Candidate distances use the expansion ``|a|^2 + |b|^2 - 2 a.b`` (vectorisable),
-    whose rounding error is below ``delta = tol_factor * (|a|^2 + max|b|^2) / 2``;
-    every column within ``2 delta`` of the row minimum is re-evaluated directly
-    as ``sum (a_c - b_c)^2`` and the smallest (lowest index on ties) is returned.
+    Screening pass in float32 (twice the SIMD width of float64): ``v_j = |b_j|^2 - 2 a.b_j``
+    (``|a|^2`` is constant per row). Its error is below ``tol[i] / 2``, so every column
+    with ``v_j <= min_j v_j + tol[i]`` is re-evaluated in float64 directly as
+    ``sum_c (a_c - b_jc)^2`` and the smallest (lowest index on ties) is returned.
     Returns ``(index (na,) int64, sq distance (na,))``.
     """
     na = A.shape[0]
     dim = A.shape[1]
     nb = BT.shape[1]
-    b2max = 0.0
-    for j in range(nb):
-        if b2[j] > b2max:
-            b2max = b2[j]
     idx = np.full(na, -1, dtype=np.int64)
     best = np.full(na, np.inf)
     for i in prange(na):
-        acc = np.zeros(nb)
+        acc = np.empty(nb, dtype=np.float32)
+        for j in range(nb):
+            acc[j] = b2_32[j]
         for c in range(dim):
-            a = -2.0 * A[i, c]
+            a = np.float32(-2.0) * A32[i, c]
             for j in range(nb):
-                acc[j] += a * BT[c, j]
+                acc[j] += a * BT32[c, j]
         m = np.inf
         for j in range(nb):
-            v = acc[j] + b2[j]
-            acc[j] = v
-            if v < m:
-                m = v
-        thr = m + tol_factor * (a2[i] + b2max)
+            if acc[j] < m:
+                m = np.float64(acc[j])
+        thr = m + tol[i]
         bd = np.inf
         bi = np.int64(-1)
         for j in range(nb):
