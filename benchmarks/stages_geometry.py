@@ -118,7 +118,10 @@ def bench_octree(points, level, repeats=5):
 
 
 def bench_normals(points, radius_m, max_nn, repeats=5, mode="accurate"):
-    """Hybrid-search PCA normals; agreement = fraction of points within 1e-6 rad of Open3D (up to sign)."""
+    """PCA normals, hybrid(radius_m, max_nn) search or KNN(max_nn) when ``radius_m`` is None.
+
+    Agreement = fraction of points within 1e-6 rad of Open3D's normal (up to sign).
+    """
     o3d = _o3d()
     pts = np.ascontiguousarray(points, dtype=np.float64)
     params = NormalParams(radius_m=radius_m, max_nn=max_nn, mode=mode)
@@ -128,7 +131,9 @@ def bench_normals(points, radius_m, max_nn, repeats=5, mode="accurate"):
     for _ in range(max(1, repeats) + 1):
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))  # fresh: no stored normals
         t0 = time.perf_counter()
-        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius_m, max_nn))
+        sp = (o3d.geometry.KDTreeSearchParamKNN(max_nn) if radius_m is None
+              else o3d.geometry.KDTreeSearchParamHybrid(radius_m, max_nn))
+        pcd.estimate_normals(sp)
         best = min(best, time.perf_counter() - t0)
         ref = np.asarray(pcd.normals)
     ang = np.arctan2(np.linalg.norm(np.cross(ref, res.normals), axis=1), np.abs(np.sum(ref * res.normals, axis=1)))
@@ -148,6 +153,7 @@ def main(argv=None) -> int:
         ("octree level 8", bench_octree(pts, 8, a.repeats)),
         ("normals hybrid(0.2 m, 30) accurate", bench_normals(pts, 0.2, 30, a.repeats)),
         ("normals hybrid(0.2 m, 30) open3d mode", bench_normals(pts, 0.2, 30, a.repeats, mode="open3d")),
+        ("normals knn(30) accurate", bench_normals(pts, None, 30, a.repeats)),
     ]
     print(f"synthetic tunnel, n = {a.n}, seed = {a.seed}, threads = {numba.get_num_threads()}\n")
     print("| stage | minegeo s | Open3D s | ratio | agreement | compile s |")
