@@ -191,7 +191,8 @@ def estimate_normals(points, params: NormalParams | None = None, orient_towards=
         void, towards where the scanner was). ``None``: mode "accurate" orients towards
         the cloud centroid (for a drift section the centroid lies in the void); mode
         "open3d" keeps the solver's sign like Open3D. When ``n_i · (s - p_i) == 0`` the
-        largest-magnitude component is made positive.
+        largest-magnitude component is made positive. Positions must be in the same frame
+        and relative to the same local origin as ``points``.
     neighborhoods : Neighborhoods, optional
         Precomputed neighbourhoods of ``points`` in ``points`` (row i = point i); the
         search parameters of ``params`` are then ignored.

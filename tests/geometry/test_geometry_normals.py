@@ -166,6 +166,13 @@ def test_orientation_towards_sensor_and_trajectory(tunnel):
     # tunnel normals point into the void: towards the drift axis
     to_axis = np.c_[-pts[:, 0], np.zeros(len(pts)), -pts[:, 2]]
     assert np.mean(np.sum(r.normals * to_axis, axis=1) > 0) > 0.99
+    from minegeo.io import Trajectory
+
+    poses = np.tile(np.eye(4), (axis.shape[0], 1, 1))
+    poses[:, :3, 3] = axis
+    rt = estimate_normals(pts, NormalParams(radius_m=0.4, max_nn=30),
+                          orient_towards=Trajectory(np.arange(axis.shape[0], dtype=float), poses))
+    assert rt.orientation == "trajectory" and rt.normals.tobytes() == r.normals.tobytes()
     s = np.array([0.3, 4.0, -0.2])
     r = estimate_normals(pts, NormalParams(radius_m=0.4, max_nn=30), orient_towards=s)
     assert r.orientation == "point"
