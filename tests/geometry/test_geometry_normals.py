@@ -257,3 +257,23 @@ def test_bad_input():
     # fewer points than max_nn is fine: all points are used
     r = estimate_normals(pts[:4], NormalParams(max_nn=30))
     assert np.all(r.counts == 4)
+
+
+def test_thread_count_does_not_change_bits(tunnel):
+    import numba
+
+    pts, axis = tunnel
+    p = NormalParams(radius_m=0.4, max_nn=30)
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        a = estimate_normals(pts, p, orient_towards=axis)
+        na = NeighborIndex(pts).hybrid(None, 0.4, 30)
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+        b = estimate_normals(pts, p, orient_towards=axis)
+        nb = NeighborIndex(pts).hybrid(None, 0.4, 30)
+    finally:
+        numba.set_num_threads(before)
+    assert a.normals.tobytes() == b.normals.tobytes()
+    assert a.eigenvalues.tobytes() == b.eigenvalues.tobytes()
+    assert na.indices.tobytes() == nb.indices.tobytes()
