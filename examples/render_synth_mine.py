@@ -6,10 +6,11 @@ Usage::
 
 The plan view shows the survey map (coloured by height) of the ``small`` preset with the
 drift centrelines, the T/X/Y intersections, the ring roadway (loop), the ramp and the
-ground control points. The close-up shows (a) a drift cross-section: map points in a
-0.4 m slice against the design horseshoe profile, (b) a dense ZEB-REVO-like static scan
-in the irregular-roof section seen from the side, and (c) the railings and the sump pit
-near the dead end of the Y branch.
+ground control points. The close-up shows drift cross-sections from a profile scanner (a
+Horizontal2D sensor turned into the cross-section plane) against the design horseshoe:
+(a) a regular section with overbreak, bolts, straps, pipe, cables and duct, (b) the same
+drift through the parked vehicle, (c) the irregular-roof section seen from the side in a
+static ZEB-REVO-like scan, (d) the sump pit and its railings.
 """
 
 from __future__ import annotations
@@ -23,7 +24,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from minegeo.synth import ZebRevo, build_map, build_world, make_gcps, simulate_scan  # noqa: E402
+from minegeo.synth import (  # noqa: E402
+    Horizontal2D,
+    ZebRevo,
+    build_map,
+    build_world,
+    make_gcps,
+    simulate_scan,
+    simulate_scan_2d,
+)
 from minegeo.synth.trajectory import _arc_lengths  # noqa: E402
 
 
@@ -86,53 +95,86 @@ def plan_view(world, cloud, gcps, path: Path) -> None:
     plt.close(fig)
 
 
-def closeup(world, cloud, path: Path) -> None:
-    fig = plt.figure(figsize=(14, 5.2))
-    # (a) cross-section of the map in the regular section vs the design profile
-    ax = fig.add_subplot(1, 3, 1)
-    f = world.features["irregular_roof"]
-    d = world.drifts[f["drift"]]
-    T = _pose_on(world, f["drift"], f["s_m"] - 6.0, 0.0)
-    loc = (cloud.points - T[:3, 3]) @ T[:3, :3]
-    sl = np.abs(loc[:, 0]) < 0.2
-    ax.plot(loc[sl, 1], loc[sl, 2], ".", ms=1.5, color="0.3", label="map points (0.4 m slice)")
+def _profile(world, T_floor: np.ndarray, height_m: float = 1.6, step_deg: float = 0.1, seed: int = 0):
+    """A cross-section profile: a Horizontal2D scanner whose scan plane is the drift cross-section.
+
+    Returns (across, up) coordinates (m) relative to the floor centreline point of ``T_floor``.
+    """
+    n = T_floor[:3, 1]
+    T = np.eye(4)
+    T[:3, 0] = [0.0, 0.0, 1.0]  # scanner x: up
+    T[:3, 1] = n  # scanner y: left
+    T[:3, 2] = np.cross(T[:3, 0], T[:3, 1])
+    T[:3, 3] = T_floor[:3, 3] + [0.0, 0.0, height_m]
+    scan = simulate_scan_2d(world, Horizontal2D(angular_step_deg=step_deg), T, seed=seed)
+    xy = scan.points()
+    P = xy[:, :1] * T[:3, 0] + xy[:, 1:2] * T[:3, 1] + T[:3, 3]
+    loc = P - T_floor[:3, 3]
+    return loc @ n, loc[:, 2]
+
+
+def _design(ax, world):
     R, hw = world.params.width_m / 2, world.params.wall_height_m
     a = np.linspace(0, np.pi, 100)
-    prof = np.vstack([[[R, 0], [R, hw]], np.column_stack([R * np.cos(a), hw + R * np.sin(a)]), [[-R, hw], [-R, 0],
-                                                                                               [R, 0]]])
-    ax.plot(prof[:, 0], prof[:, 1], "r-", lw=1, label="design horseshoe 4.5 x 4.5 m")
-    ax.set_aspect("equal")
-    ax.set_xlim(-3.5, 3.5)
-    ax.set_ylim(-0.6, 5.4)
-    ax.set_xlabel("across drift (m)")
-    ax.set_ylabel("above floor (m)")
-    ax.set_title(f"(a) cross-section, {d.name}: overbreak, bolts, pipe, duct")
-    ax.legend(loc="lower center", fontsize=8)
-    # (b) dense static ZEB scan in the irregular-roof section, side view
-    ax = fig.add_subplot(1, 3, 2)
+    prof = np.vstack([[[R, 0], [R, hw]], np.column_stack([R * np.cos(a), hw + R * np.sin(a)]),
+                      [[-R, hw], [-R, 0], [R, 0]]])
+    ax.plot(prof[:, 0], prof[:, 1], "r-", lw=0.8, label="design horseshoe 4.5 x 4.5 m")
+
+
+def closeup(world, path: Path) -> None:
+    fig, axs = plt.subplots(1, 4, figsize=(18, 5.0), gridspec_kw={"width_ratios": [1, 1, 2.2, 1.2]})
+    # (a) cross-sections in the regular section: rough walls, bolts + straps, pipe, cables, duct, vehicle
+    ax = axs[0]
+    f = world.features["regular"]
+    s_ring = 0.75 + 1.5 * round((f["s_m"] + 5.5 - 0.75) / 1.5)  # through a ring of rock bolts
+    T = _pose_on(world, f["drift"], s_ring, 0.0)
+    u, v = _profile(world, T, seed=1)
+    ax.plot(u, v, ".", ms=1.0, color="0.2", label="profile, 0.1 deg")
+    _design(ax, world)
+    ax.set_title("(a) regular section: overbreak, bolts,\nstraps, pipe, cables, duct", fontsize=10)
+    ax = axs[1]
+    T = _pose_on(world, f["drift"], f["s_m"], 0.0)
+    u, v = _profile(world, T, height_m=2.8, seed=2)
+    ax.plot(u, v, ".", ms=1.0, color="tab:blue", label="profile through vehicle")
+    _design(ax, world)
+    ax.set_title("(b) same drift through the parked\nvehicle (a movable dynamic object)", fontsize=10)
+    for ax in axs[:2]:
+        ax.set_aspect("equal")
+        ax.set_xlim(-3.2, 3.2)
+        ax.set_ylim(-0.4, 5.2)
+        ax.set_xlabel("across drift (m, left +)")
+        ax.set_ylabel("above floor (m)")
+        ax.legend(loc="lower center", fontsize=7, markerscale=6)
+    # (c) dense static ZEB scan in the irregular-roof section, side view (centre slice)
+    ax = axs[2]
+    f = world.features["irregular_roof"]
     T = _pose_on(world, f["drift"], f["s_m"], 1.4)
-    sc = simulate_scan(world, ZebRevo(), T, seed=5)
+    sc = simulate_scan(world, ZebRevo(angular_step_deg=0.125), T, seed=5)
     P = sc.points
-    keep = (np.abs(P[:, 0]) < 9) & (P[:, 1] > -0.8) & (P[:, 1] < 0.8)
-    ax.scatter(P[keep, 0], P[keep, 2] + 1.4, c=P[keep, 1], s=0.3, cmap="coolwarm", linewidths=0, rasterized=True)
+    keep = (np.abs(P[:, 0]) < 10) & (np.abs(P[:, 1]) < 0.4)
+    ax.scatter(P[keep, 0], P[keep, 2] + 1.4, s=0.3, c="0.2", linewidths=0, rasterized=True)
+    ax.plot([-10, 10], [4.5, 4.5], "r--", lw=0.8, label="design crown 4.5 m")
+    ax.plot([-10, 10], [0, 0], "r-", lw=0.8, label="design floor")
     ax.set_aspect("equal")
+    ax.set_ylim(-0.8, 6.2)
     ax.set_xlabel("along drift (m)")
     ax.set_ylabel("above floor (m)")
-    ax.set_title("(b) irregular roof (fall-outs), ZEB-REVO-like scan")
-    # (c) railings and sump pit, seen from above, coloured by height
-    ax = fig.add_subplot(1, 3, 3)
+    ax.set_title("(c) irregular roof (fall-outs): centre slice of a static ZEB-REVO-like scan", fontsize=10)
+    ax.legend(loc="lower right", fontsize=7)
+    # (d) cross-section through the sump pit and its railings
+    ax = axs[3]
     s = world.features["sump"]
-    T = _pose_on(world, s["drift"], s["s_m"] - 3.0, 1.6)
-    sc = simulate_scan(world, ZebRevo(), T, seed=6)
-    P = sc.points
-    keep = (np.abs(P[:, 0] - 3) < 5) & (P[:, 2] < 0.2)
-    z = P[keep, 2] + 1.6
-    ax.scatter(P[keep, 0], P[keep, 1], c=z, s=0.4, cmap="viridis", vmin=-1.6, vmax=1.8, linewidths=0,
-               rasterized=True)
+    T = _pose_on(world, s["drift"], s["s_m"], 0.0)
+    u, v = _profile(world, T, height_m=2.0, step_deg=0.05, seed=3)
+    ax.plot(u, v, ".", ms=1.2, color="0.2", label="profile")
+    _design(ax, world)
     ax.set_aspect("equal")
-    ax.set_xlabel("along branch (m)")
-    ax.set_ylabel("across (m)")
-    ax.set_title("(c) sump pit with railings (height colour)")
+    ax.set_xlim(-3.2, 3.2)
+    ax.set_ylim(-2.0, 5.2)
+    ax.set_xlabel("across drift (m, left +)")
+    ax.set_ylabel("above floor (m)")
+    ax.set_title("(d) sump pit (1.5 m deep) with\nrailings (rails at 0.5 and 1.05 m)", fontsize=10)
+    ax.legend(loc="upper right", fontsize=7, markerscale=6)
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     plt.close(fig)
@@ -149,7 +191,7 @@ def main() -> None:
     cloud = build_map(world, seed=args.seed, spacing_m=3.0)
     gcps, _ = make_gcps(world, n=10, seed=args.seed)
     plan_view(world, cloud, gcps, out / "synth_plan.png")
-    closeup(world, cloud, out / "synth_closeup.png")
+    closeup(world, out / "synth_closeup.png")
     print(f"wrote {out / 'synth_plan.png'} and {out / 'synth_closeup.png'}")
 
 

@@ -103,7 +103,7 @@ def build_map(world: MineWorld, seed: int = 0, *, sensor=None, spacing_m: float 
         Default: a Velodyne16 (0.2 deg for ``paper``; a 3 degree azimuth step for ``small``
         so tests stay fast).
     spacing_m : float, optional
-        Distance between recorded frames (default 8 m small, 12 m paper).
+        Distance between recorded frames (default 10 m small, 12 m paper).
 
     Returns
     -------
@@ -115,7 +115,7 @@ def build_map(world: MineWorld, seed: int = 0, *, sensor=None, spacing_m: float 
     if sensor is None:
         sensor = Velodyne16(azimuth_step_deg=3.0) if small else Velodyne16()
     if spacing_m is None:
-        spacing_m = 8.0 if small else 12.0
+        spacing_m = 10.0 if small else 12.0
     if spacing_m <= 0:
         raise InputError("spacing_m must be > 0")
     P, first = survey_path(world)
@@ -344,10 +344,11 @@ class ScanSpec:
 #: Scans written per preset (section types of Baek et al. 2022, Sec. 3.2: a-f).
 SCAN_PLANS: dict[str, tuple] = {
     "small": (
-        ScanSpec("irregular_roof", 20.0, "zebrevo", "walk", 30_000),
-        ScanSpec("intersection:X", 10.0, "velodyne16", "walk", 30_000),
-        ScanSpec("curve", 30.0, "velodyne16", "drive", 30_000, vehicle="moved", noise_sigma_m=0.05),
-        ScanSpec("sump", 10.0, "flash", "handheld", 30_000),
+        ScanSpec("irregular_roof", 20.0, "zebrevo", "walk", 25_000),
+        ScanSpec("intersection:X", 10.0, "velodyne16", "walk", 25_000),
+        ScanSpec("curve", 30.0, "velodyne16", "drive", 25_000),
+        ScanSpec("regular", 20.0, "velodyne16", "walk", 25_000, vehicle="moved", noise_sigma_m=0.05),
+        ScanSpec("sump", 10.0, "flash", "handheld", 25_000),
     ),
     "paper": (
         ScanSpec("irregular_roof", 20.0, "zebrevo", "walk", 2_000_000),

@@ -42,7 +42,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from minegeo._validate import as_points, as_transform
+from minegeo._validate import as_points, as_transform, check_positive
 from minegeo.errors import InputError
 from minegeo.synth import _kernels as K
 
@@ -260,30 +260,28 @@ class MineWorld:
         T = None if T_world_vehicle is None else as_transform(T_world_vehicle, "T_world_vehicle")
         return replace(self, T_world_vehicle=T)
 
-    def cast(self, origins, directions, max_range_m: float, with_noise: bool = True) -> np.ndarray:
+    def cast(self, origins, directions, max_range_m: float, with_noise: bool = True,
+             return_steps: bool = False):
         """Ranges (m) along unit ``directions`` from ``origins`` to the first surface; NaN = no return.
 
         Sphere tracing with bisection refinement to 1e-4 m (see ``_kernels.cast_rays``);
-        the smallest step is ``MIN_STEP_M`` (5 mm).
+        the smallest step is ``MIN_STEP_M`` (5 mm). With ``return_steps`` also the number
+        of marching steps per ray (a cost diagnostic).
         """
         O = as_points(origins, "origins", min_points=0)
         D = as_points(directions, "directions", min_points=0)
         if O.shape != D.shape:
             raise InputError(f"origins {O.shape} and directions {D.shape} must have the same shape")
+        check_positive(max_range_m, "max_range_m")
         out = np.empty(O.shape[0])
+        steps = np.empty(O.shape[0], np.int64)
         a = self._arrays
-        K.cast_rays(O, D, float(max_range_m), float(min(self.params.trace_step_factor, a["step_factor"])), MIN_STEP_M, 4000, 1e-4,
-                    a["grid_f"], a["grid_i"], a["void_prims"], a["void_type"], a["v_start"], a["v_items"],
-                    a["solid_prims"], a["solid_type"], a["s_start"], a["s_items"], a["waves"], a["octaves"],
-                    a["zones"], *self._vehicle_args(), bool(with_noise), a["noise_min"], a["ob_factor"], out,
-                    self._iters(out))
-        return out
-
-    def _iters(self, out):
-        it = np.empty(out.shape[0], np.int64)
-        self.__dict__.setdefault("_last_iters", None)
-        object.__setattr__(self, "_last_iters", it)
-        return it
+        K.cast_rays(O, D, float(max_range_m), float(min(self.params.trace_step_factor, a["step_factor"])),
+                    MIN_STEP_M, 4000, 1e-4, a["grid_f"], a["grid_i"], a["void_prims"], a["void_type"],
+                    a["v_start"], a["v_items"], a["solid_prims"], a["solid_type"], a["s_start"], a["s_items"],
+                    a["waves"], a["octaves"], a["zones"], *self._vehicle_args(), bool(with_noise),
+                    a["noise_min"], a["ob_factor"], out, steps)
+        return (out, steps) if return_steps else out
 
     def _vehicle_args(self):
         a = self._arrays
@@ -579,7 +577,7 @@ def _vehicle_model():
     """A parked utility vehicle / loader in its own frame (x forward, z up, origin on the floor)."""
     boxes = [
         [0.0, 0.0, 0.95, 2.4, 0.95, 0.45, 0.0],  # chassis
-        [-1.2, 0.4, 1.95, 0.7, 0.5, 0.55, 0.0],  # cab
+        [-1.2, -0.4, 1.95, 0.7, 0.5, 0.55, 0.0],  # cab (on the side away from the wall)
         [2.95, 0.0, 0.55, 0.35, 1.05, 0.4, 0.0],  # bucket
         [-2.1, 0.0, 1.55, 0.3, 0.8, 0.2, 0.0],  # engine cover
     ]
@@ -889,19 +887,19 @@ def build_world(preset: str = "small", seed: int = 0, params: WorldParams | None
     arrays["veh_centre"] = np.array([0.3, 0.0, 1.2])
     arrays["veh_radius"] = 3.8
 
-    # ---- curves, parking places for the vehicle (beside the centreline on a main drift)
+    # ---- curves, parking places for the vehicle (left of the centreline in the regular section)
     ring_edges = [k for k, e in enumerate(g.edges) if e[3] in ("ring", "ramp")]
     ce = ring_edges[0]
     feats["curve"] = {"drift": ce, "s_m": float(np.linalg.norm(np.diff(g.edges[ce][2], axis=0), axis=1).sum() / 2)}
-    parking = []
-    for k in (main0[0], par0[-1] if par0 else main0[-1]):
+    parking = []  # [0]: where it is parked during the survey; [1]: moved 5 m back along the drift
+    for k, back_m in ((reg, 0.0), (reg, 5.0)):
         P, t, n, s = _resample(g.edges[k][2], 0.5)
-        jj = len(P) // 2
+        jj = max(0, len(P) // 2 - int(back_m / 0.5))
         T = np.eye(4)
         xa = np.array([t[jj][0], t[jj][1], 0.0])
         ya = np.array([n[jj][0], n[jj][1], 0.0])
         T[:3, 0], T[:3, 1], T[:3, 2] = xa, ya, [0, 0, 1]
-        T[:3, 3] = P[jj] + ya * 0.95 + np.array([0, 0, 0.01])
+        T[:3, 3] = P[jj] + ya * 1.15 + np.array([0, 0, 0.01])  # 0.15 m from the left wall
         parking.append(T)
         feats.setdefault("parking_sites", []).append({"drift": k, "s_m": float(s[jj])})
     feats["parking"] = parking

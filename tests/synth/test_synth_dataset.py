@@ -80,8 +80,8 @@ def test_local_scan_sections_and_sensors(world):
 
 
 def test_survey_map_covers_every_drift(world):
-    cloud = build_map(world, seed=4, sensor=Velodyne16(azimuth_step_deg=4.0, range_noise_sigma_m=0.0),
-                      spacing_m=10.0)
+    cloud = build_map(world, seed=4, sensor=Velodyne16(azimuth_step_deg=6.0, range_noise_sigma_m=0.0),
+                      spacing_m=14.0)
     assert cloud.frame == "map"
     assert np.abs(world.sdf(cloud.points)).max() < 2e-3
     from scipy.spatial import cKDTree
