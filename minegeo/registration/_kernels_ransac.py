@@ -128,22 +128,38 @@ def grid_nearest(x, y, z, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cs
     return best, bd
 
 
+@njit
+def _nearest_one(i, queries, R, t, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cstart, ccount, r2, idx, sq):
+    px = queries[i, 0]
+    py = queries[i, 1]
+    pz = queries[i, 2]
+    x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
+    y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
+    z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+    j, d2 = grid_nearest(x, y, z, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cstart, ccount, r2)
+    idx[i] = j
+    sq[i] = d2
+
+
 @njit_parallel
 def grid_nearest_batch(queries, R, t, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cstart, ccount, r2):
-    """For every query ``R q + t``: nearest grid point within ``sqrt(r2)`` (index, sq distance)."""
+    """For every query ``R q + t``: nearest grid point within ``sqrt(r2)`` (index, sq distance); parallel."""
     n = queries.shape[0]
     idx = np.full(n, -1, dtype=np.int64)
     sq = np.full(n, np.inf)
     for i in prange(n):
-        px = queries[i, 0]
-        py = queries[i, 1]
-        pz = queries[i, 2]
-        x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
-        y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
-        z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
-        j, d2 = grid_nearest(x, y, z, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cstart, ccount, r2)
-        idx[i] = j
-        sq[i] = d2
+        _nearest_one(i, queries, R, t, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cstart, ccount, r2, idx, sq)
+    return idx, sq
+
+
+@njit
+def grid_nearest_serial(queries, R, t, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cstart, ccount, r2):
+    """Serial twin of :func:`grid_nearest_batch` (identical results; no thread launch)."""
+    n = queries.shape[0]
+    idx = np.full(n, -1, dtype=np.int64)
+    sq = np.full(n, np.inf)
+    for i in range(n):
+        _nearest_one(i, queries, R, t, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cstart, ccount, r2, idx, sq)
     return idx, sq
 
 

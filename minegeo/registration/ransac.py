@@ -364,7 +364,8 @@ class _Grid:
         """Nearest target index (original numbering, -1 if none within radius) and sq distance."""
         R = np.ascontiguousarray(T[:3, :3])
         t = np.ascontiguousarray(T[:3, 3])
-        j, d2 = K.grid_nearest_batch(queries, R, t, *self.args(), radius * radius)
+        fn = K.grid_nearest_batch if queries.shape[0] > _PARALLEL_WORK else K.grid_nearest_serial
+        j, d2 = fn(queries, R, t, *self.args(), radius * radius)
         out = np.where(j >= 0, self.order[np.maximum(j, 0)], -1)
         return out, d2
 
@@ -690,3 +691,30 @@ def register_ransac(
         seed=seed,
         timings_s=timings,
     )
+
+
+def _warmup() -> None:
+    """Compile the RANSAC and correspondence kernels on tiny inputs (dense and hashed grids)."""
+    global _DENSE_MAX_CELLS
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(24, 3))
+    tgt = src + 0.01
+    feats = rng.random((24, 33))
+    corr = np.stack([np.arange(24), np.arange(24)], axis=1)
+    nrm = np.tile(np.array([0.0, 0.0, 1.0]), (24, 1))
+    params = RansacParams(distance_threshold_m=0.1, ransac_n=3, max_iterations=64, batch_size=32)
+    register_ransac(src, tgt, feats, feats, params, seed=0)
+    register_ransac(src, tgt, params=RansacParams(distance_threshold_m=0.1, ransac_n=3, max_iterations=32,
+                                                  normal_angle_threshold_rad=1.0, mode="open3d", batch_size=32),
+                    seed=0, source_normals=nrm, target_normals=nrm, correspondences=corr)
+    saved = _DENSE_MAX_CELLS
+    try:
+        _DENSE_MAX_CELLS = 0
+        g = _Grid(tgt, 0.1)
+        g.nearest(src, np.eye(4), 0.1)
+    finally:
+        _DENSE_MAX_CELLS = saved
+    Ts = np.eye(4)[None].copy()
+    K.grid_nearest_batch(src, np.eye(3), np.zeros(3), *_Grid(tgt, 0.1).args(), 0.01)
+    K.ransac_score_kernel(src, np.arange(24, dtype=np.int64), Ts, np.int64(0), 0.1, *_Grid(tgt, 0.1).args())
+    feature_correspondences(feats, feats, mutual_filter=True)
