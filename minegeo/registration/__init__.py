@@ -32,19 +32,30 @@ __all__ = [
 
 
 def _warmup() -> None:
-    """Compile every Numba kernel of :mod:`minegeo.registration` on tiny inputs."""
+    """Compile every Numba kernel of :mod:`minegeo.registration` on tiny inputs (serial and parallel drivers)."""
     from minegeo.registration import _kernels as K
 
     P = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
     Q = P + 0.1
     N = np.tile(np.array([0.0, 0.0, 1.0]), (4, 1))
     T = np.eye(4)
-    K.transform_points_kernel(P, T)
-    K.rotate_vectors_kernel(N, T[:3, :3].copy())
-    K.gate_nearest_kernel(P, Q, np.arange(4, dtype=np.int64), 1.0)
-    K.sum_kernel(P[:, 0].copy())
-    sw, mp, mq, W, vp = K.weighted_moments_kernel(P, Q, np.ones(4))
+    w = np.ones(4)
+    out = np.empty((4, 3))
+    K._transform_serial(P, T, out)
+    K._transform_parallel(P, T, out)
+    idx = np.arange(4, dtype=np.int64)
+    sq = np.empty(4)
+    valid = np.empty(4, dtype=np.bool_)
+    K._gate_serial(P, Q, idx, 1.0, sq, valid)
+    K._gate_parallel(P, Q, idx, 1.0, sq, valid)
+    part = np.zeros(1)
+    K._sum_serial(sq, part)
+    K._sum_parallel(sq, part)
+    K._moments_serial(P, Q, w, np.zeros((1, 7)), np.zeros((1, 10)))
+    K._moments_parallel(P, Q, w, np.zeros((1, 7)), np.zeros((1, 10)))
+    K._p2l_serial(P, Q, N, np.zeros((1, 28)))
+    K._p2l_parallel(P, Q, N, np.zeros((1, 28)))
+    K._moments_q_serial(Q, np.zeros((1, 9)))
+    sw, mp, mq, W, vp = K.weighted_moments_kernel(P, Q, w)
     K.umeyama_from_moments(mp, mq, W, vp, False)
     K.umeyama_small_kernel(P, Q, False)
-    K.point_to_plane_system_kernel(P, Q, N)
-    K.point_to_point_information_kernel(Q)

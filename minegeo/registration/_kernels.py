@@ -26,35 +26,82 @@ def n_chunks(m):
     return (m + CHUNK - 1) // CHUNK
 
 
-@njit_parallel
-def transform_points_kernel(P, T):
-    """``out_i = R p_i + t`` for (n, 3) ``P`` and a 4x4 ``T`` (sum order x, y, z, t as Eigen)."""
-    n = P.shape[0]
-    out = np.empty((n, 3))
-    for i in prange(n):
+#: Below this many rows the serial driver is used (a parallel launch costs more than it saves).
+#: Both drivers run the same chunk bodies in the same order, so the results are bit-identical.
+PARALLEL_MIN_ROWS = 16384
+
+
+# ----------------------------------------------------------------------------- per-point maps
+
+
+@njit
+def _transform_rows(P, T, out, start, end):
+    for i in range(start, end):
         x = P[i, 0]
         y = P[i, 1]
         z = P[i, 2]
         for r in range(3):
             out[i, r] = T[r, 0] * x + T[r, 1] * y + T[r, 2] * z + T[r, 3]
-    return out
+
+
+@njit
+def _transform_serial(P, T, out):
+    _transform_rows(P, T, out, 0, P.shape[0])
 
 
 @njit_parallel
+def _transform_parallel(P, T, out):
+    m = P.shape[0]
+    for c in prange(n_chunks(m)):
+        _transform_rows(P, T, out, c * CHUNK, min(m, (c + 1) * CHUNK))
+
+
+def transform_points_kernel(P, T):
+    """``out_i = R p_i + t`` for (n, 3) ``P`` and a 4x4 ``T`` (sum order x, y, z, t as Eigen)."""
+    out = np.empty((P.shape[0], 3))
+    if P.shape[0] >= PARALLEL_MIN_ROWS:
+        _transform_parallel(P, T, out)
+    else:
+        _transform_serial(P, T, out)
+    return out
+
+
 def rotate_vectors_kernel(V, R):
     """``out_i = R v_i`` for (n, 3) ``V`` (normals) and a 3x3 ``R``."""
-    n = V.shape[0]
-    out = np.empty((n, 3))
-    for i in prange(n):
-        x = V[i, 0]
-        y = V[i, 1]
-        z = V[i, 2]
-        for r in range(3):
-            out[i, r] = R[r, 0] * x + R[r, 1] * y + R[r, 2] * z
-    return out
+    T = np.eye(4)
+    T[:3, :3] = R
+    return transform_points_kernel(V, T)
+
+
+@njit
+def _gate_rows(P, Q, nn_idx, d2, sq, valid, start, end):
+    m = Q.shape[0]
+    for i in range(start, end):
+        j = nn_idx[i]
+        if j < 0 or j >= m:
+            sq[i] = np.inf
+            valid[i] = False
+            continue
+        dx = P[i, 0] - Q[j, 0]
+        dy = P[i, 1] - Q[j, 1]
+        dz = P[i, 2] - Q[j, 2]
+        s = dx * dx + dy * dy + dz * dz
+        sq[i] = s
+        valid[i] = s < d2
+
+
+@njit
+def _gate_serial(P, Q, nn_idx, d2, sq, valid):
+    _gate_rows(P, Q, nn_idx, d2, sq, valid, 0, P.shape[0])
 
 
 @njit_parallel
+def _gate_parallel(P, Q, nn_idx, d2, sq, valid):
+    n = P.shape[0]
+    for c in prange(n_chunks(n)):
+        _gate_rows(P, Q, nn_idx, d2, sq, valid, c * CHUNK, min(n, (c + 1) * CHUNK))
+
+
 def gate_nearest_kernel(P, Q, nn_idx, d2):
     """Squared distance to the proposed nearest target and the strict gate ``sq < d2``.
 
@@ -64,42 +111,129 @@ def gate_nearest_kernel(P, Q, nn_idx, d2):
     L2 order) so that the gate does not depend on the search library's arithmetic.
     """
     n = P.shape[0]
-    m = Q.shape[0]
     sq = np.empty(n)
-    valid = np.zeros(n, dtype=np.bool_)
-    for i in prange(n):
-        j = nn_idx[i]
-        if j < 0 or j >= m:
-            sq[i] = np.inf
-            continue
-        dx = P[i, 0] - Q[j, 0]
-        dy = P[i, 1] - Q[j, 1]
-        dz = P[i, 2] - Q[j, 2]
-        s = dx * dx + dy * dy + dz * dz
-        sq[i] = s
-        if s < d2:
-            valid[i] = True
+    valid = np.empty(n, dtype=np.bool_)
+    if n >= PARALLEL_MIN_ROWS:
+        _gate_parallel(P, Q, nn_idx, float(d2), sq, valid)
+    else:
+        _gate_serial(P, Q, nn_idx, float(d2), sq, valid)
     return sq, valid
 
 
-@njit_parallel
-def sum_kernel(x):
-    """Deterministic chunked sum of a 1-D array."""
+# ----------------------------------------------------------------------------- reductions
+
+
+@njit
+def _sum_rows(x, start, end):
+    s = 0.0
+    for i in range(start, end):
+        s += x[i]
+    return s
+
+
+@njit
+def _sum_serial(x, part):
     m = x.shape[0]
-    nc = n_chunks(m)
-    part = np.zeros(nc)
-    for c in prange(nc):
-        s = 0.0
-        for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
-            s += x[i]
-        part[c] = s
-    tot = 0.0
-    for c in range(nc):
-        tot += part[c]
+    for c in range(part.shape[0]):
+        part[c] = _sum_rows(x, c * CHUNK, min(m, (c + 1) * CHUNK))
+
+
+@njit_parallel
+def _sum_parallel(x, part):
+    m = x.shape[0]
+    for c in prange(part.shape[0]):
+        part[c] = _sum_rows(x, c * CHUNK, min(m, (c + 1) * CHUNK))
+
+
+def _add_partials(part):
+    """Serial, in-order sum of chunk partials (rows) -> 1-D totals."""
+    tot = np.zeros(part.shape[1:]) if part.ndim > 1 else 0.0
+    for c in range(part.shape[0]):
+        tot = tot + part[c]
     return tot
 
 
+def sum_kernel(x):
+    """Deterministic chunked sum of a 1-D array."""
+    part = np.zeros((n_chunks(x.shape[0]),))
+    if x.shape[0] >= PARALLEL_MIN_ROWS:
+        _sum_parallel(x, part)
+    else:
+        _sum_serial(x, part)
+    return float(_add_partials(part))
+
+
+@njit
+def _moments1_rows(P, Q, w, part, c, start, end):
+    for i in range(start, end):
+        wi = w[i]
+        part[c, 0] += wi
+        for k in range(3):
+            part[c, 1 + k] += wi * P[i, k]
+            part[c, 4 + k] += wi * Q[i, k]
+
+
+@njit
+def _moments2_rows(P, Q, w, mu_p, mu_q, part, c, start, end):
+    for i in range(start, end):
+        wi = w[i]
+        a0 = P[i, 0] - mu_p[0]
+        a1 = P[i, 1] - mu_p[1]
+        a2 = P[i, 2] - mu_p[2]
+        b0 = Q[i, 0] - mu_q[0]
+        b1 = Q[i, 1] - mu_q[1]
+        b2 = Q[i, 2] - mu_q[2]
+        part[c, 0] += wi * a0 * b0
+        part[c, 1] += wi * a0 * b1
+        part[c, 2] += wi * a0 * b2
+        part[c, 3] += wi * a1 * b0
+        part[c, 4] += wi * a1 * b1
+        part[c, 5] += wi * a1 * b2
+        part[c, 6] += wi * a2 * b0
+        part[c, 7] += wi * a2 * b1
+        part[c, 8] += wi * a2 * b2
+        part[c, 9] += wi * (a0 * a0 + a1 * a1 + a2 * a2)
+
+
+@njit
+def _moments_serial(P, Q, w, part1, part2):
+    m = P.shape[0]
+    nc = part1.shape[0]
+    for c in range(nc):
+        _moments1_rows(P, Q, w, part1, c, c * CHUNK, min(m, (c + 1) * CHUNK))
+    mu_p, mu_q = _means_from_partials(part1)
+    for c in range(nc):
+        _moments2_rows(P, Q, w, mu_p, mu_q, part2, c, c * CHUNK, min(m, (c + 1) * CHUNK))
+    return mu_p, mu_q
+
+
 @njit_parallel
+def _moments_parallel(P, Q, w, part1, part2):
+    m = P.shape[0]
+    nc = part1.shape[0]
+    for c in prange(nc):
+        _moments1_rows(P, Q, w, part1, c, c * CHUNK, min(m, (c + 1) * CHUNK))
+    mu_p, mu_q = _means_from_partials(part1)
+    for c in prange(nc):
+        _moments2_rows(P, Q, w, mu_p, mu_q, part2, c, c * CHUNK, min(m, (c + 1) * CHUNK))
+    return mu_p, mu_q
+
+
+@njit
+def _means_from_partials(part1):
+    tot = np.zeros(7)
+    for c in range(part1.shape[0]):
+        for k in range(7):
+            tot[k] += part1[c, k]
+    mu_p = np.zeros(3)
+    mu_q = np.zeros(3)
+    if tot[0] > 0.0:
+        for k in range(3):
+            mu_p[k] = tot[1 + k] / tot[0]
+            mu_q[k] = tot[4 + k] / tot[0]
+    return mu_p, mu_q
+
+
 def weighted_moments_kernel(P, Q, w):
     """Weighted means and centred second moments of corresponding rows of ``P`` and ``Q``.
 
@@ -107,58 +241,20 @@ def weighted_moments_kernel(P, Q, w):
     ``W = sum_i w_i (p_i - mu_p)(q_i - mu_q)^T / sum_w`` (Baek 2022 Eq. 10, centred) and
     ``var_p = sum_i w_i |p_i - mu_p|^2 / sum_w``. Two passes (means, then centred sums).
     """
-    m = P.shape[0]
-    nc = n_chunks(m)
-    part = np.zeros((nc, 7))
-    for c in prange(nc):
-        for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
-            wi = w[i]
-            part[c, 0] += wi
-            for k in range(3):
-                part[c, 1 + k] += wi * P[i, k]
-                part[c, 4 + k] += wi * Q[i, k]
-    tot = np.zeros(7)
-    for c in range(nc):
-        for k in range(7):
-            tot[k] += part[c, k]
-    sw = tot[0]
-    mu_p = np.zeros(3)
-    mu_q = np.zeros(3)
-    if sw > 0.0:
-        for k in range(3):
-            mu_p[k] = tot[1 + k] / sw
-            mu_q[k] = tot[4 + k] / sw
+    nc = n_chunks(P.shape[0])
+    part1 = np.zeros((nc, 7))
     part2 = np.zeros((nc, 10))
-    for c in prange(nc):
-        for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
-            wi = w[i]
-            a0 = P[i, 0] - mu_p[0]
-            a1 = P[i, 1] - mu_p[1]
-            a2 = P[i, 2] - mu_p[2]
-            b0 = Q[i, 0] - mu_q[0]
-            b1 = Q[i, 1] - mu_q[1]
-            b2 = Q[i, 2] - mu_q[2]
-            part2[c, 0] += wi * a0 * b0
-            part2[c, 1] += wi * a0 * b1
-            part2[c, 2] += wi * a0 * b2
-            part2[c, 3] += wi * a1 * b0
-            part2[c, 4] += wi * a1 * b1
-            part2[c, 5] += wi * a1 * b2
-            part2[c, 6] += wi * a2 * b0
-            part2[c, 7] += wi * a2 * b1
-            part2[c, 8] += wi * a2 * b2
-            part2[c, 9] += wi * (a0 * a0 + a1 * a1 + a2 * a2)
-    tot2 = np.zeros(10)
-    for c in range(nc):
-        for k in range(10):
-            tot2[k] += part2[c, k]
+    if P.shape[0] >= PARALLEL_MIN_ROWS:
+        mu_p, mu_q = _moments_parallel(P, Q, w, part1, part2)
+    else:
+        mu_p, mu_q = _moments_serial(P, Q, w, part1, part2)
+    sw = float(_add_partials(part1[:, :1])[0]) if nc else 0.0
+    tot2 = _add_partials(part2) if nc else np.zeros(10)
     W = np.zeros((3, 3))
     var_p = 0.0
     if sw > 0.0:
-        for r in range(3):
-            for k in range(3):
-                W[r, k] = tot2[3 * r + k] / sw
-        var_p = tot2[9] / sw
+        W = tot2[:9].reshape(3, 3) / sw
+        var_p = float(tot2[9] / sw)
     return sw, mu_p, mu_q, W, var_p
 
 
@@ -228,110 +324,117 @@ def umeyama_small_kernel(P, Q, with_scale):
     return T, c
 
 
+@njit
+def _p2l_rows(P, Q, N, part, c, start, end):
+    J = np.empty(6)
+    for i in range(start, end):
+        px = P[i, 0]
+        py = P[i, 1]
+        pz = P[i, 2]
+        nx = N[i, 0]
+        ny = N[i, 1]
+        nz = N[i, 2]
+        r = (px - Q[i, 0]) * nx + (py - Q[i, 1]) * ny + (pz - Q[i, 2]) * nz
+        J[0] = py * nz - pz * ny
+        J[1] = pz * nx - px * nz
+        J[2] = px * ny - py * nx
+        J[3] = nx
+        J[4] = ny
+        J[5] = nz
+        k = 0
+        for a in range(6):
+            for b in range(a, 6):
+                part[c, k] += J[a] * J[b]
+                k += 1
+        for a in range(6):
+            part[c, 21 + a] += J[a] * r
+        part[c, 27] += r * r
+
+
+@njit
+def _p2l_serial(P, Q, N, part):
+    m = P.shape[0]
+    for c in range(part.shape[0]):
+        _p2l_rows(P, Q, N, part, c, c * CHUNK, min(m, (c + 1) * CHUNK))
+
+
 @njit_parallel
+def _p2l_parallel(P, Q, N, part):
+    m = P.shape[0]
+    for c in prange(part.shape[0]):
+        _p2l_rows(P, Q, N, part, c, c * CHUNK, min(m, (c + 1) * CHUNK))
+
+
 def point_to_plane_system_kernel(P, Q, N):
     """Gauss-Newton normal equations of point-to-plane ICP (Low 2004; Open3D §7).
 
     For each pair: ``r_i = (p_i - q_i) . n_i`` and ``J_i = [p_i x n_i, n_i]`` (1x6).
     Returns ``(H = sum J^T J (6x6), g = sum J^T r (6,), sum r^2)``.
     """
-    m = P.shape[0]
-    nc = n_chunks(m)
-    part = np.zeros((nc, 28))
-    for c in prange(nc):
-        J = np.empty(6)
-        for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
-            px = P[i, 0]
-            py = P[i, 1]
-            pz = P[i, 2]
-            nx = N[i, 0]
-            ny = N[i, 1]
-            nz = N[i, 2]
-            r = (px - Q[i, 0]) * nx + (py - Q[i, 1]) * ny + (pz - Q[i, 2]) * nz
-            J[0] = py * nz - pz * ny
-            J[1] = pz * nx - px * nz
-            J[2] = px * ny - py * nx
-            J[3] = nx
-            J[4] = ny
-            J[5] = nz
-            k = 0
-            for a in range(6):
-                for b in range(a, 6):
-                    part[c, k] += J[a] * J[b]
-                    k += 1
-            for a in range(6):
-                part[c, 21 + a] += J[a] * r
-            part[c, 27] += r * r
-    tot = np.zeros(28)
-    for c in range(nc):
-        for k in range(28):
-            tot[k] += part[c, k]
+    part = np.zeros((n_chunks(P.shape[0]), 28))
+    if P.shape[0] >= PARALLEL_MIN_ROWS:
+        _p2l_parallel(P, Q, N, part)
+    else:
+        _p2l_serial(P, Q, N, part)
+    tot = _add_partials(part) if part.shape[0] else np.zeros(28)
     H = np.zeros((6, 6))
-    k = 0
-    for a in range(6):
-        for b in range(a, 6):
-            H[a, b] = tot[k]
-            H[b, a] = tot[k]
-            k += 1
-    g = np.zeros(6)
-    for a in range(6):
-        g[a] = tot[21 + a]
-    return H, g, tot[27]
+    iu = np.triu_indices(6)
+    H[iu] = tot[:21]
+    H = H + np.triu(H, 1).T
+    return H, tot[21:27].copy(), float(tot[27])
 
 
-@njit_parallel
+@njit
+def _moments_q_rows(Q, part, c, start, end):
+    for i in range(start, end):
+        x = Q[i, 0]
+        y = Q[i, 1]
+        z = Q[i, 2]
+        part[c, 0] += x
+        part[c, 1] += y
+        part[c, 2] += z
+        part[c, 3] += x * x
+        part[c, 4] += y * y
+        part[c, 5] += z * z
+        part[c, 6] += x * y
+        part[c, 7] += x * z
+        part[c, 8] += y * z
+
+
+@njit
+def _moments_q_serial(Q, part):
+    m = Q.shape[0]
+    for c in range(part.shape[0]):
+        _moments_q_rows(Q, part, c, c * CHUNK, min(m, (c + 1) * CHUNK))
+
+
 def point_to_point_information_kernel(Q):
     """``sum_i G_i^T G_i`` with ``G_i = [-[q_i]x, I3]`` (3x6), Open3D's
     ``GetInformationMatrixFromPointClouds`` rows evaluated at the target points ``q_i``.
 
     Closed form from the moments: top-left ``sum(|q|^2 I - q q^T)``, top-right
-    ``[sum q]x``, bottom-left ``-[sum q]x``, bottom-right ``m I``.
+    ``[sum q]x``, bottom-left ``-[sum q]x``, bottom-right ``m I``. Computed once per
+    registration, so a serial chunked pass is enough.
     """
     m = Q.shape[0]
-    nc = n_chunks(m)
-    part = np.zeros((nc, 9))
-    for c in prange(nc):
-        for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
-            x = Q[i, 0]
-            y = Q[i, 1]
-            z = Q[i, 2]
-            part[c, 0] += x
-            part[c, 1] += y
-            part[c, 2] += z
-            part[c, 3] += x * x
-            part[c, 4] += y * y
-            part[c, 5] += z * z
-            part[c, 6] += x * y
-            part[c, 7] += x * z
-            part[c, 8] += y * z
-    s = np.zeros(9)
-    for c in range(nc):
-        for k in range(9):
-            s[k] += part[c, k]
+    part = np.zeros((n_chunks(m), 9))
+    _moments_q_serial(Q, part)
+    s = _add_partials(part) if part.shape[0] else np.zeros(9)
     H = np.zeros((6, 6))
     H[0, 0] = s[4] + s[5]
     H[1, 1] = s[3] + s[5]
     H[2, 2] = s[3] + s[4]
-    H[0, 1] = -s[6]
-    H[1, 0] = -s[6]
-    H[0, 2] = -s[7]
-    H[2, 0] = -s[7]
-    H[1, 2] = -s[8]
-    H[2, 1] = -s[8]
+    H[0, 1] = H[1, 0] = -s[6]
+    H[0, 2] = H[2, 0] = -s[7]
+    H[1, 2] = H[2, 1] = -s[8]
     # top-right block = [S]x with S = sum q ; bottom-left = its transpose (= -[S]x)
-    sx = s[0]
-    sy = s[1]
-    sz = s[2]
+    sx, sy, sz = s[0], s[1], s[2]
     H[0, 4] = -sz
     H[0, 5] = sy
     H[1, 3] = sz
     H[1, 5] = -sx
     H[2, 3] = -sy
     H[2, 4] = sx
-    for a in range(3):
-        for b in range(3, 6):
-            H[b, a] = H[a, b]
-    H[3, 3] = m
-    H[4, 4] = m
-    H[5, 5] = m
+    H[3:, :3] = H[:3, 3:].T
+    H[3, 3] = H[4, 4] = H[5, 5] = m
     return H

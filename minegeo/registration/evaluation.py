@@ -9,7 +9,7 @@ Open3D ``evaluate_registration`` semantics: ``/work/shared/specs/open3d_oracle.m
 from __future__ import annotations
 
 import numpy as np
-from pykdtree.kdtree import KDTree
+from scipy.spatial import cKDTree
 
 from minegeo._validate import as_points, as_transform, check_positive
 from minegeo.errors import InputError
@@ -26,8 +26,17 @@ def is_identity(T, tol: float = IDENTITY_TOL) -> bool:
     return bool(np.all(np.abs(np.asarray(T) - np.eye(4)) <= tol))
 
 
+#: Queries with at least this many points use ``numba.get_num_threads()`` search workers.
+PARALLEL_QUERY_MIN = 16384
+
+
+def _kdtree(Q: np.ndarray):
+    """Exact KD-tree (SciPy ``cKDTree``, sliding-midpoint build: fast to build, exact queries)."""
+    return cKDTree(Q, balanced_tree=False, compact_nodes=False)
+
+
 def build_target_index(target_points):
-    """KD-tree (pykdtree) over the target points, reusable across calls.
+    """KD-tree over the target points, reusable across calls (SciPy ``cKDTree``).
 
     Parameters
     ----------
@@ -35,14 +44,23 @@ def build_target_index(target_points):
         Target points (metres). They must be the same array later passed as ``target``.
     """
     Q = as_points(target_points, "target")
-    return KDTree(Q)
+    return _kdtree(Q)
 
 
 def _query_nn(index, P: np.ndarray, d: float, m: int) -> np.ndarray:
     """Nearest target index per row of P (``m`` = no neighbour within ~d)."""
-    if hasattr(index, "query"):
-        # slightly inflated bound: the strict gate is applied afterwards on recomputed distances
-        _, idx = index.query(P, k=1, distance_upper_bound=d * (1.0 + 1e-9) + 1e-300)
+    # slightly inflated bound: the strict gate is applied afterwards on recomputed distances
+    bound = d * (1.0 + 1e-9) + 1e-300
+    if isinstance(index, cKDTree):
+        workers = 1
+        if P.shape[0] >= PARALLEL_QUERY_MIN:
+            import numba
+
+            workers = int(numba.get_num_threads())
+        _, idx = index.query(P, k=1, distance_upper_bound=bound, workers=workers)
+        return np.ascontiguousarray(np.asarray(idx, dtype=np.int64).reshape(-1))
+    if hasattr(index, "query"):  # pykdtree.KDTree (same conventions)
+        _, idx = index.query(P, k=1, distance_upper_bound=bound)
         idx = np.asarray(idx, dtype=np.int64).reshape(-1)
         return np.ascontiguousarray(idx)
     if hasattr(index, "knn"):  # minegeo.geometry.NeighborIndex
@@ -50,7 +68,7 @@ def _query_nn(index, P: np.ndarray, d: float, m: int) -> np.ndarray:
         idx = np.asarray(nb.indices, dtype=np.int64)[:, 0].copy()
         idx[idx < 0] = m
         return np.ascontiguousarray(idx)
-    raise InputError("target_index must be a pykdtree KDTree (build_target_index) or a NeighborIndex")
+    raise InputError("target_index must be a KD-tree from build_target_index (cKDTree), a pykdtree KDTree or a NeighborIndex")
 
 
 def nearest_within(P: np.ndarray, Q: np.ndarray, index, d: float):
@@ -81,7 +99,8 @@ def evaluate_registration(source, target, T, max_correspondence_distance_m: floa
         at squared distance ``< d²`` (strict).
     target_index : optional
         A reusable search structure over ``target`` from :func:`build_target_index`
-        (or a ``minegeo.geometry.NeighborIndex``); built on the fly when omitted.
+        (a SciPy ``cKDTree``; a pykdtree ``KDTree`` or a ``minegeo.geometry.NeighborIndex`` also
+        work); built on the fly when omitted.
 
     Returns
     -------
@@ -103,7 +122,7 @@ def evaluate_registration(source, target, T, max_correspondence_distance_m: floa
     T = as_transform(T, "T")
     d = check_positive(max_correspondence_distance_m, "max_correspondence_distance_m")
     if target_index is None:
-        target_index = KDTree(Q)
+        target_index = _kdtree(Q)
     if not is_identity(T):
         P = K.transform_points_kernel(P, T)
     return _evaluate_transformed(P, Q, target_index, d)

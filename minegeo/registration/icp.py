@@ -26,7 +26,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from pykdtree.kdtree import KDTree
 
 from minegeo._provenance import StageTimer
 from minegeo._validate import as_points, as_transform
@@ -34,7 +33,7 @@ from minegeo.errors import InputError
 from minegeo.geometry.se3 import rotation_from_euler_xyz
 from minegeo.registration import _kernels as K
 from minegeo.registration.estimation import RANK_TOL
-from minegeo.registration.evaluation import _evaluate_transformed, is_identity
+from minegeo.registration.evaluation import _evaluate_transformed, _kdtree, is_identity
 
 __all__ = ["ICPParams", "ICPResult", "register_icp", "constraint_analysis", "METHODS"]
 
@@ -290,7 +289,8 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
         Target unit normals; required for ``point_to_plane``. For ``point_to_point`` they are
         only used for the degeneracy analysis (estimated by local PCA when omitted).
     target_index : optional
-        A pykdtree ``KDTree`` over ``target_points`` to reuse (built when omitted).
+        A KD-tree over ``target_points`` to reuse, from
+        :func:`minegeo.registration.build_target_index` (built when omitted).
 
     Returns
     -------
@@ -355,7 +355,7 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
     timer = StageTimer()
     if target_index is None:
         with timer("search"):
-            target_index = KDTree(Q)
+            target_index = _kdtree(Q)
 
     P = P0 if is_identity(T) else K.transform_points_kernel(P0, T)
     with timer("search"):
