@@ -17,7 +17,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--sigma-bearing-deg", type=float, default=None,
                         help="bearing noise (deg); default: from the scan file, else 0")
     parser.add_argument("--sigma-panel-m", type=float, default=0.0,
-                        help="extra panel-line uncertainty (flatness, beacon survey), m")
+                        help="extra per-return panel-line uncertainty (panel flatness), m")
+    parser.add_argument("--sigma-beacon-m", type=float, default=0.0,
+                        help="standard deviation of each surveyed beacon vertex coordinate (m); "
+                             "propagated with full correlation")
     parser.add_argument("--ccw", action="store_true", help="bearings in the file are counter-clockwise")
     parser.add_argument("--min-beacons", type=int, default=2, help="beacons that must be seen (default 2)")
     parser.add_argument("--options", default="1,2,3,4,5,6",
@@ -41,6 +44,7 @@ def run(args) -> int:
         sigma_range_m=args.sigma_range_m,
         sigma_bearing_deg=args.sigma_bearing_deg,
         sigma_panel_m=args.sigma_panel_m,
+        sigma_beacon_m=args.sigma_beacon_m,
         segmentation=SegmentationParams(options=options),
         min_beacons=args.min_beacons,
         variance=args.variance,

@@ -76,7 +76,12 @@ class MastParams:
     sigma_bearing_deg : float or None
         Bearing noise. None: from the scan file, else 0.
     sigma_panel_m : float
-        Extra per-return uncertainty of the panel lines (flatness, beacon survey).
+        Extra per-return uncertainty of the panel lines, independent between returns
+        (panel flatness).
+    sigma_beacon_m : float
+        Standard deviation of each surveyed beacon vertex coordinate (m). When > 0 the
+        vertices become parameters with pseudo-observations in the final adjustment, so the
+        survey error (shared by all returns on a panel) is propagated with its correlation.
     segmentation : SegmentationParams
     icp_gates_m : tuple of float
         Staged ICP correspondence gates.
@@ -109,6 +114,7 @@ class MastParams:
     sigma_range_m: float | None = None
     sigma_bearing_deg: float | None = None
     sigma_panel_m: float = 0.0
+    sigma_beacon_m: float = 0.0
     segmentation: SegmentationParams = field(default_factory=SegmentationParams)
     icp_gates_m: tuple = (0.20, 0.10, 0.05)
     icp_max_iterations: int = 100
@@ -129,6 +135,7 @@ class MastParams:
         if self.sigma_bearing_deg is not None:
             check_positive(self.sigma_bearing_deg, "sigma_bearing_deg", allow_zero=True)
         check_positive(self.sigma_panel_m, "sigma_panel_m", allow_zero=True)
+        check_positive(self.sigma_beacon_m, "sigma_beacon_m", allow_zero=True)
         check_positive(self.edge_margin_m, "edge_margin_m", allow_zero=True)
         check_positive(self.residual_gate_sigmas, "residual_gate_sigmas")
         if int(self.min_beacons) < 1:
@@ -338,7 +345,8 @@ def _associate(pose, bearing_rad, range_m, panels, beacon_of_panel, sig_r, sig_b
     return ok, idx, d, nrm, dropped
 
 
-def _final_adjustment(pose0, bearing_rad, range_m, panels, beacon_of_panel, sig_r, sig_b, p: MastParams):
+def _final_adjustment(pose0, bearing_rad, range_m, panels, beacon_of_panel, sig_r, sig_b, p: MastParams,
+                      vertices=None):
     pose = np.array(pose0, dtype=np.float64)
     prev = None
     res = None
@@ -354,8 +362,11 @@ def _final_adjustment(pose0, bearing_rad, range_m, panels, beacon_of_panel, sig_
             bearing_rad[sel], range_m[sel], np.ascontiguousarray(panels[idx[sel], :2]),
             np.ascontiguousarray(nrm[idx[sel]]),
         )
-        res = resect_scanner_pose(obs, pose, sig_r, sig_b, p.sigma_panel_m, LSQOptions(variance=p.variance))
-        pose = res.x.copy()
+        j = idx[sel]
+        vab = np.column_stack([4 * (j // 3) + j % 3, 4 * (j // 3) + j % 3 + 1])
+        res = resect_scanner_pose(obs, pose, sig_r, sig_b, p.sigma_panel_m, LSQOptions(variance=p.variance),
+                                  vertices_m=vertices, vertex_ab=vab, sigma_vertex_m=p.sigma_beacon_m)
+        pose = res.x[:3].copy()
     return pose, res, ok, idx, dropped
 
 
@@ -420,7 +431,8 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
     bl = [Beacon(b.beacon_id, b.vertices_m - origin) for b in beacons]
     panels = np.ascontiguousarray(np.vstack([b.panels() for b in bl]))
     beacon_of_panel = np.repeat(np.arange(len(bl)), 3)
-    noise = {"sigma_range_m": sig_r, "sigma_bearing_deg": sig_bd, "sigma_panel_m": p.sigma_panel_m}
+    noise = {"sigma_range_m": sig_r, "sigma_bearing_deg": sig_bd, "sigma_panel_m": p.sigma_panel_m,
+             "sigma_beacon_m": p.sigma_beacon_m}
     details: dict = {"origin_m": origin, "noise_model": noise, "n_returns": len(scan)}
 
     with timer("segmentation"):
@@ -532,7 +544,8 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
     with timer("adjustment"):
         try:
             pose, res, ok, idx, dropped = _final_adjustment(best["pose"], bearing_rad, rng_m, panels,
-                                                            beacon_of_panel, sig_r, sig_b, p)
+                                                            beacon_of_panel, sig_r, sig_b, p,
+                                                            np.vstack([b.vertices_m for b in bl]))
         except (TooFewPointsError, DegenerateGeometryError, ConvergenceError) as exc:
             return _fail(f"final adjustment impossible: {exc}", p, details, arrays, seg_option, icp.iterations)
     counts = np.bincount(beacon_of_panel[idx[ok]], minlength=len(bl))
@@ -558,7 +571,7 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
     if not res.converged:
         return _fail("final adjustment did not converge", p, details, arrays, seg_option, icp.iterations)
     x, y, a = pose
-    S = res.Sigma_xx.copy()
+    S = res.Sigma_xx[:3, :3].copy()
     J = np.diag([1.0, 1.0, math.degrees(1.0)])
     cov = J @ S @ J.T
     known = res.variance_used == "apriori"
@@ -568,9 +581,10 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
     arrays["points_mine"] = np.column_stack(
         [x + rng_m * np.sin(a + bearing_rad), y + rng_m * np.cos(a + bearing_rad)]
     ) + origin
-    arrays["residuals_m"] = res.v
+    n_obs = int(ok.sum())
+    arrays["residuals_m"] = res.v[:n_obs]
     details.update(
-        n_observations=len(res.v), dof=res.dof, sigma0_apriori=res.sigma0_apriori,
+        n_observations=n_obs, dof=res.dof, sigma0_apriori=res.sigma0_apriori,
         variance_used=res.variance_used, adjustment_iterations=res.iterations,
         chi2_global_test={"statistic": res.chi2.statistic, "lower": res.chi2.lower, "upper": res.chi2.upper,
                           "passed": res.chi2.passed},

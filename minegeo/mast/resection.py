@@ -29,6 +29,10 @@ of the pseudo-observation ``0`` with the propagated variance::
 (``phi_i = alpha + beta_i``, ``u_i = (sin phi_i, cos phi_i)``), weight
 ``w_i = 1 / sigma_Fi^2`` (sigma0 a priori = 1). The design row is
 ``B_i = -dF_i/d(x, y, alpha) = -(n_jx, n_jy, r_i (n_jx cos phi_i - n_jy sin phi_i))``.
+Surveyed beacon vertices may carry an uncertainty ``sigma_vertex``: the vertices then
+become parameters with pseudo-observations (their surveyed coordinates), which
+propagates the beacon survey error with its full correlation between all returns on a
+panel (``dF/dA = -(1 - t) n``, ``dF/dB = -t n``, ``t`` = position along the panel).
 The noise model (``sigma_r``, ``sigma_beta``) must be the scanner's: the
 Monte Carlo coverage test in ``tests/mast`` and ``benchmarks/bench_mast.py`` is the
 check that these weights describe the simulated noise.
@@ -94,6 +98,40 @@ def condition_sigmas(
     return np.sqrt((nu * sigma_range_m) ** 2 + (J[:, 2] * sigma_bearing_rad) ** 2 + sigma_panel_m**2)
 
 
+def _augmented_model(obs: ResectionObservations, vertex_ab: np.ndarray, nv: int, xall: np.ndarray):
+    """Conditions (M5) with the beacon vertices as parameters, plus their pseudo-observations.
+
+    For a return on the panel from vertex ``A`` to ``B`` (``L = |B - A|``, unit direction
+    ``u``, left normal ``n``) and ``t = u . (p - A) / L``:
+    ``dF/dA = -(1 - t) n`` and ``dF/dB = -t n`` (a vertex error moves the line by its
+    interpolated displacement along the normal).
+    """
+    x = xall[:3]
+    V = xall[3:].reshape(nv, 2)
+    A = V[vertex_ab[:, 0]]
+    Bv = V[vertex_ab[:, 1]]
+    e = Bv - A
+    L = np.hypot(e[:, 0], e[:, 1])
+    u = e / L[:, None]
+    nrm = np.column_stack([-u[:, 1], u[:, 0]])
+    phi = x[2] + obs.bearing_rad
+    sp, cp = np.sin(phi), np.cos(phi)
+    q = np.column_stack([x[0] + obs.range_m * sp, x[1] + obs.range_m * cp]) - A
+    F = np.einsum("ij,ij->i", nrm, q)
+    t = np.einsum("ij,ij->i", u, q) / L
+    n = len(obs)
+    J = np.zeros((n + 2 * nv, 3 + 2 * nv))
+    J[:n, 0] = nrm[:, 0]
+    J[:n, 1] = nrm[:, 1]
+    J[:n, 2] = obs.range_m * (nrm[:, 0] * cp - nrm[:, 1] * sp)
+    rows = np.arange(n)
+    for c in range(2):
+        np.add.at(J, (rows, 3 + 2 * vertex_ab[:, 0] + c), -(1.0 - t) * nrm[:, c])
+        np.add.at(J, (rows, 3 + 2 * vertex_ab[:, 1] + c), -t * nrm[:, c])
+    J[n:, 3:] = np.eye(2 * nv)
+    return np.concatenate([F, xall[3:]]), J
+
+
 def resect_scanner_pose(
     obs: ResectionObservations,
     x0,
@@ -101,6 +139,10 @@ def resect_scanner_pose(
     sigma_bearing_rad: float = 0.0,
     sigma_panel_m: float = 0.0,
     options: LSQOptions | None = None,
+    *,
+    vertices_m: np.ndarray | None = None,
+    vertex_ab: np.ndarray | None = None,
+    sigma_vertex_m: float = 0.0,
 ) -> LSQResult:
     """Weighted least-squares scanner pose ``(x_m, y_m, azimuth_rad)`` from returns on known lines.
 
@@ -112,14 +154,26 @@ def resect_scanner_pose(
     sigma_range_m, sigma_bearing_rad : float
         Scanner noise model (one range, one bearing).
     sigma_panel_m : float
-        Extra per-return line uncertainty (panel flatness, beacon survey), added in quadrature.
+        Extra per-return line uncertainty, independent from return to return (panel
+        flatness), added in quadrature.
     options : LSQOptions, optional
         Default: a-posteriori variance (``Sigma = sigma0^2 (B^T W B)^-1``).
+    vertices_m : (V, 2) float64, optional
+        Surveyed beacon vertices (local mine frame); with ``vertex_ab`` and
+        ``sigma_vertex_m > 0`` they become parameters with pseudo-observations of standard
+        deviation ``sigma_vertex_m`` per coordinate, so the survey error of the beacons —
+        shared by every return on a panel — is propagated with its full correlation
+        (instead of being treated as independent per return).
+    vertex_ab : (n, 2) int, optional
+        Indices into ``vertices_m`` of the start ``A`` and end ``B`` of each return's panel;
+        ``line_normal`` must be the left normal of ``A -> B``.
+    sigma_vertex_m : float
 
     Returns
     -------
     LSQResult
-        Parameters ``x_m, y_m, azimuth_rad`` (azimuth not wrapped), ``Sigma_xx`` etc.
+        Parameters ``x_m, y_m, azimuth_rad`` (azimuth not wrapped) first, then the adjusted
+        vertex coordinates if they were parameters; ``Sigma_xx`` etc.
 
     Raises
     ------
@@ -143,14 +197,30 @@ def resect_scanner_pose(
     sig = np.maximum(sig, floor)
     w = 1.0 / sig**2
 
+    opts = options or LSQOptions(variance="aposteriori")
+    if sigma_vertex_m > 0:
+        if vertices_m is None or vertex_ab is None:
+            raise InputError("sigma_vertex_m > 0 needs vertices_m and vertex_ab")
+        V = np.asarray(vertices_m, dtype=np.float64)
+        ab = np.asarray(vertex_ab, dtype=np.int64)
+        if ab.shape != (n, 2) or V.ndim != 2 or V.shape[1] != 2 or ab.min() < 0 or ab.max() >= len(V):
+            raise InputError("vertex_ab must be (n, 2) indices into vertices_m (V, 2)")
+        nv = len(V)
+        l_obs = np.concatenate([np.zeros(n), V.ravel()])
+        w_all = np.concatenate([w, np.full(2 * nv, 1.0 / sigma_vertex_m**2)])
+
+        def fun_aug(xall):
+            F, J = _augmented_model(obs, ab, nv, xall)
+            return F - l_obs, -J
+
+        names = ("x_m", "y_m", "azimuth_rad") + tuple(f"v{k}_{c}" for k in range(nv) for c in "xy")
+        return adjust(fun_aug, np.concatenate([x0, V.ravel()]), w_all, options=opts, param_names=names)
+
     def fun(x):
         F, J, _ = _model(obs, x)
         return F, -J
 
-    return adjust(
-        fun, x0, w, options=options or LSQOptions(variance="aposteriori"),
-        param_names=("x_m", "y_m", "azimuth_rad"),
-    )
+    return adjust(fun, x0, w, options=opts, param_names=("x_m", "y_m", "azimuth_rad"))
 
 
 def wrap_deg(a: float) -> float:

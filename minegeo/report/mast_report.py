@@ -39,7 +39,8 @@ def mast_report_text(result, inputs: dict | None = None, plot_name: str | None =
         "## Noise model used for the weights",
         "",
         f"- range σ_r = {_f(nm.get('sigma_range_m'), '.4f')} m, bearing σ_β = "
-        f"{_f(nm.get('sigma_bearing_deg'), '.5f')}°, panel σ = {_f(nm.get('sigma_panel_m'), '.4f')} m",
+        f"{_f(nm.get('sigma_bearing_deg'), '.5f')}°, panel σ = {_f(nm.get('sigma_panel_m'), '.4f')} m, "
+        f"beacon vertex σ = {_f(nm.get('sigma_beacon_m'), '.4f')} m",
         f"- returns in the scan: {d.get('n_returns')}, straight lines found: {d.get('n_lines')}",
         "",
     ]

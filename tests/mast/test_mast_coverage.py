@@ -55,3 +55,28 @@ def test_monte_carlo_coverage_of_95_percent_regions(opts):
     lo, hi = (v / solved for v in stats.binom.interval(0.999, solved, 0.95))
     assert lo <= in_ell / solved <= hi, (in_ell / solved, lo, hi)
     assert lo <= in_az / solved <= hi, (in_az / solved, lo, hi)
+
+
+@pytest.mark.slow
+def test_beacon_survey_error_is_propagated_when_stated():
+    """Beacons surveyed with 2 mm error: honest only if ``sigma_beacon_m`` says so."""
+    from minegeo.mast import Beacon, MastParams
+
+    opts = MastScenarioOptions(position=2, beacon1_rotation_deg=10.0, angular_step_deg=0.5)
+    world = build_mast_world(opts, np.random.default_rng(1))
+    x, y, _ = opts.truth_pose()
+    n = 200
+    hits = {0.0: 0, 0.002: 0}
+    solved = {0.0: 0, 0.002: 0}
+    for k in range(n):
+        rng = np.random.default_rng([5, k])
+        scan, _ = world.noisy_scan(rng)
+        surveyed = [Beacon(b.beacon_id, b.vertices_m + rng.normal(size=(4, 2)) * 0.002) for b in world.beacons]
+        for sv in hits:
+            res = locate_scanner(scan, surveyed, MastParams(sigma_beacon_m=sv))
+            if res.ok:
+                solved[sv] += 1
+                hits[sv] += inside_reported_ellipse(res, x, y)
+    lo, hi = (v / solved[0.002] for v in stats.binom.interval(0.999, solved[0.002], 0.95))
+    assert lo <= hits[0.002] / solved[0.002] <= hi
+    assert hits[0.0] / solved[0.0] < 0.85  # ignoring the survey error overstates the precision
