@@ -972,6 +972,58 @@ def voxel_keys(points, origin, voxel, out_keys):
             out_keys[i, a] = np.int64(np.floor((points[i, a] - origin[a]) / voxel))
 
 
+@njit
+def bounds3(points):
+    """(min (3,), max (3,)) of an (n, 3) array in one pass (exact, order-independent)."""
+    lo = points[0].copy()
+    hi = points[0].copy()
+    for i in range(1, points.shape[0]):
+        for a in range(3):
+            v = points[i, a]
+            if v < lo[a]:
+                lo[a] = v
+            if v > hi[a]:
+                hi[a] = v
+    return lo, hi
+
+
+@njit_parallel
+def voxel_linear_keys(points, origin, voxel, d1, d2, out_keys):
+    """Linear voxel key ``(kx*d1 + ky)*d2 + kz`` with ``k = floor((p - origin) / voxel)``."""
+    for i in prange(points.shape[0]):
+        kx = np.int64(np.floor((points[i, 0] - origin[0]) / voxel))
+        ky = np.int64(np.floor((points[i, 1] - origin[1]) / voxel))
+        kz = np.int64(np.floor((points[i, 2] - origin[2]) / voxel))
+        out_keys[i] = (kx * d1 + ky) * d2 + kz
+
+
+@njit
+def group_starts(keys, order):
+    """Start offsets (m+1,) of the runs of equal ``keys[order]`` (order sorts the keys)."""
+    n = order.shape[0]
+    m = 1
+    for j in range(1, n):
+        if keys[order[j]] != keys[order[j - 1]]:
+            m += 1
+    starts = np.empty(m + 1, dtype=np.int64)
+    starts[0] = 0
+    g = 1
+    for j in range(1, n):
+        if keys[order[j]] != keys[order[j - 1]]:
+            starts[g] = j
+            g += 1
+    starts[m] = n
+    return starts
+
+
+@njit_parallel
+def group_members(order, starts, out_group):
+    """``out_group[order[j]] = g`` for every j in group g."""
+    for g in prange(starts.shape[0] - 1):
+        for j in range(starts[g], starts[g + 1]):
+            out_group[order[j]] = g
+
+
 @njit_parallel
 def voxel_reduce(points, normals, has_normals, order, starts, out_points, out_normals):
     """Per-voxel mean in input order; normals summed skipping NaN rows and divided by the count."""

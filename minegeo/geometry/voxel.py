@@ -94,8 +94,7 @@ def voxel_downsample(points, voxel_size_m: float, normals=None, attributes=None)
     pts = as_points(points, "points", min_points=1)
     v = check_positive(voxel_size_m, "voxel_size_m")
     n = pts.shape[0]
-    bmin = pts.min(axis=0)
-    bmax = pts.max(axis=0)
+    bmin, bmax = K.bounds3(pts)
     if v * _INT_MAX < float(np.max(bmax - bmin)):
         raise InputError(
             f"voxel_size_m={v} is too small for a cloud extent of {float(np.max(bmax - bmin)):.3f} m "
@@ -109,29 +108,33 @@ def voxel_downsample(points, voxel_size_m: float, normals=None, attributes=None)
         if np.isinf(nrm).any():
             raise InputError("normals contain inf values")
     origin = bmin - v * 0.5
-    keys = np.empty((n, 3), dtype=np.int64)
-    K.voxel_keys(pts, origin, v, keys)
-    dims = keys.max(axis=0) + 1
-    if int(dims[0]) * int(dims[1]) * int(dims[2]) < 2**62:
-        lin = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-        order = K.radix_argsort(np.ascontiguousarray(lin))
-        sl = lin[order]
-        change = np.flatnonzero(sl[1:] != sl[:-1]) + 1
+    # the largest key per axis is the key of the max bound (floor is monotone)
+    dims = [int(np.floor((bmax[a] - origin[a]) / v)) + 1 for a in range(3)]
+    if dims[0] * dims[1] * dims[2] < 2**62:
+        lin = np.empty(n, dtype=np.int64)
+        K.voxel_linear_keys(pts, origin, v, dims[1], dims[2], lin)
+        order = K.radix_argsort(lin)
+        starts = K.group_starts(lin, order)
+        first = order[starts[:-1]]
+        kf = lin[first]
+        out_keys = np.stack([kf // (dims[1] * dims[2]), (kf // dims[2]) % dims[1], kf % dims[2]], axis=1)
     else:  # pragma: no cover - needs > 2^62 cells
-        order = np.lexsort((keys[:, 2], keys[:, 1], keys[:, 0]))
+        keys = np.empty((n, 3), dtype=np.int64)
+        K.voxel_keys(pts, origin, v, keys)
+        order = np.ascontiguousarray(np.lexsort((keys[:, 2], keys[:, 1], keys[:, 0])), dtype=np.int64)
         sk = keys[order]
         change = np.flatnonzero(np.any(sk[1:] != sk[:-1], axis=1)) + 1
-    order = np.ascontiguousarray(order, dtype=np.int64)
-    starts = np.concatenate(([0], change, [n])).astype(np.int64)
+        starts = np.concatenate(([0], change, [n])).astype(np.int64)
+        first = order[starts[:-1]]
+        out_keys = keys[first]
     m = starts.shape[0] - 1
     out_p = np.empty((m, 3))
     out_n = np.empty((m, 3)) if nrm is not None else np.empty((0, 3))
     K.voxel_reduce(pts, nrm if nrm is not None else np.empty((0, 3)), nrm is not None, order, starts,
                    out_p, out_n)
     counts = np.diff(starts)
-    first = order[starts[:-1]]
     point_voxel = np.empty(n, dtype=np.int64)
-    point_voxel[order] = np.repeat(np.arange(m, dtype=np.int64), counts)
+    K.group_members(order, starts, point_voxel)
     out_attr = {}
     for name, val in (attributes or {}).items():
         a = np.asarray(val)
@@ -144,5 +147,5 @@ def voxel_downsample(points, voxel_size_m: float, normals=None, attributes=None)
             out_attr[name] = red.reshape((m,) + a.shape[1:])
         else:
             out_attr[name] = a[first]
-    return VoxelResult(out_p, out_n if nrm is not None else None, counts, keys[first], point_voxel,
+    return VoxelResult(out_p, out_n if nrm is not None else None, counts, out_keys, point_voxel,
                        out_attr, origin, v)
