@@ -351,14 +351,14 @@ SCAN_PLANS: dict[str, tuple] = {
         ScanSpec("sump", 10.0, "flash", "handheld", 25_000),
     ),
     "paper": (
-        ScanSpec("irregular_roof", 20.0, "zebrevo", "walk", 2_000_000),
-        ScanSpec("curve", 20.0, "velodyne16", "walk", 2_000_000),
-        ScanSpec("intersection:X", 20.0, "velodyne16", "walk", 2_000_000),
-        ScanSpec("intersection:T", 20.0, "zebrevo", "walk", 2_000_000),
-        ScanSpec("regular", 20.0, "zebrevo", "walk", 2_000_000, vehicle="moved"),
-        ScanSpec("sump", 20.0, "flash", "handheld", 2_000_000),
-        ScanSpec("regular", 10.0, "velodyne16", "walk", 2_000_000, noise_sigma_m=0.08),
-        ScanSpec("irregular_roof", 30.0, "zebrevo", "walk", 2_000_000),
+        ScanSpec("irregular_roof", 20.0, "zebrevo", "walk", 1_000_000),
+        ScanSpec("curve", 20.0, "velodyne16", "walk", 1_000_000),
+        ScanSpec("intersection:X", 20.0, "velodyne16", "walk", 1_000_000),
+        ScanSpec("intersection:T", 20.0, "zebrevo", "walk", 1_000_000),
+        ScanSpec("regular", 20.0, "zebrevo", "walk", 1_000_000, vehicle="moved"),
+        ScanSpec("sump", 20.0, "flash", "handheld", 1_000_000),
+        ScanSpec("regular", 10.0, "velodyne16", "walk", 1_000_000, noise_sigma_m=0.08),
+        ScanSpec("irregular_roof", 30.0, "zebrevo", "walk", 1_000_000),
     ),
 }
 

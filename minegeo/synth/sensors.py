@@ -264,8 +264,12 @@ def deskew(cloud: PointCloud, trajectory: Trajectory, T_target_world=None) -> Po
     """
     if "time_s" not in cloud.attributes:
         raise InputError("cloud has no per-point 'time_s' attribute; cannot deskew")
-    R, o = _Interp(trajectory)(cloud.attributes["time_s"])
-    P = np.einsum("nij,nj->ni", R, cloud.points) + o
+    interp = _Interp(trajectory)
+    t = cloud.attributes["time_s"]
+    P = np.empty_like(cloud.points)
+    for c0 in range(0, len(t), 1_000_000):  # bounded memory for maps of 1e7 points
+        R, o = interp(t[c0:c0 + 1_000_000])
+        P[c0:c0 + 1_000_000] = np.einsum("nij,nj->ni", R, cloud.points[c0:c0 + 1_000_000]) + o
     frame = trajectory.frame
     if T_target_world is not None:
         T = as_transform(T_target_world, "T_target_world")
