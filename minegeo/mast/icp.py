@@ -26,7 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from minegeo.errors import DegenerateGeometryError, TooFewPointsError
+from minegeo._validate import as_matrix, as_points
+from minegeo.errors import DegenerateGeometryError, InputError, TooFewPointsError
 from minegeo.mast._kernels import _nearest_segment
 
 __all__ = ["IcpResult", "icp_point_to_line", "rot2"]
@@ -105,8 +106,11 @@ def icp_point_to_line(
     DegenerateGeometryError
         All correspondences on parallel lines (the normal matrix is singular).
     """
-    s = np.ascontiguousarray(points_scan, dtype=np.float64)
-    segs = np.ascontiguousarray(panels, dtype=np.float64)
+    s = as_points(points_scan, "points_scan", dim=2, min_points=min_points)
+    segs = as_matrix(panels, (-1, 4), "panels")
+    T0 = as_matrix(T0, (3, 3), "T0")
+    if segs.shape[0] == 0 or np.any(np.hypot(segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1]) <= 0):
+        raise InputError("panels must be non-empty segments of positive length")
     e = segs[:, 2:] - segs[:, :2]
     u = e / np.linalg.norm(e, axis=1)[:, None]
     nrm = np.column_stack([-u[:, 1], u[:, 0]])

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from minegeo._validate import as_points
 from minegeo.errors import InputError, TooFewPointsError
 from minegeo.survey import LSQOptions, LSQResult, adjust
 
@@ -69,6 +70,23 @@ class ResectionObservations:
     range_m: np.ndarray
     line_point: np.ndarray
     line_normal: np.ndarray
+
+    def __post_init__(self) -> None:
+        b = np.ascontiguousarray(np.asarray(self.bearing_rad, dtype=np.float64).reshape(-1))
+        r = np.ascontiguousarray(np.asarray(self.range_m, dtype=np.float64).reshape(-1))
+        n = b.size
+        a = as_points(self.line_point, "line_point", dim=2, min_points=0)
+        nn = as_points(self.line_normal, "line_normal", dim=2, min_points=0)
+        if r.size != n or a.shape[0] != n or nn.shape[0] != n:
+            raise InputError("bearing_rad, range_m, line_point and line_normal must have the same length")
+        if not (np.isfinite(b).all() and np.isfinite(r).all()) or np.any(r <= 0):
+            raise InputError("bearings must be finite and ranges finite and > 0")
+        if n and not np.allclose(np.hypot(nn[:, 0], nn[:, 1]), 1.0, atol=1e-9):
+            raise InputError("line_normal rows must be unit vectors")
+        object.__setattr__(self, "bearing_rad", b)
+        object.__setattr__(self, "range_m", r)
+        object.__setattr__(self, "line_point", a)
+        object.__setattr__(self, "line_normal", nn)
 
     def __len__(self) -> int:
         return int(self.range_m.size)

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from minegeo._validate import check_positive
+from minegeo._validate import as_points, check_positive
 from minegeo.errors import InputError
 from minegeo.mast._kernels import _grow_segments, _split_segments
 from minegeo.mast.beacons import Beacon
@@ -213,7 +213,12 @@ def segment_scan(
     list of LineSegment
     """
     p = params or SegmentationParams()
+    xy = as_points(xy, "xy", dim=2, min_points=0)
     n = xy.shape[0]
+    range_m = np.asarray(range_m, dtype=np.float64).reshape(-1)
+    bearing_deg = np.asarray(bearing_deg, dtype=np.float64).reshape(-1)
+    if range_m.size != n or bearing_deg.size != n:
+        raise InputError("xy, range_m and bearing_deg must have the same length")
     if n < p.min_points:
         return []
     sb = math.radians(sigma_bearing_deg)
