@@ -87,3 +87,15 @@ def test_warmup_compiles():
     from minegeo.mast import _warmup
 
     _warmup()
+
+
+def test_cli_beacon_survey_sigma_enlarges_ellipse(tmp_path):
+    paths = write_mast_scenario(tmp_path / "sc", seed=4, position=4)
+    args = ["mast", "--scan", str(paths["scan"]), "--beacons", str(paths["beacons"])]
+    assert main(args + ["--out", str(tmp_path / "a")]) == 0
+    assert main(args + ["--out", str(tmp_path / "b"), "--sigma-beacon-m", "0.002"]) == 0
+    a = json.loads((tmp_path / "a" / "result.json").read_text())
+    b = json.loads((tmp_path / "b" / "result.json").read_text())
+    assert b["details"]["noise_model"]["sigma_beacon_m"] == 0.002
+    assert b["ellipse95"]["a_m"] > 1.2 * a["ellipse95"]["a_m"]
+    assert b["details"]["dof"] == a["details"]["dof"]  # pseudo-observations add as many unknowns
