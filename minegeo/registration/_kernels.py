@@ -438,3 +438,68 @@ def point_to_point_information_kernel(Q):
     H[3:, :3] = H[:3, 3:].T
     H[3, 3] = H[4, 4] = H[5, 5] = m
     return H
+
+
+# ----------------------------------------------------------------------------- PCA normals
+
+
+@njit
+def _pca_rows(Q, nb, out, start, end):
+    k = nb.shape[1]
+    C = np.empty((3, 3))
+    for i in range(start, end):
+        mx = 0.0
+        my = 0.0
+        mz = 0.0
+        for a in range(k):
+            j = nb[i, a]
+            mx += Q[j, 0]
+            my += Q[j, 1]
+            mz += Q[j, 2]
+        mx /= k
+        my /= k
+        mz /= k
+        for r in range(3):
+            for c in range(3):
+                C[r, c] = 0.0
+        for a in range(k):
+            j = nb[i, a]
+            dx = Q[j, 0] - mx
+            dy = Q[j, 1] - my
+            dz = Q[j, 2] - mz
+            C[0, 0] += dx * dx
+            C[0, 1] += dx * dy
+            C[0, 2] += dx * dz
+            C[1, 1] += dy * dy
+            C[1, 2] += dy * dz
+            C[2, 2] += dz * dz
+        C[1, 0] = C[0, 1]
+        C[2, 0] = C[0, 2]
+        C[2, 1] = C[1, 2]
+        _, V = np.linalg.eigh(C)
+        out[i, 0] = V[0, 0]
+        out[i, 1] = V[1, 0]
+        out[i, 2] = V[2, 0]
+
+
+@njit
+def _pca_serial(Q, nb, out):
+    _pca_rows(Q, nb, out, 0, nb.shape[0])
+
+
+@njit_parallel
+def _pca_parallel(Q, nb, out):
+    m = nb.shape[0]
+    for c in prange(n_chunks(m)):
+        _pca_rows(Q, nb, out, c * CHUNK, min(m, (c + 1) * CHUNK))
+
+
+def pca_normals_kernel(Q, nb):
+    """Unit normal (eigenvector of the smallest eigenvalue of the neighbourhood covariance) per row
+    of the (m, k) neighbour index array ``nb`` into ``Q``; sign as returned by LAPACK."""
+    out = np.empty((nb.shape[0], 3))
+    if nb.shape[0] >= PARALLEL_MIN_ROWS // 8:
+        _pca_parallel(Q, nb, out)
+    else:
+        _pca_serial(Q, nb, out)
+    return out

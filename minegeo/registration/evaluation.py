@@ -27,7 +27,7 @@ def is_identity(T, tol: float = IDENTITY_TOL) -> bool:
 
 
 #: Queries with at least this many points use ``numba.get_num_threads()`` search workers.
-PARALLEL_QUERY_MIN = 16384
+PARALLEL_QUERY_MIN = 1024
 
 
 def _kdtree(Q: np.ndarray):

@@ -25,6 +25,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from minegeo._provenance import StageTimer
@@ -240,15 +241,19 @@ def constraint_analysis(points, normals, threshold: float = 1e-2):
 
 
 def _pca_normals(Q: np.ndarray, index, idx: np.ndarray, k: int = PCA_NEIGHBOURS) -> np.ndarray:
-    """Unit normals at target points ``Q[idx]`` from the PCA of their ``k`` nearest target points."""
+    """Unit normals at target points ``Q[idx]`` from the PCA of their ``k`` nearest target points.
+
+    Only used for the degeneracy analysis, where the normal's sign does not matter.
+    """
     kk = min(k, Q.shape[0])
-    _, nb = index.query(Q[idx], k=kk)
-    nb = np.asarray(nb, dtype=np.int64).reshape(idx.size, kk)
-    X = Q[nb]  # (m, k, 3)
-    X = X - X.mean(axis=1, keepdims=True)
-    C = np.einsum("mki,mkj->mij", X, X)
-    _, vec = np.linalg.eigh(C)
-    return np.ascontiguousarray(vec[:, :, 0])
+    uniq, inv = np.unique(idx, return_inverse=True)
+    workers = 1 if uniq.size < 2048 else int(numba.get_num_threads())
+    if hasattr(index, "n"):  # scipy cKDTree
+        _, nb = index.query(Q[uniq], k=kk, workers=workers)
+    else:
+        _, nb = index.query(Q[uniq], k=kk)
+    nb = np.ascontiguousarray(np.asarray(nb, dtype=np.int64).reshape(uniq.size, kk))
+    return np.ascontiguousarray(K.pca_normals_kernel(Q, nb)[inv.reshape(-1)])
 
 
 def _euler6_to_transform(x: np.ndarray) -> np.ndarray:

@@ -242,6 +242,15 @@ def test_reductions_independent_of_thread_count_and_driver(rng):
     assert np.array_equal(s1, s2) and np.array_equal(t1, t2)
 
 
+def test_pca_normals_kernel_matches_numpy(rng):
+    Q = rng.normal(size=(400, 3)) * [3.0, 2.0, 0.1]
+    nb = np.ascontiguousarray(rng.integers(0, 400, size=(300, 10)))
+    n = K.pca_normals_kernel(Q, nb)
+    X = Q[nb] - Q[nb].mean(axis=1, keepdims=True)
+    ref = np.linalg.eigh(np.einsum("mki,mkj->mij", X, X))[1][:, :, 0]
+    np.testing.assert_allclose(np.abs((n * ref).sum(1)), 1.0, atol=1e-9)
+
+
 # ---------------------------------------------------------------- pose covariance
 
 
