@@ -137,14 +137,14 @@ def _solid_sdf(px, py, pz, S, i, typ):
 
 
 @njit
-def _noise_parts(px, py, pz, waves, octaves, zones):
-    """Seeded multi-scale roughness (m), returned as (overbreak part, texture part).
+def _overbreak(px, py, pz, waves, octaves, zones):
+    """Overbreak part of the roughness (m), >= 0: the mode-0 octaves times the zone factor.
 
     Random-phase sums of plane waves per octave: for an octave with ``N`` waves,
     ``S = sqrt(2/N) sum_k sin(w_k . p + phi_k)`` has unit variance and is squashed by
     ``S / sqrt(1 + S^2)`` into (-1, 1). Overbreak octaves (mode 0) contribute
     ``a (1 + squash) / 2`` in [0, a], multiplied by the zone factor
-    ``1 + sum_j b_j exp(-|p - c_j|^2 / r_j^2)``; texture octaves (mode 1) ``a squash``.
+    ``1 + sum_j b_j exp(-|p - c_j|^2 / r_j^2)``.
     """
     mult = 1.0
     for j in range(zones.shape[0]):
@@ -156,20 +156,40 @@ def _noise_parts(px, py, pz, waves, octaves, zones):
         if d2 < 9.0 * r2:
             mult += zones[j, 4] * math.exp(-d2 / r2)
     ob = 0.0
-    tex = 0.0
     for o in range(octaves.shape[0]):
+        if octaves[o, 3] != 0.0:
+            continue
         k0 = int(octaves[o, 0])
         n = int(octaves[o, 1])
         acc = 0.0
         for k in range(k0, k0 + n):
             acc += math.sin(waves[k, 0] * px + waves[k, 1] * py + waves[k, 2] * pz + waves[k, 3])
         S = acc * math.sqrt(2.0 / n)
-        sq = S / math.sqrt(1.0 + S * S)
+        ob += mult * octaves[o, 2] * 0.5 * (1.0 + S / math.sqrt(1.0 + S * S))
+    return ob
+
+
+@njit
+def _texture(px, py, pz, waves, octaves):
+    """Texture part of the roughness (m): mode-1 octaves, ``a S / sqrt(1 + S^2)`` in (-a, a)."""
+    tex = 0.0
+    for o in range(octaves.shape[0]):
         if octaves[o, 3] == 0.0:
-            ob += mult * octaves[o, 2] * 0.5 * (1.0 + sq)
-        else:
-            tex += octaves[o, 2] * sq
-    return ob, tex
+            continue
+        k0 = int(octaves[o, 0])
+        n = int(octaves[o, 1])
+        acc = 0.0
+        for k in range(k0, k0 + n):
+            acc += math.sin(waves[k, 0] * px + waves[k, 1] * py + waves[k, 2] * pz + waves[k, 3])
+        S = acc * math.sqrt(2.0 / n)
+        tex += octaves[o, 2] * S / math.sqrt(1.0 + S * S)
+    return tex
+
+
+@njit
+def _noise_parts(px, py, pz, waves, octaves, zones):
+    """Seeded multi-scale roughness (m) as (overbreak part, texture part)."""
+    return _overbreak(px, py, pz, waves, octaves, zones), _texture(px, py, pz, waves, octaves)
 
 
 @njit
@@ -322,14 +342,19 @@ def cast_rays(O, D, max_range, step_factor, min_step, max_iter, tol,
             if lb > 0.1:
                 step = 0.97 * lb
             else:
-                f = base
                 lb2 = base
+                ob = 0.0
                 if with_noise:
-                    ob, tex = _noise_parts(px, py, pz, waves, octaves, zones)
-                    f += ob + tex
+                    ob = _overbreak(px, py, pz, waves, octaves, zones)
                     lb2 += ob + noise_min
-                if s < f:
-                    f = s
+                if lb2 > 0.02 and s > 0.02:
+                    f = lb2  # f >= lb2 > 0: no crossing here, the texture is not needed
+                else:
+                    f = base
+                    if with_noise:
+                        f += ob + _texture(px, py, pz, waves, octaves)
+                    if s < f:
+                        f = s
                 if f <= 0.0:
                     if it == 0:
                         break  # origin inside rock or a structure
