@@ -324,9 +324,9 @@ def main(argv=None) -> int:
     if a.quick:
         results = run_set(data, light_params(0.4), threads, repeats, seeds=3, budget=20_000, quick=True, only=only)
     else:
-        results = run_set(data, light_params(0.2), threads, repeats, seeds=10, budget=100_000, quick=False,
+        results = run_set(data, light_params(0.2), threads, repeats, seeds=5, budget=100_000, quick=False,
                           only=only)
-        results["paper"] = run_set(data, PAPER, threads, repeats, seeds=10, budget=100_000, quick=False,
+        results["paper"] = run_set(data, PAPER, threads, repeats, seeds=5, budget=100_000, quick=False,
                                    only=only)
     meta = {"quick": a.quick, "threads": threads, "seed": a.seed, "repeats": repeats,
             "map_raw_points": int(len(data["map"])), "scan_raw_points": int(len(data["scan"])),

@@ -62,3 +62,12 @@ def _warmup() -> None:
     sw, mp, mq, W, vp = K.weighted_moments_kernel(P, Q, w)
     K.umeyama_from_moments(mp, mq, W, vp, False)
     K.umeyama_small_kernel(P, Q, False)
+    # the RANSAC kernels of this package live in ransac.py (features engineer's module)
+    import importlib
+
+    try:
+        ransac = importlib.import_module("minegeo.registration.ransac")
+    except ImportError:
+        ransac = None
+    if ransac is not None and hasattr(ransac, "_warmup"):
+        ransac._warmup()
