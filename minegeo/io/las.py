@@ -31,6 +31,10 @@ from minegeo.io.types import PointCloud
 
 __all__ = ["read_las_bytes", "write_las_bytes"]
 
+#: largest plausible LAZ compression ratio (uncompressed / compressed bytes) before a header
+#: point count is treated as corrupt; real LiDAR compresses 5-15x
+_MAX_LAZ_RATIO = 200
+
 
 def _laspy():
     try:
@@ -51,6 +55,88 @@ def crs_to_string(crs) -> str:
     return crs.to_wkt()
 
 
+def _check_record_counts(path, data: bytes) -> None:
+    """Bound the header's VLR/EVLR counts by the file size (ASPRS LAS 1.4 R15, Table 3).
+
+    laspy loops over the declared number of VLRs, so a corrupt count (up to 2^32) would
+    hang; a VLR header is 54 bytes and must fit between the header and the point data,
+    an EVLR header is 60 bytes and must fit in the file.
+    """
+    if len(data) < 227:
+        raise FileFormatError(path, f"file truncated: {len(data)} bytes, a LAS header has at least 227")
+    header_size = int.from_bytes(data[94:96], "little")
+    offset_points = int.from_bytes(data[96:100], "little")
+    n_vlr = int.from_bytes(data[100:104], "little")
+    if header_size < 227 or header_size > offset_points or offset_points > len(data):
+        raise FileFormatError(
+            path,
+            f"corrupt or truncated LAS header (header size {header_size}, point data at byte {offset_points}, "
+            f"file {len(data)} bytes)",
+        )
+    if n_vlr * 54 > offset_points - header_size:
+        raise FileFormatError(
+            path, f"corrupt LAS header: {n_vlr} VLRs cannot fit in the {offset_points - header_size} bytes before the points"
+        )
+    if data[25] >= 4 and header_size >= 247:  # LAS 1.4: extended VLRs after the points
+        start = int.from_bytes(data[235:243], "little")
+        n_evlr = int.from_bytes(data[243:247], "little")
+        if n_evlr and start + n_evlr * 60 > len(data):
+            raise FileFormatError(
+                path, f"corrupt or truncated LAS file: {n_evlr} extended VLRs declared at byte {start} beyond the end"
+            )
+
+
+def _check_laszip_vlr(path, hdr, rec: int) -> None:
+    """Check the LASzip VLR (user id ``laszip encoded``, record 22204) before decoding.
+
+    Layout (LASzip specification): ``u16 compressor, u16 coder, u8 u8 u16 version, u32 options,
+    u32 chunk_size, i64, i64, u16 num_items`` then ``num_items x (u16 type, u16 size, u16
+    version)``. The item sizes must add up to the point record length, and the chunk size must
+    be "variable" (``0xFFFFFFFF``) or small enough that one chunk fits in memory.
+    """
+    vlr = next((v for v in hdr.vlrs if getattr(v, "record_id", None) == 22204), None)
+    if vlr is None:
+        raise FileFormatError(path, "LAZ file without its LASzip VLR (corrupt header)")
+    try:
+        raw = bytes(vlr.record_data_bytes())
+    except Exception as exc:
+        raise FileFormatError(path, f"unreadable LASzip VLR ({exc})") from None
+    if len(raw) < 34:
+        raise FileFormatError(path, "LASzip VLR truncated")
+    chunk = int.from_bytes(raw[12:16], "little")
+    n_items = int.from_bytes(raw[32:34], "little")
+    if len(raw) < 34 + 6 * n_items:
+        raise FileFormatError(path, f"LASzip VLR declares {n_items} items but is {len(raw)} bytes long")
+    sizes = [int.from_bytes(raw[34 + 6 * i + 2 : 34 + 6 * i + 4], "little") for i in range(n_items)]
+    if sum(sizes) != rec:
+        raise FileFormatError(path, f"LASzip items total {sum(sizes)} bytes but a point record has {rec} (corrupt)")
+    if chunk != 0xFFFFFFFF and (chunk == 0 or chunk * rec > (1 << 31)):
+        raise FileFormatError(path, f"implausible LAZ chunk size {chunk} (corrupt LASzip VLR)")
+
+
+def _check_laz_chunk_table(path, data: bytes, offset_points: int, n_points: int) -> None:
+    """Sanity-check the LAZ chunk table before the decoder sizes its buffers from it.
+
+    LASzip stores, at the start of the point data, an int64 pointer to the chunk table
+    (``-1`` if absent); the table starts with ``uint32 version = 0, uint32 n_chunks``.
+    A corrupt pointer or count would make the Rust decoder try to allocate many GB and
+    abort the process, so it is rejected here as a :class:`FileFormatError`.
+    """
+    if offset_points + 8 > len(data):
+        raise FileFormatError(path, "file truncated: LAZ point data missing")
+    ptr = int.from_bytes(data[offset_points : offset_points + 8], "little", signed=True)
+    if ptr == -1:
+        return
+    if not (offset_points + 8 <= ptr <= len(data) - 8):
+        raise FileFormatError(path, f"corrupt or truncated LAZ: chunk table pointer {ptr} outside the file")
+    version = int.from_bytes(data[ptr : ptr + 4], "little")
+    n_chunks = int.from_bytes(data[ptr + 4 : ptr + 8], "little")
+    if version != 0 or n_chunks > max(n_points, 1) or n_chunks > len(data):
+        raise FileFormatError(
+            path, f"corrupt LAZ chunk table (version {version}, {n_chunks} chunks for {n_points} points)"
+        )
+
+
 def read_las_bytes(path, data: bytes) -> RawCloud:
     """Read LAS or LAZ bytes; see the module docstring."""
     laspy = _laspy()
@@ -58,9 +144,33 @@ def read_las_bytes(path, data: bytes) -> RawCloud:
         raise FileFormatError(path, "empty file")
     if not data.startswith(b"LASF"):
         raise FileFormatError(path, "not a LAS/LAZ file (no 'LASF' signature)")
+    _check_record_counts(path, data)
+    # check the declared point count against the file size before laspy allocates for it
+    # (a corrupt header must not make us allocate gigabytes)
+    try:
+        hdr0 = laspy.LasHeader.read_from(io.BytesIO(data))
+    except Exception as exc:  # laspy raises several types
+        raise FileFormatError(path, f"unreadable LAS header: truncated or corrupt ({type(exc).__name__}: {exc})") from None
+    n0, rec = int(hdr0.point_count), int(hdr0.point_format.size)
+    if not hdr0.are_points_compressed:
+        need = int(hdr0.offset_to_point_data) + n0 * rec
+        if len(data) < need:
+            raise FileFormatError(
+                path,
+                f"file truncated: header declares {n0} points ({need} bytes with the header) but the file has {len(data)} bytes",
+            )
+    elif n0 * rec > _MAX_LAZ_RATIO * len(data):
+        raise FileFormatError(
+            path, f"header declares {n0} points, impossible for a {len(data)}-byte LAZ file (corrupt header)"
+        )
+    else:
+        _check_laszip_vlr(path, hdr0, rec)
+        _check_laz_chunk_table(path, data, int(hdr0.offset_to_point_data), n0)
     try:
         las = laspy.read(io.BytesIO(data))
-    except Exception as exc:  # laspy raises several types (LaspyException, ValueError, ...)
+    except (KeyboardInterrupt, SystemExit, MemoryError):
+        raise
+    except BaseException as exc:  # laspy raises several types; lazrs panics derive from BaseException
         raise FileFormatError(path, f"unreadable LAS/LAZ: truncated or corrupt ({type(exc).__name__}: {exc})") from None
     hdr = las.header
     n = len(las.points)

@@ -126,6 +126,8 @@ def read_text_bytes(path, data: bytes, fmt: str = "xyz", columns=None) -> RawClo
             return RawCloud(np.empty((0, 3)), {}, metadata=meta)
         raise FileFormatError(path, "no numeric data lines found (empty file or unreadable header)")
     lineno, start, k = first_data
+    if k < 3 and columns is None:
+        raise FileFormatError(path, f"line {lineno}: {k} value(s); a point needs at least x y z")
     names = None
     if columns is not None:
         names = [str(c) for c in columns]
