@@ -79,7 +79,8 @@ class SegmentationParams:
         ``gap_floor_m``) break the line (a jump or missing returns).
     gap_floor_m : float
     min_points : int
-        Lines with fewer points are discarded (>= 3).
+        Lines with fewer points are discarded (>= 3; 3 lets a small far beacon at 0.5 deg still
+        be recognised, the final adjustment does not depend on it).
     n_confirm : int
         Consecutive off-line points needed to confirm a break.
     refine_window : int
@@ -104,7 +105,7 @@ class SegmentationParams:
     line_tolerance_floor_m: float = 0.002
     gap_factor: float = 4.0
     gap_floor_m: float = 0.02
-    min_points: int = 4
+    min_points: int = 3
     n_confirm: int = 3
     refine_window: int = 24
     split_gain: float = 20.0
