@@ -77,24 +77,24 @@ def pair_features(p1, n1, p2, n2):
 
 
 @njit_parallel
-def spfh_kernel(points, normals, nbr_idx, counts):
-    """Simplified point feature histograms (SPFH), ``(n, 33)``.
+def spfh_kernel(points, normals, nbr_idx, counts, row0):
+    """Simplified point feature histograms (SPFH) of points ``row0 .. row0 + m - 1``, ``(m, 33)``.
 
-    For each point i with ``m = counts[i] > 1`` neighbours (self at position 0),
+    Row r of the neighbour table belongs to point ``i = row0 + r``. For each point i with ``m = counts[i] > 1`` neighbours (self at position 0),
     every neighbour at positions 1..m-1 adds ``100 / (m - 1)`` to one bin of each
     of the three 11-bin blocks (theta, alpha, phi). Degenerate pairs give the zero
     feature and land in the middle bins (5, 16, 27), as in Open3D.
     """
-    n = points.shape[0]
-    out = np.zeros((n, N_FEATURES))
+    nrow = nbr_idx.shape[0]
+    out = np.zeros((nrow, N_FEATURES))
     two_pi = 2.0 * math.pi
-    for i in prange(n):
+    for i in prange(nrow):
         m = counts[i]
         if m <= 1:
             continue
         inc = 100.0 / (m - 1)
-        p1 = points[i]
-        n1 = normals[i]
+        p1 = points[row0 + i]
+        n1 = normals[row0 + i]
         for k in range(1, m):
             j = nbr_idx[i, k]
             f1, f2, f3, _f4 = pair_features(p1, n1, points[j], normals[j])
@@ -120,17 +120,20 @@ def spfh_kernel(points, normals, nbr_idx, counts):
 
 
 @njit_parallel
-def fpfh_kernel(spfh, nbr_idx, nbr_sq, counts, weight_mode):
-    """FPFH from SPFH (Eq. 6 with per-block normalisation), ``(n, 33)``.
+def fpfh_kernel(spfh, nbr_idx, nbr_sq, counts, weight_mode, row0):
+    """FPFH of points ``row0 .. row0 + m - 1`` from the SPFH of all points, ``(m, 33)``.
+
+    Eq. 6 with per-block normalisation; row r of the neighbour table belongs to point
+    ``i = row0 + r``.
 
     ``acc = sum_k SPFH_k / w_k`` over neighbours at positions 1.. with non-zero
     distance, where ``w_k = d_k^2`` (Open3D, ``weight_mode=1``) or ``w_k = d_k``
     (paper Eq. 6, ``weight_mode=0``). Each 11-bin block of ``acc`` is scaled to
     sum to 100 (left at zero if its sum is zero), then ``SPFH_i`` is added.
     """
-    n = spfh.shape[0]
-    out = np.zeros((n, N_FEATURES))
-    for i in prange(n):
+    nrow = nbr_idx.shape[0]
+    out = np.zeros((nrow, N_FEATURES))
+    for i in prange(nrow):
         m = counts[i]
         if m <= 1:
             continue
@@ -166,5 +169,5 @@ def fpfh_kernel(spfh, nbr_idx, nbr_sq, counts, weight_mode):
                 out[i, b] *= s1
             else:
                 out[i, b] *= s2
-            out[i, b] += spfh[i, b]
+            out[i, b] += spfh[row0 + i, b]
     return out

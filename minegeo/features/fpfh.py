@@ -21,12 +21,16 @@ import numpy as np
 from minegeo._validate import as_points, check_positive
 from minegeo.errors import InputError
 from minegeo.features import _kernels as K
+from minegeo.geometry import NeighborIndex
 
 __all__ = ["FPFHParams", "FPFHResult", "compute_fpfh", "hybrid_neighborhoods"]
 
 log = logging.getLogger(__name__)
 
 _WEIGHTS = {"inverse_distance": K.WEIGHT_INVERSE_DISTANCE, "open3d": K.WEIGHT_OPEN3D}
+#: Neighbour-table entries (points x max_nn) above which the search runs in chunks, twice
+#: (once for SPFH, once for FPFH), so memory stays near 16 bytes x this number.
+_CHUNK_ENTRIES = 1 << 24
 
 
 @dataclass(frozen=True)
@@ -94,35 +98,21 @@ def hybrid_neighborhoods(points: np.ndarray, radius_m: float, max_nn: int):
     """Hybrid (radius + max_nn) neighbourhoods with Open3D semantics.
 
     Returns ``(indices (n, kmax) int64 padded -1, sq_distances (n, kmax) padded inf,
-    counts (n,) int64)``, sorted by ascending distance, the query point included,
-    neighbours strictly closer than ``radius_m``. Uses
-    ``minegeo.geometry.NeighborIndex`` when available.
+    counts (n,) int64)``, sorted by ascending distance (ties: lowest index), the query
+    point included, neighbours strictly closer than ``radius_m``
+    (``minegeo.geometry.NeighborIndex.hybrid``).
     """
     points = np.ascontiguousarray(points, dtype=np.float64)
-    try:
-        from minegeo.geometry import NeighborIndex
-    except ImportError:
-        NeighborIndex = None
-    if NeighborIndex is not None:
-        nb = NeighborIndex(points).hybrid(points, radius_m, max_nn)
-        return _unpack_neighborhoods(nb, points.shape[0])
-    from pykdtree.kdtree import KDTree
-
-    n = points.shape[0]
-    k = int(min(max_nn, n))
-    d2, idx = KDTree(points).query(points, k=k, distance_upper_bound=radius_m, sqr_dists=True)
-    d2 = np.asarray(d2, dtype=np.float64).reshape(n, k)
-    idx = np.asarray(idx, dtype=np.int64).reshape(n, k)
-    valid = (idx < n) & (d2 < radius_m * radius_m)
-    idx = np.where(valid, idx, -1)
-    d2 = np.where(valid, d2, np.inf)
-    counts = valid.sum(axis=1).astype(np.int64)
-    kmax = int(counts.max()) if n else 0
-    return np.ascontiguousarray(idx[:, :kmax]), np.ascontiguousarray(d2[:, :kmax]), counts
+    nb = NeighborIndex(points).hybrid(points, radius_m, max_nn)
+    return _unpack_neighborhoods(nb, points.shape[0])
 
 
-def _unpack_neighborhoods(nb, n: int):
-    """Accept a ``Neighborhoods`` object or an ``(indices, sq_distances, counts)`` tuple."""
+def _unpack_neighborhoods(nb, n: int, n_points: int | None = None):
+    """Accept a ``Neighborhoods`` object or an ``(indices, sq_distances, counts)`` tuple.
+
+    ``n`` rows are expected; indices must refer to ``n_points`` points (default ``n``).
+    """
+    n_points = n if n_points is None else n_points
     if isinstance(nb, tuple | list):
         idx, d2, counts = nb
     else:
@@ -130,6 +120,9 @@ def _unpack_neighborhoods(nb, n: int):
     idx = np.ascontiguousarray(idx, dtype=np.int64)
     d2 = np.ascontiguousarray(d2, dtype=np.float64)
     counts = np.ascontiguousarray(counts, dtype=np.int64)
+    if idx.ndim == 2 and idx.shape[1] == 0:
+        idx = np.full((n, 1), -1, dtype=np.int64)
+        d2 = np.full((n, 1), np.inf)
     if idx.ndim != 2 or idx.shape[0] != n or d2.shape != idx.shape or counts.shape != (n,):
         raise InputError(
             f"neighborhoods do not match the {n} points: indices {idx.shape}, "
@@ -139,7 +132,7 @@ def _unpack_neighborhoods(nb, n: int):
         raise InputError("neighborhoods.counts out of range of the index table")
     if n:
         used = idx[np.arange(idx.shape[1])[None, :] < counts[:, None]]
-        if used.size and (used.min() < 0 or used.max() >= n):
+        if used.size and (used.min() < 0 or used.max() >= n_points):
             raise InputError("neighborhoods.indices refer to points that do not exist")
     return idx, d2, counts
 
@@ -207,20 +200,39 @@ def compute_fpfh(points, normals, params: FPFHParams | None = None, neighborhood
             "estimate normals before computing FPFH"
         )
     n = pts.shape[0]
-    if neighborhoods is None:
-        idx, d2, counts = hybrid_neighborhoods(pts, params.radius_m, int(params.max_nn))
+    w = _WEIGHTS[params.weight]
+    max_nn = int(params.max_nn)
+    if neighborhoods is None and n * max_nn > _CHUNK_ENTRIES:
+        # large cloud: search in chunks, once for the SPFH pass and again for the FPFH pass
+        index = NeighborIndex(pts)
+        chunk = max(1024, _CHUNK_ENTRIES // max_nn)
+        spfh = np.empty((n, K.N_FEATURES))
+        counts = np.empty(n, dtype=np.int64)
+        t["neighbors"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        for row0, nb in index.iter_hybrid(pts, params.radius_m, max_nn, chunk_size=chunk):
+            idx, _, cnt = _unpack_neighborhoods(nb, len(nb), n)
+            spfh[row0 : row0 + len(nb)] = K.spfh_kernel(pts, nrm, idx, cnt, row0)
+            counts[row0 : row0 + len(nb)] = cnt
+        t["spfh"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        feats = np.empty((n, K.N_FEATURES))
+        for row0, nb in index.iter_hybrid(pts, params.radius_m, max_nn, chunk_size=chunk):
+            idx, d2, cnt = _unpack_neighborhoods(nb, len(nb), n)
+            feats[row0 : row0 + len(nb)] = K.fpfh_kernel(spfh, idx, d2, cnt, w, row0)
+        t["fpfh"] = time.perf_counter() - t0
     else:
-        idx, d2, counts = _unpack_neighborhoods(neighborhoods, n)
-    t["neighbors"] = time.perf_counter() - t0
-    if idx.shape[1] == 0:
-        idx = np.full((n, 1), -1, dtype=np.int64)
-        d2 = np.full((n, 1), np.inf)
-    t0 = time.perf_counter()
-    spfh = K.spfh_kernel(pts, nrm, idx, counts)
-    t["spfh"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    feats = K.fpfh_kernel(spfh, idx, d2, counts, _WEIGHTS[params.weight])
-    t["fpfh"] = time.perf_counter() - t0
+        if neighborhoods is None:
+            idx, d2, counts = hybrid_neighborhoods(pts, params.radius_m, max_nn)
+        else:
+            idx, d2, counts = _unpack_neighborhoods(neighborhoods, n)
+        t["neighbors"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        spfh = K.spfh_kernel(pts, nrm, idx, counts, 0)
+        t["spfh"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        feats = K.fpfh_kernel(spfh, idx, d2, counts, w, 0)
+        t["fpfh"] = time.perf_counter() - t0
     n_iso = int((counts <= 1).sum())
     if n_iso:
         log.info("FPFH: %d of %d points have no neighbour within %.3f m (zero descriptor)", n_iso, n, params.radius_m)

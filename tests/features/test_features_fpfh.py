@@ -156,3 +156,16 @@ def test_bad_input_raises_typed_errors(rng):
     line = np.stack([np.linspace(0, 1, 10), np.zeros(10), np.zeros(10)], axis=1)
     f = compute_fpfh(line, np.tile([0, 0, 1.0], (10, 1)), FPFHParams(0.3, 10)).features
     assert np.isfinite(f).all()
+
+
+def test_chunked_search_gives_identical_features(rng, monkeypatch):
+    """Large clouds are processed in chunks (two searches); the result must not change."""
+    from minegeo.features import fpfh as mod
+
+    pts, nrm = _surface(rng, 2500)
+    for w in ("inverse_distance", "open3d"):
+        full = compute_fpfh(pts, nrm, FPFHParams(0.2, 40, w)).features
+        monkeypatch.setattr(mod, "_CHUNK_ENTRIES", 40 * 1000)  # 1024-point chunks
+        chunked = compute_fpfh(pts, nrm, FPFHParams(0.2, 40, w)).features
+        monkeypatch.undo()
+        assert np.array_equal(full, chunked)
