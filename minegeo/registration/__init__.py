@@ -8,15 +8,21 @@ evaluate_registration      fitness and inlier RMSE (Baek 2022 Eq. 19, Open3D sem
 build_target_index         reusable KD-tree over a target cloud
 ICPParams, register_icp    point-to-point / point-to-plane ICP with information matrix
 ICPResult, constraint_analysis
+RansacParams, RansacResult, register_ransac
+                           global registration by RANSAC on FPFH matches (Baek 2022 Sec. 2.3.2)
+feature_correspondences, FeatureMatches
+                           exact descriptor nearest neighbours (optionally mutual)
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from minegeo.registration.correspondences import FeatureMatches, feature_correspondences
 from minegeo.registration.estimation import kabsch, pose_covariance, umeyama
 from minegeo.registration.evaluation import build_target_index, evaluate_registration
 from minegeo.registration.icp import ICPParams, ICPResult, constraint_analysis, register_icp
+from minegeo.registration.ransac import RansacParams, RansacResult, register_ransac
 
 __all__ = [
     "umeyama",
@@ -28,6 +34,11 @@ __all__ = [
     "ICPResult",
     "register_icp",
     "constraint_analysis",
+    "RansacParams",
+    "RansacResult",
+    "register_ransac",
+    "feature_correspondences",
+    "FeatureMatches",
 ]
 
 
