@@ -24,6 +24,8 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from pathlib import Path
+
     from tqdm import tqdm
 
     from minegeo.errors import InputError
@@ -31,6 +33,9 @@ def run(args) -> int:
 
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0, got {args.seed}")
+    out = Path(args.outdir)
+    if out.is_dir() and any(out.iterdir()) and not args.force:
+        raise InputError(f"{out} is not empty; use --force to overwrite")
     steps = 4 + len(SCAN_PLANS[args.preset])
     with tqdm(total=steps, desc=f"synth {args.preset}", unit="step", file=sys.stderr,
               disable=getattr(args, "quiet", False)) as bar:

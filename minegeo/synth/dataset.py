@@ -445,10 +445,10 @@ def write_world(outdir, preset: str = "small", seed: int = 0, *, force: bool = F
     gcps, info = make_gcps(world, n=n_gcps, seed=sub[1], crs=crs)
     write_gcps(out / "gcps.csv", gcps)
     step("gcps")
-    files = {}
-    for p in sorted(out.rglob("*")):
-        if p.is_file() and p.name != "truth.json" and not p.name.startswith("."):
-            files[p.relative_to(out).as_posix()] = sha256_file(p)
+    written = ["map.ply", "trajectories/survey.txt", "gcps.csv"]
+    for sc in scans:
+        written += [sc["file"], sc["trajectory"]]
+    files = {name: sha256_file(out / name) for name in sorted(written)}  # only what this run wrote
     truth = {
         "generator": "minegeo.synth.write_world",
         "preset": preset,
