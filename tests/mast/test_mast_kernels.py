@@ -36,3 +36,24 @@ def test_sse_prefix_matches_naive(rng):
     P = _prefix_sums(xy)
     for i, j in [(0, 39), (3, 10), (5, 6), (20, 38)]:
         assert abs(_sse_range(P, i, j) - naive_sse(xy[i : j + 1])) < 1e-9
+
+
+def test_scenario_returns_lie_on_the_surfaces_they_hit():
+    from minegeo.mast import scan_to_xy, simulate_mast_scenario
+
+    sc = simulate_mast_scenario(0, position=3, beacon1_rotation_deg=-10.0, sigma_range_m=0.0)
+    x, y, az = sc.truth["x_m"], sc.truth["y_m"], sc.truth["azimuth_deg"]
+    s = scan_to_xy(sc.scan.bearing_deg, sc.scan.range_m)
+    a = np.radians(az)
+    R = np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]])  # clockwise rotation by the azimuth
+    p = s @ R.T + [x, y]
+    panels = np.vstack([b.panels() for b in sc.beacons])
+    on = sc.hit_label >= 0
+    assert on.sum() > 50
+    for pt, lab in zip(p[on], sc.hit_label[on], strict=True):
+        ax, ay, bx, by = panels[lab]
+        e = np.array([bx - ax, by - ay])
+        q = pt - [ax, ay]
+        assert abs(e[0] * q[1] - e[1] * q[0]) / np.linalg.norm(e) < 1e-9
+        assert -1e-9 <= (q @ e) / (e @ e) <= 1 + 1e-9
+    assert np.all(sc.scan.range_m <= 30.0)
