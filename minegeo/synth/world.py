@@ -16,7 +16,8 @@ multi-scale roughness (blast overbreak >= 0 up to about 0.3 m plus cm texture) a
 ``s_j`` the exact distance to solid structure *j* (rock bolts, roof straps, pipes,
 cables, ventilation duct, railings, the parked vehicle). The field is an exact
 distance for the structures and a Lipschitz-bounded estimate (constant below about
-2) for the rough rock, which is what sphere tracing needs (Hart 1996, Eq. 2).
+2) for the rough rock, which is what sphere tracing needs (Hart 1996: a step of f / L never
+crosses the surface of a field with Lipschitz constant L).
 
 Drift profile (Baek et al. 2022, Sec. 3.1: tunnel width and height about 4.5 m,
 rampway slope 6-8 degrees): flat floor, vertical walls up to ``wall_height_m`` and a
