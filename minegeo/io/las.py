@@ -22,12 +22,15 @@ scale 0.001 m and a whole-metre offset near the data. ``uint8`` colour ``c`` is 
 from __future__ import annotations
 
 import io
+import logging
 
 import numpy as np
 
 from minegeo.errors import CRSError, FileFormatError, InputError, OptionalDependencyError
 from minegeo.io._common import RawCloud, rgb_of, writable_attributes
 from minegeo.io.types import PointCloud
+
+log = logging.getLogger(__name__)
 
 __all__ = ["read_las_bytes", "write_las_bytes"]
 
@@ -192,6 +195,21 @@ def read_las_bytes(path, data: bytes) -> RawCloud:
             fields[dim] = arr.copy()
     for dim in extra:
         fields[dim] = np.asarray(las[dim]).copy()
+    warnings = []
+    if n:
+        lo = X.min(axis=0) * scale + offset
+        hi = X.max(axis=0) * scale + offset
+        hmin = np.asarray(hdr.mins, dtype=np.float64)
+        hmax = np.asarray(hdr.maxs, dtype=np.float64)
+        tol = scale + 1e-9 * np.maximum(np.abs(hmin), np.abs(hmax))
+        if np.any(hmin != 0) or np.any(hmax != 0):  # all zero: bounds not filled in by the writer
+            if np.any(lo < hmin - tol) or np.any(hi > hmax + tol):
+                msg = (
+                    f"points extend beyond the header bounding box (data {lo.tolist()}..{hi.tolist()}, "
+                    f"header {hmin.tolist()}..{hmax.tolist()}): corrupt data or a stale header"
+                )
+                log.warning("%s: %s", path, msg)
+                warnings.append(msg)
     crs = None
     try:
         parsed = hdr.parse_crs()
@@ -209,6 +227,8 @@ def read_las_bytes(path, data: bytes) -> RawCloud:
         "las_header_max": list(map(float, hdr.maxs)),
         "dtype": "int32*scale+offset",
     }
+    if warnings:
+        meta["warnings"] = warnings
     return RawCloud(values=values, fields=fields, file_origin=offset, crs=crs, frame=None, metadata=meta)
 
 
