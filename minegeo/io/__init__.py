@@ -29,8 +29,10 @@ __all__ = [
 
 
 def _warmup() -> None:
-    """Compile the LZF kernels (PCD binary_compressed) on a tiny input."""
+    """Compile the LZF kernels (PCD binary_compressed) and the text parser on tiny inputs."""
     from minegeo.io._lzf import lzf_compress, lzf_decompress
+    from minegeo.io._text import parse_table
 
     data = bytes(range(64)) * 4
     lzf_decompress(lzf_compress(data), len(data))
+    parse_table("warmup", "1 2.5 -3e2\n", ncols=3, first_line=1)
