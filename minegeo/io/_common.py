@@ -55,6 +55,10 @@ def _rgb_to_uint8(path, r, g, b, meta: dict) -> np.ndarray:
     if np.issubdtype(rgb.dtype, np.floating):
         if not np.isfinite(rgb).all():
             raise FileFormatError(path, "colour fields contain NaN or inf")
+        # float colours are conventionally 0..1 (PLY "float red"); integral floats > 1 are 0..255/65535
+        if rgb.min() >= 0.0 and rgb.max() <= 1.0 and not (meta.get("dtype") == "text"):
+            meta["rgb_source"] = "float 0..1 scaled to 0..255"
+            return np.round(rgb * 255.0).astype(np.uint8)
         if np.any(rgb != np.round(rgb)):
             if rgb.min() >= 0.0 and rgb.max() <= 1.0:
                 meta["rgb_source"] = "float 0..1 scaled to 0..255"

@@ -153,7 +153,8 @@ def read_text_bytes(path, data: bytes, fmt: str = "xyz", columns=None) -> RawClo
     ix, iy, iz = find_xyz(path, names)
     table = parse_table(path, text[start:], ncols=k, first_line=lineno, delimiter=delim, expected_rows=expected)
     values = table[:, [ix, iy, iz]]
-    fields = {nm: table[:, j] for j, nm in enumerate(names) if j not in (ix, iy, iz)}
+    fields = {nm: np.ascontiguousarray(table[:, j]) for j, nm in enumerate(names) if j not in (ix, iy, iz)}
+    del table
     file_origin = np.zeros(3)
     if "origin" in mg:
         try:

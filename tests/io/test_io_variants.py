@@ -115,3 +115,12 @@ def test_pts_and_3d_drop_what_they_cannot_store(tmp_path, rng, caplog):
     write_point_cloud(tmp_path / "a.3d", c)
     assert "cannot store" in caplog.text
     assert sorted(read_point_cloud(tmp_path / "a.3d").attributes) == []
+
+
+def test_float_colours_zero_to_one(tmp_path):
+    head = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nproperty float red\nproperty float green\nproperty float blue\nend_header\n"
+    p = tmp_path / "fc.ply"
+    p.write_text(head + "0 0 0 1 0 0.5\n1 1 1 0 1 1\n")
+    c = read_point_cloud(p)
+    np.testing.assert_array_equal(c.attributes["rgb"], [[255, 0, 128], [0, 255, 255]])
+    assert c.metadata["rgb_source"].startswith("float 0..1")
