@@ -166,7 +166,24 @@ def read_gcps(path, default_sigma_m: float = DEFAULT_GCP_SIGMA_M, crs: str | Non
 
 
 def write_gcps(path, gcps: ControlPoints) -> Path:
-    """Write ``gcps`` as CSV (``# crs:`` line, header, shortest exact float repr), atomically."""
+    """Write control points as CSV, atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file (the layout in the module docstring).
+    gcps : ControlPoints
+        Written with a ``# crs:`` line (if ``gcps.crs``), the header
+        ``id,x,y,z,E,N,H,sigma_E_m,sigma_N_m,sigma_H_m`` (+ ``sigma_x_m,sigma_y_m,sigma_z_m``
+        when local sigmas are known) and numbers in Python's shortest exact ``repr``, so
+        :func:`read_gcps` gives back identical float64 values. Ids containing the separator
+        are quoted (CSV rules).
+
+    Returns
+    -------
+    Path
+        The written file.
+    """
     if not isinstance(gcps, ControlPoints):
         raise InputError(f"gcps must be ControlPoints, got {type(gcps).__name__}")
     buf = io.StringIO()
