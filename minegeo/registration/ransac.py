@@ -80,7 +80,9 @@ class RansacParams:
         Optional normal check: reject a sample if ``n_q . (R n_p) < cos(angle)``
         for any pair (signed, as Open3D; needs consistently oriented normals).
     max_iterations : int
-        Hard maximum of hypotheses drawn, N_max (Table 3: 4.0e8).
+        Hard maximum of hypotheses drawn, N_max (Table 3: 4.0e8). With ``ransac_n=4`` and a
+        low putative inlier ratio w, Eq. 8 asks for ~log(1000)/w^4 draws (millions; about
+        a microsecond each): use ``ransac_n=3`` or ``mutual_filter=True`` when speed matters.
     max_validations : int or None
         Stop after this many hypotheses passed the checks and were scored
         (Table 3: 500, Open3D <= 0.11's "max_validation"); None disables.
@@ -370,6 +372,31 @@ class _Grid:
         return out, d2
 
 
+class _HypothesisStore:
+    """Growing arrays (capacity doubling) of the fully scored hypotheses: T, inlier count, SSE."""
+
+    def __init__(self, capacity: int = 64):
+        self.T = np.empty((capacity, 4, 4))
+        self.c = np.empty(capacity, dtype=np.int64)
+        self.s = np.empty(capacity)
+        self.n = 0
+
+    def add(self, T: np.ndarray, c: np.ndarray, s: np.ndarray) -> None:
+        m = self.n + c.size
+        if m > self.c.size:
+            cap = max(m, 2 * self.c.size)
+            self.T = np.concatenate([self.T[: self.n], np.empty((cap - self.n, 4, 4))])
+            self.c = np.concatenate([self.c[: self.n], np.empty(cap - self.n, dtype=np.int64)])
+            self.s = np.concatenate([self.s[: self.n], np.empty(cap - self.n)])
+        self.T[self.n : m] = T
+        self.c[self.n : m] = c
+        self.s[self.n : m] = s
+        self.n = m
+
+    def view(self, start: int = 0):
+        return self.T[start : self.n], self.c[start : self.n], self.s[start : self.n]
+
+
 def _check_not_flat(points: np.ndarray, name: str) -> None:
     c = points - points.mean(axis=0)
     s = np.linalg.svd(c, compute_uv=False)
@@ -566,9 +593,8 @@ def register_ransac(
     n_valid = 0
     iterations = 0
     stop_reason = "max_iterations"
-    store_T: list[np.ndarray] = []
-    store_c: list[np.ndarray] = []
-    store_s: list[np.ndarray] = []
+    store = _HypothesisStore()
+    best_moved = False
     prune = 0
     it0 = 0
     G = _SCORE_GROUP
@@ -596,6 +622,7 @@ def register_ransac(
                 n_valid += 1
                 if not pruned[q] and _better(int(cnts[q]), float(sses[q]), best_c, best_s):
                     best_c, best_s, best_T = int(cnts[q]), float(sses[q]), Ts[h].copy()
+                    best_moved = True
                     res = csrc @ best_T[:3, :3].T + best_T[:3, 3] - ctgt
                     w = float(np.count_nonzero(np.einsum("ij,ij->i", res, res) < d * d)) / n_corr
                     k = required_iterations(w, n, float(p.confidence))
@@ -611,24 +638,27 @@ def register_ransac(
                     n_keep = q + 1
                     break
             keep = np.flatnonzero(pruned[:n_keep] == 0)
+            first_new = store.n
             if keep.size:
-                store_T.append(Ts[grp[keep]])
-                store_c.append(cnts[keep])
-                store_s.append(sses[keep])
-            if best_c > 0 and store_T:
-                allT = np.concatenate(store_T)
-                allc = np.concatenate(store_c)
-                dist, ang = _distances_to(allT, best_T, center)
-                distinct = (dist > p.distinct_distance) | (ang > p.distinct_angle_deg)
-                prune = int(allc[distinct].max()) if distinct.any() else 0
+                store.add(Ts[grp[keep]], cnts[keep], sses[keep])
+            if best_c > 0 and store.n:
+                # runner-up bound: best count among scored hypotheses distinct from the best
+                lo = 0 if best_moved else first_new
+                if best_moved:
+                    prune = 0
+                    best_moved = False
+                allT, allc, _ = store.view(lo)
+                if allc.size:
+                    dist, ang = _distances_to(allT, best_T, center)
+                    distinct = (dist > p.distinct_distance) | (ang > p.distinct_angle_deg)
+                    if distinct.any():
+                        prune = max(prune, int(allc[distinct].max()))
         iterations = min(it0 + nb, stop_at)
         it0 += nb
     timings["hypotheses"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    allT = np.concatenate(store_T) if store_T else np.zeros((0, 4, 4))
-    allc = np.concatenate(store_c) if store_c else np.zeros(0, dtype=np.int64)
-    alls = np.concatenate(store_s) if store_s else np.zeros(0)
+    allT, allc, alls = store.view(0)
     refits = int(p.refit_iterations) if p.mode == "minegeo" else 0
     if best_c == 0:
         status_s = "failed"
