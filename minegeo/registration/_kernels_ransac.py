@@ -225,8 +225,14 @@ def _edge_ok(P, Q, a, b, sim):
 
 @njit
 def _check_one(h, csrc, ctgt, csrc_n, ctgt_n, samples, sim, all_pairs, dist_thr, use_normals, cos_normal,
-               degenerate_tol, status, Ts):
+               degenerate_tol, distinct, status, Ts):
     n = samples.shape[1]
+    if distinct:
+        for a in range(n):
+            for b in range(a + 1, n):
+                if samples[h, a] == samples[h, b]:
+                    status[h] = ST_DEGENERATE
+                    return
     P = np.empty((n, 3))
     Q = np.empty((n, 3))
     for a in range(n):
@@ -273,11 +279,12 @@ def _check_one(h, csrc, ctgt, csrc_n, ctgt_n, samples, sim, all_pairs, dist_thr,
 
 @njit
 def ransac_check_kernel(csrc, ctgt, csrc_n, ctgt_n, samples, sim, all_pairs, dist_thr, use_normals, cos_normal,
-                        degenerate_tol):
+                        degenerate_tol, distinct):
     """Prune and fit a batch of RANSAC samples (one hypothesis per row of ``samples``); serial.
 
     For hypothesis h with sampled correspondence rows ``samples[h]`` (n >= 3):
 
+    0. if ``distinct``, a sample that repeats a correspondence is rejected (ST_DEGENERATE);
     1. edge-length test, Eq. 7: every compared edge must satisfy
        ``min(l_s, l_t) >= sim * max(l_s, l_t)`` (polygon edges of Eq. 7, or all
        pairs when ``all_pairs``);
@@ -294,7 +301,7 @@ def ransac_check_kernel(csrc, ctgt, csrc_n, ctgt_n, samples, sim, all_pairs, dis
     Ts = np.zeros((B, 4, 4))
     for h in range(B):
         _check_one(h, csrc, ctgt, csrc_n, ctgt_n, samples, sim, all_pairs, dist_thr, use_normals, cos_normal,
-                   degenerate_tol, status, Ts)
+                   degenerate_tol, distinct, status, Ts)
     return status, Ts
 
 

@@ -91,8 +91,9 @@ class RansacParams:
     mutual_filter : bool
         Keep only mutual descriptor nearest neighbours (Open3D rule, 10 % fallback).
     mode : {"minegeo", "open3d"}
-        "minegeo": samples of n distinct correspondences, collinear samples
-        rejected, final least-squares refit on the inliers (``refit_iterations``).
+        "minegeo": samples that repeat a correspondence or are collinear are
+        rejected (they count as iterations), final least-squares refit on the
+        inliers (``refit_iterations``).
         "open3d": samples drawn with replacement, no refit (the minimal-sample
         estimate is returned), as Open3D 0.20.
     refit_iterations : int
@@ -412,17 +413,13 @@ def _check_not_flat(points: np.ndarray, name: str) -> None:
         )
 
 
-def _draw_samples(rng: np.random.Generator, R: int, B: int, n: int, replace: bool) -> np.ndarray:
-    S = rng.integers(0, R, size=(B, n), dtype=np.int64)
-    if replace:
-        return S
-    while True:
-        srt = np.sort(S, axis=1)
-        dup = np.any(srt[:, 1:] == srt[:, :-1], axis=1)
-        nd = int(dup.sum())
-        if nd == 0:
-            return S
-        S[dup] = rng.integers(0, R, size=(nd, n), dtype=np.int64)
+def _draw_samples(rng: np.random.Generator, R: int, B: int, n: int) -> np.ndarray:
+    """``B`` samples of ``n`` correspondence rows, uniform with replacement (``rng.integers``).
+
+    In mode "minegeo" a sample that repeats a row is rejected by the check kernel (it
+    counts as an iteration), which makes accepted samples uniform over distinct rows.
+    """
+    return rng.integers(0, R, size=(B, n), dtype=np.int64)
 
 
 def _score(grid: _Grid, src: np.ndarray, T: np.ndarray, d: float):
@@ -585,7 +582,7 @@ def register_ransac(
 
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
-    replace = p.mode == "open3d"
+    distinct_rows = p.mode == "minegeo"
     B = int(p.batch_size)
     stop_at = int(p.max_iterations)
     best_T = np.eye(4)
@@ -600,10 +597,10 @@ def register_ransac(
     G = _SCORE_GROUP
     while it0 < stop_at:
         nb = min(B, stop_at - it0)
-        S = _draw_samples(rng, n_corr, nb, n, replace)
+        S = _draw_samples(rng, n_corr, nb, n)
         status, Ts = K.ransac_check_kernel(
             csrc, ctgt, csrc_n, ctgt_n, S, float(p.edge_length_similarity), p.edge_pairs == "all", d,
-            use_normals, cos_normal, _DEGENERATE_TOL,
+            use_normals, cos_normal, _DEGENERATE_TOL, distinct_rows,
         )
         passed = np.flatnonzero(status == K.ST_EVALUATED)
         for g0 in range(0, passed.size, G):

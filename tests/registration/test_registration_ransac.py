@@ -56,7 +56,7 @@ def test_kernels_match_naive_twin(rng):
     d = 0.05
     grid = _Grid(tgt, d)
     z = np.zeros((1, 3))
-    status, Ts = K.ransac_check_kernel(csrc, ctgt, z, z, samples, 0.9, True, d, False, -2.0, 1e-9)
+    status, Ts = K.ransac_check_kernel(csrc, ctgt, z, z, samples, 0.9, True, d, False, -2.0, 1e-9, False)
     ok = np.flatnonzero(status == K.ST_EVALUATED)
     cnt, sse, pruned = K.ransac_score_serial(src, np.arange(60), np.ascontiguousarray(Ts[ok]), np.int64(0), d,
                                              *grid.args())
@@ -323,3 +323,16 @@ def test_bad_input_raises_typed_errors(rng):
                {"batch_size": 0}, {"distinct_angle_deg": 0}):
         with pytest.raises(InputError):
             _params(**kw)
+
+
+def test_repeated_correspondence_rejected_in_minegeo_mode(rng):
+    src = _blob(rng, 10)
+    csrc = np.ascontiguousarray(src)
+    z = np.zeros((1, 3))
+    samples = np.array([[0, 1, 2], [3, 3, 4], [5, 6, 5]])
+    st_distinct, _ = K.ransac_check_kernel(csrc, csrc, z, z, samples, 0.9, True, 0.1, False, -2.0, 1e-9, True)
+    st_replace, _ = K.ransac_check_kernel(csrc, csrc, z, z, samples, 0.9, True, 0.1, False, -2.0, 1e-9, False)
+    assert st_distinct.tolist() == [K.ST_EVALUATED, K.ST_DEGENERATE, K.ST_DEGENERATE]
+    # with replacement (Open3D mode) the repeated pair is kept; two distinct points leave the
+    # rotation about their line undetermined, so the SVD model flags the sample as degenerate
+    assert st_replace[0] == K.ST_EVALUATED and st_replace[1] == K.ST_DEGENERATE
