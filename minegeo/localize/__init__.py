@@ -15,6 +15,8 @@ from minegeo.localize.georef import (
     sidecar_path,
     write_georeferenced_map,
 )
+from minegeo.localize.pipeline import LocalizationResult, LocalizeParams, localize_scan
+from minegeo.localize.prepared import FeatureParams, PreparedMap, PrepareParams, prepare_map
 
 __all__ = [
     "CRSInfo",
@@ -33,9 +35,28 @@ __all__ = [
     "read_georef",
     "sidecar_path",
     "write_georeferenced_map",
+    "LocalizeParams",
+    "LocalizationResult",
+    "localize_scan",
+    "FeatureParams",
+    "PrepareParams",
+    "PreparedMap",
+    "prepare_map",
 ]
 
 
 def _warmup() -> None:
-    """Georeferencing has no Numba kernels (small dense LSQ); the localization pipeline adds its own."""
-    return None
+    """Georeferencing has no Numba kernels; the localization pipeline only calls the kernels of
+    geometry, features and registration (warmed up by their packages): run it once on a tiny box."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    g = np.stack(np.meshgrid(np.arange(0, 6.0, 0.5), np.arange(0, 4.0, 0.5), indexing="ij"), -1).reshape(-1, 2)
+    walls = [np.column_stack([g[:, 0], g[:, 1], np.zeros(len(g))]),
+             np.column_stack([g[:, 0], np.zeros(len(g)), g[:, 1]]),
+             np.column_stack([g[:, 0], np.full(len(g), 4.0), g[:, 1]])]
+    P = np.vstack(walls) + rng.normal(0, 0.01, (3 * len(g), 3))
+    pm = prepare_map(P, PrepareParams(voxel_size_m=0.5))
+    from minegeo.registration.ransac import RansacParams
+
+    localize_scan(pm, P[::2], params=LocalizeParams(min_scan_points=10, ransac=RansacParams(max_iterations=2000)))

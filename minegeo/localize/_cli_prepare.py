@@ -1,0 +1,71 @@
+"""``minegeo prepare-map``: downsample a prior map and compute its normals and FPFH once.
+
+Writes the prepared map (``.npz``, no pickles: arrays + JSON metadata with format version,
+parameters and their hash, the map's georeferencing and SHA-256) and ``<out>.json`` (a short
+record with timings and versions). ``minegeo localize --map PREPARED.npz`` then only pays for
+the scan; asking it for other parameters than the file's is an error.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+HELP = "prepare a prior map for localization once (downsample, normals, FPFH -> .npz)"
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--map", required=True, help="map point cloud (georeferenced map_geo.ply with sidecar, or plain)")
+    parser.add_argument("--out", required=True, help="prepared map to write (.npz)")
+    from minegeo.localize._cli_localize import add_profile_arguments
+
+    add_profile_arguments(parser)
+    parser.add_argument("--icp-voxel", type=float, default=0.1,
+                        help="voxel of the ICP target copy of the map, m (default 0.1; 0 = every point)")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing output file")
+
+
+def run(args) -> int:
+    from dataclasses import replace
+
+    from minegeo._provenance import input_record, sha256_file, versions, write_json_atomic
+    from minegeo.errors import InputError
+    from minegeo.localize._cli_localize import params_from_args
+    from minegeo.localize.prepared import load_map_cloud, prepare_map
+
+    out = Path(args.out)
+    if not out.name.lower().endswith(".npz"):
+        raise InputError(f"--out must end in .npz, got {out.name}")
+    if out.exists() and not args.force:
+        raise InputError(f"{out} exists; use --force to overwrite")
+    if not Path(args.map).exists():
+        raise InputError(f"--map {args.map} does not exist")
+    prep, _ = params_from_args(argparse_defaults(args))
+    if args.octree_level is not None:
+        prep = replace(prep, voxel_size_m=None, octree_level=int(args.octree_level))
+    icp_voxel = None if args.icp_voxel is not None and args.icp_voxel <= 0 else args.icp_voxel
+    prep = replace(prep, icp_voxel_size_m=icp_voxel)
+    t0 = time.perf_counter()
+    cloud, g = load_map_cloud(args.map)
+    t_read = time.perf_counter() - t0
+    pm = prepare_map(cloud, prep, georef=g, source={"path": str(args.map), "sha256": sha256_file(args.map),
+                                                    "n_points": len(cloud.points), "georeferenced": g is not None})
+    pm.save(out)
+    rec = {"status": "ok", "out": str(out), "n_points": len(cloud.points), "n_down": len(pm),
+           "n_icp_points": int(pm.icp_points.shape[0]), "params": prep, "params_hash": pm.params_hash,
+           "crs": pm.crs, "georeferenced": g is not None, "work_origin": pm.work_origin,
+           "timings_s": {"read": t_read, **pm.timings_s}, "inputs": [input_record(args.map)],
+           "versions": versions()}
+    write_json_atomic(out.with_name(out.name + ".json"), rec)
+    if not getattr(args, "quiet", False):
+        print(f"prepared {args.map}: {len(cloud.points)} -> {len(pm)} points ({prep.describe()}), "
+              f"{pm.icp_points.shape[0]} ICP points; {pm.timings_s['total']:.1f} s; wrote {out}")
+    return 0
+
+
+def argparse_defaults(args):
+    """The localize option namespace that ``params_from_args`` expects (voxel only)."""
+    import argparse
+
+    return argparse.Namespace(profile=args.profile, voxel=args.voxel, octree_level=None, icp=None, ransac_runs=1,
+                              ransac_max_iterations=None, no_mutual_filter=False)

@@ -1,0 +1,746 @@
+"""Global localization of a local scan in a prior (georeferenced) mine map (Baek et al. 2022, Sec. 2).
+
+Pipeline (:func:`localize_scan`), each stage timed:
+
+1. ``downsample`` the scan (Sec. 2.2: voxel size or octree level), ``normals`` (Eq. 2),
+   ``fpfh`` (Eqs. 3-6) with the map's :class:`~minegeo.localize.prepared.FeatureParams`;
+2. ``ransac``: FPFH correspondences + RANSAC with edge-length pruning (Eqs. 7-9), Table 3
+   parameters, via :func:`minegeo.registration.ransac.register_ransac`;
+3. ``icp``: every *distinct* RANSAC hypothesis (the best one and the runner-up, optionally
+   more from extra RANSAC runs) is refined by ICP (Sec. 2.4, Eqs. 10-16; point-to-point as
+   in the paper, point-to-plane selectable; GICP is not available yet). The refined
+   hypothesis with the highest ICP fitness wins (multi-hypothesis verification: mine drifts
+   repeat themselves, and a RANSAC score alone can prefer a look-alike drift);
+4. ``decision``: ``status`` = ``ok`` / ``ambiguous`` / ``failed`` with the reason (below);
+5. ``covariance``: ``Σ = σ² (JᵀJ)⁻¹`` of the final fit and the 95 % position uncertainty of
+   the scan origin;
+6. ``trajectory``: the sensor trajectory moved into the map and the CRS (Eq. 18):
+   ``T_map_sensor(τ) = T_map_scan · T_scan_sensor(τ)``.
+
+Frames
+------
+``scan``  the local scan's own frame (its first sensor pose, as SLAM gives it).
+``map``   the prior map's frame before georeferencing — for a map written by
+          ``minegeo georef`` the frame of the map file it was made from (the ``map`` of
+          ``T_crs_map``). **``T_map_scan`` always refers to this frame**:
+          ``p_map = R p_scan + t``.
+``geo``   CRS coordinates minus the georeferencing origin; ``T_geo_scan`` is obtained with
+          :func:`~minegeo.localize.georef.pose_to_crs` (the position goes through the
+          similarity, the orientation only through its rotation, so the pose stays rigid).
+``crs``   full projected coordinates = ``geo`` + origin (only added when printing).
+
+Decision rules (all thresholds in :class:`LocalizeParams`)
+----------------------------------------------------------
+``failed``     RANSAC found no hypothesis; or the chosen placement's verification score (fraction
+               of scan points within ``verify_plane_tolerance_m`` of the map's tangent planes)
+               is below ``min_plane_fitness``; or the best ICP fitness (fraction of scan points
+               with a map point within the ICP gate) is below ``min_fitness``; or its inlier
+               RMSE (Eq. 19) exceeds ``max_inlier_rmse_m``.
+``ambiguous``  another refined hypothesis placing the scan more than ``ambiguity_distance_m``
+               (or ``ambiguity_angle_deg``) away reaches ``ambiguity_ratio`` × the best ICP
+               fitness (a look-alike drift); or the ICP constraint matrix is degenerate
+               (smallest / largest eigenvalue of the normalised point-to-plane constraint
+               matrix < ``degeneracy_ratio``, e.g. sliding along a straight featureless drift).
+``ok``         otherwise.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from minegeo._provenance import to_jsonable
+from minegeo._validate import as_points, check_positive
+from minegeo.errors import InputError, TooFewPointsError
+from minegeo.geometry.se3 import hat, rotation_angle
+from minegeo.io.types import PointCloud, Trajectory
+from minegeo.localize.prepared import FAST_FEATURES, FeatureParams, PreparedMap, prepare_cloud_features
+from minegeo.registration.icp import METHODS as ICP_METHODS
+from minegeo.registration.icp import ICPParams, register_icp
+from minegeo.registration.ransac import RansacParams, hypothesis_distance, register_ransac
+
+__all__ = ["LocalizeParams", "LocalizationResult", "localize_scan", "CHI2_3D_95", "CHI2_2D_95", "STATUSES"]
+
+log = logging.getLogger(__name__)
+
+#: 95 % quantile of the chi-square distribution with 3 and 2 degrees of freedom.
+CHI2_3D_95 = 7.814727903251178
+CHI2_2D_95 = 5.991464547107979
+#: RANSAC iteration cap of the default parameters (Table 3: 4e8; see LocalizeParams.ransac).
+DEFAULT_RANSAC_MAX_ITERATIONS = 4_000_000
+#: Possible values of ``LocalizationResult.status``.
+STATUSES = ("ok", "ambiguous", "failed")
+
+
+@dataclass(frozen=True)
+class LocalizeParams:
+    """Parameters of :func:`localize_scan` (defaults: Baek et al. 2022, Table 3, plus minegeo's checks).
+
+    Attributes
+    ----------
+    scan_voxel_size_m : float or None
+        Voxel size for the scan, m (Table 3: 0.5 m). Ignored when ``scan_octree_level`` is set.
+    scan_octree_level : int or None
+        Octree level for the scan instead (Sec. 4.1 studies levels 6, 8, 10, 12).
+    scan_icp_voxel_size_m : float or None
+        ICP source: the paper refines with the whole local cloud (Sec. 2.4); minegeo uses
+        its voxel centroids at this edge (m, default 0.1 m); None = every scan point.
+    features : FeatureParams
+        Normals / FPFH settings (Table 3); must equal the prepared map's.
+    ransac : RansacParams
+        RANSAC settings (Table 3: ε_distance 2.5 m, 4 correspondences, edge-length 0.9,
+        500 validations; confidence 0.999 for Eq. 8). One deviation: the iteration cap is
+        ``DEFAULT_RANSAC_MAX_ITERATIONS`` (4e6) instead of Table 3's 4e8 (Open3D's budget),
+        which at ~1-5 µs per draw would let a hopeless search (scan outside the map) run
+        for 10-30 min; Eq. 8 normally stops far earlier. One addition: mutual FPFH
+        matches (``mutual_filter=True``, Open3D's option; Table 3 is silent), which about
+        doubles the inlier fraction w and so divides Eq. 8's iterations by ~16 for n = 4.
+        :meth:`paper_table3` gives exactly the paper's values.
+    ransac_runs : int
+        Independent RANSAC runs (seeds derived from ``seed``); their distinct hypotheses are
+        all verified by ICP. 1 = the paper.
+    icp_method : {"point_to_point", "point_to_plane"}
+        ICP variant (paper: point-to-point). GICP is not available yet.
+    icp_max_correspondence_m : float
+        ICP pair gate, m (Table 3: 0.5 m).
+    icp_max_iterations : int
+        Table 3: 30.
+    icp_relative_rmse : float
+        Convergence threshold on the RMSE change, m (Table 3: 1e-6).
+    icp_relative_fitness : float
+        Convergence threshold on the fitness change (Open3D default 1e-6).
+    min_scan_points : int
+        Fewer downsampled scan points than this is a :class:`TooFewPointsError`.
+    min_fitness : float
+        ``failed`` below this final ICP fitness (fraction of downsampled scan points).
+    max_inlier_rmse_m : float
+        ``failed`` above this final ICP inlier RMSE, m.
+    verify_plane_tolerance_m : float
+        Plane-distance tolerance of the verification score (m): hypotheses are ranked by the
+        fraction of scan points within the ICP gate of the map *and* within this distance of
+        the map's tangent plane (see ``_verify``).
+    min_plane_fitness : float
+        ``failed`` below this verification score of the chosen placement.
+    ambiguity_ratio : float
+        A distinct hypothesis with verification score >= ratio × best makes the result ``ambiguous``.
+    ambiguity_distance_m, ambiguity_angle_deg : float
+        Two refined hypotheses are distinct if they place the scan centroid farther apart
+        than this (m) or their rotations differ by more than this (deg).
+    max_pending_step_m : float
+        ``ambiguous`` when one point-to-plane Gauss-Newton step from the ICP answer would still
+        move some scan point by more than this (m): ICP (point-to-point converges slowly along
+        drifts) stopped before the surfaces fit.
+    degeneracy_ratio : float
+        ``ambiguous`` when the normalised ICP constraint matrix has
+        ``λ_min / λ_max`` below this (see :func:`minegeo.registration.constraint_analysis`).
+    """
+
+    scan_voxel_size_m: float | None = 0.5
+    scan_octree_level: int | None = None
+    scan_icp_voxel_size_m: float | None = 0.1
+    features: FeatureParams = field(default_factory=FeatureParams)
+    ransac: RansacParams = field(default_factory=lambda: RansacParams(max_iterations=DEFAULT_RANSAC_MAX_ITERATIONS,
+                                                                      mutual_filter=True))
+    ransac_runs: int = 1
+    icp_method: str = "point_to_point"
+    icp_max_correspondence_m: float = 0.5
+    icp_max_iterations: int = 30
+    icp_relative_rmse: float = 1e-6
+    icp_relative_fitness: float = 1e-6
+    min_scan_points: int = 30
+    min_fitness: float = 0.6
+    max_inlier_rmse_m: float = 0.35
+    verify_plane_tolerance_m: float = 0.1
+    min_plane_fitness: float = 0.75
+    ambiguity_ratio: float = 0.9
+    ambiguity_distance_m: float = 0.5
+    ambiguity_angle_deg: float = 5.0
+    degeneracy_ratio: float = 0.01
+    max_pending_step_m: float = 0.1
+
+    def __post_init__(self):
+        if self.scan_octree_level is None:
+            if self.scan_voxel_size_m is None:
+                raise InputError("give scan_voxel_size_m or scan_octree_level")
+            check_positive(self.scan_voxel_size_m, "scan_voxel_size_m")
+        elif isinstance(self.scan_octree_level, bool) or int(self.scan_octree_level) != self.scan_octree_level \
+                or not 1 <= self.scan_octree_level <= 21:
+            raise InputError(f"scan_octree_level must be an integer in 1..21, got {self.scan_octree_level!r}")
+        if not isinstance(self.features, FeatureParams):
+            raise InputError("features must be a FeatureParams")
+        if not isinstance(self.ransac, RansacParams):
+            raise InputError("ransac must be a RansacParams")
+        if self.icp_method not in ICP_METHODS:
+            if self.icp_method in ("gicp", "generalized", "generalized_icp"):
+                raise InputError("GICP is not available in minegeo yet; use point_to_point or point_to_plane")
+            raise InputError(f"icp_method must be one of {ICP_METHODS}, got {self.icp_method!r}")
+        check_positive(self.icp_max_correspondence_m, "icp_max_correspondence_m")
+        if self.scan_icp_voxel_size_m is not None:
+            check_positive(self.scan_icp_voxel_size_m, "scan_icp_voxel_size_m")
+        check_positive(self.max_inlier_rmse_m, "max_inlier_rmse_m")
+        check_positive(self.ambiguity_distance_m, "ambiguity_distance_m")
+        check_positive(self.ambiguity_angle_deg, "ambiguity_angle_deg")
+        check_positive(self.verify_plane_tolerance_m, "verify_plane_tolerance_m")
+        check_positive(self.max_pending_step_m, "max_pending_step_m")
+        for name in ("min_fitness", "min_plane_fitness", "ambiguity_ratio", "degeneracy_ratio"):
+            v = float(getattr(self, name))
+            if not 0.0 <= v <= 1.0:
+                raise InputError(f"{name} must be in [0, 1], got {v!r}")
+        for name in ("ransac_runs", "icp_max_iterations", "min_scan_points"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or int(v) != v or v < (0 if name == "icp_max_iterations" else 1):
+                raise InputError(f"{name} must be a positive integer, got {v!r}")
+
+    @classmethod
+    def paper_table3(cls, **overrides) -> LocalizeParams:
+        """Exactly the paper's Table 3, including its 4e8 RANSAC iteration cap."""
+        kw = {"ransac": RansacParams()}
+        kw.update(overrides)
+        return cls(**kw)
+
+    @classmethod
+    def fast(cls, **overrides) -> LocalizeParams:
+        """minegeo's fast profile (pair it with :meth:`PrepareParams.fast` for the map).
+
+        Coarser descriptors (voxel 1 m, normal radius 2 m, FPFH radius 5 m: the Table 3 ratios
+        at twice the voxel), mutual FPFH matches, 3-point RANSAC samples capped at 1e6 draws,
+        point-to-plane ICP. Not the paper's parameters: measured faster and more successful
+        on the synthetic mine (docs/localization.md).
+        """
+        kw = {"scan_voxel_size_m": 1.0, "features": FAST_FEATURES,
+              "ransac": RansacParams(ransac_n=3, mutual_filter=True, max_iterations=1_000_000),
+              "icp_method": "point_to_plane"}
+        kw.update(overrides)
+        return cls(**kw)
+
+    def describe_downsampling(self) -> str:
+        if self.scan_octree_level is not None:
+            return f"octree level {self.scan_octree_level}"
+        return f"voxel {self.scan_voxel_size_m:g} m"
+
+
+@dataclass
+class LocalizationResult:
+    """Outcome of :func:`localize_scan`.
+
+    Attributes
+    ----------
+    status : str
+        ``"ok"``, ``"ambiguous"`` or ``"failed"`` (module docstring).
+    reason : str
+        Why, in words a surveyor understands.
+    T_map_scan : (4, 4) ndarray
+        Scan frame -> map frame (``p_map = R p_scan + t``), final (ICP) estimate. Identity if
+        RANSAC found nothing.
+    T_geo_scan, T_crs_scan : (4, 4) ndarray or None
+        The scan pose in the ``geo`` frame and in full CRS coordinates (None without CRS).
+    fitness, inlier_rmse_m : float
+        Final ICP fitness and inlier RMSE (Eq. 19), m.
+    ransac : RansacResult
+        The (first) RANSAC run.
+    icp : ICPResult or None
+        ICP of the chosen hypothesis.
+    hypotheses : list of dict
+        Every verified hypothesis: its origin, RANSAC and ICP scores, distance to the chosen one.
+    covariance_6x6 : (6, 6) ndarray or None
+        ``σ² (JᵀJ)⁻¹`` with parameters ``(ω_x, ω_y, ω_z, t_x, t_y, t_z)``: a small rotation
+        (rad) about the scan origin and a translation (m) of the scan origin, both in map
+        axes (left perturbation ``T ← exp(δ) T`` taken about the scan origin). None when
+        the geometry does not constrain all six directions.
+    sigma_m : float
+        σ: RMS of the point-to-plane residuals of the final pairs (m), with ``n - 6`` dof.
+    position_cov_3x3 : (3, 3) ndarray or None
+        Covariance of the scan origin (map axes), m².
+    position_sigma_m : (3,) ndarray
+        Its standard deviations along x, y, z (map axes), m (inf when unconstrained).
+    position_95_radius_m : float
+        3-D radius containing the scan origin with 95 % probability under the model:
+        ``sqrt(χ²₃(0.95) · λ_max(position_cov))`` (scale factor ``sqrt(7.815) = 2.80``).
+    horizontal_95_radius_m : float
+        Same in plan (``sqrt(χ²₂(0.95) · λ_max`` of the xy block, factor 2.45).
+    pending_step_m : float
+        Largest scan-point displacement of one more point-to-plane step from the final pose, m.
+    trajectory_map, trajectory_geo : Trajectory or None
+        Sensor trajectory in the map and geo frames (Eq. 18), when a trajectory was given.
+    trajectory_sigma_m : (m,) ndarray or None
+        1-σ 3-D position uncertainty of each trajectory pose from ``covariance_6x6``, m.
+    crs : str or None
+    georef_origin : (3,) ndarray or None
+        Origin of the ``geo`` frame (CRS coordinates), m.
+    n_scan_points, n_scan_down, n_scan_icp : int
+        Scan points read, after downsampling (features, RANSAC) and in the ICP source.
+    params : LocalizeParams
+    map_params : PrepareParams
+    seed : int
+    timings_s : dict
+        Seconds per stage (``downsample``, ``normals``, ``fpfh``, ``ransac``, ``icp``,
+        ``covariance``, ``trajectory``, ``total``).
+    warnings : list of str
+    """
+
+    status: str
+    reason: str
+    T_map_scan: np.ndarray
+    T_geo_scan: np.ndarray | None
+    T_crs_scan: np.ndarray | None
+    fitness: float
+    inlier_rmse_m: float
+    ransac: object
+    icp: object
+    hypotheses: list
+    covariance_6x6: np.ndarray | None
+    sigma_m: float
+    position_cov_3x3: np.ndarray | None
+    position_sigma_m: np.ndarray
+    position_95_radius_m: float
+    horizontal_95_radius_m: float
+    pending_step_m: float
+    trajectory_map: Trajectory | None
+    trajectory_geo: Trajectory | None
+    trajectory_sigma_m: np.ndarray | None
+    crs: str | None
+    georef_origin: np.ndarray | None
+    n_scan_points: int
+    n_scan_down: int
+    n_scan_icp: int
+    params: LocalizeParams
+    map_params: object
+    seed: int
+    timings_s: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
+    ransac_T_map_scan: np.ndarray | None = None
+    scan_points_down: np.ndarray | None = field(default=None, repr=False)
+    residuals_m: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    def to_dict(self) -> dict:
+        """The JSON record (``result.json`` fields of the CLI contract, without ``inputs``)."""
+        r = self.ransac
+        ic = self.icp
+        d = {
+            "status": self.status,
+            "reason": self.reason,
+            "T_map_scan": self.T_map_scan,
+            "T_geo_scan": self.T_geo_scan,
+            "T_crs_scan": self.T_crs_scan,
+            "frames": {
+                "T_map_scan": "scan -> map frame of the prior map before georeferencing (p_map = R p_scan + t)",
+                "T_geo_scan": "scan -> CRS minus georef_origin (pose_to_crs: rigid, position through the similarity)",
+                "T_crs_scan": "scan -> full CRS coordinates (T_geo_scan with georef_origin added)",
+            },
+            "fitness": self.fitness,
+            "inlier_rmse_m": self.inlier_rmse_m,
+            "ransac": None if r is None else {
+                "fitness": r.fitness, "inlier_rmse_m": r.inlier_rmse_m, "n_inliers": r.n_inliers,
+                "iterations": r.iterations, "n_validations": r.n_validations, "status": r.status,
+                "second_best_score": r.ambiguity_ratio, "second_best_fitness": r.second_best_fitness,
+                "second_best_distance_m": r.second_best_distance_m,
+                "second_best_rotation_deg": r.second_best_rotation_deg,
+                "n_correspondences": int(r.correspondences.shape[0]), "T_map_scan": self.ransac_T_map_scan,
+            },
+            "icp": None if ic is None else {
+                "method": self.params.icp_method, "fitness": ic.fitness, "inlier_rmse_m": ic.inlier_rmse_m,
+                "iterations": ic.iterations, "converged": ic.converged, "status": ic.status,
+                "degenerate": ic.degenerate, "degeneracy_ratio": ic.degeneracy_ratio,
+                "degeneracy_reason": ic.degeneracy_reason,
+                "n_correspondences": int(ic.correspondences.shape[0]),
+            },
+            "hypotheses": self.hypotheses,
+            "covariance_6x6": self.covariance_6x6,
+            "covariance_parameters": "(omega_x, omega_y, omega_z) rad about the scan origin, (t_x, t_y, t_z) m of the "
+                                     "scan origin, map axes; sigma^2 (J^T J)^-1, point-to-plane J",
+            "sigma_m": self.sigma_m,
+            "position_cov_3x3": self.position_cov_3x3,
+            "position_sigma_m": self.position_sigma_m,
+            "position_95_radius_m": self.position_95_radius_m,
+            "horizontal_95_radius_m": self.horizontal_95_radius_m,
+            "pending_step_m": self.pending_step_m,
+            "uncertainty_note": "formal (first-order) covariance from the ICP residuals; residuals of neighbouring "
+                                "points are treated as independent, which makes it optimistic; 95 % radius = "
+                                "sqrt(chi2_3(0.95)=7.815 * largest eigenvalue); map and georeferencing errors "
+                                "are not included",
+            "crs": self.crs,
+            "georef_origin": self.georef_origin,
+            "n_scan_points": self.n_scan_points,
+            "n_scan_down": self.n_scan_down,
+            "n_scan_icp": self.n_scan_icp,
+            "params": {"localize": asdict(self.params), "map": asdict(self.map_params) if self.map_params else None},
+            "seed": self.seed,
+            "timings_s": self.timings_s,
+            "warnings": self.warnings,
+        }
+        return to_jsonable(d)
+
+
+# ----------------------------------------------------------------------------- helpers
+def _scan_points(scan) -> tuple[np.ndarray, np.ndarray]:
+    """(points relative to the scan's origin, the origin) — the scan frame is origin + points."""
+    if isinstance(scan, PointCloud):
+        pts, org = scan.points, np.asarray(scan.origin, dtype=np.float64)
+    else:
+        pts, org = scan, np.zeros(3)
+    P = np.asarray(pts, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise InputError(f"scan points must have shape (n, 3), got {P.shape}")
+    if P.shape[0] == 0:
+        raise TooFewPointsError("the scan is empty: there is nothing to localize")
+    return as_points(P, "scan points", min_points=1), org
+
+
+def _icp_params(p: LocalizeParams) -> ICPParams:
+    return ICPParams(max_correspondence_distance_m=float(p.icp_max_correspondence_m),
+                     max_iterations=int(p.icp_max_iterations), relative_fitness=float(p.icp_relative_fitness),
+                     relative_rmse=float(p.icp_relative_rmse), method=p.icp_method,
+                     degeneracy_ratio_threshold=float(p.degeneracy_ratio) if p.degeneracy_ratio > 0 else 1e-12)
+
+
+def _covariance(P_work: np.ndarray, Q: np.ndarray, Nq: np.ndarray, corr: np.ndarray, origin_work: np.ndarray):
+    """Point-to-plane information about the scan origin and ``σ² (JᵀJ)⁻¹``.
+
+    ``J_i = [((p_i − o) × n_i)ᵀ, n_iᵀ]`` with ``p_i`` the transformed scan point, ``n_i`` the
+    map normal of its partner and ``o`` the scan origin (all work frame); residual
+    ``r_i = (p_i − q_i)·n_i``; ``σ² = Σ r_i² / (k − 6)``.
+
+    Also the pending Gauss-Newton step ``x = −(JᵀJ)⁻¹ Jᵀ r`` from the final pose: its size
+    says how far the surface (point-to-plane) optimum lies from the ICP answer.
+
+    Returns ``(cov (6,6) or None, sigma, residuals (k,), info (6,6), step (6,) or None)``.
+    """
+    k = corr.shape[0]
+    if k < 7:
+        return None, math.nan, np.zeros(0), np.zeros((6, 6)), None
+    p = P_work[corr[:, 0]]
+    q = Q[corr[:, 1]]
+    n = Nq[corr[:, 1]]
+    r = np.einsum("ij,ij->i", p - q, n)
+    J = np.hstack([np.cross(p - origin_work, n), n])
+    H = J.T @ J
+    sigma = float(math.sqrt(float(r @ r) / (k - 6)))
+    ev = np.linalg.eigvalsh(H)
+    if ev[-1] <= 0 or ev[0] <= 1e-10 * ev[-1] or sigma == 0.0:
+        return None, sigma, r, H, None
+    Hinv = np.linalg.inv(H)
+    step = -(Hinv @ (J.T @ r))
+    return sigma * sigma * Hinv, sigma, r, H, step
+
+
+def _verify(P: np.ndarray, T: np.ndarray, Q: np.ndarray, N: np.ndarray, tree, gate: float, tol: float):
+    """Point-to-plane agreement of a placement: ``(plane_fitness, plane_rmse_m)``.
+
+    ``plane_fitness`` = fraction of the scan points whose nearest map point is within ``gate``
+    **and** whose distance to that point's tangent plane, ``|(R p + t − q)·n_q|``, is below
+    ``tol``; ``plane_rmse_m`` = RMS of those plane distances over the pairs within ``gate``.
+    Unlike the point-to-point fitness it is not blurred by the map's point spacing.
+    """
+    X = P @ T[:3, :3].T + T[:3, 3]
+    dist, idx = tree.query(X, k=1, distance_upper_bound=gate)
+    idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+    m = idx < Q.shape[0]
+    if not m.any():
+        return 0.0, math.nan
+    j = idx[m]
+    r = np.abs(np.einsum("ij,ij->i", X[m] - Q[j], N[j]))
+    return float(np.count_nonzero(r < tol)) / P.shape[0], float(math.sqrt(float(np.mean(r * r))))
+
+
+def _placement_distance(Ta: np.ndarray, Tb: np.ndarray, centre: np.ndarray) -> tuple[float, float]:
+    return hypothesis_distance(Ta, Tb, centre)
+
+
+# ----------------------------------------------------------------------------- main
+def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory | None = None,
+                  params: LocalizeParams | None = None, seed: int = 0) -> LocalizationResult:
+    """Find where a local scan (and its sensor trajectory) lies in a prepared prior map.
+
+    Parameters
+    ----------
+    prepared_map : PreparedMap
+        From :func:`~minegeo.localize.prepared.prepare_map` / ``PreparedMap.load``; its
+        feature parameters must equal ``params.features``.
+    scan_cloud : PointCloud or (n, 3) array_like
+        The local scan in its own frame (m).
+    trajectory : Trajectory, optional
+        Sensor poses ``T_scan_sensor`` in the scan frame (as written by a SLAM system and by
+        ``minegeo synth``); moved into the map and the CRS with Eq. 18.
+    params : LocalizeParams, optional
+        Defaults to Baek et al. (2022) Table 3 plus the decision thresholds.
+    seed : int
+        Seeds every random choice (RANSAC sampling); equal inputs and seed give
+        bit-identical results.
+
+    Returns
+    -------
+    LocalizationResult
+        Never a silent wrong pose: check ``status`` (``ok`` / ``ambiguous`` / ``failed``) and
+        ``reason``.
+
+    Raises
+    ------
+    TooFewPointsError
+        Empty scan, or fewer than ``params.min_scan_points`` points after downsampling.
+    DegenerateGeometryError
+        The downsampled scan is collinear or planar (its pose cannot be determined).
+    InputError
+        Feature parameters differ from the prepared map's, bad shapes or parameters.
+    """
+    p = LocalizeParams() if params is None else params
+    if not isinstance(p, LocalizeParams):
+        raise InputError(f"params must be a LocalizeParams, got {type(p).__name__}")
+    if not isinstance(prepared_map, PreparedMap):
+        raise InputError(f"prepared_map must be a PreparedMap, got {type(prepared_map).__name__}")
+    prepared_map.check_params(p.features)
+    if isinstance(seed, bool) or int(seed) != seed or seed < 0:
+        raise InputError(f"seed must be an integer >= 0, got {seed!r}")
+    seed = int(seed)
+    t_all = time.perf_counter()
+    timings: dict[str, float] = {}
+    warnings: list[str] = []
+
+    # 1. scan features
+    P_raw, scan_origin = _scan_points(scan_cloud)
+    D, _, F = prepare_cloud_features(P_raw, p.scan_voxel_size_m, p.scan_octree_level, p.features, timings)
+    if D.shape[0] < p.min_scan_points:
+        raise TooFewPointsError(
+            f"the scan has only {D.shape[0]} points after downsampling ({p.describe_downsampling()}; "
+            f"{P_raw.shape[0]} read); at least {p.min_scan_points} are needed to localize it"
+        )
+    if np.count_nonzero(np.any(F != 0.0, axis=1)) < p.ransac.ransac_n:
+        raise TooFewPointsError(
+            f"the scan's points are too sparse for FPFH within {p.features.fpfh_radius_m} m: no descriptor to match"
+        )
+    # the scan frame is scan_origin + points; keep D relative to scan_origin, fold it into T at the end
+    t0 = time.perf_counter()
+    if p.scan_icp_voxel_size_m is None:
+        Dfine = P_raw
+    else:
+        from minegeo.geometry import voxel_downsample
+
+        Dfine = np.ascontiguousarray(voxel_downsample(P_raw, float(p.scan_icp_voxel_size_m)).points)
+    timings["downsample"] += time.perf_counter() - t0
+    Q = prepared_map.points
+    Qf = prepared_map.icp_points
+    Nf = prepared_map.icp_normals
+
+    # 2. RANSAC (one or more runs)
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    run_seeds = [seed] + [int(s) for s in rng.integers(0, 2**31 - 1, size=p.ransac_runs - 1)]
+    ransacs = [register_ransac(D, Q, F, prepared_map.features, p.ransac, seed=s) for s in run_seeds]
+    timings["ransac"] = time.perf_counter() - t0
+    r0 = ransacs[0]
+    centre = D.mean(axis=0)
+
+    cand: list[tuple[str, np.ndarray, float, float]] = []
+    for i, rr in enumerate(ransacs):
+        if rr.n_inliers > 0:
+            cand.append((f"ransac[{i}] best", rr.T_target_source, rr.fitness, rr.inlier_rmse_m))
+            if rr.second_best_T_target_source is not None:
+                cand.append((f"ransac[{i}] runner-up", rr.second_best_T_target_source, rr.second_best_fitness,
+                             rr.second_best_rmse_m))
+    # drop duplicates (same placement as an earlier candidate)
+    uniq: list[tuple[str, np.ndarray, float, float]] = []
+    for c in cand:
+        if all(max(_placement_distance(c[1], u[1], centre)[0] / p.ambiguity_distance_m,
+                   _placement_distance(c[1], u[1], centre)[1] / p.ambiguity_angle_deg) > 1.0 for u in uniq):
+            uniq.append(c)
+
+    # 3. ICP of every distinct hypothesis
+    t0 = time.perf_counter()
+    icp_p = _icp_params(p)
+    tree = prepared_map.kdtree
+    refined = []
+    for name, T0, rf, rrmse in uniq:
+        ic = register_icp(Dfine, Qf, T0, icp_p, target_normals=Nf, target_index=tree)
+        pf, prm = _verify(Dfine, ic.T_target_source, Qf, Nf, tree, float(p.icp_max_correspondence_m),
+                          float(p.verify_plane_tolerance_m))
+        refined.append((name, T0, rf, rrmse, ic, pf, prm))
+    timings["icp"] = time.perf_counter() - t0
+
+    # 4. decision
+    t0 = time.perf_counter()
+    hyps = []
+    best = None
+    if refined:
+        order = sorted(range(len(refined)), key=lambda i: (-refined[i][5], -refined[i][4].fitness, i))
+        best = refined[order[0]]
+        Tb = best[4].T_target_source
+        for rank, i in enumerate(order):
+            name, T0, rf, rrmse, ic, pf, prm = refined[i]
+            dist, ang = _placement_distance(ic.T_target_source, Tb, centre)
+            hyps.append({
+                "rank": rank, "source": name, "ransac_fitness": rf, "ransac_inlier_rmse_m": rrmse,
+                "icp_fitness": ic.fitness, "icp_inlier_rmse_m": ic.inlier_rmse_m, "icp_iterations": ic.iterations,
+                "plane_fitness": pf, "plane_rmse_m": prm,
+                "distance_to_chosen_m": dist, "rotation_to_chosen_deg": ang,
+                "T_map_scan": _to_map(ic.T_target_source, scan_origin, prepared_map.work_origin),
+            })
+    status, reason = "ok", ""
+    ic_best = best[4] if best is not None else None
+    if best is None:
+        status = "failed"
+        reason = f"RANSAC found no placement of the scan in the map ({r0.reason})"
+    else:
+        f, e = ic_best.fitness, ic_best.inlier_rmse_m
+        pf_best = best[5]
+        rivals = [h for h in hyps[1:] if (h["distance_to_chosen_m"] > p.ambiguity_distance_m
+                                           or h["rotation_to_chosen_deg"] > p.ambiguity_angle_deg)
+                  and h["plane_fitness"] >= p.ambiguity_ratio * pf_best]
+        if pf_best < p.min_plane_fitness:
+            status = "failed"
+            reason = (f"the best placement has only {100 * pf_best:.0f} % of the scan points within "
+                      f"{p.verify_plane_tolerance_m:g} m of the map surface (need {100 * p.min_plane_fitness:.0f} %; "
+                      f"ICP fitness {f:.3f}): no placement matches the drift's shape — the scan is probably not in "
+                      "the mapped area, the map changed there, or the right place was not found")
+        elif f < p.min_fitness:
+            status = "failed"
+            reason = (f"the best placement explains only {100 * f:.0f} % of the scan points within "
+                      f"{p.icp_max_correspondence_m:g} m of the map (need {100 * p.min_fitness:.0f} %): the scan is "
+                      "probably not in the mapped area, or the map changed there")
+        elif e > p.max_inlier_rmse_m:
+            status = "failed"
+            reason = (f"the inlier RMSE {e:.3f} m exceeds {p.max_inlier_rmse_m:g} m: the scan does not fit the map "
+                      "closely enough")
+        elif rivals:
+            h = rivals[0]
+            status = "ambiguous"
+            reason = (f"another placement {h['distance_to_chosen_m']:.1f} m / {h['rotation_to_chosen_deg']:.1f} deg "
+                      f"away fits almost as well (plane fitness {h['plane_fitness']:.3f} vs {pf_best:.3f}, ratio >= "
+                      f"{p.ambiguity_ratio:g}): the drift repeats itself; extend the scan past a distinctive feature")
+        elif ic_best.degeneracy_ratio < p.degeneracy_ratio:
+            status = "ambiguous"
+            reason = ("the fit is not constrained in every direction: " + (ic_best.degeneracy_reason or
+                      f"eigenvalue ratio {ic_best.degeneracy_ratio:.2e} < {p.degeneracy_ratio:g}")
+                      + " (e.g. a straight featureless drift: the position along it is uncertain)")
+        else:
+            reason = (f"ICP fitness {f:.3f}, inlier RMSE {e:.3f} m, plane fitness {pf_best:.3f}; "
+                      + (f"{len(hyps) - 1} other hypothesis(es) verified and clearly worse"
+                         if len(hyps) > 1 else "no competing hypothesis found by RANSAC"))
+        if r0.ambiguity_ratio >= p.ambiguity_ratio and not (status == "ambiguous" and rivals):
+            warnings.append(f"RANSAC's runner-up scored {r0.ambiguity_ratio:.2f} of the best; ICP verification "
+                            "separated them")
+    timings["decision"] = time.perf_counter() - t0
+
+    # 5. covariance (about the scan origin, work frame)
+    t0 = time.perf_counter()
+    T_work_scan = ic_best.T_target_source if ic_best is not None else np.eye(4)
+    cov = None
+    sigma = math.nan
+    residuals = None
+    pos_cov = None
+    pending = math.nan
+    pos_sigma = np.full(3, np.inf)
+    r95 = h95 = math.inf
+    if ic_best is not None:
+        Pw = Dfine @ T_work_scan[:3, :3].T + T_work_scan[:3, 3]
+        # D = scan points - scan_origin, so the scan frame's origin is at D = -scan_origin
+        o_work = T_work_scan[:3, :3] @ (-scan_origin) + T_work_scan[:3, 3]
+        cov, sigma, residuals, _, step = _covariance(Pw, Qf, Nf, ic_best.correspondences, o_work)
+        if step is not None:
+            lever = float(np.sqrt(np.max(np.sum((Pw - o_work) ** 2, axis=1))))
+            pending = float(np.linalg.norm(step[3:]) + np.linalg.norm(step[:3]) * lever)
+            if pending > p.max_pending_step_m and status == "ok":
+                status = "ambiguous"
+                reason = (f"ICP stopped {pending:.3f} m (largest displacement over the scan) away from the "
+                          f"best surface fit (> {p.max_pending_step_m:g} m): the pose is not settled; try "
+                          "--icp point_to_plane or more ICP iterations")
+        if cov is not None:
+            pos_cov = cov[3:, 3:].copy()
+            pos_sigma = np.sqrt(np.maximum(np.diag(pos_cov), 0.0))
+            r95 = float(math.sqrt(CHI2_3D_95 * max(np.linalg.eigvalsh(pos_cov)[-1], 0.0)))
+            h95 = float(math.sqrt(CHI2_2D_95 * max(np.linalg.eigvalsh(pos_cov[:2, :2])[-1], 0.0)))
+        elif status == "ok":
+            status = "ambiguous"
+            reason = "the fit leaves at least one pose direction unconstrained (singular information matrix)"
+    timings["covariance"] = time.perf_counter() - t0
+
+    T_map_scan = _to_map(T_work_scan, scan_origin, prepared_map.work_origin)
+
+    # 6. trajectory and CRS (Eq. 18)
+    t0 = time.perf_counter()
+    g = prepared_map.georef_result
+    T_geo_scan = T_crs_scan = None
+    georef_origin = None
+    crs = prepared_map.crs
+    if g is not None:
+        from minegeo.localize.georef import pose_to_crs
+
+        T_geo_scan = pose_to_crs(T_map_scan, g, allow_failed=True)
+        T_crs_scan = T_geo_scan.copy()
+        T_crs_scan[:3, 3] += g.origin
+        georef_origin = np.asarray(g.origin, dtype=np.float64)
+        if g.status == "failed":
+            warnings.append("the map's georeferencing is marked failed: CRS coordinates are not reliable")
+    elif crs:
+        T_crs_scan = T_map_scan.copy()
+    traj_map = traj_geo = traj_sigma = None
+    if trajectory is not None:
+        if not isinstance(trajectory, Trajectory):
+            raise InputError(f"trajectory must be a Trajectory, got {type(trajectory).__name__}")
+        poses = np.asarray(trajectory.poses, dtype=np.float64).copy()
+        poses[:, :3, 3] += np.asarray(trajectory.origin, dtype=np.float64)
+        Tm = np.einsum("ij,njk->nik", T_map_scan, poses)
+        traj_map = Trajectory(times_s=np.asarray(trajectory.times_s, dtype=np.float64).copy(), poses=Tm, frame="map",
+                              body=trajectory.body)
+        if g is not None:
+            from minegeo.localize.georef import pose_to_crs
+
+            Tg = pose_to_crs(Tm, g, allow_failed=True)
+            traj_geo = Trajectory(times_s=traj_map.times_s.copy(), poses=Tg, frame="crs", body=trajectory.body,
+                                  origin=np.asarray(g.origin, dtype=np.float64).copy(), crs=g.crs)
+        if cov is not None:
+            # position of each pose: dp = -[p - o]x omega + t  (perturbation about the scan origin o)
+            o_map = T_map_scan[:3, :3] @ np.zeros(3) + T_map_scan[:3, 3]
+            d = Tm[:, :3, 3] - o_map
+            traj_sigma = np.empty(d.shape[0])
+            for i, di in enumerate(d):
+                J = np.hstack([-hat(di), np.eye(3)])
+                traj_sigma[i] = math.sqrt(max(float(np.trace(J @ cov @ J.T)), 0.0))
+    timings["trajectory"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_all
+    if status != "ok":
+        log.warning("localization %s: %s", status, reason)
+    res = LocalizationResult(
+        status=status, reason=reason, T_map_scan=T_map_scan, T_geo_scan=T_geo_scan, T_crs_scan=T_crs_scan,
+        fitness=float(ic_best.fitness) if ic_best is not None else 0.0,
+        inlier_rmse_m=float(ic_best.inlier_rmse_m) if ic_best is not None else math.nan,
+        ransac=r0, icp=ic_best, hypotheses=hyps, covariance_6x6=cov, sigma_m=sigma, position_cov_3x3=pos_cov,
+        position_sigma_m=pos_sigma, position_95_radius_m=r95, horizontal_95_radius_m=h95, pending_step_m=pending,
+        trajectory_map=traj_map, trajectory_geo=traj_geo, trajectory_sigma_m=traj_sigma, crs=crs,
+        georef_origin=georef_origin, n_scan_points=int(P_raw.shape[0]), n_scan_down=int(D.shape[0]), n_scan_icp=int(Dfine.shape[0]),
+        params=p, map_params=prepared_map.params, seed=seed, timings_s=timings, warnings=warnings,
+        ransac_T_map_scan=_to_map(r0.T_target_source, scan_origin, prepared_map.work_origin),
+        scan_points_down=D + scan_origin, residuals_m=residuals,
+    )
+    return res
+
+
+def _to_map(T_work_D: np.ndarray, scan_origin: np.ndarray, work_origin: np.ndarray) -> np.ndarray:
+    """``T_map_scan`` from a transform of the origin-subtracted scan ``D = scan − scan_origin`` into ``work``.
+
+    ``p_work = R (p_scan − o_s) + t``  ⇒  ``p_map = R p_scan + (t − R o_s + o_w)``.
+    """
+    T = np.array(T_work_D, dtype=np.float64, copy=True)
+    T[:3, 3] = T[:3, 3] - T[:3, :3] @ scan_origin + work_origin
+    return T
+
+
+def error_vs_truth(T_est, T_true, points=None) -> dict:
+    """Translation (m) and rotation (deg) error of ``T_est`` against ``T_true``; with ``points`` (scan
+    frame) also the max / RMS displacement of those points (e.g. trajectory positions), m."""
+    T_est = np.asarray(T_est, dtype=np.float64)
+    T_true = np.asarray(T_true, dtype=np.float64)
+    out = {"translation_m": float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])),
+           "rotation_deg": float(np.degrees(rotation_angle(T_est[:3, :3].T @ T_true[:3, :3])))}
+    if points is not None:
+        P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        d = np.linalg.norm((P @ T_est[:3, :3].T + T_est[:3, 3]) - (P @ T_true[:3, :3].T + T_true[:3, 3]), axis=1)
+        out["max_point_error_m"] = float(d.max()) if d.size else 0.0
+        out["rms_point_error_m"] = float(np.sqrt(np.mean(d * d))) if d.size else 0.0
+    return out

@@ -1,0 +1,267 @@
+"""Global localization pipeline (Baek et al. 2022): synthetic scans back to truth, honesty, files, CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from minegeo.errors import DegenerateGeometryError, FileFormatError, InputError, TooFewPointsError
+from minegeo.io.types import PointCloud, Trajectory
+from minegeo.localize import LocalizeParams, PreparedMap, PrepareParams, localize_scan, prepare_map
+from minegeo.localize.pipeline import error_vs_truth
+
+# one small world, its map and a few scans for the whole module
+_SECTIONS = ("regular", "intersection")
+
+
+@pytest.fixture(scope="module")
+def world_map():
+    from minegeo.synth import Velodyne16, build_map, build_world, local_scan
+
+    world = build_world("small", 0)
+    cloud = build_map(world, seed=1)
+    pm = prepare_map(cloud, PrepareParams.fast())
+    scans = {}
+    for i, sec in enumerate(_SECTIONS):
+        scans[sec] = local_scan(world, sec, 20.0, Velodyne16(), seed=3 + i, max_rays=20_000)
+    return world, cloud, pm, scans
+
+
+@pytest.fixture(scope="module")
+def results(world_map):
+    _, _, pm, scans = world_map
+    return {sec: localize_scan(pm, c, tr, LocalizeParams.fast(), seed=0) for sec, (c, tr, _) in scans.items()}
+
+
+@pytest.mark.parametrize("section", _SECTIONS)
+def test_synthetic_scan_localized_back(world_map, results, section):
+    _, _, _, scans = world_map
+    cloud, traj, T_true = scans[section]
+    r = results[section]
+    e = error_vs_truth(r.T_map_scan, T_true, traj.poses[:, :3, 3])
+    assert r.status == "ok", r.reason
+    assert e["max_point_error_m"] < 0.1, e
+    assert e["rotation_deg"] < 0.5, e
+    # trajectory moved into the map with Eq. 18
+    assert r.trajectory_map is not None and len(r.trajectory_map) == len(traj)
+    np.testing.assert_allclose(r.trajectory_map.poses[0], r.T_map_scan @ traj.poses[0], atol=1e-12)
+    # honest uncertainty: a finite 95 % radius, positive sigmas
+    assert np.all(np.isfinite(r.position_sigma_m)) and np.all(r.position_sigma_m > 0)
+    assert 0 < r.position_95_radius_m < 1.0
+    assert r.covariance_6x6.shape == (6, 6)
+    np.testing.assert_allclose(r.covariance_6x6, r.covariance_6x6.T, rtol=1e-9, atol=1e-15)
+    assert np.all(np.linalg.eigvalsh(r.covariance_6x6) > 0)
+    # every stage timed
+    for k in ("downsample", "normals", "fpfh", "ransac", "icp", "covariance", "trajectory", "total"):
+        assert k in r.timings_s
+
+
+def test_ok_is_never_wrong(world_map, results):
+    _, _, _, scans = world_map
+    for sec, r in results.items():
+        if r.status == "ok":
+            e = error_vs_truth(r.T_map_scan, scans[sec][2], scans[sec][1].poses[:, :3, 3])
+            assert e["max_point_error_m"] < 0.5, (sec, e)
+
+
+def test_scan_from_outside_the_map_is_not_ok(world_map):
+    """A scan of another mine (different seed) must come out failed or ambiguous, never ok."""
+    from minegeo.synth import Velodyne16, build_world, local_scan
+
+    _, _, pm, _ = world_map
+    other = build_world("small", 5)
+    c, tr, _ = local_scan(other, "curve", 20.0, Velodyne16(), seed=11, max_rays=20_000)
+    r = localize_scan(pm, c, tr, LocalizeParams.fast(), seed=0)
+    assert r.status in ("failed", "ambiguous"), r.reason
+    assert r.reason
+
+
+def test_scan_of_a_flat_floor_only_is_not_ok(world_map):
+    """A flat patch (no drift shape) cannot be placed: a typed error, never a pose."""
+    _, _, pm, _ = world_map
+    rng = np.random.default_rng(0)
+    P = np.column_stack([rng.uniform(0, 20, 5000), rng.uniform(0, 4, 5000), np.zeros(5000)])
+    with pytest.raises(DegenerateGeometryError):
+        localize_scan(pm, P, None, LocalizeParams.fast(), seed=0)
+
+
+def test_table3_defaults_never_ok_and_wrong(world_map):
+    """The paper's parameters (map prepared with them) on one scan: if ok, then right."""
+    _, cloud, _, scans = world_map
+    pm3 = prepare_map(cloud, PrepareParams())
+    c, tr, T_true = scans["intersection"]
+    r = localize_scan(pm3, c, tr, LocalizeParams(), seed=0)
+    assert r.status in ("ok", "ambiguous", "failed")
+    e = error_vs_truth(r.T_map_scan, T_true, tr.poses[:, :3, 3])
+    if r.status == "ok":
+        assert e["max_point_error_m"] < 0.5, (r.reason, e)
+    assert r.params.icp_method == "point_to_point" and r.params.features.fpfh_radius_m == 2.5
+
+
+def test_empty_and_tiny_scans_raise_typed_errors(world_map):
+    _, _, pm, _ = world_map
+    with pytest.raises(TooFewPointsError):
+        localize_scan(pm, np.zeros((0, 3)), params=LocalizeParams.fast())
+    with pytest.raises(TooFewPointsError):
+        localize_scan(pm, np.random.default_rng(0).normal(size=(12, 3)), params=LocalizeParams.fast())
+    with pytest.raises(InputError):
+        localize_scan(pm, np.zeros((10, 2)), params=LocalizeParams.fast())
+
+
+def test_determinism_bit_identical(world_map, results):
+    _, _, pm, scans = world_map
+    c, tr, _ = scans["regular"]
+    r2 = localize_scan(pm, c, tr, LocalizeParams.fast(), seed=0)
+    r1 = results["regular"]
+    assert np.array_equal(r1.T_map_scan, r2.T_map_scan)
+    assert np.array_equal(r1.covariance_6x6, r2.covariance_6x6)
+    d1, d2 = r1.to_dict(), r2.to_dict()
+    d1.pop("timings_s")
+    d2.pop("timings_s")
+    assert json.dumps(d1, sort_keys=True) == json.dumps(d2, sort_keys=True)
+
+
+def test_prepared_map_save_load_round_trip(world_map, tmp_path):
+    _, _, pm, _ = world_map
+    f = tmp_path / "map.prepared.npz"
+    pm.save(f)
+    q = PreparedMap.load(f, PrepareParams.fast())
+    for name in ("points", "normals", "features", "icp_points", "icp_normals", "work_origin"):
+        assert np.array_equal(getattr(pm, name), getattr(q, name)), name
+    assert q.params == pm.params and q.params_hash == pm.params_hash
+    # other parameters: clear error
+    with pytest.raises(InputError, match="voxel_size_m"):
+        PreparedMap.load(f, PrepareParams.fast(voxel_size_m=0.4))
+    with pytest.raises(InputError, match="fpfh_radius_m"):
+        pm.check_params(LocalizeParams().features)
+    # no pickles inside
+    with np.load(f, allow_pickle=False) as z:
+        assert set(z.files) >= {"points", "features", "meta"}
+        meta = json.loads(str(z["meta"]))
+    assert meta["format"] == "minegeo-prepared-map" and meta["version"] == 1
+    # tampered parameters are detected through the hash
+    meta["params"]["voxel_size_m"] = 0.7  # edited without updating the hash
+    with np.load(f, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files if k != "meta"}
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, meta=np.array(json.dumps(meta)), **arrays)
+    with pytest.raises(FileFormatError, match="hash"):
+        PreparedMap.load(bad)
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not a zip")
+    with pytest.raises(FileFormatError):
+        PreparedMap.load(junk)
+
+
+def test_localize_with_loaded_map_equals_in_memory(world_map, results, tmp_path):
+    _, _, pm, scans = world_map
+    f = tmp_path / "m.npz"
+    pm.save(f)
+    q = PreparedMap.load(f)
+    c, tr, _ = scans["intersection"]
+    r = localize_scan(q, c, tr, LocalizeParams.fast(), seed=0)
+    assert np.array_equal(r.T_map_scan, results["intersection"].T_map_scan)
+
+
+def test_params_validation():
+    with pytest.raises(InputError, match="GICP"):
+        LocalizeParams(icp_method="gicp")
+    with pytest.raises(InputError):
+        LocalizeParams(min_fitness=1.5)
+    with pytest.raises(InputError):
+        PrepareParams(voxel_size_m=-1)
+    p = LocalizeParams.paper_table3()
+    assert p.ransac.max_iterations == 400_000_000 and p.ransac.ransac_n == 4
+    assert p.ransac.distance_threshold_m == 2.5 and p.ransac.edge_length_similarity == 0.9
+    assert p.features.fpfh_radius_m == 2.5 and p.features.normal_radius_m == 1.0
+    assert p.icp_max_correspondence_m == 0.5 and p.icp_max_iterations == 30 and p.icp_method == "point_to_point"
+
+
+def test_point_cloud_with_origin_and_trajectory_origin(world_map, results):
+    """A scan stored relative to a local origin gives the same T_map_scan (frames handled exactly)."""
+    _, _, pm, scans = world_map
+    c, tr, _ = scans["regular"]
+    o = np.array([1000.0, -250.0, 3.0])
+    c2 = PointCloud(points=c.points - o, origin=o)
+    tr2 = Trajectory(times_s=tr.times_s, poses=tr.poses.copy(), frame="scan", body="sensor")
+    tr2.poses[:, :3, 3] -= o
+    tr2.origin = o
+    r = localize_scan(pm, c2, tr2, LocalizeParams.fast(), seed=0)
+    r0 = results["regular"]
+    assert r.status == r0.status
+    e = error_vs_truth(r.T_map_scan, r0.T_map_scan)
+    assert e["translation_m"] < 1e-3 and e["rotation_deg"] < 1e-3
+    assert math.isfinite(r.position_95_radius_m)
+
+
+def test_cli_end_to_end_georeferenced(world_map, tmp_path):
+    """georef'd map + scan + trajectory through ``minegeo localize`` (cache written), then
+    ``minegeo prepare-map`` and ``localize`` against the prepared file."""
+    from minegeo.cli import main
+    from minegeo.io import write_point_cloud, write_trajectory
+    from minegeo.localize import apply_georef, georeference, pose_to_crs, write_georeferenced_map
+    from minegeo.synth import make_gcps
+
+    world, cloud, _, scans = world_map
+    gcps, _ = make_gcps(world, n=8, seed=2)
+    g = georeference(gcps)
+    geo = tmp_path / "map_geo.ply"
+    write_georeferenced_map(geo, apply_georef(cloud, g), g)
+    c, tr, T_true = scans["regular"]
+    write_point_cloud(tmp_path / "scan.ply", c, binary=True)
+    write_trajectory(tmp_path / "traj.txt", tr, format="tum")
+    out = tmp_path / "loc"
+    argv = ["localize", "--map", str(geo), "--scan", str(tmp_path / "scan.ply"), "--trajectory",
+            str(tmp_path / "traj.txt"), "--out", str(out), "--seed", "0", "--profile", "fast"]
+    assert main(argv) == 0
+    r = json.loads((out / "result.json").read_text())
+    for key in ("status", "reason", "T_map_scan", "fitness", "inlier_rmse_m", "ransac", "icp", "covariance_6x6",
+                "position_sigma_m", "timings_s", "crs", "params", "versions", "seed", "inputs"):
+        assert key in r, key
+    for key in ("fitness", "inlier_rmse_m", "iterations", "second_best_score", "second_best_distance_m"):
+        assert key in r["ransac"], key
+    for key in ("fitness", "inlier_rmse_m", "iterations"):
+        assert key in r["icp"], key
+    assert r["status"] == "ok" and r["crs"] == g.crs
+    assert all(len(i["sha256"]) == 64 for i in r["inputs"])
+    # T_map_scan is in the ORIGINAL map frame (the synthetic truth's frame) despite the geo map
+    e = error_vs_truth(r["T_map_scan"], T_true, tr.poses[:, :3, 3])
+    assert e["max_point_error_m"] < 0.1, e
+    T_crs = pose_to_crs(np.asarray(r["T_map_scan"]), g)
+    T_crs[:3, 3] += g.origin
+    np.testing.assert_allclose(np.asarray(r["T_crs_scan"]), T_crs, atol=1e-6)
+    rows = [ln for ln in (out / "trajectory_global.csv").read_text().splitlines() if not ln.startswith("#")]
+    assert rows[0].startswith("time_s,x_map_m") and "E_m" in rows[0] and len(rows) == len(tr) + 1
+    html = (out / "report.html").read_text()
+    assert "<img" in html or "matplotlib is not installed" in html
+    assert "Parameters" in html and "ok" in html.lower()
+    assert list(tmp_path.glob("map_geo.ply.prepared-*.npz")), "prepared-map cache not written"
+    # prepared file path, and a mismatch of parameters is a clear input error (exit 2)
+    prep = tmp_path / "prep.npz"
+    assert main(["prepare-map", "--map", str(geo), "--out", str(prep), "--profile", "fast"]) == 0
+    out2 = tmp_path / "loc2"
+    assert main(["localize", "--map", str(prep), "--scan", str(tmp_path / "scan.ply"), "--out", str(out2),
+                 "--profile", "fast"]) == 0
+    r2 = json.loads((out2 / "result.json").read_text())
+    assert r2["map_preparation"]["source"] == "prepared_file"
+    assert np.allclose(r2["T_map_scan"], r["T_map_scan"], atol=1e-9)
+    assert main(["localize", "--map", str(prep), "--scan", str(tmp_path / "scan.ply"), "--out",
+                 str(tmp_path / "loc3")]) == 2
+
+
+def test_cli_tiny_scan_typed_error_and_failed_record(world_map, tmp_path):
+    from minegeo.cli import main
+    from minegeo.io import write_point_cloud
+
+    _, _, pm, _ = world_map
+    prep = tmp_path / "p.npz"
+    pm.save(prep)
+    write_point_cloud(tmp_path / "tiny.ply", PointCloud(points=np.random.default_rng(0).normal(size=(5, 3))))
+    out = tmp_path / "o"
+    assert main(["localize", "--map", str(prep), "--scan", str(tmp_path / "tiny.ply"), "--out", str(out),
+                 "--profile", "fast"]) == 2
+    r = json.loads((out / "result.json").read_text())
+    assert r["status"] == "failed" and "points" in r["reason"]
