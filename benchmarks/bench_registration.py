@@ -134,7 +134,7 @@ def bench_icp(src, tgt, tgt_normals, T_init, T_true, method, d, iterations, rel_
     register_icp(src[:50], src[:50], np.eye(4), ICPParams(d, max_iterations=2, method=method),
                  target_normals=tgt_normals[:50] if method == "point_to_plane" else None)
     compile_s = time.perf_counter() - t0
-    nrm = tgt_normals if method == "point_to_plane" else None
+    nrm = tgt_normals  # point-to-point uses them only for the degeneracy analysis (Open3D ignores them)
     ps = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src))
     pt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt))
     pt.normals = o3d.utility.Vector3dVector(np.ascontiguousarray(tgt_normals))

@@ -26,9 +26,11 @@ def n_chunks(m):
     return (m + CHUNK - 1) // CHUNK
 
 
-#: Below this many rows the serial driver is used (a parallel launch costs more than it saves).
+#: Below this many rows the serial driver is used. The per-iteration ICP work is a few flops per
+#: pair, so a thread launch only pays off for very large clouds (measured on the shared 2-core
+#: machine: a prange launch under load can cost tens of ms, the serial pass over 2e4 pairs < 1 ms).
 #: Both drivers run the same chunk bodies in the same order, so the results are bit-identical.
-PARALLEL_MIN_ROWS = 16384
+PARALLEL_MIN_ROWS = 1 << 18
 
 
 # ----------------------------------------------------------------------------- per-point maps
@@ -498,7 +500,7 @@ def pca_normals_kernel(Q, nb):
     """Unit normal (eigenvector of the smallest eigenvalue of the neighbourhood covariance) per row
     of the (m, k) neighbour index array ``nb`` into ``Q``; sign as returned by LAPACK."""
     out = np.empty((nb.shape[0], 3))
-    if nb.shape[0] >= PARALLEL_MIN_ROWS // 8:
+    if nb.shape[0] >= PARALLEL_MIN_ROWS // 4:
         _pca_parallel(Q, nb, out)
     else:
         _pca_serial(Q, nb, out)
