@@ -134,10 +134,13 @@ def run(args) -> int:
                     rows.append((f"localize {name}", "-", f"failed (exit {rc})"))
                     continue
                 r = _json(res)
-                dt, dr = _err_m(r["T_map_scan"], sc["T_map_scan"]) if r.get("T_map_scan") else (np.nan, np.nan)
-                rows.append((f"localize {name}", f"{time.perf_counter() - t0:.1f} s",
-                             f"status {r['status']}, inlier RMSE {r.get('inlier_rmse_m', float('nan')):.3f} m, "
-                             f"vs truth {dt:.3f} m / {dr:.2f} deg"))
+                txt = f"status {r['status']}"
+                if r.get("T_map_scan") is not None and r.get("inlier_rmse_m") is not None:
+                    dt, dr = _err_m(r["T_map_scan"], sc["T_map_scan"])
+                    txt += f", inlier RMSE {r['inlier_rmse_m']:.3f} m, vs truth {dt:.3f} m / {dr:.2f} deg"
+                if r["status"] != "ok":
+                    txt += f" ({r.get('reason')})"
+                rows.append((f"localize {name}", f"{time.perf_counter() - t0:.1f} s", txt))
 
     total = time.perf_counter() - t_start
     w = max(len(r[0]) for r in rows)
