@@ -7,7 +7,7 @@ import numba
 import numpy as np
 import pytest
 from helpers import require_open3d, shared_data
-from hypothesis import assume, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from pykdtree.kdtree import KDTree
 from reference.naive_icp import naive_icp
@@ -179,28 +179,28 @@ def test_simpleicp_dragon_exact_transform():
 def test_icp_rigid_motion_and_permutation(seed, method):
     """Moving both clouds by a rigid G gives G T; permuting points changes nothing.
 
-    Point-to-point (Umeyama) steps are exactly equivariant. Open3D's point-to-plane step maps the
-    linear solution x to ``R_z R_y R_x`` about the frame origin, which is equivariant only to second
-    order in the step, so the property holds at the converged fixed point: the point-to-plane case
-    runs to a tight convergence and only converged pairs are compared (ICP with discrete nearest
-    neighbours can also end in a 2-cycle, which the result reports as ``max_iterations``).
+    Point-to-point (Umeyama) steps are exactly equivariant: compared at 1e-6. Open3D's
+    point-to-plane step maps the linear solution x to ``R_z R_y R_x`` about the frame origin,
+    which is equivariant only to second order in the step; the moved run therefore takes a
+    slightly different path and can settle on a neighbouring fixed point of the discrete
+    nearest-neighbour iteration (observed: up to 1e-4 on this 0.1 m-spaced target, e.g. seed 232,
+    both runs converged to |Δrmse| < 1e-12). Point-to-plane is compared at 1e-3 (a hundredth of
+    the point spacing).
     """
     P, Q, N, _ = _scene(seed, n_src=200, n_tgt=1500, noise=0.0, max_angle=0.05, max_t=0.05)
     rng = np.random.default_rng(seed)
     if method == "point_to_point":
-        prm = ICPParams(0.3)
+        prm, tol = ICPParams(0.3), 1e-6
     else:
-        prm = ICPParams(0.3, max_iterations=60, relative_fitness=1e-9, relative_rmse=1e-9, method=method)
+        prm, tol = ICPParams(0.3, max_iterations=60, relative_fitness=1e-9, relative_rmse=1e-9, method=method), 1e-3
     T0 = random_transform(rng, 0.02, 0.02)
     r = register_icp(P, Q, T0, prm, target_normals=N)
     G = random_transform(rng, np.pi, 10.0)
     rg = register_icp(P, transform_points(G, Q), G @ T0, prm, target_normals=N @ G[:3, :3].T)
     H = random_transform(rng, np.pi, 10.0)
     rh = register_icp(transform_points(H, P), Q, T0 @ invert(H), prm, target_normals=N)
-    if method == "point_to_plane":
-        assume(r.converged and rg.converged and rh.converged)
-    np.testing.assert_allclose(rg.T_target_source, G @ r.T_target_source, atol=1e-6)
-    np.testing.assert_allclose(rh.T_target_source, r.T_target_source @ invert(H), atol=1e-6)
+    np.testing.assert_allclose(rg.T_target_source, G @ r.T_target_source, atol=tol)
+    np.testing.assert_allclose(rh.T_target_source, r.T_target_source @ invert(H), atol=tol)
     # permutation of source points and of target points (only the summation order changes)
     ps, pt = rng.permutation(len(P)), rng.permutation(len(Q))
     rp = register_icp(P[ps], Q[pt], T0, prm, target_normals=N[pt])
