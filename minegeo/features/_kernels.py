@@ -147,27 +147,29 @@ def fpfh_kernel(spfh, nbr_idx, nbr_sq, counts, weight_mode, row0):
             if weight_mode == WEIGHT_INVERSE_DISTANCE:
                 dist = math.sqrt(dist)
             j = nbr_idx[i, k]
-            for b in range(N_FEATURES):
+            # three branch-free block loops; same operations and order as Open3D
+            for b in range(N_BINS):
                 val = spfh[j, b] / dist
                 out[i, b] += val
-                if b < N_BINS:
-                    s0 += val
-                elif b < 2 * N_BINS:
-                    s1 += val
-                else:
-                    s2 += val
+                s0 += val
+            for b in range(N_BINS, 2 * N_BINS):
+                val = spfh[j, b] / dist
+                out[i, b] += val
+                s1 += val
+            for b in range(2 * N_BINS, N_FEATURES):
+                val = spfh[j, b] / dist
+                out[i, b] += val
+                s2 += val
         if s0 != 0.0:
             s0 = 100.0 / s0
         if s1 != 0.0:
             s1 = 100.0 / s1
         if s2 != 0.0:
             s2 = 100.0 / s2
-        for b in range(N_FEATURES):
-            if b < N_BINS:
-                out[i, b] *= s0
-            elif b < 2 * N_BINS:
-                out[i, b] *= s1
-            else:
-                out[i, b] *= s2
-            out[i, b] += spfh[row0 + i, b]
+        for b in range(N_BINS):
+            out[i, b] = out[i, b] * s0 + spfh[row0 + i, b]
+        for b in range(N_BINS, 2 * N_BINS):
+            out[i, b] = out[i, b] * s1 + spfh[row0 + i, b]
+        for b in range(2 * N_BINS, N_FEATURES):
+            out[i, b] = out[i, b] * s2 + spfh[row0 + i, b]
     return out
