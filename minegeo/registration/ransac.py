@@ -270,6 +270,11 @@ class RansacResult:
     seed: int | None
     timings_s: dict = field(default_factory=dict)
 
+    @property
+    def second_best_score(self) -> float:
+        """Score of the runner-up in the units of ``fitness`` (same as ``second_best_fitness``)."""
+        return self.second_best_fitness
+
 
 # ----------------------------------------------------------------------------- helpers
 

@@ -243,7 +243,7 @@ def test_runner_up_flags_a_repeated_structure(rng):
     corr = np.stack([np.arange(100), np.where(coin, np.arange(100), np.arange(100) + 100)], axis=1)
     r = register_ransac(src, tgt, params=_params(distance_threshold_m=0.02), seed=5, correspondences=corr)
     assert r.fitness == 1.0
-    assert r.ambiguity_ratio == 1.0 and r.second_best_fitness == 1.0
+    assert r.ambiguity_ratio == 1.0 and r.second_best_fitness == 1.0 == r.second_best_score
     assert r.second_best_distance_m == pytest.approx(10.0, abs=1e-6)
     placements = sorted([r.T_target_source[0, 3] - G[0, 3], r.second_best_T_target_source[0, 3] - G[0, 3]])
     np.testing.assert_allclose(placements, [0.0, 10.0], atol=1e-6)
