@@ -505,3 +505,192 @@ def pca_normals_kernel(Q, nb):
     else:
         _pca_serial(Q, nb, out)
     return out
+
+
+# ----------------------------------------------------------------------------- gated 1-NN KD-tree
+
+#: Maximum number of points in a KD-tree leaf.
+KD_LEAF = 12
+
+
+@njit
+def kd_build(Q, leaf):
+    """Sliding-midpoint KD-tree over ``Q`` (m, 3): split the widest bounding-box side at its middle.
+
+    Returns ``(idx, Qs, start, end, dim, split, left, right, depth)``: ``Qs = Q[idx]`` (points in
+    leaf order), per node the ``[start, end)`` range into ``Qs``, the split dimension (-1 = leaf),
+    the split value and the children; ``depth`` is the maximum node depth. Coincident points
+    (zero spread) stay in one leaf.
+    """
+    m = Q.shape[0]
+    idx = np.arange(m)
+    max_nodes = 2 * m + 1
+    start = np.empty(max_nodes, np.int64)
+    end = np.empty(max_nodes, np.int64)
+    dim = np.full(max_nodes, -1, np.int64)
+    split = np.zeros(max_nodes)
+    left = np.full(max_nodes, -1, np.int64)
+    right = np.full(max_nodes, -1, np.int64)
+    level = np.zeros(max_nodes, np.int64)
+    stack = np.empty(max_nodes, np.int64)
+    n_nodes = 1
+    start[0] = 0
+    end[0] = m
+    sp = 1
+    stack[0] = 0
+    depth = 0
+    while sp > 0:
+        sp -= 1
+        nd = stack[sp]
+        s = start[nd]
+        e = end[nd]
+        if level[nd] > depth:
+            depth = level[nd]
+        if e - s <= leaf:
+            continue
+        lo = np.full(3, np.inf)
+        hi = np.full(3, -np.inf)
+        for a in range(s, e):
+            j = idx[a]
+            for c in range(3):
+                v = Q[j, c]
+                if v < lo[c]:
+                    lo[c] = v
+                if v > hi[c]:
+                    hi[c] = v
+        k = 0
+        spread = hi[0] - lo[0]
+        for c in range(1, 3):
+            if hi[c] - lo[c] > spread:
+                k = c
+                spread = hi[c] - lo[c]
+        if not spread > 0.0:
+            continue
+        sv = 0.5 * (lo[k] + hi[k])
+        i = s
+        jj = e - 1
+        while i <= jj:  # partition: [s, mid) < sv <= [mid, e)
+            if Q[idx[i], k] < sv:
+                i += 1
+            else:
+                t = idx[i]
+                idx[i] = idx[jj]
+                idx[jj] = t
+                jj -= 1
+        mid = i
+        if mid == s or mid == e:  # midpoint rounding on a tiny spread: keep as a leaf
+            continue
+        dim[nd] = k
+        split[nd] = sv
+        lc = n_nodes
+        rc = n_nodes + 1
+        n_nodes += 2
+        start[lc] = s
+        end[lc] = mid
+        start[rc] = mid
+        end[rc] = e
+        level[lc] = level[nd] + 1
+        level[rc] = level[nd] + 1
+        left[nd] = lc
+        right[nd] = rc
+        stack[sp] = lc
+        sp += 1
+        stack[sp] = rc
+        sp += 1
+    Qs = np.empty((m, 3))
+    for a in range(m):
+        for c in range(3):
+            Qs[a, c] = Q[idx[a], c]
+    return (idx, Qs, start[:n_nodes].copy(), end[:n_nodes].copy(), dim[:n_nodes].copy(),
+            split[:n_nodes].copy(), left[:n_nodes].copy(), right[:n_nodes].copy(), depth)
+
+
+@njit
+def _kd_nn_rows(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq, r0, r1):
+    m = idx.shape[0]
+    st_node = np.empty(depth + 2, np.int64)
+    st_lb = np.empty(depth + 2)
+    for i in range(r0, r1):
+        px = P[i, 0]
+        py = P[i, 1]
+        pz = P[i, 2]
+        best = d2
+        best_j = m
+        st_node[0] = 0
+        st_lb[0] = 0.0
+        sp = 1
+        while sp > 0:
+            sp -= 1
+            nd = st_node[sp]
+            if st_lb[sp] > best:
+                continue
+            while dim[nd] >= 0:
+                k = dim[nd]
+                if k == 0:
+                    diff = px - split[nd]
+                elif k == 1:
+                    diff = py - split[nd]
+                else:
+                    diff = pz - split[nd]
+                if diff < 0.0:
+                    near = left[nd]
+                    far = right[nd]
+                else:
+                    near = right[nd]
+                    far = left[nd]
+                dd = diff * diff
+                if dd <= best:
+                    st_node[sp] = far
+                    st_lb[sp] = dd
+                    sp += 1
+                nd = near
+            for a in range(start[nd], end[nd]):
+                dx = px - Qs[a, 0]
+                dy = py - Qs[a, 1]
+                dz = pz - Qs[a, 2]
+                sq = dx * dx + dy * dy + dz * dz
+                if sq < d2:
+                    j = idx[a]
+                    if sq < best or (sq == best and j < best_j):
+                        best = sq
+                        best_j = j
+        out_idx[i] = best_j
+        out_sq[i] = best if best_j < m else np.inf
+
+
+@njit
+def _kd_nn_serial(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq):
+    _kd_nn_rows(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq, 0, P.shape[0])
+
+
+@njit_parallel
+def _kd_nn_parallel(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq):
+    n = P.shape[0]
+    for c in prange(n_chunks(n)):
+        _kd_nn_rows(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq,
+                    c * CHUNK, min(n, (c + 1) * CHUNK))
+
+
+class GatedKDTree:
+    """Exact nearest target point within a gate, on a Numba KD-tree (built once per target).
+
+    ``query(P, d2)`` returns ``(idx, sq)``: for every row of ``P`` the index of the nearest target
+    point with squared distance ``< d2`` (strict; ties -> lowest index) or ``m`` when none, and that
+    squared distance (``inf`` when none), computed as ``dx*dx + dy*dy + dz*dz``.
+    The gate bounds the search, so each query visits only a few leaves.
+    """
+
+    def __init__(self, Q):
+        self.m = Q.shape[0]
+        self.data = Q
+        self._tree = kd_build(Q, KD_LEAF)
+
+    def query(self, P, d2):
+        n = P.shape[0]
+        idx = np.empty(n, dtype=np.int64)
+        sq = np.empty(n)
+        if n >= PARALLEL_MIN_ROWS:
+            _kd_nn_parallel(P, *self._tree, float(d2), idx, sq)
+        else:
+            _kd_nn_serial(P, *self._tree, float(d2), idx, sq)
+        return idx, sq

@@ -31,12 +31,15 @@ PARALLEL_QUERY_MIN = 1024
 
 
 def _kdtree(Q: np.ndarray):
-    """Exact KD-tree (SciPy ``cKDTree``, sliding-midpoint build: fast to build, exact queries)."""
-    return cKDTree(Q, balanced_tree=False, compact_nodes=False)
+    """Gated nearest-neighbour KD-tree over the target (Numba, :class:`_kernels.GatedKDTree`)."""
+    return K.GatedKDTree(Q)
 
 
 def build_target_index(target_points):
-    """KD-tree over the target points, reusable across calls (SciPy ``cKDTree``).
+    """Search structure over the target points, reusable across calls.
+
+    A sliding-midpoint KD-tree written in Numba (``_kernels.GatedKDTree``) whose queries are
+    bounded by the correspondence gate, so each query visits only a few leaves.
 
     Parameters
     ----------
@@ -68,7 +71,10 @@ def _query_nn(index, P: np.ndarray, d: float, m: int) -> np.ndarray:
         idx = np.asarray(nb.indices, dtype=np.int64)[:, 0].copy()
         idx[idx < 0] = m
         return np.ascontiguousarray(idx)
-    raise InputError("target_index must be a KD-tree from build_target_index (cKDTree), a pykdtree KDTree or a NeighborIndex")
+    raise InputError(
+        "target_index must come from build_target_index (or be a SciPy cKDTree, a pykdtree KDTree "
+        "or a minegeo.geometry.NeighborIndex)"
+    )
 
 
 def nearest_within(P: np.ndarray, Q: np.ndarray, index, d: float):
@@ -76,6 +82,10 @@ def nearest_within(P: np.ndarray, Q: np.ndarray, index, d: float):
 
     ``P`` and ``Q`` must already be validated contiguous float64 arrays (internal helper).
     """
+    if isinstance(index, K.GatedKDTree):
+        idx, sq = index.query(P, d * d)
+        src = np.flatnonzero(idx < Q.shape[0])
+        return src, idx[src], np.ascontiguousarray(sq[src])
     idx = _query_nn(index, P, d, Q.shape[0])
     sq, valid = K.gate_nearest_kernel(P, Q, idx, d * d)
     src = np.flatnonzero(valid)
@@ -99,7 +109,7 @@ def evaluate_registration(source, target, T, max_correspondence_distance_m: floa
         at squared distance ``< d²`` (strict).
     target_index : optional
         A reusable search structure over ``target`` from :func:`build_target_index`
-        (a SciPy ``cKDTree``; a pykdtree ``KDTree`` or a ``minegeo.geometry.NeighborIndex`` also
+        (a SciPy ``cKDTree``, a pykdtree ``KDTree`` or a ``minegeo.geometry.NeighborIndex`` also
         work); built on the fly when omitted.
 
     Returns

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numba
 import numpy as np
+from scipy.spatial import cKDTree
 
 from minegeo._provenance import StageTimer
 from minegeo._validate import as_points, as_transform
@@ -247,6 +248,8 @@ def _pca_normals(Q: np.ndarray, index, idx: np.ndarray, k: int = PCA_NEIGHBOURS)
     """
     kk = min(k, Q.shape[0])
     uniq, inv = np.unique(idx, return_inverse=True)
+    if not hasattr(index, "query") or isinstance(index, K.GatedKDTree):
+        index = cKDTree(Q)  # the gated 1-NN tree cannot answer k-NN queries
     workers = 1 if uniq.size < 2048 else int(numba.get_num_threads())
     if hasattr(index, "n"):  # scipy cKDTree
         _, nb = index.query(Q[uniq], k=kk, workers=workers)

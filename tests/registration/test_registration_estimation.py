@@ -194,6 +194,32 @@ def test_evaluate_matches_open3d(rng):
         assert np.array_equal(c, np.asarray(o.correspondence_set))
 
 
+# ---------------------------------------------------------------- gated KD-tree vs brute force
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 400), d=st.sampled_from([0.05, 0.2, 1.0, 10.0]))
+def test_gated_kdtree_matches_brute_force(seed, n, d):
+    rng = np.random.default_rng(seed)
+    kind = seed % 3
+    if kind == 0:
+        Q = rng.uniform(0, 2, size=(n, 3))
+    elif kind == 1:  # clustered, duplicates and a plane: deep, uneven tree
+        Q = np.round(rng.normal(scale=[1.0, 1.0, 1e-6], size=(n, 3)), 3)
+        Q[: n // 3] = Q[0]
+    else:  # grid points: many exact ties
+        Q = rng.integers(0, 5, size=(n, 3)).astype(float) * 0.1
+    P = np.vstack([Q[: min(n, 50)], rng.uniform(-1, 3, size=(80, 3)), Q[:5] + d])  # includes sq == d² cases
+    idx, sq = K.GatedKDTree(np.ascontiguousarray(Q)).query(np.ascontiguousarray(P), d * d)
+    D = ((P[:, None, :] - Q[None, :, :]) ** 2).sum(-1)
+    D[D >= d * d] = np.inf
+    best = D.min(1)
+    # lowest index among the (exact) minima, "no neighbour" = n
+    ref = np.where(np.isfinite(best), np.argmax(D == best[:, None], axis=1), n)
+    assert np.array_equal(idx, ref)
+    np.testing.assert_array_equal(sq, np.where(np.isfinite(best), best, np.inf))
+
+
 # ---------------------------------------------------------------- kernels vs naive, determinism
 
 
