@@ -73,6 +73,8 @@ def _warmup() -> None:
     sw, mp, mq, W, vp = K.weighted_moments_kernel(P, Q, w)
     K.umeyama_from_moments(mp, mq, W, vp, False)
     K.umeyama_small_kernel(P, Q, False)
+    K.point_to_plane_system_idx(P, Q, N, idx, idx)
+    K.weighted_moments_idx(P, Q, idx, idx)
     tree = K.kd_build(np.vstack([P, Q, P + 2.0, Q + 3.0]), 2)
     i_out = np.empty(4, dtype=np.int64)
     K._kd_nn_serial(P, *tree, 1.0, i_out, sq)

@@ -694,3 +694,103 @@ class GatedKDTree:
         else:
             _kd_nn_serial(P, *self._tree, float(d2), idx, sq)
         return idx, sq
+
+
+# ----------------------------------------------------------------------------- indexed ICP reductions
+# Same sums as point_to_plane_system_kernel / weighted_moments_kernel on the pairs
+# (P[si[k]], Q[ti[k]]), without materialising the gathered copies (bit-identical results).
+
+
+@njit
+def _p2l_idx_serial(P, Q, N, si, ti, part):
+    m = si.shape[0]
+    J = np.empty(6)
+    for c in range(part.shape[0]):
+        for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
+            a_ = si[i]
+            b_ = ti[i]
+            px = P[a_, 0]
+            py = P[a_, 1]
+            pz = P[a_, 2]
+            nx = N[b_, 0]
+            ny = N[b_, 1]
+            nz = N[b_, 2]
+            r = (px - Q[b_, 0]) * nx + (py - Q[b_, 1]) * ny + (pz - Q[b_, 2]) * nz
+            J[0] = py * nz - pz * ny
+            J[1] = pz * nx - px * nz
+            J[2] = px * ny - py * nx
+            J[3] = nx
+            J[4] = ny
+            J[5] = nz
+            k = 0
+            for a in range(6):
+                for b in range(a, 6):
+                    part[c, k] += J[a] * J[b]
+                    k += 1
+            for a in range(6):
+                part[c, 21 + a] += J[a] * r
+            part[c, 27] += r * r
+
+
+def point_to_plane_system_idx(P, Q, N, si, ti):
+    """:func:`point_to_plane_system_kernel` on the pairs ``(P[si], Q[ti], N[ti])``."""
+    part = np.zeros((n_chunks(si.shape[0]), 28))
+    _p2l_idx_serial(P, Q, N, si, ti, part)
+    tot = _add_partials(part) if part.shape[0] else np.zeros(28)
+    H = np.zeros((6, 6))
+    iu = np.triu_indices(6)
+    H[iu] = tot[:21]
+    H = H + np.triu(H, 1).T
+    return H, tot[21:27].copy(), float(tot[27])
+
+
+@njit
+def _moments_idx_serial(P, Q, si, ti, part1, part2):
+    m = si.shape[0]
+    nc = part1.shape[0]
+    for c in range(nc):
+        for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
+            a = si[i]
+            b = ti[i]
+            part1[c, 0] += 1.0
+            for k in range(3):
+                part1[c, 1 + k] += 1.0 * P[a, k]
+                part1[c, 4 + k] += 1.0 * Q[b, k]
+    mu_p, mu_q = _means_from_partials(part1)
+    for c in range(nc):
+        for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
+            a = si[i]
+            b = ti[i]
+            a0 = P[a, 0] - mu_p[0]
+            a1 = P[a, 1] - mu_p[1]
+            a2 = P[a, 2] - mu_p[2]
+            b0 = Q[b, 0] - mu_q[0]
+            b1 = Q[b, 1] - mu_q[1]
+            b2 = Q[b, 2] - mu_q[2]
+            part2[c, 0] += 1.0 * a0 * b0
+            part2[c, 1] += 1.0 * a0 * b1
+            part2[c, 2] += 1.0 * a0 * b2
+            part2[c, 3] += 1.0 * a1 * b0
+            part2[c, 4] += 1.0 * a1 * b1
+            part2[c, 5] += 1.0 * a1 * b2
+            part2[c, 6] += 1.0 * a2 * b0
+            part2[c, 7] += 1.0 * a2 * b1
+            part2[c, 8] += 1.0 * a2 * b2
+            part2[c, 9] += 1.0 * (a0 * a0 + a1 * a1 + a2 * a2)
+    return mu_p, mu_q
+
+
+def weighted_moments_idx(P, Q, si, ti):
+    """:func:`weighted_moments_kernel` with unit weights on the pairs ``(P[si], Q[ti])``."""
+    nc = n_chunks(si.shape[0])
+    part1 = np.zeros((nc, 7))
+    part2 = np.zeros((nc, 10))
+    mu_p, mu_q = _moments_idx_serial(P, Q, si, ti, part1, part2)
+    sw = float(_add_partials(part1[:, :1])[0]) if nc else 0.0
+    tot2 = _add_partials(part2) if nc else np.zeros(10)
+    W = np.zeros((3, 3))
+    var_p = 0.0
+    if sw > 0.0:
+        W = tot2[:9].reshape(3, 3) / sw
+        var_p = float(tot2[9] / sw)
+    return sw, mu_p, mu_q, W, var_p

@@ -377,17 +377,16 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
             if corr.shape[0] == 0:
                 dT = np.eye(4)  # Open3D: no correspondences -> identity
             elif method == "point_to_point":
-                Ps = np.ascontiguousarray(P[corr[:, 0]])
-                Qs = np.ascontiguousarray(Q[corr[:, 1]])
-                _, mu_p, mu_q, W, var_p = K.weighted_moments_kernel(Ps, Qs, np.ones(Ps.shape[0]))
+                si = np.ascontiguousarray(corr[:, 0])
+                ti = np.ascontiguousarray(corr[:, 1])
+                _, mu_p, mu_q, W, var_p = K.weighted_moments_idx(P, Q, si, ti)
                 dT, _, S = K.umeyama_from_moments(mu_p, mu_q, W, var_p, False)
                 if S[0] <= 0.0 or S[1] <= RANK_TOL * S[0]:
                     rank_deficient_step = True
             else:
-                Ps = np.ascontiguousarray(P[corr[:, 0]])
-                Qs = np.ascontiguousarray(Q[corr[:, 1]])
-                Ns = np.ascontiguousarray(Nt[corr[:, 1]])
-                H, g, _ = K.point_to_plane_system_kernel(Ps, Qs, Ns)
+                si = np.ascontiguousarray(corr[:, 0])
+                ti = np.ascontiguousarray(corr[:, 1])
+                H, g, _ = K.point_to_plane_system_idx(P, Q, Nt, si, ti)
                 x, singular = _solve_normal_equations(H, g)
                 rank_deficient_step |= singular
                 dT = _euler6_to_transform(x)

@@ -237,6 +237,15 @@ def test_kernels_match_naive_twins(rng):
         K.point_to_point_information_kernel(Q[:300]), naive_point_to_point_information(Q[:300]), rtol=1e-12, atol=1e-9
     )
     assert K.sum_kernel(P[:, 0].copy()) == pytest.approx(P[:, 0].sum(), abs=1e-11)
+    # indexed variants (used by ICP) are bit-identical to gathering first
+    si = rng.integers(0, 2500, size=1800)
+    ti = rng.integers(0, 2500, size=1800)
+    a = K.point_to_plane_system_idx(P, Q, N, si, ti)
+    b = K.point_to_plane_system_kernel(P[si], Q[ti], N[ti])
+    assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+    a = K.weighted_moments_idx(P, Q, si, ti)
+    b = K.weighted_moments_kernel(P[si], Q[ti], np.ones(si.size))
+    assert all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(a, b, strict=True))
 
 
 def test_reductions_independent_of_thread_count_and_driver(rng):
