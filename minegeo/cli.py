@@ -75,7 +75,8 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"minegeo {args.verb}: error: {exc}", file=sys.stderr)
         return 2
-    except (FileNotFoundError, IsADirectoryError, PermissionError) as exc:
+    except (FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError, PermissionError) as exc:
+        # e.g. --out naming an existing file, or a path through a file: the user's mistake, not a crash
         if args.debug:
             raise
         name = getattr(exc, "filename", None) or ""
