@@ -43,7 +43,13 @@ def run(args) -> int:
     from minegeo._provenance import StageTimer, input_record, provenance, write_json_atomic
     from minegeo.errors import InputError
     from minegeo.io import read_gcps, read_point_cloud
-    from minegeo.localize.georef import GeorefParams, apply_georef, georeference, write_georeferenced_map
+    from minegeo.localize.georef import (
+        GeorefParams,
+        apply_georef,
+        georeference,
+        sidecar_path,
+        write_georeferenced_map,
+    )
     from minegeo.report.georef_report import write_georef_report
 
     timer = StageTimer()
@@ -59,8 +65,14 @@ def run(args) -> int:
     map_path = Path(args.map)
     out_path = Path(args.out)
     report_dir = Path(args.report)
-    if out_path.resolve() == map_path.resolve():
-        raise InputError(f"--out {out_path} is the input map: write the georeferenced map to a new file")
+    # never overwrite an input: check every file this run writes against the map and the GCP file
+    input_files = {map_path.resolve(): "input map", Path(args.gcps).resolve(): "input GCP file"}
+    written = {out_path: "--out", sidecar_path(out_path): "the sidecar of --out",
+               report_dir / "result.json": "--report", report_dir / "report.html": "--report"}
+    for path, option in written.items():
+        if path.resolve() in input_files:
+            raise InputError(f"{option} {path} is the {input_files[path.resolve()]}: "
+                             "write the georeferenced map and the report to new files")
     with timer("read"):
         gcps = read_gcps(args.gcps, default_sigma_m=args.default_sigma_m)
         cloud = read_point_cloud(map_path, origin="auto")
