@@ -306,6 +306,36 @@ def test_demo_refuses_nonempty_out(tmp_path, capsys):
     assert (tmp_path / "keep.txt").read_text(encoding="utf-8") == "mine"
 
 
+def test_out_naming_an_existing_file(mine, mast_scene, network, tmp_path, capsys):
+    """``--out`` that is a file (or a path through a file) is a user mistake, not a crash."""
+    f = tmp_path / "afile"
+    f.write_text("keep", encoding="utf-8")
+    assert_user_error("mast", ["--scan", mast_scene["scan"], "--beacons", mast_scene["beacons"], "--out", f], capsys)
+    assert_user_error("adjust", [network, "--out", f], capsys)
+    assert_user_error("adjust", [network, "--out", f / "sub"], capsys)
+    assert_user_error("georef", ["--map", mine / "map.ply", "--gcps", mine / "gcps.csv", "--out", tmp_path / "g.ply",
+                                 "--report", f], capsys)
+    assert f.read_text(encoding="utf-8") == "keep"
+
+
+@pytest.mark.parametrize("target", ["gcps", "sidecar_of_map", "report_over_gcps"])
+def test_georef_never_overwrites_its_inputs(target, mine, tmp_path, capsys):
+    """Any output path that resolves to an input (map or GCP file) is refused before anything is written."""
+    gcps = tmp_path / "gcps.csv"
+    gcps.write_bytes((mine / "gcps.csv").read_bytes())
+    argv = {"gcps": ["--out", gcps, "--report", tmp_path / "rep"],
+            "sidecar_of_map": ["--out", tmp_path / "geo.ply", "--report", tmp_path / "rep"],
+            "report_over_gcps": ["--out", tmp_path / "geo.ply", "--report", tmp_path]}[target]
+    if target == "sidecar_of_map":
+        gcps = gcps.rename(tmp_path / "geo.ply.georef.json")
+    if target == "report_over_gcps":
+        gcps = gcps.rename(tmp_path / "result.json")
+    before = snapshot([gcps, mine / "map.ply"])
+    assert_user_error("georef", ["--map", mine / "map.ply", "--gcps", gcps, "--crs", "EPSG:5186", *argv], capsys,
+                      expect="is the input")
+    assert snapshot([gcps, mine / "map.ply"]) == before
+
+
 # ---------------------------------------------------------------- successful runs
 
 
@@ -349,6 +379,10 @@ def test_mast_success_contract(mast_scene, tmp_path, capsys):
     d = json.loads((tmp_path / "o" / "result.json").read_text(encoding="utf-8"))
     assert d["status"] == "ok"
     check_provenance(d["provenance"], inp)
+    umask = os.umask(0o022)
+    os.umask(umask)
+    for p in (tmp_path / "o").iterdir():  # atomic writes must not leave mkstemp's 0600 mode
+        assert p.stat().st_mode & 0o777 == 0o666 & ~umask, p
     truth = json.loads(Path(mast_scene["truth"]).read_text(encoding="utf-8"))
     assert abs(d["x"] - truth["x_m"]) < 0.01 and abs(d["y"] - truth["y_m"]) < 0.01
 
