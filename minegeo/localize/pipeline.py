@@ -551,16 +551,32 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
                    _placement_distance(c[1], u[1], centre)[1] / p.ambiguity_angle_deg) > 1.0 for u in uniq):
             uniq.append(c)
 
-    # 3. ICP of every distinct hypothesis
+    # 3. ICP of every distinct hypothesis: screening on the feature-level scan (cheap), then the
+    #    full-resolution ICP from the screened pose for the leader and any close rival
     t0 = time.perf_counter()
     icp_p = _icp_params(p)
     tree = prepared_map.kdtree
+    gate, tol = float(p.icp_max_correspondence_m), float(p.verify_plane_tolerance_m)
+    screened = []
+    if len(uniq) > 1:
+        for c in uniq:
+            ic = register_icp(D, Qf, c[1], icp_p, target_normals=Nf, target_index=tree)
+            pf, prm = _verify(D, ic.T_target_source, Qf, Nf, tree, gate, tol)
+            screened.append((ic, pf, prm))
+        scores = [x[1] for x in screened]
+        fine_set = {i for i, pf in enumerate(scores) if pf >= p.ambiguity_ratio * max(scores)}
+        fine_set.add(int(np.argmax(scores)))
+    else:
+        fine_set = {0} if uniq else set()
     refined = []
-    for name, T0, rf, rrmse in uniq:
-        ic = register_icp(Dfine, Qf, T0, icp_p, target_normals=Nf, target_index=tree)
-        pf, prm = _verify(Dfine, ic.T_target_source, Qf, Nf, tree, float(p.icp_max_correspondence_m),
-                          float(p.verify_plane_tolerance_m))
-        refined.append((name, T0, rf, rrmse, ic, pf, prm))
+    for i, (name, T0, rf, rrmse) in enumerate(uniq):
+        if i in fine_set:
+            ic = register_icp(Dfine, Qf, T0, icp_p, target_normals=Nf, target_index=tree)
+            pf, prm = _verify(Dfine, ic.T_target_source, Qf, Nf, tree, gate, tol)
+            refined.append((name, T0, rf, rrmse, ic, pf, prm))
+        else:  # screened out: keep the coarse ICP's score for the record
+            ic, pf, prm = screened[i]
+            refined.append((name + " (screened out on the coarse scan)", T0, rf, rrmse, ic, pf, prm))
     timings["icp"] = time.perf_counter() - t0
 
     # 4. decision
@@ -568,7 +584,9 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     hyps = []
     best = None
     if refined:
-        order = sorted(range(len(refined)), key=lambda i: (-refined[i][5], -refined[i][4].fitness, i))
+        # fully refined hypotheses first (screened-out ones lost on the coarse scan already)
+        order = sorted(range(len(refined)),
+                       key=lambda i: ("screened out" in refined[i][0], -refined[i][5], -refined[i][4].fitness, i))
         best = refined[order[0]]
         Tb = best[4].T_target_source
         for rank, i in enumerate(order):
@@ -589,7 +607,8 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     else:
         f, e = ic_best.fitness, ic_best.inlier_rmse_m
         pf_best = best[5]
-        rivals = [h for h in hyps[1:] if (h["distance_to_chosen_m"] > p.ambiguity_distance_m
+        rivals = [h for h in hyps[1:] if "screened out" not in h["source"] and (
+                  h["distance_to_chosen_m"] > p.ambiguity_distance_m
                                            or h["rotation_to_chosen_deg"] > p.ambiguity_angle_deg)
                   and h["plane_fitness"] >= p.ambiguity_ratio * pf_best]
         if pf_best < p.min_plane_fitness:
