@@ -41,9 +41,8 @@ def _n(v, fmt: str) -> str:
     return "n/a" if not math.isfinite(f) else format(f, fmt)
 
 
-def _frame_xy(res, pts_map: np.ndarray):
-    """Plan coordinates for plotting: geo frame (CRS − origin) if georeferenced, else map."""
-    g = getattr(res, "_georef", None)
+def _frame_xy(g, pts_map: np.ndarray):
+    """Plan coordinates for plotting: geo frame (CRS − origin) if georeferenced (``g``), else map."""
     if g is not None:
         from minegeo.localize.georef import map_to_crs
 
@@ -59,7 +58,6 @@ def plot_localization_png(res, prepared, max_map_points: int = 40000, seed: int 
     except ImportError:
         return None
     g = prepared.georef_result
-    res._georef = g
     M = prepared.points_map()
     if M.shape[0] > max_map_points:
         idx = np.sort(np.random.default_rng(seed).choice(M.shape[0], max_map_points, replace=False))
@@ -67,20 +65,22 @@ def plot_localization_png(res, prepared, max_map_points: int = 40000, seed: int 
     S = res.scan_points_down if res.scan_points_down is not None else np.zeros((0, 3))
     T = res.T_map_scan
     Sm = S @ T[:3, :3].T + T[:3, 3]
-    Mx = _frame_xy(res, M)
-    Sx = _frame_xy(res, Sm)
+    Mx = _frame_xy(g, M)
+    Sx = _frame_xy(g, Sm)
     colour = {"ok": "tab:green", "ambiguous": "tab:orange", "failed": "tab:red"}[res.status]
     fig = Figure(figsize=(11, 5.2), dpi=100)
     FigureCanvasAgg(fig)
     axes = [fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)]
     for k, ax in enumerate(axes):
-        ax.scatter(Mx[:, 0], Mx[:, 1], s=0.15, c="0.7", linewidths=0, label="map (downsampled)")
-        ax.scatter(Sx[:, 0], Sx[:, 1], s=0.6, c=colour, linewidths=0, label=f"scan placed ({res.status})")
+        ax.scatter(Mx[:, 0], Mx[:, 1], s=0.15, c="0.7", linewidths=0)
+        ax.scatter(Sx[:, 0], Sx[:, 1], s=0.6, c=colour, linewidths=0)
+        ax.scatter([], [], s=12, c="0.7", label="map (downsampled)")  # legend proxies
+        ax.scatter([], [], s=12, c=colour, label=f"scan placed ({res.status})")
         if res.trajectory_map is not None:
-            P = _frame_xy(res, res.trajectory_map.poses[:, :3, 3])
+            P = _frame_xy(g, res.trajectory_map.poses[:, :3, 3])
             ax.plot(P[:, 0], P[:, 1], "-", c="tab:blue", lw=1.2, label="sensor trajectory")
             ax.plot(P[0, 0], P[0, 1], "o", c="tab:blue", ms=4)
-        o = _frame_xy(res, T[:3, 3].reshape(1, 3))[0]
+        o = _frame_xy(g, T[:3, 3].reshape(1, 3))[0]
         ax.plot(o[0], o[1], "k+", ms=10, mew=1.5, label="scan origin")
         if k == 1 and Sx.shape[0]:
             c = Sx[:, :2].mean(axis=0)
@@ -98,7 +98,7 @@ def plot_localization_png(res, prepared, max_map_points: int = 40000, seed: int 
         else:
             ax.set_xlabel("x map (m)")
             ax.set_ylabel("y map (m)")
-    axes[0].legend(loc="best", fontsize=7, markerscale=8)
+    axes[0].legend(loc="best", fontsize=7)
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", metadata={"Software": None})
