@@ -27,7 +27,6 @@ from minegeo.io.types import ControlPoints, Trajectory
 from minegeo.synth.sensors import FlashSensor, Velodyne16, ZebRevo, deskew, simulate_scan
 from minegeo.synth.trajectory import (
     MOTIONS,
-    MotionParams,
     _arc_lengths,
     make_trajectory,
     resolve_start,
@@ -43,8 +42,6 @@ log = logging.getLogger(__name__)
 #: Gwan-in mine (Baek et al. 2022, Sec. 3.1): 38 deg 07' 00" N, 127 deg 13' 24" E
 MINE_LAT_DEG = 38.0 + 7.0 / 60.0
 MINE_LON_DEG = 127.0 + 13.0 / 60.0 + 24.0 / 3600.0
-
-MOTIONS.setdefault("handheld", MotionParams(0.6, 1.4, 0.15, 0.03, 35.0, 20.0, 5.0, False, 1.5))
 
 
 # ---------------------------------------------------------------------- survey map

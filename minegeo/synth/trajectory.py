@@ -57,6 +57,8 @@ MOTIONS: dict[str, MotionParams] = {
     "walk": MotionParams(1.2, 1.5, 0.25, 0.03, 8.0, 5.0, 3.0, False, 1.8),
     "drive": MotionParams(2.5, 2.0, 0.05, 0.0, 1.0, 0.5, 0.5, True, 0.0),
     "fly": MotionParams(1.0, 2.3, 0.35, 0.2, 15.0, 4.0, 4.0, False, 0.0),
+    # slow walk sweeping a short-range device (iPad-like flash sensor) over walls and roof
+    "handheld": MotionParams(0.6, 1.4, 0.15, 0.03, 35.0, 20.0, 5.0, False, 1.5),
 }
 
 
@@ -224,9 +226,10 @@ def make_trajectory(world, kind: str = "walk", start=None, length_m: float = 20.
     Parameters
     ----------
     world : MineWorld
-    kind : {"walk", "drive", "fly"}
+    kind : {"walk", "drive", "fly", "handheld"}
         Carrier: handheld walk (1.2 m/s, 1.5 m, sway and step bob), vehicle (2.5 m/s, 2.0 m,
-        pitch follows the ramp), drone (1.0 m/s, 2.3 m, larger yaw sway).
+        pitch follows the ramp), drone (1.0 m/s, 2.3 m, larger yaw sway), slow sweeping
+        handheld device (0.6 m/s, yaw +-35 deg, pitch +-20 deg; for the flash sensor).
     start : see :func:`resolve_start`
     length_m : float
         Route length (m, along the floor centreline).
