@@ -21,6 +21,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--force", action="store_true", help="overwrite files in a non-empty OUTDIR")
     parser.add_argument("--gcps", type=int, default=10, help="number of ground control points (default 10)")
     parser.add_argument("--crs", default="EPSG:5186", help="CRS of the control points (default EPSG:5186)")
+    parser.add_argument("--mast", action="store_true",
+                        help="also write a MAST beacon scenario (2D scan.csv, beacons.csv, truth.json) "
+                             "into OUTDIR/mast/ (see docs/mast.md)")
+    parser.add_argument("--mast-only", action="store_true",
+                        help="write only the MAST beacon scenario into OUTDIR (no mine)")
 
 
 def run(args) -> int:
@@ -36,6 +41,8 @@ def run(args) -> int:
     out = Path(args.outdir)
     if out.is_dir() and any(out.iterdir()) and not args.force:
         raise InputError(f"{out} is not empty; use --force to overwrite")
+    if args.mast_only:
+        return _write_mast(out, args.seed)
     steps = 4 + len(SCAN_PLANS[args.preset])
     with tqdm(total=steps, desc=f"synth {args.preset}", unit="step", file=sys.stderr,
               disable=getattr(args, "quiet", False)) as bar:
@@ -56,4 +63,15 @@ def run(args) -> int:
         print(f"  {s['file']}: {s['n_points']} points ({s['section']}, {s['length_m']:.0f} m, "
               f"{s['sensor']['model']}, {s['carrier']})")
     print(f"  gcps.csv: {truth['gcps']['n']} control points in {truth['crs']}; truth.json, report.txt")
+    if args.mast:
+        return _write_mast(out / "mast", args.seed)
+    return 0
+
+
+def _write_mast(outdir, seed: int) -> int:
+    """Write a MAST beacon scenario (2D scan, beacons, truth) with :func:`minegeo.mast.scenario.write_mast_scenario`."""
+    from minegeo.mast.scenario import write_mast_scenario
+
+    paths = write_mast_scenario(outdir, seed=seed)
+    print(f"wrote MAST scenario (seed {seed}): " + ", ".join(str(p) for p in paths.values()))
     return 0
