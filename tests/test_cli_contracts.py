@@ -160,7 +160,8 @@ def _collinear(lines):
     return out
 
 
-@pytest.mark.parametrize("case", ["missing", "dir", "empty", "nan", "collinear", "two_points", "epsg"])
+@pytest.mark.parametrize("case", ["missing", "dir", "empty", "nan", "collinear", "two_points", "epsg", "epsg_in_file",
+                                  "crs_mismatch"])
 def test_georef_bad_gcps(case, mine, tmp_path, capsys):
     makers = {
         "missing": lambda: tmp_path / "nope.csv",
@@ -169,13 +170,18 @@ def test_georef_bad_gcps(case, mine, tmp_path, capsys):
         "nan": lambda: _bad_files(tmp_path, mine)["nan_gcp"],
         "collinear": lambda: _gcp_variant(mine, tmp_path, "c.csv", _collinear),
         "two_points": lambda: _gcp_variant(mine, tmp_path, "t.csv", lambda ls: ls[:4]),
-        "epsg": lambda: mine / "gcps.csv",
+        "epsg": lambda: _gcp_variant(mine, tmp_path, "n.csv", lambda ls: [ln for ln in ls if not ln.startswith("# crs")]),
+        "epsg_in_file": lambda: _gcp_variant(mine, tmp_path, "b.csv",
+                                             lambda ls: [ln.replace("EPSG:5186", "EPSG:999999") for ln in ls]),
+        "crs_mismatch": lambda: mine / "gcps.csv",
     }
     gcps = makers[case]()
-    extra = ["--crs", "EPSG:999999"] if case == "epsg" else []
+    extra = ["--crs", "EPSG:999999"] if case in ("epsg", "crs_mismatch") else []
+    expect = {"epsg": "unknown coordinate reference system", "epsg_in_file": "unknown coordinate reference system",
+              "crs_mismatch": "EPSG:5186", "collinear": None}.get(case)
     before = snapshot([mine / "map.ply"])
     assert_user_error("georef", ["--map", mine / "map.ply", "--gcps", gcps, "--out", tmp_path / "o" / "geo.ply",
-                                 "--report", tmp_path / "o", *extra], capsys)
+                                 "--report", tmp_path / "o", *extra], capsys, expect=expect)
     assert snapshot([mine / "map.ply"]) == before
     assert not (tmp_path / "o" / "geo.ply").exists()
 
@@ -334,6 +340,40 @@ def test_georef_never_overwrites_its_inputs(target, mine, tmp_path, capsys):
     assert_user_error("georef", ["--map", mine / "map.ply", "--gcps", gcps, "--crs", "EPSG:5186", *argv], capsys,
                       expect="is the input")
     assert snapshot([gcps, mine / "map.ply"]) == before
+
+
+@pytest.mark.parametrize("case", ["missing", "dir", "truncated", "nan_xyz", "empty"])
+def test_localize_bad_scan(case, mine, tmp_path, capsys):
+    f = _bad_files(tmp_path, mine)[case]
+    before = snapshot([mine / "map.ply"])
+    assert_user_error("localize", ["--map", mine / "map.ply", "--scan", f, "--out", tmp_path / "o", "--no-cache"],
+                      capsys)
+    assert snapshot([mine / "map.ply"]) == before
+
+
+@pytest.mark.parametrize("case", ["missing", "dir", "truncated", "nan_xyz", "empty"])
+def test_localize_and_prepare_map_bad_map(case, mine, tmp_path, capsys):
+    f = _bad_files(tmp_path, mine)[case]
+    scan = mine / "scans" / "scan_04.ply"
+    assert_user_error("localize", ["--map", f, "--scan", scan, "--out", tmp_path / "o", "--no-cache"], capsys)
+    assert_user_error("prepare-map", ["--map", f, "--out", tmp_path / "p.npz"], capsys)
+    assert not (tmp_path / "p.npz").exists()
+
+
+def test_localize_bad_trajectory_and_options(mine, tmp_path, capsys):
+    scan, traj = mine / "scans" / "scan_04.ply", tmp_path / "t.tum"
+    traj.write_text("0 0 0 0 0 0 0 1\n1 nan 0 0 0 0 0 1\n", encoding="utf-8")
+    base = ["--map", mine / "map.ply", "--scan", scan, "--out", tmp_path / "o", "--no-cache"]
+    assert_user_error("localize", [*base, "--trajectory", traj], capsys)
+    assert_user_error("localize", [*base, "--voxel", "-1"], capsys)
+    assert_user_error("prepare-map", ["--map", mine / "map.ply", "--out", tmp_path / "p.ply"], capsys)
+
+
+@pytest.mark.xfail(strict=True, reason="BUG (minegeo/localize/prepared.py load_map_cloud -> georef.sidecar_path): "
+                   "--map . raises ValueError('PosixPath('.') has an empty name'), traceback + exit 1")
+def test_prepare_map_cwd_as_map(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert_user_error("prepare-map", ["--map", ".", "--out", tmp_path / "p.npz"], capsys)
 
 
 # ---------------------------------------------------------------- successful runs
