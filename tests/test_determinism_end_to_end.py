@@ -1,9 +1,11 @@
 """End-to-end determinism through the CLI: same inputs + seed => same outputs.
 
 * ``synth`` twice with the same seed: every file byte-identical.
-* ``mast``, ``georef`` and ``adjust`` twice on the same inputs: ``result.json`` identical once the
-  keys documented as wall-clock are removed (recursively): :data:`WALL_CLOCK_KEYS`. Every other
-  output file (georeferenced map, its sidecar without those keys) is byte-identical too.
+* ``mast``, ``georef``, ``adjust`` and ``localize`` twice on the same inputs: ``result.json``
+  identical once the wall-clock keys are removed (recursively): :data:`WALL_CLOCK_KEYS`
+  (``timings_s``, ``created_utc``) and :data:`WALL_CLOCK_PATHS` (``map_preparation.seconds`` of
+  ``localize``). The other output files (georeferenced map, CSV, text report; the sidecar JSON
+  without those keys) are byte-identical too.
 
 Each run happens in its own working directory with the same *relative* output path, so recorded
 output paths are equal; inputs are given by the same absolute paths.
@@ -18,16 +20,20 @@ import pytest
 
 from minegeo.cli import main
 
-#: Keys removed before comparing: stage timings (``timings_s`` anywhere, e.g. ``details.timings_s``
-#: in MAST) and the creation time in ``provenance``. Nothing else may differ between two runs.
+#: Keys removed before comparing, anywhere in the tree: stage timings (``timings_s``, e.g. also
+#: ``details.timings_s`` in MAST) and the creation time (``provenance.created_utc``). Together with
+#: :data:`WALL_CLOCK_PATHS` nothing else may differ between two runs.
 WALL_CLOCK_KEYS = frozenset({"timings_s", "created_utc"})
+#: Wall-clock fields under other names, removed by exact path: ``localize``'s map preparation time.
+WALL_CLOCK_PATHS = frozenset({("map_preparation", "seconds")})
 
 
-def strip_wall_clock(obj):
+def strip_wall_clock(obj, path=()):
     if isinstance(obj, dict):
-        return {k: strip_wall_clock(v) for k, v in obj.items() if k not in WALL_CLOCK_KEYS}
+        return {k: strip_wall_clock(v, (*path, k)) for k, v in obj.items()
+                if k not in WALL_CLOCK_KEYS and (*path, k) not in WALL_CLOCK_PATHS}
     if isinstance(obj, list):
-        return [strip_wall_clock(v) for v in obj]
+        return [strip_wall_clock(v, path) for v in obj]
     return obj
 
 
@@ -35,16 +41,16 @@ def tree_bytes(root: Path) -> dict[str, bytes]:
     return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 
 
-def run_twice(tmp_path, monkeypatch, argv):
+def run_twice(tmp_path, monkeypatch, argv, ok_codes=(0,)):
     """Run ``minegeo -q <argv>`` in two fresh working directories; return both."""
-    dirs = []
+    dirs, codes = [], []
     for k in (1, 2):
         d = tmp_path / f"run{k}"
         d.mkdir()
         monkeypatch.chdir(d)
-        code = main(["-q", *[str(a) for a in argv]])
-        assert code == 0
+        codes.append(main(["-q", *[str(a) for a in argv]]))
         dirs.append(d)
+    assert codes[0] == codes[1] and codes[0] in ok_codes
     return dirs
 
 
@@ -114,3 +120,16 @@ def test_adjust_twice_identical(tmp_path, monkeypatch):
     assert_same_results(r1 / "o", r2 / "o")
     for name in ("report.txt",):
         assert (r1 / "o" / name).read_bytes() == (r2 / "o" / name).read_bytes()
+
+
+def test_localize_twice_identical(mine, tmp_path, monkeypatch):
+    """Same map, scan and ``--seed``: the same pose, scores and status (exit 0 ok, 1 ambiguous/failed).
+
+    ``--no-cache`` so that neither run reads a prepared map the other wrote (the cache record in
+    ``map_preparation`` would legitimately differ)."""
+    r1, r2 = run_twice(tmp_path, monkeypatch, ["localize", "--map", mine / "map.ply", "--scan",
+                                               mine / "scans" / "scan_02.ply", "--out", "o", "--seed", "5",
+                                               "--no-cache"], ok_codes=(0, 1))
+    assert_same_results(r1 / "o", r2 / "o")
+    d = json.loads((r1 / "o" / "result.json").read_text(encoding="utf-8"))
+    assert d["seed"] == 5 and d["status"] in ("ok", "ambiguous", "failed")
