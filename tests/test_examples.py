@@ -24,7 +24,7 @@ EXPECTED = {
     "register_scan_icp.py": "error vs truth:",
 }
 if (EXAMPLES / "localize_scan.py").exists():
-    EXPECTED["localize_scan.py"] = "status"
+    EXPECTED["localize_scan.py"] = "status ok"
 
 
 def test_every_example_is_listed():
