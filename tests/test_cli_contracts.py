@@ -277,12 +277,7 @@ def test_synth_bad_seed(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
-_LATE = ("BUG (minegeo/synth/_cli.py run / synth/dataset.py write_world): --gcps and --crs are validated "
-         "only in make_gcps, after map.ply and scans/ were written (~30 s of work); the error follows the "
-         "progress bar and OUTDIR is left half-written. Not run here: each attempt costs ~30 s.")
 
-
-@pytest.mark.xfail(run=False, strict=True, reason=_LATE)
 @pytest.mark.parametrize("argv", [["--gcps", "2"], ["--crs", "EPSG:999999"]])
 def test_synth_bad_options_fail_before_work(argv, tmp_path, capsys):
     assert_user_error("synth", [tmp_path / "out", *argv], capsys)
@@ -295,8 +290,6 @@ def test_synth_outdir_not_empty(tmp_path, capsys):
     assert (tmp_path / "keep.txt").read_text(encoding="utf-8") == "x"
 
 
-@pytest.mark.xfail(strict=True, reason="BUG (minegeo/synth/_cli.py run): an OUTDIR that is an existing *file* "
-                   "is only rejected inside write_world, after the tqdm bar was drawn (3 stderr lines)")
 def test_synth_outdir_is_a_file(tmp_path, capsys):
     f = tmp_path / "afile"
     f.write_text("x", encoding="utf-8")
@@ -437,6 +430,21 @@ def test_adjust_success_contract(network, tmp_path, capsys):
     check_provenance(d["provenance"], [network])
     # Ghilani (2010) Ex. 15.5: U = (999.999, 1000.025) ft-ish units, as tests/survey check to 0.1 mm
     assert f"{d['points']['U']['x']:.3f}" == "999.999" and f"{d['points']['U']['y']:.3f}" == "1000.025"
+
+
+def test_localize_success_contract(mine, tmp_path, capsys):
+    """Map and scan unchanged (the documented prepared-map cache may appear beside the map), result.json
+    records the seed, versions and the SHA-256 of both inputs; exit 0 ok, 1 ambiguous/failed."""
+    inp = [mine / "map.ply", mine / "scans" / "scan_02.ply"]
+    before = snapshot(inp)
+    code, _, err = run_cli(["localize", "--map", inp[0], "--scan", inp[1], "--out", tmp_path / "o", "--seed", "3"],
+                           capsys)
+    assert code in (0, 1) and "Traceback" not in err
+    assert snapshot(inp) == before
+    no_tmp_left(tmp_path, mine)
+    d = json.loads((tmp_path / "o" / "result.json").read_text(encoding="utf-8"))
+    assert (code == 0) == (d["status"] == "ok")
+    check_provenance({"versions": d["versions"], "inputs": d["inputs"], "seed": d["seed"]}, inp, seed=3)
 
 
 def test_synth_success_contract(mine):

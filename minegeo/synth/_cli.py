@@ -39,8 +39,18 @@ def run(args) -> int:
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0, got {args.seed}")
     out = Path(args.outdir)
+    # Validate every option before any work is done, so a mistake costs nothing and
+    # leaves no half-written OUTDIR.
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out} exists and is not a directory")
     if out.is_dir() and any(out.iterdir()) and not args.force:
         raise InputError(f"{out} is not empty; use --force to overwrite")
+    if not args.mast_only:
+        if args.gcps < 3:
+            raise InputError(f"--gcps: need at least 3 control points, got {args.gcps}")
+        from minegeo.synth.dataset import _crs_origin
+
+        _crs_origin(args.crs)  # raises CRSError for an unknown or unsuitable CRS
     if args.mast_only:
         return _write_mast(out, args.seed)
     steps = 4 + len(SCAN_PLANS[args.preset])
