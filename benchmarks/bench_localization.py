@@ -52,7 +52,7 @@ def _kind(sensor: str) -> str:
     return "handheld" if sensor == "flash" else "walk"
 
 
-def plan(reduced: bool) -> list[dict]:
+def plan(reduced: bool, octree_levels=(6, 8, 10, 12)) -> list[dict]:
     """List of runs: dict(section, length_m, sensor, octree_level or None, study)."""
     runs = []
     sensors = ("zebrevo", "velodyne16", "flash")
@@ -62,7 +62,7 @@ def plan(reduced: bool) -> list[dict]:
             for sen in sensors if not reduced or length == 20.0 else ("zebrevo",):
                 runs.append({"section": sec, "length_m": length, "sensor": sen, "octree_level": None,
                              "study": "length/sensor"})
-        for lv in (6, 8, 10, 12):
+        for lv in octree_levels:
             runs.append({"section": sec, "length_m": 20.0, "sensor": "zebrevo", "octree_level": lv,
                          "study": "octree"})
     return runs
@@ -130,6 +130,11 @@ def main(argv=None) -> int:
     ap.add_argument("--ransac-max-iterations", type=int, default=4_000_000,
                     help="RANSAC cap for minegeo table3 and Open3D (the paper's 4e8 would run for hours)")
     ap.add_argument("--limit", type=int, default=None, help="only the first N runs (smoke test)")
+    ap.add_argument("--octree-levels", default="6,8,10,12",
+                    help="scan octree levels of the octree study (levels 10 and 12 keep nearly every point of a "
+                         "20 m scan: minutes per run)")
+    ap.add_argument("--study", default="all", choices=("all", "length", "octree"),
+                    help="length/sensor runs, octree-level runs, or both")
     args = ap.parse_args(argv)
 
     from minegeo.localize import LocalizeParams, PrepareParams, localize_scan, prepare_map
@@ -168,7 +173,9 @@ def main(argv=None) -> int:
     minegeo.warmup() if hasattr(minegeo, "warmup") else None
     t_warm = time.perf_counter() - t0
 
-    runs = plan(args.reduced)
+    runs = plan(args.reduced, tuple(int(v) for v in args.octree_levels.split(",")))
+    if args.study != "all":
+        runs = [r for r in runs if (r["study"] == "octree") == (args.study == "octree")]
     if args.limit:
         runs = runs[: args.limit]
     rng = np.random.default_rng(args.seed)
