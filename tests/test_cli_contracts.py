@@ -277,7 +277,6 @@ def test_synth_bad_seed(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
-
 @pytest.mark.parametrize("argv", [["--gcps", "2"], ["--crs", "EPSG:999999"]])
 def test_synth_bad_options_fail_before_work(argv, tmp_path, capsys):
     assert_user_error("synth", [tmp_path / "out", *argv], capsys)
