@@ -361,10 +361,10 @@ def test_localize_bad_trajectory_and_options(mine, tmp_path, capsys):
     assert_user_error("prepare-map", ["--map", mine / "map.ply", "--out", tmp_path / "p.ply"], capsys)
 
 
-@pytest.mark.xfail(strict=True, reason="BUG (minegeo/localize/prepared.py load_map_cloud -> georef.sidecar_path): "
-                   "--map . raises ValueError('PosixPath('.') has an empty name'), traceback + exit 1")
-def test_prepare_map_cwd_as_map(tmp_path, monkeypatch, capsys):
+def test_map_is_the_current_directory(tmp_path, monkeypatch, capsys):
+    """``--map .`` used to raise ValueError in georef.sidecar_path (Path('.').with_name)."""
     monkeypatch.chdir(tmp_path)
+    assert_user_error("localize", ["--map", ".", "--scan", tmp_path / "s.ply", "--out", tmp_path / "o"], capsys)
     assert_user_error("prepare-map", ["--map", ".", "--out", tmp_path / "p.npz"], capsys)
 
 

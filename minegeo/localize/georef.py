@@ -1029,7 +1029,7 @@ SIDECAR_VERSION = 1
 def sidecar_path(map_path) -> Path:
     """Sidecar of a georeferenced map: ``<MAP_GEO>.georef.json`` (e.g. ``map_geo.ply.georef.json``)."""
     p = Path(map_path)
-    return p.with_name(p.name + ".georef.json")
+    return p.parent / (p.name + ".georef.json")  # not with_name: it raises for "." (empty name)
 
 
 def write_georeferenced_map(path, cloud_geo: PointCloud, result: GeorefResult, *, extra: dict | None = None) -> tuple:
