@@ -6,7 +6,9 @@ real contracts and writes the real reports):
 1. ``minegeo synth``   - generate the small mine: map, local scans, trajectories, GCPs, truth.
 2. ``minegeo georef``  - georeference the map into EPSG:5186 from the GCPs.
 3. ``minegeo mast``    - position a 2D scanner from wall beacons (synthetic MAST scenario).
-4. ``minegeo localize`` - place three local scans and their trajectories in the CRS.
+4. ``minegeo localize`` - place three local scans and their trajectories in the CRS
+   (``--profile fast``: 1 m voxels, 3-point RANSAC, point-to-plane ICP; the paper's Table 3
+   profile is the CLI default, see docs/localization.md).
 
 A summary table compares every answer with the synthetic ground truth.
 """
@@ -125,7 +127,8 @@ def run(args) -> int:
                 name = Path(sc["file"]).stem if "file" in sc else sc.get("name", "scan")
                 dest = out / "localize" / name
                 argv = ["localize", "--map", str(geo_map if geo_map.exists() else mine / "map.ply"),
-                        "--scan", str(mine / sc["file"]), "--out", str(dest), "--seed", str(args.seed)]
+                        "--scan", str(mine / sc["file"]), "--out", str(dest), "--seed", str(args.seed),
+                        "--profile", "fast"]
                 if sc.get("trajectory"):
                     argv += ["--trajectory", str(mine / sc["trajectory"])]
                 rc = _run_verb(argv)
