@@ -20,7 +20,7 @@ from minegeo.errors import MinegeoError
 VERBS: dict[str, str] = {
     "info": "minegeo.io._cli",
     "synth": "minegeo.synth._cli",
-    "demo": "minegeo._demo",
+    "demo": "minegeo._cli_demo",
     "adjust": "minegeo.survey._cli",
     "mast": "minegeo.mast._cli",
     "georef": "minegeo.localize._cli_georef",
