@@ -8,6 +8,8 @@ evaluate_registration      fitness and inlier RMSE (Baek 2022 Eq. 19, Open3D sem
 build_target_index         reusable KD-tree over a target cloud
 ICPParams, register_icp    point-to-point / point-to-plane ICP with information matrix
 ICPResult, constraint_analysis
+GICPParams, register_gicp  Generalized-ICP (Segal 2009; Ren 2019 Eqs. 1-6), Open3D-compatible mode
+GICPResult, estimate_gicp_covariances
 RansacParams, RansacResult, register_ransac
                            global registration by RANSAC on FPFH matches (Baek 2022 Sec. 2.3.2)
 feature_correspondences, FeatureMatches
@@ -21,6 +23,7 @@ import numpy as np
 from minegeo.registration.correspondences import FeatureMatches, feature_correspondences
 from minegeo.registration.estimation import kabsch, pose_covariance, umeyama
 from minegeo.registration.evaluation import build_target_index, evaluate_registration
+from minegeo.registration.gicp import GICPParams, GICPResult, estimate_gicp_covariances, register_gicp
 from minegeo.registration.icp import ICPParams, ICPResult, constraint_analysis, register_icp
 from minegeo.registration.ransac import RansacParams, RansacResult, register_ransac
 
@@ -34,6 +37,10 @@ __all__ = [
     "ICPResult",
     "register_icp",
     "constraint_analysis",
+    "GICPParams",
+    "GICPResult",
+    "register_gicp",
+    "estimate_gicp_covariances",
     "RansacParams",
     "RansacResult",
     "register_ransac",
@@ -79,6 +86,9 @@ def _warmup() -> None:
     i_out = np.empty(4, dtype=np.int64)
     K._kd_nn_serial(P, *tree, 1.0, i_out, sq)
     K._kd_nn_parallel(P, *tree, 1.0, i_out, sq)
+    from minegeo.registration import _kernels_gicp
+
+    _kernels_gicp._warmup()
     # the RANSAC kernels of this package live in ransac.py (features engineer's module)
     import importlib
 

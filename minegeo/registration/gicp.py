@@ -1,0 +1,496 @@
+"""Generalized-ICP (GICP, plane-to-plane ICP) with an Open3D-compatible mode.
+
+Frames: ``source_points`` are in the source (scan) frame, ``target_points`` in the target
+(map) frame. The result ``T_target_source`` maps the scan into the map:
+``p_map = R p_scan + t``.
+
+Model (Segal, Haehnel & Thrun 2009; Ren et al. 2019, Sec. 3.2, Eqs. 1-6). Every point carries
+a covariance ``C`` describing the local surface; for a pair ``(b_i, m_i)`` (source point, its
+nearest target point) the residual ``d_i = m_i - T b_i`` (Eq. 4) is modelled as
+``N(0, C_i^M + R C_i^B Rᵀ)`` (Eq. 5), and the pose maximises the likelihood (Eq. 6; the paper
+writes *arg max* in front of the quadratic form, it is the minimum of)
+
+.. math:: T^* = \\arg\\min_T \\sum_i d_i^T (C_i^M + R C_i^B R^T)^{-1} d_i .
+
+The covariance of a point is plane-like: from the PCA of its ``k`` nearest neighbours
+(Eq. 2), the eigenvalues are replaced by ``(ε, 1, 1)`` (Eq. 3), i.e.
+``C = U diag(ε, 1, 1) Uᵀ = I - (1 - ε) n nᵀ`` with ``n`` the surface normal: a pair is
+penalised ``1/ε`` times more across the surfaces than along them.
+
+Correspondences, loop and convergence test are those of :func:`minegeo.registration.register_icp`
+(Open3D ``registration_icp``; oracle spec §10, §11): Euclidean nearest neighbour with the strict
+gate ``|Tp - q|² < d²``, one Gauss-Newton step per iteration, stop when both the fitness and the
+Euclidean inlier-RMSE changes fall below their thresholds. See ``docs/registration_gicp.md``.
+
+References
+----------
+Segal, A., Haehnel, D., Thrun, S. (2009). Generalized-ICP. Robotics: Science and Systems V.
+Ren, Z., Wang, L., Bi, L. (2019). Robust GICP-based 3D LiDAR SLAM for underground mining
+environment. Sensors 19, 2915. Sec. 3.2, Eqs. (1)-(6).
+Open3D 0.20 ``registration_generalized_icp`` (``/work/shared/specs/open3d_oracle.md`` §11).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from pykdtree.kdtree import KDTree
+
+from minegeo._provenance import StageTimer
+from minegeo._validate import as_points, as_transform
+from minegeo.errors import InputError
+from minegeo.geometry.neighbors import Neighborhoods
+from minegeo.geometry.normals import STATUS_OK, NormalParams, estimate_normals
+from minegeo.geometry.se3 import rotation_from_euler_xyz
+from minegeo.registration import _kernels as K
+from minegeo.registration import _kernels_gicp as KG
+from minegeo.registration.evaluation import _evaluate_transformed, build_target_index, is_identity
+from minegeo.registration.icp import ICPResult, constraint_analysis
+
+__all__ = [
+    "GICPParams",
+    "GICPResult",
+    "register_gicp",
+    "estimate_gicp_covariances",
+    "COVARIANCE_MODES",
+]
+
+log = logging.getLogger(__name__)
+
+#: Covariance conventions: minegeo's default and Open3D 0.20's.
+COVARIANCE_MODES = ("minegeo", "open3d")
+#: Minimum number of points in each cloud (and of pairs for a full-rank step).
+MIN_POINTS = 3
+#: Coordinates larger than this (m) suggest projected coordinates without a local origin.
+LARGE_COORDINATE_M = 1e5
+#: Relative tolerance of the symmetry check on user covariances.
+SYMMETRY_RTOL = 1e-9
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, int | float | np.floating | np.integer) and not isinstance(v, bool)
+
+
+@dataclass(frozen=True)
+class GICPParams:
+    """Parameters of :func:`register_gicp` (defaults = Open3D's GICP defaults and Ren 2019).
+
+    Attributes
+    ----------
+    max_correspondence_distance_m : float
+        Gate ``d`` (metres, > 0): pairs with squared distance ``>= d²`` are ignored.
+    max_iterations : int
+        Maximum number of Gauss-Newton updates (>= 0). Open3D default 30.
+    relative_fitness : float
+        Stop when ``|fitness_k - fitness_{k-1}| < relative_fitness`` **and** the RMSE test holds
+        (an absolute difference of fractions, Open3D's name).
+    relative_rmse : float
+        Stop threshold on ``|rmse_k - rmse_{k-1}|`` in metres (absolute difference of the
+        Euclidean inlier RMSE).
+    epsilon : float
+        ``ε`` of Ren 2019 Eq. (3): variance across the surface relative to along it
+        (dimensionless, 0 < ε <= 1). 1e-3 in Ren 2019, Segal 2009, Open3D and small_gicp.
+    covariance_neighbours : int
+        ``k`` of the kNN neighbourhood (point itself included) whose PCA gives the normal of
+        each point without a given covariance or normal (Eq. 2). 20 as Open3D and Segal 2009.
+    covariance_mode : {"minegeo", "open3d"}
+        ``"minegeo"`` (default): two-pass centred neighbourhood covariance and a Jacobi
+        eigen-solver (exact at projected 10⁶ m coordinates), ``C = I - (1-ε) n nᵀ`` exactly,
+        and ``C = I`` (isotropic, no surface assumed) for points whose neighbourhood is
+        collinear, coincident or has fewer than 3 points. ``"open3d"``: Open3D 0.20 bit for
+        bit — raw-moment covariance and ``FastEigen3x3`` normals, the Rodrigues rotation
+        e_x -> n which is replaced by the identity when ``n_x < -0.99`` (so such points get
+        ``diag(ε, 1, 1)``, up to 8.1° off their surface), degenerate neighbourhoods get the
+        normal (0, 0, 1).
+    degeneracy_ratio_threshold : float
+        Flag the result as degenerate when the smallest/largest eigenvalue of the normalised
+        point-to-plane constraint matrix (:func:`minegeo.registration.constraint_analysis`,
+        target normals at the matched points) is below this (dimensionless, in (0, 1)).
+    """
+
+    max_correspondence_distance_m: float
+    max_iterations: int = 30
+    relative_fitness: float = 1e-6
+    relative_rmse: float = 1e-6
+    epsilon: float = 1e-3
+    covariance_neighbours: int = 20
+    covariance_mode: str = "minegeo"
+    degeneracy_ratio_threshold: float = 1e-2
+
+    def __post_init__(self):
+        d = self.max_correspondence_distance_m
+        if not _is_number(d) or not np.isfinite(d) or d <= 0:
+            raise InputError(
+                f"max_correspondence_distance_m must be a finite distance > 0 m, got {d!r}"
+            )
+        it = self.max_iterations
+        if isinstance(it, bool) or not isinstance(it, int | np.integer) or it < 0:
+            raise InputError(f"max_iterations must be an integer >= 0, got {it!r}")
+        for name in ("relative_fitness", "relative_rmse"):
+            v = getattr(self, name)
+            if not _is_number(v) or not np.isfinite(v) or v < 0:
+                raise InputError(f"{name} must be finite and >= 0, got {v!r}")
+        e = self.epsilon
+        if not _is_number(e) or not np.isfinite(e) or not 0 < e <= 1:
+            raise InputError(f"epsilon must be in (0, 1] (dimensionless), got {e!r}")
+        k = self.covariance_neighbours
+        if isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 3:
+            raise InputError(f"covariance_neighbours must be an integer >= 3, got {k!r}")
+        if self.covariance_mode not in COVARIANCE_MODES:
+            raise InputError(
+                f"covariance_mode must be one of {COVARIANCE_MODES}, got {self.covariance_mode!r}"
+            )
+        r = self.degeneracy_ratio_threshold
+        if not _is_number(r) or not np.isfinite(r) or not 0 < r < 1:
+            raise InputError(f"degeneracy_ratio_threshold must be in (0, 1), got {r!r}")
+
+
+@dataclass
+class GICPResult(ICPResult):
+    """Outcome of :func:`register_gicp`: every field of :class:`ICPResult`, plus the GICP cost.
+
+    Differences in meaning from ICP
+    -------------------------------
+    information_6x6 : (6, 6) ndarray
+        GICP Gauss-Newton matrix at the solution, ``H = Σ J_iᵀ M_i⁻¹ J_i`` with
+        ``J_i = [-[p_i]×, I3]`` and ``M_i = C_i^M + R C_i^B Rᵀ``; parameters
+        ``(ω_x, ω_y, ω_z, t_x, t_y, t_z)`` (rad, then m), left perturbation in the target
+        frame about its origin. The covariances are dimensionless shape matrices, so the pose
+        covariance is ``sigma_m² H⁻¹`` (``pose_covariance(information_6x6, sigma_m)``).
+    params : GICPParams
+
+    Attributes
+    ----------
+    mahalanobis_cost : float
+        ``Σ d_iᵀ M_i⁻¹ d_i`` over the final pairs (m², Ren 2019 Eq. 6).
+    sigma_m : float
+        ``sqrt(cost / (3k - 6))`` with ``k`` pairs: a posteriori scale of the covariances
+        (metres). Neighbouring residuals are correlated, so ``sigma_m² H⁻¹`` is optimistic.
+    source_covariances_from, target_covariances_from : str
+        ``"given"`` (used unchanged), ``"normals"`` (plane model from given normals) or
+        ``"estimated"`` (kNN PCA, then the plane model).
+    """
+
+    mahalanobis_cost: float = 0.0
+    sigma_m: float = 0.0
+    source_covariances_from: str = ""
+    target_covariances_from: str = ""
+
+
+def _plane_covariances(normals: np.ndarray, isotropic: np.ndarray, params: GICPParams) -> np.ndarray:
+    return KG.plane_covariances_kernel(
+        np.ascontiguousarray(normals), np.ascontiguousarray(isotropic, dtype=np.bool_),
+        float(params.epsilon), params.covariance_mode == "open3d",
+    )
+
+
+def _covariances_and_normals(points: np.ndarray, params: GICPParams, normals=None, name: str = "points"):
+    """``(C (n,3,3), N (n,3), source)`` for validated ``points``; see :func:`estimate_gicp_covariances`."""
+    n = points.shape[0]
+    o3d = params.covariance_mode == "open3d"
+    if normals is not None:
+        N = as_points(normals, f"{name} normals")
+        if N.shape[0] != n:
+            raise InputError(f"{name} normals have {N.shape[0]} rows but there are {n} points")
+        iso = np.zeros(n, dtype=np.bool_) if o3d else ~(np.linalg.norm(N, axis=1) > 0)
+        return _plane_covariances(N, iso, params), N, "normals"
+    mode = "open3d" if o3d else "accurate"
+    kk = min(int(params.covariance_neighbours), n)
+    dist, idx = KDTree(points).query(points, k=kk)
+    idx = np.ascontiguousarray(np.asarray(idx, dtype=np.int64).reshape(n, kk))
+    sq = np.asarray(dist, dtype=np.float64).reshape(n, kk) ** 2
+    nb = Neighborhoods(idx, sq, np.full(n, kk, dtype=np.int64), "knn", None, kk)
+    res = estimate_normals(points, NormalParams(max_nn=kk, mode=mode), orient_towards="none",
+                           neighborhoods=nb)
+    iso = np.zeros(n, dtype=np.bool_) if o3d else res.status != STATUS_OK
+    return _plane_covariances(res.normals, iso, params), res.normals, "estimated"
+
+
+def estimate_gicp_covariances(points, params: GICPParams | None = None, normals=None) -> np.ndarray:
+    """Per-point plane-like GICP covariances (Ren 2019 Eqs. 2-3; Segal 2009 Sec. III-B).
+
+    Cache the result for a map that is registered against many times and pass it to
+    :func:`register_gicp` as ``target_covariances``.
+
+    Parameters
+    ----------
+    points : (n, 3) array_like
+        Cloud in metres (any frame; the covariances are expressed in that frame).
+    params : GICPParams, optional
+        Uses ``epsilon``, ``covariance_neighbours`` and ``covariance_mode`` (default
+        ``GICPParams(1.0)``, i.e. ε = 1e-3, k = 20, mode "minegeo").
+    normals : (n, 3) array_like, optional
+        Surface normals to use instead of a kNN PCA (sign irrelevant). In mode "minegeo" a
+        zero normal gives the isotropic covariance ``I``.
+
+    Returns
+    -------
+    (n, 3, 3) ndarray
+        ``C_i = I - (1 - ε) n_i n_iᵀ`` (mode "minegeo"; ``I`` for degenerate neighbourhoods),
+        or Open3D's ``R_i diag(ε, 1, 1) R_iᵀ`` (mode "open3d"). Dimensionless.
+
+    Raises
+    ------
+    InputError
+        NaN/inf rows, wrong shapes, bad parameters.
+    TooFewPointsError
+        Empty cloud.
+    """
+    params = GICPParams(1.0) if params is None else params
+    if not isinstance(params, GICPParams):
+        raise InputError(f"params must be a GICPParams, got {type(params).__name__}")
+    P = as_points(points, "points", min_points=1)
+    return _covariances_and_normals(P, params, normals)[0]
+
+
+def _as_covariances(C, n: int, name: str) -> np.ndarray:
+    """Validate user covariances: (n, 3, 3), finite, symmetric, positive definite (Sylvester)."""
+    try:
+        a = np.asarray(C, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be numeric: {exc}") from None
+    if a.shape != (n, 3, 3):
+        raise InputError(f"{name} must have shape ({n}, 3, 3) (one 3x3 matrix per point), got {a.shape}")
+    finite = np.isfinite(a).all(axis=(1, 2))
+    if not finite.all():
+        bad = np.flatnonzero(~finite)
+        raise InputError(f"{name} has {bad.size} matrix(es) with NaN or inf (first at row {int(bad[0])})")
+    scale = np.abs(a).max(axis=(1, 2))
+    asym = np.abs(a - a.transpose(0, 2, 1)).max(axis=(1, 2))
+    bad = asym > SYMMETRY_RTOL * np.maximum(scale, 1e-300)
+    if bad.any():
+        raise InputError(f"{name} has {int(bad.sum())} non-symmetric matrix(es) (first at row "
+                         f"{int(np.flatnonzero(bad)[0])})")
+    m1 = a[:, 0, 0]
+    m2 = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
+    m3 = np.linalg.det(a)
+    pd = (m1 > 0) & (m2 > 0) & (m3 > 0)
+    if not pd.all():
+        raise InputError(
+            f"{name} has {int((~pd).sum())} matrix(es) that are not positive definite (first at row "
+            f"{int(np.flatnonzero(~pd)[0])}); GICP needs invertible covariances"
+        )
+    return np.ascontiguousarray(a)
+
+
+def _euler6_to_transform(x: np.ndarray) -> np.ndarray:
+    """Open3D's ``TransformVector6dToMatrix4d``: ``R = Rz(γ) Ry(β) Rx(α)`` exactly, ``t = x[3:]``."""
+    T = np.eye(4)
+    T[:3, :3] = rotation_from_euler_xyz(x[0], x[1], x[2])
+    T[:3, 3] = x[3:6]
+    return T
+
+
+def _solve(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Solve ``H x = -g``; minimum-norm step (pseudo-inverse) when ``H`` is singular."""
+    ev, V = np.linalg.eigh(H)
+    if not ev[-1] > 0.0:
+        return np.zeros(6), True
+    if ev[0] > 1e-12 * ev[-1]:
+        return np.linalg.solve(H, -g), False
+    inv = np.where(ev > 1e-12 * ev[-1], 1.0 / np.where(ev > 0, ev, 1.0), 0.0)
+    return -(V @ (inv * (V.T @ g))), True
+
+
+def register_gicp(source_points, target_points, T_init, params: GICPParams, source_covariances=None,
+                  target_covariances=None, source_normals=None, target_normals=None,
+                  target_index=None) -> GICPResult:
+    """Refine ``T_target_source`` by Generalized-ICP (Segal 2009; Ren 2019 Sec. 3.2, Eqs. 1-6).
+
+    Parameters
+    ----------
+    source_points : (n, 3) array_like
+        Scan points (metres, source frame), e.g. voxel-downsampled.
+    target_points : (m, 3) array_like
+        Map points (metres, target frame). Use coordinates relative to a recorded local
+        origin, not raw projected coordinates.
+    T_init : (4, 4) array_like
+        Initial ``T_target_source`` (e.g. from RANSAC or the previous odometry pose).
+    params : GICPParams
+        Gate, iteration limit, convergence thresholds, ε, neighbourhood size and mode.
+    source_covariances, target_covariances : (n, 3, 3) / (m, 3, 3) array_like, optional
+        Per-point covariances in the cloud's own frame, used unchanged (no ε applied, as
+        Open3D). Must be symmetric positive definite. Pass the cached
+        :func:`estimate_gicp_covariances` of a prepared map as ``target_covariances``.
+    source_normals, target_normals : array_like, optional
+        Used for the plane model when the covariances are not given (Open3D does the same);
+        otherwise the normals come from a kNN PCA with ``params.covariance_neighbours``.
+    target_index : optional
+        A KD-tree over ``target_points`` from :func:`minegeo.registration.build_target_index`
+        to reuse (built when omitted).
+
+    Returns
+    -------
+    GICPResult
+        Transform, fitness, Euclidean inlier RMSE, iterations, convergence flag, the GICP
+        information matrix ``H`` and its eigenvalues, degeneracy flag with reason, Mahalanobis
+        cost, ``sigma_m``, history and timings.
+
+    Raises
+    ------
+    InputError
+        Bad shapes, NaN/inf rows, non-rigid ``T_init``, covariances of the wrong shape or not
+        symmetric positive definite, bad parameters.
+    TooFewPointsError
+        Fewer than 3 points in either cloud.
+
+    Notes
+    -----
+    *Covariances* are prepared once per cloud, in its own frame (Eqs. 2-3, see
+    :func:`estimate_gicp_covariances`).
+
+    *Loop* (Open3D oracle §10): evaluate the correspondences at ``T_init``; then for
+    ``k = 1..max_iterations``: one Gauss-Newton step ``ΔT``, ``T ← ΔT T``, ``p ← ΔT p``,
+    re-evaluate, and stop when ``|Δfitness| < relative_fitness`` **and**
+    ``|Δrmse| < relative_rmse`` (strict). The last evaluation is returned.
+
+    *Correspondences*: nearest target point of every moved source point with
+    ``|T b_i - m_i|² < d²`` (Euclidean, as in Ren 2019 Sec. 3.2: "the standard Euclidean
+    distance is used ... to calculate the correspondence").
+
+    *Step* (Eq. 6 linearised about the current pose): with ``p_i = T b_i``,
+    ``d_i = p_i - m_i``, ``M_i = C_i^M + R C_i^B Rᵀ`` (Eq. 5) and the left perturbation
+    ``ΔT p ≈ p + ω × p + τ`` the residual Jacobian is ``J_i = [-[p_i]×, I3]``;
+    ``H = Σ J_iᵀ M_i⁻¹ J_i``, ``g = Σ J_iᵀ M_i⁻¹ d_i``, ``H x = -g``, and
+    ``x = (α, β, γ, τ)`` gives ``ΔR = R_z(γ) R_y(β) R_x(α)`` exactly (Open3D §7, §11).
+    Open3D whitens with ``W = M^{-1/2}`` (``r = W d``, ``J_W = W J``); with the L2 loss
+    ``J_Wᵀ J_W = Jᵀ M⁻¹ J`` and ``J_Wᵀ r = Jᵀ M⁻¹ d``, which is what is summed here (the two
+    differ by rounding only). A singular ``H`` uses the minimum-norm step and is reported as
+    degenerate.
+
+    *Degeneracy*: :func:`minegeo.registration.constraint_analysis` on the matched source
+    points and the target normals (eigenvector of the smallest eigenvalue of the target
+    covariance), the same criterion as :func:`minegeo.registration.register_icp`.
+    """
+    t_start = time.perf_counter()
+    if not isinstance(params, GICPParams):
+        raise InputError(f"params must be a GICPParams, got {type(params).__name__}")
+    P0 = as_points(source_points, "source_points", min_points=MIN_POINTS)
+    Q = as_points(target_points, "target_points", min_points=MIN_POINTS)
+    T = as_transform(T_init, "T_init").copy()
+    if max(np.abs(P0).max(), np.abs(Q).max()) > LARGE_COORDINATE_M:
+        log.warning(
+            "GICP input coordinates exceed %.0e m: subtract a local origin first for full precision",
+            LARGE_COORDINATE_M,
+        )
+    d = float(params.max_correspondence_distance_m)
+    timer = StageTimer()
+
+    with timer("covariances"):
+        Nt = None
+        if source_covariances is not None:
+            Cs = _as_covariances(source_covariances, P0.shape[0], "source_covariances")
+            src_from = "given"
+        else:
+            Cs, _, src_from = _covariances_and_normals(P0, params, source_normals, "source")
+        if target_covariances is not None:
+            Ct = _as_covariances(target_covariances, Q.shape[0], "target_covariances")
+            tgt_from = "given"
+        else:
+            Ct, Nt, tgt_from = _covariances_and_normals(Q, params, target_normals, "target")
+    if target_index is None:
+        with timer("search"):
+            target_index = build_target_index(Q)
+
+    P = P0 if is_identity(T) else K.transform_points_kernel(P0, T)
+    with timer("search"):
+        fitness, rmse, corr = _evaluate_transformed(P, Q, target_index, d)
+    history = [(fitness, rmse)]
+    converged = False
+    singular_step = False
+    iterations = 0
+    for _ in range(params.max_iterations):
+        with timer("estimate"):
+            if corr.shape[0] == 0:
+                dT = np.eye(4)  # Open3D: no correspondences -> identity
+            else:
+                si = np.ascontiguousarray(corr[:, 0])
+                ti = np.ascontiguousarray(corr[:, 1])
+                R = np.ascontiguousarray(T[:3, :3])
+                H, g, _ = KG.gicp_system_kernel(P, Q, Cs, Ct, R, si, ti)
+                x, singular = _solve(H, g)
+                singular_step |= singular
+                dT = _euler6_to_transform(x)
+            T = dT @ T
+            P = K.transform_points_kernel(P, dT)
+        iterations += 1
+        prev_f, prev_r = fitness, rmse
+        with timer("search"):
+            fitness, rmse, corr = _evaluate_transformed(P, Q, target_index, d)
+        history.append((fitness, rmse))
+        if abs(prev_f - fitness) < params.relative_fitness and abs(prev_r - rmse) < params.relative_rmse:
+            converged = True
+            break
+
+    with timer("information"):
+        k = corr.shape[0]
+        si = np.ascontiguousarray(corr[:, 0])
+        ti = np.ascontiguousarray(corr[:, 1])
+        info, _, cost = KG.gicp_system_kernel(P, Q, Cs, Ct, np.ascontiguousarray(T[:3, :3]), si, ti)
+        info_ev = np.linalg.eigvalsh(info)
+        if k > 0:
+            if Nt is not None:
+                Ns = np.ascontiguousarray(Nt[ti])
+            else:
+                _, vec = np.linalg.eigh(Ct[ti])
+                Ns = np.ascontiguousarray(vec[:, :, 0])
+            c_ev, c_vec, ratio, reason = constraint_analysis(
+                np.ascontiguousarray(P[si]), Ns, params.degeneracy_ratio_threshold)
+        else:
+            c_ev, c_vec, ratio, reason = np.zeros(6), np.eye(6), 0.0, "no correspondences"
+    sigma = float(np.sqrt(cost / (3 * k - 6))) if 3 * k > 6 else 0.0
+
+    reasons = []
+    if k == 0:
+        reasons.append(
+            f"no source point is within {d} m of the target at the final pose: "
+            "the initial pose is too far off or the clouds do not overlap"
+        )
+    elif k < MIN_POINTS:
+        reasons.append(f"only {k} correspondence(s) at the solution; GICP needs at least {MIN_POINTS}")
+    if singular_step:
+        reasons.append(
+            "an update step was rank deficient (the matched surfaces do not constrain all six "
+            "pose directions): the motion along the free direction is arbitrary"
+        )
+    if k > 0 and reason:
+        reasons.append(reason)
+    degenerate = bool(reasons)
+    if k == 0:
+        status = "no_correspondences"
+    elif degenerate:
+        status = "degenerate"
+    elif converged:
+        status = "converged"
+    else:
+        status = "max_iterations"
+    if degenerate:
+        log.warning("GICP result is degenerate: %s", "; ".join(reasons))
+    timings = timer.as_dict()
+    timings["total"] = time.perf_counter() - t_start
+    return GICPResult(
+        T_target_source=T,
+        fitness=float(fitness),
+        inlier_rmse_m=float(rmse),
+        iterations=iterations,
+        converged=converged,
+        information_6x6=info,
+        information_eigenvalues=info_ev,
+        degenerate=degenerate,
+        degeneracy_reason="; ".join(reasons),
+        params=params,
+        timings_s=timings,
+        correspondences=corr,
+        constraint_eigenvalues=c_ev,
+        constraint_eigenvectors=c_vec,
+        degeneracy_ratio=float(ratio),
+        history=tuple(history),
+        status=status,
+        mahalanobis_cost=float(cost),
+        sigma_m=sigma,
+        source_covariances_from=src_from,
+        target_covariances_from=tgt_from,
+    )
