@@ -16,7 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
-from minegeo.registration._kernels import CHUNK, _add_partials, n_chunks
+from minegeo.geometry._kernels import fast_eigen3x3
+from minegeo.registration._kernels import CHUNK, _add_partials, kd_build, n_chunks
 
 #: Below this many pairs the serial driver is used (a thread launch costs more than it saves).
 #: The GICP pair work (~300 flops: a 3x3 rotation of the source covariance, a 3x3 inverse and
@@ -227,6 +228,145 @@ def gicp_system_kernel(P, Q, Cs, Ct, R, si, ti):
     return H, tot[21:27].copy(), float(tot[27])
 
 
+# ----------------------------------------------------------------------------- warm-started 1-NN search
+
+
+@njit
+def _nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq,
+                  r0, r1):
+    """Exact gated nearest neighbour on the sliding-midpoint KD-tree of ``_kernels.kd_build``,
+    with the search bound initialised by the previous partner ``prev[i]`` (``m`` = none).
+
+    The previous partner's squared distance is an upper bound of the nearest one, so fewer
+    nodes are visited; the answer is the same as the cold search: the lexicographically
+    smallest ``(sq, index)`` with ``sq < d2``, ``sq = dx*dx + dy*dy + dz*dz``.
+    """
+    m = idx.shape[0]
+    st_node = np.empty(depth + 2, np.int64)
+    st_lb = np.empty(depth + 2)
+    for i in range(r0, r1):
+        px = P[i, 0]
+        py = P[i, 1]
+        pz = P[i, 2]
+        best = d2
+        best_j = m
+        j0 = prev[i]
+        if j0 < m:
+            dx = px - Q[j0, 0]
+            dy = py - Q[j0, 1]
+            dz = pz - Q[j0, 2]
+            sq0 = dx * dx + dy * dy + dz * dz
+            if sq0 < d2:
+                best = sq0
+                best_j = j0
+        st_node[0] = 0
+        st_lb[0] = 0.0
+        sp = 1
+        while sp > 0:
+            sp -= 1
+            nd = st_node[sp]
+            if st_lb[sp] > best:
+                continue
+            while dim[nd] >= 0:
+                k = dim[nd]
+                if k == 0:
+                    diff = px - split[nd]
+                elif k == 1:
+                    diff = py - split[nd]
+                else:
+                    diff = pz - split[nd]
+                if diff < 0.0:
+                    near = left[nd]
+                    far = right[nd]
+                else:
+                    near = right[nd]
+                    far = left[nd]
+                dd = diff * diff
+                if dd <= best:
+                    st_node[sp] = far
+                    st_lb[sp] = dd
+                    sp += 1
+                nd = near
+            for a in range(start[nd], end[nd]):
+                dx = px - Qs[a, 0]
+                dy = py - Qs[a, 1]
+                dz = pz - Qs[a, 2]
+                sq = dx * dx + dy * dy + dz * dz
+                if sq < d2:
+                    j = idx[a]
+                    if sq < best or (sq == best and j < best_j):
+                        best = sq
+                        best_j = j
+        out_idx[i] = best_j
+        out_sq[i] = best if best_j < m else np.inf
+
+
+@njit
+def _nn_warm_serial(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq):
+    _nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq,
+                  0, P.shape[0])
+
+
+@njit_parallel
+def _nn_warm_parallel(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq):
+    n = P.shape[0]
+    for c in prange(n_chunks(n)):
+        _nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq,
+                      c * CHUNK, min(n, (c + 1) * CHUNK))
+
+
+def nearest_warm_kernel(P, Q, tree, d2, prev):
+    """``(idx, sq)`` of the nearest ``Q`` point with ``sq < d2`` per row of ``P`` (``m``/inf if none).
+
+    ``tree`` is the tuple of ``_kernels.kd_build(Q, leaf)``; ``prev`` (n,) int64 holds a candidate
+    partner per row (``m`` = none), typically the previous iteration's correspondence.
+    """
+    n = P.shape[0]
+    out_idx = np.empty(n, dtype=np.int64)
+    out_sq = np.empty(n)
+    if n >= PARALLEL_MIN_PAIRS:
+        _nn_warm_parallel(P, Q, *tree, float(d2), prev, out_idx, out_sq)
+    else:
+        _nn_warm_serial(P, Q, *tree, float(d2), prev, out_idx, out_sq)
+    return out_idx, out_sq
+
+
+# ----------------------------------------------------------------------------- normals of covariances
+
+
+@njit
+def _min_eigvec_rows(C, sel, out, start, end):
+    tmp = np.empty(6)
+    for i in range(start, end):
+        j = sel[i]
+        fast_eigen3x3(C[j, 0, 0], C[j, 0, 1], C[j, 0, 2], C[j, 1, 1], C[j, 1, 2], C[j, 2, 2], tmp)
+        out[i, 0] = tmp[0]
+        out[i, 1] = tmp[1]
+        out[i, 2] = tmp[2]
+
+
+@njit
+def _min_eigvec_serial(C, sel, out):
+    _min_eigvec_rows(C, sel, out, 0, sel.shape[0])
+
+
+@njit_parallel
+def _min_eigvec_parallel(C, sel, out):
+    m = sel.shape[0]
+    for c in prange(n_chunks(m)):
+        _min_eigvec_rows(C, sel, out, c * CHUNK, min(m, (c + 1) * CHUNK))
+
+
+def min_eigvec_kernel(C, sel):
+    """Unit eigenvector of the smallest eigenvalue of ``C[sel[i]]`` (closed-form 3x3 solver)."""
+    out = np.empty((sel.shape[0], 3))
+    if sel.shape[0] >= PARALLEL_MIN_POINTS:
+        _min_eigvec_parallel(C, sel, out)
+    else:
+        _min_eigvec_serial(C, sel, out)
+    return out
+
+
 def _warmup() -> None:
     """Compile the kernels of this module on tiny inputs (serial and parallel drivers)."""
     P = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
@@ -240,3 +380,12 @@ def _warmup() -> None:
     R = np.eye(3)
     _gicp_serial(P, P + 0.1, C, C, R, idx, idx, np.zeros((1, N_ACC)))
     _gicp_parallel(P, P + 0.1, C, C, R, idx, idx, np.zeros((1, N_ACC)))
+    tree = kd_build(np.vstack([P, P + 2.0, P + 4.0]), 2)
+    Q = np.vstack([P, P + 2.0, P + 4.0])
+    out_i = np.empty(4, dtype=np.int64)
+    out_s = np.empty(4)
+    _nn_warm_serial(P, Q, *tree, 1.0, idx, out_i, out_s)
+    _nn_warm_parallel(P, Q, *tree, 1.0, idx, out_i, out_s)
+    out = np.empty((4, 3))
+    _min_eigvec_serial(C, idx, out)
+    _min_eigvec_parallel(C, idx, out)

@@ -47,7 +47,7 @@ from minegeo.geometry.normals import STATUS_OK, NormalParams, estimate_normals
 from minegeo.geometry.se3 import rotation_from_euler_xyz
 from minegeo.registration import _kernels as K
 from minegeo.registration import _kernels_gicp as KG
-from minegeo.registration.evaluation import _evaluate_transformed, build_target_index, is_identity
+from minegeo.registration.evaluation import is_identity
 from minegeo.registration.icp import ICPResult, constraint_analysis
 
 __all__ = [
@@ -345,6 +345,25 @@ def _angle(R: np.ndarray) -> float:
     return float(np.arctan2(0.5 * np.linalg.norm(v), 0.5 * (np.trace(R) - 1.0)))
 
 
+def _evaluate(P: np.ndarray, Q: np.ndarray, tree, d: float, prev_corr):
+    """``(fitness, rmse, corr)`` exactly as :func:`minegeo.registration.evaluate_registration`
+    (strict gate ``sq < d²``, nearest target, ties to the lowest index, ascending source index),
+    with the search warm-started from the previous correspondences."""
+    n, m = P.shape[0], Q.shape[0]
+    prev = np.full(n, m, dtype=np.int64)
+    if prev_corr is not None and prev_corr.shape[0]:
+        prev[prev_corr[:, 0]] = prev_corr[:, 1]
+    idx, sq = KG.nearest_warm_kernel(P, Q, tree, d * d, prev)
+    src = np.flatnonzero(idx < m)
+    corr = np.empty((src.size, 2), dtype=np.int64)
+    corr[:, 0] = src
+    corr[:, 1] = idx[src]
+    if src.size == 0:
+        return 0.0, 0.0, corr
+    rmse = float(np.sqrt(K.sum_kernel(np.ascontiguousarray(sq[src])) / src.size))
+    return float(src.size / n), rmse, corr
+
+
 def _solve(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, bool]:
     """Solve ``H x = -g``; minimum-norm step (pseudo-inverse) when ``H`` is singular."""
     ev, V = np.linalg.eigh(H)
@@ -381,7 +400,7 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
         otherwise the normals come from a kNN PCA with ``params.covariance_neighbours``.
     target_index : optional
         A KD-tree over ``target_points`` from :func:`minegeo.registration.build_target_index`
-        to reuse (built when omitted).
+        to reuse (built when omitted or of another kind).
 
     Returns
     -------
@@ -414,7 +433,9 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
 
     *Correspondences*: nearest target point of every moved source point with
     ``|T b_i - m_i|² < d²`` (Euclidean, as in Ren 2019 Sec. 3.2: "the standard Euclidean
-    distance is used ... to calculate the correspondence").
+    distance is used ... to calculate the correspondence"), ties to the lowest target index.
+    The exact KD-tree search starts its bound at the distance to the previous partner, which
+    prunes most of the tree without changing the answer.
 
     *Step* (Eq. 6 linearised about the current pose): with ``p_i = T b_i``,
     ``d_i = p_i - m_i``, ``M_i = C_i^M + R C_i^B Rᵀ`` (Eq. 5) and the left perturbation
@@ -456,13 +477,15 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
             tgt_from = "given"
         else:
             Ct, Nt, tgt_from = _covariances_and_normals(Q, params, target_normals, "target")
-    if target_index is None:
-        with timer("search"):
-            target_index = build_target_index(Q)
+    with timer("search"):
+        if isinstance(target_index, K.GatedKDTree) and target_index.m == Q.shape[0]:
+            tree = target_index._tree
+        else:  # None or another kind of index: build the KD-tree this search needs
+            tree = K.kd_build(Q, K.KD_LEAF)
 
     P = P0 if is_identity(T) else K.transform_points_kernel(P0, T)
     with timer("search"):
-        fitness, rmse, corr = _evaluate_transformed(P, Q, target_index, d)
+        fitness, rmse, corr = _evaluate(P, Q, tree, d, None)
     history = [(fitness, rmse)]
     converged = False
     conv_reason = ""
@@ -488,7 +511,7 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
         prev_f, prev_r = fitness, rmse
         corr_prev2, corr_prev = corr_prev, corr  # S_{k-2}, S_{k-1}
         with timer("search"):
-            fitness, rmse, corr = _evaluate_transformed(P, Q, target_index, d)
+            fitness, rmse, corr = _evaluate(P, Q, tree, d, corr)
         history.append((fitness, rmse))
         if params.convergence == "open3d":
             if abs(prev_f - fitness) < params.relative_fitness and abs(prev_r - rmse) < params.relative_rmse:
@@ -517,8 +540,7 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
             if Nt is not None:
                 Ns = np.ascontiguousarray(Nt[ti])
             else:
-                _, vec = np.linalg.eigh(Ct[ti])
-                Ns = np.ascontiguousarray(vec[:, :, 0])
+                Ns = KG.min_eigvec_kernel(Ct, ti)
             c_ev, c_vec, ratio, reason = constraint_analysis(
                 np.ascontiguousarray(P[si]), Ns, params.degeneracy_ratio_threshold)
         else:

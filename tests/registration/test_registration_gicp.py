@@ -292,6 +292,23 @@ def test_serial_and_parallel_drivers_are_bit_identical():
         assert np.array_equal(c1, c2)
 
 
+def test_warm_started_search_equals_cold_search():
+    """Any previous partner (right, wrong, outside the gate or none) gives the cold answer,
+    ties (integer grid: many equal distances) included."""
+    from minegeo.registration import _kernels as K
+
+    rng = np.random.default_rng(2)
+    Q = rng.integers(0, 6, size=(400, 3)).astype(float)
+    P = np.vstack([rng.integers(0, 6, size=(300, 3)) + 0.5, rng.uniform(-1, 7, size=(300, 3))])
+    gated = K.GatedKDTree(Q)
+    tree = K.kd_build(Q, K.KD_LEAF)
+    for d2 in (0.5, 0.76, 1.0, 4.0):
+        i0, s0 = gated.query(P, d2)
+        for prev in (np.full(len(P), len(Q)), rng.integers(0, len(Q), len(P)), i0):
+            i1, s1 = KG.nearest_warm_kernel(P, Q, tree, d2, np.ascontiguousarray(prev, dtype=np.int64))
+            assert np.array_equal(i0, i1) and np.array_equal(s0, s1)
+
+
 # ---------------------------------------------------------------- invariances (hypothesis)
 
 
