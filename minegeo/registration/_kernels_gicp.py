@@ -19,12 +19,14 @@ from minegeo._jit import njit, njit_parallel, prange
 from minegeo.geometry._kernels import fast_eigen3x3
 from minegeo.registration._kernels import CHUNK, _add_partials, kd_build, n_chunks
 
-#: Below this many pairs the serial driver is used (a thread launch costs more than it saves).
-#: The GICP pair work (~300 flops: a 3x3 rotation of the source covariance, a 3x3 inverse and
-#: the 6x6 product) is heavier than point-to-plane's, so threads pay off much earlier.
-PARALLEL_MIN_PAIRS = 8192
-#: Below this many points the covariance map runs serially.
-PARALLEL_MIN_POINTS = 16384
+#: Below this many pairs (or search queries) the serial driver is used. Measured on the shared
+#: 2-core machine under load (load average ~9): for 10^4 pairs the prange drivers made a whole
+#: registration 2x slower than the serial ones (554 ms vs 290 ms; threads wait at the barrier
+#: for cores the other processes hold), so threads are kept for large clouds only. Both drivers
+#: run the same chunk bodies in the same order: results are bit-identical either way.
+PARALLEL_MIN_PAIRS = 1 << 16
+#: Below this many points the per-point maps (covariances, normals) run serially.
+PARALLEL_MIN_POINTS = 1 << 16
 
 #: Number of accumulated values per chunk: 21 (upper triangle of H) + 6 (g) + 1 (cost).
 N_ACC = 28

@@ -309,20 +309,22 @@ def _as_covariances(C, n: int, name: str) -> np.ndarray:
         raise InputError(f"{name} must be numeric: {exc}") from None
     if a.shape != (n, 3, 3):
         raise InputError(f"{name} must have shape ({n}, 3, 3) (one 3x3 matrix per point), got {a.shape}")
-    finite = np.isfinite(a).all(axis=(1, 2))
+    f = a.reshape(n, 9)
+    finite = np.isfinite(f).all(axis=1)
     if not finite.all():
         bad = np.flatnonzero(~finite)
         raise InputError(f"{name} has {bad.size} matrix(es) with NaN or inf (first at row {int(bad[0])})")
-    scale = np.abs(a).max(axis=(1, 2))
-    asym = np.abs(a - a.transpose(0, 2, 1)).max(axis=(1, 2))
+    scale = np.abs(f).max(axis=1)
+    asym = np.maximum(np.maximum(np.abs(f[:, 1] - f[:, 3]), np.abs(f[:, 2] - f[:, 6])), np.abs(f[:, 5] - f[:, 7]))
     bad = asym > SYMMETRY_RTOL * np.maximum(scale, 1e-300)
     if bad.any():
         raise InputError(f"{name} has {int(bad.sum())} non-symmetric matrix(es) (first at row "
                          f"{int(np.flatnonzero(bad)[0])})")
-    m1 = a[:, 0, 0]
-    m2 = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
-    m3 = np.linalg.det(a)
-    pd = (m1 > 0) & (m2 > 0) & (m3 > 0)
+    # Sylvester's criterion: the three leading principal minors are positive
+    a00, a01, a02, a11, a12, a22 = f[:, 0], f[:, 1], f[:, 2], f[:, 4], f[:, 5], f[:, 8]
+    m2 = a00 * a11 - a01 * a01
+    m3 = a00 * (a11 * a22 - a12 * a12) - a01 * (a01 * a22 - a12 * a02) + a02 * (a01 * a12 - a11 * a02)
+    pd = (a00 > 0) & (m2 > 0) & (m3 > 0)
     if not pd.all():
         raise InputError(
             f"{name} has {int((~pd).sum())} matrix(es) that are not positive definite (first at row "
