@@ -48,6 +48,31 @@ def _sensor(name: str, noise):
     return s
 
 
+def level_scan(cloud, traj, T_map_scan, rng, tilt_error_deg: float):
+    """Re-express a synthetic scan in a levelled frame (z up), as an IMU-levelled SLAM output.
+
+    ``T_map_scan = [Rz(yaw) R_tilt | t]``: the scan is rotated by ``L = E R_tilt`` where ``E`` is a
+    random tilt error of |N(0, tilt_error_deg)| about a random horizontal axis (the IMU's
+    levelling error). Returns (cloud, trajectory, T_map_levelled) with the same map placement.
+    """
+    from minegeo.geometry.se3 import exp_so3
+    from minegeo.io.types import PointCloud, Trajectory
+
+    R = T_map_scan[:3, :3]
+    yaw = math.atan2(R[1, 0], R[0, 0])
+    cz, sz = math.cos(yaw), math.sin(yaw)
+    L = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]]).T @ R
+    ax = rng.normal(size=2)
+    ax = np.r_[ax / np.linalg.norm(ax), 0.0]
+    L = exp_so3(ax * math.radians(tilt_error_deg * abs(rng.normal()))) @ L
+    Lh = np.eye(4)
+    Lh[:3, :3] = L
+    out = PointCloud(np.ascontiguousarray(cloud.points @ L.T), frame="scan")
+    poses = np.einsum("ij,njk->nik", Lh, traj.poses)
+    tr = Trajectory(times_s=traj.times_s, poses=poses, frame=traj.frame, body=traj.body)
+    return out, tr, T_map_scan @ np.linalg.inv(Lh)
+
+
 def _kind(sensor: str) -> str:
     return "handheld" if sensor == "flash" else "walk"
 
@@ -133,6 +158,14 @@ def main(argv=None) -> int:
     ap.add_argument("--octree-levels", default="6,8,10,12",
                     help="scan octree levels of the octree study (levels 10 and 12 keep nearly every point of a "
                          "20 m scan: minutes per run)")
+    ap.add_argument("--levelled", type=float, default=None, metavar="DEG",
+                    help="scans in an IMU-levelled frame (levelling error |N(0, --imu-error-deg)|) and minegeo "
+                         "told so (RansacParams.max_tilt_deg = DEG); Open3D gets the same levelled scans")
+    ap.add_argument("--imu-error-deg", type=float, default=0.3)
+    ap.add_argument("--hypotheses", type=int, default=None, help="RansacParams.n_hypotheses for minegeo")
+    ap.add_argument("--map-cache", default=None,
+                    help="PLY file holding the synthetic map: read if it exists, else built and written there "
+                         "(the paper preset's map takes ~15-30 min to build)")
     ap.add_argument("--study", default="all", choices=("all", "length", "octree"),
                     help="length/sensor runs, octree-level runs, or both")
     args = ap.parse_args(argv)
@@ -145,7 +178,16 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     world = build_world(args.preset, args.seed)
-    cloud = build_map(world, seed=args.seed + 1)
+    if args.map_cache and Path(args.map_cache).exists():
+        from minegeo.io import read_point_cloud
+
+        cloud = read_point_cloud(args.map_cache)
+    else:
+        cloud = build_map(world, seed=args.seed + 1)
+        if args.map_cache:
+            from minegeo.io import write_point_cloud
+
+            write_point_cloud(args.map_cache, cloud)
     t_world = time.perf_counter() - t0
     print(f"world + map: {len(cloud)} points, {t_world:.0f} s", file=sys.stderr, flush=True)
 
@@ -190,6 +232,8 @@ def main(argv=None) -> int:
         except Exception as exc:  # section not available in this world
             print(f"skip {run}: {exc}", file=sys.stderr)
             continue
+        if args.levelled is not None:
+            c, tr, T_true = level_scan(c, tr, T_true, np.random.default_rng(sseed), args.imu_error_deg)
         t_scan = time.perf_counter() - t0
         traj_pts = tr.poses[:, :3, 3]
         rec = dict(run, scan_seed=sseed, n_points=len(c), t_synth_s=t_scan, results={})
@@ -198,6 +242,10 @@ def main(argv=None) -> int:
                 ransac=replace(LocalizeParams().ransac, max_iterations=args.ransac_max_iterations))
             if run["octree_level"] is not None:
                 lp = replace(lp, scan_octree_level=int(run["octree_level"]))
+            if args.levelled is not None:
+                lp = replace(lp, ransac=replace(lp.ransac, max_tilt_deg=float(args.levelled)))
+            if args.hypotheses is not None:
+                lp = replace(lp, ransac=replace(lp.ransac, n_hypotheses=int(args.hypotheses)))
             try:
                 r = localize_scan(prepared[prof], c, tr, lp, seed=args.seed)
                 e = error_vs_truth(r.T_map_scan, T_true, traj_pts)

@@ -39,6 +39,14 @@ def add_arguments(parser) -> None:
                         help="independent RANSAC runs whose hypotheses are all verified by ICP (default 1)")
     parser.add_argument("--no-mutual-filter", action="store_true",
                         help="use every FPFH nearest neighbour as a putative match (the paper) instead of mutual ones")
+    parser.add_argument("--ransac-min-iterations", type=int, default=None,
+                        help="RANSAC draws before Eq. 8 may stop the search (fast profile: 1e6; table3: 0 = Eq. 8 "
+                             "alone, as the paper)")
+    parser.add_argument("--hypotheses", type=int, default=None, metavar="K",
+                        help="distinct RANSAC hypotheses verified by ICP per run (default 2: best and runner-up)")
+    parser.add_argument("--levelled", type=float, default=None, metavar="DEG",
+                        help="the scan frame is levelled (z up, e.g. by the scanner's IMU) like the map: reject "
+                             "RANSAC placements tilting the vertical by more than DEG degrees (e.g. 3)")
     parser.add_argument("--no-cache", action="store_true", help="do not read or write the prepared-map cache")
 
 
@@ -91,6 +99,12 @@ def params_from_args(args):
         rk["max_iterations"] = int(args.ransac_max_iterations)
     if getattr(args, "no_mutual_filter", False):
         rk["mutual_filter"] = False
+    if getattr(args, "ransac_min_iterations", None) is not None:
+        rk["min_iterations"] = int(args.ransac_min_iterations)
+    if getattr(args, "hypotheses", None) is not None:
+        rk["n_hypotheses"] = int(args.hypotheses)
+    if getattr(args, "levelled", None) is not None:
+        rk["max_tilt_deg"] = float(args.levelled)
     if rk:
         lp = replace(lp, ransac=replace(lp.ransac, **rk))
     return prep, lp

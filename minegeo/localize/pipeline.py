@@ -123,6 +123,13 @@ class LocalizeParams:
         Plane-distance tolerance of the verification score (m): hypotheses are ranked by the
         fraction of scan points within the ICP gate of the map *and* within this distance of
         the map's tangent plane (see ``_verify``).
+    verify_noise_factor : float
+        The plane tolerance actually used is ``max(verify_plane_tolerance_m, factor · σ_surf)``
+        with ``σ_surf`` the scan's own surface noise (median over scan points of the RMS
+        distance of their 16 nearest ICP-source neighbours from the neighbourhood's PCA
+        plane, ``sqrt(λ_min)`` of Eq. 2's covariance): a noisier sensor gets a wider band
+        so its correct placements are not refused; the measure does not depend on any
+        placement, so a wrong placement gains nothing. 0 disables it.
     min_plane_fitness : float
         ``failed`` below this verification score of the chosen placement.
     ambiguity_ratio : float
@@ -155,6 +162,7 @@ class LocalizeParams:
     min_fitness: float = 0.6
     max_inlier_rmse_m: float = 0.35
     verify_plane_tolerance_m: float = 0.1
+    verify_noise_factor: float = 4.0
     min_plane_fitness: float = 0.75
     ambiguity_ratio: float = 0.9
     ambiguity_distance_m: float = 0.5
@@ -186,6 +194,8 @@ class LocalizeParams:
         check_positive(self.ambiguity_angle_deg, "ambiguity_angle_deg")
         check_positive(self.verify_plane_tolerance_m, "verify_plane_tolerance_m")
         check_positive(self.max_pending_step_m, "max_pending_step_m")
+        if not (math.isfinite(float(self.verify_noise_factor)) and float(self.verify_noise_factor) >= 0.0):
+            raise InputError(f"verify_noise_factor must be a finite number >= 0, got {self.verify_noise_factor!r}")
         for name in ("min_fitness", "min_plane_fitness", "ambiguity_ratio", "degeneracy_ratio"):
             v = float(getattr(self, name))
             if not 0.0 <= v <= 1.0:
@@ -207,12 +217,15 @@ class LocalizeParams:
         """minegeo's fast profile (pair it with :meth:`PrepareParams.fast` for the map).
 
         Coarser descriptors (voxel 1 m, normal radius 2 m, FPFH radius 5 m: the Table 3 ratios
-        at twice the voxel), mutual FPFH matches, 3-point RANSAC samples capped at 1e6 draws,
+        at twice the voxel), mutual FPFH matches, 3-point RANSAC samples, always 1e6 draws
+        (``min_iterations``: Eq. 8 computed from a wrong but drift-like best placement stops
+        the search too early, see :class:`~minegeo.registration.RansacParams`),
         point-to-plane ICP. Not the paper's parameters: measured faster and more successful
         on the synthetic mine (docs/localization.md).
         """
         kw = {"scan_voxel_size_m": 1.0, "features": FAST_FEATURES,
-              "ransac": RansacParams(ransac_n=3, mutual_filter=True, max_iterations=1_000_000),
+              "ransac": RansacParams(ransac_n=3, mutual_filter=True, max_iterations=1_000_000,
+                                     min_iterations=1_000_000),
               "icp_method": "point_to_plane"}
         kw.update(overrides)
         return cls(**kw)
@@ -271,6 +284,10 @@ class LocalizationResult:
     crs : str or None
     georef_origin : (3,) ndarray or None
         Origin of the ``geo`` frame (CRS coordinates), m.
+    plane_tolerance_m : float
+        Plane-distance tolerance used by the verification (m; see ``verify_noise_factor``).
+    scan_noise_m : float
+        The scan's surface noise ``σ_surf`` (m; NaN when not measured).
     n_scan_points, n_scan_down, n_scan_icp : int
         Scan points read, after downsampling (features, RANSAC) and in the ICP source.
     params : LocalizeParams
@@ -304,6 +321,8 @@ class LocalizationResult:
     trajectory_sigma_m: np.ndarray | None
     crs: str | None
     georef_origin: np.ndarray | None
+    plane_tolerance_m: float
+    scan_noise_m: float
     n_scan_points: int
     n_scan_down: int
     n_scan_icp: int
@@ -368,6 +387,8 @@ class LocalizationResult:
                                 "are not included",
             "crs": self.crs,
             "georef_origin": self.georef_origin,
+            "plane_tolerance_m": self.plane_tolerance_m,
+            "scan_noise_m": self.scan_noise_m,
             "n_scan_points": self.n_scan_points,
             "n_scan_down": self.n_scan_down,
             "n_scan_icp": self.n_scan_icp,
@@ -448,6 +469,26 @@ def _verify(P: np.ndarray, T: np.ndarray, Q: np.ndarray, N: np.ndarray, tree, ga
     j = idx[m]
     r = np.abs(np.einsum("ij,ij->i", X[m] - Q[j], N[j]))
     return float(np.count_nonzero(r < tol)) / P.shape[0], float(math.sqrt(float(np.mean(r * r))))
+
+
+def surface_noise_m(P: np.ndarray, k: int = 16, max_points: int = 20000) -> float:
+    """Scan surface noise ``σ_surf`` (m): median of ``sqrt(λ_min)`` of the k-neighbour PCA (Eq. 2).
+
+    Evaluated on an evenly strided subset of at most ``max_points`` points (deterministic);
+    neighbours from the whole cloud. Independent of any placement in the map.
+    """
+    from pykdtree.kdtree import KDTree
+
+    n = P.shape[0]
+    if n < k + 1:
+        return 0.0
+    sub = P[:: max(1, n // max_points)]
+    _, idx = KDTree(P).query(sub, k=k)
+    N = P[np.asarray(idx, dtype=np.int64)]
+    N = N - N.mean(axis=1, keepdims=True)
+    C = np.einsum("nki,nkj->nij", N, N) / k
+    lam = np.linalg.eigvalsh(C)[:, 0]
+    return float(np.median(np.sqrt(np.maximum(lam, 0.0))))
 
 
 def _placement_distance(Ta: np.ndarray, Tb: np.ndarray, centre: np.ndarray) -> tuple[float, float]:
@@ -541,7 +582,10 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     for i, rr in enumerate(ransacs):
         if rr.n_inliers > 0:
             cand.append((f"ransac[{i}] best", rr.T_target_source, rr.fitness, rr.inlier_rmse_m))
-            if rr.second_best_T_target_source is not None:
+            if len(rr.alternatives) > 1:
+                for a, (Ta, fa, ea) in enumerate(rr.alternatives[1:]):
+                    cand.append((f"ransac[{i}] " + ("runner-up" if a == 0 else f"hypothesis {a + 2}"), Ta, fa, ea))
+            elif rr.second_best_T_target_source is not None:
                 cand.append((f"ransac[{i}] runner-up", rr.second_best_T_target_source, rr.second_best_fitness,
                              rr.second_best_rmse_m))
     # drop duplicates (same placement as an earlier candidate)
@@ -557,6 +601,9 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     icp_p = _icp_params(p)
     tree = prepared_map.kdtree
     gate, tol = float(p.icp_max_correspondence_m), float(p.verify_plane_tolerance_m)
+    scan_noise = surface_noise_m(Dfine) if p.verify_noise_factor > 0 else math.nan
+    if p.verify_noise_factor > 0:
+        tol = max(tol, float(p.verify_noise_factor) * scan_noise)
     screened = []
     if len(uniq) > 1:
         for c in uniq:
@@ -614,7 +661,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         if pf_best < p.min_plane_fitness:
             status = "failed"
             reason = (f"the best placement has only {100 * pf_best:.0f} % of the scan points within "
-                      f"{p.verify_plane_tolerance_m:g} m of the map surface (need {100 * p.min_plane_fitness:.0f} %; "
+                      f"{tol:.3g} m of the map surface (need {100 * p.min_plane_fitness:.0f} %; "
                       f"ICP fitness {f:.3f}): no placement matches the drift's shape — the scan is probably not in "
                       "the mapped area, the map changed there, or the right place was not found")
         elif f < p.min_fitness:
@@ -732,7 +779,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         ransac=r0, icp=ic_best, hypotheses=hyps, covariance_6x6=cov, sigma_m=sigma, position_cov_3x3=pos_cov,
         position_sigma_m=pos_sigma, position_95_radius_m=r95, horizontal_95_radius_m=h95, pending_step_m=pending,
         trajectory_map=traj_map, trajectory_geo=traj_geo, trajectory_sigma_m=traj_sigma, crs=crs,
-        georef_origin=georef_origin, n_scan_points=int(P_raw.shape[0]), n_scan_down=int(D.shape[0]), n_scan_icp=int(Dfine.shape[0]),
+        georef_origin=georef_origin, plane_tolerance_m=tol, scan_noise_m=scan_noise, n_scan_points=int(P_raw.shape[0]), n_scan_down=int(D.shape[0]), n_scan_icp=int(Dfine.shape[0]),
         params=p, map_params=prepared_map.params, seed=seed, timings_s=timings, warnings=warnings,
         ransac_T_map_scan=_to_map(r0.T_target_source, scan_origin, prepared_map.work_origin),
         scan_points_down=D + scan_origin, residuals_m=residuals,

@@ -108,6 +108,25 @@ class RansacParams:
         this far apart (default ``2 * distance_threshold_m``) ...
     distinct_angle_deg : float
         ... or their rotations differ by more than this angle (deg).
+    max_tilt_deg : float or None
+        Levelled-frames prior (minegeo addition, not in the paper): when source and target
+        frames both have z up (an IMU-levelled scan, a georeferenced map), reject every
+        hypothesis whose rotation moves the vertical by more than this angle,
+        ``arccos(e_z . R e_z) = arccos(R_33) > max_tilt_deg``. Such hypotheses count as
+        iterations but are never scored. None (default) disables the check.
+    min_iterations : int
+        Floor of Eq. 8's stopping rule (minegeo addition): the search never stops on Eq. 8
+        before this many draws. Eq. 8 takes ``w`` from the current best hypothesis; in a
+        mine drift a *wrong* placement often explains a few percent of the putative pairs,
+        which makes Eq. 8 stop after ~10^4-10^5 draws, long before the right one (also at
+        w of a few percent, ~10^6 draws for n = 3) is drawn. ``min_iterations =
+        log(1 - p) / log(1 - w_min^n)`` encodes the smallest inlier ratio ``w_min`` the
+        search must be able to find. 0 (default) = the paper's Eq. 8 alone.
+    n_hypotheses : int
+        Distinct hypotheses returned in :attr:`RansacResult.alternatives` (best first;
+        greedy by inlier count, then SSE, each distinct from all earlier ones). 2 (default)
+        = best + runner-up; larger values switch off the runner-up bound pruning so every
+        scored hypothesis keeps its full count.
     """
 
     distance_threshold_m: float = 2.5
@@ -124,8 +143,18 @@ class RansacParams:
     batch_size: int = 4096
     distinct_distance_m: float | None = None
     distinct_angle_deg: float = 10.0
+    max_tilt_deg: float | None = None
+    min_iterations: int = 0
+    n_hypotheses: int = 2
 
     def __post_init__(self):
+        if self.max_tilt_deg is not None and not 0.0 < float(self.max_tilt_deg) <= 180.0:
+            raise InputError(f"RansacParams.max_tilt_deg must be in (0, 180] degrees or None, got {self.max_tilt_deg!r}")
+        if isinstance(self.min_iterations, bool) or int(self.min_iterations) != self.min_iterations \
+                or self.min_iterations < 0:
+            raise InputError(f"RansacParams.min_iterations must be an integer >= 0, got {self.min_iterations!r}")
+        if isinstance(self.n_hypotheses, bool) or int(self.n_hypotheses) != self.n_hypotheses or self.n_hypotheses < 2:
+            raise InputError(f"RansacParams.n_hypotheses must be an integer >= 2, got {self.n_hypotheses!r}")
         check_positive(self.distance_threshold_m, "RansacParams.distance_threshold_m")
         if int(self.ransac_n) != self.ransac_n or self.ransac_n < 3:
             raise InputError(f"RansacParams.ransac_n must be an integer >= 3, got {self.ransac_n!r}")
@@ -245,6 +274,11 @@ class RansacResult:
     seed : int or None
     timings_s : dict
         Seconds per stage (``correspondences``, ``grid``, ``hypotheses``, ``refit``, ``total``).
+    alternatives : tuple of (T (4, 4), fitness, inlier_rmse_m)
+        Up to ``params.n_hypotheses`` mutually distinct hypotheses, best first (the first is
+        the best hypothesis, refitted); each refitted like the best.
+    n_tilt_rejected : int
+        Hypotheses rejected by the ``max_tilt_deg`` check.
     """
 
     T_target_source: np.ndarray
@@ -269,6 +303,8 @@ class RansacResult:
     params: RansacParams
     seed: int | None
     timings_s: dict = field(default_factory=dict)
+    alternatives: tuple = ()
+    n_tilt_rejected: int = 0
 
     @property
     def second_best_score(self) -> float:
@@ -401,6 +437,9 @@ class _HypothesisStore:
 
     def view(self, start: int = 0):
         return self.T[start : self.n], self.c[start : self.n], self.s[start : self.n]
+
+
+ST_TILT = 100  #: rejected by the levelled-frames check (``max_tilt_deg``); Python-side status code
 
 
 def _check_not_flat(points: np.ndarray, name: str) -> None:
@@ -598,6 +637,9 @@ def register_ransac(
     store = _HypothesisStore()
     best_moved = False
     prune = 0
+    n_tilt = 0
+    cos_tilt = math.cos(math.radians(float(p.max_tilt_deg))) if p.max_tilt_deg is not None else None
+    top_k = int(p.n_hypotheses)
     it0 = 0
     G = _SCORE_GROUP
     while it0 < stop_at:
@@ -607,6 +649,10 @@ def register_ransac(
             csrc, ctgt, csrc_n, ctgt_n, S, float(p.edge_length_similarity), p.edge_pairs == "all", d,
             use_normals, cos_normal, _DEGENERATE_TOL, distinct_rows,
         )
+        if cos_tilt is not None:
+            tilted = (status == K.ST_EVALUATED) & (Ts[:, 2, 2] < cos_tilt)
+            n_tilt += int(np.count_nonzero(tilted[: stop_at - it0]))
+            status[tilted] = ST_TILT
         passed = np.flatnonzero(status == K.ST_EVALUATED)
         for g0 in range(0, passed.size, G):
             grp = passed[g0 : g0 + G]
@@ -629,7 +675,7 @@ def register_ransac(
                     w = float(np.count_nonzero(np.einsum("ij,ij->i", res, res) < d * d)) / n_corr
                     k = required_iterations(w, n, float(p.confidence))
                     if k < stop_at:
-                        new_stop = max(it + 1, int(math.ceil(k)))
+                        new_stop = max(it + 1, int(math.ceil(k)), int(p.min_iterations))
                         if new_stop < stop_at:
                             stop_at = new_stop
                             stop_reason = "converged"
@@ -643,7 +689,7 @@ def register_ransac(
             first_new = store.n
             if keep.size:
                 store.add(Ts[grp[keep]], cnts[keep], sses[keep])
-            if best_c > 0 and store.n:
+            if best_c > 0 and store.n and top_k <= 2:
                 # runner-up bound: best count among scored hypotheses distinct from the best
                 lo = 0 if best_moved else first_new
                 if best_moved:
@@ -693,6 +739,22 @@ def register_ransac(
             h = cand[o[0]]
             sb_T, sb_c, sb_s = _refit(grid, src, tgt, allT[h].copy(), int(allc[h]), float(alls[h]), d, refits)
             sb_dist, sb_ang = hypothesis_distance(T, sb_T, center)
+    alternatives = []
+    if cnt > 0:
+        alternatives.append((T.copy(), cnt / src.shape[0], math.sqrt(sse / cnt)))
+        if top_k > 2:
+            o = np.lexsort((np.arange(allc.size), alls, -allc))
+            chosen = [best_T]
+            for h in o:
+                if len(alternatives) >= top_k or allc[h] <= 0:
+                    break
+                dd, aa = _distances_to(np.stack(chosen), allT[h], center)
+                if np.all((dd > p.distinct_distance) | (aa > p.distinct_angle_deg)):
+                    chosen.append(allT[h])
+                    Th, ch, sh = _refit(grid, src, tgt, allT[h].copy(), int(allc[h]), float(alls[h]), d, refits)
+                    alternatives.append((Th, ch / src.shape[0], math.sqrt(sh / ch) if ch else 0.0))
+        elif sb_T is not None:
+            alternatives.append((sb_T.copy(), sb_c / src.shape[0], math.sqrt(sb_s / sb_c) if sb_c > 0 else 0.0))
     j_final = _score(grid, src, T, d)[2] if cnt > 0 else np.full(src.shape[0], -1)
     inl = np.flatnonzero(j_final >= 0)
     inlier_pairs = np.stack([inl, j_final[inl]], axis=1).astype(np.int64)
@@ -722,6 +784,8 @@ def register_ransac(
         params=p,
         seed=seed,
         timings_s=timings,
+        alternatives=tuple(alternatives),
+        n_tilt_rejected=n_tilt,
     )
 
 
