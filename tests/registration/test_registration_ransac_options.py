@@ -91,7 +91,7 @@ def test_k_hypotheses_distinct_and_ordered(rng):
     assert any(hypothesis_distance(T, G2, c)[0] < 0.05 for T, _, _ in alts)
     # deterministic
     r2 = register_ransac(src, tgt2, correspondences=corr2, params=p, seed=3)
-    for (Ta, fa, ea), (Tb, fb, eb) in zip(alts, r2.alternatives):
+    for (Ta, fa, ea), (Tb, fb, eb) in zip(alts, r2.alternatives, strict=True):
         np.testing.assert_array_equal(Ta, Tb)
         assert fa == fb and ea == eb
 
