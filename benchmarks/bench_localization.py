@@ -42,7 +42,10 @@ SECTIONS = {  # name in the table -> (synth section, noise sigma override)
 def _sensor(name: str, noise):
     from minegeo.synth import FlashSensor, Velodyne16, ZebRevo
 
-    s = {"zebrevo": ZebRevo, "velodyne16": Velodyne16, "flash": FlashSensor}[name]()
+    # flash: 48 x 36 px per frame (the iPad Pro LiDAR projects 576 dots; its depth map is
+    # upsampled), so that the --max-rays budget spans the whole walk instead of 2-5 full frames
+    s = {"zebrevo": ZebRevo, "velodyne16": Velodyne16,
+         "flash": lambda: FlashSensor(width_px=48, height_px=36)}[name]()
     if noise is not None:
         s = replace(s, range_noise_sigma_m=float(noise))
     return s
