@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
-from minegeo.geometry._kernels import fast_eigen3x3
+from minegeo.geometry._kernels import _normal_from_neighbors, fast_eigen3x3
 from minegeo.registration._kernels import CHUNK, _add_partials, kd_build, n_chunks
 
 #: Below this many pairs (or search queries) the serial driver is used. Measured on the shared
@@ -27,6 +27,9 @@ from minegeo.registration._kernels import CHUNK, _add_partials, kd_build, n_chun
 PARALLEL_MIN_PAIRS = 1 << 16
 #: Below this many points the per-point maps (covariances, normals) run serially.
 PARALLEL_MIN_POINTS = 1 << 16
+
+#: A neighbourhood is collinear when ``λ1 <= DEGENERATE_RATIO · λ2`` (as ``geometry.NormalParams``).
+DEGENERATE_RATIO = 1e-8
 
 #: Number of accumulated values per chunk: 21 (upper triangle of H) + 6 (g) + 1 (cost).
 N_ACC = 28
@@ -114,6 +117,128 @@ def plane_covariances_kernel(N, isotropic, eps, rodrigues):
     else:
         _plane_cov_serial(N, isotropic, float(eps), bool(rodrigues), C)
     return C
+
+
+# ----------------------------------------------------------------------------- kNN + PCA normals (fused)
+
+
+@njit
+def _knn_one(px, py, pz, idx, Qs, start, end, dim, split, left, right, k, bi, bs, st_node, st_lb):
+    """The ``k`` nearest points of ``(px, py, pz)`` on a ``kd_build`` tree, sorted by
+    ``(squared distance, index)`` into ``bi``/``bs``; returns the count (``min(k, m)``).
+
+    Exact: a node is skipped only when its lower bound exceeds the current k-th distance, so a
+    point tied with the k-th one is still visited and the lower index wins (the convention of
+    :meth:`minegeo.geometry.NeighborIndex.knn`).
+    """
+    c = 0
+    worst = np.inf
+    st_node[0] = 0
+    st_lb[0] = 0.0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        nd = st_node[sp]
+        if st_lb[sp] > worst:
+            continue
+        while dim[nd] >= 0:
+            kk = dim[nd]
+            if kk == 0:
+                diff = px - split[nd]
+            elif kk == 1:
+                diff = py - split[nd]
+            else:
+                diff = pz - split[nd]
+            if diff < 0.0:
+                near = left[nd]
+                far = right[nd]
+            else:
+                near = right[nd]
+                far = left[nd]
+            dd = diff * diff
+            if dd <= worst:
+                st_node[sp] = far
+                st_lb[sp] = dd
+                sp += 1
+            nd = near
+        for a in range(start[nd], end[nd]):
+            dx = px - Qs[a, 0]
+            dy = py - Qs[a, 1]
+            dz = pz - Qs[a, 2]
+            sq = dx * dx + dy * dy + dz * dz
+            if c == k and sq > worst:
+                continue
+            j = idx[a]
+            if c == k and sq == worst and j > bi[k - 1]:
+                continue
+            pos = c if c < k else k - 1  # insertion into the sorted buffer
+            while pos > 0 and (bs[pos - 1] > sq or (bs[pos - 1] == sq and bi[pos - 1] > j)):
+                bs[pos] = bs[pos - 1]
+                bi[pos] = bi[pos - 1]
+                pos -= 1
+            bs[pos] = sq
+            bi[pos] = j
+            if c < k:
+                c += 1
+            if c == k:
+                worst = bs[k - 1]
+    return c
+
+
+@njit
+def _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
+                      out_n, out_eval, out_status, t0, t1):
+    bi = np.empty(k, np.int64)
+    bs = np.empty(k)
+    st_node = np.empty(depth + 2, np.int64)
+    st_lb = np.empty(depth + 2)
+    A = np.empty((3, 3))
+    V = np.empty((3, 3))
+    w = np.empty(3)
+    tmp = np.empty(6)
+    for t in range(t0, t1):
+        i = idx[t]  # leaf order: consecutive queries are neighbours (cache locality)
+        cnt = _knn_one(Q[i, 0], Q[i, 1], Q[i, 2], idx, Qs, start, end, dim, split, left, right, k,
+                       bi, bs, st_node, st_lb)
+        _normal_from_neighbors(Q, bi, cnt, i, i, mode_open3d, ratio, A, V, w, tmp, out_n, out_eval,
+                               out_status)
+
+
+@njit
+def _knn_normals_serial(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
+                        out_n, out_eval, out_status):
+    _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
+                      out_n, out_eval, out_status, 0, Q.shape[0])
+
+
+@njit_parallel
+def _knn_normals_parallel(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
+                          out_n, out_eval, out_status):
+    m = Q.shape[0]
+    for c in prange(n_chunks(m)):
+        _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
+                          out_n, out_eval, out_status, c * CHUNK, min(m, (c + 1) * CHUNK))
+
+
+def knn_normals_kernel(Q, tree, k, mode_open3d, ratio=DEGENERATE_RATIO):
+    """PCA normal of every point of ``Q`` from its ``k`` nearest points (itself included).
+
+    ``tree`` = ``_kernels.kd_build(Q, leaf)``. The PCA is :mod:`minegeo.geometry`'s
+    (``_normal_from_neighbors``): mode "open3d" = raw moments + FastEigen3x3 (Open3D 0.20),
+    otherwise two-pass centred covariance + Jacobi. Returns ``(normals, eigenvalues, status)``
+    with the status codes of :mod:`minegeo.geometry.normals`.
+    """
+    m = Q.shape[0]
+    out_n = np.empty((m, 3))
+    out_eval = np.empty((m, 3))
+    out_status = np.empty(m, dtype=np.int8)
+    kk = min(int(k), m)
+    args = (Q, *tree, kk, bool(mode_open3d), float(ratio), out_n, out_eval, out_status)
+    if m >= PARALLEL_MIN_POINTS:
+        _knn_normals_parallel(*args)
+    else:
+        _knn_normals_serial(*args)
+    return out_n, out_eval, out_status
 
 
 # ----------------------------------------------------------------------------- GICP normal equations
@@ -388,6 +513,11 @@ def _warmup() -> None:
     out_s = np.empty(4)
     _nn_warm_serial(P, Q, *tree, 1.0, idx, out_i, out_s)
     _nn_warm_parallel(P, Q, *tree, 1.0, idx, out_i, out_s)
+    for mode in (False, True):
+        _knn_normals_serial(Q, *tree, 3, mode, DEGENERATE_RATIO, np.empty((12, 3)), np.empty((12, 3)),
+                            np.empty(12, dtype=np.int8))
+        _knn_normals_parallel(Q, *tree, 3, mode, DEGENERATE_RATIO, np.empty((12, 3)), np.empty((12, 3)),
+                              np.empty(12, dtype=np.int8))
     out = np.empty((4, 3))
     _min_eigvec_serial(C, idx, out)
     _min_eigvec_parallel(C, idx, out)

@@ -37,13 +37,11 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from pykdtree.kdtree import KDTree
 
 from minegeo._provenance import StageTimer
 from minegeo._validate import as_points, as_transform
 from minegeo.errors import InputError
-from minegeo.geometry.neighbors import Neighborhoods
-from minegeo.geometry.normals import STATUS_OK, NormalParams, estimate_normals
+from minegeo.geometry.normals import STATUS_OK
 from minegeo.geometry.se3 import rotation_from_euler_xyz
 from minegeo.registration import _kernels as K
 from minegeo.registration import _kernels_gicp as KG
@@ -242,7 +240,8 @@ def _plane_covariances(normals: np.ndarray, isotropic: np.ndarray, params: GICPP
     )
 
 
-def _covariances_and_normals(points: np.ndarray, params: GICPParams, normals=None, name: str = "points"):
+def _covariances_and_normals(points: np.ndarray, params: GICPParams, normals=None, name: str = "points",
+                             tree=None):
     """``(C (n,3,3), N (n,3), source)`` for validated ``points``; see :func:`estimate_gicp_covariances`."""
     n = points.shape[0]
     o3d = params.covariance_mode == "open3d"
@@ -252,16 +251,10 @@ def _covariances_and_normals(points: np.ndarray, params: GICPParams, normals=Non
             raise InputError(f"{name} normals have {N.shape[0]} rows but there are {n} points")
         iso = np.zeros(n, dtype=np.bool_) if o3d else ~(np.linalg.norm(N, axis=1) > 0)
         return _plane_covariances(N, iso, params), N, "normals"
-    mode = "open3d" if o3d else "accurate"
-    kk = min(int(params.covariance_neighbours), n)
-    dist, idx = KDTree(points).query(points, k=kk)
-    idx = np.ascontiguousarray(np.asarray(idx, dtype=np.int64).reshape(n, kk))
-    sq = np.asarray(dist, dtype=np.float64).reshape(n, kk) ** 2
-    nb = Neighborhoods(idx, sq, np.full(n, kk, dtype=np.int64), "knn", None, kk)
-    res = estimate_normals(points, NormalParams(max_nn=kk, mode=mode), orient_towards="none",
-                           neighborhoods=nb)
-    iso = np.zeros(n, dtype=np.bool_) if o3d else res.status != STATUS_OK
-    return _plane_covariances(res.normals, iso, params), res.normals, "estimated"
+    tree = K.kd_build(points, K.KD_LEAF) if tree is None else tree
+    N, _, status = KG.knn_normals_kernel(points, tree, int(params.covariance_neighbours), o3d)
+    iso = np.zeros(n, dtype=np.bool_) if o3d else status != STATUS_OK
+    return _plane_covariances(N, iso, params), N, "estimated"
 
 
 def estimate_gicp_covariances(points, params: GICPParams | None = None, normals=None) -> np.ndarray:
@@ -467,6 +460,11 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
     d = float(params.max_correspondence_distance_m)
     timer = StageTimer()
 
+    with timer("search"):
+        if isinstance(target_index, K.GatedKDTree) and target_index.m == Q.shape[0]:
+            tree = target_index._tree
+        else:  # None or another kind of index: build the KD-tree this search needs
+            tree = K.kd_build(Q, K.KD_LEAF)
     with timer("covariances"):
         Nt = None
         if source_covariances is not None:
@@ -478,12 +476,7 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
             Ct = _as_covariances(target_covariances, Q.shape[0], "target_covariances")
             tgt_from = "given"
         else:
-            Ct, Nt, tgt_from = _covariances_and_normals(Q, params, target_normals, "target")
-    with timer("search"):
-        if isinstance(target_index, K.GatedKDTree) and target_index.m == Q.shape[0]:
-            tree = target_index._tree
-        else:  # None or another kind of index: build the KD-tree this search needs
-            tree = K.kd_build(Q, K.KD_LEAF)
+            Ct, Nt, tgt_from = _covariances_and_normals(Q, params, target_normals, "target", tree=tree)
 
     P = P0 if is_identity(T) else K.transform_points_kernel(P0, T)
     with timer("search"):

@@ -309,6 +309,30 @@ def test_warm_started_search_equals_cold_search():
             assert np.array_equal(i0, i1) and np.array_equal(s0, s1)
 
 
+def test_knn_and_normals_equal_minegeo_geometry():
+    """The fused kNN + PCA of the covariance estimate equals minegeo.geometry's
+    (NeighborIndex.knn: sorted by (distance, index); estimate_normals: same PCA code)."""
+    from minegeo.geometry import NeighborIndex, NormalParams, estimate_normals
+    from minegeo.registration import _kernels as K
+
+    rng = np.random.default_rng(8)
+    grid = rng.integers(0, 5, size=(300, 3)).astype(float)  # many tied distances
+    for Q, k in ((grid, 7), (_egg_box(rng, 500, noise=0.01), 20)):
+        tree = K.kd_build(Q, K.KD_LEAF)
+        nb = NeighborIndex(Q).knn(Q, k)
+        bi, bs = np.empty(k, np.int64), np.empty(k)
+        st_n, st_l = np.empty(tree[-1] + 2, np.int64), np.empty(tree[-1] + 2)
+        for i in range(0, len(Q), 7):
+            c = KG._knn_one(Q[i, 0], Q[i, 1], Q[i, 2], *tree[:-1], k, bi, bs, st_n, st_l)
+            assert c == k and np.array_equal(bi, nb.indices[i]) and np.array_equal(bs, nb.sq_distances[i])
+        for mode in ("accurate", "open3d"):
+            ref = estimate_normals(Q, NormalParams(max_nn=k, mode=mode), orient_towards="none")
+            N, ev, status = KG.knn_normals_kernel(Q, tree, k, mode == "open3d")
+            assert np.array_equal(status, ref.status)
+            ok = ref.status == 0
+            np.testing.assert_allclose(np.abs((N[ok] * ref.normals[ok]).sum(axis=1)), 1.0, atol=1e-9)
+
+
 # ---------------------------------------------------------------- invariances (hypothesis)
 
 
