@@ -48,6 +48,9 @@ def add_arguments(parser) -> None:
                         help="the scan frame is levelled (z up, e.g. by the scanner's IMU) like the map: reject "
                              "RANSAC placements tilting the vertical by more than DEG degrees (e.g. 3)")
     parser.add_argument("--no-cache", action="store_true", help="do not read or write the prepared-map cache")
+    parser.add_argument("--drop-nonfinite", action="store_true",
+                        help="drop scan points with NaN/inf coordinates (organised PCD/PLY files mark missing "
+                             "returns that way) instead of refusing the file")
 
 
 def add_profile_arguments(parser) -> None:
@@ -164,18 +167,32 @@ def run(args) -> int:
     if args.trajectory:
         inputs.append(input_record(args.trajectory))
 
+    # read and check the scan first: a user mistake there should not cost a map preparation
+    t0 = time.perf_counter()
+    scan = read_point_cloud(args.scan, drop_nonfinite=bool(getattr(args, "drop_nonfinite", False)))
+    if len(scan) < lp.min_scan_points:
+        from minegeo._provenance import to_jsonable
+
+        exc = TooFewPointsError(f"the scan {args.scan} has only {len(scan)} points; at least {lp.min_scan_points} "
+                                "are needed to localize it")
+        write_json_atomic(out / "result.json", {
+            "status": "failed", "reason": str(exc), "error": type(exc).__name__, "T_map_scan": None,
+            "fitness": 0.0, "inlier_rmse_m": None, "ransac": None, "icp": None, "covariance_6x6": None,
+            "position_sigma_m": None, "timings_s": {"total": time.perf_counter() - t_start},
+            "params": {"localize": to_jsonable(lp), "map": to_jsonable(prep)}, "inputs": inputs,
+            "versions": versions(), "seed": int(args.seed)})
+        raise exc
+    traj = read_trajectory(args.trajectory, frame="scan") if args.trajectory else None
+    t_read = time.perf_counter() - t0
     t0 = time.perf_counter()
     pm, how = load_or_prepare(args.map, prep, use_cache=not args.no_cache, write_cache=not args.no_cache)
     t_map = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    scan = read_point_cloud(args.scan)
-    traj = read_trajectory(args.trajectory, frame="scan") if args.trajectory else None
-    t_read = time.perf_counter() - t0
 
     base = {
         "inputs": inputs,
         "map_preparation": {"source": how, "seconds": t_map, "n_points": len(pm), "params_hash": pm.params_hash,
-                            "cache_file": None if how == "prepared_file" else str(cache_path(args.map, prep))},
+                            "cache_file": None if (how == "prepared_file" or args.no_cache)
+                            else str(cache_path(args.map, prep))},
         "versions": versions(),
         "seed": int(args.seed),
     }

@@ -265,3 +265,39 @@ def test_cli_tiny_scan_typed_error_and_failed_record(world_map, tmp_path):
                  "--profile", "fast"]) == 2
     r = json.loads((out / "result.json").read_text())
     assert r["status"] == "failed" and "points" in r["reason"]
+
+
+def test_cli_tiny_scan_refused_before_map_preparation(world_map, tmp_path):
+    """A 5-point scan against a raw map: refused at once, no prepared-map cache written."""
+    from minegeo.cli import main
+    from minegeo.io import write_point_cloud
+
+    _, cloud, _, _ = world_map
+    raw = tmp_path / "map.ply"
+    write_point_cloud(raw, PointCloud(points=cloud.points[::50].copy()))
+    write_point_cloud(tmp_path / "tiny.ply", PointCloud(points=np.random.default_rng(0).normal(size=(5, 3))))
+    out = tmp_path / "o"
+    assert main(["localize", "--map", str(raw), "--scan", str(tmp_path / "tiny.ply"), "--out", str(out),
+                 "--profile", "fast"]) == 2
+    assert json.loads((out / "result.json").read_text())["status"] == "failed"
+    assert not list(tmp_path.glob("map.ply.prepared-*.npz"))
+
+
+def test_cli_drop_nonfinite_scan(world_map, tmp_path):
+    """NaN rows (organised scans) are refused unless --drop-nonfinite is given."""
+    from minegeo.cli import main
+
+    _, _, pm, scans = world_map
+    prep = tmp_path / "p.npz"
+    pm.save(prep)
+    c = scans[_SECTIONS[0]][0]
+    P = c.points.copy()
+    P[::7] = np.nan
+    xyz = tmp_path / "scan_nan.xyz"
+    np.savetxt(xyz, P, fmt="%.6f")
+    out = tmp_path / "o"
+    assert main(["localize", "--map", str(prep), "--scan", str(xyz), "--out", str(out), "--profile", "fast"]) == 2
+    assert main(["localize", "--map", str(prep), "--scan", str(xyz), "--out", str(out), "--profile", "fast",
+                 "--drop-nonfinite"]) in (0, 1)
+    r = json.loads((out / "result.json").read_text())
+    assert r["n_scan_points"] == int(np.isfinite(P).all(axis=1).sum())
