@@ -393,6 +393,21 @@ def test_gicp_exact_data_and_swap_gives_inverse(seed):
     assert rot < 0.01 and tra < 0.01
 
 
+@SETTINGS
+@given(seed=st.integers(0, 10_000), mode=st.sampled_from(["minegeo", "open3d"]))
+def test_gicp_repeat_is_bit_identical(seed, mode):
+    P, Q, _ = _scene(seed, n_src=150, n_tgt=400)
+    T0 = random_transform(np.random.default_rng(seed), 0.05, 0.05)
+    prm = GICPParams(0.3, covariance_mode=mode)
+    a = register_gicp(P, Q, T0, prm)
+    b = register_gicp(P.copy(), Q.copy(), T0.copy(), prm)
+    assert np.array_equal(a.T_target_source, b.T_target_source)
+    assert np.array_equal(a.information_6x6, b.information_6x6)
+    assert np.array_equal(a.correspondences, b.correspondences)
+    assert (a.fitness, a.inlier_rmse_m, a.iterations, a.mahalanobis_cost, a.history) == (
+        b.fitness, b.inlier_rmse_m, b.iterations, b.mahalanobis_cost, b.history)
+
+
 def test_gicp_deterministic_and_thread_independent(monkeypatch):
     # lower the thresholds so that the prange drivers run inside register_gicp
     monkeypatch.setattr(KG, "PARALLEL_MIN_PAIRS", 4096)
