@@ -17,10 +17,13 @@ The covariance of a point is plane-like: from the PCA of its ``k`` nearest neigh
 ``C = U diag(ε, 1, 1) Uᵀ = I - (1 - ε) n nᵀ`` with ``n`` the surface normal: a pair is
 penalised ``1/ε`` times more across the surfaces than along them.
 
-Correspondences, loop and convergence test are those of :func:`minegeo.registration.register_icp`
-(Open3D ``registration_icp``; oracle spec §10, §11): Euclidean nearest neighbour with the strict
-gate ``|Tp - q|² < d²``, one Gauss-Newton step per iteration, stop when both the fitness and the
-Euclidean inlier-RMSE changes fall below their thresholds. See ``docs/registration_gicp.md``.
+Correspondences and loop are those of :func:`minegeo.registration.register_icp` (Open3D
+``registration_icp``; oracle spec §10, §11): Euclidean nearest neighbour with the strict gate
+``|Tp - q|² < d²``, one Gauss-Newton step per iteration. By default the loop stops when a step
+moves the source by less than 1e-5 m and 1e-6 rad, or on a 2-cycle of correspondence sets;
+:meth:`GICPParams.open3d` restores Open3D's test (fitness and Euclidean inlier-RMSE changes below
+1e-6) and covariances, and then reproduces Open3D's transform to ~1e-15. See
+``docs/registration_gicp.md``.
 
 References
 ----------
