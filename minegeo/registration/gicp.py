@@ -464,7 +464,9 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
     timer = StageTimer()
 
     with timer("search"):
-        if isinstance(target_index, K.GatedKDTree) and target_index.m == Q.shape[0]:
+        if isinstance(target_index, K.GatedKDTree):
+            if target_index.m != Q.shape[0] or not (target_index.data is Q or np.array_equal(target_index.data, Q)):
+                raise InputError("target_index was built on a different cloud than target_points")
             tree = target_index._tree
         else:  # None or another kind of index: build the KD-tree this search needs
             tree = K.kd_build(Q, K.KD_LEAF)

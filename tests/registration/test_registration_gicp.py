@@ -461,6 +461,35 @@ def test_single_plane_is_reported_degenerate():
     assert r.degenerate and r.status == "degenerate" and "weakly constrained" in r.degeneracy_reason
 
 
+def test_straight_tunnel_shows_axis_degeneracy():
+    rng = np.random.default_rng(5)
+
+    def tunnel(n, length):
+        x = rng.uniform(0, length, n)
+        th = rng.uniform(0, 2 * np.pi, n)
+        return np.c_[x, 2.5 * np.cos(th), 1.8 * np.sin(th)]  # elliptical drift along x
+
+    Q = tunnel(4000, 30.0)
+    P = tunnel(1500, 20.0) + [5.0, 0.02, -0.03]
+    r = register_gicp(P, Q, np.eye(4), GICPParams(0.5))
+    assert r.degenerate and r.status == "degenerate" and "translation along" in r.degeneracy_reason
+    assert abs(abs(r.constraint_eigenvectors[3, 0]) - 1.0) < 1e-3  # free: translation along x
+    assert r.constraint_eigenvalues[1] > 1e-2 * r.constraint_eigenvalues[-1]  # only one direction
+    # the cross-section is still fitted (y, z and the rotations)
+    assert abs(r.T_target_source[1, 3] + 0.02) < 0.01 and abs(r.T_target_source[2, 3] - 0.03) < 0.01
+
+
+def test_target_index_reuse():
+    from minegeo.registration import build_target_index
+
+    P, Q, _ = _scene(4)
+    a = register_gicp(P, Q, np.eye(4), GICPParams(0.3))
+    b = register_gicp(P, Q, np.eye(4), GICPParams(0.3), target_index=build_target_index(Q))
+    assert np.array_equal(a.T_target_source, b.T_target_source)
+    with pytest.raises(InputError, match="different cloud"):
+        register_gicp(P, Q, np.eye(4), GICPParams(0.3), target_index=build_target_index(Q + 1.0))
+
+
 def test_no_overlap_and_zero_iterations():
     P, Q, _ = _scene(2)
     r = register_gicp(P + 100.0, Q, np.eye(4), GICPParams(0.3))
