@@ -191,6 +191,17 @@ def test_given_normals_and_covariances_match_open3d(seed):
     r = register_gicp(P, Q, T0, GICPParams.open3d(0.3), target_normals=Nq)
     assert r.target_covariances_from == "normals" and r.source_covariances_from == "estimated"
     _assert_matches_open3d(r, o)
+    # the same surface standing upright (normals near ±x): where n_x < -0.99, Open3D's covariance
+    # is diag(ε, 1, 1) whatever the normal; matched only with that rule
+    G = np.eye(4)
+    G[:3, :3] = exp_so3([0.0, np.pi / 2, 0.0])
+    Pg, Qg, Ng = transform_points(G, P), transform_points(G, Q), Nq @ G[:3, :3].T
+    assert (Ng[:, 0] < -0.99).sum() >= 10
+    T0g = G @ T0 @ invert(G)
+    o = _o3d_gicp(o3d, Pg, Qg, T0g, 0.3, target_normals=Ng)
+    _assert_matches_open3d(register_gicp(Pg, Qg, T0g, GICPParams.open3d(0.3), target_normals=Ng), o)
+    plain = register_gicp(Pg, Qg, T0g, GICPParams.open3d(0.3, covariance_mode="minegeo"), target_normals=Ng)
+    assert max(_errors(plain.T_target_source, np.asarray(o.transformation))) > 1e-6
     # covariances given: used unchanged by both (no ε)
     A = rng.normal(size=(len(P), 3, 3))
     Cs = A @ A.transpose(0, 2, 1) + 0.05 * np.eye(3)
