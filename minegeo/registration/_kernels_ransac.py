@@ -372,45 +372,249 @@ def ransac_score_serial(src, eval_order, Ts, prune_count, dist_thr, gpts, gorigi
     return n_inl, sse, pruned
 
 
-@njit_parallel
-def feature_nn_kernel(A, BT, A32, BT32, b2_32, tol):
-    """Exact nearest column of ``BT`` (dim, nb) for every row of ``A`` (na, dim); parallel over rows.
+# ----------------------------------------------------------------------------- descriptor nearest neighbour
 
-    Screening pass in float32 (twice the SIMD width of float64): ``v_j = |b_j|^2 - 2 a.b_j``
-    (``|a|^2`` is constant per row). Its error is below ``tol[i] / 2``, so every column
-    with ``v_j <= min_j v_j + tol[i]`` is re-evaluated in float64 directly as
-    ``sum_c (a_c - b_jc)^2`` and the smallest (lowest index on ties) is returned.
-    Returns ``(index (na,) int64, sq distance (na,))``.
+#: Points per leaf of the descriptor tree (compile-time constant: the distance loop over a leaf
+#: has a fixed trip count, so it is unrolled and vectorised).
+FEATURE_LEAF = 32
+
+
+@njit
+def feature_mean_cov(X):
+    """Mean ``mu`` (dim,) and scatter matrix ``sum_i (x_i - mu)(x_i - mu)^T`` (dim, dim); serial."""
+    n, dim = X.shape
+    mu = np.zeros(dim)
+    for i in range(n):
+        for c in range(dim):
+            mu[c] += X[i, c]
+    for c in range(dim):
+        mu[c] /= n
+    C = np.zeros((dim, dim))
+    d = np.empty(dim)
+    for i in range(n):
+        for c in range(dim):
+            d[c] = X[i, c] - mu[c]
+        for a in range(dim):
+            da = d[a]
+            for b in range(dim):
+                C[a, b] += da * d[b]
+    return mu, C
+
+
+@njit_parallel
+def feature_rotate(X, mu, V):
+    """``(X - mu) V`` row by row (rows independent: the result does not depend on threads)."""
+    n, dim = X.shape
+    k = V.shape[1]
+    out = np.zeros((n, k))
+    for i in prange(n):
+        for a in range(dim):
+            xa = X[i, a] - mu[a]
+            for b in range(k):
+                out[i, b] += xa * V[a, b]
+    return out
+
+
+@njit
+def feature_tree_build(P):
+    """Balanced kd partition of the rows of ``P`` into leaves of at most ``FEATURE_LEAF`` rows.
+
+    A node is split on its coordinate of largest spread, at a multiple of the leaf size:
+    rows below the split value go left, those above right, equal values fill the left side
+    in their current order (a pure function of ``P``, no randomness). Returns the row
+    permutation ``perm`` and leaf starts ``lstart`` (nl + 1,) into it.
+    """
+    n = P.shape[0]
+    dim = P.shape[1]
+    L = FEATURE_LEAF
+    nl = (n + L - 1) // L
+    perm = np.arange(n)
+    lstart = np.empty(nl + 1, dtype=np.int64)
+    lstart[nl] = n
+    # explicit stack of (start, end, first leaf, leaf count)
+    st = np.empty((2 * nl + 8, 4), dtype=np.int64)
+    lo = np.empty(dim)
+    hi = np.empty(dim)
+    st[0, 0] = 0
+    st[0, 1] = n
+    st[0, 2] = 0
+    st[0, 3] = nl
+    top = 1
+    while top > 0:
+        top -= 1
+        s = st[top, 0]
+        e = st[top, 1]
+        l0 = st[top, 2]
+        k = st[top, 3]
+        if k == 1:
+            lstart[l0] = s
+            continue
+        for c in range(dim):
+            lo[c] = np.inf
+            hi[c] = -np.inf
+        for r in range(s, e):
+            j = perm[r]
+            for c in range(dim):
+                v = P[j, c]
+                if v < lo[c]:
+                    lo[c] = v
+                if v > hi[c]:
+                    hi[c] = v
+        best_c = 0
+        for c in range(1, dim):
+            if hi[c] - lo[c] > hi[best_c] - lo[best_c]:
+                best_c = c
+        kl = (k + 1) // 2
+        m = s + kl * L  # < e because the node holds more than (k - 1) * L rows
+        # stable partition around the (m - s)-th smallest value: O(n) per level
+        vals = np.empty(e - s)
+        for r in range(s, e):
+            vals[r - s] = P[perm[r], best_c]
+        kth = np.partition(vals, m - s)[m - s]
+        seg = perm[s:e].copy()
+        n_eq = m - s
+        for r in range(e - s):
+            if vals[r] < kth:
+                n_eq -= 1
+        a = s
+        b = m
+        for r in range(e - s):
+            v = vals[r]
+            if v < kth or (v == kth and n_eq > 0):
+                if v == kth:
+                    n_eq -= 1
+                perm[a] = seg[r]
+                a += 1
+            else:
+                perm[b] = seg[r]
+                b += 1
+        st[top, 0] = m
+        st[top, 1] = e
+        st[top, 2] = l0 + kl
+        st[top, 3] = k - kl
+        top += 1
+        st[top, 0] = s
+        st[top, 1] = m
+        st[top, 2] = l0
+        st[top, 3] = kl
+        top += 1
+    return perm, lstart
+
+
+@njit
+def feature_tree_pack(B, P, perm, lstart):
+    """Leaf blocks ``blk (nl, dim, FEATURE_LEAF)`` of the original rows of ``B`` (zero padded)
+    and leaf bounding boxes ``loT, hiT (dim, nl)`` in the rotated coordinates ``P``."""
+    nl = lstart.shape[0] - 1
+    dim = B.shape[1]
+    L = FEATURE_LEAF
+    blk = np.zeros((nl, dim, L))
+    loT = np.full((P.shape[1], nl), np.inf)
+    hiT = np.full((P.shape[1], nl), -np.inf)
+    for l in range(nl):
+        for r in range(lstart[l], lstart[l + 1]):
+            j = perm[r]
+            k = r - lstart[l]
+            for c in range(dim):
+                blk[l, c, k] = B[j, c]
+            for c in range(P.shape[1]):
+                v = P[j, c]
+                if v < loT[c, l]:
+                    loT[c, l] = v
+                if v > hiT[c, l]:
+                    hiT[c, l] = v
+    return blk, loT, hiT
+
+
+@njit
+def _leaf_scan(i, A, blk, l, acc):
+    dim = A.shape[1]
+    for k in range(FEATURE_LEAF):
+        acc[k] = 0.0
+    for c in range(dim):
+        a = A[i, c]
+        for k in range(FEATURE_LEAF):
+            e = a - blk[l, c, k]
+            acc[k] += e * e
+
+
+@njit_parallel
+def feature_tree_nn(A, Q, perm, lstart, blk, loT, hiT, delta):
+    """Exact nearest row of ``B`` (stored in the leaf blocks ``blk``) for every row of ``A``; parallel.
+
+    ``Q`` are the rows of ``A`` in the rotated coordinates of the tree. For each query the
+    squared distance from ``Q_i`` to every leaf box is a lower bound ``LB_l`` of the
+    rotated distance to the leaf's points. The leaf with the smallest bound is scanned
+    first, then every leaf in index order unless
+    ``((sqrt(LB_l (1 - 1e-12)) - delta)^2 (1 - 1e-12) > best``: ``delta`` bounds the
+    rounding error of the rotation (in distance units), so such a leaf provably holds no
+    point at the best distance or closer. Scanned points get the direct distance
+    ``sum_c (a_c - b_c)^2`` (c in order, the same arithmetic as the brute force); ties go
+    to the lowest index of ``B``. Returns ``(index (na,), sq distance (na,))``.
     """
     na = A.shape[0]
-    dim = A.shape[1]
-    nb = BT.shape[1]
+    dim = Q.shape[1]
+    nl = loT.shape[1]
     idx = np.full(na, -1, dtype=np.int64)
     best = np.full(na, np.inf)
     for i in prange(na):
-        acc = np.empty(nb, dtype=np.float32)
-        for j in range(nb):
-            acc[j] = b2_32[j]
+        LB = np.zeros(nl)
+        acc = np.empty(FEATURE_LEAF)
         for c in range(dim):
-            a = np.float32(-2.0) * A32[i, c]
-            for j in range(nb):
-                acc[j] += a * BT32[c, j]
-        m = np.inf
-        for j in range(nb):
-            if acc[j] < m:
-                m = np.float64(acc[j])
-        thr = m + tol[i]
+            q = Q[i, c]
+            for l in range(nl):
+                e = loT[c, l] - q
+                f = q - hiT[c, l]
+                e = e if e > f else f
+                e = e if e > 0.0 else 0.0
+                LB[l] += e * e
+        l0 = 0
+        for l in range(1, nl):
+            if LB[l] < LB[l0]:
+                l0 = l
+        bd = np.inf
+        bi = np.int64(-1)
+        for o in range(-1, nl):
+            if o == l0:
+                continue
+            l = l0 if o < 0 else o
+            r = math.sqrt(LB[l] * (1.0 - 1e-12)) - delta
+            if r > 0.0 and r * r * (1.0 - 1e-12) > bd:
+                continue
+            _leaf_scan(i, A, blk, l, acc)
+            s0 = lstart[l]
+            for k in range(lstart[l + 1] - s0):
+                v = acc[k]
+                if v <= bd:
+                    j = perm[s0 + k]
+                    if v < bd or j < bi:
+                        bd = v
+                        bi = j
+        idx[i] = bi
+        best[i] = bd
+    return idx, best
+
+
+@njit_parallel
+def feature_nn_brute(A, B):
+    """Exact nearest row of ``B`` for every row of ``A`` by brute force (float64; ties to the
+    lowest index); parallel over rows of ``A``. Returns ``(index (na,), sq distance (na,))``."""
+    na = A.shape[0]
+    dim = A.shape[1]
+    nb = B.shape[0]
+    idx = np.full(na, -1, dtype=np.int64)
+    best = np.full(na, np.inf)
+    for i in prange(na):
         bd = np.inf
         bi = np.int64(-1)
         for j in range(nb):
-            if acc[j] <= thr:
-                d2 = 0.0
-                for c in range(dim):
-                    e = A[i, c] - BT[c, j]
-                    d2 += e * e
-                if d2 < bd:
-                    bd = d2
-                    bi = j
+            d2 = 0.0
+            for c in range(dim):
+                e = A[i, c] - B[j, c]
+                d2 += e * e
+            if d2 < bd:
+                bd = d2
+                bi = j
         idx[i] = bi
         best[i] = bd
     return idx, best

@@ -51,6 +51,10 @@ class FeatureMatches:
     reason: str = ""
 
 
+#: Below this many rows of ``B`` (in leaves) the tree does not pay off: brute force.
+_TREE_MIN_LEAVES = 8
+
+
 def nearest_rows(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Exact Euclidean nearest row of ``B`` for every row of ``A`` (any dimension).
 
@@ -63,27 +67,43 @@ def nearest_rows(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     index : ndarray (na,) int64
         Row of ``B`` nearest to each row of ``A``; ties go to the lowest index.
     sq_distance : ndarray (na,)
-        ``sum_c (A[i, c] - B[index, c])^2`` evaluated directly (not from the expansion).
+        ``sum_c (A[i, c] - B[index, c])^2`` evaluated directly, c in order (not from an
+        expansion such as ``|a|^2 + |b|^2 - 2 a.b``).
 
     Notes
     -----
-    A float32 screening pass computes ``|b|^2 - 2 a.b`` for every pair (vectorised;
-    ``|a|^2`` is constant per row). With unit roundoff ``u = 2^-24`` its error is below
-    ``(dim + 5) u (|a|^2 + 2 max|b|^2)`` (inputs rounded to float32, dim-term dot
-    products); every row of ``B`` within twice that bound (times a safety factor 2) of
-    the row minimum is re-evaluated exactly in float64 and the smallest exact distance
-    (lowest index on ties) is kept. The answer is therefore the exact nearest
-    neighbour, independent of the thread count.
+    Descriptors such as FPFH are concentrated near a low-dimensional subspace, so the
+    search runs on a kd partition of ``B`` in its principal axes: ``B`` and ``A`` are
+    rotated by the eigenvectors ``V`` of the scatter matrix of ``B`` (``Q = (A - mu) V``),
+    ``B`` is split into balanced leaves of ``FEATURE_LEAF`` rows on the rotated coordinate
+    of largest spread, and each query scans its nearest leaf by box distance first, then
+    only the leaves whose box lower bound (corrected for the rounding of the rotation) can
+    still hold a point at the best distance or closer. Scanned points get the direct
+    distance above, so the rotation only decides which points are looked at, never which
+    one wins: the answer is the exact nearest row (lowest index on ties), bit-identical to
+    the brute force and independent of the thread count. Small ``B`` uses the brute force.
     """
     A = np.ascontiguousarray(A, dtype=np.float64)
     B = np.ascontiguousarray(B, dtype=np.float64)
-    dim = A.shape[1]
-    a2 = np.einsum("ij,ij->i", A, A)
-    b2 = np.einsum("ij,ij->i", B, B)
-    u32 = float(np.finfo(np.float32).eps) / 2.0
-    tol = 4.0 * (dim + 5) * u32 * (a2 + 2.0 * (float(b2.max()) if b2.size else 0.0))
-    BT = np.ascontiguousarray(B.T)
-    return K.feature_nn_kernel(A, BT, A.astype(np.float32), BT.astype(np.float32), b2.astype(np.float32), tol)
+    nb, dim = B.shape
+    if nb < _TREE_MIN_LEAVES * K.FEATURE_LEAF:
+        idx, d2 = K.feature_nn_brute(A, B)
+    else:
+        mu, C = K.feature_mean_cov(B)
+        _, V = np.linalg.eigh(C)
+        V = np.ascontiguousarray(V[:, ::-1])  # largest variance first
+        P = K.feature_rotate(B, mu, V)
+        Q = K.feature_rotate(A, mu, V)
+        perm, lstart = K.feature_tree_build(P)
+        blk, loT, hiT = K.feature_tree_pack(B, P, perm, lstart)
+        # rounding of (x - mu) V in distance units: ~ (dim + 2) u |x - mu| per row; 1e-9 is generous
+        ra = float(np.sqrt(np.max(np.einsum("ij,ij->i", A - mu, A - mu))))
+        rb = float(np.sqrt(np.max(np.einsum("ij,ij->i", B - mu, B - mu))))
+        delta = 1e-9 * (1.0 + dim) * (ra + rb)
+        idx, d2 = K.feature_tree_nn(A, Q, perm, lstart, blk, loT, hiT, delta)
+    if idx.size and int(idx.min()) < 0:
+        raise InputError("descriptor values are too large to compare (squared distances overflow)")
+    return idx, d2
 
 
 def _features(arr, name):

@@ -814,3 +814,5 @@ def _warmup() -> None:
     K.grid_nearest_batch(src, np.eye(3), np.zeros(3), *_Grid(tgt, 0.1).args(), 0.01)
     K.ransac_score_kernel(src, np.arange(24, dtype=np.int64), Ts, np.int64(0), 0.1, *_Grid(tgt, 0.1).args())
     feature_correspondences(feats, feats, mutual_filter=True)
+    big = rng.random((300, 33))  # enough rows for the descriptor tree (FEATURE_LEAF * 8)
+    feature_correspondences(big[:40], big)

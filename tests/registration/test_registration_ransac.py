@@ -122,6 +122,40 @@ def test_feature_nearest_rows_exact_with_ties(rng):
     np.testing.assert_allclose(d2, D.min(1), rtol=1e-12)
 
 
+def test_feature_nearest_rows_tree_equals_brute_force(rng):
+    """The descriptor tree (B >= 8 leaves) returns the brute-force answer bit for bit, ties included."""
+    n_tree = 8 * K.FEATURE_LEAF
+    for dim in (1, 3, 33):
+        # low-rank, quantised descriptors (like FPFH): many exact ties and duplicate rows
+        basis = rng.normal(size=(min(dim, 4), dim))
+        B = np.round(rng.normal(size=(n_tree + 57, basis.shape[0])) @ basis * 4.0) / 4.0
+        B[::7] = B[3]
+        A = np.vstack([B[::5] + 0.125, B[:40], np.round(rng.normal(size=(30, dim)) * 8.0) / 4.0])
+        idx, d2 = nearest_rows(A, B)
+        ref_i, ref_d = K.feature_nn_brute(np.ascontiguousarray(A), np.ascontiguousarray(B))
+        assert np.array_equal(idx, ref_i) and np.array_equal(d2, ref_d), dim
+        D = ((A[:, None, :] - B[None]) ** 2).sum(-1)
+        assert np.array_equal(D[np.arange(len(A)), idx], D.min(1))  # exact on these dyadic values
+        assert np.array_equal(idx, D.argmin(1))  # lowest index on ties
+    # all target rows identical (scatter matrix zero): still exact, lowest index
+    B = np.tile(rng.random((1, 33)), (n_tree, 1))
+    idx, d2 = nearest_rows(rng.random((5, 33)), B)
+    assert np.all(idx == 0)
+
+
+def test_feature_nearest_rows_thread_independent(rng):
+    A = rng.uniform(0, 200, (300, 33))
+    B = rng.uniform(0, 200, (700, 33))
+    old = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        i1, d1 = nearest_rows(A, B)
+    finally:
+        numba.set_num_threads(old)
+    i2, d2 = nearest_rows(A, B)
+    assert np.array_equal(i1, i2) and np.array_equal(d1, d2)
+
+
 def test_mutual_filter_and_fallback(rng):
     fs = _features_for(50, rng)
     ft = np.vstack([fs[::-1], _features_for(20, rng)])
