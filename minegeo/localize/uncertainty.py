@@ -1,0 +1,433 @@
+"""Pose uncertainty of a point-to-plane fit: formal and cluster-robust (sandwich) covariance.
+
+The localization pipeline ends with ICP pairs ``(p_i, q_i, n_i)``: a placed scan point, its map
+partner and the map normal there. The pose is perturbed about the **scan origin** ``o``
+(left perturbation, map axes)::
+
+    x = (ω_x, ω_y, ω_z, t_x, t_y, t_z)      rad, then m
+    r_i(x) ≈ r_i + J_i x,   r_i = (p_i − q_i)·n_i,   J_i = [((p_i − o) × n_i)ᵀ, n_iᵀ]
+
+(Low 2004 linearisation of the point-to-plane error; the same ``J`` as
+:func:`minegeo.registration.icp.register_icp` but about ``o`` instead of the frame origin),
+``H = Σ J_iᵀ J_i`` (the normal matrix), and the pending Gauss-Newton step to the
+point-to-plane optimum ``s = −H⁻¹ Σ J_iᵀ r_i`` (0 for a converged point-to-plane ICP).
+
+Estimators
+----------
+``formal`` (what the pipeline reported before; least squares with i.i.d. residuals)::
+
+    Σ_formal = σ² H⁻¹,    σ² = Σ r_i² / (k − 6)
+
+This is Censi (2007, "An accurate closed-form estimate of ICP's covariance", ICRA, Eq. 4:
+``cov(x) ≈ (∂²J/∂x²)⁻¹ (∂²J/∂z∂x) cov(z) (∂²J/∂z∂x)ᵀ (∂²J/∂x²)⁻¹``) evaluated with
+``cov(z) = σ² I``, i.e. every residual an independent error. It is optimistic on real and
+synthetic scans because the residuals of neighbouring pairs are strongly correlated: a scan
+voxelised at 0.1 m is matched against a map sampled every 0.2-1 m, so tens of scan points share
+one map point and its tangent plane; surface texture that the map does not resolve, map range
+noise and normal errors all act on whole patches of the scan at once.
+
+``cluster`` (cluster-robust "sandwich" covariance, CR1; Liang & Zeger 1986; White 1980;
+Cameron & Miller 2015, "A practitioner's guide to cluster-robust inference", J. Human
+Resources 50(2), Eqs. 11-12 with the CR1 small-sample factor of their Sec. VI.B)::
+
+    r̂_i   = r_i + J_i s                          residual at the point-to-plane optimum
+    g_b   = Σ_{i ∈ b} J_iᵀ r̂_i                  score of spatial block b  (Σ_b g_b = 0)
+    Σ_CR1 = c · H⁻¹ (Σ_b g_b g_bᵀ) H⁻¹,    c = G/(G − 1) · (k − 1)/(k − 6)
+
+``jackknife`` (the default; delete-one-block jackknife, CR3 of Cameron & Miller 2015 Sec. VI.B,
+MacKinnon & White 1985). Leaving block ``b`` out of the linear least squares moves the estimate
+by exactly ``d_b = (H − H_b)⁻¹ g_b`` (``H_b = Σ_{i∈b} J_iᵀ J_i``), so::
+
+    Σ_JK = (G − 1)/G · Σ_b (d_b − d̄)(d_b − d̄)ᵀ
+
+CR1 is biased low when a few blocks carry most of the information on a direction (a drift's
+axial position often hangs on a handful of wall features): their scores are partly "fitted
+away". The jackknife undoes that leverage; it calibrated better in the study
+(``docs/uncertainty.md``) and is the default. A block that alone carries a direction makes
+``H − H_b`` nearly singular and ``Σ_JK`` large in that direction — the honest answer.
+
+Both are multiplied by ``3 F₃,G−1(0.95) / χ²₃(0.95)`` (:func:`small_g_factor`; Cameron &
+Miller Sec. VI.D: Wald tests with a covariance estimated from G clusters use ``F(d, G − 1)``), so
+that the χ²-based 95 % regions below have the F-based size (1.20 for G = 20, 1.04 for G = 100).
+
+Blocks ``b`` are cubes of edge ``cluster_size_m`` over the paired scan points, in the
+principal-axis frame of those points with the grid anchored at their centroid (so the result
+does not depend on the map's axes: a rigid motion of the whole problem rotates the covariance
+and nothing else; the grid is symmetric under the sign ambiguity of the axes). Residuals are
+allowed to be arbitrarily correlated inside a block and heteroscedastic; blocks are assumed
+independent. ``G`` is the number of blocks; with fewer than ``min_clusters`` blocks the edge is
+halved until there are enough (``cluster_size_used_m`` records it), because the block
+"meat" has rank ``≤ G − 1`` and is noisy for small ``G``.
+
+The reported covariance is never smaller than the formal one in any direction: with
+``Σ_formal = L Lᵀ`` (Cholesky) and ``L⁻¹ Σ_CR L⁻ᵀ = U diag(λ) Uᵀ``::
+
+    Σ = L U diag(max(λ_j, 1)) Uᵀ Lᵀ
+
+so ``vᵀ Σ v ≥ max(vᵀ Σ_formal v, vᵀ Σ_CR v)`` for every ``v`` (and Σ does not depend on the
+choice of square root).
+
+Additions (both methods)
+------------------------
+* **Pending step** (``add_pending_step``, default True): ``Σ += s sᵀ``. The pose handed in may
+  not be the point-to-plane optimum (point-to-point ICP stops early along drifts); its error is
+  ``(x_ICP − x_opt) + (x_opt − x_true) = −s + ε``, so the mean-square-error matrix is
+  ``s sᵀ + cov(ε)``. Zero after a converged point-to-plane ICP.
+* **Map floor** (``map_sigma_m``, default 0): ``Σ[3:, 3:] += σ_map² I₃``. A prior 1-σ error of
+  the map's local position (per axis, m): the scan is fitted to the map, so a rigid local
+  displacement of the map (survey / SLAM drift of the map itself) moves the answer by the same
+  amount and no residual can reveal it. Independent per-point map noise needs no floor: it is in
+  the residuals already and the cluster estimate sees its sharing between neighbouring pairs.
+
+Not included: the georeferencing error of the map (``T_crs_map``), which is the same for every
+scan of the map; combine it with :func:`minegeo.localize.georef.point_covariance_crs`.
+
+95 % regions (chi-square, as the pipeline): ``position_95_radius_m = √(7.815 λ_max(Σ_tt))``,
+``horizontal_95_radius_m = √(5.991 λ_max(Σ_xy))``; both are spheres/circles over the largest
+axis of the ellipsoid/ellipse, so they contain at least 95 % under the model.
+
+The calibration of both methods against ground truth on the synthetic mine is in
+``docs/uncertainty.md`` (``benchmarks/bench_uncertainty.py``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from minegeo._validate import as_points, check_positive
+from minegeo.errors import InputError, TooFewPointsError
+
+__all__ = ["UncertaintyParams", "PoseUncertainty", "pose_uncertainty", "UNCERTAINTY_METHODS",
+           "CHI2_3D_95", "CHI2_2D_95"]
+
+#: 95 % quantiles of the chi-square distribution with 3 and 2 degrees of freedom.
+CHI2_3D_95 = 7.814727903251178
+CHI2_2D_95 = 5.991464547107979
+#: Available estimators.
+UNCERTAINTY_METHODS = ("formal", "cluster", "jackknife")
+#: Pose parameters (6) + 1: the fewest pairs that leave a residual degree of freedom.
+MIN_PAIRS = 7
+
+
+@dataclass(frozen=True)
+class UncertaintyParams:
+    """Parameters of :func:`pose_uncertainty`.
+
+    Attributes
+    ----------
+    method : {"formal", "cluster", "jackknife"}
+        ``formal``: ``σ² H⁻¹`` (independent residuals). ``cluster``: the CR1 cluster-robust
+        sandwich over spatial blocks. ``jackknife`` (default): the delete-one-block jackknife
+        (CR3). The last two are never below the formal one (module docstring).
+    cluster_size_m : float
+        Edge of the spatial blocks, m (default 4 m, about one drift width: chosen by the
+        calibration study in docs/uncertainty.md; the residuals of the synthetic mine stay
+        correlated over several metres of wall, and 2 m blocks under-covered).
+    min_clusters : int
+        Fewest blocks accepted; the edge is halved (at most 8 times) until reached.
+    map_sigma_m : float
+        Prior 1-σ local position error of the map itself, per axis, m, added to the translation
+        block as ``σ_map² I₃`` (default 0: the map is taken as the reference).
+    add_pending_step : bool
+        Add ``s sᵀ`` (the remaining Gauss-Newton step to the point-to-plane optimum).
+    degeneracy_ratio : float
+        The covariance is not reported (None, radii inf, ``degenerate`` True) when the
+        normalised constraint matrix (:func:`minegeo.registration.icp.constraint_analysis`) has
+        ``λ_min / λ_max`` below this: a direction the surfaces do not constrain (sliding along a
+        straight featureless drift, in-plane motion on one plane) gets no honest small number.
+        Default 0.01, the pipeline's ``LocalizeParams.degeneracy_ratio``.
+    """
+
+    method: str = "jackknife"
+    cluster_size_m: float = 4.0
+    min_clusters: int = 12
+    map_sigma_m: float = 0.0
+    add_pending_step: bool = True
+    degeneracy_ratio: float = 1e-2
+
+    def __post_init__(self):
+        if self.method not in UNCERTAINTY_METHODS:
+            raise InputError(f"uncertainty method must be one of {UNCERTAINTY_METHODS}, got {self.method!r}")
+        check_positive(self.cluster_size_m, "cluster_size_m")
+        check_positive(self.map_sigma_m, "map_sigma_m", allow_zero=True)
+        v = self.min_clusters
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
+            raise InputError(f"min_clusters must be an integer >= 2, got {v!r}")
+        r = float(self.degeneracy_ratio)
+        if not (np.isfinite(r) and 0.0 <= r < 1.0):
+            raise InputError(f"degeneracy_ratio must be in [0, 1), got {self.degeneracy_ratio!r}")
+        if not isinstance(self.add_pending_step, (bool, np.bool_)):
+            raise InputError(f"add_pending_step must be True or False, got {self.add_pending_step!r}")
+
+
+@dataclass
+class PoseUncertainty:
+    """Outcome of :func:`pose_uncertainty`. Parameters ``(ω, t)``: rotation (rad) about the scan
+    origin then translation (m) of the scan origin, map (work) axes.
+
+    Attributes
+    ----------
+    covariance_6x6 : (6, 6) ndarray or None
+        Reported covariance (method + pending step + map floor); None when ``degenerate``.
+    covariance_formal_6x6 : (6, 6) ndarray or None
+        ``σ² H⁻¹`` (for comparison; None when degenerate).
+    sigma_m : float
+        Residual σ, ``√(Σ r_i² / (k − 6))``, m.
+    position_cov_3x3 : (3, 3) ndarray or None
+        Translation block of ``covariance_6x6``, m².
+    position_sigma_m : (3,) ndarray
+        √diag of it, m (inf when degenerate).
+    position_95_radius_m, horizontal_95_radius_m : float
+        ``√(7.815 λ_max(Σ_tt))`` and ``√(5.991 λ_max(Σ_xy))``, m (inf when degenerate).
+    information_6x6 : (6, 6) ndarray
+        ``H = Σ J_iᵀ J_i`` about the scan origin (unscaled point-to-plane normal matrix, units
+        m² / m / 1 by block); ``σ² H⁻¹`` is the formal covariance.
+    information_ratio : float
+        ``λ_min / λ_max`` of the normalised constraint matrix (scale-free; small = degenerate).
+    n_pairs : int
+    n_clusters : int
+        Spatial blocks used (0 for ``formal``).
+    cluster_size_used_m : float
+        Block edge after any halving (nan for ``formal``).
+    method : str
+    inflation : float
+        ``tr(Σ_CR,tt) / tr(Σ_formal,tt)``: how much the cluster-robust position variance
+        exceeds the formal one (before the max rule; nan for ``formal`` or degenerate). The
+        position block is used because the full trace mixes rad² and m².
+    pending_step : (6,) ndarray or None
+        ``s = −H⁻¹ Jᵀ r`` (None when degenerate).
+    degenerate : bool
+    reason : str
+        Why the covariance is missing (empty otherwise).
+    params : UncertaintyParams
+    """
+
+    covariance_6x6: np.ndarray | None
+    covariance_formal_6x6: np.ndarray | None
+    sigma_m: float
+    position_cov_3x3: np.ndarray | None
+    position_sigma_m: np.ndarray
+    position_95_radius_m: float
+    horizontal_95_radius_m: float
+    information_6x6: np.ndarray
+    information_ratio: float
+    n_pairs: int
+    n_clusters: int
+    cluster_size_used_m: float
+    method: str
+    inflation: float
+    pending_step: np.ndarray | None
+    degenerate: bool
+    reason: str
+    params: UncertaintyParams
+
+    def to_dict(self) -> dict:
+        """JSON-ready record (arrays as lists, None kept)."""
+        from minegeo._provenance import to_jsonable
+
+        d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "params"}
+        d["params"] = {k: getattr(self.params, k) for k in self.params.__dataclass_fields__}
+        return to_jsonable(d)
+
+
+def _psd_max(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``L U diag(max(λ, 1)) Uᵀ Lᵀ`` with ``A = L Lᵀ``, ``L⁻¹ B L⁻ᵀ = U diag(λ) Uᵀ`` (A pos. def.)."""
+    L = np.linalg.cholesky(A)
+    Li = np.linalg.inv(L)
+    M = Li @ B @ Li.T
+    lam, U = np.linalg.eigh(0.5 * (M + M.T))
+    C = L @ (U * np.maximum(lam, 1.0)) @ U.T @ L.T
+    return 0.5 * (C + C.T)
+
+
+def small_g_factor(G: int) -> float:
+    """``3 F₃,G−1(0.95) / χ²₃(0.95)``: widens a covariance estimated from ``G`` blocks so that the
+    χ²-based 95 % regions get the size of the F-based ones (Cameron & Miller 2015, Sec. VI.D: Wald
+    tests with cluster-robust variance use ``F(d, G − 1)``); 1.20 for G = 20, 1.04 for G = 100."""
+    from scipy.stats import f as f_dist
+
+    if G < 2:
+        return math.inf
+    return float(3.0 * f_dist.ppf(0.95, 3, G - 1) / CHI2_3D_95)
+
+
+def cluster_labels(points: np.ndarray, size_m: float) -> tuple[np.ndarray, int]:
+    """Block index of every point: cubes of edge ``size_m`` in the principal-axis frame.
+
+    The grid is anchored at the centroid of ``points`` (cell ``j`` spans
+    ``[j·size, (j+1)·size)`` along each principal axis), so it moves with the points under
+    a rigid motion and a sign flip of an axis maps the grid onto itself. Returns
+    ``(labels (n,) int64 in 0..G-1, G)``; labels follow the lexicographic order of the cells.
+    """
+    c = points.mean(axis=0)
+    X = points - c
+    _, V = np.linalg.eigh(X.T @ X)
+    U = X @ V
+    cells = np.floor(U / size_m).astype(np.int64)
+    _, inv = np.unique(cells, axis=0, return_inverse=True)
+    inv = np.asarray(inv, dtype=np.int64).reshape(-1)
+    return inv, int(inv.max()) + 1 if inv.size else 0
+
+
+def _validate(P_work, Q, Nq, corr, origin_work):
+    P = as_points(P_work, "P_work (placed scan points)")
+    Qm = as_points(Q, "Q (map points)")
+    N = as_points(Nq, "Nq (map normals)")
+    if N.shape[0] != Qm.shape[0]:
+        raise InputError(f"Nq (map normals) has {N.shape[0]} rows but Q (map points) has {Qm.shape[0]}")
+    o = np.asarray(origin_work, dtype=np.float64)
+    if o.shape != (3,) or not np.isfinite(o).all():
+        raise InputError(f"origin_work must be a finite 3-vector, got shape {o.shape}")
+    c = np.asarray(corr)
+    if c.ndim != 2 or c.shape[1] != 2:
+        raise InputError(f"corr must have shape (k, 2) (scan index, map index), got {c.shape}")
+    if c.size and not np.issubdtype(c.dtype, np.integer):
+        if not np.issubdtype(c.dtype, np.floating) or not np.isfinite(c).all() or np.any(c != np.round(c)):
+            raise InputError("corr must hold integer indices (scan index, map index)")
+    c = c.astype(np.int64)
+    if c.shape[0] < MIN_PAIRS:
+        raise TooFewPointsError(
+            f"only {c.shape[0]} scan-to-map pairs: at least {MIN_PAIRS} are needed to estimate a pose "
+            "uncertainty (6 pose parameters and one residual degree of freedom)")
+    if c[:, 0].min() < 0 or c[:, 0].max() >= P.shape[0]:
+        raise InputError(f"corr scan indices must be in 0..{P.shape[0] - 1}")
+    if c[:, 1].min() < 0 or c[:, 1].max() >= Qm.shape[0]:
+        raise InputError(f"corr map indices must be in 0..{Qm.shape[0] - 1}")
+    nn = np.linalg.norm(N[c[:, 1]], axis=1)
+    if np.any(np.abs(nn - 1.0) > 1e-3):
+        raise InputError("map normals of the pairs must have unit length (estimate normals on the map first)")
+    return P, Qm, N, c, o
+
+
+def pose_uncertainty(P_work, Q, Nq, corr, origin_work, params: UncertaintyParams | None = None) -> PoseUncertainty:
+    """Covariance of a point-to-plane pose fit about the scan origin, formal or cluster-robust.
+
+    Parameters
+    ----------
+    P_work : (n, 3) array_like
+        Placed scan points (final pose), work/map frame, m.
+    Q : (m, 3) array_like
+        Map points, same frame, m.
+    Nq : (m, 3) array_like
+        Unit map normals.
+    corr : (k, 2) int array_like
+        Pairs ``[scan index into P_work, map index into Q]`` (the final ICP pairs).
+    origin_work : (3,) array_like
+        The scan origin placed in the work frame, m (the point the rotation is taken about).
+    params : UncertaintyParams, optional
+        Default: delete-one-block jackknife over 4 m blocks.
+
+    Returns
+    -------
+    PoseUncertainty
+        ``covariance_6x6`` over ``(ω, t)`` (rad, m; map axes), the 95 % radii of the scan
+        origin, the normal matrix, the pending step and the diagnostics. When the geometry
+        leaves a direction unconstrained the covariance is None, the radii inf and
+        ``degenerate`` True with the reason.
+
+    Raises
+    ------
+    InputError
+        Wrong shapes, NaN/inf, indices out of range, non-unit normals, bad parameters.
+    TooFewPointsError
+        Fewer than 7 pairs.
+
+    Notes
+    -----
+    Formulas and references in the module docstring (formal: Censi 2007 Eq. 4 with i.i.d.
+    residuals; cluster: Cameron & Miller 2015 Eqs. 11-12, CR1 factor; jackknife: their CR3). Deterministic: no
+    random numbers, block labels in lexicographic cell order, sums in pair order
+    (``np.bincount``), so equal inputs give bit-identical outputs; permuting the pairs changes
+    the result only by floating-point summation order.
+    """
+    p = UncertaintyParams() if params is None else params
+    if not isinstance(p, UncertaintyParams):
+        raise InputError(f"params must be an UncertaintyParams, got {type(p).__name__}")
+    P, Qm, N, c, o = _validate(P_work, Q, Nq, corr, origin_work)
+    from minegeo.registration.icp import constraint_analysis
+
+    k = c.shape[0]
+    pp = P[c[:, 0]]
+    n = N[c[:, 1]]
+    r = np.einsum("ij,ij->i", pp - Qm[c[:, 1]], n)
+    J = np.hstack([np.cross(pp - o, n), n])
+    H = J.T @ J
+    H = 0.5 * (H + H.T)
+    sigma = float(math.sqrt(float(r @ r) / (k - 6)))
+    _, _, ratio, creason = constraint_analysis(pp, n, max(p.degeneracy_ratio, 1e-300))
+    ev = np.linalg.eigvalsh(H)
+
+    def _result(cov, cov_f, G, size_used, infl, step, degenerate, reason):
+        if cov is None:
+            pos = None
+            ps = np.full(3, np.inf)
+            r95 = h95 = math.inf
+        else:
+            pos = cov[3:, 3:].copy()
+            ps = np.sqrt(np.maximum(np.diag(pos), 0.0))
+            r95 = float(math.sqrt(CHI2_3D_95 * max(float(np.linalg.eigvalsh(pos)[-1]), 0.0)))
+            h95 = float(math.sqrt(CHI2_2D_95 * max(float(np.linalg.eigvalsh(pos[:2, :2])[-1]), 0.0)))
+        return PoseUncertainty(covariance_6x6=cov, covariance_formal_6x6=cov_f, sigma_m=sigma, position_cov_3x3=pos,
+                               position_sigma_m=ps, position_95_radius_m=r95, horizontal_95_radius_m=h95,
+                               information_6x6=H, information_ratio=float(ratio), n_pairs=int(k), n_clusters=int(G),
+                               cluster_size_used_m=float(size_used), method=p.method, inflation=float(infl),
+                               pending_step=step, degenerate=bool(degenerate), reason=reason, params=p)
+
+    if ev[-1] <= 0.0 or ev[0] <= 1e-12 * ev[-1] or ratio < p.degeneracy_ratio:
+        why = creason or f"normalised constraint eigenvalue ratio {ratio:.2e}"
+        return _result(None, None, 0, math.nan, math.nan, None, True,
+                       "the scan-to-map pairs do not constrain every pose direction (" + why + "): the position "
+                       "along the free direction is unknown, so no covariance is reported")
+    if sigma == 0.0:
+        return _result(None, None, 0, math.nan, math.nan, np.zeros(6), True,
+                       "the residuals are exactly zero: there is no noise estimate to scale the covariance")
+    Hinv = np.linalg.inv(H)
+    Hinv = 0.5 * (Hinv + Hinv.T)
+    step = -(Hinv @ (J.T @ r))
+    cov_f = sigma * sigma * Hinv
+    G = 0
+    size_used = math.nan
+    infl = math.nan
+    if p.method == "formal":
+        cov = cov_f.copy()
+    else:
+        rh = r + J @ step
+        size_used = float(p.cluster_size_m)
+        labels, G = cluster_labels(pp, size_used)
+        halvings = 0
+        while G < p.min_clusters and halvings < 8:
+            size_used *= 0.5
+            halvings += 1
+            labels, G = cluster_labels(pp, size_used)
+        S = J * rh[:, None]
+        g = np.empty((G, 6))
+        for j in range(6):
+            g[:, j] = np.bincount(labels, weights=S[:, j], minlength=G)
+        if p.method == "cluster":
+            cf = (G / (G - 1.0)) * ((k - 1.0) / (k - 6.0))
+            cov_cr = cf * (Hinv @ (g.T @ g) @ Hinv)
+        else:  # delete-one-block jackknife (CR3)
+            Hb = np.empty((G, 6, 6))
+            for a in range(6):
+                for c2 in range(a, 6):
+                    Hb[:, a, c2] = Hb[:, c2, a] = np.bincount(labels, weights=J[:, a] * J[:, c2], minlength=G)
+            D = np.empty((G, 6))
+            for b in range(G):
+                A = H - Hb[b]
+                try:
+                    D[b] = np.linalg.solve(A, g[b])
+                except np.linalg.LinAlgError:
+                    D[b] = np.linalg.pinv(A) @ g[b]
+            D -= D.mean(axis=0)
+            cov_cr = ((G - 1.0) / G) * (D.T @ D)
+        cov_cr = 0.5 * (cov_cr + cov_cr.T) * small_g_factor(G)
+        infl = float(np.trace(cov_cr[3:, 3:]) / np.trace(cov_f[3:, 3:]))
+        cov = _psd_max(cov_f, cov_cr)
+    if p.add_pending_step:
+        cov = cov + np.outer(step, step)
+    if p.map_sigma_m > 0.0:
+        cov[3:, 3:] += (p.map_sigma_m ** 2) * np.eye(3)
+    return _result(cov, cov_f, G, size_used, infl, step, False, "")
