@@ -59,9 +59,12 @@ from minegeo.errors import InputError, TooFewPointsError
 from minegeo.geometry.se3 import hat, rotation_angle
 from minegeo.io.types import PointCloud, Trajectory
 from minegeo.localize.prepared import FAST_FEATURES, FeatureParams, PreparedMap, prepare_cloud_features
-from minegeo.registration.icp import METHODS as ICP_METHODS
+from minegeo.registration.gicp import GICPParams, register_gicp
+from minegeo.registration.icp import METHODS as _ICP_METHODS
 from minegeo.registration.icp import ICPParams, register_icp
 from minegeo.registration.ransac import RansacParams, hypothesis_distance, register_ransac
+
+ICP_METHODS = (*_ICP_METHODS, "gicp")
 
 __all__ = ["LocalizeParams", "LocalizationResult", "localize_scan", "CHI2_3D_95", "CHI2_2D_95", "STATUSES"]
 
@@ -103,8 +106,10 @@ class LocalizeParams:
     ransac_runs : int
         Independent RANSAC runs (seeds derived from ``seed``); their distinct hypotheses are
         all verified by ICP. 1 = the paper.
-    icp_method : {"point_to_point", "point_to_plane"}
-        ICP variant (paper: point-to-point). GICP is not available yet.
+    icp_method : {"point_to_point", "point_to_plane", "gicp"}
+        ICP variant (paper: point-to-point). ``"gicp"``: Generalized-ICP
+        (:func:`minegeo.registration.register_gicp`, Segal 2009 / Ren 2019 Eqs. 1-6) against
+        plane covariances of the map's ICP cloud built once from its stored normals.
     icp_max_correspondence_m : float
         ICP pair gate, m (Table 3: 0.5 m).
     icp_max_iterations : int
@@ -183,8 +188,6 @@ class LocalizeParams:
         if not isinstance(self.ransac, RansacParams):
             raise InputError("ransac must be a RansacParams")
         if self.icp_method not in ICP_METHODS:
-            if self.icp_method in ("gicp", "generalized", "generalized_icp"):
-                raise InputError("GICP is not available in minegeo yet; use point_to_point or point_to_plane")
             raise InputError(f"icp_method must be one of {ICP_METHODS}, got {self.icp_method!r}")
         check_positive(self.icp_max_correspondence_m, "icp_max_correspondence_m")
         if self.scan_icp_voxel_size_m is not None:
@@ -598,7 +601,19 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     # 3. ICP of every distinct hypothesis: screening on the feature-level scan (cheap), then the
     #    full-resolution ICP from the screened pose for the leader and any close rival
     t0 = time.perf_counter()
-    icp_p = _icp_params(p)
+    if p.icp_method == "gicp":
+        gicp_p = GICPParams(max_correspondence_distance_m=float(p.icp_max_correspondence_m),
+                            max_iterations=int(p.icp_max_iterations),
+                            degeneracy_ratio_threshold=float(p.degeneracy_ratio) if p.degeneracy_ratio > 0 else 1e-12)
+        gicp_cov, gicp_index = prepared_map.gicp_target(gicp_p)
+
+        def _refine(P_src, T_init):
+            return register_gicp(P_src, Qf, T_init, gicp_p, target_covariances=gicp_cov, target_index=gicp_index)
+    else:
+        icp_p = _icp_params(p)
+
+        def _refine(P_src, T_init):
+            return register_icp(P_src, Qf, T_init, icp_p, target_normals=Nf, target_index=tree)
     tree = prepared_map.kdtree
     gate, tol = float(p.icp_max_correspondence_m), float(p.verify_plane_tolerance_m)
     scan_noise = surface_noise_m(Dfine) if p.verify_noise_factor > 0 else math.nan
@@ -607,7 +622,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     screened = []
     if len(uniq) > 1:
         for c in uniq:
-            ic = register_icp(D, Qf, c[1], icp_p, target_normals=Nf, target_index=tree)
+            ic = _refine(D, c[1])
             pf, prm = _verify(D, ic.T_target_source, Qf, Nf, tree, gate, tol)
             screened.append((ic, pf, prm))
         scores = [x[1] for x in screened]
@@ -618,7 +633,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     refined = []
     for i, (name, T0, rf, rrmse) in enumerate(uniq):
         if i in fine_set:
-            ic = register_icp(Dfine, Qf, T0, icp_p, target_normals=Nf, target_index=tree)
+            ic = _refine(Dfine, T0)
             pf, prm = _verify(Dfine, ic.T_target_source, Qf, Nf, tree, gate, tol)
             refined.append((name, T0, rf, rrmse, ic, pf, prm))
         else:  # screened out: keep the coarse ICP's score for the record

@@ -167,8 +167,9 @@ def test_localize_with_loaded_map_equals_in_memory(world_map, results, tmp_path)
 
 
 def test_params_validation():
-    with pytest.raises(InputError, match="GICP"):
-        LocalizeParams(icp_method="gicp")
+    assert LocalizeParams(icp_method="gicp").icp_method == "gicp"
+    with pytest.raises(InputError, match="icp_method"):
+        LocalizeParams(icp_method="generalised")
     with pytest.raises(InputError):
         LocalizeParams(min_fitness=1.5)
     with pytest.raises(InputError):
@@ -301,3 +302,20 @@ def test_cli_drop_nonfinite_scan(world_map, tmp_path):
                  "--drop-nonfinite"]) in (0, 1)
     r = json.loads((out / "result.json").read_text())
     assert r["n_scan_points"] == int(np.isfinite(P).all(axis=1).sum())
+
+
+def test_gicp_refinement_localizes_and_agrees(world_map, results):
+    """--icp gicp: same placement as point-to-plane within centimetres, ok, deterministic."""
+    from dataclasses import replace
+
+    _, _, pm, scans = world_map
+    sec = "intersection"
+    cloud, traj, T_true = scans[sec]
+    lp = replace(LocalizeParams.fast(), icp_method="gicp")
+    r = localize_scan(pm, cloud, traj, lp, seed=0)
+    assert r.status == "ok", r.reason
+    e = error_vs_truth(r.T_map_scan, T_true, traj.poses[:, :3, 3])
+    assert e["max_point_error_m"] < 0.10
+    assert r.to_dict()["icp"]["method"] == "gicp"
+    r2 = localize_scan(pm, cloud, traj, lp, seed=0)
+    assert np.array_equal(r.T_map_scan, r2.T_map_scan)
