@@ -55,7 +55,7 @@ def estimators(cluster_sizes) -> dict:
 
     d = {"formal": UncertaintyParams(method="formal", add_pending_step=False)}
     default = UncertaintyParams()
-    d[f"cluster {default.cluster_size_m:g} m (default)"] = default
+    d[f"{default.method} {default.cluster_size_m:g} m (default)"] = default
     for h in cluster_sizes:
         for m in ("cluster", "jackknife"):
             name = f"{m} {h:g} m"

@@ -17,6 +17,7 @@ from minegeo.localize.georef import (
 )
 from minegeo.localize.pipeline import LocalizationResult, LocalizeParams, localize_scan
 from minegeo.localize.prepared import FeatureParams, PreparedMap, PrepareParams, prepare_map
+from minegeo.localize.uncertainty import PoseUncertainty, UncertaintyParams, pose_uncertainty
 
 __all__ = [
     "CRSInfo",
@@ -43,6 +44,7 @@ __all__ = [
     "PreparedMap",
     "prepare_map",
 ]
+__all__ += ["PoseUncertainty", "UncertaintyParams", "pose_uncertainty"]
 
 
 def _warmup() -> None:

@@ -267,9 +267,14 @@ def cluster_labels(points: np.ndarray, size_m: float) -> tuple[np.ndarray, int]:
     _, V = np.linalg.eigh(X.T @ X)
     U = X @ V
     cells = np.floor(U / size_m).astype(np.int64)
-    _, inv = np.unique(cells, axis=0, return_inverse=True)
+    if cells.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64), 0
+    cells -= cells.min(axis=0)
+    ext = cells.max(axis=0) + 1
+    key = (cells[:, 0] * ext[1] + cells[:, 1]) * ext[2] + cells[:, 2]  # lexicographic cell order
+    _, inv = np.unique(key, return_inverse=True)
     inv = np.asarray(inv, dtype=np.int64).reshape(-1)
-    return inv, int(inv.max()) + 1 if inv.size else 0
+    return inv, int(inv.max()) + 1
 
 
 def _validate(P_work, Q, Nq, corr, origin_work):
