@@ -90,20 +90,32 @@ def _import_stage(module: str, name: str):
 # ----------------------------------------------------------------------------- data
 
 
+#: Drift sections scanned for the RANSAC success rate (``minegeo.synth.local_scan`` starts).
+SECTIONS_QUICK = ("regular", "curve", "intersection")
+SECTIONS_FULL = ("regular", "curve", "irregular_roof", "sump", "intersection")
+
+
 def make_data(quick: bool, seed: int, threads: int) -> dict:
-    """Seeded synthetic mine: map (raw), local scan (scan frame) and the truth ``T_map_scan``."""
+    """Seeded synthetic mine: map (raw), local scans (scan frames) of several sections and their truths.
+
+    ``scan`` / ``T_map_scan`` are the "regular" drift section (used by every stage); ``scans``
+    holds ``{section: (points, T_map_scan)}`` for the RANSAC success rate.
+    """
     from minegeo.synth import Velodyne16, build_map, build_world, local_scan
 
     t0 = time.perf_counter()
     world = build_world("small", seed=seed)
     cloud = build_map(world, seed=seed, spacing_m=8.0 if quick else 4.0)
     max_rays = 40_000 if quick else 150_000
-    scan, _, T_map_scan = local_scan(world, "regular", 20.0, Velodyne16(azimuth_step_deg=0.4), seed=seed + 1,
-                                     max_rays=max_rays)
-    _log(f"synthetic mine: map {len(cloud.points)} pts, scan {len(scan.points)} pts "
+    scans = {}
+    for k, section in enumerate(SECTIONS_QUICK if quick else SECTIONS_FULL):
+        scan, _, T = local_scan(world, section, 20.0, Velodyne16(azimuth_step_deg=0.4), seed=seed + 1 + k,
+                                max_rays=max_rays)
+        scans[section] = (np.ascontiguousarray(scan.points), T)
+    _log(f"synthetic mine: map {len(cloud.points)} pts, scans {[len(v[0]) for v in scans.values()]} pts "
          f"({time.perf_counter() - t0:.1f} s)")
-    return {"map": np.ascontiguousarray(cloud.points), "scan": np.ascontiguousarray(scan.points),
-            "T_map_scan": T_map_scan, "build_s": time.perf_counter() - t0}
+    return {"map": np.ascontiguousarray(cloud.points), "scan": scans["regular"][0],
+            "T_map_scan": scans["regular"][1], "scans": scans, "build_s": time.perf_counter() - t0}
 
 
 # ----------------------------------------------------------------------------- ICP stage
@@ -167,6 +179,32 @@ def bench_icp(src, tgt, tgt_normals, T_init, T_true, method, d, iterations, rel_
     }
 
 
+def _ransac_summary(per: dict) -> dict:
+    """Pool the per-section RANSAC runs: median seconds per call, success over all seeds x sections."""
+    m_t = np.concatenate([r["per_run_s"]["minegeo"] for r in per.values()])
+    o_t = np.concatenate([r["per_run_s"]["open3d"] for r in per.values()])
+    m_ok = np.concatenate([r["success"]["minegeo"] for r in per.values()])
+    o_ok = np.concatenate([r["success"]["open3d"] for r in per.values()])
+    first = next(iter(per.values()))
+    return {
+        "minegeo_s": float(np.median(m_t)), "open3d_s": float(np.median(o_t)),
+        "ratio": float(np.median(m_t) / np.median(o_t)),
+        "ratio_total": float(m_t.sum() / o_t.sum()),
+        "ratio_per_run_median": float(np.median(m_t / o_t)),
+        "agreement": {"minegeo_success": float(m_ok.mean()), "open3d_success": float(o_ok.mean()),
+                      "minegeo_successes": int(m_ok.sum()), "open3d_successes": int(o_ok.sum()),
+                      "runs": int(m_ok.size)},
+        "compile_s": float(first["compile_s"]), "threads": first["threads"], "budget": first["budget"],
+        "seeds_per_section": first["seeds"], "sections": list(per), "success_rule": first["success_rule"],
+        "per_section": {k: {"minegeo_success": r["agreement"]["minegeo_success"],
+                            "open3d_success": r["agreement"]["open3d_success"],
+                            "minegeo_median_s": float(np.median(r["per_run_s"]["minegeo"])),
+                            "open3d_median_s": float(np.median(r["per_run_s"]["open3d"])),
+                            "n_source": r["n_source"]} for k, r in per.items()},
+        "runs": per,
+    }
+
+
 # ----------------------------------------------------------------------------- one parameter set
 
 
@@ -218,12 +256,20 @@ def run_set(data: dict, p: dict, threads: int, repeats: int, seeds: int, budget:
             from minegeo.registration.ransac import RansacParams
 
             fp = FPFHParams(p["fpfh_radius_m"], p["fpfh_max_nn"], "open3d")
-            fs = compute_fpfh(S, NS, fp).features
             ft = compute_fpfh(M, NM, fp).features
             prm = RansacParams.open3d_compatible(p["ransac_distance_m"], ransac_n=p["ransac_n"],
                                                  edge_length_similarity=p["edge"])
-            return bench_ransac(S, M, fs, ft, prm, range(seeds), budget, T_true=T_true,
-                                success_deg=5.0, success_m=max(1.0, 2 * p["ransac_distance_m"]))
+            per = {}
+            for section, (raw, T_sec) in data["scans"].items():
+                Ssec = S if section == "regular" else voxel_downsample(raw, v).points
+                Nsec = NS if section == "regular" else estimate_normals(Ssec, npar).normals
+                fs = compute_fpfh(Ssec, Nsec, fp).features
+                per[section] = bench_ransac(Ssec, M, fs, ft, prm, range(seeds), budget, T_true=T_sec,
+                                            success_deg=5.0, success_m=max(1.0, 2 * p["ransac_distance_m"]))
+                a = per[section]["agreement"]
+                _log(f"  ransac {section}: {len(Ssec)} pts, success {a['minegeo_success']:.2f} vs "
+                     f"{a['open3d_success']:.2f}, time ratio {per[section]['ratio']:.2f}")
+            return _ransac_summary(per)
         stage("ransac", ransac)
     else:
         stage("ransac", lambda: _skip(why))
@@ -255,7 +301,14 @@ def _agreement_text(stage: str, r: dict) -> str:
         return (f"Δ vs Open3D {a['rot_rad']:.1e} rad / {a['trans_m']:.1e} m; "
                 f"to truth {e['rot_rad']:.1e} rad / {e['trans_m']:.3f} m; {r['iterations']} its, {r['status']}")
     if stage == "ransac" and isinstance(a, dict):
-        return f"success {a['minegeo_success']:.2f} (minegeo) vs {a['open3d_success']:.2f} (Open3D)"
+        if "runs" not in a:
+            return f"success {a['minegeo_success']:.2f} (minegeo) vs {a['open3d_success']:.2f} (Open3D)"
+        sec = "; ".join(f"{k} {v['minegeo_success']:.2f}/{v['open3d_success']:.2f}"
+                        for k, v in r.get("per_section", {}).items())
+        return (f"success {a['minegeo_successes']}/{a['runs']} (minegeo) vs {a['open3d_successes']}/{a['runs']} "
+                f"(Open3D), {r['seeds_per_section']} seeds x {len(r['sections'])} sections, budget "
+                f"{r['budget']} its; per section minegeo/Open3D: {sec}; median of per-run ratios "
+                f"{r['ratio_per_run_median']:.2f}")
     if stage == "fpfh":
         return f"max rel. L1 {a:.1e}"
     if stage == "normals":
@@ -322,11 +375,11 @@ def main(argv=None) -> int:
     data = make_data(a.quick, a.seed, threads)
     repeats = a.repeats or (2 if a.quick else 3)
     if a.quick:
-        results = run_set(data, light_params(0.4), threads, repeats, seeds=3, budget=20_000, quick=True, only=only)
+        results = run_set(data, light_params(0.4), threads, repeats, seeds=10, budget=20_000, quick=True, only=only)
     else:
-        results = run_set(data, light_params(0.2), threads, repeats, seeds=5, budget=100_000, quick=False,
+        results = run_set(data, light_params(0.2), threads, repeats, seeds=20, budget=100_000, quick=False,
                           only=only)
-        results["paper"] = run_set(data, PAPER, threads, repeats, seeds=5, budget=100_000, quick=False,
+        results["paper"] = run_set(data, PAPER, threads, repeats, seeds=10, budget=100_000, quick=False,
                                    only=only)
     meta = {"quick": a.quick, "threads": threads, "seed": a.seed, "repeats": repeats,
             "map_raw_points": int(len(data["map"])), "scan_raw_points": int(len(data["scan"])),

@@ -374,9 +374,12 @@ def ransac_score_serial(src, eval_order, Ts, prune_count, dist_thr, gpts, gorigi
 
 # ----------------------------------------------------------------------------- descriptor nearest neighbour
 
-#: Points per leaf of the descriptor tree (compile-time constant: the distance loop over a leaf
-#: has a fixed trip count, so it is unrolled and vectorised).
+#: Points per leaf of the descriptor tree.
 FEATURE_LEAF = 32
+#: Leading rotated coordinates stored per point for the partial-distance test of the tree.
+FEATURE_LEAD = 8
+#: Rotated coordinates used for the leaf boxes (at most; fewer when dim is smaller).
+FEATURE_ROT = 16
 
 
 @njit
@@ -503,64 +506,64 @@ def feature_tree_build(P):
 
 @njit
 def feature_tree_pack(B, P, perm, lstart):
-    """Leaf blocks ``blk (nl, dim, FEATURE_LEAF)`` of the original rows of ``B`` (zero padded)
-    and leaf bounding boxes ``loT, hiT (dim, nl)`` in the rotated coordinates ``P``."""
+    """Leaf storage of the descriptor tree.
+
+    Returns ``lead (nl, FEATURE_LEAF, FEATURE_LEAD)``: the first ``FEATURE_LEAD`` rotated
+    coordinates of each leaf's points (zero padded), ``Bp (nl * FEATURE_LEAF, dim)``: the
+    original rows in leaf order (for the exact distances), and ``loT, hiT (nrot, nl)``: the
+    leaves' bounding boxes in the rotated coordinates ``P (n, nrot)``.
+    """
     nl = lstart.shape[0] - 1
     dim = B.shape[1]
+    nrot = P.shape[1]
     L = FEATURE_LEAF
-    blk = np.zeros((nl, dim, L))
-    loT = np.full((P.shape[1], nl), np.inf)
-    hiT = np.full((P.shape[1], nl), -np.inf)
+    lead = np.zeros((nl, L, FEATURE_LEAD))
+    Bp = np.zeros((nl * L, dim))
+    loT = np.full((nrot, nl), np.inf)
+    hiT = np.full((nrot, nl), -np.inf)
     for l in range(nl):
         for r in range(lstart[l], lstart[l + 1]):
             j = perm[r]
             k = r - lstart[l]
             for c in range(dim):
-                blk[l, c, k] = B[j, c]
-            for c in range(P.shape[1]):
+                Bp[l * L + k, c] = B[j, c]
+            for c in range(min(nrot, FEATURE_LEAD)):
+                lead[l, k, c] = P[j, c]
+            for c in range(nrot):
                 v = P[j, c]
                 if v < loT[c, l]:
                     loT[c, l] = v
                 if v > hiT[c, l]:
                     hiT[c, l] = v
-    return blk, loT, hiT
-
-
-@njit
-def _leaf_scan(i, A, blk, l, acc):
-    dim = A.shape[1]
-    for k in range(FEATURE_LEAF):
-        acc[k] = 0.0
-    for c in range(dim):
-        a = A[i, c]
-        for k in range(FEATURE_LEAF):
-            e = a - blk[l, c, k]
-            acc[k] += e * e
+    return lead, Bp, loT, hiT
 
 
 @njit_parallel
-def feature_tree_nn(A, Q, perm, lstart, blk, loT, hiT, delta):
-    """Exact nearest row of ``B`` (stored in the leaf blocks ``blk``) for every row of ``A``; parallel.
+def feature_tree_nn(A, Q, perm, lstart, lead, Bp, loT, hiT, delta):
+    """Exact nearest row of ``B`` (stored in the tree) for every row of ``A``; parallel over rows.
 
-    ``Q`` are the rows of ``A`` in the rotated coordinates of the tree. For each query the
-    squared distance from ``Q_i`` to every leaf box is a lower bound ``LB_l`` of the
-    rotated distance to the leaf's points. The leaf with the smallest bound is scanned
-    first, then every leaf in index order unless
-    ``((sqrt(LB_l (1 - 1e-12)) - delta)^2 (1 - 1e-12) > best``: ``delta`` bounds the
-    rounding error of the rotation (in distance units), so such a leaf provably holds no
-    point at the best distance or closer. Scanned points get the direct distance
-    ``sum_c (a_c - b_c)^2`` (c in order, the same arithmetic as the brute force); ties go
-    to the lowest index of ``B``. Returns ``(index (na,), sq distance (na,))``.
+    ``Q (na, nrot)`` are the rows of ``A`` in the tree's rotated coordinates. With
+    ``best`` the smallest exact distance found so far, a rotated partial squared distance
+    ``s`` (a box distance ``LB_l`` of a leaf over all ``nrot`` coordinates, or a point's
+    distance over its first ``FEATURE_LEAD`` coordinates) rules a point out when
+    ``s > T = ((sqrt(best (1 + 1e-12)) + delta)^2 (1 + 1e-12)``: partial sums of an
+    orthonormal rotation never exceed the full distance, and ``delta`` bounds the
+    rounding of the rotation (distance units), so such a point is provably farther than
+    ``best``. The leaf with the smallest ``LB_l`` is scanned first, then the others in
+    index order; every point not ruled out gets the direct distance
+    ``sum_c (a_c - b_c)^2`` (c in order, as in :func:`feature_nn_brute`), ties to the
+    lowest index of ``B``. Returns ``(index (na,), sq distance (na,))``.
     """
     na = A.shape[0]
-    dim = Q.shape[1]
+    dim = A.shape[1]
+    nrot = Q.shape[1]
     nl = loT.shape[1]
+    L = FEATURE_LEAF
     idx = np.full(na, -1, dtype=np.int64)
     best = np.full(na, np.inf)
     for i in prange(na):
         LB = np.zeros(nl)
-        acc = np.empty(FEATURE_LEAF)
-        for c in range(dim):
+        for c in range(nrot):
             q = Q[i, c]
             for l in range(nl):
                 e = loT[c, l] - q
@@ -572,24 +575,37 @@ def feature_tree_nn(A, Q, perm, lstart, blk, loT, hiT, delta):
         for l in range(1, nl):
             if LB[l] < LB[l0]:
                 l0 = l
+        qv = np.zeros(FEATURE_LEAD)
+        for c in range(min(nrot, FEATURE_LEAD)):
+            qv[c] = Q[i, c]
         bd = np.inf
         bi = np.int64(-1)
+        T = np.inf
         for o in range(-1, nl):
             if o == l0:
                 continue
             l = l0 if o < 0 else o
-            r = math.sqrt(LB[l] * (1.0 - 1e-12)) - delta
-            if r > 0.0 and r * r * (1.0 - 1e-12) > bd:
+            if LB[l] > T:
                 continue
-            _leaf_scan(i, A, blk, l, acc)
             s0 = lstart[l]
             for k in range(lstart[l + 1] - s0):
-                v = acc[k]
-                if v <= bd:
-                    j = perm[s0 + k]
-                    if v < bd or j < bi:
-                        bd = v
-                        bi = j
+                s = 0.0
+                for c in range(FEATURE_LEAD):
+                    e = qv[c] - lead[l, k, c]
+                    s += e * e
+                if s > T:
+                    continue
+                row = l * L + k
+                d2 = 0.0
+                for c in range(dim):
+                    e = A[i, c] - Bp[row, c]
+                    d2 += e * e
+                j = perm[s0 + k]
+                if d2 < bd or (d2 == bd and j < bi):
+                    bd = d2
+                    bi = j
+                    r = math.sqrt(bd * (1.0 + 1e-12)) + delta
+                    T = r * r * (1.0 + 1e-12)
         idx[i] = bi
         best[i] = bd
     return idx, best

@@ -74,14 +74,18 @@ def nearest_rows(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     -----
     Descriptors such as FPFH are concentrated near a low-dimensional subspace, so the
     search runs on a kd partition of ``B`` in its principal axes: ``B`` and ``A`` are
-    rotated by the eigenvectors ``V`` of the scatter matrix of ``B`` (``Q = (A - mu) V``),
-    ``B`` is split into balanced leaves of ``FEATURE_LEAF`` rows on the rotated coordinate
-    of largest spread, and each query scans its nearest leaf by box distance first, then
-    only the leaves whose box lower bound (corrected for the rounding of the rotation) can
-    still hold a point at the best distance or closer. Scanned points get the direct
-    distance above, so the rotation only decides which points are looked at, never which
-    one wins: the answer is the exact nearest row (lowest index on ties), bit-identical to
-    the brute force and independent of the thread count. Small ``B`` uses the brute force.
+    projected on the ``FEATURE_ROT`` leading eigenvectors ``V`` of the scatter matrix of
+    ``B`` (``Q = (A - mu) V``), ``B`` is split into balanced leaves of ``FEATURE_LEAF``
+    rows on the projected coordinate of largest spread, and each query scans its nearest
+    leaf by box distance first, then only the leaves whose box lower bound can still hold
+    a point at the best distance or closer; inside a leaf, a point whose distance over the
+    first ``FEATURE_LEAD`` projected coordinates already exceeds the best is skipped. Both
+    bounds are partial sums of an orthonormal rotation, corrected for its rounding, so
+    they never rule out a point at the best distance. Every point not ruled out gets the
+    direct distance above: the projection only decides which points are looked at, never
+    which one wins, so the answer is the exact nearest row (lowest index on ties),
+    bit-identical to the brute force and independent of the thread count. Small ``B``
+    uses the brute force.
     """
     A = np.ascontiguousarray(A, dtype=np.float64)
     B = np.ascontiguousarray(B, dtype=np.float64)
@@ -91,16 +95,16 @@ def nearest_rows(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     else:
         mu, C = K.feature_mean_cov(B)
         _, V = np.linalg.eigh(C)
-        V = np.ascontiguousarray(V[:, ::-1])  # largest variance first
+        V = np.ascontiguousarray(V[:, ::-1][:, : min(dim, K.FEATURE_ROT)])  # largest variance first
         P = K.feature_rotate(B, mu, V)
         Q = K.feature_rotate(A, mu, V)
         perm, lstart = K.feature_tree_build(P)
-        blk, loT, hiT = K.feature_tree_pack(B, P, perm, lstart)
+        lead, Bp, loT, hiT = K.feature_tree_pack(B, P, perm, lstart)
         # rounding of (x - mu) V in distance units: ~ (dim + 2) u |x - mu| per row; 1e-9 is generous
         ra = float(np.sqrt(np.max(np.einsum("ij,ij->i", A - mu, A - mu))))
         rb = float(np.sqrt(np.max(np.einsum("ij,ij->i", B - mu, B - mu))))
         delta = 1e-9 * (1.0 + dim) * (ra + rb)
-        idx, d2 = K.feature_tree_nn(A, Q, perm, lstart, blk, loT, hiT, delta)
+        idx, d2 = K.feature_tree_nn(A, Q, perm, lstart, lead, Bp, loT, hiT, delta)
     if idx.size and int(idx.min()) < 0:
         raise InputError("descriptor values are too large to compare (squared distances overflow)")
     return idx, d2

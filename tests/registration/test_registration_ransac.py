@@ -125,7 +125,7 @@ def test_feature_nearest_rows_exact_with_ties(rng):
 def test_feature_nearest_rows_tree_equals_brute_force(rng):
     """The descriptor tree (B >= 8 leaves) returns the brute-force answer bit for bit, ties included."""
     n_tree = 8 * K.FEATURE_LEAF
-    for dim in (1, 3, 33):
+    for dim in (1, 3, 10, 33):
         # low-rank, quantised descriptors (like FPFH): many exact ties and duplicate rows
         basis = rng.normal(size=(min(dim, 4), dim))
         B = np.round(rng.normal(size=(n_tree + 57, basis.shape[0])) @ basis * 4.0) / 4.0
