@@ -49,7 +49,7 @@ def _sensor(name: str, noise):
     return s
 
 
-def estimators(cluster_sizes) -> dict:
+def estimators(cluster_sizes, map_floors=()) -> dict:
     """Name -> UncertaintyParams of every estimator compared (the default is ``cluster``)."""
     from minegeo.localize.uncertainty import UncertaintyParams
 
@@ -61,6 +61,9 @@ def estimators(cluster_sizes) -> dict:
             name = f"{m} {h:g} m"
             if not (m == default.method and h == default.cluster_size_m):
                 d[name] = UncertaintyParams(method=m, cluster_size_m=float(h))
+    for floor in map_floors:
+        d[f"{default.method} {default.cluster_size_m:g} m + map floor {1e3 * floor:g} mm"] = replace(
+            default, map_sigma_m=float(floor))
     return d
 
 
@@ -174,6 +177,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scans", type=int, default=60, help="scans per world")
     ap.add_argument("--profile", default="fast", choices=("fast", "table3"))
     ap.add_argument("--cluster-sizes", default="1,2,4,8", help="block edges (m) of the compared estimators")
+    ap.add_argument("--map-floors", default="0.002", help="map_sigma_m values (m) added to the default as extra rows")
     ap.add_argument("--max-rays", type=int, default=100_000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="bench_out/uncertainty")
@@ -190,7 +194,8 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     worlds = [int(w) for w in args.worlds.split(",") if w != ""]
-    est = estimators([float(h) for h in args.cluster_sizes.split(",") if h])
+    est = estimators([float(h) for h in args.cluster_sizes.split(",") if h],
+                     [float(f) for f in args.map_floors.split(",") if f])
     lp = LocalizeParams.fast() if args.profile == "fast" else LocalizeParams()
     records: list[dict] = []
     t_start = time.perf_counter()

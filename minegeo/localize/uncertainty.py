@@ -100,8 +100,8 @@ import numpy as np
 from minegeo._validate import as_points, check_positive
 from minegeo.errors import InputError, TooFewPointsError
 
-__all__ = ["UncertaintyParams", "PoseUncertainty", "pose_uncertainty", "UNCERTAINTY_METHODS",
-           "CHI2_3D_95", "CHI2_2D_95"]
+__all__ = ["UncertaintyParams", "PoseUncertainty", "pose_uncertainty", "block_covariance", "cluster_labels",
+           "small_g_factor", "UNCERTAINTY_METHODS", "CHI2_3D_95", "CHI2_2D_95"]
 
 #: 95 % quantiles of the chi-square distribution with 3 and 2 degrees of freedom.
 CHI2_3D_95 = 7.814727903251178
@@ -252,6 +252,58 @@ def small_g_factor(G: int) -> float:
     if G < 2:
         return math.inf
     return float(3.0 * f_dist.ppf(0.95, 3, G - 1) / CHI2_3D_95)
+
+
+def block_covariance(J: np.ndarray, r_hat: np.ndarray, labels: np.ndarray, G: int, method: str) -> np.ndarray:
+    """Cluster-robust covariance of the linear least-squares step from per-block scores.
+
+    Parameters
+    ----------
+    J : (k, 6) ndarray
+        Rows ``J_i`` of the linearised residuals.
+    r_hat : (k,) ndarray
+        Residuals at the least-squares optimum (``Σ_i J_iᵀ r̂_i = 0``).
+    labels : (k,) int64 ndarray
+        Block of every pair, ``0 .. G − 1`` (each used at least once).
+    G : int
+        Number of blocks (>= 2).
+    method : {"cluster", "jackknife"}
+        ``cluster``: ``c H⁻¹ (Σ_b g_b g_bᵀ) H⁻¹`` with ``c = G/(G−1)·(k−1)/(k−6)`` (CR1);
+        ``jackknife``: ``(G−1)/G Σ_b (d_b − d̄)(d_b − d̄)ᵀ``, ``d_b = (H − H_b)⁻¹ g_b`` — the exact
+        change of the least-squares solution when block ``b`` is left out (CR3).
+
+    Returns
+    -------
+    (6, 6) ndarray
+        Symmetric; without the small-G factor and without the max rule.
+    """
+    k = J.shape[0]
+    H = J.T @ J
+    S = J * r_hat[:, None]
+    g = np.empty((G, 6))
+    for j in range(6):
+        g[:, j] = np.bincount(labels, weights=S[:, j], minlength=G)
+    if method == "cluster":
+        Hinv = np.linalg.inv(H)
+        cf = (G / (G - 1.0)) * ((k - 1.0) / (k - 6.0))
+        C = cf * (Hinv @ (g.T @ g) @ Hinv)
+    elif method == "jackknife":
+        Hb = np.empty((G, 6, 6))
+        for a in range(6):
+            for c2 in range(a, 6):
+                Hb[:, a, c2] = Hb[:, c2, a] = np.bincount(labels, weights=J[:, a] * J[:, c2], minlength=G)
+        D = np.empty((G, 6))
+        for b in range(G):
+            A = H - Hb[b]
+            try:
+                D[b] = np.linalg.solve(A, g[b])
+            except np.linalg.LinAlgError:
+                D[b] = np.linalg.pinv(A) @ g[b]
+        D -= D.mean(axis=0)
+        C = ((G - 1.0) / G) * (D.T @ D)
+    else:
+        raise InputError(f"block covariance method must be 'cluster' or 'jackknife', got {method!r}")
+    return 0.5 * (C + C.T)
 
 
 def cluster_labels(points: np.ndarray, size_m: float) -> tuple[np.ndarray, int]:
@@ -407,30 +459,12 @@ def pose_uncertainty(P_work, Q, Nq, corr, origin_work, params: UncertaintyParams
             size_used *= 0.5
             halvings += 1
             labels, G = cluster_labels(pp, size_used)
-        S = J * rh[:, None]
-        g = np.empty((G, 6))
-        for j in range(6):
-            g[:, j] = np.bincount(labels, weights=S[:, j], minlength=G)
-        if p.method == "cluster":
-            cf = (G / (G - 1.0)) * ((k - 1.0) / (k - 6.0))
-            cov_cr = cf * (Hinv @ (g.T @ g) @ Hinv)
-        else:  # delete-one-block jackknife (CR3)
-            Hb = np.empty((G, 6, 6))
-            for a in range(6):
-                for c2 in range(a, 6):
-                    Hb[:, a, c2] = Hb[:, c2, a] = np.bincount(labels, weights=J[:, a] * J[:, c2], minlength=G)
-            D = np.empty((G, 6))
-            for b in range(G):
-                A = H - Hb[b]
-                try:
-                    D[b] = np.linalg.solve(A, g[b])
-                except np.linalg.LinAlgError:
-                    D[b] = np.linalg.pinv(A) @ g[b]
-            D -= D.mean(axis=0)
-            cov_cr = ((G - 1.0) / G) * (D.T @ D)
-        cov_cr = 0.5 * (cov_cr + cov_cr.T) * small_g_factor(G)
-        infl = float(np.trace(cov_cr[3:, 3:]) / np.trace(cov_f[3:, 3:]))
-        cov = _psd_max(cov_f, cov_cr)
+        if G < 2:  # every pair within a few cm: no between-block spread to learn from
+            cov = cov_f.copy()
+        else:
+            cov_cr = block_covariance(J, rh, labels, G, p.method) * small_g_factor(G)
+            infl = float(np.trace(cov_cr[3:, 3:]) / np.trace(cov_f[3:, 3:]))
+            cov = _psd_max(cov_f, cov_cr)
     if p.add_pending_step:
         cov = cov + np.outer(step, step)
     if p.map_sigma_m > 0.0:

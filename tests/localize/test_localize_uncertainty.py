@@ -17,8 +17,10 @@ from minegeo.localize.uncertainty import (
     CHI2_3D_95,
     PoseUncertainty,
     UncertaintyParams,
+    block_covariance,
     cluster_labels,
     pose_uncertainty,
+    small_g_factor,
 )
 
 
@@ -134,7 +136,7 @@ CLUSTER = UncertaintyParams(method="cluster", cluster_size_m=2.0)  # CR1
 
 
 def test_monte_carlo_iid_noise_all_methods_cover_95():
-    ell, ball = _coverage(200, [FORMAL, DEFAULT, CLUSTER], sigma=0.02, tau=0.0, seed=11)
+    ell, ball = _coverage(400, [FORMAL, DEFAULT, CLUSTER], sigma=0.02, tau=0.0, seed=11)
     for name, c in zip(("formal", "jackknife", "cluster"), ell, strict=True):
         assert 0.90 <= c <= 0.99, f"{name}: 95 % ellipsoid covers {c:.3f} with i.i.d. noise"
     assert np.all(ball >= ell)  # the sphere over the largest axis contains the ellipsoid
@@ -143,7 +145,7 @@ def test_monte_carlo_iid_noise_all_methods_cover_95():
 def test_monte_carlo_correlated_noise_formal_undercovers_robust_stays_95():
     """Patch-correlated noise (0.5 m patches, ~2 points each, with a common 2 cm offset, plus 1 cm i.i.d.):
     the formal covariance is ~1.8x too small in variance."""
-    ell, ball = _coverage(200, [FORMAL, DEFAULT, CLUSTER], sigma=0.01, tau=0.02, seed=12)
+    ell, ball = _coverage(400, [FORMAL, DEFAULT, CLUSTER], sigma=0.01, tau=0.02, seed=12)
     formal, jackknife, cluster = ell
     assert formal < 0.75, f"formal covers {formal:.3f} with patch-correlated noise (should undercover)"
     assert 0.90 <= jackknife <= 0.99, f"jackknife (default) covers {jackknife:.3f} with patch-correlated noise"
@@ -340,3 +342,29 @@ def test_trajectory_lever_arm_helper_consistency():
     u = _BASE_U
     J = np.hstack([-hat(np.zeros(3)), np.eye(3)])
     assert np.trace(J @ u.covariance_6x6 @ J.T) == pytest.approx(np.trace(u.position_cov_3x3), rel=1e-12)
+
+
+def test_block_covariance_matches_naive_refits():
+    """CR1 from explicit block score sums; the jackknife from explicit least-squares refits with
+    each block left out (d_b = (H - H_b)^-1 g_b is exact for linear least squares)."""
+    rng = np.random.default_rng(9)
+    k, G = 300, 15
+    J = rng.normal(size=(k, 6)) * [3, 3, 3, 1, 1, 1]
+    labels = np.sort(rng.integers(0, G, k))
+    labels = np.unique(labels, return_inverse=True)[1].astype(np.int64)
+    G = int(labels.max()) + 1
+    y = rng.normal(size=k) + rng.normal(size=G)[labels]
+    beta = np.linalg.lstsq(J, y, rcond=None)[0]
+    rh = J @ beta - y  # residual at the optimum, J^T rh = 0
+    H = J.T @ J
+    Hi = np.linalg.inv(H)
+    g = np.array([J[labels == b].T @ rh[labels == b] for b in range(G)])
+    want_cr1 = G / (G - 1) * (k - 1) / (k - 6) * Hi @ (g.T @ g) @ Hi
+    np.testing.assert_allclose(block_covariance(J, rh, labels, G, "cluster"), want_cr1, rtol=1e-10)
+    betas = np.array([np.linalg.lstsq(J[labels != b], y[labels != b], rcond=None)[0] for b in range(G)])
+    dev = betas - betas.mean(axis=0)
+    want_jk = (G - 1) / G * dev.T @ dev
+    np.testing.assert_allclose(block_covariance(J, rh, labels, G, "jackknife"), want_jk, rtol=1e-8)
+    with pytest.raises(InputError):
+        block_covariance(J, rh, labels, G, "formal")
+    assert small_g_factor(20) == pytest.approx(1.2, abs=0.01) and small_g_factor(100000) == pytest.approx(1.0, abs=1e-3)
