@@ -185,6 +185,8 @@ def _ransac_summary(per: dict) -> dict:
     o_t = np.concatenate([r["per_run_s"]["open3d"] for r in per.values()])
     m_ok = np.concatenate([r["success"]["minegeo"] for r in per.values()])
     o_ok = np.concatenate([r["success"]["open3d"] for r in per.values()])
+    own_ok = np.concatenate([r["minegeo_mode"]["success"] for r in per.values()])
+    own_t = np.concatenate([r["minegeo_mode"]["per_run_s"] for r in per.values()])
     first = next(iter(per.values()))
     return {
         "minegeo_s": float(np.median(m_t)), "open3d_s": float(np.median(o_t)),
@@ -193,11 +195,14 @@ def _ransac_summary(per: dict) -> dict:
         "ratio_per_run_median": float(np.median(m_t / o_t)),
         "agreement": {"minegeo_success": float(m_ok.mean()), "open3d_success": float(o_ok.mean()),
                       "minegeo_successes": int(m_ok.sum()), "open3d_successes": int(o_ok.sum()),
-                      "runs": int(m_ok.size)},
+                      "runs": int(m_ok.size), "minegeo_mode_success": float(own_ok.mean()),
+                      "minegeo_mode_successes": int(own_ok.sum())},
+        "minegeo_mode_s": float(np.median(own_t)),
         "compile_s": float(first["compile_s"]), "threads": first["threads"], "budget": first["budget"],
         "seeds_per_section": first["seeds"], "sections": list(per), "success_rule": first["success_rule"],
         "per_section": {k: {"minegeo_success": r["agreement"]["minegeo_success"],
                             "open3d_success": r["agreement"]["open3d_success"],
+                            "minegeo_mode_success": float(np.mean(r["minegeo_mode"]["success"])),
                             "minegeo_median_s": float(np.median(r["per_run_s"]["minegeo"])),
                             "open3d_median_s": float(np.median(r["per_run_s"]["open3d"])),
                             "n_source": r["n_source"]} for k, r in per.items()},
@@ -259,15 +264,20 @@ def run_set(data: dict, p: dict, threads: int, repeats: int, seeds: int, budget:
             ft = compute_fpfh(M, NM, fp).features
             prm = RansacParams.open3d_compatible(p["ransac_distance_m"], ransac_n=p["ransac_n"],
                                                  edge_length_similarity=p["edge"])
+            # minegeo's own mode (distinct samples, refit), same budget and confidence, for the success rate
+            own = RansacParams(distance_threshold_m=p["ransac_distance_m"], ransac_n=p["ransac_n"],
+                               edge_length_similarity=p["edge"], max_validations=None, mode="minegeo")
             per = {}
             for section, (raw, T_sec) in data["scans"].items():
                 Ssec = S if section == "regular" else voxel_downsample(raw, v).points
                 Nsec = NS if section == "regular" else estimate_normals(Ssec, npar).normals
                 fs = compute_fpfh(Ssec, Nsec, fp).features
                 per[section] = bench_ransac(Ssec, M, fs, ft, prm, range(seeds), budget, T_true=T_sec,
-                                            success_deg=5.0, success_m=max(1.0, 2 * p["ransac_distance_m"]))
+                                            success_deg=5.0, success_m=max(1.0, 2 * p["ransac_distance_m"]),
+                                            minegeo_mode_params=own)
                 a = per[section]["agreement"]
-                _log(f"  ransac {section}: {len(Ssec)} pts, success {a['minegeo_success']:.2f} vs "
+                _log(f"  ransac {section}: {len(Ssec)} pts, success {a['minegeo_success']:.2f} "
+                     f"(mode minegeo {np.mean(per[section]['minegeo_mode']['success']):.2f}) vs "
                      f"{a['open3d_success']:.2f}, time ratio {per[section]['ratio']:.2f}")
             return _ransac_summary(per)
         stage("ransac", ransac)
@@ -303,12 +313,14 @@ def _agreement_text(stage: str, r: dict) -> str:
     if stage == "ransac" and isinstance(a, dict):
         if "runs" not in a:
             return f"success {a['minegeo_success']:.2f} (minegeo) vs {a['open3d_success']:.2f} (Open3D)"
-        sec = "; ".join(f"{k} {v['minegeo_success']:.2f}/{v['open3d_success']:.2f}"
+        sec = "; ".join(f"{k} {v['minegeo_success']:.2f}/{v['minegeo_mode_success']:.2f}/{v['open3d_success']:.2f}"
                         for k, v in r.get("per_section", {}).items())
-        return (f"success {a['minegeo_successes']}/{a['runs']} (minegeo) vs {a['open3d_successes']}/{a['runs']} "
-                f"(Open3D), {r['seeds_per_section']} seeds x {len(r['sections'])} sections, budget "
-                f"{r['budget']} its; per section minegeo/Open3D: {sec}; median of per-run ratios "
-                f"{r['ratio_per_run_median']:.2f}")
+        n = a["runs"]
+        return (f"success {a['minegeo_successes']}/{n} (minegeo, Open3D mode) and "
+                f"{a['minegeo_mode_successes']}/{n} (minegeo mode, {r['minegeo_mode_s']:.2f} s/call) vs "
+                f"{a['open3d_successes']}/{n} (Open3D); {r['seeds_per_section']} seeds x {len(r['sections'])} "
+                f"sections, budget {r['budget']} its; per section (Open3D mode/minegeo mode/Open3D): {sec}; "
+                f"median of per-run time ratios {r['ratio_per_run_median']:.2f}")
     if stage == "fpfh":
         return f"max rel. L1 {a:.1e}"
     if stage == "normals":
@@ -375,7 +387,7 @@ def main(argv=None) -> int:
     data = make_data(a.quick, a.seed, threads)
     repeats = a.repeats or (2 if a.quick else 3)
     if a.quick:
-        results = run_set(data, light_params(0.4), threads, repeats, seeds=10, budget=20_000, quick=True, only=only)
+        results = run_set(data, light_params(0.4), threads, repeats, seeds=10, budget=100_000, quick=True, only=only)
     else:
         results = run_set(data, light_params(0.2), threads, repeats, seeds=20, budget=100_000, quick=False,
                           only=only)

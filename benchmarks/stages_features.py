@@ -80,7 +80,7 @@ def _errors(T, T_ref):
 
 
 def bench_ransac(src, tgt, src_feat, tgt_feat, params: RansacParams, seeds, budget, T_true=None,
-                 success_deg=5.0, success_m=None):
+                 success_deg=5.0, success_m=None, minegeo_mode_params: RansacParams | None = None):
     """RANSAC on features, both libraries, same budget; agreement = success rates of both.
 
     Every seed runs minegeo then Open3D (interleaved, so both see the same machine load)
@@ -88,6 +88,8 @@ def bench_ransac(src, tgt, src_feat, tgt_feat, params: RansacParams, seeds, budg
     (edge length + distance), ``ransac_n``, distance and mutual filter; feature matching
     is inside the timed call on both sides. ``minegeo_s`` / ``open3d_s`` are the summed
     seconds, ``per_run_s`` the individual calls, ``success`` the per-seed verdicts.
+    ``minegeo_mode_params`` (optional, same budget) adds a run of minegeo's own mode
+    (distinct samples, least-squares refit) per seed, reported under ``"minegeo_mode"``.
     """
     o3d = _o3d()
     reg = o3d.pipelines.registration
@@ -109,7 +111,13 @@ def bench_ransac(src, tgt, src_feat, tgt_feat, params: RansacParams, seeds, budg
     checkers = [reg.CorrespondenceCheckerBasedOnEdgeLength(p.edge_length_similarity),
                 reg.CorrespondenceCheckerBasedOnDistance(d)]
     mine_T, theirs_T, mine_fit, theirs_fit, mine_t, theirs_t, mine_it = [], [], [], [], [], [], []
+    mode_T, mode_t = [], []
+    pm = None if minegeo_mode_params is None else replace(minegeo_mode_params, max_iterations=int(budget))
     for s in seeds:
+        if pm is not None:
+            t0 = time.perf_counter()
+            mode_T.append(register_ransac(src, tgt, src_feat, tgt_feat, pm, seed=s).T_target_source)
+            mode_t.append(time.perf_counter() - t0)
         t0 = time.perf_counter()
         r = register_ransac(src, tgt, src_feat, tgt_feat, p, seed=s)
         mine_t.append(time.perf_counter() - t0)
@@ -133,7 +141,11 @@ def bench_ransac(src, tgt, src_feat, tgt_feat, params: RansacParams, seeds, budg
 
     mine_ok, theirs_ok = ok(mine_T), ok(theirs_T)
     mine_s, theirs_s = float(np.sum(mine_t)), float(np.sum(theirs_t))
-    return {"minegeo_s": mine_s, "open3d_s": theirs_s, "ratio": mine_s / theirs_s,
+    extra = {}
+    if pm is not None:
+        extra["minegeo_mode"] = {"success": ok(mode_T), "per_run_s": mode_t, "mode": pm.mode,
+                                 "refit_iterations": pm.refit_iterations}
+    return {**extra,"minegeo_s": mine_s, "open3d_s": theirs_s, "ratio": mine_s / theirs_s,
             "agreement": {"minegeo_success": float(np.mean(mine_ok)), "open3d_success": float(np.mean(theirs_ok))},
             "compile_s": compile_s, "threads": int(numba.get_num_threads()), "seeds": len(seeds),
             "budget": int(budget), "mode": p.mode, "n_source": int(src.shape[0]), "n_target": int(tgt.shape[0]),

@@ -18,6 +18,9 @@ from minegeo._jit import njit, njit_parallel, prange
 
 #: Rows per reduction chunk (fixed so that summation order is thread-count independent).
 CHUNK = 1024
+#: Upper (with diagonal) and strictly lower triangle indices of a 6x6 matrix (row-major order).
+_IU6 = np.triu_indices(6)
+_IL6 = np.tril_indices(6, -1)
 
 
 @njit
@@ -31,6 +34,24 @@ def n_chunks(m):
 #: machine: a prange launch under load can cost tens of ms, the serial pass over 2e4 pairs < 1 ms).
 #: Both drivers run the same chunk bodies in the same order, so the results are bit-identical.
 PARALLEL_MIN_ROWS = 1 << 18
+
+
+# ----------------------------------------------------------------------------- validation helper
+
+
+@njit
+def finite_max_abs(X):
+    """``max |x|`` over all entries of ``X`` (2-D), or ``inf`` as soon as one is NaN or inf (one pass)."""
+    m = 0.0
+    for i in range(X.shape[0]):
+        for c in range(X.shape[1]):
+            v = X[i, c]
+            if not (v - v == 0.0):  # NaN or +-inf
+                return np.inf
+            v = abs(v)
+            if v > m:
+                m = v
+    return m
 
 
 # ----------------------------------------------------------------------------- per-point maps
@@ -379,10 +400,9 @@ def point_to_plane_system_kernel(P, Q, N):
     else:
         _p2l_serial(P, Q, N, part)
     tot = _add_partials(part) if part.shape[0] else np.zeros(28)
-    H = np.zeros((6, 6))
-    iu = np.triu_indices(6)
-    H[iu] = tot[:21]
-    H = H + np.triu(H, 1).T
+    H = np.empty((6, 6))
+    H[_IU6] = tot[:21]
+    H[_IL6] = H[_IL6[1], _IL6[0]]  # mirror the upper triangle (same values as H + triu(H, 1).T)
     return H, tot[21:27].copy(), float(tot[27])
 
 
@@ -514,6 +534,24 @@ KD_LEAF = 12
 
 
 @njit
+def _grow(a, n):
+    """Copy of ``a`` (first axis) with capacity ``n`` (new entries undefined)."""
+    out = np.empty((n,) + a.shape[1:], a.dtype)
+    out[: a.shape[0]] = a
+    return out
+
+
+@njit
+def _box_add(box, b, Qs, a):
+    for c in range(3):
+        v = Qs[a, c]
+        if v < box[b, c]:
+            box[b, c] = v
+        if v > box[b, 3 + c]:
+            box[b, 3 + c] = v
+
+
+@njit
 def kd_build(Q, leaf):
     """Sliding-midpoint KD-tree over ``Q`` (m, 3): split the widest bounding-box side at its middle.
 
@@ -521,21 +559,41 @@ def kd_build(Q, leaf):
     leaf order), per node the ``[start, end)`` range into ``Qs``, the split dimension (-1 = leaf),
     the split value and the children; ``depth`` is the maximum node depth. Coincident points
     (zero spread) stay in one leaf.
+
+    The points are partitioned in a contiguous working copy (rows swapped together with
+    ``idx``), and the bounding boxes of both children are accumulated while their parent is
+    partitioned, so each tree level costs one sequential pass. Node arrays start at
+    ``m // 2 + 64`` entries and grow by doubling (at most ``2 m - 1`` nodes).
     """
     m = Q.shape[0]
     idx = np.arange(m)
-    max_nodes = 2 * m + 1
-    start = np.empty(max_nodes, np.int64)
-    end = np.empty(max_nodes, np.int64)
-    dim = np.full(max_nodes, -1, np.int64)
-    split = np.zeros(max_nodes)
-    left = np.full(max_nodes, -1, np.int64)
-    right = np.full(max_nodes, -1, np.int64)
-    level = np.zeros(max_nodes, np.int64)
-    stack = np.empty(max_nodes, np.int64)
+    Qs = np.empty((m, 3))
+    for a in range(m):
+        for c in range(3):
+            Qs[a, c] = Q[a, c]
+    cap = m // 2 + 64
+    start = np.empty(cap, np.int64)
+    end = np.empty(cap, np.int64)
+    dim = np.empty(cap, np.int64)
+    split = np.empty(cap)
+    left = np.empty(cap, np.int64)
+    right = np.empty(cap, np.int64)
+    level = np.empty(cap, np.int64)
+    box = np.empty((cap, 6))  # lo x, y, z, hi x, y, z of the node's points
+    stack = np.empty(cap, np.int64)
     n_nodes = 1
     start[0] = 0
     end[0] = m
+    dim[0] = -1
+    split[0] = 0.0
+    left[0] = -1
+    right[0] = -1
+    level[0] = 0
+    for c in range(3):
+        box[0, c] = np.inf
+        box[0, 3 + c] = -np.inf
+    for a in range(m):
+        _box_add(box, 0, Qs, a)
     sp = 1
     stack[0] = 0
     depth = 0
@@ -548,59 +606,71 @@ def kd_build(Q, leaf):
             depth = level[nd]
         if e - s <= leaf:
             continue
-        lo = np.full(3, np.inf)
-        hi = np.full(3, -np.inf)
-        for a in range(s, e):
-            j = idx[a]
-            for c in range(3):
-                v = Q[j, c]
-                if v < lo[c]:
-                    lo[c] = v
-                if v > hi[c]:
-                    hi[c] = v
         k = 0
-        spread = hi[0] - lo[0]
+        spread = box[nd, 3] - box[nd, 0]
         for c in range(1, 3):
-            if hi[c] - lo[c] > spread:
+            if box[nd, 3 + c] - box[nd, c] > spread:
                 k = c
-                spread = hi[c] - lo[c]
+                spread = box[nd, 3 + c] - box[nd, c]
         if not spread > 0.0:
             continue
-        sv = 0.5 * (lo[k] + hi[k])
+        sv = 0.5 * (box[nd, k] + box[nd, 3 + k])
+        if n_nodes + 2 > cap:
+            cap = 2 * cap
+            start = _grow(start, cap)
+            end = _grow(end, cap)
+            dim = _grow(dim, cap)
+            split = _grow(split, cap)
+            left = _grow(left, cap)
+            right = _grow(right, cap)
+            level = _grow(level, cap)
+            box = _grow(box, cap)
+            stack = _grow(stack, cap)
+        lc = n_nodes
+        rc = n_nodes + 1
+        for c in range(3):
+            box[lc, c] = np.inf
+            box[lc, 3 + c] = -np.inf
+            box[rc, c] = np.inf
+            box[rc, 3 + c] = -np.inf
         i = s
         jj = e - 1
         while i <= jj:  # partition: [s, mid) < sv <= [mid, e)
-            if Q[idx[i], k] < sv:
+            if Qs[i, k] < sv:
+                _box_add(box, lc, Qs, i)
                 i += 1
             else:
                 t = idx[i]
                 idx[i] = idx[jj]
                 idx[jj] = t
+                for c in range(3):
+                    v = Qs[i, c]
+                    Qs[i, c] = Qs[jj, c]
+                    Qs[jj, c] = v
+                _box_add(box, rc, Qs, jj)
                 jj -= 1
         mid = i
         if mid == s or mid == e:  # midpoint rounding on a tiny spread: keep as a leaf
             continue
         dim[nd] = k
         split[nd] = sv
-        lc = n_nodes
-        rc = n_nodes + 1
         n_nodes += 2
+        for ch in (lc, rc):
+            dim[ch] = -1
+            split[ch] = 0.0
+            left[ch] = -1
+            right[ch] = -1
+            level[ch] = level[nd] + 1
         start[lc] = s
         end[lc] = mid
         start[rc] = mid
         end[rc] = e
-        level[lc] = level[nd] + 1
-        level[rc] = level[nd] + 1
         left[nd] = lc
         right[nd] = rc
         stack[sp] = lc
         sp += 1
         stack[sp] = rc
         sp += 1
-    Qs = np.empty((m, 3))
-    for a in range(m):
-        for c in range(3):
-            Qs[a, c] = Q[idx[a], c]
     return (idx, Qs, start[:n_nodes].copy(), end[:n_nodes].copy(), dim[:n_nodes].copy(),
             split[:n_nodes].copy(), left[:n_nodes].copy(), right[:n_nodes].copy(), depth)
 
@@ -737,10 +807,9 @@ def point_to_plane_system_idx(P, Q, N, si, ti):
     part = np.zeros((n_chunks(si.shape[0]), 28))
     _p2l_idx_serial(P, Q, N, si, ti, part)
     tot = _add_partials(part) if part.shape[0] else np.zeros(28)
-    H = np.zeros((6, 6))
-    iu = np.triu_indices(6)
-    H[iu] = tot[:21]
-    H = H + np.triu(H, 1).T
+    H = np.empty((6, 6))
+    H[_IU6] = tot[:21]
+    H[_IL6] = H[_IL6[1], _IL6[0]]  # mirror the upper triangle (same values as H + triu(H, 1).T)
     return H, tot[21:27].copy(), float(tot[27])
 
 

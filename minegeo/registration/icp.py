@@ -278,6 +278,19 @@ def _solve_normal_equations(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, b
     return -(V @ (inv * (V.T @ g))), True
 
 
+def _points(arr, name: str, min_points: int) -> tuple[np.ndarray, float]:
+    """:func:`minegeo._validate.as_points` with one fused pass for the finiteness test and the
+    largest coordinate magnitude; anything unusual goes through ``as_points`` for its typed error."""
+    a = np.asarray(arr) if isinstance(arr, np.ndarray) else None
+    if (a is not None and a.dtype == np.float64 and a.ndim == 2 and a.shape[1] == 3
+            and a.shape[0] >= min_points and a.flags.c_contiguous):
+        m = float(K.finite_max_abs(a))
+        if np.isfinite(m):
+            return a, m
+    a = as_points(arr, name, min_points=min_points)
+    return a, float(K.finite_max_abs(a))
+
+
 def register_icp(source_points, target_points, T_init, params: ICPParams, target_normals=None,
                  target_index=None) -> ICPResult:
     """Refine ``T_target_source`` by ICP (Baek 2022 Sec. 2.4; Open3D ``registration_icp``).
@@ -342,19 +355,19 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
         raise InputError(f"params must be an ICPParams, got {type(params).__name__}")
     method = params.method
     need = MIN_POINTS[method]
-    P0 = as_points(source_points, "source_points", min_points=need)
-    Q = as_points(target_points, "target_points", min_points=need)
+    P0, p_max = _points(source_points, "source_points", need)
+    Q, q_max = _points(target_points, "target_points", need)
     T = as_transform(T_init, "T_init").copy()
     Nt = None
     if target_normals is not None:
-        Nt = as_points(target_normals, "target_normals")
+        Nt, _ = _points(target_normals, "target_normals", 1)
         if Nt.shape[0] != Q.shape[0]:
             raise InputError(
                 f"target_normals has {Nt.shape[0]} rows but target_points has {Q.shape[0]}"
             )
     if method == "point_to_plane" and Nt is None:
         raise InputError("point_to_plane ICP needs target_normals (estimate them on the map first)")
-    if max(np.abs(P0).max(), np.abs(Q).max()) > LARGE_COORDINATE_M:
+    if max(p_max, q_max) > LARGE_COORDINATE_M:
         log.warning(
             "ICP input coordinates exceed %.0e m: subtract a local origin first for full precision",
             LARGE_COORDINATE_M,
