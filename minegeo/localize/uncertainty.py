@@ -93,7 +93,7 @@ The calibration of both methods against ground truth on the synthetic mine is in
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -203,6 +203,8 @@ class PoseUncertainty:
     reason : str
         Why the covariance is missing (empty otherwise).
     params : UncertaintyParams
+    residuals_m : (k,) ndarray
+        Point-to-plane residuals ``r_i`` of the pairs at the given pose, m (pair order).
     """
 
     covariance_6x6: np.ndarray | None
@@ -223,12 +225,13 @@ class PoseUncertainty:
     degenerate: bool
     reason: str
     params: UncertaintyParams
+    residuals_m: np.ndarray | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
         """JSON-ready record (arrays as lists, None kept)."""
         from minegeo._provenance import to_jsonable
 
-        d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "params"}
+        d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k not in ("params", "residuals_m")}
         d["params"] = {k: getattr(self.params, k) for k in self.params.__dataclass_fields__}
         return to_jsonable(d)
 
@@ -431,7 +434,8 @@ def pose_uncertainty(P_work, Q, Nq, corr, origin_work, params: UncertaintyParams
                                position_sigma_m=ps, position_95_radius_m=r95, horizontal_95_radius_m=h95,
                                information_6x6=H, information_ratio=float(ratio), n_pairs=int(k), n_clusters=int(G),
                                cluster_size_used_m=float(size_used), method=p.method, inflation=float(infl),
-                               pending_step=step, degenerate=bool(degenerate), reason=reason, params=p)
+                               pending_step=step, degenerate=bool(degenerate), reason=reason, params=p,
+                               residuals_m=r)
 
     if ev[-1] <= 0.0 or ev[0] <= 1e-12 * ev[-1] or ratio < p.degeneracy_ratio:
         why = creason or f"normalised constraint eigenvalue ratio {ratio:.2e}"

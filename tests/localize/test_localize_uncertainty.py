@@ -190,6 +190,7 @@ def test_formal_matches_closed_form_and_is_deterministic():
     np.testing.assert_allclose(f.covariance_6x6 - np.outer(f.pending_step, f.pending_step), want, rtol=1e-9,
                                atol=1e-18)
     assert f.sigma_m == pytest.approx(math.sqrt(s2), rel=1e-12)
+    np.testing.assert_allclose(f.residuals_m, r, rtol=0, atol=1e-15)
     a = pose_uncertainty(Pw, Q, N, corr, o)
     b = pose_uncertainty(Pw.copy(), Q.copy(), N.copy(), corr.copy(), o.copy())
     assert np.array_equal(a.covariance_6x6, b.covariance_6x6) and a.position_95_radius_m == b.position_95_radius_m
