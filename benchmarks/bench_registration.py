@@ -364,6 +364,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeats", type=int, default=None)
     ap.add_argument("--only", default="", help="comma-separated subset of stages: " + ",".join(STAGES))
+    ap.add_argument("--ransac-seeds", type=int, default=None,
+                    help="RANSAC seeds per section (default 10 quick, 6 full light, 10 full paper)")
     a = ap.parse_args(argv)
 
     from minegeo._provenance import to_jsonable, versions, write_json_atomic
@@ -387,11 +389,12 @@ def main(argv=None) -> int:
     data = make_data(a.quick, a.seed, threads)
     repeats = a.repeats or (2 if a.quick else 3)
     if a.quick:
-        results = run_set(data, light_params(0.4), threads, repeats, seeds=10, budget=100_000, quick=True, only=only)
+        results = run_set(data, light_params(0.4), threads, repeats, seeds=a.ransac_seeds or 10, budget=100_000,
+                          quick=True, only=only)
     else:
-        results = run_set(data, light_params(0.2), threads, repeats, seeds=20, budget=100_000, quick=False,
+        results = run_set(data, light_params(0.2), threads, repeats, seeds=a.ransac_seeds or 6, budget=100_000, quick=False,
                           only=only)
-        results["paper"] = run_set(data, PAPER, threads, repeats, seeds=10, budget=100_000, quick=False,
+        results["paper"] = run_set(data, PAPER, threads, repeats, seeds=a.ransac_seeds or 10, budget=100_000, quick=False,
                                    only=only)
     meta = {"quick": a.quick, "threads": threads, "seed": a.seed, "repeats": repeats,
             "map_raw_points": int(len(data["map"])), "scan_raw_points": int(len(data["scan"])),
