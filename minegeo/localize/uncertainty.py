@@ -67,7 +67,7 @@ The reported covariance is never smaller than the formal one in any direction: w
 so ``vᵀ Σ v ≥ max(vᵀ Σ_formal v, vᵀ Σ_CR v)`` for every ``v`` (and Σ does not depend on the
 choice of square root).
 
-Additions (both methods)
+Additions (every method)
 ------------------------
 * **Pending step** (``add_pending_step``, default True): ``Σ += s sᵀ``. The pose handed in may
   not be the point-to-plane optimum (point-to-point ICP stops early along drifts); its error is
@@ -86,7 +86,7 @@ scan of the map; combine it with :func:`minegeo.localize.georef.point_covariance
 ``horizontal_95_radius_m = √(5.991 λ_max(Σ_xy))``; both are spheres/circles over the largest
 axis of the ellipsoid/ellipse, so they contain at least 95 % under the model.
 
-The calibration of both methods against ground truth on the synthetic mine is in
+The calibration of every method against ground truth on the synthetic mine is in
 ``docs/uncertainty.md`` (``benchmarks/bench_uncertainty.py``).
 """
 
