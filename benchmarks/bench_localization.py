@@ -165,7 +165,8 @@ def main(argv=None) -> int:
                          "20 m scan: minutes per run)")
     ap.add_argument("--levelled", type=float, default=None, metavar="DEG",
                     help="scans in an IMU-levelled frame (levelling error |N(0, --imu-error-deg)|) and minegeo "
-                         "told so (RansacParams.max_tilt_deg = DEG); Open3D gets the same levelled scans")
+                         "told so (RansacParams model='levelled', 2-point yaw+translation samples, "
+                         "max_tilt_deg = DEG); Open3D gets the same levelled scans")
     ap.add_argument("--imu-error-deg", type=float, default=0.3)
     ap.add_argument("--hypotheses", type=int, default=None, help="RansacParams.n_hypotheses for minegeo")
     ap.add_argument("--map-cache", default=None,
@@ -248,7 +249,8 @@ def main(argv=None) -> int:
             if run["octree_level"] is not None:
                 lp = replace(lp, scan_octree_level=int(run["octree_level"]))
             if args.levelled is not None:
-                lp = replace(lp, ransac=replace(lp.ransac, max_tilt_deg=float(args.levelled)))
+                lp = replace(lp, ransac=replace(lp.ransac, model="levelled", ransac_n=2,
+                                                max_tilt_deg=float(args.levelled)))
             if args.hypotheses is not None:
                 lp = replace(lp, ransac=replace(lp.ransac, n_hypotheses=int(args.hypotheses)))
             try:

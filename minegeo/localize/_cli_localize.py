@@ -45,8 +45,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--hypotheses", type=int, default=None, metavar="K",
                         help="distinct RANSAC hypotheses verified by ICP per run (default 2: best and runner-up)")
     parser.add_argument("--levelled", type=float, default=None, metavar="DEG",
-                        help="the scan frame is levelled (z up, e.g. by the scanner's IMU) like the map: reject "
-                             "RANSAC placements tilting the vertical by more than DEG degrees (e.g. 3)")
+                        help="the scan frame is levelled (z up, e.g. by the scanner's IMU) like the map: RANSAC "
+                             "draws 2-point yaw+translation hypotheses and rejects placements tilting the "
+                             "vertical by more than DEG degrees (e.g. 3); ICP still refines all 6 DOF")
     parser.add_argument("--no-cache", action="store_true", help="do not read or write the prepared-map cache")
     parser.add_argument("--drop-nonfinite", action="store_true",
                         help="drop scan points with NaN/inf coordinates (organised PCD/PLY files mark missing "
@@ -105,7 +106,9 @@ def params_from_args(args):
     if getattr(args, "hypotheses", None) is not None:
         rk["n_hypotheses"] = int(args.hypotheses)
     if getattr(args, "levelled", None) is not None:
-        rk["max_tilt_deg"] = float(args.levelled)
+        if not 0.0 < float(args.levelled) <= 90.0:
+            raise InputError(f"--levelled must be an angle in (0, 90] degrees, got {args.levelled}")
+        rk.update(model="levelled", ransac_n=2, max_tilt_deg=float(args.levelled))
     if rk:
         lp = replace(lp, ransac=replace(lp.ransac, **rk))
     return prep, lp

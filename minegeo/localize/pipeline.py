@@ -49,7 +49,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -59,6 +59,7 @@ from minegeo.errors import InputError, TooFewPointsError
 from minegeo.geometry.se3 import hat, rotation_angle
 from minegeo.io.types import PointCloud, Trajectory
 from minegeo.localize.prepared import FAST_FEATURES, FeatureParams, PreparedMap, prepare_cloud_features
+from minegeo.localize.uncertainty import UncertaintyParams, pose_uncertainty
 from minegeo.registration.gicp import GICPParams, register_gicp
 from minegeo.registration.icp import METHODS as _ICP_METHODS
 from minegeo.registration.icp import ICPParams, register_icp
@@ -114,6 +115,10 @@ class LocalizeParams:
         ICP pair gate, m (Table 3: 0.5 m).
     icp_max_iterations : int
         Table 3: 30.
+    icp_coarse_correspondence_m : float or None
+        Gate (m) of a coarse point-to-plane ICP of the feature-level scan run on every RANSAC
+        hypothesis before the paper's ICP (minegeo addition: RANSAC poses from 0.5-1 m voxels
+        can sit ~1 m from the answer, outside the 0.5 m gate). None skips it.
     icp_relative_rmse : float
         Convergence threshold on the RMSE change, m (Table 3: 1e-6).
     icp_relative_fitness : float
@@ -147,8 +152,17 @@ class LocalizeParams:
         move some scan point by more than this (m): ICP (point-to-point converges slowly along
         drifts) stopped before the surfaces fit.
     degeneracy_ratio : float
-        ``ambiguous`` when the normalised ICP constraint matrix has
-        ``λ_min / λ_max`` below this (see :func:`minegeo.registration.constraint_analysis`).
+        A pose direction is *weak* when the normalised ICP constraint matrix has
+        ``λ_min / λ_max`` below this (see :func:`minegeo.registration.constraint_analysis`);
+        the result is then ``ambiguous`` if the pose covariance lets some scan point move by
+        more than ``max_weak_displacement_95_m`` (95 %), e.g. along a straight featureless
+        drift. A weak but well-determined direction (roll in a round drift, thousands of
+        points) only adds a warning.
+    max_weak_displacement_95_m : float
+        See ``degeneracy_ratio`` (m).
+    uncertainty : UncertaintyParams
+        Pose covariance estimator (:mod:`minegeo.localize.uncertainty`; default the
+        delete-one-block jackknife over 4 m blocks, calibrated in docs/uncertainty.md).
     """
 
     scan_voxel_size_m: float | None = 0.5
@@ -174,6 +188,9 @@ class LocalizeParams:
     ambiguity_angle_deg: float = 5.0
     degeneracy_ratio: float = 0.01
     max_pending_step_m: float = 0.1
+    icp_coarse_correspondence_m: float | None = 1.5
+    max_weak_displacement_95_m: float = 0.15
+    uncertainty: UncertaintyParams = field(default_factory=UncertaintyParams)
 
     def __post_init__(self):
         if self.scan_octree_level is None:
@@ -192,11 +209,16 @@ class LocalizeParams:
         check_positive(self.icp_max_correspondence_m, "icp_max_correspondence_m")
         if self.scan_icp_voxel_size_m is not None:
             check_positive(self.scan_icp_voxel_size_m, "scan_icp_voxel_size_m")
+        if self.icp_coarse_correspondence_m is not None:
+            check_positive(self.icp_coarse_correspondence_m, "icp_coarse_correspondence_m")
         check_positive(self.max_inlier_rmse_m, "max_inlier_rmse_m")
         check_positive(self.ambiguity_distance_m, "ambiguity_distance_m")
         check_positive(self.ambiguity_angle_deg, "ambiguity_angle_deg")
         check_positive(self.verify_plane_tolerance_m, "verify_plane_tolerance_m")
         check_positive(self.max_pending_step_m, "max_pending_step_m")
+        check_positive(self.max_weak_displacement_95_m, "max_weak_displacement_95_m")
+        if not isinstance(self.uncertainty, UncertaintyParams):
+            raise InputError("uncertainty must be an UncertaintyParams")
         if not (math.isfinite(float(self.verify_noise_factor)) and float(self.verify_noise_factor) >= 0.0):
             raise InputError(f"verify_noise_factor must be a finite number >= 0, got {self.verify_noise_factor!r}")
         for name in ("min_fitness", "min_plane_fitness", "ambiguity_ratio", "degeneracy_ratio"):
@@ -287,6 +309,12 @@ class LocalizationResult:
     crs : str or None
     georef_origin : (3,) ndarray or None
         Origin of the ``geo`` frame (CRS coordinates), m.
+    displacement_95_m : float
+        Largest 95 % displacement of the scan's bounding-box corners under ``covariance_6x6``, m
+        (``sqrt(7.815 λ_max(J Σ Jᵀ))``, ``J = [−[q − o]×, I]``); inf without covariance.
+    uncertainty : dict or None
+        The estimator's record (:class:`~minegeo.localize.uncertainty.PoseUncertainty`
+        without its matrices): method, blocks, inflation over the formal covariance, σ, ...
     plane_tolerance_m : float
         Plane-distance tolerance used by the verification (m; see ``verify_noise_factor``).
     scan_noise_m : float
@@ -324,6 +352,8 @@ class LocalizationResult:
     trajectory_sigma_m: np.ndarray | None
     crs: str | None
     georef_origin: np.ndarray | None
+    displacement_95_m: float
+    uncertainty: dict | None
     plane_tolerance_m: float
     scan_noise_m: float
     n_scan_points: int
@@ -384,12 +414,15 @@ class LocalizationResult:
             "position_95_radius_m": self.position_95_radius_m,
             "horizontal_95_radius_m": self.horizontal_95_radius_m,
             "pending_step_m": self.pending_step_m,
-            "uncertainty_note": "formal (first-order) covariance from the ICP residuals; residuals of neighbouring "
-                                "points are treated as independent, which makes it optimistic; 95 % radius = "
-                                "sqrt(chi2_3(0.95)=7.815 * largest eigenvalue); map and georeferencing errors "
-                                "are not included",
+            "uncertainty_note": "point-to-plane pose covariance about the scan origin from the final ICP pairs, "
+                                "estimator in 'uncertainty' (default: delete-one-block jackknife over spatial "
+                                "blocks, which accounts for correlated residuals; docs/uncertainty.md); 95 % radius "
+                                "= sqrt(chi2_3(0.95)=7.815 * largest eigenvalue); georeferencing error is not "
+                                "included (see the georef report)",
             "crs": self.crs,
             "georef_origin": self.georef_origin,
+            "displacement_95_m": self.displacement_95_m,
+            "uncertainty": self.uncertainty,
             "plane_tolerance_m": self.plane_tolerance_m,
             "scan_noise_m": self.scan_noise_m,
             "n_scan_points": self.n_scan_points,
@@ -423,36 +456,6 @@ def _icp_params(p: LocalizeParams) -> ICPParams:
                      max_iterations=int(p.icp_max_iterations), relative_fitness=float(p.icp_relative_fitness),
                      relative_rmse=float(p.icp_relative_rmse), method=p.icp_method,
                      degeneracy_ratio_threshold=float(p.degeneracy_ratio) if p.degeneracy_ratio > 0 else 1e-12)
-
-
-def _covariance(P_work: np.ndarray, Q: np.ndarray, Nq: np.ndarray, corr: np.ndarray, origin_work: np.ndarray):
-    """Point-to-plane information about the scan origin and ``σ² (JᵀJ)⁻¹``.
-
-    ``J_i = [((p_i − o) × n_i)ᵀ, n_iᵀ]`` with ``p_i`` the transformed scan point, ``n_i`` the
-    map normal of its partner and ``o`` the scan origin (all work frame); residual
-    ``r_i = (p_i − q_i)·n_i``; ``σ² = Σ r_i² / (k − 6)``.
-
-    Also the pending Gauss-Newton step ``x = −(JᵀJ)⁻¹ Jᵀ r`` from the final pose: its size
-    says how far the surface (point-to-plane) optimum lies from the ICP answer.
-
-    Returns ``(cov (6,6) or None, sigma, residuals (k,), info (6,6), step (6,) or None)``.
-    """
-    k = corr.shape[0]
-    if k < 7:
-        return None, math.nan, np.zeros(0), np.zeros((6, 6)), None
-    p = P_work[corr[:, 0]]
-    q = Q[corr[:, 1]]
-    n = Nq[corr[:, 1]]
-    r = np.einsum("ij,ij->i", p - q, n)
-    J = np.hstack([np.cross(p - origin_work, n), n])
-    H = J.T @ J
-    sigma = float(math.sqrt(float(r @ r) / (k - 6)))
-    ev = np.linalg.eigvalsh(H)
-    if ev[-1] <= 0 or ev[0] <= 1e-10 * ev[-1] or sigma == 0.0:
-        return None, sigma, r, H, None
-    Hinv = np.linalg.inv(H)
-    step = -(Hinv @ (J.T @ r))
-    return sigma * sigma * Hinv, sigma, r, H, step
 
 
 def _verify(P: np.ndarray, T: np.ndarray, Q: np.ndarray, N: np.ndarray, tree, gate: float, tol: float):
@@ -619,6 +622,15 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     scan_noise = surface_noise_m(Dfine) if p.verify_noise_factor > 0 else math.nan
     if p.verify_noise_factor > 0:
         tol = max(tol, float(p.verify_noise_factor) * scan_noise)
+    # coarse pull-in (minegeo addition): RANSAC poses are often ~1 m off (4-DOF levelled
+    # hypotheses, 1 m voxels), beyond the 0.5 m ICP gate; a point-to-plane ICP of the
+    # feature-level scan with a wider gate brings them into the fine ICP's basin first.
+    if p.icp_coarse_correspondence_m is not None and uniq:
+        coarse_p = ICPParams(max_correspondence_distance_m=float(p.icp_coarse_correspondence_m),
+                             max_iterations=int(p.icp_max_iterations), relative_fitness=1e-6, relative_rmse=1e-6,
+                             method="point_to_plane", degeneracy_ratio_threshold=1e-12)
+        uniq = [(name, register_icp(D, Qf, T0, coarse_p, target_normals=Nf, target_index=tree).T_target_source,
+                 rf, rrmse) for name, T0, rf, rrmse in uniq]
     screened = []
     if len(uniq) > 1:
         for c in uniq:
@@ -662,6 +674,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
                 "T_map_scan": _to_map(ic.T_target_source, scan_origin, prepared_map.work_origin),
             })
     status, reason = "ok", ""
+    weak = ""
     ic_best = best[4] if best is not None else None
     if best is None:
         status = "failed"
@@ -694,12 +707,11 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
             reason = (f"another placement {h['distance_to_chosen_m']:.1f} m / {h['rotation_to_chosen_deg']:.1f} deg "
                       f"away fits almost as well (plane fitness {h['plane_fitness']:.3f} vs {pf_best:.3f}, ratio >= "
                       f"{p.ambiguity_ratio:g}): the drift repeats itself; extend the scan past a distinctive feature")
-        elif ic_best.degeneracy_ratio < p.degeneracy_ratio:
-            status = "ambiguous"
-            reason = ("the fit is not constrained in every direction: " + (ic_best.degeneracy_reason or
-                      f"eigenvalue ratio {ic_best.degeneracy_ratio:.2e} < {p.degeneracy_ratio:g}")
-                      + " (e.g. a straight featureless drift: the position along it is uncertain)")
-        else:
+        if status == "ok" and ic_best.degeneracy_ratio < p.degeneracy_ratio:
+            # decided after the covariance: a weak direction matters only if it leaves the pose uncertain
+            weak = (ic_best.degeneracy_reason or
+                    f"eigenvalue ratio {ic_best.degeneracy_ratio:.2e} < {p.degeneracy_ratio:g}")
+        if status == "ok":
             reason = (f"ICP fitness {f:.3f}, inlier RMSE {e:.3f} m, plane fitness {pf_best:.3f}; "
                       + (f"{len(hyps) - 1} other hypothesis(es) verified and clearly worse"
                          if len(hyps) > 1 else "no competing hypothesis found by RANSAC"))
@@ -714,6 +726,8 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     cov = None
     sigma = math.nan
     residuals = None
+    disp95 = math.inf
+    unc_record = None
     pos_cov = None
     pending = math.nan
     pos_sigma = np.full(3, np.inf)
@@ -722,7 +736,36 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         Pw = Dfine @ T_work_scan[:3, :3].T + T_work_scan[:3, 3]
         # D = scan points - scan_origin, so the scan frame's origin is at D = -scan_origin
         o_work = T_work_scan[:3, :3] @ (-scan_origin) + T_work_scan[:3, 3]
-        cov, sigma, residuals, _, step = _covariance(Pw, Qf, Nf, ic_best.correspondences, o_work)
+        unc = None
+        if ic_best.correspondences.shape[0] >= 7:
+            unc = pose_uncertainty(Pw, Qf, Nf, ic_best.correspondences, o_work,
+                                   replace(p.uncertainty, degeneracy_ratio=0.0))
+            cov, sigma, residuals, step = unc.covariance_6x6, unc.sigma_m, unc.residuals_m, unc.pending_step
+            unc_record = unc.to_dict()
+            for k in ("covariance_6x6", "covariance_formal_6x6", "position_cov_3x3", "information_6x6"):
+                unc_record.pop(k, None)
+        else:
+            step = None
+        if cov is not None:
+            # 95 % displacement of the scan's bounding-box corners under the pose covariance
+            # (a rigid perturbation moves points affinely, so the extreme is at a corner)
+            lo, hi = Pw.min(axis=0), Pw.max(axis=0)
+            corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
+            disp95 = 0.0
+            for q in corners:
+                Jq = np.hstack([-hat(q - o_work), np.eye(3)])
+                disp95 = max(disp95, float(np.linalg.eigvalsh(Jq @ cov @ Jq.T)[-1]))
+            disp95 = float(math.sqrt(CHI2_3D_95 * max(disp95, 0.0)))
+        if weak and status == "ok":
+            if cov is None or disp95 > p.max_weak_displacement_95_m:
+                status = "ambiguous"
+                reason = ("the fit is not constrained in every direction: " + weak
+                          + (f"; the 95 % displacement over the scan reaches {disp95:.3f} m (> "
+                             f"{p.max_weak_displacement_95_m:g} m)" if cov is not None else "")
+                          + " (e.g. a straight featureless drift: the position along it is uncertain)")
+            else:
+                warnings.append(f"weakly constrained direction ({weak}), but its 95 % displacement over the scan is "
+                                f"only {disp95:.3f} m (<= {p.max_weak_displacement_95_m:g} m)")
         if step is not None:
             lever = float(np.sqrt(np.max(np.sum((Pw - o_work) ** 2, axis=1))))
             pending = float(np.linalg.norm(step[3:]) + np.linalg.norm(step[:3]) * lever)
@@ -794,7 +837,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         ransac=r0, icp=ic_best, hypotheses=hyps, covariance_6x6=cov, sigma_m=sigma, position_cov_3x3=pos_cov,
         position_sigma_m=pos_sigma, position_95_radius_m=r95, horizontal_95_radius_m=h95, pending_step_m=pending,
         trajectory_map=traj_map, trajectory_geo=traj_geo, trajectory_sigma_m=traj_sigma, crs=crs,
-        georef_origin=georef_origin, plane_tolerance_m=tol, scan_noise_m=scan_noise, n_scan_points=int(P_raw.shape[0]), n_scan_down=int(D.shape[0]), n_scan_icp=int(Dfine.shape[0]),
+        georef_origin=georef_origin, displacement_95_m=disp95, uncertainty=unc_record, plane_tolerance_m=tol, scan_noise_m=scan_noise, n_scan_points=int(P_raw.shape[0]), n_scan_down=int(D.shape[0]), n_scan_icp=int(Dfine.shape[0]),
         params=p, map_params=prepared_map.params, seed=seed, timings_s=timings, warnings=warnings,
         ransac_T_map_scan=_to_map(r0.T_target_source, scan_origin, prepared_map.work_origin),
         scan_points_down=D + scan_origin, residuals_m=residuals,

@@ -319,3 +319,43 @@ def test_gicp_refinement_localizes_and_agrees(world_map, results):
     assert r.to_dict()["icp"]["method"] == "gicp"
     r2 = localize_scan(pm, cloud, traj, lp, seed=0)
     assert np.array_equal(r.T_map_scan, r2.T_map_scan)
+
+
+def test_straight_featureless_tube_is_never_ok():
+    """A scan of a smooth straight tube cannot be placed along it: never ``ok``."""
+    rng = np.random.default_rng(5)
+
+    def tube(x0, x1, n):
+        x = rng.uniform(x0, x1, n)
+        a = rng.uniform(0, 2 * np.pi, n)
+        return np.column_stack([x, 2.2 * np.cos(a), 2.2 * np.sin(a)]) + 0.005 * rng.standard_normal((n, 3))
+
+    pm = prepare_map(PointCloud(points=tube(0.0, 120.0, 120_000)), PrepareParams.fast())
+    scan = tube(40.0, 60.0, 20_000) - np.array([50.0, 0.0, 0.0])
+    r = localize_scan(pm, scan, None, LocalizeParams.fast(), seed=0)
+    assert r.status != "ok", r.reason
+
+
+def test_levelled_two_point_model_localizes_a_levelled_scan(world_map):
+    """RansacParams(model='levelled', ransac_n=2) on a scan re-expressed in a levelled frame."""
+    from dataclasses import replace
+
+    from minegeo.geometry.se3 import exp_so3
+
+    _, _, pm, scans = world_map
+    cloud, traj, T_true = scans["intersection"]
+    R = T_true[:3, :3]
+    yaw = np.arctan2(R[1, 0], R[0, 0])
+    L = exp_so3(np.array([0.0, 0.0, yaw])).T @ R  # scan -> levelled frame
+    Lh = np.eye(4)
+    Lh[:3, :3] = L
+    lev = cloud.points @ L.T
+    T_lev = T_true @ np.linalg.inv(Lh)
+    base = LocalizeParams.fast()
+    lp = replace(base, ransac=replace(base.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0))
+    r = localize_scan(pm, lev, None, lp, seed=0)
+    assert r.status == "ok", r.reason
+    poses = np.einsum("ij,njk->nik", Lh, traj.poses)
+    e = error_vs_truth(r.T_map_scan, T_lev, poses[:, :3, 3])
+    assert e["max_point_error_m"] < 0.10
+    assert np.isfinite(r.displacement_95_m) and r.uncertainty["method"] == "jackknife"

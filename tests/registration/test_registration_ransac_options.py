@@ -101,3 +101,55 @@ def test_k_hypotheses_distinct_and_ordered(rng):
 def test_bad_options_are_typed_errors(kw):
     with pytest.raises(InputError):
         RansacParams(**kw)
+
+
+# ----------------------------------------------------------------------------- levelled (4-DOF) model
+
+
+def test_yaw_fit_exact_and_matches_naive(rng):
+    from minegeo.registration._kernels_ransac_levelled import yaw_fit
+
+    P = rng.uniform(-5, 5, (7, 3))
+    th = rng.uniform(-math.pi, math.pi)
+    R = exp_so3(np.array([0.0, 0.0, th]))
+    t = rng.uniform(-50, 50, 3)
+    Q = P @ R.T + t
+    T, spread = yaw_fit(np.ascontiguousarray(P), np.ascontiguousarray(Q))
+    np.testing.assert_allclose(T[:3, :3], R, atol=1e-12)
+    np.testing.assert_allclose(T[:3, 3], t, atol=1e-9)
+    # naive twin: brute-force yaw minimising the squared residuals
+    Qn = Q + 0.05 * rng.standard_normal(Q.shape)
+    T2, _ = yaw_fit(np.ascontiguousarray(P), np.ascontiguousarray(Qn))
+    grid = np.linspace(-math.pi, math.pi, 72001)
+
+    def cost(a):
+        Ra = exp_so3(np.array([0.0, 0.0, a]))
+        X = P @ Ra.T
+        tt = (Qn - X).mean(axis=0)
+        return float(np.sum((X + tt - Qn) ** 2))
+
+    best = grid[int(np.argmin([cost(a) for a in grid]))]
+    assert abs(math.atan2(T2[1, 0], T2[0, 0]) - best) < 2e-4
+    assert spread > 0
+
+
+def test_levelled_model_recovers_levelled_pose_with_two_point_samples(rng):
+    src, tgt, corr, G = _case(rng, tilt_deg=0.0, outliers=0.9)
+    p = _params(model="levelled", ransac_n=2, distance_threshold_m=0.05, max_iterations=20000)
+    r = register_ransac(src, tgt, correspondences=corr, params=p, seed=4)
+    d, a = hypothesis_distance(r.T_target_source, G, src.mean(axis=0))
+    assert d < 0.01 and a < 0.05
+    r2 = register_ransac(src, tgt, correspondences=corr, params=p, seed=4)
+    np.testing.assert_array_equal(r.T_target_source, r2.T_target_source)
+    # 90 % outliers: Eq. 8 needs ~1/w^2 = 100x fewer draws than ~1/w^3 for the 3-point rigid model
+    assert r.iterations < 5000
+
+
+def test_levelled_model_validation():
+    with pytest.raises(InputError):
+        RansacParams(model="yaw")
+    with pytest.raises(InputError):
+        RansacParams(model="rigid", ransac_n=2)
+    with pytest.raises(InputError):
+        RansacParams(model="levelled", ransac_n=2, normal_angle_threshold_rad=0.5)
+    assert RansacParams(model="levelled", ransac_n=2).ransac_n == 2
