@@ -20,6 +20,14 @@ Stage functions for voxel/octree/normals come from ``benchmarks/stages_geometry.
 FPFH/RANSAC from ``benchmarks/stages_features.py``; when one is missing the stage is reported
 as skipped with the reason.
 
+RANSAC success is a rate, so it is measured over several drift sections (``SECTIONS_QUICK`` /
+``SECTIONS_FULL``: straight, curved, junction, ...) times several seeds (``--ransac-seeds``), both
+libraries with the same budget (100,000 iterations, confidence 0.999), checkers and feature
+matching inside the timed call. Its ``minegeo_s`` / ``open3d_s`` are median seconds per call
+(interleaved runs), ``ratio`` their quotient; minegeo's own mode (distinct samples + refit) is
+run too and reported as ``minegeo_mode_success``. Success = within 5 degrees and max(1 m, 2 d)
+of the section's ground truth.
+
 Usage::
 
     python benchmarks/bench_registration.py --quick --json OUT.json   # light set, small, < 5 min
