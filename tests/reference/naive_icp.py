@@ -102,3 +102,56 @@ def naive_icp(P, Q, T0, d, max_iterations=30, rel_f=1e-6, rel_r=1e-6, normals=No
         if abs(f - f0) < rel_f and abs(r - r0) < rel_r:
             break
     return T, f, r, it
+
+
+def naive_kd_build(Q, leaf):
+    """Plain-Python sliding-midpoint KD-tree, two passes per node (box, then partition).
+
+    The straightforward form of ``_kernels.kd_build`` (same split rule, same in-place
+    partition of the index array, same node numbering); returns the same tuple.
+    """
+    Q = np.asarray(Q, dtype=np.float64)
+    m = Q.shape[0]
+    idx = np.arange(m)
+    start, end, dim, split, left, right, level = [0], [m], [-1], [0.0], [-1], [-1], [0]
+    stack = [0]
+    depth = 0
+    while stack:
+        nd = stack.pop()
+        s, e = start[nd], end[nd]
+        depth = max(depth, level[nd])
+        if e - s <= leaf:
+            continue
+        pts = Q[idx[s:e]]
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        k = 0
+        spread = hi[0] - lo[0]
+        for c in (1, 2):
+            if hi[c] - lo[c] > spread:
+                k, spread = c, hi[c] - lo[c]
+        if not spread > 0.0:
+            continue
+        sv = 0.5 * (lo[k] + hi[k])
+        i, jj = s, e - 1
+        while i <= jj:
+            if Q[idx[i], k] < sv:
+                i += 1
+            else:
+                idx[i], idx[jj] = idx[jj], idx[i]
+                jj -= 1
+        if i == s or i == e:
+            continue
+        dim[nd], split[nd] = k, sv
+        lc, rc = len(start), len(start) + 1
+        for a, b in ((s, i), (i, e)):
+            start.append(a)
+            end.append(b)
+            dim.append(-1)
+            split.append(0.0)
+            left.append(-1)
+            right.append(-1)
+            level.append(level[nd] + 1)
+        left[nd], right[nd] = lc, rc
+        stack += [lc, rc]
+    as_i = lambda v: np.asarray(v, dtype=np.int64)  # noqa: E731
+    return (idx, Q[idx], as_i(start), as_i(end), as_i(dim), np.asarray(split), as_i(left), as_i(right), depth)

@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from reference.naive_icp import (
     naive_evaluate,
+    naive_kd_build,
     naive_point_to_plane_system,
     naive_point_to_point_information,
     naive_umeyama,
@@ -221,6 +222,24 @@ def test_gated_kdtree_matches_brute_force(seed, n, d):
 
 
 # ---------------------------------------------------------------- kernels vs naive, determinism
+
+
+def test_kd_build_same_tree_as_two_pass_build(rng):
+    """The one-pass build (boxes accumulated while partitioning) gives the naive build's tree exactly."""
+    clouds = [
+        rng.normal(size=(n, 3)) for n in (1, 2, 13, 300, 1500)
+    ] + [
+        np.round(rng.normal(size=(800, 3)) * 3) / 3,  # many duplicates
+        np.zeros((40, 3)),  # no spread
+        np.c_[np.linspace(0, 1, 200), np.zeros(200), np.full(200, 1e6)],  # collinear, large offset
+        1e6 + rng.normal(size=(400, 3)) * 1e-9,  # spreads at rounding level
+    ]
+    for Q in clouds:
+        for leaf in (1, 2, K.KD_LEAF):
+            got = K.kd_build(np.ascontiguousarray(Q), leaf)
+            ref = naive_kd_build(Q, leaf)
+            for a, b in zip(got, ref, strict=True):
+                assert np.array_equal(a, b), (Q.shape, leaf)
 
 
 def test_kernels_match_naive_twins(rng):
