@@ -34,6 +34,11 @@ def n_chunks(m):
 #: machine: a prange launch under load can cost tens of ms, the serial pass over 2e4 pairs < 1 ms).
 #: Both drivers run the same chunk bodies in the same order, so the results are bit-identical.
 PARALLEL_MIN_ROWS = 1 << 18
+#: Nearest-neighbour queries cost ~1 µs per row (a tree descent), far more than the reductions'
+#: few flops, so the query switches to ``prange`` much earlier. Measured on the idle 2-core machine
+#: (the ICP stages of benchmarks/bench_registration.py): serial queries made minegeo's ICP
+#: 1.15-1.42x Open3D's time, parallel queries from 4096 rows bring it below 1.
+PARALLEL_QUERY_ROWS = 1 << 12
 
 
 # ----------------------------------------------------------------------------- validation helper
@@ -759,7 +764,7 @@ class GatedKDTree:
         n = P.shape[0]
         idx = np.empty(n, dtype=np.int64)
         sq = np.empty(n)
-        if n >= PARALLEL_MIN_ROWS:
+        if n >= PARALLEL_QUERY_ROWS:
             _kd_nn_parallel(P, *self._tree, float(d2), idx, sq)
         else:
             _kd_nn_serial(P, *self._tree, float(d2), idx, sq)
