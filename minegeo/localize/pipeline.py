@@ -596,9 +596,12 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
                              rr.second_best_rmse_m))
     # drop duplicates (same placement as an earlier candidate)
     uniq: list[tuple[str, np.ndarray, float, float]] = []
+    def _distinct(Ta, Tb) -> bool:
+        dist, ang = _placement_distance(Ta, Tb, centre)
+        return max(dist / p.ambiguity_distance_m, ang / p.ambiguity_angle_deg) > 1.0
+
     for c in cand:
-        if all(max(_placement_distance(c[1], u[1], centre)[0] / p.ambiguity_distance_m,
-                   _placement_distance(c[1], u[1], centre)[1] / p.ambiguity_angle_deg) > 1.0 for u in uniq):
+        if all(_distinct(c[1], u[1]) for u in uniq):
             uniq.append(c)
 
     # 3. ICP of every distinct hypothesis: screening on the feature-level scan (cheap), then the
