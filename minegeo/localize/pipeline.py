@@ -58,6 +58,7 @@ from minegeo._validate import as_points, check_positive
 from minegeo.errors import InputError, TooFewPointsError
 from minegeo.geometry.se3 import hat, rotation_angle
 from minegeo.io.types import PointCloud, Trajectory
+from minegeo.localize.correlative import CorrelativeParams, correlative_candidates
 from minegeo.localize.prepared import FAST_FEATURES, FeatureParams, PreparedMap, prepare_cloud_features
 from minegeo.localize.uncertainty import UncertaintyParams, pose_uncertainty
 from minegeo.registration.gicp import GICPParams, register_gicp
@@ -160,6 +161,14 @@ class LocalizeParams:
         points) only adds a warning.
     max_weak_displacement_95_m : float
         See ``degeneracy_ratio`` (m).
+    correlative : {"fallback", "always", "off"}
+        Levelled scans only (``ransac.model == "levelled"``): the correlative 4-DOF search of
+        the whole map (:mod:`minegeo.localize.correlative`, a minegeo addition) adds its best
+        distinct placements to RANSAC's hypotheses, either only when the RANSAC hypotheses
+        end ``failed`` (``"fallback"``, default: the fast path stays as fast) or always.
+        Its candidates go through the same ICP, verification and ambiguity test.
+    correlative_params : CorrelativeParams
+        Its grid and refinement settings.
     uncertainty : UncertaintyParams
         Pose covariance estimator (:mod:`minegeo.localize.uncertainty`; default the
         delete-one-block jackknife over 4 m blocks, calibrated in docs/uncertainty.md).
@@ -191,8 +200,14 @@ class LocalizeParams:
     icp_coarse_correspondence_m: float | None = 1.5
     max_weak_displacement_95_m: float = 0.15
     uncertainty: UncertaintyParams = field(default_factory=UncertaintyParams)
+    correlative: str = "fallback"
+    correlative_params: CorrelativeParams = field(default_factory=CorrelativeParams)
 
     def __post_init__(self):
+        if self.correlative not in ("off", "fallback", "always"):
+            raise InputError(f"correlative must be 'off', 'fallback' or 'always', got {self.correlative!r}")
+        if not isinstance(self.correlative_params, CorrelativeParams):
+            raise InputError("correlative_params must be a CorrelativeParams")
         if self.scan_octree_level is None:
             if self.scan_voxel_size_m is None:
                 raise InputError("give scan_voxel_size_m or scan_octree_level")
@@ -321,6 +336,8 @@ class LocalizationResult:
         The scan's surface noise ``σ_surf`` (m; NaN when not measured).
     n_scan_points, n_scan_down, n_scan_icp : int
         Scan points read, after downsampling (features, RANSAC) and in the ICP source.
+    correlative : dict or None
+        Record of the correlative search when it ran (``CorrelativeResult.to_dict``), else None.
     params : LocalizeParams
     map_params : PrepareParams
     seed : int
@@ -367,6 +384,7 @@ class LocalizationResult:
     ransac_T_map_scan: np.ndarray | None = None
     scan_points_down: np.ndarray | None = field(default=None, repr=False)
     residuals_m: np.ndarray | None = field(default=None, repr=False)
+    correlative: dict | None = None
 
     @property
     def ok(self) -> bool:
@@ -428,6 +446,7 @@ class LocalizationResult:
             "n_scan_points": self.n_scan_points,
             "n_scan_down": self.n_scan_down,
             "n_scan_icp": self.n_scan_icp,
+            "correlative": self.correlative,
             "params": {"localize": asdict(self.params), "map": asdict(self.map_params) if self.map_params else None},
             "seed": self.seed,
             "timings_s": self.timings_s,
@@ -552,7 +571,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
 
     # 1. scan features
     P_raw, scan_origin = _scan_points(scan_cloud)
-    D, _, F = prepare_cloud_features(P_raw, p.scan_voxel_size_m, p.scan_octree_level, p.features, timings)
+    D, Nd, F = prepare_cloud_features(P_raw, p.scan_voxel_size_m, p.scan_octree_level, p.features, timings)
     if D.shape[0] < p.min_scan_points:
         raise TooFewPointsError(
             f"the scan has only {D.shape[0]} points after downsampling ({p.describe_downsampling()}; "
@@ -625,103 +644,143 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     scan_noise = surface_noise_m(Dfine) if p.verify_noise_factor > 0 else math.nan
     if p.verify_noise_factor > 0:
         tol = max(tol, float(p.verify_noise_factor) * scan_noise)
-    # coarse pull-in (minegeo addition): RANSAC poses are often ~1 m off (4-DOF levelled
-    # hypotheses, 1 m voxels), beyond the 0.5 m ICP gate; a point-to-plane ICP of the
-    # feature-level scan with a wider gate brings them into the fine ICP's basin first.
-    if p.icp_coarse_correspondence_m is not None and uniq:
-        coarse_p = ICPParams(max_correspondence_distance_m=float(p.icp_coarse_correspondence_m),
-                             max_iterations=int(p.icp_max_iterations), relative_fitness=1e-6, relative_rmse=1e-6,
-                             method="point_to_plane", degeneracy_ratio_threshold=1e-12)
-        uniq = [(name, register_icp(D, Qf, T0, coarse_p, target_normals=Nf, target_index=tree).T_target_source,
-                 rf, rrmse) for name, T0, rf, rrmse in uniq]
-    screened = []
-    if len(uniq) > 1:
-        for c in uniq:
-            ic = _refine(D, c[1])
-            pf, prm = _verify(D, ic.T_target_source, Qf, Nf, tree, gate, tol)
-            screened.append((ic, pf, prm))
-        scores = [x[1] for x in screened]
-        fine_set = {i for i, pf in enumerate(scores) if pf >= p.ambiguity_ratio * max(scores)}
-        fine_set.add(int(np.argmax(scores)))
-    else:
-        fine_set = {0} if uniq else set()
-    refined = []
-    for i, (name, T0, rf, rrmse) in enumerate(uniq):
-        if i in fine_set:
-            ic = _refine(Dfine, T0)
-            pf, prm = _verify(Dfine, ic.T_target_source, Qf, Nf, tree, gate, tol)
-            refined.append((name, T0, rf, rrmse, ic, pf, prm))
-        else:  # screened out: keep the coarse ICP's score for the record
-            ic, pf, prm = screened[i]
-            refined.append((name + " (screened out on the coarse scan)", T0, rf, rrmse, ic, pf, prm))
-    timings["icp"] = time.perf_counter() - t0
+    def _evaluate(uniq):
+        """Steps 3-4 on a candidate list: returns the decision state (see below)."""
+        warnings_e: list[str] = []
+        t0 = time.perf_counter()
+        # coarse pull-in (minegeo addition): RANSAC poses are often ~1 m off (4-DOF levelled
+        # hypotheses, 1 m voxels), beyond the 0.5 m ICP gate; a point-to-plane ICP of the
+        # feature-level scan with a wider gate brings them into the fine ICP's basin first.
+        if p.icp_coarse_correspondence_m is not None and uniq:
+            coarse_p = ICPParams(max_correspondence_distance_m=float(p.icp_coarse_correspondence_m),
+                                 max_iterations=int(p.icp_max_iterations), relative_fitness=1e-6, relative_rmse=1e-6,
+                                 method="point_to_plane", degeneracy_ratio_threshold=1e-12)
+            uniq = [(name, register_icp(D, Qf, T0, coarse_p, target_normals=Nf, target_index=tree).T_target_source,
+                     rf, rrmse) for name, T0, rf, rrmse in uniq]
+        screened = []
+        if len(uniq) > 1:
+            for c in uniq:
+                ic = _refine(D, c[1])
+                pf, prm = _verify(D, ic.T_target_source, Qf, Nf, tree, gate, tol)
+                screened.append((ic, pf, prm))
+            scores = [x[1] for x in screened]
+            fine_set = {i for i, pf in enumerate(scores) if pf >= p.ambiguity_ratio * max(scores)}
+            fine_set.add(int(np.argmax(scores)))
+        else:
+            fine_set = {0} if uniq else set()
+        refined = []
+        for i, (name, T0, rf, rrmse) in enumerate(uniq):
+            if i in fine_set:
+                ic = _refine(Dfine, T0)
+                pf, prm = _verify(Dfine, ic.T_target_source, Qf, Nf, tree, gate, tol)
+                refined.append((name, T0, rf, rrmse, ic, pf, prm))
+            else:  # screened out: keep the coarse ICP's score for the record
+                ic, pf, prm = screened[i]
+                refined.append((name + " (screened out on the coarse scan)", T0, rf, rrmse, ic, pf, prm))
+        t_icp = time.perf_counter() - t0
 
-    # 4. decision
-    t0 = time.perf_counter()
-    hyps = []
-    best = None
-    if refined:
-        # fully refined hypotheses first (screened-out ones lost on the coarse scan already)
-        order = sorted(range(len(refined)),
-                       key=lambda i: ("screened out" in refined[i][0], -refined[i][5], -refined[i][4].fitness, i))
-        best = refined[order[0]]
-        Tb = best[4].T_target_source
-        for rank, i in enumerate(order):
-            name, T0, rf, rrmse, ic, pf, prm = refined[i]
-            dist, ang = _placement_distance(ic.T_target_source, Tb, centre)
-            hyps.append({
-                "rank": rank, "source": name, "ransac_fitness": rf, "ransac_inlier_rmse_m": rrmse,
-                "icp_fitness": ic.fitness, "icp_inlier_rmse_m": ic.inlier_rmse_m, "icp_iterations": ic.iterations,
-                "plane_fitness": pf, "plane_rmse_m": prm,
-                "distance_to_chosen_m": dist, "rotation_to_chosen_deg": ang,
-                "T_map_scan": _to_map(ic.T_target_source, scan_origin, prepared_map.work_origin),
-            })
-    status, reason = "ok", ""
-    weak = ""
-    ic_best = best[4] if best is not None else None
-    if best is None:
-        status = "failed"
-        reason = f"RANSAC found no placement of the scan in the map ({r0.reason})"
-    else:
-        f, e = ic_best.fitness, ic_best.inlier_rmse_m
-        pf_best = best[5]
-        rivals = [h for h in hyps[1:] if "screened out" not in h["source"] and (
-                  h["distance_to_chosen_m"] > p.ambiguity_distance_m
-                                           or h["rotation_to_chosen_deg"] > p.ambiguity_angle_deg)
-                  and h["plane_fitness"] >= p.ambiguity_ratio * pf_best]
-        if pf_best < p.min_plane_fitness:
+        # 4. decision
+        t0 = time.perf_counter()
+        hyps = []
+        best = None
+        if refined:
+            # fully refined hypotheses first (screened-out ones lost on the coarse scan already)
+            order = sorted(range(len(refined)),
+                           key=lambda i: ("screened out" in refined[i][0], -refined[i][5], -refined[i][4].fitness, i))
+            best = refined[order[0]]
+            Tb = best[4].T_target_source
+            for rank, i in enumerate(order):
+                name, T0, rf, rrmse, ic, pf, prm = refined[i]
+                dist, ang = _placement_distance(ic.T_target_source, Tb, centre)
+                hyps.append({
+                    "rank": rank, "source": name, "ransac_fitness": rf, "ransac_inlier_rmse_m": rrmse,
+                    "icp_fitness": ic.fitness, "icp_inlier_rmse_m": ic.inlier_rmse_m, "icp_iterations": ic.iterations,
+                    "plane_fitness": pf, "plane_rmse_m": prm,
+                    "distance_to_chosen_m": dist, "rotation_to_chosen_deg": ang,
+                    "T_map_scan": _to_map(ic.T_target_source, scan_origin, prepared_map.work_origin),
+                })
+        status, reason = "ok", ""
+        weak = ""
+        ic_best = best[4] if best is not None else None
+        if best is None:
             status = "failed"
-            reason = (f"the best placement has only {100 * pf_best:.0f} % of the scan points within "
-                      f"{tol:.3g} m of the map surface (need {100 * p.min_plane_fitness:.0f} %; "
-                      f"ICP fitness {f:.3f}): no placement matches the drift's shape — the scan is probably not in "
-                      "the mapped area, the map changed there, or the right place was not found")
-        elif f < p.min_fitness:
-            status = "failed"
-            reason = (f"the best placement explains only {100 * f:.0f} % of the scan points within "
-                      f"{p.icp_max_correspondence_m:g} m of the map (need {100 * p.min_fitness:.0f} %): the scan is "
-                      "probably not in the mapped area, or the map changed there")
-        elif e > p.max_inlier_rmse_m:
-            status = "failed"
-            reason = (f"the inlier RMSE {e:.3f} m exceeds {p.max_inlier_rmse_m:g} m: the scan does not fit the map "
-                      "closely enough")
-        elif rivals:
-            h = rivals[0]
-            status = "ambiguous"
-            reason = (f"another placement {h['distance_to_chosen_m']:.1f} m / {h['rotation_to_chosen_deg']:.1f} deg "
-                      f"away fits almost as well (plane fitness {h['plane_fitness']:.3f} vs {pf_best:.3f}, ratio >= "
-                      f"{p.ambiguity_ratio:g}): the drift repeats itself; extend the scan past a distinctive feature")
-        if status == "ok" and ic_best.degeneracy_ratio < p.degeneracy_ratio:
-            # decided after the covariance: a weak direction matters only if it leaves the pose uncertain
-            weak = (ic_best.degeneracy_reason or
-                    f"eigenvalue ratio {ic_best.degeneracy_ratio:.2e} < {p.degeneracy_ratio:g}")
-        if status == "ok":
-            reason = (f"ICP fitness {f:.3f}, inlier RMSE {e:.3f} m, plane fitness {pf_best:.3f}; "
-                      + (f"{len(hyps) - 1} other hypothesis(es) verified and clearly worse"
-                         if len(hyps) > 1 else "no competing hypothesis found by RANSAC"))
-        if r0.ambiguity_ratio >= p.ambiguity_ratio and not (status == "ambiguous" and rivals):
-            warnings.append(f"RANSAC's runner-up scored {r0.ambiguity_ratio:.2f} of the best; ICP verification "
-                            "separated them")
-    timings["decision"] = time.perf_counter() - t0
+            reason = f"RANSAC found no placement of the scan in the map ({r0.reason})"
+        else:
+            f, e = ic_best.fitness, ic_best.inlier_rmse_m
+            pf_best = best[5]
+            rivals = [h for h in hyps[1:] if "screened out" not in h["source"] and (
+                      h["distance_to_chosen_m"] > p.ambiguity_distance_m
+                                               or h["rotation_to_chosen_deg"] > p.ambiguity_angle_deg)
+                      and h["plane_fitness"] >= p.ambiguity_ratio * pf_best]
+            if pf_best < p.min_plane_fitness:
+                status = "failed"
+                reason = (f"the best placement has only {100 * pf_best:.0f} % of the scan points within "
+                          f"{tol:.3g} m of the map surface (need {100 * p.min_plane_fitness:.0f} %; "
+                          f"ICP fitness {f:.3f}): no placement matches the drift's shape — the scan is probably not in "
+                          "the mapped area, the map changed there, or the right place was not found")
+            elif f < p.min_fitness:
+                status = "failed"
+                reason = (f"the best placement explains only {100 * f:.0f} % of the scan points within "
+                          f"{p.icp_max_correspondence_m:g} m of the map (need {100 * p.min_fitness:.0f} %): the scan is "
+                          "probably not in the mapped area, or the map changed there")
+            elif e > p.max_inlier_rmse_m:
+                status = "failed"
+                reason = (f"the inlier RMSE {e:.3f} m exceeds {p.max_inlier_rmse_m:g} m: the scan does not fit the map "
+                          "closely enough")
+            elif rivals:
+                h = rivals[0]
+                status = "ambiguous"
+                reason = (f"another placement {h['distance_to_chosen_m']:.1f} m / {h['rotation_to_chosen_deg']:.1f} deg "
+                          f"away fits almost as well (plane fitness {h['plane_fitness']:.3f} vs {pf_best:.3f}, ratio >= "
+                          f"{p.ambiguity_ratio:g}): the drift repeats itself; extend the scan past a distinctive feature")
+            if status == "ok" and ic_best.degeneracy_ratio < p.degeneracy_ratio:
+                # decided after the covariance: a weak direction matters only if it leaves the pose uncertain
+                weak = (ic_best.degeneracy_reason or
+                        f"eigenvalue ratio {ic_best.degeneracy_ratio:.2e} < {p.degeneracy_ratio:g}")
+            if status == "ok":
+                reason = (f"ICP fitness {f:.3f}, inlier RMSE {e:.3f} m, plane fitness {pf_best:.3f}; "
+                          + (f"{len(hyps) - 1} other hypothesis(es) verified and clearly worse"
+                             if len(hyps) > 1 else "no competing hypothesis found by RANSAC"))
+            if r0.ambiguity_ratio >= p.ambiguity_ratio and not (status == "ambiguous" and rivals):
+                warnings_e.append(f"RANSAC's runner-up scored {r0.ambiguity_ratio:.2f} of the best; ICP verification "
+                                "separated them")
+        return {"uniq": uniq, "refined": refined, "hyps": hyps, "best": best, "status": status, "reason": reason,
+                "weak": weak, "ic_best": ic_best, "warnings": warnings_e, "t_icp": t_icp,
+                "t_decision": time.perf_counter() - t0}
+
+    # correlative 4-DOF search (minegeo addition, levelled scans only): proposes places that
+    # FPFH + RANSAC cannot (few or no correct descriptor matches); see correlative.py
+    use_corr = p.ransac.model == "levelled" and p.correlative != "off"
+    corr = None
+
+    def _with_correlative(uniq):
+        nonlocal corr
+        t0 = time.perf_counter()
+        occ = prepared_map.occupancy(p.correlative_params)
+        ref_xy = None
+        if trajectory is not None and isinstance(trajectory, Trajectory) and len(trajectory.poses):
+            ref_xy = np.median(np.asarray(trajectory.poses)[:, :2, 3] + np.asarray(trajectory.origin)[:2]
+                               - scan_origin[:2], axis=0)
+        corr = correlative_candidates(occ, D, Nd, p.correlative_params, seed=seed, reference_xy=ref_xy,
+                                      refine_target=(tree, Qf, Nf))
+        out = list(uniq)
+        for k, (Tc, frac) in enumerate(corr.candidates):
+            if all(_distinct(Tc, u[1]) for u in out):
+                out.append((f"correlative #{k + 1}", Tc, frac, math.nan))
+        timings["correlative"] = time.perf_counter() - t0
+        return out
+
+    if use_corr and p.correlative == "always":
+        uniq = _with_correlative(uniq)
+    ev = _evaluate(uniq)
+    if use_corr and p.correlative == "fallback" and ev["status"] == "failed":
+        t_first = ev["t_icp"] + ev["t_decision"]
+        ev = _evaluate(_with_correlative(uniq))
+        ev["t_icp"] += t_first
+    timings["icp"] = ev["t_icp"]
+    timings["decision"] = ev["t_decision"]
+    warnings.extend(ev["warnings"])
+    hyps, status, reason, weak, ic_best = ev["hyps"], ev["status"], ev["reason"], ev["weak"], ev["ic_best"]
 
     # 5. covariance (about the scan origin, work frame)
     t0 = time.perf_counter()
@@ -844,6 +903,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         params=p, map_params=prepared_map.params, seed=seed, timings_s=timings, warnings=warnings,
         ransac_T_map_scan=_to_map(r0.T_target_source, scan_origin, prepared_map.work_origin),
         scan_points_down=D + scan_origin, residuals_m=residuals,
+        correlative=None if corr is None else corr.to_dict(),
     )
     return res
 

@@ -324,6 +324,7 @@ class PreparedMap:
     _kdtree: object = field(default=None, repr=False, compare=False)
     _georef_obj: object = field(default=None, repr=False, compare=False)
     _gicp_cache: dict = field(default_factory=dict, repr=False, compare=False)
+    _occ_cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -336,6 +337,17 @@ class PreparedMap:
 
             self._kdtree = KDTree(self.icp_points)
         return self._kdtree
+
+    def occupancy(self, params):
+        """Occupancy table and floor anchors for the correlative search
+        (:func:`minegeo.localize.correlative.map_occupancy`), built once per process and per
+        cell setting."""
+        from minegeo.localize.correlative import map_occupancy
+
+        key = (float(params.cell_size_m), int(params.dilation_cells), float(params.anchor_max_tilt_deg))
+        if key not in self._occ_cache:
+            self._occ_cache[key] = map_occupancy(self.icp_points, self.points, self.normals, params)
+        return self._occ_cache[key]
 
     def gicp_target(self, params):
         """``(covariances (k, 3, 3), KD-tree)`` of ``icp_points`` for GICP, computed once per
