@@ -1,5 +1,11 @@
 """minegeo.localize: georeferencing a map and global localization of scans in it."""
 
+from minegeo.localize.correlative import (
+    CorrelativeParams,
+    CorrelativeResult,
+    correlative_candidates,
+    map_occupancy,
+)
 from minegeo.localize.crs import CRSInfo, crs_info, local_origin, validate_crs
 from minegeo.localize.georef import (
     GeorefParams,
@@ -45,6 +51,7 @@ __all__ = [
     "prepare_map",
 ]
 __all__ += ["PoseUncertainty", "UncertaintyParams", "pose_uncertainty"]
+__all__ += ["CorrelativeParams", "CorrelativeResult", "correlative_candidates", "map_occupancy"]
 
 
 def _warmup() -> None:
@@ -62,3 +69,6 @@ def _warmup() -> None:
     from minegeo.registration.ransac import RansacParams
 
     localize_scan(pm, P[::2], params=LocalizeParams(min_scan_points=10, ransac=RansacParams(max_iterations=2000)))
+    from minegeo.localize.correlative import _warmup as _corr_warmup
+
+    _corr_warmup()

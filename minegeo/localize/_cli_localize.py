@@ -48,6 +48,9 @@ def add_arguments(parser) -> None:
                         help="the scan frame is levelled (z up, e.g. by the scanner's IMU) like the map: RANSAC "
                              "draws 2-point yaw+translation hypotheses and rejects placements tilting the "
                              "vertical by more than DEG degrees (e.g. 3); ICP still refines all 6 DOF")
+    parser.add_argument("--correlative", default=None, choices=("fallback", "always", "off"),
+                        help="with --levelled: the exhaustive 4-DOF correlative search of the whole map adds its "
+                             "best placements when the RANSAC hypotheses fail (fallback, default), always, or never")
     parser.add_argument("--no-cache", action="store_true", help="do not read or write the prepared-map cache")
     parser.add_argument("--drop-nonfinite", action="store_true",
                         help="drop scan points with NaN/inf coordinates (organised PCD/PLY files mark missing "
@@ -95,6 +98,8 @@ def params_from_args(args):
         kw["icp_method"] = icp
     if getattr(args, "octree_level", None) is not None:
         kw["scan_octree_level"] = int(args.octree_level)
+    if getattr(args, "correlative", None) is not None:
+        kw["correlative"] = str(args.correlative)
     lp = replace(lp, **kw)
     rk = {}
     if getattr(args, "ransac_max_iterations", None) is not None:
