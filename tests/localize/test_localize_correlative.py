@@ -181,3 +181,20 @@ def test_localize_params_reject_unknown_mode():
 
     with pytest.raises(InputError):
         LocalizeParams(correlative="sometimes")
+
+
+def test_cli_correlative_option_reaches_the_params():
+    import argparse
+
+    from minegeo.localize import _cli_localize as C
+
+    ap = argparse.ArgumentParser()
+    C.add_arguments(ap)
+    args = ap.parse_args(["--map", "m.ply", "--scan", "s.ply", "--out", "o", "--levelled", "3",
+                          "--correlative", "always"])
+    _, lp = C.params_from_args(args)
+    assert lp.correlative == "always" and lp.ransac.model == "levelled"
+    _, lp = C.params_from_args(ap.parse_args(["--map", "m.ply", "--scan", "s.ply", "--out", "o"]))
+    assert lp.correlative == "fallback" and lp.ransac.model != "levelled"
+    with pytest.raises(SystemExit):
+        ap.parse_args(["--map", "m.ply", "--scan", "s.ply", "--out", "o", "--correlative", "maybe"])
