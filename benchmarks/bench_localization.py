@@ -169,12 +169,20 @@ def main(argv=None) -> int:
                          "max_tilt_deg = DEG); Open3D gets the same levelled scans")
     ap.add_argument("--imu-error-deg", type=float, default=0.3)
     ap.add_argument("--hypotheses", type=int, default=None, help="RansacParams.n_hypotheses for minegeo")
+    ap.add_argument("--select", default=None, metavar="EXPR",
+                    help="keep only the runs for which this Python expression over the run's fields is true, "
+                         "e.g. \"octree_level in (None, 6, 8)\" (scan seeds stay those of the whole plan)")
+    ap.add_argument("--merge", nargs="+", default=None, metavar="RESULTS_JSON",
+                    help="merge the results of earlier runs of the same plan (e.g. minegeo-only and "
+                         "Open3D-only) by scan into one table in --out, and exit")
     ap.add_argument("--map-cache", default=None,
                     help="PLY file holding the synthetic map: read if it exists, else built and written there "
                          "(the paper preset's map takes ~15-30 min to build)")
     ap.add_argument("--study", default="all", choices=("all", "length", "octree"),
                     help="length/sensor runs, octree-level runs, or both")
     args = ap.parse_args(argv)
+    if args.merge:
+        return _merge(args)
 
     from minegeo.localize import LocalizeParams, PrepareParams, localize_scan, prepare_map
     from minegeo.localize.pipeline import error_vs_truth
@@ -227,10 +235,14 @@ def main(argv=None) -> int:
     if args.limit:
         runs = runs[: args.limit]
     rng = np.random.default_rng(args.seed)
+    for run in runs:  # seeds drawn for the whole plan first: --select keeps the same scans
+        run["scan_seed"] = int(rng.integers(0, 2**31 - 1))
+    if args.select:
+        runs = [r for r in runs if eval(args.select, {}, dict(r))]  # noqa: S307 (benchmark filter)
     records = []
     for k, run in enumerate(runs):
         sec, noise = SECTIONS[run["section"]]
-        sseed = int(rng.integers(0, 2**31 - 1))
+        sseed = run["scan_seed"]
         t0 = time.perf_counter()
         try:
             c, tr, T_true = local_scan(world, sec, run["length_m"], _sensor(run["sensor"], noise), seed=sseed,
@@ -242,7 +254,7 @@ def main(argv=None) -> int:
             c, tr, T_true = level_scan(c, tr, T_true, np.random.default_rng(sseed), args.imu_error_deg)
         t_scan = time.perf_counter() - t0
         traj_pts = tr.poses[:, :3, 3]
-        rec = dict(run, scan_seed=sseed, n_points=len(c), t_synth_s=t_scan, results={})
+        rec = dict(run, n_points=len(c), t_synth_s=t_scan, results={})
         for prof in profiles:
             lp = LocalizeParams.fast() if prof == "fast" else LocalizeParams(
                 ransac=replace(LocalizeParams().ransac, max_iterations=args.ransac_max_iterations))
@@ -282,6 +294,29 @@ def main(argv=None) -> int:
               f"oct {run['octree_level']} n={len(c)}  {line}", file=sys.stderr, flush=True)
         _write(out, args, records, prep_s, t_world, t_warm, len(cloud))
     _write(out, args, records, prep_s, t_world, t_warm, len(cloud))
+    print((out / "table.md").read_text())
+    return 0
+
+
+def _merge(args) -> int:
+    """Join the per-scan results of several runs of the same plan (same preset, seed, options)."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    merged: dict = {}
+    prep_s: dict = {}
+    head = None
+    for f in args.merge:
+        d = json.loads(Path(f).read_text())
+        head = head or d
+        prep_s.update(d["prep_s"])
+        for r in d["records"]:
+            key = (r["section"], r["length_m"], r["sensor"], r["octree_level"], r["study"], r["scan_seed"])
+            if key in merged:
+                merged[key]["results"].update(r["results"])
+            else:
+                merged[key] = r
+    records = list(merged.values())
+    _write(out, args, records, prep_s, head["t_world_s"], head["t_warmup_s"], head["n_map_points"])
     print((out / "table.md").read_text())
     return 0
 

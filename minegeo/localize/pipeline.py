@@ -165,7 +165,9 @@ class LocalizeParams:
         Levelled scans only (``ransac.model == "levelled"``): the correlative 4-DOF search of
         the whole map (:mod:`minegeo.localize.correlative`, a minegeo addition) adds its best
         distinct placements to RANSAC's hypotheses, either only when the RANSAC hypotheses
-        end ``failed`` (``"fallback"``, default: the fast path stays as fast) or always.
+        do not give an ``ok`` result (``"fallback"``, default: the fast path stays as fast)
+        or always. Extra candidates can never turn a true ambiguity into ``ok``: the rival
+        that made it ambiguous is still verified.
         Its candidates go through the same ICP, verification and ambiguity test.
     correlative_params : CorrelativeParams
         Its grid and refinement settings.
@@ -773,7 +775,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     if use_corr and p.correlative == "always":
         uniq = _with_correlative(uniq)
     ev = _evaluate(uniq)
-    if use_corr and p.correlative == "fallback" and ev["status"] == "failed":
+    if use_corr and p.correlative == "fallback" and ev["status"] != "ok":
         t_first = ev["t_icp"] + ev["t_decision"]
         ev = _evaluate(_with_correlative(uniq))
         ev["t_icp"] += t_first
