@@ -75,12 +75,19 @@ class CorrelativeParams:
         point (a long-range sensor sees 100 m along a straight drift: far points would turn a
         half heading step into metres).
     n_coarse : int
-        Best distinct grid placements passed to the local refinement.
+        Grid placements passed to the local refinement: the best-ranked one of each
+        (``distinct_m`` cell of the scan centre, ``distinct_deg`` heading bin), best first.
+    screen_points : int
+        Refinement cascade, first stage: every one of the ``n_coarse`` placements gets three
+        Gauss-Newton steps (gates 1.5, 1.0, 0.7 m) on this many scan points and is scored.
+    n_refine : int
+        Second stage: the best ``n_refine`` of them get ``refine_iterations`` more steps
+        (gates 1.0 m → 0.5 m, linearly) on ``max_refine_points`` points and the final score.
     refine_iterations : int
-        Gauss-Newton iterations of the 4-DOF point-to-plane refinement (gates 1.5 m → 0.5 m).
+        Gauss-Newton iterations of the second stage.
     refine_tolerance_m : float
-        After refinement, a placement's score is the fraction of the sample within this
-        distance of the map's tangent planes (and 0.5 m of a map point).
+        After refinement, a placement's score is the fraction of the refinement points within
+        this distance of the map's tangent planes (and 0.5 m of a map point).
     min_hit_fraction : float
         Placements hitting fewer than this fraction of the sample are discarded (and their
         count is abandoned early).
@@ -99,14 +106,16 @@ class CorrelativeParams:
     yaw_step_deg: float = 3.0
     max_scan_points: int = 96
     early_miss_slack: float = 4.0
-    max_refine_points: int = 400
+    max_refine_points: int = 200
     min_hit_fraction: float = 0.6
     anchor_max_tilt_deg: float = 25.0
     sample_radius_m: float = 15.0
-    n_coarse: int = 200
-    refine_iterations: int = 6
+    n_coarse: int = 8000
+    screen_points: int = 64
+    n_refine: int = 300
+    refine_iterations: int = 4
     refine_tolerance_m: float = 0.2
-    n_candidates: int = 12
+    n_candidates: int = 24
     distinct_m: float = 1.5
     distinct_deg: float = 10.0
 
@@ -118,7 +127,7 @@ class CorrelativeParams:
         check_positive(self.sample_radius_m, "CorrelativeParams.sample_radius_m")
         check_positive(self.early_miss_slack, "CorrelativeParams.early_miss_slack")
         check_positive(self.refine_tolerance_m, "CorrelativeParams.refine_tolerance_m")
-        for name in ("dilation_cells", "max_scan_points", "n_candidates", "n_coarse", "refine_iterations",
+        for name in ("dilation_cells", "max_scan_points", "n_candidates", "n_coarse", "refine_iterations", "screen_points", "n_refine",
                      "max_refine_points"):
             v = getattr(self, name)
             if isinstance(v, bool) or int(v) != v or v < (0 if name == "dilation_cells" else 1):
@@ -135,6 +144,8 @@ class MapOccupancy:
 
     table: np.ndarray
     log2_capacity: int
+    tight: np.ndarray
+    log2_tight: int
     n_cells: int
     n_keys: int
     anchors: np.ndarray
@@ -202,49 +213,12 @@ def map_occupancy(icp_points: np.ndarray, points: np.ndarray, normals: np.ndarra
         if n <= (1 << log2) // 2:
             break
         log2 += 1
+    log2t = max(10, int(math.ceil(math.log2(max(1, cells.shape[0]) * 2))) + 1)
+    tight, _ = K.build_dilated_table(cells, 0, log2t)
     up = math.cos(math.radians(params.anchor_max_tilt_deg))
     anchors = np.ascontiguousarray(points[normals[:, 2] >= up], dtype=np.float64)
-    return MapOccupancy(table=table, log2_capacity=log2, n_cells=int(cells.shape[0]), n_keys=int(n),
+    return MapOccupancy(table=table, log2_capacity=log2, tight=tight, log2_tight=log2t, n_cells=int(cells.shape[0]), n_keys=int(n),
                         anchors=anchors, cell_size_m=c, dilation_cells=d, build_s=time.perf_counter() - t0)
-
-
-def _refine_4dof(S: np.ndarray, T: np.ndarray, tree, Q: np.ndarray, Nq: np.ndarray, iterations: int,
-                 tol: float) -> tuple[np.ndarray, int]:
-    """4-DOF point-to-plane Gauss-Newton (heading about the sample centroid + translation).
-
-    Minimises ``Σ (n_j · (Rz(δψ)(x_i − x̄) + x̄ + δt − q_j))²`` over matched pairs (nearest map
-    point within a gate shrinking from 1.5 m to 0.5 m), Levenberg damping ``1e-6·tr/4``.
-    Returns the refined ``T`` and the number of sample points within 0.5 m of a map point
-    and ``tol`` of its tangent plane.
-    """
-    T = T.copy()
-    gates = np.linspace(1.5, 0.5, max(1, iterations))
-    for g in gates:
-        X = S @ T[:3, :3].T + T[:3, 3]
-        d, idx = tree.query(X, k=1, distance_upper_bound=float(g))
-        idx = np.asarray(idx, dtype=np.int64).reshape(-1)
-        ok = idx < Q.shape[0]
-        if np.count_nonzero(ok) < 8:
-            break
-        x, q, n = X[ok], Q[idx[ok]], Nq[idx[ok]]
-        c = x.mean(axis=0)
-        r = np.einsum("ij,ij->i", x - q, n)
-        J = np.column_stack([-(x[:, 1] - c[1]) * n[:, 0] + (x[:, 0] - c[0]) * n[:, 1], n])
-        A = J.T @ J
-        A[np.diag_indices(4)] += 1e-6 * np.trace(A) / 4.0 + 1e-12
-        dx = np.linalg.solve(A, -J.T @ r)
-        cz, sz = math.cos(dx[0]), math.sin(dx[0])
-        Rd = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
-        Td = np.eye(4)
-        Td[:3, :3] = Rd
-        Td[:3, 3] = c - Rd @ c + dx[1:]
-        T = Td @ T
-    X = S @ T[:3, :3].T + T[:3, 3]
-    d, idx = tree.query(X, k=1, distance_upper_bound=0.5)
-    idx = np.asarray(idx, dtype=np.int64).reshape(-1)
-    ok = idx < Q.shape[0]
-    res = np.abs(np.einsum("ij,ij->i", X[ok] - Q[idx[ok]], Nq[idx[ok]]))
-    return T, int(np.count_nonzero(res < tol))
 
 
 def _distinct_select(cpos: np.ndarray, yaw: np.ndarray, order: np.ndarray, n_max: int, params) -> list[int]:
@@ -284,9 +258,11 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
     reference_xy : (2,) array_like, optional
         Where the scanner was (scan frame, m), e.g. the middle of its trajectory; the
         reference floor point is the one nearest to it (default: the median of the points).
-    refine_target : (KD-tree, points (k, 3), normals (k, 3)), optional
-        The map's ICP cloud (work frame) for the local 4-DOF refinement of the ``n_coarse``
-        best grid placements; without it the grid placements are returned as they are.
+    refine_target : (GatedKDTree, points (k, 3), normals (k, 3)), optional
+        The map's ICP cloud (work frame) and its gated KD-tree
+        (:func:`minegeo.registration.build_target_index`) for the local 4-DOF refinement of the
+        ``n_coarse`` best grid placements (:func:`_kernels.refine_placements_4dof`, ``prange``
+        over placements); without it the grid placements are returned as they are.
 
     Returns
     -------
@@ -325,9 +301,10 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
     max_miss = int(math.floor((1.0 - float(params.min_hit_fraction)) * m))
     timings["setup"] = time.perf_counter() - t0
     t1 = time.perf_counter()
-    scores = K.score_placements(occupancy.table, occupancy.log2_capacity, occupancy.cell_size_m, S,
-                                occupancy.anchors, np.cos(yaws), np.sin(yaws), max_miss,
-                                1.0 - float(params.min_hit_fraction), float(params.early_miss_slack))
+    scores, tight = K.score_placements(occupancy.table, occupancy.log2_capacity, occupancy.tight,
+                                       occupancy.log2_tight, occupancy.cell_size_m, S,
+                                       occupancy.anchors, np.cos(yaws), np.sin(yaws), max_miss,
+                                       1.0 - float(params.min_hit_fraction), float(params.early_miss_slack))
     timings["score"] = time.perf_counter() - t1
     t1 = time.perf_counter()
     flat = scores.ravel()
@@ -336,14 +313,20 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
     if keep.size == 0:
         return _empty(f"no placement hits {100 * params.min_hit_fraction:.0f} % of the scan sample "
                       f"(best {100 * best:.0f} %)", r, m)
-    keep = keep[np.argsort(-flat[keep], kind="stable")]
+    rank_score = flat[keep] + tight.ravel()[keep]  # hits within ~c(1+d), plus those within ~c
+    keep = keep[np.argsort(-rank_score, kind="stable")]
     ai, yi = np.divmod(keep, yaws.size)
     centre = P[near].mean(axis=0) - r
     cy, sy = np.cos(yaws[yi]), np.sin(yaws[yi])
     cpos = np.column_stack([cy * centre[0] - sy * centre[1], sy * centre[0] + cy * centre[1],
                             np.full(keep.size, centre[2])]) + occupancy.anchors[ai]
     n_first = int(params.n_coarse) if refine_target is not None else int(params.n_candidates)
-    chosen = _distinct_select(cpos, yaws[yi], np.arange(keep.size), n_first, params)
+    # one placement per (distinct_m cell of the scan centre, distinct_deg heading bin): the
+    # best-ranked one (np.unique keeps the first occurrence in this ranked order)
+    dm, dd = float(params.distinct_m), float(params.distinct_deg)
+    bins = np.column_stack([np.floor(cpos / dm), np.floor(np.rad2deg(yaws[yi]) / dd)]).astype(np.int64)
+    _, first = np.unique(bins, axis=0, return_index=True)
+    chosen = np.sort(first)[:n_first].tolist()
     Ts, fr = [], []
     for j in chosen:
         c, s = math.cos(yaws[yi[j]]), math.sin(yaws[yi[j]])
@@ -355,13 +338,26 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
     timings["select"] = time.perf_counter() - t1
     if refine_target is not None:
         t1 = time.perf_counter()
-        tree, Q, Nq = refine_target
-        Sr = np.ascontiguousarray(P[near[np.random.default_rng(seed + 1).permutation(near.size)
-                                              [: int(params.max_refine_points)]]])
-        refined = [_refine_4dof(Sr, T, tree, Q, Nq, int(params.refine_iterations), float(params.refine_tolerance_m))
-                   for T in Ts]
-        Ts = [x[0] for x in refined]
-        fr = [x[1] / Sr.shape[0] for x in refined]
+        index, Q, Nq = refine_target
+        Q = np.ascontiguousarray(Q)
+        Nq = np.ascontiguousarray(Nq)
+        perm = near[np.random.default_rng(seed + 1).permutation(near.size)[: int(params.max_refine_points)]]
+        tol = float(params.refine_tolerance_m)
+        # cascade: every grid placement gets a few cheap steps on a small subset, the best
+        # ``n_refine`` of them the full refinement on all refinement points
+        Sa = np.ascontiguousarray(P[perm[: int(params.screen_points)]])
+        T0s = np.ascontiguousarray(np.stack(Ts))
+        Ta = np.empty_like(T0s)
+        ca = np.zeros(T0s.shape[0], dtype=np.int64)
+        K.refine_placements_4dof(Sa, T0s, Q, Nq, *index._tree, np.array([1.5, 1.0, 0.7]) ** 2, tol, 0.25, Ta, ca)
+        top = np.argsort(-ca, kind="stable")[: int(params.n_refine)]
+        Sr = np.ascontiguousarray(P[perm])
+        Tb = np.empty((top.size, 4, 4))
+        cb = np.zeros(top.size, dtype=np.int64)
+        gates2 = np.linspace(1.0, 0.5, int(params.refine_iterations)) ** 2
+        K.refine_placements_4dof(Sr, np.ascontiguousarray(Ta[top]), Q, Nq, *index._tree, gates2, tol, 0.25, Tb, cb)
+        Ts = [Tb[k] for k in range(top.size)]
+        fr = [int(cb[k]) / Sr.shape[0] for k in range(top.size)]
         cen = P[near].mean(axis=0)
         cpos2 = np.array([T[:3, :3] @ cen + T[:3, 3] for T in Ts])
         yaw2 = np.array([math.atan2(T[1, 0], T[0, 0]) for T in Ts])

@@ -764,7 +764,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
             ref_xy = np.median(np.asarray(trajectory.poses)[:, :2, 3] + np.asarray(trajectory.origin)[:2]
                                - scan_origin[:2], axis=0)
         corr = correlative_candidates(occ, D, Nd, p.correlative_params, seed=seed, reference_xy=ref_xy,
-                                      refine_target=(tree, Qf, Nf))
+                                      refine_target=(prepared_map.target_index(), Qf, Nf))
         out = list(uniq)
         for k, (Tc, frac) in enumerate(corr.candidates):
             if all(_distinct(Tc, u[1]) for u in out):

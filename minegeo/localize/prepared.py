@@ -349,6 +349,15 @@ class PreparedMap:
             self._occ_cache[key] = map_occupancy(self.icp_points, self.points, self.normals, params)
         return self._occ_cache[key]
 
+    def target_index(self):
+        """Numba gated KD-tree over ``icp_points`` (:func:`minegeo.registration.build_target_index`),
+        built once per process (shared with :meth:`gicp_target`)."""
+        if "index" not in self._gicp_cache:
+            from minegeo.registration import build_target_index
+
+            self._gicp_cache["index"] = build_target_index(self.icp_points)
+        return self._gicp_cache["index"]
+
     def gicp_target(self, params):
         """``(covariances (k, 3, 3), KD-tree)`` of ``icp_points`` for GICP, computed once per
         process and per (ε, neighbours, covariance mode) from the stored ICP normals

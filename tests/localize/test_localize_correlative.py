@@ -44,14 +44,40 @@ def test_score_placements_equals_naive_twin():
     anchors = rng.uniform(-1.0, 1.0, (7, 3))
     yaws = np.deg2rad(np.arange(0.0, 360.0, 30.0))
     m = S.shape[0]
-    got = K.score_placements(table, 16, 0.5, S, anchors, np.cos(yaws), np.sin(yaws), m, 1.0, float(m))
+    tight, _ = K.build_dilated_table(cells, 0, 15)
+    got, got_t = K.score_placements(table, 16, tight, 15, 0.5, S, anchors, np.cos(yaws), np.sin(yaws), m, 1.0,
+                                    float(m))
     ref = np.array(score_placements(dilated_cells(Q, 0.5, 1), 0.5, S, anchors, yaws))
+    ref_t = np.array(score_placements(dilated_cells(Q, 0.5, 0), 0.5, S, anchors, yaws))
     np.testing.assert_array_equal(got, ref)
+    np.testing.assert_array_equal(got_t, ref_t)
     # early stopping only ever lowers a count, and never one that stayed above the bar
-    early = K.score_placements(table, 16, 0.5, S, anchors, np.cos(yaws), np.sin(yaws), 12, 0.3, 4.0)
+    early, _ = K.score_placements(table, 16, tight, 15, 0.5, S, anchors, np.cos(yaws), np.sin(yaws), 12, 0.3, 4.0)
     assert np.all(early <= ref)
     full = ref >= m - 12
     assert np.all(early[full & (early >= m - 12)] == ref[full & (early >= m - 12)])
+
+
+def test_refine_kernel_recovers_an_offset_placement():
+    """The 4-DOF Gauss-Newton kernel pulls a placement 0.4 m / 2 deg off back onto a box corner."""
+    from minegeo.registration import build_target_index
+
+    g = np.arange(0.0, 6.0, 0.1)
+    A, B = np.meshgrid(g, g, indexing="ij")
+    a, b = A.ravel(), B.ravel()
+    Q = np.vstack([np.column_stack([a, b, 0 * a]), np.column_stack([a, 0 * a, b]), np.column_stack([0 * a, a, b])])
+    Nq = np.vstack([np.tile(n, (a.size, 1)) for n in ([0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0])])
+    S = Q[np.random.default_rng(0).choice(Q.shape[0], 300, replace=False)]
+    psi = np.deg2rad(2.0)
+    T0 = np.eye(4)
+    T0[:3, :3] = [[np.cos(psi), -np.sin(psi), 0], [np.sin(psi), np.cos(psi), 0], [0, 0, 1]]
+    T0[:3, 3] = [0.3, -0.25, 0.1]
+    index = build_target_index(Q)
+    out_T = np.empty((1, 4, 4))
+    cnt = np.zeros(1, dtype=np.int64)
+    K.refine_placements_4dof(S, T0[None], Q, Nq, *index._tree, np.linspace(1.5, 0.5, 8) ** 2, 0.05, 0.25, out_T, cnt)
+    np.testing.assert_allclose(out_T[0], np.eye(4), atol=1e-6)
+    assert cnt[0] == S.shape[0]
 
 
 # ----------------------------------------------------------------------------- a small asymmetric mine
@@ -111,7 +137,7 @@ def test_correlative_search_recovers_a_levelled_placement(small_mine):
     cp = CorrelativeParams()
     occ = map_occupancy(pm.icp_points, pm.points, pm.normals, cp)
     assert occ.anchors.shape[0] > 50
-    r1 = correlative_candidates(occ, D, N, cp, seed=3, refine_target=(pm.kdtree, pm.icp_points, pm.icp_normals))
+    r1 = correlative_candidates(occ, D, N, cp, seed=3, refine_target=(pm.target_index(), pm.icp_points, pm.icp_normals))
     assert r1.candidates, r1.reason
     T0 = r1.candidates[0][0].copy()
     T0[:3, 3] += pm.work_origin
@@ -119,7 +145,7 @@ def test_correlative_search_recovers_a_levelled_placement(small_mine):
     Xt = X @ T_true[:3, :3].T + T_true[:3, 3]
     assert np.max(np.linalg.norm(Xm - Xt, axis=1)) < 0.3
     # deterministic: same inputs and seed, identical candidates
-    r2 = correlative_candidates(occ, D, N, cp, seed=3, refine_target=(pm.kdtree, pm.icp_points, pm.icp_normals))
+    r2 = correlative_candidates(occ, D, N, cp, seed=3, refine_target=(pm.target_index(), pm.icp_points, pm.icp_normals))
     assert len(r1.candidates) == len(r2.candidates)
     for (Ta, fa), (Tb, fb) in zip(r1.candidates, r2.candidates, strict=True):
         np.testing.assert_array_equal(Ta, Tb)
