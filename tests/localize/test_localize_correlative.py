@@ -184,6 +184,12 @@ def test_localize_fallback_and_always(small_mine):
     assert fb.correlative is not None and fb.correlative["n_candidates"] > 0
     assert fb.hypotheses[0]["source"].startswith("correlative")
     assert error_vs_truth(fb.T_map_scan, T_true, X)["max_point_error_m"] < 0.05
+    # bit-identical on a second run (same inputs and seed), correlative path included
+    fb2 = localize_scan(pm, X, None, replace(base, ransac=crippled, correlative="fallback"), seed=0)
+    np.testing.assert_array_equal(fb.T_map_scan, fb2.T_map_scan)
+    np.testing.assert_array_equal(fb.covariance_6x6, fb2.covariance_6x6)
+    assert [h["plane_fitness"] for h in fb.hypotheses] == [h["plane_fitness"] for h in fb2.hypotheses]
+    assert fb.correlative["hit_fractions"] == fb2.correlative["hit_fractions"]
     al = localize_scan(pm, X, None, replace(base, ransac=replace(crippled, max_iterations=100_000),
                                             correlative="always"), seed=0)
     assert al.status == "ok" and al.correlative is not None
