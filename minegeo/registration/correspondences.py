@@ -177,8 +177,11 @@ def feature_correspondences(
     applied = False
     reason = ""
     if mutual_filter:
-        i_loc, _ = nearest_rows(B, A)
-        keep = i_loc[j_loc] == np.arange(A.shape[0])
+        # only the target rows that some source row chose can be mutual: search back from
+        # those alone (exact search, same tie rule, so the same answer as searching from all)
+        uj, inv = np.unique(j_loc, return_inverse=True)
+        i_back, _ = nearest_rows(np.ascontiguousarray(B[uj]), A)
+        keep = i_back[inv.reshape(-1)] == np.arange(A.shape[0])
         need = int(np.float32(mutual_min_ratio) * A.shape[0])
         if int(keep.sum()) < need:
             reason = (

@@ -370,3 +370,20 @@ def test_repeated_correspondence_rejected_in_minegeo_mode(rng):
     # with replacement (Open3D mode) the repeated pair is kept; two distinct points leave the
     # rotation about their line undetermined, so the SVD model flags the sample as degenerate
     assert st_replace[0] == K.ST_EVALUATED and st_replace[1] == K.ST_DEGENERATE
+
+
+def test_mutual_filter_equals_full_cross_check():
+    """The back-search runs only from the chosen target rows; the result must equal the
+    textbook cross-check that searches back from every target row (ties included)."""
+    from minegeo.registration.correspondences import nearest_rows
+
+    r = np.random.default_rng(11)
+    ft = np.round(r.uniform(0, 3, (4000, 33)))  # coarse values: many exact ties
+    fs = np.vstack([ft[r.choice(4000, 300)] + r.normal(0, 0.3, (300, 33)), np.round(r.uniform(0, 3, (200, 33)))])
+    m = feature_correspondences(fs, ft, mutual_filter=True, mutual_min_ratio=0.0)
+    j, _ = nearest_rows(fs, ft)
+    i_back, _ = nearest_rows(ft, fs)
+    keep = i_back[j] == np.arange(fs.shape[0])
+    expected = np.stack([np.arange(fs.shape[0]), j], axis=1)[keep]
+    np.testing.assert_array_equal(m.pairs, expected)
+    assert 0 < len(m.pairs) < fs.shape[0]
