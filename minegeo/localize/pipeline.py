@@ -657,7 +657,9 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
             coarse_p = ICPParams(max_correspondence_distance_m=float(p.icp_coarse_correspondence_m),
                                  max_iterations=int(p.icp_max_iterations), relative_fitness=1e-6, relative_rmse=1e-6,
                                  method="point_to_plane", degeneracy_ratio_threshold=1e-12)
-            uniq = [(name, register_icp(D, Qf, T0, coarse_p, target_normals=Nf, target_index=tree).T_target_source,
+            # (correlative candidates were already refined with gates down to 0.5 m)
+            uniq = [(name, T0 if name.startswith("correlative") else
+                     register_icp(D, Qf, T0, coarse_p, target_normals=Nf, target_index=tree).T_target_source,
                      rf, rrmse) for name, T0, rf, rrmse in uniq]
         screened = []
         if len(uniq) > 1:
