@@ -181,6 +181,9 @@ def main(argv=None) -> int:
     ap.add_argument("--max-rays", type=int, default=100_000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="bench_out/uncertainty")
+    ap.add_argument("--levelled", type=float, default=None, metavar="DEG",
+                    help="re-express every scan in a levelled frame (0.3 deg IMU error) and localize it with the "
+                         "levelled 2-point model and the correlative fallback (as `minegeo localize --levelled DEG`)")
     args = ap.parse_args(argv)
     if args.quick:
         args.worlds, args.scans, args.cluster_sizes = "0", 16, "2,4"
@@ -197,10 +200,15 @@ def main(argv=None) -> int:
     est = estimators([float(h) for h in args.cluster_sizes.split(",") if h],
                      [float(f) for f in args.map_floors.split(",") if f])
     lp = LocalizeParams.fast() if args.profile == "fast" else LocalizeParams()
+    if args.levelled is not None:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from bench_localization import level_scan
+
+        lp = replace(lp, ransac=replace(lp.ransac, model="levelled", ransac_n=2, max_tilt_deg=float(args.levelled)))
     records: list[dict] = []
     t_start = time.perf_counter()
     t_unc = []
-    meta = {"worlds": worlds, "profile": args.profile, "scans_per_world": args.scans, "max_rays": args.max_rays,
+    meta = {"worlds": worlds, "profile": args.profile, "levelled_deg": args.levelled, "scans_per_world": args.scans, "max_rays": args.max_rays,
             "seed": args.seed, "estimators": {k: vars(v) if hasattr(v, "__dict__") else str(v) for k, v in est.items()}}
     for ws in worlds:
         world = build_world("small", ws)
@@ -223,6 +231,8 @@ def main(argv=None) -> int:
             try:
                 c, tr, T_true = local_scan(world, sec, length, _sensor(sen, noise), seed=sseed,
                                            kind="handheld" if sen == "flash" else "walk", max_rays=args.max_rays)
+                if args.levelled is not None:
+                    c, tr, T_true = level_scan(c, tr, T_true, np.random.default_rng(sseed), 0.3)
                 r = localize_scan(prepared, c, tr, lp, seed=args.seed)
             except Exception as exc:  # typed errors (tiny scan, section not in this world): not scored
                 rec.update(status="error", reason=f"{type(exc).__name__}: {exc}")

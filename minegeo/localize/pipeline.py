@@ -171,6 +171,12 @@ class LocalizeParams:
         Its candidates go through the same ICP, verification and ambiguity test.
     correlative_params : CorrelativeParams
         Its grid and refinement settings.
+    correlative_confirm_below_points : int
+        In ``"fallback"`` mode the search also runs after an ``ok`` result when the scan has
+        fewer feature-level points than this (1 m voxels: roughly its surface in m², e.g. a
+        10 m handheld flash scan): a small scan carries little shape, and the one wrong ``ok``
+        seen in the studies was such a scan, for which RANSAC had proposed only the wrong
+        place. The whole-map candidates then either confirm it or make it ``ambiguous``.
     uncertainty : UncertaintyParams
         Pose covariance estimator (:mod:`minegeo.localize.uncertainty`; default the
         delete-one-block jackknife over 4 m blocks, calibrated in docs/uncertainty.md).
@@ -204,6 +210,7 @@ class LocalizeParams:
     uncertainty: UncertaintyParams = field(default_factory=UncertaintyParams)
     correlative: str = "fallback"
     correlative_params: CorrelativeParams = field(default_factory=CorrelativeParams)
+    correlative_confirm_below_points: int = 400
 
     def __post_init__(self):
         if self.correlative not in ("off", "fallback", "always"):
@@ -242,9 +249,10 @@ class LocalizeParams:
             v = float(getattr(self, name))
             if not 0.0 <= v <= 1.0:
                 raise InputError(f"{name} must be in [0, 1], got {v!r}")
-        for name in ("ransac_runs", "icp_max_iterations", "min_scan_points"):
+        for name in ("ransac_runs", "icp_max_iterations", "min_scan_points", "correlative_confirm_below_points"):
             v = getattr(self, name)
-            if isinstance(v, bool) or int(v) != v or v < (0 if name == "icp_max_iterations" else 1):
+            if isinstance(v, bool) or int(v) != v or v < (
+                    0 if name in ("icp_max_iterations", "correlative_confirm_below_points") else 1):
                 raise InputError(f"{name} must be a positive integer, got {v!r}")
 
     @classmethod
@@ -777,7 +785,8 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     if use_corr and p.correlative == "always":
         uniq = _with_correlative(uniq)
     ev = _evaluate(uniq)
-    if use_corr and p.correlative == "fallback" and ev["status"] != "ok":
+    if use_corr and p.correlative == "fallback" and (
+            ev["status"] != "ok" or D.shape[0] < int(p.correlative_confirm_below_points)):
         t_first = ev["t_icp"] + ev["t_decision"]
         ev = _evaluate(_with_correlative(uniq))
         ev["t_icp"] += t_first

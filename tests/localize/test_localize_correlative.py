@@ -194,6 +194,14 @@ def test_localize_fallback_and_always(small_mine):
                                             correlative="always"), seed=0)
     assert al.status == "ok" and al.correlative is not None
     assert error_vs_truth(al.T_map_scan, T_true, X)["max_point_error_m"] < 0.05
+    # a small scan's `ok` is confirmed against the whole map (fallback mode), a large one's is not
+    lev = replace(base.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0, max_iterations=100_000)
+    big = localize_scan(pm, X, None, replace(base, ransac=lev, correlative_confirm_below_points=0), seed=0)
+    assert big.status == "ok" and big.correlative is None
+    small = localize_scan(pm, X, None, replace(base, ransac=lev, correlative_confirm_below_points=big.n_scan_down + 1),
+                          seed=0)
+    assert small.status == "ok" and small.correlative is not None
+    np.testing.assert_allclose(small.T_map_scan, big.T_map_scan, atol=1e-6)
     # a 6-DOF (not levelled) search never runs the correlative search
     six = localize_scan(pm, X, None, replace(base, ransac=replace(base.ransac, max_iterations=2000,
                                                                    min_iterations=0)), seed=0)
@@ -213,6 +221,8 @@ def test_localize_params_reject_unknown_mode():
 
     with pytest.raises(InputError):
         LocalizeParams(correlative="sometimes")
+    with pytest.raises(InputError):
+        LocalizeParams(correlative_confirm_below_points=-1)
 
 
 def test_cli_correlative_option_reaches_the_params():
