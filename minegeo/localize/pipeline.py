@@ -654,6 +654,16 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     scan_noise = surface_noise_m(Dfine) if p.verify_noise_factor > 0 else math.nan
     if p.verify_noise_factor > 0:
         tol = max(tol, float(p.verify_noise_factor) * scan_noise)
+    memo: dict = {}
+
+    def _once(stage, name, T, fn):
+        """ICP results of one candidate, computed once: the fallback re-evaluates RANSAC's
+        candidates together with the correlative ones (deterministic, so reuse is exact)."""
+        key = (stage, name, T.tobytes())
+        if key not in memo:
+            memo[key] = fn()
+        return memo[key]
+
     def _evaluate(uniq):
         """Steps 3-4 on a candidate list: returns the decision state (see below)."""
         warnings_e: list[str] = []
@@ -666,15 +676,18 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
                                  max_iterations=int(p.icp_max_iterations), relative_fitness=1e-6, relative_rmse=1e-6,
                                  method="point_to_plane", degeneracy_ratio_threshold=1e-12)
             # (correlative candidates were already refined with gates down to 0.5 m)
-            uniq = [(name, T0 if name.startswith("correlative") else
-                     register_icp(D, Qf, T0, coarse_p, target_normals=Nf, target_index=tree).T_target_source,
+            uniq = [(name, T0 if name.startswith("correlative") else _once(
+                        "coarse", name, T0, lambda T0=T0: register_icp(D, Qf, T0, coarse_p, target_normals=Nf,
+                                                                      target_index=tree).T_target_source),
                      rf, rrmse) for name, T0, rf, rrmse in uniq]
         screened = []
         if len(uniq) > 1:
+            def _screen(T0):
+                ic = _refine(D, T0)
+                return (ic, *_verify(D, ic.T_target_source, Qf, Nf, tree, gate, tol))
+
             for c in uniq:
-                ic = _refine(D, c[1])
-                pf, prm = _verify(D, ic.T_target_source, Qf, Nf, tree, gate, tol)
-                screened.append((ic, pf, prm))
+                screened.append(_once("screen", c[0], c[1], lambda T0=c[1]: _screen(T0)))
             scores = [x[1] for x in screened]
             fine_set = {i for i, pf in enumerate(scores) if pf >= p.ambiguity_ratio * max(scores)}
             fine_set.add(int(np.argmax(scores)))
@@ -683,8 +696,11 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         refined = []
         for i, (name, T0, rf, rrmse) in enumerate(uniq):
             if i in fine_set:
-                ic = _refine(Dfine, T0)
-                pf, prm = _verify(Dfine, ic.T_target_source, Qf, Nf, tree, gate, tol)
+                def _fine(T0):
+                    ic = _refine(Dfine, T0)
+                    return (ic, *_verify(Dfine, ic.T_target_source, Qf, Nf, tree, gate, tol))
+
+                ic, pf, prm = _once("fine", name, T0, lambda T0=T0: _fine(T0))
                 refined.append((name, T0, rf, rrmse, ic, pf, prm))
             else:  # screened out: keep the coarse ICP's score for the record
                 ic, pf, prm = screened[i]

@@ -362,14 +362,12 @@ class PreparedMap:
         """``(covariances (k, 3, 3), KD-tree)`` of ``icp_points`` for GICP, computed once per
         process and per (ε, neighbours, covariance mode) from the stored ICP normals
         (plane covariances ``I − (1 − ε) n nᵀ``, Ren 2019 Eqs. 2-3)."""
-        from minegeo.registration import build_target_index, estimate_gicp_covariances
+        from minegeo.registration import estimate_gicp_covariances
 
         key = (float(params.epsilon), int(params.covariance_neighbours), str(params.covariance_mode))
         if key not in self._gicp_cache:
-            if "index" not in self._gicp_cache:
-                self._gicp_cache["index"] = build_target_index(self.icp_points)
             self._gicp_cache[key] = estimate_gicp_covariances(self.icp_points, params, normals=self.icp_normals)
-        return self._gicp_cache[key], self._gicp_cache["index"]
+        return self._gicp_cache[key], self.target_index()
 
     @property
     def georef_result(self):
