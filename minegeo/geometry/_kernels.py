@@ -231,24 +231,27 @@ def hybrid_one(q0, q1, q2, r, r2, cap, pts, order, cell_start, origin, cell, inv
 
 
 @njit
-def search_one(q0, q1, q2, knn, r, cap, pts, order, cell_start, origin, cell, inv_cell,
+def search_one(q0, q1, q2, knn, r, rmax, cap, pts, order, cell_start, origin, cell, inv_cell,
                nx, ny, nz, morton, bits, table_keys, table_vals, buf_pos, buf_sq):
-    """Hybrid search (``knn`` False) or exact kNN (``knn`` True, ``cap`` = k <= number of points).
+    """Hybrid search (``knn`` False) or kNN bounded by ``rmax`` (``knn`` True).
 
-    kNN: hybrid searches with radius R = r, 2r, 4r, ... until ``cap`` points are found
-    strictly inside R. Every point outside R has sq >= R² > the k-th squared distance,
-    so the result is exactly the k nearest, ties broken by the lowest index.
+    kNN: hybrid searches with radius R = r, 2r, 4r, ... (capped at ``rmax``) until ``cap``
+    points are found strictly inside R or R reaches ``rmax``. Every point outside R has
+    sq >= R² > the k-th squared distance, so the result is exactly the hybrid search of
+    radius ``rmax`` (``rmax`` = inf: the exact k nearest), ties broken by the lowest index.
+    With a grid cell near the k-th neighbour distance this visits far fewer points than
+    one hybrid search of a radius much larger than that distance.
     """
     if not knn:
         return hybrid_one(q0, q1, q2, r, r * r, cap, pts, order, cell_start, origin, cell, inv_cell,
                           nx, ny, nz, morton, bits, table_keys, table_vals, buf_pos, buf_sq)
-    R = r
+    R = min(r, rmax)
     while True:
         cnt = hybrid_one(q0, q1, q2, R, R * R, cap, pts, order, cell_start, origin, cell, inv_cell,
                          nx, ny, nz, morton, bits, table_keys, table_vals, buf_pos, buf_sq)
-        if cnt >= cap:
+        if cnt >= cap or R >= rmax:
             return cnt
-        R *= 2.0
+        R = min(2.0 * R, rmax)
 
 
 @njit
@@ -333,7 +336,7 @@ def collect_one(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell,
 
 
 @njit
-def search_set_one(q0, q1, q2, knn, r, cap, pts, order, cell_start, origin, cell, inv_cell,
+def search_set_one(q0, q1, q2, knn, r, rmax, cap, pts, order, cell_start, origin, cell, inv_cell,
                    nx, ny, nz, morton, bits, table_keys, table_vals, big_pos, big_sq, buf_pos, buf_sq):
     """Same neighbour *set* as :func:`search_one`, in unspecified (deterministic) order.
 
@@ -342,20 +345,20 @@ def search_set_one(q0, q1, q2, knn, r, cap, pts, order, cell_start, origin, cell
     sorted insertion. Falls back to :func:`search_one` (sorted, into ``buf_*``) when the
     big buffer overflows. Returns (count, use_big).
     """
-    R = r
+    R = min(r, rmax) if knn else r
     while True:
         m = collect_one(q0, q1, q2, R, R * R, pts, cell_start, origin, cell, inv_cell, nx, ny, nz,
                         morton, bits, table_keys, table_vals, big_pos, big_sq)
         if m < 0:
-            cnt = search_one(q0, q1, q2, knn, R, cap, pts, order, cell_start, origin, cell, inv_cell,
+            cnt = search_one(q0, q1, q2, knn, R, rmax, cap, pts, order, cell_start, origin, cell, inv_cell,
                              nx, ny, nz, morton, bits, table_keys, table_vals, buf_pos, buf_sq)
             return cnt, False
         if m > cap:
             select_smallest(big_pos, big_sq, m, cap, order)
             return cap, True
-        if not knn or m == cap:
+        if not knn or m == cap or R >= rmax:
             return m, True
-        R *= 2.0
+        R = min(2.0 * R, rmax)
 
 
 @njit
@@ -401,8 +404,33 @@ def grid_radius_count(queries, qorder, r, pts, cell_start, origin, cell, inv_cel
                                       table_keys, table_vals)
 
 
+#: Caps from which :func:`grid_hybrid` selects instead of inserting in sorted order.
+_SELECT_MIN_CAP = 48
+
+
+@njit
+def _sort_by_sq_index(src_pos, src_sq, m, order, dst_pos, dst_sq):
+    """Write ``src_*[:m]`` into ``dst_*[:m]`` sorted by (squared distance, original index).
+
+    Stable sort by squared distance of the entries pre-sorted by index: ties go to the
+    lowest index, as in :func:`hybrid_one`'s sorted insertion.
+    """
+    ids = np.empty(m, dtype=np.int64)
+    for j in range(m):
+        ids[j] = order[src_pos[j]]
+    by_id = np.argsort(ids, kind="mergesort")
+    sqs = np.empty(m, dtype=np.float64)
+    for j in range(m):
+        sqs[j] = src_sq[by_id[j]]
+    by_sq = np.argsort(sqs, kind="mergesort")
+    for j in range(m):
+        k = by_id[by_sq[j]]
+        dst_pos[j] = src_pos[k]
+        dst_sq[j] = src_sq[k]
+
+
 @njit_parallel
-def grid_hybrid(queries, qorder, knn, r, cap, pts, order, cell_start, origin, cell, inv_cell, nx, ny, nz,
+def grid_hybrid(queries, qorder, knn, r, rmax, cap, pts, order, cell_start, origin, cell, inv_cell, nx, ny, nz,
                 morton, bits, table_keys, table_vals, out_idx, out_sq, out_counts):
     """Hybrid search for every query: rows of ``out_idx``/``out_sq`` padded with -1/inf.
 
@@ -411,14 +439,27 @@ def grid_hybrid(queries, qorder, knn, r, cap, pts, order, cell_start, origin, ce
     """
     nq = queries.shape[0]
     nblocks = (nq + _BLOCK - 1) // _BLOCK
+    use_select = cap >= _SELECT_MIN_CAP
+    big = 16 * cap if use_select else 1
     for b in prange(nblocks):
         buf_pos = np.empty(max(cap, 1), dtype=np.int64)
         buf_sq = np.empty(max(cap, 1), dtype=np.float64)
+        big_pos = np.empty(big, dtype=np.int64)
+        big_sq = np.empty(big, dtype=np.float64)
         for t in range(b * _BLOCK, min(nq, (b + 1) * _BLOCK)):
             i = qorder[t]
             cnt = 0
-            if cap > 0:
-                cnt = search_one(queries[i, 0], queries[i, 1], queries[i, 2], knn, r, cap, pts,
+            if cap > 0 and use_select:
+                # large caps: collect + quickselect + one sort (O(m + cap log cap)) instead of
+                # the O(m * cap) sorted insertion; identical rows (same set, same order)
+                cnt, use_big = search_set_one(queries[i, 0], queries[i, 1], queries[i, 2], knn, r, rmax, cap,
+                                              pts, order, cell_start, origin, cell, inv_cell, nx, ny, nz,
+                                              morton, bits, table_keys, table_vals, big_pos, big_sq, buf_pos,
+                                              buf_sq)
+                if use_big:
+                    _sort_by_sq_index(big_pos, big_sq, cnt, order, buf_pos, buf_sq)
+            elif cap > 0:
+                cnt = search_one(queries[i, 0], queries[i, 1], queries[i, 2], knn, r, rmax, cap, pts,
                                  order, cell_start, origin, cell, inv_cell, nx, ny, nz, morton, bits,
                                  table_keys, table_vals, buf_pos, buf_sq)
             for j in range(cnt):
@@ -871,7 +912,7 @@ def _normal_from_neighbors(points, nbr, cnt, qi, oi, mode_open3d, degenerate_rat
 
 
 @njit_parallel
-def normals_hybrid_fused(knn, r, cap, mode_open3d, degenerate_ratio, pts, order, cell_start,
+def normals_hybrid_fused(knn, r, rmax, cap, mode_open3d, degenerate_ratio, pts, order, cell_start,
                          origin, cell, inv_cell, nx, ny, nz, morton, bits, table_keys, table_vals,
                          out_n, out_eval, out_status, out_counts):
     """Neighbour search + PCA for every indexed point without materialising the neighbourhoods.
@@ -896,13 +937,13 @@ def normals_hybrid_fused(knn, r, cap, mode_open3d, degenerate_ratio, pts, order,
         for t in range(b * _BLOCK, min(n, (b + 1) * _BLOCK)):
             i = order[t]
             if mode_open3d:
-                cnt = search_one(pts[t, 0], pts[t, 1], pts[t, 2], knn, r, cap, pts, order,
+                cnt = search_one(pts[t, 0], pts[t, 1], pts[t, 2], knn, r, rmax, cap, pts, order,
                                  cell_start, origin, cell, inv_cell, nx, ny, nz, morton, bits,
                                  table_keys, table_vals, buf_pos, buf_sq)
                 _normal_from_neighbors(pts, buf_pos, cnt, t, i, mode_open3d, degenerate_ratio, A, V,
                                        w, tmp, out_n, out_eval, out_status)
             else:
-                cnt, use_big = search_set_one(pts[t, 0], pts[t, 1], pts[t, 2], knn, r, cap, pts, order,
+                cnt, use_big = search_set_one(pts[t, 0], pts[t, 1], pts[t, 2], knn, r, rmax, cap, pts, order,
                                               cell_start, origin, cell, inv_cell, nx, ny, nz, morton,
                                               bits, table_keys, table_vals, big_pos, big_sq, buf_pos,
                                               buf_sq)

@@ -219,7 +219,7 @@ class NeighborIndex:
         idx = np.empty((m, kk), dtype=np.int64)
         sq = np.empty((m, kk), dtype=np.float64)
         cnt = np.empty(m, dtype=np.int64)
-        K.grid_hybrid(sample, g0.query_order(sample, False), True, h0, kk, g0.pts, g0.order, *g0.args(),
+        K.grid_hybrid(sample, g0.query_order(sample, False), True, h0, np.inf, kk, g0.pts, g0.order, *g0.args(),
                       idx, sq, cnt)
         dk = np.sqrt(sq[:, kk - 1])
         med, p90 = float(np.median(dk)), float(np.quantile(dk, 0.9))
@@ -259,14 +259,31 @@ class NeighborIndex:
         cap = _check_int(max_nn, "max_nn")
         return self._hybrid(q, r, cap, "hybrid")
 
+    def _hybrid_plan(self, r: float, cap: int) -> tuple[bool, float, _Grid]:
+        """How to run a hybrid search of radius ``r`` and cap ``cap``: (knn flag, start radius, grid).
+
+        When the cap is reached well inside ``r`` (dense cloud, large radius: the estimated
+        90th-percentile ``cap``-th neighbour distance is below r), search as a kNN bounded
+        by ``r`` on a grid sized for ``cap`` neighbours (:func:`_kernels.search_one`): same
+        neighbours, same order, but only the points near the ``cap``-th distance are visited
+        instead of every point within ``r`` (e.g. 5 m FPFH balls of an unreduced 20 m scan).
+        Otherwise: one search of radius ``r`` on a grid of cell ``r``.
+        """
+        n = self.points.shape[0]
+        if self.cell_size_m is None and cap < n:
+            cell, r0 = self._knn_cell(cap)
+            if r0 < r:
+                return True, r0, self._grid_cell(cell)
+        return False, r, self._grid(r)
+
     def _hybrid(self, q: np.ndarray, r: float, cap: int, kind: str) -> Neighborhoods:
-        g = self._grid(r)
+        knn, r0, g = self._hybrid_plan(r, cap) if kind == "hybrid" else (False, r, self._grid(r))
         m = q.shape[0]
         idx = np.empty((m, cap), dtype=np.int64)
         sq = np.empty((m, cap), dtype=np.float64)
         cnt = np.empty(m, dtype=np.int64)
         qorder = g.query_order(q, q is self.points)
-        K.grid_hybrid(q, qorder, False, r, cap, g.pts, g.order, *g.args(), idx, sq, cnt)
+        K.grid_hybrid(q, qorder, knn, r0, r, cap, g.pts, g.order, *g.args(), idx, sq, cnt)
         return Neighborhoods(idx, sq, cnt, kind, r, cap if kind == "hybrid" else None)
 
     def iter_hybrid(self, queries, radius_m: float, max_nn: int, chunk_size: int = 1 << 18
@@ -326,6 +343,6 @@ class NeighborIndex:
         idx = np.empty((m, kk), dtype=np.int64)
         sq = np.empty((m, kk), dtype=np.float64)
         cnt = np.empty(m, dtype=np.int64)
-        K.grid_hybrid(q, g.query_order(q, q is self.points), True, r0, kk, g.pts, g.order, *g.args(),
+        K.grid_hybrid(q, g.query_order(q, q is self.points), True, r0, np.inf, kk, g.pts, g.order, *g.args(),
                       idx, sq, cnt)
         return Neighborhoods(idx, sq, cnt, "knn", None, k)

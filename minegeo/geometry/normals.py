@@ -243,13 +243,13 @@ def estimate_normals(points, params: NormalParams | None = None, orient_towards=
             raise InputError("index was built on a different cloud than points")
         counts = np.empty(n, dtype=np.int64)
         if params.radius_m is not None:
-            knn, r, cap = False, float(params.radius_m), int(params.max_nn)
-            g = index._grid(r)
+            rmax, cap = float(params.radius_m), int(params.max_nn)
+            knn, r, g = index._hybrid_plan(rmax, cap)
         else:
-            knn, cap = True, min(int(params.max_nn), n)
+            knn, cap, rmax = True, min(int(params.max_nn), n), np.inf
             cell, r = index._knn_cell(cap)
             g = index._grid_cell(cell)
-        K.normals_hybrid_fused(knn, r, cap, mode_o3d, ratio, g.pts, g.order, *g.args(),
+        K.normals_hybrid_fused(knn, r, rmax, cap, mode_o3d, ratio, g.pts, g.order, *g.args(),
                                normals, evals, status, counts)
     timings["search_and_pca"] = time.perf_counter() - t0
 

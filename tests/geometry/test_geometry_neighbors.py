@@ -60,6 +60,31 @@ def test_ties_are_broken_by_index_and_radius_is_strict():
         _assert_rows_equal(idx.knn(pts, k), naive_neighbors(pts, pts, None, k))
 
 
+def test_dense_cloud_large_radius_paths_match_bruteforce():
+    """Radius far beyond the cap-th neighbour: the bounded-kNN plan and the select+sort path.
+
+    A 20 m scan left unreduced (octree level 10-12) has its 1000th neighbour at ~1 m while
+    FPFH searches 5 m; the index then searches as a kNN bounded by the radius on a finer
+    grid and selects instead of inserting. Rows must equal the brute force exactly, ties
+    (lattice points) included, for caps on both sides of the selection threshold.
+    """
+    from minegeo.geometry import _kernels as K
+
+    rng = np.random.default_rng(3)
+    g = np.stack(np.meshgrid(np.arange(14.0), np.arange(14.0), np.arange(14.0), indexing="ij"), -1).reshape(-1, 3)
+    pts = np.vstack([g * 0.1, rng.uniform(0, 1.3, (800, 3))])  # lattice ties + random
+    pts = pts[rng.permutation(pts.shape[0])]
+    q = np.vstack([pts[::97], [[0.65, 0.65, 3.0], [-0.3, 0.2, 0.1]]])  # incl. a query outside the cloud
+    idx = NeighborIndex(pts)
+    for r, cap in [(1.0, 60), (1.0, K._SELECT_MIN_CAP - 1), (0.9, 200), (5.0, 3000)]:
+        knn, r0, _ = idx._hybrid_plan(r, cap)
+        assert knn and r0 < r  # the dense plan is the one under test
+        _assert_rows_equal(idx.hybrid(q, r, cap), naive_neighbors(pts, q, r, cap))
+    # the query far outside reaches the radius with fewer than cap points: hybrid semantics
+    nb = idx.hybrid(np.array([[0.65, 0.65, 2.2]]), 1.0, 200)
+    assert 0 < nb.counts[0] < 200
+
+
 def test_knn_matches_bruteforce(cloud):
     idx = NeighborIndex(cloud)
     q = cloud[::7]

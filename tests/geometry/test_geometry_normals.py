@@ -63,6 +63,23 @@ def test_crowded_neighbourhoods_take_the_fallback_path_correctly():
         assert _angle_up_to_sign(res.normals[ok], nrm[ok]).max() < 1e-8
 
 
+def test_radius_far_beyond_cap_uses_bounded_knn_with_the_same_neighbours(tunnel):
+    """Dense cloud, radius >> max_nn-th neighbour (unreduced scan, 2 m normals): the fused
+    search runs as a kNN bounded by the radius; neighbour sets equal the brute force."""
+    pts, _ = tunnel
+    idx = NeighborIndex(pts)
+    assert idx._hybrid_plan(3.0, 60)[0]
+    naive_nb = naive_neighbors(pts, pts, 3.0, 60)
+    nrm, ev = naive_normals(pts, [i for i, _ in naive_nb])
+    for mode in ("accurate", "open3d"):
+        res = estimate_normals(pts, NormalParams(radius_m=3.0, max_nn=60, mode=mode), index=idx)
+        ok = res.status == STATUS_OK
+        assert ok.mean() > 0.95
+        np.testing.assert_array_equal(res.counts, [i.size for i, _ in naive_nb])
+        assert _angle_up_to_sign(res.normals[ok], nrm[ok]).max() < 1e-8
+        np.testing.assert_allclose(res.eigenvalues[ok], ev[ok], rtol=1e-8, atol=1e-15)
+
+
 def test_knn_mode_and_given_neighborhoods_agree(tunnel):
     pts, _ = tunnel
     for mode in ("accurate", "open3d"):
