@@ -681,54 +681,64 @@ def kd_build(Q, leaf):
 
 
 @njit
+def kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, left, right, d2, st_node, st_lb):
+    """Gated nearest neighbour of ``(px, py, pz)`` on a :func:`kd_build` tree.
+
+    ``(best, best_j)`` is the starting bound: ``(d2, m)`` for a cold search, or a known
+    point's ``(sq, index)`` with ``sq < d2`` (a warm start: same answer, fewer nodes). Returns
+    the lexicographically smallest ``(sq, index)`` with ``sq < d2``
+    (``sq = dx*dx + dy*dy + dz*dz``), or the start bound when none is closer. ``st_node`` /
+    ``st_lb`` are caller-owned stacks of length ``depth + 2``.
+    """
+    st_node[0] = 0
+    st_lb[0] = 0.0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        nd = st_node[sp]
+        if st_lb[sp] > best:
+            continue
+        while dim[nd] >= 0:
+            k = dim[nd]
+            if k == 0:
+                diff = px - split[nd]
+            elif k == 1:
+                diff = py - split[nd]
+            else:
+                diff = pz - split[nd]
+            if diff < 0.0:
+                near = left[nd]
+                far = right[nd]
+            else:
+                near = right[nd]
+                far = left[nd]
+            dd = diff * diff
+            if dd <= best:
+                st_node[sp] = far
+                st_lb[sp] = dd
+                sp += 1
+            nd = near
+        for a in range(start[nd], end[nd]):
+            dx = px - Qs[a, 0]
+            dy = py - Qs[a, 1]
+            dz = pz - Qs[a, 2]
+            sq = dx * dx + dy * dy + dz * dz
+            if sq < d2:
+                j = idx[a]
+                if sq < best or (sq == best and j < best_j):
+                    best = sq
+                    best_j = j
+    return best, best_j
+
+
+@njit
 def _kd_nn_rows(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq, r0, r1):
     m = idx.shape[0]
     st_node = np.empty(depth + 2, np.int64)
     st_lb = np.empty(depth + 2)
     for i in range(r0, r1):
-        px = P[i, 0]
-        py = P[i, 1]
-        pz = P[i, 2]
-        best = d2
-        best_j = m
-        st_node[0] = 0
-        st_lb[0] = 0.0
-        sp = 1
-        while sp > 0:
-            sp -= 1
-            nd = st_node[sp]
-            if st_lb[sp] > best:
-                continue
-            while dim[nd] >= 0:
-                k = dim[nd]
-                if k == 0:
-                    diff = px - split[nd]
-                elif k == 1:
-                    diff = py - split[nd]
-                else:
-                    diff = pz - split[nd]
-                if diff < 0.0:
-                    near = left[nd]
-                    far = right[nd]
-                else:
-                    near = right[nd]
-                    far = left[nd]
-                dd = diff * diff
-                if dd <= best:
-                    st_node[sp] = far
-                    st_lb[sp] = dd
-                    sp += 1
-                nd = near
-            for a in range(start[nd], end[nd]):
-                dx = px - Qs[a, 0]
-                dy = py - Qs[a, 1]
-                dz = pz - Qs[a, 2]
-                sq = dx * dx + dy * dy + dz * dz
-                if sq < d2:
-                    j = idx[a]
-                    if sq < best or (sq == best and j < best_j):
-                        best = sq
-                        best_j = j
+        best, best_j = kd_nn_descend(P[i, 0], P[i, 1], P[i, 2], d2, m, idx, Qs, start, end, dim, split, left,
+                                     right, d2, st_node, st_lb)
         out_idx[i] = best_j
         out_sq[i] = best if best_j < m else np.inf
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
 from minegeo.geometry._kernels import _normal_from_neighbors, fast_eigen3x3
-from minegeo.registration._kernels import CHUNK, _add_partials, kd_build, n_chunks
+from minegeo.registration._kernels import CHUNK, _add_partials, kd_build, kd_nn_descend, n_chunks
 
 #: Below this many pairs (or search queries) the serial driver is used. Measured on the shared
 #: 2-core machine under load (load average ~9): for 10^4 pairs the prange drivers made a whole
@@ -386,44 +386,8 @@ def _nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2,
             if sq0 < d2:
                 best = sq0
                 best_j = j0
-        st_node[0] = 0
-        st_lb[0] = 0.0
-        sp = 1
-        while sp > 0:
-            sp -= 1
-            nd = st_node[sp]
-            if st_lb[sp] > best:
-                continue
-            while dim[nd] >= 0:
-                k = dim[nd]
-                if k == 0:
-                    diff = px - split[nd]
-                elif k == 1:
-                    diff = py - split[nd]
-                else:
-                    diff = pz - split[nd]
-                if diff < 0.0:
-                    near = left[nd]
-                    far = right[nd]
-                else:
-                    near = right[nd]
-                    far = left[nd]
-                dd = diff * diff
-                if dd <= best:
-                    st_node[sp] = far
-                    st_lb[sp] = dd
-                    sp += 1
-                nd = near
-            for a in range(start[nd], end[nd]):
-                dx = px - Qs[a, 0]
-                dy = py - Qs[a, 1]
-                dz = pz - Qs[a, 2]
-                sq = dx * dx + dy * dy + dz * dz
-                if sq < d2:
-                    j = idx[a]
-                    if sq < best or (sq == best and j < best_j):
-                        best = sq
-                        best_j = j
+        best, best_j = kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, left, right, d2,
+                                     st_node, st_lb)
         out_idx[i] = best_j
         out_sq[i] = best if best_j < m else np.inf
 
