@@ -353,30 +353,31 @@ def umeyama_small_kernel(P, Q, with_scale):
 
 
 @njit
+def _p2l_add(part, c, J, px, py, pz, qx, qy, qz, nx, ny, nz):
+    """Add one point-to-plane pair to row ``c`` of ``part``: the upper triangle of ``JᵀJ``
+    (21), ``Jᵀr`` (6) and ``r²`` (1), with ``r = (p − q)·n`` and ``J = [p × n, n]``."""
+    r = (px - qx) * nx + (py - qy) * ny + (pz - qz) * nz
+    J[0] = py * nz - pz * ny
+    J[1] = pz * nx - px * nz
+    J[2] = px * ny - py * nx
+    J[3] = nx
+    J[4] = ny
+    J[5] = nz
+    k = 0
+    for a in range(6):
+        for b in range(a, 6):
+            part[c, k] += J[a] * J[b]
+            k += 1
+    for a in range(6):
+        part[c, 21 + a] += J[a] * r
+    part[c, 27] += r * r
+
+
+@njit
 def _p2l_rows(P, Q, N, part, c, start, end):
     J = np.empty(6)
     for i in range(start, end):
-        px = P[i, 0]
-        py = P[i, 1]
-        pz = P[i, 2]
-        nx = N[i, 0]
-        ny = N[i, 1]
-        nz = N[i, 2]
-        r = (px - Q[i, 0]) * nx + (py - Q[i, 1]) * ny + (pz - Q[i, 2]) * nz
-        J[0] = py * nz - pz * ny
-        J[1] = pz * nx - px * nz
-        J[2] = px * ny - py * nx
-        J[3] = nx
-        J[4] = ny
-        J[5] = nz
-        k = 0
-        for a in range(6):
-            for b in range(a, 6):
-                part[c, k] += J[a] * J[b]
-                k += 1
-        for a in range(6):
-            part[c, 21 + a] += J[a] * r
-        part[c, 27] += r * r
+        _p2l_add(part, c, J, P[i, 0], P[i, 1], P[i, 2], Q[i, 0], Q[i, 1], Q[i, 2], N[i, 0], N[i, 1], N[i, 2])
 
 
 @njit
@@ -794,27 +795,8 @@ def _p2l_idx_serial(P, Q, N, si, ti, part):
         for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
             a_ = si[i]
             b_ = ti[i]
-            px = P[a_, 0]
-            py = P[a_, 1]
-            pz = P[a_, 2]
-            nx = N[b_, 0]
-            ny = N[b_, 1]
-            nz = N[b_, 2]
-            r = (px - Q[b_, 0]) * nx + (py - Q[b_, 1]) * ny + (pz - Q[b_, 2]) * nz
-            J[0] = py * nz - pz * ny
-            J[1] = pz * nx - px * nz
-            J[2] = px * ny - py * nx
-            J[3] = nx
-            J[4] = ny
-            J[5] = nz
-            k = 0
-            for a in range(6):
-                for b in range(a, 6):
-                    part[c, k] += J[a] * J[b]
-                    k += 1
-            for a in range(6):
-                part[c, 21 + a] += J[a] * r
-            part[c, 27] += r * r
+            _p2l_add(part, c, J, P[a_, 0], P[a_, 1], P[a_, 2], Q[b_, 0], Q[b_, 1], Q[b_, 2], N[b_, 0], N[b_, 1],
+                     N[b_, 2])
 
 
 def point_to_plane_system_idx(P, Q, N, si, ti):

@@ -50,7 +50,7 @@ from minegeo.geometry.se3 import rotation_from_euler_xyz
 from minegeo.registration import _kernels as K
 from minegeo.registration import _kernels_gicp as KG
 from minegeo.registration.evaluation import is_identity
-from minegeo.registration.icp import ICPResult, constraint_analysis
+from minegeo.registration.icp import ICPResult, constraint_analysis, final_diagnosis
 
 __all__ = [
     "GICPParams",
@@ -564,30 +564,10 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
             c_ev, c_vec, ratio, reason = np.zeros(6), np.eye(6), 0.0, "no correspondences"
     sigma = float(np.sqrt(cost / (3 * k - 6))) if 3 * k > 6 else 0.0
 
-    reasons = []
-    if k == 0:
-        reasons.append(
-            f"no source point is within {d} m of the target at the final pose: "
-            "the initial pose is too far off or the clouds do not overlap"
-        )
-    elif k < MIN_POINTS:
-        reasons.append(f"only {k} correspondence(s) at the solution; GICP needs at least {MIN_POINTS}")
-    if singular_step:
-        reasons.append(
-            "an update step was rank deficient (the matched surfaces do not constrain all six "
-            "pose directions): the motion along the free direction is arbitrary"
-        )
-    if k > 0 and reason:
-        reasons.append(reason)
-    degenerate = bool(reasons)
-    if k == 0:
-        status = "no_correspondences"
-    elif degenerate:
-        status = "degenerate"
-    elif converged:
-        status = "converged"
-    else:
-        status = "max_iterations"
+    reasons, degenerate, status = final_diagnosis(
+        k, MIN_POINTS, d, "GICP", singular_step,
+        "an update step was rank deficient (the matched surfaces do not constrain all six "
+        "pose directions): the motion along the free direction is arbitrary", reason, converged)
     if degenerate:
         log.warning("GICP result is degenerate: %s", "; ".join(reasons))
     timings = timer.as_dict()

@@ -291,6 +291,39 @@ def _points(arr, name: str, min_points: int) -> tuple[np.ndarray, float]:
     return a, float(K.finite_max_abs(a))
 
 
+def final_diagnosis(k: int, need: int, gate_m: float, method: str, singular_step: bool, singular_text: str,
+                    constraint_reason: str, converged: bool) -> tuple[list[str], bool, str]:
+    """Degeneracy reasons and status of a finished ICP/GICP run (shared by both).
+
+    Returns ``(reasons, degenerate, status)``: reasons for no or too few pairs at the solution
+    (< ``need``), a rank-deficient update step (``singular_text``) and the constraint analysis
+    (``constraint_reason``); status ``no_correspondences`` / ``degenerate`` / ``converged`` /
+    ``max_iterations``.
+    """
+    reasons = []
+    if k == 0:
+        reasons.append(
+            f"no source point is within {gate_m} m of the target at the final pose: "
+            "the initial pose is too far off or the clouds do not overlap"
+        )
+    elif k < need:
+        reasons.append(f"only {k} correspondence(s) at the solution; {method} needs at least {need}")
+    if singular_step:
+        reasons.append(singular_text)
+    if k > 0 and constraint_reason:
+        reasons.append(constraint_reason)
+    degenerate = bool(reasons)
+    if k == 0:
+        status = "no_correspondences"
+    elif degenerate:
+        status = "degenerate"
+    elif converged:
+        status = "converged"
+    else:
+        status = "max_iterations"
+    return reasons, degenerate, status
+
+
 def register_icp(source_points, target_points, T_init, params: ICPParams, target_normals=None,
                  target_index=None) -> ICPResult:
     """Refine ``T_target_source`` by ICP (Baek 2022 Sec. 2.4; Open3D ``registration_icp``).
@@ -431,30 +464,10 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
         info_ev = np.linalg.eigvalsh(info)
         c_ev, c_vec, ratio, reason = constraint_analysis(Ps, Ns, params.degeneracy_ratio_threshold)
 
-    reasons = []
-    if k == 0:
-        reasons.append(
-            f"no source point is within {d} m of the target at the final pose: "
-            "the initial pose is too far off or the clouds do not overlap"
-        )
-    elif k < need:
-        reasons.append(f"only {k} correspondence(s) at the solution; {method} needs at least {need}")
-    if rank_deficient_step:
-        reasons.append(
-            "an update step was rank deficient (collinear correspondences or a single plane): "
-            "the motion along the free direction is arbitrary"
-        )
-    if k > 0 and reason:
-        reasons.append(reason)
-    degenerate = bool(reasons)
-    if k == 0:
-        status = "no_correspondences"
-    elif degenerate:
-        status = "degenerate"
-    elif converged:
-        status = "converged"
-    else:
-        status = "max_iterations"
+    reasons, degenerate, status = final_diagnosis(
+        k, need, d, method, rank_deficient_step,
+        "an update step was rank deficient (collinear correspondences or a single plane): "
+        "the motion along the free direction is arbitrary", reason, converged)
     if degenerate:
         log.warning("ICP result is degenerate: %s", "; ".join(reasons))
     timings = timer.as_dict()
