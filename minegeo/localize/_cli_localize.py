@@ -15,6 +15,7 @@ disable).
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from pathlib import Path
@@ -51,6 +52,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--correlative", default=None, choices=("fallback", "always", "off"),
                         help="with --levelled: the exhaustive 4-DOF correlative search of the whole map adds its "
                              "best placements when the RANSAC hypotheses fail (fallback, default), always, or never")
+    parser.add_argument("--polish", type=float, default=None, metavar="M",
+                        help="gate (m) of the final tight point-to-plane polish of the chosen pose (default 0.25; "
+                             "the gate used is max(M, 3 x the scan's surface noise)); 0 turns it off")
     parser.add_argument("--no-cache", action="store_true", help="do not read or write the prepared-map cache")
     parser.add_argument("--drop-nonfinite", action="store_true",
                         help="drop scan points with NaN/inf coordinates (organised PCD/PLY files mark missing "
@@ -100,6 +104,11 @@ def params_from_args(args):
         kw["scan_octree_level"] = int(args.octree_level)
     if getattr(args, "correlative", None) is not None:
         kw["correlative"] = str(args.correlative)
+    polish = getattr(args, "polish", None)
+    if polish is not None:
+        if not math.isfinite(float(polish)) or float(polish) < 0.0:
+            raise InputError(f"--polish must be a gate in metres >= 0 (0 = off), got {polish!r}")
+        kw["icp_polish_correspondence_m"] = float(polish) if float(polish) > 0.0 else None
     lp = replace(lp, **kw)
     rk = {}
     if getattr(args, "ransac_max_iterations", None) is not None:

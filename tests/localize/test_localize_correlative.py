@@ -240,3 +240,18 @@ def test_cli_correlative_option_reaches_the_params():
     assert lp.correlative == "fallback" and lp.ransac.model != "levelled"
     with pytest.raises(SystemExit):
         ap.parse_args(["--map", "m.ply", "--scan", "s.ply", "--out", "o", "--correlative", "maybe"])
+
+
+def test_cli_polish_option_reaches_the_params():
+    import argparse
+
+    from minegeo.localize import _cli_localize as C
+
+    ap = argparse.ArgumentParser()
+    C.add_arguments(ap)
+    base = ["--map", "m.ply", "--scan", "s.ply", "--out", "o"]
+    assert C.params_from_args(ap.parse_args(base))[1].icp_polish_correspondence_m == 0.25
+    assert C.params_from_args(ap.parse_args([*base, "--polish", "0.3"]))[1].icp_polish_correspondence_m == 0.3
+    assert C.params_from_args(ap.parse_args([*base, "--polish", "0"]))[1].icp_polish_correspondence_m is None
+    with pytest.raises(InputError, match="--polish"):
+        C.params_from_args(ap.parse_args([*base, "--polish", "-1"]))
