@@ -67,16 +67,17 @@ def estimators(cluster_sizes, map_floors=()) -> dict:
     return d
 
 
-def final_pairs(prepared, scan_points: np.ndarray, T_work_D: np.ndarray, lp):
+def final_pairs(prepared, scan_points: np.ndarray, T_work_D: np.ndarray, lp, gate_m: float | None = None):
     """Replicates the pipeline's final ICP pairs: the ICP source (scan voxel centroids at
     ``lp.scan_icp_voxel_size_m``) placed by the final pose, each point with its nearest map ICP point
-    when closer than the gate. Returns ``(P_work, corr)``."""
+    when closer than the gate (``gate_m``, default the ICP gate; the polish gate when the pipeline
+    polished the pose). Returns ``(P_work, corr)``."""
     from minegeo.geometry import voxel_downsample
 
     P = np.asarray(scan_points, dtype=np.float64)
     D = P if lp.scan_icp_voxel_size_m is None else voxel_downsample(P, float(lp.scan_icp_voxel_size_m)).points
     Pw = D @ T_work_D[:3, :3].T + T_work_D[:3, 3]
-    gate = float(lp.icp_max_correspondence_m)
+    gate = float(lp.icp_max_correspondence_m if gate_m is None else gate_m)
     dist, idx = prepared.kdtree.query(Pw, k=1, distance_upper_bound=gate)
     idx = np.asarray(idx, dtype=np.int64).reshape(-1)
     dist = np.asarray(dist, dtype=np.float64).reshape(-1)
@@ -245,7 +246,12 @@ def main(argv=None) -> int:
             if r.status == "ok" and r.icp is not None:
                 T = r.icp.T_target_source  # work frame <- (scan - scan origin)
                 so = np.asarray(c.origin, dtype=np.float64)
-                Pw, corr = final_pairs(prepared, c.points, T, lp)
+                gate = None
+                if r.polish is not None and r.polish["applied"]:  # the final pose is the polished one
+                    T = r.T_map_scan.copy()
+                    T[:3, 3] = T[:3, 3] + T[:3, :3] @ so - prepared.work_origin
+                    gate = r.polish["gate_m"]
+                Pw, corr = final_pairs(prepared, c.points, T, lp, gate)
                 o_work = T[:3, :3] @ (-so) + T[:3, 3]
                 rec["n_pairs"] = int(corr.shape[0])
                 for name, prm in est.items():
