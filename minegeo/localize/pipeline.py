@@ -186,8 +186,10 @@ class LocalizeParams:
         it (a minegeo addition; the gate used is ``max(this, 3 σ_surf)``). With the 0.5 m gate, scan points whose surface the map does
         not hold (the shadowed inner wall of a bend) pair with other surfaces and bias the
         point-to-plane fit by centimetres to ~0.1 m; a gate of a few scan-noise sigmas keeps
-        only surface pairs. The decision (status, scores) is not changed; a polish moving the
-        scan by more than ``max_pending_step_m`` is not applied (warning).
+        only surface pairs. The chosen hypothesis and its verification scores are not changed
+        (the covariance-based checks, weak-direction displacement and pending step, use the
+        polished fit); a polish moving the scan by more than ``max_pending_step_m`` is not
+        applied (warning).
     """
 
     scan_voxel_size_m: float | None = 0.5
