@@ -682,6 +682,34 @@ def kd_build(Q, leaf):
 
 
 @njit
+def kd_walk_to_leaf(px, py, pz, nd, bound, dim, split, left, right, st_node, st_lb, sp):
+    """Descend a :func:`kd_build` tree from node ``nd`` to the leaf holding ``(px, py, pz)``,
+    pushing every far child whose squared plane distance is ``<= bound`` (with that distance as
+    its lower bound) onto the caller's stacks. Returns ``(leaf, stack size)``."""
+    while dim[nd] >= 0:
+        k = dim[nd]
+        if k == 0:
+            diff = px - split[nd]
+        elif k == 1:
+            diff = py - split[nd]
+        else:
+            diff = pz - split[nd]
+        if diff < 0.0:
+            near = left[nd]
+            far = right[nd]
+        else:
+            near = right[nd]
+            far = left[nd]
+        dd = diff * diff
+        if dd <= bound:
+            st_node[sp] = far
+            st_lb[sp] = dd
+            sp += 1
+        nd = near
+    return nd, sp
+
+
+@njit
 def kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, left, right, d2, st_node, st_lb):
     """Gated nearest neighbour of ``(px, py, pz)`` on a :func:`kd_build` tree.
 
@@ -699,26 +727,7 @@ def kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, lef
         nd = st_node[sp]
         if st_lb[sp] > best:
             continue
-        while dim[nd] >= 0:
-            k = dim[nd]
-            if k == 0:
-                diff = px - split[nd]
-            elif k == 1:
-                diff = py - split[nd]
-            else:
-                diff = pz - split[nd]
-            if diff < 0.0:
-                near = left[nd]
-                far = right[nd]
-            else:
-                near = right[nd]
-                far = left[nd]
-            dd = diff * diff
-            if dd <= best:
-                st_node[sp] = far
-                st_lb[sp] = dd
-                sp += 1
-            nd = near
+        nd, sp = kd_walk_to_leaf(px, py, pz, nd, best, dim, split, left, right, st_node, st_lb, sp)
         for a in range(start[nd], end[nd]):
             dx = px - Qs[a, 0]
             dy = py - Qs[a, 1]

@@ -17,7 +17,14 @@ import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
 from minegeo.geometry._kernels import _normal_from_neighbors, fast_eigen3x3
-from minegeo.registration._kernels import CHUNK, _add_partials, kd_build, kd_nn_descend, n_chunks
+from minegeo.registration._kernels import (
+    CHUNK,
+    _add_partials,
+    kd_build,
+    kd_nn_descend,
+    kd_walk_to_leaf,
+    n_chunks,
+)
 
 #: Below this many pairs (or search queries) the serial driver is used. Measured on the shared
 #: 2-core machine under load (load average ~9): for 10^4 pairs the prange drivers made a whole
@@ -141,26 +148,7 @@ def _knn_one(px, py, pz, idx, Qs, start, end, dim, split, left, right, k, bi, bs
         nd = st_node[sp]
         if st_lb[sp] > worst:
             continue
-        while dim[nd] >= 0:
-            kk = dim[nd]
-            if kk == 0:
-                diff = px - split[nd]
-            elif kk == 1:
-                diff = py - split[nd]
-            else:
-                diff = pz - split[nd]
-            if diff < 0.0:
-                near = left[nd]
-                far = right[nd]
-            else:
-                near = right[nd]
-                far = left[nd]
-            dd = diff * diff
-            if dd <= worst:
-                st_node[sp] = far
-                st_lb[sp] = dd
-                sp += 1
-            nd = near
+        nd, sp = kd_walk_to_leaf(px, py, pz, nd, worst, dim, split, left, right, st_node, st_lb, sp)
         for a in range(start[nd], end[nd]):
             dx = px - Qs[a, 0]
             dy = py - Qs[a, 1]
