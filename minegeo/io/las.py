@@ -181,8 +181,15 @@ def read_las_bytes(path, data: bytes) -> RawCloud:
         raise FileFormatError(path, f"header declares {hdr.point_count} points, {n} were read (truncated?)")
     scale = np.asarray(hdr.scales, dtype=np.float64)
     offset = np.asarray(hdr.offsets, dtype=np.float64)
+    if not (np.isfinite(scale).all() and (scale != 0).all() and np.isfinite(offset).all()):
+        raise FileFormatError(path, f"the header's scale {scale.tolist()} / offset {offset.tolist()} is not usable "
+                                    "(damaged header?)")
     X = np.column_stack([np.asarray(las.X), np.asarray(las.Y), np.asarray(las.Z)]).astype(np.float64)
-    values = X * scale
+    with np.errstate(over="ignore", invalid="ignore"):
+        values = X * scale
+    if not np.isfinite(values).all() or not np.isfinite(values + offset).all():
+        raise FileFormatError(path, f"coordinates overflow with the header's scale {scale.tolist()} and offset "
+                                    f"{offset.tolist()} (damaged header?)")
     fields: dict[str, np.ndarray] = {}
     extra = list(las.point_format.extra_dimension_names)
     for dim in las.point_format.standard_dimension_names:

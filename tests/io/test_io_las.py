@@ -79,6 +79,29 @@ def test_las_origin_subtraction_is_exact(tmp_path, rng):
     np.testing.assert_allclose(other.points, X * 0.0001 + [-100.0, 0.0, 100.0], rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("scale", [1e308, 0.0, float("nan")])
+def test_las_damaged_scale_is_a_typed_error(tmp_path, rng, scale):
+    """A header scale that overflows the coordinates, is zero or NaN: FileFormatError, no warning."""
+    import warnings
+
+    from minegeo.errors import FileFormatError
+
+    hdr = laspy.LasHeader(point_format=6, version="1.4")
+    hdr.scales = [0.001, 0.001, 0.001]
+    las = laspy.LasData(hdr)
+    X = rng.integers(-(2**30), 2**30, (50, 3))
+    las.X, las.Y, las.Z = X[:, 0], X[:, 1], X[:, 2]
+    p = tmp_path / "bad.las"
+    las.write(p)
+    raw = bytearray(p.read_bytes())
+    raw[131:139] = np.float64(scale).tobytes()  # x scale factor (LAS header offset 131)
+    p.write_bytes(bytes(raw))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(FileFormatError):
+            read_point_cloud(p)
+
+
 def test_las_local_cloud_written_global(tmp_path, rng):
     local = rng.uniform(-10, 10, (100, 3)).round(3)
     c = PointCloud(local, origin=[E0, N0, H0], crs="EPSG:5186", normals=np.tile([0.0, 0.0, 1.0], (100, 1)))
