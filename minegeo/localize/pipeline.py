@@ -507,6 +507,14 @@ def _icp_params(p: LocalizeParams) -> ICPParams:
                      degeneracy_ratio_threshold=float(p.degeneracy_ratio) if p.degeneracy_ratio > 0 else 1e-12)
 
 
+def _plane_icp_params(gate_m: float, p: LocalizeParams) -> ICPParams:
+    """Point-to-plane ICP settings of minegeo's extra stages (coarse pull-in, polish): the given
+    gate, the paper's iteration cap, 1e-6 convergence, no degeneracy verdict (the decision's)."""
+    return ICPParams(max_correspondence_distance_m=float(gate_m), max_iterations=int(p.icp_max_iterations),
+                     relative_fitness=1e-6, relative_rmse=1e-6, method="point_to_plane",
+                     degeneracy_ratio_threshold=1e-12)
+
+
 def _verify(P: np.ndarray, T: np.ndarray, Q: np.ndarray, N: np.ndarray, tree, gate: float, tol: float):
     """Point-to-plane agreement of a placement: ``(plane_fitness, plane_rmse_m)``.
 
@@ -692,9 +700,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         # hypotheses, 1 m voxels), beyond the 0.5 m ICP gate; a point-to-plane ICP of the
         # feature-level scan with a wider gate brings them into the fine ICP's basin first.
         if p.icp_coarse_correspondence_m is not None and uniq:
-            coarse_p = ICPParams(max_correspondence_distance_m=float(p.icp_coarse_correspondence_m),
-                                 max_iterations=int(p.icp_max_iterations), relative_fitness=1e-6, relative_rmse=1e-6,
-                                 method="point_to_plane", degeneracy_ratio_threshold=1e-12)
+            coarse_p = _plane_icp_params(p.icp_coarse_correspondence_m, p)
             # (correlative candidates were already refined with gates down to 0.5 m)
             uniq = [(name, T0 if name.startswith("correlative") else _once(
                         "coarse", name, T0, lambda T0=T0: register_icp(D, Qf, T0, coarse_p, target_normals=Nf,
@@ -838,9 +844,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         pol_gate = float(p.icp_polish_correspondence_m)
         if math.isfinite(scan_noise):
             pol_gate = max(pol_gate, 3.0 * scan_noise)
-        pol_p = ICPParams(max_correspondence_distance_m=pol_gate,
-                          max_iterations=int(p.icp_max_iterations), relative_fitness=1e-6, relative_rmse=1e-6,
-                          method="point_to_plane", degeneracy_ratio_threshold=1e-12)
+        pol_p = _plane_icp_params(pol_gate, p)
         ic_pol = register_icp(Dfine, Qf, ic_best.T_target_source, pol_p, target_normals=Nf, target_index=tree)
         Ta, Tp = ic_best.T_target_source, ic_pol.T_target_source
         Pa = Dfine @ Ta[:3, :3].T + Ta[:3, 3]
