@@ -187,7 +187,7 @@ def read_las_bytes(path, data: bytes) -> RawCloud:
     X = np.column_stack([np.asarray(las.X), np.asarray(las.Y), np.asarray(las.Z)]).astype(np.float64)
     with np.errstate(over="ignore", invalid="ignore"):
         values = X * scale
-    if not np.isfinite(values).all() or not np.isfinite(values + offset).all():
+    if not np.isfinite(values).all() or (values.size and not np.isfinite(np.abs(values).max(axis=0) + np.abs(offset)).all()):
         raise FileFormatError(path, f"coordinates overflow with the header's scale {scale.tolist()} and offset "
                                     f"{offset.tolist()} (damaged header?)")
     fields: dict[str, np.ndarray] = {}
