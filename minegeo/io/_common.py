@@ -151,9 +151,9 @@ def assemble(
         conv = {("cm", 0.01): "m", ("mm", 0.001): "m", ("m", 1.0): "m"}
         meta["scale_applied"] = s
         meta["units"] = conv.get((units, s), f"{units or 'file units'} x {s:g}")
-    finite = np.isfinite(values).all(axis=1)
     keep = None
-    if not finite.all():
+    if not np.isfinite(values).all():  # one flat pass; rows only when something is bad
+        finite = np.isfinite(values).all(axis=1)
         bad = np.flatnonzero(~finite)
         if not drop_nonfinite:
             raise FileFormatError(

@@ -636,7 +636,9 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     run_seeds = [seed] + [int(s) for s in rng.integers(0, 2**31 - 1, size=p.ransac_runs - 1)]
-    ransacs = [register_ransac(D, Q, F, prepared_map.features, p.ransac, seed=s) for s in run_seeds]
+    f_index = prepared_map.feature_index  # built once per map and process (timed in the first scan's RANSAC)
+    ransacs = [register_ransac(D, Q, F, prepared_map.features, p.ransac, seed=s, target_feature_index=f_index,
+                               check_target=False) for s in run_seeds]
     timings["ransac"] = time.perf_counter() - t0
     r0 = ransacs[0]
     centre = D.mean(axis=0)
@@ -671,12 +673,14 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         gicp_cov, gicp_index = prepared_map.gicp_target(gicp_p)
 
         def _refine(P_src, T_init):
-            return register_gicp(P_src, Qf, T_init, gicp_p, target_covariances=gicp_cov, target_index=gicp_index)
+            return register_gicp(P_src, Qf, T_init, gicp_p, target_covariances=gicp_cov, target_index=gicp_index,
+                                 check_target=False)
     else:
         icp_p = _icp_params(p)
 
         def _refine(P_src, T_init):
-            return register_icp(P_src, Qf, T_init, icp_p, target_normals=Nf, target_index=tree)
+            return register_icp(P_src, Qf, T_init, icp_p, target_normals=Nf, target_index=tree,
+                                check_target=False)
     tree = prepared_map.kdtree
     gate, tol = float(p.icp_max_correspondence_m), float(p.verify_plane_tolerance_m)
     scan_noise = surface_noise_m(Dfine) if p.verify_noise_factor > 0 else math.nan
@@ -704,7 +708,8 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
             # (correlative candidates were already refined with gates down to 0.5 m)
             uniq = [(name, T0 if name.startswith("correlative") else _once(
                         "coarse", name, T0, lambda T0=T0: register_icp(D, Qf, T0, coarse_p, target_normals=Nf,
-                                                                      target_index=tree).T_target_source),
+                                                                      target_index=tree,
+                                                                      check_target=False).T_target_source),
                      rf, rrmse) for name, T0, rf, rrmse in uniq]
         screened = []
         if len(uniq) > 1:
@@ -845,7 +850,8 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         if math.isfinite(scan_noise):
             pol_gate = max(pol_gate, 3.0 * scan_noise)
         pol_p = _plane_icp_params(pol_gate, p)
-        ic_pol = register_icp(Dfine, Qf, ic_best.T_target_source, pol_p, target_normals=Nf, target_index=tree)
+        ic_pol = register_icp(Dfine, Qf, ic_best.T_target_source, pol_p, target_normals=Nf, target_index=tree,
+                              check_target=False)
         Ta, Tp = ic_best.T_target_source, ic_pol.T_target_source
         Pa = Dfine @ Ta[:3, :3].T + Ta[:3, 3]
         shift = float(np.sqrt(np.max(np.sum((Dfine @ Tp[:3, :3].T + Tp[:3, 3] - Pa) ** 2, axis=1))))

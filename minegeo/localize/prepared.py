@@ -325,6 +325,26 @@ class PreparedMap:
     _georef_obj: object = field(default=None, repr=False, compare=False)
     _gicp_cache: dict = field(default_factory=dict, repr=False, compare=False)
     _occ_cache: dict = field(default_factory=dict, repr=False, compare=False)
+    _feature_index: object = field(default=None, repr=False, compare=False)
+
+    def __post_init__(self):
+        # validated once here, so localization can search the map without re-scanning it
+        # (``check_target=False``); the arrays must not be modified afterwards
+        m = np.asarray(self.points).shape[0] if np.ndim(self.points) == 2 else -1
+        self.points = as_points(self.points, "prepared map points", min_points=1)
+        self.normals = as_points(self.normals, "prepared map normals", min_points=1)
+        f = np.asarray(self.features)
+        if f.ndim != 2:
+            raise InputError(f"prepared map features must have shape (m, dim), got {f.shape}")
+        self.features = as_points(f, "prepared map features", dim=f.shape[1], min_points=1)
+        self.icp_points = as_points(self.icp_points, "prepared map ICP points", min_points=1)
+        self.icp_normals = as_points(self.icp_normals, "prepared map ICP normals", min_points=1)
+        self.work_origin = np.asarray(self.work_origin, dtype=np.float64)
+        if (self.normals.shape[0] != m or self.features.shape[0] != m
+                or self.icp_normals.shape[0] != self.icp_points.shape[0]):
+            raise InputError("prepared map arrays disagree in length (points, normals, features; ICP points, normals)")
+        if self.work_origin.shape != (3,) or not np.isfinite(self.work_origin).all():
+            raise InputError(f"prepared map work_origin must be a finite 3-vector, got {self.work_origin!r}")
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -337,6 +357,16 @@ class PreparedMap:
 
             self._kdtree = KDTree(self.icp_points)
         return self._kdtree
+
+    @property
+    def feature_index(self):
+        """Descriptor search tree over ``features`` (:func:`minegeo.registration.correspondences.build_feature_index`),
+        built once per process and reused by every scan's RANSAC."""
+        if self._feature_index is None:
+            from minegeo.registration.correspondences import build_feature_index
+
+            self._feature_index = build_feature_index(self.features)
+        return self._feature_index
 
     def occupancy(self, params):
         """Occupancy table and floor anchors for the correlative search
@@ -468,11 +498,14 @@ class PreparedMap:
                 or arrays["work_origin"].shape != (3,) or arrays["icp_points"].ndim != 2
                 or arrays["icp_points"].shape[1] != 3 or arrays["icp_normals"].shape != arrays["icp_points"].shape):
             raise FileFormatError(p, "array shapes are inconsistent")
-        pm = cls(points=arrays["points"], normals=arrays["normals"], features=arrays["features"],
-                 icp_points=arrays["icp_points"], icp_normals=arrays["icp_normals"],
-                 work_origin=arrays["work_origin"], params=stored, params_hash=meta["params_hash"],
-                 georef=meta.get("georef"), crs=meta.get("crs"), source=meta.get("source") or {},
-                 timings_s=meta.get("timings_s") or {})
+        try:
+            pm = cls(points=arrays["points"], normals=arrays["normals"], features=arrays["features"],
+                     icp_points=arrays["icp_points"], icp_normals=arrays["icp_normals"],
+                     work_origin=arrays["work_origin"], params=stored, params_hash=meta["params_hash"],
+                     georef=meta.get("georef"), crs=meta.get("crs"), source=meta.get("source") or {},
+                     timings_s=meta.get("timings_s") or {})
+        except InputError as exc:  # NaN/inf or inconsistent arrays in the file
+            raise FileFormatError(p, f"corrupted arrays ({exc})") from None
         if params is not None:
             pm.check_params(params)
         return pm

@@ -16,7 +16,7 @@ from minegeo._validate import as_points
 from minegeo.errors import InputError, TooFewPointsError
 from minegeo.registration import _kernels_ransac as K
 
-__all__ = ["FeatureMatches", "feature_correspondences", "nearest_rows"]
+__all__ = ["FeatureIndex", "FeatureMatches", "build_feature_index", "feature_correspondences", "nearest_rows"]
 
 log = logging.getLogger(__name__)
 
@@ -55,12 +55,15 @@ class FeatureMatches:
 _TREE_MIN_LEAVES = 8
 
 
-def nearest_rows(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def nearest_rows(A: np.ndarray, B: np.ndarray, tree: _RowTree | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Exact Euclidean nearest row of ``B`` for every row of ``A`` (any dimension).
 
     Parameters
     ----------
     A, B : ndarray (na, dim), (nb, dim), float64, finite
+    tree : _RowTree, optional
+        The search structure of ``B`` from :func:`_row_tree` (``B`` must be the array it
+        was built from), to search the same ``B`` many times without rebuilding it.
 
     Returns
     -------
@@ -88,26 +91,97 @@ def nearest_rows(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     uses the brute force.
     """
     A = np.ascontiguousarray(A, dtype=np.float64)
-    B = np.ascontiguousarray(B, dtype=np.float64)
-    nb, dim = B.shape
-    if nb < _TREE_MIN_LEAVES * K.FEATURE_LEAF:
-        idx, d2 = K.feature_nn_brute(A, B)
+    if tree is None:
+        tree = _row_tree(B)
+    elif tree.B is not B:
+        raise InputError("the descriptor search tree was built for other rows than B")
+    if tree.brute:
+        idx, d2 = K.feature_nn_brute(A, tree.B)
     else:
-        mu, C = K.feature_mean_cov(B)
-        _, V = np.linalg.eigh(C)
-        V = np.ascontiguousarray(V[:, ::-1][:, : min(dim, K.FEATURE_ROT)])  # largest variance first
-        P = K.feature_rotate(B, mu, V)
-        Q = K.feature_rotate(A, mu, V)
-        perm, lstart = K.feature_tree_build(P)
-        lead, Bp, loT, hiT = K.feature_tree_pack(B, P, perm, lstart)
+        Q = K.feature_rotate(A, tree.mu, tree.V)
         # rounding of (x - mu) V in distance units: ~ (dim + 2) u |x - mu| per row; 1e-9 is generous
-        ra = float(np.sqrt(np.max(np.einsum("ij,ij->i", A - mu, A - mu))))
-        rb = float(np.sqrt(np.max(np.einsum("ij,ij->i", B - mu, B - mu))))
-        delta = 1e-9 * (1.0 + dim) * (ra + rb)
-        idx, d2 = K.feature_tree_nn(A, Q, perm, lstart, lead, Bp, loT, hiT, delta)
+        ra = float(np.sqrt(np.max(np.einsum("ij,ij->i", A - tree.mu, A - tree.mu)))) if A.shape[0] else 0.0
+        delta = 1e-9 * (1.0 + tree.B.shape[1]) * (ra + tree.rb)
+        idx, d2 = K.feature_tree_nn(A, Q, tree.perm, tree.lstart, tree.lead, tree.Bp, tree.loT, tree.hiT, delta)
     if idx.size and int(idx.min()) < 0:
         raise InputError("descriptor values are too large to compare (squared distances overflow)")
     return idx, d2
+
+
+@dataclass(frozen=True, eq=False)
+class _RowTree:
+    """Search structure over the rows of ``B`` used by :func:`nearest_rows` (see its Notes)."""
+
+    B: np.ndarray
+    brute: bool
+    mu: np.ndarray | None = None
+    V: np.ndarray | None = None
+    perm: np.ndarray | None = None
+    lstart: np.ndarray | None = None
+    lead: np.ndarray | None = None
+    Bp: np.ndarray | None = None
+    loT: np.ndarray | None = None
+    hiT: np.ndarray | None = None
+    rb: float = 0.0
+
+
+def _row_tree(B: np.ndarray) -> _RowTree:
+    """Build the kd partition of :func:`nearest_rows` over ``B`` (brute force when small)."""
+    B = np.ascontiguousarray(B, dtype=np.float64)
+    nb, dim = B.shape
+    if nb < _TREE_MIN_LEAVES * K.FEATURE_LEAF:
+        return _RowTree(B=B, brute=True)
+    mu, C = K.feature_mean_cov(B)
+    _, V = np.linalg.eigh(C)
+    V = np.ascontiguousarray(V[:, ::-1][:, : min(dim, K.FEATURE_ROT)])  # largest variance first
+    P = K.feature_rotate(B, mu, V)
+    perm, lstart = K.feature_tree_build(P)
+    lead, Bp, loT, hiT = K.feature_tree_pack(B, P, perm, lstart)
+    rb = float(np.sqrt(np.max(np.einsum("ij,ij->i", B - mu, B - mu))))
+    return _RowTree(B=B, brute=False, mu=mu, V=V, perm=perm, lstart=lstart, lead=lead, Bp=Bp, loT=loT, hiT=hiT, rb=rb)
+
+
+@dataclass(frozen=True, eq=False)
+class FeatureIndex:
+    """Descriptor search structure over a target's features, built once and reused.
+
+    Build it with :func:`build_feature_index` and pass it to :func:`feature_correspondences`
+    (or :func:`minegeo.registration.register_ransac`) with the **same** feature array: the
+    answers are bit-identical to searching without it, only the build is skipped.
+
+    Attributes
+    ----------
+    features : (m, dim) float64
+        The validated target descriptors the index was built from.
+    drop_zero_features : bool
+        Whether all-zero descriptors were left out (as in :func:`feature_correspondences`).
+    rows : (k,) int64
+        Target rows that take part in the search.
+    """
+
+    features: np.ndarray
+    drop_zero_features: bool
+    rows: np.ndarray
+    tree: _RowTree
+
+
+def build_feature_index(target_features, drop_zero_features: bool = True) -> FeatureIndex:
+    """Search structure over ``target_features`` (m, dim) for repeated :func:`feature_correspondences`.
+
+    Raises
+    ------
+    InputError
+        Not a finite 2-D array.
+    TooFewPointsError
+        No row (or, with ``drop_zero_features``, no non-zero row).
+    """
+    ft = _features(target_features, "target_features")
+    t_ok = np.flatnonzero(np.any(ft != 0.0, axis=1)) if drop_zero_features else np.arange(ft.shape[0])
+    if t_ok.size == 0:
+        raise TooFewPointsError("no point has a non-zero descriptor in the target cloud: the FPFH radius is "
+                                "smaller than the point spacing")
+    return FeatureIndex(features=ft, drop_zero_features=bool(drop_zero_features), rows=t_ok,
+                        tree=_row_tree(np.ascontiguousarray(ft[t_ok])))
 
 
 def _features(arr, name):
@@ -123,6 +197,7 @@ def feature_correspondences(
     mutual_filter: bool = False,
     mutual_min_ratio: float = 0.1,
     drop_zero_features: bool = True,
+    target_index: FeatureIndex | None = None,
 ) -> FeatureMatches:
     """Nearest-neighbour matches in descriptor space (optionally mutual).
 
@@ -140,6 +215,9 @@ def feature_correspondences(
         Ignore points whose descriptor is all zeros (isolated points: no
         neighbour within the FPFH radius). Open3D keeps them; their matches are
         arbitrary ties.
+    target_index : FeatureIndex, optional
+        From :func:`build_feature_index` on this very ``target_features`` array (same object)
+        and the same ``drop_zero_features``: skips the target's validation and tree build.
 
     Returns
     -------
@@ -151,19 +229,26 @@ def feature_correspondences(
     target index, so the result is deterministic.
     """
     fs = _features(source_features, "source_features")
-    ft = _features(target_features, "target_features")
+    if target_index is not None:
+        if not isinstance(target_index, FeatureIndex) or target_index.features is not target_features:
+            raise InputError("target_index must come from build_feature_index on this target_features array")
+        if target_index.drop_zero_features != bool(drop_zero_features):
+            raise InputError("target_index was built with another drop_zero_features setting")
+        ft = target_index.features
+    else:
+        ft = _features(target_features, "target_features")
     if fs.shape[1] != ft.shape[1]:
         raise InputError(
             f"source and target descriptors differ in length ({fs.shape[1]} vs {ft.shape[1]})"
         )
     if not 0.0 <= float(mutual_min_ratio) <= 1.0:
         raise InputError(f"mutual_min_ratio must be in [0, 1], got {mutual_min_ratio!r}")
-    if drop_zero_features:
-        s_ok = np.flatnonzero(np.any(fs != 0.0, axis=1))
-        t_ok = np.flatnonzero(np.any(ft != 0.0, axis=1))
+    s_ok = np.flatnonzero(np.any(fs != 0.0, axis=1)) if drop_zero_features else np.arange(fs.shape[0])
+    if target_index is not None:
+        t_ok, tree = target_index.rows, target_index.tree
     else:
-        s_ok = np.arange(fs.shape[0])
-        t_ok = np.arange(ft.shape[0])
+        t_ok = np.flatnonzero(np.any(ft != 0.0, axis=1)) if drop_zero_features else np.arange(ft.shape[0])
+        tree = None
     if s_ok.size == 0 or t_ok.size == 0:
         raise TooFewPointsError(
             "no point has a non-zero descriptor in the "
@@ -171,8 +256,8 @@ def feature_correspondences(
             + " cloud: the FPFH radius is smaller than the point spacing"
         )
     A = np.ascontiguousarray(fs[s_ok])
-    B = np.ascontiguousarray(ft[t_ok])
-    j_loc, d2 = nearest_rows(A, B)
+    B = tree.B if tree is not None else np.ascontiguousarray(ft[t_ok])
+    j_loc, d2 = nearest_rows(A, B, tree)
     pairs = np.stack([s_ok, t_ok[j_loc]], axis=1).astype(np.int64)
     applied = False
     reason = ""

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from minegeo._provenance import StageTimer
-from minegeo._validate import as_points, as_transform
+from minegeo._validate import as_points, as_transform, as_trusted_points
 from minegeo.errors import InputError
 from minegeo.geometry.normals import STATUS_OK
 from minegeo.geometry.se3 import rotation_from_euler_xyz
@@ -309,9 +309,8 @@ def _as_covariances(C, n: int, name: str) -> np.ndarray:
     if a.shape != (n, 3, 3):
         raise InputError(f"{name} must have shape ({n}, 3, 3) (one 3x3 matrix per point), got {a.shape}")
     f = a.reshape(n, 9)
-    finite = np.isfinite(f).all(axis=1)
-    if not finite.all():
-        bad = np.flatnonzero(~finite)
+    if not np.isfinite(f).all():
+        bad = np.flatnonzero(~np.isfinite(f).all(axis=1))
         raise InputError(f"{name} has {bad.size} matrix(es) with NaN or inf (first at row {int(bad[0])})")
     scale = np.abs(f).max(axis=1)
     asym = np.maximum(np.maximum(np.abs(f[:, 1] - f[:, 3]), np.abs(f[:, 2] - f[:, 6])), np.abs(f[:, 5] - f[:, 7]))
@@ -378,7 +377,7 @@ def _solve(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, bool]:
 
 def register_gicp(source_points, target_points, T_init, params: GICPParams, source_covariances=None,
                   target_covariances=None, source_normals=None, target_normals=None,
-                  target_index=None) -> GICPResult:
+                  target_index=None, *, check_target: bool = True) -> GICPResult:
     """Refine ``T_target_source`` by Generalized-ICP (Segal 2009; Ren 2019 Sec. 3.2, Eqs. 1-6).
 
     Parameters
@@ -402,6 +401,11 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
     target_index : optional
         A KD-tree over ``target_points`` from :func:`minegeo.registration.build_target_index`
         to reuse (built when omitted or of another kind).
+    check_target : bool
+        True (default) validates the target fully. False checks only the layout of
+        ``target_points`` (C-contiguous float64 (m, 3)) and the shape of
+        ``target_covariances``, and requires ``target_index`` (if given) to hold the very same
+        array: for a map validated once (e.g. a prepared map's cached covariances).
 
     Returns
     -------
@@ -456,9 +460,13 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
     if not isinstance(params, GICPParams):
         raise InputError(f"params must be a GICPParams, got {type(params).__name__}")
     P0 = as_points(source_points, "source_points", min_points=MIN_POINTS)
-    Q = as_points(target_points, "target_points", min_points=MIN_POINTS)
+    if check_target:
+        Q = as_points(target_points, "target_points", min_points=MIN_POINTS)
+        q_max = float(np.abs(Q).max())
+    else:
+        Q, q_max = as_trusted_points(target_points, "target_points", min_points=MIN_POINTS), 0.0
     T = as_transform(T_init, "T_init").copy()
-    if max(np.abs(P0).max(), np.abs(Q).max()) > LARGE_COORDINATE_M:
+    if max(float(np.abs(P0).max()), q_max) > LARGE_COORDINATE_M:
         log.warning(
             "GICP input coordinates exceed %.0e m: subtract a local origin first for full precision",
             LARGE_COORDINATE_M,
@@ -468,7 +476,8 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
 
     with timer("search"):
         if isinstance(target_index, K.GatedKDTree):
-            if target_index.m != Q.shape[0] or not (target_index.data is Q or np.array_equal(target_index.data, Q)):
+            same = target_index.data is Q or (check_target and np.array_equal(target_index.data, Q))
+            if target_index.m != Q.shape[0] or not same:
                 raise InputError("target_index was built on a different cloud than target_points")
             tree = target_index._tree
         else:  # None or another kind of index: build the KD-tree this search needs
@@ -480,7 +489,14 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
             src_from = "given"
         else:
             Cs, _, src_from = _covariances_and_normals(P0, params, source_normals, "source")
-        if target_covariances is not None:
+        if target_covariances is not None and not check_target:
+            Ct = target_covariances
+            if not (isinstance(Ct, np.ndarray) and Ct.dtype == np.float64 and Ct.shape == (Q.shape[0], 3, 3)
+                    and Ct.flags.c_contiguous):
+                raise InputError(f"target_covariances: without checks it must be a C-contiguous float64 "
+                                 f"({Q.shape[0]}, 3, 3) array")
+            tgt_from = "given"
+        elif target_covariances is not None:
             Ct = _as_covariances(target_covariances, Q.shape[0], "target_covariances")
             tgt_from = "given"
         else:

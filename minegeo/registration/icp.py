@@ -30,7 +30,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from minegeo._provenance import StageTimer
-from minegeo._validate import as_points, as_transform
+from minegeo._validate import as_points, as_transform, as_trusted_points
 from minegeo.errors import InputError
 from minegeo.geometry.se3 import rotation_from_euler_xyz
 from minegeo.registration import _kernels as K
@@ -325,7 +325,7 @@ def final_diagnosis(k: int, need: int, gate_m: float, method: str, singular_step
 
 
 def register_icp(source_points, target_points, T_init, params: ICPParams, target_normals=None,
-                 target_index=None) -> ICPResult:
+                 target_index=None, *, check_target: bool = True) -> ICPResult:
     """Refine ``T_target_source`` by ICP (Baek 2022 Sec. 2.4; Open3D ``registration_icp``).
 
     Parameters
@@ -345,6 +345,11 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
     target_index : optional
         A KD-tree over ``target_points`` to reuse, from
         :func:`minegeo.registration.build_target_index` (built when omitted).
+    check_target : bool
+        True (default) scans ``target_points`` and ``target_normals`` for NaN/inf. False only
+        checks their layout (C-contiguous float64 (m, 3)): for a map validated once and
+        registered against many times (as ``scipy.linalg``'s ``check_finite=False``); the
+        large-coordinate warning then looks at the source alone.
 
     Returns
     -------
@@ -389,11 +394,15 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
     method = params.method
     need = MIN_POINTS[method]
     P0, p_max = _points(source_points, "source_points", need)
-    Q, q_max = _points(target_points, "target_points", need)
+    if check_target:
+        Q, q_max = _points(target_points, "target_points", need)
+    else:
+        Q, q_max = as_trusted_points(target_points, "target_points", min_points=need), 0.0
     T = as_transform(T_init, "T_init").copy()
     Nt = None
     if target_normals is not None:
-        Nt, _ = _points(target_normals, "target_normals", 1)
+        Nt = (_points(target_normals, "target_normals", 1)[0] if check_target
+              else as_trusted_points(target_normals, "target_normals"))
         if Nt.shape[0] != Q.shape[0]:
             raise InputError(
                 f"target_normals has {Nt.shape[0]} rows but target_points has {Q.shape[0]}"

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from minegeo._validate import as_points, check_positive
+from minegeo._validate import as_points, as_trusted_points, check_positive
 from minegeo.errors import DegenerateGeometryError, InputError, TooFewPointsError
 from minegeo.registration import _kernels_ransac as K
 from minegeo.registration import _kernels_ransac_levelled as KL
@@ -535,6 +535,9 @@ def register_ransac(
     source_normals=None,
     target_normals=None,
     correspondences=None,
+    *,
+    target_feature_index=None,
+    check_target: bool = True,
 ) -> RansacResult:
     """Global rigid registration by RANSAC on descriptor matches (Baek 2022, Sec. 2.3.2).
 
@@ -557,6 +560,12 @@ def register_ransac(
     correspondences : array_like (k, 2), optional
         Putative (source, target) index pairs to sample from instead of
         descriptor matches.
+    target_feature_index : FeatureIndex, optional
+        :func:`minegeo.registration.correspondences.build_feature_index` of this very
+        ``target_features`` array, reused across calls (same matches, no rebuild).
+    check_target : bool
+        True (default) scans ``target_points`` for NaN/inf; False checks only its layout
+        (C-contiguous float64 (m, 3)), for a map validated once (a prepared map).
 
     Returns
     -------
@@ -589,7 +598,8 @@ def register_ransac(
     timings: dict[str, float] = {}
     n = int(p.ransac_n)
     src = as_points(source_points, "source_points", min_points=n)
-    tgt = as_points(target_points, "target_points", min_points=n)
+    tgt = (as_points(target_points, "target_points", min_points=n) if check_target
+           else as_trusted_points(target_points, "target_points", min_points=n))
     use_normals = p.normal_angle_threshold_rad is not None
     if use_normals:
         if source_normals is None or target_normals is None:
@@ -623,7 +633,7 @@ def register_ransac(
             raise InputError(f"source_features must have one row per source point ({src.shape[0]}), got {fs.shape}")
         if ft.ndim != 2 or ft.shape[0] != tgt.shape[0]:
             raise InputError(f"target_features must have one row per target point ({tgt.shape[0]}), got {ft.shape}")
-        fm = feature_correspondences(fs, ft, mutual_filter=p.mutual_filter)
+        fm = feature_correspondences(fs, ft, mutual_filter=p.mutual_filter, target_index=target_feature_index)
         corr = fm.pairs
         mutual_applied = fm.mutual_applied
     timings["correspondences"] = time.perf_counter() - t0

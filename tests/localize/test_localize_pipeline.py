@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -154,6 +155,17 @@ def test_prepared_map_save_load_round_trip(world_map, tmp_path):
     junk.write_bytes(b"not a zip")
     with pytest.raises(FileFormatError):
         PreparedMap.load(junk)
+    # NaN in the stored arrays (the map is validated once on load, then searched unchecked)
+    with np.load(f, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["icp_normals"] = arrays["icp_normals"].copy()
+    arrays["icp_normals"][5, 1] = np.nan
+    nan_file = tmp_path / "nan.npz"
+    np.savez(nan_file, **arrays)
+    with pytest.raises(FileFormatError, match="corrupted arrays.*row 5"):
+        PreparedMap.load(nan_file)
+    with pytest.raises(InputError, match="disagree in length"):
+        dataclasses.replace(pm, features=pm.features[:-1])
 
 
 def test_localize_with_loaded_map_equals_in_memory(world_map, results, tmp_path):

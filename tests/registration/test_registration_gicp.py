@@ -572,3 +572,23 @@ def test_gicp_bad_inputs():
         register_gicp(P, Q, np.eye(4), prm, target_covariances=bad)
     with pytest.raises(InputError):
         register_gicp(P, Q, np.eye(4), prm, source_normals=np.ones((3, 3)))
+
+
+def test_gicp_unchecked_target_gives_the_same_fit():
+    """check_target=False skips the target's validation only: same fit bit for bit; a wrong
+    layout, covariances of the wrong shape or an index over another array are refused."""
+    from minegeo.registration import build_target_index
+
+    P, Q, _ = _scene(5)
+    prm = GICPParams(GATE_M)
+    C = estimate_gicp_covariances(Q, prm)
+    idx = build_target_index(Q)
+    a = register_gicp(P, Q, np.eye(4), prm, target_covariances=C, target_index=idx)
+    b = register_gicp(P, Q, np.eye(4), prm, target_covariances=C, target_index=idx, check_target=False)
+    assert np.array_equal(a.T_target_source, b.T_target_source) and a.fitness == b.fitness
+    with pytest.raises(InputError, match="C-contiguous float64"):
+        register_gicp(P, Q[:, [0, 1, 2]].T.copy().T, np.eye(4), prm, target_covariances=C, check_target=False)
+    with pytest.raises(InputError, match="target_covariances"):
+        register_gicp(P, Q, np.eye(4), prm, target_covariances=C[:-1], check_target=False)
+    with pytest.raises(InputError, match="different cloud"):
+        register_gicp(P, Q.copy(), np.eye(4), prm, target_covariances=C, target_index=idx, check_target=False)

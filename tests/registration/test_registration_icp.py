@@ -359,3 +359,23 @@ def test_icp_bad_inputs():
         register_icp(P, Q, np.eye(4), {"max_correspondence_distance_m": 0.3})
     with pytest.raises(InputError):
         register_icp(P[:, :2], Q, np.eye(4), prm)
+
+
+@pytest.mark.parametrize("method", ["point_to_point", "point_to_plane"])
+def test_unchecked_target_gives_the_same_fit(method):
+    """check_target=False (a map validated once) skips only the scan of the target: same result
+    bit for bit; a target of the wrong layout is still refused, the source is still checked."""
+    P, Q, N, _ = _scene(4)
+    prm = ICPParams(0.3, method=method)
+    a = register_icp(P, Q, np.eye(4), prm, target_normals=N)
+    b = register_icp(P, Q, np.eye(4), prm, target_normals=N, check_target=False)
+    assert np.array_equal(a.T_target_source, b.T_target_source) and a.fitness == b.fitness
+    assert np.array_equal(a.correspondences, b.correspondences)
+    with pytest.raises(InputError, match="C-contiguous float64"):
+        register_icp(P, Q.astype(np.float32), np.eye(4), prm, target_normals=N, check_target=False)
+    with pytest.raises(InputError, match="C-contiguous float64"):
+        register_icp(P, Q, np.eye(4), prm, target_normals=np.asfortranarray(N), check_target=False)
+    Pn = P.copy()
+    Pn[3, 1] = np.nan
+    with pytest.raises(InputError, match="row 3"):
+        register_icp(Pn, Q, np.eye(4), prm, target_normals=N, check_target=False)

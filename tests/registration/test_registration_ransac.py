@@ -387,3 +387,48 @@ def test_mutual_filter_equals_full_cross_check():
     expected = np.stack([np.arange(fs.shape[0]), j], axis=1)[keep]
     np.testing.assert_array_equal(m.pairs, expected)
     assert 0 < len(m.pairs) < fs.shape[0]
+
+
+def test_feature_index_reuse_gives_identical_matches(rng):
+    """A prebuilt FeatureIndex (tree path and brute path) gives the same matches bit for bit;
+    it is refused for another array or another drop_zero_features setting."""
+    from minegeo.registration.correspondences import build_feature_index
+
+    for n_t in (40, 8 * K.FEATURE_LEAF + 31):
+        ft = np.round(_features_for(n_t, rng) / 7.0)
+        ft[3] = 0.0  # an isolated target point
+        fs = np.vstack([ft[::3] + 0.25, _features_for(25, rng)])
+        fs[1] = 0.0
+        idx = build_feature_index(ft)
+        assert idx.tree.brute == (n_t < 8 * K.FEATURE_LEAF) and 3 not in idx.rows
+        for mutual in (False, True):
+            a = feature_correspondences(fs, ft, mutual_filter=mutual)
+            b = feature_correspondences(fs, ft, mutual_filter=mutual, target_index=idx)
+            assert np.array_equal(a.pairs, b.pairs) and np.array_equal(a.feature_sq_distances, b.feature_sq_distances)
+            assert (a.mutual_applied, a.n_target_matchable) == (b.mutual_applied, b.n_target_matchable)
+        with pytest.raises(InputError, match="build_feature_index"):
+            feature_correspondences(fs, ft.copy(), target_index=idx)
+        with pytest.raises(InputError, match="drop_zero_features"):
+            feature_correspondences(fs, ft, drop_zero_features=False, target_index=idx)
+    with pytest.raises(TooFewPointsError):
+        build_feature_index(np.zeros((5, 33)))
+    with pytest.raises(InputError):
+        build_feature_index(np.full((5, 33), np.nan))
+
+
+def test_ransac_with_feature_index_and_unchecked_target_is_identical(rng):
+    """register_ransac with a reused FeatureIndex and check_target=False returns the same result;
+    the unchecked path still refuses a target of the wrong layout."""
+    from minegeo.registration.correspondences import build_feature_index
+
+    tgt = _blob(rng, 200)
+    T = random_transform(rng, 2.0)
+    src = transform_points(invert(T), tgt[:150])
+    ft = _features_for(200, rng)
+    fs = ft[:150] + rng.normal(0, 0.5, (150, 33))
+    p = _params(max_iterations=3000)
+    a = register_ransac(src, tgt, fs, ft, p, seed=4)
+    b = register_ransac(src, tgt, fs, ft, p, seed=4, target_feature_index=build_feature_index(ft), check_target=False)
+    assert np.array_equal(a.T_target_source, b.T_target_source) and a.fitness == b.fitness
+    with pytest.raises(InputError, match="C-contiguous float64"):
+        register_ransac(src, np.asfortranarray(tgt), fs, ft, p, seed=4, check_target=False)
