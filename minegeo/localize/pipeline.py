@@ -56,7 +56,7 @@ import numpy as np
 from minegeo._provenance import to_jsonable
 from minegeo._validate import as_points, check_positive
 from minegeo.errors import InputError, TooFewPointsError
-from minegeo.geometry.se3 import hat, rotation_angle
+from minegeo.geometry.se3 import hat, invert, log_so3, rotation_angle
 from minegeo.io.types import PointCloud, Trajectory
 from minegeo.localize.correlative import CorrelativeParams, correlative_candidates
 from minegeo.localize.prepared import FAST_FEATURES, FeatureParams, PreparedMap, prepare_cloud_features
@@ -190,6 +190,14 @@ class LocalizeParams:
         (the covariance-based checks, weak-direction displacement and pending step, use the
         polished fit); a polish moving the scan by more than ``max_pending_step_m`` is not
         applied (warning).
+    weak_axis_polish_term : bool
+        When the polish was applied and the final pairs constrain some direction weakly
+        (normalised constraint eigenvalue ratio below ``uncertainty.degeneracy_ratio``, e.g.
+        a straight drift), add ``δ δᵀ`` to the pose covariance, with ``δ`` = the polish's
+        pose shift ``(ω, t)`` about the scan origin. Along such a direction the estimate
+        depends on which pairs the gate admits, a bias that every jackknife block shares and
+        so does not show in their spread; the change between the 0.5 m and the polish gate
+        measures that sensitivity (minegeo addition, calibrated in docs/uncertainty.md).
     """
 
     scan_voxel_size_m: float | None = 0.5
@@ -222,8 +230,11 @@ class LocalizeParams:
     correlative_params: CorrelativeParams = field(default_factory=CorrelativeParams)
     correlative_confirm_below_points: int = 400
     icp_polish_correspondence_m: float | None = 0.25
+    weak_axis_polish_term: bool = True
 
     def __post_init__(self):
+        if not isinstance(self.weak_axis_polish_term, (bool, np.bool_)):
+            raise InputError(f"weak_axis_polish_term must be True or False, got {self.weak_axis_polish_term!r}")
         if self.correlative not in ("off", "fallback", "always"):
             raise InputError(f"correlative must be 'off', 'fallback' or 'always', got {self.correlative!r}")
         if not isinstance(self.correlative_params, CorrelativeParams):
@@ -856,8 +867,12 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         Pa = Dfine @ Ta[:3, :3].T + Ta[:3, 3]
         shift = float(np.sqrt(np.max(np.sum((Dfine @ Tp[:3, :3].T + Tp[:3, 3] - Pa) ** 2, axis=1))))
         applied = ic_pol.correspondences.shape[0] >= 7 and shift <= p.max_pending_step_m
+        # the same shift as a pose increment (ω, t) about the placed scan origin, map axes
+        dT = Tp @ invert(Ta)
+        o_a = Ta[:3, :3] @ (-scan_origin) + Ta[:3, 3]
+        shift6 = np.r_[log_so3(dT[:3, :3]), dT[:3, :3] @ o_a + dT[:3, 3] - o_a]
         polish = {"gate_m": pol_gate, "applied": bool(applied),
-                  "largest_shift_m": shift, "iterations": int(ic_pol.iterations), "fitness": float(ic_pol.fitness),
+                  "largest_shift_m": shift, "shift_6": shift6.tolist(), "iterations": int(ic_pol.iterations), "fitness": float(ic_pol.fitness),
                   "inlier_rmse_m": float(ic_pol.inlier_rmse_m), "n_pairs": int(ic_pol.correspondences.shape[0])}
         if applied:
             ic_final = ic_pol
@@ -890,6 +905,13 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
             unc_record = unc.to_dict()
             for k in ("covariance_6x6", "covariance_formal_6x6", "position_cov_3x3", "information_6x6"):
                 unc_record.pop(k, None)
+            # weak direction: add the polish's shift as a model-error term (see weak_axis_polish_term)
+            add_shift = (cov is not None and p.weak_axis_polish_term and polish is not None and polish["applied"]
+                         and unc.information_ratio < p.uncertainty.degeneracy_ratio)
+            if add_shift:
+                d6 = np.asarray(polish["shift_6"], dtype=np.float64)
+                cov = cov + np.outer(d6, d6)
+            unc_record["weak_axis_polish_term"] = bool(add_shift)
         else:
             step = None
         if cov is not None:
@@ -925,6 +947,9 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
             pos_sigma = np.sqrt(np.maximum(np.diag(pos_cov), 0.0))
             r95 = float(math.sqrt(CHI2_3D_95 * max(np.linalg.eigvalsh(pos_cov)[-1], 0.0)))
             h95 = float(math.sqrt(CHI2_2D_95 * max(np.linalg.eigvalsh(pos_cov[:2, :2])[-1], 0.0)))
+            if unc_record is not None:  # the estimator's own radii, updated for any term added here
+                unc_record.update(position_95_radius_m=r95, horizontal_95_radius_m=h95,
+                                  position_sigma_m=pos_sigma.tolist())
         elif status == "ok":
             status = "ambiguous"
             reason = "the fit leaves at least one pose direction unconstrained (singular information matrix)"

@@ -357,6 +357,41 @@ def test_polish_refines_the_pose_without_changing_the_decision(world_map, result
         LocalizeParams(icp_polish_correspondence_m=0.0)
 
 
+def test_weak_axis_polish_term_adds_the_polish_shift_to_the_covariance(world_map, results):
+    """The weak-direction model-error term is exactly ``δ δᵀ`` (δ = the polish's recorded pose
+    shift) and applies only below the degeneracy ratio: forced on every scan (ratio 0.999), the
+    covariance grows by that outer product and the reported radii follow; by default these
+    well-constrained scans do not get it."""
+    from dataclasses import replace
+
+    from minegeo.localize.uncertainty import CHI2_3D_95
+
+    _, _, pm, scans = world_map
+    sec = "intersection"
+    cloud, traj, _ = scans[sec]
+    r = results[sec]
+    assert r.uncertainty["weak_axis_polish_term"] is False  # constrained in every direction
+    base = LocalizeParams.fast()
+    forced = replace(base, uncertainty=replace(base.uncertainty, degeneracy_ratio=0.999))
+    rf = localize_scan(pm, cloud, traj, forced, seed=0)
+    r0 = localize_scan(pm, cloud, traj, replace(forced, weak_axis_polish_term=False), seed=0)
+    assert rf.uncertainty["weak_axis_polish_term"] is True and r0.uncertainty["weak_axis_polish_term"] is False
+    d6 = np.asarray(rf.polish["shift_6"])
+    assert d6.shape == (6,) and np.all(np.isfinite(d6))
+    np.testing.assert_allclose(rf.covariance_6x6 - r0.covariance_6x6, np.outer(d6, d6), atol=1e-15)
+    lam = np.linalg.eigvalsh(rf.covariance_6x6[3:, 3:])[-1]
+    assert rf.position_95_radius_m == pytest.approx(np.sqrt(CHI2_3D_95 * lam))
+    assert rf.uncertainty["position_95_radius_m"] == rf.position_95_radius_m >= r0.position_95_radius_m
+    assert np.array_equal(rf.T_map_scan, r0.T_map_scan) and rf.status == r0.status
+    # the shift is the polish's motion of the scan origin: compare with the unpolished pose
+    ru = localize_scan(pm, cloud, traj, replace(base, icp_polish_correspondence_m=None), seed=0)
+    o = np.asarray(cloud.origin, dtype=np.float64)
+    moved = (r.T_map_scan[:3, :3] @ o + r.T_map_scan[:3, 3]) - (ru.T_map_scan[:3, :3] @ o + ru.T_map_scan[:3, 3])
+    np.testing.assert_allclose(d6[3:], moved, atol=1e-6)
+    with pytest.raises(InputError, match="weak_axis_polish_term"):
+        LocalizeParams(weak_axis_polish_term="yes")
+
+
 def test_straight_featureless_tube_is_never_ok():
     """A scan of a smooth straight tube cannot be placed along it: never ``ok``."""
     rng = np.random.default_rng(5)
