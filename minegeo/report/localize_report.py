@@ -105,6 +105,30 @@ def plot_localization_png(res, prepared, max_map_points: int = 40000, seed: int 
     return buf.getvalue()
 
 
+def _uncertainty_text(u: dict | None) -> str:
+    """One paragraph saying which covariance estimator the numbers above come from."""
+    if not u:
+        return "No covariance: the fit leaves a pose direction unconstrained."
+    method = u.get("method")
+    base = ("Uncertainty: covariance of the final point-to-plane fit about the scan origin, from the "
+            "final ICP pairs")
+    if method == "jackknife":
+        txt = (f"{base}, by the delete-one-block jackknife over {u.get('n_clusters')} blocks of "
+               f"{_n(u.get('cluster_size_used_m'), 'g')} m (neighbouring residuals are correlated; it is "
+               f"{_n(u.get('inflation'), '.1f')}x the formal σ²(JᵀJ)⁻¹ in position), never below the formal one")
+    elif method == "cluster":
+        txt = (f"{base}, cluster-robust over {u.get('n_clusters')} blocks of "
+               f"{_n(u.get('cluster_size_used_m'), 'g')} m, never below the formal σ²(JᵀJ)⁻¹")
+    else:
+        txt = f"{base}, formal σ²(JᵀJ)⁻¹ (independent residuals assumed: optimistic)"
+    if u.get("params", {}).get("add_pending_step"):
+        txt += "; plus the remaining Gauss-Newton step"
+    if u.get("weak_axis_polish_term"):
+        txt += ("; plus the polish's pose shift along the weakly constrained direction (the estimate depends "
+                "on the correspondence gate there)")
+    return txt + ". It excludes the map's own error and the georeferencing error (docs/uncertainty.md)."
+
+
 def _mat(T) -> str:
     if T is None:
         return "n/a"
@@ -135,9 +159,7 @@ def localize_report_html(res, prepared, *, inputs=None, extra: dict | None = Non
     rows.append(("final fitness / inlier RMSE (Eq. 19)", f"{_n(res.fitness, '.4f')} / {_n(res.inlier_rmse_m, '.4f')} m"))
     rows.append(("scan points: read / features / ICP", f"{res.n_scan_points} / {res.n_scan_down} / {res.n_scan_icp}"))
     sec = kv_table(rows)
-    sec += "<p class='sub'>Uncertainty is the formal first-order covariance σ²(JᵀJ)⁻¹ of the point-to-plane fit; " \
-           "residuals of neighbouring points are treated as independent, so it is optimistic, and it excludes " \
-           "the map's own error and the georeferencing error.</p>"
+    sec += f"<p class='sub'>{esc(_uncertainty_text(res.uncertainty))}</p>"
     sec += "<h3>T_map_scan</h3>" + _mat(res.T_map_scan)
     if res.T_crs_scan is not None:
         sec += f"<h3>T_crs_scan (full {esc(res.crs)} coordinates)</h3>" + _mat(res.T_crs_scan)

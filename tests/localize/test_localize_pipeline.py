@@ -251,6 +251,8 @@ def test_cli_end_to_end_georeferenced(world_map, tmp_path):
     html = (out / "report.html").read_text()
     assert "<img" in html or "matplotlib is not installed" in html
     assert "Parameters" in html and "ok" in html.lower()
+    # the report names the covariance estimator actually used (default: block jackknife)
+    assert r["uncertainty"]["method"] == "jackknife" and "delete-one-block jackknife" in html
     assert list(tmp_path.glob("map_geo.ply.prepared-*.npz")), "prepared-map cache not written"
     # prepared file path, and a mismatch of parameters is a clear input error (exit 2)
     prep = tmp_path / "prep.npz"
