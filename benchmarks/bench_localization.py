@@ -178,6 +178,9 @@ def main(argv=None) -> int:
     ap.add_argument("--map-cache", default=None,
                     help="PLY file holding the synthetic map: read if it exists, else built and written there "
                          "(the paper preset's map takes ~15-30 min to build)")
+    ap.add_argument("--survey-passes", type=int, default=1,
+                    help="interleaved passes of the map survey: 1 = one VLP-16 frame every 12 m on the paper "
+                         "preset, 2 = every 6 m (synth.dataset.build_survey_map; the cache must match)")
     ap.add_argument("--study", default="all", choices=("all", "length", "octree"),
                     help="length/sensor runs, octree-level runs, or both")
     args = ap.parse_args(argv)
@@ -186,7 +189,8 @@ def main(argv=None) -> int:
 
     from minegeo.localize import LocalizeParams, PrepareParams, localize_scan, prepare_map
     from minegeo.localize.pipeline import error_vs_truth
-    from minegeo.synth import build_map, build_world, local_scan
+    from minegeo.synth import build_world, local_scan
+    from minegeo.synth.dataset import build_survey_map
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -197,7 +201,7 @@ def main(argv=None) -> int:
 
         cloud = read_point_cloud(args.map_cache)
     else:
-        cloud = build_map(world, seed=args.seed + 1)
+        cloud = build_survey_map(world, seed=args.seed + 1, passes=args.survey_passes)
         if args.map_cache:
             from minegeo.io import write_point_cloud
 

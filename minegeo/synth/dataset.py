@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -83,7 +83,8 @@ def survey_path(world: MineWorld) -> tuple[np.ndarray, np.ndarray]:
 
 
 def build_map(world: MineWorld, seed: int = 0, *, sensor=None, spacing_m: float | None = None,
-              kind: str = "drive", return_trajectory: bool = False):
+              kind: str = "drive", return_trajectory: bool = False, first_mark_m: float | None = None,
+              noise_seed: int | None = None):
     """Global point cloud of the whole mine from one survey pass, in the map (= world) frame.
 
     The carrier follows :func:`survey_path`; while on a drift for the first time it
@@ -101,6 +102,13 @@ def build_map(world: MineWorld, seed: int = 0, *, sensor=None, spacing_m: float 
         so tests stay fast).
     spacing_m : float, optional
         Distance between recorded frames (default 10 m small, 12 m paper).
+    first_mark_m : float, optional
+        Arc length of the first recorded frame along the survey path (default ``spacing_m / 2``);
+        frames at ``first_mark_m + k spacing_m``. A second pass with ``first_mark_m = spacing_m``
+        and another ``noise_seed`` fills in the frames half-way between (see
+        :func:`build_survey_map`).
+    noise_seed : int, optional
+        Seed of the range noise (default ``seed + 1``); ``seed`` alone drives the carrier's sway.
 
     Returns
     -------
@@ -120,11 +128,15 @@ def build_map(world: MineWorld, seed: int = 0, *, sensor=None, spacing_m: float 
     speed = MOTIONS[kind].speed_mps
     S = _arc_lengths(P)
     # arc-length intervals of first traversals
-    marks = np.arange(spacing_m / 2, S[-1], spacing_m)
+    first_mark = spacing_m / 2 if first_mark_m is None else float(first_mark_m)
+    if not (math.isfinite(first_mark) and first_mark >= 0):
+        raise InputError(f"first_mark_m must be >= 0, got {first_mark_m!r}")
+    marks = np.arange(first_mark, S[-1], spacing_m)
     k = np.clip(np.searchsorted(S, marks, side="right") - 1, 0, len(S) - 2)
     keep = first[k + 1]
     times = marks[keep] / speed
-    cloud = simulate_scan(world, sensor, traj, seed=seed + 1, frame_times_s=times)
+    cloud = simulate_scan(world, sensor, traj, seed=seed + 1 if noise_seed is None else int(noise_seed),
+                          frame_times_s=times)
     out = deskew(cloud, traj)
     out.frame = "map"
     log.info("survey map: %d points from %d frames over %.0f m", len(out), len(times), S[-1])
@@ -132,6 +144,34 @@ def build_map(world: MineWorld, seed: int = 0, *, sensor=None, spacing_m: float 
         traj.frame = "map"
         return out, traj
     return out
+
+
+def build_survey_map(world: MineWorld, seed: int = 0, *, passes: int = 1, spacing_m: float | None = None):
+    """The survey map of :func:`build_map` with ``passes`` interleaved passes of frames.
+
+    Pass ``j`` (0-based) records frames at ``spacing/2 + j·spacing/passes + k·spacing`` with
+    range-noise seed ``seed + 1 + j`` on the same carrier path (``seed``), so ``passes = 2`` adds
+    the frames half-way between those of ``passes = 1`` (one frame every 6 m on the paper
+    preset) and pass 0 is exactly ``build_map(world, seed)``.
+
+    Returns
+    -------
+    PointCloud
+        ``frame="map"``; the passes' points concatenated in pass order.
+    """
+    if isinstance(passes, bool) or not isinstance(passes, (int, np.integer)) or passes < 1:
+        raise InputError(f"passes must be an integer >= 1, got {passes!r}")
+    small = world.preset != "paper"
+    sp = (10.0 if small else 12.0) if spacing_m is None else float(spacing_m)
+    parts = [build_map(world, seed, spacing_m=sp, first_mark_m=sp / 2 + j * sp / passes, noise_seed=seed + 1 + j)
+             for j in range(int(passes))]
+    if len(parts) == 1:
+        return parts[0]
+    out = parts[0]
+    pts = np.vstack([c.points + np.asarray(c.origin, dtype=np.float64) for c in parts]) - np.asarray(out.origin)
+    attrs = {k: np.concatenate([c.attributes[k] for c in parts]) for k in out.attributes
+             if all(k in c.attributes for c in parts)}
+    return replace(out, points=pts, normals=None, attributes=attrs)
 
 
 # ---------------------------------------------------------------------- local scans

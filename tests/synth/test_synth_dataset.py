@@ -94,6 +94,28 @@ def test_survey_map_covers_every_drift(world):
         assert dist < 4.0, d.name
 
 
+def test_survey_map_passes_interleave_frames(world):
+    """build_survey_map: one pass is build_map itself; a second pass adds frames half-way between
+    (first mark = spacing, its own noise seed) on the same carrier path, appended after pass 0."""
+    from minegeo.synth.dataset import build_survey_map
+
+    one = build_survey_map(world, seed=4, passes=1, spacing_m=20.0)
+    ref = build_map(world, seed=4, spacing_m=20.0)
+    assert np.array_equal(one.points, ref.points)
+    two = build_survey_map(world, seed=4, passes=2, spacing_m=20.0)
+    extra = build_map(world, seed=4, spacing_m=20.0, first_mark_m=20.0, noise_seed=6)
+    assert len(two) == len(ref) + len(extra) and two.frame == "map"
+    assert np.array_equal(two.points[: len(ref)], ref.points) and np.array_equal(two.points[len(ref):], extra.points)
+    assert np.array_equal(two.attributes["time_s"][len(ref):], extra.attributes["time_s"])
+    # the extra frames sit between the first pass's frames (survey times interleave)
+    t1, t2 = np.unique(ref.attributes["time_s"].round(1)), np.unique(extra.attributes["time_s"].round(1))
+    assert not set(t1.tolist()) & set(t2.tolist())
+    with pytest.raises(InputError):
+        build_survey_map(world, passes=0)
+    with pytest.raises(InputError):
+        build_map(world, first_mark_m=-1.0)
+
+
 def test_gcps_crs_consistent_with_pyproj(world):
     from pyproj import Transformer
 
