@@ -154,10 +154,26 @@ def build_survey_map(world: MineWorld, seed: int = 0, *, passes: int = 1, spacin
     the frames half-way between those of ``passes = 1`` (one frame every 6 m on the paper
     preset) and pass 0 is exactly ``build_map(world, seed)``.
 
+    Parameters
+    ----------
+    world : MineWorld
+    seed : int
+        Carrier sway of every pass; pass ``j`` draws its range noise from ``seed + 1 + j``.
+    passes : int
+        Number of interleaved passes (>= 1); the frame spacing becomes ``spacing / passes``.
+    spacing_m : float, optional
+        Frame spacing of one pass (default as :func:`build_map`: 10 m small, 12 m paper).
+
     Returns
     -------
     PointCloud
-        ``frame="map"``; the passes' points concatenated in pass order.
+        ``frame="map"``; the passes' points (and their per-point attributes such as
+        ``time_s``) concatenated in pass order.
+
+    Raises
+    ------
+    InputError
+        ``passes`` not an integer >= 1.
     """
     if isinstance(passes, bool) or not isinstance(passes, (int, np.integer)) or passes < 1:
         raise InputError(f"passes must be an integer >= 1, got {passes!r}")
