@@ -106,15 +106,14 @@ def evaluate(unc, e6: np.ndarray) -> dict:
 
 def with_shift(unc, delta: np.ndarray):
     """``unc`` with ``δ δᵀ`` added to its covariance (``δ`` = the polish's pose shift, (ω, t))."""
-    from minegeo.localize.uncertainty import CHI2_2D_95, CHI2_3D_95
+    from minegeo.localize.uncertainty import radii_95
 
     if unc.covariance_6x6 is None:
         return unc
     C = unc.covariance_6x6 + np.outer(delta, delta)
     pos = C[3:, 3:]
-    return replace(unc, covariance_6x6=C, position_cov_3x3=pos,
-                   position_95_radius_m=float(math.sqrt(CHI2_3D_95 * max(np.linalg.eigvalsh(pos)[-1], 0.0))),
-                   horizontal_95_radius_m=float(math.sqrt(CHI2_2D_95 * max(np.linalg.eigvalsh(pos[:2, :2])[-1], 0.0))))
+    r95, h95 = radii_95(pos)
+    return replace(unc, covariance_6x6=C, position_cov_3x3=pos, position_95_radius_m=r95, horizontal_95_radius_m=h95)
 
 
 def summarise(records: list, names) -> list[dict]:

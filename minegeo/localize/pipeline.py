@@ -60,7 +60,7 @@ from minegeo.geometry.se3 import hat, invert, log_so3, rotation_angle
 from minegeo.io.types import PointCloud, Trajectory
 from minegeo.localize.correlative import CorrelativeParams, correlative_candidates
 from minegeo.localize.prepared import FAST_FEATURES, FeatureParams, PreparedMap, prepare_cloud_features
-from minegeo.localize.uncertainty import UncertaintyParams, pose_uncertainty
+from minegeo.localize.uncertainty import UncertaintyParams, pose_uncertainty, radii_95
 from minegeo.registration.gicp import GICPParams, register_gicp
 from minegeo.registration.icp import METHODS as _ICP_METHODS
 from minegeo.registration.icp import ICPParams, register_icp
@@ -871,8 +871,8 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         dT = Tp @ invert(Ta)
         o_a = Ta[:3, :3] @ (-scan_origin) + Ta[:3, 3]
         shift6 = np.r_[log_so3(dT[:3, :3]), dT[:3, :3] @ o_a + dT[:3, 3] - o_a]
-        polish = {"gate_m": pol_gate, "applied": bool(applied),
-                  "largest_shift_m": shift, "shift_6": shift6.tolist(), "iterations": int(ic_pol.iterations), "fitness": float(ic_pol.fitness),
+        polish = {"gate_m": pol_gate, "applied": bool(applied), "largest_shift_m": shift, "shift_6": shift6.tolist(),
+                  "iterations": int(ic_pol.iterations), "fitness": float(ic_pol.fitness),
                   "inlier_rmse_m": float(ic_pol.inlier_rmse_m), "n_pairs": int(ic_pol.correspondences.shape[0])}
         if applied:
             ic_final = ic_pol
@@ -900,7 +900,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         unc = None
         if ic_final.correspondences.shape[0] >= 7:
             unc = pose_uncertainty(Pw, Qf, Nf, ic_final.correspondences, o_work,
-                                   replace(p.uncertainty, degeneracy_ratio=0.0))
+                                   replace(p.uncertainty, degeneracy_ratio=0.0), check_target=False)
             cov, sigma, residuals, step = unc.covariance_6x6, unc.sigma_m, unc.residuals_m, unc.pending_step
             unc_record = unc.to_dict()
             for k in ("covariance_6x6", "covariance_formal_6x6", "position_cov_3x3", "information_6x6"):
@@ -945,8 +945,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         if cov is not None:
             pos_cov = cov[3:, 3:].copy()
             pos_sigma = np.sqrt(np.maximum(np.diag(pos_cov), 0.0))
-            r95 = float(math.sqrt(CHI2_3D_95 * max(np.linalg.eigvalsh(pos_cov)[-1], 0.0)))
-            h95 = float(math.sqrt(CHI2_2D_95 * max(np.linalg.eigvalsh(pos_cov[:2, :2])[-1], 0.0)))
+            r95, h95 = radii_95(pos_cov)
             if unc_record is not None:  # the estimator's own radii, updated for any term added here
                 unc_record.update(position_95_radius_m=r95, horizontal_95_radius_m=h95,
                                   position_sigma_m=pos_sigma.tolist())

@@ -330,8 +330,8 @@ class PreparedMap:
     def __post_init__(self):
         # validated once here, so localization can search the map without re-scanning it
         # (``check_target=False``); the arrays must not be modified afterwards
-        m = np.asarray(self.points).shape[0] if np.ndim(self.points) == 2 else -1
         self.points = as_points(self.points, "prepared map points", min_points=1)
+        m = self.points.shape[0]
         self.normals = as_points(self.normals, "prepared map normals", min_points=1)
         f = np.asarray(self.features)
         if f.ndim != 2:

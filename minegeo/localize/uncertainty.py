@@ -97,7 +97,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from minegeo._validate import as_points, check_positive
+from minegeo._validate import as_points, as_trusted_points, check_positive
 from minegeo.errors import InputError, TooFewPointsError
 
 __all__ = ["UncertaintyParams", "PoseUncertainty", "pose_uncertainty", "block_covariance", "cluster_labels",
@@ -236,6 +236,13 @@ class PoseUncertainty:
         return to_jsonable(d)
 
 
+def radii_95(pos_cov: np.ndarray) -> tuple[float, float]:
+    """95 % radii of a 3x3 position covariance: ``(sqrt(χ²₃ λmax(Σ)), sqrt(χ²₂ λmax(Σ_xy)))``, m."""
+    r95 = float(math.sqrt(CHI2_3D_95 * max(float(np.linalg.eigvalsh(pos_cov)[-1]), 0.0)))
+    h95 = float(math.sqrt(CHI2_2D_95 * max(float(np.linalg.eigvalsh(pos_cov[:2, :2])[-1]), 0.0)))
+    return r95, h95
+
+
 def _psd_max(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``L U diag(max(λ, 1)) Uᵀ Lᵀ`` with ``A = L Lᵀ``, ``L⁻¹ B L⁻ᵀ = U diag(λ) Uᵀ`` (A pos. def.)."""
     L = np.linalg.cholesky(A)
@@ -332,10 +339,11 @@ def cluster_labels(points: np.ndarray, size_m: float) -> tuple[np.ndarray, int]:
     return inv, int(inv.max()) + 1
 
 
-def _validate(P_work, Q, Nq, corr, origin_work):
+def _validate(P_work, Q, Nq, corr, origin_work, check_target: bool = True):
     P = as_points(P_work, "P_work (placed scan points)")
-    Qm = as_points(Q, "Q (map points)")
-    N = as_points(Nq, "Nq (map normals)")
+    check = as_points if check_target else as_trusted_points
+    Qm = check(Q, "Q (map points)")
+    N = check(Nq, "Nq (map normals)")
     if N.shape[0] != Qm.shape[0]:
         raise InputError(f"Nq (map normals) has {N.shape[0]} rows but Q (map points) has {Qm.shape[0]}")
     o = np.asarray(origin_work, dtype=np.float64)
@@ -362,7 +370,8 @@ def _validate(P_work, Q, Nq, corr, origin_work):
     return P, Qm, N, c, o
 
 
-def pose_uncertainty(P_work, Q, Nq, corr, origin_work, params: UncertaintyParams | None = None) -> PoseUncertainty:
+def pose_uncertainty(P_work, Q, Nq, corr, origin_work, params: UncertaintyParams | None = None, *,
+                     check_target: bool = True) -> PoseUncertainty:
     """Covariance of a point-to-plane pose fit about the scan origin, formal or cluster-robust.
 
     Parameters
@@ -379,6 +388,10 @@ def pose_uncertainty(P_work, Q, Nq, corr, origin_work, params: UncertaintyParams
         The scan origin placed in the work frame, m (the point the rotation is taken about).
     params : UncertaintyParams, optional
         Default: delete-one-block jackknife over 4 m blocks.
+    check_target : bool
+        True (default) scans ``Q`` and ``Nq`` for NaN/inf; False checks only their layout
+        (C-contiguous float64 (m, 3)), for a map validated once (a prepared map). The normals of
+        the paired rows are checked for unit length either way.
 
     Returns
     -------
@@ -406,7 +419,7 @@ def pose_uncertainty(P_work, Q, Nq, corr, origin_work, params: UncertaintyParams
     p = UncertaintyParams() if params is None else params
     if not isinstance(p, UncertaintyParams):
         raise InputError(f"params must be an UncertaintyParams, got {type(p).__name__}")
-    P, Qm, N, c, o = _validate(P_work, Q, Nq, corr, origin_work)
+    P, Qm, N, c, o = _validate(P_work, Q, Nq, corr, origin_work, check_target)
     from minegeo.registration.icp import constraint_analysis
 
     k = c.shape[0]
@@ -428,8 +441,7 @@ def pose_uncertainty(P_work, Q, Nq, corr, origin_work, params: UncertaintyParams
         else:
             pos = cov[3:, 3:].copy()
             ps = np.sqrt(np.maximum(np.diag(pos), 0.0))
-            r95 = float(math.sqrt(CHI2_3D_95 * max(float(np.linalg.eigvalsh(pos)[-1]), 0.0)))
-            h95 = float(math.sqrt(CHI2_2D_95 * max(float(np.linalg.eigvalsh(pos[:2, :2])[-1]), 0.0)))
+            r95, h95 = radii_95(pos)
         return PoseUncertainty(covariance_6x6=cov, covariance_formal_6x6=cov_f, sigma_m=sigma, position_cov_3x3=pos,
                                position_sigma_m=ps, position_95_radius_m=r95, horizontal_95_radius_m=h95,
                                information_6x6=H, information_ratio=float(ratio), n_pairs=int(k), n_clusters=int(G),

@@ -369,3 +369,16 @@ def test_block_covariance_matches_naive_refits():
     with pytest.raises(InputError):
         block_covariance(J, rh, labels, G, "formal")
     assert small_g_factor(20) == pytest.approx(1.2, abs=0.01) and small_g_factor(100000) == pytest.approx(1.0, abs=1e-3)
+
+
+def test_unchecked_map_gives_the_same_covariance():
+    """check_target=False (a prepared map validated once) skips only the map's NaN scan."""
+    Pw, Q, N, corr, o = _BASE
+    Qc, Nc = np.ascontiguousarray(Q, dtype=np.float64), np.ascontiguousarray(N, dtype=np.float64)
+    a = pose_uncertainty(Pw, Qc, Nc, corr, o)
+    b = pose_uncertainty(Pw, Qc, Nc, corr, o, check_target=False)
+    assert np.array_equal(a.covariance_6x6, b.covariance_6x6) and a.position_95_radius_m == b.position_95_radius_m
+    with pytest.raises(InputError, match="C-contiguous float64"):
+        pose_uncertainty(Pw, np.asfortranarray(Qc), Nc, corr, o, check_target=False)
+    with pytest.raises(InputError):  # the paired normals are still checked for unit length
+        pose_uncertainty(Pw, Qc, 2.0 * Nc, corr, o, check_target=False)
