@@ -16,9 +16,10 @@ verification as RANSAC's hypotheses (:func:`minegeo.localize.localize_scan`).
 Model
 -----
 * Map occupancy: the cells of edge ``c`` (``cell_size_m``) holding at least one ICP point of
-  the map, dilated by ``dilation_cells`` cells (Chebyshev), in a hash table: a scan point
-  *hits* when its cell is in the table, i.e. it lies within roughly ``c`` to
-  ``(1 + dilation) c`` of the map surface.
+  the map, dilated by ``dilation_cells`` cells (Chebyshev), in a blocked bitmap (8³-cell
+  blocks found by hashing, :mod:`minegeo.localize._kernels`): a scan point *hits* when its
+  cell is in the dilated set, i.e. it lies within roughly ``c`` to ``(1 + dilation) c`` of the
+  map surface.
 * Anchors: map points whose (void-oriented) normal points up within ``anchor_max_tilt_deg``
   (the floor of a drift: places a scanner can stand over), on the map's feature voxel grid.
 * Scan reference: the scan's floor point nearest (horizontally) to its centroid; the scan
@@ -26,9 +27,14 @@ Model
 * Placement ``(a, ψ)``: ``p ↦ Rz(ψ) (p − r) + a`` for every anchor ``a`` and every heading
   ``ψ`` on a ``yaw_step_deg`` grid, scored by its number of hits (Olson 2009's correlative
   scan matching in 3-D, evaluated exhaustively over anchors instead of a translation grid).
-* The ``n_candidates`` best placements that are pairwise distinct (scan centre farther than
-  ``distinct_m`` or heading differing by more than ``distinct_deg``) are returned as
-  ``T_work_scan`` matrices for refinement.
+* The best-ranked placement of every (``distinct_m`` cell of the scan centre, ``distinct_deg``
+  heading bin), up to ``n_coarse`` of them, is refined by a 4-DOF point-to-plane Gauss-Newton
+  in two stages: a screening stage on ``screen_points`` scan points against the map's ICP
+  cloud thinned to ``screen_voxel_size_m`` voxels (its nearest-neighbour search is several
+  times cheaper than in the full cloud), then the best ``n_refine`` on ``max_refine_points``
+  points against the full ICP cloud. The ``n_candidates`` best refined placements that are
+  pairwise distinct (scan centre farther than ``distinct_m`` or heading differing by more than
+  ``distinct_deg``) are returned as ``T_work_scan`` matrices.
 
 The search is exhaustive over its grid, so it is deterministic (the seed only picks the scan
 sample) and independent of the thread count.
@@ -47,7 +53,7 @@ from minegeo.errors import InputError
 
 from . import _kernels as K
 
-__all__ = ["CorrelativeParams", "CorrelativeResult", "correlative_candidates", "map_occupancy"]
+__all__ = ["CorrelativeParams", "CorrelativeResult", "correlative_candidates", "map_occupancy", "placement_grid"]
 
 
 @dataclass(frozen=True)
@@ -80,6 +86,17 @@ class CorrelativeParams:
     screen_points : int
         Refinement cascade, first stage: every one of the ``n_coarse`` placements gets three
         Gauss-Newton steps (gates 1.5, 1.0, 0.7 m) on this many scan points and is scored.
+    screen_voxel_size_m : float or None
+        The first stage searches the map's ICP cloud thinned to one point per voxel of this
+        edge (centroid and mean normal, :meth:`minegeo.localize.PreparedMap.screen_target`);
+        None: the full ICP cloud.
+    screen_grid : bool
+        The first stage's Gauss-Newton steps take each sample point's map neighbour from a
+        lookup grid of cells of edge ``screen_voxel_size_m`` that stores the thinned point
+        nearest to every cell's centre (:func:`_kernels.build_nearest_grid`, reaching
+        ``SCREEN_GATES_M[0]``), instead of a KD-tree search: an approximation within about a
+        cell, ~6 times faster; the stage's score (which ranks the placements) still uses the
+        exact nearest neighbours. Needs ``screen_voxel_size_m``.
     n_refine : int
         Second stage: the best ``n_refine`` of them get ``refine_iterations`` more steps
         (gates 1.0 m → 0.5 m, linearly) on ``max_refine_points`` points and the final score.
@@ -112,6 +129,8 @@ class CorrelativeParams:
     sample_radius_m: float = 15.0
     n_coarse: int = 8000
     screen_points: int = 64
+    screen_voxel_size_m: float | None = 0.5
+    screen_grid: bool = True
     n_refine: int = 300
     refine_iterations: int = 4
     refine_tolerance_m: float = 0.2
@@ -127,6 +146,8 @@ class CorrelativeParams:
         check_positive(self.sample_radius_m, "CorrelativeParams.sample_radius_m")
         check_positive(self.early_miss_slack, "CorrelativeParams.early_miss_slack")
         check_positive(self.refine_tolerance_m, "CorrelativeParams.refine_tolerance_m")
+        if self.screen_voxel_size_m is not None:
+            check_positive(self.screen_voxel_size_m, "CorrelativeParams.screen_voxel_size_m")
         for name in ("dilation_cells", "max_scan_points", "n_candidates", "n_coarse", "refine_iterations", "screen_points", "n_refine",
                      "max_refine_points"):
             v = getattr(self, name)
@@ -138,16 +159,24 @@ class CorrelativeParams:
             raise InputError("CorrelativeParams.anchor_max_tilt_deg must be in (0, 90) deg")
 
 
+#: Gates (m) of the screening stage's three Gauss-Newton steps.
+SCREEN_GATES_M = (1.5, 1.0, 0.7)
+
+
 @dataclass
 class MapOccupancy:
-    """The map side of the search: dilated occupancy hash table and floor anchors (work frame)."""
+    """The map side of the search: blocked occupancy bitmap and floor anchors (work frame).
 
-    table: np.ndarray
-    log2_capacity: int
-    tight: np.ndarray
-    log2_tight: int
+    ``block_keys`` / ``bits`` / ``log2_blocks`` are :func:`_kernels.build_blocked_occupancy`'s
+    output (dilated and undilated masks per 8³-cell block); ``n_cells`` occupied cells,
+    ``n_blocks`` blocks in use.
+    """
+
+    block_keys: np.ndarray
+    bits: np.ndarray
+    log2_blocks: int
     n_cells: int
-    n_keys: int
+    n_blocks: int
     anchors: np.ndarray
     cell_size_m: float
     dilation_cells: int
@@ -193,7 +222,7 @@ class CorrelativeResult:
 
 def map_occupancy(icp_points: np.ndarray, points: np.ndarray, normals: np.ndarray,
                   params: CorrelativeParams) -> MapOccupancy:
-    """Build the map side of the search (once per map and process; ~1-3 s for 5e6 points).
+    """Build the map side of the search (once per map and process; ~1 s for 8e6 points).
 
     Parameters
     ----------
@@ -207,18 +236,18 @@ def map_occupancy(icp_points: np.ndarray, points: np.ndarray, normals: np.ndarra
     c = float(params.cell_size_m)
     cells = K.unique_cells(np.ascontiguousarray(icp_points, dtype=np.float64), c)
     d = int(params.dilation_cells)
-    log2 = max(10, int(math.ceil(math.log2(max(1, cells.shape[0]) * 4 * (1 + d) ** 2))))
+    # blocks of 8³ cells: a dilated cell set fits in about n_cells (1 + 2d)³ / 64 blocks (or fewer)
+    log2 = max(10, int(math.ceil(math.log2(max(1, cells.shape[0]) * (1 + 2 * d) / 32))) + 1)
     while True:
-        table, n = K.build_dilated_table(cells, d, log2)
-        if n <= (1 << log2) // 2:
+        block_keys, bits, nb = K.build_blocked_occupancy(cells, d, log2)
+        if nb <= (1 << log2) // 2:
             break
         log2 += 1
-    log2t = max(10, int(math.ceil(math.log2(max(1, cells.shape[0]) * 2))) + 1)
-    tight, _ = K.build_dilated_table(cells, 0, log2t)
     up = math.cos(math.radians(params.anchor_max_tilt_deg))
     anchors = np.ascontiguousarray(points[normals[:, 2] >= up], dtype=np.float64)
-    return MapOccupancy(table=table, log2_capacity=log2, tight=tight, log2_tight=log2t, n_cells=int(cells.shape[0]), n_keys=int(n),
-                        anchors=anchors, cell_size_m=c, dilation_cells=d, build_s=time.perf_counter() - t0)
+    return MapOccupancy(block_keys=block_keys, bits=bits, log2_blocks=log2, n_cells=int(cells.shape[0]),
+                        n_blocks=int(nb), anchors=anchors, cell_size_m=c, dilation_cells=d,
+                        build_s=time.perf_counter() - t0)
 
 
 def _distinct_select(cpos: np.ndarray, yaw: np.ndarray, order: np.ndarray, n_max: int, params) -> list[int]:
@@ -240,9 +269,36 @@ def _distinct_select(cpos: np.ndarray, yaw: np.ndarray, order: np.ndarray, n_max
     return chosen
 
 
+def placement_grid(S: np.ndarray, yaws: np.ndarray, anchors: np.ndarray, cell_size_m: float):
+    """The scoring kernel's inputs in cell units: ``RX, RY`` (n_yaw, m) = the sample's x, y
+    rotated by each heading, ``SZ`` (m,) its z, and the anchors, all divided by the cell size
+    (the cell of a placed point is then ``floor(RX + a_x), floor(RY + a_y), floor(SZ + a_z)``)."""
+    inv = 1.0 / float(cell_size_m)
+    c, s = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
+    RX = np.ascontiguousarray((c * S[None, :, 0] - s * S[None, :, 1]) * inv)
+    RY = np.ascontiguousarray((s * S[None, :, 0] + c * S[None, :, 1]) * inv)
+    return RX, RY, np.ascontiguousarray(S[:, 2] * inv), np.ascontiguousarray(anchors * inv)
+
+
+def _first_of_each_bin(bins: np.ndarray) -> np.ndarray:
+    """Index of the first row of every distinct row of ``bins`` (n, k) int64 (the set that
+    ``np.unique(bins, axis=0, return_index=True)[1]`` gives, computed on one packed int64 key
+    per row when the bin ranges allow it: ~10 times faster)."""
+    if bins.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    lo = bins.min(axis=0)
+    span = bins.max(axis=0) - lo + 1
+    if float(np.prod(span.astype(np.float64))) >= 2.0**62:
+        return np.unique(bins, axis=0, return_index=True)[1]
+    key = np.zeros(bins.shape[0], dtype=np.int64)
+    for j in range(bins.shape[1]):
+        key = key * span[j] + (bins[:, j] - lo[j])
+    return np.unique(key, return_index=True)[1]
+
+
 def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, scan_normals: np.ndarray,
                            params: CorrelativeParams, seed: int = 0, reference_xy=None,
-                           refine_target=None) -> CorrelativeResult:
+                           refine_target=None, screen_target=None, screen_grid=None) -> CorrelativeResult:
     """Best distinct 4-DOF placements of a levelled scan (z up) in the map.
 
     Parameters
@@ -263,6 +319,13 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
         (:func:`minegeo.registration.build_target_index`) for the local 4-DOF refinement of the
         ``n_coarse`` best grid placements (:func:`_kernels.refine_placements_4dof`, ``prange``
         over placements); without it the grid placements are returned as they are.
+    screen_target : (GatedKDTree, points (k, 3), normals (k, 3)), optional
+        The thinned ICP cloud the first refinement stage searches
+        (:meth:`minegeo.localize.PreparedMap.screen_target`); default: ``refine_target``.
+    screen_grid : (block_keys, nearest, log2_blocks, cell_m), optional
+        Nearest-point lookup grid over ``screen_target``'s points
+        (:meth:`minegeo.localize.PreparedMap.screen_grid`) for the screening stage's
+        Gauss-Newton steps (``params.screen_grid``); its score stays exact.
 
     Returns
     -------
@@ -301,10 +364,9 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
     max_miss = int(math.floor((1.0 - float(params.min_hit_fraction)) * m))
     timings["setup"] = time.perf_counter() - t0
     t1 = time.perf_counter()
-    scores, tight = K.score_placements(occupancy.table, occupancy.log2_capacity, occupancy.tight,
-                                       occupancy.log2_tight, occupancy.cell_size_m, S,
-                                       occupancy.anchors, np.cos(yaws), np.sin(yaws), max_miss,
-                                       1.0 - float(params.min_hit_fraction), float(params.early_miss_slack))
+    RX, RY, SZ, A = placement_grid(S, yaws, occupancy.anchors, occupancy.cell_size_m)
+    scores, tight = K.score_placements(occupancy.block_keys, occupancy.bits, occupancy.log2_blocks, RX, RY, SZ, A,
+                                       max_miss, 1.0 - float(params.min_hit_fraction), float(params.early_miss_slack))
     timings["score"] = time.perf_counter() - t1
     t1 = time.perf_counter()
     flat = scores.ravel()
@@ -314,10 +376,13 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
         return _empty(f"no placement hits {100 * params.min_hit_fraction:.0f} % of the scan sample "
                       f"(best {100 * best:.0f} %)", r, m)
     rank_score = flat[keep] + tight.ravel()[keep]  # hits within ~c(1+d), plus those within ~c
-    keep = keep[np.argsort(-rank_score, kind="stable")]
+    # best first, ties in grid order; a small integer key lets NumPy's stable sort use radix sort
+    key = 2 * m - rank_score
+    keep = keep[np.argsort(key.astype(np.int16) if 2 * m < 2**15 else key, kind="stable")]
     ai, yi = np.divmod(keep, yaws.size)
     centre = P[near].mean(axis=0) - r
-    cy, sy = np.cos(yaws[yi]), np.sin(yaws[yi])
+    cos_y, sin_y = np.cos(yaws), np.sin(yaws)
+    cy, sy = cos_y[yi], sin_y[yi]
     cpos = np.column_stack([cy * centre[0] - sy * centre[1], sy * centre[0] + cy * centre[1],
                             np.full(keep.size, centre[2])]) + occupancy.anchors[ai]
     n_first = int(params.n_coarse) if refine_target is not None else int(params.n_candidates)
@@ -325,16 +390,16 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
     # best-ranked one (np.unique keeps the first occurrence in this ranked order)
     dm, dd = float(params.distinct_m), float(params.distinct_deg)
     bins = np.column_stack([np.floor(cpos / dm), np.floor(np.rad2deg(yaws[yi]) / dd)]).astype(np.int64)
-    _, first = np.unique(bins, axis=0, return_index=True)
-    chosen = np.sort(first)[:n_first].tolist()
-    Ts, fr = [], []
-    for j in chosen:
-        c, s = math.cos(yaws[yi[j]]), math.sin(yaws[yi[j]])
-        T = np.eye(4)
-        T[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
-        T[:3, 3] = occupancy.anchors[ai[j]] - T[:3, :3] @ r
-        Ts.append(T)
-        fr.append(float(flat[keep[j]]) / m)
+    first = _first_of_each_bin(bins)
+    chosen = np.sort(first)[:n_first]
+    # T = [Rz(ψ) | a − Rz(ψ) r] of every chosen placement
+    cj, sj = cos_y[yi[chosen]], sin_y[yi[chosen]]
+    T0s = np.zeros((chosen.size, 4, 4))
+    T0s[:, 0, 0], T0s[:, 0, 1], T0s[:, 1, 0], T0s[:, 1, 1] = cj, -sj, sj, cj
+    T0s[:, 2, 2] = T0s[:, 3, 3] = 1.0
+    T0s[:, :3, 3] = occupancy.anchors[ai[chosen]] - np.einsum("nij,j->ni", T0s[:, :3, :3], r)
+    Ts = list(T0s)
+    fr = (flat[keep[chosen]] / m).tolist()
     timings["select"] = time.perf_counter() - t1
     if refine_target is not None:
         t1 = time.perf_counter()
@@ -343,13 +408,22 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
         Nq = np.ascontiguousarray(Nq)
         perm = near[np.random.default_rng(seed + 1).permutation(near.size)[: int(params.max_refine_points)]]
         tol = float(params.refine_tolerance_m)
-        # cascade: every grid placement gets a few cheap steps on a small subset, the best
-        # ``n_refine`` of them the full refinement on all refinement points
+        # cascade: every grid placement gets a few cheap steps on a small subset against the
+        # thinned map, the best ``n_refine`` of them the full refinement on all refinement
+        # points against the full ICP cloud
         Sa = np.ascontiguousarray(P[perm[: int(params.screen_points)]])
-        T0s = np.ascontiguousarray(np.stack(Ts))
         Ta = np.empty_like(T0s)
         ca = np.zeros(T0s.shape[0], dtype=np.int64)
-        K.refine_placements_4dof(Sa, T0s, Q, Nq, *index._tree, np.array([1.5, 1.0, 0.7]) ** 2, tol, 0.25, Ta, ca)
+        s_index, Qs_, Ns_ = (index, Q, Nq) if screen_target is None else screen_target
+        Qs_, Ns_ = np.ascontiguousarray(Qs_), np.ascontiguousarray(Ns_)
+        gates2 = np.array(SCREEN_GATES_M) ** 2
+        if screen_grid is not None and params.screen_grid:
+            # Gauss-Newton steps on the lookup grid, then the exact score (no step, KD-tree)
+            Tg = np.empty_like(T0s)
+            K.refine_placements_4dof_grid(Sa, T0s, Qs_, Ns_, *screen_grid, gates2, tol, 0.25, Tg, ca)
+            K.refine_placements_4dof(Sa, Tg, Qs_, Ns_, *s_index._tree, np.zeros(0), tol, 0.25, Ta, ca)
+        else:
+            K.refine_placements_4dof(Sa, T0s, Qs_, Ns_, *s_index._tree, gates2, tol, 0.25, Ta, ca)
         top = np.argsort(-ca, kind="stable")[: int(params.n_refine)]
         Sr = np.ascontiguousarray(P[perm])
         Tb = np.empty((top.size, 4, 4))
@@ -371,8 +445,16 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
 
 
 def _warmup() -> None:
+    """Compile the search's kernels on a tiny map: occupancy, scoring, the lookup grid and both
+    refinement kernels (KD-tree and grid)."""
+    from minegeo.registration import build_target_index
+
     rng = np.random.default_rng(0)
     Q = rng.uniform(0, 4, (200, 3))
     Nq = np.tile([0.0, 0.0, 1.0], (200, 1))
-    occ = map_occupancy(Q, Q, Nq, CorrelativeParams())
-    correlative_candidates(occ, Q[:50], Nq[:50], CorrelativeParams())
+    cp = CorrelativeParams(n_coarse=4, n_refine=2, n_candidates=2)
+    occ = map_occupancy(Q, Q, Nq, cp)
+    index = build_target_index(Q)
+    keys, nearest, nb = K.build_nearest_grid(Q, 0.5, 1, 10)
+    correlative_candidates(occ, Q[:50], Nq[:50], cp, refine_target=(index, Q, Nq), screen_target=(index, Q, Nq),
+                           screen_grid=(keys, nearest, 10, 0.5))

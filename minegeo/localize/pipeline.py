@@ -177,6 +177,22 @@ class LocalizeParams:
         10 m handheld flash scan): a small scan carries little shape, and the one wrong ``ok``
         seen in the studies was such a scan, for which RANSAC had proposed only the wrong
         place. The whole-map candidates then either confirm it or make it ``ambiguous``.
+    small_scan_ambiguity_ratio : float
+        Used instead of ``ambiguity_ratio`` (for the ICP short list and the rival test) when
+        the scan has fewer feature-level points than ``correlative_confirm_below_points``: a
+        small scan carries little shape, so it is ``ok`` only when no other verified placement
+        reaches this fraction of its plane fitness. Measured: a 10 m railings scan (373
+        feature points) whose true place the search did not propose was placed 219 m away
+        with plane fitness 0.813 against a rival at 0.683 (0.84); the 20 m scans' correct
+        answers had no rival above 0.70 of theirs (docs/localization.md).
+    correlative_precheck_ratio : float
+        The whole-map candidates are first scored without ICP (plane fitness of the
+        feature-level scan at the refined 4-DOF placement, the same test as the
+        verification); only those reaching this fraction of the best such score get ICP and
+        the full verification (0 keeps all). The ambiguity test compares *refined* scores
+        with ``ambiguity_ratio`` (0.9): a placement below 0.7 of the best before ICP would
+        have to gain ~30 % more than the best by ICP to become a rival (not seen in the
+        studies; measured in docs/localization.md). Their pre-check scores are recorded.
     uncertainty : UncertaintyParams
         Pose covariance estimator (:mod:`minegeo.localize.uncertainty`; default the
         delete-one-block jackknife over 4 m blocks, calibrated in docs/uncertainty.md).
@@ -229,6 +245,8 @@ class LocalizeParams:
     correlative: str = "fallback"
     correlative_params: CorrelativeParams = field(default_factory=CorrelativeParams)
     correlative_confirm_below_points: int = 400
+    correlative_precheck_ratio: float = 0.7
+    small_scan_ambiguity_ratio: float = 0.8
     icp_polish_correspondence_m: float | None = 0.25
     weak_axis_polish_term: bool = True
 
@@ -237,6 +255,10 @@ class LocalizeParams:
             raise InputError(f"weak_axis_polish_term must be True or False, got {self.weak_axis_polish_term!r}")
         if self.correlative not in ("off", "fallback", "always"):
             raise InputError(f"correlative must be 'off', 'fallback' or 'always', got {self.correlative!r}")
+        if not 0.0 < float(self.small_scan_ambiguity_ratio) <= 1.0:
+            raise InputError(f"small_scan_ambiguity_ratio must be in (0, 1], got {self.small_scan_ambiguity_ratio!r}")
+        if not 0.0 <= float(self.correlative_precheck_ratio) <= 1.0:
+            raise InputError(f"correlative_precheck_ratio must be in [0, 1], got {self.correlative_precheck_ratio!r}")
         if not isinstance(self.correlative_params, CorrelativeParams):
             raise InputError("correlative_params must be a CorrelativeParams")
         if self.scan_octree_level is None:
@@ -371,7 +393,9 @@ class LocalizationResult:
     n_scan_points, n_scan_down, n_scan_icp : int
         Scan points read, after downsampling (features, RANSAC) and in the ICP source.
     correlative : dict or None
-        Record of the correlative search when it ran (``CorrelativeResult.to_dict``), else None.
+        Record of the correlative search when it ran (``CorrelativeResult.to_dict``, plus
+        ``precheck_plane_fitness`` of every candidate and the ``precheck_ratio`` that kept
+        some of them), else None.
     polish : dict or None
         Record of the tight-gate polish (``LocalizeParams.icp_polish_correspondence_m``):
         gate, whether it was applied, largest shift of a scan point (m), its ICP statistics.
@@ -518,12 +542,19 @@ def _icp_params(p: LocalizeParams) -> ICPParams:
                      degeneracy_ratio_threshold=float(p.degeneracy_ratio) if p.degeneracy_ratio > 0 else 1e-12)
 
 
+#: Step test of minegeo's own ICP stages (coarse pull-in, screening, polish): stop once an
+#: update moves less than 0.1 mm and 1e-5 rad (see ``ICPParams.step_translation_m``).
+STAGE_STEP_M, STAGE_STEP_RAD = 1e-4, 1e-5
+
+
 def _plane_icp_params(gate_m: float, p: LocalizeParams) -> ICPParams:
     """Point-to-plane ICP settings of minegeo's extra stages (coarse pull-in, polish): the given
-    gate, the paper's iteration cap, 1e-6 convergence, no degeneracy verdict (the decision's)."""
+    gate, the paper's iteration cap, 1e-6 convergence or a step below ``STAGE_STEP_M`` /
+    ``STAGE_STEP_RAD``, no degeneracy verdict (the decision's)."""
     return ICPParams(max_correspondence_distance_m=float(gate_m), max_iterations=int(p.icp_max_iterations),
                      relative_fitness=1e-6, relative_rmse=1e-6, method="point_to_plane",
-                     degeneracy_ratio_threshold=1e-12)
+                     degeneracy_ratio_threshold=1e-12, step_translation_m=STAGE_STEP_M,
+                     step_rotation_rad=STAGE_STEP_RAD)
 
 
 def _verify(P: np.ndarray, T: np.ndarray, Q: np.ndarray, N: np.ndarray, tree, gate: float, tol: float):
@@ -683,21 +714,27 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
                             degeneracy_ratio_threshold=float(p.degeneracy_ratio) if p.degeneracy_ratio > 0 else 1e-12)
         gicp_cov, gicp_index = prepared_map.gicp_target(gicp_p)
 
-        def _refine(P_src, T_init):
+        def _refine(P_src, T_init, screening=False):
             return register_gicp(P_src, Qf, T_init, gicp_p, target_covariances=gicp_cov, target_index=gicp_index,
                                  check_target=False)
     else:
         icp_p = _icp_params(p)
+        # the screening (a minegeo stage) also stops once the pose stops moving; the
+        # full-resolution ICP keeps the paper's convergence test
+        icp_screen = replace(icp_p, step_translation_m=STAGE_STEP_M, step_rotation_rad=STAGE_STEP_RAD)
 
-        def _refine(P_src, T_init):
-            return register_icp(P_src, Qf, T_init, icp_p, target_normals=Nf, target_index=tree,
-                                check_target=False)
+        def _refine(P_src, T_init, screening=False):
+            return register_icp(P_src, Qf, T_init, icp_screen if screening else icp_p, target_normals=Nf,
+                                target_index=tree, check_target=False)
     tree = prepared_map.kdtree
     gate, tol = float(p.icp_max_correspondence_m), float(p.verify_plane_tolerance_m)
     scan_noise = surface_noise_m(Dfine) if p.verify_noise_factor > 0 else math.nan
     if p.verify_noise_factor > 0:
         tol = max(tol, float(p.verify_noise_factor) * scan_noise)
     memo: dict = {}
+    # a small scan must beat its rivals by a wider margin (and more of them get the full ICP)
+    small_scan = D.shape[0] < int(p.correlative_confirm_below_points)
+    amb_ratio = float(p.small_scan_ambiguity_ratio) if small_scan else float(p.ambiguity_ratio)
 
     def _once(stage, name, T, fn):
         """ICP results of one candidate, computed once: the fallback re-evaluates RANSAC's
@@ -707,8 +744,14 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
             memo[key] = fn()
         return memo[key]
 
-    def _evaluate(uniq):
-        """Steps 3-4 on a candidate list: returns the decision state (see below)."""
+    def _evaluate(uniq, may_defer=False):
+        """Steps 3-4 on a candidate list: returns the decision state (see below).
+
+        ``may_defer``: the correlative fallback will follow if this list gives no ``ok``;
+        when the screening already shows that it cannot (best screened plane fitness below
+        ``min_plane_fitness``) or that only the full-resolution ICP could separate distinct
+        rivals, stop before that ICP (status ``"deferred"``): the fallback's evaluation
+        refines the same candidates (memoised) if they still lead."""
         warnings_e: list[str] = []
         t0 = time.perf_counter()
         # coarse pull-in (minegeo addition): RANSAC poses are often ~1 m off (4-DOF levelled
@@ -725,28 +768,51 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         screened = []
         if len(uniq) > 1:
             def _screen(T0):
-                ic = _refine(D, T0)
+                ic = _refine(D, T0, screening=True)
                 return (ic, *_verify(D, ic.T_target_source, Qf, Nf, tree, gate, tol))
 
             for c in uniq:
                 screened.append(_once("screen", c[0], c[1], lambda T0=c[1]: _screen(T0)))
             scores = [x[1] for x in screened]
-            fine_set = {i for i, pf in enumerate(scores) if pf >= p.ambiguity_ratio * max(scores)}
+            if may_defer and max(scores) < p.min_plane_fitness:
+                return {"status": "deferred", "t_icp": time.perf_counter() - t0, "t_decision": 0.0}
+            fine_set = {i for i, pf in enumerate(scores) if pf >= amb_ratio * max(scores)}
             fine_set.add(int(np.argmax(scores)))
+            # candidates that the screening ICP brought to the same placement (within the
+            # ambiguity distance and angle) are one hypothesis: only the best-screened of them
+            # gets the full-resolution ICP (they could never be each other's rival)
+            kept: list[int] = []
+            for i in sorted(fine_set, key=lambda i: (-scores[i], i)):
+                Ti = screened[i][0].T_target_source
+                if all(_distinct(Ti, screened[j][0].T_target_source) for j in kept):
+                    kept.append(i)
+            same_place = fine_set - set(kept)
+            fine_set = set(kept)
+            log.debug("screened %d hypotheses: best plane fitness %.3f, %d distinct within ratio %.2f",
+                      len(scores), max(scores), len(fine_set), amb_ratio)
+            if may_defer and len(fine_set) > 1:
+                # distinct rivals on the screen: the whole-map candidates may hold a clearly
+                # better placement, and if they do not, the same rivals are refined there
+                return {"status": "deferred", "t_icp": time.perf_counter() - t0, "t_decision": 0.0}
         else:
             fine_set = {0} if uniq else set()
+            same_place = set()
         refined = []
         for i, (name, T0, rf, rrmse) in enumerate(uniq):
             if i in fine_set:
-                def _fine(T0):
-                    ic = _refine(Dfine, T0)
+                def _fine(T_start):
+                    ic = _refine(Dfine, T_start)
                     return (ic, *_verify(Dfine, ic.T_target_source, Qf, Nf, tree, gate, tol))
 
-                ic, pf, prm = _once("fine", name, T0, lambda T0=T0: _fine(T0))
+                # from the screened pose when there was a screening (fewer iterations)
+                T_start = screened[i][0].T_target_source if screened else T0
+                ic, pf, prm = _once("fine", name, T_start, lambda T_start=T_start: _fine(T_start))
                 refined.append((name, T0, rf, rrmse, ic, pf, prm))
             else:  # screened out: keep the coarse ICP's score for the record
                 ic, pf, prm = screened[i]
-                refined.append((name + " (screened out on the coarse scan)", T0, rf, rrmse, ic, pf, prm))
+                why = ("screened out: same placement as a better-screened one" if i in same_place
+                       else "screened out on the coarse scan")
+                refined.append((f"{name} ({why})", T0, rf, rrmse, ic, pf, prm))
         t_icp = time.perf_counter() - t0
 
         # 4. decision
@@ -781,7 +847,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
             rivals = [h for h in hyps[1:] if "screened out" not in h["source"] and (
                       h["distance_to_chosen_m"] > p.ambiguity_distance_m
                                                or h["rotation_to_chosen_deg"] > p.ambiguity_angle_deg)
-                      and h["plane_fitness"] >= p.ambiguity_ratio * pf_best]
+                      and h["plane_fitness"] >= amb_ratio * pf_best]
             if pf_best < p.min_plane_fitness:
                 status = "failed"
                 reason = (f"the best placement has only {100 * pf_best:.0f} % of the scan points within "
@@ -802,7 +868,8 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
                 status = "ambiguous"
                 reason = (f"another placement {h['distance_to_chosen_m']:.1f} m / {h['rotation_to_chosen_deg']:.1f} deg "
                           f"away fits almost as well (plane fitness {h['plane_fitness']:.3f} vs {pf_best:.3f}, ratio >= "
-                          f"{p.ambiguity_ratio:g}): the drift repeats itself; extend the scan past a distinctive feature")
+                          f"{amb_ratio:g}{' for a small scan' if small_scan else ''}): the drift repeats itself; "
+                          "extend the scan past a distinctive feature")
             if status == "ok" and ic_best.degeneracy_ratio < p.degeneracy_ratio:
                 # decided after the covariance: a weak direction matters only if it leaves the pose uncertain
                 weak = (ic_best.degeneracy_reason or
@@ -822,29 +889,40 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     # FPFH + RANSAC cannot (few or no correct descriptor matches); see correlative.py
     use_corr = p.ransac.model == "levelled" and p.correlative != "off"
     corr = None
+    corr_precheck: list[float] = []
 
     def _with_correlative(uniq):
         nonlocal corr
         t0 = time.perf_counter()
-        occ = prepared_map.occupancy(p.correlative_params)
+        cp = p.correlative_params
+        occ = prepared_map.occupancy(cp)
         ref_xy = None
         if trajectory is not None and isinstance(trajectory, Trajectory) and len(trajectory.poses):
             ref_xy = np.median(np.asarray(trajectory.poses)[:, :2, 3] + np.asarray(trajectory.origin)[:2]
                                - scan_origin[:2], axis=0)
         corr = correlative_candidates(occ, D, Nd, p.correlative_params, seed=seed, reference_xy=ref_xy,
-                                      refine_target=(prepared_map.target_index(), Qf, Nf))
+                                      refine_target=(prepared_map.target_index(), Qf, Nf),
+                                      screen_target=prepared_map.screen_target(cp.screen_voxel_size_m),
+                                      screen_grid=(prepared_map.screen_grid(cp.screen_voxel_size_m)
+                                                   if cp.screen_grid and cp.screen_voxel_size_m is not None else None))
+        # pre-check without ICP: plane fitness of the feature-level scan at each refined placement
+        pre = [_verify(D, Tc, Qf, Nf, tree, gate, tol)[0] for Tc, _ in corr.candidates]
+        bar = float(p.correlative_precheck_ratio) * max(pre, default=0.0)
+        corr_precheck.extend(pre)
         out = list(uniq)
         for k, (Tc, frac) in enumerate(corr.candidates):
-            if all(_distinct(Tc, u[1]) for u in out):
+            if pre[k] >= bar and all(_distinct(Tc, u[1]) for u in out):
                 out.append((f"correlative #{k + 1}", Tc, frac, math.nan))
         timings["correlative"] = time.perf_counter() - t0
         return out
 
     if use_corr and p.correlative == "always":
         uniq = _with_correlative(uniq)
-    ev = _evaluate(uniq)
-    if use_corr and p.correlative == "fallback" and (
-            ev["status"] != "ok" or D.shape[0] < int(p.correlative_confirm_below_points)):
+    fallback = use_corr and p.correlative == "fallback"
+    confirm = fallback and D.shape[0] < int(p.correlative_confirm_below_points)
+    # a small scan's result is always confirmed against the whole map: no need to decide twice
+    ev = {"status": "deferred", "t_icp": 0.0, "t_decision": 0.0} if confirm else _evaluate(uniq, may_defer=fallback)
+    if fallback and (ev["status"] != "ok" or confirm):
         t_first = ev["t_icp"] + ev["t_decision"]
         ev = _evaluate(_with_correlative(uniq))
         ev["t_icp"] += t_first
@@ -1011,7 +1089,8 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         params=p, map_params=prepared_map.params, seed=seed, timings_s=timings, warnings=warnings,
         ransac_T_map_scan=_to_map(r0.T_target_source, scan_origin, prepared_map.work_origin),
         scan_points_down=D + scan_origin, residuals_m=residuals,
-        correlative=None if corr is None else corr.to_dict(),
+        correlative=None if corr is None else {**corr.to_dict(), "precheck_plane_fitness": list(corr_precheck),
+                                                "precheck_ratio": float(p.correlative_precheck_ratio)},
         polish=polish,
     )
     return res

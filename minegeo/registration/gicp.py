@@ -51,6 +51,7 @@ from minegeo.registration import _kernels as K
 from minegeo.registration import _kernels_gicp as KG
 from minegeo.registration.evaluation import is_identity
 from minegeo.registration.icp import ICPResult, constraint_analysis, final_diagnosis
+from minegeo.registration.icp import _rotation_angle as _angle
 
 __all__ = [
     "GICPParams",
@@ -337,12 +338,6 @@ def _euler6_to_transform(x: np.ndarray) -> np.ndarray:
     T[:3, :3] = rotation_from_euler_xyz(x[0], x[1], x[2])
     T[:3, 3] = x[3:6]
     return T
-
-
-def _angle(R: np.ndarray) -> float:
-    """Rotation angle of ``R`` (rad) as ``atan2(|v|/2, (tr R - 1)/2)``, accurate for tiny angles."""
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    return float(np.arctan2(0.5 * np.linalg.norm(v), 0.5 * (np.trace(R) - 1.0)))
 
 
 def _evaluate(P: np.ndarray, Q: np.ndarray, tree, d: float, prev_corr):

@@ -72,6 +72,13 @@ class ICPParams:
     degeneracy_ratio_threshold : float
         Flag the result as degenerate when the smallest/largest eigenvalue of the normalised
         constraint matrix (see :func:`constraint_analysis`) is below this (dimensionless, > 0).
+    step_translation_m, step_rotation_rad : float
+        Also stop when the last update ``ΔT`` translated by less than ``step_translation_m``
+        **and** rotated by less than ``step_rotation_rad`` (the test of
+        :class:`~minegeo.registration.GICPParams`). 0 (default) switches it off: Open3D's test
+        alone. Open3D's fitness test holds only once no source point enters or leaves the
+        gate (the fitness moves in steps of ``1/n``), so on tens of thousands of points it can
+        run to ``max_iterations`` while the pose no longer moves.
     """
 
     max_correspondence_distance_m: float
@@ -80,6 +87,8 @@ class ICPParams:
     relative_rmse: float = 1e-6
     method: str = "point_to_point"
     degeneracy_ratio_threshold: float = 1e-2
+    step_translation_m: float = 0.0
+    step_rotation_rad: float = 0.0
 
     def __post_init__(self):
         d = self.max_correspondence_distance_m
@@ -90,7 +99,7 @@ class ICPParams:
         it = self.max_iterations
         if isinstance(it, bool) or not isinstance(it, int | np.integer) or it < 0:
             raise InputError(f"max_iterations must be an integer >= 0, got {it!r}")
-        for name in ("relative_fitness", "relative_rmse"):
+        for name in ("relative_fitness", "relative_rmse", "step_translation_m", "step_rotation_rad"):
             v = getattr(self, name)
             if not isinstance(v, int | float | np.floating | np.integer) or not np.isfinite(v) or v < 0:
                 raise InputError(f"{name} must be finite and >= 0, got {v!r}")
@@ -324,6 +333,12 @@ def final_diagnosis(k: int, need: int, gate_m: float, method: str, singular_step
     return reasons, degenerate, status
 
 
+def _rotation_angle(R: np.ndarray) -> float:
+    """Rotation angle of ``R`` (rad) as ``atan2(|v|/2, (tr R - 1)/2)``, accurate for tiny angles."""
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return float(np.arctan2(0.5 * np.linalg.norm(v), 0.5 * (np.trace(R) - 1.0)))
+
+
 def register_icp(source_points, target_points, T_init, params: ICPParams, target_normals=None,
                  target_index=None, *, check_target: bool = True) -> ICPResult:
     """Refine ``T_target_source`` by ICP (Baek 2022 Sec. 2.4; Open3D ``registration_icp``).
@@ -369,7 +384,9 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
     Loop (Open3D §10): evaluate the correspondences at ``T_init``; then for ``k = 1..max_iterations``
     estimate an increment ``ΔT`` from the current pairs, set ``T ← ΔT T`` and ``p ← ΔT p``,
     re-evaluate, and stop when ``|Δfitness| < relative_fitness`` **and**
-    ``|Δrmse| < relative_rmse`` (both strict). The last evaluation is returned (no best-so-far).
+    ``|Δrmse| < relative_rmse`` (both strict), or (when set) when the step ``ΔT`` was below
+    ``step_translation_m`` and ``step_rotation_rad``. The last evaluation is returned (no
+    best-so-far).
 
     *Correspondences* (Baek Sec. 2.4 step 1, Open3D §8): the nearest target point of every
     source point, kept when its squared distance is ``< d²``.
@@ -453,6 +470,10 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
             fitness, rmse, corr = _evaluate_transformed(P, Q, target_index, d)
         history.append((fitness, rmse))
         if abs(prev_f - fitness) < params.relative_fitness and abs(prev_r - rmse) < params.relative_rmse:
+            converged = True
+            break
+        if (float(np.linalg.norm(dT[:3, 3])) < params.step_translation_m
+                and _rotation_angle(dT[:3, :3]) < params.step_rotation_rad):
             converged = True
             break
 

@@ -7,55 +7,84 @@ import math
 
 import numpy as np
 import pytest
-from reference.naive_correlative import dilated_cells, score_placements
+from reference.naive_correlative import dilated_cells, nearest_grid, score_placements
 
 from minegeo.errors import InputError
 from minegeo.localize import _kernels as K
-from minegeo.localize.correlative import CorrelativeParams, correlative_candidates, map_occupancy
+from minegeo.localize.correlative import (
+    CorrelativeParams,
+    correlative_candidates,
+    map_occupancy,
+    placement_grid,
+)
 
 
-def _keys(cells):
-    return {int(K.cell_key(np.int64(a), np.int64(b), np.int64(c))) for a, b, c in cells}
+def _blocked(cells, radius, log2=10):
+    keys, bits, nb = K.build_blocked_occupancy(cells, radius, log2)
+    assert nb <= (1 << log2) // 2
+    return keys, bits, log2
 
 
-def test_dilated_table_equals_naive_set():
+def test_blocked_occupancy_equals_naive_set():
     rng = np.random.default_rng(1)
     P = rng.uniform(-3.0, 3.0, (300, 3))
     cells = K.unique_cells(P, 0.5)
     assert {tuple(c) for c in cells} == {tuple(int(math.floor(v / 0.5)) for v in p) for p in P}
-    table, n = K.build_dilated_table(cells, 1, 16)
-    naive = dilated_cells(P, 0.5, 1)
-    assert n == len(naive)
-    members = {int(k) for k in table if k >= 0}
-    assert members == _keys(naive)
-    mask, shift = np.int64((1 << 16) - 1), np.int64(64 - 16)
-    probe = rng.integers(-12, 12, (2000, 3))
-    for c in probe:
-        key = K.cell_key(np.int64(c[0]), np.int64(c[1]), np.int64(c[2]))
-        assert K.hash_contains(table, key, shift, mask) == (tuple(int(v) for v in c) in naive)
+    dil, occ = dilated_cells(P, 0.5, 1), dilated_cells(P, 0.5, 0)
+    keys, bits, log2 = _blocked(cells, 1)
+    # every cell of a box that covers the dilated set with a margin, negative indices included
+    # (blocks of 8 cells: floor division and modulo of negative indices)
+    got = {}
+    for ix in range(-10, 10):
+        for iy in range(-10, 10):
+            for iz in range(-10, 10):
+                got[(ix, iy, iz)] = K.occupancy_state(keys, bits, log2, ix, iy, iz)
+    assert {c for c, v in got.items() if v >= 1} == dil
+    assert {c for c, v in got.items() if v == 2} == occ
+    # the population of the bit masks is the size of the sets (nothing outside the box)
+    pop = [sum(bin(int(w)).count("1") for w in bits[keys >= 0, lo:lo + 8].ravel()) for lo in (0, 8)]
+    assert pop == [len(dil), len(occ)]
+
+
+def test_blocked_occupancy_grows_when_the_table_is_full():
+    cells = K.unique_cells(np.random.default_rng(5).uniform(-40.0, 40.0, (3000, 3)), 0.5)
+    _, _, nb = K.build_blocked_occupancy(cells, 1, 4)
+    assert nb > 8  # stopped: the caller must retry with a larger table
+    occ = map_occupancy(cells * 0.5 + 0.25, np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), CorrelativeParams())
+    assert occ.n_blocks <= (1 << occ.log2_blocks) // 2 and occ.n_cells == cells.shape[0]
 
 
 def test_score_placements_equals_naive_twin():
     rng = np.random.default_rng(2)
     Q = rng.uniform(-4.0, 4.0, (400, 3))
     cells = K.unique_cells(Q, 0.5)
-    table, _ = K.build_dilated_table(cells, 1, 16)
+    keys, bits, log2 = _blocked(cells, 1)
     S = rng.uniform(-3.0, 3.0, (40, 3))
     anchors = rng.uniform(-1.0, 1.0, (7, 3))
     yaws = np.deg2rad(np.arange(0.0, 360.0, 30.0))
     m = S.shape[0]
-    tight, _ = K.build_dilated_table(cells, 0, 15)
-    got, got_t = K.score_placements(table, 16, tight, 15, 0.5, S, anchors, np.cos(yaws), np.sin(yaws), m, 1.0,
-                                    float(m))
+    grid = placement_grid(S, yaws, anchors, 0.5)
+    got, got_t = K.score_placements(keys, bits, log2, *grid, m, 1.0, float(m))
     ref = np.array(score_placements(dilated_cells(Q, 0.5, 1), 0.5, S, anchors, yaws))
     ref_t = np.array(score_placements(dilated_cells(Q, 0.5, 0), 0.5, S, anchors, yaws))
     np.testing.assert_array_equal(got, ref)
     np.testing.assert_array_equal(got_t, ref_t)
     # early stopping only ever lowers a count, and never one that stayed above the bar
-    early, _ = K.score_placements(table, 16, tight, 15, 0.5, S, anchors, np.cos(yaws), np.sin(yaws), 12, 0.3, 4.0)
+    early, _ = K.score_placements(keys, bits, log2, *grid, 12, 0.3, 4.0)
     assert np.all(early <= ref)
     full = ref >= m - 12
     assert np.all(early[full & (early >= m - 12)] == ref[full & (early >= m - 12)])
+
+
+def test_first_of_each_bin_matches_numpy_unique():
+    from minegeo.localize.correlative import _first_of_each_bin
+
+    rng = np.random.default_rng(4)
+    bins = rng.integers(-5, 5, (5000, 4))
+    np.testing.assert_array_equal(np.sort(_first_of_each_bin(bins)), np.sort(np.unique(bins, axis=0, return_index=True)[1]))
+    huge = np.array([[0, 0, 0, 0], [2**40, 2**40, 2**40, 3], [0, 0, 0, 0]])  # ranges too wide to pack
+    np.testing.assert_array_equal(np.sort(_first_of_each_bin(huge)), [0, 1])
+    assert _first_of_each_bin(np.zeros((0, 4), dtype=np.int64)).size == 0
 
 
 def test_refine_kernel_recovers_an_offset_placement():
@@ -76,6 +105,68 @@ def test_refine_kernel_recovers_an_offset_placement():
     out_T = np.empty((1, 4, 4))
     cnt = np.zeros(1, dtype=np.int64)
     K.refine_placements_4dof(S, T0[None], Q, Nq, *index._tree, np.linspace(1.5, 0.5, 8) ** 2, 0.05, 0.25, out_T, cnt)
+    np.testing.assert_allclose(out_T[0], np.eye(4), atol=1e-6)
+    assert cnt[0] == S.shape[0]
+
+
+def test_nearest_grid_equals_naive_twin():
+    rng = np.random.default_rng(6)
+    Q = rng.uniform(-2.0, 2.0, (120, 3))
+    keys, nearest, nb = K.build_nearest_grid(Q, 0.5, 2, 10)
+    assert nb <= 512
+    ref = nearest_grid(Q, 0.5, 2)
+    mask, shift = np.int64((1 << 10) - 1), np.int64(64 - 10)
+    got = {}
+    for s in np.flatnonzero(keys >= 0):
+        k = int(keys[s])
+        bx, by, bz = (((k >> (2 * 21)) & ((1 << 21) - 1)) - (1 << 20), ((k >> 21) & ((1 << 21) - 1)) - (1 << 20),
+                      (k & ((1 << 21) - 1)) - (1 << 20))
+        assert K.block_slot(keys, k, shift, mask) == s
+        for loc in np.flatnonzero(nearest[s] >= 0):
+            got[(8 * bx + (loc >> 6), 8 * by + ((loc >> 3) & 7), 8 * bz + (loc & 7))] = int(nearest[s, loc])
+    assert got == ref
+    # the lookup: the stored point when within the gate, else "none" (= len(Q))
+    X = rng.uniform(-3.0, 3.0, (500, 3))
+    out = np.empty(500, dtype=np.int64)
+    K._grid_nn_rows(X, keys, nearest, 10, 0.5, Q, 0.6**2, out)
+    for x, j in zip(X, out, strict=True):
+        c = tuple(int(math.floor(v / 0.5)) for v in x)
+        k = ref.get(c)
+        want = k if k is not None and np.sum((x - Q[k]) ** 2) <= 0.36 else Q.shape[0]
+        assert j == want
+
+
+def test_grid_refine_kernel_brings_an_offset_placement_into_the_exact_basin():
+    """The lookup-grid variant of the 4-DOF kernel (approximate neighbours) reduces a 0.4 m /
+    2 deg offset on a box corner, and the exact KD-tree stage then lands on the truth; with no
+    step the exact kernel only counts (the pose passes through unchanged)."""
+    from minegeo.registration import build_target_index
+
+    g = np.arange(0.0, 6.0, 0.25)
+    A, B = np.meshgrid(g, g, indexing="ij")
+    a, b = A.ravel(), B.ravel()
+    Q = np.vstack([np.column_stack([a, b, 0 * a]), np.column_stack([a, 0 * a, b]), np.column_stack([0 * a, a, b])])
+    Nq = np.vstack([np.tile(n, (a.size, 1)) for n in ([0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0])])
+    S = Q[np.random.default_rng(0).choice(Q.shape[0], 300, replace=False)]
+    psi = np.deg2rad(2.0)
+    T0 = np.eye(4)
+    T0[:3, :3] = [[np.cos(psi), -np.sin(psi), 0], [np.sin(psi), np.cos(psi), 0], [0, 0, 1]]
+    T0[:3, 3] = [0.3, -0.25, 0.1]
+    keys, nearest, nb = K.build_nearest_grid(Q, 0.5, 3, 12)
+    assert nb <= 2048
+    Tg = np.empty((1, 4, 4))
+    cnt = np.zeros(1, dtype=np.int64)
+    K.refine_placements_4dof_grid(S, T0[None], Q, Nq, keys, nearest, 12, 0.5, np.array([1.5, 1.0, 0.7]) ** 2, 0.05,
+                                  0.25, Tg, cnt)
+    err0 = np.max(np.linalg.norm(S @ T0[:3, :3].T + T0[:3, 3] - S, axis=1))
+    err1 = np.max(np.linalg.norm(S @ Tg[0, :3, :3].T + Tg[0, :3, 3] - S, axis=1))
+    assert err1 < 0.5 * err0
+    index = build_target_index(Q)
+    same = np.empty((1, 4, 4))
+    K.refine_placements_4dof(S, Tg, Q, Nq, *index._tree, np.zeros(0), 0.05, 0.25, same, cnt)
+    np.testing.assert_array_equal(same, Tg)
+    out_T = np.empty((1, 4, 4))
+    K.refine_placements_4dof(S, Tg, Q, Nq, *index._tree, np.linspace(1.0, 0.5, 4) ** 2, 0.05, 0.25, out_T, cnt)
     np.testing.assert_allclose(out_T[0], np.eye(4), atol=1e-6)
     assert cnt[0] == S.shape[0]
 
@@ -208,9 +299,93 @@ def test_localize_fallback_and_always(small_mine):
     assert six.correlative is None
 
 
+def test_screen_target_thins_the_icp_cloud(small_mine):
+    """One point per 0.5 m voxel (centroid), unit normals, voxels with opposing normals left
+    out; cached per voxel size; None is the full ICP cloud."""
+    from minegeo.geometry import voxel_downsample
+    from minegeo.localize import PrepareParams, prepare_map
+
+    _, pm = small_mine
+    idx, Qs, Ns = pm.screen_target(0.5)
+    assert pm.screen_target(0.5)[1] is Qs
+    v = voxel_downsample(pm.icp_points, 0.5, normals=pm.icp_normals)
+    assert 0.5 * v.points.shape[0] < Qs.shape[0] <= v.points.shape[0] < pm.icp_points.shape[0]
+    np.testing.assert_allclose(np.linalg.norm(Ns, axis=1), 1.0, atol=1e-12)
+    assert idx._tree[0].shape[0] == Qs.shape[0]
+    full = pm.screen_target(None)
+    assert full[1] is pm.icp_points and full[2] is pm.icp_normals
+    # a thin wall seen from both sides: its voxels' normals cancel and are left out; the floor stays
+    g = np.arange(0.0, 4.0, 0.05)
+    A, B = np.meshgrid(g, g, indexing="ij")
+    a, b = A.ravel(), B.ravel()
+    wall = np.column_stack([a, np.full(a.size, 10.1), b + 0.1])
+    floor = np.column_stack([a, b, np.zeros(a.size)])
+    pts = np.ascontiguousarray(np.vstack([floor, wall, wall + [0.0, 0.02, 0.0]]))
+    nrm = np.ascontiguousarray(np.vstack([np.tile([0.0, 0.0, 1.0], (a.size, 1)), np.tile([0.0, -1.0, 0.0], (a.size, 1)),
+                                          np.tile([0.0, 1.0, 0.0], (a.size, 1))]))
+    pm2 = prepare_map(pts, PrepareParams.fast())
+    pm2.icp_points, pm2.icp_normals = pts, nrm  # (used as a container of these arrays only)
+    _, Q2, N2 = pm2.screen_target(0.5)
+    assert Q2.shape[0] >= 64 and np.all(N2[:, 2] == 1.0) and np.all(Q2[:, 2] < 0.01)  # floor voxels only
+    # nothing coherent at all: the full cloud
+    pm3 = prepare_map(pts, PrepareParams.fast())
+    pm3.icp_points, pm3.icp_normals = pts[floor.shape[0]:], nrm[floor.shape[0]:]
+    assert pm3.screen_target(0.5)[1] is pm3.icp_points
+
+
+def test_build_indexes_builds_what_localization_uses(small_mine):
+    from dataclasses import replace
+
+    from minegeo.localize import LocalizeParams, PrepareParams, prepare_map
+
+    P, _ = small_mine
+    pm = prepare_map(P, PrepareParams.fast())
+    base = LocalizeParams.fast()
+    lev = replace(base, ransac=replace(base.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0))
+    t = pm.build_indexes(lev)
+    assert set(t) == {"kdtree", "target_index", "feature_index", "occupancy", "screen_target", "screen_grid"}
+    assert all(v >= 0.0 for v in t.values())
+    cp = lev.correlative_params
+    occ = pm.occupancy(cp)
+    assert pm.build_indexes(lev)["occupancy"] < t["occupancy"] + 1.0 and pm.occupancy(cp) is occ
+    assert set(pm.build_indexes(base)) == {"kdtree", "target_index", "feature_index"}  # 6-DOF: no correlative
+    assert "gicp_target" in pm.build_indexes(replace(base, icp_method="gicp"))
+
+
+def test_correlative_precheck_keeps_the_best_and_records_all(small_mine):
+    """The pre-check scores every whole-map candidate; ratio 1 lets only the best reach ICP,
+    ratio 0 all; the answer is the same right placement."""
+    from dataclasses import replace
+
+    from minegeo.localize import LocalizeParams, localize_scan
+    from minegeo.localize.pipeline import error_vs_truth
+
+    P, pm = small_mine
+    t = np.array([512_030.0, 4_100_002.0, 351.0])
+    X, T_true = _scan_of(P, np.array([512_038.0, 4_100_004.0]), 11.0, math.radians(-58.0), t)
+    base = LocalizeParams.fast()
+    crippled = replace(base.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0, max_iterations=1, min_iterations=0)
+    res = {}
+    for ratio in (0.0, 1.0):
+        r = localize_scan(pm, X, None, replace(base, ransac=crippled, correlative="fallback",
+                                               correlative_precheck_ratio=ratio), seed=0)
+        pre = r.correlative["precheck_plane_fitness"]
+        assert len(pre) == r.correlative["n_candidates"] and r.correlative["precheck_ratio"] == ratio
+        n_corr = sum(h["source"].startswith("correlative") for h in r.hypotheses)
+        kept = sum(f >= ratio * max(pre) for f in pre)
+        assert 1 <= n_corr <= kept
+        assert error_vs_truth(r.T_map_scan, T_true, X)["max_point_error_m"] < 0.05
+        res[ratio] = (r, n_corr)
+    assert res[1.0][1] <= res[0.0][1]
+    assert res[1.0][0].status == "ok"
+    with pytest.raises(InputError):
+        LocalizeParams(correlative_precheck_ratio=1.5)
+
+
 @pytest.mark.parametrize("kw", [{"cell_size_m": 0.0}, {"yaw_step_deg": -1.0}, {"min_hit_fraction": 0.0},
                                 {"min_hit_fraction": 1.5}, {"n_candidates": 0}, {"dilation_cells": -1},
-                                {"anchor_max_tilt_deg": 90.0}, {"max_scan_points": 2.5}])
+                                {"anchor_max_tilt_deg": 90.0}, {"max_scan_points": 2.5},
+                                {"screen_voxel_size_m": 0.0}, {"screen_voxel_size_m": -0.5}])
 def test_params_validation(kw):
     with pytest.raises(InputError):
         CorrelativeParams(**kw)

@@ -30,3 +30,20 @@ def score_placements(cells, cell, S, anchors, yaws):
             row.append(hits)
         out.append(row)
     return out
+
+
+def nearest_grid(Q, cell, band):
+    """Every cell within Chebyshev distance ``band`` of a point's cell -> index of the point
+    nearest to the cell centre among those points (ties: the lower index)."""
+    best = {}
+    for j, (x, y, z) in enumerate(Q):
+        c = (math.floor(x / cell), math.floor(y / cell), math.floor(z / cell))
+        for dx in range(-band, band + 1):
+            for dy in range(-band, band + 1):
+                for dz in range(-band, band + 1):
+                    k = (c[0] + dx, c[1] + dy, c[2] + dz)
+                    centre = ((k[0] + 0.5) * cell, (k[1] + 0.5) * cell, (k[2] + 0.5) * cell)
+                    d = sum((a - b) ** 2 for a, b in zip(centre, (x, y, z), strict=True))
+                    if k not in best or d < best[k][0]:
+                        best[k] = (d, j)
+    return {k: j for k, (d, j) in best.items()}

@@ -224,6 +224,27 @@ def test_icp_exact_correspondences_and_swap_gives_inverse(seed, method):
     np.testing.assert_allclose(rs.T_target_source, invert(T), atol=1e-9)
 
 
+def test_icp_step_test_stops_once_the_pose_stops_moving():
+    """With Open3D's test switched off (thresholds 0), the step test ends ICP at the first
+    update below the step thresholds; the pose agrees with the fully iterated one to within
+    what such a step can still add, and 0 thresholds give the Open3D behaviour unchanged."""
+    P, Q, N, _ = _scene(12, n_src=3000, n_tgt=3000)
+    T0 = np.eye(4)
+    T0[:3, 3] = [0.05, -0.04, 0.02]
+    full = register_icp(P, Q, T0, ICPParams(0.3, max_iterations=60, relative_fitness=0.0, relative_rmse=0.0,
+                                            method="point_to_plane"), target_normals=N)
+    assert full.iterations == 60
+    step = register_icp(P, Q, T0, ICPParams(0.3, max_iterations=60, relative_fitness=0.0, relative_rmse=0.0,
+                                            method="point_to_plane", step_translation_m=1e-4,
+                                            step_rotation_rad=1e-5), target_normals=N)
+    assert step.converged and step.iterations < 60
+    np.testing.assert_allclose(step.T_target_source, full.T_target_source, atol=1e-3)
+    off = register_icp(P, Q, T0, ICPParams(0.3, max_iterations=60, relative_fitness=0.0, relative_rmse=0.0,
+                                           method="point_to_plane", step_translation_m=0.0, step_rotation_rad=0.0),
+                       target_normals=N)
+    assert np.array_equal(off.T_target_source, full.T_target_source) and off.iterations == 60
+
+
 def test_icp_deterministic_and_thread_independent():
     P, Q, N, _ = _scene(11, n_src=3000, n_tgt=3000)
     prm = ICPParams(0.3, method="point_to_plane")
@@ -325,7 +346,8 @@ def test_icp_params_validation():
         with pytest.raises(InputError):
             ICPParams(bad)
     for kw in ({"max_iterations": -1}, {"max_iterations": 2.5}, {"relative_rmse": -1e-6},
-               {"relative_fitness": np.nan}, {"method": "gicp"}, {"degeneracy_ratio_threshold": 0.0}):
+               {"relative_fitness": np.nan}, {"method": "gicp"}, {"degeneracy_ratio_threshold": 0.0},
+               {"step_translation_m": -1e-4}, {"step_rotation_rad": np.inf}):
         with pytest.raises(InputError):
             ICPParams(0.5, **kw)
 
