@@ -208,7 +208,7 @@ def run(args) -> int:
 
     base = {
         "inputs": inputs,
-        "map_preparation": {"source": how, "seconds": t_map, "index_seconds": index_s, "n_points": len(pm),
+        "map_preparation": {"source": how, "seconds": t_map, "timings_s": index_s, "n_points": len(pm),
                             "params_hash": pm.params_hash,
                             "cache_file": None if (how == "prepared_file" or args.no_cache)
                             else str(cache_path(args.map, prep))},

@@ -87,11 +87,10 @@ def test_first_of_each_bin_matches_numpy_unique():
     assert _first_of_each_bin(np.zeros((0, 4), dtype=np.int64)).size == 0
 
 
-def test_refine_kernel_recovers_an_offset_placement():
-    """The 4-DOF Gauss-Newton kernel pulls a placement 0.4 m / 2 deg off back onto a box corner."""
-    from minegeo.registration import build_target_index
-
-    g = np.arange(0.0, 6.0, 0.1)
+def _box_corner(step):
+    """Three 6 m faces of a box corner sampled every ``step`` m, their normals, 300 of the points
+    as the scan sample, and a placement 0.3/-0.25/0.1 m and 2 deg off the truth (identity)."""
+    g = np.arange(0.0, 6.0, step)
     A, B = np.meshgrid(g, g, indexing="ij")
     a, b = A.ravel(), B.ravel()
     Q = np.vstack([np.column_stack([a, b, 0 * a]), np.column_stack([a, 0 * a, b]), np.column_stack([0 * a, a, b])])
@@ -101,6 +100,14 @@ def test_refine_kernel_recovers_an_offset_placement():
     T0 = np.eye(4)
     T0[:3, :3] = [[np.cos(psi), -np.sin(psi), 0], [np.sin(psi), np.cos(psi), 0], [0, 0, 1]]
     T0[:3, 3] = [0.3, -0.25, 0.1]
+    return Q, Nq, S, T0
+
+
+def test_refine_kernel_recovers_an_offset_placement():
+    """The 4-DOF Gauss-Newton kernel pulls a placement 0.4 m / 2 deg off back onto a box corner."""
+    from minegeo.registration import build_target_index
+
+    Q, Nq, S, T0 = _box_corner(0.1)
     index = build_target_index(Q)
     out_T = np.empty((1, 4, 4))
     cnt = np.zeros(1, dtype=np.int64)
@@ -142,16 +149,7 @@ def test_grid_refine_kernel_brings_an_offset_placement_into_the_exact_basin():
     step the exact kernel only counts (the pose passes through unchanged)."""
     from minegeo.registration import build_target_index
 
-    g = np.arange(0.0, 6.0, 0.25)
-    A, B = np.meshgrid(g, g, indexing="ij")
-    a, b = A.ravel(), B.ravel()
-    Q = np.vstack([np.column_stack([a, b, 0 * a]), np.column_stack([a, 0 * a, b]), np.column_stack([0 * a, a, b])])
-    Nq = np.vstack([np.tile(n, (a.size, 1)) for n in ([0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0])])
-    S = Q[np.random.default_rng(0).choice(Q.shape[0], 300, replace=False)]
-    psi = np.deg2rad(2.0)
-    T0 = np.eye(4)
-    T0[:3, :3] = [[np.cos(psi), -np.sin(psi), 0], [np.sin(psi), np.cos(psi), 0], [0, 0, 1]]
-    T0[:3, 3] = [0.3, -0.25, 0.1]
+    Q, Nq, S, T0 = _box_corner(0.25)
     keys, nearest, nb = K.build_nearest_grid(Q, 0.5, 3, 12)
     assert nb <= 2048
     Tg = np.empty((1, 4, 4))

@@ -240,6 +240,10 @@ def test_cli_end_to_end_georeferenced(world_map, tmp_path):
         assert key in r["icp"], key
     assert r["status"] == "ok" and r["crs"] == g.crs
     assert all(len(i["sha256"]) == 64 for i in r["inputs"])
+    # the map's per-process search structures are timed apart from the scan's localization
+    t = r["timings_s"]
+    assert t["map_indexes"] >= 0.0 and t["localize_total"] >= 0.0 and t["map_load_or_prepare"] >= 0.0
+    assert {"kdtree", "target_index", "feature_index"} <= set(r["map_preparation"]["timings_s"])
     # T_map_scan is in the ORIGINAL map frame (the synthetic truth's frame) despite the geo map
     e = error_vs_truth(r["T_map_scan"], T_true, tr.poses[:, :3, 3])
     assert e["max_point_error_m"] < 0.1, e
