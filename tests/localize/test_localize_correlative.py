@@ -383,7 +383,7 @@ def test_correlative_precheck_keeps_the_best_and_records_all(small_mine):
 @pytest.mark.parametrize("kw", [{"cell_size_m": 0.0}, {"yaw_step_deg": -1.0}, {"min_hit_fraction": 0.0},
                                 {"min_hit_fraction": 1.5}, {"n_candidates": 0}, {"dilation_cells": -1},
                                 {"anchor_max_tilt_deg": 90.0}, {"max_scan_points": 2.5},
-                                {"screen_voxel_size_m": 0.0}, {"screen_voxel_size_m": -0.5}])
+                                {"screen_voxel_size_m": 0.0}, {"screen_voxel_size_m": -0.5}, {"screen_grid": "yes"}])
 def test_params_validation(kw):
     with pytest.raises(InputError):
         CorrelativeParams(**kw)
