@@ -369,11 +369,11 @@ def _grid_nn_rows(X, block_keys, nearest, log2_blocks, cell, Q, gate2, out_idx):
 
 
 @njit_parallel
-def refine_placements_4dof_grid(S, T0s, Q, Nq, block_keys, nearest, log2_blocks, cell, gates2, tol, final_gate2,
-                                out_T, out_count):
-    """:func:`refine_placements_4dof` with the nearest map point taken from the lookup grid of
-    :func:`build_nearest_grid` (the point nearest to the centre of the query's cell: an
-    approximation within about a cell, used by the correlative search's screening stage)."""
+def steps_4dof_grid(S, T0s, Q, Nq, block_keys, nearest, log2_blocks, cell, gates2, out_T):
+    """The Gauss-Newton steps of :func:`refine_placements_4dof` (one per gate in ``gates2``) with
+    the nearest map point taken from the lookup grid of :func:`build_nearest_grid` (the point
+    nearest to the centre of the query's cell: an approximation within about a cell). No
+    score: the correlative search scores the result with the exact kernel (no step)."""
     nc = T0s.shape[0]
     m = S.shape[0]
     nq = Q.shape[0]
@@ -387,9 +387,6 @@ def refine_placements_4dof_grid(S, T0s, Q, Nq, block_keys, nearest, log2_blocks,
             _apply(T, S, X)
             _grid_nn_rows(X, block_keys, nearest, log2_blocks, cell, Q, gates2[it], oi)
             _gn4_step(X, oi, nq, Q, Nq, T, A, b)
-        _apply(T, S, X)
-        _grid_nn_rows(X, block_keys, nearest, log2_blocks, cell, Q, final_gate2, oi)
-        out_count[c] = _plane_count(X, oi, nq, Q, Nq, tol)
         for p in range(4):
             for q in range(4):
                 out_T[c, p, q] = T[p, q]

@@ -93,7 +93,7 @@ class CorrelativeParams:
     screen_grid : bool
         The first stage's Gauss-Newton steps take each sample point's map neighbour from a
         lookup grid of cells of edge ``screen_voxel_size_m`` that stores the thinned point
-        nearest to every cell's centre (:func:`_kernels.build_nearest_grid`, reaching
+        nearest to every cell's centre (:func:`_kernels.build_nearest_grid`, :func:`_kernels.steps_4dof_grid`, reaching
         ``SCREEN_GATES_M[0]``), instead of a KD-tree search: an approximation within about a
         cell, its steps ~5 times faster (the stage ~2 times: its score, which ranks the
         placements, still uses the exact nearest neighbours). Needs ``screen_voxel_size_m``.
@@ -422,7 +422,7 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
         if screen_grid is not None and params.screen_grid:
             # Gauss-Newton steps on the lookup grid, then the exact score (no step, KD-tree)
             Tg = np.empty_like(T0s)
-            K.refine_placements_4dof_grid(Sa, T0s, Qs_, Ns_, *screen_grid, gates2, tol, 0.25, Tg, ca)
+            K.steps_4dof_grid(Sa, T0s, Qs_, Ns_, *screen_grid, gates2, Tg)
             K.refine_placements_4dof(Sa, Tg, Qs_, Ns_, *s_index._tree, np.zeros(0), tol, 0.25, Ta, ca)
         else:
             K.refine_placements_4dof(Sa, T0s, Qs_, Ns_, *s_index._tree, gates2, tol, 0.25, Ta, ca)

@@ -920,7 +920,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     if use_corr and p.correlative == "always":
         uniq = _with_correlative(uniq)
     fallback = use_corr and p.correlative == "fallback"
-    confirm = fallback and D.shape[0] < int(p.correlative_confirm_below_points)
+    confirm = fallback and small_scan
     # a small scan's result is always confirmed against the whole map: no need to decide twice
     ev = {"status": "deferred", "t_icp": 0.0, "t_decision": 0.0} if confirm else _evaluate(uniq, may_defer=fallback)
     if fallback and (ev["status"] != "ok" or confirm):

@@ -32,6 +32,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -442,8 +443,6 @@ class PreparedMap:
         (:func:`minegeo.localize._kernels.build_nearest_grid`): ``(block_keys, nearest,
         log2_blocks, cell_m)``, built once per process and voxel size (~1 s and ~70 MB for the
         paper map at 0.5 m)."""
-        import math
-
         from minegeo.localize import _kernels as LK
         from minegeo.localize.correlative import SCREEN_GATES_M
 

@@ -154,8 +154,7 @@ def test_grid_refine_kernel_brings_an_offset_placement_into_the_exact_basin():
     assert nb <= 2048
     Tg = np.empty((1, 4, 4))
     cnt = np.zeros(1, dtype=np.int64)
-    K.refine_placements_4dof_grid(S, T0[None], Q, Nq, keys, nearest, 12, 0.5, np.array([1.5, 1.0, 0.7]) ** 2, 0.05,
-                                  0.25, Tg, cnt)
+    K.steps_4dof_grid(S, T0[None], Q, Nq, keys, nearest, 12, 0.5, np.array([1.5, 1.0, 0.7]) ** 2, Tg)
     err0 = np.max(np.linalg.norm(S @ T0[:3, :3].T + T0[:3, 3] - S, axis=1))
     err1 = np.max(np.linalg.norm(S @ Tg[0, :3, :3].T + Tg[0, :3, 3] - S, axis=1))
     assert err1 < 0.5 * err0
