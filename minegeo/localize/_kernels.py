@@ -5,7 +5,9 @@ cells as a *blocked bitmap*: the cells are grouped in blocks of 8 x 8 x 8; a blo
 512-bit masks (eight uint64 words each: word ``x mod 8``, bit ``8 (y mod 8) + (z mod 8)``),
 the dilated occupancy (words 0-7) and the undilated one (words 8-15), and the blocks are
 found through an open-addressing hash table of int64 block keys (empty slot = -1, linear
-probing, Fibonacci hashing of the key; the bit rows share the slot index). Compared with one
+probing, Fibonacci hashing of the key; the bit rows share the slot index) or, when the
+map's bounding box is small enough, through a dense int32 directory of slots indexed by the
+block's coordinates (:func:`dense_block_table`: one load instead of a probe). Compared with one
 hash entry per dilated cell this is ~15 times smaller (a few MB for a 750 m mine at 0.5 m
 cells), so the scoring of millions of placements stays in cache. Membership is exactly the
 same set as the naive one (``tests/reference/naive_correlative.py``).
@@ -118,8 +120,48 @@ def occupancy_state(block_keys, bits, log2_blocks, ix, iy, iz):
     return 2 if (bits[s, 8 + w] >> b) & np.uint64(1) else 1
 
 
+@njit
+def dense_block_table(block_keys, max_entries):
+    """Dense directory of the blocked bitmap: ``(table, lo)`` with ``table[bx - lo0, by - lo1,
+    bz - lo2]`` the hash slot of block ``(bx, by, bz)`` or an empty slot (zero bits) when the
+    block is not stored, ``lo`` the smallest block index on each axis. An empty (0, 0, 0)
+    table when the blocks' bounding box holds more than ``max_entries`` blocks (the scoring
+    then probes the hash table)."""
+    m21 = np.int64(_MASK21)
+    lo = np.full(3, np.int64(1) << 40)
+    hi = np.full(3, -(np.int64(1) << 40))
+    empty = np.int64(-1)
+    for s in range(block_keys.shape[0]):
+        key = block_keys[s]
+        if key == -1:
+            if empty < 0:
+                empty = s
+            continue
+        c0 = ((key >> (2 * _BITS)) & m21) - _OFF
+        c1 = ((key >> _BITS) & m21) - _OFF
+        c2 = (key & m21) - _OFF
+        lo[0] = min(lo[0], c0)
+        lo[1] = min(lo[1], c1)
+        lo[2] = min(lo[2], c2)
+        hi[0] = max(hi[0], c0)
+        hi[1] = max(hi[1], c1)
+        hi[2] = max(hi[2], c2)
+    if hi[0] < lo[0]:
+        return np.full((1, 1, 1), np.int32(empty)), np.zeros(3, dtype=np.int64)
+    if (hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1) * (hi[2] - lo[2] + 1) > max_entries:
+        return np.zeros((0, 0, 0), dtype=np.int32), lo
+    table = np.full((hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, hi[2] - lo[2] + 1), np.int32(empty))
+    for s in range(block_keys.shape[0]):
+        key = block_keys[s]
+        if key != -1:
+            table[((key >> (2 * _BITS)) & m21) - _OFF - lo[0], ((key >> _BITS) & m21) - _OFF - lo[1],
+                  (key & m21) - _OFF - lo[2]] = np.int32(s)
+    return table, lo
+
+
 @njit_parallel
-def score_placements(block_keys, bits, log2_blocks, RX, RY, SZ, anchors, max_misses, miss_rate, miss_slack):
+def score_placements(block_keys, bits, log2_blocks, table, table_lo, RX, RY, SZ, anchors, max_misses, miss_rate,
+                     miss_slack):
     """Hit counts of every (anchor, yaw) placement of the levelled scan sample.
 
     Everything is in cell units (metres / cell size): ``RX[k, i], RY[k, i]`` are the x, y of
@@ -133,6 +175,11 @@ def score_placements(block_keys, bits, log2_blocks, RX, RY, SZ, anchors, max_mis
     ``(hits, tight_hits)``: a hit also counts as *tight* when its cell is occupied before
     dilation, which ranks placements that all hit everything. Independent per anchor
     (``prange``), so the result does not depend on the thread count.
+
+    ``table`` (nx, ny, nz) int32, when not empty, is the dense block directory of
+    :func:`dense_block_table` (``table_lo``: block index of its first entry): a block's slot
+    is then read directly instead of probing the hash table (same counts, ~20 % faster).
+    Branch-free count: an empty slot's bit rows are zero, so a missing block is a miss.
     """
     na, ny, m = anchors.shape[0], RX.shape[0], RX.shape[1]
     mask = (np.int64(1) << log2_blocks) - 1
@@ -140,6 +187,12 @@ def score_placements(block_keys, bits, log2_blocks, RX, RY, SZ, anchors, max_mis
     one = np.uint64(1)
     out = np.zeros((na, ny), dtype=np.int32)
     out_t = np.zeros((na, ny), dtype=np.int32)
+    dense = table.size > 0
+    d0, d1, d2 = table.shape[0], table.shape[1], table.shape[2]
+    l0, l1, l2 = table_lo[0], table_lo[1], table_lo[2]
+    empty = np.int64(0)  # an empty slot of the hash table (its bit rows are zero)
+    while block_keys[empty] != -1:
+        empty += 1
     for a in prange(na):
         ax, ay, az = anchors[a, 0], anchors[a, 1], anchors[a, 2]
         for k in range(ny):
@@ -150,20 +203,23 @@ def score_placements(block_keys, bits, log2_blocks, RX, RY, SZ, anchors, max_mis
                 ix = np.int64(np.floor(RX[k, i] + ax))
                 iy = np.int64(np.floor(RY[k, i] + ay))
                 iz = np.int64(np.floor(SZ[i] + az))
-                sl = block_slot(block_keys, cell_key(ix >> 3, iy >> 3, iz >> 3), shift, mask)
-                hit = False
-                if block_keys[sl] != -1:
-                    w = ix & 7
-                    b = np.uint64(((iy & 7) << 3) | (iz & 7))
-                    if (bits[sl, w] >> b) & one:
-                        hit = True
-                        hits += 1
-                        if (bits[sl, 8 + w] >> b) & one:
-                            thits += 1
-                if not hit:
-                    misses += 1
-                    if misses > max_misses or misses > miss_rate * (i + 1) + miss_slack:
-                        break
+                if dense:
+                    bx = (ix >> 3) - l0
+                    by = (iy >> 3) - l1
+                    bz = (iz >> 3) - l2
+                    sl = empty
+                    if 0 <= bx < d0 and 0 <= by < d1 and 0 <= bz < d2:
+                        sl = np.int64(table[bx, by, bz])
+                else:
+                    sl = block_slot(block_keys, cell_key(ix >> 3, iy >> 3, iz >> 3), shift, mask)
+                w = ix & 7
+                b = np.uint64(((iy & 7) << 3) | (iz & 7))
+                hit = np.int64((bits[sl, w] >> b) & one)
+                hits += hit
+                thits += hit & np.int64((bits[sl, 8 + w] >> b) & one)
+                misses += 1 - hit
+                if misses > max_misses or misses > miss_rate * (i + 1) + miss_slack:
+                    break
             out[a, k] = hits
             out_t[a, k] = thits
     return out, out_t

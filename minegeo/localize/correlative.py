@@ -17,7 +17,8 @@ Model
 -----
 * Map occupancy: the cells of edge ``c`` (``cell_size_m``) holding at least one ICP point of
   the map, dilated by ``dilation_cells`` cells (Chebyshev), in a blocked bitmap (8³-cell
-  blocks found by hashing, :mod:`minegeo.localize._kernels`): a scan point *hits* when its
+  blocks found by hashing, or through a dense block directory when the map's bounding box is
+  small enough, :mod:`minegeo.localize._kernels`): a scan point *hits* when its
   cell is in the dilated set, i.e. it lies within roughly ``c`` to ``(1 + dilation) c`` of the
   map surface.
 * Anchors: map points whose (void-oriented) normal points up within ``anchor_max_tilt_deg``
@@ -161,6 +162,10 @@ class CorrelativeParams:
             raise InputError("CorrelativeParams.anchor_max_tilt_deg must be in (0, 90) deg")
 
 
+#: Largest dense block directory (int32 entries, 64 MB; at 0.5 m cells a 4 m block, e.g. a
+#: 2 km x 2 km x 250 m box): larger maps are scored through the hash table (~20 % slower).
+MAX_DENSE_BLOCKS = 1 << 24
+
 #: Gates (m) of the screening stage's three Gauss-Newton steps.
 SCREEN_GATES_M = (1.5, 1.0, 0.7)
 
@@ -170,13 +175,17 @@ class MapOccupancy:
     """The map side of the search: blocked occupancy bitmap and floor anchors (work frame).
 
     ``block_keys`` / ``bits`` / ``log2_blocks`` are :func:`_kernels.build_blocked_occupancy`'s
-    output (dilated and undilated masks per 8³-cell block); ``n_cells`` occupied cells,
-    ``n_blocks`` blocks in use.
+    output (dilated and undilated masks per 8³-cell block); ``table`` / ``table_lo`` its dense
+    block directory (:func:`_kernels.dense_block_table`; empty when the map's bounding box
+    holds more than ``MAX_DENSE_BLOCKS`` blocks); ``n_cells`` occupied cells, ``n_blocks``
+    blocks in use.
     """
 
     block_keys: np.ndarray
     bits: np.ndarray
     log2_blocks: int
+    table: np.ndarray
+    table_lo: np.ndarray
     n_cells: int
     n_blocks: int
     anchors: np.ndarray
@@ -245,9 +254,11 @@ def map_occupancy(icp_points: np.ndarray, points: np.ndarray, normals: np.ndarra
         if nb <= (1 << log2) // 2:
             break
         log2 += 1
+    table, table_lo = K.dense_block_table(block_keys, MAX_DENSE_BLOCKS)
     up = math.cos(math.radians(params.anchor_max_tilt_deg))
     anchors = np.ascontiguousarray(points[normals[:, 2] >= up], dtype=np.float64)
-    return MapOccupancy(block_keys=block_keys, bits=bits, log2_blocks=log2, n_cells=int(cells.shape[0]),
+    return MapOccupancy(block_keys=block_keys, bits=bits, log2_blocks=log2, table=table, table_lo=table_lo,
+                        n_cells=int(cells.shape[0]),
                         n_blocks=int(nb), anchors=anchors, cell_size_m=c, dilation_cells=d,
                         build_s=time.perf_counter() - t0)
 
@@ -367,7 +378,8 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
     timings["setup"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     RX, RY, SZ, A = placement_grid(S, yaws, occupancy.anchors, occupancy.cell_size_m)
-    scores, tight = K.score_placements(occupancy.block_keys, occupancy.bits, occupancy.log2_blocks, RX, RY, SZ, A,
+    scores, tight = K.score_placements(occupancy.block_keys, occupancy.bits, occupancy.log2_blocks, occupancy.table,
+                                       occupancy.table_lo, RX, RY, SZ, A,
                                        max_miss, 1.0 - float(params.min_hit_fraction), float(params.early_miss_slack))
     timings["score"] = time.perf_counter() - t1
     t1 = time.perf_counter()

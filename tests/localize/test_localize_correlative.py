@@ -64,16 +64,41 @@ def test_score_placements_equals_naive_twin():
     yaws = np.deg2rad(np.arange(0.0, 360.0, 30.0))
     m = S.shape[0]
     grid = placement_grid(S, yaws, anchors, 0.5)
-    got, got_t = K.score_placements(keys, bits, log2, *grid, m, 1.0, float(m))
     ref = np.array(score_placements(dilated_cells(Q, 0.5, 1), 0.5, S, anchors, yaws))
     ref_t = np.array(score_placements(dilated_cells(Q, 0.5, 0), 0.5, S, anchors, yaws))
-    np.testing.assert_array_equal(got, ref)
-    np.testing.assert_array_equal(got_t, ref_t)
-    # early stopping only ever lowers a count, and never one that stayed above the bar
-    early, _ = K.score_placements(keys, bits, log2, *grid, 12, 0.3, 4.0)
-    assert np.all(early <= ref)
-    full = ref >= m - 12
-    assert np.all(early[full & (early >= m - 12)] == ref[full & (early >= m - 12)])
+    table, lo = K.dense_block_table(keys, 1 << 20)
+    assert table.size > 0
+    no_table = (np.zeros((0, 0, 0), dtype=np.int32), np.zeros(3, dtype=np.int64))
+    # the same counts through the dense block directory and through the hash table
+    for tab in ((table, lo), no_table):
+        got, got_t = K.score_placements(keys, bits, log2, *tab, *grid, m, 1.0, float(m))
+        np.testing.assert_array_equal(got, ref)
+        np.testing.assert_array_equal(got_t, ref_t)
+        # early stopping only ever lowers a count, and never one that stayed above the bar
+        early, _ = K.score_placements(keys, bits, log2, *tab, *grid, 12, 0.3, 4.0)
+        assert np.all(early <= ref)
+        full = ref >= m - 12
+        assert np.all(early[full & (early >= m - 12)] == ref[full & (early >= m - 12)])
+
+
+def test_dense_block_table_points_at_every_stored_block_and_nowhere_else():
+    rng = np.random.default_rng(8)
+    cells = K.unique_cells(rng.uniform(-14.0, 9.0, (150, 3)), 0.5)
+    keys, bits, log2 = _blocked(cells, 1)
+    table, lo = K.dense_block_table(keys, 1 << 20)
+    stored = {int(s) for s in np.flatnonzero(keys >= 0)}
+    seen = set()
+    for idx in np.ndindex(*table.shape):
+        s = int(table[idx])
+        b = np.asarray(idx) + lo
+        if s in stored:
+            assert keys[s] == K.cell_key(*b) and s not in seen
+            seen.add(s)
+        else:  # a block that is not stored points at an empty slot (all bits zero)
+            assert keys[s] == -1 and not bits[s].any()
+    assert seen == stored
+    # too large a bounding box: no directory (the scoring probes the hash table)
+    assert K.dense_block_table(keys, 3)[0].size == 0
 
 
 def test_first_of_each_bin_matches_numpy_unique():
@@ -296,6 +321,30 @@ def test_localize_fallback_and_always(small_mine):
     assert six.correlative is None
 
 
+def test_screening_caps_only_rank(small_mine):
+    """The screening ICP (capped points and iterations) only picks which hypotheses get the
+    full-resolution ICP: the chosen placement and its numbers come from that ICP alone."""
+    from dataclasses import replace
+
+    from minegeo.localize import LocalizeParams, localize_scan
+
+    P, pm = small_mine
+    X, _ = _scan_of(P, np.array([512_038.0, 4_100_004.0]), 11.0, math.radians(-58.0),
+                    np.array([512_030.0, 4_100_002.0, 351.0]))
+    base = LocalizeParams.fast()
+    lev = replace(base.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0, max_iterations=100_000)
+    runs = [localize_scan(pm, X, None, replace(base, ransac=lev, correlative="always", icp_screen_max_points=n,
+                                               icp_screen_max_iterations=it), seed=0)
+            for n, it in ((10**6, 30), (1000, 10), (120, 5))]
+    assert runs[0].n_scan_down > 120  # the last run really screens on a subset
+    for r in runs:
+        assert r.status == runs[0].status == "ok"
+        assert r.hypotheses[0]["source"] == runs[0].hypotheses[0]["source"]
+        np.testing.assert_array_equal(r.T_map_scan, runs[0].T_map_scan)
+        assert r.hypotheses[0]["plane_fitness"] == runs[0].hypotheses[0]["plane_fitness"]
+        assert r.params.icp_screen_max_points in (10**6, 1000, 120)
+
+
 def test_screen_target_thins_the_icp_cloud(small_mine):
     """One point per 0.5 m voxel (centroid), unit normals, voxels with opposing normals left
     out; cached per voxel size; None is the full ICP cloud."""
@@ -397,6 +446,10 @@ def test_localize_params_reject_unknown_mode():
         LocalizeParams(correlative="sometimes")
     with pytest.raises(InputError):
         LocalizeParams(correlative_confirm_below_points=-1)
+    for name in ("icp_screen_max_iterations", "icp_screen_max_points"):
+        for bad in (0, -3, 2.5, True):
+            with pytest.raises(InputError):
+                LocalizeParams(**{name: bad})
 
 
 def test_cli_correlative_option_reaches_the_params():
