@@ -127,7 +127,10 @@ class LocalizeParams:
         then within the ambiguity ratio of the best get the full-resolution ICP (capped at
         ``icp_max_iterations``). The screening only ranks; in a drift the ICP slides slowly
         along the axis, which barely changes the score after ~10 iterations (measured: the same
-        decisions, and 0.45 s less on the curve flash scan's 25 candidates).
+        decisions on the benchmark's 20 m scans, and 0.45 s less on the curve flash scan's 25
+        candidates). Not applied to a small scan (``correlative_confirm_below_points``): its
+        rivals are judged on the narrower ``small_scan_ambiguity_ratio`` margin, and a capped
+        screen once left out a rival that the full ICP puts at 0.815 of the best.
     icp_screen_max_points : int
         The screening ICP and its score use at most this many feature-level scan points,
         evenly spaced in the downsampled cloud's order (a fine voxel or a deep octree level
@@ -725,6 +728,9 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     # 3. ICP of every distinct hypothesis: screening on the feature-level scan (cheap), then the
     #    full-resolution ICP (from the candidate's pose) for the leader and any close rival
     t0 = time.perf_counter()
+    # a small scan must beat its rivals by a wider margin (and more of them get the full ICP)
+    small_scan = D.shape[0] < int(p.correlative_confirm_below_points)
+    amb_ratio = float(p.small_scan_ambiguity_ratio) if small_scan else float(p.ambiguity_ratio)
     if p.icp_method == "gicp":
         gicp_p = GICPParams(max_correspondence_distance_m=float(p.icp_max_correspondence_m),
                             max_iterations=int(p.icp_max_iterations),
@@ -736,10 +742,13 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
                                  check_target=False)
     else:
         icp_p = _icp_params(p)
-        # the screening (a minegeo stage) also stops once the pose stops moving; the
-        # full-resolution ICP keeps the paper's convergence test
+        # the screening (a minegeo stage) also stops once the pose stops moving, and after
+        # icp_screen_max_iterations (not for a small scan: its rivals are decided on a narrower
+        # margin, so an under-converged screen must not drop one); the full-resolution ICP
+        # keeps the paper's convergence test
         icp_screen = replace(icp_p, step_translation_m=STAGE_STEP_M, step_rotation_rad=STAGE_STEP_RAD,
-                             max_iterations=min(icp_p.max_iterations, int(p.icp_screen_max_iterations)))
+                             max_iterations=icp_p.max_iterations if small_scan else
+                             min(icp_p.max_iterations, int(p.icp_screen_max_iterations)))
 
         def _refine(P_src, T_init, screening=False):
             return register_icp(P_src, Qf, T_init, icp_screen if screening else icp_p, target_normals=Nf,
@@ -754,9 +763,6 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     n_scr = int(p.icp_screen_max_points)
     D_screen = D if D.shape[0] <= n_scr else np.ascontiguousarray(
         D[np.unique(np.linspace(0, D.shape[0] - 1, n_scr).round().astype(np.int64))])
-    # a small scan must beat its rivals by a wider margin (and more of them get the full ICP)
-    small_scan = D.shape[0] < int(p.correlative_confirm_below_points)
-    amb_ratio = float(p.small_scan_ambiguity_ratio) if small_scan else float(p.ambiguity_ratio)
 
     def _once(stage, name, T, fn):
         """ICP results of one candidate, computed once: the fallback re-evaluates RANSAC's

@@ -345,6 +345,39 @@ def test_screening_caps_only_rank(small_mine):
         assert r.params.icp_screen_max_points in (10**6, 1000, 120)
 
 
+def test_small_scans_keep_the_full_screening(small_mine, monkeypatch):
+    """The screening ICP's iteration cap applies to ordinary scans only: a small scan's rivals
+    are judged on the narrower small-scan margin, so its screening gets the full budget."""
+    from dataclasses import replace
+
+    import minegeo.localize.pipeline as PL
+    from minegeo.localize import LocalizeParams, localize_scan
+
+    P, pm = small_mine
+    X, _ = _scan_of(P, np.array([512_038.0, 4_100_004.0]), 11.0, math.radians(-58.0),
+                    np.array([512_030.0, 4_100_002.0, 351.0]))
+    base = LocalizeParams.fast()
+    lev = replace(base.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0, max_iterations=100_000)
+    seen: list = []
+    real = PL.register_icp
+
+    def spy(P_src, Q, T, prm, **kw):
+        seen.append((P_src.shape[0], prm.max_iterations, prm.step_translation_m, prm.max_correspondence_distance_m))
+        return real(P_src, Q, T, prm, **kw)
+
+    monkeypatch.setattr(PL, "register_icp", spy)
+    caps = {}
+    for name, below in (("ordinary", 0), ("small", 10**6)):
+        seen.clear()
+        r = localize_scan(pm, X, None, replace(base, ransac=lev, correlative="always", icp_screen_max_iterations=4,
+                                                correlative_confirm_below_points=below), seed=0)
+        # screening calls: the feature-level scan, the decision's 0.5 m gate, the stage step test
+        screen = [it for n, it, step, g in seen if n == r.n_scan_down and g == 0.5 and step > 0]
+        assert screen, name
+        caps[name] = set(screen)
+    assert caps == {"ordinary": {4}, "small": {base.icp_max_iterations}}
+
+
 def test_screen_target_thins_the_icp_cloud(small_mine):
     """One point per 0.5 m voxel (centroid), unit normals, voxels with opposing normals left
     out; cached per voxel size; None is the full ICP cloud."""
