@@ -135,7 +135,7 @@ class LocalizeParams:
         The screening ICP and its score use at most this many feature-level scan points,
         evenly spaced in the downsampled cloud's order (a fine voxel or a deep octree level
         gives thousands; 1000 points measure a plane fitness to about ±1.3 %, well inside the
-        ambiguity ratio's margin).
+        ambiguity ratio's margin). Not applied to a small scan either.
     icp_relative_rmse : float
         Convergence threshold on the RMSE change, m (Table 3: 1e-6).
     icp_relative_fitness : float
@@ -314,8 +314,7 @@ class LocalizeParams:
             if not 0.0 <= v <= 1.0:
                 raise InputError(f"{name} must be in [0, 1], got {v!r}")
         for name in ("ransac_runs", "icp_max_iterations", "icp_screen_max_iterations", "icp_screen_max_points",
-                     "min_scan_points",
-                     "correlative_confirm_below_points"):
+                     "min_scan_points", "correlative_confirm_below_points"):
             v = getattr(self, name)
             if isinstance(v, bool) or int(v) != v or v < (
                     0 if name in ("icp_max_iterations", "correlative_confirm_below_points") else 1):
@@ -760,8 +759,9 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         tol = max(tol, float(p.verify_noise_factor) * scan_noise)
     memo: dict = {}
     # the screening ICP runs on at most icp_screen_max_points evenly spaced feature-level points
+    # (a small scan: on all of them, as with the iteration cap)
     n_scr = int(p.icp_screen_max_points)
-    D_screen = D if D.shape[0] <= n_scr else np.ascontiguousarray(
+    D_screen = D if small_scan or D.shape[0] <= n_scr else np.ascontiguousarray(
         D[np.unique(np.linspace(0, D.shape[0] - 1, n_scr).round().astype(np.int64))])
 
     def _once(stage, name, T, fn):

@@ -346,8 +346,9 @@ def test_screening_caps_only_rank(small_mine):
 
 
 def test_small_scans_keep_the_full_screening(small_mine, monkeypatch):
-    """The screening ICP's iteration cap applies to ordinary scans only: a small scan's rivals
-    are judged on the narrower small-scan margin, so its screening gets the full budget."""
+    """The screening ICP's caps (iterations, points) apply to ordinary scans only: a small
+    scan's rivals are judged on the narrower small-scan margin, so its screening gets the full
+    budget."""
     from dataclasses import replace
 
     import minegeo.localize.pipeline as PL
@@ -370,12 +371,18 @@ def test_small_scans_keep_the_full_screening(small_mine, monkeypatch):
     for name, below in (("ordinary", 0), ("small", 10**6)):
         seen.clear()
         r = localize_scan(pm, X, None, replace(base, ransac=lev, correlative="always", icp_screen_max_iterations=4,
-                                                correlative_confirm_below_points=below), seed=0)
-        # screening calls: the feature-level scan, the decision's 0.5 m gate, the stage step test
-        screen = [it for n, it, step, g in seen if n == r.n_scan_down and g == 0.5 and step > 0]
+                                                icp_screen_max_points=60, correlative_confirm_below_points=below),
+                          seed=0)
+        # screening calls: the decision's 0.5 m gate with the stage step test (the full-resolution
+        # ICP has no step test, the coarse pull-in a 1.5 m gate)
+        screen = [(n, it) for n, it, step, g in seen if g == 0.5 and step > 0]
         assert screen, name
         caps[name] = set(screen)
-    assert caps == {"ordinary": {4}, "small": {base.icp_max_iterations}}
+    n = r.n_scan_down
+    assert n > 60
+    # ordinary: capped iterations on at most icp_screen_max_points points; small: neither cap
+    assert caps["ordinary"] == {(60, 4)}
+    assert caps["small"] == {(n, base.icp_max_iterations)}
 
 
 def test_screen_target_thins_the_icp_cloud(small_mine):
