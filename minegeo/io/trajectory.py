@@ -180,8 +180,12 @@ def read_trajectory(
     return Trajectory(times_s=times, poses=poses, frame=frame, body=body, origin=o, crs=crs)
 
 
-def write_trajectory(path, traj: Trajectory, format: str = "tum", *, coordinates: str = "global") -> Path:
+def write_trajectory(path, traj: Trajectory, format: str | None = None, *, coordinates: str = "global") -> Path:
     """Write ``traj`` atomically in ``format`` (see the module docstring).
+
+    ``format`` defaults to the one :func:`read_trajectory` infers from the suffix
+    (``.tum``/``.kitti``/``.csv``), otherwise ``"tum"``, so a written file reads back as
+    written.
 
     Positions are written as ``t + origin`` (``coordinates="global"``) or ``t``
     (``"local"``), with 17 significant digits (exact float64 round trip). Rotations are
@@ -196,7 +200,7 @@ def write_trajectory(path, traj: Trajectory, format: str = "tum", *, coordinates
     """
     if not isinstance(traj, Trajectory):
         raise InputError(f"traj must be a Trajectory, got {type(traj).__name__}")
-    fmt = str(format).lower()
+    fmt = _SUFFIX.get(Path(path).suffix.lower(), "tum") if format is None else str(format).lower()
     if fmt not in TRAJECTORY_FORMATS:
         raise InputError(f"unknown trajectory format {format!r}; choose one of {', '.join(TRAJECTORY_FORMATS)}")
     if coordinates not in ("global", "local"):

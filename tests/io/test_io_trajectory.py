@@ -85,6 +85,18 @@ def test_geoslam_is_scalar_first_and_tolerant(tmp_path):
     np.testing.assert_array_equal(t.positions[0], [1, 2, 3])
 
 
+@pytest.mark.parametrize("suffix,fmt", [(".csv", "csv"), (".kitti", "kitti"), (".tum", "tum"), (".txt", "tum")])
+def test_write_infers_the_format_from_the_suffix_as_read_does(tmp_path, rng, suffix, fmt):
+    t = _traj(rng)
+    p = tmp_path / f"t{suffix}"
+    write_trajectory(p, t)
+    explicit = tmp_path / f"e{suffix}"
+    write_trajectory(explicit, t, format=fmt)
+    assert p.read_bytes() == explicit.read_bytes()
+    back = read_trajectory(p)
+    np.testing.assert_allclose(back.poses[:, :3, 3], t.poses[:, :3, 3], atol=1e-9)
+
+
 def test_global_local_and_origin(tmp_path, rng):
     t = _traj(rng, origin=(500000.0, 4000000.0, 0.0))
     write_trajectory(tmp_path / "g.tum", t)
