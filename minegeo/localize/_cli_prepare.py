@@ -50,11 +50,17 @@ def run(args) -> int:
     t_read = time.perf_counter() - t0
     pm = prepare_map(cloud, prep, georef=g, source={"path": str(args.map), "sha256": sha256_file(args.map),
                                                     "n_points": len(cloud.points), "georeferenced": g is not None})
+    # the search structures every localization would otherwise build (those of levelled scans'
+    # whole-map search included) are stored in the file too
+    _, lp = params_from_args(argparse_defaults(args))
+    lp = replace(lp, ransac=replace(lp.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0))
+    index_s = pm.build_indexes(lp)
     pm.save(out)
     rec = {"status": "ok", "out": str(out), "n_points": len(cloud.points), "n_down": len(pm),
            "n_icp_points": int(pm.icp_points.shape[0]), "params": prep, "params_hash": pm.params_hash,
            "crs": pm.crs, "georeferenced": g is not None, "work_origin": pm.work_origin,
-           "timings_s": {"read": t_read, **pm.timings_s}, "inputs": [input_record(args.map)],
+           "timings_s": {"read": t_read, **pm.timings_s, "search_structures": index_s},
+           "inputs": [input_record(args.map)],
            "versions": versions()}
     write_json_atomic(out.with_name(out.name + ".json"), rec)
     if not getattr(args, "quiet", False):

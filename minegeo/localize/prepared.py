@@ -34,6 +34,7 @@ import json
 import logging
 import math
 import time
+import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -64,6 +65,10 @@ log = logging.getLogger(__name__)
 PREPARED_FORMAT = "minegeo-prepared-map"
 #: Current file format version (increase on any incompatible change).
 PREPARED_VERSION = 1
+
+#: Format of the search structures a prepared file may also hold (``meta["indexes"]``).
+INDEX_VERSION = 1
+INDEX_PREFIX = "index__"
 _ORIENTATIONS = ("void", "none", "centroid")
 #: Nearest neighbours of the PCA normals of the ICP target.
 ICP_NORMAL_NN = 20
@@ -509,11 +514,15 @@ class PreparedMap:
             )
 
     # -- files --------------------------------------------------------------------------
-    def save(self, path) -> Path:
+    def save(self, path, *, indexes: bool = True) -> Path:
         """Write the prepared map to ``path`` (``.npz``, no pickles), atomically.
 
         The file holds the arrays plus a JSON ``meta`` string with ``format``, ``version``,
-        ``params``, ``params_hash``, ``georef``, ``crs`` and ``source``.
+        ``params``, ``params_hash``, ``georef``, ``crs`` and ``source``. With ``indexes`` it also
+        holds every search structure built so far (:meth:`build_indexes`: the Numba KD-trees of
+        the ICP cloud and of the thinned screening cloud, the descriptor tree, the occupancy
+        bitmap, the lookup grid; ``meta["indexes"]``), which :meth:`load` restores instead of
+        rebuilding them (~5 s for the 6.5 km paper map). Only pykdtree's tree is rebuilt.
         """
         import io
 
@@ -527,11 +536,132 @@ class PreparedMap:
             "source": to_jsonable(self.source),
             "timings_s": to_jsonable(self.timings_s),
         }
+        extra: dict = {}
+        if indexes:
+            extra, meta["indexes"] = self._index_payload()
         buf = io.BytesIO()
         np.savez(buf, points=self.points, normals=self.normals, features=self.features, icp_points=self.icp_points,
                  icp_normals=self.icp_normals,
-                 work_origin=self.work_origin, meta=np.array(json.dumps(meta, sort_keys=True)))
+                 work_origin=self.work_origin, meta=np.array(json.dumps(meta, sort_keys=True)), **extra)
         return atomic_write_bytes(path, buf.getvalue())
+
+    def _index_payload(self) -> tuple[dict, dict]:
+        """Arrays (``index__*`` keys) and meta record of the search structures built so far."""
+        arrays: dict = {}
+        entries: list = []
+
+        def put(name, d):
+            for k, v in d.items():
+                arrays[f"{INDEX_PREFIX}{name}__{k}"] = np.asarray(v)
+
+        if "index" in self._gicp_cache:
+            put("target", self._gicp_cache["index"].arrays())
+            entries.append({"kind": "target_kdtree", "name": "target"})
+        if self._feature_index is not None:
+            fi = self._feature_index
+            t = fi.tree
+            d = {"rows": fi.rows}
+            if not t.brute:  # the leaf storage is packed again on loading
+                d.update(mu=t.mu, V=t.V, perm=t.perm, lstart=t.lstart)
+            put("feature", d)
+            entries.append({"kind": "feature_index", "name": "feature", "drop_zero_features": fi.drop_zero_features,
+                            "brute": bool(t.brute), "rb": float(t.rb)})
+        for i, (key, occ) in enumerate(self._occ_cache.items()):
+            name = f"occupancy{i}"
+            used = occ.block_keys != -1  # only the rows of used slots (the others are zero)
+            put(name, {"block_keys": occ.block_keys, "bits": occ.bits[used], "anchors": occ.anchors})
+            entries.append({"kind": "occupancy", "name": name, "key": list(key), "log2_blocks": occ.log2_blocks,
+                            "n_cells": occ.n_cells, "n_blocks": occ.n_blocks, "build_s": occ.build_s})
+        for i, (key, val) in enumerate(self._gicp_cache.items()):
+            if not isinstance(key, tuple) or key[0] not in ("screen", "screen_grid"):
+                continue
+            name = f"{key[0]}{i}"
+            if key[0] == "screen":
+                index, pts, nrm = val
+                full = pts is self.icp_points
+                put(name, {} if full else {"points": pts, "normals": nrm, **{f"tree_{k}": v for k, v in index.arrays().items()}})
+                entries.append({"kind": "screen_target", "name": name, "voxel_size_m": key[1], "full": full})
+            else:
+                keys, nearest, log2, c = val
+                put(name, {"keys": keys, "nearest": nearest[keys != -1]})  # used slots' rows (the others are -1)
+                entries.append({"kind": "screen_grid", "name": name, "voxel_size_m": key[1], "log2_blocks": log2,
+                                "cell_m": c})
+        return arrays, {"version": INDEX_VERSION, "entries": entries}
+
+    def _restore_indexes(self, z: dict, record: dict, path) -> list[str]:
+        """Put the stored search structures (``z``: the file's ``index__*`` arrays) back in the caches.
+
+        A structure whose arrays fail the checks is skipped with a warning (it is rebuilt when
+        needed): the map itself is intact. Returns the kinds restored.
+        """
+        from minegeo.localize.correlative import MapOccupancy
+        from minegeo.registration._kernels import GatedKDTree
+        from minegeo.registration.correspondences import FeatureIndex, _RowTree
+
+        restored: list[str] = []
+        if not isinstance(record, dict) or record.get("version") != INDEX_VERSION:
+            log.warning("%s: stored search structures of another format version: rebuilding them", path)
+            return restored
+        for e in record.get("entries", []):
+            name = f"{INDEX_PREFIX}{e.get('name')}__"
+            try:
+                a = {k[len(name):]: v_ for k, v_ in z.items() if k.startswith(name)}
+                kind = e["kind"]
+                if kind == "target_kdtree":
+                    self._gicp_cache["index"] = GatedKDTree.from_arrays(self.icp_points, a)
+                elif kind == "feature_index":
+                    rows = np.ascontiguousarray(a["rows"], dtype=np.int64)
+                    m = self.features.shape[0]
+                    if rows.ndim != 1 or rows.size == 0 or rows.min() < 0 or rows.max() >= m:
+                        raise ValueError("descriptor rows out of range")
+                    B = np.ascontiguousarray(self.features[rows])
+                    if e["brute"]:
+                        tree = _RowTree(B=B, brute=True)
+                    else:
+                        tree = _restore_row_tree(B, a, float(e["rb"]))
+                    self._feature_index = FeatureIndex(features=self.features,
+                                                       drop_zero_features=bool(e["drop_zero_features"]), rows=rows,
+                                                       tree=tree)
+                elif kind == "occupancy":
+                    occ = _restore_occupancy(MapOccupancy, a, e)
+                    cell, dil, tilt = e["key"]
+                    self._occ_cache[(float(cell), int(dil), float(tilt))] = occ
+                elif kind == "screen_target":
+                    v = float(e["voxel_size_m"])
+                    if e["full"]:
+                        self._gicp_cache[("screen", v)] = (self.target_index(), self.icp_points, self.icp_normals)
+                    else:
+                        pts = as_points(a["points"], "screening points")
+                        nrm = as_points(a["normals"], "screening normals")
+                        if nrm.shape != pts.shape:
+                            raise ValueError("screening points and normals differ in length")
+                        tree = GatedKDTree.from_arrays(pts, {k[5:]: x for k, x in a.items() if k.startswith("tree_")})
+                        self._gicp_cache[("screen", v)] = (tree, pts, nrm)
+                elif kind == "screen_grid":
+                    v = float(e["voxel_size_m"])
+                    key_s = ("screen", v)
+                    if key_s not in self._gicp_cache:
+                        raise ValueError("lookup grid stored without its screening cloud")
+                    n_s = self._gicp_cache[key_s][1].shape[0]
+                    keys = np.ascontiguousarray(a["keys"])
+                    rows = a["nearest"]
+                    log2 = int(e["log2_blocks"])
+                    used = keys != -1
+                    if (keys.dtype != np.int64 or rows.dtype != np.int32 or keys.shape != (1 << log2,)
+                            or rows.shape != (int(used.sum()), 512)
+                            or (rows.size and (rows.min() < -1 or rows.max() >= n_s))
+                            or np.count_nonzero(~used) == 0):
+                        raise ValueError("lookup grid arrays out of range")
+                    nearest = np.full((keys.shape[0], 512), -1, dtype=np.int32)
+                    nearest[used] = rows
+                    self._gicp_cache[("screen_grid", v)] = (keys, nearest, log2, float(e["cell_m"]))
+                else:
+                    raise ValueError(f"unknown kind {kind!r}")
+                restored.append(kind)
+            except (KeyError, ValueError, TypeError, IndexError, InputError) as exc:
+                log.warning("%s: stored search structure %r not usable (%s): it will be rebuilt", path,
+                            e.get("name"), exc)
+        return restored
 
     @classmethod
     def load(cls, path, params: PrepareParams | None = None) -> PreparedMap:
@@ -559,9 +689,10 @@ class PreparedMap:
                 meta = json.loads(str(z["meta"]))
                 arrays = {k: np.array(z[k], dtype=np.float64) for k in ("points", "normals", "features", "icp_points", "icp_normals",
                                                                      "work_origin")}
+                index_arrays = {k: z[k] for k in z.files if k.startswith(INDEX_PREFIX)} if "indexes" in meta else {}
         except FileFormatError:
             raise
-        except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, json.JSONDecodeError) as exc:
             raise FileFormatError(p, f"cannot read prepared map ({exc})") from None
         if meta.get("format") != PREPARED_FORMAT:
             raise FileFormatError(p, f"not a minegeo prepared map (format {meta.get('format')!r})")
@@ -590,7 +721,58 @@ class PreparedMap:
             raise FileFormatError(p, f"corrupted arrays ({exc})") from None
         if params is not None:
             pm.check_params(params)
+        if "indexes" in meta:
+            pm._restore_indexes(index_arrays, meta["indexes"], p)
         return pm
+
+
+def _restore_row_tree(B: np.ndarray, a: dict, rb: float):
+    """The descriptor tree over ``B`` from its stored rotation and leaf partition (the leaf
+    storage is packed again from ``B``, so it cannot disagree with the map's descriptors)."""
+    from minegeo.registration import _kernels_ransac as KR
+    from minegeo.registration.correspondences import _RowTree
+
+    n, dim = B.shape
+    mu = np.ascontiguousarray(a["mu"], dtype=np.float64)
+    V = np.ascontiguousarray(a["V"], dtype=np.float64)
+    perm = np.ascontiguousarray(a["perm"], dtype=np.int64)
+    lstart = np.ascontiguousarray(a["lstart"], dtype=np.int64)
+    if (mu.shape != (dim,) or V.ndim != 2 or V.shape[0] != dim or not 1 <= V.shape[1] <= KR.FEATURE_ROT
+            or not (np.isfinite(mu).all() and np.isfinite(V).all())):
+        raise ValueError("descriptor tree rotation has the wrong shape")
+    if perm.shape != (n,) or perm.min() < 0 or not np.array_equal(np.bincount(perm, minlength=n), np.ones(n)):
+        raise ValueError("descriptor tree order is not a permutation of the rows")
+    sizes = np.diff(lstart)
+    if lstart.ndim != 1 or lstart.size < 2 or lstart[0] != 0 or lstart[-1] != n or sizes.min() < 0 \
+            or sizes.max() > KR.FEATURE_LEAF:
+        raise ValueError("descriptor tree leaves out of range")
+    P = KR.feature_rotate(B, mu, V)
+    lead, Bp, loT, hiT = KR.feature_tree_pack(B, P, perm, lstart)
+    return _RowTree(B=B, brute=False, mu=mu, V=V, perm=perm, lstart=lstart, lead=lead, Bp=Bp, loT=loT, hiT=hiT,
+                    rb=float(rb))
+
+
+def _restore_occupancy(cls, a: dict, e: dict):
+    """A stored :class:`~minegeo.localize.correlative.MapOccupancy` (its dense directory is
+    rebuilt from the block keys)."""
+    from minegeo.localize import _kernels as LK
+    from minegeo.localize.correlative import MAX_DENSE_BLOCKS
+
+    log2 = int(e["log2_blocks"])
+    keys = np.ascontiguousarray(a["block_keys"])
+    rows = a["bits"]
+    anchors = as_points(a["anchors"], "floor anchors", min_points=0)
+    used = keys != -1
+    if (keys.dtype != np.int64 or rows.dtype != np.uint64 or keys.shape != (1 << log2,)
+            or rows.shape != (int(used.sum()), 16) or np.count_nonzero(~used) == 0):
+        raise ValueError("occupancy arrays have the wrong shapes")
+    bits = np.zeros((keys.shape[0], 16), dtype=np.uint64)  # an empty slot's bits must be zero
+    bits[used] = rows
+    cell, dil, _ = e["key"]
+    table, table_lo = LK.dense_block_table(keys, MAX_DENSE_BLOCKS)
+    return cls(block_keys=keys, bits=bits, log2_blocks=log2, table=table, table_lo=table_lo,
+               n_cells=int(e["n_cells"]), n_blocks=int(e["n_blocks"]), anchors=np.ascontiguousarray(anchors),
+               cell_size_m=float(cell), dilation_cells=int(dil), build_s=float(e.get("build_s", 0.0)))
 
 
 def _diff(a: dict, b: dict, prefix: str = "") -> list:

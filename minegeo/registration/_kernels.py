@@ -780,6 +780,51 @@ class GatedKDTree:
         self.data = Q
         self._tree = kd_build(Q, KD_LEAF)
 
+    def arrays(self) -> dict:
+        """The tree's own arrays (``Qs`` is not among them: it is ``data[idx]``), for storage."""
+        idx, _, start, end, dim, split, left, right, depth = self._tree
+        return {"idx": idx, "start": start, "end": end, "dim": dim, "split": split, "left": left, "right": right,
+                "depth": np.array([depth], dtype=np.int64)}
+
+    @classmethod
+    def from_arrays(cls, Q, a: dict):
+        """The tree of :meth:`arrays` over the same points ``Q``. Checks what a query relies on
+        (``idx`` a permutation of the rows, node ranges and children in bounds, the stated depth
+        the real one) and raises ``ValueError`` otherwise: the kernels do not bounds-check."""
+        m = Q.shape[0]
+        idx = np.ascontiguousarray(a["idx"], dtype=np.int64)
+        nodes = [np.ascontiguousarray(a[k]) for k in ("start", "end", "dim", "split", "left", "right")]
+        n = nodes[0].shape[0]
+        if idx.shape != (m,) or n < 1 or any(x.ndim != 1 or x.shape[0] != n for x in nodes):
+            raise ValueError("KD-tree arrays have the wrong shapes")
+        start, end, dim, split, left, right = nodes
+        if not np.array_equal(np.bincount(idx, minlength=m) if idx.size and idx.min() >= 0 else [], np.ones(m)):
+            raise ValueError("KD-tree point order is not a permutation of the points")
+        leaf = dim < 0
+        if (start.min() < 0 or end.max() > m or np.any(start > end) or dim.max() > 2
+                or np.any(~leaf & ((left < 1) | (left >= n) | (right < 1) | (right >= n)))):
+            raise ValueError("KD-tree node ranges or children out of bounds")
+        # depth: walk the levels from the root (a cycle or an orphan shows as a wrong count)
+        level, depth, seen = np.array([0]), 0, 1
+        while True:
+            inner = level[~leaf[level]]
+            if inner.size == 0:
+                break
+            level = np.concatenate([left[inner], right[inner]])
+            depth += 1
+            seen += level.size
+            if seen > n:
+                raise ValueError("KD-tree nodes do not form a tree")
+        if seen != n or int(np.asarray(a["depth"]).ravel()[0]) != depth:
+            raise ValueError("KD-tree depth or node count is wrong")
+        self = cls.__new__(cls)
+        self.m = m
+        self.data = Q
+        self._tree = (idx, np.ascontiguousarray(Q[idx]), start.astype(np.int64), end.astype(np.int64),
+                      dim.astype(np.int64), split.astype(np.float64), left.astype(np.int64), right.astype(np.int64),
+                      depth)
+        return self
+
     def query(self, P, d2):
         n = P.shape[0]
         idx = np.empty(n, dtype=np.int64)

@@ -522,3 +522,91 @@ def test_cli_polish_option_reaches_the_params():
     assert C.params_from_args(ap.parse_args([*base, "--polish", "0"]))[1].icp_polish_correspondence_m is None
     with pytest.raises(InputError, match="--polish"):
         C.params_from_args(ap.parse_args([*base, "--polish", "-1"]))
+
+
+def test_stored_search_structures_give_identical_results(small_mine, tmp_path, monkeypatch, caplog):
+    """prepare-map stores the search structures; a localization on the loaded file builds none
+    of them and gives bit-identical results; a damaged one is rebuilt, with a warning."""
+    import json
+    import logging
+    from dataclasses import replace
+
+    from minegeo.localize import LocalizeParams, PreparedMap, PrepareParams, localize_scan
+
+    P, pm = small_mine
+    base = LocalizeParams.fast()
+    lp = replace(base, ransac=replace(base.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0,
+                                      max_iterations=100_000), correlative="always")
+    pm.build_indexes(lp)
+    X, _ = _scan_of(P, np.array([512_038.0, 4_100_004.0]), 11.0, math.radians(-58.0),
+                    np.array([512_030.0, 4_100_002.0, 351.0]))
+    ref = localize_scan(pm, X, None, lp, seed=0)
+    f = tmp_path / "m.npz"
+    pm.save(f)
+    with np.load(f, allow_pickle=False) as z:
+        kinds = [e["kind"] for e in json.loads(str(z["meta"]))["indexes"]["entries"]]
+        arrays = {k: z[k] for k in z.files}
+    assert {"target_kdtree", "feature_index", "occupancy", "screen_target", "screen_grid"} <= set(kinds)
+    q = PreparedMap.load(f, PrepareParams.fast())
+
+    def _no_build(*a, **k):
+        raise AssertionError("a stored search structure was rebuilt")
+
+    import minegeo.localize.correlative as C
+    import minegeo.registration as R
+    import minegeo.registration.correspondences as CO
+
+    with monkeypatch.context() as mp:
+        mp.setattr(R, "build_target_index", _no_build)
+        mp.setattr(C, "map_occupancy", _no_build)
+        mp.setattr(CO, "build_feature_index", _no_build)
+        got = localize_scan(q, X, None, lp, seed=0)
+    for r in (got,):
+        assert r.status == ref.status
+        np.testing.assert_array_equal(r.T_map_scan, ref.T_map_scan)
+        np.testing.assert_array_equal(r.covariance_6x6, ref.covariance_6x6)
+        assert [h["plane_fitness"] for h in r.hypotheses] == [h["plane_fitness"] for h in ref.hypotheses]
+        assert r.correlative["hit_fractions"] == ref.correlative["hit_fractions"]
+    # a file without them, and one whose stored structures are damaged: rebuilt, same answer
+    plain = tmp_path / "plain.npz"
+    pm.save(plain, indexes=False)
+    with np.load(plain, allow_pickle=False) as z:
+        assert not any(k.startswith("index__") for k in z.files)
+    bad = dict(arrays)
+    for k in list(bad):
+        if k.endswith("__perm") or k.endswith("target__idx"):
+            bad[k] = bad[k].copy()
+            bad[k][0] = bad[k][1]  # no longer a permutation
+        if k.endswith("__bits"):
+            bad[k] = bad[k][:-1]  # a row short
+        if k.endswith("__nearest"):
+            bad[k] = bad[k].copy()
+            bad[k][0, 0] = 10**9  # points nowhere
+    damaged = tmp_path / "damaged.npz"
+    np.savez(damaged, **bad)
+    for path, n_warn in ((plain, 0), (damaged, 4)):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="minegeo.localize.prepared"):
+            qq = PreparedMap.load(path, PrepareParams.fast())
+        assert sum("will be rebuilt" in m for m in caplog.messages) == n_warn, caplog.messages
+        r = localize_scan(qq, X, None, lp, seed=0)
+        np.testing.assert_array_equal(r.T_map_scan, ref.T_map_scan)
+        assert [h["plane_fitness"] for h in r.hypotheses] == [h["plane_fitness"] for h in ref.hypotheses]
+
+
+def test_kdtree_from_arrays_checks_what_queries_rely_on():
+    from minegeo.registration._kernels import GatedKDTree
+
+    Q = np.random.default_rng(3).uniform(0, 10, (500, 3))
+    t = GatedKDTree(Q)
+    a = t.arrays()
+    u = GatedKDTree.from_arrays(Q, a)
+    P = np.random.default_rng(4).uniform(0, 10, (50, 3))
+    for x, y in zip(t.query(P, 1.0), u.query(P, 1.0), strict=True):
+        np.testing.assert_array_equal(x, y)
+    for key, edit in (("idx", lambda v: np.r_[v[1:], v[0:1] * 0 + v[1]]), ("left", lambda v: v + 10**6),
+                      ("depth", lambda v: v + 1), ("start", lambda v: v - 1), ("idx", lambda v: v[:-1])):
+        b = dict(a)
+        b[key] = edit(a[key].copy())
+        with pytest.raises(ValueError):
+            GatedKDTree.from_arrays(Q, b)
