@@ -15,10 +15,13 @@ disable).
 
 from __future__ import annotations
 
+import logging
 import math
 import sys
 import time
 from pathlib import Path
+
+log = logging.getLogger(__name__)
 
 HELP = "globally localize a local scan (+ trajectory) in a prior map: FPFH + RANSAC + ICP (Baek et al. 2022)"
 
@@ -205,6 +208,12 @@ def run(args) -> int:
     # the map's search structures (KD-trees, descriptor tree, occupancy bitmap): once per
     # process, timed apart from the scan's own localization
     index_s = pm.build_indexes(lp)
+    if how == "computed" and not args.no_cache:
+        # write the cache again, now with the search structures, so the next run loads them
+        try:
+            pm.save(cache_path(args.map, prep))
+        except OSError as exc:
+            log.warning("could not update the prepared-map cache: %s", exc)
 
     base = {
         "inputs": inputs,

@@ -257,10 +257,21 @@ def test_cli_end_to_end_georeferenced(world_map, tmp_path):
     assert "Parameters" in html and "ok" in html.lower()
     # the report names the covariance estimator actually used (default: block jackknife)
     assert r["uncertainty"]["method"] == "jackknife" and "delete-one-block jackknife" in html
-    assert list(tmp_path.glob("map_geo.ply.prepared-*.npz")), "prepared-map cache not written"
+    cache = list(tmp_path.glob("map_geo.ply.prepared-*.npz"))
+    assert cache, "prepared-map cache not written"
+
+    def _stored(path):
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+        return {e["kind"] for e in meta.get("indexes", {}).get("entries", [])}
+
+    # the cache is written again once the search structures exist, and prepare-map stores them
+    # all (those of levelled scans' whole-map search included)
+    assert {"target_kdtree", "feature_index"} <= _stored(cache[0])
     # prepared file path, and a mismatch of parameters is a clear input error (exit 2)
     prep = tmp_path / "prep.npz"
     assert main(["prepare-map", "--map", str(geo), "--out", str(prep), "--profile", "fast"]) == 0
+    assert _stored(prep) == {"target_kdtree", "feature_index", "occupancy", "screen_target", "screen_grid"}
     out2 = tmp_path / "loc2"
     assert main(["localize", "--map", str(prep), "--scan", str(tmp_path / "scan.ply"), "--out", str(out2),
                  "--profile", "fast"]) == 0
