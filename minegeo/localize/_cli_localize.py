@@ -203,17 +203,17 @@ def run(args) -> int:
     traj = read_trajectory(args.trajectory, frame="scan") if args.trajectory else None
     t_read = time.perf_counter() - t0
     t0 = time.perf_counter()
-    pm, how = load_or_prepare(args.map, prep, use_cache=not args.no_cache, write_cache=not args.no_cache)
+    # the cache of a freshly prepared map is written below, once, with its search structures
+    pm, how = load_or_prepare(args.map, prep, use_cache=not args.no_cache, write_cache=False)
     t_map = time.perf_counter() - t0
     # the map's search structures (KD-trees, descriptor tree, occupancy bitmap): once per
     # process, timed apart from the scan's own localization
     index_s = pm.build_indexes(lp)
     if how == "computed" and not args.no_cache:
-        # write the cache again, now with the search structures, so the next run loads them
         try:
             pm.save(cache_path(args.map, prep))
         except OSError as exc:
-            log.warning("could not update the prepared-map cache: %s", exc)
+            log.warning("could not write the prepared-map cache: %s", exc)
 
     base = {
         "inputs": inputs,
