@@ -87,3 +87,11 @@ def check_positive(value, name: str, allow_zero: bool = False) -> float:
     if not np.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
         raise InputError(f"{name} must be {'>= 0' if allow_zero else '> 0'} and finite, got {value!r}")
     return v
+
+
+def is_permutation(a: np.ndarray, n: int) -> bool:
+    """Whether the integer array ``a`` holds each of ``0 .. n-1`` exactly once."""
+    a = np.asarray(a)
+    if a.shape != (n,):
+        return False
+    return n == 0 or (int(a.min()) >= 0 and np.array_equal(np.bincount(a, minlength=n), np.ones(n)))

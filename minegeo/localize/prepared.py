@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from minegeo._provenance import atomic_write_bytes, sha256_file, to_jsonable
-from minegeo._validate import as_points, check_positive
+from minegeo._validate import as_points, check_positive, is_permutation
 from minegeo.errors import FileFormatError, InputError, TooFewPointsError
 from minegeo.io.types import PointCloud
 
@@ -740,7 +740,7 @@ def _restore_row_tree(B: np.ndarray, a: dict, rb: float):
     if (mu.shape != (dim,) or V.ndim != 2 or V.shape[0] != dim or not 1 <= V.shape[1] <= KR.FEATURE_ROT
             or not (np.isfinite(mu).all() and np.isfinite(V).all())):
         raise ValueError("descriptor tree rotation has the wrong shape")
-    if perm.shape != (n,) or perm.min() < 0 or not np.array_equal(np.bincount(perm, minlength=n), np.ones(n)):
+    if not is_permutation(perm, n):
         raise ValueError("descriptor tree order is not a permutation of the rows")
     sizes = np.diff(lstart)
     if lstart.ndim != 1 or lstart.size < 2 or lstart[0] != 0 or lstart[-1] != n or sizes.min() < 0 \

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
+from minegeo._validate import is_permutation
 
 #: Rows per reduction chunk (fixed so that summation order is thread-count independent).
 CHUNK = 1024
@@ -798,7 +799,7 @@ class GatedKDTree:
         if idx.shape != (m,) or n < 1 or any(x.ndim != 1 or x.shape[0] != n for x in nodes):
             raise ValueError("KD-tree arrays have the wrong shapes")
         start, end, dim, split, left, right = nodes
-        if not np.array_equal(np.bincount(idx, minlength=m) if idx.size and idx.min() >= 0 else [], np.ones(m)):
+        if not is_permutation(idx, m):
             raise ValueError("KD-tree point order is not a permutation of the points")
         leaf = dim < 0
         if (start.min() < 0 or end.max() > m or np.any(start > end) or dim.max() > 2
