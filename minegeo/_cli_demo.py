@@ -57,11 +57,20 @@ def _err_m(T_est, T_true) -> tuple[float, float]:
 
 
 def run(args) -> int:
+    from minegeo._output import output_lock
     from minegeo.errors import InputError
 
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} exists and is not a folder")
     if out.exists() and any(out.iterdir()) and not args.force:
         raise InputError(f"{out} exists and is not empty; use --force or another --out")
+    # one demo at a time per folder; each step below stages and commits its own result folder
+    with output_lock("demo", "--out", out):
+        return _run(args, out)
+
+
+def _run(args, out: Path) -> int:
     t_start = time.perf_counter()
     rows: list[tuple[str, str, str]] = []
     mine = out / "mine"

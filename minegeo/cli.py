@@ -68,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "_run", None):
         parser.print_help()
         return 0 if args.verb is None else 2
+    from minegeo._output import RunClock
+
+    args._clock = RunClock()  # wall time and Numba compile time of this run, reported apart
     try:
         return int(args._run(args) or 0)
     except MinegeoError as exc:
@@ -85,6 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"minegeo {args.verb}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        args._clock.close()
 
 
 if __name__ == "__main__":  # pragma: no cover

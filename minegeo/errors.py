@@ -49,3 +49,8 @@ class OptionalDependencyError(MinegeoError, ImportError):
         super().__init__(
             f"this needs the optional package '{package}': install it with pip install 'minegeo[{extra}]'"
         )
+
+
+class OutputError(InputError):
+    """An output path cannot be used: it is an input, lies inside an input, is locked by another
+    run, or names a folder that holds something other than an earlier minegeo result."""

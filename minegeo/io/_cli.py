@@ -108,12 +108,16 @@ def _print_cloud(info: dict) -> None:
 
 
 def run(args) -> int:
+    from minegeo._output import OutputTransaction, check_outputs
     from minegeo._provenance import provenance, to_jsonable, write_json_atomic
     from minegeo.io.pointcloud import cloud_info
 
     path = Path(args.file)
     if not path.exists():
         raise FileNotFoundError(2, "no such file", str(path))
+    out_json = args.json if args.json and args.json != "-" else None
+    # an output never equals or lies inside an input: checked before the file is even read
+    check_outputs({"FILE": path}, files={"--json": out_json})
     kind = args.kind
     if kind == "auto":
         kind = "trajectory" if path.suffix.lower() in _TRAJ_SUFFIXES else "cloud"
@@ -143,6 +147,7 @@ def run(args) -> int:
             json.dump(to_jsonable(doc), sys.stdout, indent=2)
             print()
         else:
-            write_json_atomic(args.json, doc)
+            with OutputTransaction("info", inputs={"FILE": path}, files={"--json": out_json}) as tx:
+                write_json_atomic(tx.file("--json"), doc)
             print(f"wrote     {args.json}")
     return 0

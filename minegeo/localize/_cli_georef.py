@@ -40,8 +40,9 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from minegeo._output import OutputTransaction, run_timings
     from minegeo._provenance import StageTimer, input_record, provenance, write_json_atomic
-    from minegeo.errors import InputError
+    from minegeo.errors import TooFewPointsError
     from minegeo.io import read_gcps, read_point_cloud
     from minegeo.localize.georef import (
         GeorefParams,
@@ -65,49 +66,50 @@ def run(args) -> int:
     map_path = Path(args.map)
     out_path = Path(args.out)
     report_dir = Path(args.report)
-    # never overwrite an input: check every file this run writes against the map and the GCP file
-    input_files = {map_path.resolve(): "input map", Path(args.gcps).resolve(): "input GCP file"}
-    written = {out_path: "--out", sidecar_path(out_path): "the sidecar of --out",
-               report_dir / "result.json": "--report", report_dir / "report.html": "--report"}
-    for path, option in written.items():
-        if path.resolve() in input_files:
-            raise InputError(f"{option} {path} is the {input_files[path.resolve()]}: "
-                             "write the georeferenced map and the report to new files")
-    with timer("read"):
-        gcps = read_gcps(args.gcps, default_sigma_m=args.default_sigma_m)
-        cloud = read_point_cloud(map_path, origin="auto")
-    with timer("fit"):
-        result = georeference(gcps, args.crs, params)
-    inputs = {"map": input_record(map_path), "gcps": input_record(args.gcps)}
-    outputs = {}
-    cloud_geo = None
-    if result.ok or args.force:
-        with timer("transform"):
-            cloud_geo = apply_georef(cloud, result, allow_failed=args.force)
-        with timer("write_map"):
-            mp, sp = write_georeferenced_map(
-                out_path, cloud_geo, result, extra={"inputs": inputs, "report": str(report_dir / "report.html")}
-            )
-        outputs = {"map_geo": str(mp), "sidecar": str(sp)}
-    outputs["result_json"] = str(report_dir / "result.json")
-    outputs["report_html"] = str(report_dir / "report.html")
-    prov = provenance(seed=None, origin=result.origin, inputs=list(inputs.values()))
-    summary = {
-        "command": "georef",
-        "status": result.status,
-        "reason": result.reason,
-        "parameters": params.as_dict(),
-        "crs": result.crs,
-        "origin": result.origin,
-        "T_crs_map": result.T_crs_map,
-        "outputs": outputs,
-        "timings_s": timer.as_dict(),
-        "provenance": prov,
-        "result": result.as_dict(),
-    }
-    write_json_atomic(report_dir / "result.json", summary)
-    write_georef_report(report_dir / "report.html", result, inputs=inputs, cloud_geo=cloud_geo, outputs=outputs,
-                        provenance=prov)
+    inputs_in = {"map (--map)": map_path, "GCP file (--gcps)": Path(args.gcps)}
+    outs = {"--out": out_path, "the sidecar of --out": sidecar_path(out_path)}
+    # every input is read and checked and every output path checked before anything is written;
+    # the map, its sidecar and the report folder are staged and moved into place together
+    with OutputTransaction("georef", inputs=inputs_in, files=outs, folders={"--report": report_dir}) as tx:
+        with timer("read"):
+            gcps = read_gcps(args.gcps, default_sigma_m=args.default_sigma_m)
+            cloud = read_point_cloud(map_path, origin="auto")
+        if len(cloud) == 0:
+            raise TooFewPointsError(f"the map {map_path} holds no points: there is nothing to georeference")
+        with timer("fit"):
+            result = georeference(gcps, args.crs, params)
+        inputs = {"map": input_record(map_path), "gcps": input_record(args.gcps)}
+        outputs = {}
+        cloud_geo = None
+        if result.ok or args.force:
+            with timer("transform"):
+                cloud_geo = apply_georef(cloud, result, allow_failed=args.force)
+            with timer("write_map"):
+                write_georeferenced_map(
+                    tx.file("--out"), cloud_geo, result,
+                    extra={"inputs": inputs, "report": str(report_dir / "report.html")},
+                )
+            outputs = {"map_geo": str(out_path), "sidecar": str(sidecar_path(out_path))}
+        outputs["result_json"] = str(report_dir / "result.json")
+        outputs["report_html"] = str(report_dir / "report.html")
+        prov = provenance(seed=None, origin=result.origin, inputs=list(inputs.values()))
+        stage = tx.folder("--report")
+        summary = {
+            "command": "georef",
+            "status": result.status,
+            "reason": result.reason,
+            "parameters": params.as_dict(),
+            "crs": result.crs,
+            "origin": result.origin,
+            "T_crs_map": result.T_crs_map,
+            "outputs": outputs,
+            "timings_s": {**timer.as_dict(), **run_timings(args)},
+            "provenance": prov,
+            "result": result.as_dict(),
+        }
+        write_json_atomic(stage / "result.json", summary)
+        write_georef_report(stage / "report.html", result, inputs=inputs, cloud_geo=cloud_geo, outputs=outputs,
+                            provenance=prov)
 
     t = result.translation_m
     rms = result.rms_m

@@ -163,24 +163,37 @@ def _write_trajectory_csv(path: Path, res) -> None:
 
 
 def run(args) -> int:
+    from minegeo._output import OutputTransaction
+
+    out = Path(args.out)
+    if args.seed < 0:
+        from minegeo.errors import InputError
+
+        raise InputError(f"--seed must be >= 0, got {args.seed}")
+    prep, lp = params_from_args(args)
+    for name in ("map", "scan", "trajectory"):
+        v = getattr(args, name)
+        if v is not None and not Path(v).exists():
+            from minegeo.errors import InputError
+
+            raise InputError(f"--{name} {v} does not exist")
+    inputs = {"--map": args.map, "--scan": args.scan, "--trajectory": args.trajectory}
+    # the result folder is staged and replaces an earlier one only when this run ends without an
+    # error: a user mistake leaves the earlier folder as it was and writes nothing
+    with OutputTransaction("localize", inputs=inputs, folders={"--out": out}) as tx:
+        return _run(args, prep, lp, tx.folder("--out"), out)
+
+
+def _run(args, prep, lp, stage: Path, out: Path) -> int:
+    from minegeo._output import run_timings
     from minegeo._provenance import input_record, versions, write_json_atomic
-    from minegeo.errors import DegenerateGeometryError, InputError, TooFewPointsError
+    from minegeo.errors import TooFewPointsError
     from minegeo.io import read_point_cloud, read_trajectory
     from minegeo.localize.pipeline import localize_scan
     from minegeo.localize.prepared import cache_path, load_or_prepare
     from minegeo.report.localize_report import write_localize_report
 
     t_start = time.perf_counter()
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} exists and is not a directory")
-    if args.seed < 0:
-        raise InputError(f"--seed must be >= 0, got {args.seed}")
-    prep, lp = params_from_args(args)
-    for name in ("map", "scan", "trajectory"):
-        v = getattr(args, name)
-        if v is not None and not Path(v).exists():
-            raise InputError(f"--{name} {v} does not exist")
     inputs = [input_record(args.map), input_record(args.scan)]
     if args.trajectory:
         inputs.append(input_record(args.trajectory))
@@ -189,17 +202,8 @@ def run(args) -> int:
     t0 = time.perf_counter()
     scan = read_point_cloud(args.scan, drop_nonfinite=bool(getattr(args, "drop_nonfinite", False)))
     if len(scan) < lp.min_scan_points:
-        from minegeo._provenance import to_jsonable
-
-        exc = TooFewPointsError(f"the scan {args.scan} has only {len(scan)} points; at least {lp.min_scan_points} "
+        raise TooFewPointsError(f"the scan {args.scan} has only {len(scan)} points; at least {lp.min_scan_points} "
                                 "are needed to localize it")
-        write_json_atomic(out / "result.json", {
-            "status": "failed", "reason": str(exc), "error": type(exc).__name__, "T_map_scan": None,
-            "fitness": 0.0, "inlier_rmse_m": None, "ransac": None, "icp": None, "covariance_6x6": None,
-            "position_sigma_m": None, "timings_s": {"total": time.perf_counter() - t_start},
-            "params": {"localize": to_jsonable(lp), "map": to_jsonable(prep)}, "inputs": inputs,
-            "versions": versions(), "seed": int(args.seed)})
-        raise exc
     traj = read_trajectory(args.trajectory, frame="scan") if args.trajectory else None
     t_read = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -224,18 +228,8 @@ def run(args) -> int:
         "versions": versions(),
         "seed": int(args.seed),
     }
-    try:
-        res = localize_scan(pm, scan, traj, lp, seed=args.seed)
-    except (TooFewPointsError, DegenerateGeometryError) as exc:
-        from minegeo._provenance import to_jsonable
-
-        rec = {"status": "failed", "reason": str(exc), "error": type(exc).__name__, "T_map_scan": None,
-               "fitness": 0.0, "inlier_rmse_m": None, "ransac": None, "icp": None, "covariance_6x6": None,
-               "position_sigma_m": None, "timings_s": {"map": t_map, "read": t_read,
-                                                       "total": time.perf_counter() - t_start},
-               "crs": pm.crs, "params": {"localize": to_jsonable(lp), "map": to_jsonable(pm.params)}, **base}
-        write_json_atomic(out / "result.json", rec)
-        raise
+    # an unusable scan (too few points, flat, degenerate) raises a typed error: exit 2, nothing written
+    res = localize_scan(pm, scan, traj, lp, seed=args.seed)
     d = res.to_dict()
     timings = dict(d["timings_s"])
     timings["localize_total"] = timings.pop("total")
@@ -245,11 +239,12 @@ def run(args) -> int:
     d["timings_s"] = timings
     d.update(base)
     if res.trajectory_map is not None:
-        _write_trajectory_csv(out / "trajectory_global.csv", res)
+        _write_trajectory_csv(stage / "trajectory_global.csv", res)
         d["trajectory_csv"] = "trajectory_global.csv"
-    write_localize_report(out / "report.html", res, pm, scan=scan, inputs=inputs, extra=d)
     d["timings_s"]["total"] = time.perf_counter() - t_start
-    write_json_atomic(out / "result.json", d)
+    d["timings_s"].update(run_timings(args))  # wall_s, compile_s (Numba), work_s of the whole run
+    write_localize_report(stage / "report.html", res, pm, scan=scan, inputs=inputs, extra=d)
+    write_json_atomic(stage / "result.json", d)
     if not getattr(args, "quiet", False):
         T = res.T_crs_scan if res.T_crs_scan is not None else res.T_map_scan
         frame = f"CRS {res.crs}" if res.T_crs_scan is not None else "map frame"

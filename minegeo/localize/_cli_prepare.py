@@ -28,6 +28,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from dataclasses import replace
 
+    from minegeo._output import OutputTransaction, run_timings
     from minegeo._provenance import input_record, sha256_file, versions, write_json_atomic
     from minegeo.errors import InputError
     from minegeo.localize._cli_localize import params_from_args
@@ -36,8 +37,6 @@ def run(args) -> int:
     out = Path(args.out)
     if not out.name.lower().endswith(".npz"):
         raise InputError(f"--out must end in .npz, got {out.name}")
-    if out.exists() and not args.force:
-        raise InputError(f"{out} exists; use --force to overwrite")
     if not Path(args.map).exists():
         raise InputError(f"--map {args.map} does not exist")
     prep, _ = params_from_args(argparse_defaults(args))
@@ -45,27 +44,32 @@ def run(args) -> int:
         prep = replace(prep, voxel_size_m=None, octree_level=int(args.octree_level))
     icp_voxel = None if args.icp_voxel is not None and args.icp_voxel <= 0 else args.icp_voxel
     prep = replace(prep, icp_voxel_size_m=icp_voxel)
-    t0 = time.perf_counter()
-    cloud, g = load_map_cloud(args.map)
-    t_read = time.perf_counter() - t0
-    pm = prepare_map(cloud, prep, georef=g, source={"path": str(args.map), "sha256": sha256_file(args.map),
-                                                    "n_points": len(cloud.points), "georeferenced": g is not None})
-    # the search structures every localization would otherwise build (those of levelled scans'
-    # whole-map search included) are stored in the file too
-    _, lp = params_from_args(argparse_defaults(args))
-    lp = replace(lp, ransac=replace(lp.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0))
-    index_s = pm.build_indexes(lp)
-    pm.save(out)
-    rec = {"status": "ok", "out": str(out), "n_points": len(cloud.points), "n_down": len(pm),
-           "n_icp_points": int(pm.icp_points.shape[0]), "params": prep, "params_hash": pm.params_hash,
-           "crs": pm.crs, "georeferenced": g is not None, "work_origin": pm.work_origin,
-           "timings_s": {"read": t_read, **pm.timings_s, "search_structures": index_s},
-           "inputs": [input_record(args.map)],
-           "versions": versions()}
-    write_json_atomic(out.with_name(out.name + ".json"), rec)
+    record = out.with_name(out.name + ".json")
+    with OutputTransaction("prepare-map", inputs={"--map": args.map},
+                           files={"--out": out, "its record": record}, overwrite_files=bool(args.force)) as tx:
+        t0 = time.perf_counter()
+        cloud, g = load_map_cloud(args.map)
+        t_read = time.perf_counter() - t0
+        pm = prepare_map(cloud, prep, georef=g, source={"path": str(args.map), "sha256": sha256_file(args.map),
+                                                        "n_points": len(cloud.points), "georeferenced": g is not None})
+        # the search structures every localization would otherwise build (those of levelled scans'
+        # whole-map search included) are stored in the file too
+        _, lp = params_from_args(argparse_defaults(args))
+        lp = replace(lp, ransac=replace(lp.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0))
+        index_s = pm.build_indexes(lp)
+        pm.save(tx.file("--out"))
+        rec = {"status": "ok", "out": str(out), "n_points": len(cloud.points), "n_down": len(pm),
+               "n_icp_points": int(pm.icp_points.shape[0]), "params": prep, "params_hash": pm.params_hash,
+               "crs": pm.crs, "georeferenced": g is not None, "work_origin": pm.work_origin,
+               "timings_s": {"read": t_read, **pm.timings_s, "search_structures": index_s, **run_timings(args)},
+               "inputs": [input_record(args.map)],
+               "versions": versions()}
+        write_json_atomic(tx.file("its record"), rec)
     if not getattr(args, "quiet", False):
+        rt = rec["timings_s"]
         print(f"prepared {args.map}: {len(cloud.points)} -> {len(pm)} points ({prep.describe()}), "
-              f"{pm.icp_points.shape[0]} ICP points; {pm.timings_s['total']:.1f} s; wrote {out}")
+              f"{pm.icp_points.shape[0]} ICP points; {rt['wall_s']:.1f} s wall "
+              f"({rt['compile_s']:.1f} s of it compiling kernels); wrote {out}")
     return 0
 
 

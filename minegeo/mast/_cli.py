@@ -30,6 +30,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from minegeo._output import OutputTransaction, run_timings
     from minegeo._provenance import StageTimer, input_record, provenance, write_json_atomic
     from minegeo.errors import InputError
     from minegeo.mast import MastParams, SegmentationParams, locate_scanner, read_beacons_csv, read_scan_csv
@@ -49,25 +50,31 @@ def run(args) -> int:
         min_beacons=args.min_beacons,
         variance=args.variance,
     )
-    with timer("read"):
-        scan = read_scan_csv(args.scan, counter_clockwise=args.ccw)
-        beacons = read_beacons_csv(args.beacons)
-    with timer("locate"):
-        res = locate_scanner(scan, beacons, params)
     out = Path(args.out)
-    inputs = {"scan": input_record(args.scan), "beacons": input_record(args.beacons)}
-    summary = res.summary()
-    summary["parameters"] = asdict(params)
-    summary["timings_s"] = timer.as_dict()
-    summary["provenance"] = provenance(seed=None, origin=res.details.get("origin_m"), inputs=list(inputs.values()))
-    write_json_atomic(out / "result.json", summary)
-    write_mast_report(res, beacons, out, inputs)
+    with OutputTransaction("mast", inputs={"--scan": args.scan, "--beacons": args.beacons},
+                           folders={"--out": out}) as tx:
+        with timer("read"):
+            scan = read_scan_csv(args.scan, counter_clockwise=args.ccw)
+            beacons = read_beacons_csv(args.beacons)
+        with timer("locate"):
+            res = locate_scanner(scan, beacons, params)
+        stage = tx.folder("--out")
+        inputs = {"scan": input_record(args.scan), "beacons": input_record(args.beacons)}
+        summary = res.summary()
+        summary["parameters"] = asdict(params)
+        summary["timings_s"] = {**timer.as_dict(), **run_timings(args)}
+        summary["provenance"] = provenance(seed=None, origin=res.details.get("origin_m"),
+                                           inputs=list(inputs.values()))
+        write_json_atomic(stage / "result.json", summary)
+        written = write_mast_report(res, beacons, stage, inputs)
+    names = ", ".join(str(out / "result.json") if k == "result" else str(out / Path(v).name)
+                      for k, v in {"result": "result.json", **{k: str(v) for k, v in written.items()}}.items())
     if res.ok:
         print(f"x = {res.x_m:.4f} m  y = {res.y_m:.4f} m  azimuth = {res.azimuth_dms}  "
               f"(95% ellipse {1000 * res.ellipse95['a_m']:.1f} x {1000 * res.ellipse95['b_m']:.1f} mm, "
               f"azimuth ±{3600 * res.azimuth_ci95_deg:.0f}\", sigma0 {res.sigma0:.2f})")
-        print(f"written: {out / 'result.json'}, {out / 'report.md'}")
+        print(f"written: {names}")
         return 0
     print(f"minegeo mast: FAILED: {res.reason}")
-    print(f"written: {out / 'result.json'}, {out / 'report.md'}")
+    print(f"written: {names}")
     return 1

@@ -61,29 +61,34 @@ def run(args) -> int:
         raise FileNotFoundError(2, "network file not found", str(path))
     if not 0 < args.confidence < 1:
         raise InputError(f"--confidence must be between 0 and 1, got {args.confidence}")
-    timer = StageTimer()
-    with timer("read"):
-        net = read_network(path)
-    opts = LSQOptions(
-        variance=args.variance,
-        alpha_global=args.alpha,
-        alpha_w=args.alpha_w,
-        alpha_tau=args.alpha_tau,
-        max_iterations=args.max_iterations,
-    )
-    with timer("adjust"):
-        res = adjust_network(net, opts, confidence=args.confidence)
-    params = {
-        "variance": args.variance,
-        "confidence": args.confidence,
-        "alpha_global": args.alpha,
-        "alpha_w": args.alpha_w,
-        "alpha_tau": args.alpha_tau,
-        "max_iterations": args.max_iterations,
-        "timings_s": timer.as_dict(),
-    }
-    prov = provenance(seed=None, origin=res.local_origin, inputs=[path])
-    paths = write_survey_report(res, args.out, params, prov)
+    from minegeo._output import OutputTransaction, run_timings
+
+    out = Path(args.out)
+    with OutputTransaction("adjust", inputs={"NETWORK": path}, folders={"--out": out}) as tx:
+        timer = StageTimer()
+        with timer("read"):
+            net = read_network(path)
+        opts = LSQOptions(
+            variance=args.variance,
+            alpha_global=args.alpha,
+            alpha_w=args.alpha_w,
+            alpha_tau=args.alpha_tau,
+            max_iterations=args.max_iterations,
+        )
+        with timer("adjust"):
+            res = adjust_network(net, opts, confidence=args.confidence)
+        params = {
+            "variance": args.variance,
+            "confidence": args.confidence,
+            "alpha_global": args.alpha,
+            "alpha_w": args.alpha_w,
+            "alpha_tau": args.alpha_tau,
+            "max_iterations": args.max_iterations,
+            "timings_s": {**timer.as_dict(), **run_timings(args)},
+        }
+        prov = provenance(seed=None, origin=res.local_origin, inputs=[path])
+        staged = write_survey_report(res, tx.folder("--out"), params, prov)
+    paths = {k: out / Path(v).name for k, v in staged.items()}
     lsq = res.lsq
     chi = lsq.chi2
     print(f"adjusted {len(res.points)} point(s) from {len(lsq.v)} observation equation(s); dof = {lsq.dof}")
@@ -93,5 +98,5 @@ def run(args) -> int:
     flagged = [o for o in res.observations if o.flag and o.flag != "weak r_i"]
     if flagged:
         print(f"{len(flagged)} observation(s) flagged by data snooping; see {paths['report_txt']}")
-    print(f"wrote {paths['result']}, {paths['report_txt']}, {paths['report_html']}")
+    print("wrote " + ", ".join(str(v) for v in paths.values()))
     return 0

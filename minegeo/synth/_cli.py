@@ -9,6 +9,7 @@ intersections) with the SHA-256 of every other file; ``report.txt`` a short summ
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 HELP = "write a seeded synthetic mine: map, local scans, trajectories, GCPs and truth.json"
 
@@ -18,7 +19,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--preset", choices=("small", "paper"), default="small",
                         help="small: ~0.6 km, seconds (tests); paper: ~7 km, map ~1e7 points (benchmarks)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--force", action="store_true", help="overwrite files in a non-empty OUTDIR")
+    parser.add_argument("--force", action="store_true",
+                        help="replace a non-empty OUTDIR as a whole (everything in it is deleted)")
     parser.add_argument("--gcps", type=int, default=10, help="number of ground control points (default 10)")
     parser.add_argument("--crs", default="EPSG:5186", help="CRS of the control points (default EPSG:5186)")
     parser.add_argument("--mast", action="store_true",
@@ -29,12 +31,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from pathlib import Path
-
-    from tqdm import tqdm
-
     from minegeo.errors import InputError
-    from minegeo.synth.dataset import SCAN_PLANS, write_world
 
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0, got {args.seed}")
@@ -51,20 +48,32 @@ def run(args) -> int:
         from minegeo.synth.dataset import _crs_origin
 
         _crs_origin(args.crs)  # raises CRSError for an unknown or unsuitable CRS
+    from minegeo._output import OutputTransaction
+
+    with OutputTransaction("synth", folders={"OUTDIR": out}, replace="any" if args.force else "result") as tx:
+        return _write(args, tx.folder("OUTDIR"), out)
+
+
+def _write(args, stage, out) -> int:
+    from tqdm import tqdm
+
+    from minegeo._output import progress_enabled
+    from minegeo.synth.dataset import SCAN_PLANS, write_world
+
     if args.mast_only:
-        return _write_mast(out, args.seed)
+        return _write_mast(stage, args.seed, out)
     steps = 4 + len(SCAN_PLANS[args.preset])
     with tqdm(total=steps, desc=f"synth {args.preset}", unit="step", file=sys.stderr,
-              disable=getattr(args, "quiet", False)) as bar:
+              disable=not progress_enabled(args)) as bar:
 
         def progress(name: str) -> None:
             bar.set_postfix_str(name)
             bar.update(1)
 
-        truth = write_world(args.outdir, args.preset, args.seed, force=args.force, n_gcps=args.gcps,
+        truth = write_world(stage, args.preset, args.seed, force=True, n_gcps=args.gcps,
                             crs=args.crs, progress=progress)
     w = truth["world"]
-    print(f"wrote {args.outdir}: preset {args.preset}, seed {args.seed}")
+    print(f"wrote {out}: preset {args.preset}, seed {args.seed}")
     print(f"  world: {w['n_drifts']} drifts, {w['total_length_m']:.0f} m, {w['n_levels']} levels, "
           f"{w['n_loops']} loops, intersections {w['intersections_by_type']}, ramp slope(s) "
           + ", ".join(f"{s:.2f} deg" for s in w["ramp_slopes_deg"]))
@@ -74,14 +83,14 @@ def run(args) -> int:
               f"{s['sensor']['model']}, {s['carrier']})")
     print(f"  gcps.csv: {truth['gcps']['n']} control points in {truth['crs']}; truth.json, report.txt")
     if args.mast:
-        return _write_mast(out / "mast", args.seed)
+        return _write_mast(stage / "mast", args.seed, out / "mast")
     return 0
 
 
-def _write_mast(outdir, seed: int) -> int:
+def _write_mast(outdir, seed: int, final) -> int:
     """Write a MAST beacon scenario (2D scan, beacons, truth) with :func:`minegeo.mast.scenario.write_mast_scenario`."""
     from minegeo.mast.scenario import write_mast_scenario
 
     paths = write_mast_scenario(outdir, seed=seed)
-    print(f"wrote MAST scenario (seed {seed}): " + ", ".join(str(p) for p in paths.values()))
+    print(f"wrote MAST scenario (seed {seed}): " + ", ".join(str(Path(final) / Path(p).name) for p in paths.values()))
     return 0
