@@ -14,6 +14,8 @@ Usage::
 * :func:`page` — full standalone page (inline CSS, no scripts, prints well) from
   ``[(section title, section html), ...]``; section titles become ``<h2>`` with anchors.
 * :func:`badge` — coloured PASSED/FAILED style label (``ok=True/False/None``).
+* :func:`status_banner` — the report's first line, ``STATUS: OK/FAILED/AMBIGUOUS ...`` (``page(status=...)``).
+* :func:`img_png` — an embedded PNG figure (``data:`` URI).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from __future__ import annotations
 import html
 import re
 
-__all__ = ["esc", "table", "kv_table", "page", "badge"]
+__all__ = ["esc", "table", "kv_table", "page", "badge", "status_banner", "img_png"]
 
 _CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:2em auto;max-width:1200px;color:#222;padding:0 1em}
@@ -36,6 +38,7 @@ tr.flag td{background:#fde8e8}
 .ok{background:#2e7d32}.bad{background:#c62828}.na{background:#777}
 .sub{color:#555}
 pre{background:#f7f7f7;padding:.6em;overflow-x:auto}
+.status{font-size:1.6em;font-weight:bold;color:#fff;padding:.4em .6em;border-radius:.3em;margin:0 0 .6em 0}
 @media print{body{margin:0;max-width:none}}
 """
 
@@ -84,13 +87,47 @@ def _anchor(title: str) -> str:
     return re.sub(r"[^a-z0-9]+", "-", title.lower()).strip("-")
 
 
-def page(title: str, sections, subtitle: str = "") -> str:
-    """Standalone HTML page from ``[(section title, html), ...]`` with a table of contents."""
+#: Status words shown in the banner, and whether each is good (green), bad (red) or neither.
+_STATUS_OK = {"OK": True, "PASSED": True, "WARNINGS": None, "AMBIGUOUS": False, "FAILED": False, "ERROR": False}
+
+
+def status_banner(status: str, text: str = "") -> str:
+    """The first line of every report: ``STATUS: OK`` / ``FAILED`` / ``AMBIGUOUS`` ... in a coloured band.
+
+    The element carries ``id="status"`` and ``data-status="<STATUS>"`` so tests (and a browser)
+    find it; a FAILED or AMBIGUOUS result is red and says so in capitals before anything else.
+    """
+    word = str(status).upper()
+    ok = _STATUS_OK.get(word)
+    cls = "na" if ok is None else ("ok" if ok else "bad")
+    extra = f" — {esc(text)}" if text else ""
+    return (f'<div id="status" class="status {cls}" data-status="{esc(word)}" role="status">'
+            f"STATUS: {esc(word)}{extra}</div>")
+
+
+def img_png(png: bytes | None, alt: str, width: str = "100%") -> str:
+    """An embedded PNG (``data:`` URI, no external file); an empty string when ``png`` is None."""
+    import base64
+
+    if not png:
+        return ""
+    b64 = base64.b64encode(png).decode("ascii")
+    return f'<img alt="{esc(alt)}" src="data:image/png;base64,{b64}" style="max-width:{esc(width)}">'
+
+
+def page(title: str, sections, subtitle: str = "", *, status: str | None = None, status_text: str = "") -> str:
+    """Standalone HTML page from ``[(section title, html), ...]`` with a table of contents.
+
+    With ``status`` the page opens with :func:`status_banner` (before the title), so nobody can
+    miss a FAILED or AMBIGUOUS result. The page has no scripts and no external resources.
+    """
     toc = "".join(f'<li><a href="#{_anchor(t)}">{esc(t)}</a></li>' for t, _ in sections)
     body = "\n".join(f'<h2 id="{_anchor(t)}">{esc(t)}</h2>\n{h}' for t, h in sections)
     sub = f'<p class="sub">{esc(subtitle)}</p>' if subtitle else ""
+    banner = status_banner(status, status_text) if status is not None else ""
     return (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
-        f"<title>{esc(title)}</title><style>{_CSS}</style></head><body>\n"
-        f"<h1>{esc(title)}</h1>{sub}<ol>{toc}</ol>\n{body}\n</body></html>\n"
+        f"<title>{esc((str(status).upper() + ': ') if status is not None else '')}{esc(title)}</title>"
+        f"<style>{_CSS}</style></head><body>\n"
+        f"{banner}<h1>{esc(title)}</h1>{sub}<ol>{toc}</ol>\n{body}\n</body></html>\n"
     )
