@@ -8,6 +8,7 @@ map is written), 2 for input errors.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 HELP = "georeference a map into a projected CRS from ground control points (Helmert 7/6-parameter LSQ)"
@@ -70,20 +71,34 @@ def run(args) -> int:
     outs = {"--out": out_path, "the sidecar of --out": sidecar_path(out_path)}
     # every input is read and checked and every output path checked before anything is written;
     # the map, its sidecar and the report folder are staged and moved into place together
-    with OutputTransaction("georef", inputs=inputs_in, files=outs, folders={"--report": report_dir}) as tx:
+    from tqdm import tqdm
+
+    from minegeo._output import progress_enabled
+
+    bar = tqdm(total=5, desc="georef", unit="step", file=sys.stderr, disable=not progress_enabled(args))
+
+    def step(name: str) -> None:
+        bar.set_postfix_str(name)
+        bar.update(1)
+
+    with bar, OutputTransaction("georef", inputs=inputs_in, files=outs, folders={"--report": report_dir}) as tx:
+        bar.set_postfix_str("read")
         with timer("read"):
             gcps = read_gcps(args.gcps, default_sigma_m=args.default_sigma_m)
             cloud = read_point_cloud(map_path, origin="auto")
         if len(cloud) == 0:
             raise TooFewPointsError(f"the map {map_path} holds no points: there is nothing to georeference")
+        step("fit")
         with timer("fit"):
             result = georeference(gcps, args.crs, params)
         inputs = {"map": input_record(map_path), "gcps": input_record(args.gcps)}
         outputs = {}
         cloud_geo = None
         if result.ok or args.force:
+            step("transform")
             with timer("transform"):
                 cloud_geo = apply_georef(cloud, result, allow_failed=args.force)
+            step("write map")
             with timer("write_map"):
                 write_georeferenced_map(
                     tx.file("--out"), cloud_geo, result,
@@ -92,6 +107,7 @@ def run(args) -> int:
             outputs = {"map_geo": str(out_path), "sidecar": str(sidecar_path(out_path))}
         outputs["result_json"] = str(report_dir / "result.json")
         outputs["report_html"] = str(report_dir / "report.html")
+        step("report")
         prov = provenance(seed=None, origin=result.origin, inputs=list(inputs.values()))
         stage = tx.folder("--report")
         summary = {
