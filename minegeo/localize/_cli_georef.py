@@ -126,6 +126,8 @@ def run(args) -> int:
         write_json_atomic(stage / "result.json", summary)
         write_georef_report(stage / "report.html", result, inputs=inputs, cloud_geo=cloud_geo, outputs=outputs,
                             provenance=prov)
+        bar.n = bar.total - 1  # steps skipped for a failed fit count as done
+        step("done")
 
     t = result.translation_m
     rms = result.rms_m
