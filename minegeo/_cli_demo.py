@@ -10,7 +10,9 @@ real contracts and writes the real reports):
    (``--profile fast``: 1 m voxels, 3-point RANSAC, point-to-plane ICP; the paper's Table 3
    profile is the CLI default, see docs/localization.md).
 
-A summary table compares every answer with the synthetic ground truth.
+A summary table compares every answer with the synthetic ground truth; it is printed and
+written to ``OUT/report.html`` (:mod:`minegeo.report.demo_report`) with a relative link to each
+step's own ``report.html``.
 """
 
 from __future__ import annotations
@@ -70,9 +72,16 @@ def run(args) -> int:
         return _run(args, out)
 
 
+def _row(step: str, t0: float | None, status: str, result: str, report: Path | None, out: Path) -> dict:
+    """One summary row; ``report`` is linked relative to ``out`` when the step wrote it."""
+    rel = report.relative_to(out).as_posix() if report is not None and report.is_file() else None
+    return {"step": step, "time_s": None if t0 is None else time.perf_counter() - t0, "status": status,
+            "result": result, "report": rel}
+
+
 def _run(args, out: Path) -> int:
     t_start = time.perf_counter()
-    rows: list[tuple[str, str, str]] = []
+    rows: list[dict] = []
     mine = out / "mine"
 
     # 1. synthetic mine
@@ -83,7 +92,7 @@ def _run(args, out: Path) -> int:
     if _run_verb(argv) != 0:
         return 1
     truth = _json(mine / "truth.json")
-    rows.append(("synth", f"{time.perf_counter() - t0:.1f} s", f"small mine written to {mine}"))
+    rows.append(_row("synth", t0, "ok", f"small mine written to {mine}", mine / "report.html", out))
 
     # 2. georeference the map
     t0 = time.perf_counter()
@@ -95,11 +104,11 @@ def _run(args, out: Path) -> int:
         g = _json(geo_dir / "result.json")
         T_est = g.get("T_crs_map") or g.get("result", {}).get("T_crs_map")
         dt, dr = _err_m(T_est, truth["T_crs_map"]) if T_est is not None else (float("nan"),) * 2
-        rows.append(("georef", f"{time.perf_counter() - t0:.1f} s",
-                     f"status {g.get('status')}, sigma0 {g.get('result', {}).get('sigma0', float('nan')):.3f}, "
-                     f"vs truth {dt * 1000:.1f} mm / {dr * 3600:.1f}\""))
+        rows.append(_row("georef", t0, str(g.get("status")),
+                         f"status {g.get('status')}, sigma0 {g.get('result', {}).get('sigma0', float('nan')):.3f}, "
+                         f"vs truth {dt * 1000:.1f} mm / {dr * 3600:.1f}\"", geo_dir / "report.html", out))
     else:
-        rows.append(("georef", "-", f"failed (exit {rc})"))
+        rows.append(_row("georef", None, "failed", f"failed (exit {rc})", geo_dir / "report.html", out))
 
     # 3. MAST beacon positioning
     t0 = time.perf_counter()
@@ -114,11 +123,13 @@ def _run(args, out: Path) -> int:
     if m.get("status") == "ok":
         dpos = float(np.hypot(m["x"] - mt["x_m"], m["y"] - mt["y_m"]))
         daz = (m["azimuth_deg"] - mt["azimuth_deg"] + 180.0) % 360.0 - 180.0
-        rows.append(("mast", f"{time.perf_counter() - t0:.1f} s",
-                     f"x {m['x']:.4f} y {m['y']:.4f} az {m['azimuth_dms']}; vs truth "
-                     f"{dpos * 1000:.2f} mm / {abs(daz) * 3600:.1f}\"; 95% ellipse a={m['ellipse95']['a_m'] * 1000:.2f} mm"))
+        rows.append(_row("mast", t0, "ok",
+                         f"x {m['x']:.4f} y {m['y']:.4f} az {m['azimuth_dms']}; vs truth "
+                         f"{dpos * 1000:.2f} mm / {abs(daz) * 3600:.1f}\"; 95% ellipse "
+                         f"a={m['ellipse95']['a_m'] * 1000:.2f} mm", out / "mast" / "report.html", out))
     else:
-        rows.append(("mast", "-", f"status {m.get('status')}: {m.get('reason')} (exit {rc})"))
+        rows.append(_row("mast", None, str(m.get("status") or "failed"),
+                         f"status {m.get('status')}: {m.get('reason')} (exit {rc})", out / "mast" / "report.html", out))
 
     # 4. localize the local scans
     from minegeo.cli import VERBS
@@ -143,7 +154,7 @@ def _run(args, out: Path) -> int:
                 rc = _run_verb(argv)
                 res = dest / "result.json"
                 if not res.exists():
-                    rows.append((f"localize {name}", "-", f"failed (exit {rc})"))
+                    rows.append(_row(f"localize {name}", None, "failed", f"failed (exit {rc})", None, out))
                     continue
                 r = _json(res)
                 txt = f"status {r['status']}"
@@ -152,13 +163,20 @@ def _run(args, out: Path) -> int:
                     txt += f", inlier RMSE {r['inlier_rmse_m']:.3f} m, vs truth {dt:.3f} m / {dr:.2f} deg"
                 if r["status"] != "ok":
                     txt += f" ({r.get('reason')})"
-                rows.append((f"localize {name}", f"{time.perf_counter() - t0:.1f} s", txt))
+                rows.append(_row(f"localize {name}", t0, str(r["status"]), txt, dest / "report.html", out))
+
+    from minegeo.report.demo_report import write_demo_report
 
     total = time.perf_counter() - t_start
-    w = max(len(r[0]) for r in rows)
+    report = write_demo_report(out / "report.html", rows, args.seed, total,
+                               {"preset": "small", "crs": "EPSG:5186", "localize profile": "fast",
+                                "localized scans": "first 3"})
+    w = max(len(r["step"]) for r in rows)
     print(f"\nminegeo demo (seed {args.seed}) - outputs in {out}/")
     print(f"{'step':<{w}}  {'time':>7}  result")
-    for step, t, txt in rows:
-        print(f"{step:<{w}}  {t:>7}  {txt}")
+    for r in rows:
+        t = "-" if r["time_s"] is None else f"{r['time_s']:.1f} s"
+        print(f"{r['step']:<{w}}  {t:>7}  {r['result']}")
     print(f"{'total':<{w}}  {total:6.1f}s  (includes one-time Numba compilation on a fresh install)")
+    print(f"report: {report}")
     return 0

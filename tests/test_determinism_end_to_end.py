@@ -80,12 +80,18 @@ def mine(tmp_path_factory):
 @pytest.mark.slow
 def test_synth_twice_byte_identical(mine, tmp_path):
     """A second ``synth`` with the same seed reproduces the module's mine byte for byte."""
+    from minegeo.report.synth_report import plot_synth_png, synth_report_html
+
     assert main(["-q", "synth", str(tmp_path / "again"), "--seed", "11"]) == 0
     a, b = tree_bytes(mine), tree_bytes(tmp_path / "again")
+    report = b.pop("report.html")  # the CLI adds its report to what ``write_world`` writes
     assert sorted(a) == sorted(b)
     different = [name for name in a if a[name] != b[name]]
     assert not different
     assert "map.ply" in a and "truth.json" in a and "gcps.csv" in a
+    # the report depends only on the folder's files: rebuilt from the module's mine, byte for byte
+    truth = json.loads(a["truth.json"])
+    assert synth_report_html(mine, truth, plot_synth_png(mine, truth)).encode("utf-8") == report
 
 
 def test_georef_twice_identical(mine, tmp_path, monkeypatch):

@@ -11,7 +11,7 @@ HELP = "position and azimuth of a 2D scanner from two wall beacons (MAST, Simela
 def add_arguments(parser) -> None:
     parser.add_argument("--scan", required=True, help="2D scan CSV with header bearing_deg,range_m (bearing clockwise)")
     parser.add_argument("--beacons", required=True, help="beacons CSV with header beacon_id,vertex,x_m,y_m")
-    parser.add_argument("--out", required=True, help="output directory (result.json, report.md, mast_plot.png)")
+    parser.add_argument("--out", required=True, help="output directory (result.json, report.html)")
     parser.add_argument("--sigma-range-m", type=float, default=None,
                         help="range noise of the scanner (m); default: '# sigma_range_m' line of the scan file")
     parser.add_argument("--sigma-bearing-deg", type=float, default=None,
@@ -66,9 +66,10 @@ def run(args) -> int:
         summary["provenance"] = provenance(seed=None, origin=res.details.get("origin_m"),
                                            inputs=list(inputs.values()))
         write_json_atomic(stage / "result.json", summary)
-        written = write_mast_report(res, beacons, stage, inputs)
-    names = ", ".join(str(out / "result.json") if k == "result" else str(out / Path(v).name)
-                      for k, v in {"result": "result.json", **{k: str(v) for k, v in written.items()}}.items())
+        write_mast_report(res, beacons, stage, inputs)
+        # exactly the files in the result folder, named at their final (committed) paths
+        names = ", ".join(str(out / n) for n in sorted((f.name for f in stage.iterdir()),
+                                                        key=lambda n: (n != "result.json", n)))
     if res.ok:
         print(f"x = {res.x_m:.4f} m  y = {res.y_m:.4f} m  azimuth = {res.azimuth_dms}  "
               f"(95% ellipse {1000 * res.ellipse95['a_m']:.1f} x {1000 * res.ellipse95['b_m']:.1f} mm, "

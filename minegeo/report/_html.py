@@ -16,6 +16,10 @@ Usage::
 * :func:`badge` — coloured PASSED/FAILED style label (``ok=True/False/None``).
 * :func:`status_banner` — the report's first line, ``STATUS: OK/FAILED/AMBIGUOUS ...`` (``page(status=...)``).
 * :func:`img_png` — an embedded PNG figure (``data:`` URI).
+* :func:`params_table` — "Parameters used" table from a (nested) mapping or dataclass.
+* :func:`status_word` — a result's ``status`` (``ok``, ``warning``, ``failed`` ...) as a banner word.
+* :data:`CSS` — the shared style sheet (for report modules that build their own page).
+* :data:`NO_PLOT` — the sentence a report shows instead of a figure when matplotlib is missing.
 """
 
 from __future__ import annotations
@@ -23,7 +27,8 @@ from __future__ import annotations
 import html
 import re
 
-__all__ = ["esc", "table", "kv_table", "page", "badge", "status_banner", "img_png"]
+__all__ = ["esc", "table", "kv_table", "page", "badge", "status_banner", "img_png", "params_table",
+           "status_word", "CSS", "NO_PLOT"]
 
 _CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:2em auto;max-width:1200px;color:#222;padding:0 1em}
@@ -39,8 +44,18 @@ tr.flag td{background:#fde8e8}
 .sub{color:#555}
 pre{background:#f7f7f7;padding:.6em;overflow-x:auto}
 .status{font-size:1.6em;font-weight:bold;color:#fff;padding:.4em .6em;border-radius:.3em;margin:0 0 .6em 0}
+.status.na{background:#b26a00}
+figure{margin:.5em 0 1em 0}figcaption{color:#555;font-size:.9em}
+.small{color:#555;font-size:.9em}tr.warn td{background:#fff4d6}
 @media print{body{margin:0;max-width:none}}
 """
+
+
+#: The shared style sheet (inline in every report).
+CSS = _CSS
+
+#: What a report says in place of a figure when matplotlib (the ``report`` extra) is missing.
+NO_PLOT = "(no plot: matplotlib is not installed; pip install 'minegeo[report]')"
 
 
 def esc(value) -> str:
@@ -84,7 +99,8 @@ def kv_table(items) -> str:
 
 
 def _anchor(title: str) -> str:
-    return re.sub(r"[^a-z0-9]+", "-", title.lower()).strip("-")
+    a = re.sub(r"[^a-z0-9]+", "-", title.lower()).strip("-")
+    return "status-section" if a == "status" else a  # id "status" is the banner's
 
 
 #: Status words shown in the banner, and whether each is good (green), bad (red) or neither.
@@ -113,6 +129,60 @@ def img_png(png: bytes | None, alt: str, width: str = "100%") -> str:
         return ""
     b64 = base64.b64encode(png).decode("ascii")
     return f'<img alt="{esc(alt)}" src="data:image/png;base64,{b64}" style="max-width:{esc(width)}">'
+
+
+_STATUS_WORDS = {"ok": "OK", "passed": "PASSED", "warning": "WARNINGS", "warnings": "WARNINGS",
+                 "ambiguous": "AMBIGUOUS", "failed": "FAILED", "error": "ERROR"}
+
+
+def status_word(status) -> str:
+    """Banner word of a result status: ``ok`` -> ``OK``, ``warning`` -> ``WARNINGS``, ``failed`` -> ``FAILED``.
+
+    Unknown values are upper-cased unchanged.
+    """
+    s = str(status).strip()
+    return _STATUS_WORDS.get(s.lower(), s.upper())
+
+
+def _flat(prefix: str, value, out: list) -> None:
+    import dataclasses
+
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        value = dataclasses.asdict(value)
+    if isinstance(value, dict):
+        if not value:
+            out.append((prefix, "{}"))
+        for k, v in value.items():
+            _flat(f"{prefix}.{k}" if prefix else str(k), v, out)
+        return
+    if isinstance(value, (list, tuple)):
+        value = ", ".join(str(v) for v in value) if value else "(none)"
+    elif value is None:
+        value = "None (not given)"
+    out.append((prefix, value))
+
+
+def params_table(params, skip=()) -> str:
+    """Key/value table of the parameters a run used (nested keys flattened as ``a.b``).
+
+    Parameters
+    ----------
+    params : mapping or dataclass
+        The parameters actually used (not the defaults).
+    skip : iterable of str
+        Top-level keys left out (e.g. ``"timings_s"``).
+    """
+    import dataclasses
+
+    if dataclasses.is_dataclass(params) and not isinstance(params, type):
+        params = dataclasses.asdict(params)
+    rows: list = []
+    for k, v in dict(params or {}).items():
+        if k not in set(skip):
+            _flat(str(k), v, rows)
+    if not rows:
+        return "<p>(none recorded)</p>"
+    return kv_table(rows)
 
 
 def page(title: str, sections, subtitle: str = "", *, status: str | None = None, status_text: str = "") -> str:

@@ -1,17 +1,18 @@
 """Self-contained HTML report of a map georeferencing (:func:`minegeo.localize.georeference`).
 
-``report.html`` holds everything a surveyor checks, in one file that can be mailed or archived:
-status and reason, inputs with SHA-256, the CRS (name, EPSG code, units, official axis order,
+``report.html`` holds everything a surveyor checks, in one file that can be mailed or archived.
+It opens with the status banner (``OK``, ``WARNINGS`` or ``FAILED`` from ``result.status``, with
+the reason), then: inputs with SHA-256, the CRS (name, EPSG code, units, official axis order,
 recorded local origin), the model equation and rotation convention, the parameters with
 standard deviations (rotations in radians, arc-seconds and DMS; scale in ppm), ``T_crs_map``,
 σ0 with its χ² test (PASSED/FAILED), the per-GCP residual table with w-test flags, the grid
-scale factors, every warning, and — when matplotlib is installed — a plan view of the GCPs
-with their residual vectors embedded as a base64 PNG (no external files, no scripts).
+scale factors, every warning, the parameters the run used, and — when matplotlib is installed
+(``pip install 'minegeo[report]'``) — a plan view of the GCPs with their residual vectors
+embedded as a base64 PNG (no external files, no scripts).
 """
 
 from __future__ import annotations
 
-import base64
 import html
 import io
 import math
@@ -19,18 +20,21 @@ import math
 import numpy as np
 
 from minegeo._provenance import atomic_write_text
+from minegeo.report._html import CSS, NO_PLOT, img_png, params_table, status_banner, status_word
 
 __all__ = ["georef_report_html", "plot_georef_png", "write_georef_report"]
 
-_CSS = """
-body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:2em;max-width:70em;color:#222}
-h1{font-size:1.5em}h2{font-size:1.15em;margin-top:1.6em;border-bottom:1px solid #ccc}
-table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;padding:.25em .6em;text-align:right}
-th{background:#f0f0f0}td.l,th.l{text-align:left}tr.flag td{background:#fde2e2}tr.warn td{background:#fff4d6}
-.status{padding:.6em 1em;border-radius:4px;font-weight:bold}.ok{background:#dff3df}.warning{background:#fff4d6}
-.failed{background:#fde2e2}code,pre{font-family:ui-monospace,Consolas,monospace;font-size:.92em}
-pre{background:#f7f7f7;padding:.6em;overflow-x:auto}.small{color:#555;font-size:.9em}
+# the shared report style, then this report's tables: numbers right-aligned, class 'l' left
+_CSS = CSS + """
+td,th{text-align:right}td.l,th.l{text-align:left}tr.flag td{background:#fde2e2}tr.warn td{background:#fff4d6}
+code,pre{font-family:ui-monospace,Consolas,monospace;font-size:.92em}
 """
+
+
+def _asdict(params) -> dict:
+    import dataclasses
+
+    return dataclasses.asdict(params) if dataclasses.is_dataclass(params) else dict(params)
 
 
 def _e(x) -> str:
@@ -112,12 +116,18 @@ def georef_report_html(
     r = result
     d = r.as_dict()
     ci = d["crs_info"]
+    word = status_word(r.status)
+    if r.reason:
+        text = r.reason
+    else:
+        text = (f"σ0 = {_n(r.sigma0, '.3f')}, χ² test {r.chi2.get('verdict', 'n/a')}, RMS horizontal "
+                f"{_n(r.rms_m.get('horizontal', float('nan')) * 1000, '.1f')} mm over {r.n_gcps} GCPs")
     out: list[str] = [
         "<!DOCTYPE html>",
-        "<html lang='en'><head><meta charset='utf-8'><title>minegeo georeferencing report</title>",
+        f"<html lang='en'><head><meta charset='utf-8'><title>{_e(word)}: minegeo georeferencing report</title>",
         f"<style>{_CSS}</style></head><body>",
+        status_banner(word, text),
         "<h1>Georeferencing of the map into " + _e(ci.get("name") or r.crs) + "</h1>",
-        f"<p class='status {r.status}'>Status: {r.status.upper()}" + (f" — {_e(r.reason)}" if r.reason else "") + "</p>",
     ]
     if r.warnings:
         out.append("<ul>" + "".join(f"<li>{_e(w)}</li>" for w in r.warnings) + "</ul>")
@@ -253,13 +263,11 @@ def georef_report_html(
     )
     out.append("<h2>Plan view</h2>")
     if png:
-        out.append(
-            "<img alt='GCP residual vectors' src='data:image/png;base64,"
-            + base64.b64encode(png).decode("ascii")
-            + "'>"
-        )
+        out.append(img_png(png, "GCP residual vectors"))
     else:
-        out.append("<p>(matplotlib is not installed: no plot)</p>")
+        out.append(f"<p>{_e(NO_PLOT)}</p>")
+    out.append("<h2>Parameters used</h2>")
+    out.append(params_table({"crs": r.crs, **({} if r.params is None else _asdict(r.params))}))
     if provenance:
         vers = provenance.get("versions", {})
         out.append(

@@ -1,9 +1,12 @@
-"""Human-readable report of a MAST scanner positioning (:func:`minegeo.mast.locate_scanner`).
+"""Self-contained HTML report of a MAST scanner positioning (:func:`minegeo.mast.locate_scanner`).
 
-Writes ``report.md`` (the numbers a surveyor checks: pose, covariance, 95 % ellipse,
-azimuth interval, sigma0 and its chi-square test, beacons and panels identified, the
-noise model) and, when matplotlib is installed, ``mast_plot.png`` with the scan in the
-mine frame, the identified panel returns, the beacons and the 95 % error ellipse.
+``report.html`` — one file to mail or archive (inline CSS, the plot embedded as a ``data:`` PNG,
+no scripts, no external resources). It opens with the status banner (``OK``, or ``FAILED``
+with the reason), then the numbers a surveyor checks: pose with standard deviations, 95 %
+error ellipse and azimuth interval, covariance, σ0 and its χ² test, beacons and panels
+identified, the beacon-id hypotheses, the overview plot (:func:`plot_mast`: scan in the mine
+frame, returns used, beacons and the 95 % ellipse; needs matplotlib,
+``pip install 'minegeo[report]'``), the noise model and the parameters the run used.
 """
 
 from __future__ import annotations
@@ -14,101 +17,139 @@ from pathlib import Path
 
 import numpy as np
 
-from minegeo._provenance import atomic_write_bytes, atomic_write_text
+from minegeo._provenance import atomic_write_text
+from minegeo.report._html import (
+    NO_PLOT,
+    badge,
+    esc,
+    img_png,
+    kv_table,
+    page,
+    params_table,
+    status_word,
+    table,
+)
 
-__all__ = ["write_mast_report", "mast_report_text", "plot_mast"]
+__all__ = ["write_mast_report", "mast_report_html", "plot_mast"]
 
 
 def _f(v, fmt: str) -> str:
-    return "n/a" if v is None else format(v, fmt)
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return "n/a"
+    return "n/a" if not math.isfinite(f) else format(f, fmt)
 
 
-def mast_report_text(result, inputs: dict | None = None, plot_name: str | None = None) -> str:
-    """Markdown text of the report (see module docstring)."""
+def mast_report_html(result, beacons=(), inputs: dict | None = None, png: bytes | None = None) -> str:
+    """HTML text of the report (see the module docstring).
+
+    Parameters
+    ----------
+    result : MastResult
+    beacons : sequence of Beacon
+        The surveyed beacons (listed in the report).
+    inputs : dict, optional
+        ``{role: input record}`` (``path``, ``sha256``, ``size_bytes``).
+    png : bytes, optional
+        The overview plot (:func:`plot_mast`); without it the report says why there is none.
+    """
     d = result.details
-    lines = ["# MAST scanner positioning report", ""]
-    lines.append(f"**Status: {result.status.upper()}**" + (f" — {result.reason}" if result.reason else ""))
-    lines.append("")
+    status = status_word(result.status)
+    if result.ok:
+        e = result.ellipse95
+        text = (f"x = {result.x_m:.4f} m, y = {result.y_m:.4f} m, azimuth {result.azimuth_dms}; 95 % ellipse "
+                f"{1000 * e['a_m']:.1f} × {1000 * e['b_m']:.1f} mm, σ0 = {_f(result.sigma0, '.2f')}")
+    else:
+        text = result.reason or "no pose"
+    secs = []
     if inputs:
-        lines += ["## Inputs", ""]
-        for k, rec in inputs.items():
-            lines.append(f"- {k}: `{rec['path']}` (sha256 `{rec['sha256'][:16]}…`, {rec['size_bytes']} bytes)")
-        lines.append("")
-    nm = d.get("noise_model", {})
-    lines += [
-        "## Noise model used for the weights",
-        "",
-        f"- range σ_r = {_f(nm.get('sigma_range_m'), '.4f')} m, bearing σ_β = "
-        f"{_f(nm.get('sigma_bearing_deg'), '.5f')}°, panel σ = {_f(nm.get('sigma_panel_m'), '.4f')} m, "
-        f"beacon vertex σ = {_f(nm.get('sigma_beacon_m'), '.4f')} m",
-        f"- returns in the scan: {d.get('n_returns')}, straight lines found: {d.get('n_lines')}",
-        "",
-    ]
+        secs.append(("Inputs", table(["role", "file", "SHA-256", "bytes"],
+                                     [[k, rec.get("path"), rec.get("sha256"), rec.get("size_bytes")]
+                                      for k, rec in inputs.items()], numeric=[3])))
     if result.ok:
         cov = np.asarray(result.covariance)
         e = result.ellipse95
         chi = d.get("chi2_global_test", {})
-        lines += [
-            "## Result (mine frame)",
-            "",
-            "| quantity | value | std. dev. |",
-            "|---|---|---|",
-            f"| Easting x | {result.x_m:.4f} m | {1000 * math.sqrt(cov[0, 0]):.2f} mm |",
-            f"| Northing y | {result.y_m:.4f} m | {1000 * math.sqrt(cov[1, 1]):.2f} mm |",
-            f"| Azimuth of scanner forward axis | {result.azimuth_deg:.6f}° = {result.azimuth_dms} | "
-            f"{3600 * math.sqrt(cov[2, 2]):.1f}″ |",
-            "",
-            f"95 % error ellipse: a = {1000 * e['a_m']:.2f} mm, b = {1000 * e['b_m']:.2f} mm, major axis azimuth "
-            f"{e['orientation_deg']:.1f}° ({d.get('ellipse95_basis')}).",
-            f"95 % azimuth interval: ± {3600 * result.azimuth_ci95_deg:.1f}″.",
-            "",
-            "Covariance (x [m], y [m], azimuth [deg]) = σ0²·(BᵀWB)⁻¹ "
-            f"({d.get('variance_used')} σ0):",
-            "",
-            "```",
-            *(" ".join(f"{v: .6e}" for v in row) for row in cov),
-            "```",
-            "",
-            f"σ0 = {result.sigma0:.3f} (dof {d.get('dof')}, {d.get('n_observations')} returns on beacon panels); "
-            f"χ² global test {chi.get('statistic', float('nan')):.1f} in [{chi.get('lower', float('nan')):.1f}, "
-            f"{chi.get('upper', float('nan')):.1f}]: {'PASSED' if chi.get('passed') else 'FAILED'}.",
-            "",
-            "## How it was found",
-            "",
-            f"- Segmentation option (paper Table 1) of the panel identification used: {result.segmentation_option} "
-            f"(per beacon: {d.get('per_beacon_option')})",
-            f"- Returns per beacon in the adjustment: {d.get('returns_per_beacon')}",
-            f"- ICP iterations: {result.icp_iterations}, ICP RMS {1000 * d.get('icp', {}).get('rms_m', float('nan')):.2f} mm, "
-            f"β_cum (scan→mine rotation, clockwise) = {d.get('beta_cum_deg', float('nan')):.4f}°",
-            f"- Local origin subtracted for the computation: {list(np.asarray(d.get('origin_m')).tolist())}",
-            "",
-        ]
+        passed = chi.get("passed")
+        secs.append(("Result (mine frame)", table(
+            ["quantity", "value", "std. dev."],
+            [["Easting x", f"{result.x_m:.4f} m", f"{1000 * math.sqrt(cov[0, 0]):.2f} mm"],
+             ["Northing y", f"{result.y_m:.4f} m", f"{1000 * math.sqrt(cov[1, 1]):.2f} mm"],
+             ["Azimuth of the scanner forward axis", f"{result.azimuth_deg:.6f}° = {result.azimuth_dms}",
+              f"{3600 * math.sqrt(cov[2, 2]):.1f}″"]], numeric=[1, 2])))
+        secs.append(("Uncertainty (95 %)", kv_table([
+            ("95 % error ellipse", f"a = {1000 * e['a_m']:.2f} mm, b = {1000 * e['b_m']:.2f} mm, major axis "
+                                   f"azimuth {e['orientation_deg']:.1f}° ({d.get('ellipse95_basis')})"),
+            ("95 % azimuth interval", f"± {3600 * result.azimuth_ci95_deg:.1f}″"),
+            ("covariance", f"σ0²·(BᵀWB)⁻¹ with the {d.get('variance_used')} σ0; units x [m], y [m], azimuth [deg]"),
+        ]) + "<pre>" + esc("\n".join(" ".join(f"{v: .6e}" for v in row) for row in cov)) + "</pre>"))
+        secs.append(("Statistics", f"<p>χ² global test: {badge('PASSED' if passed else 'FAILED', bool(passed))}</p>"
+                     + kv_table([
+                         ("σ0 (a posteriori)", _f(result.sigma0, ".3f")),
+                         ("degrees of freedom", d.get("dof")),
+                         ("returns on beacon panels", d.get("n_observations")),
+                         ("χ² statistic", f"{_f(chi.get('statistic'), '.1f')} in [{_f(chi.get('lower'), '.1f')}, "
+                                          f"{_f(chi.get('upper'), '.1f')}]"),
+                     ])))
+    secs.append(("Plot", f"<figure>{img_png(png, 'scan, identified panels and 95 % ellipse')}<figcaption>Top "
+                         "left: scan in the mine frame, returns used (red), beacons (blue), scanner and its "
+                         "forward axis; top right: 95 % error ellipse (mm); bottom: each beacon's panels "
+                         "with the returns used.</figcaption></figure>" if png else f"<p>{esc(NO_PLOT)}</p>"))
+    if result.ok:
+        secs.append(("How it was found", kv_table([
+            ("segmentation option (paper Table 1)", f"{result.segmentation_option} (per beacon: "
+                                                    f"{d.get('per_beacon_option')})"),
+            ("returns per beacon in the adjustment", d.get("returns_per_beacon")),
+            ("ICP", f"{result.icp_iterations} iterations, RMS "
+                    f"{_f(1000 * d.get('icp', {}).get('rms_m', float('nan')), '.2f')} mm"),
+            ("β_cum (scan → mine rotation, clockwise)", f"{_f(d.get('beta_cum_deg'), '.4f')}°"),
+            ("local origin subtracted for the computation", str(np.asarray(d.get("origin_m")).tolist())),
+        ])))
     hyps = d.get("hypotheses") or []
     if hyps:
-        lines += ["## Beacon-id hypotheses aligned", "", "| assignment (cluster → beacon) | Helmert scale | returns explained | rejected |",
-                  "|---|---|---|---|"]
-        for h in hyps:
-            lines.append(f"| {h.get('assignment')} | {_f(h.get('helmert_scale'), '.4f')} | {h.get('n_explained', '')} | "
-                         f"{h.get('rejected', '')} |")
-        lines.append("")
-    if plot_name:
-        lines += [f"![scan, identified panels and 95 % ellipse]({plot_name})", ""]
-    lines += ["Method: Simela, Marshall & Daneshmend (MAST); see docs/mast.md for the equations and the deviations.", ""]
-    return "\n".join(lines)
+        secs.append(("Beacon-id hypotheses aligned", table(
+            ["assignment (cluster → beacon)", "Helmert scale", "returns explained", "rejected"],
+            [[h.get("assignment"), _f(h.get("helmert_scale"), ".4f"), h.get("n_explained", ""), h.get("rejected", "")]
+             for h in hyps], numeric=[1, 2])))
+    if beacons:
+        rows = []
+        for b in beacons:
+            for i, v in enumerate(np.asarray(b.vertices_m)):
+                rows.append([b.beacon_id, i, f"{v[0]:.4f}", f"{v[1]:.4f}"])
+        secs.append(("Beacons (surveyed)", table(["beacon", "vertex", "x [m]", "y [m]"], rows, numeric=[1, 2, 3])))
+    nm = d.get("noise_model", {})
+    secs.append(("Noise model used for the weights", kv_table([
+        ("range σ_r", f"{_f(nm.get('sigma_range_m'), '.4f')} m"),
+        ("bearing σ_β", f"{_f(nm.get('sigma_bearing_deg'), '.5f')}°"),
+        ("panel σ", f"{_f(nm.get('sigma_panel_m'), '.4f')} m"),
+        ("beacon vertex σ", f"{_f(nm.get('sigma_beacon_m'), '.4f')} m"),
+        ("returns in the scan / straight lines found", f"{d.get('n_returns')} / {d.get('n_lines')}"),
+    ])))
+    secs.append(("Parameters used", params_table(result.params) if result.params is not None
+                 else "<p>(not recorded)</p>"))
+    secs.append(("Method", "<p>Simela, Marshall &amp; Daneshmend (MAST); see docs/mast.md for the equations and "
+                           "the deviations.</p>"))
+    return page("MAST scanner positioning", secs, subtitle="position and azimuth of a 2D scanner from wall beacons",
+                status=status, status_text=text)
 
 
 def plot_mast(result, beacons) -> bytes | None:
-    """PNG bytes of the overview plot, or None without matplotlib."""
-    try:
-        import matplotlib
+    """PNG bytes of the 4-panel overview plot, or None without matplotlib.
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+    Uses the object-oriented API (``Figure`` + Agg canvas): no global pyplot state or backend
+    is touched, and no time-dependent metadata is written.
+    """
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
         from matplotlib.patches import Ellipse
     except ImportError:
         return None
     a = result.arrays
-    fig, axs = plt.subplots(2, 2, figsize=(12, 11))
+    fig = Figure(figsize=(12, 11))
+    FigureCanvasAgg(fig)
+    axs = fig.subplots(2, 2)
     axes = [axs[0, 0], axs[0, 1]]
     ax = axes[0]
     if result.ok and "points_mine" in a:
@@ -184,17 +225,15 @@ def plot_mast(result, beacons) -> bytes | None:
         axz.tick_params(axis="x", labelrotation=30)
     fig.tight_layout()
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
+    fig.savefig(buf, format="png", dpi=110, metadata={"Software": None})
     return buf.getvalue()
 
 
 def write_mast_report(result, beacons, outdir, inputs: dict | None = None) -> dict[str, Path]:
-    """Write ``report.md`` (and ``mast_plot.png`` if matplotlib is available) into ``outdir``."""
+    """Write ``report.html`` (plot embedded when matplotlib is available) into ``outdir``.
+
+    Returns ``{"report": path}``: exactly the files written.
+    """
     out = Path(outdir)
-    paths: dict[str, Path] = {}
     png = plot_mast(result, beacons)
-    if png is not None:
-        paths["plot"] = atomic_write_bytes(out / "mast_plot.png", png)
-    paths["report"] = atomic_write_text(out / "report.md", mast_report_text(result, inputs, "mast_plot.png" if png else None))
-    return paths
+    return {"report": atomic_write_text(out / "report.html", mast_report_html(result, beacons, inputs, png))}

@@ -3,7 +3,9 @@
 The output depends only on ``--preset`` and ``--seed``: running it twice gives
 byte-identical files (no clock times or absolute paths are written). ``truth.json``
 holds the ground truth (``T_crs_map``, ``T_map_scan`` per scan, sensors, sections,
-intersections) with the SHA-256 of every other file; ``report.txt`` a short summary.
+intersections) with the SHA-256 of every other file; ``report.txt`` a short summary and
+``report.html`` the report (truth summary, plan view of the mine and the scan positions;
+:mod:`minegeo.report.synth_report`). ``--mast-only`` writes the MAST scenario files only.
 """
 
 from __future__ import annotations
@@ -82,9 +84,12 @@ def _write(args, stage, out) -> int:
         print(f"  {s['file']}: {s['n_points']} points ({s['section']}, {s['length_m']:.0f} m, "
               f"{s['sensor']['model']}, {s['carrier']})")
     print(f"  gcps.csv: {truth['gcps']['n']} control points in {truth['crs']}; truth.json, report.txt")
-    if args.mast:
-        return _write_mast(stage / "mast", args.seed, out / "mast")
-    return 0
+    rc = _write_mast(stage / "mast", args.seed, out / "mast") if args.mast else 0
+    from minegeo.report.synth_report import write_synth_report
+
+    write_synth_report(stage, truth)
+    print(f"  report: {out / 'report.html'}")
+    return rc
 
 
 def _write_mast(outdir, seed: int, final) -> int:

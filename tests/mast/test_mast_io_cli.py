@@ -55,9 +55,12 @@ def test_cli_end_to_end(tmp_path, capsys):
     assert np.asarray(r["covariance"]).shape == (3, 3)
     assert set(r["ellipse95"]) == {"a_m", "b_m", "orientation_deg"}
     assert r["provenance"]["inputs"][0]["sha256"]
-    assert (out / "report.md").exists()
-    assert "95 % error ellipse" in (out / "report.md").read_text()
-    assert "x = " in capsys.readouterr().out
+    assert sorted(f.name for f in out.iterdir()) == ["report.html", "result.json"]
+    html = (out / "report.html").read_text(encoding="utf-8")
+    assert 'data-status="OK"' in html and "95 % error ellipse" in html and "Parameters used" in html
+    printed = capsys.readouterr().out
+    assert "x = " in printed
+    assert f"written: {out / 'result.json'}, {out / 'report.html'}" in printed
 
 
 def test_cli_failed_status_and_user_error(tmp_path, capsys):
@@ -68,6 +71,7 @@ def test_cli_failed_status_and_user_error(tmp_path, capsys):
     r = json.loads((out / "result.json").read_text())
     assert r["status"] == "failed" and r["reason"]
     assert "FAILED" in capsys.readouterr().out
+    assert 'data-status="FAILED"' in (out / "report.html").read_text(encoding="utf-8")
     rc = main(["mast", "--scan", str(tmp_path / "missing.csv"), "--beacons", str(paths["beacons"]),
                "--out", str(out)])
     assert rc == 2
