@@ -131,6 +131,8 @@ def run(args) -> int:
 
     t = result.translation_m
     rms = result.rms_m
+    if getattr(args, "quiet", False):  # -q: only warnings and errors (the result is in the files)
+        return 0 if result.ok else 1
     print(f"status: {result.status.upper()}" + (f" — {result.reason}" if result.reason else ""))
     print(f"model {result.model}: T = ({t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}) m, scale {result.scale:.9f} "
           f"({result.ds_ppm:+.2f} ppm), yaw {result.euler_zyx_dms[2]}")

@@ -70,6 +70,8 @@ def run(args) -> int:
         # exactly the files in the result folder, named at their final (committed) paths
         names = ", ".join(str(out / n) for n in sorted((f.name for f in stage.iterdir()),
                                                         key=lambda n: (n != "result.json", n)))
+    if getattr(args, "quiet", False):  # -q: only warnings and errors (the result is in the files)
+        return 0 if res.ok else 1
     if res.ok:
         print(f"x = {res.x_m:.4f} m  y = {res.y_m:.4f} m  azimuth = {res.azimuth_dms}  "
               f"(95% ellipse {1000 * res.ellipse95['a_m']:.1f} x {1000 * res.ellipse95['b_m']:.1f} mm, "

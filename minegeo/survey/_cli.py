@@ -89,6 +89,8 @@ def run(args) -> int:
         prov = provenance(seed=None, origin=res.local_origin, inputs=[path])
         staged = write_survey_report(res, tx.folder("--out"), params, prov)
     paths = {k: out / Path(v).name for k, v in staged.items()}
+    if getattr(args, "quiet", False):  # -q: only warnings and errors (the result is in the files)
+        return 0
     lsq = res.lsq
     chi = lsq.chi2
     print(f"adjusted {len(res.points)} point(s) from {len(lsq.v)} observation equation(s); dof = {lsq.dof}")
@@ -97,6 +99,6 @@ def run(args) -> int:
     )
     flagged = [o for o in res.observations if o.flag and o.flag != "weak r_i"]
     if flagged:
-        print(f"{len(flagged)} observation(s) flagged by data snooping; see {paths['report_txt']}")
+        print(f"{len(flagged)} observation(s) flagged by data snooping; see {paths['report_html']}")
     print("wrote " + ", ".join(str(v) for v in paths.values()))
     return 0
