@@ -94,4 +94,8 @@ def is_permutation(a: np.ndarray, n: int) -> bool:
     a = np.asarray(a)
     if a.shape != (n,):
         return False
-    return n == 0 or (int(a.min()) >= 0 and np.array_equal(np.bincount(a, minlength=n), np.ones(n)))
+    if n == 0:
+        return True
+    if a.dtype.kind not in "iu" or int(a.min()) < 0 or int(a.max()) >= n:  # before bincount allocates max+1
+        return False
+    return bool(np.array_equal(np.bincount(a, minlength=n), np.ones(n)))

@@ -44,6 +44,7 @@ from minegeo._provenance import atomic_write_bytes, sha256_file, to_jsonable
 from minegeo._validate import as_points, check_positive, is_permutation
 from minegeo.errors import FileFormatError, InputError, TooFewPointsError
 from minegeo.io.types import PointCloud
+from minegeo.localize._progress import FEATURE_STEPS, StepTimings, announce
 
 __all__ = [
     "FeatureParams",
@@ -72,6 +73,17 @@ INDEX_PREFIX = "index__"
 _ORIENTATIONS = ("void", "none", "centroid")
 #: Nearest neighbours of the PCA normals of the ICP target.
 ICP_NORMAL_NN = 20
+
+#: Hash of the integrity record (``meta["integrity"]``) of a prepared-map file.
+INTEGRITY_ALGORITHM = "sha256"
+#: The map's own arrays: a damaged one makes the file unusable (the search structures are
+#: optional: a damaged one is rebuilt).
+CORE_ARRAYS = ("points", "normals", "features", "icp_points", "icp_normals", "work_origin")
+#: FPFH descriptor length (Rusu 2009: 3 angles x 11 bins).
+FPFH_DIM = 33
+#: Largest hash table (log2 of its slots) a stored search structure may announce.
+_MAX_LOG2_SLOTS = 40
+_REPREPARE = "prepare the map again with minegeo prepare-map"
 
 
 @dataclass(frozen=True)
@@ -332,6 +344,8 @@ class PreparedMap:
     _gicp_cache: dict = field(default_factory=dict, repr=False, compare=False)
     _occ_cache: dict = field(default_factory=dict, repr=False, compare=False)
     _feature_index: object = field(default=None, repr=False, compare=False)
+    # search structures read from a file and checked, expanded on first use (``_restore_indexes``)
+    _packed: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self):
         # validated once here, so localization can search the map without re-scanning it
@@ -382,21 +396,27 @@ class PreparedMap:
 
         key = (float(params.cell_size_m), int(params.dilation_cells), float(params.anchor_max_tilt_deg))
         if key not in self._occ_cache:
-            self._occ_cache[key] = map_occupancy(self.icp_points, self.points, self.normals, params)
+            packed = self._packed.pop(("occupancy", key), None)
+            if packed is not None:  # stored in the file: only its empty slots are added back
+                self._occ_cache[key] = _expand_occupancy(packed)
+            else:
+                self._occ_cache[key] = map_occupancy(self.icp_points, self.points, self.normals, params)
         return self._occ_cache[key]
 
-    def build_indexes(self, params=None) -> dict:
+    def build_indexes(self, params=None, progress=None) -> dict:
         """Build every per-process search structure that :func:`localize_scan` with ``params``
         (:class:`LocalizeParams`, default the defaults) will use, so the first scan does not pay
         for them: the KD-trees of the ICP cloud, the descriptor tree, and for levelled scans
         with the correlative search its occupancy bitmap and thinned screening cloud (GICP:
-        the target covariances). Returns the seconds spent per structure (0 when cached)."""
+        the target covariances). Returns the seconds spent per structure (0 when cached).
+        ``progress(name)`` (optional) is called as each structure starts."""
         from minegeo.localize.pipeline import LocalizeParams
 
         p = LocalizeParams() if params is None else params
         out = {}
 
         def _t(name, fn):
+            announce(progress, name)
             t0 = time.perf_counter()
             fn()
             out[name] = time.perf_counter() - t0
@@ -449,15 +469,17 @@ class PreparedMap:
         log2_blocks, cell_m)``, built once per process and voxel size (~1 s and ~70 MB for the
         paper map at 0.5 m)."""
         from minegeo.localize import _kernels as LK
-        from minegeo.localize.correlative import SCREEN_GATES_M
 
         key = ("screen_grid", float(voxel_size_m))
+        if key not in self._gicp_cache and key in self._packed:  # stored: add back the empty slots
+            keys, rows, log2, c = self._packed.pop(key)
+            nearest = np.full((keys.shape[0], 512), -1, dtype=np.int32)
+            nearest[keys != -1] = rows
+            self._gicp_cache[key] = (keys, nearest, log2, c)
         if key not in self._gicp_cache:
             _, Qs, _ = self.screen_target(voxel_size_m)
             c = float(voxel_size_m)
-            band = int(math.ceil(max(SCREEN_GATES_M) / c))
-            n_cells = Qs.shape[0] * (2 * band + 1) ** 3
-            log2 = max(10, int(math.ceil(math.log2(max(1, n_cells) / 512 / 8))) + 1)
+            band, log2 = _grid_log2_start(Qs.shape[0], c)
             while True:
                 keys, nearest, nb = LK.build_nearest_grid(np.ascontiguousarray(Qs), c, band, log2)
                 if nb <= (1 << log2) // 2:
@@ -515,14 +537,19 @@ class PreparedMap:
 
     # -- files --------------------------------------------------------------------------
     def save(self, path, *, indexes: bool = True) -> Path:
-        """Write the prepared map to ``path`` (``.npz``, no pickles), atomically.
+        """Write the prepared map to ``path`` (``.npz``, uncompressed, no pickles), atomically.
 
         The file holds the arrays plus a JSON ``meta`` string with ``format``, ``version``,
-        ``params``, ``params_hash``, ``georef``, ``crs`` and ``source``. With ``indexes`` it also
-        holds every search structure built so far (:meth:`build_indexes`: the Numba KD-trees of
-        the ICP cloud and of the thinned screening cloud, the descriptor tree, the occupancy
-        bitmap, the lookup grid; ``meta["indexes"]``), which :meth:`load` restores instead of
-        rebuilding them (~5 s for the 6.5 km paper map). Only pykdtree's tree is rebuilt.
+        ``params``, ``params_hash``, ``georef``, ``crs``, ``source`` and ``integrity``. With
+        ``indexes`` it also holds every search structure built so far (:meth:`build_indexes`: the
+        Numba KD-trees of the ICP cloud and of the thinned screening cloud, the descriptor tree,
+        the occupancy bitmap, the lookup grid; ``meta["indexes"]``), which :meth:`load` restores
+        instead of rebuilding them (~5 s for the 6.5 km paper map). Only pykdtree's tree is rebuilt.
+
+        ``meta["integrity"]`` holds the SHA-256 of every stored array (of its dtype, shape and
+        bytes, :func:`_array_digest`), a ``manifest`` hash of the meta (without the search
+        structures' records) together with the six map arrays' hashes, and per search
+        structure a hash of its meta record together with its arrays' hashes.
         """
         import io
 
@@ -536,17 +563,21 @@ class PreparedMap:
             "source": to_jsonable(self.source),
             "timings_s": to_jsonable(self.timings_s),
         }
-        extra: dict = {}
+        arrays = {"points": self.points, "normals": self.normals, "features": self.features,
+                  "icp_points": self.icp_points, "icp_normals": self.icp_normals, "work_origin": self.work_origin}
         if indexes:
             extra, meta["indexes"] = self._index_payload()
+            arrays.update(extra)
+        arrays = {k: np.asarray(v) for k, v in arrays.items()}
+        meta = json.loads(json.dumps(meta, sort_keys=True))  # hash exactly what load reads back
+        meta["integrity"] = _integrity_record(meta, arrays)
         buf = io.BytesIO()
-        np.savez(buf, points=self.points, normals=self.normals, features=self.features, icp_points=self.icp_points,
-                 icp_normals=self.icp_normals,
-                 work_origin=self.work_origin, meta=np.array(json.dumps(meta, sort_keys=True)), **extra)
+        np.savez(buf, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays)
         return atomic_write_bytes(path, buf.getvalue())
 
     def _index_payload(self) -> tuple[dict, dict]:
-        """Arrays (``index__*`` keys) and meta record of the search structures built so far."""
+        """Arrays (``index__*`` keys) and meta record of the search structures built so far
+        (and of those read from a file and not used yet, as they were stored)."""
         arrays: dict = {}
         entries: list = []
 
@@ -566,12 +597,16 @@ class PreparedMap:
             put("feature", d)
             entries.append({"kind": "feature_index", "name": "feature", "drop_zero_features": fi.drop_zero_features,
                             "brute": bool(t.brute), "rb": float(t.rb)})
-        for i, (key, occ) in enumerate(self._occ_cache.items()):
+        occs = [(key, occ.block_keys, occ.bits[occ.block_keys != -1], occ.anchors, occ.log2_blocks, occ.n_cells,
+                 occ.n_blocks, occ.build_s) for key, occ in self._occ_cache.items()]
+        occs += [(key[1], pk["keys"], pk["rows"], pk["anchors"], pk["log2"], pk["n_cells"], pk["n_blocks"],
+                  pk["build_s"]) for key, pk in self._packed.items() if key[0] == "occupancy"]
+        for i, (key, keys, rows, anchors, log2, n_cells, n_blocks, build_s) in enumerate(occs):
             name = f"occupancy{i}"
-            used = occ.block_keys != -1  # only the rows of used slots (the others are zero)
-            put(name, {"block_keys": occ.block_keys, "bits": occ.bits[used], "anchors": occ.anchors})
-            entries.append({"kind": "occupancy", "name": name, "key": list(key), "log2_blocks": occ.log2_blocks,
-                            "n_cells": occ.n_cells, "n_blocks": occ.n_blocks, "build_s": occ.build_s})
+            put(name, {"block_keys": keys, "bits": rows, "anchors": anchors})  # used slots' rows only (others: 0)
+            entries.append({"kind": "occupancy", "name": name, "key": list(key), "log2_blocks": log2,
+                            "n_cells": n_cells, "n_blocks": n_blocks, "build_s": build_s})
+        grids = []
         for i, (key, val) in enumerate(self._gicp_cache.items()):
             if not isinstance(key, tuple) or key[0] not in ("screen", "screen_grid"):
                 continue
@@ -583,89 +618,125 @@ class PreparedMap:
                 entries.append({"kind": "screen_target", "name": name, "voxel_size_m": key[1], "full": full})
             else:
                 keys, nearest, log2, c = val
-                put(name, {"keys": keys, "nearest": nearest[keys != -1]})  # used slots' rows (the others are -1)
-                entries.append({"kind": "screen_grid", "name": name, "voxel_size_m": key[1], "log2_blocks": log2,
-                                "cell_m": c})
+                grids.append((name, key[1], keys, nearest[keys != -1], log2, c))  # used slots' rows (others: -1)
+        n = len(self._gicp_cache)
+        grids += [(f"screen_grid{n + j}", key[1], *pk) for j, (key, pk) in
+                  enumerate((k, v) for k, v in self._packed.items() if k[0] == "screen_grid")]
+        for name, v, keys, rows, log2, c in grids:  # after every screening cloud (load needs it first)
+            put(name, {"keys": keys, "nearest": rows})
+            entries.append({"kind": "screen_grid", "name": name, "voxel_size_m": v, "log2_blocks": log2, "cell_m": c})
         return arrays, {"version": INDEX_VERSION, "entries": entries}
 
-    def _restore_indexes(self, z: dict, record: dict, path) -> list[str]:
-        """Put the stored search structures (``z``: the file's ``index__*`` arrays) back in the caches.
+    def _restore_indexes(self, z: dict, record, path, skip: dict | None = None) -> list[str]:
+        """Check the stored search structures (``z``: the file's ``index__*`` arrays) and put them
+        back in the caches.
 
-        A structure whose arrays fail the checks is skipped with a warning (it is rebuilt when
-        needed): the map itself is intact. Returns the kinds restored.
+        Every stored integer used as an index (KD-tree order, node ranges and children, descriptor
+        rows, order and leaves, hash-table slots and keys, lookup-grid rows) is range-checked,
+        every size announced in the meta (``log2_blocks``, ``n_cells``, ``n_blocks``) must be the
+        one the builder would have chosen for the stored arrays and the map's point counts, and
+        every dtype and shape must be the builder's, *before* anything is allocated from them:
+        the Numba kernels do not bounds-check. The occupancy bitmap and the lookup grid are
+        stored without their empty slots; they are expanded on first use (:meth:`occupancy`,
+        :meth:`screen_grid`), i.e. only for the settings a localization asks for, so the
+        expansion is never larger than building them would be.
+
+        A structure that fails (or is named in ``skip``: it failed its integrity hash) is
+        skipped with a warning and rebuilt when needed: the map itself is intact. Returns the
+        kinds restored.
         """
-        from minegeo.localize.correlative import MapOccupancy
-        from minegeo.registration._kernels import GatedKDTree
         from minegeo.registration.correspondences import FeatureIndex, _RowTree
 
+        skip = skip or {}
         restored: list[str] = []
-        if not isinstance(record, dict) or record.get("version") != INDEX_VERSION:
+        if not isinstance(record, dict) or record.get("version") != INDEX_VERSION \
+                or not isinstance(record.get("entries"), list):
             log.warning("%s: stored search structures of another format version: rebuilding them", path)
             return restored
-        for e in record.get("entries", []):
-            name = f"{INDEX_PREFIX}{e.get('name')}__"
+        k = self.icp_points.shape[0]
+        for e in record["entries"]:
+            name = e.get("name") if isinstance(e, dict) else None
+            if not isinstance(name, str):
+                log.warning("%s: malformed search-structure record %.80r: it will be rebuilt", path, e)
+                continue
+            if name in skip:
+                log.warning("%s: stored search structure %r not usable (%s): it will be rebuilt", path, name,
+                            skip[name])
+                continue
+            pre = f"{INDEX_PREFIX}{name}__"
             try:
-                a = {k[len(name):]: v_ for k, v_ in z.items() if k.startswith(name)}
+                a = {key[len(pre):]: v_ for key, v_ in z.items() if key.startswith(pre)}
                 kind = e["kind"]
                 if kind == "target_kdtree":
-                    self._gicp_cache["index"] = GatedKDTree.from_arrays(self.icp_points, a)
+                    self._gicp_cache["index"] = _restore_kdtree(self.icp_points, a)
                 elif kind == "feature_index":
-                    rows = np.ascontiguousarray(a["rows"], dtype=np.int64)
-                    m = self.features.shape[0]
-                    if rows.ndim != 1 or rows.size == 0 or rows.min() < 0 or rows.max() >= m:
-                        raise ValueError("descriptor rows out of range")
+                    dz, brute = _flag(e, "drop_zero_features"), _flag(e, "brute")
+                    rows = _expected_feature_rows(self.features, dz)
+                    if rows.size == 0:
+                        raise ValueError("no descriptor row to search")
+                    if not np.array_equal(_stored(a, "rows", np.int64, rows.shape), rows):
+                        raise ValueError("descriptor rows are not the map's searchable rows")
                     B = np.ascontiguousarray(self.features[rows])
-                    if e["brute"]:
-                        tree = _RowTree(B=B, brute=True)
-                    else:
-                        tree = _restore_row_tree(B, a, float(e["rb"]))
-                    self._feature_index = FeatureIndex(features=self.features,
-                                                       drop_zero_features=bool(e["drop_zero_features"]), rows=rows,
+                    if brute != _feature_tree_is_brute(B.shape[0]):
+                        raise ValueError("descriptor tree kind does not match the number of rows")
+                    tree = _RowTree(B=B, brute=True) if brute else _restore_row_tree(B, a, e.get("rb"))
+                    self._feature_index = FeatureIndex(features=self.features, drop_zero_features=dz, rows=rows,
                                                        tree=tree)
                 elif kind == "occupancy":
-                    occ = _restore_occupancy(MapOccupancy, a, e)
-                    cell, dil, tilt = e["key"]
-                    self._occ_cache[(float(cell), int(dil), float(tilt))] = occ
+                    key, packed = _check_occupancy(a, e, k, self.points, self.normals)
+                    self._packed[("occupancy", key)] = packed
                 elif kind == "screen_target":
-                    v = float(e["voxel_size_m"])
-                    if e["full"]:
+                    v = _number(e, "voxel_size_m", positive=True)
+                    if _flag(e, "full"):
                         self._gicp_cache[("screen", v)] = (self.target_index(), self.icp_points, self.icp_normals)
                     else:
-                        pts = as_points(a["points"], "screening points")
-                        nrm = as_points(a["normals"], "screening normals")
-                        if nrm.shape != pts.shape:
-                            raise ValueError("screening points and normals differ in length")
-                        tree = GatedKDTree.from_arrays(pts, {k[5:]: x for k, x in a.items() if k.startswith("tree_")})
+                        pts = _stored(a, "points", np.float64, ndim=2)
+                        if not 1 <= pts.shape[0] <= k:
+                            raise ValueError(f"{pts.shape[0]} screening points for a map of {k} ICP points")
+                        pts = as_points(pts, "screening points")
+                        nrm = as_points(_stored(a, "normals", np.float64, pts.shape), "screening normals")
+                        tree = _restore_kdtree(pts, a, "tree_")
                         self._gicp_cache[("screen", v)] = (tree, pts, nrm)
                 elif kind == "screen_grid":
-                    v = float(e["voxel_size_m"])
-                    key_s = ("screen", v)
-                    if key_s not in self._gicp_cache:
+                    v = _number(e, "voxel_size_m", positive=True)
+                    if _number(e, "cell_m", positive=True) != v:
+                        raise ValueError("lookup grid cell differs from its voxel size")
+                    if ("screen", v) not in self._gicp_cache:
                         raise ValueError("lookup grid stored without its screening cloud")
-                    n_s = self._gicp_cache[key_s][1].shape[0]
-                    keys = np.ascontiguousarray(a["keys"])
-                    rows = a["nearest"]
-                    log2 = int(e["log2_blocks"])
-                    used = keys != -1
-                    if (keys.dtype != np.int64 or rows.dtype != np.int32 or keys.shape != (1 << log2,)
-                            or rows.shape != (int(used.sum()), 512)
-                            or (rows.size and (rows.min() < -1 or rows.max() >= n_s))
-                            or np.count_nonzero(~used) == 0):
-                        raise ValueError("lookup grid arrays out of range")
-                    nearest = np.full((keys.shape[0], 512), -1, dtype=np.int32)
-                    nearest[used] = rows
-                    self._gicp_cache[("screen_grid", v)] = (keys, nearest, log2, float(e["cell_m"]))
+                    n_s = self._gicp_cache[("screen", v)][1].shape[0]
+                    log2 = _integer(e, "log2_blocks", 10, _MAX_LOG2_SLOTS)
+                    keys = _stored(a, "keys", np.int64, (1 << log2,))
+                    nb = int(np.count_nonzero(keys != -1))
+                    rows = _stored(a, "nearest", np.int32, (nb, 512))
+                    if rows.size and (rows.min() < -1 or rows.max() >= n_s):
+                        raise ValueError("lookup grid rows out of range")
+                    if log2 != _table_log2(_grid_log2_start(n_s, v)[1], nb):
+                        raise ValueError(f"lookup grid size 2^{log2} is not the one built for {nb} blocks")
+                    _check_hash_table(keys, log2, "lookup grid")
+                    self._packed[("screen_grid", v)] = (keys, rows, log2, v)
                 else:
                     raise ValueError(f"unknown kind {kind!r}")
                 restored.append(kind)
-            except (KeyError, ValueError, TypeError, IndexError, InputError) as exc:
-                log.warning("%s: stored search structure %r not usable (%s): it will be rebuilt", path,
-                            e.get("name"), exc)
+            except (KeyError, ValueError, TypeError, IndexError, OverflowError, InputError) as exc:
+                log.warning("%s: stored search structure %r not usable (%s): it will be rebuilt", path, name, exc)
         return restored
 
     @classmethod
     def load(cls, path, params: PrepareParams | None = None) -> PreparedMap:
-        """Read a file written by :meth:`save`.
+        """Read a file written by :meth:`save`, checking all of it.
+
+        The map's own arrays must be float64 of consistent shapes and finite, the meta fields of
+        the right types, and every array and the meta must match the integrity record written
+        by :meth:`save` (SHA-256 of each array's dtype, shape and bytes; of the meta). A damaged
+        map array or meta is a :class:`FileFormatError`; a damaged search structure (hash or
+        range checks, :meth:`_restore_indexes`) is skipped with a warning and rebuilt when
+        needed. The archive itself must be an uncompressed ``.npz`` whose members hold exactly
+        the bytes their headers announce, so nothing larger than the file is allocated on
+        reading it.
+
+        A file written before the integrity record existed (format version 1 without
+        ``meta["integrity"]``) is refused with a request to prepare the map again: the
+        record is an addition that older readers ignore, so the format version stays 1.
 
         Parameters
         ----------
@@ -676,38 +747,24 @@ class PreparedMap:
         Raises
         ------
         FileFormatError
-            Not a prepared map, a newer format version, corrupted arrays or a parameter hash
-            that does not match the stored parameters.
+            Not a prepared map, a newer format version, no integrity record, map arrays or meta
+            that are malformed, non-finite or do not match their integrity hashes, or a
+            parameter hash that does not match the stored parameters.
         InputError
             ``params`` given and different from the file's.
         """
         p = Path(path)
-        try:
-            with np.load(p, allow_pickle=False) as z:
-                if "meta" not in z.files:
-                    raise FileFormatError(p, "not a minegeo prepared map (no 'meta' entry)")
-                meta = json.loads(str(z["meta"]))
-                arrays = {k: np.array(z[k], dtype=np.float64) for k in ("points", "normals", "features", "icp_points", "icp_normals",
-                                                                     "work_origin")}
-                index_arrays = {k: z[k] for k in z.files if k.startswith(INDEX_PREFIX)} if "indexes" in meta else {}
-        except FileFormatError:
-            raise
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, json.JSONDecodeError) as exc:
-            raise FileFormatError(p, f"cannot read prepared map ({exc})") from None
-        if meta.get("format") != PREPARED_FORMAT:
-            raise FileFormatError(p, f"not a minegeo prepared map (format {meta.get('format')!r})")
-        if int(meta.get("version", 0)) != PREPARED_VERSION:
-            raise FileFormatError(
-                p, f"prepared-map format version {meta.get('version')} is not {PREPARED_VERSION}: prepare the map again"
-            )
+        meta, arrays, index_arrays, bad = _read_prepared_file(p)
+        _check_meta(meta, p)
         try:
             stored = _params_from_dict(meta["params"])
-        except (KeyError, TypeError, InputError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError, InputError) as exc:
             raise FileFormatError(p, f"bad parameter record ({exc})") from None
         if params_hash(stored) != meta.get("params_hash"):
             raise FileFormatError(p, "parameter hash does not match the stored parameters (file edited or corrupted)")
         m = arrays["points"].shape[0]
-        if (arrays["points"].shape != (m, 3) or arrays["normals"].shape != (m, 3) or arrays["features"].shape[0] != m
+        if (arrays["points"].shape != (m, 3) or arrays["normals"].shape != (m, 3)
+                or arrays["features"].shape != (m, FPFH_DIM)
                 or arrays["work_origin"].shape != (3,) or arrays["icp_points"].ndim != 2
                 or arrays["icp_points"].shape[1] != 3 or arrays["icp_normals"].shape != arrays["icp_points"].shape):
             raise FileFormatError(p, "array shapes are inconsistent")
@@ -719,60 +776,418 @@ class PreparedMap:
                      timings_s=meta.get("timings_s") or {})
         except InputError as exc:  # NaN/inf or inconsistent arrays in the file
             raise FileFormatError(p, f"corrupted arrays ({exc})") from None
+        skip = _verify_integrity(meta, arrays, index_arrays, bad, p)
+        if pm.georef is not None:
+            try:
+                pm.georef_result  # noqa: B018 - parsed now, so a bad record is a file error, not a late traceback
+            except InputError as exc:
+                raise FileFormatError(p, f"bad georeferencing record ({exc})") from None
         if params is not None:
             pm.check_params(params)
         if "indexes" in meta:
-            pm._restore_indexes(index_arrays, meta["indexes"], p)
+            pm._restore_indexes(index_arrays, meta["indexes"], p, skip)
         return pm
 
 
-def _restore_row_tree(B: np.ndarray, a: dict, rb: float):
+# ----------------------------------------------------------------------------- file checks
+def _array_digest(a: np.ndarray) -> str:
+    """SHA-256 (hex) of one stored array: its dtype (with byte order), its shape and its bytes
+    in C order."""
+    a = np.ascontiguousarray(a)
+    h = hashlib.sha256(f"{a.dtype.str}|{json.dumps(list(a.shape))}|".encode("ascii"))
+    try:
+        h.update(a.reshape(-1).view(np.uint8))
+    except (ValueError, TypeError):  # a dtype without a byte view (not one minegeo writes)
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _json_digest(obj) -> str:
+    """SHA-256 (hex) of the canonical JSON of ``obj`` (sorted keys, no spaces, ASCII)."""
+    blob = json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(blob.encode("ascii")).hexdigest()
+
+
+def _manifest(meta: dict, digests: dict) -> str:
+    """Hash of the meta (without ``integrity`` and the search structures' ``indexes``) and of the
+    map arrays' hashes."""
+    core = {k: v for k, v in meta.items() if k not in ("integrity", "indexes")}
+    return _json_digest({"meta": core, "arrays": {k: digests.get(k) for k in CORE_ARRAYS}})
+
+
+def _entry_digest(entry, name: str, digests: dict) -> str:
+    """Hash of one search structure's meta record and of its arrays' hashes."""
+    pre = f"{INDEX_PREFIX}{name}__"
+    return _json_digest({"entry": entry, "arrays": {k: d for k, d in digests.items() if k.startswith(pre)}})
+
+
+def _integrity_record(meta: dict, arrays: dict) -> dict:
+    """``meta["integrity"]`` of a file holding ``arrays`` (every array but ``meta``)."""
+    digests = {k: _array_digest(v) for k, v in sorted(arrays.items())}
+    entries = (meta.get("indexes") or {}).get("entries", [])
+    return {"algorithm": INTEGRITY_ALGORITHM, "arrays": digests, "manifest": _manifest(meta, digests),
+            "indexes": {e["name"]: _entry_digest(e, e["name"], digests) for e in entries}}
+
+
+def _member_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo):
+    """``(problem, shape, dtype)`` of one ``.npy`` member of the archive; ``problem`` is None
+    when the member is stored uncompressed and holds exactly the bytes its header announces."""
+    if not info.filename.endswith(".npy"):
+        return "not a NumPy array", None, None
+    if info.compress_type != zipfile.ZIP_STORED or info.compress_size != info.file_size:
+        return "compressed (minegeo writes prepared maps uncompressed)", None, None
+    try:
+        with zf.open(info) as fp:
+            version = np.lib.format.read_magic(fp)
+            if version == (1, 0):
+                shape, _, dtype = np.lib.format.read_array_header_1_0(fp)
+            elif version == (2, 0):
+                shape, _, dtype = np.lib.format.read_array_header_2_0(fp)
+            else:
+                return f"NumPy format version {version} is not supported", None, None
+            header = fp.tell()
+    except (ValueError, OSError, EOFError, RuntimeError, zipfile.BadZipFile) as exc:
+        return f"unreadable array header ({exc})", None, None
+    if dtype.hasobject:
+        return "holds Python objects", None, None
+    nbytes = math.prod(shape) * dtype.itemsize
+    if header + nbytes != info.file_size:
+        return f"its header announces {nbytes} bytes but it holds {info.file_size - header}", None, None
+    return None, shape, dtype
+
+
+def _read_prepared_file(p: Path):
+    """``(meta, map arrays, index arrays, damaged members)`` of a prepared-map file.
+
+    Nothing is read before the archive's members are checked: uncompressed, not overlapping,
+    each holding exactly the bytes its header announces (so a member cannot make the reader
+    allocate more than the file holds). A damaged member of a search structure is only
+    reported (``{name: problem}``); one of the map is a :class:`FileFormatError`.
+    """
+    try:
+        size = p.stat().st_size
+        z = np.load(p, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise FileFormatError(p, "not a minegeo prepared map (not an .npz archive)")
+        with z:
+            infos = z.zip.infolist()
+            names = [i.filename[:-4] if i.filename.endswith(".npy") else i.filename for i in infos]
+            if len(set(names)) != len(names) or sum(i.compress_size for i in infos) > size:
+                raise FileFormatError(p, "the archive's members overlap or repeat (not written by minegeo)")
+            bad, headers = {}, {}
+            for name, info in zip(names, infos, strict=True):
+                problem, shape, dtype = _member_header(z.zip, info)
+                if problem is not None:
+                    bad[name] = problem
+                headers[name] = (shape, dtype)
+            if "meta" not in headers:
+                raise FileFormatError(p, "not a minegeo prepared map (no 'meta' entry)")
+            if "meta" in bad or headers["meta"][1].kind != "U" or headers["meta"][0] != ():
+                raise FileFormatError(p, f"not a minegeo prepared map (bad 'meta' entry{': ' + bad.get('meta', '')})")
+            meta = __import__("minegeo.io._json", fromlist=["_"]).load_json_text(str(z["meta"]), p, allow_nonfinite=True)
+            if not isinstance(meta, dict):
+                raise FileFormatError(p, "not a minegeo prepared map (its meta is not a JSON object)")
+            arrays = {}
+            for k in CORE_ARRAYS:
+                if k not in headers:
+                    raise FileFormatError(p, f"prepared map has no array {k!r}: {_REPREPARE}")
+                if k in bad:
+                    raise FileFormatError(p, f"array {k!r} is damaged ({bad[k]}): {_REPREPARE}")
+                if headers[k][1] != np.float64:
+                    raise FileFormatError(p, f"array {k!r} has dtype {headers[k][1]}, not float64: the file was "
+                                             f"edited or corrupted; {_REPREPARE}")
+                arrays[k] = np.ascontiguousarray(z[k])
+            index_arrays = {}
+            for k in names:
+                if k in arrays or k == "meta":
+                    continue
+                if not k.startswith(INDEX_PREFIX):
+                    raise FileFormatError(p, f"unexpected array {k!r} (not part of a prepared map): the file was "
+                                             f"edited; {_REPREPARE}")
+                if k not in bad and "indexes" in meta:
+                    index_arrays[k] = z[k]
+    except FileFormatError:
+        raise
+    except (OSError, ValueError, KeyError, EOFError, RuntimeError, zipfile.BadZipFile) as exc:
+        raise FileFormatError(p, f"cannot read prepared map ({exc})") from None
+    return meta, arrays, index_arrays, {k: v for k, v in bad.items() if k.startswith(INDEX_PREFIX)}
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _check_meta(meta: dict, p: Path) -> None:
+    """Format, version and the types of the meta fields (a :class:`FileFormatError` names the field)."""
+    if meta.get("format") != PREPARED_FORMAT:
+        raise FileFormatError(p, f"not a minegeo prepared map (format {str(meta.get('format'))[:80]!r})")
+    v = meta.get("version")
+    if not _is_int(v):
+        raise FileFormatError(p, f"prepared-map format version {str(v)[:40]!r} is not an integer: {_REPREPARE}")
+    if v != PREPARED_VERSION:
+        raise FileFormatError(p, f"prepared-map format version {v} is not {PREPARED_VERSION}: prepare the map again")
+    for key, types, what in (("params", dict, "an object"), ("params_hash", str, "a string"),
+                             ("georef", (dict, type(None)), "an object or null"),
+                             ("crs", (str, type(None)), "a string or null"),
+                             ("source", (dict, type(None)), "an object"),
+                             ("timings_s", (dict, type(None)), "an object")):
+        if not isinstance(meta.get(key), types):
+            raise FileFormatError(p, f"meta field {key!r} must be {what}, got {type(meta.get(key)).__name__}: "
+                                     f"the file was edited or corrupted; {_REPREPARE}")
+    if not all(t is None or _is_number(t) for t in (meta.get("timings_s") or {}).values()):
+        raise FileFormatError(p, f"meta field 'timings_s' must hold numbers: {_REPREPARE}")
+
+
+def _verify_integrity(meta: dict, arrays: dict, index_arrays: dict, bad: dict, p: Path) -> dict:
+    """Compare every array and the meta with ``meta["integrity"]``.
+
+    A map array or the meta that does not match is a :class:`FileFormatError`. Returns
+    ``{name: problem}`` of the search structures that do not match (or hold a damaged member).
+    """
+    rec = meta.get("integrity")
+    if rec is None:
+        raise FileFormatError(p, "prepared map has no integrity hashes (written by an older minegeo): " + _REPREPARE)
+    if (not isinstance(rec, dict) or rec.get("algorithm") != INTEGRITY_ALGORITHM
+            or not isinstance(rec.get("arrays"), dict) or not isinstance(rec.get("manifest"), str)
+            or not isinstance(rec.get("indexes", {}), dict)):
+        raise FileFormatError(p, f"its integrity record is malformed: the file was edited or corrupted; {_REPREPARE}")
+    recorded = rec["arrays"]
+    digests = {}
+    for k in CORE_ARRAYS:
+        digests[k] = _array_digest(arrays[k])
+        if digests[k] != recorded.get(k):
+            raise FileFormatError(p, f"array {k!r} does not match its integrity hash: the file was edited or "
+                                     f"corrupted; {_REPREPARE}")
+    if _manifest(meta, digests) != rec["manifest"]:
+        raise FileFormatError(p, f"the meta record does not match its integrity hash: the file was edited or "
+                                 f"corrupted; {_REPREPARE}")
+    skip: dict = {}
+    record = meta.get("indexes")
+    entries = record.get("entries") if isinstance(record, dict) else None
+    for e in entries if isinstance(entries, list) else []:
+        name = e.get("name") if isinstance(e, dict) else None
+        if not isinstance(name, str):
+            continue
+        pre = f"{INDEX_PREFIX}{name}__"
+        for k in sorted(bad):
+            if k.startswith(pre):
+                skip[name] = f"array {k!r} is damaged: {bad[k]}"
+                break
+        if name in skip:
+            continue
+        for k, a in index_arrays.items():
+            if k.startswith(pre):
+                digests[k] = _array_digest(a)
+                if digests[k] != recorded.get(k):
+                    skip[name] = f"array {k!r} does not match its integrity hash"
+                    break
+        if name not in skip and _entry_digest(e, name, digests) != rec.get("indexes", {}).get(name):
+            skip[name] = "its record does not match its integrity hash"
+    return skip
+
+
+def _stored(a: dict, key: str, dtype, shape: tuple | None = None, ndim: int | None = None) -> np.ndarray:
+    """Stored array ``a[key]`` of exactly ``dtype`` (and ``shape`` / ``ndim``), else ``ValueError``."""
+    if key not in a:
+        raise ValueError(f"array {key!r} is missing")
+    x = a[key]
+    if x.dtype != np.dtype(dtype):
+        raise ValueError(f"array {key!r} has dtype {x.dtype}, expected {np.dtype(dtype)}")
+    if (shape is not None and x.shape != tuple(shape)) or (ndim is not None and x.ndim != ndim):
+        raise ValueError(f"array {key!r} has shape {x.shape}")
+    return np.ascontiguousarray(x)
+
+
+def _integer(e: dict, key: str, lo: int, hi: int) -> int:
+    """Meta field ``e[key]``: an integer in ``[lo, hi]``, else ``ValueError``."""
+    v = e[key]
+    if not _is_int(v) or not lo <= v <= hi:
+        raise ValueError(f"{key} must be an integer in [{lo}, {hi}], got {str(v)[:40]!r}")
+    return v
+
+
+def _number(e, key, positive: bool = False) -> float:
+    """Meta field ``e[key]``: a finite number (``> 0`` with ``positive``), else ``ValueError``."""
+    v = e[key]
+    if not _is_number(v) or (positive and not v > 0):
+        raise ValueError(f"{key} must be a finite{' positive' if positive else ''} number, got {str(v)[:40]!r}")
+    return float(v)
+
+
+def _flag(e: dict, key: str) -> bool:
+    v = e[key]
+    if not isinstance(v, bool):
+        raise ValueError(f"{key} must be true or false, got {str(v)[:40]!r}")
+    return v
+
+
+def _in_range(x: np.ndarray, lo: int, hi: int, what: str) -> None:
+    """``ValueError`` unless every value of ``x`` is in ``[lo, hi)``."""
+    if x.size and (int(x.min()) < lo or int(x.max()) >= hi):
+        raise ValueError(f"{what} out of range")
+
+
+def _restore_kdtree(Q: np.ndarray, a: dict, prefix: str = ""):
+    """A stored :class:`~minegeo.registration._kernels.GatedKDTree` over ``Q`` (``k`` points):
+    dtypes and shapes of the builder's, at most ``2 k`` nodes, point order within ``[0, k)``
+    (checked before :func:`~minegeo._validate.is_permutation` counts it), then
+    ``GatedKDTree.from_arrays`` (permutation, node ranges, children, depth)."""
+    from minegeo.registration._kernels import GatedKDTree
+
+    k = Q.shape[0]
+    idx = _stored(a, prefix + "idx", np.int64, (k,))
+    start = _stored(a, prefix + "start", np.int64, ndim=1)
+    n = start.shape[0]
+    if not 1 <= n <= 2 * k:
+        raise ValueError(f"KD-tree of {n} nodes over {k} points")
+    nodes = {name: _stored(a, prefix + name, dt, (n,)) for name, dt in
+             (("end", np.int64), ("dim", np.int64), ("split", np.float64), ("left", np.int64), ("right", np.int64))}
+    depth = _stored(a, prefix + "depth", np.int64, (1,))
+    _in_range(idx, 0, k, "KD-tree point order")
+    _in_range(depth, 0, n, "KD-tree depth")
+    if not np.isfinite(nodes["split"]).all():
+        raise ValueError("KD-tree split values are not finite")
+    return GatedKDTree.from_arrays(Q, {"idx": idx, "start": start, "depth": depth, **nodes})
+
+
+def _expected_feature_rows(F: np.ndarray, drop_zero_features: bool) -> np.ndarray:
+    """The rows :func:`~minegeo.registration.correspondences.build_feature_index` searches."""
+    return np.flatnonzero(np.any(F != 0.0, axis=1)) if drop_zero_features else np.arange(F.shape[0])
+
+
+def _feature_tree_is_brute(n: int) -> bool:
+    from minegeo.registration import _kernels_ransac as KR
+    from minegeo.registration.correspondences import _TREE_MIN_LEAVES
+
+    return n < _TREE_MIN_LEAVES * KR.FEATURE_LEAF
+
+
+def _restore_row_tree(B: np.ndarray, a: dict, rb):
     """The descriptor tree over ``B`` from its stored rotation and leaf partition (the leaf
-    storage is packed again from ``B``, so it cannot disagree with the map's descriptors)."""
+    storage is packed again from ``B``, so it cannot disagree with the map's descriptors):
+    rotation of the builder's shape and finite, order a permutation (range-checked first),
+    exactly ``ceil(n / FEATURE_LEAF)`` leaves of at most ``FEATURE_LEAF`` rows, and the search
+    radius bound ``rb`` the one of ``B`` and the stored mean."""
     from minegeo.registration import _kernels_ransac as KR
     from minegeo.registration.correspondences import _RowTree
 
     n, dim = B.shape
-    mu = np.ascontiguousarray(a["mu"], dtype=np.float64)
-    V = np.ascontiguousarray(a["V"], dtype=np.float64)
-    perm = np.ascontiguousarray(a["perm"], dtype=np.int64)
-    lstart = np.ascontiguousarray(a["lstart"], dtype=np.int64)
-    if (mu.shape != (dim,) or V.ndim != 2 or V.shape[0] != dim or not 1 <= V.shape[1] <= KR.FEATURE_ROT
-            or not (np.isfinite(mu).all() and np.isfinite(V).all())):
-        raise ValueError("descriptor tree rotation has the wrong shape")
+    L = KR.FEATURE_LEAF
+    mu = _stored(a, "mu", np.float64, (dim,))
+    V = _stored(a, "V", np.float64, (dim, min(dim, KR.FEATURE_ROT)))
+    perm = _stored(a, "perm", np.int64, (n,))
+    lstart = _stored(a, "lstart", np.int64, ((n + L - 1) // L + 1,))
+    if not (np.isfinite(mu).all() and np.isfinite(V).all()):
+        raise ValueError("descriptor tree rotation is not finite")
+    _in_range(perm, 0, n, "descriptor tree order")
     if not is_permutation(perm, n):
         raise ValueError("descriptor tree order is not a permutation of the rows")
     sizes = np.diff(lstart)
-    if lstart.ndim != 1 or lstart.size < 2 or lstart[0] != 0 or lstart[-1] != n or sizes.min() < 0 \
-            or sizes.max() > KR.FEATURE_LEAF:
+    if lstart[0] != 0 or lstart[-1] != n or sizes.min() < 0 or sizes.max() > L:
         raise ValueError("descriptor tree leaves out of range")
+    if not _is_number(rb) or float(rb) != float(np.sqrt(np.max(np.einsum("ij,ij->i", B - mu, B - mu)))):
+        raise ValueError("descriptor tree radius bound is not the one of the map's descriptors")
     P = KR.feature_rotate(B, mu, V)
     lead, Bp, loT, hiT = KR.feature_tree_pack(B, P, perm, lstart)
     return _RowTree(B=B, brute=False, mu=mu, V=V, perm=perm, lstart=lstart, lead=lead, Bp=Bp, loT=loT, hiT=hiT,
                     rb=float(rb))
 
 
-def _restore_occupancy(cls, a: dict, e: dict):
-    """A stored :class:`~minegeo.localize.correlative.MapOccupancy` (its dense directory is
-    rebuilt from the block keys)."""
-    from minegeo.localize import _kernels as LK
-    from minegeo.localize.correlative import MAX_DENSE_BLOCKS
+def _table_log2(log2_start: int, n_blocks: int) -> int:
+    """Table size (log2 of its slots) the builders end with: the first from ``log2_start`` that
+    keeps ``n_blocks`` at most half full."""
+    log2 = log2_start
+    while n_blocks > (1 << log2) // 2:
+        log2 += 1
+    return log2
 
-    log2 = int(e["log2_blocks"])
-    keys = np.ascontiguousarray(a["block_keys"])
-    rows = a["bits"]
-    anchors = as_points(a["anchors"], "floor anchors", min_points=0)
+
+def _grid_log2_start(n_points: int, cell_m: float) -> tuple[int, int]:
+    """``(band, first log2)`` of :meth:`PreparedMap.screen_grid` over ``n_points`` points."""
+    from minegeo.localize.correlative import SCREEN_GATES_M
+
+    band = int(math.ceil(max(SCREEN_GATES_M) / cell_m))
+    n_cells = n_points * (2 * band + 1) ** 3
+    return band, max(10, int(math.ceil(math.log2(max(1, n_cells) / 512 / 8))) + 1)
+
+
+def _occupancy_log2_start(n_cells: int, dilation: int) -> int:
+    """First log2 of :func:`minegeo.localize.correlative.map_occupancy` (same formula)."""
+    return max(10, int(math.ceil(math.log2(max(1, n_cells) * (1 + 2 * dilation) / 32))) + 1)
+
+
+def _check_hash_table(keys: np.ndarray, log2: int, what: str) -> None:
+    """``ValueError`` unless ``keys`` (``2^log2`` int64, -1 = empty) is a table the kernels'
+    linear probing (:func:`minegeo.localize._kernels.block_slot`) can use: an empty slot exists
+    (a probe ends), used keys are valid block keys (non-negative), distinct, and each is
+    reached from its hash slot through used slots only."""
+    from minegeo.localize._kernels import _GOLD
+
+    cap = keys.shape[0]
+    mask = cap - 1
     used = keys != -1
-    if (keys.dtype != np.int64 or rows.dtype != np.uint64 or keys.shape != (1 << log2,)
-            or rows.shape != (int(used.sum()), 16) or np.count_nonzero(~used) == 0):
-        raise ValueError("occupancy arrays have the wrong shapes")
+    free = np.flatnonzero(~used)
+    if free.size == 0:
+        raise ValueError(f"{what} hash table has no empty slot")
+    slots = np.flatnonzero(used)
+    k = keys[slots]
+    if k.size == 0:
+        return
+    if int(k.min()) < 0 or np.unique(k).size != k.size:
+        raise ValueError(f"{what} hash table holds invalid or repeated keys")
+    with np.errstate(over="ignore"):
+        home = ((k * np.int64(_GOLD)) >> np.int64(64 - log2)) & np.int64(mask)  # int64 wraps, as in the kernel
+    pos = np.arange(cap)
+    r = np.roll(used, -free[0])  # rotated so that slot 0 is empty
+    run = pos - np.maximum.accumulate(np.where(r, 0, pos)) - 1  # used slots before each in its run
+    if np.any(((slots - home) & mask) > run[(slots - free[0]) & mask]):
+        raise ValueError(f"{what} hash table: a key is not where its probe finds it")
+
+
+def _check_occupancy(a: dict, e: dict, k: int, points: np.ndarray, normals: np.ndarray):
+    """Checks of a stored :class:`~minegeo.localize.correlative.MapOccupancy` (``k`` ICP points):
+    ``((cell, dilation, tilt), packed)`` with the used slots' rows, expanded on first use."""
+    key = e["key"]
+    if not isinstance(key, list) or len(key) != 3:
+        raise ValueError("occupancy key must be [cell, dilation, tilt]")
+    kd = dict(zip(("cell", "dilation", "tilt"), key, strict=True))
+    cell, dil, tilt = _number(kd, "cell", positive=True), _integer(kd, "dilation", 0, 1 << 20), _number(kd, "tilt")
+    log2 = _integer(e, "log2_blocks", 10, _MAX_LOG2_SLOTS)
+    n_cells = _integer(e, "n_cells", 1, k)
+    nb = _integer(e, "n_blocks", 1, 1 << (log2 - 1))
+    keys = _stored(a, "block_keys", np.int64, (1 << log2,))
+    if int(np.count_nonzero(keys != -1)) != nb:
+        raise ValueError("occupancy block count does not match its table")
+    rows = _stored(a, "bits", np.uint64, (nb, 16))
+    if log2 != _table_log2(_occupancy_log2_start(n_cells, dil), nb):
+        raise ValueError(f"occupancy table size 2^{log2} is not the one built for {n_cells} cells")
+    _check_hash_table(keys, log2, "occupancy")
+    anchors = _stored(a, "anchors", np.float64, ndim=2)
+    if not np.array_equal(anchors, points[normals[:, 2] >= math.cos(math.radians(tilt))]):
+        raise ValueError("floor anchors are not the map's")
+    build_s = _number(e, "build_s") if "build_s" in e else 0.0
+    return (cell, dil, tilt), {"key": (cell, dil, tilt), "keys": keys, "rows": rows, "anchors": anchors, "log2": log2, "n_cells": n_cells,
+                               "n_blocks": nb, "build_s": build_s}
+
+
+def _expand_occupancy(pk: dict):
+    """The :class:`~minegeo.localize.correlative.MapOccupancy` of a checked stored one (empty
+    slots added back with zero bits, dense directory rebuilt from the block keys)."""
+    from minegeo.localize import _kernels as LK
+    from minegeo.localize.correlative import MAX_DENSE_BLOCKS, MapOccupancy
+
+    cell, dil, _ = pk["key"]
+    keys = pk["keys"]
     bits = np.zeros((keys.shape[0], 16), dtype=np.uint64)  # an empty slot's bits must be zero
-    bits[used] = rows
-    cell, dil, _ = e["key"]
+    bits[keys != -1] = pk["rows"]
     table, table_lo = LK.dense_block_table(keys, MAX_DENSE_BLOCKS)
-    return cls(block_keys=keys, bits=bits, log2_blocks=log2, table=table, table_lo=table_lo,
-               n_cells=int(e["n_cells"]), n_blocks=int(e["n_blocks"]), anchors=np.ascontiguousarray(anchors),
-               cell_size_m=float(cell), dilation_cells=int(dil), build_s=float(e.get("build_s", 0.0)))
+    return MapOccupancy(block_keys=keys, bits=bits, log2_blocks=pk["log2"], table=table, table_lo=table_lo,
+                        n_cells=pk["n_cells"], n_blocks=pk["n_blocks"], anchors=pk["anchors"], cell_size_m=float(cell),
+                        dilation_cells=int(dil), build_s=pk["build_s"])
 
 
 def _diff(a: dict, b: dict, prefix: str = "") -> list:
@@ -787,7 +1202,7 @@ def _diff(a: dict, b: dict, prefix: str = "") -> list:
 
 
 def prepare_map(map_cloud, params: PrepareParams | None = None, *, georef=None, source: dict | None = None,
-                work_origin=None) -> PreparedMap:
+                work_origin=None, progress=None) -> PreparedMap:
     """Prepare a prior map for localization (downsample, normals, FPFH), once.
 
     Parameters
@@ -803,6 +1218,9 @@ def prepare_map(map_cloud, params: PrepareParams | None = None, *, georef=None, 
         Provenance of the map file (``path``, ``sha256``...).
     work_origin : (3,) array_like, optional
         Working origin (map frame); default: the centre of the bounding box rounded to 1 m.
+    progress : callable, optional
+        ``progress(step)`` when each step starts (``"downsample"``, ``"normals"``, ``"FPFH"``,
+        ``"ICP target"``; :mod:`minegeo.localize._progress`). Nothing is printed.
 
     Returns
     -------
@@ -830,10 +1248,12 @@ def prepare_map(map_cloud, params: PrepareParams | None = None, *, georef=None, 
         work_origin = np.asarray(work_origin, dtype=np.float64).reshape(3)
         wo_rel = work_origin - org
     P = P - wo_rel
-    timings: dict = {}
+    timings: dict = StepTimings(progress, FEATURE_STEPS)  # announces normals / FPFH as they start
+    announce(progress, "downsample")
     D, N, F = prepare_cloud_features(P, params.voxel_size_m, params.octree_level, params.features, timings)
     if D.shape[0] < 10:
         raise TooFewPointsError(f"the map has only {D.shape[0]} points after downsampling ({params.describe()})")
+    announce(progress, "ICP target")
     t0 = time.perf_counter()
     if params.icp_voxel_size_m is None:
         icp_pts = np.ascontiguousarray(P)
@@ -856,7 +1276,7 @@ def prepare_map(map_cloud, params: PrepareParams | None = None, *, georef=None, 
     return PreparedMap(points=D, normals=N, features=F, icp_points=icp_pts, icp_normals=icp_nrm,
                        work_origin=np.asarray(work_origin, dtype=np.float64),
                        params=params, params_hash=params_hash(params), georef=gdict, crs=crs, source=src,
-                       timings_s=timings, _georef_obj=georef)
+                       timings_s=dict(timings), _georef_obj=georef)
 
 
 def _georef_dict(georef) -> dict:
