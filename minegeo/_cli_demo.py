@@ -63,6 +63,8 @@ def run(args) -> int:
     from minegeo.errors import InputError
 
     out = Path(args.out)
+    if args.seed < 0:
+        raise InputError(f"--seed must be >= 0, got {args.seed}")
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} exists and is not a folder")
     if out.exists() and any(out.iterdir()) and not args.force:

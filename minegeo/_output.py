@@ -240,6 +240,7 @@ class OutputTransaction:
         self._tmpfiles: dict[str, Path] = {}
         self._filedirs: list[Path] = []
         self._in_folder: dict[str, tuple[str, Path]] = {}
+        self._created: list[Path] = []
         self._open = False
         self.committed = False
 
@@ -267,6 +268,15 @@ class OutputTransaction:
                     self._in_folder[lab] = (flab, _real(f).relative_to(_real(d)))
         targets = sorted([(str(_real(p)), lab, p) for lab, p in list(self.folders.items()) + list(self.files.items())
                           if lab not in self._in_folder])
+        # folders this run creates (missing parents of the outputs): removed again if the run fails
+        for _, _, p in targets:
+            top = None
+            for anc in [_real(p), *_real(p).parents][1:]:
+                if anc.exists():
+                    break
+                top = anc
+            if top is not None and top not in self._created:
+                self._created.append(top)
         try:
             for _, lab, p in targets:
                 lk = _Lock(_real(p), lab, self.verb)
@@ -352,6 +362,11 @@ class OutputTransaction:
         for lk in reversed(self._locks):
             lk.release()
         self._locks.clear()
+        if not self.committed:
+            for top in self._created:  # only if nothing was put there meanwhile
+                if top.is_dir() and not any(q.is_file() or q.is_symlink() for q in top.rglob("*")):
+                    shutil.rmtree(top, ignore_errors=True)
+        self._created.clear()
 
 
 class RunClock:

@@ -50,7 +50,24 @@ def versions() -> dict[str, str]:
 
 
 def sha256_file(path: str | os.PathLike, chunk_bytes: int = 1 << 20) -> str:
-    """SHA-256 hex digest of a file, read in chunks (the file is opened read-only)."""
+    """SHA-256 hex digest of a file, read in chunks (the file is opened read-only).
+
+    Raises
+    ------
+    FileFormatError
+        ``path`` is not a regular file (a device such as ``/dev/zero``, a pipe or a socket):
+        its length is not known, so it could never be hashed (nor read) to the end.
+    """
+    import stat
+
+    from minegeo.errors import FileFormatError
+
+    st = os.stat(path)
+    if stat.S_ISDIR(st.st_mode):
+        raise IsADirectoryError(21, "is a folder, not a file", str(path))
+    if not stat.S_ISREG(st.st_mode):
+        raise FileFormatError(path, "is not a regular file (a device, pipe or socket): minegeo reads "
+                                    "files of known length only; copy the data into a file first")
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         while True:

@@ -34,15 +34,42 @@ def _load(verb: str):
     return importlib.import_module(VERBS[verb])
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the CLI's one-line error form (no usage block before it; ``--help`` shows usage)."""
+
+    def error(self, message):  # noqa: D102 - argparse API
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+class _DeferredLog(logging.Handler):
+    """Hold a run's log records; they are printed when it ends (success or a bug), and dropped
+    when it stops on a user mistake, whose one error line is then all that stderr shows."""
+
+    def __init__(self, target: logging.Handler):
+        super().__init__(logging.NOTSET)
+        self.target = target
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record):
+        self.records.append(record)
+
+    def release(self, show: bool) -> None:
+        if show:
+            for r in self.records:
+                if r.levelno >= self.target.level:
+                    self.target.handle(r)
+        self.records.clear()
+
+
 def build_parser(verbs: list[str] | None = None) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="minegeo",
         description="Survey-grade localization in a mine's official coordinate system, with the math shown.",
     )
     parser.add_argument("--version", action="version", version=f"minegeo {__version__}")
     parser.add_argument("--debug", action="store_true", help="show full tracebacks and debug logging")
     parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
-    sub = parser.add_subparsers(dest="verb", metavar="VERB")
+    sub = parser.add_subparsers(dest="verb", metavar="VERB", parser_class=_Parser)
     for verb in verbs if verbs is not None else VERBS:
         try:
             mod = _load(verb)
@@ -61,13 +88,22 @@ def main(argv: list[str] | None = None) -> int:
     verb = next((a for a in argv if not a.startswith("-")), None)
     parser = build_parser([verb] if verb in VERBS else None)
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if args.debug else (logging.WARNING if args.quiet else logging.INFO),
-        format="%(message)s",
-    )
     if not getattr(args, "_run", None):
         parser.print_help()
         return 0 if args.verb is None else 2
+    # Log records go to stderr ("%(message)s"). With --debug they stream live; otherwise they are
+    # held until the run ends, so that a user mistake shows exactly one error line.
+    level = logging.DEBUG if args.debug else (logging.WARNING if args.quiet else logging.INFO)
+    stream = logging.StreamHandler(sys.stderr)
+    stream.setFormatter(logging.Formatter("%(message)s"))
+    stream.setLevel(level)
+    handler = stream if args.debug else _DeferredLog(stream)
+    root = logging.getLogger()
+    old_level = root.level
+    root.addHandler(handler)
+    root.setLevel(min(level, old_level) if old_level else level)
+    logging.captureWarnings(True)  # a Python warning is a log record too ("py.warnings")
+    show_log = True
     from minegeo._output import RunClock
 
     args._clock = RunClock()  # wall time and Numba compile time of this run, reported apart
@@ -76,12 +112,14 @@ def main(argv: list[str] | None = None) -> int:
     except MinegeoError as exc:
         if args.debug:
             raise
+        show_log = False
         print(f"minegeo {args.verb}: error: {exc}", file=sys.stderr)
         return 2
     except (FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError, PermissionError) as exc:
         # e.g. --out naming an existing file, or a path through a file: the user's mistake, not a crash
         if args.debug:
             raise
+        show_log = False
         name = getattr(exc, "filename", None) or ""
         print(f"minegeo {args.verb}: error: {exc.strerror or exc}: {name}", file=sys.stderr)
         return 2
@@ -90,6 +128,11 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     finally:
         args._clock.close()
+        logging.captureWarnings(False)
+        root.removeHandler(handler)
+        root.setLevel(old_level)
+        if isinstance(handler, _DeferredLog):
+            handler.release(show_log)
 
 
 if __name__ == "__main__":  # pragma: no cover

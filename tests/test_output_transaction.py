@@ -181,3 +181,14 @@ def test_run_clock_counts_numba_compilation_apart():
         clock.close()
     assert 0.0 < t["compile_s"] <= elapsed + 1e-6
     assert t["wall_s"] == pytest.approx(t["compile_s"] + t["work_s"])
+
+
+def test_failed_run_removes_the_parent_folders_it_created(tmp_path):
+    out = tmp_path / "new" / "deeper" / "out"
+    with pytest.raises(RuntimeError), OutputTransaction("t", folders={"--out": out}) as tx:
+        (tx.folder("--out") / "result.json").write_text("{}")
+        raise RuntimeError("crash")
+    assert list(tmp_path.iterdir()) == []
+    with OutputTransaction("t", files={"--json": tmp_path / "a" / "b.json"}) as tx:
+        tx.file("--json").write_text("{}")
+    assert (tmp_path / "a" / "b.json").read_text() == "{}"

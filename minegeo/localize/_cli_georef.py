@@ -43,7 +43,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from minegeo._output import OutputTransaction, run_timings
     from minegeo._provenance import StageTimer, input_record, provenance, write_json_atomic
-    from minegeo.errors import TooFewPointsError
+    from minegeo.errors import InputError, TooFewPointsError
     from minegeo.io import read_gcps, read_point_cloud
     from minegeo.localize.georef import (
         GeorefParams,
@@ -64,6 +64,12 @@ def run(args) -> int:
         max_scale_deviation=args.max_scale_deviation,
         max_sigma0=args.max_sigma0,
     )
+    import math
+
+    for opt, v in (("--default-sigma-m", args.default_sigma_m), ("--sigma-local-m", args.sigma_local_m)):
+        if not math.isfinite(v) or v < 0 or (opt == "--default-sigma-m" and v == 0):
+            raise InputError(f"{opt} must be a finite standard deviation in metres"
+                             f"{' > 0' if opt == '--default-sigma-m' else ' >= 0'}, got {v}")
     map_path = Path(args.map)
     out_path = Path(args.out)
     report_dir = Path(args.report)

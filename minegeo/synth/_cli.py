@@ -47,8 +47,10 @@ def run(args) -> int:
     if not args.mast_only:
         if args.gcps < 3:
             raise InputError(f"--gcps: need at least 3 control points, got {args.gcps}")
+        from minegeo.localize.crs import validate_crs
         from minegeo.synth.dataset import _crs_origin
 
+        validate_crs(args.crs)  # a projected CRS in metres, as minegeo georef needs (not degrees)
         _crs_origin(args.crs)  # raises CRSError for an unknown or unsuitable CRS
     from minegeo._output import OutputTransaction
 
