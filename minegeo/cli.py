@@ -53,7 +53,7 @@ class _DeferredLog(logging.Handler):
     def emit(self, record):
         self.records.append(record)
 
-    def release(self, show: bool) -> None:
+    def finish(self, show: bool) -> None:
         if show:
             for r in self.records:
                 if r.levelno >= self.target.level:
@@ -132,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         root.removeHandler(handler)
         root.setLevel(old_level)
         if isinstance(handler, _DeferredLog):
-            handler.release(show_log)
+            handler.finish(show_log)
 
 
 if __name__ == "__main__":  # pragma: no cover
