@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from minegeo.errors import FileFormatError, InputError
+from minegeo.io._limits import MAX_ABS_COORDINATE, check_coordinate_range
 from minegeo.io.types import PointCloud
 
 log = logging.getLogger(__name__)
@@ -115,10 +116,18 @@ def resolve_origin(path, origin, raw: RawCloud) -> np.ndarray:
                 return np.zeros(3)
             return np.round(0.5 * (lo + hi))
         raise InputError(f"origin must be None, 'auto', 'file' or 3 numbers, got {origin!r}")
-    o = np.asarray(origin, dtype=np.float64).reshape(-1)
-    if o.shape != (3,) or not np.isfinite(o).all():
-        raise InputError(f"origin must be 3 finite numbers (m), got {origin!r}")
+    try:
+        o = np.asarray(origin, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError(f"origin must be None, 'auto', 'file' or 3 numbers, got {origin!r}") from None
+    if o.shape != (3,) or not np.isfinite(o).all() or np.abs(o).max() > MAX_ABS_COORDINATE:
+        raise InputError(f"origin must be 3 finite numbers within +-{MAX_ABS_COORDINATE:.0e} (m), got {origin!r}")
     return o
+
+
+def _kept_row(keep, i: int) -> int:
+    """Row of the file of the ``i``-th kept point (``keep``: mask of kept rows, or None)."""
+    return i if keep is None else int(np.flatnonzero(keep)[i])
 
 
 def _row_label(raw: RawCloud, i: int) -> str:
@@ -141,16 +150,11 @@ def assemble(
     """
     values = raw.values
     meta = dict(raw.metadata)
+    s = None
     if scale is not None:
         s = float(scale)
         if not np.isfinite(s) or s <= 0:
             raise InputError(f"scale must be a positive number, got {scale!r}")
-        values = values * s
-        raw = RawCloud(values, raw.fields, raw.file_origin * s, raw.crs, raw.frame, meta, raw.line_of_row)
-        units = meta.get("units")
-        conv = {("cm", 0.01): "m", ("mm", 0.001): "m", ("m", 1.0): "m"}
-        meta["scale_applied"] = s
-        meta["units"] = conv.get((units, s), f"{units or 'file units'} x {s:g}")
     keep = None
     if not np.isfinite(values).all():  # one flat pass; rows only when something is bad
         finite = np.isfinite(values).all(axis=1)
@@ -165,6 +169,22 @@ def assemble(
         meta["dropped_nonfinite"] = int(bad.size)
         keep = finite
         values = values[keep]
+    # huge finite values (1e308 in a text file, a garbage float32 in binary data) would overflow
+    # in every later difference or square: refuse them here, where the file can be named
+    check_coordinate_range(path, values, "coordinate", lambda i: _row_label(raw, _kept_row(keep, i)))
+    if not np.isfinite(raw.file_origin).all():
+        raise FileFormatError(path, f"the origin recorded in the header is not finite: {raw.file_origin.tolist()}")
+    check_coordinate_range(path, raw.file_origin.reshape(1, 3), "recorded origin coordinate", lambda i: "the header")
+    if s is not None:
+        lim = MAX_ABS_COORDINATE / s
+        if s > 1.0 and values.size and max(float(values.max()), -float(values.min()), *np.abs(raw.file_origin)) > lim:
+            raise InputError(f"scale {s:g} makes coordinates larger than +-{MAX_ABS_COORDINATE:.0e}; check the scale")
+        values = values * s
+        raw = RawCloud(values, raw.fields, raw.file_origin * s, raw.crs, raw.frame, meta, raw.line_of_row)
+        units = meta.get("units")
+        conv = {("cm", 0.01): "m", ("mm", 0.001): "m", ("m", 1.0): "m"}
+        meta["scale_applied"] = s
+        meta["units"] = conv.get((units, s), f"{units or 'file units'} x {s:g}")
     o = resolve_origin(path, origin, RawCloud(values, {}, raw.file_origin))
     shift = raw.file_origin - o
     # ``values`` is a fresh array owned by this call: no copy needed when there is no shift

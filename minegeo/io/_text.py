@@ -14,8 +14,17 @@ import io
 import numpy as np
 
 from minegeo.errors import FileFormatError
+from minegeo.io._limits import MAX_COLUMNS
 
-__all__ = ["parse_table", "format_table", "line_offsets", "is_number", "data_line_locator"]
+__all__ = [
+    "parse_table",
+    "format_table",
+    "line_offsets",
+    "is_number",
+    "data_line_locator",
+    "unterminated_last_line",
+    "note_unterminated_last_line",
+]
 
 #: rows formatted per ``%`` operation when writing text (bounds memory, no per-row loop)
 _CHUNK_ROWS = 200_000
@@ -39,6 +48,46 @@ def line_offsets(data: bytes | memoryview, start: int, nlines: int) -> int:
     if nl.size < nlines:
         return len(data)
     return start + int(nl[nlines - 1]) + 1
+
+
+def unterminated_last_line(data: bytes | str) -> tuple[int, str] | None:
+    """``(line number, text)`` of a last data line that has no end-of-line, else None.
+
+    A file cut short (copy interrupted, disk full) usually ends in the middle of a line. A
+    line cut at a separator has fewer values than the others and :func:`parse_table` refuses
+    it (naming the line); a line cut inside a number (``12.3`` for ``12.345``) cannot be told
+    from a complete one, only the missing end-of-line shows it. Blank and ``#`` comment tails
+    are ignored.
+    """
+    nl = "\n" if isinstance(data, str) else b"\n"
+    if not data or data.endswith(nl):
+        return None
+    tail = data[data.rfind(nl) + 1 :]
+    if isinstance(tail, bytes):
+        tail = tail.decode("latin-1")
+    tail = tail.strip()
+    if not tail or tail.startswith("#") or tail.startswith("//"):
+        return None
+    return data.count(nl) + 1, tail
+
+
+def note_unterminated_last_line(path, data: bytes | str, meta: dict) -> None:
+    """Record a missing final end-of-line in ``meta`` (policy of the text readers).
+
+    The points are read (many programs write no final newline) but
+    ``meta["unterminated_last_line"]`` holds the line number and ``meta["warnings"]`` a
+    sentence that :func:`~minegeo.io.read_point_cloud` logs once the file has been read
+    completely, so the surveyor is told to check the last point.
+    """
+    found = unterminated_last_line(data)
+    if found is None:
+        return
+    lineno, tail = found
+    meta["unterminated_last_line"] = lineno
+    meta.setdefault("warnings", []).append(
+        f"the last line ({lineno}: {tail[:60]!r}) has no end-of-line: the file may have been cut short; "
+        "check that its values are complete"
+    )
 
 
 def data_line_locator(text: str, first_line: int, comments: str | None = "#"):
@@ -115,6 +164,8 @@ def parse_table(
         Non-numeric value, varying number of columns (names the line), or a row count that
         differs from ``expected_rows``.
     """
+    if ncols is not None and ncols > MAX_COLUMNS:
+        raise FileFormatError(path, f"{ncols} values per line declared, more than the {MAX_COLUMNS} allowed (damaged header?)")
     if not text.strip():
         arr = np.empty((0, ncols or 0))
     elif (arr := _fast_parse(text, ncols, delimiter, comments, max_rows)) is not None:
@@ -155,6 +206,9 @@ def _fast_parse(text: str, ncols: int | None, delimiter: str | None, comments: s
     nlines = int(np.count_nonzero(buf == 10)) + 1
     if max_rows is not None:
         nlines = min(nlines, max_rows)
+    # a row of ncols values takes at least 2 * ncols bytes: never allocate more rows than fit
+    # (blank and comment lines count in nlines; if the bound is hit the kernel falls back)
+    nlines = min(nlines, buf.size // (2 * ncols) + 1)
     out = np.empty((nlines, ncols), dtype=np.float64)
     rows, status = parse_text_kernel(
         buf,

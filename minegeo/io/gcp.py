@@ -13,9 +13,13 @@ Layout written by :func:`write_gcps` (and the canonical input)::
 
 Reading is tolerant: header names are case-insensitive; ``easting northing height``
 (or ``elevation``) are accepted for ``E N H``; ``sigma_E``/``sd_E`` for ``sigma_E_m``;
-separators ``,`` ``;`` tab or spaces; ``#`` comment lines. When the sigma columns are
+separators ``,`` ``;`` tab or spaces; ``#`` comment lines; UTF-8 (a byte-order mark is
+skipped; other encodings are refused rather than turned into wrong ids). When the sigma columns are
 missing every CRS coordinate gets ``default_sigma_m`` (**0.01 m** unless given) and a
-warning is logged. Errors name the file, the line and the problem.
+warning is logged. Errors name the file, the line and the problem. Files larger than
+:data:`~minegeo.io._limits.MAX_TABLE_FILE_BYTES`, coordinates beyond
+:data:`~minegeo.io._limits.MAX_ABS_COORDINATE` and sigmas below
+:data:`~minegeo.io._limits.MIN_SIGMA_M` are refused.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ import numpy as np
 
 from minegeo._provenance import atomic_write_text
 from minegeo.errors import FileFormatError, InputError
+from minegeo.io._limits import MAX_ABS_COORDINATE, MAX_TABLE_FILE_BYTES, MIN_SIGMA_M, read_file_text
 from minegeo.io.types import ControlPoints
 
 log = logging.getLogger(__name__)
@@ -50,10 +55,14 @@ for _c in ("E", "N", "H", "x", "y", "z"):
 _REQUIRED = ("id", "x", "y", "z", "E", "N", "H")
 
 
-def _split(line: str, delim: str | None) -> list[str]:
+def _split(path, lineno: int, line: str, delim: str | None) -> list[str]:
     if delim is None:
         return line.split()
-    return [t.strip() for t in next(csv.reader([line], delimiter=delim, skipinitialspace=True))]
+    try:
+        row = next(csv.reader([line], delimiter=delim, skipinitialspace=True), [])
+    except csv.Error as exc:
+        raise FileFormatError(path, f"line {lineno}: unreadable CSV ({exc})") from None
+    return [t.strip() for t in row]
 
 
 def read_gcps(path, default_sigma_m: float = DEFAULT_GCP_SIGMA_M, crs: str | None = None) -> ControlPoints:
@@ -74,7 +83,9 @@ def read_gcps(path, default_sigma_m: float = DEFAULT_GCP_SIGMA_M, crs: str | Non
         non-positive sigma or duplicate ids -- naming the file and the line.
     """
     p = Path(path)
-    lines = p.read_bytes().decode("utf-8-sig", errors="replace").splitlines()
+    # strict UTF-8: a point id with a byte of another encoding would silently become "GCP?03"
+    text = read_file_text(p, encoding="utf-8-sig", max_bytes=MAX_TABLE_FILE_BYTES, what="control-point file")
+    lines = text.splitlines()
     file_crs = None
     header = None
     delim = None
@@ -95,7 +106,7 @@ def read_gcps(path, default_sigma_m: float = DEFAULT_GCP_SIGMA_M, crs: str | Non
             continue
         if header is None:
             delim = "," if "," in line else (";" if ";" in line else ("\t" if "\t" in line else None))
-            names = _split(line, delim)
+            names = _split(p, lineno, line, delim)
             canon = [_ALIASES.get(n.strip().lower(), n.strip()) for n in names]
             missing = [c for c in _REQUIRED if c not in canon]
             if missing:
@@ -108,7 +119,7 @@ def read_gcps(path, default_sigma_m: float = DEFAULT_GCP_SIGMA_M, crs: str | Non
                 raise FileFormatError(p, f"line {lineno}: repeated column names in header {line!r}")
             header = canon
             continue
-        toks = _split(line, delim)
+        toks = _split(p, lineno, line, delim)
         if len(toks) != len(header):
             raise FileFormatError(p, f"line {lineno}: expected {len(header)} fields, found {len(toks)}")
         rec = dict(zip(header, toks, strict=True))
@@ -124,6 +135,15 @@ def read_gcps(path, default_sigma_m: float = DEFAULT_GCP_SIGMA_M, crs: str | Non
                 raise FileFormatError(p, f"line {lineno}: {c} is {rec[c]} (NaN/inf not allowed)")
             if c.startswith("sigma_") and v <= 0:
                 raise FileFormatError(p, f"line {lineno}: {c} = {v} must be > 0")
+            if c.startswith("sigma_") and v < MIN_SIGMA_M:
+                raise FileFormatError(
+                    p, f"line {lineno}: {c} = {v:g} m is below {MIN_SIGMA_M:g} m, finer than any survey (wrong units?)"
+                )
+            if abs(v) > MAX_ABS_COORDINATE:
+                raise FileFormatError(
+                    p, f"line {lineno}: {c} = {v:g} is beyond +-{MAX_ABS_COORDINATE:.0e}: not a survey coordinate "
+                    "(damaged file or wrong units?)"
+                )
             vals.append(v)
         if not rec["id"]:
             raise FileFormatError(p, f"line {lineno}: empty id")

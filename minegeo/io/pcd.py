@@ -33,8 +33,9 @@ from minegeo.io._common import (
     rgb_of,
     writable_attributes,
 )
+from minegeo.io._limits import MAX_COLUMNS, MAX_HEADER_BYTES
 from minegeo.io._lzf import lzf_compress, lzf_decompress
-from minegeo.io._text import data_line_locator, format_table, parse_table
+from minegeo.io._text import data_line_locator, format_table, note_unterminated_last_line, parse_table
 from minegeo.io.types import PointCloud
 
 __all__ = ["read_pcd_bytes", "write_pcd_bytes", "PCD_ENCODINGS"]
@@ -43,6 +44,8 @@ PCD_ENCODINGS = ("ascii", "binary", "binary_compressed")
 _KEYS = ("VERSION", "FIELDS", "COLUMNS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
 _VALID = {("F", 4), ("F", 8), ("I", 1), ("I", 2), ("I", 4), ("I", 8), ("U", 1), ("U", 2), ("U", 4), ("U", 8)}
 _MAX_HEADER_LINES = 64
+#: largest LZF expansion: a 3-byte back reference copies at most 264 bytes (liblzf ``lzf_d.c``)
+_LZF_MAX_RATIO = 88
 
 
 def _np_code(t: str, s: int) -> str:
@@ -58,8 +61,12 @@ def _parse_header(path, data: bytes):
         lineno += 1
         if lineno > _MAX_HEADER_LINES:
             raise FileFormatError(path, "PCD header has no DATA line in its first 64 lines (not a PCD file?)")
-        nl = data.find(b"\n", pos)
+        nl = data.find(b"\n", pos, MAX_HEADER_BYTES)  # a header line that never ends is found quickly
         if nl < 0:
+            if len(data) > MAX_HEADER_BYTES:
+                raise FileFormatError(
+                    path, f"PCD header has no DATA line in its first {MAX_HEADER_BYTES} bytes (damaged or not PCD)"
+                )
             if not data[pos:].strip():
                 what = "empty file" if not data.strip() else "PCD header ends before its DATA line"
                 raise FileFormatError(path, f"{what} (truncated?)")
@@ -114,6 +121,10 @@ def read_pcd_bytes(path, data: bytes) -> RawCloud:
     for nm, t, s, c in zip(names, types, sizes_i, counts_i, strict=True):
         if (t, s) not in _VALID or c < 1:
             raise FileFormatError(path, f"PCD field {nm!r}: unsupported TYPE {t} SIZE {s} COUNT {c}")
+    if sum(counts_i) > MAX_COLUMNS:
+        raise FileFormatError(
+            path, f"PCD COUNT entries add up to {sum(counts_i)} values per point, more than {MAX_COLUMNS} (damaged header?)"
+        )
     width = _int(path, hdr, "WIDTH")
     height = _int(path, hdr, "HEIGHT", 1)
     n = _int(path, hdr, "POINTS", width * height)
@@ -183,6 +194,11 @@ def read_pcd_bytes(path, data: bytes) -> RawCloud:
                 raise FileFormatError(
                     path, f"file truncated: {csize} compressed bytes declared, {len(data) - body - 8} present"
                 )
+            if usize > _LZF_MAX_RATIO * csize:  # checked before allocating the output
+                raise FileFormatError(
+                    path, f"binary_compressed PCD: {csize} compressed bytes cannot hold {usize} bytes "
+                    f"(LZF expands at most {_LZF_MAX_RATIO}x; wrong POINTS or damaged size header)"
+                )
             try:
                 raw = lzf_decompress(memoryview(data)[body + 8 : body + 8 + csize], usize) if usize else b""
             except InputError as exc:
@@ -219,6 +235,8 @@ def read_pcd_bytes(path, data: bytes) -> RawCloud:
         "height": height,
         "dtype": str(np.result_type(*(np.dtype(codes[i]) for i in (ix, iy, iz)))),
     }
+    if mode == "ascii":
+        note_unterminated_last_line(path, data, meta)
     if "VIEWPOINT" in hdr:
         meta["viewpoint"] = hdr["VIEWPOINT"]
     if "VERSION" in hdr:

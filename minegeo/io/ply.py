@@ -27,7 +27,8 @@ from minegeo.io._common import (
     rgb_of,
     writable_attributes,
 )
-from minegeo.io._text import data_line_locator, format_table, parse_table
+from minegeo.io._limits import MAX_HEADER_BYTES
+from minegeo.io._text import data_line_locator, format_table, note_unterminated_last_line, parse_table
 from minegeo.io.types import PointCloud
 
 __all__ = ["read_ply_bytes", "write_ply_bytes", "PLY_ENCODINGS"]
@@ -42,14 +43,17 @@ _TYPES = {
 }  # fmt: skip
 _NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
           "f4": "float", "f8": "double"}  # fmt: skip
-_MAX_HEADER = 1 << 20
 
 
 def _parse_header(path, data: bytes):
     if not data.startswith(b"ply"):
         raise FileFormatError(path, "not a PLY file (does not start with 'ply')")
-    end = data.find(b"end_header", 0, _MAX_HEADER)
+    end = data.find(b"end_header", 0, MAX_HEADER_BYTES)  # a header that never ends is found quickly
     if end < 0:
+        if len(data) > MAX_HEADER_BYTES:
+            raise FileFormatError(
+                path, f"PLY header has no 'end_header' line in its first {MAX_HEADER_BYTES} bytes (damaged or not PLY)"
+            )
         raise FileFormatError(path, "PLY header has no 'end_header' line (truncated or not PLY)")
     nl = data.find(b"\n", end)
     if nl < 0:
@@ -140,6 +144,8 @@ def read_ply_bytes(path, data: bytes) -> RawCloud:
             )
         cols = {p[0]: table[:, j].astype(p[1]) for j, p in enumerate(vert["props"])}
         line_of_row = data_line_locator(text, header_lines + 1 + text_lines, comments=None)
+        if not tail_elements:
+            note_unterminated_last_line(path, data, meta)
     else:
         endian = "<" if fmt == "binary_little_endian" else ">"
         offset = body_start

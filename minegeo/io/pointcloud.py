@@ -16,7 +16,10 @@ pts        .pts                       :mod:`minegeo.io.xyz` (Leica PTS)
 
 A ``.zip`` holding exactly one point-cloud file (e.g. ``scan.pcd.zip``) is read directly.
 Files are read whole into memory and parsed with vectorised NumPy (structured dtypes for
-binary data, NumPy's C tokenizer for text): no Python loop runs over points.
+binary data, NumPy's C tokenizer for text): no Python loop runs over points. Every read is
+bounded (:mod:`minegeo.io._limits`): only regular files, whose size is known before
+allocating; header point counts checked against the bytes present; zip members checked
+against their declared size and compression ratio before inflating.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from __future__ import annotations
 import logging
 import os
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +35,7 @@ import numpy as np
 from minegeo._provenance import atomic_write_bytes, sha256_file
 from minegeo.errors import FileFormatError, InputError
 from minegeo.io._common import assemble
+from minegeo.io._limits import _ZIP_RATIO_FREE_BYTES, MAX_ZIP_MEMBER_BYTES, MAX_ZIP_RATIO, read_file_bytes
 from minegeo.io.types import PointCloud
 
 log = logging.getLogger(__name__)
@@ -93,7 +98,7 @@ def _unzip(path: Path, data: bytes) -> tuple[str, bytes, str]:
 
     try:
         zf = zipfile.ZipFile(io.BytesIO(data))
-    except zipfile.BadZipFile as exc:
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError, NotImplementedError) as exc:
         raise FileFormatError(path, f"not a readable zip archive ({exc})") from None
     members = [
         m
@@ -105,10 +110,23 @@ def _unzip(path: Path, data: bytes) -> tuple[str, bytes, str]:
         names = ", ".join(m.filename for m in zf.infolist()) or "(nothing)"
         raise FileFormatError(path, f"zip must hold exactly one point-cloud file, it holds: {names}")
     m = members[0]
+    # the declared size bounds what zipfile will inflate: check it before inflating (zip bombs)
+    if m.file_size > MAX_ZIP_MEMBER_BYTES:
+        raise FileFormatError(
+            path, f"zip member {m.filename!r} declares {m.file_size} bytes uncompressed, more than the "
+            f"{MAX_ZIP_MEMBER_BYTES} allowed (unzip it and read the file itself)"
+        )
+    if m.file_size > _ZIP_RATIO_FREE_BYTES and m.file_size > MAX_ZIP_RATIO * max(m.compress_size, 1):
+        raise FileFormatError(
+            path, f"zip member {m.filename!r} would inflate {m.compress_size} bytes to {m.file_size} "
+            f"(ratio above {MAX_ZIP_RATIO}): not a point cloud (zip bomb?)"
+        )
     try:
         inner = zf.read(m)
-    except (zipfile.BadZipFile, OSError, EOFError) as exc:
-        raise FileFormatError(path, f"zip member {m.filename!r} is damaged ({exc})") from None
+    except (zipfile.BadZipFile, zlib.error, OSError, EOFError, ValueError, NotImplementedError, RuntimeError) as exc:
+        raise FileFormatError(path, f"zip member {m.filename!r} is damaged or unsupported ({exc})") from None
+    if len(inner) != m.file_size:
+        raise FileFormatError(path, f"zip member {m.filename!r} is damaged ({len(inner)} bytes, {m.file_size} declared)")
     return f"{path}!{m.filename}", inner, _SUFFIX[Path(m.filename).suffix.lower()]
 
 
@@ -162,8 +180,12 @@ def read_point_cloud(
     ------
     FileFormatError
         Unknown extension, wrong or unknown header, truncated data, point count that differs
-        from the header, non-numeric values, NaN coordinates, empty file; the message names
-        the file and the problem (and the line for text data).
+        from the header, non-numeric values, NaN coordinates, coordinates beyond
+        :data:`~minegeo.io._limits.MAX_ABS_COORDINATE`, empty file; not a regular file
+        (``/dev/zero``, a FIFO: refused without being opened), a header that does not end
+        within :data:`~minegeo.io._limits.MAX_HEADER_BYTES`, a zip member that would inflate
+        beyond :data:`~minegeo.io._limits.MAX_ZIP_RATIO` times its size, or not enough memory
+        for the file; the message names the file and the problem (and the line for text data).
     OptionalDependencyError
         LAS/LAZ without laspy installed.
     FileNotFoundError
@@ -172,22 +194,27 @@ def read_point_cloud(
     p = Path(path)
     is_zip = p.suffix.lower() == ".zip" or (format is not None and str(format).lower() == "zip")
     fmt = "zip" if is_zip else detect_format(p, format)
-    if p.is_dir():
-        raise FileFormatError(p, "is a directory, not a point-cloud file")
-    data = p.read_bytes()
+    data = read_file_bytes(p, what="point-cloud file")  # regular files only: size known before allocating
     name = str(p)
-    if is_zip:
-        if data[:4] != b"PK\x03\x04":
-            raise FileFormatError(p, "not a zip archive (bad signature)")
-        name, data, fmt = _unzip(p, data)
-        if format is not None and str(format).lower() != "zip":
-            fmt = detect_format(name, format)
-    if len(data) == 0:
-        raise FileFormatError(name, "empty file")
-    raw = _read_raw(name, data, fmt, columns=columns)
-    del data
-    cloud = assemble(name, raw, origin=origin, drop_nonfinite=drop_nonfinite, scale=scale)
+    size = len(data)
+    try:
+        if is_zip:
+            if data[:4] != b"PK\x03\x04":
+                raise FileFormatError(p, "not a zip archive (bad signature)")
+            name, data, fmt = _unzip(p, data)
+            if format is not None and str(format).lower() != "zip":
+                fmt = detect_format(name, format)
+        if len(data) == 0:
+            raise FileFormatError(name, "empty file")
+        size = len(data)
+        raw = _read_raw(name, data, fmt, columns=columns)
+        del data
+        cloud = assemble(name, raw, origin=origin, drop_nonfinite=drop_nonfinite, scale=scale)
+    except MemoryError:
+        raise FileFormatError(name, f"not enough memory to read this {size}-byte point cloud") from None
     cloud.metadata["source"] = name
+    if "unterminated_last_line" in cloud.metadata:  # told only once the whole file has been read
+        log.warning("%s: %s", name, cloud.metadata["warnings"][-1])
     log.debug("read %d points from %s (%s)", len(cloud), name, fmt)
     return cloud
 

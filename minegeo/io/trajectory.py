@@ -28,8 +28,16 @@ import numpy as np
 
 from minegeo._provenance import atomic_write_bytes
 from minegeo.errors import FileFormatError, InputError
+from minegeo.io._limits import (
+    MAX_ABS_COORDINATE,
+    MAX_ABS_TIME,
+    MAX_TABLE_FILE_BYTES,
+    check_coordinate_range,
+    read_file_bytes,
+    read_file_text,
+)
 from minegeo.io._quat import matrix_to_quat, quat_to_matrix
-from minegeo.io._text import format_table, is_number, parse_table
+from minegeo.io._text import format_table, is_number, parse_table, unterminated_last_line
 from minegeo.io.types import Trajectory
 
 log = logging.getLogger(__name__)
@@ -115,7 +123,7 @@ def read_trajectory(
         NaN, a quaternion that is not unit length (the line is named).
     """
     p = Path(path)
-    text = p.read_bytes().decode("latin-1")
+    text = read_file_bytes(p, what="trajectory file").decode("latin-1")
     if not text.strip():
         raise FileFormatError(p, "empty file (no poses)")
     header, delim, start, first_line, toks = _preamble(p, text)
@@ -159,6 +167,17 @@ def read_trajectory(
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
         raise FileFormatError(p, f"{int(bad.sum())} pose(s) contain NaN or inf (first: pose {i}, data row {i + 1})")
+
+    def where(i: int) -> str:
+        return f"pose {i}, data row {i + 1}"
+
+    # huge finite values would overflow in quaternion norms, time differences and positions
+    check_coordinate_range(p, times, "time", where, limit=MAX_ABS_TIME, row_noun="pose")
+    if qrows is not None:
+        check_coordinate_range(p, xyz, "position", where, row_noun="pose")
+        check_coordinate_range(p, qrows, "quaternion component", where, row_noun="pose")
+    else:
+        check_coordinate_range(p, poses[:, :3, :].reshape(-1, 12), "matrix element", where, row_noun="pose")
     if qrows is not None:
         try:
             R = quat_to_matrix(qrows, order=order)
@@ -175,9 +194,16 @@ def read_trajectory(
     if times.size > 1 and np.any(np.diff(times) <= 0):
         log.warning("%s: timestamps are not strictly increasing", p)
     o = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
+    if not (np.isfinite(o).all() and np.abs(o).max() <= MAX_ABS_COORDINATE):
+        raise InputError(f"origin must be 3 finite numbers within +-{MAX_ABS_COORDINATE:.0e} (m), got {origin!r}")
     if np.any(o != 0):
         poses[:, :3, 3] -= o
-    return Trajectory(times_s=times, poses=poses, frame=frame, body=body, origin=o, crs=crs)
+    traj = Trajectory(times_s=times, poses=poses, frame=frame, body=body, origin=o, crs=crs)
+    cut = unterminated_last_line(text)
+    if cut is not None:  # told once the whole file has been read (see minegeo.io._text)
+        log.warning("%s: the last line (%d: %r) has no end-of-line: the file may have been cut short; "
+                    "check that its values are complete", p, cut[0], cut[1][:60])
+    return traj
 
 
 def write_trajectory(path, traj: Trajectory, format: str | None = None, *, coordinates: str = "global") -> Path:
@@ -240,7 +266,8 @@ def read_transform(path) -> np.ndarray:
         Not 12/16 numbers, a last row other than ``0 0 0 1``, or non-finite values.
     """
     p = Path(path)
-    lines = [ln.split("#", 1)[0] for ln in p.read_text(encoding="latin-1").splitlines()]
+    text = read_file_text(p, encoding="latin-1", max_bytes=MAX_TABLE_FILE_BYTES, what="4x4 matrix file")
+    lines = [ln.split("#", 1)[0] for ln in text.splitlines()]
     text = " ".join(lines).replace(",", " ").replace("[", " ").replace("]", " ").replace(";", " ")
     toks = text.split()
     try:
@@ -254,6 +281,7 @@ def read_transform(path) -> np.ndarray:
     T = vals.reshape(4, 4)
     if not np.isfinite(T).all():
         raise FileFormatError(p, "matrix contains NaN or inf")
+    check_coordinate_range(p, T, "matrix element", lambda i: f"row {i + 1}", row_noun="row")
     if not np.allclose(T[3], [0, 0, 0, 1]):
         raise FileFormatError(p, f"last row must be 0 0 0 1, got {T[3].tolist()}")
     return T

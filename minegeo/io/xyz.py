@@ -23,6 +23,14 @@ always uses ``,``). Column names come from, in this order:
 Normals are ``nx ny nz`` (or ``normal_x ..``), colour ``red green blue`` (0..255) ->
 ``attributes["rgb"]``. Text has no dtypes: other attributes are read back as float64.
 minegeo writes its CRS/frame/local origin as ``# minegeo <key> <value>`` lines.
+
+Damaged files: every data line must have as many values as the first one (a line cut
+short at a separator is an error naming its line). A last line without an end-of-line,
+the usual mark of a file cut short inside a number, is read, logged as a warning and
+recorded in ``metadata["unterminated_last_line"]`` (its line number) and
+``metadata["warnings"]``. Preamble lines longer than
+:data:`~minegeo.io._limits.MAX_HEADER_LINE_BYTES` (binary data) and coordinates beyond
+:data:`~minegeo.io._limits.MAX_ABS_COORDINATE` are errors.
 """
 
 from __future__ import annotations
@@ -44,7 +52,14 @@ from minegeo.io._common import (
     rgb_of,
     writable_attributes,
 )
-from minegeo.io._text import data_line_locator, format_table, is_number, parse_table
+from minegeo.io._limits import MAX_HEADER_LINE_BYTES
+from minegeo.io._text import (
+    data_line_locator,
+    format_table,
+    is_number,
+    note_unterminated_last_line,
+    parse_table,
+)
 from minegeo.io.types import PointCloud
 
 log = logging.getLogger(__name__)
@@ -91,7 +106,11 @@ def read_text_bytes(path, data: bytes, fmt: str = "xyz", columns=None) -> RawClo
     first_data = None
     delim = "," if fmt == "csv" else None
     while lineno < _MAX_PREAMBLE and pos < len(text):
-        nl = text.find("\n", pos)
+        nl = text.find("\n", pos, pos + MAX_HEADER_LINE_BYTES + 1)
+        if nl < 0 and len(text) - pos > MAX_HEADER_LINE_BYTES:
+            raise FileFormatError(
+                path, f"line {lineno + 1} is longer than {MAX_HEADER_LINE_BYTES} bytes: not a text point cloud (binary data?)"
+            )
         end = len(text) if nl < 0 else nl
         line = text[pos:end].strip()
         line_start = pos
@@ -166,6 +185,7 @@ def read_text_bytes(path, data: bytes, fmt: str = "xyz", columns=None) -> RawClo
     meta["dtype"] = "text"
     meta["columns"] = names
     locate = data_line_locator(text[start:], lineno)
+    note_unterminated_last_line(path, text, meta)
     return RawCloud(values, fields, file_origin, mg.get("crs"), mg.get("frame"), meta, locate)
 
 

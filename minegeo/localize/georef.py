@@ -1082,13 +1082,10 @@ def write_georeferenced_map(path, cloud_geo: PointCloud, result: GeorefResult, *
 
 def read_georef(path) -> GeorefResult:
     """Read a :class:`GeorefResult` from a ``.georef.json`` sidecar or a ``georef`` ``result.json``."""
-    import json
+    from minegeo.io._json import load_json_file
 
     p = Path(path)
-    try:
-        d = json.loads(p.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise FileFormatError(p, f"not valid JSON ({exc})") from None
+    d = load_json_file(p, what="georeferencing record")  # bounded, no duplicate keys, no NaN
     if isinstance(d, dict) and "georef" in d and isinstance(d["georef"], dict):
         d = d["georef"]
     elif isinstance(d, dict) and "result" in d and isinstance(d["result"], dict):
@@ -1121,10 +1118,9 @@ def load_georeferenced_map(path, *, check_hash: bool = True) -> tuple:
     FileFormatError
         Missing/invalid sidecar, hash mismatch, or a cloud whose recorded CRS differs.
     """
-    import json
-
     from minegeo._provenance import sha256_file
     from minegeo.io import read_point_cloud
+    from minegeo.io._json import load_json_file
 
     p = Path(path)
     if p.name.endswith(".georef.json"):
@@ -1139,10 +1135,7 @@ def load_georeferenced_map(path, *, check_hash: bool = True) -> tuple:
             f"no georeferencing sidecar {side_p.name} next to the map: georeference it with "
             "'minegeo georef --map MAP --gcps GCPS.csv --crs EPSG:xxxx --out MAP_GEO'",
         )
-    try:
-        side = json.loads(side_p.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise FileFormatError(side_p, f"not valid JSON ({exc})") from None
+    side = load_json_file(side_p, what="georeferencing sidecar")  # bounded, no duplicate keys, no NaN
     if not isinstance(side, dict) or side.get("format") != SIDECAR_FORMAT:
         raise FileFormatError(side_p, f"not a minegeo georeferencing sidecar (format != {SIDECAR_FORMAT!r})")
     if int(side.get("version", 0)) > SIDECAR_VERSION:
@@ -1158,6 +1151,13 @@ def load_georeferenced_map(path, *, check_hash: bool = True) -> tuple:
         result = GeorefResult.from_dict(side["georef"])
     except (KeyError, InputError) as exc:
         raise FileFormatError(side_p, f"bad georeferencing record: {exc}") from None
+    from minegeo.errors import CRSError
+    from minegeo.localize.crs import validate_crs
+
+    try:  # the CRS a map claims must be one pyproj knows and minegeo can work in
+        validate_crs(result.crs)
+    except CRSError as exc:
+        raise FileFormatError(side_p, f"the sidecar's CRS cannot be used: {exc}") from None
     cloud = read_point_cloud(cloud_p, origin=result.origin)
     if cloud.crs and not _same_crs(str(cloud.crs), result.crs):
         raise FileFormatError(cloud_p, f"the file says CRS {cloud.crs} but its sidecar says {result.crs}")

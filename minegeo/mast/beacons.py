@@ -28,6 +28,7 @@ The positioning itself only uses the surveyed vertex coordinates.
 from __future__ import annotations
 
 import csv
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +37,8 @@ import numpy as np
 
 from minegeo._provenance import atomic_write_text
 from minegeo.errors import DegenerateGeometryError, FileFormatError, InputError
+from minegeo.io._limits import MAX_ABS_COORDINATE, MAX_TABLE_FILE_BYTES, read_file_text
+from minegeo.io._text import unterminated_last_line
 
 __all__ = [
     "Beacon",
@@ -47,6 +50,8 @@ __all__ = [
 ]
 
 BEACONS_CSV_HEADER = ("beacon_id", "vertex", "x_m", "y_m")
+
+log = logging.getLogger(__name__)
 
 
 def _turn(d0: np.ndarray, d1: np.ndarray) -> float:
@@ -245,41 +250,56 @@ def read_beacons_csv(path) -> list[Beacon]:
     Raises
     ------
     FileFormatError
-        Missing columns, non-numeric values, or a beacon without exactly vertices 0-3.
+        Missing columns, non-numeric values, a coordinate beyond
+        :data:`~minegeo.io._limits.MAX_ABS_COORDINATE`, a beacon without exactly vertices
+        0-3, a file that is not a regular UTF-8 file of at most
+        :data:`~minegeo.io._limits.MAX_TABLE_FILE_BYTES`. A last line without end-of-line
+        (a file cut short?) is read and logged as a warning.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise FileFormatError(path, "not a UTF-8 text file") from None
+    text = read_file_text(path, encoding="utf-8", max_bytes=MAX_TABLE_FILE_BYTES, what="beacon CSV")
     rows = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if not rows:
         raise FileFormatError(path, "empty beacon file")
-    reader = csv.DictReader(rows)
-    cols = [c.strip() for c in (reader.fieldnames or [])]
-    reader.fieldnames = cols
-    missing = [c for c in BEACONS_CSV_HEADER if c not in cols]
-    if missing:
-        raise FileFormatError(path, f"missing column(s) {missing}; expected header {','.join(BEACONS_CSV_HEADER)}")
     verts: dict[str, dict[int, tuple[float, float]]] = {}
-    for line_no, row in enumerate(reader, start=2):
-        try:
-            bid = row["beacon_id"].strip()
-            k = int(row["vertex"])
-            xy = (float(row["x_m"]), float(row["y_m"]))
-        except (TypeError, ValueError, AttributeError):
-            raise FileFormatError(path, f"data row {line_no}: cannot read beacon_id/vertex/x_m/y_m") from None
-        if not bid:
-            raise FileFormatError(path, f"data row {line_no}: empty beacon_id")
-        if not all(math.isfinite(c) for c in xy):
-            raise FileFormatError(path, f"data row {line_no}: non-finite coordinate")
-        verts.setdefault(bid, {})
-        if k in verts[bid]:
-            raise FileFormatError(path, f"beacon {bid}: vertex {k} given twice")
-        verts[bid][k] = xy
+    try:
+        reader = csv.DictReader(rows)
+        cols = [c.strip() for c in (reader.fieldnames or [])]
+        reader.fieldnames = cols
+        missing = [c for c in BEACONS_CSV_HEADER if c not in cols]
+        if missing:
+            raise FileFormatError(
+                path, f"missing column(s) {missing}; expected header {','.join(BEACONS_CSV_HEADER)}"
+            )
+        for line_no, row in enumerate(reader, start=2):
+            try:
+                bid = row["beacon_id"].strip()
+                k = int(row["vertex"])
+                xy = (float(row["x_m"]), float(row["y_m"]))
+            except (TypeError, ValueError, AttributeError):
+                raise FileFormatError(path, f"data row {line_no}: cannot read beacon_id/vertex/x_m/y_m") from None
+            if not bid:
+                raise FileFormatError(path, f"data row {line_no}: empty beacon_id")
+            if not all(math.isfinite(c) for c in xy):
+                raise FileFormatError(path, f"data row {line_no}: non-finite coordinate")
+            if max(abs(c) for c in xy) > MAX_ABS_COORDINATE:
+                raise FileFormatError(
+                    path, f"data row {line_no}: coordinate beyond +-{MAX_ABS_COORDINATE:.0e} m (damaged file or "
+                    "wrong units?)"
+                )
+            verts.setdefault(bid, {})
+            if k in verts[bid]:
+                raise FileFormatError(path, f"beacon {bid}: vertex {k} given twice")
+            verts[bid][k] = xy
+    except csv.Error as exc:
+        raise FileFormatError(path, f"unreadable CSV ({exc})") from None
     out = []
     for bid, d in verts.items():
         if sorted(d) != [0, 1, 2, 3]:
             raise FileFormatError(path, f"beacon {bid}: needs vertices 0,1,2,3, got {sorted(d)}")
         out.append(Beacon(bid, np.array([d[k] for k in range(4)])))
+    cut = unterminated_last_line(text)
+    if cut is not None:
+        log.warning("%s: the last line (%d: %r) has no end-of-line: the file may have been cut short; "
+                    "check that its values are complete", path, cut[0], cut[1][:60])
     return out

@@ -12,6 +12,7 @@ Scanners that report counter-clockwise angles must be converted (``beta = -angle
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,8 +21,16 @@ import numpy as np
 
 from minegeo._provenance import atomic_write_text
 from minegeo.errors import FileFormatError, InputError
+from minegeo.io._limits import MAX_ABS_COORDINATE, MAX_TABLE_FILE_BYTES, read_file_text
+from minegeo.io._text import unterminated_last_line
 
-__all__ = ["Scan2D", "read_scan_csv", "write_scan_csv", "scan_to_xy"]
+__all__ = ["Scan2D", "read_scan_csv", "write_scan_csv", "scan_to_xy", "MAX_ABS_BEARING_DEG"]
+
+log = logging.getLogger(__name__)
+
+#: largest absolute bearing (deg) accepted from a scan file: scanners report 0..360 or
+#: -180..180 (a few turns if angles accumulate); float64 still resolves 1e-10 deg here
+MAX_ABS_BEARING_DEG = 1e6
 
 
 @dataclass
@@ -102,18 +111,25 @@ def read_scan_csv(path, counter_clockwise: bool = False) -> Scan2D:
     Raises
     ------
     FileFormatError
-        Missing header columns or unreadable numbers.
+        Missing header columns, a row with more or fewer values than the header, a last
+        row cut short (no end-of-line and no range), unreadable numbers, a bearing beyond
+        :data:`MAX_ABS_BEARING_DEG` or a range beyond
+        :data:`~minegeo.io._limits.MAX_ABS_COORDINATE`, a negative or non-finite sigma comment, a
+        file that is not a regular UTF-8 file of at most
+        :data:`~minegeo.io._limits.MAX_TABLE_FILE_BYTES`. A last line without end-of-line
+        (a file cut short?) is read and logged as a warning.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise FileFormatError(path, "not a UTF-8 text file") from None
+    text = read_file_text(path, encoding="utf-8", max_bytes=MAX_TABLE_FILE_BYTES, what="2D scan CSV")
     meta: dict = {}
     header = None
     bs, rs = [], []
     skipped = 0
-    for line_no, raw in enumerate(text.splitlines(), start=1):
+    lines = text.splitlines()
+    # the last line of a file cut short has no end-of-line: an incomplete row there is an error,
+    # not a "no return" (an empty range is indistinguishable from a cut after the comma)
+    cut_tail = len(lines) if lines and not text.endswith(("\n", "\r")) else 0
+    for line_no, raw in enumerate(lines, start=1):
         ln = raw.strip()
         if not ln:
             continue
@@ -130,6 +146,15 @@ def read_scan_csv(path, counter_clockwise: bool = False) -> Scan2D:
                 raise FileFormatError(path, f"line {line_no}: header must contain bearing_deg,range_m, got {ln!r}")
             ib, ir = header.index("bearing_deg"), header.index("range_m")
             continue
+        if len(cells) != len(header):
+            what = " (the file ends in the middle of this line: cut short?)" if line_no == cut_tail else ""
+            raise FileFormatError(
+                path, f"line {line_no}: {len(cells)} values, the header {','.join(header)} has {len(header)}{what}"
+            )
+        if line_no == cut_tail and cells[ir] == "":
+            raise FileFormatError(
+                path, f"line {line_no}: {ln!r} has no range and no end-of-line: the file was cut short"
+            )
         try:
             b = float(cells[ib])
             r = float(cells[ir]) if cells[ir] not in ("", "nan", "NaN") else math.nan
@@ -137,9 +162,17 @@ def read_scan_csv(path, counter_clockwise: bool = False) -> Scan2D:
             raise FileFormatError(path, f"line {line_no}: cannot read bearing/range from {ln!r}") from None
         if not math.isfinite(b):
             raise FileFormatError(path, f"line {line_no}: bearing is not a finite number")
+        if abs(b) > MAX_ABS_BEARING_DEG:
+            raise FileFormatError(
+                path, f"line {line_no}: bearing {b:g} deg is beyond +-{MAX_ABS_BEARING_DEG:g} deg (damaged file?)"
+            )
         if not (math.isfinite(r) and r > 0):
             skipped += 1
             continue
+        if r > MAX_ABS_COORDINATE:
+            raise FileFormatError(
+                path, f"line {line_no}: range {r:g} m is beyond {MAX_ABS_COORDINATE:.0e} m (damaged file or wrong units?)"
+            )
         bs.append(-b if counter_clockwise else b)
         rs.append(r)
     if header is None:
@@ -149,9 +182,18 @@ def read_scan_csv(path, counter_clockwise: bool = False) -> Scan2D:
         if key not in meta:
             return None
         try:
-            return float(meta[key])
+            v = float(meta[key])
         except ValueError:
             raise FileFormatError(path, f"comment {key!r} is not a number: {meta[key]!r}") from None
+        if not (math.isfinite(v) and v >= 0):
+            raise FileFormatError(path, f"comment {key!r} must be a finite number >= 0, got {meta[key]!r}")
+        return v
 
     meta["no_return_rows"] = skipped
-    return Scan2D(np.array(bs), np.array(rs), _f("sigma_range_m"), _f("sigma_bearing_deg"), meta)
+    scan = Scan2D(np.array(bs, dtype=np.float64), np.array(rs, dtype=np.float64), _f("sigma_range_m"),
+                  _f("sigma_bearing_deg"), meta)
+    cut = unterminated_last_line(text)
+    if cut is not None:
+        log.warning("%s: the last line (%d: %r) has no end-of-line: the file may have been cut short; "
+                    "check that its values are complete", path, cut[0], cut[1][:60])
+    return scan

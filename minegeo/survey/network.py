@@ -39,7 +39,6 @@ comment. A JSON equivalent is read by :func:`read_network` for ``.json`` files.
 from __future__ import annotations
 
 import ast
-import json
 import logging
 import math
 import re
@@ -49,6 +48,14 @@ from pathlib import Path
 import numpy as np
 
 from minegeo.errors import DegenerateGeometryError, FileFormatError, InputError, TooFewPointsError
+from minegeo.io._json import load_json_text
+from minegeo.io._limits import (
+    MAX_ABS_COORDINATE,
+    MAX_TABLE_FILE_BYTES,
+    MIN_SIGMA_M,
+    read_file_bytes,
+    read_file_text,
+)
 from minegeo.survey.angles import RHO_ARCSEC, parse_angle, wrap_2pi, wrap_pi
 from minegeo.survey.ellipse import ErrorEllipse, ellipse_scale, point_ellipses, relative_ellipse
 from minegeo.survey.lsq import LSQOptions, LSQResult, adjust
@@ -216,11 +223,42 @@ _SECTION_KIND = {
 }
 
 
+#: most tokens of one observation line per kind (a longer line is damaged, not silently cut)
+_MAX_TOKENS = {"angle": 5, "distance": 5, "height_difference": 5, "baseline": 14}
+_LAYOUT = {
+    "angle": "at from to value [sigma]",
+    "distance": "from to value [sigma_c [sigma_s]]",
+    "height_difference": "from to dh length_m [sigma_km]",
+    "baseline": "from to dx dy dz [3, 6 or 9 precision values]",
+}
+
+
 def _num(tok: str, path, lineno: int, what: str) -> float:
+    """A finite number within ``+-MAX_ABS_COORDINATE`` (NaN, inf, 1e308 are damaged values)."""
     try:
-        return float(tok.rstrip('"″'))
+        v = float(tok.rstrip('"″'))
     except ValueError:
-        raise FileFormatError(path, f"line {lineno}: cannot read {what} {tok!r} as a number") from None
+        raise FileFormatError(path, f"line {lineno}: cannot read {what} {tok[:40]!r} as a number") from None
+    if not math.isfinite(v) or abs(v) > MAX_ABS_COORDINATE:
+        raise FileFormatError(
+            path, f"line {lineno}: {what} {tok[:40]!r} is not a finite number within +-{MAX_ABS_COORDINATE:.0e}"
+        )
+    return v
+
+
+#: largest absolute angle (rad) read from a network file: a few turns are normal
+_MAX_ANGLE_RAD = 1e6
+
+
+def _angle(tok: str, unit: str, path, lineno: int) -> float:
+    """An angle token in ``unit`` -> radians; unreadable or non-finite values name the line."""
+    try:
+        v = parse_angle(tok, unit)
+    except (InputError, ValueError, OverflowError) as exc:
+        raise FileFormatError(path, f"line {lineno}: {exc}") from None
+    if not (math.isfinite(v) and abs(v) <= _MAX_ANGLE_RAD):
+        raise FileFormatError(path, f"line {lineno}: angle {tok[:40]!r} is not a finite angle")
+    return v
 
 
 def _angle_units(opts: list[str]) -> tuple[str, str]:
@@ -242,7 +280,33 @@ def _sigma_angle(tok: str, sunit: str, path, lineno) -> float:
     if tok.endswith('"') or tok.endswith("″"):
         return _num(tok, path, lineno, "standard deviation") / RHO_ARCSEC
     v = _num(tok, path, lineno, "standard deviation")
-    return parse_angle(v, sunit)
+    return _angle(v, sunit, path, lineno)
+
+
+def _check_precisions(net: Network) -> Network:
+    """Refuse a-priori precisions so small that their weights overflow float64.
+
+    A positive standard deviation below :data:`~minegeo.io._limits.MIN_SIGMA_M` (m or rad;
+    1e-9 rad is 0.0002") is a typing or unit mistake; zero and negative values are left to the
+    adjustment, which names the observation.
+    """
+    for i, o in enumerate(net.observations):
+        where = f"line {o.line}" if o.line else f"observation {i}"
+        if o.kind == "baseline":
+            d = np.diag(np.asarray(o.sigma, dtype=np.float64))
+            tiny = (d > 0) & (d < MIN_SIGMA_M**2)
+        else:
+            tiny = np.asarray(0.0 < float(o.sigma) < MIN_SIGMA_M)
+        if np.any(tiny):
+            raise FileFormatError(
+                net.source, f"{where}: {o.kind} {o.label} has an a-priori precision below {MIN_SIGMA_M:g} (m or rad): "
+                "a unit mistake? Its weight would overflow"
+            )
+    cov = np.zeros((0, 0)) if net.datum.cov is None else np.asarray(net.datum.cov, dtype=np.float64)
+    d = np.diag(cov) if cov.ndim == 2 else np.zeros(0)
+    if np.any((d > 0) & (d < MIN_SIGMA_M**2)):
+        raise FileFormatError(net.source, f"[Datum] dyn: an a-priori sigma below {MIN_SIGMA_M:g} m (a unit mistake?)")
+    return net
 
 
 def parse_krumm(text: str, source: str = "<text>") -> Network:
@@ -333,11 +397,16 @@ def parse_krumm(text: str, source: str = "<text>") -> Network:
         last_station = None
         for lineno, t in lines:
             tok = t.split()
+            if len(tok) > _MAX_TOKENS.get(kind, 6):
+                raise FileFormatError(
+                    path, f"line {lineno}: {len(tok)} values, more than a {kind.replace('_', ' ')} line has "
+                    f"({_LAYOUT.get(kind, 'from to value [sigma [hi ht]]')}): a damaged or misplaced line?"
+                )
             if kind == "angle":
                 if len(tok) < 4:
                     raise FileFormatError(path, f"line {lineno}: angle needs 'at from to value [sigma]'")
                 st, bs, fs = tok[0], tok[1], tok[2]
-                val = parse_angle(tok[3], vunit)
+                val = _angle(tok[3], vunit, path, lineno)
                 rest = tok[4:]
                 sig = _sigma_angle(rest[0], sunit, path, lineno) if rest else last_sigma
                 if sig is None:
@@ -378,8 +447,12 @@ def parse_krumm(text: str, source: str = "<text>") -> Network:
                 obs.append(Observation("baseline", st, tg, val, cov, unit="m", line=lineno))
                 continue
             if kind in _ANGULAR:
-                val = parse_angle(tok[2], vunit)
+                val = _angle(tok[2], vunit, path, lineno)
                 rest = tok[3:]
+                if len(rest) == 2:
+                    raise FileFormatError(
+                        path, f"line {lineno}: give both instrument and target height (from to value sigma hi ht)"
+                    )
                 sig = _sigma_angle(rest[0], sunit, path, lineno) if rest else None
                 hi = ht = 0.0
                 if len(rest) >= 3:
@@ -416,6 +489,8 @@ def parse_krumm(text: str, source: str = "<text>") -> Network:
                         path, f"line {lineno}: levelling needs 'from to dh length_m [sigma_km]'"
                     )
                 length = rest[0]
+                if length < 0:
+                    raise FileFormatError(path, f"line {lineno}: levelling length {length} m must not be negative")
                 skm = rest[1] if len(rest) > 1 else last_sigma
                 if skm is None:
                     raise FileFormatError(
@@ -427,6 +502,8 @@ def parse_krumm(text: str, source: str = "<text>") -> Network:
                 continue
             hi = ht = 0.0
             if kind == "distance":
+                if val < 0:
+                    raise FileFormatError(path, f"line {lineno}: distance {tok[2]!r} must not be negative")
                 if len(rest) >= 2:
                     # README: sigma² = sigma_c² + s[m]·sigma_s²
                     sig = math.sqrt(rest[0] ** 2 + val * rest[1] ** 2)
@@ -445,6 +522,10 @@ def parse_krumm(text: str, source: str = "<text>") -> Network:
                         else last_sigma
                     )
             else:
+                if len(rest) == 2:
+                    raise FileFormatError(
+                        path, f"line {lineno}: give both instrument and target height (from to value sigma hi ht)"
+                    )
                 sig = rest[0] if rest else last_sigma
                 if sig is None:
                     raise FileFormatError(
@@ -467,7 +548,7 @@ def parse_krumm(text: str, source: str = "<text>") -> Network:
     else:
         dim = 1
     datum = _parse_datum(datum_lines, points, dim, path)
-    return Network(
+    return _check_precisions(Network(
         points=points,
         datum=datum,
         observations=obs,
@@ -478,7 +559,7 @@ def parse_krumm(text: str, source: str = "<text>") -> Network:
         name=name,
         description="\n".join(description_lines),
         source=str(source),
-    )
+    ))
 
 
 def _coord_tokens(tok: str, points: dict, dim: int, path, lineno) -> list[tuple[str, str]]:
@@ -573,8 +654,75 @@ def _json_angle(d: dict, key: str, where: str) -> tuple[float, str]:
         ("_mgon", "mgon"),
     ):
         if key + suffix in d:
-            return parse_angle(d[key + suffix], unit), unit
+            v = d[key + suffix]
+            if isinstance(v, bool) or not isinstance(v, (str, int, float)):
+                raise InputError(f"{where}: {key + suffix} must be a number or text, got {_json_type(v)}")
+            try:
+                val = parse_angle(v, unit)
+            except (ValueError, OverflowError):
+                raise InputError(f"{where}: cannot read {key + suffix} = {str(v)[:40]!r} as an angle") from None
+            if not (math.isfinite(val) and abs(val) <= _MAX_JSON_ANGLE_RAD):
+                raise InputError(f"{where}: {key + suffix} = {str(v)[:40]!r} is not a finite angle")
+            return val, unit
     raise InputError(f"{where}: give {key}_dms, {key}_gon, {key}_deg or {key}_rad")
+
+
+#: largest absolute angle (rad) read from JSON: a few turns are normal, 10^6 rad is a damaged value
+_MAX_JSON_ANGLE_RAD = 1e6
+
+
+def _json_type(v) -> str:
+    return {dict: "an object", list: "a list", str: "text", bool: "true/false", type(None): "null"}.get(
+        type(v), "a number"
+    )
+
+
+def _jobj(v, where: str) -> dict:
+    if not isinstance(v, dict):
+        raise InputError(f"{where} must be a JSON object {{...}}, got {_json_type(v)}")
+    return v
+
+
+def _jlist(v, where: str) -> list:
+    if not isinstance(v, list):
+        raise InputError(f"{where} must be a JSON list [...], got {_json_type(v)}")
+    return v
+
+
+def _jget(d: dict, key: str, where: str):
+    if key not in d:
+        raise InputError(f"{where}: missing {key!r}")
+    return d[key]
+
+
+def _jnum(v, where: str, limit: float = MAX_ABS_COORDINATE) -> float:
+    """A finite number within ``+-limit`` (numbers given as text are accepted)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float, str)):
+        raise InputError(f"{where} must be a number, got {_json_type(v)}")
+    try:
+        f = float(v)
+    except (ValueError, OverflowError):
+        raise InputError(f"{where} must be a number, got {str(v)[:40]!r}") from None
+    if not math.isfinite(f) or abs(f) > limit:
+        raise InputError(f"{where} = {str(v)[:40]} is not a finite number within +-{limit:.0e}")
+    return f
+
+
+def _jid(v, where: str) -> str:
+    if isinstance(v, bool) or not isinstance(v, (str, int)) or str(v) == "":
+        raise InputError(f"{where} must be a point name (text), got {_json_type(v) if v != '' else 'empty text'}")
+    return str(v)
+
+
+def _jmatrix(v, shape: tuple, where: str) -> np.ndarray:
+    rows = _jlist(v, where)
+    if len(shape) == 1:
+        if len(rows) != shape[0]:
+            raise InputError(f"{where} must hold {shape[0]} numbers, got {len(rows)}")
+        return np.array([_jnum(x, f"{where}[{i}]") for i, x in enumerate(rows)], dtype=np.float64)
+    if len(rows) != shape[0]:
+        raise InputError(f"{where} must be a {shape[0]}x{shape[1]} matrix (list of {shape[0]} rows)")
+    return np.array([_jmatrix(r, shape[1:], f"{where}[{i}]") for i, r in enumerate(rows)], dtype=np.float64)
 
 
 def network_from_dict(d: dict, source: str = "<dict>") -> Network:
@@ -593,25 +741,42 @@ def network_from_dict(d: dict, source: str = "<dict>") -> Network:
         {"type": "height_difference", "from": "A", "to": "B", "value_m": .., "sigma_m": ..},
         {"type": "spatial_distance" | "zenith_angle" | "vertical_angle", ..., "hi_m": .., "ht_m": ..},
         {"type": "baseline", "from": "A", "to": "B", "value_m": [dx, dy, dz], "cov_m2": [[...]]}]}
+
+    Raises
+    ------
+    FileFormatError
+        A missing or mistyped member, naming where it is (``observation 3: missing 'to'``);
+        non-finite numbers and coordinates beyond
+        :data:`~minegeo.io._limits.MAX_ABS_COORDINATE` are refused.
     """
     try:
-        pts_in = d["points"]
-        obs_in = d["observations"]
-    except (KeyError, TypeError):
-        raise FileFormatError(source, "JSON network needs 'points' and 'observations'") from None
+        return _network_from_dict(d, source)
+    except FileFormatError:
+        raise
+    except InputError as exc:
+        raise FileFormatError(source, str(exc)) from None
+
+
+def _network_from_dict(d, source: str) -> Network:
+    if not isinstance(d, dict) or "points" not in d or "observations" not in d:
+        raise FileFormatError(source, "JSON network needs 'points' and 'observations'")
+    pts_in = _jobj(d["points"], "'points'")
+    obs_in = _jlist(d["observations"], "'observations'")
     points = {}
     for pid, c in pts_in.items():
+        c = _jobj(c, f"point {pid!r}")
         p = {}
         for k_in, k in (("x", "x"), ("y", "y"), ("h", "z"), ("z", "z")):
             if k_in in c and c[k_in] is not None:
-                p[k] = float(c[k_in])
+                p[k] = _jnum(c[k_in], f"point {pid!r} {k_in}")
         points[str(pid)] = p
     obs = []
     set_ids: dict = {}
     for i, o in enumerate(obs_in):
         where = f"observation {i}"
+        o = _jobj(o, where)
         kind = o.get("type")
-        if kind not in KINDS:
+        if not isinstance(kind, str) or kind not in KINDS:
             raise FileFormatError(source, f"{where}: unknown type {kind!r}; use one of {', '.join(KINDS)}")
         if kind == "angle":
             val, unit = _json_angle(o, "value", where)
@@ -619,58 +784,66 @@ def network_from_dict(d: dict, source: str = "<dict>") -> Network:
             obs.append(
                 Observation(
                     "angle",
-                    str(o["at"]),
-                    str(o["to"]),
+                    _jid(_jget(o, "at", where), f"{where} 'at'"),
+                    _jid(_jget(o, "to", where), f"{where} 'to'"),
                     wrap_2pi(val),
                     sig,
-                    backsight=str(o["from"]),
+                    backsight=_jid(_jget(o, "from", where), f"{where} 'from'"),
                     unit=unit,
                 )
             )
             continue
-        st = str(o.get("at", o.get("from")))
-        tg = str(o["to"])
+        st = _jid(o["at"] if "at" in o else _jget(o, "from", where), f"{where} 'from'")
+        tg = _jid(_jget(o, "to", where), f"{where} 'to'")
         if kind == "baseline":
             obs.append(
                 Observation(
                     "baseline",
                     st,
                     tg,
-                    np.asarray(o["value_m"], dtype=float),
-                    np.asarray(o["cov_m2"], dtype=float),
+                    _jmatrix(_jget(o, "value_m", where), (3,), f"{where} value_m"),
+                    _jmatrix(_jget(o, "cov_m2", where), (3, 3), f"{where} cov_m2"),
                 )
             )
             continue
-        hi, ht = float(o.get("hi_m", 0.0)), float(o.get("ht_m", 0.0))
+        hi, ht = _jnum(o.get("hi_m", 0.0), f"{where} hi_m"), _jnum(o.get("ht_m", 0.0), f"{where} ht_m")
         if kind in _ANGULAR:
             val, unit = _json_angle(o, "value", where)
             sig, _ = _json_angle(o, "sigma", where)
             sid = None
             if kind == "direction":
                 key = o.get("set", st)
+                if not isinstance(key, (str, int, float)):
+                    raise InputError(f"{where}: 'set' must be a number or a name, got {_json_type(key)}")
                 sid = set_ids.setdefault(key, len(set_ids) + 1)
                 val = wrap_2pi(val)
             obs.append(Observation(kind, st, tg, val, sig, set_id=sid, hi=hi, ht=ht, unit=unit))
         else:
-            obs.append(Observation(kind, st, tg, float(o["value_m"]), float(o["sigma_m"]), hi=hi, ht=ht))
+            obs.append(Observation(kind, st, tg, _jnum(_jget(o, "value_m", where), f"{where} value_m"),
+                                   _jnum(_jget(o, "sigma_m", where), f"{where} sigma_m"), hi=hi, ht=ht))
     kinds = {o.kind for o in obs}
-    dim = int(d.get("dimension", 3 if kinds & _DIM3 else 2 if kinds & _DIM2 else 1))
-    dd = d.get("datum", {"type": "fix", "coordinates": []})
+    dim = d.get("dimension", 3 if kinds & _DIM3 else 2 if kinds & _DIM2 else 1)
+    if dim not in (1, 2, 3) or isinstance(dim, bool):
+        raise InputError(f"'dimension' must be 1, 2 or 3, got {dim!r}")
+    dim = int(dim)
+    dd = _jobj(d.get("datum", {"type": "fix", "coordinates": []}), "'datum'")
     dt = dd.get("type", "fix")
     if dt == "dyn":
         coords, sig = [], []
-        for k, v in dd.get("sigma_m", {}).items():
+        for k, v in _jobj(dd.get("sigma_m", {}), "datum sigma_m").items():
             for c in _coord_tokens(k, points, dim, source, 0):
                 coords.append(c)
-                sig.append(float(v))
+                sig.append(_jnum(v, f"datum sigma_m {k!r}"))
         if "cov_m2" in dd:
-            coords = [c for k in dd["coordinates"] for c in _coord_tokens(k, points, dim, source, 0)]
-            cov = np.asarray(dd["cov_m2"], dtype=float)
+            names = _jlist(_jget(dd, "coordinates", "datum with cov_m2"), "datum coordinates")
+            coords = [c for k in names for c in _coord_tokens(_jid(k, "datum coordinate"), points, dim, source, 0)]
+            cov = _jmatrix(dd["cov_m2"], (len(coords), len(coords)), "datum cov_m2")
         else:
             cov = np.diag(np.square(sig))
         datum = Datum("dyn", tuple(coords), cov)
     elif dt in ("fix", "free"):
-        coords = [c for k in dd.get("coordinates", []) for c in _coord_tokens(str(k), points, dim, source, 0)]
+        names = _jlist(dd.get("coordinates", []), "datum coordinates")
+        coords = [c for k in names for c in _coord_tokens(_jid(k, "datum coordinate"), points, dim, source, 0)]
         if dt == "free" and not coords:
             axes = {1: ("z",), 2: ("x", "y"), 3: ("x", "y", "z")}[dim]
             coords = [(p, a) for p in points for a in axes]
@@ -678,21 +851,28 @@ def network_from_dict(d: dict, source: str = "<dict>") -> Network:
     else:
         raise FileFormatError(source, f"datum type must be fix, free or dyn, got {dt!r}")
     known = {}
-    for k in d.get("known_azimuths", []):
-        val, _ = _json_angle(k, "value", "known_azimuths")
-        known[(str(k["from"]), str(k["to"]))] = wrap_2pi(val)
-    return Network(
+    for j, k in enumerate(_jlist(d.get("known_azimuths", []), "'known_azimuths'")):
+        where = f"known_azimuths[{j}]"
+        k = _jobj(k, where)
+        val, _ = _json_angle(k, "value", where)
+        known[(_jid(_jget(k, "from", where), f"{where} 'from'"), _jid(_jget(k, "to", where), f"{where} 'to'"))] = (
+            wrap_2pi(val)
+        )
+    restrictions = _jlist(d.get("restrictions", []), "'restrictions'")
+    if not all(isinstance(r, str) for r in restrictions):
+        raise InputError("'restrictions' must be a list of text expressions")
+    return _check_precisions(Network(
         points,
         datum,
         obs,
         dim,
         known,
-        list(d.get("restrictions", [])),
+        list(restrictions),
         str(d.get("sigma0", "")),
         str(d.get("name", "")),
         str(d.get("description", "")),
         source,
-    )
+    ))
 
 
 def read_network(path) -> Network:
@@ -704,16 +884,15 @@ def read_network(path) -> Network:
         Unreadable or malformed file.
     """
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8-sig")  # tolerate a byte-order mark
-    except UnicodeDecodeError:
-        text = p.read_text(encoding="latin-1")
+    data = read_file_bytes(p, max_bytes=MAX_TABLE_FILE_BYTES, what="survey network file")
     if p.suffix.lower() == ".json":
-        try:
-            d = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise FileFormatError(p, f"invalid JSON: {exc}") from None
+        # depth, duplicate keys (a point given twice), NaN/Infinity: all refused with the path
+        d = load_json_text(data, p)
         return network_from_dict(d, str(p))
+    try:
+        text = data.decode("utf-8-sig")  # tolerate a byte-order mark
+    except UnicodeDecodeError:
+        text = data.decode("latin-1")
     return parse_krumm(text, str(p))
 
 
@@ -1436,8 +1615,9 @@ def read_adj(path) -> dict[str, dict[str, float]]:
     sp_cm``; for 3D lines (11 tokens) additionally ``z, dz_cm, sz_cm``; for 1D lines (4 tokens)
     ``h, dh_mm, sh_mm``. Comment lines (``#``) and XML are skipped.
     """
+    text = read_file_text(path, encoding="utf-8", max_bytes=MAX_TABLE_FILE_BYTES, what="Krumm .adj file")
     out = {}
-    for raw in Path(path).read_text(encoding="utf-8").splitlines():
+    for raw in text.splitlines():
         line = raw.strip().replace("−", "-")
         if not line or line.startswith("#") or line.startswith("<"):
             continue
