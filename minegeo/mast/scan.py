@@ -105,13 +105,15 @@ def read_scan_csv(path, counter_clockwise: bool = False) -> Scan2D:
 
     Format: optional ``# key: value`` comment lines (``sigma_range_m`` and
     ``sigma_bearing_deg`` are recognised), a header ``bearing_deg,range_m`` and one
-    return per row. Rows whose range is empty, ``0``, negative or ``nan`` are "no
-    return" and are skipped (their count is stored in ``metadata["no_return_rows"]``).
+    return per row. Rows whose range is empty, ``0``, ``nan`` or ``inf`` are "no
+    return" and are skipped (their count is stored in ``metadata["no_return_rows"]``); a
+    negative range is an error (a rangefinder cannot measure one: a damaged file or a sign
+    error would otherwise be dropped without a word).
 
     Raises
     ------
     FileFormatError
-        Missing header columns, a row with more or fewer values than the header, a last
+        Missing header columns, a negative range, a row with more or fewer values than the header, a last
         row cut short (no end-of-line and no range), unreadable numbers, a bearing beyond
         :data:`MAX_ABS_BEARING_DEG` or a range beyond
         :data:`~minegeo.io._limits.MAX_ABS_COORDINATE`, a negative or non-finite sigma comment, a
@@ -165,6 +167,11 @@ def read_scan_csv(path, counter_clockwise: bool = False) -> Scan2D:
         if abs(b) > MAX_ABS_BEARING_DEG:
             raise FileFormatError(
                 path, f"line {line_no}: bearing {b:g} deg is beyond +-{MAX_ABS_BEARING_DEG:g} deg (damaged file?)"
+            )
+        if r < 0:  # impossible for a rangefinder: a damaged file or a sign error, never a "no return"
+            raise FileFormatError(
+                path, f"line {line_no}: range {r:g} m is negative; write a return that is missing as an empty "
+                      "range, 0 or nan (the \"no return\" markers)"
             )
         if not (math.isfinite(r) and r > 0):
             skipped += 1
