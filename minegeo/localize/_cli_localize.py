@@ -2,9 +2,17 @@
 
 Writes ``DIR/result.json`` (status, reason, ``T_map_scan``, ``T_crs_scan``, scores, covariance,
 timings, parameters, versions, seed, input hashes), ``DIR/trajectory_global.csv`` when a
-trajectory is given and ``DIR/report.html``. Exit status 0 for ``ok``, 1 for ``ambiguous`` or
-``failed`` (result.json says why), 2 for input errors (a result.json with ``status: failed`` is
-still written when the scan itself is unusable: empty, tiny, flat).
+trajectory is given and the result is ``ok``, and ``DIR/report.html``. **Only an ok result gives
+coordinates**: for ``failed`` / ``ambiguous`` the pose fields of result.json are null and the
+placements that were tried are under ``rejected_candidates`` (map frame, "NOT a position"), the
+printout says FAILED / AMBIGUOUS, why, and lists those candidates as rejected, and the report's
+first line is the status banner. Exit status 0 for ``ok``, 1 for ``ambiguous`` or ``failed``
+(result.json says why), 2 for input errors (one stderr line; nothing is written, an earlier
+result folder is left as it was: an unusable scan, empty, tiny or flat, is one).
+
+Default ``--profile``: :data:`DEFAULT_PROFILE` (measured, docs/localization.md). A progress bar
+on stderr names each step when stderr is a terminal (not with ``--quiet``); the printed time is
+the whole command's, Numba compile time apart.
 
 ``--map`` takes a map file (plain, or georeferenced by ``minegeo georef`` with its sidecar) or a
 prepared map (``.npz`` from ``minegeo prepare-map``). A map file is prepared in-process and the
@@ -24,6 +32,19 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 HELP = "globally localize a local scan (+ trajectory) in a prior map: FPFH + RANSAC + ICP (Baek et al. 2022)"
+
+#: Default ``--profile`` of ``localize`` and ``prepare-map``: chosen by
+#: ``benchmarks/bench_default_profile.py`` (success first, no wrong ``ok``, then time; on the 25
+#: scans of ``minegeo synth --preset small`` seeds 0-4: fast 17/25 ok and correct in 0.5 s per
+#: scan, table3 7/25 in 1.0 s, both 0 wrong ``ok``; docs/localization.md).
+DEFAULT_PROFILE = "fast"
+#: What each profile is, for ``--help``, the report and the printout.
+PROFILE_TEXT = {
+    "fast": "minegeo's measured default: voxel 1 m, normals 2 m, FPFH 5 m, 3-point RANSAC with mutual matches "
+            "and always 1e6 draws, point-to-plane ICP",
+    "table3": "the paper-faithful profile, Baek et al. 2022 Table 3 (voxel 0.5 m, normals 1 m, FPFH 2.5 m, 4-point RANSAC, "
+              "point-to-point ICP; minegeo caps RANSAC at 4e6 draws instead of 4e8 and uses mutual matches)",
+}
 
 
 def add_arguments(parser) -> None:
@@ -66,13 +87,13 @@ def add_arguments(parser) -> None:
 
 def add_profile_arguments(parser) -> None:
     """--profile / --voxel / --octree-level (shared with prepare-map)."""
-    parser.add_argument("--profile", choices=("table3", "fast"), default="table3",
-                        help="table3 (default): Baek et al. 2022 Table 3 (voxel 0.5 m, normals 1 m, FPFH 2.5 m, "
-                             "4-point RANSAC, point-to-point ICP); fast: voxel 1 m, normals 2 m, FPFH 5 m, "
-                             "3-point RANSAC, point-to-plane ICP (see docs/localization.md)")
+    parser.add_argument("--profile", choices=("fast", "table3"), default=DEFAULT_PROFILE,
+                        help=f"fast (default): {PROFILE_TEXT['fast']}; table3: {PROFILE_TEXT['table3']}. "
+                             "Map and scan must use the same profile. Measured on the synthetic mine: fast 17/25 "
+                             "scans ok and correct, table3 7/25 (docs/localization.md)")
     g = parser.add_mutually_exclusive_group()
     g.add_argument("--voxel", type=float, default=None, metavar="M",
-                   help="voxel size in m for map and scan (profile default: 0.5 / 1.0); the normal and FPFH "
+                   help="voxel size in m for map and scan (profile default: fast 1.0, table3 0.5); the normal and FPFH "
                         "radii scale with it (2x and 5x, the Table 3 ratios)")
     g.add_argument("--octree-level", type=int, default=None, metavar="L",
                    help="octree subsampling level of the scan (Sec. 2.2, e.g. 6, 8, 10, 12) instead of a voxel "
@@ -87,7 +108,7 @@ def params_from_args(args):
     from minegeo.localize.pipeline import LocalizeParams
     from minegeo.localize.prepared import FeatureParams, PrepareParams
 
-    profile = getattr(args, "profile", "table3")
+    profile = getattr(args, "profile", None) or DEFAULT_PROFILE
     if profile == "fast":
         prep, lp = PrepareParams.fast(), LocalizeParams.fast()
     else:
@@ -162,6 +183,104 @@ def _write_trajectory_csv(path: Path, res) -> None:
     atomic_write_text(path, "\n".join(lines) + "\n")
 
 
+class StepBar:
+    """A tqdm progress bar on stderr naming the step that runs (shared with ``prepare-map``).
+
+    Called as ``bar(step)`` when a step starts (the ``progress`` callback of
+    :func:`~minegeo.localize.prepare_map`, :meth:`~minegeo.localize.PreparedMap.build_indexes` and
+    :func:`~minegeo.localize.localize_scan`); the bar counts finished steps. Off when stderr is not
+    a terminal or with ``--quiet`` (:func:`minegeo._output.progress_enabled`); it disappears when
+    closed, so the result lines stay clean. ``total`` is an estimate: optional steps (the
+    correlative search) extend it.
+    """
+
+    def __init__(self, args, name: str, total: int):
+        from minegeo._output import progress_enabled
+
+        self.name = name
+        self.steps: list[str] = []
+        self.enabled = progress_enabled(args)
+        self._bar = None
+        if self.enabled:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, desc=name, file=sys.stderr, leave=False, dynamic_ncols=True,
+                             bar_format="{desc} {bar} {n_fmt}/{total_fmt} steps [{elapsed}]")
+
+    def __call__(self, step: str) -> None:
+        self.steps.append(step)
+        if self._bar is None:
+            return
+        if len(self.steps) > 1:
+            self._bar.update(1)
+        if self._bar.n >= self._bar.total:
+            self._bar.total = self._bar.n + 1
+        self._bar.set_description_str(f"{self.name}: {step}")
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+    def __enter__(self) -> StepBar:
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        self.close()
+        return False
+
+
+def startup_s() -> float | None:
+    """Age of this process in seconds (Linux ``/proc``; None elsewhere).
+
+    ``age - run clock`` is what the run clock (:class:`minegeo._output.RunClock`, started by
+    ``minegeo.cli`` once the verb's module is imported) does not see: the Python start-up and
+    the imports before it (importing ``minegeo.localize`` loads NumPy, SciPy, Numba, pyproj and
+    every localization module). Resolution: one clock tick (10 ms)."""
+    import os
+
+    try:
+        with open("/proc/self/stat", encoding="ascii") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+        start_ticks = int(fields[19])  # field 22 of proc(5), counted after the ")" of the name
+        with open("/proc/uptime", encoding="ascii") as fh:
+            uptime = float(fh.read().split()[0])
+        age = uptime - start_ticks / float(os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
+    return age if age >= 0.0 else None
+
+
+def _launched_for(verb: str | None) -> bool:
+    """True when this process was started as ``minegeo VERB ...`` (not a test run, not a verb that
+    ``minegeo demo`` or a script calls in-process, where the process age is not this run's)."""
+    first = next((a for a in sys.argv[1:] if not a.startswith("-")), None)
+    return verb is not None and first == verb
+
+
+def whole_run_timings(args) -> dict[str, float]:
+    """``run_timings(args)`` (``wall_s``, ``compile_s``, ``work_s``) and, when the process was
+    started for this verb, ``startup_s`` (process start to the run clock: Python start-up and the
+    imports before it) and ``process_wall_s`` (the process age: what the user waited)."""
+    from minegeo._output import run_timings
+
+    t = dict(run_timings(args))
+    age = startup_s() if _launched_for(getattr(args, "verb", None)) else None
+    if age is not None and age >= t["wall_s"]:
+        t["startup_s"] = age - t["wall_s"]
+        t["process_wall_s"] = age
+    return t
+
+
+def time_line(t: dict) -> str:
+    """``12.3 s wall (0.0 s compiling Numba kernels [once, then cached], 1.2 s Python start-up and imports)``."""
+    wall = t.get("process_wall_s", t["wall_s"])
+    parts = [f"{t['compile_s']:.1f} s compiling Numba kernels [once, then cached]"]
+    if "startup_s" in t:
+        parts.append(f"{t['startup_s']:.1f} s Python start-up and imports")
+    return f"{wall:.1f} s wall (" + ", ".join(parts) + ")"
+
+
 def run(args) -> int:
     from minegeo._output import OutputTransaction
 
@@ -181,11 +300,17 @@ def run(args) -> int:
     # the result folder is staged and replaces an earlier one only when this run ends without an
     # error: a user mistake leaves the earlier folder as it was and writes nothing
     with OutputTransaction("localize", inputs=inputs, folders={"--out": out}) as tx:
-        return _run(args, prep, lp, tx.folder("--out"), out)
+        n_idx = 3 + (3 if lp.ransac.model == "levelled" and lp.correlative != "off" else 0) \
+            + (1 if lp.icp_method == "gicp" else 0)
+        with StepBar(args, "localize", total=2 + n_idx + 8 + 1) as bar:
+            res, d, how = _run(args, prep, lp, tx.folder("--out"), out, bar)
+    if not getattr(args, "quiet", False):
+        d["timings_s"].update(whole_run_timings(args))  # after the commit: the whole command
+        print_result(res, d, how, out)
+    return 0 if res.status == "ok" else 1
 
 
-def _run(args, prep, lp, stage: Path, out: Path) -> int:
-    from minegeo._output import run_timings
+def _run(args, prep, lp, stage: Path, out: Path, progress):
     from minegeo._provenance import input_record, versions, write_json_atomic
     from minegeo.errors import TooFewPointsError
     from minegeo.io import read_point_cloud, read_trajectory
@@ -199,6 +324,7 @@ def _run(args, prep, lp, stage: Path, out: Path) -> int:
         inputs.append(input_record(args.trajectory))
 
     # read and check the scan first: a user mistake there should not cost a map preparation
+    progress("read scan")
     t0 = time.perf_counter()
     scan = read_point_cloud(args.scan, drop_nonfinite=bool(getattr(args, "drop_nonfinite", False)))
     if len(scan) < lp.min_scan_points:
@@ -206,20 +332,24 @@ def _run(args, prep, lp, stage: Path, out: Path) -> int:
                                 "are needed to localize it")
     traj = read_trajectory(args.trajectory, frame="scan") if args.trajectory else None
     t_read = time.perf_counter() - t0
+    progress("load map" if str(args.map).lower().endswith(".npz") else "load or prepare map")
     t0 = time.perf_counter()
     # the cache of a freshly prepared map is written below, once, with its search structures
-    pm, how = load_or_prepare(args.map, prep, use_cache=not args.no_cache, write_cache=False)
+    with _summary_lines_quiet():
+        pm, how = load_or_prepare(args.map, prep, use_cache=not args.no_cache, write_cache=False)
     t_map = time.perf_counter() - t0
     # the map's search structures (KD-trees, descriptor tree, occupancy bitmap): once per
     # process, timed apart from the scan's own localization
-    index_s = pm.build_indexes(lp)
+    index_s = pm.build_indexes(lp, progress=lambda name: progress(f"search structure {name}"))
     if how == "computed" and not args.no_cache:
+        progress("write map cache")
         try:
             pm.save(cache_path(args.map, prep))
         except OSError as exc:
             log.warning("could not write the prepared-map cache: %s", exc)
 
     base = {
+        "profile": getattr(args, "profile", None) or DEFAULT_PROFILE,
         "inputs": inputs,
         "map_preparation": {"source": how, "seconds": t_map, "timings_s": index_s, "n_points": len(pm),
                             "params_hash": pm.params_hash,
@@ -229,7 +359,7 @@ def _run(args, prep, lp, stage: Path, out: Path) -> int:
         "seed": int(args.seed),
     }
     # an unusable scan (too few points, flat, degenerate) raises a typed error: exit 2, nothing written
-    res = localize_scan(pm, scan, traj, lp, seed=args.seed)
+    res = localize_scan(pm, scan, traj, lp, seed=args.seed, progress=progress)
     d = res.to_dict()
     timings = dict(d["timings_s"])
     timings["localize_total"] = timings.pop("total")
@@ -238,21 +368,94 @@ def _run(args, prep, lp, stage: Path, out: Path) -> int:
     timings["read_inputs"] = t_read
     d["timings_s"] = timings
     d.update(base)
-    if res.trajectory_map is not None:
+    # only an ok result is a position: no trajectory file otherwise (result.json says why)
+    if res.status == "ok" and res.trajectory_map is not None:
         _write_trajectory_csv(stage / "trajectory_global.csv", res)
         d["trajectory_csv"] = "trajectory_global.csv"
+    elif res.trajectory_map is not None:
+        d["trajectory_csv"] = None
+        d["trajectory_note"] = (f"no trajectory_global.csv: the localization is {res.status}, so no sensor pose "
+                                "in the map or the CRS is known")
     d["timings_s"]["total"] = time.perf_counter() - t_start
-    d["timings_s"].update(run_timings(args))  # wall_s, compile_s (Numba), work_s of the whole run
+    d["timings_s"].update(whole_run_timings(args))  # wall_s, compile_s (Numba), work_s of the whole run
+    progress("report")
     write_localize_report(stage / "report.html", res, pm, scan=scan, inputs=inputs, extra=d)
     write_json_atomic(stage / "result.json", d)
-    if not getattr(args, "quiet", False):
+    return res, d, how
+
+
+class _summary_lines_quiet:
+    """Context: hide ``prepare_map``'s own INFO summary line (``prepared map: ... in X s``); the
+    CLI prints the whole run's times instead (that line's seconds are preparation only and were
+    read as the run's time)."""
+
+    def __enter__(self):
+        self._log = logging.getLogger("minegeo.localize.prepared")
+        self._f = _DropPrefix("prepared map:")
+        self._log.addFilter(self._f)
+        return self
+
+    def __exit__(self, *exc):
+        self._log.removeFilter(self._f)
+        return False
+
+
+class _DropPrefix(logging.Filter):
+    def __init__(self, prefix: str):
+        super().__init__()
+        self.prefix = prefix
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not (record.levelno == logging.INFO and str(record.msg).startswith(self.prefix))
+
+
+def _candidate_lines(res, limit: int = 3) -> list[str]:
+    """Rejected candidates for the printout: map frame, separation, scores; labelled NOT a position."""
+    from minegeo.localize.pipeline import rejected_candidates
+
+    cands = rejected_candidates(res)
+    if not cands:
+        return ["  rejected candidates: none (no placement of the scan was proposed)"]
+    lines = [f"  rejected candidates ({len(cands)}; NOT positions: where the scan origin would be if that "
+             "placement were right, map frame, m):"]
+    for c in cands[:limit]:
+        x, y, z = c["origin_map_m"]
+        sep = "best rejected" if c["rank"] == 0 else f"{c['distance_to_best_m']:.1f} m / " \
+                                                     f"{c['rotation_to_best_deg']:.1f} deg from the best"
+        lines.append(f"    #{c['rank']} map x {x:.1f} y {y:.1f} z {z:.1f} (not a position; {sep}), plane fitness "
+                     f"{c['plane_fitness']:.3f}, {c['source']}")
+    if len(cands) > limit:
+        lines.append(f"    ... {len(cands) - limit} more in result.json -> rejected_candidates")
+    return lines
+
+
+def print_result(res, d: dict, how: str, out: Path) -> None:
+    """The stdout of ``minegeo localize``: coordinates only for an ``ok`` result."""
+    t = d["timings_s"]
+    times = (f"scan {t['localize_total']:.2f} s (+ map {how} {t['map_load_or_prepare']:.2f} s, its search "
+             f"structures {t['map_indexes']:.2f} s); run {time_line(t)}")
+    profile = d.get("profile") or DEFAULT_PROFILE
+    if res.status == "ok":
         T = res.T_crs_scan if res.T_crs_scan is not None else res.T_map_scan
         frame = f"CRS {res.crs}" if res.T_crs_scan is not None else "map frame"
-        print(f"{res.status}: {res.reason}")
+        print(f"OK: {res.reason}")
         print(f"  scan origin in {frame}: {T[0, 3]:.3f} {T[1, 3]:.3f} {T[2, 3]:.3f} "
               f"(95 % radius {res.position_95_radius_m:.3f} m); fitness {res.fitness:.3f}, "
-              f"inlier RMSE {res.inlier_rmse_m:.3f} m; {timings['localize_total']:.2f} s "
-              f"(+ map {how} {t_map:.2f} s, its search structures {timings['map_indexes']:.2f} s)")
-        print(f"  wrote {out / 'result.json'}, {out / 'report.html'}"
-              + (f", {out / 'trajectory_global.csv'}" if res.trajectory_map is not None else ""), file=sys.stdout)
-    return 0 if res.status == "ok" else 1
+              f"inlier RMSE {res.inlier_rmse_m:.3f} m; profile {profile}")
+        print(f"  {times}")
+        files = [out / "result.json", out / "report.html"]
+        if d.get("trajectory_csv"):
+            files.append(out / "trajectory_global.csv")
+        print("  wrote " + ", ".join(str(f) for f in files))
+        return
+    word = res.status.upper()
+    print(f"{word}: {res.reason}")
+    from minegeo.localize.pipeline import rejected_candidates
+
+    print(f"  NO POSITION: the scan was not localized ({word}); result.json, report.html and this output give no "
+          "coordinates of it" + (" (the candidates below were rejected)" if rejected_candidates(res) else ""))
+    for line in _candidate_lines(res):
+        print(line)
+    print(f"  profile {profile}; {times}")
+    extra = " (no trajectory_global.csv: written only for an ok result)" if res.trajectory_map is not None else ""
+    print(f"  wrote {out / 'result.json'}, {out / 'report.html'}{extra}")

@@ -28,10 +28,17 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from dataclasses import replace
 
-    from minegeo._output import OutputTransaction, run_timings
+    from minegeo._output import OutputTransaction
     from minegeo._provenance import input_record, sha256_file, versions, write_json_atomic
     from minegeo.errors import InputError
-    from minegeo.localize._cli_localize import params_from_args
+    from minegeo.localize._cli_localize import (
+        DEFAULT_PROFILE,
+        StepBar,
+        _summary_lines_quiet,
+        params_from_args,
+        time_line,
+        whole_run_timings,
+    )
     from minegeo.localize.prepared import load_map_cloud, prepare_map
 
     out = Path(args.out)
@@ -45,31 +52,46 @@ def run(args) -> int:
     icp_voxel = None if args.icp_voxel is not None and args.icp_voxel <= 0 else args.icp_voxel
     prep = replace(prep, icp_voxel_size_m=icp_voxel)
     record = out.with_name(out.name + ".json")
+    profile = getattr(args, "profile", None) or DEFAULT_PROFILE
     with OutputTransaction("prepare-map", inputs={"--map": args.map},
-                           files={"--out": out, "its record": record}, overwrite_files=bool(args.force)) as tx:
+                           files={"--out": out, "its record": record}, overwrite_files=bool(args.force)) as tx, \
+            StepBar(args, "prepare-map", total=1 + 1 + 4 + 6 + 1) as bar, _summary_lines_quiet():
         t0 = time.perf_counter()
+        bar("read map")
         cloud, g = load_map_cloud(args.map)
         t_read = time.perf_counter() - t0
-        pm = prepare_map(cloud, prep, georef=g, source={"path": str(args.map), "sha256": sha256_file(args.map),
-                                                        "n_points": len(cloud.points), "georeferenced": g is not None})
+        bar("SHA-256 of the map file")
+        t0 = time.perf_counter()
+        source = {"path": str(args.map), "sha256": sha256_file(args.map), "n_points": len(cloud.points),
+                  "georeferenced": g is not None}
+        t_hash = time.perf_counter() - t0
+        pm = prepare_map(cloud, prep, georef=g, source=source, progress=bar)
         # the search structures every localization would otherwise build (those of levelled scans'
         # whole-map search included) are stored in the file too
         _, lp = params_from_args(argparse_defaults(args))
         lp = replace(lp, ransac=replace(lp.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0))
-        index_s = pm.build_indexes(lp)
+        index_s = pm.build_indexes(lp, progress=lambda name: bar(f"search structure {name}"))
+        bar("write")
+        t0 = time.perf_counter()
         pm.save(tx.file("--out"))
-        rec = {"status": "ok", "out": str(out), "n_points": len(cloud.points), "n_down": len(pm),
+        t_save = time.perf_counter() - t0
+        rec = {"status": "ok", "out": str(out), "profile": profile, "n_points": len(cloud.points), "n_down": len(pm),
                "n_icp_points": int(pm.icp_points.shape[0]), "params": prep, "params_hash": pm.params_hash,
                "crs": pm.crs, "georeferenced": g is not None, "work_origin": pm.work_origin,
-               "timings_s": {"read": t_read, **pm.timings_s, "search_structures": index_s, **run_timings(args)},
+               "timings_s": {"read": t_read, "sha256": t_hash, **pm.timings_s, "search_structures": index_s,
+                             "write": t_save, **whole_run_timings(args)},
                "inputs": [input_record(args.map)],
                "versions": versions()}
         write_json_atomic(tx.file("its record"), rec)
     if not getattr(args, "quiet", False):
-        rt = rec["timings_s"]
-        print(f"prepared {args.map}: {len(cloud.points)} -> {len(pm)} points ({prep.describe()}), "
-              f"{pm.icp_points.shape[0]} ICP points; {rt['wall_s']:.1f} s wall "
-              f"({rt['compile_s']:.1f} s of it compiling kernels); wrote {out}")
+        # measured after the commit, from the start of the process: the time the user waited
+        rt = whole_run_timings(args)
+        pt = rec["timings_s"]
+        steps = (f"read {t_read:.1f} s, SHA-256 {t_hash:.1f} s, downsample + normals + FPFH + ICP target {pt.get('total', 0.0):.1f} s, "
+                 f"search structures {sum(index_s.values()):.1f} s, write {t_save:.1f} s")
+        print(f"prepared {args.map} (profile {profile}): {len(cloud.points)} -> {len(pm)} points ({prep.describe()}), "
+              f"{pm.icp_points.shape[0]} ICP points; wrote {out}")
+        print(f"  {time_line(rt)}; {steps}")
     return 0
 
 

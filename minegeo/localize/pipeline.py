@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from dataclasses import asdict, dataclass, field, replace
 
@@ -58,6 +59,7 @@ from minegeo._validate import as_points, check_positive
 from minegeo.errors import InputError, TooFewPointsError
 from minegeo.geometry.se3 import hat, invert, log_so3, rotation_angle
 from minegeo.io.types import PointCloud, Trajectory
+from minegeo.localize._progress import FEATURE_STEPS, ProgressFn, StepTimings, announce
 from minegeo.localize.correlative import CorrelativeParams, correlative_candidates
 from minegeo.localize.prepared import FAST_FEATURES, FeatureParams, PreparedMap, prepare_cloud_features
 from minegeo.localize.uncertainty import UncertaintyParams, pose_uncertainty, radii_95
@@ -68,7 +70,8 @@ from minegeo.registration.ransac import RansacParams, hypothesis_distance, regis
 
 ICP_METHODS = (*_ICP_METHODS, "gicp")
 
-__all__ = ["LocalizeParams", "LocalizationResult", "localize_scan", "CHI2_3D_95", "CHI2_2D_95", "STATUSES"]
+__all__ = ["LocalizeParams", "LocalizationResult", "localize_scan", "CHI2_3D_95", "CHI2_2D_95", "STATUSES",
+           "ANSWER_FIELDS", "rejected_candidates"]
 
 log = logging.getLogger(__name__)
 
@@ -362,8 +365,11 @@ class LocalizationResult:
     reason : str
         Why, in words a surveyor understands.
     T_map_scan : (4, 4) ndarray
-        Scan frame -> map frame (``p_map = R p_scan + t``), final (ICP) estimate. Identity if
-        RANSAC found nothing.
+        Scan frame -> map frame (``p_map = R p_scan + t``), final (ICP) estimate. **An answer
+        only when** ``status == "ok"``: otherwise it is the best *rejected* candidate (identity,
+        i.e. the map's work origin, if RANSAC found nothing), which :meth:`to_dict` writes under
+        ``rejected_candidates`` and never as ``T_map_scan`` (the same holds for ``T_geo_scan``,
+        ``T_crs_scan``, the covariance and the radii: :data:`ANSWER_FIELDS`).
     T_geo_scan, T_crs_scan : (4, 4) ndarray or None
         The scan pose in the ``geo`` frame and in full CRS coordinates (None without CRS).
     fitness, inlier_rmse_m : float
@@ -474,7 +480,11 @@ class LocalizationResult:
         return self.status == "ok"
 
     def to_dict(self) -> dict:
-        """The JSON record (``result.json`` fields of the CLI contract, without ``inputs``)."""
+        """The JSON record (``result.json`` fields of the CLI contract, without ``inputs``).
+
+        For a ``failed`` or ``ambiguous`` result the pose fields (:data:`ANSWER_FIELDS`) are
+        ``None`` and ``hypotheses`` moves under ``rejected_candidates`` (see
+        :func:`_without_answer`): nothing in the record reads as a position."""
         r = self.ransac
         ic = self.icp
         d = {
@@ -536,7 +546,65 @@ class LocalizationResult:
             "timings_s": self.timings_s,
             "warnings": self.warnings,
         }
+        if self.status != "ok":
+            d = _without_answer(d, self)
         return to_jsonable(d)
+
+
+#: ``result.json`` fields that state the answer (the pose and its uncertainty): only an ``ok``
+#: result has them; otherwise they are ``null`` and the rejected best candidate's values are
+#: under ``rejected_candidates["best"]``.
+ANSWER_FIELDS = ("T_map_scan", "T_geo_scan", "T_crs_scan", "covariance_6x6", "position_cov_3x3",
+                 "position_sigma_m", "position_95_radius_m", "horizontal_95_radius_m", "displacement_95_m",
+                 "uncertainty")
+
+#: The note that every rejected candidate carries.
+NOT_A_POSITION = ("NOT a position: placements of the scan that were tried and rejected (status {status}); "
+                  "none of them is where the scan is. They are kept to explain the decision.")
+
+
+def rejected_candidates(res) -> list[dict]:
+    """The verified hypotheses of a non-``ok`` result as rejected candidates (map frame only).
+
+    Each entry: ``rank``, ``source``, ``origin_map_m`` (the scan origin placed by the candidate,
+    map frame, m — *not a position*), ``distance_to_best_m``, ``rotation_to_best_deg``,
+    ``plane_fitness``, ``icp_fitness``, ``icp_inlier_rmse_m``. Empty when RANSAC (and the
+    correlative search) proposed nothing.
+    """
+    out = []
+    for h in res.hypotheses or []:
+        T = np.asarray(h["T_map_scan"], dtype=np.float64)
+        out.append({"rank": int(h["rank"]), "source": h["source"], "origin_map_m": T[:3, 3].tolist(),
+                    "distance_to_best_m": float(h["distance_to_chosen_m"]),
+                    "rotation_to_best_deg": float(h["rotation_to_chosen_deg"]),
+                    "plane_fitness": float(h["plane_fitness"]), "icp_fitness": float(h["icp_fitness"]),
+                    "icp_inlier_rmse_m": float(h["icp_inlier_rmse_m"])})
+    return out
+
+
+def _without_answer(d: dict, res) -> dict:
+    """``to_dict`` of a failed / ambiguous result: no field reads as an answer.
+
+    The pose fields and their uncertainty (:data:`ANSWER_FIELDS`) become ``null``; what the
+    pipeline tried is kept under ``rejected_candidates`` (labelled :data:`NOT_A_POSITION`),
+    in the map frame only (no CRS coordinates that could be copied as a position).
+    """
+    d = dict(d)
+    best = {k: d[k] for k in ("T_map_scan", "covariance_6x6", "position_sigma_m", "position_95_radius_m",
+                              "uncertainty")} if res.hypotheses else None
+    for k in ANSWER_FIELDS:
+        d[k] = None
+    if d.get("ransac") is not None:
+        d["ransac"] = {**d["ransac"], "T_map_scan": None}
+    d["rejected_candidates"] = {
+        "note": NOT_A_POSITION.format(status=res.status),
+        "frame": "map (scan origin placed by each candidate; not georeferenced on purpose)",
+        "candidates": rejected_candidates(res),
+        "best": best,
+        "ransac_T_map_scan": res.ransac_T_map_scan if res.ransac is not None and res.ransac.n_inliers > 0 else None,
+        "hypotheses": d.pop("hypotheses"),
+    }
+    return d
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -621,7 +689,8 @@ def _placement_distance(Ta: np.ndarray, Tb: np.ndarray, centre: np.ndarray) -> t
 
 # ----------------------------------------------------------------------------- main
 def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory | None = None,
-                  params: LocalizeParams | None = None, seed: int = 0) -> LocalizationResult:
+                  params: LocalizeParams | None = None, seed: int = 0, *,
+                  progress: ProgressFn | None = None) -> LocalizationResult:
     """Find where a local scan (and its sensor trajectory) lies in a prepared prior map.
 
     Parameters
@@ -639,12 +708,32 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     seed : int
         Seeds every random choice (RANSAC sampling); equal inputs and seed give
         bit-identical results.
+    progress : callable, optional
+        ``progress(step)`` is called when each step starts (``"downsample"``, ``"normals"``,
+        ``"FPFH"``, ``"RANSAC"``, ``"ICP verification"``, ``"correlative search"`` when it
+        runs, ``"polish"``, ``"uncertainty"``, ``"trajectory"``), e.g. to drive a progress bar
+        (:mod:`minegeo.localize._progress`). Nothing is printed by this function.
 
     Returns
     -------
     LocalizationResult
         Never a silent wrong pose: check ``status`` (``ok`` / ``ambiguous`` / ``failed``) and
-        ``reason``.
+        ``reason``. Only an ``ok`` result carries an answer; for the others ``T_map_scan`` and
+        its uncertainty describe the best *rejected* candidate (``to_dict`` writes them under
+        ``rejected_candidates``, never as the pose).
+
+    Notes
+    -----
+    **Degeneracy is reported once, where it matters.** Every ICP of every candidate (screening,
+    full resolution, rivals) analyses its own constraint matrix, and a weak direction of a
+    *rejected or rival* candidate says nothing about the answer; those per-candidate messages of
+    :func:`~minegeo.registration.register_icp` / ``register_gicp`` are logged at DEBUG level
+    only (the same thread, during this call). The chosen fit's weak direction is judged once,
+    after the covariance: if its 95 % displacement over the scan exceeds
+    ``max_weak_displacement_95_m`` the result is ``ambiguous`` and ``reason`` says so;
+    otherwise it does not change the answer (the covariance, hence the 95 % radius, already
+    contains it) and it is a note in ``warnings`` (result.json and the report), not a logged
+    warning. The outcome itself is logged at DEBUG level: the caller reports ``status``.
 
     Raises
     ------
@@ -664,13 +753,56 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     if isinstance(seed, bool) or int(seed) != seed or seed < 0:
         raise InputError(f"seed must be an integer >= 0, got {seed!r}")
     seed = int(seed)
+    with _CandidateICPMessages():
+        return _localize_scan(prepared_map, scan_cloud, trajectory, p, seed, progress)
+
+
+class _CandidateICPMessages(logging.Filter):
+    """Context: the per-candidate ICP/GICP degeneracy warnings of this thread go to DEBUG.
+
+    See *Notes* of :func:`localize_scan`: the pipeline judges the chosen fit's degeneracy
+    itself, once. Messages of other threads pass unchanged.
+    """
+
+    LOGGERS = ("minegeo.registration.icp", "minegeo.registration.gicp")
+
+    def __init__(self):
+        super().__init__()
+        self._thread = threading.get_ident()
+        self.n = 0
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if (threading.get_ident() == self._thread and record.levelno == logging.WARNING
+                and str(record.msg).startswith(("ICP result is degenerate", "GICP result is degenerate"))):
+            self.n += 1
+            log.debug("candidate fit: %s", record.getMessage())
+            return False
+        return True
+
+    def __enter__(self):
+        for name in self.LOGGERS:
+            logging.getLogger(name).addFilter(self)
+        return self
+
+    def __exit__(self, *exc):
+        for name in self.LOGGERS:
+            logging.getLogger(name).removeFilter(self)
+        return False
+
+
+def _localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory, p: LocalizeParams, seed: int,
+                   progress: ProgressFn | None) -> LocalizationResult:
+    """The body of :func:`localize_scan` (arguments already checked)."""
     t_all = time.perf_counter()
     timings: dict[str, float] = {}
     warnings: list[str] = []
 
     # 1. scan features
     P_raw, scan_origin = _scan_points(scan_cloud)
-    D, Nd, F = prepare_cloud_features(P_raw, p.scan_voxel_size_m, p.scan_octree_level, p.features, timings)
+    announce(progress, "downsample")
+    feat_t = StepTimings(progress, FEATURE_STEPS)
+    D, Nd, F = prepare_cloud_features(P_raw, p.scan_voxel_size_m, p.scan_octree_level, p.features, feat_t)
+    timings.update(feat_t)
     if D.shape[0] < p.min_scan_points:
         raise TooFewPointsError(
             f"the scan has only {D.shape[0]} points after downsampling ({p.describe_downsampling()}; "
@@ -694,6 +826,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     Nf = prepared_map.icp_normals
 
     # 2. RANSAC (one or more runs)
+    announce(progress, "RANSAC")
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     run_seeds = [seed] + [int(s) for s in rng.integers(0, 2**31 - 1, size=p.ransac_runs - 1)]
@@ -922,6 +1055,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
 
     def _with_correlative(uniq):
         nonlocal corr
+        announce(progress, "correlative search")
         t0 = time.perf_counter()
         cp = p.correlative_params
         occ = prepared_map.occupancy(cp)
@@ -950,10 +1084,14 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     fallback = use_corr and p.correlative == "fallback"
     confirm = fallback and small_scan
     # a small scan's result is always confirmed against the whole map: no need to decide twice
+    if not confirm:
+        announce(progress, "ICP verification")
     ev = {"status": "deferred", "t_icp": 0.0, "t_decision": 0.0} if confirm else _evaluate(uniq, may_defer=fallback)
     if fallback and (ev["status"] != "ok" or confirm):
         t_first = ev["t_icp"] + ev["t_decision"]
-        ev = _evaluate(_with_correlative(uniq))
+        uniq_c = _with_correlative(uniq)
+        announce(progress, "ICP verification")
+        ev = _evaluate(uniq_c)
         ev["t_icp"] += t_first
     timings["icp"] = ev["t_icp"]
     timings["decision"] = ev["t_decision"]
@@ -963,6 +1101,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     ic_final = ic_best  # pose and covariance; the reported ICP statistics stay the decision's
     if p.icp_polish_correspondence_m is not None and ic_best is not None:
         # 4b. polish (minegeo addition): point-to-plane with a tight gate from the chosen pose
+        announce(progress, "polish")
         t0 = time.perf_counter()
         pol_gate = float(p.icp_polish_correspondence_m)
         if math.isfinite(scan_noise):
@@ -989,6 +1128,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         timings["polish"] = time.perf_counter() - t0
 
     # 5. covariance (about the scan origin, work frame)
+    announce(progress, "uncertainty")
     t0 = time.perf_counter()
     T_work_scan = ic_final.T_target_source if ic_final is not None else np.eye(4)
     cov = None
@@ -1039,8 +1179,10 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
                              f"{p.max_weak_displacement_95_m:g} m)" if cov is not None else "")
                           + " (e.g. a straight featureless drift: the position along it is uncertain)")
             else:
-                warnings.append(f"weakly constrained direction ({weak}), but its 95 % displacement over the scan is "
-                                f"only {disp95:.3f} m (<= {p.max_weak_displacement_95_m:g} m)")
+                # does not change the answer: a note (result.json, report), not a logged warning
+                warnings.append(f"note: weakly constrained direction ({weak}), but its 95 % displacement over the "
+                                f"scan is only {disp95:.3f} m (<= {p.max_weak_displacement_95_m:g} m) and the "
+                                "95 % radius includes it")
         if step is not None:
             lever = float(np.sqrt(np.max(np.sum((Pw - o_work) ** 2, axis=1))))
             pending = float(np.linalg.norm(step[3:]) + np.linalg.norm(step[:3]) * lever)
@@ -1064,6 +1206,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     T_map_scan = _to_map(T_work_scan, scan_origin, prepared_map.work_origin)
 
     # 6. trajectory and CRS (Eq. 18)
+    announce(progress, "trajectory")
     t0 = time.perf_counter()
     g = prepared_map.georef_result
     T_geo_scan = T_crs_scan = None
@@ -1105,8 +1248,8 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
                 traj_sigma[i] = math.sqrt(max(float(np.trace(J @ cov @ J.T)), 0.0))
     timings["trajectory"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
-    if status != "ok":
-        log.warning("localization %s: %s", status, reason)
+    # the caller reports the outcome (the CLI prints it once); see Notes of localize_scan
+    log.debug("localization %s: %s", status, reason)
     res = LocalizationResult(
         status=status, reason=reason, T_map_scan=T_map_scan, T_geo_scan=T_geo_scan, T_crs_scan=T_crs_scan,
         fitness=float(ic_best.fitness) if ic_best is not None else 0.0,

@@ -43,6 +43,7 @@ import numpy as np
 from minegeo._provenance import atomic_write_bytes, sha256_file, to_jsonable
 from minegeo._validate import as_points, check_positive, is_permutation
 from minegeo.errors import FileFormatError, InputError, TooFewPointsError
+from minegeo.io._json import load_json_text
 from minegeo.io.types import PointCloud
 from minegeo.localize._progress import FEATURE_STEPS, StepTimings, announce
 
@@ -884,7 +885,7 @@ def _read_prepared_file(p: Path):
                 raise FileFormatError(p, "not a minegeo prepared map (no 'meta' entry)")
             if "meta" in bad or headers["meta"][1].kind != "U" or headers["meta"][0] != ():
                 raise FileFormatError(p, f"not a minegeo prepared map (bad 'meta' entry{': ' + bad.get('meta', '')})")
-            meta = __import__("minegeo.io._json", fromlist=["_"]).load_json_text(str(z["meta"]), p, allow_nonfinite=True)
+            meta = load_json_text(str(z["meta"]), p, allow_nonfinite=True)
             if not isinstance(meta, dict):
                 raise FileFormatError(p, "not a minegeo prepared map (its meta is not a JSON object)")
             arrays = {}

@@ -1,9 +1,14 @@
 """Self-contained HTML report of a global localization (``minegeo localize``).
 
-One page a surveyor can file: the status and its explanation, the scan origin in the map and
-the CRS with its uncertainty, a plan view (map + placed scan + trajectory, embedded PNG), the
-verified hypotheses, the residuals of the final fit, the trajectory in the CRS, the
-parameters, timings and input hashes.
+One page a surveyor can file. Its first line is the status banner (``STATUS: OK`` /
+``FAILED`` / ``AMBIGUOUS`` with the reason, :func:`minegeo.report._html.status_banner`). For an
+``ok`` result: the scan origin in the map and the CRS with its uncertainty, a plan view (map +
+placed scan + trajectory, embedded PNG), the verified hypotheses, the residuals of the final
+fit and the trajectory in the CRS. For a ``failed`` or ``ambiguous`` result **no position is
+shown anywhere**: the placements that were tried are listed as *rejected candidates* (map
+frame, labelled "not a position") and the plan view marks them as such. Then the parameters
+actually used (profile and effective values), the run time with Numba compile time apart,
+and the input hashes.
 """
 
 from __future__ import annotations
@@ -23,13 +28,14 @@ __all__ = ["plot_localization_png", "localize_report_html", "write_localize_repo
 _STATUS_TEXT = {
     "ok": "The scan was placed in the map; no competing placement fits nearly as well and the geometry "
           "constrains all six pose directions. The coordinates below can be used with the stated uncertainty.",
-    "ambiguous": "A placement was found but it is NOT unique: another placement fits almost as well (a "
+    "ambiguous": "NO POSITION. A placement fits, but it is NOT unique: another placement fits almost as well (a "
                  "repeated drift), or the geometry leaves a direction unconstrained (e.g. a straight "
-                 "featureless drift). Do not use the coordinates without independent confirmation; re-scan a "
-                 "longer section including a distinctive feature (intersection, curve, structure).",
-    "failed": "No placement of the scan fits the map well enough. The scan may be outside the mapped area, "
-              "the drift may have changed since mapping, or the scan is too short or too noisy. The pose "
-              "shown (if any) is the best attempt only and must not be used.",
+                 "featureless drift), or the fit did not settle. The competing placements are listed below as "
+                 "rejected candidates, not positions. Re-scan a longer section including a distinctive feature "
+                 "(intersection, curve, structure).",
+    "failed": "NO POSITION. No placement of the scan fits the map well enough. The scan may be outside the mapped "
+              "area, the drift may have changed since mapping, or the scan is too short or too noisy. The "
+              "placements that were tried are listed below as rejected candidates, not positions.",
 }
 
 
@@ -51,7 +57,12 @@ def _frame_xy(g, pts_map: np.ndarray):
 
 
 def plot_localization_png(res, prepared, max_map_points: int = 40000, seed: int = 0) -> bytes | None:
-    """Plan view of map (grey), placed scan (status colour) and trajectory, as PNG bytes (None without matplotlib)."""
+    """Plan view as PNG bytes (None without matplotlib).
+
+    ``ok``: map (grey), placed scan and trajectory, overview and detail. ``failed`` /
+    ``ambiguous``: the map and the scan origin of each rejected candidate, marked ``x`` and
+    numbered, titled "rejected candidates — NOT positions"; no placed scan, no trajectory.
+    """
     try:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
@@ -62,33 +73,46 @@ def plot_localization_png(res, prepared, max_map_points: int = 40000, seed: int 
     if M.shape[0] > max_map_points:
         idx = np.sort(np.random.default_rng(seed).choice(M.shape[0], max_map_points, replace=False))
         M = M[idx]
-    S = res.scan_points_down if res.scan_points_down is not None else np.zeros((0, 3))
-    T = res.T_map_scan
-    Sm = S @ T[:3, :3].T + T[:3, 3]
     Mx = _frame_xy(g, M)
-    Sx = _frame_xy(g, Sm)
-    colour = {"ok": "tab:green", "ambiguous": "tab:orange", "failed": "tab:red"}[res.status]
-    fig = Figure(figsize=(11, 5.2), dpi=100)
+    ok = res.status == "ok"
+    fig = Figure(figsize=(11, 5.2) if ok else (7.5, 5.2), dpi=100)
     FigureCanvasAgg(fig)
-    axes = [fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)]
+    axes = [fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)] if ok else [fig.add_subplot(1, 1, 1)]
+    if ok:
+        S = res.scan_points_down if res.scan_points_down is not None else np.zeros((0, 3))
+        T = res.T_map_scan
+        Sx = _frame_xy(g, S @ T[:3, :3].T + T[:3, 3])
     for k, ax in enumerate(axes):
         ax.scatter(Mx[:, 0], Mx[:, 1], s=0.15, c="0.7", linewidths=0)
-        ax.scatter(Sx[:, 0], Sx[:, 1], s=0.6, c=colour, linewidths=0)
-        ax.scatter([], [], s=12, c="0.7", label="map (downsampled)")  # legend proxies
-        ax.scatter([], [], s=12, c=colour, label=f"scan placed ({res.status})")
-        if res.trajectory_map is not None:
-            P = _frame_xy(g, res.trajectory_map.poses[:, :3, 3])
-            ax.plot(P[:, 0], P[:, 1], "-", c="tab:blue", lw=1.2, label="sensor trajectory")
-            ax.plot(P[0, 0], P[0, 1], "o", c="tab:blue", ms=4)
-        o = _frame_xy(g, T[:3, 3].reshape(1, 3))[0]
-        ax.plot(o[0], o[1], "k+", ms=10, mew=1.5, label="scan origin")
-        if k == 1 and Sx.shape[0]:
+        ax.scatter([], [], s=12, c="0.7", label="map (downsampled)")  # legend proxy
+        if ok:
+            ax.scatter(Sx[:, 0], Sx[:, 1], s=0.6, c="tab:green", linewidths=0)
+            ax.scatter([], [], s=12, c="tab:green", label="scan placed (ok)")
+            if res.trajectory_map is not None:
+                P = _frame_xy(g, res.trajectory_map.poses[:, :3, 3])
+                ax.plot(P[:, 0], P[:, 1], "-", c="tab:blue", lw=1.2, label="sensor trajectory")
+                ax.plot(P[0, 0], P[0, 1], "o", c="tab:blue", ms=4)
+            o = _frame_xy(g, T[:3, 3].reshape(1, 3))[0]
+            ax.plot(o[0], o[1], "k+", ms=10, mew=1.5, label="scan origin")
+        else:
+            from minegeo.localize.pipeline import rejected_candidates
+
+            cands = rejected_candidates(res)
+            if cands:
+                C = _frame_xy(g, np.array([c["origin_map_m"] for c in cands]))
+                ax.plot(C[:, 0], C[:, 1], "x", c="tab:red", ms=9, mew=2,
+                        label="rejected candidates (NOT positions)")
+                for c, xy in zip(cands, C, strict=True):
+                    ax.annotate(f"#{c['rank']}", xy[:2], xytext=(4, 4), textcoords="offset points", fontsize=8,
+                                color="tab:red")
+            ax.set_title(f"{res.status.upper()}: rejected candidates — NOT positions")
+        if ok and k == 1 and Sx.shape[0]:
             c = Sx[:, :2].mean(axis=0)
             r = max(float(np.max(np.ptp(Sx[:, :2], axis=0))) * 0.75, 5.0)
             ax.set_xlim(c[0] - r, c[0] + r)
             ax.set_ylim(c[1] - r, c[1] + r)
             ax.set_title("detail")
-        else:
+        elif ok:
             ax.set_title("overview")
         ax.set_aspect("equal", adjustable="box" if k == 1 else "datalim")
         ax.grid(True, color="0.92")
@@ -103,6 +127,49 @@ def plot_localization_png(res, prepared, max_map_points: int = 40000, seed: int 
     buf = io.BytesIO()
     fig.savefig(buf, format="png", metadata={"Software": None})
     return buf.getvalue()
+
+
+def describe_params(p, map_params) -> str:
+    """The effective parameters of a run in one line (downsampling, features, RANSAC, ICP, checks)."""
+    r = p.ransac
+    f = p.features
+    mp = map_params
+    scan_ds = p.describe_downsampling()
+    map_ds = mp.describe() if mp is not None and hasattr(mp, "describe") else "n/a"
+    model = f"levelled, tilt <= {r.max_tilt_deg:g} deg" if r.model == "levelled" else r.model
+    ransac = (f"RANSAC {r.ransac_n}-point ({model}), "
+              f"{'mutual' if r.mutual_filter else 'all'} FPFH matches, ε_distance {r.distance_threshold_m:g} m, "
+              f"edge similarity {r.edge_length_similarity:g}, draws: Eq. 8 with floor {int(r.min_iterations):,} "
+              f"and cap {int(r.max_iterations):,}, "
+              f"{r.max_validations} validations, {r.n_hypotheses} hypotheses x {p.ransac_runs} run(s)")
+    icp = (f"ICP {p.icp_method}, gate {p.icp_max_correspondence_m:g} m, <= {p.icp_max_iterations} iterations, "
+           f"ICP clouds {_n(p.scan_icp_voxel_size_m, 'g')} m (scan) / "
+           f"{_n(getattr(mp, 'icp_voxel_size_m', None), 'g')} m (map) voxels; polish "
+           + (f"{p.icp_polish_correspondence_m:g} m" if p.icp_polish_correspondence_m is not None else "off"))
+    corr = f"correlative search {p.correlative}" if r.model == "levelled" else "no correlative search (not levelled)"
+    return (f"scan {scan_ds}, map {map_ds}; normals r {f.normal_radius_m:g} m, FPFH r {f.fpfh_radius_m:g} m; "
+            f"{ransac}; {icp}; {corr}; ok needs plane fitness >= {p.min_plane_fitness:g}, "
+            f"ICP fitness >= {p.min_fitness:g}, no rival >= {p.ambiguity_ratio:g} x the best")
+
+
+def profile_label(p, map_params, profile: str | None) -> str:
+    """Which profile the parameters are: exactly a named one, or that profile with overrides (named)."""
+    from minegeo.localize import LocalizeParams, PrepareParams
+
+    named = {"fast": (LocalizeParams.fast(), PrepareParams.fast()),
+             "table3": (LocalizeParams(), PrepareParams())}
+    text = {"fast": "minegeo's fast profile (the measured CLI default, not the paper's values)",
+            "table3": "Baek et al. 2022 Table 3 (paper-faithful profile; RANSAC capped at 4e6 draws instead of 4e8, "
+                      "mutual FPFH matches)"}
+    if profile not in named:
+        return "library parameters (no CLI profile)"
+    lp0, mp0 = named[profile]
+    diff = [k for k, v in asdict(p).items() if asdict(lp0)[k] != v]
+    if map_params is not None:
+        diff += [f"map.{k}" for k, v in asdict(map_params).items() if asdict(mp0).get(k) != v]
+    if not diff:
+        return f"profile {profile}: {text[profile]}"
+    return f"profile {profile} with changed {', '.join(diff)} (so not exactly {text[profile].split(' (')[0]})"
 
 
 def _uncertainty_text(u: dict | None) -> str:
@@ -135,42 +202,88 @@ def _mat(T) -> str:
     return "<pre>" + esc("\n".join(" ".join(f"{v:14.6f}" for v in row) for row in np.asarray(T))) + "</pre>"
 
 
+def _rejected_section(res) -> str:
+    """Table of the rejected candidates of a failed / ambiguous result (map frame, not positions)."""
+    from minegeo.localize.pipeline import rejected_candidates
+
+    cands = rejected_candidates(res)
+    if not cands:
+        why = res.ransac.reason if res.ransac is not None else ""
+        return f"<p>No candidate placement was proposed ({esc(why)}).</p>"
+    rows = [[c["rank"], c["source"], "NOT a position: " + "  ".join(f"{v:.1f}" for v in c["origin_map_m"]),
+             _n(c["distance_to_best_m"], ".1f"), _n(c["rotation_to_best_deg"], ".1f"), _n(c["plane_fitness"], ".3f"),
+             _n(c["icp_fitness"], ".3f"), _n(c["icp_inlier_rmse_m"], ".3f")] for c in cands]
+    sec = ("<p><b>These placements were tried and rejected; none of them is the position of the scan.</b> "
+           "The map-frame location is where the scan origin would be if that placement were right; it is given "
+           "to show how far apart the candidates are (a repeated drift), never to be used.</p>")
+    sec += table(["#", "candidate", "scan origin if this were right (map frame x y z, m)", "from #0 m",
+                  "from #0 °", "plane fitness", "ICP fitness", "ICP RMSE m"], rows, numeric=range(3, 8))
+    sec += (f"<p class='sub'>An ok result needs plane fitness >= {res.params.min_plane_fitness:g} and no distinct "
+            f"rival reaching {res.params.ambiguity_ratio:g} x the best (plane tolerance "
+            f"{_n(res.plane_tolerance_m, '.3f')} m).</p>")
+    return sec
+
+
+def _timings_section(tim: dict) -> str:
+    """Run time (wall, Numba compile apart) then the stages."""
+    rows = []
+    if "wall_s" in tim:
+        wall = tim.get("process_wall_s", tim["wall_s"])
+        rows.append(("whole run, wall clock", f"{_n(wall, '.2f')} s"))
+        rows.append(("  of which compiling Numba kernels (one-time; cached for later runs)",
+                     f"{_n(tim.get('compile_s'), '.2f')} s"))
+        if "startup_s" in tim:
+            rows.append(("  of which Python start-up and imports", f"{_n(tim['startup_s'], '.2f')} s"))
+        rows.append(("  work (run clock minus compiling)", f"{_n(tim.get('work_s'), '.2f')} s"))
+    head = kv_table(rows) if rows else ""
+    skip = {"wall_s", "compile_s", "work_s", "startup_s", "process_wall_s"}
+    return head + table(["stage", "seconds"], [[k, _n(v, ".3f")] for k, v in tim.items() if k not in skip],
+                        numeric=[1])
+
+
 def localize_report_html(res, prepared, *, inputs=None, extra: dict | None = None) -> str:
-    """The report page as a string."""
+    """The report page as a string (see the module docstring: no position unless ``ok``)."""
     extra = extra or {}
+    ok = res.status == "ok"
     sections = []
-    head = (f"<p>{badge(res.status.upper(), {'ok': True, 'failed': False}.get(res.status))} "
+    head = (f"<p>{badge(res.status.upper(), {'ok': True, 'failed': False, 'ambiguous': False}.get(res.status))} "
             f"{esc(res.reason)}</p><p>{esc(_STATUS_TEXT[res.status])}</p>")
     if res.warnings:
         head += "<ul>" + "".join(f"<li>{esc(w)}</li>" for w in res.warnings) + "</ul>"
     sections.append(("Status", head))
 
-    rows = [("frame of T_map_scan", "map frame of the prior map before georeferencing (p_map = R p_scan + t)")]
-    t = res.T_map_scan[:3, 3]
-    rows.append(("scan origin, map frame (m)", f"{t[0]:.3f}  {t[1]:.3f}  {t[2]:.3f}"))
-    if res.T_crs_scan is not None:
-        c = res.T_crs_scan[:3, 3]
-        rows.append((f"scan origin, CRS {res.crs} (E N H, m)", f"{c[0]:.3f}  {c[1]:.3f}  {c[2]:.3f}"))
-    s = res.position_sigma_m
-    rows.append(("1σ of the scan origin x, y, z (m)", "  ".join(_n(v, ".4f") for v in s)))
-    rows.append(("95 % radius 3-D (m)", f"{_n(res.position_95_radius_m, '.4f')}  (= sqrt(7.815 λmax), χ²₃)"))
-    rows.append(("95 % radius horizontal (m)", f"{_n(res.horizontal_95_radius_m, '.4f')}  (= sqrt(5.991 λmax), χ²₂)"))
-    rows.append(("σ of one residual (m)", _n(res.sigma_m, ".4f")))
-    rows.append(("final fitness / inlier RMSE (Eq. 19)", f"{_n(res.fitness, '.4f')} / {_n(res.inlier_rmse_m, '.4f')} m"))
-    rows.append(("scan points: read / features / ICP", f"{res.n_scan_points} / {res.n_scan_down} / {res.n_scan_icp}"))
-    sec = kv_table(rows)
-    sec += f"<p class='sub'>{esc(_uncertainty_text(res.uncertainty))}</p>"
-    sec += "<h3>T_map_scan</h3>" + _mat(res.T_map_scan)
-    if res.T_crs_scan is not None:
-        sec += f"<h3>T_crs_scan (full {esc(res.crs)} coordinates)</h3>" + _mat(res.T_crs_scan)
-    sections.append(("Result", sec))
+    if ok:
+        rows = [("frame of T_map_scan", "map frame of the prior map before georeferencing (p_map = R p_scan + t)")]
+        t = res.T_map_scan[:3, 3]
+        rows.append(("scan origin, map frame (m)", f"{t[0]:.3f}  {t[1]:.3f}  {t[2]:.3f}"))
+        if res.T_crs_scan is not None:
+            c = res.T_crs_scan[:3, 3]
+            rows.append((f"scan origin, CRS {res.crs} (E N H, m)", f"{c[0]:.3f}  {c[1]:.3f}  {c[2]:.3f}"))
+        s = res.position_sigma_m
+        rows.append(("1σ of the scan origin x, y, z (m)", "  ".join(_n(v, ".4f") for v in s)))
+        rows.append(("95 % radius 3-D (m)", f"{_n(res.position_95_radius_m, '.4f')}  (= sqrt(7.815 λmax), χ²₃)"))
+        rows.append(("95 % radius horizontal (m)",
+                     f"{_n(res.horizontal_95_radius_m, '.4f')}  (= sqrt(5.991 λmax), χ²₂)"))
+        rows.append(("σ of one residual (m)", _n(res.sigma_m, ".4f")))
+        rows.append(("final fitness / inlier RMSE (Eq. 19)",
+                     f"{_n(res.fitness, '.4f')} / {_n(res.inlier_rmse_m, '.4f')} m"))
+        rows.append(("scan points: read / features / ICP", f"{res.n_scan_points} / {res.n_scan_down} / {res.n_scan_icp}"))
+        sec = kv_table(rows)
+        sec += f"<p class='sub'>{esc(_uncertainty_text(res.uncertainty))}</p>"
+        sec += "<h3>T_map_scan</h3>" + _mat(res.T_map_scan)
+        if res.T_crs_scan is not None:
+            sec += f"<h3>T_crs_scan (full {esc(res.crs)} coordinates)</h3>" + _mat(res.T_crs_scan)
+        sections.append(("Result", sec))
+    else:
+        sections.append((f"Rejected candidates ({res.status.upper()}: NOT positions)", _rejected_section(res)))
 
     png = plot_localization_png(res, prepared, seed=res.seed)
     if png is None:
         sections.append(("Plan view", "<p>matplotlib is not installed: no plot.</p>"))
     else:
         b64 = base64.b64encode(png).decode("ascii")
-        sections.append(("Plan view", f'<img alt="plan view" style="max-width:100%" src="data:image/png;base64,{b64}">'))
+        sections.append(("Plan view" if ok else "Plan view of the rejected candidates",
+                         f'<img alt="plan view" style="max-width:100%" src="data:image/png;base64,{b64}">'))
 
     hrows = []
     for h in res.hypotheses:
@@ -179,8 +292,9 @@ def localize_report_html(res, prepared, *, inputs=None, extra: dict | None = Non
                       _n(h["plane_rmse_m"], ".3f"), _n(h["distance_to_chosen_m"], ".2f"),
                       _n(h["rotation_to_chosen_deg"], ".2f")])
     r = res.ransac
+    ref = "chosen" if ok else "best rejected"
     sec = table(["rank", "hypothesis", "RANSAC fitness", "RANSAC RMSE m", "ICP fitness", "ICP RMSE m",
-                 "plane fitness", "plane RMSE m", "distance to chosen m", "rotation to chosen °"], hrows,
+                 "plane fitness", "plane RMSE m", f"distance to {ref} m", f"rotation to {ref} °"], hrows,
                 numeric=range(2, 10))
     if r is not None:
         sec += kv_table([
@@ -198,7 +312,7 @@ def localize_report_html(res, prepared, *, inputs=None, extra: dict | None = Non
         ])
     sections.append(("Hypotheses verified (multi-hypothesis ICP)", sec))
 
-    if res.residuals_m is not None and res.residuals_m.size:
+    if ok and res.residuals_m is not None and res.residuals_m.size:
         a = np.abs(res.residuals_m)
         q = np.percentile(a, [50, 68.3, 90, 95, 99])
         sec = table(["pairs", "mean |r| m", "median", "68.3 %", "90 %", "95 %", "99 %", "max"],
@@ -208,41 +322,49 @@ def localize_report_html(res, prepared, *, inputs=None, extra: dict | None = Non
                f"{res.params.icp_max_correspondence_m:g} m).</p>"
         sections.append(("Residuals of the final fit", sec))
 
-    if res.trajectory_map is not None:
+    if ok and res.trajectory_map is not None:
         tm = res.trajectory_map
         n = len(tm.times_s)
         pick = sorted(set(np.linspace(0, n - 1, min(n, 15)).round().astype(int).tolist()))
         trows = []
         for i in pick:
-            p = tm.poses[i, :3, 3]
-            row = [f"{tm.times_s[i]:.2f}", f"{p[0]:.3f}", f"{p[1]:.3f}", f"{p[2]:.3f}"]
+            p_i = tm.poses[i, :3, 3]
+            row = [f"{tm.times_s[i]:.2f}", f"{p_i[0]:.3f}", f"{p_i[1]:.3f}", f"{p_i[2]:.3f}"]
             if res.trajectory_geo is not None:
                 e = res.trajectory_geo.poses[i, :3, 3] + res.trajectory_geo.origin
                 row += [f"{e[0]:.3f}", f"{e[1]:.3f}", f"{e[2]:.3f}"]
             s_i = res.trajectory_sigma_m[i] if res.trajectory_sigma_m is not None else math.inf
             row.append(_n(s_i, ".4f"))
             trows.append(row)
-        hdr = ["t (s)", "x map", "y map", "z map"] + (["E", "N", "H"] if res.trajectory_geo is not None else []) + ["1σ 3-D m"]
+        hdr = ["t (s)", "x map", "y map", "z map"] + (["E", "N", "H"] if res.trajectory_geo is not None else []) \
+            + ["1σ 3-D m"]
         sections.append(("Sensor trajectory in the map / CRS (Eq. 18)",
                          f"<p>{n} poses; {len(pick)} shown (all in trajectory_global.csv).</p>"
                          + table(hdr, trows, numeric=range(len(hdr)))))
+    elif res.trajectory_map is not None:
+        sections.append(("Sensor trajectory", f"<p>Not placed: the localization is {esc(res.status.upper())}, so no "
+                                              "sensor pose is known (no trajectory_global.csv is written).</p>"))
 
     p = res.params
-    prow = [(k, v) for k, v in to_jsonable(asdict(p)).items() if k not in ("features", "ransac")]
+    label = profile_label(p, prepared.params, extra.get("profile"))
+    prow = [("profile", label), ("effective values", describe_params(p, prepared.params))]
+    prow += [(k, v) for k, v in to_jsonable(asdict(p)).items() if k not in ("features", "ransac")]
     prow += [(f"features.{k}", v) for k, v in to_jsonable(asdict(p.features)).items()]
     prow += [(f"ransac.{k}", v) for k, v in to_jsonable(asdict(p.ransac)).items()]
     prow += [(f"map.{k}", v) for k, v in to_jsonable(asdict(prepared.params)).items() if k != "features"]
     prow.append(("seed", res.seed))
-    sections.append(("Parameters (Baek et al. 2022 Table 3 defaults)", kv_table(prow)))
+    sections.append((f"Parameters used ({label.split(':')[0].split(' (')[0]}; {p.describe_downsampling()}, "
+                     f"FPFH r {p.features.fpfh_radius_m:g} m, {p.ransac.ransac_n}-point RANSAC, {p.icp_method} ICP)",
+                     kv_table(prow)))
     tim = extra.get("timings_s", res.timings_s)
-    sections.append(("Timings (s, wall clock)", table(["stage", "seconds"], [[k, _n(v, ".3f")] for k, v in tim.items()],
-                                                   numeric=[1])))
+    sections.append(("Run time (s, wall clock; Numba compile time apart)", _timings_section(tim)))
     irows = [[i.get("path"), i.get("sha256"), i.get("size_bytes")] for i in (inputs or [])]
     vers = extra.get("versions") or {}
     sections.append(("Inputs and provenance", table(["file", "SHA-256", "bytes"], irows)
                      + kv_table([(k, v) for k, v in vers.items()])))
     return page("minegeo localize — global localization report", sections,
-                subtitle=f"status {res.status}; CRS {res.crs or 'none'}; seed {res.seed}")
+                subtitle=f"status {res.status}; CRS {res.crs or 'none'}; seed {res.seed}",
+                status=res.status, status_text=res.reason)
 
 
 def write_localize_report(path, res, prepared, *, scan=None, inputs=None, extra: dict | None = None):

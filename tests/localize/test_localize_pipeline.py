@@ -279,10 +279,12 @@ def test_cli_end_to_end_georeferenced(world_map, tmp_path):
     assert r2["map_preparation"]["source"] == "prepared_file"
     assert np.allclose(r2["T_map_scan"], r["T_map_scan"], atol=1e-9)
     assert main(["localize", "--map", str(prep), "--scan", str(tmp_path / "scan.ply"), "--out",
-                 str(tmp_path / "loc3")]) == 2
+                 str(tmp_path / "loc3"), "--profile", "table3"]) == 2
 
 
-def test_cli_tiny_scan_typed_error_and_failed_record(world_map, tmp_path):
+def test_cli_tiny_scan_typed_error_and_failed_record(world_map, tmp_path, capsys):
+    """An unusable scan is a user error: exit 2, one stderr line, nothing written (the result
+    folder is staged and committed only by a run without an error, minegeo._output)."""
     from minegeo.cli import main
     from minegeo.io import write_point_cloud
 
@@ -293,8 +295,8 @@ def test_cli_tiny_scan_typed_error_and_failed_record(world_map, tmp_path):
     out = tmp_path / "o"
     assert main(["localize", "--map", str(prep), "--scan", str(tmp_path / "tiny.ply"), "--out", str(out),
                  "--profile", "fast"]) == 2
-    r = json.loads((out / "result.json").read_text())
-    assert r["status"] == "failed" and "points" in r["reason"]
+    assert "points" in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_cli_tiny_scan_refused_before_map_preparation(world_map, tmp_path):
@@ -309,7 +311,7 @@ def test_cli_tiny_scan_refused_before_map_preparation(world_map, tmp_path):
     out = tmp_path / "o"
     assert main(["localize", "--map", str(raw), "--scan", str(tmp_path / "tiny.ply"), "--out", str(out),
                  "--profile", "fast"]) == 2
-    assert json.loads((out / "result.json").read_text())["status"] == "failed"
+    assert not out.exists()
     assert not list(tmp_path.glob("map.ply.prepared-*.npz"))
 
 
