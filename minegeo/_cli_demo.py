@@ -7,8 +7,8 @@ real contracts and writes the real reports):
 2. ``minegeo georef``  - georeference the map into EPSG:5186 from the GCPs.
 3. ``minegeo mast``    - position a 2D scanner from wall beacons (synthetic MAST scenario).
 4. ``minegeo localize`` - place three local scans and their trajectories in the CRS
-   (``--profile fast``: 1 m voxels, 3-point RANSAC, point-to-plane ICP; the paper's Table 3
-   profile is the CLI default, see docs/localization.md).
+   (``--profile fast``, the CLI default: 1 m voxels, 3-point RANSAC, point-to-plane ICP; the
+   paper-faithful Table 3 profile is ``--profile table3``, see docs/localization.md).
 
 A summary table compares every answer with the synthetic ground truth; it is printed and
 written to ``OUT/report.html`` (:mod:`minegeo.report.demo_report`) with a relative link to each

@@ -121,7 +121,17 @@ def params_from_args(args):
         prep = replace(prep, voxel_size_m=float(voxel), features=feats)
         lp = replace(lp, scan_voxel_size_m=float(voxel), features=feats)
     icp = getattr(args, "icp", None)
-    kw = {"ransac_runs": int(getattr(args, "ransac_runs", 1) or 1)}
+    runs = getattr(args, "ransac_runs", 1)
+    if runs is None:
+        runs = 1
+    if int(runs) < 1:
+        raise InputError(f"--ransac-runs must be >= 1, got {runs}")
+    for opt in ("ransac_max_iterations", "ransac_min_iterations", "hypotheses"):
+        v = getattr(args, opt, None)
+        if v is not None and int(v) < (0 if opt == "ransac_min_iterations" else 1):
+            raise InputError(f"--{opt.replace('_', '-')} must be >= {0 if opt == 'ransac_min_iterations' else 1}, "
+                             f"got {v}")
+    kw = {"ransac_runs": int(runs)}
     if icp is not None:
         kw["icp_method"] = icp
     if getattr(args, "octree_level", None) is not None:
@@ -341,13 +351,6 @@ def _run(args, prep, lp, stage: Path, out: Path, progress):
     # the map's search structures (KD-trees, descriptor tree, occupancy bitmap): once per
     # process, timed apart from the scan's own localization
     index_s = pm.build_indexes(lp, progress=lambda name: progress(f"search structure {name}"))
-    if how == "computed" and not args.no_cache:
-        progress("write map cache")
-        try:
-            pm.save(cache_path(args.map, prep))
-        except OSError as exc:
-            log.warning("could not write the prepared-map cache: %s", exc)
-
     base = {
         "profile": getattr(args, "profile", None) or DEFAULT_PROFILE,
         "inputs": inputs,
@@ -360,6 +363,13 @@ def _run(args, prep, lp, stage: Path, out: Path, progress):
     }
     # an unusable scan (too few points, flat, degenerate) raises a typed error: exit 2, nothing written
     res = localize_scan(pm, scan, traj, lp, seed=args.seed, progress=progress)
+    if how == "computed" and not args.no_cache:
+        # only once the scan was usable: a run stopped by a user mistake leaves nothing new behind
+        progress("write map cache")
+        try:
+            pm.save(cache_path(args.map, prep))
+        except OSError as exc:
+            log.warning("could not write the prepared-map cache: %s", exc)
     d = res.to_dict()
     timings = dict(d["timings_s"])
     timings["localize_total"] = timings.pop("total")
