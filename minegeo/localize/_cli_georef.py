@@ -131,7 +131,7 @@ def run(args) -> int:
         }
         write_json_atomic(stage / "result.json", summary)
         write_georef_report(stage / "report.html", result, inputs=inputs, cloud_geo=cloud_geo, outputs=outputs,
-                            provenance=prov)
+                            provenance=prov, timings=summary["timings_s"])
         bar.n = bar.total - 1  # steps skipped for a failed fit count as done
         step("done")
 

@@ -66,7 +66,7 @@ def run(args) -> int:
         summary["provenance"] = provenance(seed=None, origin=res.details.get("origin_m"),
                                            inputs=list(inputs.values()))
         write_json_atomic(stage / "result.json", summary)
-        write_mast_report(res, beacons, stage, inputs)
+        write_mast_report(res, beacons, stage, inputs, timings=summary["timings_s"])
         # exactly the files in the result folder, named at their final (committed) paths
         names = ", ".join(str(out / n) for n in sorted((f.name for f in stage.iterdir()),
                                                         key=lambda n: (n != "result.json", n)))

@@ -27,7 +27,7 @@ from __future__ import annotations
 import html
 import re
 
-__all__ = ["esc", "table", "kv_table", "page", "badge", "status_banner", "img_png", "params_table",
+__all__ = ["esc", "table", "kv_table", "page", "badge", "status_banner", "img_png", "timings_html", "params_table",
            "status_word", "CSS", "NO_PLOT"]
 
 _CSS = """
@@ -201,3 +201,19 @@ def page(title: str, sections, subtitle: str = "", *, status: str | None = None,
         f"<style>{_CSS}</style></head><body>\n"
         f"{banner}<h1>{esc(title)}</h1>{sub}<ol>{toc}</ol>\n{body}\n</body></html>\n"
     )
+
+
+def timings_html(timings: dict | None) -> str:
+    """The "Run time" table of a report: each stage (s) and the run's wall time with the Numba
+    compile time apart (``wall_s``, ``compile_s``, ``work_s`` from :func:`minegeo._output.run_timings`).
+    Empty string when ``timings`` is None."""
+    if not timings:
+        return ""
+    run = {k: timings[k] for k in ("wall_s", "compile_s", "work_s") if k in timings}
+    stages = [(k, v) for k, v in timings.items() if k not in run and isinstance(v, (int, float))]
+    rows = [(k, f"{float(v):.3f}") for k, v in stages]
+    if run:
+        rows += [("whole run, wall clock", f"{float(run.get('wall_s', 0.0)):.3f}"),
+                 ("  of it compiling Numba kernels (once; cached afterwards)", f"{float(run.get('compile_s', 0.0)):.3f}"),
+                 ("  of it work", f"{float(run.get('work_s', 0.0)):.3f}")]
+    return table(["stage", "seconds"], rows, numeric=[1])

@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from minegeo._provenance import atomic_write_text
-from minegeo.report._html import CSS, NO_PLOT, img_png, params_table, status_banner, status_word
+from minegeo.report._html import CSS, NO_PLOT, img_png, params_table, status_banner, status_word, timings_html
 
 __all__ = ["georef_report_html", "plot_georef_png", "write_georef_report"]
 
@@ -111,8 +111,9 @@ def georef_report_html(
     png: bytes | None = None,
     outputs: dict | None = None,
     provenance: dict | None = None,
+    timings: dict | None = None,
 ) -> str:
-    """The HTML text of the report (see the module docstring)."""
+    """The HTML text of the report (see the module docstring); ``timings`` adds the run-time table."""
     r = result
     d = r.as_dict()
     ci = d["crs_info"]
@@ -268,6 +269,9 @@ def georef_report_html(
         out.append(f"<p>{_e(NO_PLOT)}</p>")
     out.append("<h2>Parameters used</h2>")
     out.append(params_table({"crs": r.crs, **({} if r.params is None else _asdict(r.params))}))
+    if timings:
+        out.append("<h2>Run time (s; Numba compile time apart)</h2>")
+        out.append(timings_html(timings))
     if provenance:
         vers = provenance.get("versions", {})
         out.append(
@@ -280,8 +284,10 @@ def georef_report_html(
 
 
 def write_georef_report(
-    path, result, inputs: dict | None = None, cloud_geo=None, outputs: dict | None = None, provenance: dict | None = None
+    path, result, inputs: dict | None = None, cloud_geo=None, outputs: dict | None = None, provenance: dict | None = None,
+    timings: dict | None = None,
 ):
     """Write ``report.html`` (atomically) and return its path; the plot is embedded when possible."""
     png = plot_georef_png(result, cloud_geo=cloud_geo)
-    return atomic_write_text(path, georef_report_html(result, inputs=inputs, png=png, outputs=outputs, provenance=provenance))
+    return atomic_write_text(path, georef_report_html(result, inputs=inputs, png=png, outputs=outputs,
+                                                      provenance=provenance, timings=timings))

@@ -28,6 +28,7 @@ from minegeo.report._html import (
     params_table,
     status_word,
     table,
+    timings_html,
 )
 
 __all__ = ["write_mast_report", "mast_report_html", "plot_mast"]
@@ -41,7 +42,8 @@ def _f(v, fmt: str) -> str:
     return "n/a" if not math.isfinite(f) else format(f, fmt)
 
 
-def mast_report_html(result, beacons=(), inputs: dict | None = None, png: bytes | None = None) -> str:
+def mast_report_html(result, beacons=(), inputs: dict | None = None, png: bytes | None = None,
+                     timings: dict | None = None) -> str:
     """HTML text of the report (see the module docstring).
 
     Parameters
@@ -128,6 +130,8 @@ def mast_report_html(result, beacons=(), inputs: dict | None = None, png: bytes 
     ])))
     secs.append(("Parameters used", params_table(result.params) if result.params is not None
                  else "<p>(not recorded)</p>"))
+    if timings:
+        secs.append(("Run time (s; Numba compile time apart)", timings_html(timings)))
     secs.append(("Method", "<p>Simela, Marshall &amp; Daneshmend (MAST); see docs/mast.md for the equations and "
                            "the deviations.</p>"))
     return page("MAST scanner positioning", secs, subtitle="position and azimuth of a 2D scanner from wall beacons",
@@ -229,11 +233,12 @@ def plot_mast(result, beacons) -> bytes | None:
     return buf.getvalue()
 
 
-def write_mast_report(result, beacons, outdir, inputs: dict | None = None) -> dict[str, Path]:
+def write_mast_report(result, beacons, outdir, inputs: dict | None = None,
+                      timings: dict | None = None) -> dict[str, Path]:
     """Write ``report.html`` (plot embedded when matplotlib is available) into ``outdir``.
 
     Returns ``{"report": path}``: exactly the files written.
     """
     out = Path(outdir)
     png = plot_mast(result, beacons)
-    return {"report": atomic_write_text(out / "report.html", mast_report_html(result, beacons, inputs, png))}
+    return {"report": atomic_write_text(out / "report.html", mast_report_html(result, beacons, inputs, png, timings))}

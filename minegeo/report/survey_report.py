@@ -32,7 +32,17 @@ import math
 from pathlib import Path
 
 from minegeo._provenance import atomic_write_text, write_json_atomic
-from minegeo.report._html import NO_PLOT, badge, esc, img_png, kv_table, page, params_table, table
+from minegeo.report._html import (
+    NO_PLOT,
+    badge,
+    esc,
+    img_png,
+    kv_table,
+    page,
+    params_table,
+    table,
+    timings_html,
+)
 from minegeo.survey.angles import RHO_ARCSEC, format_dms, rad_to_gon
 
 __all__ = ["network_result_dict", "network_status", "plot_network_png", "report_text", "report_html",
@@ -763,6 +773,8 @@ def report_html(res, inputs=None, parameters: dict | None = None, *, plot: bool 
         body = "<p>None: no standardised residual above the critical values.</p>"
     secs.append((f"Flagged observations (w-test α0 = {opts.alpha_w:g}, τ-test α = {opts.alpha_tau:g})", body))
     secs.append(("Parameters used", params_table(_parameters_used(res, parameters))))
+    if parameters and parameters.get("timings_s"):
+        secs.append(("Run time (s; Numba compile time apart)", timings_html(parameters["timings_s"])))
     return page("Survey network adjustment", secs, subtitle=f"{res.network.name} — {res.network.source}",
                 status=status, status_text=reason)
 
