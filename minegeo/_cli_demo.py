@@ -81,9 +81,32 @@ def _row(step: str, t0: float | None, status: str, result: str, report: Path | N
             "result": result, "report": rel}
 
 
+class _Rows(list):
+    """The summary rows; each appended row advances the demo's progress bar."""
+
+    def __init__(self, bar):
+        super().__init__()
+        self.bar = bar
+
+    def append(self, row) -> None:
+        super().append(row)
+        self.bar.set_postfix_str(str(row.get("step", "")))
+        self.bar.update(1)
+
+
 def _run(args, out: Path) -> int:
+    import sys
+
+    from tqdm import tqdm
+
+    from minegeo._output import progress_enabled
+
+    with tqdm(total=6, desc="demo", unit="step", file=sys.stderr, disable=not progress_enabled(args)) as bar:
+        return _steps(args, out, _Rows(bar))
+
+
+def _steps(args, out: Path, rows) -> int:
     t_start = time.perf_counter()
-    rows: list[dict] = []
     mine = out / "mine"
 
     # 1. synthetic mine
@@ -173,6 +196,15 @@ def _run(args, out: Path) -> int:
     report = write_demo_report(out / "report.html", rows, args.seed, total,
                                {"preset": "small", "crs": "EPSG:5186", "localize profile": "fast",
                                 "localized scans": "first 3"})
+    from minegeo._output import run_timings
+    from minegeo._provenance import versions, write_json_atomic
+
+    write_json_atomic(out / "result.json", {
+        "command": "demo", "status": "ok" if all(r.get("status") == "ok" for r in rows) else "warnings",
+        "seed": int(args.seed), "steps": list(rows),
+        "parameters": {"preset": "small", "crs": "EPSG:5186", "localize_profile": "fast", "localized_scans": 3},
+        "timings_s": {"total": total, **run_timings(args)}, "versions": versions(),
+    })
     w = max(len(r["step"]) for r in rows)
     print(f"\nminegeo demo (seed {args.seed}) - outputs in {out}/")
     print(f"{'step':<{w}}  {'time':>7}  result")
