@@ -5,7 +5,9 @@ surface) of a multi-level drift network with horseshoe profiles, ramps at 6-8 de
 T/X/Y intersections, a ring roadway, dead ends, blast overbreak and texture, rock
 bolts and straps, pipes, cables, a ventilation duct, railings at a sump and a
 movable parked vehicle. Sensors (VLP-16-like, ZEB-REVO-like, iPad-like flash, 2D
-horizontal range-bearing) are simulated by sphere tracing. See ``docs/synth.md``.
+horizontal range-bearing) are simulated by sphere tracing. Study options (wall roughness,
+exact / near copies of levels, unmapped headings) and :func:`make_study_world` serve
+localization studies where drifts look alike. See ``docs/synth.md``.
 """
 
 from __future__ import annotations
@@ -33,8 +35,18 @@ from minegeo.synth.sensors import (
     simulate_scan,
     simulate_scan_2d,
 )
+from minegeo.synth.study import StudyScan, StudyWorld, make_study_world, measure_wall_roughness
 from minegeo.synth.trajectory import MOTIONS, MotionParams, interpolate_poses, make_trajectory
-from minegeo.synth.world import PRESETS, Drift, Intersection, MineWorld, WorldParams, build_world
+from minegeo.synth.world import (
+    LININGS,
+    PRESETS,
+    Drift,
+    Intersection,
+    MineWorld,
+    WorldParams,
+    build_world,
+    roughness_amplitudes,
+)
 
 __all__ = [
     "MineWorld",
@@ -66,6 +78,12 @@ __all__ = [
     "SCAN_PLANS",
     "MINE_LAT_DEG",
     "MINE_LON_DEG",
+    "LININGS",
+    "roughness_amplitudes",
+    "make_study_world",
+    "StudyWorld",
+    "StudyScan",
+    "measure_wall_roughness",
 ]
 
 

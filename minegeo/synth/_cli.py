@@ -30,6 +30,17 @@ def add_arguments(parser) -> None:
                              "into OUTDIR/mast/ (see docs/mast.md)")
     parser.add_argument("--mast-only", action="store_true",
                         help="write only the MAST beacon scenario into OUTDIR (no mine)")
+    g = parser.add_argument_group("study options (docs/synth.md, 'Study worlds'; default: the preset as is)")
+    g.add_argument("--roughness-m", type=float, default=None, metavar="M",
+                   help="std (m) of the wall-bump field, e.g. 0.05 / 0.08 (shotcrete-like) or 0.25 (blasted); "
+                        "the preset's own is 0.064")
+    g.add_argument("--lining", choices=("blasted", "shotcrete"), default=None,
+                   help="roughness spectrum preset (std 0.25 / 0.065 m unless --roughness-m)")
+    g.add_argument("--twins", choices=("none", "exact", "near"), default="none",
+                   help="repeat level 0 on every level: exact copies (same rock and structures) or near copies "
+                        "(same layout, independent rock)")
+    g.add_argument("--unmapped", type=int, default=0, metavar="N",
+                   help="add N headings that exist in the world but not in map.ply")
 
 
 def run(args) -> int:
@@ -52,6 +63,13 @@ def run(args) -> int:
 
         validate_crs(args.crs)  # a projected CRS in metres, as minegeo georef needs (not degrees)
         _crs_origin(args.crs)  # raises CRSError for an unknown or unsuitable CRS
+        if args.unmapped < 0:
+            raise InputError(f"--unmapped must be >= 0, got {args.unmapped}")
+        if args.roughness_m is not None and not args.roughness_m > 0:
+            raise InputError(f"--roughness-m must be > 0, got {args.roughness_m}")
+        from minegeo.synth.dataset import study_params
+
+        study_params(args.preset, _study_options(args))  # raises InputError for a bad study option
     from minegeo._output import OutputTransaction
 
     with OutputTransaction("synth", folders={"OUTDIR": out}, replace="any" if args.force else "result") as tx:
@@ -75,9 +93,15 @@ def _write(args, stage, out) -> int:
             bar.update(1)
 
         truth = write_world(stage, args.preset, args.seed, force=True, n_gcps=args.gcps,
-                            crs=args.crs, progress=progress)
+                            crs=args.crs, progress=progress, options=_study_options(args))
     w = truth["world"]
     print(f"wrote {out}: preset {args.preset}, seed {args.seed}")
+    if "roughness" in w:
+        print(f"  wall roughness: std {w['roughness']['wall_roughness_std_m']:.3f} m")
+    if "repeat_levels" in w:
+        print(f"  repeated levels: {w['repeat_levels']['mode']} copies, offset {w['repeat_levels']['offset_m']} m")
+    if "unmapped_drifts" in w:
+        print(f"  unmapped (in the world, not in map.ply): {', '.join(w['unmapped_drifts'])}")
     print(f"  world: {w['n_drifts']} drifts, {w['total_length_m']:.0f} m, {w['n_levels']} levels, "
           f"{w['n_loops']} loops, intersections {w['intersections_by_type']}, ramp slope(s) "
           + ", ".join(f"{s:.2f} deg" for s in w["ramp_slopes_deg"]))
@@ -92,6 +116,20 @@ def _write(args, stage, out) -> int:
     write_synth_report(stage, truth)
     print(f"  report: {out / 'report.html'}")
     return rc
+
+
+def _study_options(args) -> dict:
+    """The study options given on the command line (only those changed from their defaults)."""
+    opts: dict = {}
+    if getattr(args, "roughness_m", None) is not None:
+        opts["wall_roughness_m"] = float(args.roughness_m)
+    if getattr(args, "lining", None) is not None:
+        opts["lining"] = args.lining
+    if getattr(args, "twins", "none") != "none":
+        opts["repeat_levels"] = args.twins
+    if getattr(args, "unmapped", 0):
+        opts["unmapped_headings"] = int(args.unmapped)
+    return opts
 
 
 def _write_mast(outdir, seed: int, final) -> int:

@@ -34,8 +34,8 @@ from minegeo.synth.trajectory import (
 )
 from minegeo.synth.world import MineWorld, build_world
 
-__all__ = ["build_map", "local_scan", "make_gcps", "write_world", "survey_path", "ScanSpec", "SCAN_PLANS",
-           "MINE_LAT_DEG", "MINE_LON_DEG"]
+__all__ = ["build_map", "build_survey_map", "local_scan", "make_gcps", "write_world", "survey_path", "ScanSpec",
+           "SCAN_PLANS", "MINE_LAT_DEG", "MINE_LON_DEG", "study_params", "params_dict"]
 
 log = logging.getLogger(__name__)
 
@@ -49,10 +49,11 @@ def survey_path(world: MineWorld) -> tuple[np.ndarray, np.ndarray]:
     """Continuous floor path visiting every drift (depth-first, backtracking at ends).
 
     Returns the path (k, 3) and a boolean per path vertex: True on the first traversal
-    of a drift (where the surveyor scans), False while backtracking.
+    of a drift (where the surveyor scans), False while backtracking. Drifts in
+    ``world.unmapped`` are not entered.
     """
     adj = world.adjacency()
-    seen: set[int] = set()
+    seen: set[int] = set(world.unmapped)
     visited = {0}
     parts: list[tuple[np.ndarray, bool]] = []
 
@@ -115,7 +116,14 @@ def build_map(world: MineWorld, seed: int = 0, *, sensor=None, spacing_m: float 
     PointCloud
         ``frame="map"`` with ``time_s`` of the survey. With ``return_trajectory`` also the
         survey :class:`Trajectory` (``T_map_sensor``).
+
+    Notes
+    -----
+    A world with unmapped drifts (``world.unmapped``) is surveyed as
+    :meth:`MineWorld.survey_world`: the route does not enter them and they do not exist for the
+    sensor (their mouths are rock), as in a map surveyed before they were driven.
     """
+    world = world.survey_world()
     small = world.preset != "paper"
     if sensor is None:
         sensor = Velodyne16(azimuth_step_deg=3.0) if small else Velodyne16()
@@ -259,6 +267,13 @@ def local_scan(world: MineWorld, start, length_m: float, sensor, seed: int = 0, 
     path, _ = _section_path(world, start, float(length_m))
     traj = make_trajectory(world, kind, path=path, seed=seed, rate_hz=50.0)
     T_map_scan = traj.poses[0].copy()
+    frame_stride = _frame_stride(traj, sensor, max_rays, frame_stride)
+    raw = simulate_scan(world, sensor, traj, seed=seed + 1, frame_stride=frame_stride)
+    return _to_scan_frame(raw, traj, T_map_scan)
+
+
+def _frame_stride(traj, sensor, max_rays: int | None, frame_stride: int | None) -> int:
+    """The frame stride of :func:`local_scan`: at most ``max_rays`` beams over the trajectory."""
     if frame_stride is None:
         n_frames = max(1, int((traj.times_s[-1] - traj.times_s[0]) / sensor.frame_period_s))
         d1, _, _ = sensor.rays(np.zeros(1))
@@ -268,7 +283,11 @@ def local_scan(world: MineWorld, start, length_m: float, sensor, seed: int = 0, 
             per_rot = int(round(sensor.line_rate_hz / sensor.rotation_rate_hz))
             while math.gcd(frame_stride, per_rot) != 1:
                 frame_stride += 1
-    raw = simulate_scan(world, sensor, traj, seed=seed + 1, frame_stride=frame_stride)
+    return frame_stride
+
+
+def _to_scan_frame(raw, traj, T_map_scan):
+    """Deskew a raw (sensor-frame, timestamped) cloud into the scan frame ``T_map_scan``; trajectory as ``T_scan_sensor``."""
     T_scan_map = invert(T_map_scan)
     cloud = deskew(raw, traj, T_scan_map)
     cloud.frame = "scan"
@@ -324,7 +343,8 @@ def make_gcps(world: MineWorld, n: int = 10, seed: int = 0, crs: str = "EPSG:518
     T[:3, 3] = [round(E0, 3), round(N0, 3), round(H0, 3)]
     # wall points: evenly spaced along the drifts (by cumulative length), alternating sides
     kinds_ok = ("main", "parallel", "crosscut", "ramp", "ring", "branch")
-    drifts = [(k, d) for k, d in enumerate(world.drifts) if d.kind in kinds_ok and d.length_m > 8]
+    drifts = [(k, d) for k, d in enumerate(world.drifts)
+              if d.kind in kinds_ok and d.length_m > 8 and k not in world.unmapped]
     lengths = np.array([d.length_m - 6.0 for _, d in drifts])
     cum = np.concatenate([[0], np.cumsum(lengths)])
     targets = (np.arange(n) + rng.uniform(0.2, 0.8, n)) / n * cum[-1]
@@ -428,12 +448,44 @@ def _sensor(spec: ScanSpec):
     return s
 
 
+def study_params(preset: str, options: dict | None):
+    """The preset's :class:`WorldParams` with study options (validated); see :func:`write_world`.
+
+    Raises
+    ------
+    InputError
+        Unknown preset or option, or an invalid value.
+    """
+    from minegeo.synth.world import NEW_OPTION_DEFAULTS, PRESETS, _check_params
+
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+    opts = dict(options or {})
+    bad = sorted(set(opts) - set(NEW_OPTION_DEFAULTS))
+    if bad:
+        raise InputError(f"unknown world option(s) {bad}; known: {sorted(NEW_OPTION_DEFAULTS)}")
+    p = replace(PRESETS[preset], **opts)
+    _check_params(p)
+    return p
+
+
+def params_dict(params) -> dict:
+    """``asdict(params)`` without the study options left at their defaults (``truth.json`` of older worlds unchanged)."""
+    from minegeo.synth.world import NEW_OPTION_DEFAULTS
+
+    d = asdict(params)
+    for k, v in NEW_OPTION_DEFAULTS.items():
+        if k in d and d[k] == v:
+            del d[k]
+    return d
+
+
 def _T_list(T) -> list:
     return [[float(v) for v in row] for row in np.asarray(T)]
 
 
 def write_world(outdir, preset: str = "small", seed: int = 0, *, force: bool = False, n_gcps: int = 10,
-                crs: str = "EPSG:5186", progress=None) -> dict:
+                crs: str = "EPSG:5186", progress=None, options: dict | None = None) -> dict:
     """Generate a mine and write map, local scans, trajectories, GCPs and ``truth.json`` to ``outdir``.
 
     Files (all written atomically; contents depend only on ``preset`` and ``seed``):
@@ -447,6 +499,11 @@ def write_world(outdir, preset: str = "small", seed: int = 0, *, force: bool = F
     ----------
     progress : callable, optional
         Called as ``progress(step_name)`` after each step (the CLI drives a tqdm bar).
+    options : dict, optional
+        Study options of :class:`~minegeo.synth.world.WorldParams` applied to the preset
+        (``wall_roughness_m``, ``lining``, ``repeat_levels``, ``unmapped_headings``,
+        ``heading_length_m``); they appear in ``truth.json`` (``world_params`` and the world summary).
+        None or empty: the preset as is (byte-identical to earlier versions).
 
     Raises
     ------
@@ -463,7 +520,7 @@ def write_world(outdir, preset: str = "small", seed: int = 0, *, force: bool = F
     if preset not in SCAN_PLANS:
         raise InputError(f"unknown preset {preset!r}; choose one of {sorted(SCAN_PLANS)}")
     step = progress or (lambda name: None)
-    world = build_world(preset, seed)
+    world = build_world(preset, seed, params=study_params(preset, options)) if options else build_world(preset, seed)
     step("world")
     rng = np.random.default_rng(seed)
     sub = [int(x) for x in rng.integers(0, 2**31 - 1, 8 + len(SCAN_PLANS[preset]))]
@@ -515,7 +572,7 @@ def write_world(outdir, preset: str = "small", seed: int = 0, *, force: bool = F
         "crs_placement": {k: info[k] for k in ("rotation_deg", "scale", "grid_scale_factor", "sigma_m",
                                                "lat_deg", "lon_deg")},
         "world": world.summary(),
-        "world_params": asdict(world.params),
+        "world_params": params_dict(world.params),
         "intersections": [{"node": it.node, "type": it.type, "degree": it.degree, "level": it.level,
                            "position": list(it.position)} for it in world.intersections],
         "dead_ends": [[float(v) for v in world.nodes[i]] for i in world.dead_ends],

@@ -40,6 +40,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field, replace
+from functools import cache
 
 import numpy as np
 
@@ -47,7 +48,8 @@ from minegeo._validate import as_points, as_transform, check_positive
 from minegeo.errors import InputError
 from minegeo.synth import _kernels as K
 
-__all__ = ["WorldParams", "Drift", "Intersection", "MineWorld", "build_world", "PRESETS"]
+__all__ = ["WorldParams", "Drift", "Intersection", "MineWorld", "build_world", "PRESETS", "LININGS",
+           "roughness_amplitudes", "squash_variance"]
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +94,36 @@ class WorldParams:
         Sphere-tracing step as a fraction of the field value (< 1 / Lipschitz bound).
     grid_cell_m : float
         Cell size of the acceleration grid.
+    wall_roughness_m : float or None
+        Target standard deviation (m) of the wall-bump field ``n(p)`` (overbreak + texture) over
+        the ordinary rock surface (walls and roof of the drifts, outside the rough zones and the
+        roof fall-outs). The two overbreak octaves are scaled by one common factor so that
+        ``sqrt(c^2 sigma_ob^2 + sigma_tex^2)`` equals it (see :func:`roughness_amplitudes`);
+        the texture octaves are kept. ``None`` (default): ``overbreak_m`` as given (std 0.064 m
+        for the default amplitudes). Overbreak is >= 0, so its mean (half the summed amplitudes)
+        grows with it: a 0.25 m std means about 0.55 m mean and 1.1 m maximum overbreak.
+    lining : {None, "blasted", "shotcrete"}
+        Spectrum preset (see :data:`LININGS`): ``"blasted"`` keeps the default octave shape
+        with 0.25 m std; ``"shotcrete"`` damps the 1.5 m octave and the texture (sprayed
+        concrete fills blast pockets and is smooth at the cm scale) with 0.065 m std.
+        ``wall_roughness_m`` overrides the preset's std. ``None``: ``overbreak_m``/``texture_m``.
+    repeat_levels : {"none", "exact", "near"}
+        ``"none"`` (default): the layout described above. ``"exact"``: level k is an exact copy of
+        level 0 translated by ``(0, 0, -k level_spacing_m)`` -- the same drifts, roughness
+        (vertical wavenumbers quantised to multiples of ``2 pi / level_spacing_m``), roof fall-outs,
+        sump pit, bolts, straps, services and railings -- and the levels are joined by a helical
+        decline (one turn per level, beside the ring roadway) reached through a 10 m access drift.
+        ``"near"``: the same layout (drift centrelines, sump pit, railings, rough zones) but
+        independent roughness (the ordinary, non-periodic waves), roof fall-outs and bolt
+        placement on every level. Needs ``n_levels >= 2`` and ``level_spacing_m >= 12``.
+    unmapped_headings : int
+        Number of development headings added to the world but absent from the survey map
+        (:func:`~minegeo.synth.dataset.build_map` surveys a world without them): each continues a
+        dead end straight for 12 m, bends by 60-90 degrees and runs on to ``heading_length_m``.
+        Drawn from their own random stream, so the rest of the layout is that of the world without
+        them. Their drift indices are ``MineWorld.unmapped``.
+    heading_length_m : float
+        Centreline length of each unmapped heading.
     """
 
     n_levels: int = 2
@@ -112,6 +144,115 @@ class WorldParams:
     stub_length_m: float = 15.0
     trace_step_factor: float = 0.45
     grid_cell_m: float = 2.0
+    wall_roughness_m: float | None = None
+    lining: str | None = None
+    repeat_levels: str = "none"
+    unmapped_headings: int = 0
+    heading_length_m: float = 60.0
+
+
+#: Options added after the first release: left out of ``truth.json`` while at these defaults,
+#: so worlds without them write the same bytes as before.
+NEW_OPTION_DEFAULTS = {"wall_roughness_m": None, "lining": None, "repeat_levels": "none", "unmapped_headings": 0,
+                       "heading_length_m": 60.0}
+
+#: Lining presets: overbreak octave shape (6 m, 1.5 m; scaled to the std), texture amplitudes
+#: (0.35 m, 0.1 m) and the default std of the wall-bump field (m).
+LININGS: dict[str, dict] = {
+    "blasted": {"overbreak_shape": (0.2, 0.08), "texture_m": (0.015, 0.004), "std_m": 0.25},
+    "shotcrete": {"overbreak_shape": (0.2, 0.03), "texture_m": (0.004, 0.001), "std_m": 0.065},
+}
+
+#: Waves per octave (6 m, 1.5 m, 0.35 m, 0.1 m), as built by ``_noise_arrays``.
+_OCTAVE_WAVES = (8, 8, 8, 6)
+
+
+@cache
+def squash_variance(n_waves: int) -> float:
+    """Variance of ``q = S / sqrt(1 + S^2)`` for ``S = sqrt(2/N) sum_k sin(theta_k)``, theta_k iid uniform.
+
+    ``E[q] = 0`` by symmetry and ``Var q = 1 - E[1 / (1 + S^2)]`` with
+    ``E[1 / (1 + S^2)] = int_0^inf exp(-u) J0(u sqrt(2/N))^N du`` (the Laplace transform of the
+    characteristic function ``J0(u sqrt(2/N))^N`` of S). 0.34880 for N = 8, 0.35033 for N = 6
+    (a 2e7-sample Monte Carlo agrees to 1e-4). Over a drift surface the random-phase plane waves
+    of an octave behave as independent uniform phases, which is what makes the measured wall
+    std match :func:`roughness_amplitudes` (docs/synth.md).
+    """
+    from scipy.integrate import quad
+    from scipy.special import j0
+
+    c = math.sqrt(2.0 / n_waves)
+    val, _ = quad(lambda u: math.exp(-u) * j0(c * u) ** n_waves, 0.0, 80.0, limit=500, epsabs=1e-14)
+    return 1.0 - val
+
+
+def _octave_std(overbreak_m, texture_m) -> tuple[float, float]:
+    """(std of the overbreak part, std of the texture part) of the bump field outside rough zones (m)."""
+    v8, v6 = squash_variance(_OCTAVE_WAVES[0]), squash_variance(_OCTAVE_WAVES[3])
+    var_ob = sum((a / 2.0) ** 2 * squash_variance(n) for a, n in zip(overbreak_m, _OCTAVE_WAVES[:2], strict=True))
+    var_tex = texture_m[0] ** 2 * v8 + texture_m[1] ** 2 * v6
+    return math.sqrt(var_ob), math.sqrt(var_tex)
+
+
+def roughness_amplitudes(p: WorldParams) -> tuple[tuple, tuple, float]:
+    """Octave amplitudes (m) a world built with ``p`` uses, and the std (m) of its wall-bump field.
+
+    The bump field is ``n = sum_o a_o (1 + q_o) / 2`` over the two overbreak octaves plus
+    ``sum_o a_o q_o`` over the two texture octaves, with independent squashed random-phase sums
+    ``q_o`` of variance :func:`squash_variance`; so ``std(n)^2 = sum_ob (a/2)^2 v + sum_tex a^2 v``.
+    With ``wall_roughness_m`` (or a ``lining``), the overbreak shape is scaled by
+    ``c = sqrt(std^2 - sigma_tex^2) / sigma_ob(shape)``.
+
+    Returns
+    -------
+    overbreak_m : (2,) tuple
+        Amplitudes of the 6 m and 1.5 m overbreak octaves (m).
+    texture_m : (2,) tuple
+        Amplitudes of the 0.35 m and 0.1 m texture octaves (m).
+    std_m : float
+        Predicted std of the bump field over ordinary rock surfaces (m); e.g. 0.0643 m for the
+        default amplitudes (0.2, 0.08, 0.015, 0.004).
+
+    Raises
+    ------
+    InputError
+        Unknown lining, or a requested std not above the texture's own std.
+    """
+    if p.lining is None and p.wall_roughness_m is None:
+        ob, tex = tuple(p.overbreak_m), tuple(p.texture_m)
+        s_ob, s_tex = _octave_std(ob, tex)
+        return ob, tex, math.hypot(s_ob, s_tex)
+    if p.lining is not None:
+        if p.lining not in LININGS:
+            raise InputError(f"unknown lining {p.lining!r}; choose one of {sorted(LININGS)}")
+        lin = LININGS[p.lining]
+        shape, tex, target = lin["overbreak_shape"], tuple(lin["texture_m"]), lin["std_m"]
+    else:
+        shape, tex, target = tuple(p.overbreak_m), tuple(p.texture_m), None
+    if p.wall_roughness_m is not None:
+        target = float(p.wall_roughness_m)
+    s_ob, s_tex = _octave_std(shape, tex)
+    if not (math.isfinite(target) and target > s_tex * 1.0001) or s_ob <= 0:
+        raise InputError(f"wall_roughness_m must exceed the texture's own std {s_tex:.4f} m, got {target!r}")
+    c = math.sqrt(target * target - s_tex * s_tex) / s_ob
+    return (shape[0] * c, shape[1] * c), tex, target
+
+
+def _check_params(p: WorldParams) -> None:
+    """Validate the optional study options of ``p`` (the classic fields are validated where used)."""
+    if p.repeat_levels not in ("none", "exact", "near"):
+        raise InputError(f"repeat_levels must be 'none', 'exact' or 'near', got {p.repeat_levels!r}")
+    if p.repeat_levels != "none":
+        if p.n_levels < 2:
+            raise InputError("repeat_levels needs n_levels >= 2")
+        if not p.level_spacing_m >= 12.0:
+            raise InputError(f"repeat_levels needs level_spacing_m >= 12 (helical decline), got {p.level_spacing_m}")
+    if isinstance(p.unmapped_headings, bool) or not isinstance(p.unmapped_headings, (int, np.integer)) \
+            or p.unmapped_headings < 0:
+        raise InputError(f"unmapped_headings must be an integer >= 0, got {p.unmapped_headings!r}")
+    if p.unmapped_headings and not p.heading_length_m >= 30.0:
+        raise InputError(f"heading_length_m must be >= 30, got {p.heading_length_m}")
+    roughness_amplitudes(p)
 
 
 #: Named presets: ``small`` (seconds, for tests) and ``paper`` (several km, map ~1e7 points).
@@ -188,6 +329,10 @@ class MineWorld:
         ``parking`` poses (4x4) and the ``ramp_slopes_deg`` actually built.
     T_world_vehicle : (4, 4) float64 or None
         Pose of the parked vehicle (None: no vehicle in the world).
+    unmapped : tuple[int]
+        Indices of drifts present in the world but absent from the survey map
+        (:func:`~minegeo.synth.dataset.build_map` surveys :meth:`survey_world`, which lacks them):
+        the ``WorldParams.unmapped_headings`` or drifts marked by :meth:`with_unmapped`.
     """
 
     preset: str
@@ -200,6 +345,8 @@ class MineWorld:
     features: dict
     T_world_vehicle: np.ndarray | None
     _arrays: dict = field(repr=False)
+    unmapped: tuple = ()
+    _extra: dict = field(default_factory=dict, repr=False)
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -296,6 +443,106 @@ class MineWorld:
         sphere = np.array([c[0], c[1], c[2], a["veh_radius"]])
         return np.ascontiguousarray(Tinv), a["veh_prims"], a["veh_type"], sphere
 
+    @property
+    def repeat(self) -> dict | None:
+        """Repeated levels (``WorldParams.repeat_levels`` not ``"none"``): ``mode``, ``offset_m`` (the
+        translation of one level, (0, 0, -level_spacing_m)), ``unit_edges`` and ``copies``
+        ``{k: {unit drift: its copy on level k}}``; None otherwise."""
+        return self._extra.get("repeat")
+
+    def twins(self, drift: int) -> list[tuple[int, np.ndarray]]:
+        """The copies of a drift on the other levels of a repeated-level world.
+
+        Returns
+        -------
+        list of (drift index, offset)
+            ``offset`` (3,) m maps a point of ``drift`` onto the same place of the copy
+            (``p_copy = p + offset``); empty for worlds without repeated levels and for drifts that
+            have no copy (the decline's last turn, headings).
+        """
+        rep = self.repeat
+        if rep is None:
+            return []
+        dz = -float(rep["offset_m"][2])
+        members: dict[int, int] = {}  # level -> drift
+        for cm in rep["copies"].values():
+            for u, c in cm.items():
+                if drift in (u, c):
+                    members = {0: u}
+                    members.update({kk: cc[u] for kk, cc in rep["copies"].items() if u in cc})
+                    break
+            if members:
+                break
+        if not members:
+            return []
+        lev = next(k for k, e in members.items() if e == drift)
+        return [(e, np.array([0.0, 0.0, -(k - lev) * dz])) for k, e in sorted(members.items()) if e != drift]
+
+    def with_unmapped(self, drifts) -> MineWorld:
+        """The same world with ``drifts`` (indices or names) also absent from the survey map.
+
+        The mapped drifts must stay connected to node 0 (where the survey starts).
+
+        Raises
+        ------
+        InputError
+            Unknown drift, or the mapped drifts would no longer be connected.
+        """
+        names = {d.name: k for k, d in enumerate(self.drifts)}
+        idx = set(self.unmapped)
+        for x in drifts:
+            if isinstance(x, str):
+                if x not in names:
+                    raise InputError(f"unknown drift {x!r}")
+                idx.add(names[x])
+            else:
+                k = int(x)
+                if not 0 <= k < len(self.drifts):
+                    raise InputError(f"drift index {k} out of range 0..{len(self.drifts) - 1}")
+                idx.add(k)
+        parent = list(range(len(self.nodes)))
+
+        def find(i):
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        for k, d in enumerate(self.drifts):
+            if k not in idx:
+                parent[find(d.a)] = find(d.b)
+        mapped_nodes = {n for k, d in enumerate(self.drifts) if k not in idx for n in (d.a, d.b)}
+        if any(find(n) != find(0) for n in mapped_nodes) or 0 not in mapped_nodes:
+            raise InputError("the mapped drifts would not be connected to the survey start (node 0); "
+                             "mark dead-end drifts only")
+        extra = {k: v for k, v in self._extra.items() if k != "survey_arrays"}
+        return replace(self, unmapped=tuple(sorted(idx)), _extra=extra)
+
+    def survey_world(self) -> MineWorld:
+        """The world as it was surveyed: without the void and the structures of the unmapped drifts.
+
+        Their mouths are the rock walls (or the dead-end caps) of the drifts they leave. The world
+        itself when nothing is unmapped. The drift list is unchanged (``unmapped`` still names the
+        drifts the survey route must skip).
+        """
+        if not self.unmapped or self._extra.get("is_survey_world"):
+            return self
+        drop = np.array(sorted(self.unmapped), np.int64)
+        kv = ~np.isin(self._extra["void_owner"], drop)
+        ks = ~np.isin(self._extra["solid_owner"], drop)
+        arr = self._extra.get("survey_arrays")  # cache: the arrays do not depend on the vehicle pose
+        if arr is None:
+            a = self._arrays
+            arr = _assemble(a["void_prims"][kv], a["void_type"][kv], a["solid_prims"][ks], a["solid_type"][ks],
+                            a["waves"], a["octaves"], a["zones"], self.params.grid_cell_m, self._extra["ob_max"])
+            for k in ("veh_prims", "veh_type", "veh_centre", "veh_radius"):
+                arr[k] = a[k]
+            self._extra["survey_arrays"] = arr
+        extra = {k: v for k, v in self._extra.items() if k != "survey_arrays"}
+        extra.update(void_owner=self._extra["void_owner"][kv], solid_owner=self._extra["solid_owner"][ks],
+                     is_survey_world=True)
+        return replace(self, _arrays=arr, _extra=extra)
+
     def summary(self) -> dict:
         """Short JSON-able description (counts, lengths, intersection types)."""
         kinds: dict[str, float] = {}
@@ -317,7 +564,25 @@ class MineWorld:
             "ramp_slopes_deg": self.features["ramp_slopes_deg"],
             "n_void_primitives": int(self._arrays["void_prims"].shape[0]),
             "n_solid_primitives": int(self._arrays["solid_prims"].shape[0]),
+            **self._study_summary(),
         }
+
+    def _study_summary(self) -> dict:
+        """Keys of the study options, present only when an option is used (old summaries unchanged)."""
+        out: dict = {}
+        p = self.params
+        if p.wall_roughness_m is not None or p.lining is not None:
+            ob, tex, std = self._extra.get("roughness") or roughness_amplitudes(p)
+            out["roughness"] = {"lining": p.lining, "wall_roughness_std_m": round(std, 6),
+                                "overbreak_m": [round(x, 6) for x in ob], "texture_m": [round(x, 6) for x in tex]}
+        if self.repeat is not None:
+            rep = self.repeat
+            out["repeat_levels"] = {"mode": rep["mode"], "offset_m": rep["offset_m"],
+                                    "helix_radius_m": round(rep["helix_radius_m"], 6),
+                                    "n_twinned_drifts": int(sum(len(cm) for cm in rep["copies"].values()))}
+        if self.unmapped:
+            out["unmapped_drifts"] = [self.drifts[k].name for k in self.unmapped]
+        return out
 
 
 # ====================================================================== layout
@@ -373,6 +638,82 @@ class _Graph:
         return len(self.edges) - 1
 
 
+def _level_drifts(g: _Graph, feats: dict, p: WorldParams, rng: np.random.Generator, lev: int, last: bool,
+                  start: int, sx: float, y_level: float) -> int:
+    """The drifts of one level (main, parallel drive, cross-cuts, X, stubs, Y branch); returns the main's end node."""
+    A = g.nodes[start]
+    z = A[2]
+    Lm = p.main_length_m * (1.0 + rng.uniform(-0.04, 0.04)) * (0.65 if last and p.n_levels > 1 else 1.0)
+    ncc = max(2, p.n_crosscuts if not last else max(2, p.n_crosscuts // 2))
+    span = Lm - 2 * p.crosscut_spacing_m / 3 if ncc > 1 else Lm / 2
+    base = np.linspace(p.crosscut_spacing_m / 3.0, p.crosscut_spacing_m / 3.0 + span * 0.85, ncc)
+    cc_x = np.sort(base + rng.uniform(-2.0, 2.0, ncc))
+    x_cross = int(ncc // 2)  # this cross-cut continues to the far side: X junction
+    y_x = 0.5 * (cc_x[0] + cc_x[1]) + rng.uniform(-2.0, 2.0)  # Y branch between the first two
+    stub_x = []
+    if p.stubs_per_level:
+        stub_x = list(np.linspace(cc_x[1] + 0.5 * p.crosscut_spacing_m, cc_x[-1] - 0.5 * p.crosscut_spacing_m,
+                                  p.stubs_per_level))
+    marks = sorted([(x, "cc", i) for i, x in enumerate(cc_x)] + [(y_x, "y", 0)]
+                   + [(x, "stub", i) for i, x in enumerate(stub_x)])
+    prev = start
+    main_nodes = {}
+    side = -1.0  # parallel drive on the -y side; X extension, Y branch and stubs on the +y side
+    for x, what, i in marks + [(Lm, "end", 0)]:
+        nid = g.node([A[0] + sx * x, y_level, z])
+        poly = _wiggle(_straight(g.nodes[prev], g.nodes[nid]), rng, 0.6)
+        g.edge(prev, nid, poly, "main", lev)
+        main_nodes[(what, i)] = nid
+        prev = nid
+    end_node = prev
+    # parallel drive and cross-cuts
+    par_nodes = []
+    for i, x in enumerate(cc_x):
+        mn = main_nodes[("cc", i)]
+        pn = g.node([A[0] + sx * x + rng.uniform(-1.5, 1.5), y_level + side * p.parallel_offset_m, z])
+        g.edge(mn, pn, _wiggle(_straight(g.nodes[mn], g.nodes[pn]), rng, 0.4), "crosscut", lev)
+        par_nodes.append(pn)
+        if i == x_cross:
+            xn = g.node([A[0] + sx * x, y_level - side * 12.0, z])
+            g.edge(mn, xn, _straight(g.nodes[mn], g.nodes[xn]), "crosscut", lev)
+    for i in range(len(par_nodes) - 1):
+        a, b = par_nodes[i], par_nodes[i + 1]
+        g.edge(a, b, _wiggle(_straight(g.nodes[a], g.nodes[b]), rng, 0.8), "parallel", lev)
+    # stubs (stope accesses) on the far side
+    for i, x in enumerate(stub_x):
+        mn = main_nodes[("stub", i)]
+        sn = g.node([A[0] + sx * x + rng.uniform(-2, 2), y_level - side * p.stub_length_m, z])
+        g.edge(mn, sn, _straight(g.nodes[mn], g.nodes[sn]), "stub", lev)
+    # Y branch: leaves the main drift at ~40 degrees, gently curved, dead end with a sump
+    mn = main_nodes[("y", 0)]
+    ang = math.radians(rng.uniform(35.0, 45.0))
+    Lb = 26.0
+    hdg = np.array([-sx * math.cos(ang), -side * math.sin(ang)])  # back towards the level start
+    mid = g.nodes[mn][:2] + hdg * Lb * 0.5
+    hdg2 = np.array([-sx * math.cos(ang * 1.6), -side * math.sin(ang * 1.6)])
+    endp = mid + hdg2 * Lb * 0.5
+    bn = g.node([endp[0], endp[1], z])
+    poly = np.vstack([_straight(g.nodes[mn], [mid[0], mid[1], z], 2.0)[:-1],
+                      _straight([mid[0], mid[1], z], g.nodes[bn], 2.0)])
+    ybranch = g.edge(mn, bn, poly, "branch", lev)
+    if feats["sump"] is None:
+        feats["sump"] = {"drift": ybranch, "level": lev}
+    return end_node
+
+
+def _ring_roadway(g: _Graph, p: WorldParams, end_node: int, sx: float, lev: int) -> int:
+    """Ring roadway (two half circles, a loop) beyond the main drift's end; returns its far node."""
+    Rr = p.ring_radius_m
+    E = g.nodes[end_node]
+    z = E[2]
+    C = E[:2] + np.array([sx * Rr, 0.0])
+    F = g.node([C[0] + sx * Rr, C[1], z])
+    a0 = math.pi if sx > 0 else 0.0
+    g.edge(end_node, F, _arc(C, Rr, a0, a0 - math.pi * (1 if sx > 0 else -1), z, z), "ring", lev)
+    g.edge(end_node, F, _arc(C, Rr, a0, a0 + math.pi * (1 if sx > 0 else -1), z, z), "ring", lev)
+    return F
+
+
 def _layout(p: WorldParams, rng: np.random.Generator):
     """Seeded drift graph: levels of main drift + parallel drive + cross-cuts (loops), an
     X cross-cut, a Y branch ending in a sump, a ring roadway, stubs, and ramps between levels."""
@@ -382,74 +723,13 @@ def _layout(p: WorldParams, rng: np.random.Generator):
     sx = 1.0
     y_level = 0.0
     for lev in range(p.n_levels):
-        A = g.nodes[start]
-        z = A[2]
+        z = g.nodes[start][2]
         last = lev == p.n_levels - 1
-        Lm = p.main_length_m * (1.0 + rng.uniform(-0.04, 0.04)) * (0.65 if last and p.n_levels > 1 else 1.0)
-        ncc = max(2, p.n_crosscuts if not last else max(2, p.n_crosscuts // 2))
-        span = Lm - 2 * p.crosscut_spacing_m / 3 if ncc > 1 else Lm / 2
-        base = np.linspace(p.crosscut_spacing_m / 3.0, p.crosscut_spacing_m / 3.0 + span * 0.85, ncc)
-        cc_x = np.sort(base + rng.uniform(-2.0, 2.0, ncc))
-        x_cross = int(ncc // 2)  # this cross-cut continues to the far side: X junction
-        y_x = 0.5 * (cc_x[0] + cc_x[1]) + rng.uniform(-2.0, 2.0)  # Y branch between the first two
-        stub_x = []
-        if p.stubs_per_level:
-            stub_x = list(np.linspace(cc_x[1] + 0.5 * p.crosscut_spacing_m, cc_x[-1] - 0.5 * p.crosscut_spacing_m,
-                                      p.stubs_per_level))
-        marks = sorted([(x, "cc", i) for i, x in enumerate(cc_x)] + [(y_x, "y", 0)]
-                       + [(x, "stub", i) for i, x in enumerate(stub_x)])
-        prev = start
-        main_nodes = {}
-        side = -1.0  # parallel drive on the -y side; X extension, Y branch and stubs on the +y side
-        for x, what, i in marks + [(Lm, "end", 0)]:
-            nid = g.node([A[0] + sx * x, y_level, z])
-            poly = _wiggle(_straight(g.nodes[prev], g.nodes[nid]), rng, 0.6)
-            g.edge(prev, nid, poly, "main", lev)
-            main_nodes[(what, i)] = nid
-            prev = nid
-        end_node = prev
-        # parallel drive and cross-cuts
-        par_nodes = []
-        for i, x in enumerate(cc_x):
-            mn = main_nodes[("cc", i)]
-            pn = g.node([A[0] + sx * x + rng.uniform(-1.5, 1.5), y_level + side * p.parallel_offset_m, z])
-            g.edge(mn, pn, _wiggle(_straight(g.nodes[mn], g.nodes[pn]), rng, 0.4), "crosscut", lev)
-            par_nodes.append(pn)
-            if i == x_cross:
-                xn = g.node([A[0] + sx * x, y_level - side * 12.0, z])
-                g.edge(mn, xn, _straight(g.nodes[mn], g.nodes[xn]), "crosscut", lev)
-        for i in range(len(par_nodes) - 1):
-            a, b = par_nodes[i], par_nodes[i + 1]
-            g.edge(a, b, _wiggle(_straight(g.nodes[a], g.nodes[b]), rng, 0.8), "parallel", lev)
-        # stubs (stope accesses) on the far side
-        for i, x in enumerate(stub_x):
-            mn = main_nodes[("stub", i)]
-            sn = g.node([A[0] + sx * x + rng.uniform(-2, 2), y_level - side * p.stub_length_m, z])
-            g.edge(mn, sn, _straight(g.nodes[mn], g.nodes[sn]), "stub", lev)
-        # Y branch: leaves the main drift at ~40 degrees, gently curved, dead end with a sump
-        mn = main_nodes[("y", 0)]
-        ang = math.radians(rng.uniform(35.0, 45.0))
-        Lb = 26.0
-        hdg = np.array([-sx * math.cos(ang), -side * math.sin(ang)])  # back towards the level start
-        mid = g.nodes[mn][:2] + hdg * Lb * 0.5
-        hdg2 = np.array([-sx * math.cos(ang * 1.6), -side * math.sin(ang * 1.6)])
-        endp = mid + hdg2 * Lb * 0.5
-        bn = g.node([endp[0], endp[1], z])
-        poly = np.vstack([_straight(g.nodes[mn], [mid[0], mid[1], z], 2.0)[:-1],
-                          _straight([mid[0], mid[1], z], g.nodes[bn], 2.0)])
-        ybranch = g.edge(mn, bn, poly, "branch", lev)
-        if feats["sump"] is None:
-            feats["sump"] = {"drift": ybranch, "level": lev}
+        end_node = _level_drifts(g, feats, p, rng, lev, last, start, sx, y_level)
         if last:
             break
         # ring roadway (a loop) beyond the end of the main drift, then the ramp down
-        Rr = p.ring_radius_m
-        E = g.nodes[end_node]
-        C = E[:2] + np.array([sx * Rr, 0.0])
-        F = g.node([C[0] + sx * Rr, C[1], z])
-        a0 = math.pi if sx > 0 else 0.0
-        g.edge(end_node, F, _arc(C, Rr, a0, a0 - math.pi * (1 if sx > 0 else -1), z, z), "ring", lev)
-        g.edge(end_node, F, _arc(C, Rr, a0, a0 + math.pi * (1 if sx > 0 else -1), z, z), "ring", lev)
+        F = _ring_roadway(g, p, end_node, sx, lev)
         slope = math.radians(rng.uniform(*p.ramp_slope_deg))
         feats["ramp_slopes_deg"].append(math.degrees(slope))
         dz = p.level_spacing_m
@@ -478,6 +758,142 @@ def _layout(p: WorldParams, rng: np.random.Generator):
         y_level = P3[1]
         sx = -sx
     return g, feats
+
+
+#: length (m) of the access drift from the ring roadway to the helical decline (repeated levels)
+HELIX_ACCESS_M = 10.0
+
+
+def _layout_repeated(p: WorldParams, rng: np.random.Generator):
+    """Drift graph of repeated levels: level 0 (as in :func:`_layout`, with its ring roadway and a
+    10 m access drift) copied to every level k translated by ``(0, 0, -k dz)``, the levels joined by a
+    helical decline of one turn per level (radius ``dz / (2 pi tan slope)``, tangent to the access
+    drift's end, which is a T junction on the middle levels).
+
+    Returns ``(graph, features, repeat)`` where ``repeat`` holds ``offset_m`` (the translation of
+    one level), ``unit_edges`` (edges of level 0 plus the first decline turn) and ``copies``
+    ``{k: {unit edge: its copy on level k}}``.
+    """
+    g = _Graph()
+    feats: dict = {"ramp_slopes_deg": [], "sump": None}
+    start = g.node([0.0, 0.0, 0.0])
+    end_node = _level_drifts(g, feats, p, rng, 0, False, start, 1.0, 0.0)
+    F = _ring_roadway(g, p, end_node, 1.0, 0)
+    slope = math.radians(rng.uniform(*p.ramp_slope_deg))
+    dz = float(p.level_spacing_m)
+    n = int(p.n_levels)
+    Fp = g.nodes[F]
+    q0 = g.node(Fp + np.array([HELIX_ACCESS_M, 0.0, 0.0]))
+    g.edge(F, q0, _straight(Fp, g.nodes[q0]), "crosscut", 0)
+    unit_nodes = list(range(len(g.nodes)))
+    unit_edges = list(range(len(g.edges)))
+    qnode = {0: q0}
+    copies: dict[int, dict[int, int]] = {}
+    for k in range(1, n):
+        off = np.array([0.0, 0.0, -k * dz])
+        nm = {i: g.node(g.nodes[i] + off) for i in unit_nodes}
+        copies[k] = {e: g.edge(nm[g.edges[e][0]], nm[g.edges[e][1]], g.edges[e][2] + off, g.edges[e][3], k)
+                     for e in unit_edges}
+        qnode[k] = nm[q0]
+    Rh = dz / (2.0 * math.pi * math.tan(slope))
+    C = g.nodes[q0][:2] + np.array([Rh, 0.0])
+    turn = _arc(C, Rh, math.pi, 3.0 * math.pi, 0.0, -dz)
+    h0 = -1
+    for k in range(n - 1):
+        e = g.edge(qnode[k], qnode[k + 1], turn + np.array([0.0, 0.0, -k * dz]), "ramp", k)
+        if k == 0:
+            h0 = e
+        else:
+            copies[k][h0] = e
+    feats["ramp_slopes_deg"] = [math.degrees(slope)] * (n - 1)
+    rep = {"mode": p.repeat_levels, "offset_m": [0.0, 0.0, -dz], "unit_edges": unit_edges + [h0],
+           "copies": copies, "helix_radius_m": Rh}
+    return g, feats, rep
+
+
+def _heading_poly(P0, d_in, leg1_m: float, bend_deg: float, total_m: float, radius_m: float = 8.0) -> np.ndarray:
+    """Floor centreline of a heading: straight ``leg1_m`` along ``d_in``, an arc turning by ``bend_deg``
+    (positive: to the left), then straight to a total length of ``total_m`` (all horizontal)."""
+    P0 = np.asarray(P0, float)
+    d = np.array([d_in[0], d_in[1]]) / np.hypot(d_in[0], d_in[1])
+    P1 = P0 + np.array([*(d * leg1_m), 0.0])
+    sgn = 1.0 if bend_deg > 0 else -1.0
+    nrm = sgn * np.array([-d[1], d[0]])
+    C = P1[:2] + nrm * radius_m
+    a0 = math.atan2(P1[1] - C[1], P1[0] - C[0])
+    b = math.radians(abs(bend_deg))
+    arc = _arc(C, radius_m, a0, a0 + sgn * b, P0[2], P0[2])
+    c, s_ = math.cos(sgn * b), math.sin(sgn * b)
+    d2 = np.array([c * d[0] - s_ * d[1], s_ * d[0] + c * d[1]])
+    leg3 = total_m - leg1_m - radius_m * b
+    P3 = arc[-1] + np.array([*(d2 * leg3), 0.0])
+    return np.vstack([_straight(P0, P1)[:-1], arc[:-1], _straight(arc[-1], P3)])
+
+
+def _seg_dist_2d(P, A, B):
+    """Horizontal distances (len(P), len(A)) from points P to segments A-B."""
+    d = B[None, :, :2] - A[None, :, :2]
+    L2 = np.maximum(np.sum(d * d, axis=2), 1e-12)
+    u = np.clip(np.sum((P[:, None, :2] - A[None, :, :2]) * d, axis=2) / L2, 0.0, 1.0)
+    q = A[None, :, :2] + u[..., None] * d - P[:, None, :2]
+    return np.sqrt(np.sum(q * q, axis=2))
+
+
+def _add_headings(g: _Graph, p: WorldParams, seed: int) -> list[int]:
+    """Append ``p.unmapped_headings`` headings continuing dead ends (not the sump branches).
+
+    Drawn from ``np.random.default_rng([seed, 0x4EAD])``. A candidate is kept when every
+    centreline point beyond its first ``2 R + 4`` m is at least ``2 R + 3`` m (horizontally) from every other
+    drift segment within ``H + 3`` m of its height; otherwise another bend, then another dead end
+    is tried. Returns the new edge indices (kind ``"heading"``).
+    """
+    rng = np.random.default_rng([int(seed), 0x4EAD])
+    R = p.width_m / 2.0
+    H = p.wall_height_m + R
+    deg = np.zeros(len(g.nodes), int)
+    inc: dict[int, tuple[int, np.ndarray]] = {}
+    for k, (a, b, poly, kind, _lev) in enumerate(g.edges):
+        deg[a] += 1
+        deg[b] += 1
+        if kind != "branch":  # the sump branches keep their dead end
+            inc[a] = (k, poly[min(2, len(poly) - 1), :2] - poly[0, :2])
+            inc[b] = (k, poly[max(-3, -len(poly)), :2] - poly[-1, :2])
+    cands = [i for i in range(len(g.nodes)) if deg[i] == 1 and i in inc
+             and g.edges[inc[i][0]][3] != "branch"]
+    out: list[int] = []
+    for ci in rng.permutation(len(cands)):
+        if len(out) == p.unmapped_headings:
+            break
+        node = cands[int(ci)]
+        k_par, d_back = inc[node]
+        d_in = -d_back / max(np.linalg.norm(d_back), 1e-12)
+        segs = [(poly[:-1], poly[1:]) for (_a, _b, poly, _k, _l) in g.edges]
+        A = np.vstack([s[0] for s in segs])
+        B = np.vstack([s[1] for s in segs])
+        zmid = 0.5 * (A[:, 2] + B[:, 2])
+        for _ in range(6):
+            bend = rng.uniform(60.0, 90.0) * (1.0 if rng.uniform() < 0.5 else -1.0)
+            poly = _heading_poly(g.nodes[node], d_in, 12.0, bend, p.heading_length_m)
+            Q = _densify_2d(poly, 1.0)
+            s_arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(Q[:, :2], axis=0), axis=1))])
+            Q = Q[s_arc > 2 * R + 4.0]  # the mouth is where it meets its parent
+            near_z = np.abs(zmid - g.nodes[node][2]) < H + 3.0
+            if not near_z.any() or _seg_dist_2d(Q, A[near_z], B[near_z]).min() >= 2 * R + 3.0:
+                out.append(g.edge(node, g.node(poly[-1]), poly, "heading", g.edges[k_par][4]))
+                break
+    if len(out) < p.unmapped_headings:
+        raise InputError(f"only {len(out)} of {p.unmapped_headings} unmapped headings fit in this layout "
+                         f"(each continues a dead end; {len(cands)} candidates)")
+    return out
+
+
+def _densify_2d(P: np.ndarray, step_m: float) -> np.ndarray:
+    """Points every ``step_m`` (or closer) along a polyline, vertices included."""
+    out = [P[:1]]
+    for a, b in zip(P[:-1], P[1:], strict=True):
+        m = max(1, int(math.ceil(np.linalg.norm(b - a) / step_m)))
+        out.append(a[None] + (b - a)[None] * (np.arange(1, m + 1) / m)[:, None])
+    return np.vstack(out)
 
 
 def _classify(g: _Graph):
@@ -515,12 +931,17 @@ def _classify(g: _Graph):
 
 
 # ====================================================================== primitives
-def _noise_arrays(p: WorldParams, rng: np.random.Generator):
+def _noise_arrays(p: WorldParams, rng: np.random.Generator, z_period_m: float | None = None):
+    """Plane waves and octave table of the roughness (see ``_kernels``), amplitudes from
+    :func:`roughness_amplitudes`. With ``z_period_m`` every wave's vertical wavenumber is moved to
+    the nearest multiple of ``2 pi / z_period_m`` (its horizontal part rescaled to keep ``|k|``), so
+    the field is periodic in z with that period (exact copies of levels); the draws are the same."""
+    ob, tex, _ = roughness_amplitudes(p)
     specs = [  # (wavelength m, amplitude m, mode, n waves)
-        (6.0, p.overbreak_m[0], 0, 8),
-        (1.5, p.overbreak_m[1], 0, 8),
-        (0.35, p.texture_m[0], 1, 8),
-        (0.1, p.texture_m[1], 1, 6),
+        (6.0, ob[0], 0, _OCTAVE_WAVES[0]),
+        (1.5, ob[1], 0, _OCTAVE_WAVES[1]),
+        (0.35, tex[0], 1, _OCTAVE_WAVES[2]),
+        (0.1, tex[1], 1, _OCTAVE_WAVES[3]),
     ]
     waves, octs, k0 = [], [], 0
     for lam, amp, mode, n in specs:
@@ -529,10 +950,31 @@ def _noise_arrays(p: WorldParams, rng: np.random.Generator):
         v /= np.linalg.norm(v, axis=1, keepdims=True)
         kmag = 2 * np.pi / lam * rng.uniform(0.8, 1.25, n)
         ph = rng.uniform(0, 2 * np.pi, n)
-        waves.append(np.column_stack([v * kmag[:, None], ph]))
+        w = v * kmag[:, None]
+        if z_period_m is not None:
+            w = _quantise_kz(w, kmag, 2 * np.pi / z_period_m)
+        waves.append(np.column_stack([w, ph]))
         octs.append([k0, n, amp, mode])
         k0 += n
     return np.ascontiguousarray(np.vstack(waves)), np.ascontiguousarray(np.array(octs, float))
+
+
+def _quantise_kz(w: np.ndarray, kmag: np.ndarray, dk: float) -> np.ndarray:
+    """Wave vectors with k_z on multiples of ``dk`` (|k_z| < |k|) and the horizontal part rescaled to keep |k|."""
+    out = w.copy()
+    for i in range(w.shape[0]):
+        m = int(round(w[i, 2] / dk))
+        while m != 0 and abs(m * dk) >= kmag[i]:
+            m -= 1 if m > 0 else -1
+        kz = m * dk
+        h = math.hypot(w[i, 0], w[i, 1])
+        kh = math.sqrt(kmag[i] ** 2 - kz * kz)
+        if h > 1e-12:
+            out[i, 0], out[i, 1] = w[i, 0] * kh / h, w[i, 1] * kh / h
+        else:
+            out[i, 0], out[i, 1] = kh, 0.0
+        out[i, 2] = kz
+    return out
 
 
 def _frames(poly: np.ndarray):
@@ -755,35 +1197,57 @@ def build_world(preset: str = "small", seed: int = 0, params: WorldParams | None
     seed = int(seed)
     if seed < 0:
         raise InputError(f"seed must be a non-negative integer, got {seed}")
+    _check_params(params)
     rng = np.random.default_rng(seed)
-    g, feats = _layout(params, rng)
+    rep = None
+    if params.repeat_levels == "none":
+        g, feats = _layout(params, rng)
+    else:
+        g, feats, rep = _layout_repeated(params, rng)
+    heads = _add_headings(g, params, seed) if params.unmapped_headings else []
+    exact = rep is not None and rep["mode"] == "exact"
+    copies = rep["copies"] if rep is not None else {}
+    copy_edges = {e for cm in copies.values() for e in cm.values()}
+    dz = float(params.level_spacing_m)
+
+    def off(k):
+        return np.array([0.0, 0.0, -k * dz])
+
     R = params.width_m / 2.0
     hw = params.wall_height_m
     H = hw + R
 
-    # ---- void primitives: drift segments, roof fall-outs, sump pit
-    void, vtype, seg_owner = [], [], []
+    # ---- void primitives: drift segments, roof fall-outs, sump pit (vowner: the drift each belongs to)
+    void, vtype, vowner = [], [], []
     for k, (_a, _b, poly, _kind, _lev) in enumerate(g.edges):
         for i in range(len(poly) - 1):
             void.append([*poly[i], *poly[i + 1], R, hw])
             vtype.append(0)
-            seg_owner.append(k)
+            vowner.append(k)
     # section types on the first level's main drift: irregular roof, meshed, regular
     main0 = [k for k, e in enumerate(g.edges) if e[3] == "main" and e[4] == 0]
     main_len = [float(np.linalg.norm(np.diff(g.edges[k][2][:, :2], axis=0), axis=1).sum()) for k in main0]
     long_mains = [k for k, _L in sorted(zip(main0, main_len, strict=True), key=lambda z: -z[1])]
     irr = long_mains[0]
     reg = long_mains[1] if len(long_mains) > 1 else long_mains[0]
-    poly = g.edges[irr][2]
-    P, t, n, s = _resample(poly, 1.0)
-    mid = len(P) // 2
+
+    def fall_outs(poly, owner):
+        """Roof fall-outs (ellipsoid cavities) around the middle of ``poly``; returns the middle index."""
+        P, t, n, s = _resample(poly, 1.0)
+        mid = len(P) // 2
+        for j in range(max(0, mid - 8), min(len(P), mid + 8)):
+            if rng.uniform() < 0.75:
+                c = P[j] + np.array([*(n[j] * rng.uniform(-0.9, 0.9)), H - rng.uniform(0.2, 0.5)])
+                void.append([c[0], c[1], c[2], rng.uniform(0.8, 1.6), rng.uniform(0.8, 1.6), rng.uniform(0.45, 0.9),
+                             0, 0])
+                vtype.append(1)
+                vowner.append(owner)
+        return P, s, mid
+
     zones = []
-    sel = range(max(0, mid - 8), min(len(P), mid + 8))
-    for j in sel:
-        if rng.uniform() < 0.75:
-            c = P[j] + np.array([*(n[j] * rng.uniform(-0.9, 0.9)), H - rng.uniform(0.2, 0.5)])
-            void.append([c[0], c[1], c[2], rng.uniform(0.8, 1.6), rng.uniform(0.8, 1.6), rng.uniform(0.45, 0.9), 0, 0])
-            vtype.append(1)
+    cav0 = len(void)
+    P, s, mid = fall_outs(g.edges[irr][2], irr)
+    cav1 = len(void)
     zc = P[mid] + np.array([0, 0, H - 0.5])
     zones.append([*zc, 6.0, 0.9])
     feats["irregular_roof"] = {"drift": irr, "s_m": float(s[mid])}
@@ -797,26 +1261,48 @@ def build_world(preset: str = "small", seed: int = 0, params: WorldParams | None
     sb = feats["sump"]["drift"]
     bpoly = g.edges[sb][2]
     Pb, tb, nb, sbs = _resample(bpoly, 0.5)
-    j = max(0, len(Pb) - 1 - int(5.0 / 0.5))
+    j_pit = max(0, len(Pb) - 1 - int(5.0 / 0.5))
     side = 1.0
-    pit_c = Pb[j] + np.array([*(nb[j] * side * 1.45), -0.65])
-    yaw = math.atan2(tb[j][1], tb[j][0])
+    pit_c = Pb[j_pit] + np.array([*(nb[j_pit] * side * 1.45), -0.65])
+    yaw = math.atan2(tb[j_pit][1], tb[j_pit][0])
     void.append([pit_c[0], pit_c[1], pit_c[2], 1.8, 0.7, 0.85, yaw, 0.0])
     vtype.append(2)
-    feats["sump"].update({"s_m": float(sbs[j]), "centre": [float(x) for x in Pb[j]]})
+    vowner.append(sb)
+    feats["sump"].update({"s_m": float(sbs[j_pit]), "centre": [float(x) for x in Pb[j_pit]]})
+    if rep is not None:
+        # zones reach 3 r (kernel cut-off): keep them within one level so copies do not leak into each other
+        rmax = (dz - H - 0.5) / 3.0
+        for z in zones:
+            z[3] = min(z[3], rmax)
+        zones0 = [list(z) for z in zones]
+        for k, cm in copies.items():
+            o = off(k)
+            zones.extend([[*(np.array(z[:3]) + o), z[3], z[4]] for z in zones0])
+            if exact:  # the same fall-outs
+                for i in range(cav0, cav1):
+                    void.append([*(np.array(void[i][:3]) + o), *void[i][3:]])
+                    vtype.append(1)
+                    vowner.append(cm[irr])
+            else:  # near copy: fall-outs drawn anew around the same place
+                fall_outs(g.edges[cm[irr]][2], cm[irr])
+            void.append([*(pit_c + o), 1.8, 0.7, 0.85, yaw, 0.0])
+            vtype.append(2)
+            vowner.append(cm[sb])
 
-    waves, octaves = _noise_arrays(params, rng)
-    ob_max = float(sum(params.overbreak_m) * 2.0 + sum(params.texture_m))
+    waves, octaves = _noise_arrays(params, rng, z_period_m=dz if exact else None)
+    ob_eff, tex_eff, _ = roughness_amplitudes(params)
+    ob_max = float(sum(ob_eff) * 2.0 + sum(tex_eff))
     base = _assemble(void, vtype, [], [], waves, octaves, zones, params.grid_cell_m, ob_max)
 
-    # ---- solid structures
-    solid, stype = [], []
+    # ---- solid structures (sowner: the drift each belongs to)
+    solid, stype, sowner = [], [], []
     # rock bolts: rings every bolt_spacing_m, 5 bolts over the arch, placed on the rough surface
-    Os, Ds, bolt_ok_kinds = [], [], ("main", "parallel", "ramp", "ring", "crosscut", "branch")
+    Os, Ds, Downer = [], [], []
+    bolt_ok_kinds = ("main", "parallel", "ramp", "ring", "crosscut", "branch", "heading")
     mesh_edge = reg
     strap_rings = []
     for k, (_a, _b, poly, kind, _lev) in enumerate(g.edges):
-        if kind not in bolt_ok_kinds:
+        if kind not in bolt_ok_kinds or (exact and k in copy_edges):
             continue
         P, t, n, s = _resample(poly, params.bolt_spacing_m)
         # skip rings within 3 m of a junction/end so bolts do not float in intersections
@@ -829,6 +1315,7 @@ def build_world(preset: str = "small", seed: int = 0, params: WorldParams | None
                 d = np.array([*(n[j] * math.sin(a)), math.cos(a)])
                 Os.append(P[j] + np.array([0, 0, hw]))
                 Ds.append(d)
+                Downer.append(k)
                 ring.append(len(Os) - 1)
             if k == mesh_edge:
                 strap_rings.append(ring)
@@ -843,6 +1330,7 @@ def build_world(preset: str = "small", seed: int = 0, params: WorldParams | None
             b = hit[i] - D[i] * 0.07  # plate + nut stand 7 cm proud
             solid.append([*a, *b, 0.06, 0.0])
             stype.append(0)
+            sowner.append(Downer[i])
         for ring in strap_rings:  # "mesh": steel straps linking the bolt heads of a ring
             for u, v in zip(ring[:-1], ring[1:], strict=True):
                 if ok[u] and ok[v]:
@@ -850,10 +1338,11 @@ def build_world(preset: str = "small", seed: int = 0, params: WorldParams | None
                     b = hit[v] - D[v] * 0.05
                     solid.append([*a, *b, 0.025, 0.0])
                     stype.append(0)
+                    sowner.append(mesh_edge)
         feats["meshed"] = {"drift": mesh_edge, "s_m": feats["regular"]["s_m"]}
     # services along main drifts and ramps: pipe (left wall), two cables (right wall), duct under the roof
-    for (_a, _b, poly, kind, _lev) in g.edges:
-        if kind not in ("main", "ramp"):
+    for k, (_a, _b, poly, kind, _lev) in enumerate(g.edges):
+        if kind not in ("main", "ramp") or (exact and k in copy_edges):
             continue
         _, nseg, _ = _frames(poly)
         for lat, hgt, rad in ((R - 0.35, 1.9, 0.08), (-(R - 0.2), 2.55, 0.025), (-(R - 0.2), 2.7, 0.02)):
@@ -864,24 +1353,38 @@ def build_world(preset: str = "small", seed: int = 0, params: WorldParams | None
             for i in np.flatnonzero(~open_):
                 solid.append([*Q[i], *Q[i + 1], rad, 0.0])
                 stype.append(0)
+                sowner.append(k)
         solid.extend(_capsule_chain(_offset_polyline(poly, -0.9, H - 0.85), 0.4))
         stype.extend([0] * (len(poly) - 1))
+        sowner.extend([k] * (len(poly) - 1))
     # railings along the sump pit (posts every ~1.2 m, rails at 0.5 m and 1.05 m)
+    rail0 = len(solid)
     c, yawp = pit_c, yaw
     ca, sa = math.cos(yawp), math.sin(yawp)
     along = np.array([ca, sa, 0.0])
     across = np.array([-sa, ca, 0.0])
-    floor_z = Pb[j][2]
+    floor_z = Pb[j_pit][2]  # the branch is flat: any of its points gives the floor height
     edge_c = np.array([c[0], c[1], floor_z]) - across * side * (0.7 + 0.12)
     posts = [edge_c + along * x for x in np.linspace(-1.8, 1.8, 4)]
     for q in posts:
         solid.append([q[0], q[1], floor_z - 0.05, q[0], q[1], floor_z + 1.05, 0.03, 0.0])
         stype.append(0)
+        sowner.append(sb)
     for hgt in (0.5, 1.05):
         a = posts[0] + np.array([0, 0, hgt])
         b = posts[-1] + np.array([0, 0, hgt])
         solid.append([*a, *b, 0.025, 0.0])
         stype.append(0)
+        sowner.append(sb)
+    if rep is not None:  # copies: every structure of the unit (exact) or the railings only (near)
+        n0 = len(solid)
+        for k, cm in copies.items():
+            o6 = np.array([*off(k), *off(k), 0.0, 0.0])
+            for i in range(n0):
+                if (exact and sowner[i] in cm) or (not exact and i >= rail0):
+                    solid.append(list(np.asarray(solid[i], float) + o6))
+                    stype.append(stype[i])
+                    sowner.append(cm[sowner[i]])
     arrays = _assemble(void, vtype, solid, stype, waves, octaves, zones, params.grid_cell_m, ob_max)
     vp, vt = _vehicle_model()
     arrays["veh_prims"], arrays["veh_type"] = np.ascontiguousarray(vp), np.ascontiguousarray(vt)
@@ -907,9 +1410,13 @@ def build_world(preset: str = "small", seed: int = 0, params: WorldParams | None
     intersections, dead = _classify(g)
     drifts = tuple(Drift(f"{kind}_L{lev}_{k:03d}", a, b, poly, kind, lev)
                    for k, (a, b, poly, kind, lev) in enumerate(g.edges))
+    extra = {"void_owner": np.array(vowner, np.int64), "solid_owner": np.array(sowner, np.int64),
+             "ob_max": ob_max, "roughness": roughness_amplitudes(params)}
+    if rep is not None:
+        extra["repeat"] = rep
     world = MineWorld(preset=str(preset), seed=seed, params=params, nodes=np.array(g.nodes), drifts=drifts,
                       intersections=intersections, dead_ends=dead, features=feats,
-                      T_world_vehicle=parking[0].copy(), _arrays=arrays)
+                      T_world_vehicle=parking[0].copy(), _arrays=arrays, unmapped=tuple(heads), _extra=extra)
     log.info("synthetic mine %s seed %d: %d drifts, %.0f m, %d intersections, %d solids",
              preset, seed, len(drifts), world.total_length_m, len(intersections), len(solid))
     return world
