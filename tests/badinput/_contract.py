@@ -381,3 +381,22 @@ def stream_link(tmp: Path, name: str) -> Path:
     p = Path(tmp) / name
     p.symlink_to("/dev/zero")
     return p
+
+
+def symlink_beside(p: Path, name: str = "link") -> Path:
+    """A symlink ``name`` beside ``p`` pointing at it."""
+    (p.parent / name).symlink_to(p)
+    return p.parent / name
+
+
+def hardlink_beside(p: Path, name: str = "hard") -> Path:
+    """A hard link ``name`` beside ``p``."""
+    os.link(p, p.parent / name)
+    return p.parent / name
+
+
+def a_file(d: Path, name: str = "afile") -> Path:
+    """A plain file ``d/name`` holding "keep" (an output path that names an existing file)."""
+    f = d / name
+    f.write_text("keep", encoding="utf-8")
+    return f

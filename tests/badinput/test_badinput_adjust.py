@@ -16,13 +16,16 @@ from pathlib import Path
 
 import pytest
 from _contract import (
+    a_file,
     a_folder,
     assert_user_error,
     copy_tree,
     dead_pid,
+    hardlink_beside,
     leftovers,
     lock_path,
     run_cli,
+    symlink_beside,
     tree_snapshot,
     truncated_copy,
     write_lock,
@@ -142,19 +145,15 @@ def net_in_folder(network, tmp_path):
 
 
 def _symlink(p: Path) -> Path:
-    (p.parent / "link").symlink_to(p)
-    return p.parent / "link"
+    return symlink_beside(p)
 
 
 def _hardlink(p: Path) -> Path:
-    os.link(p, p.parent / "hard")
-    return p.parent / "hard"
+    return hardlink_beside(p)
 
 
 def _a_file(p: Path) -> Path:
-    f = p.parent.parent / "afile"
-    f.write_text("keep", encoding="utf-8")
-    return f
+    return a_file(p.parent.parent)
 
 
 OUT_CASES = {

@@ -7,13 +7,11 @@ import json
 import os
 
 import pytest
-from _contract import a_folder, assert_user_error, tree_snapshot, write_lock
+from _contract import a_file, a_folder, assert_user_error, tree_snapshot, write_lock
 
 
 def _a_file(tmp):
-    f = tmp / "afile"
-    f.write_text("keep", encoding="utf-8")
-    return f
+    return a_file(tmp)
 
 
 def _earlier(tmp):

@@ -10,14 +10,17 @@ from pathlib import Path
 
 import pytest
 from _contract import (
+    a_file,
     a_folder,
     assert_user_error,
     copy_tree,
     dead_pid,
+    hardlink_beside,
     leftovers,
     lock_path,
     run_cli,
     stream_link,
+    symlink_beside,
     tree_snapshot,
     truncated_copy,
     write_lock,
@@ -158,20 +161,12 @@ def work(mine, tmp_path):
     return d
 
 
-def _symlink(target: Path, name: str) -> Path:
-    (target.parent / name).symlink_to(target)
-    return target.parent / name
-
-
-def _hardlink(target: Path, name: str) -> Path:
-    os.link(target, target.parent / name)
-    return target.parent / name
+_symlink = symlink_beside
+_hardlink = hardlink_beside
 
 
 def _a_file(d: Path) -> Path:
-    f = d.parent / "afile"
-    f.write_text("keep", encoding="utf-8")
-    return f
+    return a_file(d.parent)
 
 
 #: case -> (--out, --report) from the work folder

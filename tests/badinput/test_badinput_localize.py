@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from _contract import (
+    a_file,
     a_folder,
     assert_user_error,
     copy_tree,
@@ -207,9 +208,7 @@ def work(mine, prep, tmp_path):
 
 
 def _a_file(d: Path, name="afile") -> Path:
-    f = d.parent / name
-    f.write_text("keep", encoding="utf-8")
-    return f
+    return a_file(d.parent, name)
 
 
 OUT_CASES = {

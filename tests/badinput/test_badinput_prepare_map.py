@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 from _contract import (
+    a_file,
     a_folder,
     assert_user_error,
     dead_pid,
@@ -101,9 +102,7 @@ def work(mine, tmp_path):
 
 
 def _a_file(d: Path, name="afile.npz") -> Path:
-    f = d.parent / name
-    f.write_text("keep", encoding="utf-8")
-    return f
+    return a_file(d.parent, name)
 
 
 #: case -> (--map, --out) from the work folder
