@@ -52,9 +52,10 @@ def run(args) -> int:
     icp_voxel = None if args.icp_voxel is not None and args.icp_voxel <= 0 else args.icp_voxel
     prep = replace(prep, icp_voxel_size_m=icp_voxel)
     record = out.with_name(out.name + ".json")
+    report = out.with_name(out.name + ".report.html")
     profile = getattr(args, "profile", None) or DEFAULT_PROFILE
     with OutputTransaction("prepare-map", inputs={"--map": args.map},
-                           files={"--out": out, "its record": record}, overwrite_files=bool(args.force)) as tx, \
+                           files={"--out": out, "its record": record, "its report": report}, overwrite_files=bool(args.force)) as tx, \
             StepBar(args, "prepare-map", total=1 + 1 + 4 + 6 + 1) as bar, _summary_lines_quiet():
         t0 = time.perf_counter()
         bar("read map")
@@ -83,6 +84,10 @@ def run(args) -> int:
                "inputs": [input_record(args.map)],
                "versions": versions()}
         write_json_atomic(tx.file("its record"), rec)
+        from minegeo._provenance import to_jsonable
+        from minegeo.report.prepare_report import write_prepare_report
+
+        write_prepare_report(tx.file("its report"), to_jsonable(rec), pm.points_map())
     if not getattr(args, "quiet", False):
         # measured after the commit, from the start of the process: the time the user waited
         rt = whole_run_timings(args)
@@ -90,7 +95,7 @@ def run(args) -> int:
         steps = (f"read {t_read:.1f} s, SHA-256 {t_hash:.1f} s, downsample + normals + FPFH + ICP target {pt.get('total', 0.0):.1f} s, "
                  f"search structures {sum(index_s.values()):.1f} s, write {t_save:.1f} s")
         print(f"prepared {args.map} (profile {profile}): {len(cloud.points)} -> {len(pm)} points ({prep.describe()}), "
-              f"{pm.icp_points.shape[0]} ICP points; wrote {out}")
+              f"{pm.icp_points.shape[0]} ICP points; wrote {out}, {record.name}, {report.name}")
         print(f"  {time_line(rt)}; {steps}")
     return 0
 

@@ -154,6 +154,9 @@ def reports(browser, tmp_path_factory):
     _run(["georef", "--map", mine / "map.ply", "--gcps", _km_gcps(mine / "gcps.csv", bad / "gcps_km.csv"),
           "--crs", "EPSG:5186", "--out", bad / "geo_km.ply", "--report", bad / "georef"], ok=(1,))
     cases["georef_failed"] = (bad / "georef" / "report.html", "FAILED")
+    # prepare-map: its report sits beside the prepared map
+    _run(["prepare-map", "--map", geo_map, "--out", root / "prepared" / "map.npz"])
+    cases["prepare_map"] = (root / "prepared" / "map.npz.report.html", "OK")
     # mast: ok, and no beacon in view
     sc = write_mast_scenario(demo / "mast_scenario", seed=SEED)
     _run(["mast", "--scan", sc["scan"], "--beacons", sc["beacons"], "--out", demo / "mast"])
@@ -279,8 +282,8 @@ def check_report(ctx, path: Path, expected: str, shot: Path | None = None, min_i
     return info
 
 
-CASES = ["adjust_passed", "adjust_failed", "mast_ok", "mast_failed", "georef_ok", "georef_failed", "localize_ok",
-         "localize_failed", "synth", "demo"]
+CASES = ["adjust_passed", "adjust_failed", "mast_ok", "mast_failed", "georef_ok", "georef_failed", "prepare_map",
+         "localize_ok", "localize_failed", "synth", "demo"]
 
 
 @pytest.mark.parametrize("case", CASES)
