@@ -1,9 +1,13 @@
-"""Shared test helpers (import as ``from helpers import shared_data, require_open3d``).
+"""Shared test helpers (import as ``from helpers import shared_data, require_oracle``).
 
 Real validation data live in ``../shared/data`` beside the repository (override with
 ``MINEGEO_SHARED_DATA``). Tests that need it call :func:`shared_data`; when the data are
 missing they are skipped with a clear reason, unless ``MINEGEO_REQUIRE_SHARED_DATA=1``
 (set by ``.ci/run``), in which case they fail.
+
+Oracle libraries (the ``oracle`` extra: Open3D, small_gicp, kiss-icp) are imported only through
+:func:`require_oracle`: missing, a test is skipped with the reason, unless
+``MINEGEO_REQUIRE_ORACLE=1`` (set by ``.ci/run``), in which case it fails.
 """
 
 from __future__ import annotations
@@ -16,6 +20,13 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("MINEGEO_SHARED_DATA", REPO.parent / "shared" / "data"))
 REQUIRE_SHARED = os.environ.get("MINEGEO_REQUIRE_SHARED_DATA", "") == "1"
+#: The oracle extra's import names (pyproject ``oracle``: open3d, small-gicp, kiss-icp).
+ORACLES = ("open3d", "small_gicp", "kiss_icp")
+
+
+def oracle_required() -> bool:
+    """True when a missing oracle library must fail the test (``MINEGEO_REQUIRE_ORACLE=1``)."""
+    return os.environ.get("MINEGEO_REQUIRE_ORACLE", "") == "1"
 
 
 def shared_data(*parts: str) -> Path:
@@ -29,12 +40,23 @@ def shared_data(*parts: str) -> Path:
     return p
 
 
-def require_open3d():
-    """Import Open3D for oracle tests, or skip with a reason (fail if the CI requires shared data)."""
+def require_oracle(name: str):
+    """Import the oracle library ``name`` (one of :data:`ORACLES`) and return the module; when it
+    cannot be imported, skip with the reason, or fail under ``MINEGEO_REQUIRE_ORACLE=1``."""
+    import importlib
+
+    if name not in ORACLES:
+        raise ValueError(f"{name!r} is not an oracle of the test suite {ORACLES}")
     try:
-        import open3d as o3d  # noqa: F401
-    except Exception as exc:  # pragma: no cover - depends on environment
-        if REQUIRE_SHARED:
-            pytest.fail(f"open3d is required in CI for oracle tests: {exc}")
-        pytest.skip(f"open3d not available: {exc}")
-    return o3d
+        return importlib.import_module(name)
+    except Exception as exc:  # ImportError, or OSError from a missing system library (libusb for Open3D)
+        msg = f"oracle {name} not importable: {type(exc).__name__}: {exc} (pip install -e '.[oracle]'"
+        msg += "; Open3D also needs libusb-1.0-0)" if name == "open3d" else ")"
+        if oracle_required():
+            pytest.fail(msg + " and MINEGEO_REQUIRE_ORACLE=1", pytrace=False)
+        pytest.skip(msg)
+
+
+def require_open3d():
+    """``require_oracle("open3d")`` (kept for the oracle tests that call it by this name)."""
+    return require_oracle("open3d")

@@ -87,10 +87,73 @@ def test_scenario_files_bit_identical_under_seed(tmp_path):
     assert a["scan"].read_bytes() != c["scan"].read_bytes()
 
 
-def test_warmup_compiles():
-    from minegeo.mast import _warmup
+# Run in a fresh interpreter so that kernels compiled by earlier tests of this process cannot make
+# the check pass. The MAST kernels called from Python (every dispatcher of minegeo.mast._kernels
+# imported by another minegeo.mast module; _line_of, _prefix_sums and _sse_range are only called
+# from inside other kernels and are linked into them) must have no signature before _warmup(), one
+# after it, and the pipeline (simulate a scene, locate_scanner) must then add none: warmup compiled
+# (or loaded from Numba's disk cache) exactly the types the pipeline uses. A second _warmup() and
+# the pipeline run under a numba:compile listener (the events RunClock times) and must trigger none.
+_WARMUP_PROBE = """
+import importlib, json, pkgutil
+from numba.core import event
+from numba.core.registry import CPUDispatcher
+import minegeo.mast as M
+from minegeo.mast import _kernels as K
+kernels = {n: f for n, f in vars(K).items() if isinstance(f, CPUDispatcher)}
+entry = set()
+for m in pkgutil.iter_modules(M.__path__):
+    if m.name != "_kernels":
+        mod = importlib.import_module("minegeo.mast." + m.name)
+        entry |= {n for n, f in vars(mod).items() if any(f is k for k in kernels.values())}
+sigs = lambda: {n: sorted(map(str, kernels[n].signatures)) for n in sorted(entry)}
+before = sigs()
+M._warmup()
+after = sigs()
+rec = event.RecordingListener()
+with event.install_listener("numba:compile", rec):
+    M._warmup()
+    sc = M.simulate_mast_scenario(2, position=3)
+    res = M.locate_scanner(sc.scan, sc.beacons)
+compiled = sorted({ev.data["dispatcher"].py_func.__name__ for _, ev in rec.buffer})
+print(json.dumps({"before": before, "after": after, "pipeline": sigs(), "compiled": compiled,
+                  "status": res.status}))
+"""
 
-    _warmup()
+
+def test_warmup_compiles():
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _WARMUP_PROBE], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    d = json.loads(out.stdout.strip().splitlines()[-1])
+    assert set(d["before"]) >= {"_cast_rays", "_nearest_segment", "_grow_segments", "_split_segments"}, d
+    assert all(v == [] for v in d["before"].values()), d["before"]  # nothing compiled at import
+    assert all(len(v) >= 1 for v in d["after"].values()), d["after"]  # every entry kernel compiled
+    assert d["pipeline"] == d["after"], d  # the pipeline needed no signature warmup missed
+    assert d["compiled"] == [] and d["status"] == "ok", d
+
+
+def test_package_warmup_times_every_subpackage(monkeypatch):
+    """minegeo.warmup() calls each subpackage's _warmup once and returns its time under its name."""
+    import importlib
+    import time
+
+    import minegeo
+
+    calls = []
+    for name in minegeo._WARMUP_MODULES:
+        mod = importlib.import_module(name)
+        if hasattr(mod, "_warmup"):
+            monkeypatch.setattr(mod, "_warmup", lambda name=name: (calls.append(name), time.sleep(0.02)))
+    t = minegeo.warmup()
+    assert list(t) == list(minegeo._WARMUP_MODULES), t
+    assert {"minegeo.geometry", "minegeo.registration", "minegeo.mast", "minegeo.localize"} <= set(t)
+    with_kernels = [n for n in minegeo._WARMUP_MODULES if hasattr(importlib.import_module(n), "_warmup")]
+    assert calls == with_kernels and "minegeo.mast" in calls
+    assert all(t[n] >= 0.02 for n in with_kernels), t  # each time includes its own _warmup
+    assert all(0.0 <= v < 5.0 for v in t.values()), t
 
 
 def test_cli_beacon_survey_sigma_enlarges_ellipse(tmp_path):

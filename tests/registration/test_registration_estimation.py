@@ -5,7 +5,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 import pytest
-from helpers import require_open3d
+from helpers import require_oracle
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from reference.naive_icp import (
@@ -137,7 +137,7 @@ def test_umeyama_bad_inputs():
 
 @pytest.mark.oracle
 def test_umeyama_matches_open3d(rng):
-    o3d = require_open3d()
+    o3d = require_oracle("open3d")
     R = o3d.pipelines.registration
     P = rng.normal(size=(200, 3))
     Q = 1.3 * transform_points(random_transform(rng, 3.0, 4.0), P) + rng.normal(scale=0.05, size=P.shape)
@@ -181,7 +181,7 @@ def test_evaluate_bad_inputs():
 
 @pytest.mark.oracle
 def test_evaluate_matches_open3d(rng):
-    o3d = require_open3d()
+    o3d = require_oracle("open3d")
     P = rng.normal(size=(500, 3))
     Q = transform_points(random_transform(rng, 0.3, 0.2), P) + rng.normal(scale=0.05, size=P.shape)
     T = kabsch(P, Q)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 import pytest
-from helpers import require_open3d, shared_data
+from helpers import require_oracle, shared_data
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from pykdtree.kdtree import KDTree
@@ -63,7 +63,7 @@ def _pca_normals(Q, k=10):
 @pytest.mark.parametrize("method", ["point_to_point", "point_to_plane"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_icp_matches_open3d(method, seed):
-    o3d = require_open3d()
+    o3d = require_oracle("open3d")
     R = o3d.pipelines.registration
     P, Q, N, T_true = _scene(seed)
     rng = np.random.default_rng(100 + seed)
@@ -91,7 +91,7 @@ def test_icp_matches_open3d(method, seed):
 
 @pytest.mark.oracle
 def test_point_to_point_information_matches_open3d():
-    o3d = require_open3d()
+    o3d = require_oracle("open3d")
     P, Q, N, T_true = _scene(5)
     r = register_icp(P, Q, np.eye(4), ICPParams(0.3))
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
@@ -103,7 +103,7 @@ def test_point_to_point_information_matches_open3d():
 
 @pytest.mark.oracle
 def test_bunny_point_to_plane_matches_open3d():
-    o3d = require_open3d()
+    o3d = require_oracle("open3d")
     P = _read_pcd_xyz(shared_data("pcl_bunny_icp", "bun0.pcd"))
     Q = _read_pcd_xyz(shared_data("pcl_bunny_icp", "bun4.pcd"))
     R = o3d.pipelines.registration
@@ -183,9 +183,12 @@ def test_icp_rigid_motion_and_permutation(seed, method):
     point-to-plane step maps the linear solution x to ``R_z R_y R_x`` about the frame origin,
     which is equivariant only to second order in the step; the moved run therefore takes a
     slightly different path and can settle on a neighbouring fixed point of the discrete
-    nearest-neighbour iteration (observed: up to 1e-4 on this 0.1 m-spaced target, e.g. seed 232,
-    both runs converged to |Δrmse| < 1e-12). Point-to-plane is compared at 1e-3 (a hundredth of
-    the point spacing).
+    nearest-neighbour iteration (e.g. seed 232, both runs converged to |Δrmse| < 1e-12).
+    Point-to-plane is compared at 1e-3, a hundredth of the 0.1 m point spacing. Margin, measured
+    over 11 000 random seeds of the strategy (its domain, 2^31 seeds, cannot be exhausted): 1.3 %
+    differ by more than 1e-4, 3 by more than 4e-4, largest 4.8e-4 (seed 581594898), none above
+    5e-4; the bound is 2.1x that maximum and the tail falls ~3x per 1e-4, so an example exceeds
+    it with probability ~1e-6.
     """
     P, Q, N, _ = _scene(seed, n_src=200, n_tgt=1500, noise=0.0, max_angle=0.05, max_t=0.05)
     rng = np.random.default_rng(seed)

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 import pytest
-from helpers import require_open3d, shared_data
+from helpers import require_oracle, shared_data
 
 from minegeo.features import FPFHParams, compute_fpfh
 from minegeo.geometry import NormalParams, estimate_normals, voxel_downsample
@@ -59,7 +59,7 @@ def test_ransac_icp_recovers_3dmatch_pair(pair):
 
 @pytest.mark.oracle
 def test_success_rate_at_least_open3d_same_budget(pair):
-    o3d = require_open3d()
+    o3d = require_oracle("open3d")
     reg = o3d.pipelines.registration
     (S, ns), (T, nt) = pair["src"], pair["tgt"]
     fs = compute_fpfh(S, ns, FPFHParams(5 * VOXEL, 100, "open3d")).features
