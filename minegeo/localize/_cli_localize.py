@@ -439,6 +439,26 @@ def _candidate_lines(res, limit: int = 3) -> list[str]:
     return lines
 
 
+def _rival_line(res) -> str | None:
+    """The whole-map rival search's best rival for the printout (map frame, labelled NOT a position)."""
+    rv = getattr(res, "rival_search", None)
+    if not rv:
+        return None
+    b = rv.get("best_rival")
+    tail = f"search {res.timings_s.get('rival_search', float('nan')):.2f} s" + ("" if rv.get("covered") else
+                                                               "; coverage incomplete, see result.json")
+    if b is None:
+        return f"  whole-map rival search at the chosen attitude: no other placement found ({tail})"
+    x, y, z = b["origin_map_m"]
+    test = f"; passes the {b['test_passed']} test" if b.get("test_passed") else ""
+    return (f"  best rival (NOT a position; {'rejected' if res.status == 'ok' else 'a rival'}; whole-map rival "
+            f"search): map x {x:.1f} y {y:.1f} z {z:.1f}, {b['distance_to_chosen_m']:.1f} m / "
+            f"{b['rotation_to_chosen_deg']:.1f} deg from the {'answer' if res.status == 'ok' else 'best'}, plane "
+            f"fitness {b['plane_fitness']:.3f} vs {b['chosen_plane_fitness']:.3f} (margin {b['margin']:.2f}, "
+            f"ambiguous at <= {1.0 / rv['ambiguity_ratio']:.2f}), support-matched {b['matched_ratio']:.2f} "
+            f"(ambiguous at >= {rv['params']['matched_ratio']:g}){test}; {tail}")
+
+
 def print_result(res, d: dict, how: str, out: Path) -> None:
     """The stdout of ``minegeo localize``: coordinates only for an ``ok`` result."""
     t = d["timings_s"]
@@ -452,6 +472,9 @@ def print_result(res, d: dict, how: str, out: Path) -> None:
         print(f"  scan origin in {frame}: {T[0, 3]:.3f} {T[1, 3]:.3f} {T[2, 3]:.3f} "
               f"(95 % radius {res.position_95_radius_m:.3f} m); fitness {res.fitness:.3f}, "
               f"inlier RMSE {res.inlier_rmse_m:.3f} m; profile {profile}")
+        rival = _rival_line(res)
+        if rival:
+            print(rival)
         print(f"  {times}")
         files = [out / "result.json", out / "report.html"]
         if d.get("trajectory_csv"):
@@ -466,6 +489,9 @@ def print_result(res, d: dict, how: str, out: Path) -> None:
           "coordinates of it" + (" (the candidates below were rejected)" if rejected_candidates(res) else ""))
     for line in _candidate_lines(res):
         print(line)
+    rival = _rival_line(res)
+    if rival:
+        print(rival)
     print(f"  profile {profile}; {times}")
     extra = " (no trajectory_global.csv: written only for an ok result)" if res.trajectory_map is not None else ""
     print(f"  wrote {out / 'result.json'}, {out / 'report.html'}{extra}")

@@ -211,6 +211,14 @@ class CorrelativeResult:
         Why no candidate was produced (empty when there are some).
     params : CorrelativeParams
     timings_s : dict
+    coverage : dict or None
+        With a ``witness`` placement (:func:`correlative_candidates`): at each stage of the
+        cascade (``grid`` bins, ``screen``, ``refine`` + distinct selection) the witness's own
+        best score (``*_self``, a fraction of the stage's largest score; NaN when no placement
+        of the stage is near the witness), how many placements reach it minus the slack
+        (``*_at_least``; -1 without a witness score) and how many the stage kept (``*_kept``);
+        ``covered`` is true when every stage found the witness and kept all of the former.
+        None without a witness.
     """
 
     candidates: list
@@ -222,13 +230,17 @@ class CorrelativeResult:
     reason: str
     params: CorrelativeParams
     timings_s: dict = field(default_factory=dict)
+    coverage: dict | None = None
 
     def to_dict(self) -> dict:
-        return {"n_candidates": len(self.candidates), "hit_fractions": [float(f) for _, f in self.candidates],
-                "reference_point": None if self.reference_point is None else self.reference_point.tolist(),
-                "n_anchors": self.n_anchors, "n_yaw": self.n_yaw, "n_sample": self.n_sample,
-                "n_placements": self.n_anchors * self.n_yaw, "best_hit_fraction": self.best_hit_fraction,
-                "reason": self.reason, "params": asdict(self.params), "timings_s": dict(self.timings_s)}
+        d = {"n_candidates": len(self.candidates), "hit_fractions": [float(f) for _, f in self.candidates],
+             "reference_point": None if self.reference_point is None else self.reference_point.tolist(),
+             "n_anchors": self.n_anchors, "n_yaw": self.n_yaw, "n_sample": self.n_sample,
+             "n_placements": self.n_anchors * self.n_yaw, "best_hit_fraction": self.best_hit_fraction,
+             "reason": self.reason, "params": asdict(self.params), "timings_s": dict(self.timings_s)}
+        if self.coverage is not None:
+            d["coverage"] = dict(self.coverage)
+        return d
 
 
 def map_occupancy(icp_points: np.ndarray, points: np.ndarray, normals: np.ndarray,
@@ -309,9 +321,34 @@ def _first_of_each_bin(bins: np.ndarray) -> np.ndarray:
     return np.unique(key, return_index=True)[1]
 
 
+def _near_witness(Ts: np.ndarray, c: np.ndarray, W: np.ndarray, params) -> np.ndarray:
+    """Mask of the placements ``Ts`` (n, 4, 4) that put the scan point ``c`` within ``distinct_m``
+    of where ``W`` puts it, with a heading within ``distinct_deg`` of ``W``'s."""
+    pos = np.einsum("nij,j->ni", Ts[:, :3, :3], c) + Ts[:, :3, 3]
+    wpos = W[:3, :3] @ c + W[:3, 3]
+    yaw = np.arctan2(Ts[:, 1, 0], Ts[:, 0, 0])
+    da = np.abs((yaw - math.atan2(W[1, 0], W[0, 0]) + math.pi) % (2 * math.pi) - math.pi)
+    return (np.sum((pos - wpos) ** 2, axis=1) <= float(params.distinct_m) ** 2) & (
+        da <= math.radians(float(params.distinct_deg)))
+
+
+def _cover(scores: np.ndarray, self_mask: np.ndarray, slack: float, n_kept: int, cap: int, adaptive: bool):
+    """Coverage of one cascade stage: ``(n_keep, self_score, n_at_least)``.
+
+    ``scores`` are the stage's scores in its ranking order; the witness's score is the best
+    one among ``self_mask``; ``n_at_least`` placements score at least that minus ``slack``. With
+    ``adaptive`` the stage keeps ``max(n_kept, n_at_least)`` (at most ``cap``)."""
+    if not self_mask.any():
+        return n_kept, math.nan, -1
+    s_self = float(scores[self_mask].max())
+    n_at = int(np.count_nonzero(scores >= s_self - slack))
+    return (max(n_kept, min(n_at, cap)) if adaptive else n_kept), s_self, n_at
+
+
 def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, scan_normals: np.ndarray,
                            params: CorrelativeParams, seed: int = 0, reference_xy=None,
-                           refine_target=None, screen_target=None, screen_grid=None) -> CorrelativeResult:
+                           refine_target=None, screen_target=None, screen_grid=None, *, grid_references=None,
+                           witness=None, cover_slack: float = 0.1, cover_max_factor: float = 1.0) -> CorrelativeResult:
     """Best distinct 4-DOF placements of a levelled scan (z up) in the map.
 
     Parameters
@@ -339,6 +376,26 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
         Nearest-point lookup grid over ``screen_target``'s points
         (:meth:`minegeo.localize.PreparedMap.screen_grid`) for the screening stage's
         Gauss-Newton steps (``params.screen_grid``); its score stays exact.
+    grid_references : sequence of ((3,) array_like, heading indices or None), optional
+        The grid's pivots instead of the one reference floor point: each ``(q, k)`` scores
+        every anchor × the headings ``k`` (indices into the ``yaw_step_deg`` grid; None = all)
+        with the placements ``p ↦ Rz(ψ) (p − q) + a``; all passes are ranked together (ties:
+        earlier pass first). The scan sample is still drawn around the reference point. Used by
+        the rival search (:mod:`minegeo.localize.rivals`) to pivot on scan floor points that
+        land on mapped floor.
+    witness : (4, 4) ndarray, optional
+        A placement known to be right (``scan_points`` → work frame; the rival search passes
+        the chosen placement): at each stage of the cascade (grid bins, screening, refinement,
+        distinct selection) its own best score ``s`` is found (the best placement within
+        ``distinct_m`` / ``distinct_deg`` of it) and the number of placements scoring at least
+        ``s − cover_slack × (largest score)`` is recorded (``CorrelativeResult.coverage``).
+        Needs ``refine_target``.
+    cover_slack : float
+        See ``witness`` (a fraction of the stage's largest possible score).
+    cover_max_factor : float
+        With a witness, a stage keeps more than its ``n_coarse`` / ``n_refine`` /
+        ``n_candidates`` when more placements reach the witness's score minus the slack, up to
+        this factor times it (1: the fixed sizes, coverage only recorded).
 
     Returns
     -------
@@ -377,43 +434,82 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
     max_miss = int(math.floor((1.0 - float(params.min_hit_fraction)) * m))
     timings["setup"] = time.perf_counter() - t0
     t1 = time.perf_counter()
-    RX, RY, SZ, A = placement_grid(S, yaws, occupancy.anchors, occupancy.cell_size_m)
-    scores, tight = K.score_placements(occupancy.block_keys, occupancy.bits, occupancy.log2_blocks, occupancy.table,
-                                       occupancy.table_lo, RX, RY, SZ, A,
-                                       max_miss, 1.0 - float(params.min_hit_fraction), float(params.early_miss_slack))
+    if grid_references is None:
+        passes = [(r, None)]
+    else:
+        passes = [(np.asarray(q, dtype=np.float64).reshape(3), None if k is None else np.asarray(k, dtype=np.int64))
+                  for q, k in grid_references]
+    refs = np.array([q for q, _ in passes]).reshape(-1, 3)
+    hits_l, rank_l, ai_l, yi_l, ki_l = [], [], [], [], []
+    best = 0.0
+    for k, (q, ysub) in enumerate(passes):
+        yk = yaws if ysub is None else yaws[ysub]
+        RX, RY, SZ, A = placement_grid(np.ascontiguousarray(P[order] - q), yk, occupancy.anchors,
+                                       occupancy.cell_size_m)
+        scores, tight = K.score_placements(occupancy.block_keys, occupancy.bits, occupancy.log2_blocks,
+                                           occupancy.table, occupancy.table_lo, RX, RY, SZ, A, max_miss,
+                                           1.0 - float(params.min_hit_fraction), float(params.early_miss_slack))
+        flat = scores.ravel()
+        kk = np.flatnonzero(flat >= m - max_miss)
+        best = max(best, float(flat.max()) / m if flat.size else 0.0)
+        a_k, y_k = np.divmod(kk, yk.size)
+        hits_l.append(flat[kk])
+        rank_l.append(flat[kk] + tight.ravel()[kk])  # hits within ~c(1+d), plus those within ~c
+        ai_l.append(a_k)
+        yi_l.append(y_k if ysub is None else ysub[y_k])
+        ki_l.append(np.full(kk.size, k, dtype=np.int64))
     timings["score"] = time.perf_counter() - t1
     t1 = time.perf_counter()
-    flat = scores.ravel()
-    keep = np.flatnonzero(flat >= m - max_miss)
-    best = float(flat.max()) / m if flat.size else 0.0
-    if keep.size == 0:
+    hits, rank_score = np.concatenate(hits_l), np.concatenate(rank_l)
+    ai, yi, ki = np.concatenate(ai_l), np.concatenate(yi_l), np.concatenate(ki_l)
+    if rank_score.size == 0:
         return _empty(f"no placement hits {100 * params.min_hit_fraction:.0f} % of the scan sample "
                       f"(best {100 * best:.0f} %)", r, m)
-    rank_score = flat[keep] + tight.ravel()[keep]  # hits within ~c(1+d), plus those within ~c
     # best first, ties in grid order; a small integer key lets NumPy's stable sort use radix sort
     key = 2 * m - rank_score
-    keep = keep[np.argsort(key.astype(np.int16) if 2 * m < 2**15 else key, kind="stable")]
-    ai, yi = np.divmod(keep, yaws.size)
-    centre = P[near].mean(axis=0) - r
+    order_k = np.argsort(key.astype(np.int16) if 2 * m < 2**15 else key, kind="stable")
+    hits, rank_score, ai, yi, ki = hits[order_k], rank_score[order_k], ai[order_k], yi[order_k], ki[order_k]
+    centre = (P[near].mean(axis=0) - refs)[ki]  # the scan centre relative to each placement's pivot
     cos_y, sin_y = np.cos(yaws), np.sin(yaws)
     cy, sy = cos_y[yi], sin_y[yi]
-    cpos = np.column_stack([cy * centre[0] - sy * centre[1], sy * centre[0] + cy * centre[1],
-                            np.full(keep.size, centre[2])]) + occupancy.anchors[ai]
+    cpos = np.column_stack([cy * centre[:, 0] - sy * centre[:, 1], sy * centre[:, 0] + cy * centre[:, 1],
+                            centre[:, 2]]) + occupancy.anchors[ai]
     n_first = int(params.n_coarse) if refine_target is not None else int(params.n_candidates)
     # one placement per (distinct_m cell of the scan centre, distinct_deg heading bin): the
     # best-ranked one (np.unique keeps the first occurrence in this ranked order)
     dm, dd = float(params.distinct_m), float(params.distinct_deg)
     bins = np.column_stack([np.floor(cpos / dm), np.floor(np.rad2deg(yaws[yi]) / dd)]).astype(np.int64)
-    first = _first_of_each_bin(bins)
-    chosen = np.sort(first)[:n_first]
+    first = np.sort(_first_of_each_bin(bins))  # bin leaders, best first
+    cov = None
+    W = None if witness is None or refine_target is None else np.asarray(witness, dtype=np.float64)
+    if W is not None:
+        cen_s = P[near].mean(axis=0)
+        wpos = W[:3, :3] @ cen_s + W[:3, 3]
+        da = np.abs((yaws[yi] - math.atan2(W[1, 0], W[0, 0]) + math.pi) % (2 * math.pi) - math.pi)
+        self_mask = (np.sum((cpos - wpos) ** 2, axis=1) <= dm**2) & (da <= math.radians(dd))
+        # the witness's best grid placement, and the bin leaders reaching it minus the slack
+        cap = int(round(float(cover_max_factor) * n_first))
+        if self_mask.any():
+            s_self = float(rank_score[self_mask].max())
+            n_at = int(np.count_nonzero(rank_score[first] >= s_self - float(cover_slack) * 2 * m))
+            n_first = max(n_first, min(n_at, cap))
+        else:
+            s_self, n_at = math.nan, -1
+        cov = {"grid_self": s_self / (2 * m), "grid_at_least": n_at, "grid_kept": min(n_first, first.size),
+               "grid_self_bin_rank": (int(np.count_nonzero(rank_score[first] > s_self)) + 1
+                                      if self_mask.any() else None)}
+    chosen = first[:n_first]
     # T = [Rz(ψ) | a − Rz(ψ) r] of every chosen placement
     cj, sj = cos_y[yi[chosen]], sin_y[yi[chosen]]
     T0s = np.zeros((chosen.size, 4, 4))
     T0s[:, 0, 0], T0s[:, 0, 1], T0s[:, 1, 0], T0s[:, 1, 1] = cj, -sj, sj, cj
     T0s[:, 2, 2] = T0s[:, 3, 3] = 1.0
-    T0s[:, :3, 3] = occupancy.anchors[ai[chosen]] - np.einsum("nij,j->ni", T0s[:, :3, :3], r)
+    if len(passes) == 1:
+        T0s[:, :3, 3] = occupancy.anchors[ai[chosen]] - np.einsum("nij,j->ni", T0s[:, :3, :3], refs[0])
+    else:
+        T0s[:, :3, 3] = occupancy.anchors[ai[chosen]] - np.einsum("nij,nj->ni", T0s[:, :3, :3], refs[ki[chosen]])
     Ts = list(T0s)
-    fr = (flat[keep[chosen]] / m).tolist()
+    fr = (hits[chosen] / m).tolist()
     timings["select"] = time.perf_counter() - t1
     if refine_target is not None:
         t1 = time.perf_counter()
@@ -438,7 +534,14 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
             K.refine_placements_4dof(Sa, Tg, Qs_, Ns_, *s_index._tree, np.zeros(0), tol, 0.25, Ta, ca)
         else:
             K.refine_placements_4dof(Sa, T0s, Qs_, Ns_, *s_index._tree, gates2, tol, 0.25, Ta, ca)
-        top = np.argsort(-ca, kind="stable")[: int(params.n_refine)]
+        n_ref = int(params.n_refine)
+        if W is not None:
+            o = np.argsort(-ca, kind="stable")
+            n_ref, s_self, n_at = _cover(ca[o].astype(np.float64), _near_witness(Ta[o], cen_s, W, params),
+                                         float(cover_slack) * Sa.shape[0], n_ref,
+                                         int(round(float(cover_max_factor) * n_ref)), True)
+            cov.update(screen_self=s_self / Sa.shape[0], screen_at_least=n_at, screen_kept=min(n_ref, ca.size))
+        top = np.argsort(-ca, kind="stable")[:n_ref]
         Sr = np.ascontiguousarray(P[perm])
         Tb = np.empty((top.size, 4, 4))
         cb = np.zeros(top.size, dtype=np.int64)
@@ -450,12 +553,30 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
         cpos2 = np.array([T[:3, :3] @ cen + T[:3, 3] for T in Ts])
         yaw2 = np.array([math.atan2(T[1, 0], T[0, 0]) for T in Ts])
         rank = np.argsort(-np.asarray(fr), kind="stable")
-        sel = _distinct_select(cpos2, yaw2, rank, int(params.n_candidates), params)
+        n_cand = int(params.n_candidates)
+        if W is not None:
+            # every distinct placement reaching the witness's refined score minus the slack
+            fra = np.asarray(fr)[rank]
+            sm = _near_witness(np.asarray(Ts)[rank], cen_s, W, params) if Ts else np.zeros(0, bool)
+            s_self = float(fra[sm].max()) if sm.any() else math.nan
+            cap = int(round(float(cover_max_factor) * n_cand))
+            sel = _distinct_select(cpos2, yaw2, rank, len(Ts), params)  # every distinct one, best first
+            n_at = (int(sum(fr[j] >= s_self - float(cover_slack) for j in sel)) if sm.any() else -1)
+            n_cand = max(n_cand, min(n_at, cap))
+            cov.update(refine_self=s_self, refine_at_least=n_at, candidates_kept=min(n_cand, len(sel)))
+            sel = sel[:n_cand]
+        else:
+            sel = _distinct_select(cpos2, yaw2, rank, n_cand, params)
         Ts, fr = [Ts[j] for j in sel], [fr[j] for j in sel]
         timings["refine"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0
+    if cov is not None:
+        cov["covered"] = bool(0 <= cov.get("grid_at_least", -1) <= cov.get("grid_kept", -1)
+                              and 0 <= cov.get("screen_at_least", -1) <= cov.get("screen_kept", -1)
+                              and 0 <= cov.get("refine_at_least", -1) <= cov.get("candidates_kept", -1))
+        cov["slack"] = float(cover_slack)
     return CorrelativeResult(list(zip(Ts, fr, strict=True)), r, int(occupancy.anchors.shape[0]), int(yaws.size), m, best, "",
-                             params, timings)
+                             params, timings, cov)
 
 
 def _warmup() -> None:

@@ -11,7 +11,8 @@ Pipeline (:func:`localize_scan`), each stage timed:
    in the paper, point-to-plane selectable; GICP is not available yet). The refined
    hypothesis with the highest ICP fitness wins (multi-hypothesis verification: mine drifts
    repeat themselves, and a RANSAC score alone can prefer a look-alike drift);
-4. ``decision``: ``status`` = ``ok`` / ``ambiguous`` / ``failed`` with the reason (below);
+4. ``decision``: ``status`` = ``ok`` / ``ambiguous`` / ``failed`` with the reason (below); an
+   ``ok`` decision is first checked by the whole-map rival search (``rival_search``);
 5. ``covariance``: ``Σ = σ² (JᵀJ)⁻¹`` of the final fit and the 95 % position uncertainty of
    the scan origin;
 6. ``trajectory``: the sensor trajectory moved into the map and the CRS (Eq. 18):
@@ -38,10 +39,14 @@ Decision rules (all thresholds in :class:`LocalizeParams`)
                RMSE (Eq. 19) exceeds ``max_inlier_rmse_m``.
 ``ambiguous``  another refined hypothesis placing the scan more than ``ambiguity_distance_m``
                (or ``ambiguity_angle_deg``) away reaches ``ambiguity_ratio`` × the best ICP
-               fitness (a look-alike drift); or the ICP constraint matrix is degenerate
+               fitness (a look-alike drift); or, before an ``ok``, the **whole-map rival
+               search** at the chosen attitude (``rival_search``, :mod:`minegeo.localize.rivals`)
+               finds a placement that reaches that ratio or, on the scan points the map covers
+               at both places, fits as well (``RivalParams.matched_ratio``: an exact copy of the
+               drift on another level); or the ICP constraint matrix is degenerate
                (smallest / largest eigenvalue of the normalised point-to-plane constraint
                matrix < ``degeneracy_ratio``, e.g. sliding along a straight featureless drift).
-``ok``         otherwise.
+``ok``         otherwise; ``rival_search`` then names the best rival and the margin.
 """
 
 from __future__ import annotations
@@ -62,6 +67,7 @@ from minegeo.io.types import PointCloud, Trajectory
 from minegeo.localize._progress import FEATURE_STEPS, ProgressFn, StepTimings, announce
 from minegeo.localize.correlative import CorrelativeParams, correlative_candidates
 from minegeo.localize.prepared import FAST_FEATURES, FeatureParams, PreparedMap, prepare_cloud_features
+from minegeo.localize.rivals import RivalParams, matched_support, rival_test, search_rivals
 from minegeo.localize.uncertainty import UncertaintyParams, pose_uncertainty, radii_95
 from minegeo.registration.gicp import GICPParams, register_gicp
 from minegeo.registration.icp import METHODS as _ICP_METHODS
@@ -233,6 +239,25 @@ class LocalizeParams:
         depends on which pairs the gate admits, a bias that every jackknife block shares and
         so does not show in their spread; the change between the 0.5 m and the polish gate
         measures that sensitivity (minegeo addition, calibrated in docs/uncertainty.md).
+    rival_search : bool
+        Before a result is ``ok``, search the whole map for another placement that explains
+        the scan nearly as well (:mod:`minegeo.localize.rivals`, a minegeo addition; issue 15:
+        mines repeat their level layouts, and an exact copy of a drift that RANSAC did not
+        propose made a coin flip ``ok``): the exhaustive correlative search at the chosen
+        placement's attitude (its tilt; every floor anchor × every heading of the 3° grid
+        aligned with the chosen heading), its distinct candidates refined by the same ICP and
+        verified by the same plane fitness; a rival reaching the ambiguity ratio (the small-scan
+        one for a small scan), or ``rival_params.matched_ratio`` of the chosen placement's plane
+        agreement on the scan points the map covers at both places (a survey map covers two
+        copies of a drift differently), makes the result ``ambiguous`` with both placements
+        listed. The
+        best rival, its distance and the margin (chosen / rival plane fitness) are recorded
+        (``LocalizationResult.rival_search``). Runs for 6-DOF and levelled scans alike, only
+        when the result would otherwise be ``ok``. Default True; False gives the behaviour
+        before it (no search, no record).
+    rival_params : RivalParams
+        Its grid, cascade and checks (:class:`~minegeo.localize.rivals.RivalParams`; the grid is
+        the correlative search's, whose map structures it shares).
     """
 
     scan_voxel_size_m: float | None = 0.5
@@ -270,10 +295,16 @@ class LocalizeParams:
     small_scan_ambiguity_ratio: float = 0.8
     icp_polish_correspondence_m: float | None = 0.25
     weak_axis_polish_term: bool = True
+    rival_search: bool = True
+    rival_params: RivalParams = field(default_factory=RivalParams)
 
     def __post_init__(self):
         if not isinstance(self.weak_axis_polish_term, (bool, np.bool_)):
             raise InputError(f"weak_axis_polish_term must be True or False, got {self.weak_axis_polish_term!r}")
+        if not isinstance(self.rival_search, (bool, np.bool_)):
+            raise InputError(f"rival_search must be True or False, got {self.rival_search!r}")
+        if not isinstance(self.rival_params, RivalParams):
+            raise InputError("rival_params must be a RivalParams")
         if self.correlative not in ("off", "fallback", "always"):
             raise InputError(f"correlative must be 'off', 'fallback' or 'always', got {self.correlative!r}")
         if not 0.0 < float(self.small_scan_ambiguity_ratio) <= 1.0:
@@ -426,6 +457,19 @@ class LocalizationResult:
         gate, whether it was applied, largest shift of a scan point (m), its ICP statistics.
         When applied, ``T_map_scan`` and the covariance come from it; ``fitness``,
         ``inlier_rmse_m`` and ``icp`` stay those of the decision's ICP.
+    rival_search : dict or None
+        Record of the whole-map rival search (``LocalizeParams.rival_search``) when it ran
+        (the result would otherwise have been ``ok``): ``best_rival`` (the strongest distinct
+        verified placement other than the chosen one, from this search or the pipeline's own
+        hypotheses: ``T_map_scan`` and ``origin_map_m`` in the map frame, **not a position** —
+        a rejected rival —, ``plane_fitness``, ``distance_to_chosen_m``,
+        ``rotation_to_chosen_deg``, ``common_fraction``, ``matched_ratio``, ``test_passed``,
+        ``source``), ``margin`` (chosen / best rival plane fitness; inf without a rival),
+        ``matched_ratio``, ``ambiguity_ratio``, ``self_rank`` / ``self_found``, ``covered``,
+        ``guarantee`` and the search's ``candidates``
+        (:meth:`~minegeo.localize.rivals.RivalSearch.to_dict`). No times (they are in
+        ``timings_s``: ``rival_search`` and its parts ``rival_search_*``), so equal inputs give
+        an equal record. None when it did not run.
     params : LocalizeParams
     map_params : PrepareParams
     seed : int
@@ -474,6 +518,7 @@ class LocalizationResult:
     residuals_m: np.ndarray | None = field(default=None, repr=False)
     correlative: dict | None = None
     polish: dict | None = None
+    rival_search: dict | None = None
 
     @property
     def ok(self) -> bool:
@@ -541,6 +586,7 @@ class LocalizationResult:
             "n_scan_icp": self.n_scan_icp,
             "correlative": self.correlative,
             "polish": self.polish,
+            "rival_search": self.rival_search,
             "params": {"localize": asdict(self.params), "map": asdict(self.map_params) if self.map_params else None},
             "seed": self.seed,
             "timings_s": self.timings_s,
@@ -710,8 +756,8 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         bit-identical results.
     progress : callable, optional
         ``progress(step)`` is called when each step starts (``"downsample"``, ``"normals"``,
-        ``"FPFH"``, ``"RANSAC"``, ``"ICP verification"``, ``"correlative search"`` when it
-        runs, ``"polish"``, ``"uncertainty"``, ``"trajectory"``), e.g. to drive a progress bar
+        ``"FPFH"``, ``"RANSAC"``, ``"ICP verification"``, ``"correlative search"`` and
+        ``"rival search"`` when they run, ``"polish"``, ``"uncertainty"``, ``"trajectory"``), e.g. to drive a progress bar
         (:mod:`minegeo.localize._progress`). Nothing is printed by this function.
 
     Returns
@@ -1097,6 +1143,17 @@ def _localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory, p: Localiz
     timings["decision"] = ev["t_decision"]
     warnings.extend(ev["warnings"])
     hyps, status, reason, weak, ic_best = ev["hyps"], ev["status"], ev["reason"], ev["weak"], ev["ic_best"]
+    rival_record = None
+    if p.rival_search and status == "ok" and ic_best is not None:
+        # 4a. whole-map rival search at the chosen attitude (minegeo addition, issue 15): no `ok`
+        #     before it is established that no other placement explains the scan nearly as well
+        announce(progress, "rival search")
+        t0 = time.perf_counter()
+        status, reason, rival_record = _rival_check(
+            prepared_map, p, D, Nd, Dfine, ic_best, float(ev["best"][5]), hyps, reason, amb_ratio,
+            small_scan, centre, scan_origin, trajectory, seed, _refine, _verify, (Qf, Nf, tree, gate, tol), warnings,
+            timings)
+        timings["rival_search"] = time.perf_counter() - t0
     polish = None
     ic_final = ic_best  # pose and covariance; the reported ICP statistics stay the decision's
     if p.icp_polish_correspondence_m is not None and ic_best is not None:
@@ -1263,9 +1320,180 @@ def _localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory, p: Localiz
         scan_points_down=D + scan_origin, residuals_m=residuals,
         correlative=None if corr is None else {**corr.to_dict(), "precheck_plane_fitness": list(corr_precheck),
                                                 "precheck_ratio": float(p.correlative_precheck_ratio)},
-        polish=polish,
+        polish=polish, rival_search=rival_record,
     )
     return res
+
+
+#: Label of the best rival of an ``ok`` result (``result.json`` ``rival_search.best_rival.note``).
+REJECTED_RIVAL = ("NOT a position: the strongest other placement of the scan, checked and rejected by the "
+                  "whole-map rival search (kept to show the margin)")
+
+
+def _rival_check(pm: PreparedMap, p: LocalizeParams, D, Nd, Dfine, ic_best, pf_best: float, hyps: list,
+                 reason: str, amb_ratio: float, small_scan: bool, centre, scan_origin, trajectory, seed: int,
+                 refine, verify, target, warnings: list, timings: dict) -> tuple[str, str, dict]:
+    """Step 4a of :func:`localize_scan`: the whole-map rival search (:func:`~minegeo.localize.rivals.search_rivals`)
+    around an ``ok`` decision, with the pipeline's own ICP (``refine``) and verification (``verify``).
+
+    Appends the search's fully verified rivals to ``hyps`` (source ``"rival search #k"``) and
+    returns ``(status, reason, record)``: ``ambiguous`` when a distinct, fully verified placement
+    other than the chosen one (the search's or the pipeline's own hypotheses) passes
+    :func:`~minegeo.localize.rivals.rival_test`; otherwise ``ok`` with the best rival and the
+    margin added to the reason. ``record`` is ``LocalizationResult.rival_search`` (no times in
+    it, so equal inputs give an equal record); the times go to ``timings`` (``rival_search_*``).
+    """
+    Qf, Nf, tree, gate, tol = target
+    rp = p.rival_params
+    cp = rp.search
+    t0 = time.perf_counter()
+    occ = pm.occupancy(cp)
+    screen_target = pm.screen_target(cp.screen_voxel_size_m)
+    screen_grid = (pm.screen_grid(cp.screen_voxel_size_m)
+                   if cp.screen_grid and cp.screen_voxel_size_m is not None else None)
+    timings["rival_search_map_structures"] = time.perf_counter() - t0
+    ref = None
+    if trajectory is not None and isinstance(trajectory, Trajectory) and len(trajectory.poses):
+        ref = np.median(np.asarray(trajectory.poses)[:, :3, 3] + np.asarray(trajectory.origin) - scan_origin, axis=0)
+
+    def _masks(P, Ts):
+        """Per point of ``P`` at each placement: map point within the gate, and within the plane
+        tolerance of its tangent plane (the numbers of ``_verify``, one KD-tree query)."""
+        n = P.shape[0]
+        X = np.concatenate([P @ T[:3, :3].T + T[:3, 3] for T in Ts])
+        _, idx = tree.query(X, k=1, distance_upper_bound=gate)
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+        sup = idx < Qf.shape[0]
+        r = np.full(X.shape[0], np.inf)
+        j = idx[sup]
+        r[sup] = np.abs(np.einsum("ij,ij->i", X[sup] - Qf[j], Nf[j]))
+        on = r < tol
+        return [(sup[k * n:(k + 1) * n], on[k * n:(k + 1) * n]) for k in range(len(Ts))]
+
+    def _fine(T):
+        ic = refine(Dfine, T)
+        return (ic, *verify(Dfine, ic.T_target_source, Qf, Nf, tree, gate, tol))
+
+    def _support(Ts, level):
+        return _masks(D if level == "feature" else Dfine, Ts) if Ts else []
+
+    Tb = ic_best.T_target_source
+    rs = search_rivals(occ, D, Nd, Tb, params=rp, seed=seed, centre=centre,
+                       ambiguity_distance_m=float(p.ambiguity_distance_m),
+                       ambiguity_angle_deg=float(p.ambiguity_angle_deg), support=_support, fine=_fine,
+                       reference_point=ref, refine_target=(pm.target_index(), Qf, Nf), screen_target=screen_target,
+                       screen_grid=screen_grid)
+
+    parts = rs.timings_s.get("search_parts", {})
+    timings["rival_search_grid"] = parts.get("setup", 0.0) + parts.get("score", 0.0) + parts.get("select", 0.0)
+    timings["rival_search_refine"] = parts.get("refine", 0.0)
+    timings["rival_search_checks"] = sum(rs.timings_s.get(k, 0.0) for k in ("precheck", "fine"))
+
+    def to_map(T):
+        return _to_map(T, scan_origin, pm.work_origin)
+
+    def from_map(T):  # inverse of _to_map
+        T = np.array(T, dtype=np.float64, copy=True)
+        T[:3, 3] = T[:3, 3] + T[:3, :3] @ scan_origin - pm.work_origin
+        return T
+
+    n_hyp = len(hyps)
+    for c in rs.candidates:
+        if c.stage != "fine":
+            continue
+        hyps.append({
+            "rank": len(hyps), "source": f"rival search #{c.rank}" + (
+                "" if c.distinct else " (ICP brought it onto the chosen placement)"),
+            "ransac_fitness": math.nan, "ransac_inlier_rmse_m": math.nan, "icp_fitness": c.icp_fitness,
+            "icp_inlier_rmse_m": c.icp_inlier_rmse_m, "icp_iterations": c.icp_iterations,
+            "plane_fitness": c.plane_fitness, "plane_rmse_m": c.plane_rmse_m,
+            "distance_to_chosen_m": c.final_distance_m, "rotation_to_chosen_deg": c.final_rotation_deg,
+            "common_fraction": c.common_fraction, "matched_ratio": c.matched_ratio,
+            "T_map_scan": to_map(c.T_final)})
+    # every distinct scored placement other than the chosen one: the search's (at the deepest stage it
+    # reached) and the pipeline's own fully verified hypotheses (support-matched against the chosen one too)
+    pool = []
+    for c in rs.candidates:
+        if c.stage == "fine" and c.distinct:
+            pool.append({"source": f"rival search #{c.rank}", "score_level": "full", "T_map_scan": to_map(c.T_final),
+                         "plane_fitness": c.plane_fitness, "chosen_plane_fitness": pf_best,
+                         "common_fraction": c.common_fraction, "matched_ratio": c.matched_ratio,
+                         "distance_to_chosen_m": c.final_distance_m, "rotation_to_chosen_deg": c.final_rotation_deg})
+        elif c.stage == "precheck" and c.distinct:
+            pool.append({"source": f"rival search #{c.rank}", "score_level": "pre-check",
+                         "T_map_scan": to_map(c.T_search), "plane_fitness": c.precheck,
+                         "chosen_plane_fitness": rs.precheck_self, "common_fraction": c.pre_common_fraction,
+                         "matched_ratio": c.pre_matched_ratio, "distance_to_chosen_m": c.distance_m,
+                         "rotation_to_chosen_deg": c.rotation_deg})
+    own = [h for h in hyps[1:n_hyp] if "screened out" not in h["source"]
+           and (h["distance_to_chosen_m"] > p.ambiguity_distance_m or h["rotation_to_chosen_deg"] > p.ambiguity_angle_deg)]
+    if own:
+        m = _masks(Dfine, [Tb] + [from_map(h["T_map_scan"]) for h in own])
+        for h, mk in zip(own, m[1:], strict=True):
+            frac, ratio = matched_support(m[0], mk)
+            h["common_fraction"], h["matched_ratio"] = frac, ratio
+            pool.append({"source": h["source"], "score_level": "full", "T_map_scan": np.asarray(h["T_map_scan"]),
+                         "plane_fitness": h["plane_fitness"], "chosen_plane_fitness": pf_best,
+                         "common_fraction": frac, "matched_ratio": ratio,
+                         "distance_to_chosen_m": h["distance_to_chosen_m"],
+                         "rotation_to_chosen_deg": h["rotation_to_chosen_deg"]})
+    for b in pool:
+        b["margin"] = (b["chosen_plane_fitness"] / b["plane_fitness"]) if b["plane_fitness"] > 0 else math.inf
+        b["test_passed"] = rival_test(pf_best, b["plane_fitness"], b["common_fraction"], b["matched_ratio"],
+                                      amb_ratio, rp) if b["score_level"] == "full" else ""
+        # how close to either test (1 = on a threshold)
+        closeness = b["plane_fitness"] / (amb_ratio * b["chosen_plane_fitness"]) if b["chosen_plane_fitness"] > 0 else 0
+        if b["common_fraction"] >= rp.min_common_fraction and math.isfinite(b["matched_ratio"]):
+            closeness = max(closeness, b["matched_ratio"] / rp.matched_ratio)
+        b["closeness"] = float(closeness)
+    pool.sort(key=lambda b: (not b["test_passed"], -b["closeness"], b["source"]))
+    best_r = pool[0] if pool else None
+    record = {**rs.to_dict(to_map), "ambiguity_ratio": amb_ratio, "chosen_plane_fitness": pf_best,
+              "margin": best_r["margin"] if best_r else math.inf,
+              "matched_ratio": best_r["matched_ratio"] if best_r else math.nan,
+              "margin_note": ("margin = chosen / best rival plane fitness, both scored the same way (score_level: "
+                              "'full' = after the full-resolution ICP, 'pre-check' = feature-level points, the rival "
+                              "at the search's refined placement without ICP, for rivals out of reach of both tests "
+                              "there); the result is "
+                              f"ambiguous when a fully verified rival reaches the ambiguity ratio (margin <= "
+                              f"{1.0 / amb_ratio:.3f}) or, on the points the map covers at both placements (common "
+                              f"fraction >= {rp.min_common_fraction:g}), {rp.matched_ratio:g} of the chosen "
+                              "placement's agreement (matched_ratio); best_rival = the rival closest to either test"),
+              "best_rival": None}
+    if best_r is not None:
+        T = best_r["T_map_scan"]
+        record["best_rival"] = {"note": REJECTED_RIVAL, **best_r, "origin_map_m": T[:3, 3].tolist()}
+    if not rs.self_found:
+        warnings.append("the whole-map rival search did not recover the chosen placement itself among its "
+                        f"{len(rs.candidates)} candidates ({rs.reason or 'ranked lower'}): its guarantee does not hold "
+                        "for this scan")
+    elif not rs.covered:
+        warnings.append("the whole-map rival search kept fewer placements than reach the chosen placement's own "
+                        "score minus its slack at some stage (caps; result.json rival_search.coverage): a rival "
+                        "scoring like the chosen placement may not have been checked")
+    if best_r is not None and best_r["test_passed"]:
+        b = best_r
+        how = (f"plane fitness {b['plane_fitness']:.3f} vs {pf_best:.3f}, ratio >= {amb_ratio:g}"
+               f"{' for a small scan' if small_scan else ''}" if b["test_passed"] == "plane fitness" else
+               f"on the {100 * b['common_fraction']:.0f} % of scan points that the map covers at both places, its "
+               f"share on the map surface is {b['matched_ratio']:.2f} of the chosen placement's, >= "
+               f"{rp.matched_ratio:g}; plane fitness {b['plane_fitness']:.3f} vs {pf_best:.3f} only because the map "
+               "covers the two places differently")
+        where = ("the whole-map rival search at the chosen attitude" if b["source"].startswith("rival")
+                 else "the hypotheses")
+        return "ambiguous", (
+            f"another placement {b['distance_to_chosen_m']:.1f} m / {b['rotation_to_chosen_deg']:.1f} deg away, found "
+            f"by {where}, fits almost as well ({how}): the scan cannot tell the two places apart (a repeated drift "
+            "or level); extend the scan past a distinctive feature"), record
+    if best_r is None:
+        reason += "; whole-map rival search at its attitude: no other placement found"
+    else:
+        reason += (f"; best rival (whole-map search at its attitude and the hypotheses) "
+                   f"{best_r['distance_to_chosen_m']:.1f} m away, plane fitness {best_r['plane_fitness']:.3f} against "
+                   f"{best_r['chosen_plane_fitness']:.3f} ({best_r['score_level']} level; margin {best_r['margin']:.2f}, "
+                   f"ambiguous at <= {1.0 / amb_ratio:.2f}; support-matched {best_r['matched_ratio']:.2f}, ambiguous "
+                   f"at >= {rp.matched_ratio:g})")
+    return "ok", reason, record
 
 
 def _to_map(T_work_D: np.ndarray, scan_origin: np.ndarray, work_origin: np.ndarray) -> np.ndarray:

@@ -224,6 +224,52 @@ def _rejected_section(res) -> str:
     return sec
 
 
+def _rival_section(res) -> str | None:
+    """The whole-map rival search (``res.rival_search``): its guarantee, the best rival (map frame,
+    NOT a position), the margin and the placements it checked."""
+    rv = getattr(res, "rival_search", None)
+    if not rv:
+        return None
+    b = rv.get("best_rival")
+    rows = [("what was searched", rv.get("guarantee", "")),
+            ("chosen attitude: tilt / heading (°)", f"{_n(rv.get('tilt_deg'), '.2f')} / {_n(rv.get('heading_deg'), '.2f')}"),
+            ("placements scored", f"{rv.get('n_placements')} on the first pivot ({rv.get('n_anchors')} floor anchors x "
+                                  f"{rv.get('n_yaw')} headings), {rv.get('n_pivots')} pivots"),
+            ("chosen placement found again by the search", f"rank {rv['self_rank']}" if rv.get("self_found")
+             else "NO (the guarantee does not hold for this scan)"),
+            ("coverage of the cascade", "complete" if rv.get("covered") else "INCOMPLETE (caps reached)"),
+            ("time (s)", _n(res.timings_s.get("rival_search"), ".2f"))]
+    if b is None:
+        rows.append(("best rival", "none: no other placement was found"))
+    else:
+        rows += [("best rival (NOT a position"
+                  + ("; rejected)" if res.status == "ok" else ")"),
+                  "scan origin if it were right, map frame: " + "  ".join(f"{v:.1f}" for v in b["origin_map_m"])),
+                 ("its distance / rotation from the " + ("answer" if res.status == "ok" else "best"),
+                  f"{_n(b['distance_to_chosen_m'], '.1f')} m / {_n(b['rotation_to_chosen_deg'], '.1f')} °"),
+                 (f"plane fitness, rival vs chosen ({b['score_level']} level)",
+                  f"{_n(b['plane_fitness'], '.3f')} vs {_n(b['chosen_plane_fitness'], '.3f')}"),
+                 ("margin (chosen / rival; ambiguous at <= "
+                  f"{_n(1.0 / rv['ambiguity_ratio'], '.2f')})", _n(b["margin"], ".3f")),
+                 (f"support-matched ratio on the {_n(100 * b['common_fraction'], '.0f')} % of points the map "
+                  f"covers at both (ambiguous at >= {rv['params']['matched_ratio']:g})", _n(b["matched_ratio"], ".3f")),
+                 ("source / test passed", f"{b['source']} / {b.get('test_passed') or 'none'}")]
+    sec = kv_table(rows)
+    crow = [[c["rank"], c["stage"], _n(c["final_distance_to_chosen_m"], ".1f"),
+             _n(c["final_rotation_to_chosen_deg"], ".1f"), _n(c["precheck_plane_fitness"], ".3f"),
+             _n(c["precheck_matched_ratio"], ".3f"), _n(c["plane_fitness"], ".3f"), _n(c["matched_ratio"], ".3f")]
+            for c in rv.get("candidates", []) if c["stage"] != "self"]
+    if crow:
+        sec += table(["#", "stage", "from chosen m", "from chosen °", "pre-check plane fitness",
+                      "pre-check support-matched", "plane fitness after ICP", "support-matched after ICP"], crow,
+                     numeric=range(2, 8))
+    sec += ("<p class='sub'>Before an ok result, the exhaustive correlative search looks over the whole map at the "
+            "chosen placement's tilt for another placement that explains the scan nearly as well (e.g. a copy "
+            "of the drift on another level); its placements are checked with the same ICP and verification as "
+            "the hypotheses (docs/localization.md, <i>Rival search</i>).</p>")
+    return sec
+
+
 def _timings_section(tim: dict) -> str:
     """Run time (wall, Numba compile apart) then the stages."""
     rows = []
@@ -311,6 +357,9 @@ def localize_report_html(res, prepared, *, inputs=None, extra: dict | None = Non
             ("degeneracy", ic.degeneracy_reason or "none"),
         ])
     sections.append(("Hypotheses verified (multi-hypothesis ICP)", sec))
+    rsec = _rival_section(res)
+    if rsec is not None:
+        sections.append(("Whole-map rival search (is there another place that fits?)", rsec))
 
     if ok and res.residuals_m is not None and res.residuals_m.size:
         a = np.abs(res.residuals_m)
