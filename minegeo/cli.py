@@ -126,6 +126,17 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"minegeo {args.verb}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # stdout was closed by its reader (e.g. `minegeo ... | head -1`): the outputs were already
+        # committed; stop printing quietly (Python's documented recipe) with the shell's SIGPIPE status
+        import os
+
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return 141
     finally:
         args._clock.close()
         logging.captureWarnings(False)

@@ -192,3 +192,19 @@ def test_failed_run_removes_the_parent_folders_it_created(tmp_path):
     with OutputTransaction("t", files={"--json": tmp_path / "a" / "b.json"}) as tx:
         tx.file("--json").write_text("{}")
     assert (tmp_path / "a" / "b.json").read_text() == "{}"
+
+
+def test_closed_stdout_after_the_commit_is_not_a_traceback(tmp_path):
+    """`minegeo adjust ... | head -1`: the reader closes the pipe; the result is committed, no traceback."""
+    net = tmp_path / "n.dat"
+    net.write_text("[Coordinates]\nP 1303.599 1458.615\nQ 1636.436 1310.468\nR 1503.395 888.362\n"
+                   "S 1506.262 785.061\nU 1000.030 999.960\n[Datum]\nfix xP yP xQ yQ xR yR xS yS\n"
+                   "[Angles]\nU P Q 33.8805555555556 0.00154320987654321\n"
+                   "U Q R 42.7873456790123 0.00185185185185185\nU R S 11.6657407407407 0.00185185185185185\n",
+                   encoding="utf-8")
+    p = subprocess.run(f"{sys.executable} -m minegeo adjust {net} --out {tmp_path / 'o'} | true; "
+                       "echo ${PIPESTATUS[0]}", shell=True, executable="/bin/bash", capture_output=True, text=True,
+                       timeout=120)
+    assert "Traceback" not in p.stderr, p.stderr
+    assert p.stdout.strip() in ("0", "141"), p.stdout
+    assert (tmp_path / "o" / "result.json").is_file()
