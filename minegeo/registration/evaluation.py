@@ -3,7 +3,7 @@
 References
 ----------
 Baek et al. (2022), Sensors 22, 2873, Eq. (19) (inlier RMSE).
-Open3D ``evaluate_registration`` semantics: ``/work/shared/specs/open3d_oracle.md`` §8.
+Open3D ``evaluate_registration`` semantics: ``../shared/specs/open3d_oracle.md`` §8.
 """
 
 from __future__ import annotations

@@ -30,7 +30,7 @@ References
 Segal, A., Haehnel, D., Thrun, S. (2009). Generalized-ICP. Robotics: Science and Systems V.
 Ren, Z., Wang, L., Bi, L. (2019). Robust GICP-based 3D LiDAR SLAM for underground mining
 environment. Sensors 19, 2915. Sec. 3.2, Eqs. (1)-(6).
-Open3D 0.20 ``registration_generalized_icp`` (``/work/shared/specs/open3d_oracle.md`` §11).
+Open3D 0.20 ``registration_generalized_icp`` (``../shared/specs/open3d_oracle.md`` §11).
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ Frames: ``source_points`` are in the source (scan) frame, ``target_points`` in t
 ``p_map = R p_scan + t``.
 
 The loop, the correspondence gate and the convergence test are those of Open3D 0.20's
-``registration_icp`` (oracle spec ``/work/shared/specs/open3d_oracle.md`` §7, §8, §10), so
+``registration_icp`` (oracle spec ``../shared/specs/open3d_oracle.md`` §7, §8, §10), so
 minegeo and Open3D agree to ~1e-12 from the same start and parameters; see
 ``docs/registration_icp.md`` for the equations and for how to read the degeneracy report.
 
