@@ -241,7 +241,6 @@ class OutputTransaction:
         self._filedirs: list[Path] = []
         self._in_folder: dict[str, tuple[str, Path]] = {}
         self._created: list[Path] = []
-        self._open = False
         self.committed = False
 
     # -- checks -------------------------------------------------------------------------------
@@ -304,7 +303,6 @@ class OutputTransaction:
         except BaseException:
             self._cleanup()
             raise
-        self._open = True
         return self
 
     def folder(self, label: str) -> Path:
