@@ -72,3 +72,6 @@ def _warmup() -> None:
     from minegeo.localize.correlative import _warmup as _corr_warmup
 
     _corr_warmup()
+    from minegeo.localize.gravity import _warmup as _gravity_warmup
+
+    _gravity_warmup()  # the up estimate of the gravity fallback

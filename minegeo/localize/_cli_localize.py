@@ -76,6 +76,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--correlative", default=None, choices=("fallback", "always", "off"),
                         help="with --levelled: the exhaustive 4-DOF correlative search of the whole map adds its "
                              "best placements when the RANSAC hypotheses fail (fallback, default), always, or never")
+    parser.add_argument("--no-gravity-fallback", action="store_true",
+                        help="without --levelled: do not retry a failed 6-DOF scan levelled by its own up direction "
+                             "(floor, roof, walls; residual tilts up to 15 deg searched for ramps)")
+    parser.add_argument("--fine-tolerance", type=float, default=None, metavar="M",
+                        help="plane tolerance (m) of the fine agreement that tells smooth drifts apart (default "
+                             "0.04, widened to 2 x the scan's surface noise); 0 turns it off")
     parser.add_argument("--polish", type=float, default=None, metavar="M",
                         help="gate (m) of the final tight point-to-plane polish of the chosen pose (default 0.25; "
                              "the gate used is max(M, 3 x the scan's surface noise)); 0 turns it off")
@@ -143,6 +149,13 @@ def params_from_args(args):
         if not math.isfinite(float(polish)) or float(polish) < 0.0:
             raise InputError(f"--polish must be a gate in metres >= 0 (0 = off), got {polish!r}")
         kw["icp_polish_correspondence_m"] = float(polish) if float(polish) > 0.0 else None
+    if getattr(args, "no_gravity_fallback", False):
+        kw["gravity_fallback"] = False
+    fine = getattr(args, "fine_tolerance", None)
+    if fine is not None:
+        if not math.isfinite(float(fine)) or float(fine) < 0.0:
+            raise InputError(f"--fine-tolerance must be a tolerance in metres >= 0 (0 = off), got {fine!r}")
+        kw["verify_fine_tolerance_m"] = float(fine) if float(fine) > 0.0 else None
     lp = replace(lp, **kw)
     rk = {}
     if getattr(args, "ransac_max_iterations", None) is not None:

@@ -61,11 +61,12 @@ import numpy as np
 
 from minegeo._provenance import to_jsonable
 from minegeo._validate import as_points, check_positive
-from minegeo.errors import InputError, TooFewPointsError
+from minegeo.errors import InputError, MinegeoError, TooFewPointsError
 from minegeo.geometry.se3 import hat, invert, log_so3, rotation_angle
 from minegeo.io.types import PointCloud, Trajectory
 from minegeo.localize._progress import FEATURE_STEPS, ProgressFn, StepTimings, announce
 from minegeo.localize.correlative import CorrelativeParams, correlative_candidates
+from minegeo.localize.gravity import GravityParams
 from minegeo.localize.prepared import FAST_FEATURES, FeatureParams, PreparedMap, prepare_cloud_features
 from minegeo.localize.rivals import RivalParams, matched_support, rival_test, search_rivals
 from minegeo.localize.uncertainty import UncertaintyParams, pose_uncertainty, radii_95
@@ -166,6 +167,41 @@ class LocalizeParams:
         plane, ``sqrt(λ_min)`` of Eq. 2's covariance): a noisier sensor gets a wider band
         so its correct placements are not refused; the measure does not depend on any
         placement, so a wrong placement gains nothing. 0 disables it.
+    verify_fine_tolerance_m : float or None
+        Tolerance of the *fine* agreement (minegeo addition, issue 15): the fraction of scan
+        points within ``tol_fine = min(tol, max(verify_fine_tolerance_m, verify_fine_noise_factor
+        · σ_surf))`` of the map's tangent planes. On smooth (shotcrete-like) walls every drift of
+        the same cross-section agrees with the scan within 0.1 m, so the plane fitness cannot
+        tell places apart; the bumps that do (a few cm) show at this tolerance (measured on the
+        0.05 m study mine: truth 0.79 against 0.37-0.49 for other drifts at 0.04 m, 0.97 against
+        0.86-0.89 at 0.1 m). Hypotheses are ranked by it, and a rival is ``ambiguous`` only
+        when it reaches the ambiguity ratio at **both** tolerances (an exact copy does, so twins
+        stay ambiguous; a chosen placement that is beaten at the fine level by a rival still is).
+        None: off (the plane fitness alone, as before).
+    verify_fine_noise_factor : float
+        See ``verify_fine_tolerance_m`` (a noisier sensor gets a wider fine band).
+    gravity_fallback : bool
+        6-DOF scans only (``ransac.model == "rigid"``; minegeo addition, issue 15): when the
+        6-DOF pipeline finds no placement (``failed``), estimate the scan's up direction from its
+        own geometry (:func:`minegeo.localize.gravity.estimate_up`: floor, roof, walls), level the
+        scan with it and run the levelled pipeline (2-point heading + translation RANSAC and the
+        whole-map correlative search) once more; its result (``ok`` or ``ambiguous``) replaces
+        the failure, in the original scan frame. Only when the estimate is ``ok``. A scan on a
+        ramp is levelled to its floor, off by the slope about the drift's cross axis, which
+        nothing in a straight scan shows: the levelled attempt is repeated with the up
+        direction tilted about that axis by 0, ±2t, ±4t, ... degrees (``t`` the tilt tolerance)
+        within the estimate's ``tilt_range_deg`` (±15.5° by default), first non-failed wins.
+    gravity_fallback_tilt_deg : float
+        Tilt tolerance of the levelled attempt (``--levelled``), raised to the estimate's own
+        95 % cone when that is wider.
+    gravity_params : GravityParams
+        Settings of the up estimate (a 5 000-point area-uniform sample: 4x faster than the
+        estimator's default 20 000, the same accuracy on the study scans: 0.25-0.4 deg on level drifts).
+    fine_ambiguity_ratio : float
+        The ratio a rival must reach at the fine tolerance (scaled by ``small_scan_ambiguity_ratio
+        / ambiguity_ratio`` for a small scan). Lower than ``ambiguity_ratio``: the fine level is
+        noisier; measured 0.90 for an exact twin that the map covers differently on its two
+        levels and 0.55-0.65 for other drifts of the smooth-walled study mine.
     min_plane_fitness : float
         ``failed`` below this verification score of the chosen placement.
     ambiguity_ratio : float
@@ -277,6 +313,9 @@ class LocalizeParams:
     max_inlier_rmse_m: float = 0.35
     verify_plane_tolerance_m: float = 0.1
     verify_noise_factor: float = 4.0
+    verify_fine_tolerance_m: float | None = 0.04
+    verify_fine_noise_factor: float = 2.0
+    fine_ambiguity_ratio: float = 0.8
     min_plane_fitness: float = 0.75
     ambiguity_ratio: float = 0.9
     ambiguity_distance_m: float = 0.5
@@ -297,6 +336,9 @@ class LocalizeParams:
     weak_axis_polish_term: bool = True
     rival_search: bool = True
     rival_params: RivalParams = field(default_factory=RivalParams)
+    gravity_fallback: bool = True
+    gravity_fallback_tilt_deg: float = 3.0
+    gravity_params: GravityParams = field(default_factory=lambda: GravityParams(max_points=5000))
 
     def __post_init__(self):
         if not isinstance(self.weak_axis_polish_term, (bool, np.bool_)):
@@ -341,9 +383,13 @@ class LocalizeParams:
         check_positive(self.max_weak_displacement_95_m, "max_weak_displacement_95_m")
         if not isinstance(self.uncertainty, UncertaintyParams):
             raise InputError("uncertainty must be an UncertaintyParams")
+        if self.verify_fine_tolerance_m is not None:
+            check_positive(self.verify_fine_tolerance_m, "verify_fine_tolerance_m")
+        if not (math.isfinite(float(self.verify_fine_noise_factor)) and float(self.verify_fine_noise_factor) >= 0.0):
+            raise InputError(f"verify_fine_noise_factor must be a finite number >= 0, got {self.verify_fine_noise_factor!r}")
         if not (math.isfinite(float(self.verify_noise_factor)) and float(self.verify_noise_factor) >= 0.0):
             raise InputError(f"verify_noise_factor must be a finite number >= 0, got {self.verify_noise_factor!r}")
-        for name in ("min_fitness", "min_plane_fitness", "ambiguity_ratio", "degeneracy_ratio"):
+        for name in ("min_fitness", "min_plane_fitness", "ambiguity_ratio", "fine_ambiguity_ratio", "degeneracy_ratio"):
             v = float(getattr(self, name))
             if not 0.0 <= v <= 1.0:
                 raise InputError(f"{name} must be in [0, 1], got {v!r}")
@@ -457,6 +503,9 @@ class LocalizationResult:
         gate, whether it was applied, largest shift of a scan point (m), its ICP statistics.
         When applied, ``T_map_scan`` and the covariance come from it; ``fitness``,
         ``inlier_rmse_m`` and ``icp`` stay those of the decision's ICP.
+    gravity : dict or None
+        Record of ``LocalizeParams.gravity_fallback`` when it ran: the up estimate (status,
+        ``up_scan``, 95 % cone), the levelled attempt's status and reason, ``R_levelled_scan``.
     rival_search : dict or None
         Record of the whole-map rival search (``LocalizeParams.rival_search``) when it ran
         (the result would otherwise have been ``ok``): ``best_rival`` (the strongest distinct
@@ -519,6 +568,7 @@ class LocalizationResult:
     correlative: dict | None = None
     polish: dict | None = None
     rival_search: dict | None = None
+    gravity: dict | None = None
 
     @property
     def ok(self) -> bool:
@@ -587,6 +637,7 @@ class LocalizationResult:
             "correlative": self.correlative,
             "polish": self.polish,
             "rival_search": self.rival_search,
+            "gravity": self.gravity,
             "params": {"localize": asdict(self.params), "map": asdict(self.map_params) if self.map_params else None},
             "seed": self.seed,
             "timings_s": self.timings_s,
@@ -690,23 +741,28 @@ def _plane_icp_params(gate_m: float, p: LocalizeParams) -> ICPParams:
                      step_rotation_rad=STAGE_STEP_RAD)
 
 
-def _verify(P: np.ndarray, T: np.ndarray, Q: np.ndarray, N: np.ndarray, tree, gate: float, tol: float):
-    """Point-to-plane agreement of a placement: ``(plane_fitness, plane_rmse_m)``.
+def _verify(P: np.ndarray, T: np.ndarray, Q: np.ndarray, N: np.ndarray, tree, gate: float, tol: float,
+            tol_fine: float | None = None):
+    """Point-to-plane agreement of a placement: ``(plane_fitness, plane_rmse_m, fine_fitness)``.
 
     ``plane_fitness`` = fraction of the scan points whose nearest map point is within ``gate``
     **and** whose distance to that point's tangent plane, ``|(R p + t − q)·n_q|``, is below
     ``tol``; ``plane_rmse_m`` = RMS of those plane distances over the pairs within ``gate``.
     Unlike the point-to-point fitness it is not blurred by the map's point spacing.
+    ``fine_fitness``: the same fraction with ``tol_fine`` (``plane_fitness`` when None;
+    ``LocalizeParams.verify_fine_tolerance_m``).
     """
     X = P @ T[:3, :3].T + T[:3, 3]
     dist, idx = tree.query(X, k=1, distance_upper_bound=gate)
     idx = np.asarray(idx, dtype=np.int64).reshape(-1)
     m = idx < Q.shape[0]
     if not m.any():
-        return 0.0, math.nan
+        return 0.0, math.nan, 0.0
     j = idx[m]
     r = np.abs(np.einsum("ij,ij->i", X[m] - Q[j], N[j]))
-    return float(np.count_nonzero(r < tol)) / P.shape[0], float(math.sqrt(float(np.mean(r * r))))
+    pf = float(np.count_nonzero(r < tol)) / P.shape[0]
+    pff = pf if tol_fine is None else float(np.count_nonzero(r < tol_fine)) / P.shape[0]
+    return pf, float(math.sqrt(float(np.mean(r * r)))), pff
 
 
 def surface_noise_m(P: np.ndarray, k: int = 16, max_points: int = 20000) -> float:
@@ -800,7 +856,124 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         raise InputError(f"seed must be an integer >= 0, got {seed!r}")
     seed = int(seed)
     with _CandidateICPMessages():
-        return _localize_scan(prepared_map, scan_cloud, trajectory, p, seed, progress)
+        res = _localize_scan(prepared_map, scan_cloud, trajectory, p, seed, progress)
+        if res.status == "failed" and p.gravity_fallback and p.ransac.model == "rigid":
+            res = _gravity_fallback(prepared_map, scan_cloud, trajectory, p, seed, progress, res)
+        return res
+
+
+def _gravity_fallback(prepared_map, scan_cloud, trajectory, p: LocalizeParams, seed: int, progress, res_6dof):
+    """``LocalizeParams.gravity_fallback``: level a failed 6-DOF scan by its own up estimate and
+    localize it again with the levelled machinery; the result in the original scan frame.
+
+    With ``R`` the levelling rotation (``p_lev = R p_scan``, :func:`~minegeo.localize.gravity.levelling_rotation`)
+    and the levelled run's ``T_map_lev``: ``T_map_scan = T_map_lev · [R | 0]``. The covariance
+    (map axes, about the scan origin, which ``R`` fixes) and the placed trajectory (map frame)
+    carry over unchanged.
+    """
+    from minegeo.localize.gravity import estimate_up, levelling_rotation
+
+    t0 = time.perf_counter()
+    P_raw, org = _scan_points(scan_cloud)
+    announce(progress, "gravity")
+    try:
+        est = estimate_up(P_raw + org, params=p.gravity_params)
+    except MinegeoError as e:  # too few points for the estimate: keep the 6-DOF answer
+        log.debug("gravity fallback: no up estimate (%s)", e)
+        return res_6dof
+    t_est = time.perf_counter() - t0
+    rec = {"status": est.status, "reason": est.reason, "cone95_deg": float(est.cone95_deg),
+           "up_scan": None if est.up is None else np.asarray(est.up).tolist(), "estimate_s": t_est}
+    if est.status != "ok" or est.up is None:
+        res_6dof.timings_s["gravity"] = t_est
+        res_6dof.warnings.append(f"gravity fallback not tried: up estimate {est.status} ({est.reason})")
+        return res_6dof
+    tilt = max(float(p.gravity_fallback_tilt_deg), float(est.cone95_deg)) if math.isfinite(est.cone95_deg) \
+        else float(p.gravity_fallback_tilt_deg)
+    # residual-tilt search (a straight ramp: the floor is tilted about the drift's cross axis by the
+    # unknown slope): up rotated about est.tilt_axis by 0, +-2 tilt, +-4 tilt, ... within tilt_range_deg
+    thetas = [0.0]
+    lo, hi = (float(est.tilt_range_deg[0]), float(est.tilt_range_deg[1])) if est.tilt_axis is not None else (0.0, 0.0)
+    k = 1
+    while 2.0 * tilt * k <= max(-lo, hi) + tilt:
+        for sgn in (1.0, -1.0):
+            th = sgn * 2.0 * tilt * k
+            if lo - tilt <= th <= hi + tilt:
+                thetas.append(th)
+        k += 1
+    p_l = replace(p, ransac=replace(p.ransac, model="levelled", ransac_n=2, max_tilt_deg=min(90.0, tilt),
+                                    normal_angle_threshold_rad=None), gravity_fallback=False)
+    attempts = []
+    res_l = R4 = None
+    for th in thetas:
+        up = np.asarray(est.up, dtype=np.float64)
+        if th != 0.0:
+            ax = np.asarray(est.tilt_axis, dtype=np.float64)
+            ax = ax / np.linalg.norm(ax)
+            a = math.radians(th)  # Rodrigues: up rotated about the cross axis
+            up = up * math.cos(a) + np.cross(ax, up) * math.sin(a) + ax * float(ax @ up) * (1.0 - math.cos(a))
+        R = levelling_rotation(up)
+        R4 = np.eye(4)
+        R4[:3, :3] = R
+        # the scan re-expressed in the levelled frame (a rotation about the scan frame's origin)
+        if isinstance(scan_cloud, PointCloud):
+            cloud_l = PointCloud(points=P_raw @ R.T, origin=R @ org)
+        else:
+            cloud_l = np.ascontiguousarray(P_raw @ R.T)
+        traj_l = trajectory
+        if isinstance(trajectory, Trajectory):
+            traj_l = replace(trajectory, poses=np.einsum("ij,njk->nik", R4, np.asarray(trajectory.poses)),
+                             origin=R @ np.asarray(trajectory.origin, dtype=np.float64))
+        res_l = _localize_scan(prepared_map, cloud_l, traj_l, p_l, seed, progress)
+        attempts.append({"tilt_about_cross_axis_deg": th, "status": res_l.status, "reason": res_l.reason,
+                         "seconds": float(res_l.timings_s.get("total", math.nan))})
+        if res_l.status != "failed":
+            break
+    rec.update({"levelled_status": res_l.status, "levelled_reason": res_l.reason, "tilt_tolerance_deg": tilt,
+                "R_levelled_scan": R4[:3, :3].tolist(), "attempts": attempts,
+                "tilt_range_deg": [lo, hi]})
+    if res_l.status == "failed":
+        res_6dof.timings_s["gravity"] = time.perf_counter() - t0
+        res_6dof.warnings.append(f"gravity fallback: levelled by the scan's own up estimate (95 % cone "
+                                 f"{est.cone95_deg:.1f} deg; residual tilts {', '.join(f'{a:g}' for a in thetas)} "
+                                 f"deg tried), the levelled search failed too ({res_l.reason})")
+        res_6dof.gravity = rec
+        return res_6dof
+    out = _rebase(res_l, R4)
+    out.timings_s["gravity"] = t_est
+    out.timings_s["six_dof_attempt"] = float(res_6dof.timings_s.get("total", math.nan))
+    out.timings_s["total"] = time.perf_counter() - t0 + float(res_6dof.timings_s.get("total", 0.0))
+    out.warnings.insert(0, f"the 6-DOF search found no placement ({res_6dof.reason}); this result levels the scan "
+                           f"by its own up direction (floor/roof/walls, 95 % cone {est.cone95_deg:.1f} deg) and "
+                           f"searches heading and position (tilt tolerance {tilt:.1f} deg, residual tilt "
+                           f"{attempts[-1]['tilt_about_cross_axis_deg']:g} deg about the drift's cross axis)")
+    out.gravity = rec
+    return out
+
+
+def _rebase(res, R4: np.ndarray):
+    """A levelled-frame result expressed for the original scan frame: every ``T_*_scan`` pose
+    (the answer, the hypotheses, the rival search) right-multiplied by ``R4`` (``p_lev = R4 p``)."""
+    def conv(obj, key=""):
+        if isinstance(obj, dict):
+            return {k: conv(v, k) for k, v in obj.items()}
+        if isinstance(obj, list):
+            return [conv(v, key) for v in obj]
+        if key.startswith("T_") and key.endswith("_scan") and obj is not None:
+            a = np.asarray(obj, dtype=np.float64)
+            if a.shape == (4, 4):
+                return a @ R4
+        return obj
+
+    kw = {}
+    for f in ("T_map_scan", "T_geo_scan", "T_crs_scan", "ransac_T_map_scan"):
+        v = getattr(res, f, None)
+        if v is not None:
+            kw[f] = np.asarray(v, dtype=np.float64) @ R4
+    kw["hypotheses"] = conv(res.hypotheses) if res.hypotheses is not None else None
+    if getattr(res, "rival_search", None) is not None:
+        kw["rival_search"] = conv(res.rival_search)
+    return replace(res, **kw)
 
 
 class _CandidateICPMessages(logging.Filter):
@@ -909,6 +1082,7 @@ def _localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory, p: Localiz
     # a small scan must beat its rivals by a wider margin (and more of them get the full ICP)
     small_scan = D.shape[0] < int(p.correlative_confirm_below_points)
     amb_ratio = float(p.small_scan_ambiguity_ratio) if small_scan else float(p.ambiguity_ratio)
+    fine_ratio = float(p.fine_ambiguity_ratio) * amb_ratio / float(p.ambiguity_ratio)
     if p.icp_method == "gicp":
         gicp_p = GICPParams(max_correspondence_distance_m=float(p.icp_max_correspondence_m),
                             max_iterations=int(p.icp_max_iterations),
@@ -936,6 +1110,12 @@ def _localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory, p: Localiz
     scan_noise = surface_noise_m(Dfine) if p.verify_noise_factor > 0 else math.nan
     if p.verify_noise_factor > 0:
         tol = max(tol, float(p.verify_noise_factor) * scan_noise)
+    tol_fine = None
+    if p.verify_fine_tolerance_m is not None:
+        tol_fine = float(p.verify_fine_tolerance_m)
+        if p.verify_fine_noise_factor > 0 and math.isfinite(scan_noise):
+            tol_fine = max(tol_fine, float(p.verify_fine_noise_factor) * scan_noise)
+        tol_fine = min(tol_fine, tol)
     memo: dict = {}
     # the screening ICP runs on at most icp_screen_max_points evenly spaced feature-level points
     # (a small scan: on all of them, as with the iteration cap)
@@ -976,7 +1156,7 @@ def _localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory, p: Localiz
         if len(uniq) > 1:
             def _screen(T0):
                 ic = _refine(D_screen, T0, screening=True)
-                return (ic, *_verify(D_screen, ic.T_target_source, Qf, Nf, tree, gate, tol))
+                return (ic, *_verify(D_screen, ic.T_target_source, Qf, Nf, tree, gate, tol, tol_fine))
 
             for c in uniq:
                 screened.append(_once("screen", c[0], c[1], lambda T0=c[1]: _screen(T0)))
@@ -1009,18 +1189,18 @@ def _localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory, p: Localiz
             if i in fine_set:
                 def _fine(T_start):
                     ic = _refine(Dfine, T_start)
-                    return (ic, *_verify(Dfine, ic.T_target_source, Qf, Nf, tree, gate, tol))
+                    return (ic, *_verify(Dfine, ic.T_target_source, Qf, Nf, tree, gate, tol, tol_fine))
 
                 # from the candidate's own pose, not the screened one: the feature-level ICP can
                 # settle ~0.1 m off along a curved drift and the fine ICP then stays there
                 # (curve flash scan, 12 m map: 0.117 m instead of 0.028 m)
-                ic, pf, prm = _once("fine", name, T0, lambda T0=T0: _fine(T0))
-                refined.append((name, T0, rf, rrmse, ic, pf, prm))
+                ic, pf, prm, pff = _once("fine", name, T0, lambda T0=T0: _fine(T0))
+                refined.append((name, T0, rf, rrmse, ic, pf, prm, pff))
             else:  # screened out: keep the coarse ICP's score for the record
-                ic, pf, prm = screened[i]
+                ic, pf, prm, pff = screened[i]
                 why = ("screened out: same placement as a better-screened one" if i in same_place
                        else "screened out on the coarse scan")
-                refined.append((f"{name} ({why})", T0, rf, rrmse, ic, pf, prm))
+                refined.append((f"{name} ({why})", T0, rf, rrmse, ic, pf, prm, pff))
         t_icp = time.perf_counter() - t0
 
         # 4. decision
@@ -1028,18 +1208,20 @@ def _localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory, p: Localiz
         hyps = []
         best = None
         if refined:
-            # fully refined hypotheses first (screened-out ones lost on the coarse scan already)
+            # fully refined hypotheses first (screened-out ones lost on the coarse scan already), then
+            # by the fine agreement (verify_fine_tolerance_m; = the plane fitness when off)
             order = sorted(range(len(refined)),
-                           key=lambda i: ("screened out" in refined[i][0], -refined[i][5], -refined[i][4].fitness, i))
+                           key=lambda i: ("screened out" in refined[i][0], -refined[i][7], -refined[i][5],
+                                          -refined[i][4].fitness, i))
             best = refined[order[0]]
             Tb = best[4].T_target_source
             for rank, i in enumerate(order):
-                name, T0, rf, rrmse, ic, pf, prm = refined[i]
+                name, T0, rf, rrmse, ic, pf, prm, pff = refined[i]
                 dist, ang = _placement_distance(ic.T_target_source, Tb, centre)
                 hyps.append({
                     "rank": rank, "source": name, "ransac_fitness": rf, "ransac_inlier_rmse_m": rrmse,
                     "icp_fitness": ic.fitness, "icp_inlier_rmse_m": ic.inlier_rmse_m, "icp_iterations": ic.iterations,
-                    "plane_fitness": pf, "plane_rmse_m": prm,
+                    "plane_fitness": pf, "plane_rmse_m": prm, "fine_fitness": pff,
                     "distance_to_chosen_m": dist, "rotation_to_chosen_deg": ang,
                     "T_map_scan": _to_map(ic.T_target_source, scan_origin, prepared_map.work_origin),
                 })
@@ -1051,11 +1233,11 @@ def _localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory, p: Localiz
             reason = f"RANSAC found no placement of the scan in the map ({r0.reason})"
         else:
             f, e = ic_best.fitness, ic_best.inlier_rmse_m
-            pf_best = best[5]
+            pf_best, pff_best = best[5], best[7]
             rivals = [h for h in hyps[1:] if "screened out" not in h["source"] and (
                       h["distance_to_chosen_m"] > p.ambiguity_distance_m
                                                or h["rotation_to_chosen_deg"] > p.ambiguity_angle_deg)
-                      and h["plane_fitness"] >= amb_ratio * pf_best]
+                      and h["plane_fitness"] >= amb_ratio * pf_best and h["fine_fitness"] >= fine_ratio * pff_best]
             if pf_best < p.min_plane_fitness:
                 status = "failed"
                 reason = (f"the best placement has only {100 * pf_best:.0f} % of the scan points within "
@@ -1075,8 +1257,10 @@ def _localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory, p: Localiz
                 h = rivals[0]
                 status = "ambiguous"
                 reason = (f"another placement {h['distance_to_chosen_m']:.1f} m / {h['rotation_to_chosen_deg']:.1f} deg "
-                          f"away fits almost as well (plane fitness {h['plane_fitness']:.3f} vs {pf_best:.3f}, ratio >= "
-                          f"{amb_ratio:g}{' for a small scan' if small_scan else ''}): the drift repeats itself; "
+                          f"away fits almost as well (plane fitness {h['plane_fitness']:.3f} vs {pf_best:.3f}, fine "
+                          f"agreement {h['fine_fitness']:.3f} vs {pff_best:.3f}, ratios >= "
+                          f"{amb_ratio:g} / {fine_ratio:.3g}{' for a small scan' if small_scan else ''}): the drift "
+                          "repeats itself; "
                           "extend the scan past a distinctive feature")
             if status == "ok" and ic_best.degeneracy_ratio < p.degeneracy_ratio:
                 # decided after the covariance: a weak direction matters only if it leaves the pose uncertain
@@ -1150,10 +1334,36 @@ def _localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory, p: Localiz
         announce(progress, "rival search")
         t0 = time.perf_counter()
         status, reason, rival_record = _rival_check(
-            prepared_map, p, D, Nd, Dfine, ic_best, float(ev["best"][5]), hyps, reason, amb_ratio,
-            small_scan, centre, scan_origin, trajectory, seed, _refine, _verify, (Qf, Nf, tree, gate, tol), warnings,
+            prepared_map, p, D, Nd, Dfine, ic_best, (float(ev["best"][5]), float(ev["best"][7])), hyps, reason,
+            (amb_ratio, fine_ratio), small_scan, centre, scan_origin, trajectory, seed, _refine, _verify,
+            (Qf, Nf, tree, gate, tol, tol_fine), warnings,
             timings)
         timings["rival_search"] = time.perf_counter() - t0
+        b = (rival_record or {}).get("best_rival")
+        pf0, pff0 = float(ev["best"][5]), float(ev["best"][7])
+        if (status == "ambiguous" and tol_fine is not None and b is not None and b.get("score_level") == "full"
+                and b["plane_fitness"] >= amb_ratio * pf0 and b["fine_fitness"] * fine_ratio > pff0):
+            # the search found a placement that fits better than the first choice, by so much at the fine
+            # level that the first choice would not be *its* rival: verify it with the pipeline's own
+            # candidates and, if it wins there, search for rivals around it (once; it never switches back)
+            t0 = time.perf_counter()
+            T_r = np.array(b["T_map_scan"], dtype=np.float64)
+            T_r[:3, 3] = T_r[:3, 3] + T_r[:3, :3] @ scan_origin - prepared_map.work_origin
+            first = (f"{b['distance_to_chosen_m']:.1f} m from the first choice, plane fitness {b['plane_fitness']:.3f} "
+                     f"vs {pf0:.3f}, fine agreement {b['fine_fitness']:.3f} vs {pff0:.3f}")
+            ev2 = _evaluate(list(ev["uniq"]) + [("rival search: fits better than the first choice", T_r, math.nan,
+                                                 math.nan)])
+            if ev2["status"] == "ok" and ev2["best"][0].startswith("rival search"):
+                ev = ev2
+                warnings.extend(ev2["warnings"])
+                hyps, status, reason, weak, ic_best = ev["hyps"], ev["status"], ev["reason"], ev["weak"], ev["ic_best"]
+                status, reason, rival_record = _rival_check(
+                    prepared_map, p, D, Nd, Dfine, ic_best, (float(ev["best"][5]), float(ev["best"][7])), hyps,
+                    reason, (amb_ratio, fine_ratio), small_scan, centre, scan_origin, trajectory, seed, _refine,
+                    _verify, (Qf, Nf, tree, gate, tol, tol_fine), warnings, timings)
+                warnings.append(f"the whole-map rival search found a placement that fits better than the first "
+                                f"choice ({first}); it was verified like every candidate and chosen")
+            timings["rival_switch"] = time.perf_counter() - t0
     polish = None
     ic_final = ic_best  # pose and covariance; the reported ICP statistics stay the decision's
     if p.icp_polish_correspondence_m is not None and ic_best is not None:
@@ -1330,8 +1540,8 @@ REJECTED_RIVAL = ("NOT a position: the strongest other placement of the scan, ch
                   "whole-map rival search (kept to show the margin)")
 
 
-def _rival_check(pm: PreparedMap, p: LocalizeParams, D, Nd, Dfine, ic_best, pf_best: float, hyps: list,
-                 reason: str, amb_ratio: float, small_scan: bool, centre, scan_origin, trajectory, seed: int,
+def _rival_check(pm: PreparedMap, p: LocalizeParams, D, Nd, Dfine, ic_best, pf_best_pair: tuple, hyps: list,
+                 reason: str, amb_ratios: tuple, small_scan: bool, centre, scan_origin, trajectory, seed: int,
                  refine, verify, target, warnings: list, timings: dict) -> tuple[str, str, dict]:
     """Step 4a of :func:`localize_scan`: the whole-map rival search (:func:`~minegeo.localize.rivals.search_rivals`)
     around an ``ok`` decision, with the pipeline's own ICP (``refine``) and verification (``verify``).
@@ -1343,7 +1553,10 @@ def _rival_check(pm: PreparedMap, p: LocalizeParams, D, Nd, Dfine, ic_best, pf_b
     margin added to the reason. ``record`` is ``LocalizationResult.rival_search`` (no times in
     it, so equal inputs give an equal record); the times go to ``timings`` (``rival_search_*``).
     """
-    Qf, Nf, tree, gate, tol = target
+    Qf, Nf, tree, gate, tol, tol_fine = target
+    pf_best, pff_best = pf_best_pair
+    amb_ratio, fine_ratio = amb_ratios
+    fine_scale = amb_ratio / fine_ratio if tol_fine is not None else None
     rp = p.rival_params
     cp = rp.search
     t0 = time.perf_counter()
@@ -1357,8 +1570,9 @@ def _rival_check(pm: PreparedMap, p: LocalizeParams, D, Nd, Dfine, ic_best, pf_b
         ref = np.median(np.asarray(trajectory.poses)[:, :3, 3] + np.asarray(trajectory.origin) - scan_origin, axis=0)
 
     def _masks(P, Ts):
-        """Per point of ``P`` at each placement: map point within the gate, and within the plane
-        tolerance of its tangent plane (the numbers of ``_verify``, one KD-tree query)."""
+        """Per point of ``P`` at each placement: map point within the gate, within the plane
+        tolerance of its tangent plane and within the fine tolerance (the numbers of ``_verify``,
+        one KD-tree query)."""
         n = P.shape[0]
         X = np.concatenate([P @ T[:3, :3].T + T[:3, 3] for T in Ts])
         _, idx = tree.query(X, k=1, distance_upper_bound=gate)
@@ -1368,11 +1582,12 @@ def _rival_check(pm: PreparedMap, p: LocalizeParams, D, Nd, Dfine, ic_best, pf_b
         j = idx[sup]
         r[sup] = np.abs(np.einsum("ij,ij->i", X[sup] - Qf[j], Nf[j]))
         on = r < tol
-        return [(sup[k * n:(k + 1) * n], on[k * n:(k + 1) * n]) for k in range(len(Ts))]
+        on_f = r < (tol if tol_fine is None else tol_fine)
+        return [(sup[k * n:(k + 1) * n], on[k * n:(k + 1) * n], on_f[k * n:(k + 1) * n]) for k in range(len(Ts))]
 
     def _fine(T):
         ic = refine(Dfine, T)
-        return (ic, *verify(Dfine, ic.T_target_source, Qf, Nf, tree, gate, tol))
+        return (ic, *verify(Dfine, ic.T_target_source, Qf, Nf, tree, gate, tol, tol_fine))
 
     def _support(Ts, level):
         return _masks(D if level == "feature" else Dfine, Ts) if Ts else []
@@ -1382,7 +1597,7 @@ def _rival_check(pm: PreparedMap, p: LocalizeParams, D, Nd, Dfine, ic_best, pf_b
                        ambiguity_distance_m=float(p.ambiguity_distance_m),
                        ambiguity_angle_deg=float(p.ambiguity_angle_deg), support=_support, fine=_fine,
                        reference_point=ref, refine_target=(pm.target_index(), Qf, Nf), screen_target=screen_target,
-                       screen_grid=screen_grid)
+                       screen_grid=screen_grid, fine_scale=fine_scale)
 
     parts = rs.timings_s.get("search_parts", {})
     timings["rival_search_grid"] = parts.get("setup", 0.0) + parts.get("score", 0.0) + parts.get("select", 0.0)
@@ -1406,7 +1621,7 @@ def _rival_check(pm: PreparedMap, p: LocalizeParams, D, Nd, Dfine, ic_best, pf_b
                 "" if c.distinct else " (ICP brought it onto the chosen placement)"),
             "ransac_fitness": math.nan, "ransac_inlier_rmse_m": math.nan, "icp_fitness": c.icp_fitness,
             "icp_inlier_rmse_m": c.icp_inlier_rmse_m, "icp_iterations": c.icp_iterations,
-            "plane_fitness": c.plane_fitness, "plane_rmse_m": c.plane_rmse_m,
+            "plane_fitness": c.plane_fitness, "plane_rmse_m": c.plane_rmse_m, "fine_fitness": c.fine_fitness,
             "distance_to_chosen_m": c.final_distance_m, "rotation_to_chosen_deg": c.final_rotation_deg,
             "common_fraction": c.common_fraction, "matched_ratio": c.matched_ratio,
             "T_map_scan": to_map(c.T_final)})
@@ -1417,12 +1632,14 @@ def _rival_check(pm: PreparedMap, p: LocalizeParams, D, Nd, Dfine, ic_best, pf_b
         if c.stage == "fine" and c.distinct:
             pool.append({"source": f"rival search #{c.rank}", "score_level": "full", "T_map_scan": to_map(c.T_final),
                          "plane_fitness": c.plane_fitness, "chosen_plane_fitness": pf_best,
+                         "fine_fitness": c.fine_fitness, "chosen_fine_fitness": pff_best,
                          "common_fraction": c.common_fraction, "matched_ratio": c.matched_ratio,
                          "distance_to_chosen_m": c.final_distance_m, "rotation_to_chosen_deg": c.final_rotation_deg})
         elif c.stage == "precheck" and c.distinct:
             pool.append({"source": f"rival search #{c.rank}", "score_level": "pre-check",
                          "T_map_scan": to_map(c.T_search), "plane_fitness": c.precheck,
-                         "chosen_plane_fitness": rs.precheck_self, "common_fraction": c.pre_common_fraction,
+                         "chosen_plane_fitness": rs.precheck_self, "fine_fitness": math.nan,
+                         "chosen_fine_fitness": math.nan, "common_fraction": c.pre_common_fraction,
                          "matched_ratio": c.pre_matched_ratio, "distance_to_chosen_m": c.distance_m,
                          "rotation_to_chosen_deg": c.rotation_deg})
     own = [h for h in hyps[1:n_hyp] if "screened out" not in h["source"]
@@ -1430,25 +1647,31 @@ def _rival_check(pm: PreparedMap, p: LocalizeParams, D, Nd, Dfine, ic_best, pf_b
     if own:
         m = _masks(Dfine, [Tb] + [from_map(h["T_map_scan"]) for h in own])
         for h, mk in zip(own, m[1:], strict=True):
-            frac, ratio = matched_support(m[0], mk)
+            frac, ratio = matched_support(m[0], mk, fine_scale=fine_scale)
             h["common_fraction"], h["matched_ratio"] = frac, ratio
             pool.append({"source": h["source"], "score_level": "full", "T_map_scan": np.asarray(h["T_map_scan"]),
                          "plane_fitness": h["plane_fitness"], "chosen_plane_fitness": pf_best,
+                         "fine_fitness": h["fine_fitness"], "chosen_fine_fitness": pff_best,
                          "common_fraction": frac, "matched_ratio": ratio,
                          "distance_to_chosen_m": h["distance_to_chosen_m"],
                          "rotation_to_chosen_deg": h["rotation_to_chosen_deg"]})
     for b in pool:
         b["margin"] = (b["chosen_plane_fitness"] / b["plane_fitness"]) if b["plane_fitness"] > 0 else math.inf
         b["test_passed"] = rival_test(pf_best, b["plane_fitness"], b["common_fraction"], b["matched_ratio"],
-                                      amb_ratio, rp) if b["score_level"] == "full" else ""
+                                      amb_ratio, rp, chosen_fine_fitness=pff_best,
+                                      fine_fitness=b["fine_fitness"], fine_ratio=fine_ratio) \
+            if b["score_level"] == "full" else ""
         # how close to either test (1 = on a threshold)
         closeness = b["plane_fitness"] / (amb_ratio * b["chosen_plane_fitness"]) if b["chosen_plane_fitness"] > 0 else 0
+        if math.isfinite(b["fine_fitness"]) and b["chosen_fine_fitness"] > 0:  # both tolerances must pass
+            closeness = min(closeness, b["fine_fitness"] / (fine_ratio * b["chosen_fine_fitness"]))
         if b["common_fraction"] >= rp.min_common_fraction and math.isfinite(b["matched_ratio"]):
             closeness = max(closeness, b["matched_ratio"] / rp.matched_ratio)
         b["closeness"] = float(closeness)
     pool.sort(key=lambda b: (not b["test_passed"], -b["closeness"], b["source"]))
     best_r = pool[0] if pool else None
     record = {**rs.to_dict(to_map), "ambiguity_ratio": amb_ratio, "chosen_plane_fitness": pf_best,
+              "fine_ambiguity_ratio": fine_ratio, "chosen_fine_fitness": pff_best, "fine_tolerance_m": tol_fine,
               "margin": best_r["margin"] if best_r else math.inf,
               "matched_ratio": best_r["matched_ratio"] if best_r else math.nan,
               "margin_note": ("margin = chosen / best rival plane fitness, both scored the same way (score_level: "
@@ -1473,7 +1696,8 @@ def _rival_check(pm: PreparedMap, p: LocalizeParams, D, Nd, Dfine, ic_best, pf_b
                         "scoring like the chosen placement may not have been checked")
     if best_r is not None and best_r["test_passed"]:
         b = best_r
-        how = (f"plane fitness {b['plane_fitness']:.3f} vs {pf_best:.3f}, ratio >= {amb_ratio:g}"
+        how = (f"plane fitness {b['plane_fitness']:.3f} vs {pf_best:.3f}, fine agreement {b['fine_fitness']:.3f} vs "
+               f"{pff_best:.3f}, ratios >= {amb_ratio:g} / {fine_ratio:.3g}"
                f"{' for a small scan' if small_scan else ''}" if b["test_passed"] == "plane fitness" else
                f"on the {100 * b['common_fraction']:.0f} % of scan points that the map covers at both places, its "
                f"share on the map surface is {b['matched_ratio']:.2f} of the chosen placement's, >= "

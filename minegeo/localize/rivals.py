@@ -206,8 +206,9 @@ class RivalCandidate:
         with the chosen placement (:func:`matched_support`); NaN for ``is_self``.
     T_final : (4, 4) ndarray or None
         After the full-resolution ICP (None when not given it).
-    plane_fitness, plane_rmse_m, icp_fitness, icp_inlier_rmse_m : float
-        Verification of ``T_final`` (NaN without it).
+    plane_fitness, plane_rmse_m, fine_fitness, icp_fitness, icp_inlier_rmse_m : float
+        Verification of ``T_final`` (NaN without it); ``fine_fitness`` at the pipeline's fine
+        tolerance (``LocalizeParams.verify_fine_tolerance_m``; = ``plane_fitness`` when off).
     icp_iterations : int
         Of the full-resolution ICP (0 without it).
     common_fraction, matched_ratio : float
@@ -236,6 +237,7 @@ class RivalCandidate:
     T_final: np.ndarray | None = None
     plane_fitness: float = math.nan
     plane_rmse_m: float = math.nan
+    fine_fitness: float = math.nan
     icp_fitness: float = math.nan
     icp_inlier_rmse_m: float = math.nan
     icp_iterations: int = 0
@@ -317,6 +319,7 @@ class RivalSearch:
                     "distance_to_chosen_m": c.distance_m, "rotation_to_chosen_deg": c.rotation_deg,
                     "precheck_plane_fitness": c.precheck, "precheck_common_fraction": c.pre_common_fraction,
                     "precheck_matched_ratio": c.pre_matched_ratio, "plane_fitness": c.plane_fitness,
+                    "fine_fitness": c.fine_fitness,
                     "plane_rmse_m": c.plane_rmse_m, "icp_fitness": c.icp_fitness,
                     "icp_inlier_rmse_m": c.icp_inlier_rmse_m, "icp_iterations": c.icp_iterations,
                     "common_fraction": c.common_fraction, "matched_ratio": c.matched_ratio,
@@ -332,15 +335,24 @@ class RivalSearch:
                 "candidates": [_c(c) for c in self.candidates], "params": asdict(self.params)}
 
 
-def matched_support(best: tuple[np.ndarray, np.ndarray], other: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
+def matched_support(best: tuple, other: tuple, fine_scale: float | None = None) -> tuple[float, float]:
     """Support-matched comparison of two placements of the same scan points.
 
     Parameters
     ----------
-    best, other : (supported, on_plane) pairs of (n,) bool arrays
+    best, other : (supported, on_plane[, on_fine]) tuples of (n,) bool arrays
         Per scan point: a map point within the ICP gate (``supported``) and, in addition,
         within the plane tolerance of that point's tangent plane (``on_plane``), as in the
-        pipeline's plane fitness.
+        pipeline's plane fitness; ``on_fine``: within the fine tolerance
+        (``LocalizeParams.verify_fine_tolerance_m``).
+    fine_scale : float, optional
+        Both placements are converged (after ICP): ``matched_ratio`` is the smaller of the
+        ratio at the plane tolerance and ``fine_scale`` × the ratio at the fine tolerance (when
+        the masks hold it), so the test passes only when the rival matches at both
+        (``fine_scale = ambiguity_ratio / fine_ratio`` > 1: the fine level is noisier, measured
+        0.90 for an exact twin whose two copies the map covers differently, 0.6 for another
+        smooth drift). Not for pre-checks: a placement before ICP is a few cm off, and the
+        fine level would hide a true twin there.
 
     Returns
     -------
@@ -356,14 +368,31 @@ def matched_support(best: tuple[np.ndarray, np.ndarray], other: tuple[np.ndarray
         return 0.0, 0.0
     a = float(np.count_nonzero(best[1] & both)) / n
     b = float(np.count_nonzero(other[1] & both)) / n
-    return n / both.size, (b / a if a > 0 else math.inf)
+    ratio = b / a if a > 0 else math.inf
+    if fine_scale is not None and len(best) > 2 and len(other) > 2:
+        af = float(np.count_nonzero(best[2] & both)) / n
+        bf = float(np.count_nonzero(other[2] & both)) / n
+        ratio = min(ratio, float(fine_scale) * bf / af if af > 0 else math.inf)
+    return n / both.size, ratio
 
 
 def rival_test(chosen_plane_fitness: float, plane_fitness: float, common_fraction: float, matched_ratio: float,
-               ambiguity_ratio: float, params: RivalParams) -> str:
+               ambiguity_ratio: float, params: RivalParams, *, chosen_fine_fitness: float | None = None,
+               fine_fitness: float | None = None, fine_ratio: float | None = None) -> str:
     """Which ambiguity test a distinct, fully verified rival passes: ``"plane fitness"``,
-    ``"support-matched"`` or ``""`` (module docstring, *Ambiguity tests*)."""
-    if plane_fitness >= float(ambiguity_ratio) * chosen_plane_fitness:
+    ``"support-matched"`` or ``""`` (module docstring, *Ambiguity tests*).
+
+    With ``fine_fitness`` and ``chosen_fine_fitness`` (the agreement at the pipeline's fine
+    tolerance), the plane-fitness test also needs ``fine_fitness >= fine_ratio ×
+    chosen_fine_fitness`` (``fine_ratio`` defaults to ``ambiguity_ratio``); ``matched_ratio``
+    should then be :func:`matched_support` with ``fine_scale = ambiguity_ratio / fine_ratio``.
+    """
+    fine_ok = True
+    if fine_fitness is not None and chosen_fine_fitness is not None and math.isfinite(fine_fitness) \
+            and math.isfinite(chosen_fine_fitness):
+        fr = float(ambiguity_ratio if fine_ratio is None else fine_ratio)
+        fine_ok = fine_fitness >= fr * chosen_fine_fitness
+    if plane_fitness >= float(ambiguity_ratio) * chosen_plane_fitness and fine_ok:
         return "plane fitness"
     if common_fraction >= float(params.min_common_fraction) and matched_ratio >= float(params.matched_ratio):
         return "support-matched"
@@ -436,7 +465,7 @@ def search_rivals(occupancy: MapOccupancy, D: np.ndarray, Nd: np.ndarray, T_best
                   support: Callable[[list, str], list],
                   fine: Callable[[np.ndarray], tuple[object, float, float]],
                   reference_point: np.ndarray | None = None, refine_target=None, screen_target=None,
-                  screen_grid=None) -> RivalSearch:
+                  screen_grid=None, fine_scale: float | None = None) -> RivalSearch:
     """Whole-map search for placements at the chosen attitude that explain the scan nearly as well.
 
     Parameters
@@ -461,8 +490,10 @@ def search_rivals(occupancy: MapOccupancy, D: np.ndarray, Nd: np.ndarray, T_best
         The pipeline's verification as per-point masks at each ``T`` (:func:`matched_support`),
         on the feature-level points (``level="feature"``; their mean of ``on_plane`` is the
         plane fitness) or on the ICP-level points (``"fine"``).
-    fine : callable ``T -> (icp_result, plane_fitness, plane_rmse_m)``
+    fine : callable ``T -> (icp_result, plane_fitness, plane_rmse_m[, fine_fitness])``
         The pipeline's full-resolution ICP from ``T`` and its verification.
+    fine_scale : float, optional
+        Passed to :func:`matched_support` for the converged rivals (the fine agreement level).
     reference_point : (3,) ndarray, optional
         Where the scanner was (``D`` frame, m), e.g. the middle of its trajectory.
     refine_target, screen_target, screen_grid
@@ -539,14 +570,16 @@ def search_rivals(occupancy: MapOccupancy, D: np.ndarray, Nd: np.ndarray, T_best
     if todo:
         sup_self = support([T_best], "fine")[0]
     for c in todo:
-        ic, pf, prm = fine(c.T_search)
+        ic, pf, prm, *pff = fine(c.T_search)
         Tf = np.asarray(ic.T_target_source, dtype=np.float64)
         c.T_final, c.plane_fitness, c.plane_rmse_m = Tf, float(pf), float(prm)
+        c.fine_fitness = float(pff[0]) if pff else float(pf)
         c.icp_fitness, c.icp_inlier_rmse_m, c.icp_iterations = float(ic.fitness), float(ic.inlier_rmse_m), \
             int(ic.iterations)
         c.final_distance_m, c.final_rotation_deg = hypothesis_distance(Tf, T_best, centre)
         c.distinct = c.final_distance_m > ambiguity_distance_m or c.final_rotation_deg > ambiguity_angle_deg
-        c.common_fraction, c.matched_ratio = matched_support(sup_self, support([Tf], "fine")[0])
+        c.common_fraction, c.matched_ratio = matched_support(sup_self, support([Tf], "fine")[0],
+                                                             fine_scale=fine_scale)
         c.stage = "fine"
     timings["fine"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all

@@ -171,6 +171,8 @@ OPTION_CASES = {
     "levelled_nan": ["--levelled", "nan"],
     "polish_negative": ["--polish", "-1"],
     "polish_nan": ["--polish", "nan"],
+    "fine_tolerance_negative": ["--fine-tolerance", "-0.01"],
+    "fine_tolerance_nan": ["--fine-tolerance", "nan"],
 }
 
 
