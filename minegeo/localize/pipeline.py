@@ -458,7 +458,9 @@ class LocalizationResult:
     hypotheses : list of dict
         Every verified hypothesis: its origin, RANSAC and ICP scores, distance to the chosen one.
     covariance_6x6 : (6, 6) ndarray or None
-        ``σ² (JᵀJ)⁻¹`` with parameters ``(ω_x, ω_y, ω_z, t_x, t_y, t_z)``: a small rotation
+        Pose covariance of the final point-to-plane fit, the data term plus named model terms
+        (:mod:`minegeo.localize.uncertainty`; both listed in ``uncertainty``), with parameters
+        ``(ω_x, ω_y, ω_z, t_x, t_y, t_z)``: a small rotation
         (rad) about the scan origin and a translation (m) of the scan origin, both in map
         axes (left perturbation ``T ← exp(δ) T`` taken about the scan origin). None when
         the geometry does not constrain all six directions.
@@ -469,10 +471,11 @@ class LocalizationResult:
     position_sigma_m : (3,) ndarray
         Its standard deviations along x, y, z (map axes), m (inf when unconstrained).
     position_95_radius_m : float
-        3-D radius containing the scan origin with 95 % probability under the model:
-        ``sqrt(χ²₃(0.95) · λ_max(position_cov))`` (scale factor ``sqrt(7.815) = 2.80``).
+        3-D radius of the ball that holds the scan origin with probability 0.95 under
+        ``N(0, position_cov)`` (:func:`~minegeo.localize.uncertainty.radii_95`: between
+        ``sqrt(3.841 λ_max)`` for one dominant axis and ``sqrt(7.815 λ_max)`` isotropic).
     horizontal_95_radius_m : float
-        Same in plan (``sqrt(χ²₂(0.95) · λ_max`` of the xy block, factor 2.45).
+        Same in plan (the xy block; ``sqrt(5.991 σ²)`` isotropic).
     pending_step_m : float
         Largest scan-point displacement of one more point-to-plane step from the final pose, m.
     trajectory_map, trajectory_geo : Trajectory or None
@@ -486,8 +489,11 @@ class LocalizationResult:
         Largest 95 % displacement of the scan's bounding-box corners under ``covariance_6x6``, m
         (``sqrt(7.815 λ_max(J Σ Jᵀ))``, ``J = [−[q − o]×, I]``); inf without covariance.
     uncertainty : dict or None
-        The estimator's record (:class:`~minegeo.localize.uncertainty.PoseUncertainty`
-        without its matrices): method, blocks, inflation over the formal covariance, σ, ...
+        The estimator's record (:meth:`~minegeo.localize.uncertainty.PoseUncertainty.to_dict`
+        without its top-level matrices): method, blocks, inflation over the formal covariance, σ,
+        ``data_term`` (the covariance the residuals determine, the information ratio and the
+        weakest direction) and ``model_terms`` (each added term by name, e.g.
+        ``registration_floor``, ``pending_step``, ``weak_axis_polish``; data + terms = ``covariance_6x6``).
     plane_tolerance_m : float
         Plane-distance tolerance used by the verification (m; see ``verify_noise_factor``).
     scan_noise_m : float
@@ -613,7 +619,7 @@ class LocalizationResult:
             "hypotheses": self.hypotheses,
             "covariance_6x6": self.covariance_6x6,
             "covariance_parameters": "(omega_x, omega_y, omega_z) rad about the scan origin, (t_x, t_y, t_z) m of the "
-                                     "scan origin, map axes; sigma^2 (J^T J)^-1, point-to-plane J",
+                                     "scan origin, map axes; data term + model terms of 'uncertainty', point-to-plane J",
             "sigma_m": self.sigma_m,
             "position_cov_3x3": self.position_cov_3x3,
             "position_sigma_m": self.position_sigma_m,
@@ -622,8 +628,9 @@ class LocalizationResult:
             "pending_step_m": self.pending_step_m,
             "uncertainty_note": "point-to-plane pose covariance about the scan origin from the final ICP pairs, "
                                 "estimator in 'uncertainty' (default: delete-one-block jackknife over spatial "
-                                "blocks, which accounts for correlated residuals; docs/uncertainty.md); 95 % radius "
-                                "= sqrt(chi2_3(0.95)=7.815 * largest eigenvalue); georeferencing error is not "
+                                "blocks, which accounts for correlated residuals; docs/uncertainty.md) plus the model "
+                                "terms listed in 'uncertainty.model_terms'; 95 % radius = radius of the ball holding the "
+                                "scan origin with probability 0.95 under that covariance; georeferencing error is not "
                                 "included (see the georef report)",
             "crs": self.crs,
             "georef_origin": self.georef_origin,
@@ -1415,16 +1422,17 @@ def _localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory, p: Localiz
         if ic_final.correspondences.shape[0] >= 7:
             unc = pose_uncertainty(Pw, Qf, Nf, ic_final.correspondences, o_work,
                                    replace(p.uncertainty, degeneracy_ratio=0.0), check_target=False)
+            # weak direction: add the polish's shift as a model-error term (see weak_axis_polish_term)
+            add_shift = (unc.covariance_6x6 is not None and p.weak_axis_polish_term and polish is not None
+                         and polish["applied"] and unc.information_ratio < p.uncertainty.degeneracy_ratio)
+            if add_shift:
+                d6 = np.asarray(polish["shift_6"], dtype=np.float64)
+                unc = unc.with_model_term("weak_axis_polish", np.outer(d6, d6))
             cov, sigma, residuals, step = unc.covariance_6x6, unc.sigma_m, unc.residuals_m, unc.pending_step
+            # record: data term + named model terms (issue 15 item 6), without the top-level matrices
             unc_record = unc.to_dict()
             for k in ("covariance_6x6", "covariance_formal_6x6", "position_cov_3x3", "information_6x6"):
                 unc_record.pop(k, None)
-            # weak direction: add the polish's shift as a model-error term (see weak_axis_polish_term)
-            add_shift = (cov is not None and p.weak_axis_polish_term and polish is not None and polish["applied"]
-                         and unc.information_ratio < p.uncertainty.degeneracy_ratio)
-            if add_shift:
-                d6 = np.asarray(polish["shift_6"], dtype=np.float64)
-                cov = cov + np.outer(d6, d6)
             unc_record["weak_axis_polish_term"] = bool(add_shift)
         else:
             step = None

@@ -412,7 +412,7 @@ def test_weak_axis_polish_term_adds_the_polish_shift_to_the_covariance(world_map
     well-constrained scans do not get it."""
     from dataclasses import replace
 
-    from minegeo.localize.uncertainty import CHI2_3D_95
+    from minegeo.localize.uncertainty import radii_95
 
     _, _, pm, scans = world_map
     sec = "intersection"
@@ -427,8 +427,14 @@ def test_weak_axis_polish_term_adds_the_polish_shift_to_the_covariance(world_map
     d6 = np.asarray(rf.polish["shift_6"])
     assert d6.shape == (6,) and np.all(np.isfinite(d6))
     np.testing.assert_allclose(rf.covariance_6x6 - r0.covariance_6x6, np.outer(d6, d6), atol=1e-15)
-    lam = np.linalg.eigvalsh(rf.covariance_6x6[3:, 3:])[-1]
-    assert rf.position_95_radius_m == pytest.approx(np.sqrt(CHI2_3D_95 * lam))
+    assert rf.position_95_radius_m == pytest.approx(radii_95(rf.covariance_6x6[3:, 3:])[0])
+    # recorded as a named model term: data term + model terms = the reported covariance
+    terms = rf.uncertainty["model_terms"]
+    np.testing.assert_allclose(np.asarray(terms["weak_axis_polish"]["covariance_6x6"]), np.outer(d6, d6), atol=1e-15)
+    total = np.asarray(rf.uncertainty["data_term"]["covariance_6x6"]) + sum(
+        np.asarray(t["covariance_6x6"]) for t in terms.values())
+    np.testing.assert_allclose(total, rf.covariance_6x6, rtol=0, atol=1e-12 * np.abs(rf.covariance_6x6).max())
+    assert "weak_axis_polish" not in r0.uncertainty["model_terms"]
     assert rf.uncertainty["position_95_radius_m"] == rf.position_95_radius_m >= r0.position_95_radius_m
     assert np.array_equal(rf.T_map_scan, r0.T_map_scan) and rf.status == r0.status
     # the shift is the polish's motion of the scan origin: compare with the unpolished pose

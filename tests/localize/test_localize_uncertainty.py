@@ -4,6 +4,7 @@ invariance, degenerate geometry (one plane, a straight featureless tube), bad in
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -17,10 +18,13 @@ from minegeo.localize.uncertainty import (
     CHI2_3D_95,
     PoseUncertainty,
     UncertaintyParams,
+    ball_radius,
     block_covariance,
     cluster_labels,
     pose_uncertainty,
+    radii_95,
     small_g_factor,
+    sum_chi2_cdf,
 )
 
 
@@ -130,16 +134,19 @@ def _coverage(trials, params_list, sigma, tau, seed, density=8.0):
     return hit_ell / trials, hit_ball / trials
 
 
-FORMAL = UncertaintyParams(method="formal")
-DEFAULT = UncertaintyParams()  # delete-one-block jackknife over 4 m blocks
-CLUSTER = UncertaintyParams(method="cluster", cluster_size_m=2.0)  # CR1
+# The estimators without the calibrated registration floor (a model term for the real pipeline's
+# unmodelled systematic error, which this exact planar problem does not have).
+FORMAL = UncertaintyParams(method="formal", registration_sigma_m=0.0)
+DEFAULT = UncertaintyParams(registration_sigma_m=0.0)  # delete-one-block jackknife over 4 m blocks
+CLUSTER = UncertaintyParams(method="cluster", cluster_size_m=2.0, registration_sigma_m=0.0)  # CR1
 
 
 def test_monte_carlo_iid_noise_all_methods_cover_95():
     ell, ball = _coverage(400, [FORMAL, DEFAULT, CLUSTER], sigma=0.02, tau=0.0, seed=11)
     for name, c in zip(("formal", "jackknife", "cluster"), ell, strict=True):
         assert 0.90 <= c <= 0.99, f"{name}: 95 % ellipsoid covers {c:.3f} with i.i.d. noise"
-    assert np.all(ball >= ell)  # the sphere over the largest axis contains the ellipsoid
+    for name, c in zip(("formal", "jackknife", "cluster"), ball, strict=True):  # the 95 % ball itself
+        assert 0.90 <= c <= 0.995, f"{name}: 95 % ball covers {c:.3f} with i.i.d. noise"
 
 
 def test_monte_carlo_correlated_noise_formal_undercovers_robust_stays_95():
@@ -162,7 +169,8 @@ def test_cluster_never_below_formal_and_map_floor():
     ev = np.linalg.eigvalsh(c.covariance_6x6 - f.covariance_6x6)
     assert ev.min() >= -1e-12 * np.abs(ev).max()
     assert c.n_clusters >= CLUSTER.min_clusters and c.method == "cluster" and f.n_clusters == 0
-    m = pose_uncertainty(Pw, Q, N, corr, ORIGIN + et, UncertaintyParams(method="cluster", cluster_size_m=2.0, map_sigma_m=0.05))
+    m = pose_uncertainty(Pw, Q, N, corr, ORIGIN + et, UncertaintyParams(method="cluster", cluster_size_m=2.0, map_sigma_m=0.05,
+                                                                    registration_sigma_m=0.0))
     np.testing.assert_allclose(m.position_cov_3x3 - c.position_cov_3x3, 0.0025 * np.eye(3), atol=1e-15)
     np.testing.assert_allclose(m.covariance_6x6[:3, :3], c.covariance_6x6[:3, :3], atol=0)
     assert m.position_95_radius_m >= math.sqrt(CHI2_3D_95) * 0.05
@@ -382,3 +390,97 @@ def test_unchecked_map_gives_the_same_covariance():
         pose_uncertainty(Pw, np.asfortranarray(Qc), Nc, corr, o, check_target=False)
     with pytest.raises(InputError):  # the paired normals are still checked for unit length
         pose_uncertainty(Pw, Qc, 2.0 * Nc, corr, o, check_target=False)
+
+
+# ------------------------------------------------------------------ two-way calibration (issue 15, item 6)
+# The default estimator = data term (jackknife) + model terms, among them the registration floor
+# σ_reg² I₃: a systematic scan-to-map offset that no residual reveals. The synthetic truth has both
+# parts: patch-correlated noise (what the data term must see) and a rigid offset of the map drawn
+# from N(0, σ_reg² I₃) per trial (it moves the fitted pose and leaves every residual unchanged).
+_N_CAL = 300
+
+
+@functools.lru_cache(maxsize=1)
+def _calibration_trials():
+    rng = np.random.default_rng(21)
+    Q, N, _, _ = _MAP
+    prm = UncertaintyParams()
+    out = []
+    for _ in range(_N_CAL):
+        Pw, corr, et, _ = _trial(rng, 0.01, 0.02)
+        u = pose_uncertainty(Pw, Q, N, corr, ORIGIN + et, prm)
+        e = et + rng.normal(0.0, prm.registration_sigma_m, 3)  # + the map's unobservable offset
+        out.append((float(np.linalg.norm(e)), u.position_95_radius_m, float(e @ np.linalg.solve(u.position_cov_3x3, e))))
+    return np.array(out)
+
+
+def test_monte_carlo_default_95_ball_is_calibrated():
+    """The reported 95 % ball covers the truth 95 % of the time: inside the central 99.9 % band of
+    Binomial(300, 0.95) (272.6..297.4 of 300); the mean squared Mahalanobis distance is 3 (χ²₃)
+    within ±25 % (its sampling sd is 5 %). Covariance x4 covers 100 % (mean 0.25), /4 about 60 %
+    (mean 4): both fail."""
+    from scipy.stats import binom
+
+    err, r95, m2 = _calibration_trials().T
+    hit = int(np.sum(err <= r95))
+    lo, hi = binom.ppf(0.0005, _N_CAL, 0.95), binom.ppf(0.9995, _N_CAL, 0.95)
+    assert lo <= hit <= hi, f"95 % ball covers {hit}/{_N_CAL}, outside the binomial band [{lo:.0f}, {hi:.0f}]"
+    assert 0.8 <= np.mean(m2) / 3.0 <= 1.25, f"mean Mahalanobis^2 / 3 = {np.mean(m2) / 3:.2f} (calibrated: 1)"
+
+
+def test_monte_carlo_default_95_ball_is_tight():
+    """Tightness (the study's criterion, docs/uncertainty.md): median(r95) / RMS(|e|) is 1.61 for an
+    isotropic calibrated Gaussian, 1.96 for one dominant axis; the study bound is 3. Here it must
+    lie in [1.2, 2.5]: covariance x4 doubles it (~3.6), /4 halves it (~0.9)."""
+    err, r95, _ = _calibration_trials().T
+    ratio = float(np.median(r95) / math.sqrt(np.mean(err ** 2)))
+    assert 1.2 <= ratio <= 2.5, f"median r95 / RMS error = {ratio:.2f}"
+
+
+def test_data_and_model_terms_sum_to_the_total():
+    Pw, Q, N, corr, o = _BASE
+    prm = UncertaintyParams(map_sigma_m=0.003)
+    u = pose_uncertainty(Pw, Q, N, corr, o, prm)
+    assert list(u.model_terms) == ["small_G", "formal_floor", "pending_step", "registration_floor", "map_floor"]
+    total = u.covariance_data_6x6 + sum(u.model_terms.values())
+    scale = np.max(np.abs(u.covariance_6x6))
+    assert np.max(np.abs(total - u.covariance_6x6)) <= 1e-12 * scale
+    np.testing.assert_array_equal(u.position_cov_3x3, u.covariance_6x6[3:, 3:])
+    for name, M in u.model_terms.items():  # every term symmetric positive semi-definite
+        assert np.allclose(M, M.T, rtol=0, atol=1e-14 * scale) and np.linalg.eigvalsh(M).min() >= -1e-12 * scale, name
+    np.testing.assert_allclose(u.model_terms["registration_floor"][3:, 3:], prm.registration_sigma_m ** 2 * np.eye(3))
+    np.testing.assert_allclose(u.model_terms["map_floor"][3:, 3:], 0.003 ** 2 * np.eye(3))
+    np.testing.assert_allclose(u.model_terms["pending_step"], np.outer(u.pending_step, u.pending_step))
+    fG = small_g_factor(u.n_clusters)
+    np.testing.assert_allclose(u.model_terms["small_G"], (fG - 1.0) * u.covariance_data_6x6, rtol=1e-12)
+    # the data term is the jackknife alone; its radius is below the total's
+    assert u.position_95_radius_data_m < u.position_95_radius_m
+    assert u.weakest_sigma_m == pytest.approx(math.sqrt(np.linalg.eigvalsh(u.covariance_data_6x6[3:, 3:])[-1]))
+    # a caller's term (the pipeline's weak_axis_polish) enters the total and the radii
+    d6 = np.array([1e-4, 0, 0, 0.004, 0, 0])
+    v = u.with_model_term("weak_axis_polish", np.outer(d6, d6))
+    assert list(v.model_terms)[-1] == "weak_axis_polish" and "weak_axis_polish" not in u.model_terms
+    np.testing.assert_allclose(v.covariance_6x6, u.covariance_6x6 + np.outer(d6, d6), rtol=0, atol=1e-15 * scale)
+    assert v.position_95_radius_m > u.position_95_radius_m
+    with pytest.raises(InputError):
+        v.with_model_term("weak_axis_polish", np.eye(6))
+    # the JSON record carries both parts, and they add up there too
+    d = v.to_dict()
+    tot = np.array(d["data_term"]["covariance_6x6"]) + sum(np.array(t["covariance_6x6"]) for t in d["model_terms"].values())
+    assert np.max(np.abs(tot - np.array(d["covariance_6x6"]))) <= 1e-12 * scale
+    assert d["data_term"]["information_ratio"] == u.information_ratio and len(d["data_term"]["weakest_constraint_6"]) == 6
+    # the radius is the exact 95 % ball: P(|e| <= r) = 0.95 under N(0, Σ_tt) (checked by sampling)
+    e = np.random.default_rng(0).multivariate_normal(np.zeros(3), v.position_cov_3x3, 200_000)
+    assert np.mean(np.linalg.norm(e, axis=1) <= v.position_95_radius_m) == pytest.approx(0.95, abs=0.002)
+
+
+def test_ball_radius_limits():
+    """Isotropic: sqrt(χ²_d(0.95)); one axis: sqrt(χ²₁(0.95)); in between otherwise."""
+    assert ball_radius(np.eye(3)) == pytest.approx(math.sqrt(CHI2_3D_95), rel=1e-9)
+    assert ball_radius(np.eye(2)) == pytest.approx(math.sqrt(5.991464547107979), rel=1e-9)
+    assert ball_radius(np.diag([4.0, 0.0, 0.0])) == pytest.approx(2.0 * 1.959963984540054, rel=1e-9)
+    assert ball_radius(np.diag([1.0, 1e-9, 1e-10])) == pytest.approx(1.959963984540054, rel=1e-4)
+    r = ball_radius(np.diag([1.0, 0.3, 0.05]))
+    assert 1.96 < r < math.sqrt(CHI2_3D_95)
+    assert sum_chi2_cdf(r * r, [1.0, 0.3, 0.05]) == pytest.approx(0.95, abs=1e-9)
+    assert radii_95(np.full((3, 3), np.inf)) == (math.inf, math.inf)
