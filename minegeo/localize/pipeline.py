@@ -864,7 +864,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     seed = int(seed)
     with _CandidateICPMessages():
         res = _localize_scan(prepared_map, scan_cloud, trajectory, p, seed, progress)
-        if res.status == "failed" and p.gravity_fallback and p.ransac.model == "rigid":
+        if res.status in ("failed", "ambiguous") and p.gravity_fallback and p.ransac.model == "rigid":
             res = _gravity_fallback(prepared_map, scan_cloud, trajectory, p, seed, progress, res)
         return res
 
@@ -938,7 +938,19 @@ def _gravity_fallback(prepared_map, scan_cloud, trajectory, p: LocalizeParams, s
             break
     rec.update({"levelled_status": res_l.status, "levelled_reason": res_l.reason, "tilt_tolerance_deg": tilt,
                 "R_levelled_scan": R4[:3, :3].tolist(), "attempts": attempts,
-                "tilt_range_deg": [lo, hi]})
+                "tilt_range_deg": [lo, hi], "six_dof_status": res_6dof.status})
+    if res_6dof.status == "ambiguous" and res_l.status != "failed":
+        # an ambiguous 6-DOF result is replaced only by an ``ok`` that none of the 6-DOF run's own
+        # verified placements rivals (the same two-level test, against the levelled answer)
+        rival = _six_dof_rival(res_6dof, _rebase(res_l, R4), p, P_raw) if res_l.status == "ok" else None
+        if res_l.status != "ok" or rival is not None:
+            res_6dof.timings_s["gravity"] = time.perf_counter() - t0
+            why = (f"the levelled search says {res_l.status}" if res_l.status != "ok" else
+                   f"its answer has a rival among the 6-DOF placements ({rival})")
+            res_6dof.warnings.append(f"gravity fallback: levelled by the scan's own up estimate; {why}: "
+                                     "the result stays ambiguous")
+            res_6dof.gravity = rec
+            return res_6dof
     if res_l.status == "failed":
         res_6dof.timings_s["gravity"] = time.perf_counter() - t0
         res_6dof.warnings.append(f"gravity fallback: levelled by the scan's own up estimate (95 % cone "
@@ -950,12 +962,40 @@ def _gravity_fallback(prepared_map, scan_cloud, trajectory, p: LocalizeParams, s
     out.timings_s["gravity"] = t_est
     out.timings_s["six_dof_attempt"] = float(res_6dof.timings_s.get("total", math.nan))
     out.timings_s["total"] = time.perf_counter() - t0 + float(res_6dof.timings_s.get("total", 0.0))
-    out.warnings.insert(0, f"the 6-DOF search found no placement ({res_6dof.reason}); this result levels the scan "
+    first = "found no placement" if res_6dof.status == "failed" else "could not tell places apart"
+    out.warnings.insert(0, f"the 6-DOF search {first} ({res_6dof.reason}); this result levels the scan "
                            f"by its own up direction (floor/roof/walls, 95 % cone {est.cone95_deg:.1f} deg) and "
                            f"searches heading and position (tilt tolerance {tilt:.1f} deg, residual tilt "
                            f"{attempts[-1]['tilt_about_cross_axis_deg']:g} deg about the drift's cross axis)")
     out.gravity = rec
     return out
+
+
+def _six_dof_rival(res_6dof, res_ok, p: LocalizeParams, P_raw: np.ndarray) -> str | None:
+    """A verified placement of the 6-DOF run that is a rival of ``res_ok``'s answer (both in the
+    original scan frame), by the pipeline's two-level plane test; None when there is none."""
+    hyps_ok = res_ok.hypotheses or []
+    if not hyps_ok:
+        return "no verified placement"
+    pf_a, pff_a = float(hyps_ok[0]["plane_fitness"]), float(hyps_ok[0].get("fine_fitness", hyps_ok[0]["plane_fitness"]))
+    small = res_ok.n_scan_down < int(p.correlative_confirm_below_points)
+    amb = float(p.small_scan_ambiguity_ratio) if small else float(p.ambiguity_ratio)
+    fine = float(p.fine_ambiguity_ratio) * amb / float(p.ambiguity_ratio)
+    c = P_raw.mean(axis=0)
+    Ta = np.asarray(res_ok.T_map_scan, dtype=np.float64)
+    for h in res_6dof.hypotheses or []:
+        if "screened out" in h["source"]:
+            continue
+        Th = np.asarray(h["T_map_scan"], dtype=np.float64)
+        dist = float(np.linalg.norm((Ta[:3, :3] - Th[:3, :3]) @ c + Ta[:3, 3] - Th[:3, 3]))
+        ang = math.degrees(rotation_angle(Ta[:3, :3].T @ Th[:3, :3]))
+        if dist <= p.ambiguity_distance_m and ang <= p.ambiguity_angle_deg:
+            continue
+        pff = float(h.get("fine_fitness", h["plane_fitness"]))
+        if float(h["plane_fitness"]) >= amb * pf_a and pff >= fine * pff_a:
+            return (f"{dist:.1f} m / {ang:.1f} deg away, plane fitness {h['plane_fitness']:.3f} vs {pf_a:.3f}, fine "
+                    f"agreement {pff:.3f} vs {pff_a:.3f}")
+    return None
 
 
 def _rebase(res, R4: np.ndarray):
