@@ -193,6 +193,14 @@ def _uncertainty_text(u: dict | None) -> str:
     if u.get("weak_axis_polish_term"):
         txt += ("; plus the polish's pose shift along the weakly constrained direction (the estimate depends "
                 "on the correspondence gate there)")
+    dt = u.get("data_term") or {}
+    terms = u.get("model_terms") or {}
+    if dt.get("position_95_radius_m") is not None:
+        txt += (f". What the data determine alone: 95 % radius {_n(dt.get('position_95_radius_m'), '.4f')} m, "
+                f"information ratio {_n(dt.get('information_ratio'), '.2e')}")
+    if terms:
+        txt += "; model terms added (RMS position, m): " + ", ".join(
+            f"{k} {_n(v.get('position_rms_m'), '.4f')}" for k, v in terms.items())
     return txt + ". It excludes the map's own error and the georeferencing error (docs/uncertainty.md)."
 
 
@@ -307,9 +315,9 @@ def localize_report_html(res, prepared, *, inputs=None, extra: dict | None = Non
             rows.append((f"scan origin, CRS {res.crs} (E N H, m)", f"{c[0]:.3f}  {c[1]:.3f}  {c[2]:.3f}"))
         s = res.position_sigma_m
         rows.append(("1σ of the scan origin x, y, z (m)", "  ".join(_n(v, ".4f") for v in s)))
-        rows.append(("95 % radius 3-D (m)", f"{_n(res.position_95_radius_m, '.4f')}  (= sqrt(7.815 λmax), χ²₃)"))
+        rows.append(("95 % radius 3-D (m)", f"{_n(res.position_95_radius_m, '.4f')}  (ball holding the origin with probability 0.95 under the covariance)"))
         rows.append(("95 % radius horizontal (m)",
-                     f"{_n(res.horizontal_95_radius_m, '.4f')}  (= sqrt(5.991 λmax), χ²₂)"))
+                     f"{_n(res.horizontal_95_radius_m, '.4f')}  (circle holding it with probability 0.95 in plan)"))
         rows.append(("σ of one residual (m)", _n(res.sigma_m, ".4f")))
         rows.append(("final fitness / inlier RMSE (Eq. 19)",
                      f"{_n(res.fitness, '.4f')} / {_n(res.inlier_rmse_m, '.4f')} m"))
