@@ -1,4 +1,4 @@
-"""Numba kernels for FPFH (Rusu et al. 2009; Baek et al. 2022, Sec. 2.3.1, Eqs. 3-6).
+"""Numba kernels for FPFH (Rusu et al. 2009; Baek et al. 2022, Sec. 2.3.1, [Baek2022 Eqs. 3-6]).
 
 Kernels take C-contiguous float64/int64 arrays and do no checking; the public
 function :func:`minegeo.features.compute_fpfh` validates and documents.
@@ -20,7 +20,7 @@ from minegeo._jit import njit, njit_parallel, prange
 #: Bins per angular feature and descriptor length (3 x 11 = 33).
 N_BINS = 11
 N_FEATURES = 33
-#: Weight modes for Eq. 6: 0 = 1/d (paper), 1 = 1/d^2 (Open3D and PCL).
+#: Weight modes for [Baek2022 Eq. 6]: 0 = 1/d (paper), 1 = 1/d^2 (Open3D and PCL).
 WEIGHT_INVERSE_DISTANCE = 0
 WEIGHT_OPEN3D = 1
 
@@ -33,9 +33,9 @@ def pair_features(p1, n1, p2, n2):
     is the point whose normal makes the smaller angle with the connecting line
     (swap rule); then ``u = n1'``, ``v = d' x u / |d' x u|``, ``w = u x v`` and
 
-    * ``f1 = atan2(w . n2', u . n2')``  (theta, Eq. 5), in [-pi, pi]
-    * ``f2 = v . n2'``                   (alpha, Eq. 3), in [-1, 1]
-    * ``f3 = u . d' / |d'|``             (phi, Eq. 4), in [-1, 1]
+    * ``f1 = atan2(w . n2', u . n2')``  (theta, [Baek2022 Eq. 5]), in [-pi, pi]
+    * ``f2 = v . n2'``                   (alpha, [Baek2022 Eq. 3]), in [-1, 1]
+    * ``f3 = u . d' / |d'|``             (phi, [Baek2022 Eq. 4]), in [-1, 1]
     * ``f4 = |d|`` (unused in the histogram).
 
     Returns all zeros for coincident points or ``d' || u``.
@@ -123,12 +123,12 @@ def spfh_kernel(points, normals, nbr_idx, counts, row0):
 def fpfh_kernel(spfh, nbr_idx, nbr_sq, counts, weight_mode, row0):
     """FPFH of points ``row0 .. row0 + m - 1`` from the SPFH of all points, ``(m, 33)``.
 
-    Eq. 6 with per-block normalisation; row r of the neighbour table belongs to point
+    [Baek2022 Eq. 6] with per-block normalisation; row r of the neighbour table belongs to point
     ``i = row0 + r``.
 
     ``acc = sum_k SPFH_k / w_k`` over neighbours at positions 1.. with non-zero
     distance, where ``w_k = d_k^2`` (Open3D, ``weight_mode=1``) or ``w_k = d_k``
-    (paper Eq. 6, ``weight_mode=0``). Each 11-bin block of ``acc`` is scaled to
+    ([Baek2022 Eq. 6], ``weight_mode=0``). Each 11-bin block of ``acc`` is scaled to
     sum to 100 (left at zero if its sum is zero), then ``SPFH_i`` is added.
     """
     nrow = nbr_idx.shape[0]

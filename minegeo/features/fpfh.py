@@ -7,7 +7,7 @@ for 3D registration. ICRA 2009.
 
 Baek, J., Park, J., Cho, S., Lee, C. (2022). 3D global localization in the
 underground mine environment using mobile LiDAR mapping and point cloud
-registration. Sensors 22, 2873. Sec. 2.3.1, Eqs. 3-6, Table 3.
+registration. Sensors 22, 2873. Sec. 2.3.1, [Baek2022 Eqs. 3-6], Table 3.
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ class FPFHParams:
         At most this many nearest neighbours inside the sphere, the point itself
         included (Table 3: 1000).
     weight : {"inverse_distance", "open3d"}
-        Neighbour weight in Eq. 6. ``"inverse_distance"`` is the paper's
+        Neighbour weight in [Baek2022 Eq. 6]. ``"inverse_distance"`` is the paper's
         ``1/omega_j`` with ``omega_j`` the Euclidean distance; ``"open3d"`` is
         ``1/omega_j^2`` (squared distance) as Open3D and PCL implement it. Both
         then scale each 11-bin block of the weighted neighbour sum to 100 before
@@ -180,7 +180,7 @@ def compute_fpfh(points, normals, params: FPFHParams | None = None, neighborhood
 
     Each is binned into 11 equal bins over its range ([-pi, pi] or [-1, 1]);
     SPFH_i adds ``100/(k_i - 1)`` per neighbour, so each block sums to 100.
-    Eq. 6, ``FPFH_i = SPFH_i + (1/k) sum_j SPFH_j / omega_j``, is evaluated as in
+    [Baek2022 Eq. 6], ``FPFH_i = SPFH_i + (1/k) sum_j SPFH_j / omega_j``, is evaluated as in
     Open3D: the weighted neighbour sum (``omega_j = d_j`` or ``d_j^2``, see
     :class:`FPFHParams`) is scaled so each block sums to 100, then ``SPFH_i`` is
     added. With ``weight="open3d"`` and the same neighbourhoods and normals the

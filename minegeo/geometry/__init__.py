@@ -4,7 +4,7 @@ Public API
 ----------
 NeighborIndex, Neighborhoods          exact kNN / radius / hybrid search (Open3D semantics)
 estimate_normals, NormalParams, NormalsResult
-                                      PCA normals (Baek et al. 2022, Eq. 2), curvature, planarity
+                                      PCA normals ([Baek2022 Eq. 2]), curvature, planarity
 voxel_downsample, VoxelResult         Open3D-compatible voxel-centroid downsampling
 Octree, octree_downsample, OctreeDownsampleResult
                                       linear octree; closest-to-centre subsampling (Baek et al. 2022, Sec. 2.2)

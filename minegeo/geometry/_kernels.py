@@ -677,7 +677,7 @@ def jacobi_eigh3(A, V, w):
     ``|a_pq| > eps * sqrt(|a_pp a_qq|)`` (Demmel-Veselic stopping rule, which gives
     eigenvalues to high relative accuracy); the sweep loop ends when no rotation was
     needed (at most 50 sweeps; 3x3 matrices converge in a handful).
-    Rotation formulas: Numerical Recipes 3rd ed., Sec. 11.1, Eqs. 11.1.8-11.1.18.
+    Rotation formulas: Numerical Recipes 3rd ed., Sec. 11.1, [NumericalRecipes2007 Eqs. 11.1.8-11.1.18].
     """
     for i in range(3):
         for j in range(3):
@@ -763,7 +763,7 @@ def jacobi_eigh3(A, V, w):
 
 
 # ---------------------------------------------------------------------------------------
-# normals (PCA of a neighbourhood; Baek et al. 2022, Eq. 2)
+# normals (PCA of a neighbourhood; [Baek2022 Eq. 2])
 # ---------------------------------------------------------------------------------------
 
 STATUS_OK = 0

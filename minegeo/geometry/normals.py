@@ -1,4 +1,4 @@
-"""Surface normals by PCA of local neighbourhoods (Baek et al. 2022, Sec. 2.3.1, Eq. 2).
+"""Surface normals by PCA of local neighbourhoods (Baek et al. 2022, Sec. 2.3.1, [Baek2022 Eq. 2]).
 
 For every point p_i with neighbourhood N_i (hybrid search: the ``<= max_nn`` nearest
 points strictly inside ``radius_m``, p_i included; or the ``max_nn`` nearest when
@@ -7,7 +7,7 @@ points strictly inside ``radius_m``, p_i included; or the ``max_nn`` nearest whe
 .. math:: C_i = \\frac{1}{|N_i|} \\sum_{j \\in N_i} (p_j - \\bar p)(p_j - \\bar p)^T
 
 is eigen-decomposed, ``λ0 <= λ1 <= λ2``, and the normal is the eigenvector of the smallest
-eigenvalue, ``n_i = V_0`` (Eq. 2). Shape descriptors returned alongside:
+eigenvalue, ``n_i = V_0`` ([Baek2022 Eq. 2]). Shape descriptors returned alongside:
 
 * curvature (surface variation) ``λ0 / (λ0 + λ1 + λ2)`` (0 on a plane, 1/3 for isotropic);
 * planarity ``(λ1 - λ0) / λ2`` (≈1 on a plane, ≈0 on a line);
@@ -176,7 +176,7 @@ def _targets(orient_towards, points: np.ndarray, mode: str):
 def estimate_normals(points, params: NormalParams | None = None, orient_towards=None,
                      neighborhoods: Neighborhoods | None = None,
                      index: NeighborIndex | None = None) -> NormalsResult:
-    """Estimate unit normals by PCA of each point's neighbourhood (Baek et al. 2022, Eq. 2).
+    """Estimate unit normals by PCA of each point's neighbourhood ([Baek2022 Eq. 2]).
 
     Parameters
     ----------

@@ -8,7 +8,7 @@ the TUM RGB-D and ROS formats, unless ``order="wxyz"`` (scalar first, e.g. GeoSL
 References
 ----------
 Shuster, M. D. (1993). A survey of attitude representations. J. Astronautical Sciences
-41(4), 439-517 -- Eq. (161) (matrix of a Hamilton quaternion, passive/active note below).
+41(4), 439-517 -- [Shuster1993 Eq. 161] (matrix of a Hamilton quaternion, passive/active note below).
 Shepperd, S. W. (1978). Quaternion from rotation matrix. J. Guidance and Control 1(3),
 223-224 -- the largest-diagonal branch selection used in :func:`matrix_to_quat`.
 
@@ -91,7 +91,7 @@ def quat_to_matrix(q, order: str = "xyzw") -> np.ndarray:
     Returns
     -------
     (3, 3) or (m, 3, 3) float64
-        Active rotation ``R`` with ``p' = R p`` (Shuster 1993, Eq. 161, transposed for the
+        Active rotation ``R`` with ``p' = R p`` ([Shuster1993 Eq. 161], transposed for the
         active convention); equal to SciPy's ``Rotation.from_quat(q).as_matrix()``.
     """
     q = normalize_quat(q, order)

@@ -610,7 +610,7 @@ def georeference(gcps: ControlPoints, crs=None, params: GeorefParams | None = No
     -----
     Observation equations ``X_i = T + s·R·x_i`` (Ghilani 2010, Ch. 18, the 3D conformal
     coordinate transformation), solved by Gauss-Newton from the closed-form start of
-    Umeyama (1991, Eqs. 40-42) in :func:`minegeo.survey.helmert3d`; the CRS coordinates are first
+    [Umeyama1991 Eqs. 40-42] in :func:`minegeo.survey.helmert3d`; the CRS coordinates are first
     reduced by the recorded origin ``o`` (exact), so ``T = t_geo + o``.
     """
     t0 = time.perf_counter()

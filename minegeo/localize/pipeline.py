@@ -2,12 +2,12 @@
 
 Pipeline (:func:`localize_scan`), each stage timed:
 
-1. ``downsample`` the scan (Sec. 2.2: voxel size or octree level), ``normals`` (Eq. 2),
-   ``fpfh`` (Eqs. 3-6) with the map's :class:`~minegeo.localize.prepared.FeatureParams`;
-2. ``ransac``: FPFH correspondences + RANSAC with edge-length pruning (Eqs. 7-9), Table 3
+1. ``downsample`` the scan (Sec. 2.2: voxel size or octree level), ``normals`` ([Baek2022 Eq. 2]),
+   ``fpfh`` ([Baek2022 Eqs. 3-6]) with the map's :class:`~minegeo.localize.prepared.FeatureParams`;
+2. ``ransac``: FPFH correspondences + RANSAC with edge-length pruning ([Baek2022 Eqs. 7-9]), Table 3
    parameters, via :func:`minegeo.registration.ransac.register_ransac`;
 3. ``icp``: every *distinct* RANSAC hypothesis (the best one and the runner-up, optionally
-   more from extra RANSAC runs) is refined by ICP (Sec. 2.4, Eqs. 10-16; point-to-point as
+   more from extra RANSAC runs) is refined by ICP (Sec. 2.4, [Baek2022 Eqs. 10-16]; point-to-point as
    in the paper, point-to-plane selectable; GICP is not available yet). The refined
    hypothesis with the highest ICP fitness wins (multi-hypothesis verification: mine drifts
    repeat themselves, and a RANSAC score alone can prefer a look-alike drift);
@@ -15,7 +15,7 @@ Pipeline (:func:`localize_scan`), each stage timed:
    ``ok`` decision is first checked by the whole-map rival search (``rival_search``);
 5. ``covariance``: ``Σ = σ² (JᵀJ)⁻¹`` of the final fit and the 95 % position uncertainty of
    the scan origin;
-6. ``trajectory``: the sensor trajectory moved into the map and the CRS (Eq. 18):
+6. ``trajectory``: the sensor trajectory moved into the map and the CRS ([Baek2022 Eq. 18]):
    ``T_map_sensor(τ) = T_map_scan · T_scan_sensor(τ)``.
 
 Frames
@@ -36,7 +36,7 @@ Decision rules (all thresholds in :class:`LocalizeParams`)
                of scan points within ``verify_plane_tolerance_m`` of the map's tangent planes)
                is below ``min_plane_fitness``; or the best ICP fitness (fraction of scan points
                with a map point within the ICP gate) is below ``min_fitness``; or its inlier
-               RMSE (Eq. 19) exceeds ``max_inlier_rmse_m``.
+               RMSE ([Baek2022 Eq. 19]) exceeds ``max_inlier_rmse_m``.
 ``ambiguous``  another refined hypothesis placing the scan more than ``ambiguity_distance_m``
                (or ``ambiguity_angle_deg``) away reaches ``ambiguity_ratio`` × the best ICP
                fitness (a look-alike drift); or, before an ``ok``, the **whole-map rival
@@ -108,19 +108,19 @@ class LocalizeParams:
         Normals / FPFH settings (Table 3); must equal the prepared map's.
     ransac : RansacParams
         RANSAC settings (Table 3: ε_distance 2.5 m, 4 correspondences, edge-length 0.9,
-        500 validations; confidence 0.999 for Eq. 8). One deviation: the iteration cap is
+        500 validations; confidence 0.999 for [Baek2022 Eq. 8]). One deviation: the iteration cap is
         ``DEFAULT_RANSAC_MAX_ITERATIONS`` (4e6) instead of Table 3's 4e8 (Open3D's budget),
         which at ~1-5 µs per draw would let a hopeless search (scan outside the map) run
-        for 10-30 min; Eq. 8 normally stops far earlier. One addition: mutual FPFH
+        for 10-30 min; [Baek2022 Eq. 8] normally stops far earlier. One addition: mutual FPFH
         matches (``mutual_filter=True``, Open3D's option; Table 3 is silent), which about
-        doubles the inlier fraction w and so divides Eq. 8's iterations by ~16 for n = 4.
+        doubles the inlier fraction w and so divides [Baek2022 Eq. 8]'s iterations by ~16 for n = 4.
         :meth:`paper_table3` gives exactly the paper's values.
     ransac_runs : int
         Independent RANSAC runs (seeds derived from ``seed``); their distinct hypotheses are
         all verified by ICP. 1 = the paper.
     icp_method : {"point_to_point", "point_to_plane", "gicp"}
         ICP variant (paper: point-to-point). ``"gicp"``: Generalized-ICP
-        (:func:`minegeo.registration.register_gicp`, Segal 2009 / Ren 2019 Eqs. 1-6) against
+        (:func:`minegeo.registration.register_gicp`, Segal 2009 / [Ren2019 Eqs. 1-6]) against
         plane covariances of the map's ICP cloud built once from its stored normals.
     icp_max_correspondence_m : float
         ICP pair gate, m (Table 3: 0.5 m).
@@ -164,7 +164,7 @@ class LocalizeParams:
         The plane tolerance actually used is ``max(verify_plane_tolerance_m, factor · σ_surf)``
         with ``σ_surf`` the scan's own surface noise (median over scan points of the RMS
         distance of their 16 nearest ICP-source neighbours from the neighbourhood's PCA
-        plane, ``sqrt(λ_min)`` of Eq. 2's covariance): a noisier sensor gets a wider band
+        plane, ``sqrt(λ_min)`` of [Baek2022 Eq. 2]'s covariance): a noisier sensor gets a wider band
         so its correct placements are not refused; the measure does not depend on any
         placement, so a wrong placement gains nothing. 0 disables it.
     verify_fine_tolerance_m : float or None
@@ -413,7 +413,7 @@ class LocalizeParams:
 
         Coarser descriptors (voxel 1 m, normal radius 2 m, FPFH radius 5 m: the Table 3 ratios
         at twice the voxel), mutual FPFH matches, 3-point RANSAC samples, always 1e6 draws
-        (``min_iterations``: Eq. 8 computed from a wrong but drift-like best placement stops
+        (``min_iterations``: [Baek2022 Eq. 8] computed from a wrong but drift-like best placement stops
         the search too early, see :class:`~minegeo.registration.RansacParams`),
         point-to-plane ICP. Not the paper's parameters: measured faster and more successful
         on the synthetic mine (docs/localization.md).
@@ -450,7 +450,7 @@ class LocalizationResult:
     T_geo_scan, T_crs_scan : (4, 4) ndarray or None
         The scan pose in the ``geo`` frame and in full CRS coordinates (None without CRS).
     fitness, inlier_rmse_m : float
-        Final ICP fitness and inlier RMSE (Eq. 19), m.
+        Final ICP fitness and inlier RMSE ([Baek2022 Eq. 19]), m.
     ransac : RansacResult
         The (first) RANSAC run.
     icp : ICPResult or None
@@ -479,7 +479,7 @@ class LocalizationResult:
     pending_step_m : float
         Largest scan-point displacement of one more point-to-plane step from the final pose, m.
     trajectory_map, trajectory_geo : Trajectory or None
-        Sensor trajectory in the map and geo frames (Eq. 18), when a trajectory was given.
+        Sensor trajectory in the map and geo frames ([Baek2022 Eq. 18]), when a trajectory was given.
     trajectory_sigma_m : (m,) ndarray or None
         1-σ 3-D position uncertainty of each trajectory pose from ``covariance_6x6``, m.
     crs : str or None
@@ -773,7 +773,7 @@ def _verify(P: np.ndarray, T: np.ndarray, Q: np.ndarray, N: np.ndarray, tree, ga
 
 
 def surface_noise_m(P: np.ndarray, k: int = 16, max_points: int = 20000) -> float:
-    """Scan surface noise ``σ_surf`` (m): median of ``sqrt(λ_min)`` of the k-neighbour PCA (Eq. 2).
+    """Scan surface noise ``σ_surf`` (m): median of ``sqrt(λ_min)`` of the k-neighbour PCA ([Baek2022 Eq. 2]).
 
     Evaluated on an evenly strided subset of at most ``max_points`` points (deterministic);
     neighbours from the whole cloud. Independent of any placement in the map.
@@ -811,7 +811,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         The local scan in its own frame (m).
     trajectory : Trajectory, optional
         Sensor poses ``T_scan_sensor`` in the scan frame (as written by a SLAM system and by
-        ``minegeo synth``); moved into the map and the CRS with Eq. 18.
+        ``minegeo synth``); moved into the map and the CRS with [Baek2022 Eq. 18].
     params : LocalizeParams, optional
         Defaults to Baek et al. (2022) Table 3 plus the decision thresholds.
     seed : int
@@ -1520,7 +1520,7 @@ def _localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory, p: Localiz
 
     T_map_scan = _to_map(T_work_scan, scan_origin, prepared_map.work_origin)
 
-    # 6. trajectory and CRS (Eq. 18)
+    # 6. trajectory and CRS ([Baek2022 Eq. 18])
     announce(progress, "trajectory")
     t0 = time.perf_counter()
     g = prepared_map.georef_result

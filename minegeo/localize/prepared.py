@@ -2,7 +2,7 @@
 
 A *prepared map* holds everything of the prior map that the localization of a scan needs
 and that does not depend on the scan: the downsampled map points (Sec. 2.2), their surface
-normals (Eq. 2) and FPFH descriptors (Eqs. 3-6), in the **map frame** relative to a recorded
+normals ([Baek2022 Eq. 2]) and FPFH descriptors ([Baek2022 Eqs. 3-6]), in the **map frame** relative to a recorded
 working origin, plus the georeferencing of the map (if any). It is computed once
 (:func:`prepare_map`, ``minegeo prepare-map``) and stored as a NumPy ``.npz`` file without
 pickles (:meth:`PreparedMap.save` / :meth:`PreparedMap.load`), carrying a format version and
@@ -94,15 +94,15 @@ class FeatureParams:
     Attributes
     ----------
     normal_radius_m : float
-        Sphere radius of the PCA normal neighbourhood (Eq. 2), m. Table 3: 1 m.
+        Sphere radius of the PCA normal neighbourhood ([Baek2022 Eq. 2]), m. Table 3: 1 m.
     normal_max_nn : int
         At most this many neighbours for a normal. Table 3: 1000.
     fpfh_radius_m : float
-        FPFH sphere radius r (Eqs. 3-6), m. Table 3: 2.5 m.
+        FPFH sphere radius r ([Baek2022 Eqs. 3-6]), m. Table 3: 2.5 m.
     fpfh_max_nn : int
         At most this many FPFH neighbours. Table 3: 1000.
     fpfh_weight : {"inverse_distance", "open3d"}
-        Neighbour weight of Eq. 6 (``1/ω`` as the paper, or ``1/ω²`` as Open3D).
+        Neighbour weight of [Baek2022 Eq. 6] (``1/ω`` as the paper, or ``1/ω²`` as Open3D).
     orientation : {"void", "none", "centroid"}
         Normal sign rule (module docstring). Not in the paper (Open3D leaves signs to the
         solver); "void" makes the descriptors independent of the scan's orientation.
@@ -252,7 +252,7 @@ def _downsample(points: np.ndarray, voxel_size_m, octree_level) -> np.ndarray:
 
 
 def prepare_cloud_features(points, voxel_size_m, octree_level, features: FeatureParams, timings: dict | None = None):
-    """Downsample (Sec. 2.2), estimate normals (Eq. 2) and FPFH (Eqs. 3-6) of one cloud.
+    """Downsample (Sec. 2.2), estimate normals ([Baek2022 Eq. 2]) and FPFH ([Baek2022 Eqs. 3-6]) of one cloud.
 
     Parameters
     ----------
@@ -501,7 +501,7 @@ class PreparedMap:
     def gicp_target(self, params):
         """``(covariances (k, 3, 3), KD-tree)`` of ``icp_points`` for GICP, computed once per
         process and per (ε, neighbours, covariance mode) from the stored ICP normals
-        (plane covariances ``I − (1 − ε) n nᵀ``, Ren 2019 Eqs. 2-3)."""
+        (plane covariances ``I − (1 − ε) n nᵀ``, [Ren2019 Eqs. 2-3])."""
         from minegeo.registration import estimate_gicp_covariances
 
         key = (float(params.epsilon), int(params.covariance_neighbours), str(params.covariance_mode))

@@ -18,7 +18,7 @@ Estimators
 
     Σ_formal = σ² H⁻¹,    σ² = Σ r_i² / (k − 6)
 
-This is Censi (2007, "An accurate closed-form estimate of ICP's covariance", ICRA, Eq. 4:
+This is Censi (2007, "An accurate closed-form estimate of ICP's covariance", ICRA, [Censi2007 Eq. 4]:
 ``cov(x) ≈ (∂²J/∂x²)⁻¹ (∂²J/∂z∂x) cov(z) (∂²J/∂z∂x)ᵀ (∂²J/∂x²)⁻¹``) evaluated with
 ``cov(z) = σ² I``, i.e. every residual an independent error. It is optimistic on real and
 synthetic scans because the residuals of neighbouring pairs are strongly correlated: a scan
@@ -28,7 +28,7 @@ noise and normal errors all act on whole patches of the scan at once.
 
 ``cluster`` (cluster-robust "sandwich" covariance, CR1; Liang & Zeger 1986; White 1980;
 Cameron & Miller 2015, "A practitioner's guide to cluster-robust inference", J. Human
-Resources 50(2), Eqs. 11-12 with the CR1 small-sample factor of their Sec. VI.B)::
+Resources 50(2), [CameronMiller2015 Eqs. 11-12] with the CR1 small-sample factor of their Sec. VI.B)::
 
     r̂_i   = r_i + J_i s                          residual at the point-to-plane optimum
     g_b   = Σ_{i ∈ b} J_iᵀ r̂_i                  score of spatial block b  (Σ_b g_b = 0)
@@ -610,8 +610,8 @@ def pose_uncertainty(P_work, Q, Nq, corr, origin_work, params: UncertaintyParams
 
     Notes
     -----
-    Formulas and references in the module docstring (formal: Censi 2007 Eq. 4 with i.i.d.
-    residuals; cluster: Cameron & Miller 2015 Eqs. 11-12, CR1 factor; jackknife: their CR3). Deterministic: no
+    Formulas and references in the module docstring (formal: [Censi2007 Eq. 4] with i.i.d.
+    residuals; cluster: [CameronMiller2015 Eqs. 11-12], CR1 factor; jackknife: their CR3). Deterministic: no
     random numbers, block labels in lexicographic cell order, sums in pair order
     (``np.bincount``), so equal inputs give bit-identical outputs; permuting the pairs changes
     the result only by floating-point summation order.

@@ -2,13 +2,13 @@
 
 Public API
 ----------
-umeyama, kabsch            closed-form rigid / similarity fit (Baek 2022 Eqs. 10-13)
+umeyama, kabsch            closed-form rigid / similarity fit ([Baek2022 Eqs. 10-13])
 pose_covariance            σ² I⁻¹ from a 6x6 information matrix
-evaluate_registration      fitness and inlier RMSE (Baek 2022 Eq. 19, Open3D semantics)
+evaluate_registration      fitness and inlier RMSE ([Baek2022 Eq. 19], Open3D semantics)
 build_target_index         reusable KD-tree over a target cloud
 ICPParams, register_icp    point-to-point / point-to-plane ICP with information matrix
 ICPResult, constraint_analysis
-GICPParams, register_gicp  Generalized-ICP (Segal 2009; Ren 2019 Eqs. 1-6), Open3D-compatible mode
+GICPParams, register_gicp  Generalized-ICP (Segal 2009; [Ren2019 Eqs. 1-6]), Open3D-compatible mode
 GICPResult, estimate_gicp_covariances
 RansacParams, RansacResult, register_ransac
                            global registration by RANSAC on FPFH matches (Baek 2022 Sec. 2.3.2)

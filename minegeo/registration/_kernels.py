@@ -267,7 +267,7 @@ def weighted_moments_kernel(P, Q, w):
     """Weighted means and centred second moments of corresponding rows of ``P`` and ``Q``.
 
     Returns ``(sum_w, mu_p (3,), mu_q (3,), W (3,3), var_p)`` with
-    ``W = sum_i w_i (p_i - mu_p)(q_i - mu_q)^T / sum_w`` (Baek 2022 Eq. 10, centred) and
+    ``W = sum_i w_i (p_i - mu_p)(q_i - mu_q)^T / sum_w`` ([Baek2022 Eq. 10], centred) and
     ``var_p = sum_i w_i |p_i - mu_p|^2 / sum_w``. Two passes (means, then centred sums).
     """
     nc = n_chunks(P.shape[0])
@@ -289,11 +289,11 @@ def weighted_moments_kernel(P, Q, w):
 
 @njit
 def umeyama_from_moments(mu_p, mu_q, W, var_p, with_scale):
-    """Closed-form similarity from the moments (Baek 2022 Eqs. 11-13; Umeyama 1991).
+    """Closed-form similarity from the moments ([Baek2022 Eqs. 11-13]; Umeyama 1991).
 
-    ``W = U S V^T`` (Eq. 11), ``R = V diag(1, 1, d) U^T`` with ``d = sign det(V U^T)``
-    (Eq. 12 with the reflection fix), ``c = tr(S diag(1,1,d)) / var_p`` if scaling, and
-    ``t = mu_q - c R mu_p`` (Eq. 13). Returns ``(T 4x4, c, singular values S)``.
+    ``W = U S V^T`` ([Baek2022 Eq. 11]), ``R = V diag(1, 1, d) U^T`` with ``d = sign det(V U^T)``
+    ([Baek2022 Eq. 12] with the reflection fix), ``c = tr(S diag(1,1,d)) / var_p`` if scaling, and
+    ``t = mu_q - c R mu_p`` ([Baek2022 Eq. 13]). Returns ``(T 4x4, c, singular values S)``.
     """
     U, S, Vt = np.linalg.svd(W)
     V = Vt.T

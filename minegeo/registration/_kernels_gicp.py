@@ -84,7 +84,7 @@ def _plane_cov_rows(N, isotropic, eps, rodrigues, C, start, end):
                 for c in range(3):
                     C[i, r, c] = eps * R[r, 0] * R[c, 0] + R[r, 1] * R[c, 1] + R[r, 2] * R[c, 2]
         else:
-            # Segal 2009 / Ren 2019 Eq. (3) with U = [n, u, v] orthonormal:
+            # Segal 2009 / [Ren2019 Eq. 3] with U = [n, u, v] orthonormal:
             # U diag(eps, 1, 1) U^T = I - (1 - eps) n n^T, with n normalised here.
             s = np.sqrt(nx * nx + ny * ny + nz * nz)
             if s > 0.0:
@@ -113,7 +113,7 @@ def _plane_cov_parallel(N, isotropic, eps, rodrigues, C):
 def plane_covariances_kernel(N, isotropic, eps, rodrigues):
     """(n, 3, 3) plane-like covariances from unit normals ``N`` (n, 3).
 
-    ``rodrigues=False``: ``C = I - (1-eps) n nᵀ`` (Ren 2019 Eq. 3); ``rodrigues=True``: Open3D's
+    ``rodrigues=False``: ``C = I - (1-eps) n nᵀ`` ([Ren2019 Eq. 3]); ``rodrigues=True``: Open3D's
     ``R diag(eps, 1, 1) Rᵀ`` with its Rodrigues rotation e_x -> n (identity when ``n_x < -0.99``).
     Rows with ``isotropic[i]`` get ``C = I`` (no surface model).
     """
@@ -244,7 +244,7 @@ def _gicp_chunk(P, Q, Cs, Ct, R, si, ti, part, c, start, end):
     for k in range(start, end):
         a_ = si[k]
         b_ = ti[k]
-        # A = R Cs R^T (source covariance carried into the target frame, Ren 2019 Eq. 5)
+        # A = R Cs R^T (source covariance carried into the target frame, [Ren2019 Eq. 5])
         for r in range(3):
             for cc in range(3):
                 s = 0.0

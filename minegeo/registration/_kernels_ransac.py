@@ -1,4 +1,4 @@
-"""Numba kernels for feature-based RANSAC (Baek et al. 2022, Sec. 2.3.2, Eqs. 7-8, 10-13, 19).
+"""Numba kernels for feature-based RANSAC (Baek et al. 2022, Sec. 2.3.2, [Baek2022 Eqs. 7-8, 10-13, 19]).
 
 Kernels take C-contiguous float64/int64 arrays and do no checking; the public
 functions in :mod:`minegeo.registration.ransac` and
@@ -20,7 +20,7 @@ import numpy as np
 from minegeo._jit import njit, njit_parallel, prange
 
 # Hypothesis status codes returned by :func:`ransac_batch_kernel`.
-ST_EDGE = 0  #: rejected by the edge-length test (Eq. 7)
+ST_EDGE = 0  #: rejected by the edge-length test ([Baek2022 Eq. 7])
 ST_DEGENERATE = 1  #: sample (near) collinear: rotation undetermined
 ST_DISTANCE = 2  #: rejected by the distance check on the sample
 ST_NORMAL = 3  #: rejected by the normal-angle check on the sample
@@ -168,7 +168,7 @@ def grid_nearest_serial(queries, R, t, gpts, gorigin, gcell, gdims, dstart, tkey
 
 @njit
 def umeyama_rigid(P, Q, rel_tol):
-    """Least-squares rigid motion ``Q ~ R P + t`` from paired rows (Eqs. 10-13, Umeyama 1991).
+    """Least-squares rigid motion ``Q ~ R P + t`` from paired rows ([Baek2022 Eqs. 10-13], Umeyama 1991).
 
     ``Sigma = (1/n) sum (q_i - q_bar)(p_i - p_bar)^T = U D V^T``,
     ``R = U diag(1, 1, s) V^T`` with ``s = sign(det U det V)`` (reflection fix),
@@ -285,10 +285,10 @@ def ransac_check_kernel(csrc, ctgt, csrc_n, ctgt_n, samples, sim, all_pairs, dis
     For hypothesis h with sampled correspondence rows ``samples[h]`` (n >= 3):
 
     0. if ``distinct``, a sample that repeats a correspondence is rejected (ST_DEGENERATE);
-    1. edge-length test, Eq. 7: every compared edge must satisfy
-       ``min(l_s, l_t) >= sim * max(l_s, l_t)`` (polygon edges of Eq. 7, or all
+    1. edge-length test, [Baek2022 Eq. 7]: every compared edge must satisfy
+       ``min(l_s, l_t) >= sim * max(l_s, l_t)`` (polygon edges of [Baek2022 Eq. 7], or all
        pairs when ``all_pairs``);
-    2. rigid model by SVD (Eqs. 10-13), rejected if the sample is collinear;
+    2. rigid model by SVD ([Baek2022 Eqs. 10-13]), rejected if the sample is collinear;
     3. distance check ``|R p + t - q| <= dist_thr`` for every sampled pair;
     4. optional normal check ``n_q . (R n_p) >= cos_normal``.
 
@@ -337,7 +337,7 @@ def _score_one(h, src, eval_order, Ts, prune_count, r2, gpts, gorigin, gcell, gd
 @njit_parallel
 def ransac_score_kernel(src, eval_order, Ts, prune_count, dist_thr, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots,
                         cstart, ccount):
-    """Score hypotheses ``Ts (G, 4, 4)`` on the whole source cloud (Eq. 19 ingredients); parallel.
+    """Score hypotheses ``Ts (G, 4, 4)`` on the whole source cloud ([Baek2022 Eq. 19] ingredients); parallel.
 
     For each source point (in ``eval_order``) the nearest target point strictly
     within ``dist_thr`` after ``R p + t``: ``n_inl`` counts them and ``sse`` sums

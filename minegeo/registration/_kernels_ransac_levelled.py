@@ -67,7 +67,7 @@ def ransac_check_levelled_kernel(csrc, ctgt, samples, sim, dist_thr, min_spread_
     """Prune and fit a batch of levelled RANSAC samples (rows of ``samples``, n >= 2); serial.
 
     0. if ``distinct``, a sample repeating a correspondence is rejected (ST_DEGENERATE);
-    1. edge-length test (Eq. 7) on every pair of the sample: ``min(l_s, l_t) >= sim * max(l_s, l_t)``;
+    1. edge-length test ([Baek2022 Eq. 7]) on every pair of the sample: ``min(l_s, l_t) >= sim * max(l_s, l_t)``;
     2. yaw + translation by :func:`yaw_fit`; rejected (ST_DEGENERATE) if the horizontal spread
        of the source sample is below ``min_spread_m2`` (the yaw is undetermined);
     3. distance check ``|Rz p + t − q| <= dist_thr`` for every sampled pair.

@@ -8,7 +8,7 @@ References
 ----------
 Baek, J., Park, J., Cho, S., Lee, C. (2022). 3D Global Localization in the Underground Mine
 Environment Using Mobile LiDAR Mapping and Point Cloud Registration. Sensors 22, 2873.
-Sec. 2.4, Eqs. (10)-(13).
+Sec. 2.4, [Baek2022 Eqs. 10-13].
 Umeyama, S. (1991). Least-squares estimation of transformation parameters between two point
 patterns. IEEE TPAMI 13(4), 376-380.
 Arun, K. S., Huang, T. S., Blostein, S. D. (1987). Least-squares fitting of two 3-D point sets.
@@ -79,8 +79,8 @@ def umeyama(src, dst, with_scale: bool = False, weights=None, *, allow_degenerat
 
     Notes
     -----
-    With weighted centroids ``p̄``, ``q̄`` and centred points (the paper's Eq. 10 is written
-    without the centring, which is implied by Eq. 13):
+    With weighted centroids ``p̄``, ``q̄`` and centred points ([Baek2022 Eq. 10] is written
+    without the centring, which is implied by [Baek2022 Eq. 13]):
 
     .. math::
 
@@ -123,7 +123,7 @@ def kabsch(src, dst, weights=None, *, allow_degenerate: bool = False) -> np.ndar
     """Rigid transform ``T_target_source`` (no scale) by the Kabsch/Umeyama SVD solution.
 
     Same as ``umeyama(src, dst, with_scale=False, weights=weights)[0]``; see :func:`umeyama`
-    for the formula (Baek 2022 Eqs. 10-13 with the reflection fix) and the errors raised.
+    for the formula ([Baek2022 Eqs. 10-13] with the reflection fix) and the errors raised.
     """
     T, _ = umeyama(src, dst, with_scale=False, weights=weights, allow_degenerate=allow_degenerate)
     return T

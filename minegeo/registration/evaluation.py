@@ -2,7 +2,7 @@
 
 References
 ----------
-Baek et al. (2022), Sensors 22, 2873, Eq. (19) (inlier RMSE).
+Baek et al. (2022), Sensors 22, 2873, [Baek2022 Eq. 19] (inlier RMSE).
 Open3D ``evaluate_registration`` semantics: ``../shared/specs/open3d_oracle.md`` §8.
 """
 
@@ -117,7 +117,7 @@ def evaluate_registration(source, target, T, max_correspondence_distance_m: floa
     fitness : float
         ``|C| / n``: fraction of source points with a target neighbour within ``d``.
     inlier_rmse_m : float
-        ``sqrt(Σ_{(p,q)∈C} |T p - q|² / |C|)`` (Baek 2022 Eq. 19), Euclidean; 0 when ``C`` is empty.
+        ``sqrt(Σ_{(p,q)∈C} |T p - q|² / |C|)`` ([Baek2022 Eq. 19]), Euclidean; 0 when ``C`` is empty.
     correspondences : (|C|, 2) int64 ndarray
         ``(source index, target index)`` pairs in ascending source index.
 

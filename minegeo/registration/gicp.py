@@ -4,16 +4,16 @@ Frames: ``source_points`` are in the source (scan) frame, ``target_points`` in t
 (map) frame. The result ``T_target_source`` maps the scan into the map:
 ``p_map = R p_scan + t``.
 
-Model (Segal, Haehnel & Thrun 2009; Ren et al. 2019, Sec. 3.2, Eqs. 1-6). Every point carries
+Model (Segal, Haehnel & Thrun 2009; Ren et al. 2019, Sec. 3.2, [Ren2019 Eqs. 1-6]). Every point carries
 a covariance ``C`` describing the local surface; for a pair ``(b_i, m_i)`` (source point, its
-nearest target point) the residual ``d_i = m_i - T b_i`` (Eq. 4) is modelled as
-``N(0, C_i^M + R C_i^B Rᵀ)`` (Eq. 5), and the pose maximises the likelihood (Eq. 6; the paper
+nearest target point) the residual ``d_i = m_i - T b_i`` ([Ren2019 Eq. 4]) is modelled as
+``N(0, C_i^M + R C_i^B Rᵀ)`` ([Ren2019 Eq. 5]), and the pose maximises the likelihood ([Ren2019 Eq. 6]; the paper
 writes *arg max* in front of the quadratic form, it is the minimum of)
 
 .. math:: T^* = \\arg\\min_T \\sum_i d_i^T (C_i^M + R C_i^B R^T)^{-1} d_i .
 
 The covariance of a point is plane-like: from the PCA of its ``k`` nearest neighbours
-(Eq. 2), the eigenvalues are replaced by ``(ε, 1, 1)`` (Eq. 3), i.e.
+([Ren2019 Eq. 2]), the eigenvalues are replaced by ``(ε, 1, 1)`` ([Ren2019 Eq. 3]), i.e.
 ``C = U diag(ε, 1, 1) Uᵀ = I - (1 - ε) n nᵀ`` with ``n`` the surface normal: a pair is
 penalised ``1/ε`` times more across the surfaces than along them.
 
@@ -29,7 +29,7 @@ References
 ----------
 Segal, A., Haehnel, D., Thrun, S. (2009). Generalized-ICP. Robotics: Science and Systems V.
 Ren, Z., Wang, L., Bi, L. (2019). Robust GICP-based 3D LiDAR SLAM for underground mining
-environment. Sensors 19, 2915. Sec. 3.2, Eqs. (1)-(6).
+environment. Sensors 19, 2915. Sec. 3.2, [Ren2019 Eqs. 1-6].
 Open3D 0.20 ``registration_generalized_icp`` (``../shared/specs/open3d_oracle.md`` §11).
 """
 
@@ -114,11 +114,11 @@ class GICPParams:
         Open3D's threshold on ``|rmse_k - rmse_{k-1}|`` (metres, Euclidean inlier RMSE); only
         used with ``convergence="open3d"``.
     epsilon : float
-        ``ε`` of Ren 2019 Eq. (3): variance across the surface relative to along it
+        ``ε`` of [Ren2019 Eq. 3]: variance across the surface relative to along it
         (dimensionless, 0 < ε <= 1). 1e-3 in Ren 2019, Segal 2009, Open3D and small_gicp.
     covariance_neighbours : int
         ``k`` of the kNN neighbourhood (point itself included) whose PCA gives the normal of
-        each point without a given covariance or normal (Eq. 2). 20 as Open3D and Segal 2009.
+        each point without a given covariance or normal ([Ren2019 Eq. 2]). 20 as Open3D and Segal 2009.
     covariance_mode : {"minegeo", "open3d"}
         ``"minegeo"`` (default): two-pass centred neighbourhood covariance and a Jacobi
         eigen-solver (exact at projected 10⁶ m coordinates), ``C = I - (1-ε) n nᵀ`` exactly,
@@ -215,7 +215,7 @@ class GICPResult(ICPResult):
     Attributes
     ----------
     mahalanobis_cost : float
-        ``Σ d_iᵀ M_i⁻¹ d_i`` over the final pairs (m², Ren 2019 Eq. 6).
+        ``Σ d_iᵀ M_i⁻¹ d_i`` over the final pairs (m², [Ren2019 Eq. 6]).
     sigma_m : float
         ``sqrt(cost / (3k - 6))`` with ``k`` pairs: a posteriori scale of the covariances
         (metres). Neighbouring residuals are correlated, so ``sigma_m² H⁻¹`` is optimistic.
@@ -265,7 +265,7 @@ def _covariances_and_normals(points: np.ndarray, params: GICPParams, normals=Non
 
 
 def estimate_gicp_covariances(points, params: GICPParams | None = None, normals=None) -> np.ndarray:
-    """Per-point plane-like GICP covariances (Ren 2019 Eqs. 2-3; Segal 2009 Sec. III-B).
+    """Per-point plane-like GICP covariances ([Ren2019 Eqs. 2-3]; Segal 2009 Sec. III-B).
 
     Cache the result for a map that is registered against many times and pass it to
     :func:`register_gicp` as ``target_covariances``.
@@ -373,7 +373,7 @@ def _solve(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, bool]:
 def register_gicp(source_points, target_points, T_init, params: GICPParams, source_covariances=None,
                   target_covariances=None, source_normals=None, target_normals=None,
                   target_index=None, *, check_target: bool = True) -> GICPResult:
-    """Refine ``T_target_source`` by Generalized-ICP (Segal 2009; Ren 2019 Sec. 3.2, Eqs. 1-6).
+    """Refine ``T_target_source`` by Generalized-ICP (Segal 2009; Ren 2019 Sec. 3.2, [Ren2019 Eqs. 1-6]).
 
     Parameters
     ----------
@@ -419,7 +419,7 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
 
     Notes
     -----
-    *Covariances* are prepared once per cloud, in its own frame (Eqs. 2-3, see
+    *Covariances* are prepared once per cloud, in its own frame ([Ren2019 Eqs. 2-3], see
     :func:`estimate_gicp_covariances`).
 
     *Loop* (Open3D oracle §10): evaluate the correspondences at ``T_init``; then for
@@ -437,8 +437,8 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
     The exact KD-tree search starts its bound at the distance to the previous partner, which
     prunes most of the tree without changing the answer.
 
-    *Step* (Eq. 6 linearised about the current pose): with ``p_i = T b_i``,
-    ``d_i = p_i - m_i``, ``M_i = C_i^M + R C_i^B Rᵀ`` (Eq. 5) and the left perturbation
+    *Step* ([Ren2019 Eq. 6] linearised about the current pose): with ``p_i = T b_i``,
+    ``d_i = p_i - m_i``, ``M_i = C_i^M + R C_i^B Rᵀ`` ([Ren2019 Eq. 5]) and the left perturbation
     ``ΔT p ≈ p + ω × p + τ`` the residual Jacobian is ``J_i = [-[p_i]×, I3]``;
     ``H = Σ J_iᵀ M_i⁻¹ J_i``, ``g = Σ J_iᵀ M_i⁻¹ d_i``, ``H x = -g``, and
     ``x = (α, β, γ, τ)`` gives ``ΔR = R_z(γ) R_y(β) R_x(α)`` exactly (Open3D §7, §11).

@@ -11,7 +11,7 @@ minegeo and Open3D agree to ~1e-12 from the same start and parameters; see
 
 References
 ----------
-Baek et al. (2022), Sensors 22, 2873, Sec. 2.4, Eqs. (10)-(16), (19), Table 3.
+Baek et al. (2022), Sensors 22, 2873, Sec. 2.4, [Baek2022 Eqs. 10-16, 19], Table 3.
 Besl, P. J., McKay, N. D. (1992). A method for registration of 3-D shapes. IEEE TPAMI 14(2).
 Low, K.-L. (2004). Linear least-squares optimization for point-to-plane ICP surface
 registration. Technical Report TR04-004, UNC Chapel Hill.
@@ -121,7 +121,7 @@ class ICPResult:
     fitness : float
         Fraction of source points with a target neighbour closer than ``d`` at the solution.
     inlier_rmse_m : float
-        Euclidean RMSE of those pairs (Baek 2022 Eq. 19), metres.
+        Euclidean RMSE of those pairs ([Baek2022 Eq. 19]), metres.
     iterations : int
         Number of updates performed.
     converged : bool
@@ -391,9 +391,9 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
     *Correspondences* (Baek Sec. 2.4 step 1, Open3D §8): the nearest target point of every
     source point, kept when its squared distance is ``< d²``.
 
-    *Point-to-point step* (Eqs. 10-13): ``ΔT`` = Umeyama/Kabsch on the pairs, with the
+    *Point-to-point step* ([Baek2022 Eqs. 10-13]): ``ΔT`` = Umeyama/Kabsch on the pairs, with the
     reflection fix ``R = V diag(1, 1, det(V Uᵀ)) Uᵀ``; the error minimised is
-    ``Σ |q_i - (R p_i + t)|²`` (the squared form of Eq. 15).
+    ``Σ |q_i - (R p_i + t)|²`` (the squared form of [Baek2022 Eq. 15]).
 
     *Point-to-plane step* (Low 2004, Open3D §7): ``r_i = (p_i - q_i)·n_i``,
     ``J_i = [p_i × n_i, n_i]``, ``H = Σ J_iᵀ J_i``, ``g = Σ J_iᵀ r_i``, ``H x = -g``;

@@ -1,7 +1,7 @@
 """Global registration by RANSAC on descriptor correspondences.
 
-Baek et al. (2022), Sec. 2.3.2 ("Match Area Search Using RANSAC"), Eqs. 7-9, with
-the rigid model of Eqs. 10-13 and the inlier RMSE of Eq. 19; parameter defaults
+Baek et al. (2022), Sec. 2.3.2 ("Match Area Search Using RANSAC"), [Baek2022 Eqs. 7-9], with
+the rigid model of [Baek2022 Eqs. 10-13] and the inlier RMSE of [Baek2022 Eq. 19]; parameter defaults
 from Table 3. Open3D's ``registration_ransac_based_on_feature_matching`` (spec
 ``open3d_oracle.md`` Sec. 5-9) is the reference implementation; the differences
 are listed in ``docs/registration_features.md``.
@@ -70,12 +70,12 @@ class RansacParams:
         same value is used for the distance check on the sample (Table 3: 2.5 m
         at a 0.5 m voxel; Open3D's tutorial uses 1.5 voxels).
     ransac_n : int
-        Correspondences per sample, n in Eq. 8 (Table 3: 4; Open3D default 3).
+        Correspondences per sample, n in [Baek2022 Eq. 8] (Table 3: 4; Open3D default 3).
     edge_length_similarity : float
-        Edge-length test of Eq. 7: an edge pair passes when
+        Edge-length test of [Baek2022 Eq. 7]: an edge pair passes when
         ``min(d_p, d_q) >= s * max(d_p, d_q)``, i.e. ``eta <= 1 - s`` (Table 3: 0.9).
     edge_pairs : {"all", "polygon"}
-        Edges compared: the closed polygon 1-2, 2-3, ..., n-1 (Eq. 7) or all
+        Edges compared: the closed polygon 1-2, 2-3, ..., n-1 ([Baek2022 Eq. 7]) or all
         pairs (Open3D). Identical for n = 3; "all" prunes more for n >= 4 and
         never rejects an exact sample, so it is the default.
     normal_angle_threshold_rad : float or None
@@ -83,13 +83,13 @@ class RansacParams:
         for any pair (signed, as Open3D; needs consistently oriented normals).
     max_iterations : int
         Hard maximum of hypotheses drawn, N_max (Table 3: 4.0e8). With ``ransac_n=4`` and a
-        low putative inlier ratio w, Eq. 8 asks for ~log(1000)/w^4 draws (millions; about
+        low putative inlier ratio w, [Baek2022 Eq. 8] asks for ~log(1000)/w^4 draws (millions; about
         a microsecond each): use ``ransac_n=3`` or ``mutual_filter=True`` when speed matters.
     max_validations : int or None
         Stop after this many hypotheses passed the checks and were scored
         (Table 3: 500, Open3D <= 0.11's "max_validation"); None disables.
     confidence : float
-        p of Eq. 8 (not given in the paper; Open3D's default 0.999).
+        p of [Baek2022 Eq. 8] (not given in the paper; Open3D's default 0.999).
     mutual_filter : bool
         Keep only mutual descriptor nearest neighbours (Open3D rule, 10 % fallback).
     mode : {"minegeo", "open3d"}
@@ -99,7 +99,7 @@ class RansacParams:
         "open3d": samples drawn with replacement, no refit (the minimal-sample
         estimate is returned), as Open3D 0.20.
     refit_iterations : int
-        Least-squares refits (Eqs. 10-13 on all inliers) of the best and of the
+        Least-squares refits ([Baek2022 Eqs. 10-13] on all inliers) of the best and of the
         runner-up hypothesis; a refit is kept only if it scores better.
     batch_size : int
         Hypotheses drawn and scored per parallel batch. The result does not
@@ -117,19 +117,19 @@ class RansacParams:
         ``arccos(e_z . R e_z) = arccos(R_33) > max_tilt_deg``. Such hypotheses count as
         iterations but are never scored. None (default) disables the check.
     min_iterations : int
-        Floor of Eq. 8's stopping rule (minegeo addition): the search never stops on Eq. 8
-        before this many draws. Eq. 8 takes ``w`` from the current best hypothesis; in a
+        Floor of [Baek2022 Eq. 8]'s stopping rule (minegeo addition): the search never stops on [Baek2022 Eq. 8]
+        before this many draws. [Baek2022 Eq. 8] takes ``w`` from the current best hypothesis; in a
         mine drift a *wrong* placement often explains a few percent of the putative pairs,
-        which makes Eq. 8 stop after ~10^4-10^5 draws, long before the right one (also at
+        which makes [Baek2022 Eq. 8] stop after ~10^4-10^5 draws, long before the right one (also at
         w of a few percent, ~10^6 draws for n = 3) is drawn. ``min_iterations =
         log(1 - p) / log(1 - w_min^n)`` encodes the smallest inlier ratio ``w_min`` the
-        search must be able to find. 0 (default) = the paper's Eq. 8 alone.
+        search must be able to find. 0 (default) = [Baek2022 Eq. 8] alone.
     model : {"rigid", "levelled"}
         "rigid" (default, the paper): 6-DOF hypotheses by SVD, ``ransac_n >= 3``.
         "levelled" (minegeo addition): both frames have z up (IMU-levelled scan,
         georeferenced map), so each hypothesis is a yaw + translation (4 DOF, closed-form
         2-D Procrustes, :func:`~minegeo.registration._kernels_ransac_levelled.yaw_fit`) and
-        ``ransac_n = 2`` suffices: Eq. 8 then needs ``~1/w²`` instead of ``~1/w³`` draws,
+        ``ransac_n = 2`` suffices: [Baek2022 Eq. 8] then needs ``~1/w²`` instead of ``~1/w³`` draws,
         which at the 0.3-2 % FPFH inlier ratios of a large mine map is the difference
         between 10⁴-10⁵ and 10⁵-10⁷ draws. Samples whose source points are less than
         ~1 m apart horizontally (spread < 0.5 m²) are degenerate. The normal check is not
@@ -249,12 +249,12 @@ class RansacResult:
     Attributes
     ----------
     T_target_source : ndarray (4, 4)
-        Best rigid transform, ``p_target = R p_source + t`` (Eq. 9). Identity if
+        Best rigid transform, ``p_target = R p_source + t`` ([Baek2022 Eq. 9]). Identity if
         no hypothesis passed the checks (``status == "failed"``).
     fitness : float
         Inliers / source points (Open3D's fitness).
     inlier_rmse_m : float
-        Eq. 19 over the inlier pairs (m); 0 when there are none.
+        [Baek2022 Eq. 19] over the inlier pairs (m); 0 when there are none.
     n_inliers : int
         Source points with a target point strictly within ``distance_threshold_m``.
     iterations : int
@@ -262,7 +262,7 @@ class RansacResult:
     n_validations : int
         Hypotheses that passed the checks and were scored.
     converged : bool
-        True if stopping came from Eq. 8 (requested confidence reached).
+        True if stopping came from [Baek2022 Eq. 8] (requested confidence reached).
     status : str
         ``"converged"``, ``"max_iterations"``, ``"max_validations"`` or ``"failed"``.
     reason : str
@@ -336,7 +336,7 @@ class RansacResult:
 
 
 def required_iterations(w: float, n: int, confidence: float) -> float:
-    """Eq. 8: ``N = log(1 - p) / log(1 - w^n)`` (may be inf; NaN-free).
+    """[Baek2022 Eq. 8]: ``N = log(1 - p) / log(1 - w^n)`` (may be inf; NaN-free).
 
     Parameters
     ----------
@@ -502,7 +502,7 @@ def _better(c1, s1, c2, s2) -> bool:
 
 
 def _refit(grid, src, tgt, T, cnt, sse, d, iterations):
-    """Least-squares refit (Eqs. 10-13) on the inliers, kept only while the score improves."""
+    """Least-squares refit ([Baek2022 Eqs. 10-13]) on the inliers, kept only while the score improves."""
     for _ in range(iterations):
         _, _, j = _score(grid, src, T, d)
         m = j >= 0
@@ -584,10 +584,10 @@ def register_ransac(
     Notes
     -----
     Each iteration draws ``n`` putative pairs, prunes them with the edge-length
-    test (Eq. 7), fits ``R, t`` by SVD (Eqs. 10-13, reflection-corrected), checks
+    test ([Baek2022 Eq. 7]), fits ``R, t`` by SVD ([Baek2022 Eqs. 10-13], reflection-corrected), checks
     the sample residuals against epsilon_distance, and scores the hypothesis on
-    the whole source cloud: inlier count, then inlier RMSE (Eq. 19). After each
-    improvement the iteration budget is lowered to Eq. 8,
+    the whole source cloud: inlier count, then inlier RMSE ([Baek2022 Eq. 19]). After each
+    improvement the iteration budget is lowered to [Baek2022 Eq. 8],
     ``N = log(1-p) / log(1-w^n)``, with ``w`` the fraction of putative pairs the
     new best explains, capped by ``max_iterations`` (and ``max_validations``).
     Hypotheses are evaluated in parallel batches but accepted in draw order,

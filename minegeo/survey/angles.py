@@ -15,7 +15,7 @@ Conventions (used by every module of :mod:`minegeo.survey`)
 References
 ----------
 Ghilani, C. D. (2010). *Adjustment Computations: Spatial Data Analysis*, 5th ed., Wiley,
-Ch. 14–15 (azimuth from coordinates, Eq. 15.6 angle as a difference of azimuths).
+Ch. 14–15 (azimuth from coordinates, [Ghilani2010 Eq. 15.6] angle as a difference of azimuths).
 """
 
 from __future__ import annotations

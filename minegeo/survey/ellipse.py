@@ -2,7 +2,7 @@
 
 For a point with covariance ``Σ = [[σEE, σEN], [σEN, σNN]]`` (metres², Easting/Northing) the
 standard ellipse has semi-axes equal to the square roots of the eigenvalues of ``Σ``
-(Ghilani 2010, Ch. 19 "error ellipse", Eqs. for S_u, S_v and the orientation t):
+(Ghilani 2010, Ch. 19 "error ellipse", formulas for S_u, S_v and the orientation t):
 
     tan 2t = 2σEN / (σNN − σEE)     t = azimuth of the semi-major axis, clockwise from north
 

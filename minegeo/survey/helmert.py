@@ -8,7 +8,7 @@ projected or geocentric coordinates (10⁶–10⁷ m) are reduced to the centroi
 are then transformed *exactly* back to the un-reduced parameterisation the textbooks print.
 
 2D conformal (Helmert, 4 parameters), Simela et al. (MAST), Sec. "Template matching", and
-Ghilani (2010) Eq. 18.1::
+[Ghilani2010 Eq. 18.1]::
 
     E = a·x − b·y + Tx          [E]   [x  −y  1  0] [a ]
     N = b·x + a·y + Ty          [N] = [y   x  0  1] [b ]
@@ -202,7 +202,7 @@ def helmert2d(src_xy, dst_en, sigma_dst=None, options: LSQOptions | None = None)
     Notes
     -----
     Design matrix per point ``[x −y 1 0; y x 0 1]`` (Simela et al., MAST, Sec. "Template
-    matching"; Ghilani 2010, Eq. 18.1), solved as ``Δ = (BᵀWB)⁻¹BᵀWf`` on centroid-reduced
+    matching"; [Ghilani2010 Eq. 18.1]), solved as ``Δ = (BᵀWB)⁻¹BᵀWf`` on centroid-reduced
     coordinates; ``Tx = E0 + t'x − a·x0 + b·y0``, ``Ty = N0 + t'y − b·x0 − a·y0`` and the
     covariance is propagated with the exact Jacobian of that map.
     """
@@ -504,7 +504,7 @@ class Helmert3DResult:
 
 
 def _umeyama(src_c: np.ndarray, dst_c: np.ndarray, with_scale: bool):
-    """Closed-form similarity of centred point sets (Umeyama 1991, Eqs. 40–42)."""
+    """Closed-form similarity of centred point sets ([Umeyama1991 Eqs. 40-42])."""
     n = src_c.shape[0]
     S = dst_c.T @ src_c / n
     U, D, Vt = np.linalg.svd(S)

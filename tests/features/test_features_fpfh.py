@@ -80,7 +80,7 @@ def test_block_sums_and_edge_cases():
 
 
 def test_weight_modes_differ_by_one_power_of_distance():
-    """Eq. 6 (paper, 1/d) vs Open3D (1/d^2): with neighbours at 1 m and 2 m the neighbour
+    """[Baek2022 Eq. 6] (paper, 1/d) vs Open3D (1/d^2): with neighbours at 1 m and 2 m the neighbour
     SPFHs are blended 2:1 (paper) or 4:1 (Open3D) before the block normalisation."""
     pts = np.array([[0.0, 0, 0], [1.0, 0, 0], [0, 2.0, 0], [0.3, 0.9, 0.0]])
     nrm = np.array([[0, 0, 1.0], [0, 0.6, 0.8], [0.6, 0, 0.8], [0.0, 0.0, 1.0]])

@@ -51,7 +51,7 @@ def test_synthetic_scan_localized_back(world_map, results, section):
     assert r.status == "ok", r.reason
     assert e["max_point_error_m"] < 0.1, e
     assert e["rotation_deg"] < 0.5, e
-    # trajectory moved into the map with Eq. 18
+    # trajectory moved into the map with [Baek2022 Eq. 18]
     assert r.trajectory_map is not None and len(r.trajectory_map) == len(traj)
     np.testing.assert_allclose(r.trajectory_map.poses[0], r.T_map_scan @ traj.poses[0], atol=1e-12)
     # honest uncertainty: a finite 95 % radius, positive sigmas

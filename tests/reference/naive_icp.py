@@ -1,6 +1,6 @@
 """Naive NumPy twins of minegeo.registration kernels (brute force, no Numba, no KD-tree).
 
-Written straight from the formulas (Baek 2022 Eqs. 10-13, 19; Low 2004; Open3D spec §7, §8, §10)
+Written straight from the formulas ([Baek2022 Eqs. 10-13, 19]; Low 2004; Open3D spec §7, §8, §10)
 so that the optimised kernels can be checked against an independent, obviously-correct version.
 """
 
@@ -10,7 +10,7 @@ import numpy as np
 
 
 def naive_umeyama(P, Q, with_scale=False, w=None):
-    """Weighted Umeyama with the reflection fix, via numpy SVD of the paper's W (Eq. 10)."""
+    """Weighted Umeyama with the reflection fix, via numpy SVD of the paper's W ([Baek2022 Eq. 10])."""
     P = np.asarray(P, float)
     Q = np.asarray(Q, float)
     w = np.ones(len(P)) if w is None else np.asarray(w, float)

@@ -6,7 +6,7 @@ import numpy as np
 
 
 def naive_umeyama(P, Q):
-    """R, t minimising sum |R p + t - q|^2 (Eqs. 10-13 with the reflection fix)."""
+    """R, t minimising sum |R p + t - q|^2 ([Baek2022 Eqs. 10-13] with the reflection fix)."""
     pm, qm = P.mean(axis=0), Q.mean(axis=0)
     S = (Q - qm).T @ (P - pm) / P.shape[0]
     U, D, Vt = np.linalg.svd(S)

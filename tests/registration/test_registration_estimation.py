@@ -56,14 +56,14 @@ def test_umeyama_small_kernel_matches_public(rng):
 
 
 def test_reflection_fix_planar_points_give_proper_rotation(rng):
-    # planar source + heavy noise is the classic case where R = V U^T (Eq. 12 alone) is a reflection
+    # planar source + heavy noise is the classic case where R = V U^T ([Baek2022 Eq. 12] alone) is a reflection
     P = np.c_[rng.normal(size=(5, 2)), np.zeros(5)]
     Q = P.copy()
     Q[:, 2] = rng.normal(scale=0.5, size=5)
     Q[:, :2] = Q[:, :2] * np.array([1.0, -1.0])  # mirrored in y: best orthogonal map is a reflection
     W = (P - P.mean(0)).T @ (Q - Q.mean(0))
     U, _, Vt = np.linalg.svd(W)
-    assert np.linalg.det(Vt.T @ U.T) < 0  # the unfixed Eq. 12 would be a reflection
+    assert np.linalg.det(Vt.T @ U.T) < 0  # the unfixed [Baek2022 Eq. 12] would be a reflection
     T = kabsch(P, Q)
     assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0, abs=1e-12)
     np.testing.assert_allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-12)

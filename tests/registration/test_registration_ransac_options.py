@@ -1,4 +1,4 @@
-"""RANSAC options added for mine drifts: levelled-frames check, Eq. 8 floor, K distinct hypotheses."""
+"""RANSAC options added for mine drifts: levelled-frames check, [Baek2022 Eq. 8] floor, K distinct hypotheses."""
 
 from __future__ import annotations
 
@@ -141,7 +141,7 @@ def test_levelled_model_recovers_levelled_pose_with_two_point_samples(rng):
     assert d < 0.01 and a < 0.05
     r2 = register_ransac(src, tgt, correspondences=corr, params=p, seed=4)
     np.testing.assert_array_equal(r.T_target_source, r2.T_target_source)
-    # 90 % outliers: Eq. 8 needs ~1/w^2 = 100x fewer draws than ~1/w^3 for the 3-point rigid model
+    # 90 % outliers: [Baek2022 Eq. 8] needs ~1/w^2 = 100x fewer draws than ~1/w^3 for the 3-point rigid model
     assert r.iterations < 5000
 
 

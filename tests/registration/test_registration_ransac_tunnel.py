@@ -57,7 +57,7 @@ def test_section_is_localized_in_its_map(tunnel, seed):
 
 
 def test_fpfh_weight_modes_match_about_equally_well(tunnel):
-    """FPFH weight 1/d (paper Eq. 6, default) vs Open3D's 1/d^2: fraction of putative matches that
+    """FPFH weight 1/d ([Baek2022 Eq. 6], default) vs Open3D's 1/d^2: fraction of putative matches that
     land within 2 voxels of the true position, on the same sections. Over 30 sections at three voxel
     sizes the paper weight won 23 times (docs/registration_features.md), but per section the two are
     within a few per cent; this test pins that the choice changes the descriptors, not the quality."""
