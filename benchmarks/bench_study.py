@@ -52,7 +52,7 @@ CHI2_3_95 = 7.814727903251178
 ROUGHNESS = (0.05, 0.08, 0.25)
 LENGTHS = (10.0, 20.0, 30.0)
 STAGES = ("downsample", "normals", "fpfh", "ransac", "correlative", "icp", "decision", "rival_search", "polish",
-          "uncertainty")
+          "covariance", "gravity")
 
 
 def _record(r, sc, wall: float, **meta) -> dict:
