@@ -890,7 +890,7 @@ def _gravity_fallback(prepared_map, scan_cloud, trajectory, p: LocalizeParams, s
         return res_6dof
     t_est = time.perf_counter() - t0
     rec = {"status": est.status, "reason": est.reason, "cone95_deg": float(est.cone95_deg),
-           "up_scan": None if est.up is None else np.asarray(est.up).tolist(), "estimate_s": t_est}
+           "up_scan": None if est.up is None else np.asarray(est.up).tolist()}  # no times in the record (equal inputs, equal record): see timings_s
     if est.status != "ok" or est.up is None:
         res_6dof.timings_s["gravity"] = t_est
         res_6dof.warnings.append(f"gravity fallback not tried: up estimate {est.status} ({est.reason})")
@@ -910,7 +910,8 @@ def _gravity_fallback(prepared_map, scan_cloud, trajectory, p: LocalizeParams, s
         k += 1
     p_l = replace(p, ransac=replace(p.ransac, model="levelled", ransac_n=2, max_tilt_deg=min(90.0, tilt),
                                     normal_angle_threshold_rad=None), gravity_fallback=False)
-    attempts = []
+    attempts: list[dict] = []
+    attempt_s: list[float] = []  # seconds per levelled attempt -> timings_s["gravity_attempt_k"]
     res_l = R4 = None
     for th in thetas:
         up = np.asarray(est.up, dtype=np.float64)
@@ -932,8 +933,8 @@ def _gravity_fallback(prepared_map, scan_cloud, trajectory, p: LocalizeParams, s
             traj_l = replace(trajectory, poses=np.einsum("ij,njk->nik", R4, np.asarray(trajectory.poses)),
                              origin=R @ np.asarray(trajectory.origin, dtype=np.float64))
         res_l = _localize_scan(prepared_map, cloud_l, traj_l, p_l, seed, progress)
-        attempts.append({"tilt_about_cross_axis_deg": th, "status": res_l.status, "reason": res_l.reason,
-                         "seconds": float(res_l.timings_s.get("total", math.nan))})
+        attempts.append({"tilt_about_cross_axis_deg": th, "status": res_l.status, "reason": res_l.reason})
+        attempt_s.append(float(res_l.timings_s.get("total", math.nan)))
         if res_l.status != "failed":
             break
     rec.update({"levelled_status": res_l.status, "levelled_reason": res_l.reason, "tilt_tolerance_deg": tilt,
@@ -945,6 +946,7 @@ def _gravity_fallback(prepared_map, scan_cloud, trajectory, p: LocalizeParams, s
         rival = _six_dof_rival(res_6dof, _rebase(res_l, R4), p, P_raw) if res_l.status == "ok" else None
         if res_l.status != "ok" or rival is not None:
             res_6dof.timings_s["gravity"] = time.perf_counter() - t0
+            res_6dof.timings_s.update({f"gravity_attempt_{k}": v for k, v in enumerate(attempt_s)})
             why = (f"the levelled search says {res_l.status}" if res_l.status != "ok" else
                    f"its answer has a rival among the 6-DOF placements ({rival})")
             res_6dof.warnings.append(f"gravity fallback: levelled by the scan's own up estimate; {why}: "
@@ -953,6 +955,7 @@ def _gravity_fallback(prepared_map, scan_cloud, trajectory, p: LocalizeParams, s
             return res_6dof
     if res_l.status == "failed":
         res_6dof.timings_s["gravity"] = time.perf_counter() - t0
+        res_6dof.timings_s.update({f"gravity_attempt_{k}": v for k, v in enumerate(attempt_s)})
         res_6dof.warnings.append(f"gravity fallback: levelled by the scan's own up estimate (95 % cone "
                                  f"{est.cone95_deg:.1f} deg; residual tilts {', '.join(f'{a:g}' for a in thetas)} "
                                  f"deg tried), the levelled search failed too ({res_l.reason})")
@@ -960,6 +963,7 @@ def _gravity_fallback(prepared_map, scan_cloud, trajectory, p: LocalizeParams, s
         return res_6dof
     out = _rebase(res_l, R4)
     out.timings_s["gravity"] = t_est
+    out.timings_s.update({f"gravity_attempt_{k}": v for k, v in enumerate(attempt_s)})
     out.timings_s["six_dof_attempt"] = float(res_6dof.timings_s.get("total", math.nan))
     out.timings_s["total"] = time.perf_counter() - t0 + float(res_6dof.timings_s.get("total", 0.0))
     first = "found no placement" if res_6dof.status == "failed" else "could not tell places apart"
