@@ -60,3 +60,13 @@ def require_oracle(name: str):
 def require_open3d():
     """``require_oracle("open3d")`` (kept for the oracle tests that call it by this name)."""
     return require_oracle("open3d")
+
+
+def cli_localize_params(levelled: bool):
+    """(PrepareParams, LocalizeParams) exactly as ``minegeo localize --profile fast [--levelled 3]`` builds them."""
+    from minegeo.cli import build_parser
+    from minegeo.localize._cli_localize import params_from_args
+
+    opts = ["--profile", "fast"] + (["--levelled", "3"] if levelled else [])
+    args = build_parser(["localize"]).parse_args(["localize", "--map", "m", "--scan", "s", "--out", "o", *opts])
+    return params_from_args(args)

@@ -425,6 +425,12 @@ class LocalizeParams:
         kw.update(overrides)
         return cls(**kw)
 
+    def ambiguity_ratios(self, small_scan: bool) -> tuple[float, float]:
+        """``(ratio, fine_ratio)`` a rival must reach at the plane and the fine tolerance: the small
+        scan's ratio for a small scan, the fine ratio scaled the same way."""
+        amb = float(self.small_scan_ambiguity_ratio) if small_scan else float(self.ambiguity_ratio)
+        return amb, float(self.fine_ambiguity_ratio) * amb / float(self.ambiguity_ratio)
+
     def describe_downsampling(self) -> str:
         if self.scan_octree_level is not None:
             return f"octree level {self.scan_octree_level}"
@@ -878,7 +884,7 @@ def _gravity_fallback(prepared_map, scan_cloud, trajectory, p: LocalizeParams, s
     (map axes, about the scan origin, which ``R`` fixes) and the placed trajectory (map frame)
     carry over unchanged.
     """
-    from minegeo.localize.gravity import estimate_up, levelling_rotation
+    from minegeo.localize.gravity import _rotate, estimate_up, levelling_rotation
 
     t0 = time.perf_counter()
     P_raw, org = _scan_points(scan_cloud)
@@ -917,9 +923,7 @@ def _gravity_fallback(prepared_map, scan_cloud, trajectory, p: LocalizeParams, s
         up = np.asarray(est.up, dtype=np.float64)
         if th != 0.0:
             ax = np.asarray(est.tilt_axis, dtype=np.float64)
-            ax = ax / np.linalg.norm(ax)
-            a = math.radians(th)  # Rodrigues: up rotated about the cross axis
-            up = up * math.cos(a) + np.cross(ax, up) * math.sin(a) + ax * float(ax @ up) * (1.0 - math.cos(a))
+            up = _rotate(up, ax / np.linalg.norm(ax), math.radians(th))  # up tilted about the cross axis
         R = levelling_rotation(up)
         R4 = np.eye(4)
         R4[:3, :3] = R
@@ -943,7 +947,7 @@ def _gravity_fallback(prepared_map, scan_cloud, trajectory, p: LocalizeParams, s
     if res_6dof.status == "ambiguous" and res_l.status != "failed":
         # an ambiguous 6-DOF result is replaced only by an ``ok`` that none of the 6-DOF run's own
         # verified placements rivals (the same two-level test, against the levelled answer)
-        rival = _six_dof_rival(res_6dof, _rebase(res_l, R4), p, P_raw) if res_l.status == "ok" else None
+        rival = _six_dof_rival(res_6dof, _rebase(res_l, R4), p, P_raw.mean(axis=0) + org) if res_l.status == "ok" else None
         if res_l.status != "ok" or rival is not None:
             res_6dof.timings_s["gravity"] = time.perf_counter() - t0
             res_6dof.timings_s.update({f"gravity_attempt_{k}": v for k, v in enumerate(attempt_s)})
@@ -975,24 +979,19 @@ def _gravity_fallback(prepared_map, scan_cloud, trajectory, p: LocalizeParams, s
     return out
 
 
-def _six_dof_rival(res_6dof, res_ok, p: LocalizeParams, P_raw: np.ndarray) -> str | None:
+def _six_dof_rival(res_6dof, res_ok, p: LocalizeParams, centre: np.ndarray) -> str | None:
     """A verified placement of the 6-DOF run that is a rival of ``res_ok``'s answer (both in the
-    original scan frame), by the pipeline's two-level plane test; None when there is none."""
+    original scan frame; ``centre`` the scan's centroid in that frame), by the pipeline's
+    two-level plane test; None when there is none."""
     hyps_ok = res_ok.hypotheses or []
     if not hyps_ok:
         return "no verified placement"
     pf_a, pff_a = float(hyps_ok[0]["plane_fitness"]), float(hyps_ok[0].get("fine_fitness", hyps_ok[0]["plane_fitness"]))
-    small = res_ok.n_scan_down < int(p.correlative_confirm_below_points)
-    amb = float(p.small_scan_ambiguity_ratio) if small else float(p.ambiguity_ratio)
-    fine = float(p.fine_ambiguity_ratio) * amb / float(p.ambiguity_ratio)
-    c = P_raw.mean(axis=0)
-    Ta = np.asarray(res_ok.T_map_scan, dtype=np.float64)
+    amb, fine = p.ambiguity_ratios(res_ok.n_scan_down < int(p.correlative_confirm_below_points))
     for h in res_6dof.hypotheses or []:
         if "screened out" in h["source"]:
             continue
-        Th = np.asarray(h["T_map_scan"], dtype=np.float64)
-        dist = float(np.linalg.norm((Ta[:3, :3] - Th[:3, :3]) @ c + Ta[:3, 3] - Th[:3, 3]))
-        ang = math.degrees(rotation_angle(Ta[:3, :3].T @ Th[:3, :3]))
+        dist, ang = hypothesis_distance(res_ok.T_map_scan, h["T_map_scan"], centre)
         if dist <= p.ambiguity_distance_m and ang <= p.ambiguity_angle_deg:
             continue
         pff = float(h.get("fine_fitness", h["plane_fitness"]))
@@ -1132,8 +1131,7 @@ def _localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory, p: Localiz
     t0 = time.perf_counter()
     # a small scan must beat its rivals by a wider margin (and more of them get the full ICP)
     small_scan = D.shape[0] < int(p.correlative_confirm_below_points)
-    amb_ratio = float(p.small_scan_ambiguity_ratio) if small_scan else float(p.ambiguity_ratio)
-    fine_ratio = float(p.fine_ambiguity_ratio) * amb_ratio / float(p.ambiguity_ratio)
+    amb_ratio, fine_ratio = p.ambiguity_ratios(small_scan)
     if p.icp_method == "gicp":
         gicp_p = GICPParams(max_correspondence_distance_m=float(p.icp_max_correspondence_m),
                             max_iterations=int(p.icp_max_iterations),
@@ -1398,8 +1396,7 @@ def _localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory, p: Localiz
             # level that the first choice would not be *its* rival: verify it with the pipeline's own
             # candidates and, if it wins there, search for rivals around it (once; it never switches back)
             t0 = time.perf_counter()
-            T_r = np.array(b["T_map_scan"], dtype=np.float64)
-            T_r[:3, 3] = T_r[:3, 3] + T_r[:3, :3] @ scan_origin - prepared_map.work_origin
+            T_r = _from_map(b["T_map_scan"], scan_origin, prepared_map.work_origin)
             first = (f"{b['distance_to_chosen_m']:.1f} m from the first choice, plane fitness {b['plane_fitness']:.3f} "
                      f"vs {pf0:.3f}, fine agreement {b['fine_fitness']:.3f} vs {pff0:.3f}")
             ev2 = _evaluate(list(ev["uniq"]) + [("rival search: fits better than the first choice", T_r, math.nan,
@@ -1659,10 +1656,8 @@ def _rival_check(pm: PreparedMap, p: LocalizeParams, D, Nd, Dfine, ic_best, pf_b
     def to_map(T):
         return _to_map(T, scan_origin, pm.work_origin)
 
-    def from_map(T):  # inverse of _to_map
-        T = np.array(T, dtype=np.float64, copy=True)
-        T[:3, 3] = T[:3, 3] + T[:3, :3] @ scan_origin - pm.work_origin
-        return T
+    def from_map(T):
+        return _from_map(T, scan_origin, pm.work_origin)
 
     n_hyp = len(hyps)
     for c in rs.candidates:
@@ -1779,6 +1774,13 @@ def _to_map(T_work_D: np.ndarray, scan_origin: np.ndarray, work_origin: np.ndarr
     """
     T = np.array(T_work_D, dtype=np.float64, copy=True)
     T[:3, 3] = T[:3, 3] - T[:3, :3] @ scan_origin + work_origin
+    return T
+
+
+def _from_map(T_map_scan, scan_origin: np.ndarray, work_origin: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`_to_map`: a ``T_map_scan`` as a transform of ``D`` into ``work``."""
+    T = np.array(T_map_scan, dtype=np.float64, copy=True)
+    T[:3, 3] = T[:3, 3] + T[:3, :3] @ scan_origin - work_origin
     return T
 
 

@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers import cli_localize_params
 
 from minegeo.errors import InputError
 from minegeo.localize import localize_scan, prepare_map
@@ -25,13 +26,6 @@ from minegeo.localize.rivals import RivalParams, attitude, matched_support, riva
 TOL_M = 0.10  # largest trajectory error of a placement that counts as "that place"
 
 
-def _params(levelled: bool):
-    from minegeo.cli import build_parser
-    from minegeo.localize._cli_localize import params_from_args
-
-    opts = ["--profile", "fast"] + (["--levelled", "3"] if levelled else [])
-    args = build_parser(["localize"]).parse_args(["localize", "--map", "m", "--scan", "s", "--out", "o", *opts])
-    return params_from_args(args)
 
 
 @pytest.fixture(scope="module")
@@ -39,8 +33,8 @@ def study():
     from minegeo.synth.study import make_study_world
 
     sw = make_study_world(None, twins="exact", seed=3)
-    prep, lp_lev = _params(True)
-    _, lp_6 = _params(False)
+    prep, lp_lev = cli_localize_params(True)
+    _, lp_6 = cli_localize_params(False)
     pm = prepare_map(sw.map, prep)
     pm.build_indexes(lp_lev)
     scans = {

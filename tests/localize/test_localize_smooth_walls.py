@@ -13,6 +13,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from helpers import cli_localize_params
 
 from minegeo.localize import localize_scan, prepare_map
 from minegeo.localize.pipeline import LocalizeParams, error_vs_truth
@@ -21,13 +22,6 @@ from minegeo.localize.rivals import RivalParams, matched_support, rival_test
 TOL_M = 0.10
 
 
-def _params(levelled: bool):
-    from minegeo.cli import build_parser
-    from minegeo.localize._cli_localize import params_from_args
-
-    opts = ["--profile", "fast"] + (["--levelled", "3"] if levelled else [])
-    args = build_parser(["localize"]).parse_args(["localize", "--map", "m", "--scan", "s", "--out", "o", *opts])
-    return params_from_args(args)
 
 
 @pytest.fixture(scope="module")
@@ -35,8 +29,8 @@ def smooth():
     from minegeo.synth.study import make_study_world
 
     sw = make_study_world(0.05, twins="none", seed=7, map_passes=4)
-    prep, lp_lev = _params(True)
-    _, lp_6 = _params(False)
+    prep, lp_lev = cli_localize_params(True)
+    _, lp_6 = cli_localize_params(False)
     pm = prepare_map(sw.map, prep)
     pm.build_indexes(lp_lev)
     return {"pm": pm, "lev": lp_lev, "6dof": lp_6, "sw": sw}
