@@ -193,6 +193,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True)
     ap.add_argument("--compare", help="an earlier fingerprint JSON to compare with")
     ap.add_argument("--only", choices=("cli", "api"))
+    ap.add_argument("--work", default=str(Path(tempfile.gettempdir()) / "minegeo_fingerprint"),
+                    help="scratch folder of the CLI runs (emptied first; give each concurrent run its own)")
     args = ap.parse_args(argv)
     fp: dict[str, str] = {}
     errors: dict[str, str] = {}
@@ -203,7 +205,7 @@ def main(argv=None) -> int:
             errors["api"] = f"{type(exc).__name__}: {exc}"
     if args.only != "api":
         # a fixed folder: result.json records absolute output paths
-        work = Path(tempfile.gettempdir()) / "minegeo_fingerprint"
+        work = Path(args.work)
         shutil.rmtree(work, ignore_errors=True)
         work.mkdir()
         fp.update(run_cli(work))
