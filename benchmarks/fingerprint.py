@@ -40,6 +40,7 @@ REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("MINEGEO_SHARED_DATA", REPO.parent / "shared" / "data"))
 SKIP_KEYS = frozenset({"timings_s", "created_utc", "versions", "seconds", "compile_s", "time_s", "build_s"})
 SKIP_FILES = (".html", "report.txt")
+_WORK: list[Path] = [Path("/nonexistent")]  # the scratch folder of this run
 
 
 def _strip(obj):
@@ -51,17 +52,21 @@ def _strip(obj):
 
 
 def _hash_tree(root: Path) -> dict[str, str]:
+    """Hashes of the output files below ``root``; the scratch folder's path inside JSON files is
+    replaced by ``<work>`` so that runs in different scratch folders compare equal."""
     out = {}
     for p in sorted(root.rglob("*")):
         if not p.is_file() or p.name.endswith(SKIP_FILES):
             continue
         if p.suffix == ".json":
             data = json.dumps(_strip(json.loads(p.read_text())), sort_keys=True).encode()
+            data = data.replace(str(_WORK[0]).encode(), b"<work>")
         elif p.suffix == ".npz":  # a prepared map: its arrays, and its meta JSON without wall-clock
                 # keys and without the integrity manifest (it hashes the index records, build times included)
             with np.load(p) as z:
                 data = b"".join(json.dumps(_strip({**json.loads(str(z[k])), "integrity": None})).encode() if k == "meta"
                                 else z[k].tobytes() for k in sorted(z.files))
+            data = data.replace(str(_WORK[0]).encode(), b"<work>")
         else:
             data = p.read_bytes()
         out[str(p.relative_to(root))] = hashlib.sha256(data).hexdigest()[:16]
@@ -205,7 +210,8 @@ def main(argv=None) -> int:
             errors["api"] = f"{type(exc).__name__}: {exc}"
     if args.only != "api":
         # a fixed folder: result.json records absolute output paths
-        work = Path(args.work)
+        work = Path(args.work).resolve()
+        _WORK[0] = work
         shutil.rmtree(work, ignore_errors=True)
         work.mkdir()
         fp.update(run_cli(work))
