@@ -11,6 +11,17 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
+from minegeo.kernels.eig3 import (  # noqa: F401  (re-exported: geometry's kernel names)
+    STATUS_COINCIDENT,
+    STATUS_COLLINEAR,
+    STATUS_OK,
+    STATUS_TOO_FEW,
+    fast_eigen3x3,
+    jacobi_eigh3,
+    pca_normal,
+)
+from minegeo.kernels.eig3 import pca_normal as _normal_from_neighbors  # noqa: F401  (old name)
+from minegeo.kernels.hashgrid import lookup as hash_lookup
 
 # ---------------------------------------------------------------------------------------
 # stable radix argsort (grid cells, voxels, Morton codes)
@@ -57,11 +68,9 @@ def radix_argsort(keys):
 
 
 # ---------------------------------------------------------------------------------------
-# uniform hash grid (neighbour search)
+# uniform hash grid (neighbour search; the cell table is minegeo.kernels.hashgrid's)
 # ---------------------------------------------------------------------------------------
 
-_HASH_MULT = np.uint64(11400714819323198485)  # 2**64 / golden ratio (Fibonacci hashing)
-_EMPTY = -1
 _BLOCK = 256  # queries per parallel work item (buffers are allocated once per block)
 
 
@@ -96,38 +105,6 @@ def grid_cell_keys(points, origin, inv_cell, nx, ny, nz, morton, out_keys):
         iy = min(max(np.int64(np.floor((points[i, 1] - origin[1]) * inv_cell)), 0), ny - 1)
         iz = min(max(np.int64(np.floor((points[i, 2] - origin[2]) * inv_cell)), 0), nz - 1)
         out_keys[i] = cell_key(ix, iy, iz, nx, ny, morton)
-
-
-@njit
-def _hash_slot(key, bits):
-    h = np.uint64(key) * _HASH_MULT
-    return np.int64(h >> np.uint64(64 - bits))
-
-
-@njit
-def grid_build_table(cell_keys, bits, table_keys, table_vals):
-    """Open-addressing (linear probing) table: cell key -> cell number (position in ``cell_keys``)."""
-    mask = (np.int64(1) << bits) - 1
-    for c in range(cell_keys.shape[0]):
-        key = cell_keys[c]
-        s = _hash_slot(key, bits)
-        while table_keys[s] != _EMPTY:
-            s = (s + 1) & mask
-        table_keys[s] = key
-        table_vals[s] = c
-
-
-@njit
-def _grid_lookup(key, bits, table_keys, table_vals):
-    mask = (np.int64(1) << bits) - 1
-    s = _hash_slot(key, bits)
-    while True:
-        k = table_keys[s]
-        if k == key:
-            return table_vals[s]
-        if k == _EMPTY:
-            return -1
-        s = (s + 1) & mask
 
 
 @njit
@@ -217,7 +194,7 @@ def hybrid_one(q0, q1, q2, r, r2, cap, pts, order, cell_start, origin, cell, inv
                         continue
                     if count == cap and bd > buf_sq[cap - 1] * slack:
                         continue
-                    c = _grid_lookup(cell_key(ix, iy, iz, nx, ny, morton), bits, table_keys, table_vals)
+                    c = hash_lookup(cell_key(ix, iy, iz, nx, ny, morton), bits, table_keys, table_vals)
                     if c < 0:
                         continue
                     for pos in range(cell_start[c], cell_start[c + 1]):
@@ -318,7 +295,7 @@ def collect_one(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell,
             for ix in range(x0, x1 + 1):
                 if dz + dy + _box_sq(q0, origin[0] + ix * cell, cell) > r2 * slack:
                     continue
-                c = _grid_lookup(cell_key(ix, iy, iz, nx, ny, morton), bits, table_keys, table_vals)
+                c = hash_lookup(cell_key(ix, iy, iz, nx, ny, morton), bits, table_keys, table_vals)
                 if c < 0:
                     continue
                 for pos in range(cell_start[c], cell_start[c + 1]):
@@ -377,7 +354,7 @@ def count_one(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell,
             for ix in range(x0, x1 + 1):
                 if dz + dy + _box_sq(q0, origin[0] + ix * cell, cell) > r2 * slack:
                     continue
-                c = _grid_lookup(cell_key(ix, iy, iz, nx, ny, morton), bits, table_keys, table_vals)
+                c = hash_lookup(cell_key(ix, iy, iz, nx, ny, morton), bits, table_keys, table_vals)
                 if c < 0:
                     continue
                 for pos in range(cell_start[c], cell_start[c + 1]):
@@ -472,443 +449,8 @@ def grid_hybrid(queries, qorder, knn, r, rmax, cap, pts, order, cell_start, orig
 
 
 # ---------------------------------------------------------------------------------------
-# 3x3 symmetric eigen-solvers
+# normals (PCA of a neighbourhood, [Baek2022 Eq. 2]: minegeo.kernels.eig3.pca_normal)
 # ---------------------------------------------------------------------------------------
-
-
-@njit
-def _ev0(a00, a01, a02, a11, a12, a22, lam):
-    """Eberly's ComputeEigenvector0 (as in Open3D 0.20): most robust row cross product."""
-    r00 = a00 - lam
-    r01 = a01
-    r02 = a02
-    r10 = a01
-    r11 = a11 - lam
-    r12 = a12
-    r20 = a02
-    r21 = a12
-    r22 = a22 - lam
-    # r0 x r1
-    x0 = r01 * r12 - r02 * r11
-    x1 = r02 * r10 - r00 * r12
-    x2 = r00 * r11 - r01 * r10
-    # r0 x r2
-    y0 = r01 * r22 - r02 * r21
-    y1 = r02 * r20 - r00 * r22
-    y2 = r00 * r21 - r01 * r20
-    # r1 x r2
-    z0 = r11 * r22 - r12 * r21
-    z1 = r12 * r20 - r10 * r22
-    z2 = r10 * r21 - r11 * r20
-    d0 = x0 * x0 + x1 * x1 + x2 * x2
-    d1 = y0 * y0 + y1 * y1 + y2 * y2
-    d2 = z0 * z0 + z1 * z1 + z2 * z2
-    dmax = d0
-    imax = 0
-    if d1 > dmax:
-        dmax = d1
-        imax = 1
-    if d2 > dmax:
-        imax = 2
-    if imax == 0:
-        s = np.sqrt(d0)
-        return x0 / s, x1 / s, x2 / s
-    elif imax == 1:
-        s = np.sqrt(d1)
-        return y0 / s, y1 / s, y2 / s
-    s = np.sqrt(d2)
-    return z0 / s, z1 / s, z2 / s
-
-
-@njit
-def _ev1(a00, a01, a02, a11, a12, a22, e0, e1, e2, lam):
-    """Eberly's ComputeEigenvector1 (as in Open3D 0.20)."""
-    if abs(e0) > abs(e1):
-        inv = 1.0 / np.sqrt(e0 * e0 + e2 * e2)
-        u0 = -e2 * inv
-        u1 = 0.0
-        u2 = e0 * inv
-    else:
-        inv = 1.0 / np.sqrt(e1 * e1 + e2 * e2)
-        u0 = 0.0
-        u1 = e2 * inv
-        u2 = -e1 * inv
-    # V = e x U
-    v0 = e1 * u2 - e2 * u1
-    v1 = e2 * u0 - e0 * u2
-    v2 = e0 * u1 - e1 * u0
-    au0 = a00 * u0 + a01 * u1 + a02 * u2
-    au1 = a01 * u0 + a11 * u1 + a12 * u2
-    au2 = a02 * u0 + a12 * u1 + a22 * u2
-    av0 = a00 * v0 + a01 * v1 + a02 * v2
-    av1 = a01 * v0 + a11 * v1 + a12 * v2
-    av2 = a02 * v0 + a12 * v1 + a22 * v2
-    m00 = u0 * au0 + u1 * au1 + u2 * au2 - lam
-    m01 = u0 * av0 + u1 * av1 + u2 * av2
-    m11 = v0 * av0 + v1 * av1 + v2 * av2 - lam
-    am00 = abs(m00)
-    am01 = abs(m01)
-    am11 = abs(m11)
-    if am00 >= am11:
-        if max(am00, am01) > 0.0:
-            if am00 >= am01:
-                m01 /= m00
-                m00 = 1.0 / np.sqrt(1.0 + m01 * m01)
-                m01 *= m00
-            else:
-                m00 /= m01
-                m01 = 1.0 / np.sqrt(1.0 + m00 * m00)
-                m00 *= m01
-            return m01 * u0 - m00 * v0, m01 * u1 - m00 * v1, m01 * u2 - m00 * v2
-        return u0, u1, u2
-    if max(am11, am01) > 0.0:
-        if am11 >= am01:
-            m01 /= m11
-            m11 = 1.0 / np.sqrt(1.0 + m01 * m01)
-            m01 *= m11
-        else:
-            m11 /= m01
-            m01 = 1.0 / np.sqrt(1.0 + m11 * m11)
-            m11 *= m01
-        return m11 * u0 - m01 * v0, m11 * u1 - m01 * v1, m11 * u2 - m01 * v2
-    return u0, u1, u2
-
-
-@njit
-def fast_eigen3x3(c00, c01, c02, c11, c12, c22, out):
-    """Open3D 0.20 ``FastEigen3x3`` (Eberly's robust closed form), ported operation by operation.
-
-    Writes the eigenvector of the smallest eigenvalue to ``out[0:3]`` (the zero vector
-    when the largest signed entry is 0) and the three eigenvalues, ascending, to
-    ``out[3:6]`` (not part of Open3D's output; used for curvature).
-    """
-    s = max(c00, c01, c02, c11, c12, c22)  # largest signed entry of the symmetric matrix
-    if s == 0.0:
-        for j in range(6):
-            out[j] = 0.0
-        return
-    a00 = c00 / s
-    a01 = c01 / s
-    a02 = c02 / s
-    a11 = c11 / s
-    a12 = c12 / s
-    a22 = c22 / s
-    norm = a01 * a01 + a02 * a02 + a12 * a12
-    if norm > 0.0:
-        q = (a00 + a11 + a22) / 3.0
-        b00 = a00 - q
-        b11 = a11 - q
-        b22 = a22 - q
-        p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + norm * 2.0) / 6.0)
-        k00 = b11 * b22 - a12 * a12
-        k01 = a01 * b22 - a12 * a02
-        k02 = a01 * a12 - b11 * a02
-        det = (b00 * k00 - a01 * k01 + a02 * k02) / (p * p * p)
-        half_det = det * 0.5
-        half_det = min(max(half_det, -1.0), 1.0)
-        angle = np.arccos(half_det) / 3.0
-        beta2 = np.cos(angle) * 2.0
-        beta0 = np.cos(angle + 2.09439510239319549) * 2.0
-        beta1 = -(beta0 + beta2)
-        l0 = q + p * beta0
-        l1 = q + p * beta1
-        l2 = q + p * beta2
-        if half_det >= 0.0:
-            v20, v21, v22 = _ev0(a00, a01, a02, a11, a12, a22, l2)
-            if l2 < l0 and l2 < l1:
-                n0, n1, n2 = v20, v21, v22
-            else:
-                v10, v11, v12 = _ev1(a00, a01, a02, a11, a12, a22, v20, v21, v22, l1)
-                if l1 < l0 and l1 < l2:
-                    n0, n1, n2 = v10, v11, v12
-                else:
-                    n0 = v11 * v22 - v12 * v21
-                    n1 = v12 * v20 - v10 * v22
-                    n2 = v10 * v21 - v11 * v20
-        else:
-            v00, v01, v02 = _ev0(a00, a01, a02, a11, a12, a22, l0)
-            if l0 < l1 and l0 < l2:
-                n0, n1, n2 = v00, v01, v02
-            else:
-                v10, v11, v12 = _ev1(a00, a01, a02, a11, a12, a22, v00, v01, v02, l1)
-                if l1 < l0 and l1 < l2:
-                    n0, n1, n2 = v10, v11, v12
-                else:
-                    n0 = v01 * v12 - v02 * v11
-                    n1 = v02 * v10 - v00 * v12
-                    n2 = v00 * v11 - v01 * v10
-        e0 = l0 * s
-        e1 = l1 * s
-        e2 = l2 * s
-    else:
-        if c00 < c11 and c00 < c22:
-            n0, n1, n2 = 1.0, 0.0, 0.0
-        elif c11 < c00 and c11 < c22:
-            n0, n1, n2 = 0.0, 1.0, 0.0
-        else:
-            n0, n1, n2 = 0.0, 0.0, 1.0
-        e0 = c00
-        e1 = c11
-        e2 = c22
-    out[0] = n0
-    out[1] = n1
-    out[2] = n2
-    # eigenvalues ascending (three-element sorting network)
-    if e0 > e1:
-        e0, e1 = e1, e0
-    if e1 > e2:
-        e1, e2 = e2, e1
-    if e0 > e1:
-        e0, e1 = e1, e0
-    out[3] = e0
-    out[4] = e1
-    out[5] = e2
-
-
-_EPS = 2.220446049250313e-16
-
-
-@njit
-def jacobi_eigh3(A, V, w):
-    """Cyclic Jacobi eigen-decomposition of the symmetric 3x3 ``A`` (overwritten).
-
-    On return ``w`` holds the eigenvalues ascending and the columns of ``V`` the matching
-    orthonormal eigenvectors. A rotation (p, q) is applied while
-    ``|a_pq| > eps * sqrt(|a_pp a_qq|)`` (Demmel-Veselic stopping rule, which gives
-    eigenvalues to high relative accuracy); the sweep loop ends when no rotation was
-    needed (at most 50 sweeps; 3x3 matrices converge in a handful).
-    Rotation formulas: Numerical Recipes 3rd ed., Sec. 11.1, [NumericalRecipes2007 Eqs. 11.1.8-11.1.18].
-    """
-    for i in range(3):
-        for j in range(3):
-            V[i, j] = 1.0 if i == j else 0.0
-    for _sweep in range(50):
-        rotated = False
-        for k in range(3):
-            if k == 0:
-                p = 0
-                q = 1
-                r = 2
-            elif k == 1:
-                p = 0
-                q = 2
-                r = 1
-            else:
-                p = 1
-                q = 2
-                r = 0
-            apq = A[p, q]
-            if apq == 0.0:
-                continue
-            app = A[p, p]
-            aqq = A[q, q]
-            if abs(apq) <= _EPS * np.sqrt(abs(app * aqq)):
-                A[p, q] = 0.0
-                A[q, p] = 0.0
-                continue
-            rotated = True
-            theta = (aqq - app) / (2.0 * apq)
-            if abs(theta) > 1e150:
-                t = 0.5 / theta
-            else:
-                t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
-                if theta < 0.0:
-                    t = -t
-            c = 1.0 / np.sqrt(t * t + 1.0)
-            s = t * c
-            arp = A[r, p]
-            arq = A[r, q]
-            A[r, p] = c * arp - s * arq
-            A[p, r] = A[r, p]
-            A[r, q] = s * arp + c * arq
-            A[q, r] = A[r, q]
-            A[p, p] = app - t * apq
-            A[q, q] = aqq + t * apq
-            A[p, q] = 0.0
-            A[q, p] = 0.0
-            for m in range(3):
-                vmp = V[m, p]
-                vmq = V[m, q]
-                V[m, p] = c * vmp - s * vmq
-                V[m, q] = s * vmp + c * vmq
-        if not rotated:
-            break
-    # sort ascending, permuting the eigenvector columns along
-    i0 = 0
-    i1 = 1
-    i2 = 2
-    if A[i0, i0] > A[i1, i1]:
-        i0, i1 = i1, i0
-    if A[i1, i1] > A[i2, i2]:
-        i1, i2 = i2, i1
-    if A[i0, i0] > A[i1, i1]:
-        i0, i1 = i1, i0
-    d0 = A[i0, i0]
-    d1 = A[i1, i1]
-    d2 = A[i2, i2]
-    for m in range(3):
-        t0 = V[m, i0]
-        t1 = V[m, i1]
-        t2 = V[m, i2]
-        A[m, 0] = t0  # reuse A as scratch for the permuted columns
-        A[m, 1] = t1
-        A[m, 2] = t2
-    for m in range(3):
-        V[m, 0] = A[m, 0]
-        V[m, 1] = A[m, 1]
-        V[m, 2] = A[m, 2]
-    w[0] = d0
-    w[1] = d1
-    w[2] = d2
-
-
-# ---------------------------------------------------------------------------------------
-# normals (PCA of a neighbourhood; [Baek2022 Eq. 2])
-# ---------------------------------------------------------------------------------------
-
-STATUS_OK = 0
-STATUS_TOO_FEW = 1
-STATUS_COLLINEAR = 2
-STATUS_COINCIDENT = 3
-
-
-@njit
-def _normal_from_neighbors(points, nbr, cnt, qi, oi, mode_open3d, degenerate_ratio, A, V, w, tmp,
-                           out_n, out_eval, out_status):
-    """PCA normal of the point at row ``qi`` of ``points`` from the ``cnt`` neighbour rows in
-    ``nbr``; results go to output row ``oi``.
-
-    mode_open3d: raw-moment covariance in absolute coordinates + FastEigen3x3 (Open3D 0.20).
-    otherwise: covariance centred on the query point then on the neighbourhood mean
-    (two-pass), eigen-decomposed with cyclic Jacobi.
-    """
-    if cnt < 3:
-        out_n[oi, 0] = 0.0
-        out_n[oi, 1] = 0.0
-        out_n[oi, 2] = 1.0
-        out_eval[oi, 0] = np.nan
-        out_eval[oi, 1] = np.nan
-        out_eval[oi, 2] = np.nan
-        out_status[oi] = STATUS_TOO_FEW
-        return
-    if mode_open3d:
-        s0 = 0.0
-        s1 = 0.0
-        s2 = 0.0
-        s00 = 0.0
-        s01 = 0.0
-        s02 = 0.0
-        s11 = 0.0
-        s12 = 0.0
-        s22 = 0.0
-        for j in range(cnt):
-            p = nbr[j]
-            x = points[p, 0]
-            y = points[p, 1]
-            z = points[p, 2]
-            s0 += x
-            s1 += y
-            s2 += z
-            s00 += x * x
-            s01 += x * y
-            s02 += x * z
-            s11 += y * y
-            s12 += y * z
-            s22 += z * z
-        fn = float(cnt)
-        s0 /= fn
-        s1 /= fn
-        s2 /= fn
-        s00 /= fn
-        s01 /= fn
-        s02 /= fn
-        s11 /= fn
-        s12 /= fn
-        s22 /= fn
-        c00 = s00 - s0 * s0
-        c11 = s11 - s1 * s1
-        c22 = s22 - s2 * s2
-        c01 = s01 - s0 * s1
-        c02 = s02 - s0 * s2
-        c12 = s12 - s1 * s2
-        fast_eigen3x3(c00, c01, c02, c11, c12, c22, tmp)
-        n0 = tmp[0]
-        n1 = tmp[1]
-        n2 = tmp[2]
-        if n0 == 0.0 and n1 == 0.0 and n2 == 0.0:
-            n2 = 1.0
-        l0 = tmp[3]
-        l1 = tmp[4]
-        l2 = tmp[5]
-    else:
-        q0 = points[qi, 0]
-        q1 = points[qi, 1]
-        q2 = points[qi, 2]
-        m0 = 0.0
-        m1 = 0.0
-        m2 = 0.0
-        for j in range(cnt):
-            p = nbr[j]
-            m0 += points[p, 0] - q0
-            m1 += points[p, 1] - q1
-            m2 += points[p, 2] - q2
-        fn = float(cnt)
-        m0 /= fn
-        m1 /= fn
-        m2 /= fn
-        c00 = 0.0
-        c01 = 0.0
-        c02 = 0.0
-        c11 = 0.0
-        c12 = 0.0
-        c22 = 0.0
-        for j in range(cnt):
-            p = nbr[j]
-            x = (points[p, 0] - q0) - m0
-            y = (points[p, 1] - q1) - m1
-            z = (points[p, 2] - q2) - m2
-            c00 += x * x
-            c01 += x * y
-            c02 += x * z
-            c11 += y * y
-            c12 += y * z
-            c22 += z * z
-        A[0, 0] = c00 / fn
-        A[0, 1] = c01 / fn
-        A[0, 2] = c02 / fn
-        A[1, 0] = A[0, 1]
-        A[1, 1] = c11 / fn
-        A[1, 2] = c12 / fn
-        A[2, 0] = A[0, 2]
-        A[2, 1] = A[1, 2]
-        A[2, 2] = c22 / fn
-        jacobi_eigh3(A, V, w)
-        n0 = V[0, 0]
-        n1 = V[1, 0]
-        n2 = V[2, 0]
-        nn = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-        n0 /= nn
-        n1 /= nn
-        n2 /= nn
-        l0 = w[0]
-        l1 = w[1]
-        l2 = w[2]
-    status = STATUS_OK
-    if l2 <= 0.0:
-        status = STATUS_COINCIDENT
-        if not mode_open3d:
-            n0 = 0.0
-            n1 = 0.0
-            n2 = 1.0
-    elif l1 <= degenerate_ratio * l2:
-        status = STATUS_COLLINEAR
-    out_n[oi, 0] = n0
-    out_n[oi, 1] = n1
-    out_n[oi, 2] = n2
-    out_eval[oi, 0] = l0
-    out_eval[oi, 1] = l1
-    out_eval[oi, 2] = l2
-    out_status[oi] = status
 
 
 @njit_parallel
@@ -940,14 +482,14 @@ def normals_hybrid_fused(knn, r, rmax, cap, mode_open3d, degenerate_ratio, pts, 
                 cnt = search_one(pts[t, 0], pts[t, 1], pts[t, 2], knn, r, rmax, cap, pts, order,
                                  cell_start, origin, cell, inv_cell, nx, ny, nz, morton, bits,
                                  table_keys, table_vals, buf_pos, buf_sq)
-                _normal_from_neighbors(pts, buf_pos, cnt, t, i, mode_open3d, degenerate_ratio, A, V,
+                pca_normal(pts, buf_pos, cnt, t, i, mode_open3d, degenerate_ratio, A, V,
                                        w, tmp, out_n, out_eval, out_status)
             else:
                 cnt, use_big = search_set_one(pts[t, 0], pts[t, 1], pts[t, 2], knn, r, rmax, cap, pts, order,
                                               cell_start, origin, cell, inv_cell, nx, ny, nz, morton,
                                               bits, table_keys, table_vals, big_pos, big_sq, buf_pos,
                                               buf_sq)
-                _normal_from_neighbors(pts, big_pos if use_big else buf_pos, cnt, t, i, mode_open3d,
+                pca_normal(pts, big_pos if use_big else buf_pos, cnt, t, i, mode_open3d,
                                        degenerate_ratio, A, V, w, tmp, out_n, out_eval, out_status)
             out_counts[i] = cnt
 
@@ -964,7 +506,7 @@ def normals_from_neighborhoods(points, row0, idx, counts, mode_open3d, degenerat
         w = np.empty(3)
         tmp = np.empty(6)
         for i in range(b * _BLOCK, min(nq, (b + 1) * _BLOCK)):
-            _normal_from_neighbors(points, idx[i], counts[i], row0 + i, row0 + i, mode_open3d,
+            pca_normal(points, idx[i], counts[i], row0 + i, row0 + i, mode_open3d,
                                    degenerate_ratio, A, V, w, tmp, out_n, out_eval, out_status)
 
 

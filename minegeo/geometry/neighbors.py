@@ -30,7 +30,6 @@ point (sorted copy of the points, permutation, cell keys) plus the hash table.
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -39,6 +38,7 @@ import numpy as np
 from minegeo._validate import as_points, check_positive
 from minegeo.errors import InputError
 from minegeo.geometry import _kernels as K
+from minegeo.kernels import hashgrid as HG
 
 __all__ = ["Neighborhoods", "NeighborIndex"]
 
@@ -143,10 +143,8 @@ def _build_grid(points: np.ndarray, cell: float) -> _Grid:
     cell_start = np.concatenate(([0], change, [n])).astype(np.int64)
     cell_keys = np.ascontiguousarray(sk[cell_start[:-1]])
     ncells = cell_keys.shape[0]
-    bits = max(4, int(math.ceil(math.log2(2 * ncells + 1))))
-    table_keys = np.full(1 << bits, -1, dtype=np.int64)
-    table_vals = np.empty(1 << bits, dtype=np.int64)
-    K.grid_build_table(cell_keys, bits, table_keys, table_vals)
+    bits = HG.table_bits(ncells)
+    table_keys, table_vals = HG.new_table(cell_keys, bits)
     pts = np.ascontiguousarray(points[order])
     return _Grid(cell, origin, nx, ny, nz, morton, pts, order, cell_start, bits, table_keys, table_vals)
 

@@ -44,6 +44,7 @@ from minegeo._validate import as_points, check_positive
 from minegeo.errors import InputError
 from minegeo.geometry import _kernels as K
 from minegeo.geometry.neighbors import Neighborhoods, NeighborIndex
+from minegeo.kernels import eig3 as E3
 
 __all__ = [
     "NormalParams",
@@ -57,10 +58,10 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-STATUS_OK = K.STATUS_OK
-STATUS_TOO_FEW = K.STATUS_TOO_FEW
-STATUS_COLLINEAR = K.STATUS_COLLINEAR
-STATUS_COINCIDENT = K.STATUS_COINCIDENT
+STATUS_OK = E3.STATUS_OK
+STATUS_TOO_FEW = E3.STATUS_TOO_FEW
+STATUS_COLLINEAR = E3.STATUS_COLLINEAR
+STATUS_COINCIDENT = E3.STATUS_COINCIDENT
 
 _MODES = ("accurate", "open3d")
 

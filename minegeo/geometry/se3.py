@@ -3,17 +3,38 @@
 Frame naming: ``T_a_b`` maps coordinates expressed in frame *b* into frame *a*:
 ``p_a = R_a_b @ p_b + t_a_b``. Composition: ``T_a_c = T_a_b @ T_b_c``.
 Rotation vectors use the axis-angle (so(3)) convention, angles in radians.
+
+This is the public, NumPy face of the Lie-group kernels :mod:`minegeo.kernels.lie`:
+:func:`hat`, :func:`exp_so3`, :func:`log_so3` and :func:`rotation_angle` run the kernels'
+Python source under NumPy (``kernel.py_func``: the same code, NumPy's bits); the SE(3)
+exponential/logarithm, the Jacobians, the adjoint and SE(2) are the compiled kernels.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from minegeo.kernels import lie
+
 __all__ = [
     "hat",
+    "vee",
     "exp_so3",
     "log_so3",
     "exp_se3",
+    "se3_exp",
+    "se3_log",
+    "se3_adjoint",
+    "so3_left_jacobian",
+    "so3_left_jacobian_inv",
+    "so3_right_jacobian",
+    "so3_right_jacobian_inv",
+    "se3_left_jacobian",
+    "se3_left_jacobian_inv",
+    "se3_right_jacobian",
+    "se3_right_jacobian_inv",
+    "se2_exp",
+    "se2_log",
     "make_transform",
     "invert",
     "transform_points",
@@ -23,37 +44,39 @@ __all__ = [
 ]
 
 
+def _vec(v, n: int) -> np.ndarray:
+    a = np.ascontiguousarray(v, dtype=np.float64)
+    if a.shape != (n,):
+        raise ValueError(f"expected a vector of {n} values, got shape {a.shape}")
+    return a
+
+
+def _mat(M, n: int) -> np.ndarray:
+    a = np.ascontiguousarray(M, dtype=np.float64)
+    if a.shape != (n, n):
+        raise ValueError(f"expected a ({n}, {n}) matrix, got shape {a.shape}")
+    return a
+
+
 def hat(w) -> np.ndarray:
     """Skew-symmetric matrix ``[w]x`` with ``hat(w) @ v == cross(w, v)``."""
-    wx, wy, wz = np.asarray(w, dtype=np.float64)
-    return np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+    return lie.hat.py_func(_vec(w, 3))
+
+
+def vee(W) -> np.ndarray:
+    """Inverse of :func:`hat`: the vector ``w`` of a skew-symmetric ``W``."""
+    return lie.vee.py_func(_mat(W, 3))
 
 
 def exp_so3(w) -> np.ndarray:
-    """Rodrigues' formula: rotation matrix of the rotation vector ``w`` (rad)."""
-    w = np.asarray(w, dtype=np.float64)
-    th = float(np.linalg.norm(w))
-    K = hat(w)
-    if th < 1e-8:
-        return np.eye(3) + K + 0.5 * K @ K
-    return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th**2 * K @ K
+    """Rodrigues' formula: rotation matrix of the rotation vector ``w`` (rad) (:func:`minegeo.kernels.lie.so3_exp`)."""
+    return lie.so3_exp.py_func(_vec(w, 3))
 
 
 def log_so3(R) -> np.ndarray:
-    """Rotation vector (rad) of a rotation matrix; inverse of :func:`exp_so3` for angles < pi."""
-    R = np.asarray(R, dtype=np.float64)
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    th = float(np.arccos(c))
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if th < 1e-8:
-        return 0.5 * v
-    if np.pi - th < 1e-6:
-        # near pi: axis from the diagonal of (R + I) / 2
-        B = (R + np.eye(3)) / 2.0
-        k = int(np.argmax(np.diag(B)))
-        axis = B[:, k] / np.sqrt(B[k, k])
-        return axis * th
-    return th / (2.0 * np.sin(th)) * v
+    """Rotation vector (rad) of a rotation matrix; inverse of :func:`exp_so3` for angles < pi
+    (:func:`minegeo.kernels.lie.so3_log`)."""
+    return lie.so3_log.py_func(_mat(R, 3))
 
 
 def exp_se3(xi) -> np.ndarray:
@@ -73,7 +96,10 @@ def make_transform(R=None, t=None) -> np.ndarray:
 
 
 def invert(T) -> np.ndarray:
-    """Inverse of a rigid transform: ``T_b_a`` from ``T_a_b`` (exact, no general matrix inverse)."""
+    """Inverse of a rigid transform: ``T_b_a`` from ``T_a_b`` (exact, no general matrix inverse).
+
+    NumPy/BLAS expression of :func:`minegeo.kernels.lie.se3_inverse` (kept: its BLAS product
+    rounds differently from the kernel's loop, and its bits enter published outputs)."""
     T = np.asarray(T, dtype=np.float64)
     Ti = np.eye(4)
     Ti[:3, :3] = T[:3, :3].T
@@ -99,7 +125,7 @@ def rotation_from_euler_xyz(rx, ry, rz) -> np.ndarray:
 
 def rotation_angle(R) -> float:
     """Rotation angle (rad, in [0, pi]) of a rotation matrix, e.g. of ``R_est.T @ R_true``."""
-    return float(np.arccos(np.clip((np.trace(np.asarray(R)) - 1.0) / 2.0, -1.0, 1.0)))
+    return float(lie.so3_angle.py_func(_mat(R, 3)))
 
 
 def random_transform(rng: np.random.Generator, max_angle_rad: float = np.pi, max_translation: float = 1.0):
@@ -109,3 +135,76 @@ def random_transform(rng: np.random.Generator, max_angle_rad: float = np.pi, max
     ang = rng.uniform(0.0, max_angle_rad)
     t = rng.uniform(-max_translation, max_translation, size=3)
     return make_transform(exp_so3(axis * ang), t)
+
+
+# ----------------------------------------------------------------------------- Lie-group kernels
+# Compiled kernels of minegeo.kernels.lie; tangent vectors rotation first: ξ = (φ rad, ρ m).
+
+
+def se3_exp(xi) -> np.ndarray:
+    """SE(3) exponential ``[[exp(φ), J_l(φ) ρ], [0, 1]]`` of ``ξ = (φ, ρ)`` (rad, m).
+
+    Unlike :func:`exp_se3` (which applies ``ρ`` as the translation), this is the group
+    exponential used by Gauss-Newton / pose-graph updates.
+    """
+    return lie.se3_exp(_vec(xi, 6))
+
+
+def se3_log(T) -> np.ndarray:
+    """SE(3) logarithm ``ξ = (φ, ρ)`` of a 4x4 rigid transform (rotation angle < pi)."""
+    return lie.se3_log(_mat(T, 4))
+
+
+def se3_adjoint(T) -> np.ndarray:
+    """6x6 adjoint ``[[R, 0], [hat(t) R, R]]`` of ``T`` (rotation-first order)."""
+    return lie.se3_adjoint(_mat(T, 4))
+
+
+def so3_left_jacobian(w) -> np.ndarray:
+    """Left Jacobian ``J_l(w)`` of SO(3) (3x3)."""
+    return lie.so3_left_jacobian(_vec(w, 3))
+
+
+def so3_left_jacobian_inv(w) -> np.ndarray:
+    """Inverse left Jacobian of SO(3) (3x3; singular at angles 2πk, k ≠ 0)."""
+    return lie.so3_left_jacobian_inv(_vec(w, 3))
+
+
+def so3_right_jacobian(w) -> np.ndarray:
+    """Right Jacobian ``J_r(w) = J_l(-w)`` of SO(3) (3x3)."""
+    return lie.so3_right_jacobian(_vec(w, 3))
+
+
+def so3_right_jacobian_inv(w) -> np.ndarray:
+    """Inverse right Jacobian of SO(3) (3x3)."""
+    return lie.so3_right_jacobian_inv(_vec(w, 3))
+
+
+def se3_left_jacobian(xi) -> np.ndarray:
+    """Left Jacobian of SE(3) at ``ξ = (φ, ρ)`` (6x6)."""
+    return lie.se3_left_jacobian(_vec(xi, 6))
+
+
+def se3_left_jacobian_inv(xi) -> np.ndarray:
+    """Inverse left Jacobian of SE(3) (6x6)."""
+    return lie.se3_left_jacobian_inv(_vec(xi, 6))
+
+
+def se3_right_jacobian(xi) -> np.ndarray:
+    """Right Jacobian of SE(3) ``J_r(ξ) = J_l(-ξ)`` (6x6)."""
+    return lie.se3_right_jacobian(_vec(xi, 6))
+
+
+def se3_right_jacobian_inv(xi) -> np.ndarray:
+    """Inverse right Jacobian of SE(3) (6x6)."""
+    return lie.se3_right_jacobian_inv(_vec(xi, 6))
+
+
+def se2_exp(xi) -> np.ndarray:
+    """SE(2) exponential: 3x3 homogeneous transform of ``ξ = (θ rad, ρ_x m, ρ_y m)``."""
+    return lie.se2_exp(_vec(xi, 3))
+
+
+def se2_log(T) -> np.ndarray:
+    """SE(2) logarithm ``(θ, ρ_x, ρ_y)`` of a 3x3 homogeneous transform, ``θ`` in (-π, π]."""
+    return lie.se2_log(_mat(T, 3))

@@ -18,12 +18,12 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
-from minegeo.registration._kernels import _kd_nn_rows
+from minegeo.kernels.hashgrid import find_slot
+from minegeo.kernels.kdtree import kd_nn_rows
 
 _BITS = 21
 _OFF = 1 << (_BITS - 1)  # cell indices are stored with this offset: |i| < 2^20 cells
 _MASK21 = (1 << _BITS) - 1
-_GOLD = -7046029254386353131  # 0x9E3779B97F4A7C15 as a signed int64
 
 
 @njit
@@ -33,20 +33,9 @@ def cell_key(ix, iy, iz):
 
 
 @njit
-def _slot(key, shift, mask):
-    h = key * np.int64(_GOLD)  # wraps modulo 2^64 (Fibonacci hashing)
-    return (h >> shift) & mask
-
-
-@njit
-def block_slot(block_keys, key, shift, mask):
+def block_slot(block_keys, key, log2_blocks):
     """Slot of block ``key`` in the table, or of the empty slot where it would go."""
-    s = _slot(key, shift, mask)
-    while True:
-        v = block_keys[s]
-        if v == key or v == -1:
-            return s
-        s = (s + 1) & mask
+    return find_slot(block_keys, key, log2_blocks)
 
 
 @njit
@@ -77,8 +66,6 @@ def build_blocked_occupancy(cells, radius, log2_blocks):
     Stops early once ``n_blocks`` exceeds half the capacity (the caller then retries larger).
     """
     cap = np.int64(1) << log2_blocks
-    mask = cap - 1
-    shift = np.int64(64 - log2_blocks)
     block_keys = np.full(cap, -1, dtype=np.int64)
     bits = np.zeros((cap, 16), dtype=np.uint64)
     nb = 0
@@ -91,7 +78,7 @@ def build_blocked_occupancy(cells, radius, log2_blocks):
                     iy = cells[i, 1] + dy
                     iz = cells[i, 2] + dz
                     key = cell_key(ix >> 3, iy >> 3, iz >> 3)  # arithmetic shift: floor(i / 8)
-                    s = block_slot(block_keys, key, shift, mask)
+                    s = block_slot(block_keys, key, log2_blocks)
                     if block_keys[s] == -1:
                         block_keys[s] = key
                         nb += 1
@@ -108,9 +95,7 @@ def build_blocked_occupancy(cells, radius, log2_blocks):
 @njit
 def occupancy_state(block_keys, bits, log2_blocks, ix, iy, iz):
     """0 = free, 1 = in the dilated occupancy only, 2 = occupied (undilated) cell."""
-    mask = (np.int64(1) << log2_blocks) - 1
-    shift = np.int64(64 - log2_blocks)
-    s = block_slot(block_keys, cell_key(ix >> 3, iy >> 3, iz >> 3), shift, mask)
+    s = block_slot(block_keys, cell_key(ix >> 3, iy >> 3, iz >> 3), log2_blocks)
     if block_keys[s] == -1:
         return 0
     w = ix & 7
@@ -182,8 +167,6 @@ def score_placements(block_keys, bits, log2_blocks, table, table_lo, RX, RY, SZ,
     Branch-free count: an empty slot's bit rows are zero, so a missing block is a miss.
     """
     na, ny, m = anchors.shape[0], RX.shape[0], RX.shape[1]
-    mask = (np.int64(1) << log2_blocks) - 1
-    shift = np.int64(64 - log2_blocks)
     one = np.uint64(1)
     out = np.zeros((na, ny), dtype=np.int32)
     out_t = np.zeros((na, ny), dtype=np.int32)
@@ -211,7 +194,7 @@ def score_placements(block_keys, bits, log2_blocks, table, table_lo, RX, RY, SZ,
                     if 0 <= bx < d0 and 0 <= by < d1 and 0 <= bz < d2:
                         sl = np.int64(table[bx, by, bz])
                 else:
-                    sl = block_slot(block_keys, cell_key(ix >> 3, iy >> 3, iz >> 3), shift, mask)
+                    sl = block_slot(block_keys, cell_key(ix >> 3, iy >> 3, iz >> 3), log2_blocks)
                 w = ix & 7
                 b = np.uint64(((iy & 7) << 3) | (iz & 7))
                 hit = np.int64((bits[sl, w] >> b) & one)
@@ -341,10 +324,10 @@ def refine_placements_4dof(S, T0s, Q, Nq, idx, Qs, start, end, dim, split, left,
         b = np.empty(4)
         for it in range(gates2.shape[0]):
             _apply(T, S, X)
-            _kd_nn_rows(X, idx, Qs, start, end, dim, split, left, right, depth, gates2[it], oi, osq, 0, m)
+            kd_nn_rows(X, idx, Qs, start, end, dim, split, left, right, depth, gates2[it], oi, osq, 0, m)
             _gn4_step(X, oi, nq, Q, Nq, T, A, b)
         _apply(T, S, X)
-        _kd_nn_rows(X, idx, Qs, start, end, dim, split, left, right, depth, final_gate2, oi, osq, 0, m)
+        kd_nn_rows(X, idx, Qs, start, end, dim, split, left, right, depth, final_gate2, oi, osq, 0, m)
         out_count[c] = _plane_count(X, oi, nq, Q, Nq, tol)
         for p in range(4):
             for q in range(4):
@@ -362,8 +345,6 @@ def build_nearest_grid(Q, cell, band, log2_blocks):
     capacity (the caller retries larger). Serial and in point order: deterministic.
     """
     cap = np.int64(1) << log2_blocks
-    mask = cap - 1
-    shift = np.int64(64 - log2_blocks)
     block_keys = np.full(cap, -1, dtype=np.int64)
     nearest = np.full((cap, 512), -1, dtype=np.int32)
     nb = 0
@@ -382,7 +363,7 @@ def build_nearest_grid(Q, cell, band, log2_blocks):
                     iz = cz + dz
                     ez = (iz + 0.5) * cell - qz
                     key = cell_key(ix >> 3, iy >> 3, iz >> 3)
-                    s = block_slot(block_keys, key, shift, mask)
+                    s = block_slot(block_keys, key, log2_blocks)
                     if block_keys[s] == -1:
                         block_keys[s] = key
                         nb += 1
@@ -405,14 +386,12 @@ def build_nearest_grid(Q, cell, band, log2_blocks):
 def _grid_nn_rows(X, block_keys, nearest, log2_blocks, cell, Q, gate2, out_idx):
     """Approximate gated nearest neighbours: the point stored for the cell of each row of ``X``
     (:func:`build_nearest_grid`), if within ``sqrt(gate2)`` of the row; else ``Q.shape[0]``."""
-    mask = (np.int64(1) << log2_blocks) - 1
-    shift = np.int64(64 - log2_blocks)
     nq = Q.shape[0]
     for i in range(X.shape[0]):
         ix = np.int64(np.floor(X[i, 0] / cell))
         iy = np.int64(np.floor(X[i, 1] / cell))
         iz = np.int64(np.floor(X[i, 2] / cell))
-        s = block_slot(block_keys, cell_key(ix >> 3, iy >> 3, iz >> 3), shift, mask)
+        s = block_slot(block_keys, cell_key(ix >> 3, iy >> 3, iz >> 3), log2_blocks)
         out_idx[i] = nq
         if block_keys[s] != -1:
             j = nearest[s, ((ix & 7) << 6) | ((iy & 7) << 3) | (iz & 7)]

@@ -5,8 +5,9 @@ functions in :mod:`minegeo.registration.ransac` and
 :mod:`minegeo.registration.correspondences` validate and document.
 
 Fixed-radius nearest-neighbour search uses a uniform grid of cubic cells with
-edge ``cell >= radius`` stored in an open-addressing hash table (so memory is
-proportional to the number of occupied cells, not to the map's extent): the
+edge ``cell >= radius`` stored in an open-addressing hash table
+(:mod:`minegeo.kernels.hashgrid`; memory proportional to the number of occupied cells, not to
+the map's extent): the
 nearest point within ``radius`` of a query is always in the 3 x 3 x 3 block of
 cells around it, so the search is exact.
 """
@@ -18,6 +19,8 @@ import math
 import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
+from minegeo.kernels import hashgrid as HG
+from minegeo.kernels.rigid import umeyama_rigid
 
 # Hypothesis status codes returned by :func:`ransac_batch_kernel`.
 ST_EDGE = 0  #: rejected by the edge-length test ([Baek2022 Eq. 7])
@@ -27,47 +30,7 @@ ST_NORMAL = 3  #: rejected by the normal-angle check on the sample
 ST_EVALUATED = 4  #: scored on the whole cloud (n_inliers, sse valid)
 ST_PRUNED = 5  #: passed the checks; scoring stopped once it could not reach the bound
 
-_HASH_MULT = np.int64(-7046029254386353131)  # 0x9E3779B97F4A7C15 as signed int64
-_EMPTY = np.int64(-1)
-
-
 # ----------------------------------------------------------------------------- grid
-
-
-@njit
-def _hash_slot(key, mask):
-    h = key * _HASH_MULT
-    h ^= h >> np.int64(29)
-    return h & mask
-
-
-@njit
-def grid_build_table(cell_keys_unique, table_bits):
-    """Open-addressing table mapping a cell key to its row in the unique-cell arrays."""
-    size = np.int64(1) << np.int64(table_bits)
-    mask = size - np.int64(1)
-    keys = np.full(size, _EMPTY, dtype=np.int64)
-    slots = np.full(size, _EMPTY, dtype=np.int64)
-    for u in range(cell_keys_unique.shape[0]):
-        key = cell_keys_unique[u]
-        s = _hash_slot(key, mask)
-        while keys[s] != _EMPTY:
-            s = (s + np.int64(1)) & mask
-        keys[s] = key
-        slots[s] = u
-    return keys, slots
-
-
-@njit
-def _grid_lookup(key, tkeys, tslots, mask):
-    s = _hash_slot(key, mask)
-    while True:
-        k = tkeys[s]
-        if k == key:
-            return tslots[s]
-        if k == _EMPTY:
-            return np.int64(-1)
-        s = (s + np.int64(1)) & mask
 
 
 @njit
@@ -98,7 +61,7 @@ def grid_nearest(x, y, z, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cs
     if x0 >= x1:
         return best, bd
     dense = dstart.shape[0] > 1
-    mask = tkeys.shape[0] - 1
+    bits = HG.table_bits_of(tkeys)
     for iz in range(max(cz - 1, 0), min(cz + 2, nz)):
         for iy in range(max(cy - 1, 0), min(cy + 2, ny)):
             base = (iz * ny + iy) * nx
@@ -113,7 +76,7 @@ def grid_nearest(x, y, z, gpts, gorigin, gcell, gdims, dstart, tkeys, tslots, cs
                         best = j
             else:
                 for ix in range(x0, x1):
-                    u = _grid_lookup(base + ix, tkeys, tslots, mask)
+                    u = HG.lookup(base + ix, bits, tkeys, tslots)
                     if u < 0:
                         continue
                     s0 = cstart[u]
@@ -164,50 +127,6 @@ def grid_nearest_serial(queries, R, t, gpts, gorigin, gcell, gdims, dstart, tkey
 
 
 # ----------------------------------------------------------------------------- model
-
-
-@njit
-def umeyama_rigid(P, Q, rel_tol):
-    """Least-squares rigid motion ``Q ~ R P + t`` from paired rows ([Baek2022 Eqs. 10-13], Umeyama 1991).
-
-    ``Sigma = (1/n) sum (q_i - q_bar)(p_i - p_bar)^T = U D V^T``,
-    ``R = U diag(1, 1, s) V^T`` with ``s = sign(det U det V)`` (reflection fix),
-    ``t = q_bar - R p_bar``. Returns ``(R, t, ok)``; ``ok`` is False when the
-    second singular value is below ``rel_tol`` times the first (collinear or
-    coincident points: rotation undetermined).
-    """
-    n = P.shape[0]
-    pm = np.zeros(3)
-    qm = np.zeros(3)
-    for i in range(n):
-        for a in range(3):
-            pm[a] += P[i, a]
-            qm[a] += Q[i, a]
-    for a in range(3):
-        pm[a] /= n
-        qm[a] /= n
-    S = np.zeros((3, 3))
-    for i in range(n):
-        for a in range(3):
-            qa = Q[i, a] - qm[a]
-            for b in range(3):
-                S[a, b] += qa * (P[i, b] - pm[b])
-    for a in range(3):
-        for b in range(3):
-            S[a, b] /= n
-    U, D, Vt = np.linalg.svd(S)
-    ok = D[0] > 0.0 and D[1] > rel_tol * D[0]
-    s = 1.0
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
-        s = -1.0
-    R = np.zeros((3, 3))
-    for a in range(3):
-        for b in range(3):
-            R[a, b] = U[a, 0] * Vt[0, b] + U[a, 1] * Vt[1, b] + s * U[a, 2] * Vt[2, b]
-    t = np.zeros(3)
-    for a in range(3):
-        t[a] = qm[a] - (R[a, 0] * pm[0] + R[a, 1] * pm[1] + R[a, 2] * pm[2])
-    return R, t, ok
 
 
 @njit

@@ -1,6 +1,7 @@
 """RANSAC sample check for levelled frames (4-DOF: yaw + translation); contiguous arrays in, no checks.
 
-Status codes are those of :mod:`minegeo.registration._kernels_ransac`.
+Status codes are those of :mod:`minegeo.registration._kernels_ransac`; the 4-DOF fit is
+:func:`minegeo.kernels.rigid.yaw_fit`.
 """
 
 from __future__ import annotations
@@ -10,56 +11,8 @@ import math
 import numpy as np
 
 from minegeo._jit import njit
+from minegeo.kernels.rigid import yaw_fit
 from minegeo.registration._kernels_ransac import ST_DEGENERATE, ST_DISTANCE, ST_EDGE, ST_EVALUATED
-
-
-@njit
-def yaw_fit(P, Q):
-    """Least-squares yaw + translation ``q ≈ Rz(θ) p + t`` of paired rows (n >= 2).
-
-    With horizontally centred coordinates ``p' = p − p̄``, ``q' = q − q̄``:
-    ``θ = atan2(Σ (p'_x q'_y − p'_y q'_x), Σ (p'_x q'_x + p'_y q'_y))`` (the 2-D Procrustes /
-    Kabsch solution), ``t = q̄ − Rz(θ) p̄`` (z: mean height difference). Returns
-    ``(T (4, 4), horizontal spread Σ |p'_xy|²)``.
-    """
-    n = P.shape[0]
-    pbx = pby = pbz = qbx = qby = qbz = 0.0
-    for i in range(n):
-        pbx += P[i, 0]
-        pby += P[i, 1]
-        pbz += P[i, 2]
-        qbx += Q[i, 0]
-        qby += Q[i, 1]
-        qbz += Q[i, 2]
-    pbx /= n
-    pby /= n
-    pbz /= n
-    qbx /= n
-    qby /= n
-    qbz /= n
-    s = c = spread = 0.0
-    for i in range(n):
-        px = P[i, 0] - pbx
-        py = P[i, 1] - pby
-        qx = Q[i, 0] - qbx
-        qy = Q[i, 1] - qby
-        s += px * qy - py * qx
-        c += px * qx + py * qy
-        spread += px * px + py * py
-    th = math.atan2(s, c)
-    ct = math.cos(th)
-    st = math.sin(th)
-    T = np.zeros((4, 4))
-    T[0, 0] = ct
-    T[0, 1] = -st
-    T[1, 0] = st
-    T[1, 1] = ct
-    T[2, 2] = 1.0
-    T[3, 3] = 1.0
-    T[0, 3] = qbx - (ct * pbx - st * pby)
-    T[1, 3] = qby - (st * pbx + ct * pby)
-    T[2, 3] = qbz - pbz
-    return T, spread
 
 
 @njit

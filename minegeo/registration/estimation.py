@@ -21,6 +21,7 @@ import numpy as np
 
 from minegeo._validate import as_points
 from minegeo.errors import DegenerateGeometryError, InputError, TooFewPointsError
+from minegeo.kernels.rigid import umeyama_from_moments
 from minegeo.registration import _kernels as K
 
 __all__ = ["umeyama", "kabsch", "pose_covariance"]
@@ -106,7 +107,7 @@ def umeyama(src, dst, with_scale: bool = False, weights=None, *, allow_degenerat
         )
     w = _weights(weights, P.shape[0])
     _, mu_p, mu_q, W, var_p = K.weighted_moments_kernel(P, Q, w)
-    T, c, S = K.umeyama_from_moments(mu_p, mu_q, W, var_p, bool(with_scale))
+    T, c, S = umeyama_from_moments(mu_p, mu_q, W, var_p, bool(with_scale))
     if not allow_degenerate:
         if S[0] <= 0.0 or S[1] <= RANK_TOL * S[0]:
             raise DegenerateGeometryError(

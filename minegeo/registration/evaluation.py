@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 
 from minegeo._validate import as_points, as_transform, check_positive
 from minegeo.errors import InputError
+from minegeo.kernels.kdtree import GatedKDTree
 from minegeo.registration import _kernels as K
 
 __all__ = ["evaluate_registration", "build_target_index", "nearest_within", "is_identity"]
@@ -31,14 +32,14 @@ PARALLEL_QUERY_MIN = 1024
 
 
 def _kdtree(Q: np.ndarray):
-    """Gated nearest-neighbour KD-tree over the target (Numba, :class:`_kernels.GatedKDTree`)."""
-    return K.GatedKDTree(Q)
+    """Gated nearest-neighbour KD-tree over the target (:class:`minegeo.kernels.kdtree.GatedKDTree`)."""
+    return GatedKDTree(Q)
 
 
 def build_target_index(target_points):
     """Search structure over the target points, reusable across calls.
 
-    A sliding-midpoint KD-tree written in Numba (``_kernels.GatedKDTree``) whose queries are
+    A sliding-midpoint KD-tree written in Numba (:class:`minegeo.kernels.kdtree.GatedKDTree`) whose queries are
     bounded by the correspondence gate, so each query visits only a few leaves.
 
     Parameters
@@ -82,7 +83,7 @@ def nearest_within(P: np.ndarray, Q: np.ndarray, index, d: float):
 
     ``P`` and ``Q`` must already be validated contiguous float64 arrays (internal helper).
     """
-    if isinstance(index, K.GatedKDTree):
+    if isinstance(index, GatedKDTree):
         idx, sq = index.query(P, d * d)
         src = np.flatnonzero(idx < Q.shape[0])
         return src, idx[src], np.ascontiguousarray(sq[src])

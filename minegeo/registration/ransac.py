@@ -28,6 +28,7 @@ import numpy as np
 
 from minegeo._validate import as_points, as_trusted_points, check_positive
 from minegeo.errors import DegenerateGeometryError, InputError, TooFewPointsError
+from minegeo.kernels import hashgrid as HG
 from minegeo.registration import _kernels_ransac as K
 from minegeo.registration import _kernels_ransac_levelled as KL
 from minegeo.registration.correspondences import feature_correspondences
@@ -416,8 +417,7 @@ class _Grid:
             uniq, start, count = np.unique(ks, return_index=True, return_counts=True)
             self.start = start.astype(np.int64)
             self.count = count.astype(np.int64)
-            bits = max(4, int(math.ceil(math.log2(2 * uniq.size + 1))))
-            self.tkeys, self.tslots = K.grid_build_table(uniq.astype(np.int64), bits)
+            self.tkeys, self.tslots = HG.new_table(uniq.astype(np.int64), HG.table_bits(uniq.size))
             self.dstart = np.zeros(1, dtype=np.int64)
 
     def args(self):
@@ -597,6 +597,42 @@ def register_ransac(
     t_all = time.perf_counter()
     timings: dict[str, float] = {}
     n = int(p.ransac_n)
+    src, tgt, src_n, tgt_n, use_normals = _checked_inputs(source_points, target_points, source_normals,
+                                                           target_normals, p, n, check_target)
+    t0 = time.perf_counter()
+    corr, mutual_applied = _putative_pairs(src, tgt, source_features, target_features, correspondences, p,
+                                           target_feature_index)
+    timings["correspondences"] = time.perf_counter() - t0
+    if corr.shape[0] < n:
+        raise TooFewPointsError(
+            f"only {corr.shape[0]} putative correspondence(s); RANSAC with ransac_n={n} needs at least {n}")
+
+    t0 = time.perf_counter()
+    d = float(p.distance_threshold_m)
+    grid = _Grid(tgt, d)
+    csrc = np.ascontiguousarray(src[corr[:, 0]])
+    ctgt = np.ascontiguousarray(tgt[corr[:, 1]])
+    dummy = np.zeros((1, 3))
+    csrc_n = np.ascontiguousarray(src_n[corr[:, 0]]) if use_normals else dummy
+    ctgt_n = np.ascontiguousarray(tgt_n[corr[:, 1]]) if use_normals else dummy
+    eval_order = np.random.default_rng(0).permutation(src.shape[0]).astype(np.int64)
+    center = src.mean(axis=0)
+    timings["grid"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    run = _hypotheses(p, seed, src, csrc, ctgt, csrc_n, ctgt_n, use_normals, grid, eval_order, center)
+    timings["hypotheses"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    out = _final_answer(p, run, grid, src, tgt, center)
+    timings["refit"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_all
+    return _result(p, seed, run, out, src.shape[0], corr, mutual_applied, timings)
+
+
+def _checked_inputs(source_points, target_points, source_normals, target_normals, p: RansacParams, n: int,
+                    check_target: bool):
+    """Validated ``(src, tgt, src_n, tgt_n, use_normals)`` of :func:`register_ransac`."""
     src = as_points(source_points, "source_points", min_points=n)
     tgt = (as_points(target_points, "target_points", min_points=n) if check_target
            else as_trusted_points(target_points, "target_points", min_points=n))
@@ -612,9 +648,12 @@ def register_ransac(
         raise InputError(f"target_normals has {tgt_n.shape[0]} rows but target_points has {tgt.shape[0]}")
     _check_not_flat(src, "source")
     _check_not_flat(tgt, "target")
+    return src, tgt, src_n, tgt_n, use_normals
 
-    t0 = time.perf_counter()
-    mutual_applied = False
+
+def _putative_pairs(src, tgt, source_features, target_features, correspondences, p: RansacParams,
+                    target_feature_index):
+    """``(corr (k, 2) int64, mutual_applied)``: the given pairs (checked) or descriptor matches."""
     if correspondences is not None:
         corr = np.asarray(correspondences)
         if corr.ndim != 2 or corr.shape[1] != 2 or not np.issubdtype(corr.dtype, np.integer):
@@ -624,56 +663,51 @@ def register_ransac(
             corr[:, 0].min() < 0 or corr[:, 0].max() >= src.shape[0] or corr[:, 1].min() < 0 or corr[:, 1].max() >= tgt.shape[0]
         ):
             raise InputError("correspondences refer to points that do not exist")
-    else:
-        if source_features is None or target_features is None:
-            raise InputError("give source_features and target_features, or correspondences")
-        fs = np.asarray(source_features, dtype=np.float64)
-        ft = np.asarray(target_features, dtype=np.float64)
-        if fs.ndim != 2 or fs.shape[0] != src.shape[0]:
-            raise InputError(f"source_features must have one row per source point ({src.shape[0]}), got {fs.shape}")
-        if ft.ndim != 2 or ft.shape[0] != tgt.shape[0]:
-            raise InputError(f"target_features must have one row per target point ({tgt.shape[0]}), got {ft.shape}")
-        fm = feature_correspondences(fs, ft, mutual_filter=p.mutual_filter, target_index=target_feature_index)
-        corr = fm.pairs
-        mutual_applied = fm.mutual_applied
-    timings["correspondences"] = time.perf_counter() - t0
-    n_corr = corr.shape[0]
-    if n_corr < n:
-        raise TooFewPointsError(f"only {n_corr} putative correspondence(s); RANSAC with ransac_n={n} needs at least {n}")
+        return corr, False
+    if source_features is None or target_features is None:
+        raise InputError("give source_features and target_features, or correspondences")
+    fs = np.asarray(source_features, dtype=np.float64)
+    ft = np.asarray(target_features, dtype=np.float64)
+    if fs.ndim != 2 or fs.shape[0] != src.shape[0]:
+        raise InputError(f"source_features must have one row per source point ({src.shape[0]}), got {fs.shape}")
+    if ft.ndim != 2 or ft.shape[0] != tgt.shape[0]:
+        raise InputError(f"target_features must have one row per target point ({tgt.shape[0]}), got {ft.shape}")
+    fm = feature_correspondences(fs, ft, mutual_filter=p.mutual_filter, target_index=target_feature_index)
+    return fm.pairs, fm.mutual_applied
 
-    t0 = time.perf_counter()
+
+@dataclass
+class _Run:
+    """State of the hypothesis loop of :func:`register_ransac` (best so far, budget, store)."""
+
+    stop_at: int
+    best_T: np.ndarray = field(default_factory=lambda: np.eye(4))
+    best_c: int = 0
+    best_s: float = 0.0
+    n_valid: int = 0
+    iterations: int = 0
+    stop_reason: str = "max_iterations"
+    store: _HypothesisStore = field(default_factory=lambda: _HypothesisStore())
+    best_moved: bool = False
+    prune: int = 0
+    n_tilt: int = 0
+
+
+def _hypotheses(p: RansacParams, seed, src, csrc, ctgt, csrc_n, ctgt_n, use_normals: bool, grid: _Grid,
+                eval_order, center) -> _Run:
+    """Draw, check and score hypotheses in batches until the [Baek2022 Eq. 8] budget is spent."""
+    n = int(p.ransac_n)
+    n_corr = csrc.shape[0]
     d = float(p.distance_threshold_m)
-    grid = _Grid(tgt, d)
-    csrc = np.ascontiguousarray(src[corr[:, 0]])
-    ctgt = np.ascontiguousarray(tgt[corr[:, 1]])
-    dummy = np.zeros((1, 3))
-    csrc_n = np.ascontiguousarray(src_n[corr[:, 0]]) if use_normals else dummy
-    ctgt_n = np.ascontiguousarray(tgt_n[corr[:, 1]]) if use_normals else dummy
     cos_normal = math.cos(p.normal_angle_threshold_rad) if use_normals else -2.0
-    eval_order = np.random.default_rng(0).permutation(src.shape[0]).astype(np.int64)
-    center = src.mean(axis=0)
-    timings["grid"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     distinct_rows = p.mode == "minegeo"
     B = int(p.batch_size)
-    stop_at = int(p.max_iterations)
-    best_T = np.eye(4)
-    best_c, best_s = 0, 0.0
-    n_valid = 0
-    iterations = 0
-    stop_reason = "max_iterations"
-    store = _HypothesisStore()
-    best_moved = False
-    prune = 0
-    n_tilt = 0
+    run = _Run(stop_at=int(p.max_iterations))
     cos_tilt = math.cos(math.radians(float(p.max_tilt_deg))) if p.max_tilt_deg is not None else None
-    top_k = int(p.n_hypotheses)
     it0 = 0
-    G = _SCORE_GROUP
-    while it0 < stop_at:
-        nb = min(B, stop_at - it0)
+    while it0 < run.stop_at:
+        nb = min(B, run.stop_at - it0)
         S = _draw_samples(rng, n_corr, nb, n)
         if p.model == "levelled":
             status, Ts = KL.ransac_check_levelled_kernel(csrc, ctgt, S, float(p.edge_length_similarity), d,
@@ -685,78 +719,93 @@ def register_ransac(
             )
         if cos_tilt is not None:
             tilted = (status == K.ST_EVALUATED) & (Ts[:, 2, 2] < cos_tilt)
-            n_tilt += int(np.count_nonzero(tilted[: stop_at - it0]))
+            run.n_tilt += int(np.count_nonzero(tilted[: run.stop_at - it0]))
             status[tilted] = ST_TILT
         passed = np.flatnonzero(status == K.ST_EVALUATED)
-        for g0 in range(0, passed.size, G):
-            grp = passed[g0 : g0 + G]
-            grp = grp[it0 + grp < stop_at]
+        for g0 in range(0, passed.size, _SCORE_GROUP):
+            grp = passed[g0 : g0 + _SCORE_GROUP]
+            grp = grp[it0 + grp < run.stop_at]
             if grp.size == 0:
                 break
-            score = K.ransac_score_kernel if grp.size * src.shape[0] > _PARALLEL_WORK else K.ransac_score_serial
-            cnts, sses, pruned = score(src, eval_order, np.ascontiguousarray(Ts[grp]), np.int64(prune), d, *grid.args())
-            n_keep = grp.size
-            for q, h in enumerate(grp):
-                it = it0 + int(h)
-                if it >= stop_at:
-                    n_keep = q
-                    break
-                n_valid += 1
-                if not pruned[q] and _better(int(cnts[q]), float(sses[q]), best_c, best_s):
-                    best_c, best_s, best_T = int(cnts[q]), float(sses[q]), Ts[h].copy()
-                    best_moved = True
-                    res = csrc @ best_T[:3, :3].T + best_T[:3, 3] - ctgt
-                    w = float(np.count_nonzero(np.einsum("ij,ij->i", res, res) < d * d)) / n_corr
-                    k = required_iterations(w, n, float(p.confidence))
-                    if k < stop_at:
-                        new_stop = max(it + 1, int(math.ceil(k)), int(p.min_iterations))
-                        if new_stop < stop_at:
-                            stop_at = new_stop
-                            stop_reason = "converged"
-                if p.max_validations is not None and n_valid >= p.max_validations:
-                    if it + 1 < stop_at:
-                        stop_at = it + 1
-                        stop_reason = "max_validations"
-                    n_keep = q + 1
-                    break
-            keep = np.flatnonzero(pruned[:n_keep] == 0)
-            first_new = store.n
-            if keep.size:
-                store.add(Ts[grp[keep]], cnts[keep], sses[keep])
-            if best_c > 0 and store.n and top_k <= 2:
-                # runner-up bound: best count among scored hypotheses distinct from the best
-                lo = 0 if best_moved else first_new
-                if best_moved:
-                    prune = 0
-                    best_moved = False
-                allT, allc, _ = store.view(lo)
-                if allc.size:
-                    dist, ang = _distances_to(allT, best_T, center)
-                    distinct = (dist > p.distinct_distance) | (ang > p.distinct_angle_deg)
-                    if distinct.any():
-                        prune = max(prune, int(allc[distinct].max()))
-        iterations = min(it0 + nb, stop_at)
+            _score_group(p, run, grp, it0, Ts, src, csrc, ctgt, eval_order, grid, center)
+        run.iterations = min(it0 + nb, run.stop_at)
         it0 += nb
-    timings["hypotheses"] = time.perf_counter() - t0
+    return run
 
-    t0 = time.perf_counter()
-    allT, allc, alls = store.view(0)
+
+def _score_group(p: RansacParams, run: _Run, grp, it0: int, Ts, src, csrc, ctgt, eval_order, grid: _Grid,
+                 center) -> None:
+    """Score the checked hypotheses ``Ts[grp]`` on the source cloud and accept them in draw order
+    (best by inlier count then SSE, [Baek2022 Eq. 8] budget, runner-up pruning bound)."""
+    n = int(p.ransac_n)
+    n_corr = csrc.shape[0]
+    d = float(p.distance_threshold_m)
+    score = K.ransac_score_kernel if grp.size * src.shape[0] > _PARALLEL_WORK else K.ransac_score_serial
+    cnts, sses, pruned = score(src, eval_order, np.ascontiguousarray(Ts[grp]), np.int64(run.prune), d, *grid.args())
+    n_keep = grp.size
+    for q, h in enumerate(grp):
+        it = it0 + int(h)
+        if it >= run.stop_at:
+            n_keep = q
+            break
+        run.n_valid += 1
+        if not pruned[q] and _better(int(cnts[q]), float(sses[q]), run.best_c, run.best_s):
+            run.best_c, run.best_s, run.best_T = int(cnts[q]), float(sses[q]), Ts[h].copy()
+            run.best_moved = True
+            res = csrc @ run.best_T[:3, :3].T + run.best_T[:3, 3] - ctgt
+            w = float(np.count_nonzero(np.einsum("ij,ij->i", res, res) < d * d)) / n_corr
+            k = required_iterations(w, n, float(p.confidence))
+            if k < run.stop_at:
+                new_stop = max(it + 1, int(math.ceil(k)), int(p.min_iterations))
+                if new_stop < run.stop_at:
+                    run.stop_at = new_stop
+                    run.stop_reason = "converged"
+        if p.max_validations is not None and run.n_valid >= p.max_validations:
+            if it + 1 < run.stop_at:
+                run.stop_at = it + 1
+                run.stop_reason = "max_validations"
+            n_keep = q + 1
+            break
+    keep = np.flatnonzero(pruned[:n_keep] == 0)
+    first_new = run.store.n
+    if keep.size:
+        run.store.add(Ts[grp[keep]], cnts[keep], sses[keep])
+    if run.best_c > 0 and run.store.n and int(p.n_hypotheses) <= 2:
+        # runner-up bound: best count among scored hypotheses distinct from the best
+        lo = 0 if run.best_moved else first_new
+        if run.best_moved:
+            run.prune = 0
+            run.best_moved = False
+        allT, allc, _ = run.store.view(lo)
+        if allc.size:
+            dist, ang = _distances_to(allT, run.best_T, center)
+            distinct = (dist > p.distinct_distance) | (ang > p.distinct_angle_deg)
+            if distinct.any():
+                run.prune = max(run.prune, int(allc[distinct].max()))
+
+
+def _final_answer(p: RansacParams, run: _Run, grid: _Grid, src, tgt, center) -> dict:
+    """Refit the best and the runner-up hypotheses, collect the alternatives and the final inliers."""
+    d = float(p.distance_threshold_m)
+    top_k = int(p.n_hypotheses)
+    best_T, best_c, best_s = run.best_T, run.best_c, run.best_s
+    allT, allc, alls = run.store.view(0)
     refits = int(p.refit_iterations) if p.mode == "minegeo" else 0
     if best_c == 0:
         status_s = "failed"
         reason = (
-            f"no hypothesis out of {iterations} passed the checks and explained any source point "
-            f"({n_valid} scored); the clouds may not overlap or the descriptors do not match"
+            f"no hypothesis out of {run.iterations} passed the checks and explained any source point "
+            f"({run.n_valid} scored); the clouds may not overlap or the descriptors do not match"
         )
         T = np.eye(4)
         cnt, sse = 0, 0.0
     else:
         T, cnt, sse = _refit(grid, src, tgt, best_T, best_c, best_s, d, refits)
-        status_s = stop_reason
-        if stop_reason == "converged":
-            reason = f"Eq. 8 reached confidence {p.confidence} after {iterations} iterations"
-        elif stop_reason == "max_validations":
-            reason = f"stopped after {n_valid} scored hypotheses (max_validations)"
+        status_s = run.stop_reason
+        if run.stop_reason == "converged":
+            reason = f"Eq. 8 reached confidence {p.confidence} after {run.iterations} iterations"
+        elif run.stop_reason == "max_validations":
+            reason = f"stopped after {run.n_valid} scored hypotheses (max_validations)"
         else:
             reason = f"stopped at max_iterations={p.max_iterations} before Eq. 8 was satisfied"
     # runner-up: best scored hypothesis distinct from the best hypothesis
@@ -792,34 +841,40 @@ def register_ransac(
     j_final = _score(grid, src, T, d)[2] if cnt > 0 else np.full(src.shape[0], -1)
     inl = np.flatnonzero(j_final >= 0)
     inlier_pairs = np.stack([inl, j_final[inl]], axis=1).astype(np.int64)
-    timings["refit"] = time.perf_counter() - t0
-    timings["total"] = time.perf_counter() - t_all
-    N = src.shape[0]
+    return {"T": T, "cnt": cnt, "sse": sse, "status": status_s, "reason": reason, "sb_T": sb_T, "sb_c": sb_c,
+            "sb_s": sb_s, "sb_dist": sb_dist, "sb_ang": sb_ang, "alternatives": alternatives,
+            "inlier_pairs": inlier_pairs}
+
+
+def _result(p: RansacParams, seed, run: _Run, out: dict, N: int, corr, mutual_applied: bool,
+            timings: dict) -> RansacResult:
+    """The :class:`RansacResult` of :func:`register_ransac` from the loop state and the final answer."""
+    cnt, sse, sb_c, sb_s = out["cnt"], out["sse"], out["sb_c"], out["sb_s"]
     return RansacResult(
-        T_target_source=T,
+        T_target_source=out["T"],
         fitness=cnt / N,
         inlier_rmse_m=math.sqrt(sse / cnt) if cnt else 0.0,
         n_inliers=int(cnt),
-        iterations=int(iterations),
-        n_validations=int(n_valid),
-        converged=status_s == "converged",
-        status=status_s,
-        reason=reason,
+        iterations=int(run.iterations),
+        n_validations=int(run.n_valid),
+        converged=out["status"] == "converged",
+        status=out["status"],
+        reason=out["reason"],
         second_best_fitness=(sb_c / N) if sb_c >= 0 else math.nan,
         second_best_rmse_m=math.sqrt(sb_s / sb_c) if sb_c > 0 else math.nan,
         second_best_n_inliers=int(sb_c),
-        second_best_distance_m=sb_dist,
-        second_best_rotation_deg=sb_ang,
-        second_best_T_target_source=sb_T,
+        second_best_distance_m=out["sb_dist"],
+        second_best_rotation_deg=out["sb_ang"],
+        second_best_T_target_source=out["sb_T"],
         ambiguity_ratio=(sb_c / cnt) if (sb_c > 0 and cnt > 0) else 0.0,
         correspondences=corr,
-        inlier_pairs=inlier_pairs,
+        inlier_pairs=out["inlier_pairs"],
         mutual_applied=mutual_applied,
         params=p,
         seed=seed,
         timings_s=timings,
-        alternatives=tuple(alternatives),
-        n_tilt_rejected=n_tilt,
+        alternatives=tuple(out["alternatives"]),
+        n_tilt_rejected=run.n_tilt,
     )
 
 

@@ -42,6 +42,7 @@ import numpy as np
 from minegeo._validate import as_points
 from minegeo.errors import DegenerateGeometryError, InputError, TooFewPointsError
 from minegeo.geometry.se3 import exp_so3, hat, log_so3
+from minegeo.kernels.rigid import umeyama_centred
 from minegeo.survey.angles import RHO_ARCSEC, format_dms, wrap_2pi
 from minegeo.survey.lsq import LSQOptions, LSQResult, adjust, adjust_linear
 
@@ -503,23 +504,6 @@ class Helmert3DResult:
         return out
 
 
-def _umeyama(src_c: np.ndarray, dst_c: np.ndarray, with_scale: bool):
-    """Closed-form similarity of centred point sets ([Umeyama1991 Eqs. 40-42])."""
-    n = src_c.shape[0]
-    S = dst_c.T @ src_c / n
-    U, D, Vt = np.linalg.svd(S)
-    E = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        E[2, 2] = -1.0
-    R = U @ E @ Vt
-    if with_scale:
-        var = float(np.sum(src_c**2) / n)
-        s = float(np.trace(np.diag(D) @ E) / var)
-    else:
-        s = 1.0
-    return R, s
-
-
 def helmert3d(
     src_xyz,
     dst_xyz,
@@ -569,7 +553,7 @@ def helmert3d(
     conv = _convention(convention)
     s0, d0 = src.mean(axis=0), dst.mean(axis=0)
     xs, xd = src - s0, dst - d0
-    R0, sc0 = _umeyama(xs, xd, estimate_scale)
+    R0, sc0 = umeyama_centred(xs, xd, estimate_scale)
     if sigma_dst is None:
         W = np.ones(3 * n)
     else:

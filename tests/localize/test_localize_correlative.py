@@ -147,13 +147,12 @@ def test_nearest_grid_equals_naive_twin():
     keys, nearest, nb = K.build_nearest_grid(Q, 0.5, 2, 10)
     assert nb <= 512
     ref = nearest_grid(Q, 0.5, 2)
-    mask, shift = np.int64((1 << 10) - 1), np.int64(64 - 10)
     got = {}
     for s in np.flatnonzero(keys >= 0):
         k = int(keys[s])
         bx, by, bz = (((k >> (2 * 21)) & ((1 << 21) - 1)) - (1 << 20), ((k >> 21) & ((1 << 21) - 1)) - (1 << 20),
                       (k & ((1 << 21) - 1)) - (1 << 20))
-        assert K.block_slot(keys, k, shift, mask) == s
+        assert K.block_slot(keys, k, 10) == s  # the table has 2^10 slots
         for loc in np.flatnonzero(nearest[s] >= 0):
             got[(8 * bx + (loc >> 6), 8 * by + ((loc >> 3) & 7), 8 * bz + (loc & 7))] = int(nearest[s, loc])
     assert got == ref
@@ -351,7 +350,7 @@ def test_small_scans_keep_the_full_screening(small_mine, monkeypatch):
     budget."""
     from dataclasses import replace
 
-    import minegeo.localize.pipeline as PL
+    import minegeo.localize.verification as PL
     from minegeo.localize import LocalizeParams, localize_scan
 
     P, pm = small_mine
@@ -495,7 +494,7 @@ def test_localize_params_reject_unknown_mode():
 def test_cli_correlative_option_reaches_the_params():
     import argparse
 
-    from minegeo.localize import _cli_localize as C
+    from minegeo.cli import localize as C
 
     ap = argparse.ArgumentParser()
     C.add_arguments(ap)
@@ -512,7 +511,7 @@ def test_cli_correlative_option_reaches_the_params():
 def test_cli_polish_option_reaches_the_params():
     import argparse
 
-    from minegeo.localize import _cli_localize as C
+    from minegeo.cli import localize as C
 
     ap = argparse.ArgumentParser()
     C.add_arguments(ap)

@@ -1,0 +1,461 @@
+"""Sliding-midpoint 3-D KD-tree: build, gated 1-NN, exact kNN and radius search (Numba).
+
+One tree serves every exact Euclidean search of minegeo in 3-D (ICP and GICP correspondences,
+GICP's kNN normals, the localisation's candidate refinement). Contiguous float64 arrays in, no
+checks. The tree is the tuple ``(idx, Qs, start, end, dim, split, left, right, depth)`` of
+:func:`kd_build`; every search is exact and breaks ties by the lower point index, so its
+answers do not depend on the tree's shape nor on the thread count (queries are independent,
+chunked by :data:`~minegeo.kernels.chunks.CHUNK` rows).
+
+Why a hand-written tree next to pykdtree: see ``docs/kernels.md`` (measurements of
+``benchmarks/bench_kernels.py``): the strict gate ``sq < d2`` is part of the descent (few nodes
+visited for a small gate), the ``(sq, index)`` tie rule is exact, the tree can be stored and
+restored (:meth:`GatedKDTree.arrays`), and the kernels are callable from other njit code
+(per-candidate ICP in :mod:`minegeo.localize._kernels`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from minegeo._jit import njit, njit_parallel, prange
+from minegeo._validate import is_permutation
+from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, n_chunks
+
+__all__ = ["KD_LEAF", "kd_build", "kd_walk_to_leaf", "kd_nn_descend", "kd_nn_rows", "kd_nn_serial",
+           "kd_nn_parallel", "kd_knn_one", "kd_knn", "kd_radius_one", "kd_radius_count", "GatedKDTree"]
+
+#: Maximum number of points in a KD-tree leaf.
+KD_LEAF = 12
+
+
+@njit
+def _grow(a, n):
+    """Copy of ``a`` (first axis) with capacity ``n`` (new entries undefined)."""
+    out = np.empty((n,) + a.shape[1:], a.dtype)
+    out[: a.shape[0]] = a
+    return out
+
+
+@njit
+def _box_add(box, b, Qs, a):
+    for c in range(3):
+        v = Qs[a, c]
+        if v < box[b, c]:
+            box[b, c] = v
+        if v > box[b, 3 + c]:
+            box[b, 3 + c] = v
+
+
+@njit
+def kd_build(Q, leaf):
+    """Sliding-midpoint KD-tree over ``Q`` (m, 3): split the widest bounding-box side at its middle.
+
+    Returns ``(idx, Qs, start, end, dim, split, left, right, depth)``: ``Qs = Q[idx]`` (points in
+    leaf order), per node the ``[start, end)`` range into ``Qs``, the split dimension (-1 = leaf),
+    the split value and the children; ``depth`` is the maximum node depth. Coincident points
+    (zero spread) stay in one leaf.
+
+    The points are partitioned in a contiguous working copy (rows swapped together with
+    ``idx``), and the bounding boxes of both children are accumulated while their parent is
+    partitioned, so each tree level costs one sequential pass. Node arrays start at
+    ``m // 2 + 64`` entries and grow by doubling (at most ``2 m - 1`` nodes).
+    """
+    m = Q.shape[0]
+    idx = np.arange(m)
+    Qs = np.empty((m, 3))
+    for a in range(m):
+        for c in range(3):
+            Qs[a, c] = Q[a, c]
+    cap = m // 2 + 64
+    start = np.empty(cap, np.int64)
+    end = np.empty(cap, np.int64)
+    dim = np.empty(cap, np.int64)
+    split = np.empty(cap)
+    left = np.empty(cap, np.int64)
+    right = np.empty(cap, np.int64)
+    level = np.empty(cap, np.int64)
+    box = np.empty((cap, 6))  # lo x, y, z, hi x, y, z of the node's points
+    stack = np.empty(cap, np.int64)
+    n_nodes = 1
+    start[0] = 0
+    end[0] = m
+    dim[0] = -1
+    split[0] = 0.0
+    left[0] = -1
+    right[0] = -1
+    level[0] = 0
+    for c in range(3):
+        box[0, c] = np.inf
+        box[0, 3 + c] = -np.inf
+    for a in range(m):
+        _box_add(box, 0, Qs, a)
+    sp = 1
+    stack[0] = 0
+    depth = 0
+    while sp > 0:
+        sp -= 1
+        nd = stack[sp]
+        s = start[nd]
+        e = end[nd]
+        if level[nd] > depth:
+            depth = level[nd]
+        if e - s <= leaf:
+            continue
+        k = 0
+        spread = box[nd, 3] - box[nd, 0]
+        for c in range(1, 3):
+            if box[nd, 3 + c] - box[nd, c] > spread:
+                k = c
+                spread = box[nd, 3 + c] - box[nd, c]
+        if not spread > 0.0:
+            continue
+        sv = 0.5 * (box[nd, k] + box[nd, 3 + k])
+        if n_nodes + 2 > cap:
+            cap = 2 * cap
+            start = _grow(start, cap)
+            end = _grow(end, cap)
+            dim = _grow(dim, cap)
+            split = _grow(split, cap)
+            left = _grow(left, cap)
+            right = _grow(right, cap)
+            level = _grow(level, cap)
+            box = _grow(box, cap)
+            stack = _grow(stack, cap)
+        lc = n_nodes
+        rc = n_nodes + 1
+        for c in range(3):
+            box[lc, c] = np.inf
+            box[lc, 3 + c] = -np.inf
+            box[rc, c] = np.inf
+            box[rc, 3 + c] = -np.inf
+        i = s
+        jj = e - 1
+        while i <= jj:  # partition: [s, mid) < sv <= [mid, e)
+            if Qs[i, k] < sv:
+                _box_add(box, lc, Qs, i)
+                i += 1
+            else:
+                t = idx[i]
+                idx[i] = idx[jj]
+                idx[jj] = t
+                for c in range(3):
+                    v = Qs[i, c]
+                    Qs[i, c] = Qs[jj, c]
+                    Qs[jj, c] = v
+                _box_add(box, rc, Qs, jj)
+                jj -= 1
+        mid = i
+        if mid == s or mid == e:  # midpoint rounding on a tiny spread: keep as a leaf
+            continue
+        dim[nd] = k
+        split[nd] = sv
+        n_nodes += 2
+        for ch in (lc, rc):
+            dim[ch] = -1
+            split[ch] = 0.0
+            left[ch] = -1
+            right[ch] = -1
+            level[ch] = level[nd] + 1
+        start[lc] = s
+        end[lc] = mid
+        start[rc] = mid
+        end[rc] = e
+        left[nd] = lc
+        right[nd] = rc
+        stack[sp] = lc
+        sp += 1
+        stack[sp] = rc
+        sp += 1
+    return (idx, Qs, start[:n_nodes].copy(), end[:n_nodes].copy(), dim[:n_nodes].copy(),
+            split[:n_nodes].copy(), left[:n_nodes].copy(), right[:n_nodes].copy(), depth)
+
+
+@njit
+def kd_walk_to_leaf(px, py, pz, nd, bound, dim, split, left, right, st_node, st_lb, sp):
+    """Descend a :func:`kd_build` tree from node ``nd`` to the leaf holding ``(px, py, pz)``,
+    pushing every far child whose squared plane distance is ``<= bound`` (with that distance as
+    its lower bound) onto the caller's stacks. Returns ``(leaf, stack size)``."""
+    while dim[nd] >= 0:
+        k = dim[nd]
+        if k == 0:
+            diff = px - split[nd]
+        elif k == 1:
+            diff = py - split[nd]
+        else:
+            diff = pz - split[nd]
+        if diff < 0.0:
+            near = left[nd]
+            far = right[nd]
+        else:
+            near = right[nd]
+            far = left[nd]
+        dd = diff * diff
+        if dd <= bound:
+            st_node[sp] = far
+            st_lb[sp] = dd
+            sp += 1
+        nd = near
+    return nd, sp
+
+
+@njit
+def kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, left, right, d2, st_node, st_lb):
+    """Gated nearest neighbour of ``(px, py, pz)`` on a :func:`kd_build` tree.
+
+    ``(best, best_j)`` is the starting bound: ``(d2, m)`` for a cold search, or a known
+    point's ``(sq, index)`` with ``sq < d2`` (a warm start: same answer, fewer nodes). Returns
+    the lexicographically smallest ``(sq, index)`` with ``sq < d2``
+    (``sq = dx*dx + dy*dy + dz*dz``), or the start bound when none is closer. ``st_node`` /
+    ``st_lb`` are caller-owned stacks of length ``depth + 2``.
+    """
+    st_node[0] = 0
+    st_lb[0] = 0.0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        nd = st_node[sp]
+        if st_lb[sp] > best:
+            continue
+        nd, sp = kd_walk_to_leaf(px, py, pz, nd, best, dim, split, left, right, st_node, st_lb, sp)
+        for a in range(start[nd], end[nd]):
+            dx = px - Qs[a, 0]
+            dy = py - Qs[a, 1]
+            dz = pz - Qs[a, 2]
+            sq = dx * dx + dy * dy + dz * dz
+            if sq < d2:
+                j = idx[a]
+                if sq < best or (sq == best and j < best_j):
+                    best = sq
+                    best_j = j
+    return best, best_j
+
+
+@njit
+def kd_nn_rows(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq, r0, r1):
+    m = idx.shape[0]
+    st_node = np.empty(depth + 2, np.int64)
+    st_lb = np.empty(depth + 2)
+    for i in range(r0, r1):
+        best, best_j = kd_nn_descend(P[i, 0], P[i, 1], P[i, 2], d2, m, idx, Qs, start, end, dim, split, left,
+                                     right, d2, st_node, st_lb)
+        out_idx[i] = best_j
+        out_sq[i] = best if best_j < m else np.inf
+
+
+@njit
+def kd_nn_serial(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq):
+    kd_nn_rows(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq, 0, P.shape[0])
+
+
+@njit_parallel
+def kd_nn_parallel(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq):
+    n = P.shape[0]
+    for c in prange(n_chunks(n)):
+        kd_nn_rows(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq,
+                    c * CHUNK, min(n, (c + 1) * CHUNK))
+
+
+class GatedKDTree:
+    """Exact nearest target point within a gate, on a Numba KD-tree (built once per target).
+
+    ``query(P, d2)`` returns ``(idx, sq)``: for every row of ``P`` the index of the nearest target
+    point with squared distance ``< d2`` (strict; ties -> lowest index) or ``m`` when none, and that
+    squared distance (``inf`` when none), computed as ``dx*dx + dy*dy + dz*dz``.
+    The gate bounds the search, so each query visits only a few leaves.
+    """
+
+    def __init__(self, Q):
+        self.m = Q.shape[0]
+        self.data = Q
+        self._tree = kd_build(Q, KD_LEAF)
+
+    def arrays(self) -> dict:
+        """The tree's own arrays (``Qs`` is not among them: it is ``data[idx]``), for storage."""
+        idx, _, start, end, dim, split, left, right, depth = self._tree
+        return {"idx": idx, "start": start, "end": end, "dim": dim, "split": split, "left": left, "right": right,
+                "depth": np.array([depth], dtype=np.int64)}
+
+    @classmethod
+    def from_arrays(cls, Q, a: dict):
+        """The tree of :meth:`arrays` over the same points ``Q``. Checks what a query relies on
+        (``idx`` a permutation of the rows, node ranges and children in bounds, the stated depth
+        the real one) and raises ``ValueError`` otherwise: the kernels do not bounds-check."""
+        m = Q.shape[0]
+        idx = np.ascontiguousarray(a["idx"], dtype=np.int64)
+        nodes = [np.ascontiguousarray(a[k]) for k in ("start", "end", "dim", "split", "left", "right")]
+        n = nodes[0].shape[0]
+        if idx.shape != (m,) or n < 1 or any(x.ndim != 1 or x.shape[0] != n for x in nodes):
+            raise ValueError("KD-tree arrays have the wrong shapes")
+        start, end, dim, split, left, right = nodes
+        if not is_permutation(idx, m):
+            raise ValueError("KD-tree point order is not a permutation of the points")
+        leaf = dim < 0
+        if (start.min() < 0 or end.max() > m or np.any(start > end) or dim.max() > 2
+                or np.any(~leaf & ((left < 1) | (left >= n) | (right < 1) | (right >= n)))):
+            raise ValueError("KD-tree node ranges or children out of bounds")
+        # depth: walk the levels from the root (a cycle or an orphan shows as a wrong count)
+        level, depth, seen = np.array([0]), 0, 1
+        while True:
+            inner = level[~leaf[level]]
+            if inner.size == 0:
+                break
+            level = np.concatenate([left[inner], right[inner]])
+            depth += 1
+            seen += level.size
+            if seen > n:
+                raise ValueError("KD-tree nodes do not form a tree")
+        if seen != n or int(np.asarray(a["depth"]).ravel()[0]) != depth:
+            raise ValueError("KD-tree depth or node count is wrong")
+        self = cls.__new__(cls)
+        self.m = m
+        self.data = Q
+        self._tree = (idx, np.ascontiguousarray(Q[idx]), start.astype(np.int64), end.astype(np.int64),
+                      dim.astype(np.int64), split.astype(np.float64), left.astype(np.int64), right.astype(np.int64),
+                      depth)
+        return self
+
+    def query(self, P, d2):
+        n = P.shape[0]
+        idx = np.empty(n, dtype=np.int64)
+        sq = np.empty(n)
+        if n >= PARALLEL_QUERY_ROWS:
+            kd_nn_parallel(P, *self._tree, float(d2), idx, sq)
+        else:
+            kd_nn_serial(P, *self._tree, float(d2), idx, sq)
+        return idx, sq
+
+
+# ----------------------------------------------------------------------------- exact kNN
+
+
+@njit
+def kd_knn_one(px, py, pz, idx, Qs, start, end, dim, split, left, right, k, bi, bs, st_node, st_lb):
+    """The ``k`` nearest points of ``(px, py, pz)`` on a ``kd_build`` tree, sorted by
+    ``(squared distance, index)`` into ``bi``/``bs``; returns the count (``min(k, m)``).
+
+    Exact: a node is skipped only when its lower bound exceeds the current k-th distance, so a
+    point tied with the k-th one is still visited and the lower index wins (the convention of
+    :meth:`minegeo.geometry.NeighborIndex.knn`).
+    """
+    c = 0
+    worst = np.inf
+    st_node[0] = 0
+    st_lb[0] = 0.0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        nd = st_node[sp]
+        if st_lb[sp] > worst:
+            continue
+        nd, sp = kd_walk_to_leaf(px, py, pz, nd, worst, dim, split, left, right, st_node, st_lb, sp)
+        for a in range(start[nd], end[nd]):
+            dx = px - Qs[a, 0]
+            dy = py - Qs[a, 1]
+            dz = pz - Qs[a, 2]
+            sq = dx * dx + dy * dy + dz * dz
+            if c == k and sq > worst:
+                continue
+            j = idx[a]
+            if c == k and sq == worst and j > bi[k - 1]:
+                continue
+            pos = c if c < k else k - 1  # insertion into the sorted buffer
+            while pos > 0 and (bs[pos - 1] > sq or (bs[pos - 1] == sq and bi[pos - 1] > j)):
+                bs[pos] = bs[pos - 1]
+                bi[pos] = bi[pos - 1]
+                pos -= 1
+            bs[pos] = sq
+            bi[pos] = j
+            if c < k:
+                c += 1
+            if c == k:
+                worst = bs[k - 1]
+    return c
+
+
+@njit
+def _kd_knn_rows(P, idx, Qs, start, end, dim, split, left, right, depth, k, out_idx, out_sq, r0, r1):
+    bi = np.empty(k, np.int64)
+    bs = np.empty(k)
+    st_node = np.empty(depth + 2, np.int64)
+    st_lb = np.empty(depth + 2)
+    for i in range(r0, r1):
+        c = kd_knn_one(P[i, 0], P[i, 1], P[i, 2], idx, Qs, start, end, dim, split, left, right, k, bi, bs,
+                       st_node, st_lb)
+        for a in range(c):
+            out_idx[i, a] = bi[a]
+            out_sq[i, a] = bs[a]
+
+
+@njit_parallel
+def _kd_knn_parallel(P, idx, Qs, start, end, dim, split, left, right, depth, k, out_idx, out_sq):
+    n = P.shape[0]
+    for c in prange(n_chunks(n)):
+        _kd_knn_rows(P, idx, Qs, start, end, dim, split, left, right, depth, k, out_idx, out_sq,
+                     c * CHUNK, min(n, (c + 1) * CHUNK))
+
+
+def kd_knn(P, tree, k):
+    """The ``k`` nearest tree points of every row of ``P`` (n, 3), sorted by ``(sq, index)``.
+
+    Returns ``(idx (n, k) int64, sq (n, k) float64)``; when the tree holds ``m < k`` points
+    the columns ``m..k-1`` are ``m`` / ``inf`` (pykdtree's convention). ``tree`` is the tuple of
+    :func:`kd_build`.
+    """
+    n = P.shape[0]
+    m = tree[0].shape[0]
+    out_idx = np.full((n, k), m, dtype=np.int64)
+    out_sq = np.full((n, k), np.inf)
+    if n > 0 and k > 0:
+        _kd_knn_parallel(P, *tree, min(int(k), m), out_idx, out_sq)
+    return out_idx, out_sq
+
+
+# ----------------------------------------------------------------------------- radius search
+
+
+@njit
+def kd_radius_one(px, py, pz, r2, idx, Qs, start, end, dim, split, left, right, out, st_node, st_lb):
+    """Indices of every tree point with ``sq < r2`` around ``(px, py, pz)`` (strict, as Open3D's
+    ``KDTreeSearchParamRadius``), written to ``out`` in leaf order; returns their number (it
+    may exceed ``out.shape[0]``: only the first ``out.shape[0]`` are written)."""
+    c = 0
+    cap = out.shape[0]
+    st_node[0] = 0
+    st_lb[0] = 0.0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        nd = st_node[sp]
+        if st_lb[sp] >= r2:
+            continue
+        nd, sp = kd_walk_to_leaf(px, py, pz, nd, r2, dim, split, left, right, st_node, st_lb, sp)
+        for a in range(start[nd], end[nd]):
+            dx = px - Qs[a, 0]
+            dy = py - Qs[a, 1]
+            dz = pz - Qs[a, 2]
+            if dx * dx + dy * dy + dz * dz < r2:
+                if c < cap:
+                    out[c] = idx[a]
+                c += 1
+    return c
+
+
+@njit_parallel
+def _kd_radius_count_parallel(P, idx, Qs, start, end, dim, split, left, right, depth, r2, counts):
+    n = P.shape[0]
+    for c in prange(n_chunks(n)):
+        st_node = np.empty(depth + 2, np.int64)
+        st_lb = np.empty(depth + 2)
+        buf = np.empty(0, np.int64)
+        for i in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
+            counts[i] = kd_radius_one(P[i, 0], P[i, 1], P[i, 2], r2, idx, Qs, start, end, dim, split, left, right,
+                                      buf, st_node, st_lb)
+
+
+def kd_radius_count(P, tree, radius):
+    """Number of tree points strictly within ``radius`` (m) of every row of ``P`` (n, 3)."""
+    counts = np.zeros(P.shape[0], dtype=np.int64)
+    if P.shape[0] > 0:
+        _kd_radius_count_parallel(P, *tree, float(radius) ** 2, counts)
+    return counts
