@@ -338,7 +338,10 @@ def _agreement_text(stage: str, r: dict) -> str:
     return str(a)
 
 
-TARGETS = {"normals": 0.8, "fpfh": 0.8, "icp_point_to_point": 1.0, "icp_point_to_plane": 1.0, "ransac": 0.5}
+#: Acceptance ratios minegeo / Open3D. ICP (issue 16, the one registration loop): <= 0.8 with the same
+#: thread count on both sides (the loop's warm-started, evenly split query and the ~2x faster private
+#: KD-tree build; measured 0.74-0.79 on the 2-core machine at load ~2.5, before 1.01-1.06).
+TARGETS = {"normals": 0.8, "fpfh": 0.8, "icp_point_to_point": 0.8, "icp_point_to_plane": 0.8, "ransac": 0.5}
 
 
 def markdown(results: dict, meta: dict) -> str:

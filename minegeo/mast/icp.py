@@ -12,7 +12,10 @@ beacon panel and ``n_i`` the panel's unit normal. With ``R(beta) ~ [[1, -beta],
     ((s_i - d_i) . n_i) + beta (s_ix n_iy - s_iy n_ix) + t_x n_ix + t_y n_iy  ->  A x = b
 
 solved as ``x = (A^T A)^-1 A^T b``; the exact rotation ``R(beta)`` is then applied
-and the rotations are summed into ``beta_cum``. Correspondences are re-made every
+and the rotations are summed into ``beta_cum``. Each gate stage is one run of the
+registration loop (:func:`minegeo.registration.loop.run_loop`) with the factor
+:class:`~minegeo.registration.loop.PointToLine2DFactor` on
+:class:`~minegeo.registration.loop.SE2Points`. Correspondences are re-made every
 iteration with a distance gate that is tightened in stages (``gates_m``). A stage
 ends when the increments are negligible or when the correspondences alternate
 between two sets (a point sitting on the gate); the final least squares re-makes
@@ -21,22 +24,43 @@ its own correspondences anyway.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from minegeo._provenance import StageTimer
 from minegeo._validate import as_matrix, as_points
-from minegeo.errors import DegenerateGeometryError, InputError, TooFewPointsError
+from minegeo.errors import InputError
 from minegeo.mast._kernels import _nearest_segment
+from minegeo.registration.loop import (
+    Matches,
+    PointToLine2DFactor,
+    SE2Points,
+    Termination,
+    rot2,
+    run_loop,
+)
 
 __all__ = ["IcpResult", "icp_point_to_line", "rot2"]
 
 
-def rot2(theta_rad: float) -> np.ndarray:
-    """Counter-clockwise 2x2 rotation matrix."""
-    c, s = math.cos(theta_rad), math.sin(theta_rad)
-    return np.array([[c, -s], [s, c]])
+class NearestSegment2D:
+    """Correspondence search of the MAST loop: for every moved scan point ``q`` (mine frame, m)
+    the nearest panel onto whose interior (minus ``margin_m``) it projects, kept when the
+    perpendicular distance is ``<= gate_m``; ``Matches.extra`` holds the signed distances along
+    the panels' left normals (m)."""
+
+    def __init__(self, segments: np.ndarray, margin_m: float, gate_m: float):
+        self.segments, self.margin_m, self.gate_m = segments, float(margin_m), gate_m
+
+    def __call__(self, q: np.ndarray, prev: Matches | None) -> Matches:
+        dist, idx, sd = _nearest_segment(q, self.segments, self.margin_m)
+        keep = dist <= self.gate_m
+        src = np.flatnonzero(keep)
+        corr = np.empty((src.size, 2), dtype=np.int64)
+        corr[:, 0] = src
+        corr[:, 1] = idx[keep]
+        return Matches(src.size / q.shape[0], float("nan"), corr, extra=sd[keep])
 
 
 @dataclass(frozen=True)
@@ -114,58 +138,24 @@ def icp_point_to_line(
     e = segs[:, 2:] - segs[:, :2]
     u = e / np.linalg.norm(e, axis=1)[:, None]
     nrm = np.column_stack([-u[:, 1], u[:, 0]])
-    R = np.array(T0[:2, :2], dtype=np.float64)
-    t = np.array(T0[:2, 2], dtype=np.float64)
-    beta_cum = 0.0
-    it = 0
-    converged = False
-    n_in = 0
-    rms = float("nan")
+    se2 = SE2Points(s)
+    pose = (np.array(T0[:2, :2], dtype=np.float64), np.array(T0[:2, 2], dtype=np.float64))
+    stop = Termination(step_translation=tol_m, step_rotation=tol_rad, stop_on_cycle=True,
+                       evaluate_after_last_step=False)
+    beta_cum, it, converged, n_in, rms = 0.0, 0, False, 0, float("nan")
     for gate in gates_m:
-        stage_conv = False
-        prev_masks: list[bytes] = []
-        while it < max_iterations:
-            q = np.ascontiguousarray(s @ R.T + t)
-            dist, idx, sd = _nearest_segment(q, segs, float(margin_m))
-            m = dist <= gate
-            key = np.packbits(m).tobytes() + idx[m].tobytes()
-            if len(prev_masks) >= 2 and key == prev_masks[-2] and key != prev_masks[-1]:
-                # correspondences alternate between two sets (a point on the gate edge): stop here
-                stage_conv = True
-                break
-            prev_masks = (prev_masks + [key])[-2:]
-            n_in = int(m.sum())
-            if n_in < min_points:
-                raise TooFewPointsError(
-                    f"ICP: only {n_in} scan point(s) lie within {gate:.3f} m of a beacon panel; "
-                    f"at least {min_points} are needed"
-                )
-            qi = q[m]
-            ni = nrm[idx[m]]
-            A = np.column_stack([qi[:, 0] * ni[:, 1] - qi[:, 1] * ni[:, 0], ni[:, 0], ni[:, 1]])
-            b = -sd[m]
-            N = A.T @ A
-            sc = 1.0 / np.sqrt(np.maximum(np.diag(N), 1e-300))
-            Ns = N * sc[:, None] * sc[None, :]
-            if np.linalg.cond(Ns) > 1e10:
-                raise DegenerateGeometryError(
-                    "ICP: the matched scan points lie on parallel lines, so the scanner position "
-                    "along them is undetermined (collinear control)"
-                )
-            x = np.linalg.solve(N, A.T @ b)
-            rms = float(np.sqrt(np.mean(b * b)))
-            Rb = rot2(x[0])
-            R = Rb @ R
-            t = Rb @ t + x[1:]
+        out = run_loop(se2.move(None, pose, None), pose, NearestSegment2D(segs, margin_m, gate),
+                       PointToLine2DFactor(se2, nrm, gate, min_points), stop, max_iterations - it, StageTimer())
+        pose = out.pose
+        for x in out.steps:
             beta_cum += float(x[0])
-            it += 1
-            if abs(x[0]) < tol_rad and np.hypot(x[1], x[2]) < tol_m:
-                stage_conv = True
-                break
-        converged = stage_conv
-        if not stage_conv:
+        it += out.iterations
+        if out.last_aux is not None:
+            n_in, rms = out.last_aux
+        converged = out.converged
+        if not converged:
             break
     T = np.eye(3)
-    T[:2, :2] = R
-    T[:2, 2] = t
+    T[:2, :2] = pose[0]
+    T[:2, 2] = pose[1]
     return IcpResult(T, beta_cum, it, n_in, rms, converged)

@@ -14,6 +14,12 @@ RansacParams, RansacResult, register_ransac
                            global registration by RANSAC on FPFH matches (Baek 2022 Sec. 2.3.2)
 feature_correspondences, FeatureMatches
                            exact descriptor nearest neighbours (optionally mutual)
+
+Internals
+---------
+loop                       the one registration loop (``run_loop``: search -> factor -> reduction ->
+                           Gauss-Newton step on SE(3)/SE(2) -> termination) under ``register_icp``,
+                           ``register_gicp`` and MAST's ``icp_point_to_line``; new factors plug in here
 """
 
 from __future__ import annotations
@@ -86,9 +92,10 @@ def _warmup() -> None:
     i_out = np.empty(4, dtype=np.int64)
     K._kd_nn_serial(P, *tree, 1.0, i_out, sq)
     K._kd_nn_parallel(P, *tree, 1.0, i_out, sq)
-    from minegeo.registration import _kernels_gicp
+    from minegeo.registration import _kernels_gicp, _kernels_loop
 
     _kernels_gicp._warmup()
+    _kernels_loop._warmup()
     # the RANSAC kernels of this package live in ransac.py (features engineer's module)
     import importlib
 

@@ -16,15 +16,12 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
-from minegeo.geometry._kernels import _normal_from_neighbors, fast_eigen3x3
-from minegeo.registration._kernels import (
-    CHUNK,
-    _add_partials,
-    kd_build,
-    kd_nn_descend,
-    kd_walk_to_leaf,
-    n_chunks,
-)
+from minegeo.kernels.chunks import CHUNK, n_chunks
+from minegeo.kernels.eig3 import fast_eigen3x3
+from minegeo.kernels.eig3 import pca_normal as _normal_from_neighbors
+from minegeo.kernels.kdtree import kd_build, kd_nn_descend
+from minegeo.kernels.kdtree import kd_knn_one as _knn_one  # the exact kNN of a kd_build tree
+from minegeo.registration._kernels import _add_partials
 
 #: Below this many pairs (or search queries) the serial driver is used. Measured on the shared
 #: 2-core machine under load (load average ~9): for 10^4 pairs the prange drivers made a whole
@@ -127,50 +124,6 @@ def plane_covariances_kernel(N, isotropic, eps, rodrigues):
 
 
 # ----------------------------------------------------------------------------- kNN + PCA normals (fused)
-
-
-@njit
-def _knn_one(px, py, pz, idx, Qs, start, end, dim, split, left, right, k, bi, bs, st_node, st_lb):
-    """The ``k`` nearest points of ``(px, py, pz)`` on a ``kd_build`` tree, sorted by
-    ``(squared distance, index)`` into ``bi``/``bs``; returns the count (``min(k, m)``).
-
-    Exact: a node is skipped only when its lower bound exceeds the current k-th distance, so a
-    point tied with the k-th one is still visited and the lower index wins (the convention of
-    :meth:`minegeo.geometry.NeighborIndex.knn`).
-    """
-    c = 0
-    worst = np.inf
-    st_node[0] = 0
-    st_lb[0] = 0.0
-    sp = 1
-    while sp > 0:
-        sp -= 1
-        nd = st_node[sp]
-        if st_lb[sp] > worst:
-            continue
-        nd, sp = kd_walk_to_leaf(px, py, pz, nd, worst, dim, split, left, right, st_node, st_lb, sp)
-        for a in range(start[nd], end[nd]):
-            dx = px - Qs[a, 0]
-            dy = py - Qs[a, 1]
-            dz = pz - Qs[a, 2]
-            sq = dx * dx + dy * dy + dz * dz
-            if c == k and sq > worst:
-                continue
-            j = idx[a]
-            if c == k and sq == worst and j > bi[k - 1]:
-                continue
-            pos = c if c < k else k - 1  # insertion into the sorted buffer
-            while pos > 0 and (bs[pos - 1] > sq or (bs[pos - 1] == sq and bi[pos - 1] > j)):
-                bs[pos] = bs[pos - 1]
-                bi[pos] = bi[pos - 1]
-                pos -= 1
-            bs[pos] = sq
-            bi[pos] = j
-            if c < k:
-                c += 1
-            if c == k:
-                worst = bs[k - 1]
-    return c
 
 
 @njit

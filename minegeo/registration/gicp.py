@@ -36,7 +36,6 @@ Open3D 0.20 ``registration_generalized_icp`` (``../shared/specs/open3d_oracle.md
 from __future__ import annotations
 
 import logging
-import math
 import time
 from dataclasses import dataclass
 
@@ -46,12 +45,12 @@ from minegeo._provenance import StageTimer
 from minegeo._validate import as_points, as_transform, as_trusted_points
 from minegeo.errors import InputError
 from minegeo.geometry.normals import STATUS_OK
-from minegeo.geometry.se3 import rotation_from_euler_xyz
 from minegeo.registration import _kernels as K
 from minegeo.registration import _kernels_gicp as KG
+from minegeo.registration._kernels_loop import kd_build_fast
 from minegeo.registration.evaluation import is_identity
 from minegeo.registration.icp import ICPResult, constraint_analysis, final_diagnosis
-from minegeo.registration.icp import _rotation_angle as _angle
+from minegeo.registration.loop import GICPFactor, NearestInGate, Termination, rotation_angle, run_loop
 
 __all__ = [
     "GICPParams",
@@ -258,7 +257,7 @@ def _covariances_and_normals(points: np.ndarray, params: GICPParams, normals=Non
             raise InputError(f"{name} normals have {N.shape[0]} rows but there are {n} points")
         iso = np.zeros(n, dtype=np.bool_) if o3d else ~(np.linalg.norm(N, axis=1) > 0)
         return _plane_covariances(N, iso, params), N, "normals"
-    tree = K.kd_build(points, K.KD_LEAF) if tree is None else tree
+    tree = kd_build_fast(points, K.KD_LEAF) if tree is None else tree
     N, _, status = KG.knn_normals_kernel(points, tree, int(params.covariance_neighbours), o3d)
     iso = np.zeros(n, dtype=np.bool_) if o3d else status != STATUS_OK
     return _plane_covariances(N, iso, params), N, "estimated"
@@ -330,44 +329,6 @@ def _as_covariances(C, n: int, name: str) -> np.ndarray:
             f"{int(np.flatnonzero(~pd)[0])}); GICP needs invertible covariances"
         )
     return np.ascontiguousarray(a)
-
-
-def _euler6_to_transform(x: np.ndarray) -> np.ndarray:
-    """Open3D's ``TransformVector6dToMatrix4d``: ``R = Rz(γ) Ry(β) Rx(α)`` exactly, ``t = x[3:]``."""
-    T = np.eye(4)
-    T[:3, :3] = rotation_from_euler_xyz(x[0], x[1], x[2])
-    T[:3, 3] = x[3:6]
-    return T
-
-
-def _evaluate(P: np.ndarray, Q: np.ndarray, tree, d: float, prev_corr):
-    """``(fitness, rmse, corr)`` exactly as :func:`minegeo.registration.evaluate_registration`
-    (strict gate ``sq < d²``, nearest target, ties to the lowest index, ascending source index),
-    with the search warm-started from the previous correspondences."""
-    n, m = P.shape[0], Q.shape[0]
-    prev = np.full(n, m, dtype=np.int64)
-    if prev_corr is not None and prev_corr.shape[0]:
-        prev[prev_corr[:, 0]] = prev_corr[:, 1]
-    idx, sq = KG.nearest_warm_kernel(P, Q, tree, d * d, prev)
-    src = np.flatnonzero(idx < m)
-    corr = np.empty((src.size, 2), dtype=np.int64)
-    corr[:, 0] = src
-    corr[:, 1] = idx[src]
-    if src.size == 0:
-        return 0.0, 0.0, corr
-    rmse = float(np.sqrt(K.sum_kernel(np.ascontiguousarray(sq[src])) / src.size))
-    return float(src.size / n), rmse, corr
-
-
-def _solve(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, bool]:
-    """Solve ``H x = -g``; minimum-norm step (pseudo-inverse) when ``H`` is singular."""
-    ev, V = np.linalg.eigh(H)
-    if not ev[-1] > 0.0:
-        return np.zeros(6), True
-    if ev[0] > 1e-12 * ev[-1]:
-        return np.linalg.solve(H, -g), False
-    inv = np.where(ev > 1e-12 * ev[-1], 1.0 / np.where(ev > 0, ev, 1.0), 0.0)
-    return -(V @ (inv * (V.T @ g))), True
 
 
 def register_gicp(source_points, target_points, T_init, params: GICPParams, source_covariances=None,
@@ -452,6 +413,72 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
     covariance), the same criterion as :func:`minegeo.registration.register_icp`.
     """
     t_start = time.perf_counter()
+    timer = StageTimer()
+    P0, Q, T, tree, Cs, Ct, Nt, src_from, tgt_from = _gicp_inputs(
+        source_points, target_points, T_init, params, source_covariances, target_covariances, source_normals,
+        target_normals, target_index, check_target, timer)
+    d = float(params.max_correspondence_distance_m)
+    search = NearestInGate(Q, d, tree=tree, parallel_rows=KG.PARALLEL_MIN_PAIRS)
+    factor = GICPFactor(Q, Cs, Ct)
+    P = P0 if is_identity(T) else K.transform_points_kernel(P0, T)
+    out = run_loop(P, T, search, factor, _termination(params), params.max_iterations, timer)
+    cyc_m = cyc_rad = 0.0
+    if out.reason == "cycle":
+        cyc_m = float(np.linalg.norm(out.cycle_delta[:3, 3]))
+        cyc_rad = rotation_angle(out.cycle_delta[:3, :3])
+        log.info("GICP stopped on a 2-cycle of correspondence sets (step %.2e m, %.2e rad)", cyc_m, cyc_rad)
+    corr = out.matches.corr
+    k = corr.shape[0]
+    with timer("information"):
+        info, info_ev, cost, c_ev, c_vec, ratio, reason = _gicp_information(factor, out, Nt, params)
+    reasons, degenerate, status = final_diagnosis(
+        k, MIN_POINTS, d, "GICP", out.singular_step,
+        "an update step was rank deficient (the matched surfaces do not constrain all six "
+        "pose directions): the motion along the free direction is arbitrary", reason, out.converged)
+    if degenerate:
+        log.warning("GICP result is degenerate: %s", "; ".join(reasons))
+    timings = timer.as_dict()
+    timings["total"] = time.perf_counter() - t_start
+    return GICPResult(
+        T_target_source=out.pose, fitness=float(out.matches.fitness), inlier_rmse_m=float(out.matches.rmse),
+        iterations=out.iterations, converged=out.converged, information_6x6=info, information_eigenvalues=info_ev,
+        degenerate=degenerate, degeneracy_reason="; ".join(reasons), params=params, timings_s=timings,
+        correspondences=corr, constraint_eigenvalues=c_ev, constraint_eigenvectors=c_vec,
+        degeneracy_ratio=float(ratio), history=tuple(out.history), status=status, mahalanobis_cost=float(cost),
+        sigma_m=float(np.sqrt(cost / (3 * k - 6))) if 3 * k > 6 else 0.0, source_covariances_from=src_from,
+        target_covariances_from=tgt_from, convergence_reason=out.reason, cycle_amplitude_m=cyc_m,
+        cycle_amplitude_rad=cyc_rad,
+    )
+
+
+def _termination(params: GICPParams) -> Termination:
+    """Open3D's fitness/RMSE test (``convergence="open3d"``) or the step test, and the 2-cycle test."""
+    o3d = params.convergence == "open3d"
+    return Termination(relative_fitness=params.relative_fitness if o3d else None,
+                       relative_rmse=params.relative_rmse if o3d else None,
+                       step_translation=None if o3d else params.step_translation_m,
+                       step_rotation=None if o3d else params.step_rotation_rad,
+                       stop_on_cycle=bool(params.stop_on_cycle), cycle_keeps_lower_cost=True)
+
+
+def _gicp_information(factor: GICPFactor, out, Nt, params: GICPParams):
+    """``(H, its eigenvalues, Mahalanobis cost, constraint eigenvalues, eigenvectors, ratio,
+    reason)`` at the loop's solution; the constraint analysis uses the target normals (given, or
+    the eigenvector of the smallest eigenvalue of the target covariance)."""
+    info, _, cost = factor.linearize(out.points, out.pose, out.matches)
+    info_ev = np.linalg.eigvalsh(info)
+    if out.matches.corr.shape[0] == 0:
+        return info, info_ev, cost, np.zeros(6), np.eye(6), 0.0, "no correspondences"
+    si, ti = out.matches.pairs()
+    Ns = np.ascontiguousarray(Nt[ti]) if Nt is not None else KG.min_eigvec_kernel(factor.Ct, ti)
+    return (info, info_ev, cost, *constraint_analysis(np.ascontiguousarray(out.points[si]), Ns,
+                                                       params.degeneracy_ratio_threshold))
+
+
+def _gicp_inputs(source_points, target_points, T_init, params, source_covariances, target_covariances,
+                 source_normals, target_normals, target_index, check_target: bool, timer):
+    """Validated inputs of :func:`register_gicp`: ``(P0, Q, T_init copy, KD-tree of Q, Cs, Ct,
+    target normals or None, source_covariances_from, target_covariances_from)``."""
     if not isinstance(params, GICPParams):
         raise InputError(f"params must be a GICPParams, got {type(params).__name__}")
     P0 = as_points(source_points, "source_points", min_points=MIN_POINTS)
@@ -466,9 +493,6 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
             "GICP input coordinates exceed %.0e m: subtract a local origin first for full precision",
             LARGE_COORDINATE_M,
         )
-    d = float(params.max_correspondence_distance_m)
-    timer = StageTimer()
-
     with timer("search"):
         if isinstance(target_index, K.GatedKDTree):
             same = target_index.data is Q or (check_target and np.array_equal(target_index.data, Q))
@@ -476,7 +500,7 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
                 raise InputError("target_index was built on a different cloud than target_points")
             tree = target_index._tree
         else:  # None or another kind of index: build the KD-tree this search needs
-            tree = K.kd_build(Q, K.KD_LEAF)
+            tree = kd_build_fast(Q, K.KD_LEAF)
     with timer("covariances"):
         Nt = None
         if source_covariances is not None:
@@ -496,116 +520,4 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
             tgt_from = "given"
         else:
             Ct, Nt, tgt_from = _covariances_and_normals(Q, params, target_normals, "target", tree=tree)
-
-    P = P0 if is_identity(T) else K.transform_points_kernel(P0, T)
-    with timer("search"):
-        fitness, rmse, corr = _evaluate(P, Q, tree, d, None)
-    history = [(fitness, rmse)]
-    converged = False
-    conv_reason = ""
-    cyc_m = cyc_rad = 0.0
-    corr_prev = corr_prev2 = None
-    singular_step = False
-    iterations = 0
-    for _ in range(params.max_iterations):
-        with timer("estimate"):
-            if corr.shape[0] == 0:
-                dT = np.eye(4)  # Open3D: no correspondences -> identity
-            else:
-                si = np.ascontiguousarray(corr[:, 0])
-                ti = np.ascontiguousarray(corr[:, 1])
-                R = np.ascontiguousarray(T[:3, :3])
-                H, g, _ = KG.gicp_system_kernel(P, Q, Cs, Ct, R, si, ti)
-                x, singular = _solve(H, g)
-                singular_step |= singular
-                dT = _euler6_to_transform(x)
-            T_before, P_before = T, P
-            T = dT @ T
-            P = K.transform_points_kernel(P, dT)
-        iterations += 1
-        prev_f, prev_r = fitness, rmse
-        corr_prev2, corr_prev = corr_prev, corr  # S_{k-2}, S_{k-1}
-        with timer("search"):
-            fitness, rmse, corr = _evaluate(P, Q, tree, d, corr)
-        history.append((fitness, rmse))
-        if params.convergence == "open3d":
-            if abs(prev_f - fitness) < params.relative_fitness and abs(prev_r - rmse) < params.relative_rmse:
-                converged, conv_reason = True, "fitness_rmse"
-                break
-        elif (float(np.linalg.norm(dT[:3, 3])) < params.step_translation_m
-              and _angle(dT[:3, :3]) < params.step_rotation_rad):
-            converged, conv_reason = True, "step"
-            break
-        if (params.stop_on_cycle and corr_prev2 is not None and np.array_equal(corr, corr_prev2)
-                and not np.array_equal(corr, corr_prev)):
-            converged, conv_reason = True, "cycle"
-            cyc_m = float(np.linalg.norm(dT[:3, 3]))
-            cyc_rad = _angle(dT[:3, :3])
-            # stop on the cycle state of lower mean Mahalanobis cost, not on whichever phase the
-            # iteration happened to reach: the choice is then independent of the frame (a rigid
-            # motion of the inputs moves both states and their costs alike)
-            def _mean_cost(PP, TT, cc):
-                if cc.shape[0] == 0:
-                    return math.inf
-                return float(KG.gicp_system_kernel(PP, Q, Cs, Ct, np.ascontiguousarray(TT[:3, :3]),
-                                                   np.ascontiguousarray(cc[:, 0]),
-                                                   np.ascontiguousarray(cc[:, 1]))[2]) / cc.shape[0]
-            if _mean_cost(P_before, T_before, corr_prev) < _mean_cost(P, T, corr):
-                T, P, corr = T_before, P_before, corr_prev
-                history.append(history[-2])
-                fitness, rmse = history[-1]
-            log.info("GICP stopped on a 2-cycle of correspondence sets (step %.2e m, %.2e rad)",
-                     cyc_m, cyc_rad)
-            break
-
-    with timer("information"):
-        k = corr.shape[0]
-        si = np.ascontiguousarray(corr[:, 0])
-        ti = np.ascontiguousarray(corr[:, 1])
-        info, _, cost = KG.gicp_system_kernel(P, Q, Cs, Ct, np.ascontiguousarray(T[:3, :3]), si, ti)
-        info_ev = np.linalg.eigvalsh(info)
-        if k > 0:
-            if Nt is not None:
-                Ns = np.ascontiguousarray(Nt[ti])
-            else:
-                Ns = KG.min_eigvec_kernel(Ct, ti)
-            c_ev, c_vec, ratio, reason = constraint_analysis(
-                np.ascontiguousarray(P[si]), Ns, params.degeneracy_ratio_threshold)
-        else:
-            c_ev, c_vec, ratio, reason = np.zeros(6), np.eye(6), 0.0, "no correspondences"
-    sigma = float(np.sqrt(cost / (3 * k - 6))) if 3 * k > 6 else 0.0
-
-    reasons, degenerate, status = final_diagnosis(
-        k, MIN_POINTS, d, "GICP", singular_step,
-        "an update step was rank deficient (the matched surfaces do not constrain all six "
-        "pose directions): the motion along the free direction is arbitrary", reason, converged)
-    if degenerate:
-        log.warning("GICP result is degenerate: %s", "; ".join(reasons))
-    timings = timer.as_dict()
-    timings["total"] = time.perf_counter() - t_start
-    return GICPResult(
-        T_target_source=T,
-        fitness=float(fitness),
-        inlier_rmse_m=float(rmse),
-        iterations=iterations,
-        converged=converged,
-        information_6x6=info,
-        information_eigenvalues=info_ev,
-        degenerate=degenerate,
-        degeneracy_reason="; ".join(reasons),
-        params=params,
-        timings_s=timings,
-        correspondences=corr,
-        constraint_eigenvalues=c_ev,
-        constraint_eigenvectors=c_vec,
-        degeneracy_ratio=float(ratio),
-        history=tuple(history),
-        status=status,
-        mahalanobis_cost=float(cost),
-        sigma_m=sigma,
-        source_covariances_from=src_from,
-        target_covariances_from=tgt_from,
-        convergence_reason=conv_reason,
-        cycle_amplitude_m=cyc_m,
-        cycle_amplitude_rad=cyc_rad,
-    )
+    return P0, Q, T, tree, Cs, Ct, Nt, src_from, tgt_from

@@ -32,10 +32,16 @@ from scipy.spatial import cKDTree
 from minegeo._provenance import StageTimer
 from minegeo._validate import as_points, as_transform, as_trusted_points
 from minegeo.errors import InputError
-from minegeo.geometry.se3 import rotation_from_euler_xyz
 from minegeo.registration import _kernels as K
-from minegeo.registration.estimation import RANK_TOL
-from minegeo.registration.evaluation import _evaluate_transformed, _kdtree, is_identity
+from minegeo.registration._kernels_loop import kd_build_fast
+from minegeo.registration.evaluation import is_identity
+from minegeo.registration.loop import (
+    NearestInGate,
+    PointToPlaneFactor,
+    PointToPointFactor,
+    Termination,
+    run_loop,
+)
 
 __all__ = ["ICPParams", "ICPResult", "register_icp", "constraint_analysis", "METHODS"]
 
@@ -268,25 +274,6 @@ def _pca_normals(Q: np.ndarray, index, idx: np.ndarray, k: int = PCA_NEIGHBOURS)
     return np.ascontiguousarray(K.pca_normals_kernel(Q, nb)[inv.reshape(-1)])
 
 
-def _euler6_to_transform(x: np.ndarray) -> np.ndarray:
-    """Open3D's ``TransformVector6dToMatrix4d``: ``R = Rz(γ) Ry(β) Rx(α)`` exactly, ``t = x[3:]``."""
-    T = np.eye(4)
-    T[:3, :3] = rotation_from_euler_xyz(x[0], x[1], x[2])
-    T[:3, 3] = x[3:6]
-    return T
-
-
-def _solve_normal_equations(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, bool]:
-    """Solve ``H x = -g``; pseudo-inverse (minimum-norm step) when ``H`` is singular."""
-    ev, V = np.linalg.eigh(H)
-    if ev[-1] <= 0.0:
-        return np.zeros(6), True
-    if ev[0] > 1e-12 * ev[-1]:
-        return np.linalg.solve(H, -g), False
-    inv = np.where(ev > 1e-12 * ev[-1], 1.0 / np.where(ev > 0, ev, 1.0), 0.0)
-    return -(V @ (inv * (V.T @ g))), True
-
-
 def _points(arr, name: str, min_points: int) -> tuple[np.ndarray, float]:
     """:func:`minegeo._validate.as_points` with one fused pass for the finiteness test and the
     largest coordinate magnitude; anything unusual goes through ``as_points`` for its typed error."""
@@ -331,12 +318,6 @@ def final_diagnosis(k: int, need: int, gate_m: float, method: str, singular_step
     else:
         status = "max_iterations"
     return reasons, degenerate, status
-
-
-def _rotation_angle(R: np.ndarray) -> float:
-    """Rotation angle of ``R`` (rad) as ``atan2(|v|/2, (tr R - 1)/2)``, accurate for tiny angles."""
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    return float(np.arctan2(0.5 * np.linalg.norm(v), 0.5 * (np.trace(R) - 1.0)))
 
 
 def register_icp(source_points, target_points, T_init, params: ICPParams, target_normals=None,
@@ -406,10 +387,45 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
     cross-covariance (collinear pairs).
     """
     t_start = time.perf_counter()
+    P0, Q, Nt, T = _icp_inputs(source_points, target_points, T_init, params, target_normals, check_target)
+    timer = StageTimer()
+    if target_index is None:
+        with timer("search"):
+            tree = kd_build_fast(Q, K.KD_LEAF)
+    else:
+        tree = target_index._tree if isinstance(target_index, K.GatedKDTree) else None
+    search = NearestInGate(Q, params.max_correspondence_distance_m, tree=tree, index=target_index)
+    factor = PointToPointFactor(Q) if params.method == "point_to_point" else PointToPlaneFactor(Q, Nt)
+    stop = Termination(relative_fitness=params.relative_fitness, relative_rmse=params.relative_rmse,
+                       step_translation=params.step_translation_m, step_rotation=params.step_rotation_rad)
+    P = P0 if is_identity(T) else K.transform_points_kernel(P0, T)
+    out = run_loop(P, T, search, factor, stop, params.max_iterations, timer)
+    corr = out.matches.corr
+    with timer("information"):
+        info, info_ev, c_ev, c_vec, ratio, reason = _icp_information(out.points, Q, Nt, corr, target_index, params)
+    reasons, degenerate, status = final_diagnosis(
+        corr.shape[0], MIN_POINTS[params.method], float(params.max_correspondence_distance_m), params.method,
+        out.singular_step, "an update step was rank deficient (collinear correspondences or a single plane): "
+        "the motion along the free direction is arbitrary", reason, out.converged)
+    if degenerate:
+        log.warning("ICP result is degenerate: %s", "; ".join(reasons))
+    timings = timer.as_dict()
+    timings["total"] = time.perf_counter() - t_start
+    return ICPResult(
+        T_target_source=out.pose, fitness=float(out.matches.fitness), inlier_rmse_m=float(out.matches.rmse),
+        iterations=out.iterations, converged=out.converged, information_6x6=info, information_eigenvalues=info_ev,
+        degenerate=degenerate, degeneracy_reason="; ".join(reasons), params=params, timings_s=timings,
+        correspondences=corr, constraint_eigenvalues=c_ev, constraint_eigenvectors=c_vec,
+        degeneracy_ratio=float(ratio), history=tuple(out.history), status=status,
+    )
+
+
+def _icp_inputs(source_points, target_points, T_init, params, target_normals, check_target: bool):
+    """Validated ``(P0, Q, target normals or None, T_init copy)`` of :func:`register_icp`
+    (logs a warning for coordinates beyond ``LARGE_COORDINATE_M``)."""
     if not isinstance(params, ICPParams):
         raise InputError(f"params must be an ICPParams, got {type(params).__name__}")
-    method = params.method
-    need = MIN_POINTS[method]
+    need = MIN_POINTS[params.method]
     P0, p_max = _points(source_points, "source_points", need)
     if check_target:
         Q, q_max = _points(target_points, "target_points", need)
@@ -424,100 +440,31 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
             raise InputError(
                 f"target_normals has {Nt.shape[0]} rows but target_points has {Q.shape[0]}"
             )
-    if method == "point_to_plane" and Nt is None:
+    if params.method == "point_to_plane" and Nt is None:
         raise InputError("point_to_plane ICP needs target_normals (estimate them on the map first)")
     if max(p_max, q_max) > LARGE_COORDINATE_M:
         log.warning(
             "ICP input coordinates exceed %.0e m: subtract a local origin first for full precision",
             LARGE_COORDINATE_M,
         )
-    d = float(params.max_correspondence_distance_m)
-    timer = StageTimer()
-    if target_index is None:
-        with timer("search"):
-            target_index = _kdtree(Q)
+    return P0, Q, Nt, T
 
-    P = P0 if is_identity(T) else K.transform_points_kernel(P0, T)
-    with timer("search"):
-        fitness, rmse, corr = _evaluate_transformed(P, Q, target_index, d)
-    history = [(fitness, rmse)]
-    converged = False
-    rank_deficient_step = False
-    iterations = 0
-    for _ in range(params.max_iterations):
-        with timer("estimate"):
-            if corr.shape[0] == 0:
-                dT = np.eye(4)  # Open3D: no correspondences -> identity
-            elif method == "point_to_point":
-                si = np.ascontiguousarray(corr[:, 0])
-                ti = np.ascontiguousarray(corr[:, 1])
-                _, mu_p, mu_q, W, var_p = K.weighted_moments_idx(P, Q, si, ti)
-                dT, _, S = K.umeyama_from_moments(mu_p, mu_q, W, var_p, False)
-                if S[0] <= 0.0 or S[1] <= RANK_TOL * S[0]:
-                    rank_deficient_step = True
-            else:
-                si = np.ascontiguousarray(corr[:, 0])
-                ti = np.ascontiguousarray(corr[:, 1])
-                H, g, _ = K.point_to_plane_system_idx(P, Q, Nt, si, ti)
-                x, singular = _solve_normal_equations(H, g)
-                rank_deficient_step |= singular
-                dT = _euler6_to_transform(x)
-            T = dT @ T
-            P = K.transform_points_kernel(P, dT)
-        iterations += 1
-        prev_f, prev_r = fitness, rmse
-        with timer("search"):
-            fitness, rmse, corr = _evaluate_transformed(P, Q, target_index, d)
-        history.append((fitness, rmse))
-        if abs(prev_f - fitness) < params.relative_fitness and abs(prev_r - rmse) < params.relative_rmse:
-            converged = True
-            break
-        if (float(np.linalg.norm(dT[:3, 3])) < params.step_translation_m
-                and _rotation_angle(dT[:3, :3]) < params.step_rotation_rad):
-            converged = True
-            break
 
-    with timer("information"):
-        k = corr.shape[0]
-        Ps = np.ascontiguousarray(P[corr[:, 0]])
-        Qs = np.ascontiguousarray(Q[corr[:, 1]])
-        if Nt is not None:
-            Ns = np.ascontiguousarray(Nt[corr[:, 1]])
-        elif k > 0:
-            Ns = _pca_normals(Q, target_index, corr[:, 1])
-        else:
-            Ns = np.empty((0, 3))
-        if method == "point_to_plane":
-            info, _, _ = K.point_to_plane_system_kernel(Ps, Qs, Ns)
-        else:
-            info = K.point_to_point_information_kernel(Qs)
-        info_ev = np.linalg.eigvalsh(info)
-        c_ev, c_vec, ratio, reason = constraint_analysis(Ps, Ns, params.degeneracy_ratio_threshold)
-
-    reasons, degenerate, status = final_diagnosis(
-        k, need, d, method, rank_deficient_step,
-        "an update step was rank deficient (collinear correspondences or a single plane): "
-        "the motion along the free direction is arbitrary", reason, converged)
-    if degenerate:
-        log.warning("ICP result is degenerate: %s", "; ".join(reasons))
-    timings = timer.as_dict()
-    timings["total"] = time.perf_counter() - t_start
-    return ICPResult(
-        T_target_source=T,
-        fitness=float(fitness),
-        inlier_rmse_m=float(rmse),
-        iterations=iterations,
-        converged=converged,
-        information_6x6=info,
-        information_eigenvalues=info_ev,
-        degenerate=degenerate,
-        degeneracy_reason="; ".join(reasons),
-        params=params,
-        timings_s=timings,
-        correspondences=corr,
-        constraint_eigenvalues=c_ev,
-        constraint_eigenvectors=c_vec,
-        degeneracy_ratio=float(ratio),
-        history=tuple(history),
-        status=status,
-    )
+def _icp_information(P, Q, Nt, corr, target_index, params: ICPParams):
+    """``(information_6x6, its eigenvalues, constraint eigenvalues, eigenvectors, ratio, reason)``
+    at the solution (moved source ``P``, pairs ``corr``); see :class:`ICPResult`."""
+    k = corr.shape[0]
+    Ps = np.ascontiguousarray(P[corr[:, 0]])
+    Qs = np.ascontiguousarray(Q[corr[:, 1]])
+    if Nt is not None:
+        Ns = np.ascontiguousarray(Nt[corr[:, 1]])
+    elif k > 0:
+        Ns = _pca_normals(Q, target_index, corr[:, 1])
+    else:
+        Ns = np.empty((0, 3))
+    if params.method == "point_to_plane":
+        info, _, _ = K.point_to_plane_system_kernel(Ps, Qs, Ns)
+    else:
+        info = K.point_to_point_information_kernel(Qs)
+    info_ev = np.linalg.eigvalsh(info)
+    return (info, info_ev, *constraint_analysis(Ps, Ns, params.degeneracy_ratio_threshold))

@@ -78,3 +78,20 @@ def naive_gicp(P0, Q, T0, d, Cs, Ct, max_iterations=30, rel_f=1e-6, rel_r=1e-6):
         if abs(f - f0) < rel_f and abs(r - r0) < rel_r:
             break
     return T, f, r, it
+
+
+def naive_gicp_system(P, Q, Cs, Ct, R, si, ti):
+    """GICP normal equations written plainly ([Ren2019 Eqs. 4-6]): per pair ``d = p - q``,
+    ``M = Ct + R Cs Rᵀ``, ``B = M⁻¹`` (``numpy.linalg.inv``), ``J = [-[p]×, I3]``; returns
+    ``(Σ Jᵀ B J, Σ Jᵀ B d, Σ dᵀ B d)``."""
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    cost = 0.0
+    for a, b in zip(si, ti, strict=True):
+        B = np.linalg.inv(Ct[b] + R @ Cs[a] @ R.T)
+        J = np.hstack([-_skew(P[a]), np.eye(3)])
+        d = P[a] - Q[b]
+        H += J.T @ B @ J
+        g += J.T @ B @ d
+        cost += float(d @ B @ d)
+    return H, g, cost

@@ -46,3 +46,16 @@ def naive_sse(xy):
     """Orthogonal-regression SSE of a point set (n * smallest covariance eigenvalue)."""
     c = xy - xy.mean(axis=0)
     return float(np.linalg.eigvalsh(c.T @ c)[0])
+
+
+def naive_point_to_line_system(q, normals, sd):
+    """2-D point-to-line normal equations (Low 2004 reduced to lines): per pair the residual
+    ``r = sd`` (signed distance along the panel's normal ``n``) and ``J = [q × n, n_x, n_y]`` for
+    ``x = (β, τ_x, τ_y)``; returns ``(Σ JᵀJ, Σ Jᵀ r, Σ r²)``."""
+    H = np.zeros((3, 3))
+    g = np.zeros(3)
+    for (x, y), (nx, ny), r in zip(q, normals, sd, strict=True):
+        J = np.array([x * ny - y * nx, nx, ny])
+        H += np.outer(J, J)
+        g += J * r
+    return H, g, float(np.dot(sd, sd))
