@@ -56,7 +56,7 @@ CHI2_6D_95 = 12.591587243743977
 def _params(levelled: bool):
     """(PrepareParams, LocalizeParams) exactly as ``minegeo localize --profile fast [--levelled 3]``."""
     from minegeo.cli import build_parser
-    from minegeo.localize._cli_localize import params_from_args
+    from minegeo.cli.localize import params_from_args
 
     opts = ["--profile", "fast"] + (["--levelled", "3"] if levelled else [])
     args = build_parser(["localize"]).parse_args(["localize", "--map", "m", "--scan", "s", "--out", "o", *opts])
@@ -72,10 +72,14 @@ def _draw_seed(world_seed: int, rough: float, length: float, levelled: bool) -> 
 
 
 class _Spy:
-    """Wraps ``pipeline.pose_uncertainty`` and keeps the paired arrays of its last call."""
+    """Wraps ``covariance.pose_uncertainty`` and keeps the paired arrays of its last call.
+
+    The pipeline's only call site is :func:`minegeo.localize.covariance.pose_covariance`, which
+    looks the name up in the namespace of :mod:`minegeo.localize.covariance`: patch it there.
+    """
 
     def __init__(self):
-        import minegeo.localize.pipeline as pl
+        import minegeo.localize.covariance as pl
 
         self.pl = pl
         self.orig = pl.pose_uncertainty

@@ -49,117 +49,11 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from minegeo._validate import check_positive
 from minegeo.errors import InputError
-
-from . import _kernels as K
+from minegeo.localize import _kernels as K
+from minegeo.localize.params import CorrelativeParams
 
 __all__ = ["CorrelativeParams", "CorrelativeResult", "correlative_candidates", "map_occupancy", "placement_grid"]
-
-
-@dataclass(frozen=True)
-class CorrelativeParams:
-    """Settings of the correlative 4-DOF search (see the module docstring).
-
-    Attributes
-    ----------
-    cell_size_m : float
-        Occupancy cell edge ``c`` (m).
-    dilation_cells : int
-        Occupied cells are dilated by this many cells (tolerance of a hit ~ ``c (1 + d)``).
-    yaw_step_deg : float
-        Heading grid step (deg); its half times the scan's half-length must stay within the
-        hit tolerance (1.5 deg at 15 m: 0.39 m).
-    max_scan_points : int
-        Size of the scan sample scored per placement.
-    early_miss_slack : float
-        A placement is abandoned as soon as more than ``(1 - min_hit_fraction) i + slack`` of
-        its first ``i`` sample points missed.
-    max_refine_points : int
-        Scan points (within ``sample_radius_m``) used by the local refinement and its score.
-    sample_radius_m : float
-        The sample is drawn from scan points within this horizontal distance of the reference
-        point (a long-range sensor sees 100 m along a straight drift: far points would turn a
-        half heading step into metres).
-    n_coarse : int
-        Grid placements passed to the local refinement: the best-ranked one of each
-        (``distinct_m`` cell of the scan centre, ``distinct_deg`` heading bin), best first.
-    screen_points : int
-        Refinement cascade, first stage: every one of the ``n_coarse`` placements gets three
-        Gauss-Newton steps (gates 1.5, 1.0, 0.7 m) on this many scan points and is scored.
-    screen_voxel_size_m : float or None
-        The first stage searches the map's ICP cloud thinned to one point per voxel of this
-        edge (centroid and mean normal, :meth:`minegeo.localize.PreparedMap.screen_target`);
-        None: the full ICP cloud.
-    screen_grid : bool
-        The first stage's Gauss-Newton steps take each sample point's map neighbour from a
-        lookup grid of cells of edge ``screen_voxel_size_m`` that stores the thinned point
-        nearest to every cell's centre (:func:`_kernels.build_nearest_grid`, :func:`_kernels.steps_4dof_grid`, reaching
-        ``SCREEN_GATES_M[0]``), instead of a KD-tree search: an approximation within about a
-        cell, its steps ~5 times faster (the stage ~2 times: its score, which ranks the
-        placements, still uses the exact nearest neighbours). Needs ``screen_voxel_size_m``.
-    n_refine : int
-        Second stage: the best ``n_refine`` of them get ``refine_iterations`` more steps
-        (gates 1.0 m → 0.5 m, linearly) on ``max_refine_points`` points and the final score.
-    refine_iterations : int
-        Gauss-Newton iterations of the second stage.
-    refine_tolerance_m : float
-        After refinement, a placement's score is the fraction of the refinement points within
-        this distance of the map's tangent planes (and 0.5 m of a map point).
-    min_hit_fraction : float
-        Placements hitting fewer than this fraction of the sample are discarded (and their
-        count is abandoned early).
-    anchor_max_tilt_deg : float
-        A map point is an anchor (floor) when its normal is within this angle of +z; the same
-        test picks the scan's floor points.
-    n_candidates : int
-        Distinct placements returned.
-    distinct_m, distinct_deg : float
-        Two placements are distinct when the scan centre moves more than ``distinct_m`` or
-        the heading differs by more than ``distinct_deg``.
-    """
-
-    cell_size_m: float = 0.5
-    dilation_cells: int = 1
-    yaw_step_deg: float = 3.0
-    max_scan_points: int = 96
-    early_miss_slack: float = 4.0
-    max_refine_points: int = 200
-    min_hit_fraction: float = 0.6
-    anchor_max_tilt_deg: float = 25.0
-    sample_radius_m: float = 15.0
-    n_coarse: int = 8000
-    screen_points: int = 64
-    screen_voxel_size_m: float | None = 0.5
-    screen_grid: bool = True
-    n_refine: int = 300
-    refine_iterations: int = 4
-    refine_tolerance_m: float = 0.2
-    n_candidates: int = 24
-    distinct_m: float = 1.5
-    distinct_deg: float = 10.0
-
-    def __post_init__(self):
-        check_positive(self.cell_size_m, "CorrelativeParams.cell_size_m")
-        check_positive(self.yaw_step_deg, "CorrelativeParams.yaw_step_deg")
-        check_positive(self.distinct_m, "CorrelativeParams.distinct_m")
-        check_positive(self.distinct_deg, "CorrelativeParams.distinct_deg")
-        check_positive(self.sample_radius_m, "CorrelativeParams.sample_radius_m")
-        check_positive(self.early_miss_slack, "CorrelativeParams.early_miss_slack")
-        check_positive(self.refine_tolerance_m, "CorrelativeParams.refine_tolerance_m")
-        if self.screen_voxel_size_m is not None:
-            check_positive(self.screen_voxel_size_m, "CorrelativeParams.screen_voxel_size_m")
-        if not isinstance(self.screen_grid, (bool, np.bool_)):
-            raise InputError(f"CorrelativeParams.screen_grid must be True or False, got {self.screen_grid!r}")
-        for name in ("dilation_cells", "max_scan_points", "n_candidates", "n_coarse", "refine_iterations", "screen_points", "n_refine",
-                     "max_refine_points"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or int(v) != v or v < (0 if name == "dilation_cells" else 1):
-                raise InputError(f"CorrelativeParams.{name} must be a positive integer, got {v!r}")
-        if not 0.0 < float(self.min_hit_fraction) <= 1.0:
-            raise InputError(f"CorrelativeParams.min_hit_fraction must be in (0, 1], got {self.min_hit_fraction!r}")
-        if not 0.0 < float(self.anchor_max_tilt_deg) < 90.0:
-            raise InputError("CorrelativeParams.anchor_max_tilt_deg must be in (0, 90) deg")
 
 
 #: Largest dense block directory (int32 entries, 64 MB; at 0.5 m cells a 4 m block, e.g. a
@@ -345,6 +239,296 @@ def _cover(scores: np.ndarray, self_mask: np.ndarray, slack: float, n_kept: int,
     return (max(n_kept, min(n_at, cap)) if adaptive else n_kept), s_self, n_at
 
 
+@dataclass(frozen=True)
+class _ScanSample:
+    """The scan side of one search (scan frame, m).
+
+    Attributes
+    ----------
+    P : (n, 3) float64
+        The scan's feature-level points.
+    r : (3,) float64
+        Reference floor point: the placements pivot about it.
+    near : (k,) int64
+        Indices of the points within ``sample_radius_m`` of ``r`` (horizontally).
+    order : (m,) int64
+        The grid's scan sample: a seeded random subset of ``near``.
+    m : int
+        Sample size.
+    max_miss : int
+        Misses allowed by ``min_hit_fraction``.
+    centre : (3,) float64
+        Mean of ``P[near]``: the scan centre of the distinct-placement tests.
+    """
+
+    P: np.ndarray
+    r: np.ndarray
+    near: np.ndarray
+    order: np.ndarray
+    m: int
+    max_miss: int
+    centre: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Ranked:
+    """Grid placements that hit ``min_hit_fraction`` of the sample, best first.
+
+    Attributes
+    ----------
+    hits, rank_score : (q,) int
+        Hits within ~``c (1 + d)`` and the ranking score (those hits plus the hits within ~``c``).
+    ai, yi, ki : (q,) int64
+        Anchor, heading (index into the ``yaw_step_deg`` grid) and pass of each placement.
+    cpos : (q, 3) float64
+        Where each placement puts the scan centre (work frame, m).
+    """
+
+    hits: np.ndarray
+    rank_score: np.ndarray
+    ai: np.ndarray
+    yi: np.ndarray
+    ki: np.ndarray
+    cpos: np.ndarray
+
+
+def _empty_result(occupancy: MapOccupancy, yaws: np.ndarray, params: CorrelativeParams, timings: dict,
+                  t0: float, reason: str, ref=None, m: int = 0) -> CorrelativeResult:
+    """A result without candidates, saying ``reason``."""
+    timings["total"] = time.perf_counter() - t0
+    return CorrelativeResult([], ref, int(occupancy.anchors.shape[0]), int(yaws.size), m, 0.0, reason, params,
+                             timings)
+
+
+def _scan_sample(P: np.ndarray, floor: np.ndarray, params: CorrelativeParams, seed: int,
+                 reference_xy) -> _ScanSample:
+    """Reference floor point nearest (horizontally) to ``reference_xy`` and the seeded scan sample around it."""
+    ch = np.median(P[:, :2], axis=0) if reference_xy is None else np.asarray(reference_xy, dtype=np.float64)[:2]
+    r = P[floor[np.argmin(np.sum((P[floor, :2] - ch) ** 2, axis=1))]].copy()
+    near = np.flatnonzero(np.sum((P[:, :2] - r[:2]) ** 2, axis=1) <= float(params.sample_radius_m) ** 2)
+    rng = np.random.default_rng(seed)
+    order = near[rng.permutation(near.size)[: int(params.max_scan_points)]]
+    S = np.ascontiguousarray(P[order] - r)
+    m = S.shape[0]
+    max_miss = int(math.floor((1.0 - float(params.min_hit_fraction)) * m))
+    return _ScanSample(P, r, near, order, m, max_miss, P[near].mean(axis=0))
+
+
+def _no_search_reason(floor: np.ndarray, occupancy: MapOccupancy, params: CorrelativeParams) -> str:
+    """Why no placement can be searched (no scan floor, no map anchors), or ""."""
+    if floor.size == 0:
+        return ("the scan shows no floor (no normal within "
+                f"{params.anchor_max_tilt_deg:g} deg of vertical): is it levelled (z up)?")
+    if occupancy.anchors.shape[0] == 0:
+        return "the map has no floor points to stand the scan on"
+    return ""
+
+
+def _grid_passes(grid_references, r: np.ndarray) -> tuple[list, np.ndarray]:
+    """The grid's pivots ``(q (3,), heading indices or None)`` and their points ``refs`` (p, 3).
+
+    The one pass pivots on the reference point ``r`` unless ``grid_references`` are given.
+    """
+    if grid_references is None:
+        passes = [(r, None)]
+    else:
+        passes = [(np.asarray(q, dtype=np.float64).reshape(3), None if k is None else np.asarray(k, dtype=np.int64))
+                  for q, k in grid_references]
+    return passes, np.array([q for q, _ in passes]).reshape(-1, 3)
+
+
+def _score_grid(occupancy: MapOccupancy, params: CorrelativeParams, smp: _ScanSample, passes: list,
+                yaws: np.ndarray):
+    """Hit counts of every (anchor, heading) placement of every pass (:func:`_kernels.score_placements`).
+
+    Returns ``(hits, rank_score, ai, yi, ki, best)`` of the placements that reach
+    ``min_hit_fraction`` (in grid order, passes one after the other) and the best hit fraction.
+    """
+    P, order, m, max_miss = smp.P, smp.order, smp.m, smp.max_miss
+    hits_l, rank_l, ai_l, yi_l, ki_l = [], [], [], [], []
+    best = 0.0
+    for k, (q, ysub) in enumerate(passes):
+        yk = yaws if ysub is None else yaws[ysub]
+        RX, RY, SZ, A = placement_grid(np.ascontiguousarray(P[order] - q), yk, occupancy.anchors,
+                                       occupancy.cell_size_m)
+        scores, tight = K.score_placements(occupancy.block_keys, occupancy.bits, occupancy.log2_blocks,
+                                           occupancy.table, occupancy.table_lo, RX, RY, SZ, A, max_miss,
+                                           1.0 - float(params.min_hit_fraction), float(params.early_miss_slack))
+        flat = scores.ravel()
+        kk = np.flatnonzero(flat >= m - max_miss)
+        best = max(best, float(flat.max()) / m if flat.size else 0.0)
+        a_k, y_k = np.divmod(kk, yk.size)
+        hits_l.append(flat[kk])
+        rank_l.append(flat[kk] + tight.ravel()[kk])  # hits within ~c(1+d), plus those within ~c
+        ai_l.append(a_k)
+        yi_l.append(y_k if ysub is None else ysub[y_k])
+        ki_l.append(np.full(kk.size, k, dtype=np.int64))
+    hits, rank_score = np.concatenate(hits_l), np.concatenate(rank_l)
+    ai, yi, ki = np.concatenate(ai_l), np.concatenate(yi_l), np.concatenate(ki_l)
+    return hits, rank_score, ai, yi, ki, best
+
+
+def _rank(hits, rank_score, ai, yi, ki, smp: _ScanSample, refs: np.ndarray, cos_y: np.ndarray,
+          sin_y: np.ndarray, anchors: np.ndarray) -> _Ranked:
+    """Sort the placements best first (ties in grid order) and place the scan centre with each."""
+    m = smp.m
+    # best first, ties in grid order; a small integer key lets NumPy's stable sort use radix sort
+    key = 2 * m - rank_score
+    order_k = np.argsort(key.astype(np.int16) if 2 * m < 2**15 else key, kind="stable")
+    hits, rank_score, ai, yi, ki = hits[order_k], rank_score[order_k], ai[order_k], yi[order_k], ki[order_k]
+    centre = (smp.centre - refs)[ki]  # the scan centre relative to each placement's pivot
+    cy, sy = cos_y[yi], sin_y[yi]
+    cpos = np.column_stack([cy * centre[:, 0] - sy * centre[:, 1], sy * centre[:, 0] + cy * centre[:, 1],
+                            centre[:, 2]]) + anchors[ai]
+    return _Ranked(hits, rank_score, ai, yi, ki, cpos)
+
+
+def _bin_leaders(rk: _Ranked, yaws: np.ndarray, params: CorrelativeParams) -> np.ndarray:
+    """Indices (into ``rk``, best first) of the best-ranked placement per bin.
+
+    One placement per (``distinct_m`` cell of the scan centre, ``distinct_deg`` heading bin).
+    """
+    # the best-ranked one: np.unique keeps the first occurrence in this ranked order
+    dm, dd = float(params.distinct_m), float(params.distinct_deg)
+    bins = np.column_stack([np.floor(rk.cpos / dm), np.floor(np.rad2deg(yaws[rk.yi]) / dd)]).astype(np.int64)
+    return np.sort(_first_of_each_bin(bins))  # bin leaders, best first
+
+
+def _grid_coverage(rk: _Ranked, first: np.ndarray, W: np.ndarray | None, smp: _ScanSample, yaws: np.ndarray,
+                   params: CorrelativeParams, n_first: int, cover_slack: float,
+                   cover_max_factor: float) -> tuple[int, dict | None]:
+    """The witness's best grid placement and the bin leaders reaching it minus the slack.
+
+    Returns the (possibly enlarged) number of grid placements to keep and the coverage record
+    (``n_first`` and None without a witness ``W``).
+    """
+    if W is None:
+        return n_first, None
+    m = smp.m
+    dm, dd = float(params.distinct_m), float(params.distinct_deg)
+    wpos = W[:3, :3] @ smp.centre + W[:3, 3]
+    da = np.abs((yaws[rk.yi] - math.atan2(W[1, 0], W[0, 0]) + math.pi) % (2 * math.pi) - math.pi)
+    self_mask = (np.sum((rk.cpos - wpos) ** 2, axis=1) <= dm**2) & (da <= math.radians(dd))
+    cap = int(round(float(cover_max_factor) * n_first))
+    if self_mask.any():
+        s_self = float(rk.rank_score[self_mask].max())
+        n_at = int(np.count_nonzero(rk.rank_score[first] >= s_self - float(cover_slack) * 2 * m))
+        n_first = max(n_first, min(n_at, cap))
+    else:
+        s_self, n_at = math.nan, -1
+    cov = {"grid_self": s_self / (2 * m), "grid_at_least": n_at, "grid_kept": min(n_first, first.size),
+           "grid_self_bin_rank": (int(np.count_nonzero(rk.rank_score[first] > s_self)) + 1
+                                  if self_mask.any() else None)}
+    return n_first, cov
+
+
+def _placement_matrices(rk: _Ranked, chosen: np.ndarray, refs: np.ndarray, cos_y: np.ndarray, sin_y: np.ndarray,
+                        anchors: np.ndarray, single_pass: bool) -> np.ndarray:
+    """``T = [Rz(ψ) | a − Rz(ψ) q]`` (k, 4, 4) of every chosen placement (``q`` its pass's pivot)."""
+    cj, sj = cos_y[rk.yi[chosen]], sin_y[rk.yi[chosen]]
+    T0s = np.zeros((chosen.size, 4, 4))
+    T0s[:, 0, 0], T0s[:, 0, 1], T0s[:, 1, 0], T0s[:, 1, 1] = cj, -sj, sj, cj
+    T0s[:, 2, 2] = T0s[:, 3, 3] = 1.0
+    if single_pass:
+        T0s[:, :3, 3] = anchors[rk.ai[chosen]] - np.einsum("nij,j->ni", T0s[:, :3, :3], refs[0])
+    else:
+        T0s[:, :3, 3] = anchors[rk.ai[chosen]] - np.einsum("nij,nj->ni", T0s[:, :3, :3], refs[rk.ki[chosen]])
+    return T0s
+
+
+def _screen_stage(Sa: np.ndarray, T0s: np.ndarray, screen, screen_grid, params: CorrelativeParams,
+                  tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """A few cheap 4-DOF Gauss-Newton steps of every grid placement against the thinned map.
+
+    ``screen`` is ``(GatedKDTree, points, normals)`` of the thinned ICP cloud (work frame);
+    returns the screened placements and their plane counts on ``Sa``.
+    """
+    Ta = np.empty_like(T0s)
+    ca = np.zeros(T0s.shape[0], dtype=np.int64)
+    s_index, Qs_, Ns_ = screen
+    Qs_, Ns_ = np.ascontiguousarray(Qs_), np.ascontiguousarray(Ns_)
+    gates2 = np.array(SCREEN_GATES_M) ** 2
+    if screen_grid is not None and params.screen_grid:
+        # Gauss-Newton steps on the lookup grid, then the exact score (no step, KD-tree)
+        Tg = np.empty_like(T0s)
+        K.steps_4dof_grid(Sa, T0s, Qs_, Ns_, *screen_grid, gates2, Tg)
+        K.refine_placements_4dof(Sa, Tg, Qs_, Ns_, *s_index._tree, np.zeros(0), tol, 0.25, Ta, ca)
+    else:
+        K.refine_placements_4dof(Sa, T0s, Qs_, Ns_, *s_index._tree, gates2, tol, 0.25, Ta, ca)
+    return Ta, ca
+
+
+def _distinct_refined(Ts: list, fr: list, smp: _ScanSample, W, params: CorrelativeParams, cov: dict | None,
+                      cover_slack: float, cover_max_factor: float) -> list[int]:
+    """Indices of the ``n_candidates`` best pairwise distinct refined placements (more with a witness).
+
+    With a witness ``W`` every distinct placement reaching its refined score minus the slack is
+    kept (up to ``cover_max_factor`` times ``n_candidates``) and ``cov`` is updated.
+    """
+    cen = smp.centre
+    cpos2 = np.array([T[:3, :3] @ cen + T[:3, 3] for T in Ts])
+    yaw2 = np.array([math.atan2(T[1, 0], T[0, 0]) for T in Ts])
+    rank = np.argsort(-np.asarray(fr), kind="stable")
+    n_cand = int(params.n_candidates)
+    if W is None:
+        return _distinct_select(cpos2, yaw2, rank, n_cand, params)
+    # every distinct placement reaching the witness's refined score minus the slack
+    fra = np.asarray(fr)[rank]
+    sm = _near_witness(np.asarray(Ts)[rank], cen, W, params) if Ts else np.zeros(0, bool)
+    s_self = float(fra[sm].max()) if sm.any() else math.nan
+    cap = int(round(float(cover_max_factor) * n_cand))
+    sel = _distinct_select(cpos2, yaw2, rank, len(Ts), params)  # every distinct one, best first
+    n_at = (int(sum(fr[j] >= s_self - float(cover_slack) for j in sel)) if sm.any() else -1)
+    n_cand = max(n_cand, min(n_at, cap))
+    cov.update(refine_self=s_self, refine_at_least=n_at, candidates_kept=min(n_cand, len(sel)))
+    return sel[:n_cand]
+
+
+def _refine_cascade(T0s: np.ndarray, smp: _ScanSample, refine_target, screen_target, screen_grid,
+                    params: CorrelativeParams, seed: int, W, cov: dict | None, cover_slack: float,
+                    cover_max_factor: float) -> tuple[list, list]:
+    """Screening, full 4-DOF refinement and distinct selection; returns ``(Ts, fractions)``, best first.
+
+    Every grid placement gets a few cheap steps on a small subset against the thinned map, the
+    best ``n_refine`` of them the full refinement on all refinement points against the full ICP
+    cloud (:func:`_kernels.refine_placements_4dof`).
+    """
+    P, near = smp.P, smp.near
+    index, Q, Nq = refine_target
+    Q = np.ascontiguousarray(Q)
+    Nq = np.ascontiguousarray(Nq)
+    perm = near[np.random.default_rng(seed + 1).permutation(near.size)[: int(params.max_refine_points)]]
+    tol = float(params.refine_tolerance_m)
+    Sa = np.ascontiguousarray(P[perm[: int(params.screen_points)]])
+    screen = (index, Q, Nq) if screen_target is None else screen_target
+    Ta, ca = _screen_stage(Sa, T0s, screen, screen_grid, params, tol)
+    n_ref = int(params.n_refine)
+    if W is not None:
+        o = np.argsort(-ca, kind="stable")
+        n_ref, s_self, n_at = _cover(ca[o].astype(np.float64), _near_witness(Ta[o], smp.centre, W, params),
+                                     float(cover_slack) * Sa.shape[0], n_ref,
+                                     int(round(float(cover_max_factor) * n_ref)), True)
+        cov.update(screen_self=s_self / Sa.shape[0], screen_at_least=n_at, screen_kept=min(n_ref, ca.size))
+    top = np.argsort(-ca, kind="stable")[:n_ref]
+    Sr = np.ascontiguousarray(P[perm])
+    Tb = np.empty((top.size, 4, 4))
+    cb = np.zeros(top.size, dtype=np.int64)
+    gates2 = np.linspace(1.0, 0.5, int(params.refine_iterations)) ** 2
+    K.refine_placements_4dof(Sr, np.ascontiguousarray(Ta[top]), Q, Nq, *index._tree, gates2, tol, 0.25, Tb, cb)
+    Ts = [Tb[k] for k in range(top.size)]
+    fr = [int(cb[k]) / Sr.shape[0] for k in range(top.size)]
+    sel = _distinct_refined(Ts, fr, smp, W, params, cov, cover_slack, cover_max_factor)
+    return [Ts[j] for j in sel], [fr[j] for j in sel]
+
+
+def _finish_coverage(cov: dict, cover_slack: float) -> None:
+    """``covered``: every stage found the witness and kept all placements reaching its score."""
+    cov["covered"] = bool(0 <= cov.get("grid_at_least", -1) <= cov.get("grid_kept", -1)
+                          and 0 <= cov.get("screen_at_least", -1) <= cov.get("screen_kept", -1)
+                          and 0 <= cov.get("refine_at_least", -1) <= cov.get("candidates_kept", -1))
+    cov["slack"] = float(cover_slack)
+
+
 def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, scan_normals: np.ndarray,
                            params: CorrelativeParams, seed: int = 0, reference_xy=None,
                            refine_target=None, screen_target=None, screen_grid=None, *, grid_references=None,
@@ -413,168 +597,40 @@ def correlative_candidates(occupancy: MapOccupancy, scan_points: np.ndarray, sca
     up = math.cos(math.radians(params.anchor_max_tilt_deg))
     floor = np.flatnonzero(N[:, 2] >= up)
     yaws = np.deg2rad(np.arange(0.0, 360.0, float(params.yaw_step_deg)))
-
-    def _empty(reason, ref=None, m=0):
-        timings["total"] = time.perf_counter() - t0
-        return CorrelativeResult([], ref, int(occupancy.anchors.shape[0]), int(yaws.size), m, 0.0, reason, params,
-                                 timings)
-
-    if floor.size == 0:
-        return _empty("the scan shows no floor (no normal within "
-                      f"{params.anchor_max_tilt_deg:g} deg of vertical): is it levelled (z up)?")
-    if occupancy.anchors.shape[0] == 0:
-        return _empty("the map has no floor points to stand the scan on")
-    ch = np.median(P[:, :2], axis=0) if reference_xy is None else np.asarray(reference_xy, dtype=np.float64)[:2]
-    r = P[floor[np.argmin(np.sum((P[floor, :2] - ch) ** 2, axis=1))]].copy()
-    near = np.flatnonzero(np.sum((P[:, :2] - r[:2]) ** 2, axis=1) <= float(params.sample_radius_m) ** 2)
-    rng = np.random.default_rng(seed)
-    order = near[rng.permutation(near.size)[: int(params.max_scan_points)]]
-    S = np.ascontiguousarray(P[order] - r)
-    m = S.shape[0]
-    max_miss = int(math.floor((1.0 - float(params.min_hit_fraction)) * m))
+    why = _no_search_reason(floor, occupancy, params)
+    if why:
+        return _empty_result(occupancy, yaws, params, timings, t0, why)
+    smp = _scan_sample(P, floor, params, seed, reference_xy)
+    r, m = smp.r, smp.m
     timings["setup"] = time.perf_counter() - t0
     t1 = time.perf_counter()
-    if grid_references is None:
-        passes = [(r, None)]
-    else:
-        passes = [(np.asarray(q, dtype=np.float64).reshape(3), None if k is None else np.asarray(k, dtype=np.int64))
-                  for q, k in grid_references]
-    refs = np.array([q for q, _ in passes]).reshape(-1, 3)
-    hits_l, rank_l, ai_l, yi_l, ki_l = [], [], [], [], []
-    best = 0.0
-    for k, (q, ysub) in enumerate(passes):
-        yk = yaws if ysub is None else yaws[ysub]
-        RX, RY, SZ, A = placement_grid(np.ascontiguousarray(P[order] - q), yk, occupancy.anchors,
-                                       occupancy.cell_size_m)
-        scores, tight = K.score_placements(occupancy.block_keys, occupancy.bits, occupancy.log2_blocks,
-                                           occupancy.table, occupancy.table_lo, RX, RY, SZ, A, max_miss,
-                                           1.0 - float(params.min_hit_fraction), float(params.early_miss_slack))
-        flat = scores.ravel()
-        kk = np.flatnonzero(flat >= m - max_miss)
-        best = max(best, float(flat.max()) / m if flat.size else 0.0)
-        a_k, y_k = np.divmod(kk, yk.size)
-        hits_l.append(flat[kk])
-        rank_l.append(flat[kk] + tight.ravel()[kk])  # hits within ~c(1+d), plus those within ~c
-        ai_l.append(a_k)
-        yi_l.append(y_k if ysub is None else ysub[y_k])
-        ki_l.append(np.full(kk.size, k, dtype=np.int64))
+    passes, refs = _grid_passes(grid_references, r)
+    hits, rank_score, ai, yi, ki, best = _score_grid(occupancy, params, smp, passes, yaws)
     timings["score"] = time.perf_counter() - t1
     t1 = time.perf_counter()
-    hits, rank_score = np.concatenate(hits_l), np.concatenate(rank_l)
-    ai, yi, ki = np.concatenate(ai_l), np.concatenate(yi_l), np.concatenate(ki_l)
     if rank_score.size == 0:
-        return _empty(f"no placement hits {100 * params.min_hit_fraction:.0f} % of the scan sample "
-                      f"(best {100 * best:.0f} %)", r, m)
-    # best first, ties in grid order; a small integer key lets NumPy's stable sort use radix sort
-    key = 2 * m - rank_score
-    order_k = np.argsort(key.astype(np.int16) if 2 * m < 2**15 else key, kind="stable")
-    hits, rank_score, ai, yi, ki = hits[order_k], rank_score[order_k], ai[order_k], yi[order_k], ki[order_k]
-    centre = (P[near].mean(axis=0) - refs)[ki]  # the scan centre relative to each placement's pivot
+        return _empty_result(occupancy, yaws, params, timings, t0,
+                             f"no placement hits {100 * params.min_hit_fraction:.0f} % of the scan sample "
+                             f"(best {100 * best:.0f} %)", r, m)
     cos_y, sin_y = np.cos(yaws), np.sin(yaws)
-    cy, sy = cos_y[yi], sin_y[yi]
-    cpos = np.column_stack([cy * centre[:, 0] - sy * centre[:, 1], sy * centre[:, 0] + cy * centre[:, 1],
-                            centre[:, 2]]) + occupancy.anchors[ai]
+    rk = _rank(hits, rank_score, ai, yi, ki, smp, refs, cos_y, sin_y, occupancy.anchors)
     n_first = int(params.n_coarse) if refine_target is not None else int(params.n_candidates)
-    # one placement per (distinct_m cell of the scan centre, distinct_deg heading bin): the
-    # best-ranked one (np.unique keeps the first occurrence in this ranked order)
-    dm, dd = float(params.distinct_m), float(params.distinct_deg)
-    bins = np.column_stack([np.floor(cpos / dm), np.floor(np.rad2deg(yaws[yi]) / dd)]).astype(np.int64)
-    first = np.sort(_first_of_each_bin(bins))  # bin leaders, best first
-    cov = None
+    first = _bin_leaders(rk, yaws, params)
     W = None if witness is None or refine_target is None else np.asarray(witness, dtype=np.float64)
-    if W is not None:
-        cen_s = P[near].mean(axis=0)
-        wpos = W[:3, :3] @ cen_s + W[:3, 3]
-        da = np.abs((yaws[yi] - math.atan2(W[1, 0], W[0, 0]) + math.pi) % (2 * math.pi) - math.pi)
-        self_mask = (np.sum((cpos - wpos) ** 2, axis=1) <= dm**2) & (da <= math.radians(dd))
-        # the witness's best grid placement, and the bin leaders reaching it minus the slack
-        cap = int(round(float(cover_max_factor) * n_first))
-        if self_mask.any():
-            s_self = float(rank_score[self_mask].max())
-            n_at = int(np.count_nonzero(rank_score[first] >= s_self - float(cover_slack) * 2 * m))
-            n_first = max(n_first, min(n_at, cap))
-        else:
-            s_self, n_at = math.nan, -1
-        cov = {"grid_self": s_self / (2 * m), "grid_at_least": n_at, "grid_kept": min(n_first, first.size),
-               "grid_self_bin_rank": (int(np.count_nonzero(rank_score[first] > s_self)) + 1
-                                      if self_mask.any() else None)}
+    n_first, cov = _grid_coverage(rk, first, W, smp, yaws, params, n_first, cover_slack, cover_max_factor)
     chosen = first[:n_first]
-    # T = [Rz(ψ) | a − Rz(ψ) r] of every chosen placement
-    cj, sj = cos_y[yi[chosen]], sin_y[yi[chosen]]
-    T0s = np.zeros((chosen.size, 4, 4))
-    T0s[:, 0, 0], T0s[:, 0, 1], T0s[:, 1, 0], T0s[:, 1, 1] = cj, -sj, sj, cj
-    T0s[:, 2, 2] = T0s[:, 3, 3] = 1.0
-    if len(passes) == 1:
-        T0s[:, :3, 3] = occupancy.anchors[ai[chosen]] - np.einsum("nij,j->ni", T0s[:, :3, :3], refs[0])
-    else:
-        T0s[:, :3, 3] = occupancy.anchors[ai[chosen]] - np.einsum("nij,nj->ni", T0s[:, :3, :3], refs[ki[chosen]])
+    T0s = _placement_matrices(rk, chosen, refs, cos_y, sin_y, occupancy.anchors, len(passes) == 1)
     Ts = list(T0s)
-    fr = (hits[chosen] / m).tolist()
+    fr = (rk.hits[chosen] / m).tolist()
     timings["select"] = time.perf_counter() - t1
     if refine_target is not None:
         t1 = time.perf_counter()
-        index, Q, Nq = refine_target
-        Q = np.ascontiguousarray(Q)
-        Nq = np.ascontiguousarray(Nq)
-        perm = near[np.random.default_rng(seed + 1).permutation(near.size)[: int(params.max_refine_points)]]
-        tol = float(params.refine_tolerance_m)
-        # cascade: every grid placement gets a few cheap steps on a small subset against the
-        # thinned map, the best ``n_refine`` of them the full refinement on all refinement
-        # points against the full ICP cloud
-        Sa = np.ascontiguousarray(P[perm[: int(params.screen_points)]])
-        Ta = np.empty_like(T0s)
-        ca = np.zeros(T0s.shape[0], dtype=np.int64)
-        s_index, Qs_, Ns_ = (index, Q, Nq) if screen_target is None else screen_target
-        Qs_, Ns_ = np.ascontiguousarray(Qs_), np.ascontiguousarray(Ns_)
-        gates2 = np.array(SCREEN_GATES_M) ** 2
-        if screen_grid is not None and params.screen_grid:
-            # Gauss-Newton steps on the lookup grid, then the exact score (no step, KD-tree)
-            Tg = np.empty_like(T0s)
-            K.steps_4dof_grid(Sa, T0s, Qs_, Ns_, *screen_grid, gates2, Tg)
-            K.refine_placements_4dof(Sa, Tg, Qs_, Ns_, *s_index._tree, np.zeros(0), tol, 0.25, Ta, ca)
-        else:
-            K.refine_placements_4dof(Sa, T0s, Qs_, Ns_, *s_index._tree, gates2, tol, 0.25, Ta, ca)
-        n_ref = int(params.n_refine)
-        if W is not None:
-            o = np.argsort(-ca, kind="stable")
-            n_ref, s_self, n_at = _cover(ca[o].astype(np.float64), _near_witness(Ta[o], cen_s, W, params),
-                                         float(cover_slack) * Sa.shape[0], n_ref,
-                                         int(round(float(cover_max_factor) * n_ref)), True)
-            cov.update(screen_self=s_self / Sa.shape[0], screen_at_least=n_at, screen_kept=min(n_ref, ca.size))
-        top = np.argsort(-ca, kind="stable")[:n_ref]
-        Sr = np.ascontiguousarray(P[perm])
-        Tb = np.empty((top.size, 4, 4))
-        cb = np.zeros(top.size, dtype=np.int64)
-        gates2 = np.linspace(1.0, 0.5, int(params.refine_iterations)) ** 2
-        K.refine_placements_4dof(Sr, np.ascontiguousarray(Ta[top]), Q, Nq, *index._tree, gates2, tol, 0.25, Tb, cb)
-        Ts = [Tb[k] for k in range(top.size)]
-        fr = [int(cb[k]) / Sr.shape[0] for k in range(top.size)]
-        cen = P[near].mean(axis=0)
-        cpos2 = np.array([T[:3, :3] @ cen + T[:3, 3] for T in Ts])
-        yaw2 = np.array([math.atan2(T[1, 0], T[0, 0]) for T in Ts])
-        rank = np.argsort(-np.asarray(fr), kind="stable")
-        n_cand = int(params.n_candidates)
-        if W is not None:
-            # every distinct placement reaching the witness's refined score minus the slack
-            fra = np.asarray(fr)[rank]
-            sm = _near_witness(np.asarray(Ts)[rank], cen_s, W, params) if Ts else np.zeros(0, bool)
-            s_self = float(fra[sm].max()) if sm.any() else math.nan
-            cap = int(round(float(cover_max_factor) * n_cand))
-            sel = _distinct_select(cpos2, yaw2, rank, len(Ts), params)  # every distinct one, best first
-            n_at = (int(sum(fr[j] >= s_self - float(cover_slack) for j in sel)) if sm.any() else -1)
-            n_cand = max(n_cand, min(n_at, cap))
-            cov.update(refine_self=s_self, refine_at_least=n_at, candidates_kept=min(n_cand, len(sel)))
-            sel = sel[:n_cand]
-        else:
-            sel = _distinct_select(cpos2, yaw2, rank, n_cand, params)
-        Ts, fr = [Ts[j] for j in sel], [fr[j] for j in sel]
+        Ts, fr = _refine_cascade(T0s, smp, refine_target, screen_target, screen_grid, params, seed, W, cov,
+                                 cover_slack, cover_max_factor)
         timings["refine"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0
     if cov is not None:
-        cov["covered"] = bool(0 <= cov.get("grid_at_least", -1) <= cov.get("grid_kept", -1)
-                              and 0 <= cov.get("screen_at_least", -1) <= cov.get("screen_kept", -1)
-                              and 0 <= cov.get("refine_at_least", -1) <= cov.get("candidates_kept", -1))
-        cov["slack"] = float(cover_slack)
+        _finish_coverage(cov, cover_slack)
     return CorrelativeResult(list(zip(Ts, fr, strict=True)), r, int(occupancy.anchors.shape[0]), int(yaws.size), m, best, "",
                              params, timings, cov)
 

@@ -74,6 +74,7 @@ from minegeo.errors import InputError, TooFewPointsError
 from minegeo.geometry.neighbors import NeighborIndex
 from minegeo.geometry.normals import STATUS_OK, NormalParams, estimate_normals
 from minegeo.localize import _kernels_gravity as KG
+from minegeo.localize.params import GravityParams
 
 __all__ = ["GravityParams", "UpCandidate", "UpEvidence", "UpEstimate", "estimate_up", "levelling_rotation",
            "hotelling_r2_95", "STATUSES"]
@@ -86,129 +87,6 @@ _EPS_VAR = 1e-24  # rad^2 added before inverting a jackknife covariance (noise-f
 _MAD_TO_TUKEY = 7.0  # Tukey scale = 7 MAD (4.685 sigma of a Gaussian, sigma = 1.4826 MAD)
 _MAX_STEP_RAD = math.radians(1.0)  # largest Gauss-Newton step of the wall fit
 _MIN_TOL_DEG = 1e-3  # floor of tilt_tolerance_deg (noise-free inputs give a zero jackknife spread)
-
-
-@dataclass(frozen=True)
-class GravityParams:
-    """Settings of :func:`estimate_up` (lengths in m, angles in degrees).
-
-    Attributes
-    ----------
-    max_points : int
-        Size of the area-uniform sample the estimate uses (all points when fewer).
-    min_points : int
-        Fewer input points raise :class:`~minegeo.errors.TooFewPointsError`.
-    density_radius_m : float
-        Radius of the neighbour count that sets each point's area weight.
-    normal_radius_m, normal_max_nn : float, int
-        PCA normals (hybrid search) when ``normals`` are not given.
-    n_directions : int
-        Axes of the normal-density grid (Fibonacci half-sphere; 2000 is ~3.2 deg apart).
-    plane_band_m : float
-        Slab thickness of the floor plane's support (``evidence.floor_fraction``).
-    min_drift_height_m : float
-        A column counts in the floor signature only when it spans at least this (a drift's height
-        or width is more).
-    floor_residual_scale_m : float
-        Largest Tukey scale of the floor's height residuals.
-    floor_max_tilt_deg : float
-        Tukey scale of a floor surfel's normal tilt from up.
-    wall_max_tilt_deg : float
-        Largest Tukey scale of a wall surfel's normal tilt from horizontal.
-    wall_min_height_m : float
-        Wall surfels must be at least this far above the floor plane's support.
-    min_wall_spread : float
-        The walls fix ``delta_along`` only when the smallest / largest eigenvalue of their
-        2x2 normal matrix reaches this (0.1: azimuths spread by ~+-20 deg, a curve or a junction).
-    max_slope_deg : float
-        Largest floor slope (ramp) the residual-tilt range must cover.
-    n_blocks : int
-        Jackknife blocks along the drift (>= 4).
-    min_floor_fraction : float
-        The floor slab must hold at least this fraction of the scan's area.
-    min_floor_score : float
-        Smallest floor signature (:func:`_column_score`) of a floor; below it: no floor.
-    mode_radius_deg : float
-        Cone radius of the normal-density modes (floor and wall directions) tried as up.
-    min_mode_ratio : float
-        A normal mode is an up candidate only when its own area (normals within
-        ``mode_radius_deg``) is at least this fraction of the largest mode's.
-    min_perp_ratio : float
-        A normal mode is an up candidate only when the area of surfels perpendicular to it
-        (within ``mode_radius_deg``) is at least this fraction of the largest such area among
-        the modes: floors and walls qualify, directions through the roof's flanks do not.
-    column_cell_m : float
-        Column size of the floor signature.
-    floor_flat_deg, roof_flank_max_deg : float
-        A surfel is flat within ``floor_flat_deg`` of the candidate up, inclined up to
-        ``roof_flank_max_deg`` (the roof's flanks).
-    min_void_fraction : float
-        At least this fraction must lie on the void side of the floor (else: a lone plane).
-    ambiguity_ratio : float
-        A distinct rival floor whose score reaches this fraction of the best makes the result
-        ``ambiguous``.
-    min_rival_angle_deg : float
-        Rival floors closer than this to the chosen up are the same hypothesis.
-    n_rivals : int
-        Normal modes refined and tried as up candidates.
-    seed : int
-        Seed of the area-uniform sample (used only when the cloud has more than
-        ``max_points`` points).
-    """
-
-    max_points: int = 20000
-    min_points: int = 200
-    density_radius_m: float = 0.5
-    normal_radius_m: float = 0.5
-    normal_max_nn: int = 64
-    n_directions: int = 2000
-    plane_band_m: float = 0.3
-    min_drift_height_m: float = 2.0
-    floor_residual_scale_m: float = 0.6
-    floor_max_tilt_deg: float = 45.0
-    wall_max_tilt_deg: float = 25.0
-    wall_min_height_m: float = 0.4
-    min_wall_spread: float = 0.1
-    max_slope_deg: float = 15.0
-    n_blocks: int = 8
-    min_floor_fraction: float = 0.04
-    min_floor_score: float = 0.04
-    mode_radius_deg: float = 15.0
-    min_mode_ratio: float = 0.5
-    min_perp_ratio: float = 0.5
-    column_cell_m: float = 1.0
-    floor_flat_deg: float = 25.0
-    roof_flank_max_deg: float = 70.0
-    min_void_fraction: float = 0.15
-    ambiguity_ratio: float = 0.8
-    min_rival_angle_deg: float = 30.0
-    n_rivals: int = 8
-    seed: int = 0
-
-    def __post_init__(self):
-        for name in ("max_points", "min_points", "normal_max_nn", "n_directions", "n_blocks", "n_rivals", "seed"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
-                raise InputError(f"GravityParams.{name} must be an integer >= 0, got {v!r}")
-        if self.min_points < 3 or self.max_points < max(self.min_points, 3):
-            raise InputError("GravityParams: need 3 <= min_points <= max_points")
-        if self.n_blocks < 4:
-            raise InputError(f"GravityParams.n_blocks must be >= 4, got {self.n_blocks}")
-        if self.n_directions < 100:
-            raise InputError(f"GravityParams.n_directions must be >= 100, got {self.n_directions}")
-        for name in ("density_radius_m", "normal_radius_m", "plane_band_m", "min_drift_height_m",
-                     "floor_residual_scale_m", "wall_min_height_m", "column_cell_m"):
-            check_positive(getattr(self, name), f"GravityParams.{name}")
-        for name in ("floor_max_tilt_deg", "wall_max_tilt_deg", "max_slope_deg", "min_rival_angle_deg",
-                     "floor_flat_deg", "roof_flank_max_deg", "mode_radius_deg"):
-            v = float(getattr(self, name))
-            if not 0.0 < v < 90.0:
-                raise InputError(f"GravityParams.{name} must be in (0, 90) degrees, got {v}")
-        for name in ("min_wall_spread", "min_floor_fraction", "min_void_fraction", "ambiguity_ratio",
-                     "min_floor_score", "min_perp_ratio", "min_mode_ratio"):
-            v = float(getattr(self, name))
-            if not 0.0 <= v <= 1.0:
-                raise InputError(f"GravityParams.{name} must be in [0, 1], got {v}")
 
 
 @dataclass(frozen=True)
@@ -741,6 +619,339 @@ def _failed(reason: str, p: GravityParams, cands=(), timings=None) -> UpEstimate
                       candidates=tuple(cands), evidence=None, params=p, timings_s=dict(timings or {}))
 
 
+@dataclass(frozen=True)
+class _Floor:
+    """The refined floor plane ``f . x = d`` (sample frame, m) of :func:`_floor`.
+
+    Attributes
+    ----------
+    score : float
+        Floor signature of the chosen normal mode (:func:`_column_score`).
+    f : (3,) float64
+        Unit floor normal, towards the void (up if the floor is level).
+    d : float
+        Plane offset (m).
+    weights : (m,) float64
+        Final IRLS weights of the sample.
+    mass, void : float
+        Area fractions within ``plane_band_m`` of the plane and above it.
+    """
+
+    score: float
+    f: np.ndarray
+    d: float
+    weights: np.ndarray
+    mass: float
+    void: float
+
+
+@dataclass(frozen=True)
+class _Walls:
+    """The wall fits of :func:`_walls` (scan frame).
+
+    Attributes
+    ----------
+    mask : (m,) bool
+        Surfels higher than ``wall_min_height_m`` above the floor.
+    fit : tuple or None
+        Across-drift fit ``(up, weights, A)`` of :func:`_fit_walls` (None: no walls).
+    fit_along : tuple or None
+        Both-component fit, only when the walls spread in azimuth (evidence).
+    spread : float
+        Smallest / largest eigenvalue of the across fit's normal matrix (0 without walls).
+    weights : (m,) float64 or None
+        Weights of the across fit.
+    """
+
+    mask: np.ndarray
+    fit: tuple | None
+    fit_along: tuple | None
+    spread: float
+    weights: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class _Fusion:
+    """Floor + walls fused in the tangent basis ``(ta, tc)`` at the floor normal (rad).
+
+    Attributes
+    ----------
+    d_hat : (2,) float64
+        Fused ``(delta_along, delta_across)`` relative to the floor normal.
+    S : (2, 2) float64
+        Jackknife covariance of the fused estimator (rad^2).
+    S_f : (2, 2) float64
+        Jackknife covariance of the floor normal alone (rad^2).
+    g_eff : int
+        Jackknife blocks that hold both the floor and (when used) the walls.
+    """
+
+    d_hat: np.ndarray
+    S: np.ndarray
+    S_f: np.ndarray
+    g_eff: int
+
+
+@dataclass(frozen=True)
+class _WallsAlone:
+    """The walls-alone up (evidence only; NaN / None when the walls do not fix it).
+
+    Attributes
+    ----------
+    slope_deg, slope_sigma_deg : float
+        Floor tilt about the cross axis relative to the walls-alone up, and its 1-sigma (deg).
+    up : (3,) float64 or None
+    sigma_deg : float
+        Its 1-sigma angle (largest axis, deg).
+    """
+
+    slope_deg: float = math.nan
+    slope_sigma_deg: float = math.nan
+    up: np.ndarray | None = None
+    sigma_deg: float = math.nan
+
+
+def _normal_modes(Q: np.ndarray, W: np.ndarray, N: np.ndarray, p: GravityParams) -> list:
+    """Floor detection (Method 2): modes of the normals' area density that look like floors or walls, best first.
+
+    Returns a list of ``(|score|, u, valid_fraction)``: the floor signature of the mode
+    (:func:`_column_score`), the mode oriented by the signature's sign (scan frame) and the area
+    fraction in columns spanning a drift height.
+    """
+    D = _half_sphere(int(p.n_directions))
+    dens = np.empty(D.shape[0])
+    cos_m = math.cos(math.radians(p.mode_radius_deg))
+    KG.normal_density(N, W, D, cos_m, dens)
+    picked: list[np.ndarray] = []
+    cos_sep = math.cos(math.radians(p.min_rival_angle_deg / 2.0))
+    for k in np.lexsort((np.arange(D.shape[0]), -dens)):
+        if len(picked) >= p.n_rivals:
+            break
+        v = _mode(N, W, D[k], cos_m)
+        if v is not None and all(abs(float(v @ q)) < cos_sep for q in picked):
+            picked.append(v)
+    # a floor (or a wall) has large surfaces perpendicular to it (walls, or floor and roof); a
+    # direction through the arch's flank has not: such modes are not candidates
+    sin_p = math.sin(math.radians(p.mode_radius_deg))
+    own = [float(W[np.abs(N @ v) > cos_m].sum()) for v in picked]
+    omax = max(own) if own else 0.0
+    picked = [v for v, o in zip(picked, own, strict=True) if o >= p.min_mode_ratio * omax]
+    perp = [float(W[np.abs(N @ v) < sin_p].sum()) for v in picked]
+    pmax = max(perp) if perp else 0.0
+    modes = []
+    for v, pf in zip(picked, perp, strict=True):
+        if pf < p.min_perp_ratio * pmax:
+            continue
+        sc, bottom_flat, valid_frac = _column_score(Q, W, N, v, p)
+        u = v if sc >= 0.0 else -v
+        modes.append((abs(sc), u, valid_frac))
+    modes.sort(key=lambda t: -t[0])
+    return modes
+
+
+def _no_floor_reason(modes: list, p: GravityParams) -> str:
+    """Why no mode is a floor (the best score is below ``min_floor_score``)."""
+    if not modes or max(m[2] for m in modes) < 0.05:
+        return ("no drift around the largest flat surface (nothing at least "
+                f"{p.min_drift_height_m:g} m from it across the void): a lone plane, its normal's sign is unknown")
+    best_sc = modes[0][0] if modes else 0.0
+    return (f"no floor: no surface is flat below and arched above (best floor score {best_sc:.3f} < "
+            f"{p.min_floor_score:g}; a vertical shaft, or walls and roof alike?)")
+
+
+def _floor(Q: np.ndarray, W: np.ndarray, N: np.ndarray, modes: list, p: GravityParams) -> tuple[_Floor | None, str]:
+    """Floor refinement (Method 3): refine the best mode's plane (IRLS) and check its area; ``(floor, "")`` or ``(None, why)``."""
+    f_score, f0, _ = modes[0]
+    _, bottom_flat, _ = _column_score(Q, W, N, f0, p)
+    hb = Q[bottom_flat] @ f0
+    d0 = _weighted_median(hb, W[bottom_flat]) if hb.size else float(np.min(Q @ f0))
+    fit = _fit_plane(Q, W, N, f0, d0, p)
+    if fit is None:
+        return None, "the floor plane could not be fitted"
+    f, fd, fw, fscale = fit
+    hf = Q @ f - fd
+    f_mass = float(W[np.abs(hf) <= 0.5 * p.plane_band_m].sum())
+    f_void = float(W[hf > 0.5 * p.plane_band_m].sum())
+    if f_mass < p.min_floor_fraction:
+        return None, f"the floor plane holds only {f_mass:.1%} of the scan's area (need {p.min_floor_fraction:.0%})"
+    if f_void < p.min_void_fraction:
+        return None, f"only {f_void:.0%} of the scan lies above the floor plane (need {p.min_void_fraction:.0%})"
+    return _Floor(f_score, f, fd, fw, f_mass, f_void), ""
+
+
+def _drift_axis(Q: np.ndarray, W: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Principal horizontal direction of the scan (perpendicular to the floor normal ``f``): the drift axis."""
+    Xh = Q - np.outer(Q @ f, f)
+    mu = W @ Xh
+    Ch = ((Xh - mu) * W[:, None]).T @ (Xh - mu)
+    ev, V = np.linalg.eigh(Ch)
+    axis = V[:, 2] - (V[:, 2] @ f) * f
+    axis = _unit(axis)
+    if axis[int(np.argmax(np.abs(axis)))] < 0:  # sign convention (does not change the estimate)
+        axis = -axis
+    return axis
+
+
+def _walls(Q: np.ndarray, W: np.ndarray, N: np.ndarray, r_floor: np.ndarray, f: np.ndarray, axis: np.ndarray,
+           p: GravityParams) -> _Walls:
+    """Walls (Method 4): they fix the across-drift component (always), the along one only as evidence."""
+    wall_mask = r_floor > p.wall_min_height_m
+    wfit = _fit_walls(Q, W, N, wall_mask, f, axis, False, p)
+    spread = 0.0
+    wall_w = None
+    wfit_along = None
+    if wfit is not None:
+        wall_w = wfit[1]
+        lam = np.linalg.eigvalsh(wfit[2])
+        spread = float(lam[0] / lam[1]) if lam[1] > 0 else 0.0
+        if spread >= p.min_wall_spread:
+            wfit_along = _fit_walls(Q, W, N, wall_mask, f, axis, True, p)
+    return _Walls(wall_mask, wfit, wfit_along, spread, wall_w)
+
+
+def _block_replicates(Q: np.ndarray, W: np.ndarray, N: np.ndarray, fl: _Floor, walls: _Walls, axis: np.ndarray,
+                      ta: np.ndarray, tc: np.ndarray, p: GravityParams):
+    """Uncertainty (Method 5): delete-one-block refits over ``n_blocks`` slices along the drift axis.
+
+    Returns ``(rep_f, rep_w, rep_wa)``: the floor's, the across walls' and the along walls'
+    ``(delta_along, delta_across)`` per deleted block (rad, NaN where a fit failed); ``rep_w`` is
+    zeros without walls and ``rep_wa`` an empty list without an along fit.
+    """
+    f, fd = fl.f, fl.d
+    wall_mask, wfit, wfit_along = walls.mask, walls.fit, walls.fit_along
+    g = int(p.n_blocks)
+    s_ax = Q @ axis
+    o = np.argsort(s_ax, kind="stable")
+    cw = np.cumsum(W[o])
+    blk = np.empty(Q.shape[0], dtype=np.int64)
+    blk[o] = np.minimum((cw / cw[-1] * g - 1e-12).astype(np.int64), g - 1)
+    nan2 = np.full(2, np.nan)
+    rep_f, rep_w, rep_wa = [], [], []
+    for k in range(g):
+        keep = blk != k
+        Qk, Wk, Nk, mk = Q[keep], W[keep], N[keep], wall_mask[keep]
+        fk = _fit_plane(Qk, Wk, Nk, f, fd, p)
+        rep_f.append(nan2 if fk is None else _tangent(fk[0], f, ta, tc))
+        if wfit is not None:
+            wk = _fit_walls(Qk, Wk, Nk, mk, f, axis, False, p)
+            rep_w.append(nan2 if wk is None else _tangent(wk[0], f, ta, tc))
+        if wfit_along is not None:
+            wk = _fit_walls(Qk, Wk, Nk, mk, f, axis, True, p)
+            rep_wa.append(nan2 if wk is None else _tangent(wk[0], f, ta, tc))
+    rep_f = np.array(rep_f)
+    rep_w = np.array(rep_w) if rep_w else np.zeros((g, 2))
+    return rep_f, rep_w, rep_wa
+
+
+def _fuse(rep_f: np.ndarray, rep_w: np.ndarray, good: np.ndarray, wfit: tuple | None, f: np.ndarray,
+          ta: np.ndarray, tc: np.ndarray) -> _Fusion:
+    """Fusion (Method 5): floor (both components) + walls (across only), information-weighted, jackknifed again.
+
+    ``good`` marks the blocks whose floor replicate is finite (at least 4).
+    """
+    g = rep_f.shape[0]
+    S_f = _jackknife(rep_f[good]) + _EPS_VAR * np.eye(2)
+    I_f = np.linalg.inv(S_f)
+    I_w = np.zeros((2, 2))
+    d_w = np.zeros(2)
+    if wfit is not None:
+        gw = good & np.all(np.isfinite(rep_w), axis=1)
+        if np.count_nonzero(gw) >= 4:
+            good = gw
+            d_w = np.array([0.0, _tangent(wfit[0], f, ta, tc)[1]])
+            var_c = float(_jackknife(rep_w[good][:, 1:2])[0, 0]) + _EPS_VAR
+            I_w[1, 1] = 1.0 / var_c
+    Itot = I_f + I_w
+    Kf = np.linalg.solve(Itot, I_f)
+    Kw = np.linalg.solve(Itot, I_w)
+    d_hat = Kw @ d_w  # the floor's own value is 0 in its basis
+    reps = np.array([Kf @ rep_f[k] + Kw @ np.array([0.0, rep_w[k, 1]]) for k in range(g) if good[k]])
+    S = _jackknife(reps)
+    return _Fusion(d_hat, S, S_f, int(reps.shape[0]))
+
+
+def _walls_alone(wfit_along: tuple | None, rep_wa: list, f: np.ndarray, ta: np.ndarray,
+                 tc: np.ndarray) -> _WallsAlone:
+    """The walls-alone up and the floor slope it suggests (evidence only), with jackknife sigmas."""
+    if wfit_along is not None and rep_wa:
+        rep_wa = np.array(rep_wa)
+        ga = np.all(np.isfinite(rep_wa), axis=1)
+        if np.count_nonzero(ga) >= 4:
+            Sa = _jackknife(rep_wa[ga])
+            w_up = wfit_along[0]
+            w_slope = math.degrees(_tangent(w_up, f, ta, tc)[0])
+            w_slope_sig = math.degrees(math.sqrt(max(Sa[0, 0], 0.0)))
+            w_sig = math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(Sa)[-1]), 0.0)))
+            return _WallsAlone(w_slope, w_slope_sig, w_up, w_sig)
+    return _WallsAlone()
+
+
+def _evidence(Q: np.ndarray, W: np.ndarray, N: np.ndarray, up: np.ndarray, fl: _Floor, walls: _Walls,
+              wa: _WallsAlone, r_floor: np.ndarray, ta2: np.ndarray, tc2: np.ndarray, ratio: float,
+              g_eff: int) -> UpEvidence:
+    """What the estimate rests on (floor and wall fit quality, axes, rival ratio)."""
+    cu = N @ up
+    ww = walls.weights if walls.weights is not None else np.zeros_like(W)
+    wsum = float(ww.sum())
+    vert = math.degrees(math.sqrt(float(ww @ np.arcsin(np.clip(cu, -1, 1)) ** 2) / wsum)) if wsum > 0 else math.nan
+    fsum = float(fl.weights.sum())
+    frms = math.sqrt(float(fl.weights @ r_floor ** 2) / fsum) if fsum > 0 else math.nan
+    return UpEvidence(floor_fraction=float(fl.mass), floor_score=float(fl.score), void_fraction=float(fl.void),
+                      floor_normal=fl.f.copy(), floor_rms_m=frms, wall_fraction=float(W[ww > 0].sum()),
+                      wall_verticality_rms_deg=vert, wall_spread=walls.spread, walls_slope_deg=wa.slope_deg,
+                      walls_slope_sigma_deg=wa.slope_sigma_deg, drift_axis=ta2.copy(), cross_axis=tc2.copy(),
+                      rival_ratio=ratio, n_points_used=int(Q.shape[0]), n_blocks=g_eff)
+
+
+def _candidates(up: np.ndarray, fl: _Floor, fu: _Fusion, sig: float, wa: _WallsAlone, spread: float,
+                cands: list) -> list:
+    """The estimate, the floor (level) hypothesis, the walls' (if any) and the rival modes."""
+    f = fl.f
+    out_c = [UpCandidate(up=up.copy(), source="estimate", score=float(fl.score), sigma_deg=sig,
+                         note="floor (level hypothesis) and walls (across the drift)"),
+             UpCandidate(up=f.copy(), source="floor", score=float(fl.score),
+                         sigma_deg=math.degrees(math.sqrt(float(np.linalg.eigvalsh(fu.S_f)[-1]))),
+                         note=f"floor normal alone: up if the floor is level (slab {fl.mass:.3f} of the area, "
+                              f"{fl.void:.3f} above it)")]
+    if wa.up is not None:
+        out_c.append(UpCandidate(up=wa.up.copy(), source="walls", score=math.nan, sigma_deg=wa.sigma_deg,
+                                 note=f"walls alone (seen in several directions, spread {spread:.2f}): "
+                                      f"floor slope {wa.slope_deg:.1f} +- {wa.slope_sigma_deg:.1f} deg relative to them"))
+    out_c += [c for c in cands if abs(float(c.up @ f)) < math.cos(math.radians(1.0))]
+    return out_c
+
+
+def _search_region(S: np.ndarray, g_eff: int, p: GravityParams) -> tuple:
+    """1-sigma angle, 95 % cone, Hotelling ``r95^2``, residual-tilt range and tube half-width (deg).
+
+    ``S`` is the fused jackknife covariance of ``(delta_along, delta_across)`` (rad^2) over
+    ``g_eff`` blocks; returns ``(sigma, cone95, r95_squared, lo, hi, tolerance)``.
+    """
+    lam_max = float(np.linalg.eigvalsh(S)[-1])
+    r2 = hotelling_r2_95(g_eff)
+    sig = math.degrees(math.sqrt(max(lam_max, 0.0)))
+    cone = math.degrees(math.sqrt(r2 * max(lam_max, 0.0)))
+    kk = math.sqrt(r2)
+    sa = math.degrees(math.sqrt(max(S[0, 0], 0.0)))
+    sc = math.degrees(math.sqrt(max(S[1, 1], 0.0)))
+    lo, hi = -p.max_slope_deg - kk * sa, p.max_slope_deg + kk * sa
+    tol = max(kk * sc, _MIN_TOL_DEG)
+    return sig, cone, r2, lo, hi, tol
+
+
+def _status(up: np.ndarray, rivals: list, ratio: float, fl: _Floor, sig: float, p: GravityParams) -> tuple[str, str]:
+    """``("ambiguous", why)`` when a distinct rival floor scores ``ambiguity_ratio`` of the floor's, else ``ok``."""
+    if rivals and ratio >= p.ambiguity_ratio:
+        r_ang = math.degrees(math.acos(min(1.0, float(rivals[0][1] @ up))))
+        status, reason = "ambiguous", (f"a second floor candidate {r_ang:.0f} deg away scores {ratio:.2f} of the "
+                                       f"floor's (need < {p.ambiguity_ratio:g}); both are in candidates")
+    else:
+        status = "ok"
+        reason = (f"floor {fl.mass:.0%} of the scan, up 1-sigma {sig:.2f} deg if the floor is level; "
+                  f"a ramp of up to {p.max_slope_deg:g} deg is within tilt_range_deg")
+    return status, reason
+
+
 def estimate_up(points, normals=None, params: GravityParams | None = None) -> UpEstimate:
     """Estimate the up direction of a mine-drift scan from its floor and walls.
 
@@ -783,201 +994,51 @@ def estimate_up(points, normals=None, params: GravityParams | None = None) -> Up
     Q, N, W, _ = _prepare(points, normals, p)
     timings["sample_and_normals"] = time.perf_counter() - t0
 
-    # ---- 1. floor detection: modes of the normals, each scored by the floor signature
+    # ---- floor detection: modes of the normals, each scored by the floor signature
     t1 = time.perf_counter()
-    D = _half_sphere(int(p.n_directions))
-    dens = np.empty(D.shape[0])
-    cos_m = math.cos(math.radians(p.mode_radius_deg))
-    KG.normal_density(N, W, D, cos_m, dens)
-    picked: list[np.ndarray] = []
-    cos_sep = math.cos(math.radians(p.min_rival_angle_deg / 2.0))
-    for k in np.lexsort((np.arange(D.shape[0]), -dens)):
-        if len(picked) >= p.n_rivals:
-            break
-        v = _mode(N, W, D[k], cos_m)
-        if v is not None and all(abs(float(v @ q)) < cos_sep for q in picked):
-            picked.append(v)
-    # a floor (or a wall) has large surfaces perpendicular to it (walls, or floor and roof); a
-    # direction through the arch's flank has not: such modes are not candidates
-    sin_p = math.sin(math.radians(p.mode_radius_deg))
-    own = [float(W[np.abs(N @ v) > cos_m].sum()) for v in picked]
-    omax = max(own) if own else 0.0
-    picked = [v for v, o in zip(picked, own, strict=True) if o >= p.min_mode_ratio * omax]
-    perp = [float(W[np.abs(N @ v) < sin_p].sum()) for v in picked]
-    pmax = max(perp) if perp else 0.0
-    modes = []
-    for v, pf in zip(picked, perp, strict=True):
-        if pf < p.min_perp_ratio * pmax:
-            continue
-        sc, bottom_flat, valid_frac = _column_score(Q, W, N, v, p)
-        u = v if sc >= 0.0 else -v
-        modes.append((abs(sc), u, valid_frac))
-    modes.sort(key=lambda t: -t[0])
+    modes = _normal_modes(Q, W, N, p)
     timings["floor_detection"] = time.perf_counter() - t1
     cands = [UpCandidate(up=m[1].copy(), source="mode", score=float(m[0]), sigma_deg=math.nan,
                          note=f"normal mode; {m[2]:.0%} of the area in columns spanning a drift height")
              for m in modes]
     if not modes or modes[0][0] < p.min_floor_score:
-        if not modes or max(m[2] for m in modes) < 0.05:
-            why = ("no drift around the largest flat surface (nothing at least "
-                   f"{p.min_drift_height_m:g} m from it across the void): a lone plane, its normal's sign is unknown")
-        else:
-            best_sc = modes[0][0] if modes else 0.0
-            why = (f"no floor: no surface is flat below and arched above (best floor score {best_sc:.3f} < "
-                   f"{p.min_floor_score:g}; a vertical shaft, or walls and roof alike?)")
+        return _failed(_no_floor_reason(modes, p), p, cands, timings)
+    fl, why = _floor(Q, W, N, modes, p)
+    if fl is None:
         return _failed(why, p, cands, timings)
-    f_score, f0, _ = modes[0]
-    _, bottom_flat, _ = _column_score(Q, W, N, f0, p)
-    hb = Q[bottom_flat] @ f0
-    d0 = _weighted_median(hb, W[bottom_flat]) if hb.size else float(np.min(Q @ f0))
-    fit = _fit_plane(Q, W, N, f0, d0, p)
-    if fit is None:
-        return _failed("the floor plane could not be fitted", p, cands, timings)
-    f, fd, fw, fscale = fit
-    hf = Q @ f - fd
-    f_mass = float(W[np.abs(hf) <= 0.5 * p.plane_band_m].sum())
-    f_void = float(W[hf > 0.5 * p.plane_band_m].sum())
-    if f_mass < p.min_floor_fraction:
-        return _failed(f"the floor plane holds only {f_mass:.1%} of the scan's area (need {p.min_floor_fraction:.0%})",
-                       p, cands, timings)
-    if f_void < p.min_void_fraction:
-        return _failed(f"only {f_void:.0%} of the scan lies above the floor plane (need {p.min_void_fraction:.0%})",
-                       p, cands, timings)
-    floor = (f_score,)
-    usable = [(m[0], None, None, m[1]) for m in modes]
+    f = fl.f
 
-    # ---- 2. floor refinement (already refined) and drift axis
+    # ---- drift axis and walls
     t2 = time.perf_counter()
-    r_floor = Q @ f - fd
-    # principal horizontal direction of the scan: the drift axis
-    Xh = Q - np.outer(Q @ f, f)
-    mu = W @ Xh
-    Ch = ((Xh - mu) * W[:, None]).T @ (Xh - mu)
-    ev, V = np.linalg.eigh(Ch)
-    axis = V[:, 2] - (V[:, 2] @ f) * f
-    axis = _unit(axis)
-    if axis[int(np.argmax(np.abs(axis)))] < 0:  # sign convention (does not change the estimate)
-        axis = -axis
+    r_floor = Q @ f - fl.d
+    axis = _drift_axis(Q, W, f)
     ta, tc = _basis(f, axis)
-
-    # ---- 3. walls: the across-drift component (always), the along one only as evidence
-    wall_mask = r_floor > p.wall_min_height_m
-    wfit = _fit_walls(Q, W, N, wall_mask, f, axis, False, p)
-    spread = 0.0
-    wall_w = None
-    wfit_along = None
-    if wfit is not None:
-        wall_w = wfit[1]
-        lam = np.linalg.eigvalsh(wfit[2])
-        spread = float(lam[0] / lam[1]) if lam[1] > 0 else 0.0
-        if spread >= p.min_wall_spread:
-            wfit_along = _fit_walls(Q, W, N, wall_mask, f, axis, True, p)
+    walls = _walls(Q, W, N, r_floor, f, axis, p)
     timings["floor_and_walls"] = time.perf_counter() - t2
 
-    # ---- 4. jackknife over blocks along the drift
+    # ---- jackknife over blocks along the drift, fusion
     t3 = time.perf_counter()
-    g = int(p.n_blocks)
-    s_ax = Q @ axis
-    o = np.argsort(s_ax, kind="stable")
-    cw = np.cumsum(W[o])
-    blk = np.empty(Q.shape[0], dtype=np.int64)
-    blk[o] = np.minimum((cw / cw[-1] * g - 1e-12).astype(np.int64), g - 1)
-    nan2 = np.full(2, np.nan)
-    rep_f, rep_w, rep_wa = [], [], []
-    for k in range(g):
-        keep = blk != k
-        Qk, Wk, Nk, mk = Q[keep], W[keep], N[keep], wall_mask[keep]
-        fk = _fit_plane(Qk, Wk, Nk, f, fd, p)
-        rep_f.append(nan2 if fk is None else _tangent(fk[0], f, ta, tc))
-        if wfit is not None:
-            wk = _fit_walls(Qk, Wk, Nk, mk, f, axis, False, p)
-            rep_w.append(nan2 if wk is None else _tangent(wk[0], f, ta, tc))
-        if wfit_along is not None:
-            wk = _fit_walls(Qk, Wk, Nk, mk, f, axis, True, p)
-            rep_wa.append(nan2 if wk is None else _tangent(wk[0], f, ta, tc))
-    rep_f = np.array(rep_f)
-    rep_w = np.array(rep_w) if rep_w else np.zeros((g, 2))
+    rep_f, rep_w, rep_wa = _block_replicates(Q, W, N, fl, walls, axis, ta, tc, p)
     good = np.all(np.isfinite(rep_f), axis=1)
     if np.count_nonzero(good) < 4:
         return _failed("the floor is too small to estimate its uncertainty (fewer than 4 jackknife blocks hold it)",
                        p, cands, timings)
-    S_f = _jackknife(rep_f[good]) + _EPS_VAR * np.eye(2)
-    # ---- 5. fusion: floor (both components) + walls (across only), information-weighted
-    I_f = np.linalg.inv(S_f)
-    I_w = np.zeros((2, 2))
-    d_w = np.zeros(2)
-    if wfit is not None:
-        gw = good & np.all(np.isfinite(rep_w), axis=1)
-        if np.count_nonzero(gw) >= 4:
-            good = gw
-            d_w = np.array([0.0, _tangent(wfit[0], f, ta, tc)[1]])
-            var_c = float(_jackknife(rep_w[good][:, 1:2])[0, 0]) + _EPS_VAR
-            I_w[1, 1] = 1.0 / var_c
-    Itot = I_f + I_w
-    Kf = np.linalg.solve(Itot, I_f)
-    Kw = np.linalg.solve(Itot, I_w)
-    d_hat = Kw @ d_w  # the floor's own value is 0 in its basis
-    reps = np.array([Kf @ rep_f[k] + Kw @ np.array([0.0, rep_w[k, 1]]) for k in range(g) if good[k]])
-    S = _jackknife(reps)
-    g_eff = int(reps.shape[0])
-    w_slope, w_slope_sig, w_up, w_sig = math.nan, math.nan, None, math.nan
-    if wfit_along is not None and rep_wa:
-        rep_wa = np.array(rep_wa)
-        ga = np.all(np.isfinite(rep_wa), axis=1)
-        if np.count_nonzero(ga) >= 4:
-            Sa = _jackknife(rep_wa[ga])
-            w_up = wfit_along[0]
-            w_slope = math.degrees(_tangent(w_up, f, ta, tc)[0])
-            w_slope_sig = math.degrees(math.sqrt(max(Sa[0, 0], 0.0)))
-            w_sig = math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(Sa)[-1]), 0.0)))
+    fu = _fuse(rep_f, rep_w, good, walls.fit, f, ta, tc)
+    S, g_eff = fu.S, fu.g_eff
+    wa = _walls_alone(walls.fit_along, rep_wa, f, ta, tc)
     timings["jackknife"] = time.perf_counter() - t3
 
-    up = _from_tangent(f, ta, tc, d_hat)
+    up = _from_tangent(f, ta, tc, fu.d_hat)
     ta2, tc2 = _basis(up, axis)
     B = np.vstack([ta2, tc2])
-    lam_max = float(np.linalg.eigvalsh(S)[-1])
-    r2 = hotelling_r2_95(g_eff)
-    sig = math.degrees(math.sqrt(max(lam_max, 0.0)))
-    cone = math.degrees(math.sqrt(r2 * max(lam_max, 0.0)))
-    kk = math.sqrt(r2)
-    sa = math.degrees(math.sqrt(max(S[0, 0], 0.0)))
-    sc = math.degrees(math.sqrt(max(S[1, 1], 0.0)))
-    lo, hi = -p.max_slope_deg - kk * sa, p.max_slope_deg + kk * sa
-    tol = max(kk * sc, _MIN_TOL_DEG)
+    sig, cone, r2, lo, hi, tol = _search_region(S, g_eff, p)
 
-    # ---- 6. evidence, candidates, status
-    cu = N @ up
-    ww = wall_w if wall_w is not None else np.zeros_like(W)
-    wsum = float(ww.sum())
-    vert = math.degrees(math.sqrt(float(ww @ np.arcsin(np.clip(cu, -1, 1)) ** 2) / wsum)) if wsum > 0 else math.nan
-    fsum = float(fw.sum())
-    frms = math.sqrt(float(fw @ r_floor ** 2) / fsum) if fsum > 0 else math.nan
-    rivals = [pl for pl in usable[1:] if math.degrees(math.acos(min(1.0, float(pl[3] @ up)))) > p.min_rival_angle_deg]
-    ratio = float(rivals[0][0] / floor[0]) if rivals else 0.0
-    ev_ = UpEvidence(floor_fraction=float(f_mass), floor_score=float(f_score), void_fraction=float(f_void),
-                     floor_normal=f.copy(), floor_rms_m=frms, wall_fraction=float(W[ww > 0].sum()),
-                     wall_verticality_rms_deg=vert, wall_spread=spread, walls_slope_deg=w_slope,
-                     walls_slope_sigma_deg=w_slope_sig, drift_axis=ta2.copy(), cross_axis=tc2.copy(),
-                     rival_ratio=ratio, n_points_used=int(Q.shape[0]), n_blocks=g_eff)
-    out_c = [UpCandidate(up=up.copy(), source="estimate", score=float(floor[0]), sigma_deg=sig,
-                         note="floor (level hypothesis) and walls (across the drift)"),
-             UpCandidate(up=f.copy(), source="floor", score=float(floor[0]),
-                         sigma_deg=math.degrees(math.sqrt(float(np.linalg.eigvalsh(S_f)[-1]))),
-                         note=f"floor normal alone: up if the floor is level (slab {f_mass:.3f} of the area, "
-                              f"{f_void:.3f} above it)")]
-    if w_up is not None:
-        out_c.append(UpCandidate(up=w_up.copy(), source="walls", score=math.nan, sigma_deg=w_sig,
-                                 note=f"walls alone (seen in several directions, spread {spread:.2f}): "
-                                      f"floor slope {w_slope:.1f} +- {w_slope_sig:.1f} deg relative to them"))
-    out_c += [c for c in cands if abs(float(c.up @ f)) < math.cos(math.radians(1.0))]
-    if rivals and ratio >= p.ambiguity_ratio:
-        r_ang = math.degrees(math.acos(min(1.0, float(rivals[0][3] @ up))))
-        status, reason = "ambiguous", (f"a second floor candidate {r_ang:.0f} deg away scores {ratio:.2f} of the "
-                                       f"floor's (need < {p.ambiguity_ratio:g}); both are in candidates")
-    else:
-        status = "ok"
-        reason = (f"floor {f_mass:.0%} of the scan, up 1-sigma {sig:.2f} deg if the floor is level; "
-                  f"a ramp of up to {p.max_slope_deg:g} deg is within tilt_range_deg")
+    # ---- evidence, candidates, status
+    rivals = [m for m in modes[1:] if math.degrees(math.acos(min(1.0, float(m[1] @ up)))) > p.min_rival_angle_deg]
+    ratio = float(rivals[0][0] / fl.score) if rivals else 0.0
+    ev_ = _evidence(Q, W, N, up, fl, walls, wa, r_floor, ta2, tc2, ratio, g_eff)
+    out_c = _candidates(up, fl, fu, sig, wa, walls.spread, cands)
+    status, reason = _status(up, rivals, ratio, fl, sig, p)
     timings["total"] = time.perf_counter() - t0
     log.debug("estimate_up: %s (%s)", status, reason)
     return UpEstimate(status=status, reason=reason, up=up, tangent_basis=B, covariance_rad2=S,

@@ -41,11 +41,12 @@ from pathlib import Path
 import numpy as np
 
 from minegeo._provenance import atomic_write_bytes, sha256_file, to_jsonable
-from minegeo._validate import as_points, check_positive, is_permutation
+from minegeo._validate import as_points, is_permutation
 from minegeo.errors import FileFormatError, InputError, TooFewPointsError
 from minegeo.io._json import load_json_text
 from minegeo.io.types import PointCloud
 from minegeo.localize._progress import FEATURE_STEPS, StepTimings, announce
+from minegeo.localize.params import FAST_FEATURES, FeatureParams, LocalizeParams, PrepareParams
 
 __all__ = [
     "FeatureParams",
@@ -71,7 +72,6 @@ PREPARED_VERSION = 1
 #: Format of the search structures a prepared file may also hold (``meta["indexes"]``).
 INDEX_VERSION = 1
 INDEX_PREFIX = "index__"
-_ORIENTATIONS = ("void", "none", "centroid")
 #: Nearest neighbours of the PCA normals of the ICP target.
 ICP_NORMAL_NN = 20
 
@@ -85,109 +85,6 @@ FPFH_DIM = 33
 #: Largest hash table (log2 of its slots) a stored search structure may announce.
 _MAX_LOG2_SLOTS = 40
 _REPREPARE = "prepare the map again with minegeo prepare-map"
-
-
-@dataclass(frozen=True)
-class FeatureParams:
-    """Normal and FPFH settings shared by the map and the scan (defaults: Baek et al. 2022, Table 3).
-
-    Attributes
-    ----------
-    normal_radius_m : float
-        Sphere radius of the PCA normal neighbourhood ([Baek2022 Eq. 2]), m. Table 3: 1 m.
-    normal_max_nn : int
-        At most this many neighbours for a normal. Table 3: 1000.
-    fpfh_radius_m : float
-        FPFH sphere radius r ([Baek2022 Eqs. 3-6]), m. Table 3: 2.5 m.
-    fpfh_max_nn : int
-        At most this many FPFH neighbours. Table 3: 1000.
-    fpfh_weight : {"inverse_distance", "open3d"}
-        Neighbour weight of [Baek2022 Eq. 6] (``1/ω`` as the paper, or ``1/ω²`` as Open3D).
-    orientation : {"void", "none", "centroid"}
-        Normal sign rule (module docstring). Not in the paper (Open3D leaves signs to the
-        solver); "void" makes the descriptors independent of the scan's orientation.
-    orientation_radius_m : float
-        Half-edge of the cube whose centroid the "void" rule points to, m (about a drift width).
-    """
-
-    normal_radius_m: float = 1.0
-    normal_max_nn: int = 1000
-    fpfh_radius_m: float = 2.5
-    fpfh_max_nn: int = 1000
-    fpfh_weight: str = "inverse_distance"
-    orientation: str = "void"
-    orientation_radius_m: float = 5.0
-
-    def __post_init__(self):
-        check_positive(self.normal_radius_m, "FeatureParams.normal_radius_m")
-        check_positive(self.fpfh_radius_m, "FeatureParams.fpfh_radius_m")
-        check_positive(self.orientation_radius_m, "FeatureParams.orientation_radius_m")
-        for name in ("normal_max_nn", "fpfh_max_nn"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or int(v) != v or v < 3:
-                raise InputError(f"FeatureParams.{name} must be an integer >= 3, got {v!r}")
-        if self.orientation not in _ORIENTATIONS:
-            raise InputError(f"FeatureParams.orientation must be one of {_ORIENTATIONS}, got {self.orientation!r}")
-
-
-#: Feature settings of the fast profile (Table 3 ratios at a 1 m voxel).
-FAST_FEATURES = FeatureParams(normal_radius_m=2.0, fpfh_radius_m=5.0)
-
-
-@dataclass(frozen=True)
-class PrepareParams:
-    """How the map is prepared (defaults: Baek et al. 2022, Table 3).
-
-    Attributes
-    ----------
-    voxel_size_m : float or None
-        Voxel-centroid downsampling edge, m (Table 3: 0.5 m). Ignored when ``octree_level``
-        is given.
-    octree_level : int or None
-        Octree subsampling level instead (Sec. 2.2: the point nearest to each occupied cell
-        centre; the paper used level 10 for its map). The cell edge is the map's bounding
-        cube edge / 2^level.
-    features : FeatureParams
-        Normals and FPFH settings; a scan must be localized with the same ones.
-    icp_voxel_size_m : float or None
-        The ICP target: the paper aligns against the full-resolution global cloud
-        ``Q_init`` (Sec. 2.4); minegeo keeps a voxel-centroid copy at this edge (m, default
-        0.1 m, about the survey's noise level) so that the prepared file stays bounded.
-        None keeps every map point. The coarse (``voxel_size_m``) cloud quantises nearest-
-        neighbour distances to ~0.2 m and cannot tell a correct placement from a near miss.
-    """
-
-    voxel_size_m: float | None = 0.5
-    octree_level: int | None = None
-    features: FeatureParams = field(default_factory=FeatureParams)
-    icp_voxel_size_m: float | None = 0.1
-
-    def __post_init__(self):
-        if self.octree_level is None:
-            if self.voxel_size_m is None:
-                raise InputError("give voxel_size_m or octree_level")
-            check_positive(self.voxel_size_m, "PrepareParams.voxel_size_m")
-        else:
-            lv = self.octree_level
-            if isinstance(lv, bool) or int(lv) != lv or not 1 <= lv <= 21:
-                raise InputError(f"octree_level must be an integer in 1..21, got {lv!r}")
-        if not isinstance(self.features, FeatureParams):
-            raise InputError("PrepareParams.features must be a FeatureParams")
-        if self.icp_voxel_size_m is not None:
-            check_positive(self.icp_voxel_size_m, "PrepareParams.icp_voxel_size_m")
-
-    @classmethod
-    def fast(cls, **overrides) -> PrepareParams:
-        """The map side of :meth:`LocalizeParams.fast` (voxel 1 m, normals 2 m, FPFH 5 m)."""
-        kw = {"voxel_size_m": 1.0, "features": FAST_FEATURES}
-        kw.update(overrides)
-        return cls(**kw)
-
-    def describe(self) -> str:
-        """One line: the downsampling used."""
-        if self.octree_level is not None:
-            return f"octree level {self.octree_level}"
-        return f"voxel {self.voxel_size_m:g} m"
 
 
 def params_hash(params: PrepareParams) -> str:
@@ -411,8 +308,6 @@ class PreparedMap:
         with the correlative search its occupancy bitmap and thinned screening cloud (GICP:
         the target covariances). Returns the seconds spent per structure (0 when cached).
         ``progress(name)`` (optional) is called as each structure starts."""
-        from minegeo.localize.pipeline import LocalizeParams
-
         p = LocalizeParams() if params is None else params
         out = {}
 
@@ -1121,13 +1016,20 @@ def _occupancy_log2_start(n_cells: int, dilation: int) -> int:
     return max(10, int(math.ceil(math.log2(max(1, n_cells) * (1 + 2 * dilation) / 32))) + 1)
 
 
+def _hash_home(keys: np.ndarray, log2: int) -> np.ndarray:
+    """Home slots of ``keys`` in a table of ``2^log2`` slots: :func:`minegeo.kernels.hashgrid.hash_slot`
+    vectorised (top ``log2`` bits of ``key * HASH_MULT`` modulo 2^64)."""
+    from minegeo.kernels.hashgrid import HASH_MULT
+
+    with np.errstate(over="ignore"):
+        return ((keys.astype(np.uint64) * HASH_MULT) >> np.uint64(64 - log2)).astype(np.int64)
+
+
 def _check_hash_table(keys: np.ndarray, log2: int, what: str) -> None:
     """``ValueError`` unless ``keys`` (``2^log2`` int64, -1 = empty) is a table the kernels'
     linear probing (:func:`minegeo.localize._kernels.block_slot`) can use: an empty slot exists
     (a probe ends), used keys are valid block keys (non-negative), distinct, and each is
     reached from its hash slot through used slots only."""
-    from minegeo.localize._kernels import _GOLD
-
     cap = keys.shape[0]
     mask = cap - 1
     used = keys != -1
@@ -1140,8 +1042,7 @@ def _check_hash_table(keys: np.ndarray, log2: int, what: str) -> None:
         return
     if int(k.min()) < 0 or np.unique(k).size != k.size:
         raise ValueError(f"{what} hash table holds invalid or repeated keys")
-    with np.errstate(over="ignore"):
-        home = ((k * np.int64(_GOLD)) >> np.int64(64 - log2)) & np.int64(mask)  # int64 wraps, as in the kernel
+    home = _hash_home(k, log2)
     pos = np.arange(cap)
     r = np.roll(used, -free[0])  # rotated so that slot 0 is empty
     run = pos - np.maximum.accumulate(np.where(r, 0, pos)) - 1  # used slots before each in its run

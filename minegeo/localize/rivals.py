@@ -99,9 +99,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from minegeo._validate import check_positive
-from minegeo.errors import InputError
-from minegeo.localize.correlative import CorrelativeParams, MapOccupancy, correlative_candidates
+from minegeo.localize.correlative import MapOccupancy, correlative_candidates
+from minegeo.localize.params import CorrelativeParams, RivalParams
 from minegeo.registration.ransac import hypothesis_distance
 
 __all__ = ["RivalParams", "RivalCandidate", "RivalSearch", "search_rivals", "attitude", "matched_support",
@@ -117,71 +116,6 @@ GUARANTEE = ("scored over the whole map at the chosen placement's tilt: every fl
 
 #: Placement types kept in ``RivalCandidate.stage``.
 STAGES = ("self", "precheck", "fine")
-
-
-@dataclass(frozen=True)
-class RivalParams:
-    """Settings of :func:`search_rivals` (module docstring).
-
-    Attributes
-    ----------
-    search : CorrelativeParams
-        Grid and cascade of the whole-map search (default: the correlative search's own, 0.5 m
-        cells, 3° headings, 8000 bins screened, 300 refined, 24 candidates; the map structures
-        are shared with it when the cell settings agree).
-    precheck_ratio : float
-        A rival gets the full-resolution ICP when its plane fitness before ICP (feature-level
-        scan, at the search's refined placement) reaches this fraction of the chosen placement's
-        (at its converged pose; the pipeline's own measurement: every rival reaching 0.9 after ICP
-        had a pre-check ratio >= 0.84) ...
-    precheck_matched_ratio : float
-        ... or its support-matched ratio there reaches this (with ``min_common_fraction``).
-    max_fine_icp : int
-        Most rivals given the full-resolution ICP (closest to a test first); more is recorded
-        (``n_fine_cut``) and makes ``covered`` false.
-    cover_slack : float
-        Witness coverage: at each stage every placement within this fraction of the stage's
-        largest score below the chosen placement's own is kept ...
-    cover_max_factor : float
-        ... up to this factor times the stage's usual size (``n_coarse``, ``n_refine``,
-        ``n_candidates``).
-    translation_pivots : int
-        Further pivots for translated copies (module docstring).
-    translation_headings : int
-        Their headings: the chosen one ± this many grid steps.
-    matched_ratio : float
-        Support-matched ambiguity test (module docstring): ratio of the plane agreement on the
-        points the map covers at both placements.
-    min_common_fraction : float
-        ... applied when at least this fraction of the scan points is covered at both.
-    """
-
-    search: CorrelativeParams = field(default_factory=CorrelativeParams)
-    precheck_ratio: float = 0.8
-    precheck_matched_ratio: float = 0.9
-    max_fine_icp: int = 8
-    cover_slack: float = 0.15
-    cover_max_factor: float = 4.0
-    translation_pivots: int = 4
-    translation_headings: int = 1
-    matched_ratio: float = 0.95
-    min_common_fraction: float = 0.5
-
-    def __post_init__(self):
-        if not isinstance(self.search, CorrelativeParams):
-            raise InputError("RivalParams.search must be a CorrelativeParams")
-        for name in ("precheck_ratio", "precheck_matched_ratio", "cover_slack", "matched_ratio",
-                     "min_common_fraction"):
-            v = float(getattr(self, name))
-            if not 0.0 <= v <= 1.0:
-                raise InputError(f"RivalParams.{name} must be in [0, 1], got {v!r}")
-        if not (math.isfinite(float(self.cover_max_factor)) and float(self.cover_max_factor) >= 1.0):
-            raise InputError(f"RivalParams.cover_max_factor must be >= 1, got {self.cover_max_factor!r}")
-        for name in ("max_fine_icp", "translation_pivots", "translation_headings"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or int(v) != v or v < (1 if name == "max_fine_icp" else 0):
-                raise InputError(f"RivalParams.{name} must be a non-negative integer, got {v!r}")
-        check_positive(self.search.distinct_m, "RivalParams.search.distinct_m")
 
 
 @dataclass
@@ -459,6 +393,41 @@ def _pivots(Dr: np.ndarray, Nr: np.ndarray, ref_xy, t_best: np.ndarray, anchors:
     return out
 
 
+def _precheck(others: list, T_best: np.ndarray, support: Callable) -> float:
+    """The pipeline's verification of the feature-level scan at every candidate (``precheck``,
+    ``pre_common_fraction``, ``pre_matched_ratio`` set in place), against the chosen placement's
+    own at its converged pose (one batched query); returns the latter (NaN without candidates)."""
+    pre_self = math.nan
+    if others:
+        masks = support([T_best] + [c.T_search for c in others], "feature")
+        pre_self = float(np.mean(masks[0][1]))
+        for c, mk in zip(others, masks[1:], strict=True):
+            c.precheck = float(np.mean(mk[1]))
+            c.pre_common_fraction, c.pre_matched_ratio = matched_support(masks[0], mk)
+    return pre_self
+
+
+def _verify_rivals(todo: list, T_best: np.ndarray, centre: np.ndarray, ambiguity_distance_m: float,
+                   ambiguity_angle_deg: float, support: Callable, fine: Callable, fine_scale: float | None) -> None:
+    """The pipeline's full-resolution ICP (from each candidate's own pose) and verification of the
+    candidates ``todo``, set in place (``T_final``, scores, distance to the chosen placement,
+    ``distinct``, support-matched comparison; ``stage = "fine"``)."""
+    if todo:
+        sup_self = support([T_best], "fine")[0]
+    for c in todo:
+        ic, pf, prm, *pff = fine(c.T_search)
+        Tf = np.asarray(ic.T_target_source, dtype=np.float64)
+        c.T_final, c.plane_fitness, c.plane_rmse_m = Tf, float(pf), float(prm)
+        c.fine_fitness = float(pff[0]) if pff else float(pf)
+        c.icp_fitness, c.icp_inlier_rmse_m, c.icp_iterations = float(ic.fitness), float(ic.inlier_rmse_m), \
+            int(ic.iterations)
+        c.final_distance_m, c.final_rotation_deg = hypothesis_distance(Tf, T_best, centre)
+        c.distinct = c.final_distance_m > ambiguity_distance_m or c.final_rotation_deg > ambiguity_angle_deg
+        c.common_fraction, c.matched_ratio = matched_support(sup_self, support([Tf], "fine")[0],
+                                                             fine_scale=fine_scale)
+        c.stage = "fine"
+
+
 def search_rivals(occupancy: MapOccupancy, D: np.ndarray, Nd: np.ndarray, T_best: np.ndarray, *,
                   params: RivalParams, seed: int, centre: np.ndarray, ambiguity_distance_m: float,
                   ambiguity_angle_deg: float,
@@ -545,13 +514,7 @@ def search_rivals(occupancy: MapOccupancy, D: np.ndarray, Nd: np.ndarray, T_best
     # 1. pre-check without ICP: the pipeline's verification of the feature-level scan at every candidate,
     #    against the chosen placement's own at its converged pose (one batched query)
     t0 = time.perf_counter()
-    pre_self = math.nan
-    if others:
-        masks = support([T_best] + [c.T_search for c in others], "feature")
-        pre_self = float(np.mean(masks[0][1]))
-        for c, mk in zip(others, masks[1:], strict=True):
-            c.precheck = float(np.mean(mk[1]))
-            c.pre_common_fraction, c.pre_matched_ratio = matched_support(masks[0], mk)
+    pre_self = _precheck(others, T_best, support)
     timings["precheck"] = time.perf_counter() - t0
 
     # 2. full-resolution ICP (from the candidate's own pose, as the pipeline does) and verification of every
@@ -567,20 +530,7 @@ def search_rivals(occupancy: MapOccupancy, D: np.ndarray, Nd: np.ndarray, T_best
     within = sorted((c for c in others if c.distinct and _reach(c) >= 1.0), key=lambda c: (-_reach(c), c.rank))
     n_cut = max(0, len(within) - int(params.max_fine_icp))
     todo = within[: int(params.max_fine_icp)]
-    if todo:
-        sup_self = support([T_best], "fine")[0]
-    for c in todo:
-        ic, pf, prm, *pff = fine(c.T_search)
-        Tf = np.asarray(ic.T_target_source, dtype=np.float64)
-        c.T_final, c.plane_fitness, c.plane_rmse_m = Tf, float(pf), float(prm)
-        c.fine_fitness = float(pff[0]) if pff else float(pf)
-        c.icp_fitness, c.icp_inlier_rmse_m, c.icp_iterations = float(ic.fitness), float(ic.inlier_rmse_m), \
-            int(ic.iterations)
-        c.final_distance_m, c.final_rotation_deg = hypothesis_distance(Tf, T_best, centre)
-        c.distinct = c.final_distance_m > ambiguity_distance_m or c.final_rotation_deg > ambiguity_angle_deg
-        c.common_fraction, c.matched_ratio = matched_support(sup_self, support([Tf], "fine")[0],
-                                                             fine_scale=fine_scale)
-        c.stage = "fine"
+    _verify_rivals(todo, T_best, centre, ambiguity_distance_m, ambiguity_angle_deg, support, fine, fine_scale)
     timings["fine"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
     cov = None if corr.coverage is None else {**corr.coverage, "n_fine_cut": n_cut}

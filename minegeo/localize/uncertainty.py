@@ -121,8 +121,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from minegeo._validate import as_points, as_trusted_points, check_positive
+from minegeo._validate import as_points, as_trusted_points
 from minegeo.errors import InputError, TooFewPointsError
+from minegeo.localize.params import UNCERTAINTY_METHODS, UncertaintyParams
 
 __all__ = ["UncertaintyParams", "PoseUncertainty", "pose_uncertainty", "block_covariance", "cluster_labels",
            "small_g_factor", "radii_95", "ball_radius", "sum_chi2_cdf", "UNCERTAINTY_METHODS", "MODEL_TERMS",
@@ -131,75 +132,12 @@ __all__ = ["UncertaintyParams", "PoseUncertainty", "pose_uncertainty", "block_co
 #: 95 % quantiles of the chi-square distribution with 3 and 2 degrees of freedom.
 CHI2_3D_95 = 7.814727903251178
 CHI2_2D_95 = 5.991464547107979
-#: Available estimators.
-UNCERTAINTY_METHODS = ("formal", "cluster", "jackknife")
 #: Pose parameters (6) + 1: the fewest pairs that leave a residual degree of freedom.
 MIN_PAIRS = 7
 #: Model terms :func:`pose_uncertainty` may add to the data term, in summation order (a caller may
 #: add more with :meth:`PoseUncertainty.with_model_term`, e.g. the pipeline's ``weak_axis_polish``).
 MODEL_TERMS = ("small_G", "formal_floor", "pending_step", "registration_floor", "map_floor")
 #: Default ``registration_sigma_m`` (m): maximum-likelihood isotropic floor over the tuning worlds
-#: of the two-way calibration study (docs/uncertainty.md).
-REGISTRATION_SIGMA_M = 8e-4
-
-
-@dataclass(frozen=True)
-class UncertaintyParams:
-    """Parameters of :func:`pose_uncertainty`.
-
-    Attributes
-    ----------
-    method : {"formal", "cluster", "jackknife"}
-        ``formal``: ``σ² H⁻¹`` (independent residuals). ``cluster``: the CR1 cluster-robust
-        sandwich over spatial blocks. ``jackknife`` (default): the delete-one-block jackknife
-        (CR3). The last two are never below the formal one (module docstring).
-    cluster_size_m : float
-        Edge of the spatial blocks, m (default 4 m, about one drift width: chosen by the
-        calibration study in docs/uncertainty.md; the residuals of the synthetic mine stay
-        correlated over several metres of wall, and 2 m blocks under-covered).
-    min_clusters : int
-        Fewest blocks accepted; the edge is halved (at most 8 times) until reached.
-    map_sigma_m : float
-        Prior 1-σ local position error of the map itself, per axis, m, added to the translation
-        block as ``σ_map² I₃`` (model term ``map_floor``; default 0: the map is taken as the
-        reference).
-    registration_sigma_m : float
-        1-σ per axis (m) of the systematic scan-to-map registration error that the residuals do
-        not reveal, added to the translation block as ``σ_reg² I₃`` (model term
-        ``registration_floor``; default 0.8 mm, calibrated on the synthetic study,
-        docs/uncertainty.md). 0 gives the data-only estimator (plus the other model terms).
-    add_pending_step : bool
-        Add ``s sᵀ`` (the remaining Gauss-Newton step to the point-to-plane optimum).
-    degeneracy_ratio : float
-        The covariance is not reported (None, radii inf, ``degenerate`` True) when the
-        normalised constraint matrix (:func:`minegeo.registration.icp.constraint_analysis`) has
-        ``λ_min / λ_max`` below this: a direction the surfaces do not constrain (sliding along a
-        straight featureless drift, in-plane motion on one plane) gets no honest small number.
-        Default 0.01, the pipeline's ``LocalizeParams.degeneracy_ratio``.
-    """
-
-    method: str = "jackknife"
-    cluster_size_m: float = 4.0
-    min_clusters: int = 12
-    map_sigma_m: float = 0.0
-    registration_sigma_m: float = REGISTRATION_SIGMA_M
-    add_pending_step: bool = True
-    degeneracy_ratio: float = 1e-2
-
-    def __post_init__(self):
-        if self.method not in UNCERTAINTY_METHODS:
-            raise InputError(f"uncertainty method must be one of {UNCERTAINTY_METHODS}, got {self.method!r}")
-        check_positive(self.cluster_size_m, "cluster_size_m")
-        check_positive(self.map_sigma_m, "map_sigma_m", allow_zero=True)
-        check_positive(self.registration_sigma_m, "registration_sigma_m", allow_zero=True)
-        v = self.min_clusters
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
-            raise InputError(f"min_clusters must be an integer >= 2, got {v!r}")
-        r = float(self.degeneracy_ratio)
-        if not (np.isfinite(r) and 0.0 <= r < 1.0):
-            raise InputError(f"degeneracy_ratio must be in [0, 1), got {self.degeneracy_ratio!r}")
-        if not isinstance(self.add_pending_step, (bool, np.bool_)):
-            raise InputError(f"add_pending_step must be True or False, got {self.add_pending_step!r}")
 
 
 @dataclass
@@ -569,6 +507,53 @@ def _validate(P_work, Q, Nq, corr, origin_work, check_target: bool = True):
     return P, Qm, N, c, o
 
 
+def _result(fit: dict, data, terms, cov_f, G, size_used, infl, step, degenerate, reason) -> PoseUncertainty:
+    """The :class:`PoseUncertainty` of a fit (``fit``: the pairs' ``sigma``, ``H``, ``ratio``, ``k``,
+    ``p``, ``r`` and the weakest constraint ``cV``) and its data term ``data`` (None: degenerate)."""
+    if data is None:
+        tot = {"covariance_6x6": None, "position_cov_3x3": None, "position_sigma_m": np.full(3, np.inf),
+               "position_95_radius_m": math.inf, "horizontal_95_radius_m": math.inf}
+        wax, wsig, r95d = None, math.inf, math.inf
+    else:
+        tot = _total_fields(data, terms)
+        lam, V = np.linalg.eigh(data[3:, 3:])
+        wax = V[:, -1] * (1.0 if V[np.argmax(np.abs(V[:, -1])), -1] >= 0 else -1.0)  # sign: largest comp. > 0
+        wsig = float(math.sqrt(max(float(lam[-1]), 0.0)))
+        r95d = radii_95(data[3:, 3:])[0]
+    return PoseUncertainty(covariance_formal_6x6=cov_f, sigma_m=fit["sigma"], information_6x6=fit["H"],
+                           information_ratio=float(fit["ratio"]), n_pairs=int(fit["k"]), n_clusters=int(G),
+                           cluster_size_used_m=float(size_used), method=fit["p"].method, inflation=float(infl),
+                           pending_step=step, degenerate=bool(degenerate), reason=reason, params=fit["p"],
+                           residuals_m=fit["r"], covariance_data_6x6=data, model_terms=dict(terms),
+                           weakest_constraint_6=fit["cV"][:, 0].copy(), weakest_axis=wax, weakest_sigma_m=wsig,
+                           position_95_radius_data_m=r95d, **tot)
+
+
+def _cluster_data_term(p: UncertaintyParams, J, r, step, pp, cov_f, terms: dict):
+    """Cluster-robust (``cluster``) or jackknife data term over spatial blocks of the pairs ``pp``
+    (edge halved until ``min_clusters``), adding ``small_G`` and ``formal_floor`` to ``terms``.
+    Returns ``(data, G, size_used, inflation)``; the formal ``cov_f`` when fewer than 2 blocks."""
+    data = cov_f.copy()
+    infl = math.nan
+    rh = r + J @ step
+    size_used = float(p.cluster_size_m)
+    labels, G = cluster_labels(pp, size_used)
+    halvings = 0
+    while G < p.min_clusters and halvings < 8:
+        size_used *= 0.5
+        halvings += 1
+        labels, G = cluster_labels(pp, size_used)
+    if G >= 2:  # else every pair within a few cm: no between-block spread, the formal one is the data term
+        data = block_covariance(J, rh, labels, G, p.method)
+        fG = small_g_factor(G)
+        terms["small_G"] = (fG - 1.0) * data  # [CameronMiller2015 Sec. VI.D]
+        scaled = fG * data
+        infl = float(np.trace(scaled[3:, 3:]) / np.trace(cov_f[3:, 3:]))
+        fl = _psd_max(cov_f, scaled) - scaled  # never below [Censi2007 Eq. 4] formal, in any direction
+        terms["formal_floor"] = 0.5 * (fl + fl.T)
+    return data, G, size_used, infl
+
+
 def pose_uncertainty(P_work, Q, Nq, corr, origin_work, params: UncertaintyParams | None = None, *,
                      check_target: bool = True) -> PoseUncertainty:
     """Covariance of a point-to-plane pose fit about the scan origin, formal or cluster-robust.
@@ -633,32 +618,15 @@ def pose_uncertainty(P_work, Q, Nq, corr, origin_work, params: UncertaintyParams
     _, cV, ratio, creason = constraint_analysis(pp, n, max(p.degeneracy_ratio, 1e-300))
     ev = np.linalg.eigvalsh(H)
 
-    def _result(data, terms, cov_f, G, size_used, infl, step, degenerate, reason):
-        if data is None:
-            tot = {"covariance_6x6": None, "position_cov_3x3": None, "position_sigma_m": np.full(3, np.inf),
-                   "position_95_radius_m": math.inf, "horizontal_95_radius_m": math.inf}
-            wax, wsig, r95d = None, math.inf, math.inf
-        else:
-            tot = _total_fields(data, terms)
-            lam, V = np.linalg.eigh(data[3:, 3:])
-            wax = V[:, -1] * (1.0 if V[np.argmax(np.abs(V[:, -1])), -1] >= 0 else -1.0)  # sign: largest comp. > 0
-            wsig = float(math.sqrt(max(float(lam[-1]), 0.0)))
-            r95d = radii_95(data[3:, 3:])[0]
-        return PoseUncertainty(covariance_formal_6x6=cov_f, sigma_m=sigma, information_6x6=H,
-                               information_ratio=float(ratio), n_pairs=int(k), n_clusters=int(G),
-                               cluster_size_used_m=float(size_used), method=p.method, inflation=float(infl),
-                               pending_step=step, degenerate=bool(degenerate), reason=reason, params=p,
-                               residuals_m=r, covariance_data_6x6=data, model_terms=dict(terms),
-                               weakest_constraint_6=cV[:, 0].copy(), weakest_axis=wax, weakest_sigma_m=wsig,
-                               position_95_radius_data_m=r95d, **tot)
+    fit = {"sigma": sigma, "H": H, "ratio": ratio, "k": k, "p": p, "r": r, "cV": cV}
 
     if ev[-1] <= 0.0 or ev[0] <= 1e-12 * ev[-1] or ratio < p.degeneracy_ratio:
         why = creason or f"normalised constraint eigenvalue ratio {ratio:.2e}"
-        return _result(None, {}, None, 0, math.nan, math.nan, None, True,
+        return _result(fit, None, {}, None, 0, math.nan, math.nan, None, True,
                        "the scan-to-map pairs do not constrain every pose direction (" + why + "): the position "
                        "along the free direction is unknown, so no covariance is reported")
     if sigma == 0.0:
-        return _result(None, {}, None, 0, math.nan, math.nan, np.zeros(6), True,
+        return _result(fit, None, {}, None, 0, math.nan, math.nan, np.zeros(6), True,
                        "the residuals are exactly zero: there is no noise estimate to scale the covariance")
     Hinv = np.linalg.inv(H)
     Hinv = 0.5 * (Hinv + Hinv.T)
@@ -670,22 +638,7 @@ def pose_uncertainty(P_work, Q, Nq, corr, origin_work, params: UncertaintyParams
     terms: dict[str, np.ndarray] = {}
     data = cov_f.copy()
     if p.method != "formal":
-        rh = r + J @ step
-        size_used = float(p.cluster_size_m)
-        labels, G = cluster_labels(pp, size_used)
-        halvings = 0
-        while G < p.min_clusters and halvings < 8:
-            size_used *= 0.5
-            halvings += 1
-            labels, G = cluster_labels(pp, size_used)
-        if G >= 2:  # else every pair within a few cm: no between-block spread, the formal one is the data term
-            data = block_covariance(J, rh, labels, G, p.method)
-            fG = small_g_factor(G)
-            terms["small_G"] = (fG - 1.0) * data  # [CameronMiller2015 Sec. VI.D]
-            scaled = fG * data
-            infl = float(np.trace(scaled[3:, 3:]) / np.trace(cov_f[3:, 3:]))
-            fl = _psd_max(cov_f, scaled) - scaled  # never below [Censi2007 Eq. 4] formal, in any direction
-            terms["formal_floor"] = 0.5 * (fl + fl.T)
+        data, G, size_used, infl = _cluster_data_term(p, J, r, step, pp, cov_f, terms)
     if p.add_pending_step:
         terms["pending_step"] = np.outer(step, step)
     # isotropic position floors σ² I₃ (module docstring; registration floor calibrated in docs/uncertainty.md)
@@ -694,4 +647,4 @@ def pose_uncertainty(P_work, Q, Nq, corr, origin_work, params: UncertaintyParams
             M = np.zeros((6, 6))
             M[3:, 3:] = (sd * sd) * np.eye(3)
             terms[name] = M
-    return _result(data, terms, cov_f, G, size_used, infl, step, False, "")
+    return _result(fit, data, terms, cov_f, G, size_used, infl, step, False, "")

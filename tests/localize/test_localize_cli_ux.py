@@ -204,7 +204,7 @@ def test_ambiguous_run_gives_no_coordinates_and_says_it_once(tube, tmp_path, cap
 def test_degenerate_candidate_fits_do_not_warn_on_an_ok_run(mine, caplog, monkeypatch):
     """Every candidate ICP of an ok run made to report a weak direction: no logged warning (the
     chosen fit's own weak direction is judged once, by the covariance); other threads unaffected."""
-    import minegeo.localize.pipeline as P
+    import minegeo.localize.verification as P
     from minegeo.localize import LocalizeParams, localize_scan
 
     icp_log = logging.getLogger("minegeo.registration.icp")

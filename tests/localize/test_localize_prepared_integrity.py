@@ -203,13 +203,12 @@ def _damaged_file(case: dict, arrays: dict, meta: dict, path: Path) -> None:
 def _rehash(keys: np.ndarray, rows: np.ndarray, log2: int):
     """The block keys (and their rows) re-inserted into a table of ``2^log2`` slots by the kernels'
     hashing and linear probing (:func:`minegeo.localize._kernels.block_slot`)."""
-    from minegeo.localize._kernels import _GOLD
+    from minegeo.localize.prepared import _hash_home
 
     mask = (1 << log2) - 1
     table = np.full(1 << log2, -1, dtype=np.int64)
     slot_of = np.empty(keys.size, dtype=np.int64)
-    with np.errstate(over="ignore"):
-        home = ((keys * np.int64(_GOLD)) >> np.int64(64 - log2)) & np.int64(mask)
+    home = _hash_home(keys, log2)
     for j, (k, s) in enumerate(zip(keys.tolist(), home.tolist(), strict=True)):
         while table[s] != -1:
             s = (s + 1) & mask

@@ -153,7 +153,7 @@ def test_off_gives_the_previous_behaviour(study):
 
 
 def test_printout_and_report_show_the_rival(study):
-    from minegeo.localize._cli_localize import _rival_line
+    from minegeo.cli.localize import _rival_line
     from minegeo.report.localize_report import localize_report_html
 
     r = _run(study, "ordinary")
