@@ -69,7 +69,7 @@ def _seeds(text: str) -> list[int]:
 def _params(opts: list[str]):
     """(PrepareParams, LocalizeParams) exactly as ``minegeo localize OPTS`` builds them."""
     from minegeo.cli import build_parser
-    from minegeo.localize._cli_localize import params_from_args
+    from minegeo.cli.localize import params_from_args
 
     args = build_parser(["localize"]).parse_args(["localize", "--map", "m", "--scan", "s", "--out", "o", *opts])
     return params_from_args(args)

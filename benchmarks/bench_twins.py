@@ -49,7 +49,7 @@ LENGTHS = (10.0, 20.0)
 def _params(levelled: bool):
     """(PrepareParams, LocalizeParams) exactly as ``minegeo localize --profile fast [--levelled 3]`` builds them."""
     from minegeo.cli import build_parser
-    from minegeo.localize._cli_localize import params_from_args
+    from minegeo.cli.localize import params_from_args
 
     opts = ["--profile", "fast"] + (["--levelled", "3"] if levelled else [])
     args = build_parser(["localize"]).parse_args(["localize", "--map", "m", "--scan", "s", "--out", "o", *opts])

@@ -20,8 +20,8 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("MINEGEO_SHARED_DATA", REPO.parent / "shared" / "data"))
 REQUIRE_SHARED = os.environ.get("MINEGEO_REQUIRE_SHARED_DATA", "") == "1"
-#: The oracle extra's import names (pyproject ``oracle``: open3d, small-gicp, kiss-icp).
-ORACLES = ("open3d", "small_gicp", "kiss_icp")
+#: The oracle extra's import names (pyproject ``oracle``: open3d, small-gicp, kiss-icp, gtsam, evo).
+ORACLES = ("open3d", "small_gicp", "kiss_icp", "gtsam", "evo")
 
 
 def oracle_required() -> bool:
@@ -65,7 +65,7 @@ def require_open3d():
 def cli_localize_params(levelled: bool):
     """(PrepareParams, LocalizeParams) exactly as ``minegeo localize --profile fast [--levelled 3]`` builds them."""
     from minegeo.cli import build_parser
-    from minegeo.localize._cli_localize import params_from_args
+    from minegeo.cli.localize import params_from_args
 
     opts = ["--profile", "fast"] + (["--levelled", "3"] if levelled else [])
     args = build_parser(["localize"]).parse_args(["localize", "--map", "m", "--scan", "s", "--out", "o", *opts])

@@ -41,19 +41,23 @@ Angles (:mod:`minegeo.survey.angles`): ``parse_dms``, ``parse_angle``, ``format_
 ``format_gon``, ``azimuth``, ``azimuth_distance``, ``polar_to_rect``, ``azimuth_to_bearing``,
 ``bearing_to_azimuth``, ``wrap_2pi``, ``wrap_pi``, unit conversions.
 
-Networks (:mod:`minegeo.survey.network`): ``read_network(path)`` (Krumm/Gama text or JSON),
-``parse_krumm(text)``, ``network_from_dict(d)``, ``adjust_network(net, options=None,
+Networks (:mod:`minegeo.survey.network`): ``adjust_network(net, options=None,
 confidence=0.95) -> NetworkResult`` (``points`` {id: PointResult x, y, h, sx_m, sy_m, sh_m,
 cov, ellipse_standard, ellipse_95}, ``observations``, ``orientations``, ``relative_ellipses``,
-``lsq``, ``local_origin``).
+``lsq``, ``local_origin``); restrictions in :mod:`minegeo.survey.restrictions`. The readers
+are in :mod:`minegeo.io` and exported here: ``read_network(path)`` (Krumm/Gama text or JSON,
+:mod:`minegeo.io.network`), ``parse_krumm(text)`` (:mod:`minegeo.io.network_krumm`),
+``network_from_dict(d)`` (:mod:`minegeo.io.network_json`); ``Network``, ``Observation``,
+``Datum`` are in :mod:`minegeo.io.network_types`.
 
 Resection (:mod:`minegeo.survey.resection`): ``resection_2d(control, directions=, distances=,
 angles=, sigma_...)``, ``intersection_2d(control, angles=, azimuths=, ...)``,
 ``trilateration_2d(control, distances, sigma_distance_m=...)`` -> ``StationResult`` (e_m, n_m,
 cov, se_m, sn_m, orientation_rad, ellipses, status/reason, network).
 
-Report: :mod:`minegeo.report.survey_report` (``write_survey_report``), documented with the
-formats in ``docs/survey.md``.
+Reports (``result.json``, ``report.txt``, ``report.html``) are written by ``minegeo adjust``
+outside this package, which never imports them; they are documented with the formats in
+``docs/survey.md``.
 
 Coordinates are (Easting, Northing[, height]) in metres; azimuths clockwise from grid north.
 This package has no Numba kernels (small dense problems, NumPy/SciPy only).
@@ -61,6 +65,9 @@ This package has no Numba kernels (small dense problems, NumPy/SciPy only).
 
 from __future__ import annotations
 
+from minegeo.io.network import read_network
+from minegeo.io.network_json import network_from_dict
+from minegeo.io.network_krumm import parse_krumm
 from minegeo.survey.angles import (
     azimuth,
     azimuth_distance,
@@ -104,16 +111,7 @@ from minegeo.survey.lsq import (
     chi2_global_test,
     weights_from_sigmas,
 )
-from minegeo.survey.network import (
-    Datum,
-    Network,
-    NetworkResult,
-    Observation,
-    adjust_network,
-    network_from_dict,
-    parse_krumm,
-    read_network,
-)
+from minegeo.survey.network import Datum, Network, NetworkResult, Observation, adjust_network
 from minegeo.survey.resection import StationResult, intersection_2d, resection_2d, trilateration_2d
 
 __all__ = [

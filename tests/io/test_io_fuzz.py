@@ -34,10 +34,11 @@ from minegeo.io import (
     write_point_cloud,
     write_trajectory,
 )
+from minegeo.io.adj import read_adj
+from minegeo.io.network import read_network
 from minegeo.mast import read_beacons_csv, read_scan_csv
 from minegeo.mast.beacons import BeaconDesign, place_beacon, write_beacons_csv
 from minegeo.mast.scan import Scan2D, write_scan_csv
-from minegeo.survey.network import read_adj, read_network
 
 CASES = [
     ("a.ply", {}),

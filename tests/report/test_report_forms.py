@@ -15,8 +15,8 @@ from minegeo.report import _html
 
 
 def _adjust(tmp_path, blunder_m=0.0, **opts):
+    from minegeo.survey import adjust_network, read_network
     from minegeo.survey.lsq import LSQOptions
-    from minegeo.survey.network import adjust_network, read_network
 
     p = tmp_path / f"net_{blunder_m}.json"
     p.write_text(json.dumps(network_json(blunder_m)), encoding="utf-8")
@@ -50,8 +50,8 @@ def test_adjust_status_passed_warnings_failed(tmp_path):
 
 def test_adjust_headings_state_the_confidence_used(tmp_path):
     from minegeo.report.survey_report import report_html, report_text
+    from minegeo.survey import adjust_network, read_network
     from minegeo.survey.lsq import LSQOptions
-    from minegeo.survey.network import adjust_network, read_network
 
     p = tmp_path / "n.json"
     p.write_text(json.dumps(network_json()), encoding="utf-8")

@@ -19,7 +19,7 @@ import pytest
 from minegeo.cli import main
 from minegeo.errors import FileFormatError
 from minegeo.io._json import MAX_JSON_DEPTH
-from minegeo.survey.network import read_network
+from minegeo.io.network import read_network
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")
 
@@ -121,7 +121,7 @@ def test_valid_json_network_still_adjusts(tmp_path, capsys):
 
 
 def test_network_file_size_is_bounded(tmp_path, monkeypatch):
-    import minegeo.survey.network as network
+    import minegeo.io.network as network
 
     p = tmp_path / "net.json"
     p.write_text(GOOD, encoding="utf-8")

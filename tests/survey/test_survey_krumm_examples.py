@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from helpers import shared_data
 
-from minegeo.survey.network import adjust_network, read_network
+from minegeo.survey import adjust_network, read_network
 
 EXAMPLES = """
 1D/Baumann_Height_fix 1D/Ghilani12_6_Height_fix 1D/Krumm_Height_dyn 1D/Krumm_Height_fix

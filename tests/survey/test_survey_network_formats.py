@@ -8,7 +8,7 @@ import pytest
 from helpers import shared_data
 
 from minegeo.errors import FileFormatError, InputError
-from minegeo.survey.network import adjust_network, network_from_dict, parse_krumm, read_network
+from minegeo.survey import adjust_network, network_from_dict, parse_krumm, read_network
 
 
 def _traverse_json(datum):

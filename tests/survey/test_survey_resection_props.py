@@ -11,8 +11,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from minegeo.errors import DegenerateGeometryError, TooFewPointsError
-from minegeo.survey import LSQOptions, adjust_observations
-from minegeo.survey.network import Datum, Network, Observation, adjust_network, read_network
+from minegeo.survey import (
+    Datum,
+    LSQOptions,
+    Network,
+    Observation,
+    adjust_network,
+    adjust_observations,
+    read_network,
+)
 from minegeo.survey.resection import intersection_2d, resection_2d, trilateration_2d
 
 GON = math.pi / 200

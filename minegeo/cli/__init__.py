@@ -1,7 +1,8 @@
 """``minegeo <verb>``: the command-line interface.
 
-Each verb lives in its own module exposing ``HELP`` (one line), ``add_arguments(parser)``
-and ``run(args) -> int``; this file only dispatches. User mistakes (any
+Each verb lives in its own module of this package (``minegeo.cli.<verb>``, listed in
+:data:`VERBS`; helpers they share in ``minegeo.cli._common``) exposing ``HELP`` (one line),
+``add_arguments(parser)`` and ``run(args) -> int``; this file only dispatches. User mistakes (any
 :class:`~minegeo.errors.MinegeoError`, a missing file) print one clear line to
 stderr and exit with status 2, without a traceback. ``--debug`` shows tracebacks.
 """
@@ -18,15 +19,17 @@ from minegeo.errors import MinegeoError
 
 #: verb -> module implementing it. Modules are imported lazily so ``--help`` stays fast.
 VERBS: dict[str, str] = {
-    "info": "minegeo.io._cli",
-    "synth": "minegeo.synth._cli",
-    "demo": "minegeo._cli_demo",
-    "adjust": "minegeo.survey._cli",
-    "mast": "minegeo.mast._cli",
-    "georef": "minegeo.localize._cli_georef",
-    "prepare-map": "minegeo.localize._cli_prepare",
-    "localize": "minegeo.localize._cli_localize",
-    "warmup": "minegeo._cli_warmup",
+    "info": "minegeo.cli.info",
+    "synth": "minegeo.cli.synth",
+    "demo": "minegeo.cli.demo",
+    "adjust": "minegeo.cli.adjust",
+    "mast": "minegeo.cli.mast",
+    "georef": "minegeo.cli.georef",
+    "prepare-map": "minegeo.cli.prepare_map",
+    "localize": "minegeo.cli.localize",
+    "posegraph": "minegeo.cli.posegraph",
+    "evaluate": "minegeo.cli.evaluate",
+    "warmup": "minegeo.cli.warmup",
 }
 
 
@@ -145,6 +148,3 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(handler, _DeferredLog):
             handler.finish(show_log)
 
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

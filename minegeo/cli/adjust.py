@@ -52,9 +52,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    from minegeo.io.network import read_network
     from minegeo.report.survey_report import write_survey_report
     from minegeo.survey.lsq import LSQOptions
-    from minegeo.survey.network import adjust_network, read_network
+    from minegeo.survey.network import adjust_network
 
     path = Path(args.network)
     if not path.is_file():

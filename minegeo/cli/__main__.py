@@ -1,0 +1,7 @@
+"""``python -m minegeo.cli``: the same as the ``minegeo`` console script."""
+
+import sys
+
+from minegeo.cli import main
+
+sys.exit(main())
