@@ -49,6 +49,56 @@ def find_xyz(path, names: list[str]) -> tuple[int, int, int]:
         raise FileFormatError(path, f"no x, y, z fields in the header (fields: {' '.join(names)})") from None
 
 
+def minegeo_comments(comments: list[str]) -> dict:
+    """``key -> value`` of the ``minegeo <key> <value>`` header comments (PLY, PCD); the last of a key wins."""
+    out = {}
+    for c in comments:
+        tok = c.split(None, 2)
+        if len(tok) == 3 and tok[0] == "minegeo":
+            out[tok[1]] = tok[2].strip()
+    return out
+
+
+def recorded_origin(path, mg: dict, marker: str) -> np.ndarray:
+    """The local origin minegeo recorded in the header (``<marker> minegeo origin x y z``; zeros if none).
+
+    ``mg`` is the header's ``minegeo`` comments (see :func:`minegeo_comments`); ``marker`` is
+    the format's comment prefix, named in the error message.
+    """
+    if "origin" not in mg:
+        return np.zeros(3)
+    try:
+        return np.array([float(t) for t in mg["origin"].split()], dtype=np.float64).reshape(3)
+    except ValueError:
+        raise FileFormatError(path, f"malformed '{marker} minegeo origin {mg['origin']}'") from None
+
+
+def writer_values(cloud: PointCloud, coordinates: str, dtype: str) -> tuple[np.ndarray, np.ndarray]:
+    """The coordinates a writer stores and the origin it records (:func:`global_values`).
+
+    Refuses a ``dtype`` other than ``"float64"`` or ``"float32"``, and ``"float32"`` when it
+    would move a point by more than 1 mm (:func:`check_float32_precision`).
+    """
+    if dtype not in ("float64", "float32"):
+        raise InputError(f"dtype must be 'float64' or 'float32', got {dtype!r}")
+    values, rec_origin = global_values(cloud, coordinates)
+    if dtype == "float32":
+        check_float32_precision(values)
+    return values, rec_origin
+
+
+def minegeo_header_lines(cloud: PointCloud, coordinates: str, rec_origin: np.ndarray, marker: str) -> list[str]:
+    """The ``<marker> minegeo crs|frame|origin`` header comments a writer records (read back by
+    :func:`minegeo_comments` and :func:`recorded_origin`); the origin only for ``"local"`` coordinates."""
+    lines = []
+    if cloud.crs:
+        lines.append(f"{marker} minegeo crs {one_line_crs(cloud.crs)}")
+    lines.append(f"{marker} minegeo frame {cloud.frame}")
+    if coordinates == "local" and np.any(rec_origin != 0):
+        lines.append(f"{marker} minegeo origin " + " ".join(repr(float(v)) for v in rec_origin))
+    return lines
+
+
 def _rgb_to_uint8(path, r, g, b, meta: dict) -> np.ndarray:
     rgb = np.column_stack([np.asarray(r), np.asarray(g), np.asarray(b)])
     if rgb.size == 0:

@@ -25,13 +25,14 @@ from minegeo import __version__
 from minegeo.errors import FileFormatError, InputError
 from minegeo.io._common import (
     RawCloud,
-    check_float32_precision,
     check_unique_names,
     find_xyz,
-    global_values,
-    one_line_crs,
+    minegeo_comments,
+    minegeo_header_lines,
+    recorded_origin,
     rgb_of,
     writable_attributes,
+    writer_values,
 )
 from minegeo.io._limits import MAX_COLUMNS, MAX_HEADER_BYTES
 from minegeo.io._lzf import lzf_compress, lzf_decompress
@@ -98,9 +99,8 @@ def _int(path, hdr, key, default=None) -> int:
     return int(v[0])
 
 
-def read_pcd_bytes(path, data: bytes) -> RawCloud:
-    """Parse PCD bytes (``path`` only names the file in errors); see the module docstring."""
-    hdr, comments, body, header_lines = _parse_header(path, data)
+def _field_layout(path, hdr):
+    """Field names (padding renamed ``__padJ``), numpy codes and counts, point count and DATA mode."""
     names = hdr.get("FIELDS")
     if not names:
         raise FileFormatError(path, "PCD header has no FIELDS")
@@ -137,81 +137,91 @@ def read_pcd_bytes(path, data: bytes) -> RawCloud:
     uniq = []
     for j, nm in enumerate(names):
         uniq.append(f"__pad{j}" if nm == "_" or nm in uniq else nm)
-    ix, iy, iz = find_xyz(path, uniq)
     codes = [_np_code(t, s) for t, s in zip(types, sizes_i, strict=True)]
+    return uniq, codes, counts_i, width, height, n, mode
+
+
+def _read_ascii(path, data: bytes, body: int, header_lines: int, uniq, codes, counts_i, n):
+    """Columns of an ascii body and the row -> line locator."""
     cols: dict[str, np.ndarray] = {}
-    line_of_row = None
-    if mode == "ascii":
-        ncols = sum(counts_i)
-        text = data[body:].decode("latin-1")
-        table = parse_table(
+    ncols = sum(counts_i)
+    text = data[body:].decode("latin-1")
+    table = parse_table(
+        path,
+        text,
+        ncols=ncols,
+        first_line=header_lines + 1,
+        expected_rows=n,
+        comments="#",
+    )
+    j = 0
+    for nm, code, c in zip(uniq, codes, counts_i, strict=True):
+        block = table[:, j : j + c]
+        j += c
+        if code[0] != "f":
+            if np.any(block != np.round(block)):
+                raise FileFormatError(path, f"PCD integer field {nm!r} holds non-integer values")
+        elif nm.lower() in ("rgb", "rgba"):
+            block = block.astype(np.float32)  # packed colour: the float's bits matter
+        cols[nm] = block[:, 0].astype(code) if c == 1 else block.astype(code)
+    return cols, data_line_locator(text, header_lines + 1)
+
+
+def _read_binary(path, data: bytes, body: int, dt: np.dtype, uniq, xyz, n):
+    """Columns of a ``binary`` (array of structures) body; x, y, z stay views into ``data``."""
+    cols: dict[str, np.ndarray] = {}
+    need = n * dt.itemsize
+    have = len(data) - body
+    if have < need:
+        raise FileFormatError(
+            path, f"file truncated: header declares {n} points ({need} bytes) but {have} bytes follow"
+        )
+    if have > need and data[body + need :].strip(b" \t\r\n\0"):
+        raise FileFormatError(path, f"{have - need} bytes after the last point: header POINTS ({n}) is wrong")
+    arr = np.frombuffer(data, dtype=dt, count=n, offset=body)
+    for j, nm in enumerate(uniq):
+        # x, y, z stay views into the buffer (converted once below)
+        cols[nm] = arr[nm] if j in xyz else arr[nm].astype(arr.dtype[nm].base.newbyteorder("="))
+    return cols
+
+
+def _read_compressed(path, data: bytes, body: int, dt: np.dtype, uniq, codes, counts_i, n):
+    """Columns of a ``binary_compressed`` body (size header, then one LZF stream of the structure of arrays)."""
+    cols: dict[str, np.ndarray] = {}
+    need = n * dt.itemsize
+    if len(data) - body < 8:
+        raise FileFormatError(path, "file truncated: binary_compressed PCD has no size header")
+    csize, usize = (int(v) for v in np.frombuffer(data, dtype="<u4", count=2, offset=body))
+    if usize != need:
+        raise FileFormatError(
             path,
-            text,
-            ncols=ncols,
-            first_line=header_lines + 1,
-            expected_rows=n,
-            comments="#",
+            f"binary_compressed PCD: uncompressed size {usize} bytes does not match "
+            f"{n} points x {dt.itemsize} bytes (wrong POINTS or fields)",
         )
-        j = 0
-        for nm, code, c in zip(uniq, codes, counts_i, strict=True):
-            block = table[:, j : j + c]
-            j += c
-            if code[0] != "f":
-                if np.any(block != np.round(block)):
-                    raise FileFormatError(path, f"PCD integer field {nm!r} holds non-integer values")
-            elif nm.lower() in ("rgb", "rgba"):
-                block = block.astype(np.float32)  # packed colour: the float's bits matter
-            cols[nm] = block[:, 0].astype(code) if c == 1 else block.astype(code)
-        line_of_row = data_line_locator(text, header_lines + 1)
-    else:
-        dt = np.dtype(
-            [(nm, "<" + code, (c,)) if c > 1 else (nm, "<" + code) for nm, code, c in zip(uniq, codes, counts_i, strict=True)]
+    if len(data) - body - 8 < csize:
+        raise FileFormatError(
+            path, f"file truncated: {csize} compressed bytes declared, {len(data) - body - 8} present"
         )
-        need = n * dt.itemsize
-        if mode == "binary":
-            have = len(data) - body
-            if have < need:
-                raise FileFormatError(
-                    path, f"file truncated: header declares {n} points ({need} bytes) but {have} bytes follow"
-                )
-            if have > need and data[body + need :].strip(b" \t\r\n\0"):
-                raise FileFormatError(path, f"{have - need} bytes after the last point: header POINTS ({n}) is wrong")
-            arr = np.frombuffer(data, dtype=dt, count=n, offset=body)
-            for j, nm in enumerate(uniq):
-                # x, y, z stay views into the buffer (converted once below)
-                cols[nm] = arr[nm] if j in (ix, iy, iz) else arr[nm].astype(arr.dtype[nm].base.newbyteorder("="))
-        else:
-            if len(data) - body < 8:
-                raise FileFormatError(path, "file truncated: binary_compressed PCD has no size header")
-            csize, usize = (int(v) for v in np.frombuffer(data, dtype="<u4", count=2, offset=body))
-            if usize != need:
-                raise FileFormatError(
-                    path,
-                    f"binary_compressed PCD: uncompressed size {usize} bytes does not match "
-                    f"{n} points x {dt.itemsize} bytes (wrong POINTS or fields)",
-                )
-            if len(data) - body - 8 < csize:
-                raise FileFormatError(
-                    path, f"file truncated: {csize} compressed bytes declared, {len(data) - body - 8} present"
-                )
-            if usize > _LZF_MAX_RATIO * csize:  # checked before allocating the output
-                raise FileFormatError(
-                    path, f"binary_compressed PCD: {csize} compressed bytes cannot hold {usize} bytes "
-                    f"(LZF expands at most {_LZF_MAX_RATIO}x; wrong POINTS or damaged size header)"
-                )
-            try:
-                raw = lzf_decompress(memoryview(data)[body + 8 : body + 8 + csize], usize) if usize else b""
-            except InputError as exc:
-                raise FileFormatError(path, f"binary_compressed PCD: {exc}") from None
-            off = 0
-            for nm, code, c in zip(uniq, codes, counts_i, strict=True):
-                nbytes = n * c * int(code[1:])
-                a = np.frombuffer(raw, dtype="<" + code, count=n * c, offset=off).astype(code)
-                off += nbytes
-                cols[nm] = a if c == 1 else a.reshape(n, c)
-    for nm in [u for u in uniq if u.startswith("__pad")]:
-        cols.pop(nm)
-    # packed colour
+    if usize > _LZF_MAX_RATIO * csize:  # checked before allocating the output
+        raise FileFormatError(
+            path, f"binary_compressed PCD: {csize} compressed bytes cannot hold {usize} bytes "
+            f"(LZF expands at most {_LZF_MAX_RATIO}x; wrong POINTS or damaged size header)"
+        )
+    try:
+        raw = lzf_decompress(memoryview(data)[body + 8 : body + 8 + csize], usize) if usize else b""
+    except InputError as exc:
+        raise FileFormatError(path, f"binary_compressed PCD: {exc}") from None
+    off = 0
+    for nm, code, c in zip(uniq, codes, counts_i, strict=True):
+        nbytes = n * c * int(code[1:])
+        a = np.frombuffer(raw, dtype="<" + code, count=n * c, offset=off).astype(code)
+        off += nbytes
+        cols[nm] = a if c == 1 else a.reshape(n, c)
+    return cols
+
+
+def _unpack_rgb(cols: dict) -> None:
+    """Replaces PCL's packed ``rgb``/``rgba`` field (4 bytes ``0xAARRGGBB``) by ``red green blue (alpha)``."""
     low = {nm.lower(): nm for nm in cols}
     for key in ("rgb", "rgba"):
         if key in low and cols[low[key]].ndim == 1 and cols[low[key]].dtype.itemsize == 4:
@@ -222,6 +232,27 @@ def read_pcd_bytes(path, data: bytes) -> RawCloud:
             if key == "rgba":
                 cols["alpha"] = ((packed >> 24) & 0xFF).astype(np.uint8)
             break
+
+
+def read_pcd_bytes(path, data: bytes) -> RawCloud:
+    """Parse PCD bytes (``path`` only names the file in errors); see the module docstring."""
+    hdr, comments, body, header_lines = _parse_header(path, data)
+    uniq, codes, counts_i, width, height, n, mode = _field_layout(path, hdr)
+    ix, iy, iz = find_xyz(path, uniq)
+    line_of_row = None
+    if mode == "ascii":
+        cols, line_of_row = _read_ascii(path, data, body, header_lines, uniq, codes, counts_i, n)
+    else:
+        dt = np.dtype(
+            [(nm, "<" + code, (c,)) if c > 1 else (nm, "<" + code) for nm, code, c in zip(uniq, codes, counts_i, strict=True)]
+        )
+        if mode == "binary":
+            cols = _read_binary(path, data, body, dt, uniq, (ix, iy, iz), n)
+        else:
+            cols = _read_compressed(path, data, body, dt, uniq, codes, counts_i, n)
+    for nm in [u for u in uniq if u.startswith("__pad")]:
+        cols.pop(nm)
+    _unpack_rgb(cols)
     values = np.empty((n, 3), dtype=np.float64)
     for j, k in enumerate((uniq[ix], uniq[iy], uniq[iz])):
         col = cols.pop(k)
@@ -241,17 +272,8 @@ def read_pcd_bytes(path, data: bytes) -> RawCloud:
         meta["viewpoint"] = hdr["VIEWPOINT"]
     if "VERSION" in hdr:
         meta["version"] = " ".join(hdr["VERSION"])
-    mg = {}
-    for c in comments:
-        tok = c.split(None, 2)
-        if len(tok) == 3 and tok[0] == "minegeo":
-            mg[tok[1]] = tok[2]
-    file_origin = np.zeros(3)
-    if "origin" in mg:
-        try:
-            file_origin = np.array([float(t) for t in mg["origin"].split()]).reshape(3)
-        except ValueError:
-            raise FileFormatError(path, f"malformed '# minegeo origin {mg['origin']}'") from None
+    mg = minegeo_comments(comments)
+    file_origin = recorded_origin(path, mg, "#")
     return RawCloud(values, cols, file_origin, mg.get("crs"), mg.get("frame"), meta, line_of_row)
 
 
@@ -288,13 +310,9 @@ def write_pcd_bytes(
     """
     if encoding not in PCD_ENCODINGS:
         raise InputError(f"PCD encoding must be one of {PCD_ENCODINGS}, got {encoding!r}")
-    if dtype not in ("float64", "float32"):
-        raise InputError(f"dtype must be 'float64' or 'float32', got {dtype!r}")
     n = len(cloud)
-    values, rec_origin = global_values(cloud, coordinates)
+    values, rec_origin = writer_values(cloud, coordinates, dtype)
     fs = 8 if dtype == "float64" else 4
-    if fs == 4:
-        check_float32_precision(values)
     fields: list[tuple[str, str, int, int, np.ndarray]] = [
         (nm, "F", fs, 1, values[:, j]) for j, nm in enumerate("xyz")
     ]
@@ -321,11 +339,7 @@ def write_pcd_bytes(
             fields.append((name, t, s, v.shape[1], v))
     check_unique_names([f[0] for f in fields])
     header = [f"# .PCD v0.7 - Point Cloud Data file format (minegeo {__version__})"]
-    if cloud.crs:
-        header.append(f"# minegeo crs {one_line_crs(cloud.crs)}")
-    header.append(f"# minegeo frame {cloud.frame}")
-    if coordinates == "local" and np.any(rec_origin != 0):
-        header.append("# minegeo origin " + " ".join(repr(float(v)) for v in rec_origin))
+    header += minegeo_header_lines(cloud, coordinates, rec_origin, "#")
     header += [
         "VERSION 0.7",
         "FIELDS " + " ".join(f[0] for f in fields),

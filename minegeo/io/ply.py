@@ -19,13 +19,14 @@ from minegeo import __version__
 from minegeo.errors import FileFormatError, InputError
 from minegeo.io._common import (
     RawCloud,
-    check_float32_precision,
     check_unique_names,
     find_xyz,
-    global_values,
-    one_line_crs,
+    minegeo_comments,
+    minegeo_header_lines,
+    recorded_origin,
     rgb_of,
     writable_attributes,
+    writer_values,
 )
 from minegeo.io._limits import MAX_HEADER_BYTES
 from minegeo.io._text import data_line_locator, format_table, note_unterminated_last_line, parse_table
@@ -95,15 +96,6 @@ def _parse_header(path, data: bytes):
     if fmt is None:
         raise FileFormatError(path, "PLY header has no 'format' line")
     return fmt, elements, comments, body_start, len(header) + 1
-
-
-def _minegeo_comments(comments: list[str]) -> dict:
-    out = {}
-    for c in comments:
-        tok = c.split(None, 2)
-        if len(tok) == 3 and tok[0] == "minegeo":
-            out[tok[1]] = tok[2].strip()
-    return out
 
 
 def read_ply_bytes(path, data: bytes) -> RawCloud:
@@ -178,13 +170,8 @@ def read_ply_bytes(path, data: bytes) -> RawCloud:
     values = np.empty((n, 3), dtype=np.float64)
     for j, k in enumerate((pnames[ix], pnames[iy], pnames[iz])):
         values[:, j] = cols.pop(k)
-    mg = _minegeo_comments(comments)
-    file_origin = np.zeros(3)
-    if "origin" in mg:
-        try:
-            file_origin = np.array([float(t) for t in mg["origin"].split()], dtype=np.float64).reshape(3)
-        except ValueError:
-            raise FileFormatError(path, f"malformed 'comment minegeo origin {mg['origin']}'") from None
+    mg = minegeo_comments(comments)
+    file_origin = recorded_origin(path, mg, "comment")
     meta["dtype"] = str(np.result_type(*(np.dtype(vert["props"][i][1]) for i in (ix, iy, iz))))
     if len(elements) > 1:
         meta["skipped_elements"] = [f"{e['name']}({e['count']})" for e in elements if e is not vert]
@@ -219,12 +206,8 @@ def write_ply_bytes(
     """
     if encoding not in PLY_ENCODINGS:
         raise InputError(f"PLY encoding must be one of {PLY_ENCODINGS}, got {encoding!r}")
-    if dtype not in ("float64", "float32"):
-        raise InputError(f"dtype must be 'float64' or 'float32', got {dtype!r}")
-    values, rec_origin = global_values(cloud, coordinates)
+    values, rec_origin = writer_values(cloud, coordinates, dtype)
     ftype = "f8" if dtype == "float64" else "f4"
-    if ftype == "f4":
-        check_float32_precision(values)
     cols: list[tuple[str, str, np.ndarray]] = [
         ("x", ftype, values[:, 0]),
         ("y", ftype, values[:, 1]),
@@ -247,11 +230,7 @@ def write_ply_bytes(
         cols.append((name, code, v))
     check_unique_names([nm for nm, _, _ in cols])
     header = ["ply", f"format {encoding} 1.0", f"comment minegeo {__version__}"]
-    if cloud.crs:
-        header.append(f"comment minegeo crs {one_line_crs(cloud.crs)}")
-    header.append(f"comment minegeo frame {cloud.frame}")
-    if coordinates == "local" and np.any(rec_origin != 0):
-        header.append("comment minegeo origin " + " ".join(repr(float(v)) for v in rec_origin))
+    header += minegeo_header_lines(cloud, coordinates, rec_origin, "comment")
     header.append(f"element vertex {len(cloud)}")
     header += [f"property {_NAMES[c]} {nm}" for nm, c, _ in cols]
     header.append("end_header")

@@ -44,13 +44,13 @@ from minegeo import __version__
 from minegeo.errors import FileFormatError, InputError
 from minegeo.io._common import (
     RawCloud,
-    check_float32_precision,
     check_unique_names,
     find_xyz,
-    global_values,
-    one_line_crs,
+    minegeo_header_lines,
+    recorded_origin,
     rgb_of,
     writable_attributes,
+    writer_values,
 )
 from minegeo.io._limits import MAX_HEADER_LINE_BYTES
 from minegeo.io._text import (
@@ -174,12 +174,7 @@ def read_text_bytes(path, data: bytes, fmt: str = "xyz", columns=None) -> RawClo
     values = table[:, [ix, iy, iz]]
     fields = {nm: np.ascontiguousarray(table[:, j]) for j, nm in enumerate(names) if j not in (ix, iy, iz)}
     del table
-    file_origin = np.zeros(3)
-    if "origin" in mg:
-        try:
-            file_origin = np.array([float(t) for t in mg["origin"].split()]).reshape(3)
-        except ValueError:
-            raise FileFormatError(path, f"malformed '# minegeo origin {mg['origin']}'") from None
+    file_origin = recorded_origin(path, mg, "#")
     if "units" in mg:
         meta["units"] = mg["units"]
     meta["dtype"] = "text"
@@ -211,12 +206,9 @@ def write_text_bytes(
     """
     if fmt not in TEXT_FORMATS:
         raise InputError(f"text format must be one of {TEXT_FORMATS}, got {fmt!r}")
-    if dtype not in ("float64", "float32"):
-        raise InputError(f"dtype must be 'float64' or 'float32', got {dtype!r}")
-    values, rec_origin = global_values(cloud, coordinates)
+    values, rec_origin = writer_values(cloud, coordinates, dtype)
     ffmt = "%.17g" if dtype == "float64" else "%.9g"
     if dtype == "float32":
-        check_float32_precision(values)
         values = values.astype(np.float32)
     cols: list[tuple[str, np.ndarray, str]] = [(nm, values[:, j], ffmt) for j, nm in enumerate("xyz")]
     rgb = rgb_of(cloud)
@@ -259,11 +251,7 @@ def write_text_bytes(
         lines.append(str(len(cloud)))
     elif header:
         lines.append(f"# minegeo {__version__}")
-        if cloud.crs:
-            lines.append(f"# minegeo crs {one_line_crs(cloud.crs)}")
-        lines.append(f"# minegeo frame {cloud.frame}")
-        if coordinates == "local" and np.any(rec_origin != 0):
-            lines.append("# minegeo origin " + " ".join(repr(float(v)) for v in rec_origin))
+        lines += minegeo_header_lines(cloud, coordinates, rec_origin, "#")
         if cloud.metadata.get("units") and fmt != "3d":
             lines.append(f"# minegeo units {cloud.metadata['units']}")
         if fmt == "csv":

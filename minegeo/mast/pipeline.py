@@ -378,6 +378,188 @@ def _fail(reason: str, params: MastParams, details: dict, arrays=None, option=No
     )
 
 
+def _noise_model(scan: Scan2D, beacons: list[Beacon], p: MastParams) -> tuple[float, float, float]:
+    """Range sigma (m), bearing sigma (deg and rad) from the parameters or the scan file; checks the inputs."""
+    sig_r = p.sigma_range_m if p.sigma_range_m is not None else scan.sigma_range_m
+    if sig_r is None:
+        raise InputError(
+            "no range noise model: give sigma_range_m (e.g. --sigma-range-m 0.003) or a "
+            "'# sigma_range_m: ...' line in the scan file"
+        )
+    sig_bd = p.sigma_bearing_deg if p.sigma_bearing_deg is not None else (scan.sigma_bearing_deg or 0.0)
+    sig_b = math.radians(sig_bd)
+    if not (sig_r > 0 or sig_b > 0 or p.sigma_panel_m > 0):
+        raise InputError("the noise model is zero: sigma_range_m must be > 0")
+    if len(beacons) < p.min_beacons:
+        raise TooFewPointsError(
+            f"{len(beacons)} beacon(s) given; MAST needs at least {p.min_beacons} surveyed beacons"
+        )
+    ids = [b.beacon_id for b in beacons]
+    if len(set(ids)) != len(ids):
+        raise InputError(f"duplicate beacon ids in the beacon list: {ids}")
+    if len(scan) < 3:
+        raise TooFewPointsError(f"the scan has {len(scan)} return(s); at least 3 are needed for x, y, azimuth")
+    return sig_r, sig_bd, sig_b
+
+
+def _match_records(matches: list[PanelMatch], segs: list[LineSegment]) -> list[dict]:
+    """The panel matches as JSON-ready records (``details["panel_matches"]``)."""
+    return [
+        {"beacon_id": m.beacon_id, "option": m.option, "panels": [f"P{m.panel_a + 1}", f"P{m.panel_b + 1}"],
+         "identified": list(m.identified), "criteria": sorted(m.criteria),
+         "points": [[segs[m.seg_a].start, segs[m.seg_a].end], [segs[m.seg_b].start, segs[m.seg_b].end]]}
+        for m in matches
+    ]
+
+
+def _align_hypothesis(h: dict, matches, clusters, segs, bl, obs: dict, p: MastParams) -> dict:
+    """Aligns one beacon-id assignment: Helmert from the panel edges, then point-to-line ICP.
+
+    ``obs`` holds the scan (``xy``, ``bearing_rad``, ``range_m``), the panels with their
+    beacon indices and the noise (``sig_r``, ``sig_b``). Returns the record of the
+    hypothesis: its ``pose``, ``icp``, returns and beacons explained, or why it was ``rejected``.
+    """
+    src, dst, used = _correspondences(h, matches, clusters, segs, bl)
+    rec = {"assignment": {str(c): bl[b].beacon_id for c, b in h.items()}}
+    if len(src) < 2 or np.ptp(dst, axis=0).max() < 1e-6:
+        rec["rejected"] = "fewer than two distinct panel edges"
+        return rec
+    try:
+        hr = helmert2d(src, dst)
+    except MinegeoError as exc:
+        rec["rejected"] = f"Helmert: {exc}"
+        return rec
+    rec["helmert_scale"] = hr.scale
+    rec["helmert_rotation_deg"] = math.degrees(hr.rotation_rad)
+    if abs(hr.scale - 1.0) > p.helmert_scale_tolerance:
+        rec["rejected"] = f"Helmert scale {hr.scale:.3f} (scanner ranges must give scale ~1)"
+        return rec
+    # drop the scale u but keep the centroid of the edges where Helmert put it
+    R0 = rot2(hr.rotation_rad)
+    c_src = src.mean(axis=0)
+    T0 = np.eye(3)
+    T0[:2, :2] = R0
+    T0[:2, 2] = hr.scale * (R0 @ c_src) + hr.params[2:] - R0 @ c_src
+    # ICP first on the beacons of this hypothesis only (a beacon that is listed but
+    # missing must not pull the pose), then on all beacons with the tight gates.
+    xy, panels, beacon_of_panel = obs["xy"], obs["panels"], obs["beacon_of_panel"]
+    hyp_panels = np.isin(beacon_of_panel, list(h.values()))
+    try:
+        icp1 = icp_point_to_line(xy, panels[hyp_panels], T0, p.icp_gates_m, p.icp_max_iterations)
+        icp = icp_point_to_line(xy, panels, icp1.T_mine_scan, p.icp_gates_m[-1:],
+                                p.icp_max_iterations)
+    except (TooFewPointsError, DegenerateGeometryError) as exc:
+        rec["rejected"] = f"ICP: {exc}"
+        return rec
+    icp = replace(icp, iterations=icp1.iterations + icp.iterations,
+                  beta_cum_rad=icp1.beta_cum_rad + icp.beta_cum_rad)
+    pose = _pose_from_T(icp.T_mine_scan)
+    ok, idx, _, _, _ = _associate(pose, obs["bearing_rad"], obs["range_m"], panels, beacon_of_panel, obs["sig_r"],
+                                  obs["sig_b"], p)
+    per_b = np.bincount(beacon_of_panel[idx[ok]], minlength=len(bl))
+    rec.update(pose=pose, icp=icp, n_explained=int(ok.sum()), used=used,
+               n_beacons=int(min((per_b >= p.min_returns_per_beacon).sum(), p.min_beacons)))
+    return rec
+
+
+def _ambiguity(good: list[dict], p: MastParams) -> str | None:
+    """Why the best aligned hypothesis (``good[0]``) is ambiguous, or None when it is unique."""
+    best = good[0]
+    for other in good[1:]:
+        if other["n_beacons"] < best["n_beacons"]:
+            break
+        dpos = float(np.hypot(*(other["pose"][:2] - best["pose"][:2])))
+        dang = abs(math.remainder(other["pose"][2] - best["pose"][2], 2 * math.pi))
+        if other["n_explained"] >= p.ambiguity_ratio * best["n_explained"] and (dpos > 0.05 or dang > 0.01):
+            return (
+                f"ambiguous beacon identification: assignments {best['assignment']} and "
+                f"{other['assignment']} explain {best['n_explained']} and {other['n_explained']} returns "
+                f"with poses {dpos:.2f} m / {math.degrees(dang):.1f} deg apart (beacons of identical "
+                "design mounted point-symmetrically?); mount them so their panel order differs"
+            )
+    return None
+
+
+def _ok_result(pose, res, ok, best: dict, obs: dict, origin, p: MastParams, seg_option: int, details: dict,
+               arrays: dict, timer: StageTimer) -> MastResult:
+    """The ``ok`` result of the final adjustment: covariance (m, m, deg), ellipse, azimuth interval."""
+    bearing_rad, rng_m = obs["bearing_rad"], obs["range_m"]
+    icp = best["icp"]
+    x, y, a = pose
+    S = res.Sigma_xx[:3, :3].copy()
+    J = np.diag([1.0, 1.0, math.degrees(1.0)])
+    cov = J @ S @ J.T
+    known = res.variance_used == "apriori"
+    ell = error_ellipse(S[:2, :2], p.confidence, res.dof, sigma0_known=known)
+    tq = stats.norm.ppf(0.5 + p.confidence / 2) if known else stats.t.ppf(0.5 + p.confidence / 2, res.dof)
+    az = wrap_deg(math.degrees(a))
+    arrays["points_mine"] = np.column_stack(
+        [x + rng_m * np.sin(a + bearing_rad), y + rng_m * np.cos(a + bearing_rad)]
+    ) + origin
+    n_obs = int(ok.sum())
+    arrays["residuals_m"] = res.v[:n_obs]
+    details.update(
+        n_observations=n_obs, dof=res.dof, sigma0_apriori=res.sigma0_apriori,
+        variance_used=res.variance_used, adjustment_iterations=res.iterations,
+        chi2_global_test={"statistic": res.chi2.statistic, "lower": res.chi2.lower, "upper": res.chi2.upper,
+                          "passed": res.chi2.passed},
+        std_x_m=math.sqrt(cov[0, 0]), std_y_m=math.sqrt(cov[1, 1]), std_azimuth_arcsec=3600 * math.sqrt(cov[2, 2]),
+        ellipse95_basis=ell.basis, beta_cum_deg=wrap_deg(math.degrees(best["pose"][2])),
+        timings_s=timer.as_dict(),
+    )
+    return MastResult(
+        "ok", "", float(x + origin[0]), float(y + origin[1]), az, format_dms(math.radians(az), 1, width_deg=3),
+        cov, {"a_m": ell.semi_major_m, "b_m": ell.semi_minor_m, "orientation_deg": math.degrees(ell.azimuth_rad)},
+        float(tq * math.sqrt(cov[2, 2])), float(res.sigma0), seg_option, icp.iterations, details, arrays, p,
+    )
+
+
+def _adjust_best(best: dict, matches, bl, obs: dict, origin, p: MastParams, best_option: int, details: dict,
+                 arrays: dict, timer: StageTimer) -> MastResult:
+    """Final least-squares adjustment from the chosen hypothesis; the result (``ok`` or ``failed``)."""
+    icp = best["icp"]
+    panels, beacon_of_panel = obs["panels"], obs["beacon_of_panel"]
+    used_opts = [m.option for m in best["used"]]
+    seg_option = min(used_opts) if used_opts else best_option
+    details["per_beacon_option"] = {
+        bl[b].beacon_id: min(m.option for m in best["used"] if m.beacon_index == b)
+        for b in sorted({m.beacon_index for m in best["used"]})
+    }
+    details["icp"] = {"iterations": icp.iterations, "rms_m": icp.rms_m, "n_inliers": icp.n_inliers,
+                      "converged": icp.converged, "beta_cum_deg": -math.degrees(icp.beta_cum_rad)}
+    with timer("adjustment"):
+        try:
+            pose, res, ok, idx, dropped = _final_adjustment(best["pose"], obs["bearing_rad"], obs["range_m"], panels,
+                                                            beacon_of_panel, obs["sig_r"], obs["sig_b"], p,
+                                                            np.vstack([b.vertices_m for b in bl]))
+        except (TooFewPointsError, DegenerateGeometryError, ConvergenceError) as exc:
+            return _fail(f"final adjustment impossible: {exc}", p, details, arrays, seg_option, icp.iterations)
+    counts = np.bincount(beacon_of_panel[idx[ok]], minlength=len(bl))
+    used_b = [bl[i].beacon_id for i in range(len(bl)) if counts[i] >= p.min_returns_per_beacon]
+    details["returns_per_beacon"] = {bl[i].beacon_id: int(counts[i]) for i in range(len(bl))}
+    details["beacons_dropped"] = [
+        f"{bl[b].beacon_id}: only {nf} of {npred} returns predicted on its panels fit them "
+        "(moved, missing or occluded beacon?)" for b, nf, npred in dropped
+    ]
+    details["beacons_used"] = used_b
+    arrays.update(
+        used=ok, panel=idx, panels_mine=panels + np.tile(origin, 2), bearing_deg=obs["bearing_deg"],
+        range_m=obs["range_m"],
+    )
+    if len(used_b) < p.min_beacons:
+        missing = [b.beacon_id for b in bl if b.beacon_id not in used_b]
+        return _fail(
+            f"only {len(used_b)} beacon(s) ({', '.join(used_b) or 'none'}) have at least "
+            f"{p.min_returns_per_beacon} returns; {', '.join(missing)} out of view or not reached "
+            f"(min_beacons={p.min_beacons})"
+            + ("; " + "; ".join(details["beacons_dropped"]) if details["beacons_dropped"] else ""),
+            p, details, arrays, seg_option, icp.iterations,
+        )
+    if not res.converged:
+        return _fail("final adjustment did not converge", p, details, arrays, seg_option, icp.iterations)
+    return _ok_result(pose, res, ok, best, obs, origin, p, seg_option, details, arrays, timer)
+
+
 def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | None = None) -> MastResult:
     """Scanner 2D position and azimuth in the mine frame from one horizontal scan (MAST).
 
@@ -407,26 +589,8 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
     """
     p = params or MastParams()
     timer = StageTimer()
-    sig_r = p.sigma_range_m if p.sigma_range_m is not None else scan.sigma_range_m
-    if sig_r is None:
-        raise InputError(
-            "no range noise model: give sigma_range_m (e.g. --sigma-range-m 0.003) or a "
-            "'# sigma_range_m: ...' line in the scan file"
-        )
-    sig_bd = p.sigma_bearing_deg if p.sigma_bearing_deg is not None else (scan.sigma_bearing_deg or 0.0)
-    sig_b = math.radians(sig_bd)
-    if not (sig_r > 0 or sig_b > 0 or p.sigma_panel_m > 0):
-        raise InputError("the noise model is zero: sigma_range_m must be > 0")
-    if len(beacons) < p.min_beacons:
-        raise TooFewPointsError(
-            f"{len(beacons)} beacon(s) given; MAST needs at least {p.min_beacons} surveyed beacons"
-        )
-    ids = [b.beacon_id for b in beacons]
-    if len(set(ids)) != len(ids):
-        raise InputError(f"duplicate beacon ids in the beacon list: {ids}")
-    if len(scan) < 3:
-        raise TooFewPointsError(f"the scan has {len(scan)} return(s); at least 3 are needed for x, y, azimuth")
-
+    sig_r, sig_bd, sig_b = _noise_model(scan, beacons, p)
+    # beacons in a local frame about a whole-metre origin
     origin = np.round(np.mean(np.vstack([b.vertices_m for b in beacons]), axis=0), 0)
     bl = [Beacon(b.beacon_id, b.vertices_m - origin) for b in beacons]
     panels = np.ascontiguousarray(np.vstack([b.panels() for b in bl]))
@@ -443,12 +607,7 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
         segs = segment_scan(xy, rng_m, bearing, sig_r, sig_bd, p.segmentation)
         matches = identify_panels(segs, bl, p.segmentation)
     details["n_lines"] = len(segs)
-    details["panel_matches"] = [
-        {"beacon_id": m.beacon_id, "option": m.option, "panels": [f"P{m.panel_a + 1}", f"P{m.panel_b + 1}"],
-         "identified": list(m.identified), "criteria": sorted(m.criteria),
-         "points": [[segs[m.seg_a].start, segs[m.seg_a].end], [segs[m.seg_b].start, segs[m.seg_b].end]]}
-        for m in matches
-    ]
+    details["panel_matches"] = _match_records(matches, segs)
     arrays = {"points_scan": xy, "order": order, "segments": [(s.start, s.end) for s in segs]}
     if not matches:
         return _fail(
@@ -459,53 +618,10 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
     size = max(float(b.panel_lengths_m.sum()) for b in bl)
     clusters = _cluster_matches(matches, size)
     hyps = _hypotheses(matches, clusters, p.max_hypotheses)
-    bearing_rad = np.radians(bearing)
-    evaluated = []
+    obs = {"xy": xy, "bearing_deg": bearing, "bearing_rad": np.radians(bearing), "range_m": rng_m,
+           "panels": panels, "beacon_of_panel": beacon_of_panel, "sig_r": sig_r, "sig_b": sig_b}
     with timer("alignment"):
-        for h in hyps:
-            src, dst, used = _correspondences(h, matches, clusters, segs, bl)
-            rec = {"assignment": {str(c): bl[b].beacon_id for c, b in h.items()}}
-            if len(src) < 2 or np.ptp(dst, axis=0).max() < 1e-6:
-                rec["rejected"] = "fewer than two distinct panel edges"
-                evaluated.append(rec)
-                continue
-            try:
-                hr = helmert2d(src, dst)
-            except MinegeoError as exc:
-                rec["rejected"] = f"Helmert: {exc}"
-                evaluated.append(rec)
-                continue
-            rec["helmert_scale"] = hr.scale
-            rec["helmert_rotation_deg"] = math.degrees(hr.rotation_rad)
-            if abs(hr.scale - 1.0) > p.helmert_scale_tolerance:
-                rec["rejected"] = f"Helmert scale {hr.scale:.3f} (scanner ranges must give scale ~1)"
-                evaluated.append(rec)
-                continue
-            # drop the scale u but keep the centroid of the edges where Helmert put it
-            R0 = rot2(hr.rotation_rad)
-            c_src = src.mean(axis=0)
-            T0 = np.eye(3)
-            T0[:2, :2] = R0
-            T0[:2, 2] = hr.scale * (R0 @ c_src) + hr.params[2:] - R0 @ c_src
-            # ICP first on the beacons of this hypothesis only (a beacon that is listed but
-            # missing must not pull the pose), then on all beacons with the tight gates.
-            hyp_panels = np.isin(beacon_of_panel, list(h.values()))
-            try:
-                icp1 = icp_point_to_line(xy, panels[hyp_panels], T0, p.icp_gates_m, p.icp_max_iterations)
-                icp = icp_point_to_line(xy, panels, icp1.T_mine_scan, p.icp_gates_m[-1:],
-                                        p.icp_max_iterations)
-            except (TooFewPointsError, DegenerateGeometryError) as exc:
-                rec["rejected"] = f"ICP: {exc}"
-                evaluated.append(rec)
-                continue
-            icp = replace(icp, iterations=icp1.iterations + icp.iterations,
-                          beta_cum_rad=icp1.beta_cum_rad + icp.beta_cum_rad)
-            pose = _pose_from_T(icp.T_mine_scan)
-            ok, idx, _, _, _ = _associate(pose, bearing_rad, rng_m, panels, beacon_of_panel, sig_r, sig_b, p)
-            per_b = np.bincount(beacon_of_panel[idx[ok]], minlength=len(bl))
-            rec.update(pose=pose, icp=icp, n_explained=int(ok.sum()), used=used,
-                       n_beacons=int(min((per_b >= p.min_returns_per_beacon).sum(), p.min_beacons)))
-            evaluated.append(rec)
+        evaluated = [_align_hypothesis(h, matches, clusters, segs, bl, obs, p) for h in hyps]
     good = [r for r in evaluated if "pose" in r]
     details["hypotheses"] = [
         {k: v for k, v in r.items() if k in ("assignment", "rejected", "helmert_scale", "n_explained", "n_beacons")}
@@ -519,81 +635,7 @@ def locate_scanner(scan: Scan2D, beacons: list[Beacon], params: MastParams | Non
     # prefer poses that explain returns on enough beacons, then the most returns
     good.sort(key=lambda r: (-r["n_beacons"], -r["n_explained"], -len(r["assignment"]), r["icp"].rms_m))
     best = good[0]
-    for other in good[1:]:
-        if other["n_beacons"] < best["n_beacons"]:
-            break
-        dpos = float(np.hypot(*(other["pose"][:2] - best["pose"][:2])))
-        dang = abs(math.remainder(other["pose"][2] - best["pose"][2], 2 * math.pi))
-        if other["n_explained"] >= p.ambiguity_ratio * best["n_explained"] and (dpos > 0.05 or dang > 0.01):
-            return _fail(
-                f"ambiguous beacon identification: assignments {best['assignment']} and "
-                f"{other['assignment']} explain {best['n_explained']} and {other['n_explained']} returns "
-                f"with poses {dpos:.2f} m / {math.degrees(dang):.1f} deg apart (beacons of identical "
-                "design mounted point-symmetrically?); mount them so their panel order differs",
-                p, details, arrays, best_option, best["icp"].iterations,
-            )
-    icp = best["icp"]
-    used_opts = [m.option for m in best["used"]]
-    seg_option = min(used_opts) if used_opts else best_option
-    details["per_beacon_option"] = {
-        bl[b].beacon_id: min(m.option for m in best["used"] if m.beacon_index == b)
-        for b in sorted({m.beacon_index for m in best["used"]})
-    }
-    details["icp"] = {"iterations": icp.iterations, "rms_m": icp.rms_m, "n_inliers": icp.n_inliers,
-                      "converged": icp.converged, "beta_cum_deg": -math.degrees(icp.beta_cum_rad)}
-    with timer("adjustment"):
-        try:
-            pose, res, ok, idx, dropped = _final_adjustment(best["pose"], bearing_rad, rng_m, panels,
-                                                            beacon_of_panel, sig_r, sig_b, p,
-                                                            np.vstack([b.vertices_m for b in bl]))
-        except (TooFewPointsError, DegenerateGeometryError, ConvergenceError) as exc:
-            return _fail(f"final adjustment impossible: {exc}", p, details, arrays, seg_option, icp.iterations)
-    counts = np.bincount(beacon_of_panel[idx[ok]], minlength=len(bl))
-    used_b = [bl[i].beacon_id for i in range(len(bl)) if counts[i] >= p.min_returns_per_beacon]
-    details["returns_per_beacon"] = {bl[i].beacon_id: int(counts[i]) for i in range(len(bl))}
-    details["beacons_dropped"] = [
-        f"{bl[b].beacon_id}: only {nf} of {npred} returns predicted on its panels fit them "
-        "(moved, missing or occluded beacon?)" for b, nf, npred in dropped
-    ]
-    details["beacons_used"] = used_b
-    arrays.update(
-        used=ok, panel=idx, panels_mine=panels + np.tile(origin, 2), bearing_deg=bearing, range_m=rng_m,
-    )
-    if len(used_b) < p.min_beacons:
-        missing = [b.beacon_id for b in bl if b.beacon_id not in used_b]
-        return _fail(
-            f"only {len(used_b)} beacon(s) ({', '.join(used_b) or 'none'}) have at least "
-            f"{p.min_returns_per_beacon} returns; {', '.join(missing)} out of view or not reached "
-            f"(min_beacons={p.min_beacons})"
-            + ("; " + "; ".join(details["beacons_dropped"]) if details["beacons_dropped"] else ""),
-            p, details, arrays, seg_option, icp.iterations,
-        )
-    if not res.converged:
-        return _fail("final adjustment did not converge", p, details, arrays, seg_option, icp.iterations)
-    x, y, a = pose
-    S = res.Sigma_xx[:3, :3].copy()
-    J = np.diag([1.0, 1.0, math.degrees(1.0)])
-    cov = J @ S @ J.T
-    known = res.variance_used == "apriori"
-    ell = error_ellipse(S[:2, :2], p.confidence, res.dof, sigma0_known=known)
-    tq = stats.norm.ppf(0.5 + p.confidence / 2) if known else stats.t.ppf(0.5 + p.confidence / 2, res.dof)
-    az = wrap_deg(math.degrees(a))
-    arrays["points_mine"] = np.column_stack(
-        [x + rng_m * np.sin(a + bearing_rad), y + rng_m * np.cos(a + bearing_rad)]
-    ) + origin
-    n_obs = int(ok.sum())
-    arrays["residuals_m"] = res.v[:n_obs]
-    details.update(
-        n_observations=n_obs, dof=res.dof, sigma0_apriori=res.sigma0_apriori,
-        variance_used=res.variance_used, adjustment_iterations=res.iterations,
-        chi2_global_test={"statistic": res.chi2.statistic, "lower": res.chi2.lower, "upper": res.chi2.upper,
-                          "passed": res.chi2.passed},
-        std_x_m=math.sqrt(cov[0, 0]), std_y_m=math.sqrt(cov[1, 1]), std_azimuth_arcsec=3600 * math.sqrt(cov[2, 2]),
-        ellipse95_basis=ell.basis, beta_cum_deg=wrap_deg(math.degrees(best["pose"][2])),
-        timings_s=timer.as_dict(),
-    )
-    return MastResult(
-        "ok", "", float(x + origin[0]), float(y + origin[1]), az, format_dms(math.radians(az), 1, width_deg=3),
-        cov, {"a_m": ell.semi_major_m, "b_m": ell.semi_minor_m, "orientation_deg": math.degrees(ell.azimuth_rad)},
-        float(tq * math.sqrt(cov[2, 2])), float(res.sigma0), seg_option, icp.iterations, details, arrays, p,
-    )
+    reason = _ambiguity(good, p)
+    if reason is not None:
+        return _fail(reason, p, details, arrays, best_option, best["icp"].iterations)
+    return _adjust_best(best, matches, bl, obs, origin, p, best_option, details, arrays, timer)

@@ -8,6 +8,7 @@ Usage::
     html = page("My report", body, subtitle="input.dat")
 
 * :func:`esc` — HTML-escape any value (``None`` -> empty).
+* :func:`num` — a number formatted with ``fmt``, or ``n/a`` (None, text, NaN, inf).
 * :func:`table` — ``<table>`` from headers and rows; ``numeric`` column indices are right
   aligned in a monospace font; ``row_classes`` marks rows (``"flag"`` renders red).
 * :func:`kv_table` — two-column key/value table.
@@ -25,9 +26,10 @@ Usage::
 from __future__ import annotations
 
 import html
+import math
 import re
 
-__all__ = ["esc", "table", "kv_table", "page", "badge", "status_banner", "img_png", "timings_html", "params_table",
+__all__ = ["esc", "num", "table", "kv_table", "page", "badge", "status_banner", "img_png", "timings_html", "params_table",
            "status_word", "CSS", "NO_PLOT"]
 
 _CSS = """
@@ -61,6 +63,15 @@ NO_PLOT = "(no plot: matplotlib is not installed; pip install 'minegeo[report]')
 def esc(value) -> str:
     """HTML-escaped text of ``value`` (``None`` -> ``""``)."""
     return "" if value is None else html.escape(str(value), quote=True)
+
+
+def num(value, fmt: str) -> str:
+    """``value`` formatted with ``fmt``; ``"n/a"`` when it is not a finite number (None, text, NaN, inf)."""
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        return "n/a"
+    return "n/a" if not math.isfinite(f) else format(f, fmt)
 
 
 def badge(text: str, ok: bool | None) -> str:

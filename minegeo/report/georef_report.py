@@ -20,7 +20,16 @@ import math
 import numpy as np
 
 from minegeo._provenance import atomic_write_text
-from minegeo.report._html import CSS, NO_PLOT, img_png, params_table, status_banner, status_word, timings_html
+from minegeo.report._html import (
+    CSS,
+    NO_PLOT,
+    img_png,
+    num,
+    params_table,
+    status_banner,
+    status_word,
+    timings_html,
+)
 
 __all__ = ["georef_report_html", "plot_georef_png", "write_georef_report"]
 
@@ -39,14 +48,6 @@ def _asdict(params) -> dict:
 
 def _e(x) -> str:
     return html.escape(str(x))
-
-
-def _n(v, fmt: str) -> str:
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        return "n/a"
-    return "n/a" if not math.isfinite(f) else format(f, fmt)
 
 
 def plot_georef_png(result, cloud_geo=None, max_cloud_points: int = 20000, seed: int = 0) -> bytes | None:
@@ -105,24 +106,13 @@ def plot_georef_png(result, cloud_geo=None, max_cloud_points: int = 20000, seed:
     return buf.getvalue()
 
 
-def georef_report_html(
-    result,
-    inputs: dict | None = None,
-    png: bytes | None = None,
-    outputs: dict | None = None,
-    provenance: dict | None = None,
-    timings: dict | None = None,
-) -> str:
-    """The HTML text of the report (see the module docstring); ``timings`` adds the run-time table."""
-    r = result
-    d = r.as_dict()
-    ci = d["crs_info"]
-    word = status_word(r.status)
+def _head(r, word: str, ci: dict) -> list[str]:
+    """Page head: status banner, title and the result's warnings."""
     if r.reason:
         text = r.reason
     else:
-        text = (f"σ0 = {_n(r.sigma0, '.3f')}, χ² test {r.chi2.get('verdict', 'n/a')}, RMS horizontal "
-                f"{_n(r.rms_m.get('horizontal', float('nan')) * 1000, '.1f')} mm over {r.n_gcps} GCPs")
+        text = (f"σ0 = {num(r.sigma0, '.3f')}, χ² test {r.chi2.get('verdict', 'n/a')}, RMS horizontal "
+                f"{num(r.rms_m.get('horizontal', float('nan')) * 1000, '.1f')} mm over {r.n_gcps} GCPs")
     out: list[str] = [
         "<!DOCTYPE html>",
         f"<html lang='en'><head><meta charset='utf-8'><title>{_e(word)}: minegeo georeferencing report</title>",
@@ -132,6 +122,12 @@ def georef_report_html(
     ]
     if r.warnings:
         out.append("<ul>" + "".join(f"<li>{_e(w)}</li>" for w in r.warnings) + "</ul>")
+    return out
+
+
+def _files_section(inputs: dict | None, outputs: dict | None) -> list[str]:
+    """Inputs (with SHA-256) and outputs."""
+    out: list[str] = []
     if inputs:
         out.append("<h2>Inputs</h2><table><tr><th class='l'>role</th><th class='l'>file</th><th class='l'>SHA-256</th><th>bytes</th></tr>")
         for k, rec in inputs.items():
@@ -142,9 +138,13 @@ def georef_report_html(
         out.append("</table>")
     if outputs:
         out.append("<h2>Outputs</h2><ul>" + "".join(f"<li>{_e(k)}: <code>{_e(v)}</code></li>" for k, v in outputs.items()) + "</ul>")
+    return out
 
+
+def _crs_section(r, ci: dict) -> list[str]:
+    """The CRS table: name, units and axis order, area of use, local origin, grid factors."""
     o = r.origin
-    out += [
+    out = [
         "<h2>Coordinate reference system</h2><table>",
         f"<tr><th class='l'>CRS</th><td class='l'>{_e(r.crs)} — {_e(ci.get('name'))} (EPSG {_e(ci.get('epsg'))}, {_e(ci.get('kind'))})</td></tr>",
         f"<tr><th class='l'>units / official axis order</th><td class='l'>{_e(ci.get('units'))} / {_e(ci.get('axis_order'))} "
@@ -161,11 +161,15 @@ def georef_report_html(
             f"({gf['combined_ppm']:+.1f} ppm) at lat {gf['lat_deg']:.5f}°, lon {gf['lon_deg']:.5f}°</td></tr>"
         )
     out.append("</table>")
+    return out
 
+
+def _parameter_table(r) -> list[str]:
+    """The model sentence and the table of the transformation parameters with standard deviations."""
     sd = r.translation_std_m
     rs = r.rotation_std_arcsec
     conv = "position vector (EPSG 9606)" if r.convention == "position_vector" else "coordinate frame (EPSG 9607)"
-    out += [
+    out = [
         "<h2>Model and parameters</h2>",
         f"<p><b>{'3D similarity, 7 parameters' if r.model == 'similarity' else '3D rigid, 6 parameters (s = 1)'}</b>: "
         "X<sub>CRS</sub> = T + s·R·x<sub>map</sub>, weighted least squares (Gauss–Markov), "
@@ -192,8 +196,15 @@ def georef_report_html(
         )
     else:
         out.append("<tr><td class='l'>scale s</td><td>1 (fixed)</td><td>—</td></tr>")
-    eu = r.euler_zyx_rad
     out.append("</table>")
+    return out
+
+
+def _scale_and_angles(r) -> list[str]:
+    """The scale test (similarity), the equivalent Euler angles and ``T_crs_map``."""
+    gf = r.grid_factors
+    eu = r.euler_zyx_rad
+    out: list[str] = []
     if r.model == "similarity" and r.scale_std > 0:
         zs = abs(r.scale - 1.0) / r.scale_std
         gtxt = ""
@@ -217,25 +228,35 @@ def georef_report_html(
         + "\n".join(" ".join(f"{v: .12f}" if abs(v) < 1e4 else f"{v: .6f}" for v in row) for row in r.T_crs_map)
         + "</pre>",
     ]
+    return out
 
+
+def _statistics_section(r) -> list[str]:
+    """Adjustment statistics: σ0 and its χ² test, w-test critical value, RMS residuals, geometry."""
     chi = r.chi2
     verdict = chi.get("verdict", "n/a")
     rms = r.rms_m
-    out += [
+    return [
         "<h2>Adjustment statistics</h2><table>",
         f"<tr><th class='l'>GCPs / observations / unknowns / dof</th><td>{r.n_gcps} / {3 * r.n_gcps} / "
         f"{7 if r.model == 'similarity' else 6} / {r.dof}</td></tr>",
-        f"<tr><th class='l'>σ0 (a posteriori, 1 expected)</th><td>{_n(r.sigma0, '.4f')}</td></tr>",
-        f"<tr><th class='l'>χ² test vᵀWv = {_n(chi.get('statistic'), '.3f')} in "
-        f"[{_n(chi.get('lower'), '.3f')}, {_n(chi.get('upper'), '.3f')}] (α = {_n(chi.get('alpha'), 'g')})</th>"
+        f"<tr><th class='l'>σ0 (a posteriori, 1 expected)</th><td>{num(r.sigma0, '.4f')}</td></tr>",
+        f"<tr><th class='l'>χ² test vᵀWv = {num(chi.get('statistic'), '.3f')} in "
+        f"[{num(chi.get('lower'), '.3f')}, {num(chi.get('upper'), '.3f')}] (α = {num(chi.get('alpha'), 'g')})</th>"
         f"<td><b>{_e(verdict)}</b></td></tr>",
         f"<tr><th class='l'>parameter covariance scaled with</th><td>{_e(r.variance_used)} σ0</td></tr>",
         f"<tr><th class='l'>w-test critical value (α = {r.params.blunder_alpha:g})</th><td>{r.w_critical:.3f}</td></tr>",
         f"<tr><th class='l'>RMS residual horizontal / height / 3D</th><td>{rms['horizontal'] * 1000:.2f} / "
         f"{rms['height'] * 1000:.2f} / {rms['3d'] * 1000:.2f} mm</td></tr>",
-        f"<tr><th class='l'>rotation-free scale check (unit rule)</th><td>{_n(r.scale_estimate_spread, '.8f')}</td></tr>",
-        f"<tr><th class='l'>GCP geometry (σ2/σ1 of map coordinates)</th><td>{_n(r.geometry_ratio, '.3f')}</td></tr>",
+        f"<tr><th class='l'>rotation-free scale check (unit rule)</th><td>{num(r.scale_estimate_spread, '.8f')}</td></tr>",
+        f"<tr><th class='l'>GCP geometry (σ2/σ1 of map coordinates)</th><td>{num(r.geometry_ratio, '.3f')}</td></tr>",
         "</table>",
+    ]
+
+
+def _gcp_section(r) -> list[str]:
+    """The per-GCP table: coordinates, residuals, σ, w-test values, redundancy numbers, flags."""
+    out = [
         "<h2>Ground control points</h2>",
         "<table><tr><th class='l'>id</th><th>x map</th><th>y map</th><th>z map</th><th>E</th><th>N</th><th>H</th>"
         "<th>v<sub>E</sub> mm</th><th>v<sub>N</sub> mm</th><th>v<sub>H</sub> mm</th><th>σ<sub>E,N,H</sub> mm</th>"
@@ -253,8 +274,8 @@ def georef_report_html(
             f"<td>{X[0]:.3f}</td><td>{X[1]:.3f}</td><td>{X[2]:.3f}</td>"
             f"<td>{v[0]:+.1f}</td><td>{v[1]:+.1f}</td><td>{v[2]:+.1f}</td>"
             f"<td>{s[0]:.1f}, {s[1]:.1f}, {s[2]:.1f}</td>"
-            f"<td>{_n(w[0], '+.2f')}</td><td>{_n(w[1], '+.2f')}</td><td>{_n(w[2], '+.2f')}</td>"
-            f"<td>{_n(np.min(r.redundancy[i]), '.2f')}</td><td class='l'>{_e(r.flags[i])}</td></tr>"
+            f"<td>{num(w[0], '+.2f')}</td><td>{num(w[1], '+.2f')}</td><td>{num(w[2], '+.2f')}</td>"
+            f"<td>{num(np.min(r.redundancy[i]), '.2f')}</td><td class='l'>{_e(r.flags[i])}</td></tr>"
         )
     out.append("</table>")
     out.append(
@@ -262,7 +283,12 @@ def georef_report_html(
         "coordinate has |w| above the critical value; the largest is the suspected blunder (remove it and "
         "re-run). r<sub>i</sub> = redundancy number (&lt; 0.1: the coordinate is barely checked by the others).</p>"
     )
-    out.append("<h2>Plan view</h2>")
+    return out
+
+
+def _tail(r, png: bytes | None, provenance: dict | None, timings: dict | None) -> list[str]:
+    """Plan view, parameters used, run time and provenance, and the end of the page."""
+    out = ["<h2>Plan view</h2>"]
     if png:
         out.append(img_png(png, "GCP residual vectors"))
     else:
@@ -280,6 +306,28 @@ def georef_report_html(
             + f"<br>created {_e(provenance.get('created_utc', ''))}</p>"
         )
     out.append("</body></html>")
+    return out
+
+
+def georef_report_html(
+    result,
+    inputs: dict | None = None,
+    png: bytes | None = None,
+    outputs: dict | None = None,
+    provenance: dict | None = None,
+    timings: dict | None = None,
+) -> str:
+    """The HTML text of the report (see the module docstring); ``timings`` adds the run-time table."""
+    r = result
+    ci = r.as_dict()["crs_info"]
+    out = _head(r, status_word(r.status), ci)
+    out += _files_section(inputs, outputs)
+    out += _crs_section(r, ci)
+    out += _parameter_table(r)
+    out += _scale_and_angles(r)
+    out += _statistics_section(r)
+    out += _gcp_section(r)
+    out += _tail(r, png, provenance, timings)
     return "\n".join(out) + "\n"
 
 

@@ -21,7 +21,7 @@ from dataclasses import asdict
 import numpy as np
 
 from minegeo._provenance import atomic_write_text, to_jsonable
-from minegeo.report._html import badge, esc, kv_table, page, table
+from minegeo.report._html import badge, esc, kv_table, num, page, table
 
 __all__ = ["plot_localization_png", "localize_report_html", "write_localize_report"]
 
@@ -37,14 +37,6 @@ _STATUS_TEXT = {
               "area, the drift may have changed since mapping, or the scan is too short or too noisy. The "
               "placements that were tried are listed below as rejected candidates, not positions.",
 }
-
-
-def _n(v, fmt: str) -> str:
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        return "n/a"
-    return "n/a" if not math.isfinite(f) else format(f, fmt)
 
 
 def _frame_xy(g, pts_map: np.ndarray):
@@ -143,8 +135,8 @@ def describe_params(p, map_params) -> str:
               f"and cap {int(r.max_iterations):,}, "
               f"{r.max_validations} validations, {r.n_hypotheses} hypotheses x {p.ransac_runs} run(s)")
     icp = (f"ICP {p.icp_method}, gate {p.icp_max_correspondence_m:g} m, <= {p.icp_max_iterations} iterations, "
-           f"ICP clouds {_n(p.scan_icp_voxel_size_m, 'g')} m (scan) / "
-           f"{_n(getattr(mp, 'icp_voxel_size_m', None), 'g')} m (map) voxels; polish "
+           f"ICP clouds {num(p.scan_icp_voxel_size_m, 'g')} m (scan) / "
+           f"{num(getattr(mp, 'icp_voxel_size_m', None), 'g')} m (map) voxels; polish "
            + (f"{p.icp_polish_correspondence_m:g} m" if p.icp_polish_correspondence_m is not None else "off"))
     corr = f"correlative search {p.correlative}" if r.model == "levelled" else "no correlative search (not levelled)"
     return (f"scan {scan_ds}, map {map_ds}; normals r {f.normal_radius_m:g} m, FPFH r {f.fpfh_radius_m:g} m; "
@@ -181,11 +173,11 @@ def _uncertainty_text(u: dict | None) -> str:
             "final ICP pairs")
     if method == "jackknife":
         txt = (f"{base}, by the delete-one-block jackknife over {u.get('n_clusters')} blocks of "
-               f"{_n(u.get('cluster_size_used_m'), 'g')} m (neighbouring residuals are correlated; it is "
-               f"{_n(u.get('inflation'), '.1f')}x the formal σ²(JᵀJ)⁻¹ in position), never below the formal one")
+               f"{num(u.get('cluster_size_used_m'), 'g')} m (neighbouring residuals are correlated; it is "
+               f"{num(u.get('inflation'), '.1f')}x the formal σ²(JᵀJ)⁻¹ in position), never below the formal one")
     elif method == "cluster":
         txt = (f"{base}, cluster-robust over {u.get('n_clusters')} blocks of "
-               f"{_n(u.get('cluster_size_used_m'), 'g')} m, never below the formal σ²(JᵀJ)⁻¹")
+               f"{num(u.get('cluster_size_used_m'), 'g')} m, never below the formal σ²(JᵀJ)⁻¹")
     else:
         txt = f"{base}, formal σ²(JᵀJ)⁻¹ (independent residuals assumed: optimistic)"
     if u.get("params", {}).get("add_pending_step"):
@@ -196,11 +188,11 @@ def _uncertainty_text(u: dict | None) -> str:
     dt = u.get("data_term") or {}
     terms = u.get("model_terms") or {}
     if dt.get("position_95_radius_m") is not None:
-        txt += (f". What the data determine alone: 95 % radius {_n(dt.get('position_95_radius_m'), '.4f')} m, "
-                f"information ratio {_n(dt.get('information_ratio'), '.2e')}")
+        txt += (f". What the data determine alone: 95 % radius {num(dt.get('position_95_radius_m'), '.4f')} m, "
+                f"information ratio {num(dt.get('information_ratio'), '.2e')}")
     if terms:
         txt += "; model terms added (RMS position, m): " + ", ".join(
-            f"{k} {_n(v.get('position_rms_m'), '.4f')}" for k, v in terms.items())
+            f"{k} {num(v.get('position_rms_m'), '.4f')}" for k, v in terms.items())
     return txt + ". It excludes the map's own error and the georeferencing error (docs/uncertainty.md)."
 
 
@@ -219,8 +211,8 @@ def _rejected_section(res) -> str:
         why = res.ransac.reason if res.ransac is not None else ""
         return f"<p>No candidate placement was proposed ({esc(why)}).</p>"
     rows = [[c["rank"], c["source"], "NOT a position: " + "  ".join(f"{v:.1f}" for v in c["origin_map_m"]),
-             _n(c["distance_to_best_m"], ".1f"), _n(c["rotation_to_best_deg"], ".1f"), _n(c["plane_fitness"], ".3f"),
-             _n(c["icp_fitness"], ".3f"), _n(c["icp_inlier_rmse_m"], ".3f")] for c in cands]
+             num(c["distance_to_best_m"], ".1f"), num(c["rotation_to_best_deg"], ".1f"), num(c["plane_fitness"], ".3f"),
+             num(c["icp_fitness"], ".3f"), num(c["icp_inlier_rmse_m"], ".3f")] for c in cands]
     sec = ("<p><b>These placements were tried and rejected; none of them is the position of the scan.</b> "
            "The map-frame location is where the scan origin would be if that placement were right; it is given "
            "to show how far apart the candidates are (a repeated drift), never to be used.</p>")
@@ -228,7 +220,7 @@ def _rejected_section(res) -> str:
                   "from #0 °", "plane fitness", "ICP fitness", "ICP RMSE m"], rows, numeric=range(3, 8))
     sec += (f"<p class='sub'>An ok result needs plane fitness >= {res.params.min_plane_fitness:g} and no distinct "
             f"rival reaching {res.params.ambiguity_ratio:g} x the best (plane tolerance "
-            f"{_n(res.plane_tolerance_m, '.3f')} m).</p>")
+            f"{num(res.plane_tolerance_m, '.3f')} m).</p>")
     return sec
 
 
@@ -240,13 +232,13 @@ def _rival_section(res) -> str | None:
         return None
     b = rv.get("best_rival")
     rows = [("what was searched", rv.get("guarantee", "")),
-            ("chosen attitude: tilt / heading (°)", f"{_n(rv.get('tilt_deg'), '.2f')} / {_n(rv.get('heading_deg'), '.2f')}"),
+            ("chosen attitude: tilt / heading (°)", f"{num(rv.get('tilt_deg'), '.2f')} / {num(rv.get('heading_deg'), '.2f')}"),
             ("placements scored", f"{rv.get('n_placements')} on the first pivot ({rv.get('n_anchors')} floor anchors x "
                                   f"{rv.get('n_yaw')} headings), {rv.get('n_pivots')} pivots"),
             ("chosen placement found again by the search", f"rank {rv['self_rank']}" if rv.get("self_found")
              else "NO (the guarantee does not hold for this scan)"),
             ("coverage of the cascade", "complete" if rv.get("covered") else "INCOMPLETE (caps reached)"),
-            ("time (s)", _n(res.timings_s.get("rival_search"), ".2f"))]
+            ("time (s)", num(res.timings_s.get("rival_search"), ".2f"))]
     if b is None:
         rows.append(("best rival", "none: no other placement was found"))
     else:
@@ -254,18 +246,18 @@ def _rival_section(res) -> str | None:
                   + ("; rejected)" if res.status == "ok" else ")"),
                   "scan origin if it were right, map frame: " + "  ".join(f"{v:.1f}" for v in b["origin_map_m"])),
                  ("its distance / rotation from the " + ("answer" if res.status == "ok" else "best"),
-                  f"{_n(b['distance_to_chosen_m'], '.1f')} m / {_n(b['rotation_to_chosen_deg'], '.1f')} °"),
+                  f"{num(b['distance_to_chosen_m'], '.1f')} m / {num(b['rotation_to_chosen_deg'], '.1f')} °"),
                  (f"plane fitness, rival vs chosen ({b['score_level']} level)",
-                  f"{_n(b['plane_fitness'], '.3f')} vs {_n(b['chosen_plane_fitness'], '.3f')}"),
+                  f"{num(b['plane_fitness'], '.3f')} vs {num(b['chosen_plane_fitness'], '.3f')}"),
                  ("margin (chosen / rival; ambiguous at <= "
-                  f"{_n(1.0 / rv['ambiguity_ratio'], '.2f')})", _n(b["margin"], ".3f")),
-                 (f"support-matched ratio on the {_n(100 * b['common_fraction'], '.0f')} % of points the map "
-                  f"covers at both (ambiguous at >= {rv['params']['matched_ratio']:g})", _n(b["matched_ratio"], ".3f")),
+                  f"{num(1.0 / rv['ambiguity_ratio'], '.2f')})", num(b["margin"], ".3f")),
+                 (f"support-matched ratio on the {num(100 * b['common_fraction'], '.0f')} % of points the map "
+                  f"covers at both (ambiguous at >= {rv['params']['matched_ratio']:g})", num(b["matched_ratio"], ".3f")),
                  ("source / test passed", f"{b['source']} / {b.get('test_passed') or 'none'}")]
     sec = kv_table(rows)
-    crow = [[c["rank"], c["stage"], _n(c["final_distance_to_chosen_m"], ".1f"),
-             _n(c["final_rotation_to_chosen_deg"], ".1f"), _n(c["precheck_plane_fitness"], ".3f"),
-             _n(c["precheck_matched_ratio"], ".3f"), _n(c["plane_fitness"], ".3f"), _n(c["matched_ratio"], ".3f")]
+    crow = [[c["rank"], c["stage"], num(c["final_distance_to_chosen_m"], ".1f"),
+             num(c["final_rotation_to_chosen_deg"], ".1f"), num(c["precheck_plane_fitness"], ".3f"),
+             num(c["precheck_matched_ratio"], ".3f"), num(c["plane_fitness"], ".3f"), num(c["matched_ratio"], ".3f")]
             for c in rv.get("candidates", []) if c["stage"] != "self"]
     if crow:
         sec += table(["#", "stage", "from chosen m", "from chosen °", "pre-check plane fitness",
@@ -283,68 +275,70 @@ def _timings_section(tim: dict) -> str:
     rows = []
     if "wall_s" in tim:
         wall = tim.get("process_wall_s", tim["wall_s"])
-        rows.append(("whole run, wall clock", f"{_n(wall, '.2f')} s"))
+        rows.append(("whole run, wall clock", f"{num(wall, '.2f')} s"))
         rows.append(("  of which compiling Numba kernels (one-time; cached for later runs)",
-                     f"{_n(tim.get('compile_s'), '.2f')} s"))
+                     f"{num(tim.get('compile_s'), '.2f')} s"))
         if "startup_s" in tim:
-            rows.append(("  of which Python start-up and imports", f"{_n(tim['startup_s'], '.2f')} s"))
-        rows.append(("  work (run clock minus compiling)", f"{_n(tim.get('work_s'), '.2f')} s"))
+            rows.append(("  of which Python start-up and imports", f"{num(tim['startup_s'], '.2f')} s"))
+        rows.append(("  work (run clock minus compiling)", f"{num(tim.get('work_s'), '.2f')} s"))
     head = kv_table(rows) if rows else ""
     skip = {"wall_s", "compile_s", "work_s", "startup_s", "process_wall_s"}
-    return head + table(["stage", "seconds"], [[k, _n(v, ".3f")] for k, v in tim.items() if k not in skip],
+    return head + table(["stage", "seconds"], [[k, num(v, ".3f")] for k, v in tim.items() if k not in skip],
                         numeric=[1])
 
 
-def localize_report_html(res, prepared, *, inputs=None, extra: dict | None = None) -> str:
-    """The report page as a string (see the module docstring: no position unless ``ok``)."""
-    extra = extra or {}
-    ok = res.status == "ok"
-    sections = []
+def _status_section(res) -> str:
+    """Badge, reason, what the status means, and the warnings."""
     head = (f"<p>{badge(res.status.upper(), {'ok': True, 'failed': False, 'ambiguous': False}.get(res.status))} "
             f"{esc(res.reason)}</p><p>{esc(_STATUS_TEXT[res.status])}</p>")
     if res.warnings:
         head += "<ul>" + "".join(f"<li>{esc(w)}</li>" for w in res.warnings) + "</ul>"
-    sections.append(("Status", head))
+    return head
 
-    if ok:
-        rows = [("frame of T_map_scan", "map frame of the prior map before georeferencing (p_map = R p_scan + t)")]
-        t = res.T_map_scan[:3, 3]
-        rows.append(("scan origin, map frame (m)", f"{t[0]:.3f}  {t[1]:.3f}  {t[2]:.3f}"))
-        if res.T_crs_scan is not None:
-            c = res.T_crs_scan[:3, 3]
-            rows.append((f"scan origin, CRS {res.crs} (E N H, m)", f"{c[0]:.3f}  {c[1]:.3f}  {c[2]:.3f}"))
-        s = res.position_sigma_m
-        rows.append(("1σ of the scan origin x, y, z (m)", "  ".join(_n(v, ".4f") for v in s)))
-        rows.append(("95 % radius 3-D (m)", f"{_n(res.position_95_radius_m, '.4f')}  (ball holding the origin with probability 0.95 under the covariance)"))
-        rows.append(("95 % radius horizontal (m)",
-                     f"{_n(res.horizontal_95_radius_m, '.4f')}  (circle holding it with probability 0.95 in plan)"))
-        rows.append(("σ of one residual (m)", _n(res.sigma_m, ".4f")))
-        rows.append(("final fitness / inlier RMSE (Eq. 19)",
-                     f"{_n(res.fitness, '.4f')} / {_n(res.inlier_rmse_m, '.4f')} m"))
-        rows.append(("scan points: read / features / ICP", f"{res.n_scan_points} / {res.n_scan_down} / {res.n_scan_icp}"))
-        sec = kv_table(rows)
-        sec += f"<p class='sub'>{esc(_uncertainty_text(res.uncertainty))}</p>"
-        sec += "<h3>T_map_scan</h3>" + _mat(res.T_map_scan)
-        if res.T_crs_scan is not None:
-            sec += f"<h3>T_crs_scan (full {esc(res.crs)} coordinates)</h3>" + _mat(res.T_crs_scan)
-        sections.append(("Result", sec))
-    else:
-        sections.append((f"Rejected candidates ({res.status.upper()}: NOT positions)", _rejected_section(res)))
 
+def _result_section(res) -> str:
+    """The placed scan (``ok`` only): origin in the map and the CRS, uncertainty, fit, transforms."""
+    rows = [("frame of T_map_scan", "map frame of the prior map before georeferencing (p_map = R p_scan + t)")]
+    t = res.T_map_scan[:3, 3]
+    rows.append(("scan origin, map frame (m)", f"{t[0]:.3f}  {t[1]:.3f}  {t[2]:.3f}"))
+    if res.T_crs_scan is not None:
+        c = res.T_crs_scan[:3, 3]
+        rows.append((f"scan origin, CRS {res.crs} (E N H, m)", f"{c[0]:.3f}  {c[1]:.3f}  {c[2]:.3f}"))
+    s = res.position_sigma_m
+    rows.append(("1σ of the scan origin x, y, z (m)", "  ".join(num(v, ".4f") for v in s)))
+    rows.append(("95 % radius 3-D (m)", f"{num(res.position_95_radius_m, '.4f')}  (ball holding the origin with probability 0.95 under the covariance)"))
+    rows.append(("95 % radius horizontal (m)",
+                 f"{num(res.horizontal_95_radius_m, '.4f')}  (circle holding it with probability 0.95 in plan)"))
+    rows.append(("σ of one residual (m)", num(res.sigma_m, ".4f")))
+    rows.append(("final fitness / inlier RMSE (Eq. 19)",
+                 f"{num(res.fitness, '.4f')} / {num(res.inlier_rmse_m, '.4f')} m"))
+    rows.append(("scan points: read / features / ICP", f"{res.n_scan_points} / {res.n_scan_down} / {res.n_scan_icp}"))
+    sec = kv_table(rows)
+    sec += f"<p class='sub'>{esc(_uncertainty_text(res.uncertainty))}</p>"
+    sec += "<h3>T_map_scan</h3>" + _mat(res.T_map_scan)
+    if res.T_crs_scan is not None:
+        sec += f"<h3>T_crs_scan (full {esc(res.crs)} coordinates)</h3>" + _mat(res.T_crs_scan)
+    return sec
+
+
+def _plan_view_section(res, prepared, ok: bool) -> tuple[str, str]:
+    """The embedded plan view (or the note that matplotlib is missing), with its title."""
     png = plot_localization_png(res, prepared, seed=res.seed)
     if png is None:
-        sections.append(("Plan view", "<p>matplotlib is not installed: no plot.</p>"))
-    else:
-        b64 = base64.b64encode(png).decode("ascii")
-        sections.append(("Plan view" if ok else "Plan view of the rejected candidates",
-                         f'<img alt="plan view" style="max-width:100%" src="data:image/png;base64,{b64}">'))
+        return ("Plan view", "<p>matplotlib is not installed: no plot.</p>")
+    b64 = base64.b64encode(png).decode("ascii")
+    return ("Plan view" if ok else "Plan view of the rejected candidates",
+            f'<img alt="plan view" style="max-width:100%" src="data:image/png;base64,{b64}">')
 
+
+def _hypotheses_section(res, ok: bool) -> str:
+    """The verified hypotheses, the RANSAC summary and the final ICP's degeneracy check."""
     hrows = []
     for h in res.hypotheses:
-        hrows.append([h["rank"], h["source"], _n(h["ransac_fitness"], ".3f"), _n(h["ransac_inlier_rmse_m"], ".3f"),
-                      _n(h["icp_fitness"], ".3f"), _n(h["icp_inlier_rmse_m"], ".3f"), _n(h["plane_fitness"], ".3f"),
-                      _n(h["plane_rmse_m"], ".3f"), _n(h["distance_to_chosen_m"], ".2f"),
-                      _n(h["rotation_to_chosen_deg"], ".2f")])
+        hrows.append([h["rank"], h["source"], num(h["ransac_fitness"], ".3f"), num(h["ransac_inlier_rmse_m"], ".3f"),
+                      num(h["icp_fitness"], ".3f"), num(h["icp_inlier_rmse_m"], ".3f"), num(h["plane_fitness"], ".3f"),
+                      num(h["plane_rmse_m"], ".3f"), num(h["distance_to_chosen_m"], ".2f"),
+                      num(h["rotation_to_chosen_deg"], ".2f")])
     r = res.ransac
     ref = "chosen" if ok else "best rejected"
     sec = table(["rank", "hypothesis", "RANSAC fitness", "RANSAC RMSE m", "ICP fitness", "ICP RMSE m",
@@ -354,65 +348,89 @@ def localize_report_html(res, prepared, *, inputs=None, extra: dict | None = Non
         sec += kv_table([
             ("RANSAC iterations / validations", f"{r.iterations} / {r.n_validations} ({r.status})"),
             ("putative FPFH correspondences", int(r.correspondences.shape[0])),
-            ("runner-up score ratio / distance", f"{_n(r.ambiguity_ratio, '.3f')} / {_n(r.second_best_distance_m, '.1f')} m"),
+            ("runner-up score ratio / distance", f"{num(r.ambiguity_ratio, '.3f')} / {num(r.second_best_distance_m, '.1f')} m"),
         ])
     if res.icp is not None:
         ic = res.icp
         sec += kv_table([
             ("ICP method / iterations / converged", f"{res.params.icp_method} / {ic.iterations} / {ic.converged}"),
             ("constraint eigenvalue ratio (degenerate below "
-             f"{res.params.degeneracy_ratio:g})", _n(ic.degeneracy_ratio, ".4f")),
+             f"{res.params.degeneracy_ratio:g})", num(ic.degeneracy_ratio, ".4f")),
             ("degeneracy", ic.degeneracy_reason or "none"),
         ])
-    sections.append(("Hypotheses verified (multi-hypothesis ICP)", sec))
-    rsec = _rival_section(res)
-    if rsec is not None:
-        sections.append(("Whole-map rival search (is there another place that fits?)", rsec))
+    return sec
 
-    if ok and res.residuals_m is not None and res.residuals_m.size:
-        a = np.abs(res.residuals_m)
-        q = np.percentile(a, [50, 68.3, 90, 95, 99])
-        sec = table(["pairs", "mean |r| m", "median", "68.3 %", "90 %", "95 %", "99 %", "max"],
-                    [[a.size, _n(a.mean(), ".4f")] + [_n(v, ".4f") for v in q] + [_n(a.max(), ".4f")]],
-                    numeric=range(0, 8))
-        sec += "<p class='sub'>Point-to-plane residuals |(R p + t − q)·n| of the final ICP pairs (gate " \
-               f"{res.params.icp_max_correspondence_m:g} m).</p>"
-        sections.append(("Residuals of the final fit", sec))
 
-    if ok and res.trajectory_map is not None:
-        tm = res.trajectory_map
-        n = len(tm.times_s)
-        pick = sorted(set(np.linspace(0, n - 1, min(n, 15)).round().astype(int).tolist()))
-        trows = []
-        for i in pick:
-            p_i = tm.poses[i, :3, 3]
-            row = [f"{tm.times_s[i]:.2f}", f"{p_i[0]:.3f}", f"{p_i[1]:.3f}", f"{p_i[2]:.3f}"]
-            if res.trajectory_geo is not None:
-                e = res.trajectory_geo.poses[i, :3, 3] + res.trajectory_geo.origin
-                row += [f"{e[0]:.3f}", f"{e[1]:.3f}", f"{e[2]:.3f}"]
-            s_i = res.trajectory_sigma_m[i] if res.trajectory_sigma_m is not None else math.inf
-            row.append(_n(s_i, ".4f"))
-            trows.append(row)
-        hdr = ["t (s)", "x map", "y map", "z map"] + (["E", "N", "H"] if res.trajectory_geo is not None else []) \
-            + ["1σ 3-D m"]
-        sections.append(("Sensor trajectory in the map / CRS (Eq. 18)",
-                         f"<p>{n} poses; {len(pick)} shown (all in trajectory_global.csv).</p>"
-                         + table(hdr, trows, numeric=range(len(hdr)))))
-    elif res.trajectory_map is not None:
-        sections.append(("Sensor trajectory", f"<p>Not placed: the localization is {esc(res.status.upper())}, so no "
-                                              "sensor pose is known (no trajectory_global.csv is written).</p>"))
+def _residuals_section(res) -> str:
+    """Percentiles of the point-to-plane residuals of the final ICP pairs."""
+    a = np.abs(res.residuals_m)
+    q = np.percentile(a, [50, 68.3, 90, 95, 99])
+    sec = table(["pairs", "mean |r| m", "median", "68.3 %", "90 %", "95 %", "99 %", "max"],
+                [[a.size, num(a.mean(), ".4f")] + [num(v, ".4f") for v in q] + [num(a.max(), ".4f")]],
+                numeric=range(0, 8))
+    sec += "<p class='sub'>Point-to-plane residuals |(R p + t − q)·n| of the final ICP pairs (gate " \
+           f"{res.params.icp_max_correspondence_m:g} m).</p>"
+    return sec
 
+
+def _trajectory_section(res) -> str:
+    """Up to 15 poses of the sensor trajectory in the map and the CRS, with their 1σ."""
+    tm = res.trajectory_map
+    n = len(tm.times_s)
+    pick = sorted(set(np.linspace(0, n - 1, min(n, 15)).round().astype(int).tolist()))
+    trows = []
+    for i in pick:
+        p_i = tm.poses[i, :3, 3]
+        row = [f"{tm.times_s[i]:.2f}", f"{p_i[0]:.3f}", f"{p_i[1]:.3f}", f"{p_i[2]:.3f}"]
+        if res.trajectory_geo is not None:
+            e = res.trajectory_geo.poses[i, :3, 3] + res.trajectory_geo.origin
+            row += [f"{e[0]:.3f}", f"{e[1]:.3f}", f"{e[2]:.3f}"]
+        s_i = res.trajectory_sigma_m[i] if res.trajectory_sigma_m is not None else math.inf
+        row.append(num(s_i, ".4f"))
+        trows.append(row)
+    hdr = ["t (s)", "x map", "y map", "z map"] + (["E", "N", "H"] if res.trajectory_geo is not None else []) \
+        + ["1σ 3-D m"]
+    return (f"<p>{n} poses; {len(pick)} shown (all in trajectory_global.csv).</p>"
+            + table(hdr, trows, numeric=range(len(hdr))))
+
+
+def _parameters_section(res, prepared, profile) -> tuple[str, str]:
+    """Title and table of the parameters used: profile, effective values, every field."""
     p = res.params
-    label = profile_label(p, prepared.params, extra.get("profile"))
+    label = profile_label(p, prepared.params, profile)
     prow = [("profile", label), ("effective values", describe_params(p, prepared.params))]
     prow += [(k, v) for k, v in to_jsonable(asdict(p)).items() if k not in ("features", "ransac")]
     prow += [(f"features.{k}", v) for k, v in to_jsonable(asdict(p.features)).items()]
     prow += [(f"ransac.{k}", v) for k, v in to_jsonable(asdict(p.ransac)).items()]
     prow += [(f"map.{k}", v) for k, v in to_jsonable(asdict(prepared.params)).items() if k != "features"]
     prow.append(("seed", res.seed))
-    sections.append((f"Parameters used ({label.split(':')[0].split(' (')[0]}; {p.describe_downsampling()}, "
-                     f"FPFH r {p.features.fpfh_radius_m:g} m, {p.ransac.ransac_n}-point RANSAC, {p.icp_method} ICP)",
-                     kv_table(prow)))
+    return (f"Parameters used ({label.split(':')[0].split(' (')[0]}; {p.describe_downsampling()}, "
+            f"FPFH r {p.features.fpfh_radius_m:g} m, {p.ransac.ransac_n}-point RANSAC, {p.icp_method} ICP)",
+            kv_table(prow))
+
+
+def localize_report_html(res, prepared, *, inputs=None, extra: dict | None = None) -> str:
+    """The report page as a string (see the module docstring: no position unless ``ok``)."""
+    extra = extra or {}
+    ok = res.status == "ok"
+    sections = [("Status", _status_section(res))]
+    if ok:
+        sections.append(("Result", _result_section(res)))
+    else:
+        sections.append((f"Rejected candidates ({res.status.upper()}: NOT positions)", _rejected_section(res)))
+    sections.append(_plan_view_section(res, prepared, ok))
+    sections.append(("Hypotheses verified (multi-hypothesis ICP)", _hypotheses_section(res, ok)))
+    rsec = _rival_section(res)
+    if rsec is not None:
+        sections.append(("Whole-map rival search (is there another place that fits?)", rsec))
+    if ok and res.residuals_m is not None and res.residuals_m.size:
+        sections.append(("Residuals of the final fit", _residuals_section(res)))
+    if ok and res.trajectory_map is not None:
+        sections.append(("Sensor trajectory in the map / CRS (Eq. 18)", _trajectory_section(res)))
+    elif res.trajectory_map is not None:
+        sections.append(("Sensor trajectory", f"<p>Not placed: the localization is {esc(res.status.upper())}, so no "
+                                              "sensor pose is known (no trajectory_global.csv is written).</p>"))
+    sections.append(_parameters_section(res, prepared, extra.get("profile")))
     tim = extra.get("timings_s", res.timings_s)
     sections.append(("Run time (s, wall clock; Numba compile time apart)", _timings_section(tim)))
     irows = [[i.get("path"), i.get("sha256"), i.get("size_bytes")] for i in (inputs or [])]

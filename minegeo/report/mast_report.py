@@ -24,6 +24,7 @@ from minegeo.report._html import (
     esc,
     img_png,
     kv_table,
+    num,
     page,
     params_table,
     status_word,
@@ -32,14 +33,6 @@ from minegeo.report._html import (
 )
 
 __all__ = ["write_mast_report", "mast_report_html", "plot_mast"]
-
-
-def _f(v, fmt: str) -> str:
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        return "n/a"
-    return "n/a" if not math.isfinite(f) else format(f, fmt)
 
 
 def mast_report_html(result, beacons=(), inputs: dict | None = None, png: bytes | None = None,
@@ -61,7 +54,7 @@ def mast_report_html(result, beacons=(), inputs: dict | None = None, png: bytes 
     if result.ok:
         e = result.ellipse95
         text = (f"x = {result.x_m:.4f} m, y = {result.y_m:.4f} m, azimuth {result.azimuth_dms}; 95 % ellipse "
-                f"{1000 * e['a_m']:.1f} × {1000 * e['b_m']:.1f} mm, σ0 = {_f(result.sigma0, '.2f')}")
+                f"{1000 * e['a_m']:.1f} × {1000 * e['b_m']:.1f} mm, σ0 = {num(result.sigma0, '.2f')}")
     else:
         text = result.reason or "no pose"
     secs = []
@@ -88,11 +81,11 @@ def mast_report_html(result, beacons=(), inputs: dict | None = None, png: bytes 
         ]) + "<pre>" + esc("\n".join(" ".join(f"{v: .6e}" for v in row) for row in cov)) + "</pre>"))
         secs.append(("Statistics", f"<p>χ² global test: {badge('PASSED' if passed else 'FAILED', bool(passed))}</p>"
                      + kv_table([
-                         ("σ0 (a posteriori)", _f(result.sigma0, ".3f")),
+                         ("σ0 (a posteriori)", num(result.sigma0, ".3f")),
                          ("degrees of freedom", d.get("dof")),
                          ("returns on beacon panels", d.get("n_observations")),
-                         ("χ² statistic", f"{_f(chi.get('statistic'), '.1f')} in [{_f(chi.get('lower'), '.1f')}, "
-                                          f"{_f(chi.get('upper'), '.1f')}]"),
+                         ("χ² statistic", f"{num(chi.get('statistic'), '.1f')} in [{num(chi.get('lower'), '.1f')}, "
+                                          f"{num(chi.get('upper'), '.1f')}]"),
                      ])))
     secs.append(("Plot", f"<figure>{img_png(png, 'scan, identified panels and 95 % ellipse')}<figcaption>Top "
                          "left: scan in the mine frame, returns used (red), beacons (blue), scanner and its "
@@ -104,15 +97,15 @@ def mast_report_html(result, beacons=(), inputs: dict | None = None, png: bytes 
                                                     f"{d.get('per_beacon_option')})"),
             ("returns per beacon in the adjustment", d.get("returns_per_beacon")),
             ("ICP", f"{result.icp_iterations} iterations, RMS "
-                    f"{_f(1000 * d.get('icp', {}).get('rms_m', float('nan')), '.2f')} mm"),
-            ("β_cum (scan → mine rotation, clockwise)", f"{_f(d.get('beta_cum_deg'), '.4f')}°"),
+                    f"{num(1000 * d.get('icp', {}).get('rms_m', float('nan')), '.2f')} mm"),
+            ("β_cum (scan → mine rotation, clockwise)", f"{num(d.get('beta_cum_deg'), '.4f')}°"),
             ("local origin subtracted for the computation", str(np.asarray(d.get("origin_m")).tolist())),
         ])))
     hyps = d.get("hypotheses") or []
     if hyps:
         secs.append(("Beacon-id hypotheses aligned", table(
             ["assignment (cluster → beacon)", "Helmert scale", "returns explained", "rejected"],
-            [[h.get("assignment"), _f(h.get("helmert_scale"), ".4f"), h.get("n_explained", ""), h.get("rejected", "")]
+            [[h.get("assignment"), num(h.get("helmert_scale"), ".4f"), h.get("n_explained", ""), h.get("rejected", "")]
              for h in hyps], numeric=[1, 2])))
     if beacons:
         rows = []
@@ -122,10 +115,10 @@ def mast_report_html(result, beacons=(), inputs: dict | None = None, png: bytes 
         secs.append(("Beacons (surveyed)", table(["beacon", "vertex", "x [m]", "y [m]"], rows, numeric=[1, 2, 3])))
     nm = d.get("noise_model", {})
     secs.append(("Noise model used for the weights", kv_table([
-        ("range σ_r", f"{_f(nm.get('sigma_range_m'), '.4f')} m"),
-        ("bearing σ_β", f"{_f(nm.get('sigma_bearing_deg'), '.5f')}°"),
-        ("panel σ", f"{_f(nm.get('sigma_panel_m'), '.4f')} m"),
-        ("beacon vertex σ", f"{_f(nm.get('sigma_beacon_m'), '.4f')} m"),
+        ("range σ_r", f"{num(nm.get('sigma_range_m'), '.4f')} m"),
+        ("bearing σ_β", f"{num(nm.get('sigma_bearing_deg'), '.5f')}°"),
+        ("panel σ", f"{num(nm.get('sigma_panel_m'), '.4f')} m"),
+        ("beacon vertex σ", f"{num(nm.get('sigma_beacon_m'), '.4f')} m"),
         ("returns in the scan / straight lines found", f"{d.get('n_returns')} / {d.get('n_lines')}"),
     ])))
     secs.append(("Parameters used", params_table(result.params) if result.params is not None

@@ -334,6 +334,60 @@ def _solve_normal(N, t, C, c, names):
     return delta, 0.5 * (Qxx + Qxx.T)
 
 
+def _linearise(fun, x):
+    """``fun(x)`` as float64 arrays: misclosures ``f`` (n,) and design matrix ``B``."""
+    f, B = fun(x)
+    return np.asarray(f, dtype=np.float64).ravel(), np.asarray(B, dtype=np.float64)
+
+
+def _normal_matrix(B, Wm, is_diag: bool):
+    """``W·B`` and the normal matrix ``N = Bᵀ W B`` (``Wm`` diagonal as a vector when ``is_diag``)."""
+    if is_diag:
+        WB = B * Wm[:, None]
+    else:
+        WB = Wm @ B
+    return WB, B.T @ WB
+
+
+def _constraint_function(constraints):
+    """``x -> (C, c)`` for the constraints argument of :func:`adjust` (``(None, None)`` without)."""
+
+    def _constraints(xc):
+        if constraints is None:
+            return None, None
+        if callable(constraints):
+            C, c = constraints(xc)
+            C = np.atleast_2d(np.asarray(C, dtype=np.float64))
+            return C, np.asarray(c, dtype=np.float64).ravel()
+        C = np.atleast_2d(np.asarray(constraints, dtype=np.float64))
+        return C, np.zeros(C.shape[0])
+
+    return _constraints
+
+
+def _labels(param_names, obs_names, u: int, n: int) -> tuple[tuple, tuple]:
+    """Parameter and observation labels (``p0..``, ``l0..`` by default), checked against the model size."""
+    names = tuple(param_names) if param_names is not None else tuple(f"p{i}" for i in range(u))
+    onames = tuple(obs_names) if obs_names is not None else tuple(f"l{i}" for i in range(n))
+    if len(names) != u or len(onames) != n:
+        raise InputError("param_names / obs_names lengths do not match the model")
+    return names, onames
+
+
+def _redundancy(n: int, u: int, C) -> int:
+    """Degrees of freedom ``r = n − u + m`` (m constraints); raises when negative."""
+    m = 0 if C is None else C.shape[0]
+    if C is not None and C.shape[1] != u:
+        raise InputError(f"constraint matrix must have {u} columns, got {C.shape}")
+    dof = n - u + m
+    if dof < 0:
+        raise TooFewPointsError(
+            f"{n} observation(s) and {m} constraint(s) cannot determine {u} unknown(s): "
+            f"at least {u - m} observations are needed"
+        )
+    return dof
+
+
 def adjust(
     fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
     x0,
@@ -392,49 +446,22 @@ def adjust(
     opts = options or LSQOptions()
     x = np.array(x0, dtype=np.float64, copy=True).ravel()
     u = x.size
-    f, B = fun(x)
-    f = np.asarray(f, dtype=np.float64).ravel()
-    B = np.asarray(B, dtype=np.float64)
+    f, B = _linearise(fun, x)
     n = f.size
     if B.shape != (n, u):
         raise InputError(f"design matrix B must be ({n}, {u}), got {B.shape}")
     Wm, is_diag = _as_weight(weights, n)
-    names = tuple(param_names) if param_names is not None else tuple(f"p{i}" for i in range(u))
-    onames = tuple(obs_names) if obs_names is not None else tuple(f"l{i}" for i in range(n))
-    if len(names) != u or len(onames) != n:
-        raise InputError("param_names / obs_names lengths do not match the model")
-
-    def _constraints(xc):
-        if constraints is None:
-            return None, None
-        if callable(constraints):
-            C, c = constraints(xc)
-            C = np.atleast_2d(np.asarray(C, dtype=np.float64))
-            return C, np.asarray(c, dtype=np.float64).ravel()
-        C = np.atleast_2d(np.asarray(constraints, dtype=np.float64))
-        return C, np.zeros(C.shape[0])
-
+    names, onames = _labels(param_names, obs_names, u, n)
+    _constraints = _constraint_function(constraints)
     C, c = _constraints(x)
-    m = 0 if C is None else C.shape[0]
-    if C is not None and C.shape[1] != u:
-        raise InputError(f"constraint matrix must have {u} columns, got {C.shape}")
-    dof = n - u + m
-    if dof < 0:
-        raise TooFewPointsError(
-            f"{n} observation(s) and {m} constraint(s) cannot determine {u} unknown(s): "
-            f"at least {u - m} observations are needed"
-        )
+    dof = _redundancy(n, u, C)
 
     converged = False
     it = 0
     Qxx = None
     for it_ in range(1, opts.max_iterations + 1):
         it = it_
-        if is_diag:
-            WB = B * Wm[:, None]
-        else:
-            WB = Wm @ B
-        N = B.T @ WB
+        WB, N = _normal_matrix(B, Wm, is_diag)
         t = WB.T @ f
         delta, Qxx = _solve_normal(N, t, C, c, names)
         x = x + delta
@@ -445,9 +472,7 @@ def adjust(
         # negligible against the parameter's precision, or at the float64 resolution of x
         floor = np.maximum(opts.tol_abs, 16.0 * np.spacing(np.abs(x)))
         small = np.all((np.abs(delta) <= opts.tol_rel * sd) | (np.abs(delta) <= floor))
-        f, B = fun(x)
-        f = np.asarray(f, dtype=np.float64).ravel()
-        B = np.asarray(B, dtype=np.float64)
+        f, B = _linearise(fun, x)
         C, c = _constraints(x)
         if small:
             converged = True
@@ -462,11 +487,7 @@ def adjust(
     else:
         # residuals at the solution: one more linearisation, Δ ≈ 0 so v = f (exactly F(x̂) − l)
         v = f.copy()
-        if is_diag:
-            WB = B * Wm[:, None]
-        else:
-            WB = Wm @ B
-        N = B.T @ WB
+        WB, N = _normal_matrix(B, Wm, is_diag)
         _, Qxx = _solve_normal(N, WB.T @ f, C, c, names)
     return _statistics(x, v, B, Wm, is_diag, Qxx, dof, opts, it, converged, names, onames)
 

@@ -115,6 +115,11 @@ def _sig_i(value, i, name):
     return _sig(value, None, name)
 
 
+def _angular(kind: str, station: str, target: str, value, sigma: float, **kw) -> Observation:
+    """An angular observation (rad) with its value reduced to [0, 2π)."""
+    return Observation(kind, station, target, float(value) % (2 * math.pi), sigma, unit="rad", **kw)
+
+
 def _solve(points, obs, unknown, approx, options, on_ambiguity, n_unknowns_hint) -> StationResult:
     if len(obs) < n_unknowns_hint:
         raise TooFewPointsError(
@@ -329,33 +334,13 @@ def resection_2d(
         raise InputError(f"station name {station!r} is also a control point")
     obs = []
     for tgt, val in (directions or {}).items():
-        obs.append(
-            Observation(
-                "direction",
-                station,
-                str(tgt),
-                float(val) % (2 * math.pi),
-                _sig(sigma_direction_rad, tgt, "direction"),
-                set_id=1,
-                unit="rad",
-            )
-        )
+        obs.append(_angular("direction", station, str(tgt), val, _sig(sigma_direction_rad, tgt, "direction"), set_id=1))
     for tgt, val in (distances or {}).items():
         obs.append(
             Observation("distance", station, str(tgt), float(val), _sig(sigma_distance_m, tgt, "distance"))
         )
     for i, (bs, fs, val) in enumerate(angles or []):
-        obs.append(
-            Observation(
-                "angle",
-                station,
-                str(fs),
-                float(val) % (2 * math.pi),
-                _sig_i(sigma_angle_rad, i, "angle"),
-                backsight=str(bs),
-                unit="rad",
-            )
-        )
+        obs.append(_angular("angle", station, str(fs), val, _sig_i(sigma_angle_rad, i, "angle"), backsight=str(bs)))
     for o in obs:
         for p in (o.target, o.backsight):
             if p is not None and p not in pts:
@@ -395,28 +380,9 @@ def intersection_2d(
     pts = _control(control)
     obs = []
     for i, (st, bs, fs, val) in enumerate(angles or []):
-        obs.append(
-            Observation(
-                "angle",
-                str(st),
-                str(fs),
-                float(val) % (2 * math.pi),
-                _sig_i(sigma_angle_rad, i, "angle"),
-                backsight=str(bs),
-                unit="rad",
-            )
-        )
+        obs.append(_angular("angle", str(st), str(fs), val, _sig_i(sigma_angle_rad, i, "angle"), backsight=str(bs)))
     for st, val in (azimuths or {}).items():
-        obs.append(
-            Observation(
-                "azimuth",
-                str(st),
-                target,
-                float(val) % (2 * math.pi),
-                _sig(sigma_azimuth_rad, None, "azimuth"),
-                unit="rad",
-            )
-        )
+        obs.append(_angular("azimuth", str(st), target, val, _sig(sigma_azimuth_rad, None, "azimuth")))
     if not obs:
         raise TooFewPointsError("an intersection needs angles or azimuths")
     for o in obs:

@@ -137,6 +137,15 @@ def _solid_sdf(px, py, pz, S, i, typ):
 
 
 @njit
+def _octave_sum(px, py, pz, waves, k0, n):
+    """Normalised sum ``S = sqrt(2 / n) sum_k sin(k . p + phi_k)`` of one octave's waves ``k0..k0+n-1``."""
+    acc = 0.0
+    for k in range(k0, k0 + n):
+        acc += math.sin(waves[k, 0] * px + waves[k, 1] * py + waves[k, 2] * pz + waves[k, 3])
+    return acc * math.sqrt(2.0 / n)
+
+
+@njit
 def _overbreak(px, py, pz, waves, octaves, zones):
     """Overbreak part of the roughness (m), >= 0: the mode-0 octaves times the zone factor.
 
@@ -159,12 +168,7 @@ def _overbreak(px, py, pz, waves, octaves, zones):
     for o in range(octaves.shape[0]):
         if octaves[o, 3] != 0.0:
             continue
-        k0 = int(octaves[o, 0])
-        n = int(octaves[o, 1])
-        acc = 0.0
-        for k in range(k0, k0 + n):
-            acc += math.sin(waves[k, 0] * px + waves[k, 1] * py + waves[k, 2] * pz + waves[k, 3])
-        S = acc * math.sqrt(2.0 / n)
+        S = _octave_sum(px, py, pz, waves, int(octaves[o, 0]), int(octaves[o, 1]))
         ob += mult * octaves[o, 2] * 0.5 * (1.0 + S / math.sqrt(1.0 + S * S))
     return ob
 
@@ -176,12 +180,7 @@ def _texture(px, py, pz, waves, octaves):
     for o in range(octaves.shape[0]):
         if octaves[o, 3] == 0.0:
             continue
-        k0 = int(octaves[o, 0])
-        n = int(octaves[o, 1])
-        acc = 0.0
-        for k in range(k0, k0 + n):
-            acc += math.sin(waves[k, 0] * px + waves[k, 1] * py + waves[k, 2] * pz + waves[k, 3])
-        S = acc * math.sqrt(2.0 / n)
+        S = _octave_sum(px, py, pz, waves, int(octaves[o, 0]), int(octaves[o, 1]))
         tex += octaves[o, 2] * S / math.sqrt(1.0 + S * S)
     return tex
 

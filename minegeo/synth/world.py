@@ -388,18 +388,7 @@ class MineWorld:
 
     def n_independent_loops(self) -> int:
         """Cyclomatic number of the drift graph (edges - nodes + components): > 0 means loops exist."""
-        parent = list(range(len(self.nodes)))
-
-        def find(i):
-            while parent[i] != i:
-                parent[i] = parent[parent[i]]
-                i = parent[i]
-            return i
-
-        for d in self.drifts:
-            ra, rb = find(d.a), find(d.b)
-            if ra != rb:
-                parent[ra] = rb
+        find = _union_find(len(self.nodes), [(d.a, d.b) for d in self.drifts])
         comps = len({find(i) for i in range(len(self.nodes))})
         return len(self.drifts) - len(self.nodes) + comps
 
@@ -500,17 +489,7 @@ class MineWorld:
                 if not 0 <= k < len(self.drifts):
                     raise InputError(f"drift index {k} out of range 0..{len(self.drifts) - 1}")
                 idx.add(k)
-        parent = list(range(len(self.nodes)))
-
-        def find(i):
-            while parent[i] != i:
-                parent[i] = parent[parent[i]]
-                i = parent[i]
-            return i
-
-        for k, d in enumerate(self.drifts):
-            if k not in idx:
-                parent[find(d.a)] = find(d.b)
+        find = _union_find(len(self.nodes), [(d.a, d.b) for k, d in enumerate(self.drifts) if k not in idx])
         mapped_nodes = {n for k, d in enumerate(self.drifts) if k not in idx for n in (d.a, d.b)}
         if any(find(n) != find(0) for n in mapped_nodes) or 0 not in mapped_nodes:
             raise InputError("the mapped drifts would not be connected to the survey start (node 0); "
@@ -586,6 +565,23 @@ class MineWorld:
 
 
 # ====================================================================== layout
+def _union_find(n: int, pairs):
+    """Joins nodes ``0..n-1`` along ``pairs``; returns ``find(i)``, the representative of node i's component."""
+    parent = list(range(n))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for a, b in pairs:
+        ra, rb = find(a), find(b)
+        if ra != rb:
+            parent[ra] = rb
+    return find
+
+
 def _wiggle(P: np.ndarray, rng: np.random.Generator, amp_m: float) -> np.ndarray:
     """Add a smooth seeded lateral meander (zero at both ends) to a straight polyline."""
     if amp_m <= 0 or len(P) < 3:
@@ -1166,6 +1162,277 @@ def _cast_arrays(a, O, D, max_range, step_factor, with_solids=True):
     return out
 
 
+class _Prims:
+    """Growing primitive rows with their kernel type codes and the drift each belongs to."""
+
+    def __init__(self):
+        self.rows, self.types, self.owners = [], [], []
+
+    def add(self, row, typ: int, owner: int) -> None:
+        self.rows.append(row)
+        self.types.append(typ)
+        self.owners.append(owner)
+
+
+def _world_params(preset: str, seed: int, params: WorldParams | None) -> tuple[WorldParams, int]:
+    """The checked parameters (``params`` or the preset's) and the seed as an int."""
+    if params is None:
+        if preset not in PRESETS:
+            raise InputError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+        params = PRESETS[preset]
+    seed = int(seed)
+    if seed < 0:
+        raise InputError(f"seed must be a non-negative integer, got {seed}")
+    _check_params(params)
+    return params, seed
+
+
+def _level_offset(k: int, dz: float) -> np.ndarray:
+    """Translation of level copy ``k`` (``dz`` below per level)."""
+    return np.array([0.0, 0.0, -k * dz])
+
+
+def _section_drifts(g: _Graph) -> tuple[int, int]:
+    """The first level's longest main drift (irregular roof) and the second longest (regular, meshed)."""
+    main0 = [k for k, e in enumerate(g.edges) if e[3] == "main" and e[4] == 0]
+    main_len = [float(np.linalg.norm(np.diff(g.edges[k][2][:, :2], axis=0), axis=1).sum()) for k in main0]
+    long_mains = [k for k, _L in sorted(zip(main0, main_len, strict=True), key=lambda z: -z[1])]
+    irr = long_mains[0]
+    reg = long_mains[1] if len(long_mains) > 1 else long_mains[0]
+    return irr, reg
+
+
+def _fall_outs(void: _Prims, poly, owner: int, H: float, rng: np.random.Generator):
+    """Roof fall-outs (ellipsoid cavities) around the middle of ``poly``; returns the resampled
+    points, their arc lengths and the middle index."""
+    P, t, n, s = _resample(poly, 1.0)
+    mid = len(P) // 2
+    for j in range(max(0, mid - 8), min(len(P), mid + 8)):
+        if rng.uniform() < 0.75:
+            c = P[j] + np.array([*(n[j] * rng.uniform(-0.9, 0.9)), H - rng.uniform(0.2, 0.5)])
+            void.add([c[0], c[1], c[2], rng.uniform(0.8, 1.6), rng.uniform(0.8, 1.6), rng.uniform(0.45, 0.9), 0, 0],
+                     1, owner)
+    return P, s, mid
+
+
+def _sump_pit(void: _Prims, g: _Graph, feats: dict) -> dict:
+    """The sump pit near the end of the Y branch, offset to one side of the centreline.
+
+    Returns the pit's site: ``drift``, ``centre`` (pit centre), ``yaw``, ``floor`` (the branch
+    point beside it) and ``side`` (+1: the pit lies left of the centreline).
+    """
+    sb = feats["sump"]["drift"]
+    Pb, tb, nb, sbs = _resample(g.edges[sb][2], 0.5)
+    j_pit = max(0, len(Pb) - 1 - int(5.0 / 0.5))
+    side = 1.0
+    pit_c = Pb[j_pit] + np.array([*(nb[j_pit] * side * 1.45), -0.65])
+    yaw = math.atan2(tb[j_pit][1], tb[j_pit][0])
+    void.add([pit_c[0], pit_c[1], pit_c[2], 1.8, 0.7, 0.85, yaw, 0.0], 2, sb)
+    feats["sump"].update({"s_m": float(sbs[j_pit]), "centre": [float(x) for x in Pb[j_pit]]})
+    return {"drift": sb, "centre": pit_c, "yaw": yaw, "floor": Pb[j_pit], "side": side}
+
+
+def _repeat_voids(void: _Prims, zones: list, g: _Graph, rep: dict, irr: int, cavities: range, pit: dict,
+                  H: float, dz: float, rng: np.random.Generator) -> None:
+    """Rough zones, roof fall-outs and the sump pit of every level copy (``rep["copies"]``).
+
+    An exact copy repeats the fall-outs ``cavities`` of level 0; a near copy draws them anew
+    around the same place.
+    """
+    exact = rep["mode"] == "exact"
+    # zones reach 3 r (kernel cut-off): keep them within one level so copies do not leak into each other
+    rmax = (dz - H - 0.5) / 3.0
+    for z in zones:
+        z[3] = min(z[3], rmax)
+    zones0 = [list(z) for z in zones]
+    for k, cm in rep["copies"].items():
+        o = _level_offset(k, dz)
+        zones.extend([[*(np.array(z[:3]) + o), z[3], z[4]] for z in zones0])
+        if exact:  # the same fall-outs
+            for i in cavities:
+                void.add([*(np.array(void.rows[i][:3]) + o), *void.rows[i][3:]], 1, cm[irr])
+        else:  # near copy: fall-outs drawn anew around the same place
+            _fall_outs(void, g.edges[cm[irr]][2], cm[irr], H, rng)
+        void.add([*(pit["centre"] + o), 1.8, 0.7, 0.85, pit["yaw"], 0.0], 2, cm[pit["drift"]])
+
+
+def _void_primitives(g: _Graph, feats: dict, params: WorldParams, rep: dict | None, rng: np.random.Generator):
+    """Void primitives (drift segments, roof fall-outs, sump pit) and rough zones of the mine.
+
+    Fills ``feats`` (``irregular_roof``, ``regular``, ``sump``); returns the voids, the rough
+    zones, the regular (meshed) drift and the sump pit's site (see :func:`_sump_pit`).
+    """
+    R = params.width_m / 2.0
+    hw = params.wall_height_m
+    H = hw + R
+    void = _Prims()
+    for k, (_a, _b, poly, _kind, _lev) in enumerate(g.edges):
+        for i in range(len(poly) - 1):
+            void.add([*poly[i], *poly[i + 1], R, hw], 0, k)
+    # section types on the first level's main drift: irregular roof, meshed, regular
+    irr, reg = _section_drifts(g)
+    zones = []
+    cav0 = len(void.rows)
+    P, s, mid = _fall_outs(void, g.edges[irr][2], irr, H, rng)
+    cav1 = len(void.rows)
+    zc = P[mid] + np.array([0, 0, H - 0.5])
+    zones.append([*zc, 6.0, 0.9])
+    feats["irregular_roof"] = {"drift": irr, "s_m": float(s[mid])}
+    feats["regular"] = {"drift": reg, "s_m": float(np.linalg.norm(np.diff(g.edges[reg][2], axis=0), axis=1).sum() / 2)}
+    # a second, milder rough zone somewhere else on the first level
+    par0 = [k for k, e in enumerate(g.edges) if e[3] == "parallel" and e[4] == 0]
+    if par0:
+        Pp, _, _, _ = _resample(g.edges[par0[0]][2], 1.0)
+        zones.append([*(Pp[len(Pp) // 2] + np.array([0, 0, 2.0])), 8.0, 0.5])
+    pit = _sump_pit(void, g, feats)
+    if rep is not None:
+        _repeat_voids(void, zones, g, rep, irr, range(cav0, cav1), pit, H, float(params.level_spacing_m), rng)
+    return void, zones, reg, pit
+
+
+def _bolt_rays(g: _Graph, params: WorldParams, skip: set, mesh_edge: int, rng: np.random.Generator):
+    """Rays from the drift axis at wall height to where the rock bolts go.
+
+    Rings every ``bolt_spacing_m`` (none within 3 m of a junction or end, so bolts do not
+    float in intersections), 5 bolts over the arch at seeded angles. Returns origins,
+    directions, the drift of each ray and the ray indices of each ring of ``mesh_edge``.
+    """
+    hw = params.wall_height_m
+    bolt_ok_kinds = ("main", "parallel", "ramp", "ring", "crosscut", "branch", "heading")
+    Os, Ds, Downer = [], [], []
+    strap_rings = []
+    for k, (_a, _b, poly, kind, _lev) in enumerate(g.edges):
+        if kind not in bolt_ok_kinds or k in skip:
+            continue
+        P, t, n, s = _resample(poly, params.bolt_spacing_m)
+        # skip rings within 3 m of a junction/end so bolts do not float in intersections
+        L = s[-1] + params.bolt_spacing_m / 2 if len(s) else 0
+        keep = (s > 3.0) & (s < L - 3.0)
+        for j in np.flatnonzero(keep):
+            ring = []
+            for ang in (-60.0, -30.0, 0.0, 30.0, 60.0):
+                a = math.radians(ang + rng.uniform(-5, 5))
+                d = np.array([*(n[j] * math.sin(a)), math.cos(a)])
+                Os.append(P[j] + np.array([0, 0, hw]))
+                Ds.append(d)
+                Downer.append(k)
+                ring.append(len(Os) - 1)
+            if k == mesh_edge:
+                strap_rings.append(ring)
+    return Os, Ds, Downer, strap_rings
+
+
+def _rock_bolts(solid: _Prims, g: _Graph, feats: dict, params: WorldParams, base: dict, skip: set, mesh_edge: int,
+                rng: np.random.Generator) -> None:
+    """Rock bolts placed on the rough surface of ``base`` and, on ``mesh_edge``, the steel straps
+    ("mesh") linking the bolt heads of a ring; sets ``feats["meshed"]``."""
+    Os, Ds, Downer, strap_rings = _bolt_rays(g, params, skip, mesh_edge, rng)
+    if not Os:
+        return
+    O = np.array(Os)
+    D = np.array(Ds)
+    r = _cast_arrays(base, O, D, 6.0, params.trace_step_factor, with_solids=False)
+    ok = np.isfinite(r)
+    hit = O + D * np.where(ok, r, 0.0)[:, None]
+    for i in np.flatnonzero(ok):
+        a = hit[i] + D[i] * 0.03  # 3 cm inside the rock
+        b = hit[i] - D[i] * 0.07  # plate + nut stand 7 cm proud
+        solid.add([*a, *b, 0.06, 0.0], 0, Downer[i])
+    for ring in strap_rings:  # "mesh": steel straps linking the bolt heads of a ring
+        for u, v in zip(ring[:-1], ring[1:], strict=True):
+            if ok[u] and ok[v]:
+                a = hit[u] - D[u] * 0.05
+                b = hit[v] - D[v] * 0.05
+                solid.add([*a, *b, 0.025, 0.0], 0, mesh_edge)
+    feats["meshed"] = {"drift": mesh_edge, "s_m": feats["regular"]["s_m"]}
+
+
+def _services(solid: _Prims, g: _Graph, params: WorldParams, base: dict, skip: set) -> None:
+    """Services along main drifts and ramps: pipe (left wall), two cables (right wall), duct under the roof."""
+    R = params.width_m / 2.0
+    H = params.wall_height_m + R
+    for k, (_a, _b, poly, kind, _lev) in enumerate(g.edges):
+        if kind not in ("main", "ramp") or k in skip:
+            continue
+        _, nseg, _ = _frames(poly)
+        for lat, hgt, rad in ((R - 0.35, 1.9, 0.08), (-(R - 0.2), 2.55, 0.025), (-(R - 0.2), 2.7, 0.02)):
+            Q = _offset_polyline(poly, lat, hgt)
+            mids = 0.5 * (Q[:-1] + Q[1:])
+            behind = mids + np.column_stack([nseg * math.copysign(0.8, lat), np.zeros(len(mids))])
+            open_ = _smooth_field(base, behind) > 0.0  # no wall behind: a junction mouth, the service is routed over it
+            for i in np.flatnonzero(~open_):
+                solid.add([*Q[i], *Q[i + 1], rad, 0.0], 0, k)
+        solid.rows.extend(_capsule_chain(_offset_polyline(poly, -0.9, H - 0.85), 0.4))
+        solid.types.extend([0] * (len(poly) - 1))
+        solid.owners.extend([k] * (len(poly) - 1))
+
+
+def _railings(solid: _Prims, pit: dict) -> None:
+    """Railings along the sump pit (posts every ~1.2 m, rails at 0.5 m and 1.05 m)."""
+    c, yawp, side, sb = pit["centre"], pit["yaw"], pit["side"], pit["drift"]
+    ca, sa = math.cos(yawp), math.sin(yawp)
+    along = np.array([ca, sa, 0.0])
+    across = np.array([-sa, ca, 0.0])
+    floor_z = pit["floor"][2]  # the branch is flat: any of its points gives the floor height
+    edge_c = np.array([c[0], c[1], floor_z]) - across * side * (0.7 + 0.12)
+    posts = [edge_c + along * x for x in np.linspace(-1.8, 1.8, 4)]
+    for q in posts:
+        solid.add([q[0], q[1], floor_z - 0.05, q[0], q[1], floor_z + 1.05, 0.03, 0.0], 0, sb)
+    for hgt in (0.5, 1.05):
+        a = posts[0] + np.array([0, 0, hgt])
+        b = posts[-1] + np.array([0, 0, hgt])
+        solid.add([*a, *b, 0.025, 0.0], 0, sb)
+
+
+def _repeat_solids(solid: _Prims, rep: dict, rail0: int, dz: float) -> None:
+    """Copies on every level copy: every structure of the unit (exact) or the railings (rows
+    from ``rail0`` on) only (near)."""
+    exact = rep["mode"] == "exact"
+    n0 = len(solid.rows)
+    for k, cm in rep["copies"].items():
+        o6 = np.array([*_level_offset(k, dz), *_level_offset(k, dz), 0.0, 0.0])
+        for i in range(n0):
+            if (exact and solid.owners[i] in cm) or (not exact and i >= rail0):
+                solid.add(list(np.asarray(solid.rows[i], float) + o6), solid.types[i], cm[solid.owners[i]])
+
+
+def _solid_primitives(g: _Graph, feats: dict, params: WorldParams, base: dict, rep: dict | None, reg: int,
+                      pit: dict, rng: np.random.Generator) -> _Prims:
+    """Solid structures: rock bolts and straps, services, sump railings and their level copies."""
+    exact = rep is not None and rep["mode"] == "exact"
+    # structures of an exact level copy are copied from level 0, not placed anew
+    skip = {e for cm in rep["copies"].values() for e in cm.values()} if exact else set()
+    solid = _Prims()
+    _rock_bolts(solid, g, feats, params, base, skip, reg, rng)
+    _services(solid, g, params, base, skip)
+    rail0 = len(solid.rows)
+    _railings(solid, pit)
+    if rep is not None:
+        _repeat_solids(solid, rep, rail0, float(params.level_spacing_m))
+    return solid
+
+
+def _curve_and_parking(g: _Graph, feats: dict, reg: int) -> list:
+    """Marks the first ring/ramp drift as ``feats["curve"]`` and returns the vehicle's parking
+    poses, left of the centreline in the regular section: [0] where it is parked during the
+    survey, [1] moved 5 m back along the drift (also in ``feats["parking_sites"]``)."""
+    ring_edges = [k for k, e in enumerate(g.edges) if e[3] in ("ring", "ramp")]
+    ce = ring_edges[0]
+    feats["curve"] = {"drift": ce, "s_m": float(np.linalg.norm(np.diff(g.edges[ce][2], axis=0), axis=1).sum() / 2)}
+    parking = []
+    for k, back_m in ((reg, 0.0), (reg, 5.0)):
+        P, t, n, s = _resample(g.edges[k][2], 0.5)
+        jj = max(0, len(P) // 2 - int(back_m / 0.5))
+        T = np.eye(4)
+        xa = np.array([t[jj][0], t[jj][1], 0.0])
+        ya = np.array([n[jj][0], n[jj][1], 0.0])
+        T[:3, 0], T[:3, 1], T[:3, 2] = xa, ya, [0, 0, 1]
+        T[:3, 3] = P[jj] + ya * 1.15 + np.array([0, 0, 0.01])  # 0.15 m from the left wall
+        parking.append(T)
+        feats.setdefault("parking_sites", []).append({"drift": k, "s_m": float(s[jj])})
+    return parking
+
+
 def build_world(preset: str = "small", seed: int = 0, params: WorldParams | None = None) -> MineWorld:
     """Generate a seeded, deterministic synthetic underground mine.
 
@@ -1190,14 +1457,8 @@ def build_world(preset: str = "small", seed: int = 0, params: WorldParams | None
     InputError
         Unknown preset or negative seed.
     """
-    if params is None:
-        if preset not in PRESETS:
-            raise InputError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
-        params = PRESETS[preset]
-    seed = int(seed)
-    if seed < 0:
-        raise InputError(f"seed must be a non-negative integer, got {seed}")
-    _check_params(params)
+    # the random draws happen in this order: layout, roof fall-outs, roughness, bolt angles
+    params, seed = _world_params(preset, seed, params)
     rng = np.random.default_rng(seed)
     rep = None
     if params.repeat_levels == "none":
@@ -1206,211 +1467,24 @@ def build_world(preset: str = "small", seed: int = 0, params: WorldParams | None
         g, feats, rep = _layout_repeated(params, rng)
     heads = _add_headings(g, params, seed) if params.unmapped_headings else []
     exact = rep is not None and rep["mode"] == "exact"
-    copies = rep["copies"] if rep is not None else {}
-    copy_edges = {e for cm in copies.values() for e in cm.values()}
-    dz = float(params.level_spacing_m)
-
-    def off(k):
-        return np.array([0.0, 0.0, -k * dz])
-
-    R = params.width_m / 2.0
-    hw = params.wall_height_m
-    H = hw + R
-
-    # ---- void primitives: drift segments, roof fall-outs, sump pit (vowner: the drift each belongs to)
-    void, vtype, vowner = [], [], []
-    for k, (_a, _b, poly, _kind, _lev) in enumerate(g.edges):
-        for i in range(len(poly) - 1):
-            void.append([*poly[i], *poly[i + 1], R, hw])
-            vtype.append(0)
-            vowner.append(k)
-    # section types on the first level's main drift: irregular roof, meshed, regular
-    main0 = [k for k, e in enumerate(g.edges) if e[3] == "main" and e[4] == 0]
-    main_len = [float(np.linalg.norm(np.diff(g.edges[k][2][:, :2], axis=0), axis=1).sum()) for k in main0]
-    long_mains = [k for k, _L in sorted(zip(main0, main_len, strict=True), key=lambda z: -z[1])]
-    irr = long_mains[0]
-    reg = long_mains[1] if len(long_mains) > 1 else long_mains[0]
-
-    def fall_outs(poly, owner):
-        """Roof fall-outs (ellipsoid cavities) around the middle of ``poly``; returns the middle index."""
-        P, t, n, s = _resample(poly, 1.0)
-        mid = len(P) // 2
-        for j in range(max(0, mid - 8), min(len(P), mid + 8)):
-            if rng.uniform() < 0.75:
-                c = P[j] + np.array([*(n[j] * rng.uniform(-0.9, 0.9)), H - rng.uniform(0.2, 0.5)])
-                void.append([c[0], c[1], c[2], rng.uniform(0.8, 1.6), rng.uniform(0.8, 1.6), rng.uniform(0.45, 0.9),
-                             0, 0])
-                vtype.append(1)
-                vowner.append(owner)
-        return P, s, mid
-
-    zones = []
-    cav0 = len(void)
-    P, s, mid = fall_outs(g.edges[irr][2], irr)
-    cav1 = len(void)
-    zc = P[mid] + np.array([0, 0, H - 0.5])
-    zones.append([*zc, 6.0, 0.9])
-    feats["irregular_roof"] = {"drift": irr, "s_m": float(s[mid])}
-    feats["regular"] = {"drift": reg, "s_m": float(np.linalg.norm(np.diff(g.edges[reg][2], axis=0), axis=1).sum() / 2)}
-    # a second, milder rough zone somewhere else on the first level
-    par0 = [k for k, e in enumerate(g.edges) if e[3] == "parallel" and e[4] == 0]
-    if par0:
-        Pp, _, _, _ = _resample(g.edges[par0[0]][2], 1.0)
-        zones.append([*(Pp[len(Pp) // 2] + np.array([0, 0, 2.0])), 8.0, 0.5])
-    # sump pit near the end of the Y branch, offset to one side of the centreline
-    sb = feats["sump"]["drift"]
-    bpoly = g.edges[sb][2]
-    Pb, tb, nb, sbs = _resample(bpoly, 0.5)
-    j_pit = max(0, len(Pb) - 1 - int(5.0 / 0.5))
-    side = 1.0
-    pit_c = Pb[j_pit] + np.array([*(nb[j_pit] * side * 1.45), -0.65])
-    yaw = math.atan2(tb[j_pit][1], tb[j_pit][0])
-    void.append([pit_c[0], pit_c[1], pit_c[2], 1.8, 0.7, 0.85, yaw, 0.0])
-    vtype.append(2)
-    vowner.append(sb)
-    feats["sump"].update({"s_m": float(sbs[j_pit]), "centre": [float(x) for x in Pb[j_pit]]})
-    if rep is not None:
-        # zones reach 3 r (kernel cut-off): keep them within one level so copies do not leak into each other
-        rmax = (dz - H - 0.5) / 3.0
-        for z in zones:
-            z[3] = min(z[3], rmax)
-        zones0 = [list(z) for z in zones]
-        for k, cm in copies.items():
-            o = off(k)
-            zones.extend([[*(np.array(z[:3]) + o), z[3], z[4]] for z in zones0])
-            if exact:  # the same fall-outs
-                for i in range(cav0, cav1):
-                    void.append([*(np.array(void[i][:3]) + o), *void[i][3:]])
-                    vtype.append(1)
-                    vowner.append(cm[irr])
-            else:  # near copy: fall-outs drawn anew around the same place
-                fall_outs(g.edges[cm[irr]][2], cm[irr])
-            void.append([*(pit_c + o), 1.8, 0.7, 0.85, yaw, 0.0])
-            vtype.append(2)
-            vowner.append(cm[sb])
-
-    waves, octaves = _noise_arrays(params, rng, z_period_m=dz if exact else None)
+    void, zones, reg, pit = _void_primitives(g, feats, params, rep, rng)
+    waves, octaves = _noise_arrays(params, rng, z_period_m=float(params.level_spacing_m) if exact else None)
     ob_eff, tex_eff, _ = roughness_amplitudes(params)
     ob_max = float(sum(ob_eff) * 2.0 + sum(tex_eff))
-    base = _assemble(void, vtype, [], [], waves, octaves, zones, params.grid_cell_m, ob_max)
-
-    # ---- solid structures (sowner: the drift each belongs to)
-    solid, stype, sowner = [], [], []
-    # rock bolts: rings every bolt_spacing_m, 5 bolts over the arch, placed on the rough surface
-    Os, Ds, Downer = [], [], []
-    bolt_ok_kinds = ("main", "parallel", "ramp", "ring", "crosscut", "branch", "heading")
-    mesh_edge = reg
-    strap_rings = []
-    for k, (_a, _b, poly, kind, _lev) in enumerate(g.edges):
-        if kind not in bolt_ok_kinds or (exact and k in copy_edges):
-            continue
-        P, t, n, s = _resample(poly, params.bolt_spacing_m)
-        # skip rings within 3 m of a junction/end so bolts do not float in intersections
-        L = s[-1] + params.bolt_spacing_m / 2 if len(s) else 0
-        keep = (s > 3.0) & (s < L - 3.0)
-        for j in np.flatnonzero(keep):
-            ring = []
-            for ang in (-60.0, -30.0, 0.0, 30.0, 60.0):
-                a = math.radians(ang + rng.uniform(-5, 5))
-                d = np.array([*(n[j] * math.sin(a)), math.cos(a)])
-                Os.append(P[j] + np.array([0, 0, hw]))
-                Ds.append(d)
-                Downer.append(k)
-                ring.append(len(Os) - 1)
-            if k == mesh_edge:
-                strap_rings.append(ring)
-    if Os:
-        O = np.array(Os)
-        D = np.array(Ds)
-        r = _cast_arrays(base, O, D, 6.0, params.trace_step_factor, with_solids=False)
-        ok = np.isfinite(r)
-        hit = O + D * np.where(ok, r, 0.0)[:, None]
-        for i in np.flatnonzero(ok):
-            a = hit[i] + D[i] * 0.03  # 3 cm inside the rock
-            b = hit[i] - D[i] * 0.07  # plate + nut stand 7 cm proud
-            solid.append([*a, *b, 0.06, 0.0])
-            stype.append(0)
-            sowner.append(Downer[i])
-        for ring in strap_rings:  # "mesh": steel straps linking the bolt heads of a ring
-            for u, v in zip(ring[:-1], ring[1:], strict=True):
-                if ok[u] and ok[v]:
-                    a = hit[u] - D[u] * 0.05
-                    b = hit[v] - D[v] * 0.05
-                    solid.append([*a, *b, 0.025, 0.0])
-                    stype.append(0)
-                    sowner.append(mesh_edge)
-        feats["meshed"] = {"drift": mesh_edge, "s_m": feats["regular"]["s_m"]}
-    # services along main drifts and ramps: pipe (left wall), two cables (right wall), duct under the roof
-    for k, (_a, _b, poly, kind, _lev) in enumerate(g.edges):
-        if kind not in ("main", "ramp") or (exact and k in copy_edges):
-            continue
-        _, nseg, _ = _frames(poly)
-        for lat, hgt, rad in ((R - 0.35, 1.9, 0.08), (-(R - 0.2), 2.55, 0.025), (-(R - 0.2), 2.7, 0.02)):
-            Q = _offset_polyline(poly, lat, hgt)
-            mids = 0.5 * (Q[:-1] + Q[1:])
-            behind = mids + np.column_stack([nseg * math.copysign(0.8, lat), np.zeros(len(mids))])
-            open_ = _smooth_field(base, behind) > 0.0  # no wall behind: a junction mouth, the service is routed over it
-            for i in np.flatnonzero(~open_):
-                solid.append([*Q[i], *Q[i + 1], rad, 0.0])
-                stype.append(0)
-                sowner.append(k)
-        solid.extend(_capsule_chain(_offset_polyline(poly, -0.9, H - 0.85), 0.4))
-        stype.extend([0] * (len(poly) - 1))
-        sowner.extend([k] * (len(poly) - 1))
-    # railings along the sump pit (posts every ~1.2 m, rails at 0.5 m and 1.05 m)
-    rail0 = len(solid)
-    c, yawp = pit_c, yaw
-    ca, sa = math.cos(yawp), math.sin(yawp)
-    along = np.array([ca, sa, 0.0])
-    across = np.array([-sa, ca, 0.0])
-    floor_z = Pb[j_pit][2]  # the branch is flat: any of its points gives the floor height
-    edge_c = np.array([c[0], c[1], floor_z]) - across * side * (0.7 + 0.12)
-    posts = [edge_c + along * x for x in np.linspace(-1.8, 1.8, 4)]
-    for q in posts:
-        solid.append([q[0], q[1], floor_z - 0.05, q[0], q[1], floor_z + 1.05, 0.03, 0.0])
-        stype.append(0)
-        sowner.append(sb)
-    for hgt in (0.5, 1.05):
-        a = posts[0] + np.array([0, 0, hgt])
-        b = posts[-1] + np.array([0, 0, hgt])
-        solid.append([*a, *b, 0.025, 0.0])
-        stype.append(0)
-        sowner.append(sb)
-    if rep is not None:  # copies: every structure of the unit (exact) or the railings only (near)
-        n0 = len(solid)
-        for k, cm in copies.items():
-            o6 = np.array([*off(k), *off(k), 0.0, 0.0])
-            for i in range(n0):
-                if (exact and sowner[i] in cm) or (not exact and i >= rail0):
-                    solid.append(list(np.asarray(solid[i], float) + o6))
-                    stype.append(stype[i])
-                    sowner.append(cm[sowner[i]])
-    arrays = _assemble(void, vtype, solid, stype, waves, octaves, zones, params.grid_cell_m, ob_max)
+    base = _assemble(void.rows, void.types, [], [], waves, octaves, zones, params.grid_cell_m, ob_max)
+    solid = _solid_primitives(g, feats, params, base, rep, reg, pit, rng)
+    arrays = _assemble(void.rows, void.types, solid.rows, solid.types, waves, octaves, zones, params.grid_cell_m,
+                       ob_max)
     vp, vt = _vehicle_model()
     arrays["veh_prims"], arrays["veh_type"] = np.ascontiguousarray(vp), np.ascontiguousarray(vt)
     arrays["veh_centre"] = np.array([0.3, 0.0, 1.2])
     arrays["veh_radius"] = 3.8
-
-    # ---- curves, parking places for the vehicle (left of the centreline in the regular section)
-    ring_edges = [k for k, e in enumerate(g.edges) if e[3] in ("ring", "ramp")]
-    ce = ring_edges[0]
-    feats["curve"] = {"drift": ce, "s_m": float(np.linalg.norm(np.diff(g.edges[ce][2], axis=0), axis=1).sum() / 2)}
-    parking = []  # [0]: where it is parked during the survey; [1]: moved 5 m back along the drift
-    for k, back_m in ((reg, 0.0), (reg, 5.0)):
-        P, t, n, s = _resample(g.edges[k][2], 0.5)
-        jj = max(0, len(P) // 2 - int(back_m / 0.5))
-        T = np.eye(4)
-        xa = np.array([t[jj][0], t[jj][1], 0.0])
-        ya = np.array([n[jj][0], n[jj][1], 0.0])
-        T[:3, 0], T[:3, 1], T[:3, 2] = xa, ya, [0, 0, 1]
-        T[:3, 3] = P[jj] + ya * 1.15 + np.array([0, 0, 0.01])  # 0.15 m from the left wall
-        parking.append(T)
-        feats.setdefault("parking_sites", []).append({"drift": k, "s_m": float(s[jj])})
+    parking = _curve_and_parking(g, feats, reg)
     feats["parking"] = parking
     intersections, dead = _classify(g)
     drifts = tuple(Drift(f"{kind}_L{lev}_{k:03d}", a, b, poly, kind, lev)
                    for k, (a, b, poly, kind, lev) in enumerate(g.edges))
-    extra = {"void_owner": np.array(vowner, np.int64), "solid_owner": np.array(sowner, np.int64),
+    extra = {"void_owner": np.array(void.owners, np.int64), "solid_owner": np.array(solid.owners, np.int64),
              "ob_max": ob_max, "roughness": roughness_amplitudes(params)}
     if rep is not None:
         extra["repeat"] = rep
@@ -1418,5 +1492,5 @@ def build_world(preset: str = "small", seed: int = 0, params: WorldParams | None
                       intersections=intersections, dead_ends=dead, features=feats,
                       T_world_vehicle=parking[0].copy(), _arrays=arrays, unmapped=tuple(heads), _extra=extra)
     log.info("synthetic mine %s seed %d: %d drifts, %.0f m, %d intersections, %d solids",
-             preset, seed, len(drifts), world.total_length_m, len(intersections), len(solid))
+             preset, seed, len(drifts), world.total_length_m, len(intersections), len(solid.rows))
     return world
