@@ -36,6 +36,10 @@ KNOWN_SOURCES = frozenset({
     "Shepperd1978",
     "NumericalRecipes2007",  # 3rd ed.
     "Imhof1961",
+    "Sola2018",          # Solà, Deray, Atchuthan: A micro Lie theory for state estimation in robotics
+    "Barfoot2017",       # State Estimation for Robotics, 1st ed.
+    "Sturm2012",         # Sturm et al.: A benchmark for the evaluation of RGB-D SLAM systems (IROS 2012)
+    "Nocedal2006",       # Nocedal & Wright: Numerical Optimization, 2nd ed.
 })
 
 _NUM = r"\d+(?:\.\d+)*[a-z]?"
