@@ -1,0 +1,146 @@
+"""The house rules of ``minegeo/`` an auditor relies on (docs/architecture.md), checked on the source.
+
+* **No import circle**, counting imports inside functions: the graph has an edge from a module to
+  every ``minegeo`` module it imports anywhere in its body (``from minegeo.a import b`` is an edge to
+  ``minegeo.a.b`` when that is a module, else to ``minegeo.a``).
+* **Data flows one way**: the domain packages (io, kernels, geometry, features, registration,
+  survey, mast, localize, slam, semantic, synth) never import ``minegeo.report`` or ``minegeo.cli``;
+  ``report`` never imports ``cli``.
+* **Readable functions**: no function outside an ``@njit`` kernel is longer than
+  :data:`MAX_FUNCTION_LINES` lines (the issue's "about 120").
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PKG = Path(__file__).resolve().parents[1] / "minegeo"
+MAX_FUNCTION_LINES = 125
+DOMAIN = ("io", "kernels", "geometry", "features", "registration", "survey", "mast", "localize", "slam",
+          "semantic", "synth")
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for p in sorted(PKG.rglob("*.py")):
+        rel = p.relative_to(PKG.parent).with_suffix("")
+        parts = list(rel.parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = p
+    return out
+
+
+MODULES = _modules()
+
+
+def _imports(name: str, path: Path) -> set[str]:
+    """minegeo modules imported anywhere in the module ``name`` (resolved to module names)."""
+    tree = ast.parse(path.read_text())
+    pkg = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.startswith("minegeo"):
+                    found.add(a.name)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = pkg.rsplit(".", node.level - 1)[0] if node.level > 1 else pkg
+                mod = f"{base}.{node.module}" if node.module else base
+            else:
+                mod = node.module or ""
+            if not mod.startswith("minegeo"):
+                continue
+            for a in node.names:
+                sub = f"{mod}.{a.name}"
+                found.add(sub if sub in MODULES else mod)
+    return {m for m in found if m in MODULES and m != name}
+
+
+GRAPH = {name: _imports(name, path) for name, path in MODULES.items()}
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan), each sorted."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+    counter = [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_cycle_finder_finds_a_cycle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_circle():
+    cycles = _cycles(GRAPH)
+    assert not cycles, "import circles (function-level imports count):\n" + "\n".join(" <-> ".join(c) for c in cycles)
+
+
+@pytest.mark.parametrize("pkg", DOMAIN)
+def test_domain_packages_never_import_report_or_cli(pkg):
+    bad = sorted(f"{m} imports {i}" for m, deps in GRAPH.items() if m == f"minegeo.{pkg}" or m.startswith(f"minegeo.{pkg}.")
+                 for i in deps if i.startswith(("minegeo.report", "minegeo.cli")))
+    assert not bad, "\n".join(bad)
+
+
+def test_report_never_imports_cli():
+    bad = sorted(f"{m} imports {i}" for m, deps in GRAPH.items() if m.startswith("minegeo.report")
+                 for i in deps if i.startswith("minegeo.cli"))
+    assert not bad, "\n".join(bad)
+
+
+def _is_kernel(fn: ast.FunctionDef) -> bool:
+    return any("jit" in ast.unparse(d) for d in fn.decorator_list)
+
+
+def long_functions(limit: int = MAX_FUNCTION_LINES) -> list[str]:
+    out = []
+    for path in MODULES.values():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and not _is_kernel(node):
+                n = node.end_lineno - node.lineno + 1
+                if n > limit:
+                    out.append(f"{path.relative_to(PKG.parent)}::{node.name} ({n} lines)")
+    return sorted(out)
+
+
+def test_long_function_finder_sees_a_long_function():
+    src = "def f():\n" + "    x = 1\n" * 200
+    node = ast.parse(src).body[0]
+    assert node.end_lineno - node.lineno + 1 > MAX_FUNCTION_LINES and not _is_kernel(node)
+
+
+def test_no_long_functions_outside_kernels():
+    bad = long_functions()
+    assert not bad, f"functions longer than {MAX_FUNCTION_LINES} lines:\n" + "\n".join(bad)
