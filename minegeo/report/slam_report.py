@@ -1,0 +1,158 @@
+"""``report.html`` of ``minegeo posegraph`` and ``minegeo evaluate`` (self-contained, status first).
+
+posegraph: the graph file, the cost before and after (the contract cost ``F = ½ Σ rᵀΩr``), the
+iterations and their costs, a plan view of the poses before and after with the edges, timings.
+evaluate: ATE and RPE statistics (evo's), per-axis errors, the alignment, plots of both paths and of
+the error along the path.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+
+from minegeo._provenance import atomic_write_text
+from minegeo.report._html import esc, img_png, kv_table, page, params_table, table, timings_html
+
+__all__ = ["plot_posegraph_png", "posegraph_report_html", "write_posegraph_report", "plot_evaluation_png",
+           "evaluate_report_html", "write_evaluate_report"]
+
+
+def _figure(n: int = 1, size=(9, 5)):
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError:
+        return None
+    fig = Figure(figsize=size, dpi=100)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _png(fig) -> bytes:
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    return buf.getvalue()
+
+
+def _xy(poses: np.ndarray) -> np.ndarray:
+    return poses[:, :2, -1]
+
+
+def plot_posegraph_png(before: np.ndarray, after: np.ndarray, edges: np.ndarray, max_edges: int = 20000) -> bytes | None:
+    """Plan view (x, y of each pose) before and after, loop edges (|i − j| > 1) drawn thin."""
+    fig = _figure(size=(11, 5))
+    if fig is None:
+        return None
+    loops = edges[np.abs(edges[:, 0] - edges[:, 1]) > 1][:max_edges]
+    for k, (poses, title) in enumerate(((before, "before (initial values)"), (after, "after optimisation"))):
+        ax = fig.add_subplot(1, 2, k + 1)
+        xy = _xy(poses)
+        if loops.size:
+            seg = np.stack([xy[loops[:, 0]], xy[loops[:, 1]]], axis=1)
+            from matplotlib.collections import LineCollection
+
+            ax.add_collection(LineCollection(seg, colors="tab:orange", linewidths=0.3, alpha=0.5, label="loop edges"))
+        ax.plot(xy[:, 0], xy[:, 1], "-", color="tab:blue", lw=0.6, label="poses in id order")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_title(title)
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+        ax.legend(loc="best", fontsize=8)
+    return _png(fig)
+
+
+def posegraph_report_html(summary: dict, png: bytes | None) -> str:
+    res = summary["result"]
+    ok = res["status"] == "converged"
+    status = "ok" if ok else "failed"
+    overview = kv_table([
+        ("graph file", summary["inputs"]["graph"]["path"]),
+        ("SHA-256", summary["inputs"]["graph"]["sha256"]),
+        ("pose type", summary["graph"]["kind"]),
+        ("vertices / edges", f"{summary['graph']['vertices']:,} / {summary['graph']['edges']:,}"),
+        ("vertices chained from odometry (no VERTEX line)", f"{summary['graph']['chained']:,}"),
+        ("fixed vertices (gauge)", ", ".join(map(str, res["fixed_ids"]))),
+        ("edges with an indefinite information matrix (kept as read)", f"{res['non_psd_edges']:,}"),
+        ("cost before, F = ½ Σ rᵀΩr", f"{res['cost_initial']:.10g}"),
+        ("cost after", f"{res['cost_final']:.10g}"),
+        ("iterations", res["iterations"]),
+        ("stopped because", res["reason"]),
+        ("optimised graph written", summary["outputs"].get("graph")),
+    ])
+    hist = table(["iteration", "cost", "λ", "accepted", "largest step"],
+                 [[h["iteration"], f"{h['cost']:.10g}", f"{h['lambda']:.1e}", "yes" if h["accepted"] else "no",
+                   f"{h['step']:.3e}"] for h in res["history"]], numeric=(0, 1, 2, 4))
+    cost = ("<p>Residual of an edge: r = Log(Z⁻¹ T_i⁻¹ T_j), rotation first; the file's information matrix "
+            "is permuted to that order. This is GTSAM's BetweenFactor cost on a file read by readG2o "
+            "(slam_contract.md). Levenberg–Marquardt on the Lie algebra, right perturbations, sparse normal "
+            "equations.</p>")
+    sections = [("Result", overview), ("Cost", cost), ("Plan view", img_png(png, "poses before and after")),
+                ("Iterations", hist), ("Parameters", params_table(res["params"])),
+                ("Timings", timings_html(summary.get("timings_s")))]
+    return page("minegeo posegraph", sections, subtitle=esc(summary["inputs"]["graph"]["path"]), status=status,
+                status_text=f"{res['status']}: {res['reason']}")
+
+
+def write_posegraph_report(path, summary: dict, png: bytes | None):
+    return atomic_write_text(path, posegraph_report_html(summary, png))
+
+
+def plot_evaluation_png(gt_xy: np.ndarray, est_xy: np.ndarray, dist_m: np.ndarray, err_m: np.ndarray) -> bytes | None:
+    """Both paths in plan view (estimate aligned) and the position error along the path."""
+    fig = _figure(size=(11, 4.5))
+    if fig is None:
+        return None
+    ax = fig.add_subplot(1, 2, 1)
+    ax.plot(gt_xy[:, 0], gt_xy[:, 1], "-", color="k", lw=1.0, label="ground truth")
+    ax.plot(est_xy[:, 0], est_xy[:, 1], "-", color="tab:red", lw=0.8, label="estimate (aligned)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title("plan view")
+    ax = fig.add_subplot(1, 2, 2)
+    ax.plot(dist_m, err_m, "-", color="tab:red", lw=0.8)
+    ax.set_xlabel("distance along the ground-truth path (m)")
+    ax.set_ylabel("position error after alignment (m)")
+    ax.set_title("ATE along the path")
+    return _png(fig)
+
+
+def _stats_rows(stats: dict, unit: str):
+    return [[name, *(f"{stats[name][k]:.6g}" for k in ("rmse", "mean", "median", "std", "min", "max")),
+             stats[name]["n"], unit] for name in stats]
+
+
+def evaluate_report_html(summary: dict, png: bytes | None) -> str:
+    r = summary["result"]
+    overview = kv_table([
+        ("estimate", summary["inputs"]["est"]["path"]),
+        ("ground truth", summary["inputs"]["gt"]["path"]),
+        ("poses matched by time", f"{r['n_matched']:,} (within {r['params']['max_diff_s']} s)"),
+        ("alignment", ("Sim(3)" if r["params"]["scale"] else "SE(3)") + " Umeyama" if r["params"]["align"] else "none"),
+        ("scale", f"{r['scale']:.9g}"),
+        ("ground-truth path length", f"{r['path_length_m']:.3f} m"),
+        ("ATE RMSE", f"{r['ate']['rmse']:.6g} m ({r['ate_percent_of_path']:.4g} % of the path)"),
+        ("RPE translation RMSE", f"{r['rpe_translation']['rmse']:.6g} m ({r['rpe_translation_percent']:.4g} %)"),
+        ("RPE rotation RMSE", f"{r['rpe_rotation_deg']['rmse']:.6g} deg ({r['rpe_rotation_deg_per_m']:.4g} deg/m)"),
+        *(("warning", w) for w in r.get("warnings", [])),
+    ])
+    heads = ["error", "RMSE", "mean", "median", "std", "min", "max", "n", "unit"]
+    ate = table(heads, _stats_rows({"ATE |e|": r["ate"], **{f"ATE {a} (signed)": r["ate_axis"][a] for a in "xyz"}}, "m")
+                + _stats_rows({"rotation after alignment": r["ate_rotation_deg"]}, "deg"), numeric=range(1, 8))
+    rpe = table(heads, _stats_rows({"RPE translation": r["rpe_translation"]}, "m")
+                + _stats_rows({"RPE rotation": r["rpe_rotation_deg"]}, "deg"), numeric=range(1, 8))
+    method = ("<p>ATE: e_k = t_gt,k − (s R t_est,k + t) after the Umeyama (1991) least-squares fit of the matched "
+              "positions. RPE: E = (Q_i⁻¹ Q_j)⁻¹ (P_i⁻¹ P_j) over consecutive pairs "
+              f"{esc(r['params']['rpe_delta'])} {esc(r['params']['rpe_unit'])} apart on the ground truth; "
+              "the same definitions as evo's evo_ape / evo_rpe (pairs from the reference).</p>")
+    sections = [("Result", overview), ("Plots", img_png(png, "paths and error along the path")), ("ATE", ate),
+                ("RPE", rpe), ("Method", method), ("Timings", timings_html(summary.get("timings_s")))]
+    return page("minegeo evaluate", sections, status="ok", status_text=f"ATE RMSE {r['ate']['rmse']:.4g} m")
+
+
+def write_evaluate_report(path, summary: dict, png: bytes | None):
+    return atomic_write_text(path, evaluate_report_html(summary, png))

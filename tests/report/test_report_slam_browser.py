@@ -1,0 +1,47 @@
+"""``minegeo posegraph`` and ``minegeo evaluate`` reports open in the browser under the report contract
+(no outside request, no console error, figures decoded, status banner first; see test_reports_browser.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import shared_data
+from test_reports_browser import HAVE_MPL, browser, check_report, shots  # noqa: F401 - fixtures
+
+from minegeo.cli import main
+
+
+@pytest.fixture(scope="module")
+def slam_reports(browser, tmp_path_factory):  # noqa: F811 - the imported fixture
+    from minegeo.geometry.se3 import exp_so3
+    from minegeo.io import write_trajectory
+    from minegeo.io.types import Trajectory
+
+    root = tmp_path_factory.mktemp("slam_reports")
+    g = shared_data("pose_graph_g2o", "smallGrid3D.g2o")
+    assert main(["-q", "posegraph", str(g), "--out", str(root / "grid.g2o"), "--report", str(root / "pg")]) == 0
+    assert main(["-q", "posegraph", str(g), "--out", str(root / "grid1.g2o"), "--report", str(root / "pg1"),
+                 "--max-iterations", "1"]) == 1
+    rng = np.random.default_rng(0)
+    T, P = np.eye(4), []
+    for _ in range(80):
+        T = T @ np.block([[exp_so3(rng.normal(scale=0.05, size=3)), np.array([[0.5], [0.0], [0.0]])],
+                          [np.zeros((1, 3)), np.ones((1, 1))]])
+        P.append(T.copy())
+    P = np.stack(P)
+    E = P.copy()
+    E[:, :3, 3] += rng.normal(scale=0.05, size=(80, 3))
+    t = np.arange(80) * 0.1
+    write_trajectory(root / "gt.tum", Trajectory(t, P))
+    write_trajectory(root / "est.tum", Trajectory(t, E))
+    assert main(["-q", "evaluate", "--est", str(root / "est.tum"), "--gt", str(root / "gt.tum"),
+                 "--out", str(root / "ev")]) == 0
+    return {"posegraph_ok": (root / "pg" / "report.html", "OK"),
+            "posegraph_stopped": (root / "pg1" / "report.html", "FAILED"),
+            "evaluate": (root / "ev" / "report.html", "OK")}
+
+
+@pytest.mark.parametrize("case", ["posegraph_ok", "posegraph_stopped", "evaluate"])
+def test_slam_report_in_browser(case, slam_reports, browser, shots):  # noqa: F811
+    path, expected = slam_reports[case]
+    check_report(browser, path, expected, shots / f"{case}.png", min_images=1 if HAVE_MPL else 0)

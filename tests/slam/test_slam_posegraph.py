@@ -1,0 +1,198 @@
+"""Pose-graph optimisation (Levenberg–Marquardt on the Lie algebra) against its naive twin, exact data,
+finite differences and GTSAM (the oracle named by the SLAM contract)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import shared_data
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from reference import naive_posegraph as NP
+
+from minegeo.io.g2o import PoseGraph, read_g2o
+from minegeo.slam import _kernels as K
+from minegeo.slam.posegraph import PoseGraphParams, optimize_pose_graph, pose_graph_cost
+
+
+def _random_pose(rng, kind, angle=np.pi * 0.95, trans=5.0):
+    if kind == "SE3":
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        return NP.exp(np.r_[axis * rng.uniform(0, angle), rng.uniform(-trans, trans, 3)])
+    return NP.exp(np.r_[rng.uniform(-angle, angle), rng.uniform(-trans, trans, 2)])
+
+
+def _graph(rng, kind, n=8, extra=6, noise=0.0):
+    """A random graph: a chain plus ``extra`` loop edges, measurements from the true poses (+ noise)."""
+    truth = np.stack([_random_pose(rng, kind) for _ in range(n)])
+    truth[0] = np.eye(truth.shape[1])
+    pairs = [(k, k + 1) for k in range(n - 1)]
+    while len(pairs) < n - 1 + extra:
+        i, j = sorted(rng.choice(n, 2, replace=False).tolist())
+        if (i, j) not in pairs:
+            pairs.append((i, j))
+    d = 6 if kind == "SE3" else 3
+    Z = []
+    for i, j in pairs:
+        z = np.linalg.inv(truth[i]) @ truth[j]
+        if noise:
+            z = z @ NP.exp(rng.normal(scale=noise, size=d))
+        Z.append(z)
+    A = rng.normal(size=(len(pairs), d, d))
+    info = np.einsum("eij,ekj->eik", A, A) + d * np.eye(d)
+    g = PoseGraph(kind, np.arange(n), truth.copy(), np.asarray(pairs), np.stack(Z), info)
+    return g, truth
+
+
+def _perturbed(g, rng, scale):
+    d = 6 if g.kind == "SE3" else 3
+    p = g.poses.copy()
+    for k in range(1, g.n_vertices):
+        p[k] = p[k] @ NP.exp(rng.normal(scale=scale, size=d))
+    return g.with_poses(p)
+
+
+def _info_rt(g):
+    p = [3, 4, 5, 0, 1, 2] if g.kind == "SE3" else [2, 0, 1]
+    return g.information[:, p][:, :, p]
+
+
+@pytest.mark.parametrize("kind", ["SE3", "SE2"])
+@settings(max_examples=25)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_analytic_jacobians_match_finite_differences(kind, seed):
+    rng = np.random.default_rng(seed)
+    d = 6 if kind == "SE3" else 3
+    poses = np.stack([_random_pose(rng, kind) for _ in range(2)])
+    Z = _random_pose(rng, kind, angle=0.5, trans=1.0)[None]
+    # keep the residual away from the ±π cut where Log is not differentiable
+    r_true = NP.residual(poses[0], poses[1], Z[0])
+    if np.linalg.norm(r_true[:3] if kind == "SE3" else r_true[:1]) > 2.8:
+        return
+    r, Ji, Jj = np.empty((1, d)), np.empty((1, d, d)), np.empty((1, d, d))
+    (K.se3_edge_terms if kind == "SE3" else K.se2_edge_terms)(poses, np.array([[0, 1]]), Z, r, Ji, Jj)
+    nJi, nJj = NP.numeric_jacobians(poses[0], poses[1], Z[0])
+    assert np.allclose(r[0], NP.residual(poses[0], poses[1], Z[0]), atol=1e-9)
+    assert np.allclose(Ji[0], nJi, atol=1e-6) and np.allclose(Jj[0], nJj, atol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["SE3", "SE2"])
+def test_cost_matches_the_naive_twin(kind):
+    rng = np.random.default_rng(3)
+    g, _ = _graph(rng, kind, noise=0.05)
+    g = _perturbed(g, rng, 0.2)
+    assert pose_graph_cost(g) == pytest.approx(NP.cost(g.poses, g.edges, g.measurements, _info_rt(g)), rel=1e-9)
+
+
+@pytest.mark.parametrize("kind", ["SE3", "SE2"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_exact_measurements_recover_the_exact_poses(kind, seed):
+    rng = np.random.default_rng(seed)
+    g, truth = _graph(rng, kind, n=10, extra=8)
+    res = optimize_pose_graph(_perturbed(g, rng, 0.3))
+    assert res.status == "converged", res.reason
+    assert res.cost_final < 1e-16 * max(1.0, res.cost_initial)
+    assert np.abs(res.graph.poses - truth).max() < 1e-9
+    assert np.array_equal(res.graph.poses[0], truth[0])  # gauge: the first pose is held
+
+
+@pytest.mark.parametrize("kind", ["SE3", "SE2"])
+def test_noisy_optimum_equals_the_naive_gauss_newton(kind):
+    rng = np.random.default_rng(11)
+    g, _ = _graph(rng, kind, n=6, extra=5, noise=0.05)
+    start = _perturbed(g, rng, 0.05)
+    res = optimize_pose_graph(start)
+    naive = NP.gauss_newton(list(start.poses), start.edges, start.measurements, _info_rt(start))
+    assert np.abs(res.graph.poses - np.stack(naive)).max() < 1e-7
+    costs = [h["cost"] for h in res.history if h["accepted"]]
+    assert all(b <= a for a, b in zip(costs, costs[1:], strict=False))  # accepted steps never raise the cost
+
+
+def test_fix_records_hold_their_vertices():
+    rng = np.random.default_rng(5)
+    g, _ = _graph(rng, "SE3", n=6, extra=4, noise=0.02)
+    g = _perturbed(g, rng, 0.1)
+    g.fixed = (3,)
+    res = optimize_pose_graph(g)
+    assert res.fixed_ids == (3,)
+    assert np.array_equal(res.graph.poses[3], g.poses[3]) and not np.array_equal(res.graph.poses[0], g.poses[0])
+
+
+def test_the_optimum_moves_rigidly_with_the_fixed_pose():
+    """Gauge: moving the whole start rigidly moves the optimum by the same motion."""
+    rng = np.random.default_rng(8)
+    g, _ = _graph(rng, "SE3", n=7, extra=5, noise=0.03)
+    g = _perturbed(g, rng, 0.05)
+    M = _random_pose(rng, "SE3")
+    a = optimize_pose_graph(g).graph.poses
+    b = optimize_pose_graph(g.with_poses(M @ g.poses)).graph.poses
+    assert np.abs(M @ a - b).max() < 1e-8
+
+
+def test_robust_kernel_resists_a_false_loop():
+    rng = np.random.default_rng(21)
+    g, truth = _graph(rng, "SE3", n=12, extra=10, noise=0.01)
+    Z = g.measurements.copy()
+    Z[-1] = Z[-1] @ NP.exp(np.r_[0.8, -0.5, 0.3, 4.0, -3.0, 2.0])  # one wrong loop closure
+    info = np.broadcast_to(np.eye(6) / 0.01**2, g.information.shape).copy()  # the true noise level
+    bad = PoseGraph("SE3", g.ids, g.poses, g.edges, Z, info)
+    err = lambda p: np.abs(p[:, :3, 3] - truth[:, :3, 3]).max()  # noqa: E731
+    plain = optimize_pose_graph(bad)
+    assert err(plain.graph.poses) > 0.3  # least squares spreads the wrong loop over the graph
+    for kernel in ("cauchy", "huber"):
+        robust = optimize_pose_graph(bad, PoseGraphParams(robust=kernel, robust_scale=2.0))
+        assert robust.status == "converged"
+        assert err(robust.graph.poses) < (0.1 if kernel == "cauchy" else 0.6) * err(plain.graph.poses), kernel
+
+
+def test_an_unconstrained_vertex_fails_with_a_reason():
+    rng = np.random.default_rng(2)
+    g, _ = _graph(rng, "SE2", n=5, extra=2)
+    keep = (g.edges != 4).all(axis=1)
+    lonely = PoseGraph("SE2", g.ids, g.poses, g.edges[keep], g.measurements[keep], g.information[keep])
+    res = optimize_pose_graph(lonely)
+    assert res.status == "failed" and "not constrained" in res.reason
+    assert np.array_equal(res.graph.poses, lonely.poses)
+
+
+def test_same_input_gives_bit_identical_output():
+    g = read_g2o(shared_data("pose_graph_g2o", "smallGrid3D.g2o"))
+    a, b = optimize_pose_graph(g), optimize_pose_graph(g)
+    assert a.graph.poses.tobytes() == b.graph.poses.tobytes() and a.cost_final == b.cost_final
+
+
+# ---------------------------------------------------------------- GTSAM, the contract's oracle
+
+def _gtsam():
+    from helpers import require_oracle
+
+    return require_oracle("gtsam")
+
+
+def _gtsam_optimum(path):
+    gtsam = _gtsam()
+    is3d = read_g2o(path).kind == "SE3"
+    graph, initial = gtsam.readG2o(str(path), is3d)
+    between = gtsam.NonlinearFactorGraph(graph)
+    key0 = min(initial.keys())
+    if is3d:
+        graph.add(gtsam.PriorFactorPose3(key0, initial.atPose3(key0), gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)))
+    else:
+        graph.add(gtsam.PriorFactorPose2(key0, initial.atPose2(key0), gtsam.noiseModel.Isotropic.Sigma(3, 1e-9)))
+    p = gtsam.LevenbergMarquardtParams()
+    p.setMaxIterations(200)
+    p.setRelativeErrorTol(1e-12)
+    p.setAbsoluteErrorTol(1e-14)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, p).optimize()
+    return between.error(initial), between.error(result)
+
+
+@pytest.mark.parametrize("name", ["parking-garage.g2o", "smallGrid3D.g2o", "sphere2500.g2o", "intel.g2o", "MIT.g2o"])
+def test_same_cost_and_optimum_as_gtsam(name):
+    path = shared_data("pose_graph_g2o", name)
+    f0_ref, f_ref = _gtsam_optimum(path)
+    res = optimize_pose_graph(read_g2o(path))
+    assert res.cost_initial == pytest.approx(f0_ref, rel=1e-9)
+    assert res.status == "converged", res.reason
+    assert res.cost_final == pytest.approx(f_ref, rel=1e-6)
