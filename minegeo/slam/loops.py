@@ -1,0 +1,115 @@
+"""Loop closure by rules and GICP (Ren et al. 2019, Sec. 3.4.1).
+
+For the newest keyframe ``k``, a candidate is an older keyframe ``j`` (index smaller) such that
+the trajectory distance between them is above ``min_path_gap_m`` (it is a return, not the
+recent past) and their Euclidean distance is below ``max_distance_m`` (they may see the same
+place). The ``max_candidates`` nearest candidates are registered by GICP (``k`` into ``j``, from the
+odometry's relative pose); the highest-scoring registration wins ("the highest GICP registration
+score is selected as the final loop frame"). A loop is accepted only when its overlap reaches
+``min_fitness``, its inlier RMSE stays below ``max_rmse_m`` and its correction of the odometry's
+relative pose stays within ``max_correction_m`` / ``max_correction_deg`` (a far jump is a wrong
+place that looked alike, rejected rather than trusted). Every candidate tried is recorded with its
+scores and the reason it was rejected: the loop list is an output.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from minegeo.errors import InputError
+from minegeo.slam.odometry import OdometryParams, PreparedFrame, register_frames
+
+__all__ = ["LoopParams", "LoopCandidate", "find_loop"]
+
+
+@dataclass(frozen=True)
+class LoopParams:
+    """Rules and acceptance thresholds of loop closure (m, deg)."""
+
+    min_path_gap_m: float = 30.0
+    max_distance_m: float = 8.0
+    max_candidates: int = 3
+    min_fitness: float = 0.5
+    max_rmse_m: float = 0.3
+    max_correction_m: float = 5.0
+    max_correction_deg: float = 20.0
+
+    def __post_init__(self):
+        for name in ("min_path_gap_m", "max_distance_m", "max_rmse_m", "max_correction_m", "max_correction_deg"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+                raise InputError(f"{name} must be a finite number > 0, got {v!r}")
+        if self.max_candidates < 1 or not 0 <= self.min_fitness <= 1:
+            raise InputError("max_candidates >= 1 and min_fitness in [0, 1] are required")
+
+
+@dataclass
+class LoopCandidate:
+    """One loop candidate tried: keyframes ``i`` (older) and ``j`` (newer), scores, verdict."""
+
+    i: int
+    j: int
+    distance_m: float
+    fitness: float
+    rmse_m: float
+    accepted: bool
+    reason: str
+    T_i_j: np.ndarray
+    information: np.ndarray
+
+
+def _angle_deg(R: np.ndarray) -> float:
+    return math.degrees(math.acos(min(1.0, max(-1.0, (np.trace(R) - 1.0) / 2.0))))
+
+
+def candidates(k: int, positions: np.ndarray, path_m: np.ndarray, params: LoopParams) -> np.ndarray:
+    """Keyframe indices ``j < k`` meeting the three rules, nearest first (at most ``max_candidates``)."""
+    j = np.arange(k)
+    d = np.linalg.norm(positions[:k] - positions[k], axis=1)
+    ok = (path_m[k] - path_m[:k] > params.min_path_gap_m) & (d < params.max_distance_m)
+    j, d = j[ok], d[ok]
+    return j[np.argsort(d, kind="stable")][: params.max_candidates]
+
+
+def find_loop(k: int, poses: np.ndarray, path_m: np.ndarray, frames: list[PreparedFrame],
+              params: LoopParams, odo: OdometryParams) -> list[LoopCandidate]:
+    """Try the loop candidates of keyframe ``k``; at most one of the returned candidates is accepted.
+
+    Parameters
+    ----------
+    k : int
+        The newest keyframe.
+    poses : (K, 4, 4)
+        Keyframe poses ``T_world_keyframe`` (odometry or optimised).
+    path_m : (K,)
+        Trajectory distance of each keyframe from the start (m).
+    frames : list of PreparedFrame
+        The prepared keyframe clouds (sensor frame).
+    """
+    tried = []
+    for j in candidates(k, poses[:, :3, 3], path_m, params):
+        guess = np.linalg.solve(poses[j], poses[k])  # T_j_k from the odometry
+        reg = register_frames(frames[k], frames[j], guess, odo)
+        corr = np.linalg.solve(guess, reg.T)
+        reason = reg.reason
+        if not reason and reg.fitness < params.min_fitness:
+            reason = f"overlap {reg.fitness:.2f} below {params.min_fitness:.2f}"
+        if not reason and reg.rmse_m > params.max_rmse_m:
+            reason = f"inlier RMSE {reg.rmse_m:.3f} m above {params.max_rmse_m:.3f} m"
+        if not reason and (np.linalg.norm(corr[:3, 3]) > params.max_correction_m
+                           or _angle_deg(corr[:3, :3]) > params.max_correction_deg):
+            reason = (f"corrects the odometry by {np.linalg.norm(corr[:3, 3]):.2f} m / {_angle_deg(corr[:3, :3]):.1f}"
+                      " deg: beyond the limits, a look-alike place")
+        tried.append(LoopCandidate(int(j), int(k), float(np.linalg.norm(poses[j, :3, 3] - poses[k, :3, 3])),
+                                   reg.fitness, reg.rmse_m, False, reason, reg.T, reg.information))
+    good = [c for c in tried if not c.reason]
+    if good:
+        best = max(good, key=lambda c: (c.fitness, -c.rmse_m))
+        best.accepted = True
+        for c in good:
+            if c is not best:
+                c.reason = f"lower score than the loop to keyframe {best.i}"
+    return tried

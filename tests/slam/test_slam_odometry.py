@@ -1,0 +1,71 @@
+"""GICP odometry (Ren et al. 2019 Sec. 3.3) on a simulated VLP-16 drive through the synthetic mine."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from minegeo.errors import InputError
+from minegeo.io.types import Trajectory
+from minegeo.slam.evaluate import evaluate_trajectory
+from minegeo.slam.odometry import OdometryParams, run_odometry
+
+
+@pytest.fixture(scope="module")
+def drive():
+    from minegeo.synth.sensors import Velodyne16, simulate_scan
+    from minegeo.synth.trajectory import interpolate_poses, make_trajectory
+    from minegeo.synth.world import build_world
+
+    world = build_world("small", 1)
+    traj = make_trajectory(world, "drive", length_m=30.0, seed=2)
+    ts = np.arange(0.0, traj.times_s[-1], 0.25)
+    P = interpolate_poses(traj, ts)
+    sensor = Velodyne16(azimuth_step_deg=0.4)
+    frames = [(float(t), simulate_scan(world, sensor, T, seed=k).points) for k, (t, T) in enumerate(zip(ts, P, strict=True))]
+    truth = np.einsum("ij,njk->nik", np.linalg.inv(P[0]), P)  # world = first sensor frame
+    return frames, Trajectory(ts, truth)
+
+
+def test_odometry_follows_the_true_path(drive):
+    frames, truth = drive
+    res = run_odometry(frames, OdometryParams())
+    assert res.frame_ok.all(), res.frame_reason
+    ev = evaluate_trajectory(Trajectory(res.times_s, res.poses), truth, align=False)
+    assert ev.ate.max < 0.01 * ev.path_length_m  # under 1 % of the ~30 m path, no alignment
+    # keyframes obey [Ren2019 Eq. 8]: consecutive keyframes are at most one frame past a threshold
+    kf = res.keyframes
+    assert kf[0] == 0 and kf.size >= 10
+    for a, b in zip(kf[:-1], kf[1:], strict=True):
+        rel_before = np.linalg.solve(res.poses[a], res.poses[b - 1])
+        assert np.linalg.norm(rel_before[:3, 3]) <= res.params.keyframe_distance_m + 1e-9 or b - a == 1
+    # the keyframe edges chain to the keyframe poses
+    chained = [res.poses[kf[0]]]
+    for Z in res.keyframe_edges:
+        chained.append(chained[-1] @ Z)
+    assert np.allclose(np.stack(chained), res.poses[kf], atol=1e-9)
+    assert all(np.all(np.linalg.eigvalsh(info) > 0) for info in res.keyframe_information)
+
+
+def test_a_frame_that_cannot_register_is_flagged_and_the_run_goes_on(drive):
+    frames, truth = drive
+    broken = list(frames)
+    broken[10] = (broken[10][0], broken[10][1][:50])  # almost nothing seen
+    res = run_odometry(broken, OdometryParams())
+    assert not res.frame_ok[10] and "too few points" in res.frame_reason[10]
+    assert res.frame_ok[11:].all()
+    ev = evaluate_trajectory(Trajectory(res.times_s, res.poses), truth, align=False)
+    assert ev.ate.max < 0.02 * ev.path_length_m
+
+
+def test_the_same_frames_give_bit_identical_poses(drive):
+    frames, _ = drive
+    a = run_odometry(frames[:12])
+    b = run_odometry(frames[:12])
+    assert a.poses.tobytes() == b.poses.tobytes()
+
+
+def test_time_must_increase(drive):
+    frames, _ = drive
+    with pytest.raises(InputError, match="is not after the previous frame"):
+        run_odometry([frames[1], frames[0]])
