@@ -33,6 +33,7 @@ _WARMUP_MODULES = (
     "minegeo.survey",
     "minegeo.mast",
     "minegeo.localize",
+    "minegeo.slam",
 )
 
 

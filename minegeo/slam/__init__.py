@@ -1,1 +1,24 @@
-"""minegeo.slam"""
+"""minegeo.slam: LiDAR SLAM building blocks (Ren et al. 2019).
+
+* :mod:`minegeo.slam.odometry`: GICP odometry between frames and keyframes (Ren et al. 2019 Sec. 3.3);
+* :mod:`minegeo.slam.loops`: rule-based loop closure verified by GICP (Sec. 3.4.1);
+* :mod:`minegeo.slam.posegraph`: pose-graph optimisation (Levenberg–Marquardt on the Lie algebra,
+  sparse normal equations) with the cost of ``slam_contract.md``; g2o files in :mod:`minegeo.io.g2o`;
+* :mod:`minegeo.slam.evaluate`: ATE / RPE as evo computes them.
+"""
+
+
+def _warmup() -> None:
+    """Compile the pose-graph kernels (SE(3) and SE(2) edge terms and residuals) on tiny graphs."""
+    import numpy as np
+
+    from minegeo.slam import _kernels as K
+
+    for d, terms, res in ((4, K.se3_edge_terms, K.se3_residuals), (3, K.se2_edge_terms, K.se2_residuals)):
+        n = 6 if d == 4 else 3
+        poses = np.tile(np.eye(d), (2, 1, 1))
+        edges = np.array([[0, 1]], dtype=np.int64)
+        Z = np.eye(d)[None].copy()
+        r, Ji, Jj = np.empty((1, n)), np.empty((1, n, n)), np.empty((1, n, n))
+        terms(poses, edges, Z, r, Ji, Jj)
+        res(poses, edges, Z, r)
