@@ -11,16 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
-from minegeo.kernels.eig3 import (  # noqa: F401  (re-exported: geometry's kernel names)
-    STATUS_COINCIDENT,
-    STATUS_COLLINEAR,
-    STATUS_OK,
-    STATUS_TOO_FEW,
-    fast_eigen3x3,
-    jacobi_eigh3,
-    pca_normal,
-)
-from minegeo.kernels.eig3 import pca_normal as _normal_from_neighbors  # noqa: F401  (old name)
+from minegeo.kernels.eig3 import pca_normal
 from minegeo.kernels.hashgrid import lookup as hash_lookup
 
 # ---------------------------------------------------------------------------------------
@@ -147,6 +138,15 @@ def _cell_range(qc, r, o, inv_cell, ncell):
 
 
 @njit
+def _sq_to(pts, pos, q0, q1, q2):
+    """Squared distance of grid point ``pos`` to the query, ``d0*d0 + d1*d1 + d2*d2``."""
+    d0 = pts[pos, 0] - q0
+    d1 = pts[pos, 1] - q1
+    d2 = pts[pos, 2] - q2
+    return d0 * d0 + d1 * d1 + d2 * d2
+
+
+@njit
 def _box_sq(qc, lo_edge, cell):
     """Squared distance from coordinate ``qc`` to the interval [lo_edge, lo_edge + cell]."""
     if qc < lo_edge:
@@ -198,10 +198,7 @@ def hybrid_one(q0, q1, q2, r, r2, cap, pts, order, cell_start, origin, cell, inv
                     if c < 0:
                         continue
                     for pos in range(cell_start[c], cell_start[c + 1]):
-                        d0 = pts[pos, 0] - q0
-                        d1 = pts[pos, 1] - q1
-                        d2 = pts[pos, 2] - q2
-                        sq = d0 * d0 + d1 * d1 + d2 * d2
+                        sq = _sq_to(pts, pos, q0, q1, q2)
                         if sq < r2:
                             count = _insert_sorted(buf_pos, buf_sq, count, cap, pos, sq, order)
     return count
@@ -276,12 +273,10 @@ def select_smallest(buf_pos, buf_sq, m, k, order):
 
 
 @njit
-def collect_one(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell,
-                nx, ny, nz, morton, bits, table_keys, table_vals, buf_pos, buf_sq):
-    """All grid points with sq < r2, unsorted (cell traversal order) into ``buf_*``.
-
-    Returns the count, or -1 when more than ``len(buf_pos)`` points qualify.
-    """
+def _radius_walk(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell,
+                 nx, ny, nz, morton, bits, table_keys, table_vals, buf_pos, buf_sq, store):
+    """Every grid point with squared distance strictly < ``r2``, cell by cell (z, y, x): counted,
+    and with ``store`` also written to ``buf_*`` in visiting order (``-1`` when they overflow)."""
     x0, x1 = _cell_range(q0, r, origin[0], inv_cell, nx)
     y0, y1 = _cell_range(q1, r, origin[1], inv_cell, ny)
     z0, z1 = _cell_range(q2, r, origin[2], inv_cell, nz)
@@ -299,17 +294,26 @@ def collect_one(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell,
                 if c < 0:
                     continue
                 for pos in range(cell_start[c], cell_start[c + 1]):
-                    d0 = pts[pos, 0] - q0
-                    d1 = pts[pos, 1] - q1
-                    d2 = pts[pos, 2] - q2
-                    sq = d0 * d0 + d1 * d1 + d2 * d2
+                    sq = _sq_to(pts, pos, q0, q1, q2)
                     if sq < r2:
-                        if count == cap:
-                            return -1
-                        buf_pos[count] = pos
-                        buf_sq[count] = sq
+                        if store:
+                            if count == cap:
+                                return -1
+                            buf_pos[count] = pos
+                            buf_sq[count] = sq
                         count += 1
     return count
+
+
+@njit
+def collect_one(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell,
+                nx, ny, nz, morton, bits, table_keys, table_vals, buf_pos, buf_sq):
+    """All grid points with sq < r2, unsorted (cell traversal order) into ``buf_*``.
+
+    Returns the count, or -1 when more than ``len(buf_pos)`` points qualify.
+    """
+    return _radius_walk(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell, nx, ny, nz, morton, bits,
+                        table_keys, table_vals, buf_pos, buf_sq, True)
 
 
 @njit
@@ -342,28 +346,8 @@ def search_set_one(q0, q1, q2, knn, r, rmax, cap, pts, order, cell_start, origin
 def count_one(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell,
               nx, ny, nz, morton, bits, table_keys, table_vals):
     """Number of grid points with squared distance strictly < ``r2`` (radius search size)."""
-    x0, x1 = _cell_range(q0, r, origin[0], inv_cell, nx)
-    y0, y1 = _cell_range(q1, r, origin[1], inv_cell, ny)
-    z0, z1 = _cell_range(q2, r, origin[2], inv_cell, nz)
-    count = 0
-    slack = 1.0 + 1e-12
-    for iz in range(z0, z1 + 1):
-        dz = _box_sq(q2, origin[2] + iz * cell, cell)
-        for iy in range(y0, y1 + 1):
-            dy = _box_sq(q1, origin[1] + iy * cell, cell)
-            for ix in range(x0, x1 + 1):
-                if dz + dy + _box_sq(q0, origin[0] + ix * cell, cell) > r2 * slack:
-                    continue
-                c = hash_lookup(cell_key(ix, iy, iz, nx, ny, morton), bits, table_keys, table_vals)
-                if c < 0:
-                    continue
-                for pos in range(cell_start[c], cell_start[c + 1]):
-                    d0 = pts[pos, 0] - q0
-                    d1 = pts[pos, 1] - q1
-                    d2 = pts[pos, 2] - q2
-                    if d0 * d0 + d1 * d1 + d2 * d2 < r2:
-                        count += 1
-    return count
+    return _radius_walk(q0, q1, q2, r, r2, pts, cell_start, origin, cell, inv_cell, nx, ny, nz, morton, bits,
+                        table_keys, table_vals, np.empty(0, np.int64), np.empty(0), False)
 
 
 @njit_parallel

@@ -160,6 +160,24 @@ def _is_space(c):
 
 
 @njit
+def _digit_run(buf, j, end, m, nd):
+    """Consume the decimal digits of ``buf[j:end]`` into the mantissa ``m`` (leading zeros are not
+    significant; ``nd`` counts the significant digits). Returns ``(j, m, nd, digits read)``, with
+    ``nd = -1`` when a 19th significant digit would overflow the int64 mantissa."""
+    count = 0
+    while j < end and buf[j] >= 48 and buf[j] <= 57:
+        d = np.int64(buf[j] - 48)
+        if m != 0 or d != 0:
+            if nd >= 18:
+                return j, m, -1, count
+            m = m * 10 + d
+            nd += 1
+        count += 1
+        j += 1
+    return j, m, nd, count
+
+
+@njit
 def parse_text_kernel(buf, ncols, delim, comment, max_rows, pow10, out):
     """Fast exact parser of a numeric text table (Clinger's fast path), or a request to fall back.
 
@@ -218,32 +236,15 @@ def parse_text_kernel(buf, ncols, delim, comment, max_rows, pow10, out):
                 j += 1
             elif buf[j] == 43:
                 j += 1
-            m = np.int64(0)
-            nd = 0
+            j, m, nd, n_int = _digit_run(buf, j, end, np.int64(0), 0)
+            if nd < 0:
+                return row, 1
             frac = 0
-            seen = False
-            while j < end and buf[j] >= 48 and buf[j] <= 57:
-                seen = True
-                d = np.int64(buf[j] - 48)
-                if m != 0 or d != 0:
-                    if nd >= 18:
-                        return row, 1
-                    m = m * 10 + d
-                    nd += 1
-                j += 1
             if j < end and buf[j] == 46:
-                j += 1
-                while j < end and buf[j] >= 48 and buf[j] <= 57:
-                    seen = True
-                    d = np.int64(buf[j] - 48)
-                    if m != 0 or d != 0:
-                        if nd >= 18:
-                            return row, 1
-                        m = m * 10 + d
-                        nd += 1
-                    frac += 1
-                    j += 1
-            if not seen:
+                j, m, nd, frac = _digit_run(buf, j + 1, end, m, nd)
+                if nd < 0:
+                    return row, 1
+            if n_int == 0 and frac == 0:
                 return row, 1
             e = 0
             if j < end and (buf[j] == 101 or buf[j] == 69):

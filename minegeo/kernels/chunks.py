@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from minegeo._jit import njit
 
-__all__ = ["CHUNK", "n_chunks", "PARALLEL_QUERY_ROWS"]
+__all__ = ["CHUNK", "n_chunks", "PARALLEL_QUERY_ROWS", "QUERY_TASK_ROWS"]
 
 #: Rows per reduction chunk (fixed so that summation order is thread-count independent).
 CHUNK = 1024
@@ -20,6 +20,11 @@ CHUNK = 1024
 #: benchmarks/bench_registration.py): serial queries made minegeo's ICP 1.15-1.42x Open3D's
 #: time, parallel queries from 4096 rows bring it below 1.
 PARALLEL_QUERY_ROWS = 1 << 12
+
+#: Rows per task of the parallel 1-NN query drivers. Each row is independent (no reduction), so
+#: the rows are cut finer than the reductions' ``CHUNK``: 4,761 queries are 38 tasks shared
+#: evenly by 2 threads instead of 5 chunks split 3:2. Per-row results: any split gives the same bits.
+QUERY_TASK_ROWS = 128
 
 
 @njit

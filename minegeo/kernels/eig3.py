@@ -70,6 +70,21 @@ def _ev0(a00, a01, a02, a11, a12, a22, lam):
 
 
 @njit
+def _unit_pair(a, b):
+    """``(a, b) / |(a, b)|`` as Open3D's ``ComputeEigenvector1`` computes it: divide by the
+    larger magnitude ``t``, then scale by ``1 / sqrt(1 + t²)`` (no overflow)."""
+    if abs(a) >= abs(b):
+        b /= a
+        a = 1.0 / np.sqrt(1.0 + b * b)
+        b *= a
+    else:
+        a /= b
+        b = 1.0 / np.sqrt(1.0 + a * a)
+        a *= b
+    return a, b
+
+
+@njit
 def _ev1(a00, a01, a02, a11, a12, a22, e0, e1, e2, lam):
     """Eberly's ComputeEigenvector1 (as in Open3D 0.20)."""
     if abs(e0) > abs(e1):
@@ -100,25 +115,11 @@ def _ev1(a00, a01, a02, a11, a12, a22, e0, e1, e2, lam):
     am11 = abs(m11)
     if am00 >= am11:
         if max(am00, am01) > 0.0:
-            if am00 >= am01:
-                m01 /= m00
-                m00 = 1.0 / np.sqrt(1.0 + m01 * m01)
-                m01 *= m00
-            else:
-                m00 /= m01
-                m01 = 1.0 / np.sqrt(1.0 + m00 * m00)
-                m00 *= m01
+            m00, m01 = _unit_pair(m00, m01)
             return m01 * u0 - m00 * v0, m01 * u1 - m00 * v1, m01 * u2 - m00 * v2
         return u0, u1, u2
     if max(am11, am01) > 0.0:
-        if am11 >= am01:
-            m01 /= m11
-            m11 = 1.0 / np.sqrt(1.0 + m01 * m01)
-            m01 *= m11
-        else:
-            m11 /= m01
-            m01 = 1.0 / np.sqrt(1.0 + m11 * m11)
-            m11 *= m01
+        m11, m01 = _unit_pair(m11, m01)
         return m11 * u0 - m01 * v0, m11 * u1 - m01 * v1, m11 * u2 - m01 * v2
     return u0, u1, u2
 

@@ -4,8 +4,9 @@ One tree serves every exact Euclidean search of minegeo in 3-D (ICP and GICP cor
 GICP's kNN normals, the localisation's candidate refinement). Contiguous float64 arrays in, no
 checks. The tree is the tuple ``(idx, Qs, start, end, dim, split, left, right, depth)`` of
 :func:`kd_build`; every search is exact and breaks ties by the lower point index, so its
-answers do not depend on the tree's shape nor on the thread count (queries are independent,
-chunked by :data:`~minegeo.kernels.chunks.CHUNK` rows).
+answers do not depend on the tree's shape nor on the thread count (queries are independent;
+the 1-NN drivers cut the rows into :data:`~minegeo.kernels.chunks.QUERY_TASK_ROWS`-row tasks,
+the kNN and radius drivers into :data:`~minegeo.kernels.chunks.CHUNK`-row chunks).
 
 Why a hand-written tree next to pykdtree: see ``docs/kernels.md`` (measurements of
 ``benchmarks/bench_kernels.py``): the strict gate ``sq < d2`` is part of the descent (few nodes
@@ -20,10 +21,11 @@ import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
 from minegeo._validate import is_permutation
-from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, n_chunks
+from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, QUERY_TASK_ROWS, n_chunks
 
 __all__ = ["KD_LEAF", "kd_build", "kd_walk_to_leaf", "kd_nn_descend", "kd_nn_rows", "kd_nn_serial",
-           "kd_nn_parallel", "kd_knn_one", "kd_knn", "kd_radius_one", "kd_radius_count", "GatedKDTree"]
+           "kd_nn_parallel", "kd_nn_warm_rows", "kd_nn_warm_serial", "kd_nn_warm_parallel", "kd_knn_one",
+           "kd_knn", "kd_radius_one", "kd_radius_count", "GatedKDTree"]
 
 #: Maximum number of points in a KD-tree leaf.
 KD_LEAF = 12
@@ -38,13 +40,31 @@ def _grow(a, n):
 
 
 @njit
-def _box_add(box, b, Qs, a):
-    for c in range(3):
-        v = Qs[a, c]
-        if v < box[b, c]:
-            box[b, c] = v
-        if v > box[b, 3 + c]:
-            box[b, 3 + c] = v
+def _widen(lo0, lo1, lo2, hi0, hi1, hi2, x, y, z):
+    """The bounding box ``(lo, hi)`` widened to hold ``(x, y, z)`` (kept in registers)."""
+    if x < lo0:
+        lo0 = x
+    if y < lo1:
+        lo1 = y
+    if z < lo2:
+        lo2 = z
+    if x > hi0:
+        hi0 = x
+    if y > hi1:
+        hi1 = y
+    if z > hi2:
+        hi2 = z
+    return lo0, lo1, lo2, hi0, hi1, hi2
+
+
+@njit
+def _set_box(box, b, lo0, lo1, lo2, hi0, hi1, hi2):
+    box[b, 0] = lo0
+    box[b, 1] = lo1
+    box[b, 2] = lo2
+    box[b, 3] = hi0
+    box[b, 4] = hi1
+    box[b, 5] = hi2
 
 
 @njit
@@ -57,9 +77,9 @@ def kd_build(Q, leaf):
     (zero spread) stay in one leaf.
 
     The points are partitioned in a contiguous working copy (rows swapped together with
-    ``idx``), and the bounding boxes of both children are accumulated while their parent is
-    partitioned, so each tree level costs one sequential pass. Node arrays start at
-    ``m // 2 + 64`` entries and grow by doubling (at most ``2 m - 1`` nodes).
+    ``idx``), and the exact bounding boxes of both children are accumulated in registers while
+    their parent is partitioned (:func:`_widen`), so each tree level costs one sequential pass.
+    Node arrays start at ``m // 2 + 64`` entries and grow by doubling (at most ``2 m - 1`` nodes).
     """
     m = Q.shape[0]
     idx = np.arange(m)
@@ -85,11 +105,11 @@ def kd_build(Q, leaf):
     left[0] = -1
     right[0] = -1
     level[0] = 0
-    for c in range(3):
-        box[0, c] = np.inf
-        box[0, 3 + c] = -np.inf
+    l0 = l1 = l2 = np.inf
+    h0 = h1 = h2 = -np.inf
     for a in range(m):
-        _box_add(box, 0, Qs, a)
+        l0, l1, l2, h0, h1, h2 = _widen(l0, l1, l2, h0, h1, h2, Qs[a, 0], Qs[a, 1], Qs[a, 2])
+    _set_box(box, 0, l0, l1, l2, h0, h1, h2)
     sp = 1
     stack[0] = 0
     depth = 0
@@ -124,27 +144,31 @@ def kd_build(Q, leaf):
             stack = _grow(stack, cap)
         lc = n_nodes
         rc = n_nodes + 1
-        for c in range(3):
-            box[lc, c] = np.inf
-            box[lc, 3 + c] = -np.inf
-            box[rc, c] = np.inf
-            box[rc, 3 + c] = -np.inf
+        l0 = l1 = l2 = r0 = r1 = r2 = np.inf
+        h0 = h1 = h2 = g0 = g1 = g2 = -np.inf
         i = s
         jj = e - 1
         while i <= jj:  # partition: [s, mid) < sv <= [mid, e)
+            x = Qs[i, 0]
+            y = Qs[i, 1]
+            z = Qs[i, 2]
             if Qs[i, k] < sv:
-                _box_add(box, lc, Qs, i)
+                l0, l1, l2, h0, h1, h2 = _widen(l0, l1, l2, h0, h1, h2, x, y, z)
                 i += 1
             else:
                 t = idx[i]
                 idx[i] = idx[jj]
                 idx[jj] = t
-                for c in range(3):
-                    v = Qs[i, c]
-                    Qs[i, c] = Qs[jj, c]
-                    Qs[jj, c] = v
-                _box_add(box, rc, Qs, jj)
+                Qs[i, 0] = Qs[jj, 0]
+                Qs[i, 1] = Qs[jj, 1]
+                Qs[i, 2] = Qs[jj, 2]
+                Qs[jj, 0] = x
+                Qs[jj, 1] = y
+                Qs[jj, 2] = z
+                r0, r1, r2, g0, g1, g2 = _widen(r0, r1, r2, g0, g1, g2, x, y, z)
                 jj -= 1
+        _set_box(box, lc, l0, l1, l2, h0, h1, h2)
+        _set_box(box, rc, r0, r1, r2, g0, g1, g2)
         mid = i
         if mid == s or mid == e:  # midpoint rounding on a tiny spread: keep as a leaf
             continue
@@ -169,6 +193,15 @@ def kd_build(Q, leaf):
         sp += 1
     return (idx, Qs, start[:n_nodes].copy(), end[:n_nodes].copy(), dim[:n_nodes].copy(),
             split[:n_nodes].copy(), left[:n_nodes].copy(), right[:n_nodes].copy(), depth)
+
+
+@njit
+def _sq_to(px, py, pz, X, a):
+    """Squared distance of ``(px, py, pz)`` to row ``a`` of ``X``: ``dx*dx + dy*dy + dz*dz``."""
+    dx = px - X[a, 0]
+    dy = py - X[a, 1]
+    dz = pz - X[a, 2]
+    return dx * dx + dy * dy + dz * dz
 
 
 @njit
@@ -219,10 +252,7 @@ def kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, lef
             continue
         nd, sp = kd_walk_to_leaf(px, py, pz, nd, best, dim, split, left, right, st_node, st_lb, sp)
         for a in range(start[nd], end[nd]):
-            dx = px - Qs[a, 0]
-            dy = py - Qs[a, 1]
-            dz = pz - Qs[a, 2]
-            sq = dx * dx + dy * dy + dz * dz
+            sq = _sq_to(px, py, pz, Qs, a)
             if sq < d2:
                 j = idx[a]
                 if sq < best or (sq == best and j < best_j):
@@ -250,10 +280,58 @@ def kd_nn_serial(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out
 
 @njit_parallel
 def kd_nn_parallel(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq):
+    """:func:`kd_nn_serial` with ``prange`` over ``QUERY_TASK_ROWS``-row tasks (per-row results:
+    any split gives the same bits)."""
     n = P.shape[0]
-    for c in prange(n_chunks(n)):
+    for c in prange((n + QUERY_TASK_ROWS - 1) // QUERY_TASK_ROWS):
         kd_nn_rows(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq,
-                    c * CHUNK, min(n, (c + 1) * CHUNK))
+                   c * QUERY_TASK_ROWS, min(n, (c + 1) * QUERY_TASK_ROWS))
+
+
+@njit
+def kd_nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq,
+                    r0, r1):
+    """:func:`kd_nn_rows` with the search bound of row ``i`` initialised by a known partner
+    ``prev[i]`` (``m`` = none), typically the previous iteration's correspondence.
+
+    The partner's squared distance is an upper bound of the nearest one, so fewer nodes are
+    visited; the answer is the cold search's: the lexicographically smallest ``(sq, index)``
+    with ``sq < d2``, ``sq = dx*dx + dy*dy + dz*dz``.
+    """
+    m = idx.shape[0]
+    st_node = np.empty(depth + 2, np.int64)
+    st_lb = np.empty(depth + 2)
+    for i in range(r0, r1):
+        px = P[i, 0]
+        py = P[i, 1]
+        pz = P[i, 2]
+        best = d2
+        best_j = m
+        j0 = prev[i]
+        if j0 < m:
+            sq0 = _sq_to(px, py, pz, Q, j0)
+            if sq0 < d2:
+                best = sq0
+                best_j = j0
+        best, best_j = kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, left, right, d2,
+                                     st_node, st_lb)
+        out_idx[i] = best_j
+        out_sq[i] = best if best_j < m else np.inf
+
+
+@njit
+def kd_nn_warm_serial(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq):
+    kd_nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq,
+                    0, P.shape[0])
+
+
+@njit_parallel
+def kd_nn_warm_parallel(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq):
+    """:func:`kd_nn_warm_serial` with ``prange`` over ``QUERY_TASK_ROWS``-row tasks."""
+    n = P.shape[0]
+    for c in prange((n + QUERY_TASK_ROWS - 1) // QUERY_TASK_ROWS):
+        kd_nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq,
+                        c * QUERY_TASK_ROWS, min(n, (c + 1) * QUERY_TASK_ROWS))
 
 
 class GatedKDTree:
@@ -350,10 +428,7 @@ def kd_knn_one(px, py, pz, idx, Qs, start, end, dim, split, left, right, k, bi, 
             continue
         nd, sp = kd_walk_to_leaf(px, py, pz, nd, worst, dim, split, left, right, st_node, st_lb, sp)
         for a in range(start[nd], end[nd]):
-            dx = px - Qs[a, 0]
-            dy = py - Qs[a, 1]
-            dz = pz - Qs[a, 2]
-            sq = dx * dx + dy * dy + dz * dz
+            sq = _sq_to(px, py, pz, Qs, a)
             if c == k and sq > worst:
                 continue
             j = idx[a]
@@ -431,10 +506,7 @@ def kd_radius_one(px, py, pz, r2, idx, Qs, start, end, dim, split, left, right, 
             continue
         nd, sp = kd_walk_to_leaf(px, py, pz, nd, r2, dim, split, left, right, st_node, st_lb, sp)
         for a in range(start[nd], end[nd]):
-            dx = px - Qs[a, 0]
-            dy = py - Qs[a, 1]
-            dz = pz - Qs[a, 2]
-            if dx * dx + dy * dy + dz * dz < r2:
+            if _sq_to(px, py, pz, Qs, a) < r2:
                 if c < cap:
                     out[c] = idx[a]
                 c += 1

@@ -928,11 +928,11 @@ def _in_range(x: np.ndarray, lo: int, hi: int, what: str) -> None:
 
 
 def _restore_kdtree(Q: np.ndarray, a: dict, prefix: str = ""):
-    """A stored :class:`~minegeo.registration._kernels.GatedKDTree` over ``Q`` (``k`` points):
+    """A stored :class:`~minegeo.kernels.kdtree.GatedKDTree` over ``Q`` (``k`` points):
     dtypes and shapes of the builder's, at most ``2 k`` nodes, point order within ``[0, k)``
     (checked before :func:`~minegeo._validate.is_permutation` counts it), then
     ``GatedKDTree.from_arrays`` (permutation, node ranges, children, depth)."""
-    from minegeo.registration._kernels import GatedKDTree
+    from minegeo.kernels.kdtree import GatedKDTree
 
     k = Q.shape[0]
     idx = _stored(a, prefix + "idx", np.int64, (k,))

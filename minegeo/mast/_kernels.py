@@ -160,16 +160,7 @@ def _grow_segments(xy, tol, gap_max, min_points, n_confirm, refine_window):
     nseg = 0
     if n < 2:
         return out[:0]
-    P = np.zeros((n + 1, 6))
-    for i in range(n):
-        x = xy[i, 0]
-        y = xy[i, 1]
-        P[i + 1, 0] = P[i, 0] + 1.0
-        P[i + 1, 1] = P[i, 1] + x
-        P[i + 1, 2] = P[i, 2] + y
-        P[i + 1, 3] = P[i, 3] + x * x
-        P[i + 1, 4] = P[i, 4] + x * y
-        P[i + 1, 5] = P[i, 5] + y * y
+    P = _prefix_sums(xy)
     line = np.empty(4)
     i0 = 0
     while i0 < n - 1:

@@ -57,6 +57,8 @@ __all__ = [
 
 def _warmup() -> None:
     """Compile every Numba kernel of :mod:`minegeo.registration` on tiny inputs (serial and parallel drivers)."""
+    from minegeo.kernels import kdtree as KD
+    from minegeo.kernels import rigid
     from minegeo.registration import _kernels as K
 
     P = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
@@ -84,14 +86,14 @@ def _warmup() -> None:
     K._pca_serial(P, nb, out)
     K._pca_parallel(P, nb, out)
     sw, mp, mq, W, vp = K.weighted_moments_kernel(P, Q, w)
-    K.umeyama_from_moments(mp, mq, W, vp, False)
-    K.umeyama_small_kernel(P, Q, False)
+    rigid.umeyama_from_moments(mp, mq, W, vp, False)
+    rigid.umeyama_small_kernel(P, Q, False)
     K.point_to_plane_system_idx(P, Q, N, idx, idx)
     K.weighted_moments_idx(P, Q, idx, idx)
-    tree = K.kd_build(np.vstack([P, Q, P + 2.0, Q + 3.0]), 2)
+    tree = KD.kd_build(np.vstack([P, Q, P + 2.0, Q + 3.0]), 2)
     i_out = np.empty(4, dtype=np.int64)
-    K._kd_nn_serial(P, *tree, 1.0, i_out, sq)
-    K._kd_nn_parallel(P, *tree, 1.0, i_out, sq)
+    KD.kd_nn_serial(P, *tree, 1.0, i_out, sq)
+    KD.kd_nn_parallel(P, *tree, 1.0, i_out, sq)
     from minegeo.registration import _kernels_gicp, _kernels_loop
 
     _kernels_gicp._warmup()

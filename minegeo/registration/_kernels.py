@@ -15,27 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
-from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, n_chunks
-from minegeo.kernels.eig3 import pca_normals_eigh_rows as _pca_rows
-from minegeo.kernels.kdtree import (
-    KD_LEAF,
-    GatedKDTree,
-    _box_add,
-    _grow,
-    kd_build,
-    kd_nn_descend,
-    kd_walk_to_leaf,
-)
-from minegeo.kernels.kdtree import kd_nn_parallel as _kd_nn_parallel
-from minegeo.kernels.kdtree import kd_nn_rows as _kd_nn_rows
-from minegeo.kernels.kdtree import kd_nn_serial as _kd_nn_serial
-from minegeo.kernels.rigid import umeyama_from_moments, umeyama_small_kernel
-
-__all__ = [  # the shared kernels re-exported for this module's callers
-    "CHUNK", "PARALLEL_QUERY_ROWS", "n_chunks", "KD_LEAF", "GatedKDTree", "kd_build", "kd_nn_descend",
-    "kd_walk_to_leaf", "_kd_nn_rows", "_kd_nn_serial", "_kd_nn_parallel", "_box_add", "_grow", "_pca_rows",
-    "umeyama_from_moments", "umeyama_small_kernel",
-]
+from minegeo.kernels.chunks import CHUNK, n_chunks
+from minegeo.kernels.eig3 import pca_normals_eigh_rows
 
 #: Upper (with diagonal) and strictly lower triangle indices of a 6x6 matrix (row-major order).
 _IU6 = np.triu_indices(6)
@@ -197,35 +178,47 @@ def sum_kernel(x):
 
 
 @njit
+def _moments1_add(part, c, wi, P, a, Q, b):
+    """Add pair ``(P[a], Q[b])`` with weight ``wi`` to the first-pass sums ``part[c]``:
+    ``Σ w``, ``Σ w p``, ``Σ w q``."""
+    part[c, 0] += wi
+    for k in range(3):
+        part[c, 1 + k] += wi * P[a, k]
+        part[c, 4 + k] += wi * Q[b, k]
+
+
+@njit
+def _moments2_add(part, c, wi, P, a, Q, b, mu_p, mu_q):
+    """Add pair ``(P[a], Q[b])`` with weight ``wi`` to the centred second-pass sums ``part[c]``:
+    ``Σ w (p - mu_p)(q - mu_q)ᵀ`` (row-major, 9) and ``Σ w |p - mu_p|²``."""
+    a0 = P[a, 0] - mu_p[0]
+    a1 = P[a, 1] - mu_p[1]
+    a2 = P[a, 2] - mu_p[2]
+    b0 = Q[b, 0] - mu_q[0]
+    b1 = Q[b, 1] - mu_q[1]
+    b2 = Q[b, 2] - mu_q[2]
+    part[c, 0] += wi * a0 * b0
+    part[c, 1] += wi * a0 * b1
+    part[c, 2] += wi * a0 * b2
+    part[c, 3] += wi * a1 * b0
+    part[c, 4] += wi * a1 * b1
+    part[c, 5] += wi * a1 * b2
+    part[c, 6] += wi * a2 * b0
+    part[c, 7] += wi * a2 * b1
+    part[c, 8] += wi * a2 * b2
+    part[c, 9] += wi * (a0 * a0 + a1 * a1 + a2 * a2)
+
+
+@njit
 def _moments1_rows(P, Q, w, part, c, start, end):
     for i in range(start, end):
-        wi = w[i]
-        part[c, 0] += wi
-        for k in range(3):
-            part[c, 1 + k] += wi * P[i, k]
-            part[c, 4 + k] += wi * Q[i, k]
+        _moments1_add(part, c, w[i], P, i, Q, i)
 
 
 @njit
 def _moments2_rows(P, Q, w, mu_p, mu_q, part, c, start, end):
     for i in range(start, end):
-        wi = w[i]
-        a0 = P[i, 0] - mu_p[0]
-        a1 = P[i, 1] - mu_p[1]
-        a2 = P[i, 2] - mu_p[2]
-        b0 = Q[i, 0] - mu_q[0]
-        b1 = Q[i, 1] - mu_q[1]
-        b2 = Q[i, 2] - mu_q[2]
-        part[c, 0] += wi * a0 * b0
-        part[c, 1] += wi * a0 * b1
-        part[c, 2] += wi * a0 * b2
-        part[c, 3] += wi * a1 * b0
-        part[c, 4] += wi * a1 * b1
-        part[c, 5] += wi * a1 * b2
-        part[c, 6] += wi * a2 * b0
-        part[c, 7] += wi * a2 * b1
-        part[c, 8] += wi * a2 * b2
-        part[c, 9] += wi * (a0 * a0 + a1 * a1 + a2 * a2)
+        _moments2_add(part, c, w[i], P, i, Q, i, mu_p, mu_q)
 
 
 @njit
@@ -412,14 +405,14 @@ def point_to_point_information_kernel(Q):
 
 @njit
 def _pca_serial(Q, nb, out):
-    _pca_rows(Q, nb, out, 0, nb.shape[0])
+    pca_normals_eigh_rows(Q, nb, out, 0, nb.shape[0])
 
 
 @njit_parallel
 def _pca_parallel(Q, nb, out):
     m = nb.shape[0]
     for c in prange(n_chunks(m)):
-        _pca_rows(Q, nb, out, c * CHUNK, min(m, (c + 1) * CHUNK))
+        pca_normals_eigh_rows(Q, nb, out, c * CHUNK, min(m, (c + 1) * CHUNK))
 
 
 def pca_normals_kernel(Q, nb):
@@ -431,11 +424,6 @@ def pca_normals_kernel(Q, nb):
     else:
         _pca_serial(Q, nb, out)
     return out
-
-
-# ----------------------------------------------------------------------------- gated 1-NN KD-tree
-# The KD-tree lives in the shared kernel layer (:mod:`minegeo.kernels.kdtree`); its names are
-# re-exported here for the callers of this module.
 
 
 # ----------------------------------------------------------------------------- indexed ICP reductions
@@ -484,37 +472,17 @@ def point_to_plane_system_idx(P, Q, N, si, ti):
 
 @njit
 def _moments_idx_serial(P, Q, si, ti, part1, part2):
+    """:func:`_moments_serial` with unit weights on the pairs ``(P[si[i]], Q[ti[i]])``: the same
+    per-pair sums (:func:`_moments1_add`, :func:`_moments2_add` with ``wi = 1.0``)."""
     m = si.shape[0]
     nc = part1.shape[0]
     for c in range(nc):
         for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
-            a = si[i]
-            b = ti[i]
-            part1[c, 0] += 1.0
-            for k in range(3):
-                part1[c, 1 + k] += 1.0 * P[a, k]
-                part1[c, 4 + k] += 1.0 * Q[b, k]
+            _moments1_add(part1, c, 1.0, P, si[i], Q, ti[i])
     mu_p, mu_q = _means_from_partials(part1)
     for c in range(nc):
         for i in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
-            a = si[i]
-            b = ti[i]
-            a0 = P[a, 0] - mu_p[0]
-            a1 = P[a, 1] - mu_p[1]
-            a2 = P[a, 2] - mu_p[2]
-            b0 = Q[b, 0] - mu_q[0]
-            b1 = Q[b, 1] - mu_q[1]
-            b2 = Q[b, 2] - mu_q[2]
-            part2[c, 0] += 1.0 * a0 * b0
-            part2[c, 1] += 1.0 * a0 * b1
-            part2[c, 2] += 1.0 * a0 * b2
-            part2[c, 3] += 1.0 * a1 * b0
-            part2[c, 4] += 1.0 * a1 * b1
-            part2[c, 5] += 1.0 * a1 * b2
-            part2[c, 6] += 1.0 * a2 * b0
-            part2[c, 7] += 1.0 * a2 * b1
-            part2[c, 8] += 1.0 * a2 * b2
-            part2[c, 9] += 1.0 * (a0 * a0 + a1 * a1 + a2 * a2)
+            _moments2_add(part2, c, 1.0, P, si[i], Q, ti[i], mu_p, mu_q)
     return mu_p, mu_q
 
 

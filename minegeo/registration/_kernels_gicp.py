@@ -17,10 +17,8 @@ import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
 from minegeo.kernels.chunks import CHUNK, n_chunks
-from minegeo.kernels.eig3 import fast_eigen3x3
-from minegeo.kernels.eig3 import pca_normal as _normal_from_neighbors
-from minegeo.kernels.kdtree import kd_build, kd_nn_descend
-from minegeo.kernels.kdtree import kd_knn_one as _knn_one  # the exact kNN of a kd_build tree
+from minegeo.kernels.eig3 import fast_eigen3x3, pca_normal
+from minegeo.kernels.kdtree import kd_build, kd_knn_one, kd_nn_warm_parallel, kd_nn_warm_serial
 from minegeo.registration._kernels import _add_partials
 
 #: Below this many pairs (or search queries) the serial driver is used. Measured on the shared
@@ -139,10 +137,9 @@ def _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k,
     tmp = np.empty(6)
     for t in range(t0, t1):
         i = idx[t]  # leaf order: consecutive queries are neighbours (cache locality)
-        cnt = _knn_one(Q[i, 0], Q[i, 1], Q[i, 2], idx, Qs, start, end, dim, split, left, right, k,
+        cnt = kd_knn_one(Q[i, 0], Q[i, 1], Q[i, 2], idx, Qs, start, end, dim, split, left, right, k,
                        bi, bs, st_node, st_lb)
-        _normal_from_neighbors(Q, bi, cnt, i, i, mode_open3d, ratio, A, V, w, tmp, out_n, out_eval,
-                               out_status)
+        pca_normal(Q, bi, cnt, i, i, mode_open3d, ratio, A, V, w, tmp, out_n, out_eval, out_status)
 
 
 @njit
@@ -164,8 +161,8 @@ def _knn_normals_parallel(Q, idx, Qs, start, end, dim, split, left, right, depth
 def knn_normals_kernel(Q, tree, k, mode_open3d, ratio=DEGENERATE_RATIO):
     """PCA normal of every point of ``Q`` from its ``k`` nearest points (itself included).
 
-    ``tree`` = ``_kernels.kd_build(Q, leaf)``. The PCA is :mod:`minegeo.geometry`'s
-    (``_normal_from_neighbors``): mode "open3d" = raw moments + FastEigen3x3 (Open3D 0.20),
+    ``tree`` = :func:`minegeo.kernels.kdtree.kd_build` ``(Q, leaf)``. The PCA is
+    :func:`minegeo.kernels.eig3.pca_normal` (as :mod:`minegeo.geometry`'s): mode "open3d" = raw moments + FastEigen3x3 (Open3D 0.20),
     otherwise two-pass centred covariance + Jacobi. Returns ``(normals, eigenvalues, status)``
     with the status codes of :mod:`minegeo.geometry.normals`.
     """
@@ -297,69 +294,23 @@ def gicp_system_kernel(P, Q, Cs, Ct, R, si, ti):
 
 
 # ----------------------------------------------------------------------------- warm-started 1-NN search
-
-
-@njit
-def _nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq,
-                  r0, r1):
-    """Exact gated nearest neighbour on the sliding-midpoint KD-tree of ``_kernels.kd_build``,
-    with the search bound initialised by the previous partner ``prev[i]`` (``m`` = none).
-
-    The previous partner's squared distance is an upper bound of the nearest one, so fewer
-    nodes are visited; the answer is the same as the cold search: the lexicographically
-    smallest ``(sq, index)`` with ``sq < d2``, ``sq = dx*dx + dy*dy + dz*dz``.
-    """
-    m = idx.shape[0]
-    st_node = np.empty(depth + 2, np.int64)
-    st_lb = np.empty(depth + 2)
-    for i in range(r0, r1):
-        px = P[i, 0]
-        py = P[i, 1]
-        pz = P[i, 2]
-        best = d2
-        best_j = m
-        j0 = prev[i]
-        if j0 < m:
-            dx = px - Q[j0, 0]
-            dy = py - Q[j0, 1]
-            dz = pz - Q[j0, 2]
-            sq0 = dx * dx + dy * dy + dz * dz
-            if sq0 < d2:
-                best = sq0
-                best_j = j0
-        best, best_j = kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, left, right, d2,
-                                     st_node, st_lb)
-        out_idx[i] = best_j
-        out_sq[i] = best if best_j < m else np.inf
-
-
-@njit
-def _nn_warm_serial(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq):
-    _nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq,
-                  0, P.shape[0])
-
-
-@njit_parallel
-def _nn_warm_parallel(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq):
-    n = P.shape[0]
-    for c in prange(n_chunks(n)):
-        _nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq,
-                      c * CHUNK, min(n, (c + 1) * CHUNK))
+# (the kernel is minegeo.kernels.kdtree.kd_nn_warm_rows; this is the allocating wrapper)
 
 
 def nearest_warm_kernel(P, Q, tree, d2, prev):
     """``(idx, sq)`` of the nearest ``Q`` point with ``sq < d2`` per row of ``P`` (``m``/inf if none).
 
-    ``tree`` is the tuple of ``_kernels.kd_build(Q, leaf)``; ``prev`` (n,) int64 holds a candidate
-    partner per row (``m`` = none), typically the previous iteration's correspondence.
+    ``tree`` is the tuple of :func:`minegeo.kernels.kdtree.kd_build` ``(Q, leaf)``; ``prev`` (n,)
+    int64 holds a candidate partner per row (``m`` = none), typically the previous iteration's
+    correspondence.
     """
     n = P.shape[0]
     out_idx = np.empty(n, dtype=np.int64)
     out_sq = np.empty(n)
     if n >= PARALLEL_MIN_PAIRS:
-        _nn_warm_parallel(P, Q, *tree, float(d2), prev, out_idx, out_sq)
+        kd_nn_warm_parallel(P, Q, *tree, float(d2), prev, out_idx, out_sq)
     else:
-        _nn_warm_serial(P, Q, *tree, float(d2), prev, out_idx, out_sq)
+        kd_nn_warm_serial(P, Q, *tree, float(d2), prev, out_idx, out_sq)
     return out_idx, out_sq
 
 
@@ -416,8 +367,8 @@ def _warmup() -> None:
     Q = np.vstack([P, P + 2.0, P + 4.0])
     out_i = np.empty(4, dtype=np.int64)
     out_s = np.empty(4)
-    _nn_warm_serial(P, Q, *tree, 1.0, idx, out_i, out_s)
-    _nn_warm_parallel(P, Q, *tree, 1.0, idx, out_i, out_s)
+    kd_nn_warm_serial(P, Q, *tree, 1.0, idx, out_i, out_s)
+    kd_nn_warm_parallel(P, Q, *tree, 1.0, idx, out_i, out_s)
     for mode in (False, True):
         _knn_normals_serial(Q, *tree, 3, mode, DEGENERATE_RATIO, np.empty((12, 3)), np.empty((12, 3)),
                             np.empty(12, dtype=np.int8))

@@ -45,9 +45,9 @@ from minegeo._provenance import StageTimer
 from minegeo._validate import as_points, as_transform, as_trusted_points
 from minegeo.errors import InputError
 from minegeo.geometry.normals import STATUS_OK
+from minegeo.kernels.kdtree import KD_LEAF, GatedKDTree, kd_build
 from minegeo.registration import _kernels as K
 from minegeo.registration import _kernels_gicp as KG
-from minegeo.registration._kernels_loop import kd_build_fast
 from minegeo.registration.evaluation import is_identity
 from minegeo.registration.icp import ICPResult, constraint_analysis, final_diagnosis
 from minegeo.registration.loop import GICPFactor, NearestInGate, Termination, rotation_angle, run_loop
@@ -257,7 +257,7 @@ def _covariances_and_normals(points: np.ndarray, params: GICPParams, normals=Non
             raise InputError(f"{name} normals have {N.shape[0]} rows but there are {n} points")
         iso = np.zeros(n, dtype=np.bool_) if o3d else ~(np.linalg.norm(N, axis=1) > 0)
         return _plane_covariances(N, iso, params), N, "normals"
-    tree = kd_build_fast(points, K.KD_LEAF) if tree is None else tree
+    tree = kd_build(points, KD_LEAF) if tree is None else tree
     N, _, status = KG.knn_normals_kernel(points, tree, int(params.covariance_neighbours), o3d)
     iso = np.zeros(n, dtype=np.bool_) if o3d else status != STATUS_OK
     return _plane_covariances(N, iso, params), N, "estimated"
@@ -494,13 +494,13 @@ def _gicp_inputs(source_points, target_points, T_init, params, source_covariance
             LARGE_COORDINATE_M,
         )
     with timer("search"):
-        if isinstance(target_index, K.GatedKDTree):
+        if isinstance(target_index, GatedKDTree):
             same = target_index.data is Q or (check_target and np.array_equal(target_index.data, Q))
             if target_index.m != Q.shape[0] or not same:
                 raise InputError("target_index was built on a different cloud than target_points")
             tree = target_index._tree
         else:  # None or another kind of index: build the KD-tree this search needs
-            tree = kd_build_fast(Q, K.KD_LEAF)
+            tree = kd_build(Q, KD_LEAF)
     with timer("covariances"):
         Nt = None
         if source_covariances is not None:

@@ -32,8 +32,8 @@ from scipy.spatial import cKDTree
 from minegeo._provenance import StageTimer
 from minegeo._validate import as_points, as_transform, as_trusted_points
 from minegeo.errors import InputError
+from minegeo.kernels.kdtree import KD_LEAF, GatedKDTree, kd_build
 from minegeo.registration import _kernels as K
-from minegeo.registration._kernels_loop import kd_build_fast
 from minegeo.registration.evaluation import is_identity
 from minegeo.registration.loop import (
     NearestInGate,
@@ -263,7 +263,7 @@ def _pca_normals(Q: np.ndarray, index, idx: np.ndarray, k: int = PCA_NEIGHBOURS)
     """
     kk = min(k, Q.shape[0])
     uniq, inv = np.unique(idx, return_inverse=True)
-    if not hasattr(index, "query") or isinstance(index, K.GatedKDTree):
+    if not hasattr(index, "query") or isinstance(index, GatedKDTree):
         index = cKDTree(Q)  # the gated 1-NN tree cannot answer k-NN queries
     workers = 1 if uniq.size < 2048 else int(numba.get_num_threads())
     if hasattr(index, "n"):  # scipy cKDTree
@@ -391,9 +391,9 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
     timer = StageTimer()
     if target_index is None:
         with timer("search"):
-            tree = kd_build_fast(Q, K.KD_LEAF)
+            tree = kd_build(Q, KD_LEAF)
     else:
-        tree = target_index._tree if isinstance(target_index, K.GatedKDTree) else None
+        tree = target_index._tree if isinstance(target_index, GatedKDTree) else None
     search = NearestInGate(Q, params.max_correspondence_distance_m, tree=tree, index=target_index)
     factor = PointToPointFactor(Q) if params.method == "point_to_point" else PointToPlaneFactor(Q, Nt)
     stop = Termination(relative_fitness=params.relative_fitness, relative_rmse=params.relative_rmse,

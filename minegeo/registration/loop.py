@@ -41,9 +41,12 @@ import numpy as np
 
 from minegeo.errors import DegenerateGeometryError, TooFewPointsError
 from minegeo.geometry.se3 import rotation_from_euler_xyz
+from minegeo.kernels.chunks import PARALLEL_QUERY_ROWS
+from minegeo.kernels.kdtree import kd_nn_warm_parallel, kd_nn_warm_serial
+from minegeo.kernels.rigid import umeyama_from_moments
 from minegeo.registration import _kernels as K
 from minegeo.registration import _kernels_gicp as KG
-from minegeo.registration._kernels_loop import compact_matches, warm_nn_parallel
+from minegeo.registration._kernels_loop import compact_matches
 from minegeo.registration.estimation import RANK_TOL
 
 __all__ = [
@@ -209,7 +212,7 @@ class NearestInGate:
         Queries with at least this many rows use the ``prange`` driver (same results).
     """
 
-    def __init__(self, Q: np.ndarray, d: float, tree=None, index=None, parallel_rows: int = K.PARALLEL_QUERY_ROWS):
+    def __init__(self, Q: np.ndarray, d: float, tree=None, index=None, parallel_rows: int = PARALLEL_QUERY_ROWS):
         self.Q, self.d, self.tree, self.index, self.parallel_rows = Q, float(d), tree, index, int(parallel_rows)
 
     def __call__(self, P: np.ndarray, prev: Matches | None) -> Matches:
@@ -221,7 +224,7 @@ class NearestInGate:
         warm = prev.raw if prev is not None and prev.raw is not None else np.full(n, m, dtype=np.int64)
         idx = np.empty(n, dtype=np.int64)
         sq = np.empty(n)
-        drive = warm_nn_parallel if n >= self.parallel_rows else KG._nn_warm_serial
+        drive = kd_nn_warm_parallel if n >= self.parallel_rows else kd_nn_warm_serial
         drive(P, self.Q, *self.tree, self.d * self.d, warm, idx, sq)
         corr, total = compact_matches(idx, sq, m)
         k = corr.shape[0]
@@ -268,7 +271,7 @@ class PointToPointFactor:
             return np.eye(4), False, None
         si, ti = matches.pairs()
         _, mu_p, mu_q, W, var_p = K.weighted_moments_idx(P, self.Q, si, ti)
-        dT, _, S = K.umeyama_from_moments(mu_p, mu_q, W, var_p, False)
+        dT, _, S = umeyama_from_moments(mu_p, mu_q, W, var_p, False)
         return dT, bool(S[0] <= 0.0 or S[1] <= RANK_TOL * S[0]), None
 
 

@@ -18,8 +18,8 @@ from minegeo.geometry import (
     NormalParams,
     estimate_normals,
 )
-from minegeo.geometry import _kernels as K
 from minegeo.geometry.se3 import random_transform
+from minegeo.kernels import eig3
 
 
 def _angle_up_to_sign(a, b):
@@ -102,7 +102,7 @@ def test_knn_mode_and_given_neighborhoods_agree(tunnel):
 
 def _fast(C):
     out = np.empty(6)
-    K.fast_eigen3x3(C[0, 0], C[0, 1], C[0, 2], C[1, 1], C[1, 2], C[2, 2], out)
+    eig3.fast_eigen3x3(C[0, 0], C[0, 1], C[0, 2], C[1, 1], C[1, 2], C[2, 2], out)
     return out
 
 
@@ -110,7 +110,7 @@ def _jacobi(C):
     A = np.array(C, dtype=np.float64)
     V = np.empty((3, 3))
     w = np.empty(3)
-    K.jacobi_eigh3(A, V, w)
+    eig3.jacobi_eigh3(A, V, w)
     return w, V
 
 

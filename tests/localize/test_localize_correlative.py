@@ -594,7 +594,7 @@ def test_stored_search_structures_give_identical_results(small_mine, tmp_path, m
 
 
 def test_kdtree_from_arrays_checks_what_queries_rely_on():
-    from minegeo.registration._kernels import GatedKDTree
+    from minegeo.kernels.kdtree import GatedKDTree
 
     Q = np.random.default_rng(3).uniform(0, 10, (500, 3))
     t = GatedKDTree(Q)

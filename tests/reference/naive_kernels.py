@@ -32,6 +32,66 @@ def naive_knn(Q, P, k):
     return idx, sq
 
 
+def naive_kd_build(Q, leaf):
+    """The tree of :func:`minegeo.kernels.kdtree.kd_build`, in plain Python: the same sliding-midpoint
+    rule (widest box side, split at its middle, ``[s, mid) < sv <= [mid, e)``), the same in-place
+    two-ended partition, depth-first node numbering (children numbered when their parent splits)
+    and the exact bounding box of every node's points (first of equal extremes kept, as ``<``)."""
+    m = len(Q)
+    idx = list(range(m))
+    Qs = [[float(v) for v in row] for row in np.asarray(Q, dtype=np.float64)]
+
+    def box_of(rows):
+        lo = [np.inf, np.inf, np.inf]
+        hi = [-np.inf, -np.inf, -np.inf]
+        for row in rows:
+            for c in range(3):
+                if row[c] < lo[c]:
+                    lo[c] = row[c]
+                if row[c] > hi[c]:
+                    hi[c] = row[c]
+        return lo + hi
+
+    nodes = [[0, m, -1, 0.0, -1, -1, 0, box_of(Qs)]]  # start, end, dim, split, left, right, level, box
+    stack, depth = [0], 0
+    while stack:
+        nd = stack.pop()
+        s, e, _, _, _, _, lev, box = nodes[nd]
+        depth = max(depth, lev)
+        if e - s <= leaf:
+            continue
+        k = 0
+        for c in (1, 2):
+            if box[3 + c] - box[c] > box[3 + k] - box[k]:
+                k = c
+        if not box[3 + k] - box[k] > 0.0:
+            continue
+        sv = 0.5 * (box[k] + box[3 + k])
+        lows, highs = [], []
+        i, j = s, e - 1
+        while i <= j:
+            if Qs[i][k] < sv:
+                lows.append(Qs[i])
+                i += 1
+            else:
+                highs.append(Qs[i])
+                idx[i], idx[j] = idx[j], idx[i]
+                Qs[i], Qs[j] = Qs[j], Qs[i]
+                j -= 1
+        if i == s or i == e:
+            continue
+        lc = len(nodes)
+        nodes[nd][2:6] = [k, sv, lc, lc + 1]
+        nodes.append([s, i, -1, 0.0, -1, -1, lev + 1, box_of(lows)])
+        nodes.append([i, e, -1, 0.0, -1, -1, lev + 1, box_of(highs)])
+        stack += [lc, lc + 1]
+    col = list(zip(*nodes, strict=True))
+    ints = [np.array(col[c], dtype=np.int64) for c in (0, 1, 2)]
+    return (np.array(idx, dtype=np.int64), np.array(Qs, dtype=np.float64).reshape(m, 3), *ints,
+            np.array(col[3], dtype=np.float64), np.array(col[4], dtype=np.int64), np.array(col[5], dtype=np.int64),
+            depth)
+
+
 def naive_gated_nn(Q, P, d2):
     """Nearest row of ``Q`` with ``sq < d2`` per row of ``P`` (lowest index on ties), ``len(Q)``/inf if none."""
     idx, sq = naive_knn(Q, P, 1)

@@ -18,6 +18,9 @@ from reference.naive_icp import (
 
 from minegeo.errors import DegenerateGeometryError, InputError, TooFewPointsError
 from minegeo.geometry.se3 import invert, random_transform, transform_points
+from minegeo.kernels import kdtree as KD
+from minegeo.kernels import rigid
+from minegeo.kernels.chunks import n_chunks
 from minegeo.registration import _kernels as K
 from minegeo.registration import evaluate_registration, kabsch, pose_covariance, umeyama
 
@@ -47,9 +50,9 @@ def test_umeyama_matches_naive_twin_with_noise_weights_and_scale(rng):
 def test_umeyama_small_kernel_matches_public(rng):
     P = rng.normal(size=(4, 3))
     Q = transform_points(random_transform(rng), P) + rng.normal(scale=0.01, size=P.shape)
-    Tk, ck = K.umeyama_small_kernel(P, Q, False)
+    Tk, ck = rigid.umeyama_small_kernel(P, Q, False)
     np.testing.assert_allclose(Tk, kabsch(P, Q), atol=1e-13)
-    Tk, ck = K.umeyama_small_kernel(P, 2 * Q, True)
+    Tk, ck = rigid.umeyama_small_kernel(P, 2 * Q, True)
     Ts, cs = umeyama(P, 2 * Q, with_scale=True)
     np.testing.assert_allclose(Tk, Ts, atol=1e-12)
     assert ck == pytest.approx(cs, rel=1e-12)
@@ -211,7 +214,7 @@ def test_gated_kdtree_matches_brute_force(seed, n, d):
     else:  # grid points: many exact ties
         Q = rng.integers(0, 5, size=(n, 3)).astype(float) * 0.1
     P = np.vstack([Q[: min(n, 50)], rng.uniform(-1, 3, size=(80, 3)), Q[:5] + d])  # includes sq == d² cases
-    idx, sq = K.GatedKDTree(np.ascontiguousarray(Q)).query(np.ascontiguousarray(P), d * d)
+    idx, sq = KD.GatedKDTree(np.ascontiguousarray(Q)).query(np.ascontiguousarray(P), d * d)
     D = ((P[:, None, :] - Q[None, :, :]) ** 2).sum(-1)
     D[D >= d * d] = np.inf
     best = D.min(1)
@@ -235,8 +238,8 @@ def test_kd_build_same_tree_as_two_pass_build(rng):
         1e6 + rng.normal(size=(400, 3)) * 1e-9,  # spreads at rounding level
     ]
     for Q in clouds:
-        for leaf in (1, 2, K.KD_LEAF):
-            got = K.kd_build(np.ascontiguousarray(Q), leaf)
+        for leaf in (1, 2, KD.KD_LEAF):
+            got = KD.kd_build(np.ascontiguousarray(Q), leaf)
             ref = naive_kd_build(Q, leaf)
             for a, b in zip(got, ref, strict=True):
                 assert np.array_equal(a, b), (Q.shape, leaf)
@@ -285,12 +288,12 @@ def test_reductions_independent_of_thread_count_and_driver(rng):
     for x, y in zip(list(a1) + list(b1), list(a2) + list(b2), strict=True):
         assert np.array_equal(np.asarray(x), np.asarray(y))
     # serial and parallel drivers share chunk bodies and summation order: bit-identical
-    ps, pp = np.zeros((K.n_chunks(n), 28)), np.zeros((K.n_chunks(n), 28))
+    ps, pp = np.zeros((n_chunks(n), 28)), np.zeros((n_chunks(n), 28))
     K._p2l_serial(P, Q, N, ps)
     K._p2l_parallel(P, Q, N, pp)
     assert np.array_equal(ps, pp)
-    s1, s2 = np.zeros((K.n_chunks(n), 7)), np.zeros((K.n_chunks(n), 7))
-    t1, t2 = np.zeros((K.n_chunks(n), 10)), np.zeros((K.n_chunks(n), 10))
+    s1, s2 = np.zeros((n_chunks(n), 7)), np.zeros((n_chunks(n), 7))
+    t1, t2 = np.zeros((n_chunks(n), 10)), np.zeros((n_chunks(n), 10))
     K._moments_serial(P, Q, w, s1, t1)
     K._moments_parallel(P, Q, w, s2, t2)
     assert np.array_equal(s1, s2) and np.array_equal(t1, t2)

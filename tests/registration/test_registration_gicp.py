@@ -18,6 +18,7 @@ from minegeo.errors import InputError, TooFewPointsError
 from minegeo.geometry import voxel_downsample
 from minegeo.geometry.se3 import exp_so3, invert, random_transform, transform_points
 from minegeo.io.pointcloud import read_point_cloud
+from minegeo.kernels.chunks import CHUNK, n_chunks
 from minegeo.registration import (
     GICPParams,
     GICPResult,
@@ -306,13 +307,13 @@ def test_plane_covariance_models():
 
 def test_serial_and_parallel_drivers_are_bit_identical():
     rng = np.random.default_rng(1)
-    n = KG.CHUNK * 3 + 17
+    n = CHUNK * 3 + 17
     P, Q = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
     A = rng.normal(size=(n, 3, 3))
     C = np.ascontiguousarray(A @ A.transpose(0, 2, 1) + np.eye(3))
     R = np.ascontiguousarray(exp_so3([0.1, -0.2, 0.3]))
     idx = rng.permutation(n).astype(np.int64)
-    a = np.zeros((KG.n_chunks(n), KG.N_ACC))
+    a = np.zeros((n_chunks(n), KG.N_ACC))
     b = np.zeros_like(a)
     KG._gicp_serial(P, Q, C, C, R, idx, idx[::-1].copy(), a)
     KG._gicp_parallel(P, Q, C, C, R, idx, idx[::-1].copy(), b)
@@ -329,13 +330,13 @@ def test_serial_and_parallel_drivers_are_bit_identical():
 def test_warm_started_search_equals_cold_search():
     """Any previous partner (right, wrong, outside the gate or none) gives the cold answer,
     ties (integer grid: many equal distances) included."""
-    from minegeo.registration import _kernels as K
+    from minegeo.kernels import kdtree as KD
 
     rng = np.random.default_rng(2)
     Q = rng.integers(0, 6, size=(400, 3)).astype(float)
     P = np.vstack([rng.integers(0, 6, size=(300, 3)) + 0.5, rng.uniform(-1, 7, size=(300, 3))])
-    gated = K.GatedKDTree(Q)
-    tree = K.kd_build(Q, K.KD_LEAF)
+    gated = KD.GatedKDTree(Q)
+    tree = KD.kd_build(Q, KD.KD_LEAF)
     for d2 in (0.5, 0.76, 1.0, 4.0):
         i0, s0 = gated.query(P, d2)
         for prev in (np.full(len(P), len(Q)), rng.integers(0, len(Q), len(P)), i0):
@@ -347,17 +348,17 @@ def test_knn_and_normals_equal_minegeo_geometry():
     """The fused kNN + PCA of the covariance estimate equals minegeo.geometry's
     (NeighborIndex.knn: sorted by (distance, index); estimate_normals: same PCA code)."""
     from minegeo.geometry import NeighborIndex, NormalParams, estimate_normals
-    from minegeo.registration import _kernels as K
+    from minegeo.kernels import kdtree as KD
 
     rng = np.random.default_rng(8)
     grid = rng.integers(0, 5, size=(300, 3)).astype(float)  # many tied distances
     for Q, k in ((grid, 7), (_egg_box(rng, 500, noise=0.01), 20)):
-        tree = K.kd_build(Q, K.KD_LEAF)
+        tree = KD.kd_build(Q, KD.KD_LEAF)
         nb = NeighborIndex(Q).knn(Q, k)
         bi, bs = np.empty(k, np.int64), np.empty(k)
         st_n, st_l = np.empty(tree[-1] + 2, np.int64), np.empty(tree[-1] + 2)
         for i in range(0, len(Q), 7):
-            c = KG._knn_one(Q[i, 0], Q[i, 1], Q[i, 2], *tree[:-1], k, bi, bs, st_n, st_l)
+            c = KD.kd_knn_one(Q[i, 0], Q[i, 1], Q[i, 2], *tree[:-1], k, bi, bs, st_n, st_l)
             assert c == k and np.array_equal(bi, nb.indices[i]) and np.array_equal(bs, nb.sq_distances[i])
         for mode in ("accurate", "open3d"):
             ref = estimate_normals(Q, NormalParams(max_nn=k, mode=mode), orient_towards="none")

@@ -5,20 +5,21 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from minegeo.registration import _kernels as K
+from minegeo.kernels import kdtree as KD
+from minegeo.kernels.chunks import PARALLEL_QUERY_ROWS
 
 
 def test_parallel_query_equals_serial_and_brute_force(rng):
     Q = np.ascontiguousarray(rng.uniform(-5, 5, (3000, 3)))
     Q[1500:1510] = Q[:10]  # duplicates: ties go to the lowest index
-    n = K.PARALLEL_QUERY_ROWS + 1001
+    n = PARALLEL_QUERY_ROWS + 1001
     P = np.ascontiguousarray(rng.uniform(-5.5, 5.5, (n, 3)))
     P[:10] = Q[:10]
-    tree = K.GatedKDTree(Q)
+    tree = KD.GatedKDTree(Q)
     d2 = 0.4**2
     idx_s = np.empty(n, dtype=np.int64)
     sq_s = np.empty(n)
-    K._kd_nn_serial(P, *tree._tree, d2, idx_s, sq_s)
+    KD.kd_nn_serial(P, *tree._tree, d2, idx_s, sq_s)
     old = numba.get_num_threads()
     try:
         for threads in (1, old):
