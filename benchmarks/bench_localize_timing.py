@@ -63,7 +63,7 @@ def main(argv=None) -> int:
                 times.setdefault(name, []).append(time.perf_counter() - t0)
             status[name] = res.status
     med = {n: statistics.median(v) for n, v in times.items()}
-    out = {"minegeo": str(Path(minegeo.__file__).parent), "threads": args.threads, "repeat": args.repeat,
+    out = {"minegeo": Path(minegeo.__file__).parent.parent.name, "threads": args.threads, "repeat": args.repeat,
            "median_s": med, "status": status, "total_median_s": sum(med.values()), "all_s": times}
     Path(args.out).write_text(json.dumps(out, indent=1))
     sys.stderr.write(f"{out['minegeo']}: total of medians {out['total_median_s']:.2f} s\n")

@@ -38,11 +38,9 @@ def table_bits(n_keys: int, min_bits: int = 4) -> int:
 
 @njit
 def table_bits_of(table_keys):
-    """``bits`` of a table of ``2**bits`` slots (its ``table_keys`` array)."""
-    bits = 0
-    while (np.int64(1) << bits) < table_keys.shape[0]:
-        bits += 1
-    return bits
+    """``bits`` of a table of ``2**bits`` slots (its ``table_keys`` array). O(1): the size is a
+    power of two, so its float64 log2 is exact (hot loops call this once per lookup)."""
+    return np.int64(np.log2(np.float64(table_keys.shape[0])))
 
 
 @njit
