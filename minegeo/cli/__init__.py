@@ -27,6 +27,7 @@ VERBS: dict[str, str] = {
     "georef": "minegeo.cli.georef",
     "prepare-map": "minegeo.cli.prepare_map",
     "localize": "minegeo.cli.localize",
+    "slam": "minegeo.cli.slam",
     "posegraph": "minegeo.cli.posegraph",
     "evaluate": "minegeo.cli.evaluate",
     "warmup": "minegeo.cli.warmup",

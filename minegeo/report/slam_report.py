@@ -1,4 +1,7 @@
-"""``report.html`` of ``minegeo posegraph`` and ``minegeo evaluate`` (self-contained, status first).
+"""``report.html`` of ``minegeo slam``, ``minegeo posegraph`` and ``minegeo evaluate`` (self-contained, status first).
+
+slam: counts, the plan view of map, trajectory and accepted loops, the time per module (as the
+paper's Table 2), skipped frames, parameters.
 
 posegraph: the graph file, the cost before and after (the contract cost ``F = ½ Σ rᵀΩr``), the
 iterations and their costs, a plan view of the poses before and after with the edges, timings.
@@ -16,7 +19,7 @@ from minegeo._provenance import atomic_write_text
 from minegeo.report._html import esc, img_png, kv_table, page, params_table, table, timings_html
 
 __all__ = ["plot_posegraph_png", "posegraph_report_html", "write_posegraph_report", "plot_evaluation_png",
-           "evaluate_report_html", "write_evaluate_report"]
+           "evaluate_report_html", "write_evaluate_report", "plot_slam_png", "slam_report_html", "write_slam_report"]
 
 
 def _figure(n: int = 1, size=(9, 5)):
@@ -156,3 +159,70 @@ def evaluate_report_html(summary: dict, png: bytes | None) -> str:
 
 def write_evaluate_report(path, summary: dict, png: bytes | None):
     return atomic_write_text(path, evaluate_report_html(summary, png))
+
+
+def plot_slam_png(map_points: np.ndarray, poses: np.ndarray, kf_poses: np.ndarray, loops: list,
+                  max_points: int = 60000, seed: int = 0) -> bytes | None:
+    """Plan view: map points (grey, by height), the trajectory, keyframes and accepted loops (red)."""
+    fig = _figure(size=(10, 7))
+    if fig is None:
+        return None
+    ax = fig.add_subplot(1, 1, 1)
+    P = np.asarray(map_points)
+    if P.shape[0] > max_points:  # a seeded, evenly drawn subset keeps the figure light
+        P = P[np.sort(np.random.default_rng(seed).choice(P.shape[0], max_points, replace=False))]
+    if P.shape[0]:
+        sc = ax.scatter(P[:, 0], P[:, 1], c=P[:, 2], s=0.3, cmap="Greys", linewidths=0)
+        fig.colorbar(sc, ax=ax, label="map height z (m)")
+    xy = _xy(poses)
+    ax.plot(xy[:, 0], xy[:, 1], "-", color="tab:blue", lw=1.0, label="trajectory")
+    kxy = _xy(kf_poses)
+    ax.plot(kxy[:, 0], kxy[:, 1], ".", color="tab:blue", ms=3, label="keyframes")
+    first = True
+    for c in loops:
+        if c.accepted:
+            ax.plot([kxy[c.i, 0], kxy[c.j, 0]], [kxy[c.i, 1], kxy[c.j, 1]], "-", color="tab:red", lw=1.5,
+                    label="accepted loop" if first else None)
+            first = False
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m, map frame = first sensor frame)")
+    ax.set_ylabel("y (m)")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title("map and trajectory (plan view)")
+    return _png(fig)
+
+
+def slam_report_html(summary: dict, png: bytes | None) -> str:
+    r = summary["result"]
+    overview = kv_table([
+        ("frames used / skipped / not registered", f"{r['frames']} / {len(r['skipped_frames'])} / {r['failed_frames']}"),
+        ("frames with a weakly observed direction", r["weak_frames"]),
+        ("keyframes", r["keyframes"]),
+        ("loop candidates tried / accepted", f"{r['loop_candidates']} / {r['loops_accepted']}"),
+        ("path length", f"{r['path_length_m']:.2f} m"),
+        ("map points", f"{r['map_points']:,}"),
+        ("pose graph", "—" if r["pose_graph"] is None else
+         f"{r['pose_graph']['status']}: cost {r['pose_graph']['cost_initial']:.6g} → {r['pose_graph']['cost_final']:.6g} "
+         f"in {r['pose_graph']['iterations']} iterations"),
+    ])
+    mt = summary.get("module_timings_s", {})
+    n = max(r["frames"], 1)
+    rows = [[name, f"{mt.get(key, 0.0):.3f}", f"{1000 * mt.get(key, 0.0) / n:.1f}"] for name, key in (
+        ("frame preparation (downsampling, covariances)", "odometry_prepare"),
+        ("odometry, frame to frame (GICP)", "odometry_frame_to_frame"),
+        ("odometry, keyframe to keyframe (GICP)", "odometry_keyframe_refine"),
+        ("loop detection and verification", "loop_closure"), ("pose-graph optimisation", "pose_graph"),
+        ("map", "map"), ("total", "total"))]
+    timing = table(["module", "total s", "per frame ms"], rows, numeric=(1, 2))
+    skipped = table(["frame", "reason"], [[s["frame"], s["reason"]] for s in r["skipped_frames"]]) \
+        if r["skipped_frames"] else "<p>none</p>"
+    sections = [("Result", overview), ("Map and trajectory", img_png(png, "plan view of the map and trajectory")),
+                ("Time per module (cf. Ren et al. 2019, Table 2)", timing), ("Skipped frames", skipped),
+                ("Parameters", params_table(summary["parameters"])), ("Timings", timings_html(summary.get("timings_s")))]
+    return page("minegeo slam", sections, status="ok",
+                status_text=f"{r['frames']} frames, {r['keyframes']} keyframes, {r['loops_accepted']} loop(s)")
+
+
+def write_slam_report(path, summary: dict, res) -> None:
+    png = plot_slam_png(res.map_points, res.poses, res.keyframe_poses, res.loops)
+    atomic_write_text(path, slam_report_html(summary, png))

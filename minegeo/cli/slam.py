@@ -1,0 +1,146 @@
+"""``minegeo slam --frames DIR --out OUT``: map and trajectory from LiDAR frames alone (Ren et al. 2019).
+
+Files, frame order, times and outputs as fixed by the SLAM contract (``slam_contract.md``):
+``OUT/trajectory.tum`` (every used frame), ``keyframes.tum``, ``graph.g2o`` (optimised),
+``loops.csv`` (i, j, fitness, rmse, accepted, reason), ``map.ply``, ``result.json`` and
+``report.html`` (plan view, loops, per-module timing table). Frames that cannot be read or hold too
+few points are reported and skipped; the run goes on.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+HELP = "LiDAR SLAM from a folder of frames: GICP odometry, loop closure, pose graph; trajectory + map (Ren et al. 2019)"
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--frames", required=True, help="folder of frames (PLY/PCD/LAS/XYZ or KITTI .bin), sensor frame; "
+                        "times from times.txt or the file names")
+    parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument("--voxel", type=float, default=0.3, help="odometry voxel size (m, default 0.3)")
+    parser.add_argument("--max-distance", type=float, default=1.0, help="GICP correspondence gate (m, default 1.0)")
+    parser.add_argument("--keyframe-distance", type=float, default=2.0, help="keyframe distance threshold (m)")
+    parser.add_argument("--keyframe-angle", type=float, default=10.0, help="keyframe rotation threshold (deg)")
+    parser.add_argument("--keyframe-interval", type=float, default=10.0, help="keyframe time threshold (s)")
+    parser.add_argument("--loop-gap", type=float, default=30.0, help="loop candidates: path gap above (m)")
+    parser.add_argument("--loop-radius", type=float, default=8.0, help="loop candidates: distance below (m)")
+    parser.add_argument("--map-voxel", type=float, default=0.1, help="map voxel (m, default 0.1)")
+    parser.add_argument("--seed", type=int, default=0, help="recorded seed (the run draws no random numbers)")
+
+
+def _params(args):
+    from minegeo.slam.loops import LoopParams
+    from minegeo.slam.odometry import OdometryParams
+    from minegeo.slam.pipeline import SlamParams
+
+    odo = OdometryParams(voxel_size_m=args.voxel, max_correspondence_distance_m=args.max_distance,
+                         keyframe_distance_m=args.keyframe_distance, keyframe_angle_deg=args.keyframe_angle,
+                         keyframe_interval_s=args.keyframe_interval)
+    return SlamParams(odometry=odo, loops=LoopParams(min_path_gap_m=args.loop_gap, max_distance_m=args.loop_radius),
+                      map_voxel_m=args.map_voxel)
+
+
+def _frames(files, skipped: list, bar, min_points: int):
+    """Yield (time, points) of the readable frames; unreadable ones and frames with fewer than
+    ``min_points`` points are recorded and skipped (the contract)."""
+    from minegeo.errors import MinegeoError
+    from minegeo.io.frames import read_frame
+
+    for f in files:
+        try:
+            pts = read_frame(f.path)
+        except (MinegeoError, OSError) as exc:
+            skipped.append({"frame": f.path.name, "reason": str(exc)})
+            log.warning("frame %s skipped: %s", f.path.name, exc)
+            bar.update(1)
+            continue
+        bar.update(1)
+        if pts.shape[0] < min_points:
+            skipped.append({"frame": f.path.name, "reason": f"{pts.shape[0]} points, fewer than {min_points}"})
+            log.warning("frame %s skipped: %d points", f.path.name, pts.shape[0])
+            continue
+        yield f.time_s, pts
+
+
+def _write_outputs(stage: Path, res, files_used: list[str]) -> None:
+    import numpy as np
+
+    from minegeo._provenance import atomic_write_text
+    from minegeo.io import PointCloud, write_point_cloud, write_trajectory
+    from minegeo.io.g2o import write_g2o
+    from minegeo.io.types import Trajectory
+
+    write_trajectory(stage / "trajectory.tum", Trajectory(res.times_s, res.poses, frame="map", body="sensor"))
+    write_trajectory(stage / "keyframes.tum", Trajectory(res.times_s[res.keyframes], res.keyframe_poses,
+                                                         frame="map", body="sensor"))
+    write_g2o(stage / "graph.g2o", res.graph)
+    rows = ["i,j,fitness,rmse_m,accepted,reason"]
+    for c in res.loops:
+        reason = c.reason.replace('"', "'")
+        rows.append(f'{c.i},{c.j},{c.fitness:.6f},{c.rmse_m:.6f},{int(c.accepted)},"{reason}"')
+    atomic_write_text(stage / "loops.csv", "\n".join(rows) + "\n")
+    write_point_cloud(stage / "map.ply", PointCloud(points=np.ascontiguousarray(res.map_points)))
+    atomic_write_text(stage / "frames_used.txt", "\n".join(files_used) + "\n")
+
+
+def run(args) -> int:
+    from tqdm import tqdm
+
+    from minegeo._output import OutputTransaction, progress_enabled, run_timings
+    from minegeo._provenance import StageTimer, provenance, sha256_file, write_json_atomic
+    from minegeo.errors import InputError
+    from minegeo.io.frames import list_frames
+    from minegeo.report.slam_report import write_slam_report
+    from minegeo.slam.pipeline import run_slam
+
+    timer = StageTimer()
+    params = _params(args)
+    out = Path(args.out)
+    with OutputTransaction("slam", inputs={"--frames": args.frames}, folders={"--out": out}) as tx:
+        files = list_frames(args.frames)
+        skipped: list[dict] = []
+        bar = tqdm(total=len(files), desc="slam", unit="frame", file=sys.stderr, disable=not progress_enabled(args))
+        # each registration's warnings (weak direction, 2-cycle) are recorded per frame in
+        # result.json; on the terminal they would be one line per frame
+        reg_log = logging.getLogger("minegeo.registration")
+        level = reg_log.level
+        reg_log.setLevel(logging.ERROR)
+        try:
+            with bar, timer("slam"):
+                res = run_slam(_frames(files, skipped, bar, params.odometry.min_points), params)
+        finally:
+            reg_log.setLevel(level)
+        used = {f.path.name for f in files} - {s["frame"] for s in skipped}
+        if res.times_s.size < 2:
+            raise InputError(f"--frames {args.frames}: fewer than 2 readable frames")
+        inputs = [{"path": str(f.path), "sha256": sha256_file(f.path)} for f in files]
+        stage = tx.folder("--out")
+        with timer("write"):
+            _write_outputs(stage, res, sorted(used))
+        summary = {
+            "command": "slam", "status": "ok", "reason": "", "parameters": params.as_dict(),
+            "result": {**res.summary(), "skipped_frames": skipped,
+                       "frames_not_registered": [{"time_s": float(res.times_s[k]), "reason": r}
+                                                 for k, r in enumerate(res.odometry.frame_reason) if r],
+                       "low_observability_frames": [{"time_s": float(res.times_s[k]), "direction": w}
+                                                    for k, w in enumerate(res.odometry.frame_weak) if w]},
+            "outputs": {n: str(out / n) for n in ("trajectory.tum", "keyframes.tum", "graph.g2o", "loops.csv", "map.ply",
+                                                  "result.json", "report.html")},
+            "module_timings_s": res.timings_s,
+            "timings_s": {**timer.as_dict(), **run_timings(args)},
+            "provenance": provenance(seed=args.seed, inputs=inputs),
+        }
+        write_json_atomic(stage / "result.json", summary)
+        write_slam_report(stage / "report.html", summary, res)
+    if not getattr(args, "quiet", False):
+        s = summary["result"]
+        print(f"{s['frames']} frames ({len(skipped)} skipped, {s['failed_frames']} not registered), {s['keyframes']} "
+              f"keyframes, {s['loops_accepted']} loop(s) of {s['loop_candidates']} candidates, path "
+              f"{s['path_length_m']:.1f} m, map {s['map_points']:,} points")
+        print(f"written: {out}/(trajectory.tum, keyframes.tum, graph.g2o, loops.csv, map.ply, result.json, report.html)")
+    return 0

@@ -1,0 +1,126 @@
+"""A folder of LiDAR frames (``minegeo slam --frames DIR``), as fixed by the SLAM contract.
+
+* One point cloud per frame, any format :func:`minegeo.io.read_point_cloud` reads (PLY, PCD,
+  LAS/LAZ, XYZ/CSV, PTS, 3DTK) plus KITTI Velodyne ``.bin`` (float32 x, y, z, reflectance), in the
+  sensor frame, metres.
+* Frame order: file names sorted lexicographically (zero-padded numbers, as loggers write them).
+* Times: ``DIR/times.txt`` when present (one time in seconds per frame in that order, the KITTI
+  odometry convention); otherwise a number in every file name is its time in seconds; otherwise an
+  error that says so. Non-increasing times are an input error naming the first offending frame.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from minegeo.errors import FileFormatError, InputError
+from minegeo.io._limits import read_file_bytes, read_file_text
+from minegeo.io.pointcloud import _SUFFIX
+
+__all__ = ["FrameFile", "list_frames", "read_frame", "read_kitti_bin"]
+
+#: Largest frame file read (a 128-beam scan is ~ 4 MB).
+MAX_FRAME_BYTES = 1 << 30
+_NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
+
+
+@dataclass(frozen=True)
+class FrameFile:
+    """One frame of the folder: its file and its time (s)."""
+
+    path: Path
+    time_s: float
+
+
+def read_kitti_bin(path) -> np.ndarray:
+    """Points (n, 3) float64 of a KITTI Velodyne ``.bin`` (float32 x, y, z, reflectance records).
+
+    Raises
+    ------
+    FileFormatError
+        The size is not a multiple of 16 bytes (truncated or not a KITTI scan), or a value is not finite.
+    """
+    data = read_file_bytes(path, max_bytes=MAX_FRAME_BYTES, what="KITTI .bin frame")
+    if len(data) % 16:
+        raise FileFormatError(path, f"{len(data)} bytes is not a whole number of 16-byte KITTI records "
+                              "(float32 x, y, z, reflectance): truncated, or not a KITTI scan")
+    rec = np.frombuffer(data, dtype="<f4").reshape(-1, 4)
+    pts = rec[:, :3].astype(np.float64)
+    bad = ~np.isfinite(pts).all(axis=1)
+    if bad.any():
+        raise FileFormatError(path, f"record {int(np.flatnonzero(bad)[0])} holds a NaN or infinite coordinate")
+    return pts
+
+
+def read_frame(path) -> np.ndarray:
+    """Points (n, 3) float64 of one frame file (sensor frame, m)."""
+    if Path(path).suffix.lower() == ".bin":
+        return read_kitti_bin(path)
+    from minegeo.io.pointcloud import read_point_cloud
+
+    cloud = read_point_cloud(path)
+    return cloud.points + cloud.origin
+
+
+def _frame_files(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        raise InputError(f"--frames {folder}: not a folder")
+    names = sorted(p for p in folder.iterdir() if p.is_file() and (p.suffix.lower() in _SUFFIX or p.suffix.lower() == ".bin")
+                   and p.name != "times.txt" and p.suffix.lower() != ".zip")
+    if not names:
+        raise InputError(f"--frames {folder}: no point-cloud frames (.ply .pcd .las .laz .xyz .csv .pts .3d .bin) in it")
+    return names
+
+
+def _times_from_file(folder: Path, n: int) -> np.ndarray:
+    text = read_file_text(folder / "times.txt", what="times file")
+    vals = []
+    for k, line in enumerate(text.splitlines(), start=1):
+        s = line.split("#", 1)[0].strip()
+        if not s:
+            continue
+        try:
+            vals.append(float(s.split()[0]))
+        except ValueError:
+            raise FileFormatError(folder / "times.txt", f"line {k}: {s!r} is not a time in seconds") from None
+    if len(vals) != n:
+        raise InputError(f"{folder / 'times.txt'} holds {len(vals)} times for {n} frames: one time per frame, in "
+                         "the frames' name order")
+    return np.asarray(vals)
+
+
+def _times_from_names(paths: list[Path]) -> np.ndarray:
+    out = []
+    for p in paths:
+        m = _NUMBER.findall(p.stem)
+        if not m:
+            raise InputError(f"frame {p.name} has no number in its name and there is no times.txt: give the times "
+                             "in times.txt (one per frame, seconds) or name the frames by their time")
+        out.append(float(m[-1]))
+    return np.asarray(out)
+
+
+def list_frames(folder) -> list[FrameFile]:
+    """The frames of ``folder`` in name order with their times (see the module docstring).
+
+    Raises
+    ------
+    InputError
+        Not a folder, no frames, no times, a count mismatch, or non-increasing times (the first
+        offending frame is named).
+    """
+    folder = Path(folder)
+    paths = _frame_files(folder)
+    times = _times_from_file(folder, len(paths)) if (folder / "times.txt").is_file() else _times_from_names(paths)
+    if not np.all(np.isfinite(times)):
+        raise InputError(f"frame {paths[int(np.flatnonzero(~np.isfinite(times))[0])].name}: time is not finite")
+    bad = np.flatnonzero(np.diff(times) <= 0)
+    if bad.size:
+        k = int(bad[0]) + 1
+        raise InputError(f"frame {paths[k].name}: time {times[k]:.6f} s is not after the previous frame's "
+                         f"{times[k - 1]:.6f} s (times must increase in name order)")
+    return [FrameFile(p, float(t)) for p, t in zip(paths, times, strict=True)]

@@ -1,0 +1,192 @@
+"""The SLAM run: odometry → loop closure → pose-graph optimisation → map (Ren et al. 2019, Fig. 1).
+
+:func:`run_slam` takes frames in time order and returns every used frame's pose, the keyframes,
+the optimised pose graph, the loop list and the map cloud:
+
+1. GICP odometry with keyframes (:mod:`minegeo.slam.odometry`);
+2. for each keyframe in turn, loop candidates by the paper's rules, verified by GICP
+   (:mod:`minegeo.slam.loops`); after each accepted loop the graph is optimised, so later
+   candidates are searched from corrected poses;
+3. the pose graph (keyframe poses, odometry and loop edges with their information matrices)
+   optimised by Levenberg–Marquardt (:mod:`minegeo.slam.posegraph`);
+4. the frames between keyframes placed by their odometry relative to the preceding keyframe (the
+   contract's trajectory), the keyframe clouds moved into the world frame and voxel-compressed
+   into the map (Sec. 3.5).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from minegeo.geometry import voxel_downsample
+from minegeo.io.g2o import PoseGraph
+from minegeo.registration import build_target_index
+from minegeo.slam.loops import LoopCandidate, LoopParams, find_loop
+from minegeo.slam.odometry import OdometryParams, OdometryResult, PreparedFrame, run_odometry
+from minegeo.slam.posegraph import PoseGraphParams, PoseGraphResult, optimize_pose_graph
+
+__all__ = ["SlamParams", "SlamResult", "run_slam"]
+
+
+@dataclass(frozen=True)
+class SlamParams:
+    """Parameters of :func:`run_slam` (each stage's own dataclass, and the map voxel in m)."""
+
+    odometry: OdometryParams = field(default_factory=OdometryParams)
+    loops: LoopParams = field(default_factory=LoopParams)
+    posegraph: PoseGraphParams = field(default_factory=PoseGraphParams)
+    map_voxel_m: float = 0.1
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class SlamResult:
+    """Outcome of :func:`run_slam`.
+
+    Attributes
+    ----------
+    times_s, poses : (n,), (n, 4, 4)
+        Every used frame's time and pose ``T_world_sensor`` (world = first frame), keyframes from
+        the optimised graph, the others by odometry from the preceding keyframe.
+    keyframes : (k,) int64
+        Frame indices of the keyframes; ``keyframe_poses`` (k, 4, 4) optimised.
+    graph : PoseGraph
+        The optimised keyframe graph (odometry edges then loop edges).
+    loops : list of LoopCandidate
+        Every loop candidate tried, accepted or not, with scores and reasons.
+    map_points : (m, 3)
+        The map in the world frame (voxel centroids of the keyframe clouds).
+    odometry : OdometryResult
+    optimisation : PoseGraphResult or None
+    """
+
+    times_s: np.ndarray
+    poses: np.ndarray
+    keyframes: np.ndarray
+    keyframe_poses: np.ndarray
+    graph: PoseGraph
+    loops: list
+    map_points: np.ndarray
+    odometry: OdometryResult
+    optimisation: PoseGraphResult | None
+    params: SlamParams
+    timings_s: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        acc = [c for c in self.loops if c.accepted]
+        return {
+            "frames": int(self.times_s.size), "keyframes": int(self.keyframes.size),
+            "failed_frames": int((~self.odometry.frame_ok).sum()),
+            "weak_frames": int(sum(bool(w) for w in self.odometry.frame_weak)),
+            "loop_candidates": len(self.loops), "loops_accepted": len(acc),
+            "map_points": int(self.map_points.shape[0]),
+            "path_length_m": float(np.linalg.norm(np.diff(self.poses[:, :3, 3], axis=0), axis=1).sum()),
+            "pose_graph": None if self.optimisation is None else {
+                "status": self.optimisation.status, "reason": self.optimisation.reason,
+                "cost_initial": self.optimisation.cost_initial, "cost_final": self.optimisation.cost_final,
+                "iterations": self.optimisation.iterations},
+        }
+
+
+def _graph(kf_poses, odo: OdometryResult, loops: list[LoopCandidate]) -> PoseGraph:
+    """Keyframe graph: odometry edges (k-1, k) then the accepted loops, information in g2o order (t, r)."""
+    k = kf_poses.shape[0]
+    edges = [(a, a + 1) for a in range(k - 1)] + [(c.i, c.j) for c in loops if c.accepted]
+    Z = list(odo.keyframe_edges) + [c.T_i_j for c in loops if c.accepted]
+    info_rt = list(odo.keyframe_information) + [c.information for c in loops if c.accepted]
+    p = [3, 4, 5, 0, 1, 2]  # (ω, ρ) → the file's (t, r) order; the solver permutes back
+    info = [np.asarray(I)[p][:, p] for I in info_rt]
+    m = len(edges)
+    return PoseGraph("SE3", np.arange(k, dtype=np.int64), np.ascontiguousarray(kf_poses),
+                     np.asarray(edges, dtype=np.int64).reshape(m, 2),
+                     np.stack(Z) if m else np.zeros((0, 4, 4)), np.stack(info) if m else np.zeros((0, 6, 6)))
+
+
+def _path_lengths(poses: np.ndarray) -> np.ndarray:
+    return np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))]
+
+
+def _close_loops(odo: OdometryResult, params: SlamParams):
+    """Loop closure keyframe by keyframe; re-optimise after each accepted loop."""
+    kf_poses = odo.poses[odo.keyframes].copy()
+    path = _path_lengths(kf_poses)  # distance along the trajectory does not depend on the drift much
+    frames: dict[int, PreparedFrame] = {}
+
+    def prepared(k: int) -> PreparedFrame:
+        if k not in frames:
+            P = odo.keyframe_clouds[k]
+            frames[k] = PreparedFrame(float(odo.times_s[odo.keyframes[k]]), P, odo.keyframe_covariances[k],
+                                      build_target_index(P) if P.shape[0] >= params.odometry.min_points else None)
+        return frames[k]
+
+    loops: list[LoopCandidate] = []
+    opt = None
+    for k in range(1, kf_poses.shape[0]):
+        frame_list = _LazyFrames(prepared, kf_poses.shape[0])
+        tried = find_loop(k, kf_poses, path, frame_list, params.loops, params.odometry)
+        loops.extend(tried)
+        if any(c.accepted for c in tried):
+            opt = optimize_pose_graph(_graph(kf_poses, odo, loops), params.posegraph)
+            if opt.status != "failed":
+                kf_poses = opt.graph.poses.copy()
+    return kf_poses, loops, opt
+
+
+class _LazyFrames:
+    """``frames[k]`` prepared on first use (search trees only for keyframes a loop test needs)."""
+
+    def __init__(self, get, n):
+        self._get, self._n = get, n
+
+    def __getitem__(self, k):
+        return self._get(int(k))
+
+    def __len__(self):
+        return self._n
+
+
+def _all_poses(odo: OdometryResult, kf_poses: np.ndarray) -> np.ndarray:
+    """Every frame: keyframes as optimised, the others by odometry from the preceding keyframe."""
+    out = odo.poses.copy()
+    kf = odo.keyframes
+    for a in range(kf.size):
+        start, stop = kf[a], kf[a + 1] if a + 1 < kf.size else odo.poses.shape[0]
+        corr = kf_poses[a] @ np.linalg.inv(odo.poses[start])
+        out[start:stop] = np.einsum("ij,njk->nik", corr, odo.poses[start:stop])
+    return out
+
+
+def run_slam(frames: Iterable[tuple[float, np.ndarray]], params: SlamParams | None = None, progress=None) -> SlamResult:
+    """Run the SLAM chain on frames ``(time_s, points in the sensor frame)`` in time order.
+
+    Returns
+    -------
+    SlamResult
+        Poses of every frame, keyframes, optimised graph, loop list, map and timings per module
+        (odometry prepare / frame-to-frame / keyframe refinement, loops, graph, map).
+    """
+    params = params or SlamParams()
+    t0 = time.perf_counter()
+    odo = run_odometry(frames, params.odometry, progress)
+    t1 = time.perf_counter()
+    kf_poses, loops, _ = _close_loops(odo, params)
+    t2 = time.perf_counter()
+    opt = optimize_pose_graph(_graph(kf_poses, odo, loops), params.posegraph) if odo.keyframes.size > 1 else None
+    if opt is not None and opt.status != "failed":
+        kf_poses = opt.graph.poses.copy()
+    graph = opt.graph if opt is not None else _graph(kf_poses, odo, loops)
+    t3 = time.perf_counter()
+    poses = _all_poses(odo, kf_poses)
+    world = [P @ T[:3, :3].T + T[:3, 3] for P, T in zip(odo.keyframe_clouds, kf_poses, strict=True)]
+    cloud = np.concatenate(world) if world else np.zeros((0, 3))
+    map_points = voxel_downsample(cloud, params.map_voxel_m).points if cloud.shape[0] else cloud
+    t4 = time.perf_counter()
+    timings = {**{f"odometry_{k}": v for k, v in odo.timings_s.items()}, "odometry": t1 - t0,
+               "loop_closure": t2 - t1, "pose_graph": t3 - t2, "map": t4 - t3, "total": t4 - t0}
+    return SlamResult(odo.times_s, poses, odo.keyframes, kf_poses, graph, loops, map_points, odo, opt, params, timings)

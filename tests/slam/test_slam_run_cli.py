@@ -1,0 +1,98 @@
+"""``minegeo slam`` end to end on simulated VLP-16 frames: the contract's outputs, accuracy against the
+truth, skipped frames, and bad folders (times missing, not increasing) as one clear error line."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from minegeo.cli import main
+from minegeo.io import PointCloud, read_trajectory, write_point_cloud
+from minegeo.io.g2o import read_g2o
+from minegeo.io.types import Trajectory
+from minegeo.slam.evaluate import evaluate_trajectory
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory):
+    from minegeo.synth.sensors import Velodyne16, simulate_scan
+    from minegeo.synth.trajectory import interpolate_poses, make_trajectory
+    from minegeo.synth.world import build_world
+
+    world = build_world("small", 1)
+    traj = make_trajectory(world, "drive", length_m=18.0, seed=5)
+    ts = np.arange(0.0, traj.times_s[-1], 0.25)
+    P = interpolate_poses(traj, ts)
+    sensor = Velodyne16(azimuth_step_deg=0.4)
+    d = tmp_path_factory.mktemp("frames")
+    for k, T in enumerate(P):
+        pts = simulate_scan(world, sensor, T, seed=k).points
+        if k % 2:  # half the frames as KITTI .bin (float32 x, y, z, reflectance)
+            rec = np.zeros((pts.shape[0], 4), "<f4")
+            rec[:, :3] = pts
+            rec.tofile(d / f"{k:06d}.bin")
+        else:
+            write_point_cloud(d / f"{k:06d}.ply", PointCloud(points=pts))
+    (d / "times.txt").write_text("".join(f"{t + 1000.0:.6f}\n" for t in ts))
+    truth = Trajectory(ts + 1000.0, np.einsum("ij,njk->nik", np.linalg.inv(P[0]), P))
+    return d, truth
+
+
+def test_slam_writes_the_contract_outputs_and_follows_the_truth(sequence, tmp_path):
+    frames, truth = sequence
+    assert main(["-q", "slam", "--frames", str(frames), "--out", str(tmp_path / "o")]) == 0
+    o = tmp_path / "o"
+    for name in ("trajectory.tum", "keyframes.tum", "graph.g2o", "loops.csv", "map.ply", "result.json", "report.html"):
+        assert (o / name).is_file(), name
+    est = read_trajectory(o / "trajectory.tum")
+    assert est.times_s.size == truth.times_s.size and np.array_equal(est.times_s, truth.times_s)
+    assert np.allclose(est.poses[0], np.eye(4))  # the first frame is the map frame
+    ev = evaluate_trajectory(est, truth, align=False)
+    assert ev.ate.max < 0.01 * ev.path_length_m
+    kf = read_trajectory(o / "keyframes.tum")
+    g = read_g2o(o / "graph.g2o")
+    assert g.n_vertices == kf.times_s.size and np.allclose(g.poses, kf.poses, atol=1e-9)
+    rec = json.loads((o / "result.json").read_text())
+    assert rec["result"]["frames"] == truth.times_s.size and rec["result"]["skipped_frames"] == []
+    assert len(rec["provenance"]["inputs"]) == truth.times_s.size
+    assert set(rec["module_timings_s"]) >= {"odometry", "loop_closure", "pose_graph", "map", "total"}
+    assert (o / "loops.csv").read_text().startswith("i,j,fitness,rmse_m,accepted,reason")
+
+
+def test_unreadable_and_empty_frames_are_skipped_and_reported(sequence, tmp_path):
+    frames, truth = sequence
+    d = tmp_path / "frames"
+    d.mkdir()
+    for p in frames.iterdir():
+        (d / p.name).write_bytes(p.read_bytes())
+    bad = sorted(d.glob("*.bin"))[2]
+    bad.write_bytes(bad.read_bytes()[:-7])  # truncated mid-record
+    empty = sorted(d.glob("*.ply"))[3]
+    write_point_cloud(empty, PointCloud(points=np.zeros((5, 3))))
+    assert main(["-q", "slam", "--frames", str(d), "--out", str(tmp_path / "o")]) == 0
+    rec = json.loads((tmp_path / "o" / "result.json").read_text())
+    skipped = {s["frame"]: s["reason"] for s in rec["result"]["skipped_frames"]}
+    assert set(skipped) == {bad.name, empty.name}
+    assert "16-byte" in skipped[bad.name] and "fewer than" in skipped[empty.name]
+    assert read_trajectory(tmp_path / "o" / "trajectory.tum").times_s.size == truth.times_s.size - 2
+
+
+def test_times_must_increase_and_must_exist(sequence, tmp_path, capsys):
+    frames, _ = sequence
+    d = tmp_path / "frames"
+    d.mkdir()
+    names = sorted(p.name for p in frames.iterdir() if p.name != "times.txt")[:4]
+    for n in names:
+        (d / n).write_bytes((frames / n).read_bytes())
+    (d / "times.txt").write_text("1.0\n2.0\n2.0\n3.0\n")
+    assert main(["slam", "--frames", str(d), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert f"frame {names[2]}: time 2.000000 s is not after the previous frame's" in err and "Traceback" not in err
+    (d / "times.txt").unlink()
+    for n in names:  # names like 000001.ply carry numbers: they become the times; rename to remove them
+        (d / n).rename(d / ("frame_" + "abcdefgh"[names.index(n)] + (d / n).suffix))
+    assert main(["slam", "--frames", str(d), "--out", str(tmp_path / "o")]) == 2
+    assert "has no number in its name and there is no times.txt" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
