@@ -35,7 +35,7 @@ class LoopParams:
     min_fitness: float = 0.5
     max_rmse_m: float = 0.3
     max_correction_m: float = 5.0
-    max_correction_deg: float = 20.0
+    max_correction_deg: float = 45.0
 
     def __post_init__(self):
         for name in ("min_path_gap_m", "max_distance_m", "max_rmse_m", "max_correction_m", "max_correction_deg"):

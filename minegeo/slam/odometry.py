@@ -10,10 +10,11 @@
   ``arccos((tr ΔR − 1)/2)`` above an angle, or the time since the last keyframe above an interval.
   Its pose is then refined by GICP against the last keyframe from the chained relative pose, and
   the refined relative pose is the keyframe edge of the pose graph.
-* A frame that fails to register (too few points, not converged, low overlap) is flagged with the
-  reason and placed by the constant-velocity guess; the run goes on. A registration with a weakly
-  observed direction (e.g. along a straight smooth drift) is kept and flagged as low observability:
-  its information matrix carries the weakness into the pose graph.
+* A frame that fails to register (too few points, low overlap) is flagged with the reason and
+  placed by the constant-velocity guess; the run goes on. A registration with a weakly observed
+  direction (e.g. along a straight smooth drift), or one still creeping along it when the
+  iterations run out, is kept and flagged as low observability: its information matrix carries the
+  weakness into the pose graph.
 
 Edge information: GICP's Gauss–Newton matrix ``H`` is for a left perturbation in the target frame,
 parameters (ω, t); the pose graph perturbs on the right, so the edge information is
@@ -26,7 +27,7 @@ import logging
 import math
 import time
 from collections.abc import Iterable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -54,10 +55,11 @@ class OdometryParams:
     min_points: int = 200
     min_fitness: float = 0.3
     sigma_floor_m: float = 0.01
+    coarse_gate_factor: float = 3.0
 
     def __post_init__(self):
         for name in ("voxel_size_m", "max_correspondence_distance_m", "keyframe_distance_m", "keyframe_angle_deg",
-                     "keyframe_interval_s", "sigma_floor_m"):
+                     "keyframe_interval_s", "sigma_floor_m", "coarse_gate_factor"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise InputError(f"{name} must be a finite number > 0, got {v!r}")
@@ -160,13 +162,32 @@ def register_frames(source: PreparedFrame, target: PreparedFrame, T_init: np.nda
     reason = ""
     if res.fitness < params.min_fitness:
         reason = f"overlap {res.fitness:.2f} below {params.min_fitness:.2f}"
-    elif not res.converged:
-        reason = f"not converged in {res.iterations} iterations"
+    weak = res.degeneracy_reason if res.degenerate else ""
+    if not res.converged and not reason:  # still creeping (a weak direction): better than a guess, flagged
+        weak = (weak + "; " if weak else "") + f"not converged in {res.iterations} iterations"
     sigma = max(float(res.sigma_m), params.sigma_floor_m)
     A = se3_adjoint(np.ascontiguousarray(res.T_target_source))
     info = A.T @ res.information_6x6 @ A / sigma**2
     return Registration(res.T_target_source, not reason, reason, float(res.fitness), float(res.inlier_rmse_m),
-                        0.5 * (info + info.T), res.degeneracy_reason if res.degenerate else "")
+                        0.5 * (info + info.T), weak)
+
+
+def _register_with_retries(cur: PreparedFrame, prev: PreparedFrame, guess: np.ndarray,
+                           params: OdometryParams) -> Registration:
+    """GICP from the constant-velocity guess; when that fails (e.g. a sharp turn at a junction, where
+    the previous motion is a poor guess), again from no motion, then coarse-to-fine with a gate
+    ``coarse_gate_factor`` times wider from both guesses; the best overlap that passes wins."""
+    reg = register_frames(cur, prev, guess, params)
+    if reg.ok or cur.index is None or prev.index is None:
+        return reg
+    coarse = replace(params, max_correspondence_distance_m=params.max_correspondence_distance_m
+                     * params.coarse_gate_factor)
+    tries = [reg, register_frames(cur, prev, np.eye(4), params)]
+    for T0 in (guess, np.eye(4)):
+        c = register_frames(cur, prev, T0, coarse)
+        tries.append(register_frames(cur, prev, c.T, params))
+    good = [r for r in tries if r.ok]
+    return max(good, key=lambda r: r.fitness) if good else reg
 
 
 def _keyframe_due(dT: np.ndarray, dt: float, params: OdometryParams) -> bool:
@@ -217,7 +238,7 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
             prev = last_kf = cur
             continue
         t0 = time.perf_counter()
-        reg = register_frames(cur, prev, velocity, params)  # [Ren2019 Eq. 7]: ΔT_{t-1,t}
+        reg = _register_with_retries(cur, prev, velocity, params)  # [Ren2019 Eq. 7]: ΔT_{t-1,t}
         t_f2f += time.perf_counter() - t0
         dT = reg.T if reg.ok else velocity
         if not reg.ok:
