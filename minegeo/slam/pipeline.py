@@ -7,7 +7,8 @@ the optimised pose graph, the loop list and the map cloud:
 2. for each keyframe in turn, loop candidates by the paper's rules, verified by GICP
    (:mod:`minegeo.slam.loops`); after each accepted loop the graph is optimised, so later
    candidates are searched from corrected poses;
-3. the pose graph (keyframe poses, odometry and loop edges with their information matrices)
+3. the pose graph (keyframe poses, odometry and loop edges with their information matrices, and,
+   with ``use_planes``, floor-plane landmarks with pose–plane edges [Ren2019 Eq. 11], Sec. 3.4.2)
    optimised by Levenberg–Marquardt (:mod:`minegeo.slam.posegraph`);
 4. the frames between keyframes placed by their odometry relative to the preceding keyframe (the
    contract's trajectory), the keyframe clouds moved into the world frame and voxel-compressed
@@ -22,24 +23,62 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from minegeo.errors import InputError
 from minegeo.geometry import voxel_downsample
 from minegeo.io.g2o import PoseGraph
 from minegeo.registration import build_target_index
 from minegeo.slam.loops import LoopCandidate, LoopParams, find_loop
 from minegeo.slam.odometry import OdometryParams, OdometryResult, PreparedFrame, run_odometry
-from minegeo.slam.posegraph import PoseGraphParams, PoseGraphResult, optimize_pose_graph
+from minegeo.slam.planes import (
+    FloorPlaneParams,
+    extract_floor_plane,
+    plane_in_sensor_frame,
+    plane_in_world_frame,
+)
+from minegeo.slam.posegraph import PlaneSet, PoseGraphParams, PoseGraphResult, optimize_pose_graph
 
 __all__ = ["SlamParams", "SlamResult", "run_slam"]
 
 
 @dataclass(frozen=True)
 class SlamParams:
-    """Parameters of :func:`run_slam` (each stage's own dataclass, and the map voxel in m)."""
+    """Parameters of :func:`run_slam` (each stage's own dataclass, and the map voxel in m).
+
+    Attributes
+    ----------
+    use_planes : bool
+        Add floor-plane landmarks to the pose graph (Ren et al. 2019 Sec. 3.4.2).
+    floor : FloorPlaneParams
+        Floor extraction in the sub-map around each keyframe (keyframes within ``floor.radius_m``
+        of it along the path, in the world frame from the current poses). The default height band,
+        1 to 3.5 m below the sensor, is for a vehicle-mounted sensor about 2 m above the floor: it
+        leaves out most of the walls, which otherwise outnumber the floor's inliers.
+    plane_max_angle_deg, plane_max_offset_m : float
+        A keyframe's floor joins the plane node of the previous keyframe's floor while the normals
+        differ by at most this angle and the two planes' heights below the keyframe by at most
+        this offset (a roadway section of constant grade); else a new node starts.
+    plane_sigma_angle_deg, plane_sigma_offset_m : float
+        Lower bounds of the standard deviations of a floor observation (normal angles, offset):
+        the fit's own ``rms/√N`` is far below the floor's departure from a plane.
+    """
 
     odometry: OdometryParams = field(default_factory=OdometryParams)
     loops: LoopParams = field(default_factory=LoopParams)
     posegraph: PoseGraphParams = field(default_factory=PoseGraphParams)
     map_voxel_m: float = 0.1
+    use_planes: bool = True
+    floor: FloorPlaneParams = field(default_factory=lambda: FloorPlaneParams(min_below_sensor_m=1.0,
+                                                                             max_below_sensor_m=3.5))
+    plane_max_angle_deg: float = 3.0
+    plane_max_offset_m: float = 0.3
+    plane_sigma_angle_deg: float = 0.5
+    plane_sigma_offset_m: float = 0.05
+
+    def __post_init__(self):
+        vals = (self.plane_max_angle_deg, self.plane_max_offset_m, self.plane_sigma_angle_deg,
+                self.plane_sigma_offset_m)
+        if not all(np.isfinite(v) and v > 0 for v in vals):
+            raise InputError(f"plane association and sigma parameters must be finite and > 0, got {vals}")
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -64,6 +103,9 @@ class SlamResult:
         The map in the world frame (voxel centroids of the keyframe clouds).
     odometry : OdometryResult
     optimisation : PoseGraphResult or None
+    planes : PlaneSet or None
+        With ``use_planes``: the floor-plane nodes (optimised) and pose–plane edges (pose =
+        keyframe index); ``floor_status`` gives each keyframe's extraction status.
     """
 
     times_s: np.ndarray
@@ -77,6 +119,8 @@ class SlamResult:
     optimisation: PoseGraphResult | None
     params: SlamParams
     timings_s: dict = field(default_factory=dict)
+    planes: PlaneSet | None = None
+    floor_status: list = field(default_factory=list)
 
     def summary(self) -> dict:
         acc = [c for c in self.loops if c.accepted]
@@ -91,6 +135,9 @@ class SlamResult:
                 "status": self.optimisation.status, "reason": self.optimisation.reason,
                 "cost_initial": self.optimisation.cost_initial, "cost_final": self.optimisation.cost_final,
                 "iterations": self.optimisation.iterations},
+            "planes": None if self.planes is None else {
+                "nodes": self.planes.n_planes, "edges": self.planes.n_edges,
+                "keyframes_without_floor": int(sum(st != "ok" for st in self.floor_status))},
         }
 
 
@@ -112,7 +159,77 @@ def _path_lengths(poses: np.ndarray) -> np.ndarray:
     return np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))]
 
 
-def _close_loops(odo: OdometryResult, params: SlamParams):
+def _floor_observations(odo: OdometryResult, kf_poses: np.ndarray, params: SlamParams):
+    """Floor plane of each keyframe's sub-map, measured in its sensor frame, and plane-node association.
+
+    The sub-map of keyframe ``k``: the clouds of the keyframes within ``floor.radius_m`` of it along
+    the path, in the world frame from the current poses; the floor is extracted about the keyframe
+    position with ``up`` its sensor z axis (seed ``k``). Consecutive floors share a node while the
+    normals differ by at most ``plane_max_angle_deg`` and their heights below the later keyframe by
+    at most ``plane_max_offset_m`` (a floor that matches neither the latest node nor the one before
+    starts a new node; one that matches the one before returns to it). The information of an observation is
+    ``diag(1/σ_a², 1/σ_a², 1/σ_d²)`` with ``σ_d = max(rms/√N, plane_sigma_offset_m)`` and
+    ``σ_a = max(rms/(√N·s), plane_sigma_angle_deg)``, ``s`` the RMS in-plane spread of the inliers.
+
+    Returns ``(pose index, node) edges, measurements (m, 4), information (m, 3, 3), status per keyframe``.
+    """
+    fp = params.floor
+    path = _path_lengths(kf_poses)
+    world = [P @ T[:3, :3].T + T[:3, 3] for P, T in zip(odo.keyframe_clouds, kf_poses, strict=True)]
+    cos_max = np.cos(np.deg2rad(params.plane_max_angle_deg))
+    sa_min, sd_min = np.deg2rad(params.plane_sigma_angle_deg), params.plane_sigma_offset_m
+    edges, meas, info, status = [], [], [], []
+    last: dict[int, np.ndarray] = {}  # node → its latest floor (world frame)
+    for k, T in enumerate(kf_poses):
+        near = np.flatnonzero(np.abs(path - path[k]) <= fp.radius_m)
+        sub = np.concatenate([world[j] for j in near])
+        res = extract_floor_plane(sub, T[:3, 3], fp, seed=k, up=T[:3, 2])
+        status.append(res.status)
+        if res.status != "ok":
+            continue
+        pl = res.plane
+        t = T[:3, 3]
+
+        # the previous floor's node, else the node before it (a single odd floor, e.g. a muck pile
+        # or a junction, gets its own node and does not split the section), else a new node
+        hit = [q for q in sorted(last, reverse=True)[:2] if _same_section(pl, last[q], t, cos_max, params)]
+        node = hit[0] if hit else (max(last) + 1 if last else 0)
+        last[node] = pl
+        Q = sub[res.inliers]
+        spread = np.sqrt(max(float(np.mean(np.sum((Q - Q.mean(axis=0)) ** 2, axis=1))) / 2.0, 1e-12))
+        sd = max(res.rms_m / np.sqrt(res.n_inliers), sd_min)
+        sa = max(res.rms_m / (np.sqrt(res.n_inliers) * spread), sa_min)
+        edges.append((k, node))
+        meas.append(plane_in_sensor_frame(pl, T))
+        info.append(np.diag([1.0 / sa ** 2, 1.0 / sa ** 2, 1.0 / sd ** 2]))
+    m = len(edges)
+    return (np.asarray(edges, dtype=np.int64).reshape(m, 2), np.asarray(meas).reshape(m, 4),
+            np.asarray(info).reshape(m, 3, 3), status)
+
+
+def _same_section(pl, q, t, cos_max: float, params: SlamParams) -> bool:
+    """Same roadway section: normals within the angle, heights below the keyframe at ``t`` within the offset."""
+    return (float(pl[:3] @ q[:3]) >= cos_max
+            and abs((pl[:3] @ t + pl[3]) - (q[:3] @ t + q[3])) <= params.plane_max_offset_m)
+
+
+def _plane_set(obs, kf_poses: np.ndarray) -> PlaneSet | None:
+    """Plane nodes initialised from their first observation at the current poses."""
+    edges, meas, info, _ = obs
+    if edges.shape[0] == 0:
+        return None
+    n_nodes = int(edges[:, 1].max()) + 1
+    first = [int(np.flatnonzero(edges[:, 1] == q)[0]) for q in range(n_nodes)]
+    planes = np.stack([plane_in_world_frame(meas[e], kf_poses[edges[e, 0]]) for e in first])
+    return PlaneSet(planes, edges, meas, info)
+
+
+def _optimise(kf_poses, odo, loops, obs, params: SlamParams) -> PoseGraphResult:
+    return optimize_pose_graph(_graph(kf_poses, odo, loops), params.posegraph,
+                               _plane_set(obs, kf_poses) if obs is not None else None)
+
+
+def _close_loops(odo: OdometryResult, params: SlamParams, obs=None):
     """Loop closure keyframe by keyframe; re-optimise after each accepted loop."""
     kf_poses = odo.poses[odo.keyframes].copy()
     path = _path_lengths(kf_poses)  # distance along the trajectory does not depend on the drift much
@@ -132,7 +249,7 @@ def _close_loops(odo: OdometryResult, params: SlamParams):
         tried = find_loop(k, kf_poses, path, frame_list, params.loops, params.odometry)
         loops.extend(tried)
         if any(c.accepted for c in tried):
-            opt = optimize_pose_graph(_graph(kf_poses, odo, loops), params.posegraph)
+            opt = _optimise(kf_poses, odo, loops, obs, params)
             if opt.status != "failed":
                 kf_poses = opt.graph.poses.copy()
     return kf_poses, loops, opt
@@ -175,9 +292,13 @@ def run_slam(frames: Iterable[tuple[float, np.ndarray]], params: SlamParams | No
     t0 = time.perf_counter()
     odo = run_odometry(frames, params.odometry, progress)
     t1 = time.perf_counter()
-    kf_poses, loops, _ = _close_loops(odo, params)
+    obs = None
+    if params.use_planes and odo.keyframes.size > 1:
+        obs = _floor_observations(odo, odo.poses[odo.keyframes], params)
+    t_planes = time.perf_counter()
+    kf_poses, loops, _ = _close_loops(odo, params, obs)
     t2 = time.perf_counter()
-    opt = optimize_pose_graph(_graph(kf_poses, odo, loops), params.posegraph) if odo.keyframes.size > 1 else None
+    opt = _optimise(kf_poses, odo, loops, obs, params) if odo.keyframes.size > 1 else None
     if opt is not None and opt.status != "failed":
         kf_poses = opt.graph.poses.copy()
     graph = opt.graph if opt is not None else _graph(kf_poses, odo, loops)
@@ -188,5 +309,7 @@ def run_slam(frames: Iterable[tuple[float, np.ndarray]], params: SlamParams | No
     map_points = voxel_downsample(cloud, params.map_voxel_m).points if cloud.shape[0] else cloud
     t4 = time.perf_counter()
     timings = {**{f"odometry_{k}": v for k, v in odo.timings_s.items()}, "odometry": t1 - t0,
-               "loop_closure": t2 - t1, "pose_graph": t3 - t2, "map": t4 - t3, "total": t4 - t0}
-    return SlamResult(odo.times_s, poses, odo.keyframes, kf_poses, graph, loops, map_points, odo, opt, params, timings)
+               "floor_planes": t_planes - t1, "loop_closure": t2 - t_planes, "pose_graph": t3 - t2, "map": t4 - t3, "total": t4 - t0}
+    planes = opt.planes if opt is not None else None
+    return SlamResult(odo.times_s, poses, odo.keyframes, kf_poses, graph, loops, map_points, odo, opt, params, timings,
+                      planes, obs[3] if obs is not None else [])

@@ -23,6 +23,15 @@ the fixed poses (gauge: the ``FIX`` vertices, else the first one), solves with a
 factorisation, and retracts ``T ← T · Exp(δ)``. A step is accepted when it lowers the cost (λ ÷ 10),
 else rejected (λ × 10) [Nocedal2006 Sec. 10.3]. Robust kernels reweight each edge by its whitened
 residual ``s = sqrt(rᵀΩr)`` (IRLS): Huber ``w = min(1, k/s)``, Cauchy ``w = 1/(1 + (s/k)²)``.
+
+Optional plane landmarks (:class:`PlaneSet`, Ren et al. 2019 Sec. 3.4.2-3.4.3): world planes
+``π_l = (n, d)`` as extra nodes and pose–plane edges with the error of [Ren2019 Eq. 11]
+(:func:`minegeo.slam._kernels_planes.pose_plane_edge_terms`), added to the same cost,
+``F = ½ Σ rᵀΩr + ½ Σ e_tᵀ Ω_t e_t``. The free poses keep their columns ``6·k``; plane ``l`` takes
+the columns ``n_pose_cols + 3·l`` (all planes free), updated on S² × R by
+:func:`~minegeo.slam._kernels_planes.plane_retract`. A plane constrains only height, roll and pitch
+of a pose, so every pose still needs a between-edge path to a fixed pose. Without planes the
+solver runs exactly as before (bit-identical).
 """
 
 from __future__ import annotations
@@ -39,8 +48,9 @@ from minegeo.errors import InputError
 from minegeo.io.g2o import PoseGraph, non_psd_edges
 from minegeo.kernels.lie import se2_exp, se3_exp
 from minegeo.slam import _kernels as K
+from minegeo.slam import _kernels_planes as KP
 
-__all__ = ["PoseGraphParams", "PoseGraphResult", "optimize_pose_graph", "pose_graph_cost"]
+__all__ = ["PlaneSet", "PoseGraphParams", "PoseGraphResult", "optimize_pose_graph", "pose_graph_cost"]
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +91,60 @@ class PoseGraphParams:
             raise InputError("max_iterations >= 1, lambda_init > 0 and robust_scale > 0 are required")
 
 
+@dataclass(frozen=True)
+class PlaneSet:
+    """Plane landmarks and pose–plane edges for :func:`optimize_pose_graph` (Ren et al. 2019 Sec. 3.4.2).
+
+    Attributes
+    ----------
+    planes : ndarray (L, 4)
+        Initial world planes ``(n, d)``, ``n·p + d = 0``, unit ``n`` (d in m).
+    edges : ndarray (mp, 2) of int
+        ``(pose index, plane index)``: the pose is a row of ``graph.poses`` (not a vertex id).
+    measurements : ndarray (mp, 4)
+        The plane observed from that pose, in its sensor frame (unit normal, d in m).
+    information : ndarray (mp, 3, 3)
+        Information of the residual ``(azimuth, elevation, d)`` (1/rad², 1/m²) of
+        :func:`minegeo.slam.planes.pose_plane_terms`.
+    """
+
+    planes: np.ndarray
+    edges: np.ndarray
+    measurements: np.ndarray
+    information: np.ndarray
+
+    def __post_init__(self):
+        pl = np.ascontiguousarray(np.asarray(self.planes, dtype=np.float64).reshape(-1, 4))
+        e = np.ascontiguousarray(np.asarray(self.edges, dtype=np.int64).reshape(-1, 2))
+        m = np.ascontiguousarray(np.asarray(self.measurements, dtype=np.float64).reshape(-1, 4))
+        info = np.ascontiguousarray(np.asarray(self.information, dtype=np.float64).reshape(-1, 3, 3))
+        if not (e.shape[0] == m.shape[0] == info.shape[0]):
+            raise InputError(f"PlaneSet: {e.shape[0]} edges, {m.shape[0]} measurements and {info.shape[0]} "
+                             "information matrices: the counts must agree")
+        if e.size and (e[:, 1].min() < 0 or e[:, 1].max() >= pl.shape[0] or e[:, 0].min() < 0):
+            raise InputError("PlaneSet: an edge indexes a plane that does not exist (or a negative pose)")
+        for name, a in (("planes", pl), ("measurements", m)):
+            if not np.all(np.isfinite(a)) or (a.size and not np.allclose(np.linalg.norm(a[:, :3], axis=1), 1.0,
+                                                                         atol=1e-6)):
+                raise InputError(f"PlaneSet: {name} must be finite with unit normals")
+        if not np.all(np.isfinite(info)):
+            raise InputError("PlaneSet: information matrices must be finite")
+        for k, v in (("planes", pl), ("edges", e), ("measurements", m), ("information", info)):
+            object.__setattr__(self, k, v)
+
+    @property
+    def n_planes(self) -> int:
+        return int(self.planes.shape[0])
+
+    @property
+    def n_edges(self) -> int:
+        return int(self.edges.shape[0])
+
+    def with_planes(self, planes: np.ndarray) -> PlaneSet:
+        """The same edges with other plane values."""
+        return PlaneSet(planes, self.edges, self.measurements, self.information)
+
+
 @dataclass
 class PoseGraphResult:
     """Outcome of :func:`optimize_pose_graph`.
@@ -101,6 +165,8 @@ class PoseGraphResult:
         The vertices held fixed (gauge).
     non_psd_edges : int
         Edges whose information matrix is not positive semi-definite (kept as read).
+    planes : PlaneSet or None
+        With plane landmarks: the optimised planes (edges unchanged); else None.
     """
 
     graph: PoseGraph
@@ -114,11 +180,15 @@ class PoseGraphResult:
     non_psd_edges: int = 0
     params: PoseGraphParams = field(default_factory=PoseGraphParams)
     timings_s: dict = field(default_factory=dict)
+    planes: PlaneSet | None = None
 
     def summary(self) -> dict:
-        return {"status": self.status, "reason": self.reason, "cost_initial": self.cost_initial,
-                "cost_final": self.cost_final, "iterations": self.iterations, "fixed_ids": list(self.fixed_ids),
-                "non_psd_edges": self.non_psd_edges, "params": asdict(self.params)}
+        out = {"status": self.status, "reason": self.reason, "cost_initial": self.cost_initial,
+               "cost_final": self.cost_final, "iterations": self.iterations, "fixed_ids": list(self.fixed_ids),
+               "non_psd_edges": self.non_psd_edges, "params": asdict(self.params)}
+        if self.planes is not None:
+            out["planes"] = {"nodes": self.planes.n_planes, "edges": self.planes.n_edges}
+        return out
 
 
 def _dof(kind: str) -> int:
@@ -142,10 +212,21 @@ def _cost(r, info) -> float:
     return 0.5 * float(np.einsum("ei,eij,ej->", r, info, r))
 
 
-def pose_graph_cost(graph: PoseGraph) -> float:
-    """The contract cost ``F = ½ Σ rᵀΩr`` of the graph at its current poses."""
+def _plane_residuals(poses, planes: np.ndarray, ps: PlaneSet) -> np.ndarray:
+    """Pose–plane residuals (mp, 3) [Ren2019 Eq. 11] at the given poses and plane values."""
+    r = np.empty((ps.n_edges, 3))
+    KP.pose_plane_residuals(poses, planes, ps.edges, ps.measurements, r)
+    return r
+
+
+def pose_graph_cost(graph: PoseGraph, planes: PlaneSet | None = None) -> float:
+    """The contract cost ``F = ½ Σ rᵀΩr`` of the graph at its current poses (plus ``½ Σ eᵀΩe`` of
+    the pose–plane edges [Ren2019 Eq. 11] at the current plane values, if ``planes`` is given)."""
     poses, edges, Z = _arrays(graph)
-    return _cost(_residuals(graph.kind, poses, edges, Z), _information_rt(graph))
+    cost = _cost(_residuals(graph.kind, poses, edges, Z), _information_rt(graph))
+    if planes is not None:
+        cost += _cost(_plane_residuals(poses, planes.planes, planes), planes.information)
+    return cost
 
 
 def _arrays(graph: PoseGraph):
@@ -176,8 +257,35 @@ def _robust_cost(r, info, params: PoseGraphParams) -> float:
     return 0.5 * float(rho.sum())
 
 
-def _normal_equations(kind, poses, edges, Z, info, w, free_col):
-    """Sparse ``H`` and dense ``g`` over the free poses (``free_col[v]`` = first column of v, or -1)."""
+def _plane_blocks(poses, planes, ps: PlaneSet, wp, free_col, n_pose_cols, g, rows_all, cols_all, vals_all):
+    """Add the pose–plane edges [Ren2019 Eq. 11] to ``g`` and the block lists of ``H``.
+
+    Per edge ``(pose p, plane l)``: ``(p,p) = JpᵀWΩJp``, ``(p,l) = JpᵀWΩJl`` and its transpose,
+    ``(l,l) = JlᵀWΩJl``, ``g_p += JpᵀWΩe``, ``g_l += JlᵀWΩe``; pose blocks skipped for fixed poses.
+    """
+    m = ps.n_edges
+    r, Jp, Jl = np.empty((m, 3)), np.empty((m, 3, 6)), np.empty((m, 3, 3))
+    KP.pose_plane_edge_terms(poses, planes, ps.edges, ps.measurements, r, Jp, Jl)
+    WO = ps.information * wp[:, None, None]
+    J = (Jp, Jl)
+    cols = (free_col[ps.edges[:, 0]], n_pose_cols + 3 * ps.edges[:, 1])
+    ar = (np.arange(6), np.arange(3))
+    for a in (0, 1):
+        keep_a = cols[a] >= 0
+        JtW = np.einsum("eji,ejk->eik", J[a], WO)
+        np.add.at(g, (cols[a][keep_a, None] + ar[a][None, :]), np.einsum("eik,ek->ei", JtW, r)[keep_a])
+        for b in (0, 1):
+            keep = keep_a & (cols[b] >= 0)
+            blk = np.einsum("eik,ekj->eij", JtW[keep], J[b][keep])
+            rows_all.append(np.broadcast_to((cols[a][keep][:, None] + ar[a])[:, :, None], blk.shape).ravel())
+            cols_all.append(np.broadcast_to((cols[b][keep][:, None] + ar[b])[:, None, :], blk.shape).ravel())
+            vals_all.append(blk.ravel())
+    return r
+
+
+def _normal_equations(kind, poses, edges, Z, info, w, free_col, plane_part=None):
+    """Sparse ``H`` and dense ``g`` over the free poses (``free_col[v]`` = first column of v, or -1)
+    and, with ``plane_part = (planes, PlaneSet, weights)``, the plane landmarks after them."""
     d = _dof(kind)
     m = edges.shape[0]
     r = np.empty((m, d))
@@ -187,7 +295,9 @@ def _normal_equations(kind, poses, edges, Z, info, w, free_col):
     WO = info * w[:, None, None]
     J = (Ji, Jj)
     cols = (free_col[edges[:, 0]], free_col[edges[:, 1]])
-    n = int(free_col.max()) + d if np.any(free_col >= 0) else 0
+    n = n_pose_cols = int(free_col.max()) + d if np.any(free_col >= 0) else 0
+    if plane_part is not None:
+        n += 3 * plane_part[1].n_planes
     g = np.zeros(n)
     rows_all, cols_all, vals_all = [], [], []
     ar = np.arange(d)
@@ -201,6 +311,8 @@ def _normal_equations(kind, poses, edges, Z, info, w, free_col):
             rows_all.append(np.broadcast_to((cols[a][keep][:, None] + ar)[:, :, None], blk.shape).ravel())
             cols_all.append(np.broadcast_to((cols[b][keep][:, None] + ar)[:, None, :], blk.shape).ravel())
             vals_all.append(blk.ravel())
+    if plane_part is not None:
+        _plane_blocks(poses, *plane_part, free_col, n_pose_cols, g, rows_all, cols_all, vals_all)
     H = sp.coo_matrix((np.concatenate(vals_all), (np.concatenate(rows_all), np.concatenate(cols_all))),
                       shape=(n, n)).tocsc()
     return H, g, r
@@ -216,6 +328,13 @@ def _unanchored(n: int, edges: np.ndarray, fixed_idx) -> np.ndarray:
     return np.flatnonzero(~anchored)
 
 
+def _unobserved_planes(ps: PlaneSet) -> np.ndarray:
+    """Plane landmarks no pose–plane edge reaches (their 3 columns of H are zero)."""
+    seen = np.zeros(ps.n_planes, dtype=bool)
+    seen[ps.edges[:, 1]] = True
+    return np.flatnonzero(~seen)
+
+
 def _retract(kind, poses, free_ids, free_col, delta):
     out = poses.copy()
     d = _dof(kind)
@@ -226,7 +345,29 @@ def _retract(kind, poses, free_ids, free_col, delta):
     return out
 
 
-def optimize_pose_graph(graph: PoseGraph, params: PoseGraphParams | None = None) -> PoseGraphResult:
+def _retract_planes(planes, delta, n_pose_cols: int) -> np.ndarray:
+    """Every plane ``l`` ← ``plane_retract(π_l, δ[c:c+3])``, ``c = n_pose_cols + 3 l`` (S² × R update)."""
+    out = np.empty_like(planes)
+    for k in range(planes.shape[0]):
+        c = n_pose_cols + 3 * k
+        out[k] = KP.plane_retract(planes[k], np.ascontiguousarray(delta[c:c + 3]))
+    return out
+
+
+def _check_planes(graph: PoseGraph, ps: PlaneSet | None) -> str:
+    """Why the plane set cannot be used with this graph ("" if it can)."""
+    if ps is None:
+        return ""
+    if graph.kind != "SE3":
+        raise InputError("plane landmarks need an SE3 pose graph")
+    if ps.n_edges and ps.edges[:, 0].max() >= graph.n_vertices:
+        raise InputError(f"a pose–plane edge indexes pose {int(ps.edges[:, 0].max())} of {graph.n_vertices}")
+    lost = _unobserved_planes(ps)
+    return f"{lost.size} plane(s) observed by no pose (first: plane {int(lost[0])})" if lost.size else ""
+
+
+def optimize_pose_graph(graph: PoseGraph, params: PoseGraphParams | None = None,
+                        planes: PlaneSet | None = None) -> PoseGraphResult:
     """Minimise the contract cost of a pose graph by Levenberg–Marquardt on the Lie algebra.
 
     Parameters
@@ -235,13 +376,18 @@ def optimize_pose_graph(graph: PoseGraph, params: PoseGraphParams | None = None)
         Poses ``T_world_vertex`` (initial values) and between-edges ``Z_ij ≈ T_i⁻¹ T_j`` with
         information matrices, e.g. from :func:`minegeo.io.g2o.read_g2o`.
     params : PoseGraphParams, optional
+    planes : PlaneSet, optional
+        Plane landmarks (initial values) and pose–plane edges [Ren2019 Eq. 11] (SE3 only); their
+        cost is added to ``F`` and the planes are optimised with the poses.
 
     Returns
     -------
     PoseGraphResult
-        The optimised graph, costs before/after (``F = ½ Σ rᵀΩr``), iterations and status.
+        The optimised graph (and planes), costs before/after (``F = ½ Σ rᵀΩr``, plus the plane
+        edges' ``½ Σ eᵀΩe``), iterations and status.
         ``status`` is ``"failed"`` (with the reason) when the normal equations are singular
-        (a vertex no edge constrains) or the cost is not finite; the poses are then the input ones.
+        (a vertex no edge constrains, a pose without a between-edge path to a fixed pose, a plane
+        no pose observes) or the cost is not finite; the poses are then the input ones.
     """
     params = params or PoseGraphParams()
     t0 = time.perf_counter()
@@ -249,6 +395,7 @@ def optimize_pose_graph(graph: PoseGraph, params: PoseGraphParams | None = None)
         raise InputError("the pose graph has no edges: nothing to optimise")
     if graph.kind not in ("SE3", "SE2"):
         raise InputError(f"pose graph kind must be SE3 or SE2, got {graph.kind!r}")
+    plane_problem = _check_planes(graph, planes)
     poses, edges, Z = _arrays(graph)
     info = _information_rt(graph)
     d = _dof(graph.kind)
@@ -260,27 +407,40 @@ def optimize_pose_graph(graph: PoseGraph, params: PoseGraphParams | None = None)
     free_col = np.full(n, -1, dtype=np.int64)
     free_col[free] = np.arange(int(free.sum())) * d
     free_ids = np.flatnonzero(free)
-    unanchored = _unanchored(n, edges, fixed_idx)
+    n_pose_cols = int(free.sum()) * d
+
+    def result(status, reason, cost_i, cost_f, iters, hist, n_bad, pl=None, g=graph):
+        return PoseGraphResult(g, status, reason, cost_i, cost_f, iters, hist, fixed_ids, n_bad, params,
+                               {"total": time.perf_counter() - t0}, pl if pl is not None else planes)
+
+    unanchored = _unanchored(n, edges, fixed_idx)  # planes fix only z, roll, pitch: between-edges only
     if unanchored.size:
-        return PoseGraphResult(graph, "failed", f"{unanchored.size} vertex(es) not constrained by any edge path to a fixed "
-                               f"vertex (first: id {int(graph.ids[unanchored[0]])}); disconnected graph?", float("nan"),
-                               float("nan"), 0, [], fixed_ids, 0, params, {"total": time.perf_counter() - t0})
+        return result("failed", f"{unanchored.size} vertex(es) not constrained by any edge path to a fixed vertex "
+                      f"(first: id {int(graph.ids[unanchored[0]])}); disconnected graph?", float("nan"),
+                      float("nan"), 0, [], 0)
+    if plane_problem:
+        return result("failed", plane_problem, float("nan"), float("nan"), 0, [], 0)
     n_bad = int(non_psd_edges(graph).size)
     if n_bad:
         log.warning("%d edge(s) have an information matrix that is not positive semi-definite (kept as read)", n_bad)
 
+    pl = planes.planes.copy() if planes is not None else None
     r = _residuals(graph.kind, poses, edges, Z)
     cost0 = _cost(r, info)
     cost = _robust_cost(r, info, params)
+    if planes is not None:
+        rp = _plane_residuals(poses, pl, planes)
+        cost0 += _cost(rp, planes.information)
+        cost += _robust_cost(rp, planes.information, params)
     lam = params.lambda_init
     history: list[dict] = []
     status, reason, it = "max_iterations", f"stopped after {params.max_iterations} iterations", 0
     if not np.isfinite(cost0):
-        return PoseGraphResult(graph, "failed", "the initial cost is not finite", cost0, cost0, 0, [], fixed_ids, n_bad,
-                               params, {"total": time.perf_counter() - t0})
+        return result("failed", "the initial cost is not finite", cost0, cost0, 0, [], n_bad)
     for it in range(1, params.max_iterations + 1):
         w = _robust_weights(r, info, params)
-        H, g, _ = _normal_equations(graph.kind, poses, edges, Z, info, w, free_col)
+        part = None if planes is None else (pl, planes, _robust_weights(rp, planes.information, params))
+        H, g, _ = _normal_equations(graph.kind, poses, edges, Z, info, w, free_col, part)
         diag = H.diagonal()
         accepted = False
         while lam < 1e12:
@@ -288,17 +448,22 @@ def optimize_pose_graph(graph: PoseGraph, params: PoseGraphParams | None = None)
             try:
                 delta = spla.splu(A).solve(-g)
             except RuntimeError:  # exactly singular: a vertex no edge reaches
-                return PoseGraphResult(graph, "failed", "singular normal equations: a vertex is not constrained by any "
-                                       "edge (disconnected graph?)", cost0, cost0, it, history, fixed_ids, n_bad, params,
-                                       {"total": time.perf_counter() - t0})
+                return result("failed", "singular normal equations: a vertex is not constrained by any edge "
+                              "(disconnected graph?)", cost0, cost0, it, history, n_bad)
             trial = _retract(graph.kind, poses, free_ids, free_col, delta)
             r_trial = _residuals(graph.kind, trial, edges, Z)
             cost_trial = _robust_cost(r_trial, info, params)
+            if planes is not None:
+                pl_trial = _retract_planes(pl, delta, n_pose_cols)
+                rp_trial = _plane_residuals(trial, pl_trial, planes)
+                cost_trial += _robust_cost(rp_trial, planes.information, params)
             step = float(np.abs(delta).max()) if delta.size else 0.0
             if np.isfinite(cost_trial) and cost_trial <= cost:
                 history.append({"iteration": it, "cost": cost_trial, "lambda": lam, "accepted": True, "step": step})
                 rel = (cost - cost_trial) / max(cost, 1e-300)
                 poses, r, cost, accepted = trial, r_trial, cost_trial, True
+                if planes is not None:
+                    pl, rp = pl_trial, rp_trial
                 lam = max(lam / 10.0, 1e-12)
                 break
             history.append({"iteration": it, "cost": cost_trial, "lambda": lam, "accepted": False, "step": step})
@@ -309,6 +474,8 @@ def optimize_pose_graph(graph: PoseGraph, params: PoseGraphParams | None = None)
         if rel < params.relative_cost_tolerance or step < params.step_tolerance:
             status, reason = "converged", f"relative cost decrease {rel:.2e}, largest step {step:.2e}"
             break
-    out = graph.with_poses(poses)
-    return PoseGraphResult(out, status, reason, cost0, _cost(r, info), it, history, fixed_ids, n_bad, params,
-                           {"total": time.perf_counter() - t0})
+    cost_final = _cost(r, info)
+    if planes is not None:
+        cost_final += _cost(rp, planes.information)
+    return result(status, reason, cost0, cost_final, it, history, n_bad,
+                  planes.with_planes(pl) if planes is not None else None, graph.with_poses(poses))
