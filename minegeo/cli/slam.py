@@ -31,6 +31,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--loop-radius", type=float, default=8.0, help="loop candidates: distance below (m)")
     parser.add_argument("--no-planes", action="store_true", help="no floor-plane landmarks in the pose graph "
                         "(default: floor planes of the keyframe sub-maps as nodes, Ren et al. 2019 Sec. 3.4.2)")
+    parser.add_argument("--no-noise-removal", action="store_true", help="keep the roadway noise in the map "
+                        "(default: points inside the roadway away from the fitted floor, walls and roof, e.g. "
+                        "pedestrians, are removed section by section along the keyframe track, Ren et al. 2019 Sec. 3.5)")
     parser.add_argument("--map-voxel", type=float, default=0.1, help="map voxel (m, default 0.1)")
     parser.add_argument("--seed", type=int, default=0, help="recorded seed (the run draws no random numbers)")
 
@@ -44,7 +47,8 @@ def _params(args):
                          keyframe_distance_m=args.keyframe_distance, keyframe_angle_deg=args.keyframe_angle,
                          keyframe_interval_s=args.keyframe_interval)
     return SlamParams(odometry=odo, loops=LoopParams(min_path_gap_m=args.loop_gap, max_distance_m=args.loop_radius),
-                      map_voxel_m=args.map_voxel, use_planes=not getattr(args, "no_planes", False))
+                      map_voxel_m=args.map_voxel, use_planes=not getattr(args, "no_planes", False),
+                      remove_noise=not getattr(args, "no_noise_removal", False))
 
 
 def _frames(files, skipped: list, bar, min_points: int):

@@ -4,6 +4,7 @@
 * :mod:`minegeo.slam.loops`: rule-based loop closure verified by GICP (Sec. 3.4.1);
 * :mod:`minegeo.slam.posegraph`: pose-graph optimisation (Levenberg–Marquardt on the Lie algebra,
   sparse normal equations) with the cost of ``slam_contract.md``; g2o files in :mod:`minegeo.io.g2o`;
+* :mod:`minegeo.slam.mapping`: roadway noise removal of the map (Sec. 3.5);
 * :mod:`minegeo.slam.evaluate`: ATE / RPE as evo computes them.
 """
 

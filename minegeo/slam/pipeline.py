@@ -28,6 +28,7 @@ from minegeo.geometry import voxel_downsample
 from minegeo.io.g2o import PoseGraph
 from minegeo.registration import build_target_index
 from minegeo.slam.loops import LoopCandidate, LoopParams, find_loop
+from minegeo.slam.mapping import NoiseRemovalResult, RoadwayNoiseParams, remove_roadway_noise
 from minegeo.slam.odometry import OdometryParams, OdometryResult, PreparedFrame, run_odometry
 from minegeo.slam.planes import (
     FloorPlaneParams,
@@ -60,6 +61,9 @@ class SlamParams:
     plane_sigma_angle_deg, plane_sigma_offset_m : float
         Lower bounds of the standard deviations of a floor observation (normal angles, offset):
         the fit's own ``rms/√N`` is far below the floor's departure from a plane.
+    remove_noise : bool
+        Remove the roadway noise (moving objects, points between sensor and walls) from the
+        world-frame keyframe cloud before the voxel compression (Sec. 3.5); ``noise`` its parameters.
     """
 
     odometry: OdometryParams = field(default_factory=OdometryParams)
@@ -73,6 +77,8 @@ class SlamParams:
     plane_max_offset_m: float = 0.3
     plane_sigma_angle_deg: float = 0.5
     plane_sigma_offset_m: float = 0.05
+    remove_noise: bool = True
+    noise: RoadwayNoiseParams = field(default_factory=RoadwayNoiseParams)
 
     def __post_init__(self):
         vals = (self.plane_max_angle_deg, self.plane_max_offset_m, self.plane_sigma_angle_deg,
@@ -121,6 +127,7 @@ class SlamResult:
     timings_s: dict = field(default_factory=dict)
     planes: PlaneSet | None = None
     floor_status: list = field(default_factory=list)
+    noise: NoiseRemovalResult | None = None
 
     def summary(self) -> dict:
         acc = [c for c in self.loops if c.accepted]
@@ -138,6 +145,9 @@ class SlamResult:
             "planes": None if self.planes is None else {
                 "nodes": self.planes.n_planes, "edges": self.planes.n_edges,
                 "keyframes_without_floor": int(sum(st != "ok" for st in self.floor_status))},
+            "map_noise_removed": None if self.noise is None else {
+                k: v for k, v in self.noise.counts.items() if k not in ("track_points", "slices")}
+            | {"slices": self.noise.counts["slices"]},
         }
 
 
@@ -306,10 +316,18 @@ def run_slam(frames: Iterable[tuple[float, np.ndarray]], params: SlamParams | No
     poses = _all_poses(odo, kf_poses)
     world = [P @ T[:3, :3].T + T[:3, 3] for P, T in zip(odo.keyframe_clouds, kf_poses, strict=True)]
     cloud = np.concatenate(world) if world else np.zeros((0, 3))
+    t_noise = time.perf_counter()
+    noise = None
+    if params.remove_noise and cloud.shape[0]:
+        source = np.repeat(np.arange(len(world)), [w.shape[0] for w in world])
+        noise = remove_roadway_noise(cloud, kf_poses[:, :3, 3], params.noise, source)
+        cloud = cloud[noise.keep]
+    t_noise = time.perf_counter() - t_noise
     map_points = voxel_downsample(cloud, params.map_voxel_m).points if cloud.shape[0] else cloud
     t4 = time.perf_counter()
     timings = {**{f"odometry_{k}": v for k, v in odo.timings_s.items()}, "odometry": t1 - t0,
-               "floor_planes": t_planes - t1, "loop_closure": t2 - t_planes, "pose_graph": t3 - t2, "map": t4 - t3, "total": t4 - t0}
+               "floor_planes": t_planes - t1, "loop_closure": t2 - t_planes, "pose_graph": t3 - t2,
+               "map_noise": t_noise, "map": t4 - t3, "total": t4 - t0}
     planes = opt.planes if opt is not None else None
     return SlamResult(odo.times_s, poses, odo.keyframes, kf_poses, graph, loops, map_points, odo, opt, params, timings,
-                      planes, obs[3] if obs is not None else [])
+                      planes, obs[3] if obs is not None else [], noise)
