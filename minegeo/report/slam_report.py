@@ -212,7 +212,7 @@ def slam_report_html(summary: dict, png: bytes | None) -> str:
         ("odometry, frame to frame (GICP)", "odometry_frame_to_frame"),
         ("odometry, keyframe to keyframe (GICP)", "odometry_keyframe_refine"),
         ("loop detection and verification", "loop_closure"), ("pose-graph optimisation", "pose_graph"),
-        ("map (of it: roadway noise removal)", "map"), ("roadway noise removal", "map_noise"), ("total", "total"))]
+        ("map (noise removal included)", "map"), ("of it: roadway noise removal", "map_noise"), ("total", "total"))]
     timing = table(["module", "total s", "per frame ms"], rows, numeric=(1, 2))
     skipped = table(["frame", "reason"], [[s["frame"], s["reason"]] for s in r["skipped_frames"]]) \
         if r["skipped_frames"] else "<p>none</p>"
