@@ -23,3 +23,26 @@ def _warmup() -> None:
         r, Ji, Jj = np.empty((1, n)), np.empty((1, n, n)), np.empty((1, n, n))
         terms(poses, edges, Z, r, Ji, Jj)
         res(poses, edges, Z, r)
+    _warmup_planes_and_map()
+
+
+def _warmup_planes_and_map() -> None:
+    """Compile the floor-plane, pose–plane and map noise-removal kernels on a tiny roadway."""
+    import numpy as np
+
+    from minegeo.slam.mapping import remove_roadway_noise
+    from minegeo.slam.planes import extract_floor_plane, pose_plane_residuals, pose_plane_terms
+
+    g = np.linspace(-2.0, 2.0, 9)
+    x, y = np.meshgrid(np.linspace(0.0, 4.0, 9), g)
+    floor = np.c_[x.ravel(), y.ravel(), np.full(x.size, -2.0)]
+    walls = np.concatenate([np.c_[x.ravel(), np.full(x.size, s), (y.ravel() + 2.0) * 0.5 - 2.0] for s in (-2.0, 2.0)])
+    roof = floor + [0.0, 0.0, 4.0]
+    cloud = np.concatenate([floor, walls, roof])
+    extract_floor_plane(cloud, np.array([2.0, 0.0, 0.0]), seed=0)
+    poses = np.eye(4)[None].copy()
+    planes = np.array([[0.0, 0.0, 1.0, 2.0]])
+    edges = np.array([[0, 0]], dtype=np.int64)
+    pose_plane_terms(poses, planes, edges, planes)
+    pose_plane_residuals(poses, planes, edges, planes)
+    remove_roadway_noise(cloud, np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [4.0, 0.0, 0.0]]))
