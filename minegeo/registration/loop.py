@@ -35,6 +35,7 @@ bit-identical to them (``benchmarks/fingerprint.py``).
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -236,17 +237,19 @@ class NearestInGate:
 # ----------------------------------------------------------------------------- factors
 
 
-class GaussNewtonFactor:
+class GaussNewtonFactor(ABC):
     """Base of the Gauss-Newton factors: ``linearize`` gives ``(H, g, aux)``, then
     ``x = solve(H, g)`` (``H x = -g``) and the increment ``manifold.exp(x)``. Without pairs the
-    increment is the identity (Open3D), unless ``identity_without_pairs`` is False."""
+    increment is the identity (Open3D), unless ``identity_without_pairs`` is False. A factor is a
+    subclass that writes ``linearize`` (abstract: the base class cannot be instantiated)."""
 
     manifold = SE3Euler
     identity_without_pairs = True
     solve = staticmethod(solve_normal_equations)
 
+    @abstractmethod
     def linearize(self, P, pose, matches: Matches):
-        raise NotImplementedError
+        """``(H, g, aux)``: the reduced normal equations of the current pairs."""
 
     def step(self, P, pose, matches: Matches):
         if self.identity_without_pairs and matches.corr.shape[0] == 0:

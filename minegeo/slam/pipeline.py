@@ -253,16 +253,15 @@ def _close_loops(odo: OdometryResult, params: SlamParams, obs=None):
         return frames[k]
 
     loops: list[LoopCandidate] = []
-    opt = None
+    frame_list = _LazyFrames(prepared, kf_poses.shape[0])
     for k in range(1, kf_poses.shape[0]):
-        frame_list = _LazyFrames(prepared, kf_poses.shape[0])
         tried = find_loop(k, kf_poses, path, frame_list, params.loops, params.odometry)
         loops.extend(tried)
         if any(c.accepted for c in tried):
             opt = _optimise(kf_poses, odo, loops, obs, params)
             if opt.status != "failed":
                 kf_poses = opt.graph.poses.copy()
-    return kf_poses, loops, opt
+    return kf_poses, loops
 
 
 class _LazyFrames:
@@ -306,7 +305,7 @@ def run_slam(frames: Iterable[tuple[float, np.ndarray]], params: SlamParams | No
     if params.use_planes and odo.keyframes.size > 1:
         obs = _floor_observations(odo, odo.poses[odo.keyframes], params)
     t_planes = time.perf_counter()
-    kf_poses, loops, _ = _close_loops(odo, params, obs)
+    kf_poses, loops = _close_loops(odo, params, obs)
     t2 = time.perf_counter()
     opt = _optimise(kf_poses, odo, loops, obs, params) if odo.keyframes.size > 1 else None
     if opt is not None and opt.status != "failed":
