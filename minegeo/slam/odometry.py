@@ -15,6 +15,11 @@
   direction (e.g. along a straight smooth drift), or one still creeping along it when the
   iterations run out, is kept and flagged as low observability: its information matrix carries the
   weakness into the pose graph.
+* The sensor translation is checked on its own (:mod:`minegeo.slam.observability`): when the
+  rotation-marginalised translation information has ``λ_min / λ_max`` below
+  ``translation_observability_ratio`` (a straight featureless drift, where GICP matches laser ring
+  to laser ring and would report a stop), the motion along that axis is taken from the
+  registration's initial guess (the constant-velocity prior) and the frame is flagged with the axis.
 
 Edge information: GICP's Gauss–Newton matrix ``H`` is for a left perturbation in the target frame,
 parameters (ω, t); the pose graph perturbs on the right, so the edge information is
@@ -35,6 +40,7 @@ from minegeo.errors import InputError
 from minegeo.geometry import voxel_downsample
 from minegeo.kernels.lie import se3_adjoint
 from minegeo.registration import GICPParams, build_target_index, estimate_gicp_covariances, register_gicp
+from minegeo.slam.observability import keep_prior_along, translation_observability
 
 __all__ = ["OdometryParams", "PreparedFrame", "OdometryResult", "prepare_frame", "register_frames", "run_odometry"]
 
@@ -56,10 +62,11 @@ class OdometryParams:
     min_fitness: float = 0.3
     sigma_floor_m: float = 0.01
     coarse_gate_factor: float = 3.0
+    translation_observability_ratio: float = 0.03
 
     def __post_init__(self):
         for name in ("voxel_size_m", "max_correspondence_distance_m", "keyframe_distance_m", "keyframe_angle_deg",
-                     "keyframe_interval_s", "sigma_floor_m", "coarse_gate_factor"):
+                     "keyframe_interval_s", "sigma_floor_m", "coarse_gate_factor", "translation_observability_ratio"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise InputError(f"{name} must be a finite number > 0, got {v!r}")
@@ -163,12 +170,17 @@ def register_frames(source: PreparedFrame, target: PreparedFrame, T_init: np.nda
     if res.fitness < params.min_fitness:
         reason = f"overlap {res.fitness:.2f} below {params.min_fitness:.2f}"
     weak = res.degeneracy_reason if res.degenerate else ""
+    T = res.T_target_source
+    obs = translation_observability(res.information_6x6, params.translation_observability_ratio)
+    if obs.weak and not reason:  # e.g. a straight featureless drift: keep the prior along the free axis
+        T = keep_prior_along(T, T_init, obs.axis)
+        weak = (weak + "; " if weak else "") + obs.describe()
     if not res.converged and not reason:  # still creeping (a weak direction): better than a guess, flagged
         weak = (weak + "; " if weak else "") + f"not converged in {res.iterations} iterations"
     sigma = max(float(res.sigma_m), params.sigma_floor_m)
-    A = se3_adjoint(np.ascontiguousarray(res.T_target_source))
+    A = se3_adjoint(np.ascontiguousarray(T))
     info = A.T @ res.information_6x6 @ A / sigma**2
-    return Registration(res.T_target_source, not reason, reason, float(res.fitness), float(res.inlier_rmse_m),
+    return Registration(T, not reason, reason, float(res.fitness), float(res.inlier_rmse_m),
                         0.5 * (info + info.T), weak)
 
 
