@@ -22,6 +22,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--frames", required=True, help="folder of frames (PLY/PCD/LAS/XYZ or KITTI .bin), sensor frame; "
                         "times from times.txt or the file names")
     parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument("--times", default=None, help="file of frame times (s), one per frame in name order "
+                        "(default: FRAMES/times.txt, else the numbers in the file names)")
+    parser.add_argument("--pattern", default=None, help='frame file-name pattern, e.g. "*.pcd" (default: every '
+                        "point-cloud file in the folder)")
     parser.add_argument("--voxel", type=float, default=0.3, help="odometry voxel size (m, default 0.3)")
     parser.add_argument("--max-distance", type=float, default=1.0, help="GICP correspondence gate (m, default 1.0)")
     parser.add_argument("--keyframe-distance", type=float, default=2.0, help="keyframe distance threshold (m)")
@@ -100,15 +104,16 @@ def run(args) -> int:
     from minegeo._output import OutputTransaction, progress_enabled, run_timings
     from minegeo._provenance import StageTimer, provenance, sha256_file, write_json_atomic
     from minegeo.errors import InputError
-    from minegeo.io.frames import list_frames
+    from minegeo.io.frames import list_frames, times_source
     from minegeo.report.slam_report import write_slam_report
     from minegeo.slam.pipeline import run_slam
 
     timer = StageTimer()
     params = _params(args)
     out = Path(args.out)
-    with OutputTransaction("slam", inputs={"--frames": args.frames}, folders={"--out": out}) as tx:
-        files = list_frames(args.frames)
+    inputs_named = {"--frames": args.frames, **({"--times": args.times} if args.times else {})}
+    with OutputTransaction("slam", inputs=inputs_named, folders={"--out": out}) as tx:
+        files = list_frames(args.frames, times_file=args.times, pattern=args.pattern)
         skipped: list[dict] = []
         bar = tqdm(total=len(files), desc="slam", unit="frame", file=sys.stderr, disable=not progress_enabled(args))
         # each registration's warnings (weak direction, 2-cycle) are recorded per frame in
@@ -125,12 +130,14 @@ def run(args) -> int:
         if res.times_s.size < 2:
             raise InputError(f"--frames {args.frames}: fewer than 2 readable frames")
         inputs = [{"path": str(f.path), "sha256": sha256_file(f.path)} for f in files]
+        if args.times:
+            inputs.append({"path": str(args.times), "sha256": sha256_file(args.times)})
         stage = tx.folder("--out")
         with timer("write"):
             _write_outputs(stage, res, sorted(used))
         summary = {
             "command": "slam", "status": "ok", "reason": "", "parameters": params.as_dict(),
-            "result": {**res.summary(), "skipped_frames": skipped,
+            "result": {**res.summary(), "times_from": times_source(args.frames, args.times), "skipped_frames": skipped,
                        "frames_not_registered": [{"time_s": float(res.times_s[k]), "reason": r}
                                                  for k, r in enumerate(res.odometry.frame_reason) if r],
                        "low_observability_frames": [{"time_s": float(res.times_s[k]), "direction": w}

@@ -7,10 +7,17 @@
 * Times: ``DIR/times.txt`` when present (one time in seconds per frame in that order, the KITTI
   odometry convention); otherwise a number in every file name is its time in seconds; otherwise an
   error that says so. Non-increasing times are an input error naming the first offending frame.
+  A times file elsewhere can be named (``--times FILE``), and the frames chosen by a file-name
+  pattern (``--pattern "*.pcd"``) when the folder holds other files (e.g. pose text files).
+* Times read from names that are consecutive integers from 0 or 1 (``000000.pcd``, ``000001.pcd``,
+  ...) are most likely frame numbers, not seconds: :func:`list_frames` logs a warning and says so in
+  :attr:`FrameList.times_source` (the run still takes them as seconds, as the contract says).
 """
 
 from __future__ import annotations
 
+import fnmatch
+import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +28,9 @@ from minegeo.errors import FileFormatError, InputError
 from minegeo.io._limits import read_file_bytes, read_file_text
 from minegeo.io.pointcloud import _SUFFIX
 
-__all__ = ["FrameFile", "list_frames", "read_frame", "read_kitti_bin"]
+__all__ = ["FrameFile", "list_frames", "read_frame", "read_kitti_bin", "times_source"]
+
+log = logging.getLogger(__name__)
 
 #: Largest frame file read (a 128-beam scan is ~ 4 MB).
 MAX_FRAME_BYTES = 1 << 30
@@ -66,18 +75,21 @@ def read_frame(path) -> np.ndarray:
     return cloud.points + cloud.origin
 
 
-def _frame_files(folder: Path) -> list[Path]:
+def _frame_files(folder: Path, pattern: str | None = None) -> list[Path]:
     if not folder.is_dir():
         raise InputError(f"--frames {folder}: not a folder")
     names = sorted(p for p in folder.iterdir() if p.is_file() and (p.suffix.lower() in _SUFFIX or p.suffix.lower() == ".bin")
-                   and p.name != "times.txt" and p.suffix.lower() != ".zip")
+                   and p.name != "times.txt" and p.suffix.lower() != ".zip"
+                   and (pattern is None or fnmatch.fnmatch(p.name, pattern)))
     if not names:
-        raise InputError(f"--frames {folder}: no point-cloud frames (.ply .pcd .las .laz .xyz .csv .pts .3d .bin) in it")
+        what = f" matching {pattern!r}" if pattern else ""
+        raise InputError(f"--frames {folder}: no point-cloud frames{what} (.ply .pcd .las .laz .xyz .csv .pts .3d .bin) "
+                         "in it")
     return names
 
 
-def _times_from_file(folder: Path, n: int) -> np.ndarray:
-    text = read_file_text(folder / "times.txt", what="times file")
+def _times_from_file(path: Path, n: int) -> np.ndarray:
+    text = read_file_text(path, what="times file")
     vals = []
     for k, line in enumerate(text.splitlines(), start=1):
         s = line.split("#", 1)[0].strip()
@@ -86,10 +98,10 @@ def _times_from_file(folder: Path, n: int) -> np.ndarray:
         try:
             vals.append(float(s.split()[0]))
         except ValueError:
-            raise FileFormatError(folder / "times.txt", f"line {k}: {s!r} is not a time in seconds") from None
+            raise FileFormatError(path, f"line {k}: {s!r} is not a time in seconds") from None
     if len(vals) != n:
-        raise InputError(f"{folder / 'times.txt'} holds {len(vals)} times for {n} frames: one time per frame, in "
-                         "the frames' name order")
+        raise InputError(f"{path} holds {len(vals)} times for {n} frames: one time per frame, in "
+                         "the frames' name order (choose the frames with --pattern if the folder holds other files)")
     return np.asarray(vals)
 
 
@@ -104,8 +116,27 @@ def _times_from_names(paths: list[Path]) -> np.ndarray:
     return np.asarray(out)
 
 
-def list_frames(folder) -> list[FrameFile]:
+def times_source(folder, times_file=None) -> str:
+    """Where :func:`list_frames` takes the times from: ``"file"`` or ``"names"``."""
+    return "file" if times_file is not None or (Path(folder) / "times.txt").is_file() else "names"
+
+
+def _looks_like_frame_numbers(times: np.ndarray) -> bool:
+    return times.size >= 3 and times[0] in (0.0, 1.0) and bool(np.all(np.diff(times) == 1.0))
+
+
+def list_frames(folder, times_file=None, pattern: str | None = None) -> list[FrameFile]:
     """The frames of ``folder`` in name order with their times (see the module docstring).
+
+    Parameters
+    ----------
+    folder : path
+        The frames folder.
+    times_file : path, optional
+        One time (s) per frame in name order; default ``folder/times.txt`` when present, else the
+        numbers in the file names.
+    pattern : str, optional
+        Shell pattern on the file names (``"*.pcd"``); default every point-cloud file.
 
     Raises
     ------
@@ -114,8 +145,18 @@ def list_frames(folder) -> list[FrameFile]:
         offending frame is named).
     """
     folder = Path(folder)
-    paths = _frame_files(folder)
-    times = _times_from_file(folder, len(paths)) if (folder / "times.txt").is_file() else _times_from_names(paths)
+    paths = _frame_files(folder, pattern)
+    if times_file is not None:
+        if not Path(times_file).is_file():
+            raise InputError(f"--times {times_file}: no such file")
+        times = _times_from_file(Path(times_file), len(paths))
+    elif (folder / "times.txt").is_file():
+        times = _times_from_file(folder / "times.txt", len(paths))
+    else:
+        times = _times_from_names(paths)
+        if _looks_like_frame_numbers(times):
+            log.warning("the frame names of %s are consecutive numbers from %g: they are taken as times in seconds; "
+                        "if they are frame numbers, give the times with --times FILE or DIR/times.txt", folder, times[0])
     if not np.all(np.isfinite(times)):
         raise InputError(f"frame {paths[int(np.flatnonzero(~np.isfinite(times))[0])].name}: time is not finite")
     bad = np.flatnonzero(np.diff(times) <= 0)

@@ -96,3 +96,35 @@ def test_times_must_increase_and_must_exist(sequence, tmp_path, capsys):
     assert main(["slam", "--frames", str(d), "--out", str(tmp_path / "o")]) == 2
     assert "has no number in its name and there is no times.txt" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_times_file_elsewhere_pattern_and_frame_numbers(sequence, tmp_path, caplog):
+    """The MulRan layout: scans next to pose text files, times in a file beside the folder."""
+    from minegeo.io.frames import list_frames
+
+    frames, truth = sequence
+    d = tmp_path / "scans"
+    d.mkdir()
+    names = sorted(p.name for p in frames.iterdir() if p.suffix == ".ply")[:5]
+    for n in names:
+        (d / n).write_bytes((frames / n).read_bytes())
+    (d / "odom_poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 5)  # not a frame
+    (tmp_path / "t.txt").write_text("".join(f"{10.0 + k:.1f}\n" for k in range(5)))
+    with pytest.raises(Exception, match=r"holds 5 times for 6 frames.*--pattern"):
+        list_frames(d, times_file=tmp_path / "t.txt")
+    got = list_frames(d, times_file=tmp_path / "t.txt", pattern="*.ply")
+    assert [f.path.name for f in got] == names and [f.time_s for f in got] == [10.0, 11.0, 12.0, 13.0, 14.0]
+    e = tmp_path / "numbered"
+    e.mkdir()
+    for k, n in enumerate(names):
+        (e / f"{k:06d}.ply").write_bytes((frames / n).read_bytes())
+    with caplog.at_level("WARNING", logger="minegeo.io.frames"):
+        assert [f.time_s for f in list_frames(e)] == [0.0, 1.0, 2.0, 3.0, 4.0]
+    assert "consecutive numbers from 0" in caplog.text and "--times" in caplog.text
+    out = tmp_path / "o"
+    assert main(["slam", "--frames", str(d), "--times", str(tmp_path / "t.txt"), "--pattern", "*.ply",
+                 "--out", str(out), "--no-noise-removal"]) == 0
+    res = json.loads((out / "result.json").read_text())
+    assert res["result"]["times_from"] == "file" and res["result"]["frames"] == 5
+    assert any(i["path"].endswith("t.txt") for i in res["provenance"]["inputs"])
+    assert read_trajectory(out / "trajectory.tum").times_s[0] == 10.0
