@@ -30,7 +30,7 @@ translation (m) error to the known answer; agreement of ``minegeo_open3d`` with 
 
 Usage::
 
-    python benchmarks/bench_gicp.py --json OUT.json --md OUT.md [--synthetic] [--threads 2]
+    python benchmarks/bench_gicp.py --json OUT.json --md OUT.md [--synthetic] [--threads 2 1]
 """
 
 from __future__ import annotations
@@ -173,6 +173,7 @@ def run_case(name, src, tgt, T_true, starts, d, threads, repeats):
     summary = {
         "n_source": len(src), "n_target": len(tgt), "gate_m": d, "starts": len(starts), "repeats": repeats,
         "median_s": med,
+        "min_s": {v: min(times[v]) for v in VARIANTS},
         "ratio_vs_open3d": {v: med[v] / med["open3d"] for v in VARIANTS},
         "ratio_vs_small_gicp": {v: med[v] / med["small_gicp"] for v in VARIANTS},
         "max_error_to_truth": {v: {"rot_rad": max(r[v]["error_to_truth"]["rot_rad"] for r in per_start),
@@ -189,18 +190,21 @@ def run_case(name, src, tgt, T_true, starts, d, threads, repeats):
 
 def markdown(results: dict, meta: dict) -> str:
     lines = [f"GICP benchmark ({meta['threads']} thread(s), medians of {meta['repeats']} interleaved runs per "
-             f"start; minegeo compile/cache-load {meta['compile_s']:.2f} s, first call, excluded)", ""]
+             f"start; minegeo compile/cache-load {meta['compile_s']:.2f} s, first call, excluded). Load before / "
+             f"after: `{meta.get('uptime_before', '?')}` / `{meta.get('uptime_after', '?')}` (2 cores shared "
+             "with other workers).", ""]
     for case, s in results.items():
         if case == "meta":
             continue
         lines += [f"**{case}**: source {s['n_source']} pts, target {s['n_target']} pts, gate {s['gate_m']} m, "
                   f"{s['starts']} starts", "",
-                  "| variant | median time per registration (ms) | / Open3D | / small_gicp | "
+                  "| variant | median time per registration (ms) | min (ms) | / Open3D | / small_gicp | "
                   "max rot. error to truth (°) | max transl. error to truth (m) |",
-                  "|---|---:|---:|---:|---:|---:|"]
+                  "|---|---:|---:|---:|---:|---:|---:|"]
         for v in VARIANTS:
             e = s["max_error_to_truth"][v]
-            lines.append(f"| {v} | {1e3 * s['median_s'][v]:.1f} | {s['ratio_vs_open3d'][v]:.2f} | "
+            lines.append(f"| {v} | {1e3 * s['median_s'][v]:.1f} | {1e3 * s['min_s'][v]:.1f} | "
+                         f"{s['ratio_vs_open3d'][v]:.2f} | "
                          f"{s['ratio_vs_small_gicp'][v]:.2f} | {np.degrees(e['rot_rad']):.4f} | {e['trans_m']:.4f} |")
         a, b = s["max_agreement_minegeo_open3d_vs_open3d"], s["max_agreement_minegeo_vs_small_gicp"]
         lines += ["", f"minegeo_open3d vs Open3D: max {a['rot_rad']:.1e} rad, {a['trans_m']:.1e} m; "
@@ -212,20 +216,21 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", type=Path, default=None, help="write results JSON here")
     ap.add_argument("--md", type=Path, default=None, help="write the markdown table here")
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, nargs="+", default=[2],
+                    help="thread counts (each case runs once per count, every library with that many)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--starts", type=int, default=5)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--synthetic", action="store_true", help="also run the synthetic tunnel case")
     a = ap.parse_args(argv)
 
+    import os
+
     import open3d as o3d
 
     from minegeo._provenance import atomic_write_text, to_jsonable, versions, write_json_atomic
 
-    numba.set_num_threads(min(a.threads, numba.config.NUMBA_NUM_THREADS))
-    threads = numba.get_num_threads()
-    o3d.utility.set_max_threads(threads)
+    uptime_before = os.popen("uptime").read().strip()
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     t_all = time.perf_counter()
 
@@ -240,18 +245,26 @@ def main(argv=None) -> int:
     _log(f"minegeo first calls (compile or cache load): {compile_s:.2f} s")
 
     results = {}
-    src, tgt, T = pair_data()
-    results["small_gicp_pair"] = run_case("small_gicp_pair", src, tgt, T,
-                                          [T @ np.eye(4)] + _starts(T, a.starts - 1, a.seed, 0.5, 10.0),
-                                          1.0, threads, a.repeats)
-    if a.synthetic:
-        t0 = time.perf_counter()
-        src, tgt, T = tunnel_data(a.seed)
-        _log(f"synthetic tunnel: scan {len(src)} pts, map crop {len(tgt)} pts ({time.perf_counter() - t0:.1f} s)")
-        results["synthetic_tunnel"] = run_case("synthetic_tunnel", src, tgt, T,
-                                               _starts(T, a.starts, a.seed + 1, 0.3, 3.0), 1.0, threads, a.repeats)
+    run_threads = []
+    for nt in a.threads:
+        numba.set_num_threads(min(nt, numba.config.NUMBA_NUM_THREADS))
+        threads = numba.get_num_threads()
+        o3d.utility.set_max_threads(threads)
+        run_threads.append(threads)
+        src, tgt, T = pair_data()
+        results[f"small_gicp_pair_threads{threads}"] = run_case(
+            "small_gicp_pair", src, tgt, T, [T @ np.eye(4)] + _starts(T, a.starts - 1, a.seed, 0.5, 10.0),
+            1.0, threads, a.repeats)
+        if a.synthetic:
+            t0 = time.perf_counter()
+            src, tgt, T = tunnel_data(a.seed)
+            _log(f"synthetic tunnel: scan {len(src)} pts, map crop {len(tgt)} pts ({time.perf_counter() - t0:.1f} s)")
+            results[f"synthetic_tunnel_threads{threads}"] = run_case(
+                "synthetic_tunnel", src, tgt, T, _starts(T, a.starts, a.seed + 1, 0.3, 3.0), 1.0, threads, a.repeats)
+    threads = ",".join(str(t) for t in run_threads)
     meta = {"threads": threads, "seed": a.seed, "repeats": a.repeats, "starts": a.starts, "compile_s": compile_s,
-            "total_s": time.perf_counter() - t_all, "versions": versions()}
+            "total_s": time.perf_counter() - t_all, "versions": versions(), "uptime_before": uptime_before,
+            "uptime_after": os.popen("uptime").read().strip()}
     meta["versions"]["open3d"] = o3d.__version__
     try:
         from importlib.metadata import version

@@ -23,7 +23,7 @@ from minegeo._jit import njit, njit_parallel, prange
 from minegeo._validate import is_permutation
 from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, QUERY_TASK_ROWS, n_chunks
 
-__all__ = ["KD_LEAF", "kd_build", "kd_walk_to_leaf", "kd_nn_descend", "kd_nn_rows", "kd_nn_serial",
+__all__ = ["KD_LEAF", "kd_build", "kd_walk_to_leaf", "kd_nn_descend", "kd_nn2_descend", "kd_nn_rows", "kd_nn_serial",
            "kd_nn_parallel", "kd_nn_warm_rows", "kd_nn_warm_serial", "kd_nn_warm_parallel", "kd_knn_one",
            "kd_knn", "kd_radius_one", "kd_radius_count", "GatedKDTree"]
 
@@ -259,6 +259,41 @@ def kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, lef
                     best = sq
                     best_j = j
     return best, best_j
+
+
+@njit
+def kd_nn2_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, left, right, d2, st_node, st_lb):
+    """:func:`kd_nn_descend` that also returns the second distance: ``(best, best_j, second)``.
+
+    ``(best, best_j)`` is the answer of :func:`kd_nn_descend` from the same start; ``second``
+    is the smallest ``sq < d2`` of the points other than ``best_j`` (``d2`` when there is none),
+    so every other point is at least ``sqrt(second)`` away. Nodes are pruned against ``second``
+    (never below ``best``), hence exact for both.
+    """
+    second = d2
+    st_node[0] = 0
+    st_lb[0] = 0.0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        nd = st_node[sp]
+        if st_lb[sp] > second:
+            continue
+        nd, sp = kd_walk_to_leaf(px, py, pz, nd, second, dim, split, left, right, st_node, st_lb, sp)
+        for a in range(start[nd], end[nd]):
+            sq = _sq_to(px, py, pz, Qs, a)
+            if sq < d2:
+                j = idx[a]
+                if j == best_j:
+                    continue
+                if sq < best or (sq == best and j < best_j):
+                    if best < second:
+                        second = best
+                    best = sq
+                    best_j = j
+                elif sq < second:
+                    second = sq
+    return best, best_j, second
 
 
 @njit

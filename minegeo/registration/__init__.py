@@ -98,6 +98,9 @@ def _warmup() -> None:
 
     _kernels_gicp._warmup()
     _kernels_loop._warmup()
+    from minegeo.registration import gicp
+
+    gicp._warmup()
     # the RANSAC kernels of this package live in ransac.py (features engineer's module)
     import importlib
 

@@ -16,9 +16,17 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
-from minegeo.kernels.chunks import CHUNK, n_chunks
+from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, n_chunks
 from minegeo.kernels.eig3 import fast_eigen3x3, pca_normal
-from minegeo.kernels.kdtree import kd_build, kd_knn_one, kd_nn_warm_parallel, kd_nn_warm_serial
+from minegeo.kernels.kdtree import (
+    _sq_to,
+    kd_build,
+    kd_knn_one,
+    kd_nn2_descend,
+    kd_nn_descend,
+    kd_nn_warm_parallel,
+    kd_nn_warm_serial,
+)
 from minegeo.registration._kernels import _add_partials
 
 #: Below this many pairs (or search queries) the serial driver is used. Measured on the shared
@@ -377,3 +385,289 @@ def _warmup() -> None:
     out = np.empty((4, 3))
     _min_eigvec_serial(C, idx, out)
     _min_eigvec_parallel(C, idx, out)
+
+
+# GICP kernels. Per pair the arithmetic is that of ``registration._kernels_gicp._gicp_chunk``
+# (the same operations in the same order), with the zero and unit entries of ``J = [-[p]x, I3]``
+# and the repeated ``Cs Rᵀ`` products left out, which changes no bit of a pair's terms (only the
+# sign of an exact zero). Sums: fixed chunks of ``GICP_ROWS`` consecutive rows (source points in
+# the fused search, pairs in ``gicp_pairs_system``), partials added serially in chunk order, so
+# the bits depend on the number of rows only, never on the thread count.
+
+#: Rows per chunk of the GICP sums: 4,661 pairs are 19 chunks that two threads share evenly.
+GICP_ROWS = 256
+#: Accumulated values per chunk: 21 (upper triangle of H) + 6 (g) + 1 (cost).
+GICP_ACC = 28
+#: The fused search also finds a row's second-nearest distance (what lets the next search skip
+#: the row) only when the row moved less than this since the previous search (m): a row moving
+#: faster will move too far next time to be skipped (measured: the first searches from a start
+#: 0.5 m / 10 deg off cost 1.6-2.1 ms with the second distance, ~1.2 ms without). Speed only:
+#: the answer is the same either way.
+GICP_SECOND_STEP_M = 0.1
+
+
+@njit
+def _gicp_pair_add(P, a_, Q, b_, Cs, Ct, R, part, c):
+    """Add the terms of pair ``(P[a_], Q[b_])`` to ``part[c]``: ``M = Ct + R Cs Rᵀ``
+    ([Ren2019 Eq. 5]), ``B = M⁻¹``, ``d = p - q`` ([Ren2019 Eq. 4]), ``J = [-[p]×, I3]``;
+    ``Jᵀ B J`` (upper triangle), ``Jᵀ B d`` and ``dᵀ B d`` ([Ren2019 Eq. 6]). Skipped when
+    ``det M <= 0``."""
+    # W = Cs R^T, A = R W = R Cs R^T (carried into the target frame)
+    w00 = Cs[a_, 0, 0] * R[0, 0] + Cs[a_, 0, 1] * R[0, 1] + Cs[a_, 0, 2] * R[0, 2]
+    w01 = Cs[a_, 0, 0] * R[1, 0] + Cs[a_, 0, 1] * R[1, 1] + Cs[a_, 0, 2] * R[1, 2]
+    w02 = Cs[a_, 0, 0] * R[2, 0] + Cs[a_, 0, 1] * R[2, 1] + Cs[a_, 0, 2] * R[2, 2]
+    w10 = Cs[a_, 1, 0] * R[0, 0] + Cs[a_, 1, 1] * R[0, 1] + Cs[a_, 1, 2] * R[0, 2]
+    w11 = Cs[a_, 1, 0] * R[1, 0] + Cs[a_, 1, 1] * R[1, 1] + Cs[a_, 1, 2] * R[1, 2]
+    w12 = Cs[a_, 1, 0] * R[2, 0] + Cs[a_, 1, 1] * R[2, 1] + Cs[a_, 1, 2] * R[2, 2]
+    w20 = Cs[a_, 2, 0] * R[0, 0] + Cs[a_, 2, 1] * R[0, 1] + Cs[a_, 2, 2] * R[0, 2]
+    w21 = Cs[a_, 2, 0] * R[1, 0] + Cs[a_, 2, 1] * R[1, 1] + Cs[a_, 2, 2] * R[1, 2]
+    w22 = Cs[a_, 2, 0] * R[2, 0] + Cs[a_, 2, 1] * R[2, 1] + Cs[a_, 2, 2] * R[2, 2]
+    a00 = 0.0 + R[0, 0] * w00 + R[0, 1] * w10 + R[0, 2] * w20
+    a01 = 0.0 + R[0, 0] * w01 + R[0, 1] * w11 + R[0, 2] * w21
+    a02 = 0.0 + R[0, 0] * w02 + R[0, 1] * w12 + R[0, 2] * w22
+    a10 = 0.0 + R[1, 0] * w00 + R[1, 1] * w10 + R[1, 2] * w20
+    a11 = 0.0 + R[1, 0] * w01 + R[1, 1] * w11 + R[1, 2] * w21
+    a12 = 0.0 + R[1, 0] * w02 + R[1, 1] * w12 + R[1, 2] * w22
+    a20 = 0.0 + R[2, 0] * w00 + R[2, 1] * w10 + R[2, 2] * w20
+    a21 = 0.0 + R[2, 0] * w01 + R[2, 1] * w11 + R[2, 2] * w21
+    a22 = 0.0 + R[2, 0] * w02 + R[2, 1] * w12 + R[2, 2] * w22
+    # M = Ct + R Cs R^T, symmetrised
+    m00 = Ct[b_, 0, 0] + 0.5 * (a00 + a00)
+    m01 = Ct[b_, 0, 1] + 0.5 * (a01 + a10)
+    m02 = Ct[b_, 0, 2] + 0.5 * (a02 + a20)
+    m10 = Ct[b_, 1, 0] + 0.5 * (a10 + a01)
+    m11 = Ct[b_, 1, 1] + 0.5 * (a11 + a11)
+    m12 = Ct[b_, 1, 2] + 0.5 * (a12 + a21)
+    m20 = Ct[b_, 2, 0] + 0.5 * (a20 + a02)
+    m21 = Ct[b_, 2, 1] + 0.5 * (a21 + a12)
+    m22 = Ct[b_, 2, 2] + 0.5 * (a22 + a22)
+    # B = M^-1 by the adjugate (M symmetric positive definite)
+    c00 = m11 * m22 - m12 * m21
+    c01 = m12 * m20 - m10 * m22
+    c02 = m10 * m21 - m11 * m20
+    det = m00 * c00 + m01 * c01 + m02 * c02
+    if not det > 0.0:
+        return
+    inv = 1.0 / det
+    b00 = c00 * inv
+    b10 = c01 * inv
+    b20 = c02 * inv
+    b01 = (m02 * m21 - m01 * m22) * inv
+    b11 = (m00 * m22 - m02 * m20) * inv
+    b21 = (m01 * m20 - m00 * m21) * inv
+    b02 = (m01 * m12 - m02 * m11) * inv
+    b12 = (m02 * m10 - m00 * m12) * inv
+    b22 = (m00 * m11 - m01 * m10) * inv
+    px = P[a_, 0]
+    py = P[a_, 1]
+    pz = P[a_, 2]
+    dx = px - Q[b_, 0]
+    dy = py - Q[b_, 1]
+    dz = pz - Q[b_, 2]
+    # e = B d; BJ = B J with J = [-[p]x, I3] (columns 3..5 of BJ are B itself)
+    e0 = b00 * dx + b01 * dy + b02 * dz
+    e1 = b10 * dx + b11 * dy + b12 * dz
+    e2 = b20 * dx + b21 * dy + b22 * dz
+    q01 = b00 * pz + b02 * -px
+    q02 = b00 * -py + b01 * px
+    q10 = b11 * -pz + b12 * py
+    q11 = b10 * pz + b12 * -px
+    q12 = b10 * -py + b11 * px
+    q20 = b21 * -pz + b22 * py
+    q21 = b20 * pz + b22 * -px
+    q22 = b20 * -py + b21 * px
+    # H = J^T (B J), upper triangle row by row: (w,w) block, (w,t) block, (t,t) block = B
+    part[c, 0] += -pz * q10 + py * q20
+    part[c, 1] += -pz * q11 + py * q21
+    part[c, 2] += -pz * q12 + py * q22
+    part[c, 3] += -pz * b10 + py * b20
+    part[c, 4] += -pz * b11 + py * b21
+    part[c, 5] += -pz * b12 + py * b22
+    part[c, 6] += pz * q01 + -px * q21
+    part[c, 7] += pz * q02 + -px * q22
+    part[c, 8] += pz * b00 + -px * b20
+    part[c, 9] += pz * b01 + -px * b21
+    part[c, 10] += pz * b02 + -px * b22
+    part[c, 11] += -py * q02 + px * q12
+    part[c, 12] += -py * b00 + px * b10
+    part[c, 13] += -py * b01 + px * b11
+    part[c, 14] += -py * b02 + px * b12
+    part[c, 15] += b00
+    part[c, 16] += b01
+    part[c, 17] += b02
+    part[c, 18] += b11
+    part[c, 19] += b12
+    part[c, 20] += b22
+    part[c, 21] += -pz * e1 + py * e2
+    part[c, 22] += pz * e0 + -px * e2
+    part[c, 23] += -py * e0 + px * e1
+    part[c, 24] += e0
+    part[c, 25] += e1
+    part[c, 26] += e2
+    part[c, 27] += dx * e0 + dy * e1 + dz * e2
+
+
+@njit
+def _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
+                     out_idx, out_sq, part, P_old, r1, r2, moved, c0, c1):
+    """Chunks ``c0 .. c1-1`` (``GICP_ROWS`` rows each) of :func:`gicp_fused_search`."""
+    m = idx.shape[0]
+    n = P.shape[0]
+    st_node = np.empty(depth + 2, np.int64)
+    st_lb = np.empty(depth + 2)
+    keep = P_old.shape[0] == n
+    for c in range(c0, c1):
+        for i in range(c * GICP_ROWS, min(n, (c + 1) * GICP_ROWS)):
+            px = P[i, 0]
+            py = P[i, 1]
+            pz = P[i, 2]
+            j0 = warm[i]
+            want_second = True
+            if keep:
+                ex = px - P_old[i, 0]
+                ey = py - P_old[i, 1]
+                ez = pz - P_old[i, 2]
+                step = np.sqrt(ex * ex + ey * ey + ez * ez)
+                # a row still moving fast will not be skipped next time: the plain 1-NN suffices
+                want_second = step < GICP_SECOND_STEP_M
+            if keep and j0 < m:
+                # the partner stays the nearest point while no other can have come closer:
+                # |p' - q_j| >= r2 - D > r1 + D >= |p' - q_j0| (triangle inequality, D = path since
+                # the last full search; the margin covers the rounding of r1, r2 and D)
+                moved[i] += step
+                tol = 1e-9 * (1.0 + abs(px) + abs(py) + abs(pz))
+                if r2[i] - moved[i] > r1[i] + moved[i] + tol:
+                    sq0 = _sq_to(px, py, pz, Q, j0)
+                    if sq0 < d2:
+                        out_idx[i] = j0
+                        out_sq[i] = sq0
+                        _gicp_pair_add(P, i, Q, j0, Cs, Ct, R, part, c)
+                    else:
+                        out_idx[i] = m
+                        out_sq[i] = np.inf
+                    continue
+            best = d2
+            best_j = m
+            if j0 < m:
+                sq0 = _sq_to(px, py, pz, Q, j0)
+                if sq0 < d2:
+                    best = sq0
+                    best_j = j0
+            if want_second:
+                best, best_j, second = kd_nn2_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split,
+                                                      left, right, d2, st_node, st_lb)
+                r2[i] = np.sqrt(second)
+            else:
+                best, best_j = kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, left, right,
+                                             d2, st_node, st_lb)
+                r2[i] = -1.0  # unknown: no skip next time
+            moved[i] = 0.0
+            out_idx[i] = best_j
+            if best_j < m:
+                r1[i] = np.sqrt(best)
+                out_sq[i] = best
+                _gicp_pair_add(P, i, Q, best_j, Cs, Ct, R, part, c)
+            else:
+                r1[i] = np.inf
+                out_sq[i] = np.inf
+
+
+@njit
+def _gicp_fused_serial(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
+                       out_idx, out_sq, part, P_old, r1, r2, moved):
+    _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
+                     out_idx, out_sq, part, P_old, r1, r2, moved, 0, part.shape[0])
+
+
+@njit_parallel
+def _gicp_fused_parallel(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
+                         out_idx, out_sq, part, P_old, r1, r2, moved):
+    for c in prange(part.shape[0]):
+        _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
+                         out_idx, out_sq, part, P_old, r1, r2, moved, c, c + 1)
+
+
+@njit
+def _gicp_system_from_partials(part):
+    """``(H (6, 6), g (6,), cost)`` from chunk partials added serially in chunk order."""
+    tot = np.zeros(GICP_ACC)
+    for c in range(part.shape[0]):
+        for v in range(GICP_ACC):
+            tot[v] = tot[v] + part[c, v]
+    H = np.empty((6, 6))
+    k = 0
+    for a in range(6):
+        for b in range(a, 6):
+            H[a, b] = tot[k]
+            H[b, a] = tot[k]
+            k += 1
+    return H, tot[21:27].copy(), tot[27]
+
+
+def gicp_fused_search(P, Q, tree, d2, warm, Cs, Ct, R, parallel, state=None):
+    """Gated nearest neighbour of every row of ``P`` and the GICP system of the pairs, in one pass.
+
+    ``P`` (n, 3) are the source points moved by the current pose (rotation ``R``), ``tree`` the
+    :func:`~minegeo.kernels.kdtree.kd_build` tuple of ``Q``, ``warm`` (n,) the previous partners
+    (``m`` = none). Returns ``(idx, sq, H, g, cost)``: per row the partner (``m`` when none
+    within ``sq < d2``) and its squared distance (``inf`` when none), as
+    :func:`~minegeo.kernels.kdtree.kd_nn_warm_serial`; ``H = Σ Jᵀ M⁻¹ J``, ``g = Σ Jᵀ M⁻¹ d``,
+    ``cost = Σ dᵀ M⁻¹ d`` over the pairs ([Ren2019 Eqs. 4-6]). ``parallel`` runs the chunks in
+    ``prange`` (the same bits).
+
+    ``state`` = ``(P_old, r1, r2, moved)`` of the previous call on the same rows (``warm`` its
+    partners) skips the tree for a row whose partner is certainly still its nearest point: the
+    last full search found the partner at ``r1`` and every other point at ``>= r2``, the row has
+    moved by ``moved`` since, and ``r2 - moved > r1 + moved``. The answer is that of the full
+    search, bit for bit. ``r1``, ``r2``, ``moved`` (n,) are updated in place; an empty ``P_old``
+    searches every row.
+    """
+    n = P.shape[0]
+    out_idx = np.empty(n, dtype=np.int64)
+    out_sq = np.empty(n)
+    part = np.zeros(((n + GICP_ROWS - 1) // GICP_ROWS, GICP_ACC))
+    if state is None:
+        state = (np.empty((0, 3)), np.empty(n), np.empty(n), np.zeros(n))
+    drive = _gicp_fused_parallel if parallel else _gicp_fused_serial
+    drive(P, Q, *tree, float(d2), warm, Cs, Ct, R, out_idx, out_sq, part, *state)
+    H, g, cost = _gicp_system_from_partials(part)
+    return out_idx, out_sq, H, g, float(cost)
+
+
+@njit
+def _gicp_pairs_rows(P, Q, Cs, Ct, R, si, ti, part, c0, c1):
+    k = si.shape[0]
+    for c in range(c0, c1):
+        for r in range(c * GICP_ROWS, min(k, (c + 1) * GICP_ROWS)):
+            _gicp_pair_add(P, si[r], Q, ti[r], Cs, Ct, R, part, c)
+
+
+@njit_parallel
+def _gicp_pairs_parallel(P, Q, Cs, Ct, R, si, ti, part):
+    for c in prange(part.shape[0]):
+        _gicp_pairs_rows(P, Q, Cs, Ct, R, si, ti, part, c, c + 1)
+
+
+def gicp_pairs_system(P, Q, Cs, Ct, R, si, ti):
+    """``(H, g, cost)`` of :func:`gicp_fused_search` on given pairs ``(P[si], Q[ti])``: the same
+    bits as the fused pass when the pairs are every row of ``P`` with a partner, in row order
+    and the rows all have one (each chunk holds ``GICP_ROWS`` pairs here, ``GICP_ROWS`` source
+    rows there)."""
+    part = np.zeros(((si.shape[0] + GICP_ROWS - 1) // GICP_ROWS, GICP_ACC))
+    if si.shape[0] >= PARALLEL_QUERY_ROWS:
+        _gicp_pairs_parallel(P, Q, Cs, Ct, R, si, ti, part)
+    else:
+        _gicp_pairs_rows(P, Q, Cs, Ct, R, si, ti, part, 0, part.shape[0])
+    H, g, cost = _gicp_system_from_partials(part)
+    return H, g, float(cost)
+
+
+@njit_parallel
+def knn_normals_tasks(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio, out_n, out_eval,
+                       out_status):
+    """``_knn_normals_rows`` in ``prange`` over ``GICP_ROWS``-point tasks (leaf order;
+    one row per point, so any split gives the same bits)."""
+    m = Q.shape[0]
+    for c in prange((m + GICP_ROWS - 1) // GICP_ROWS):
+        _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio, out_n,
+                          out_eval, out_status, c * GICP_ROWS, min(m, (c + 1) * GICP_ROWS))

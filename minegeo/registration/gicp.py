@@ -37,8 +37,10 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from minegeo._provenance import StageTimer
@@ -50,13 +52,20 @@ from minegeo.registration import _kernels as K
 from minegeo.registration import _kernels_gicp as KG
 from minegeo.registration.evaluation import is_identity
 from minegeo.registration.icp import ICPResult, constraint_analysis, final_diagnosis
-from minegeo.registration.loop import GICPFactor, NearestInGate, Termination, rotation_angle, run_loop
+from minegeo.registration.loop import (
+    GICPFactor,
+    GICPNearestInGate,
+    Termination,
+    rotation_angle,
+    run_loop,
+)
 
 __all__ = [
     "GICPParams",
     "GICPResult",
     "register_gicp",
     "estimate_gicp_covariances",
+    "gicp_covariances_on_tree",
     "COVARIANCE_MODES",
     "CONVERGENCE_TESTS",
 ]
@@ -73,6 +82,18 @@ MIN_POINTS = 3
 LARGE_COORDINATE_M = 1e5
 #: Relative tolerance of the symmetry check on user covariances.
 SYMMETRY_RTOL = 1e-9
+#: Clouds and searches of at least this many points run the per-point kernels (kNN covariances,
+#: the fused search + GICP sums) as ``prange`` tasks; fewer run serially. The bits are the same
+#: either way (per-point results; sums over fixed chunks of ``GICP_ROWS`` rows, added in order).
+#: Measured on the shared 2-core machine (load average ~9, benchmarks/results/gicp_2026-11-25.md):
+#: on the 5,004-point small_gicp pair a ``prange`` region per iteration made a registration 4-8x
+#: slower (each region waits for a descheduled worker thread), so small clouds stay serial.
+PARALLEL_MIN_ROWS = 1 << 16
+PARALLEL_SEARCH_ROWS = 1 << 16
+#: With two or more Numba threads, the source and target covariances of at least this many points
+#: each are estimated concurrently in two threads (the kernels release the GIL; one task per cloud,
+#: no barrier per iteration). The bits are those of the sequential estimate.
+CONCURRENT_MIN_POINTS = 1024
 
 
 def _is_number(v) -> bool:
@@ -239,6 +260,22 @@ class GICPResult(ICPResult):
     cycle_amplitude_rad: float = 0.0
 
 
+def _knn_normals(points: np.ndarray, tree, k: int, mode_open3d: bool):
+    """``(normals, status)`` of :func:`~minegeo.registration._kernels_gicp.knn_normals_kernel`, with
+    the points cut into ``prange`` tasks from ``PARALLEL_MIN_ROWS`` points (the same bits)."""
+    m = points.shape[0]
+    out_n = np.empty((m, 3))
+    out_eval = np.empty((m, 3))
+    out_status = np.empty(m, dtype=np.int8)
+    args = (points, *tree, min(int(k), m), bool(mode_open3d), float(KG.DEGENERATE_RATIO), out_n, out_eval,
+            out_status)
+    if m >= PARALLEL_MIN_ROWS:
+        KG.knn_normals_tasks(*args)
+    else:
+        KG._knn_normals_serial(*args)
+    return out_n, out_status
+
+
 def _plane_covariances(normals: np.ndarray, isotropic: np.ndarray, params: GICPParams) -> np.ndarray:
     return KG.plane_covariances_kernel(
         np.ascontiguousarray(normals), np.ascontiguousarray(isotropic, dtype=np.bool_),
@@ -258,7 +295,7 @@ def _covariances_and_normals(points: np.ndarray, params: GICPParams, normals=Non
         iso = np.zeros(n, dtype=np.bool_) if o3d else ~(np.linalg.norm(N, axis=1) > 0)
         return _plane_covariances(N, iso, params), N, "normals"
     tree = kd_build(points, KD_LEAF) if tree is None else tree
-    N, _, status = KG.knn_normals_kernel(points, tree, int(params.covariance_neighbours), o3d)
+    N, status = _knn_normals(points, tree, int(params.covariance_neighbours), o3d)
     iso = np.zeros(n, dtype=np.bool_) if o3d else status != STATUS_OK
     return _plane_covariances(N, iso, params), N, "estimated"
 
@@ -298,6 +335,34 @@ def estimate_gicp_covariances(points, params: GICPParams | None = None, normals=
         raise InputError(f"params must be a GICPParams, got {type(params).__name__}")
     P = as_points(points, "points", min_points=1)
     return _covariances_and_normals(P, params, normals)[0]
+
+
+def gicp_covariances_on_tree(points: np.ndarray, params: GICPParams, index: GatedKDTree) -> np.ndarray:
+    """:func:`estimate_gicp_covariances` of ``points`` from the kNN of an existing search tree.
+
+    Parameters
+    ----------
+    points : (n, 3) ndarray
+        C-contiguous float64 cloud (m), already validated (e.g. by
+        :func:`minegeo.registration.build_target_index`).
+    params : GICPParams
+        Uses ``epsilon``, ``covariance_neighbours`` and ``covariance_mode``.
+    index : GatedKDTree
+        The tree of :func:`minegeo.registration.build_target_index` over these very points.
+
+    Returns
+    -------
+    (n, 3, 3) ndarray
+        The covariances of :func:`estimate_gicp_covariances` (the same bits: the kNN is exact).
+
+    Raises
+    ------
+    InputError
+        ``index`` is not a KD-tree over ``points``.
+    """
+    if not isinstance(index, GatedKDTree) or not (index.data is points or np.array_equal(index.data, points)):
+        raise InputError("index must be the KD-tree of build_target_index over these points")
+    return _covariances_and_normals(index.data, params, tree=index._tree)[0]
 
 
 def _as_covariances(C, n: int, name: str) -> np.ndarray:
@@ -396,7 +461,10 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
     ``|T b_i - m_i|² < d²`` (Euclidean, as in Ren 2019 Sec. 3.2: "the standard Euclidean
     distance is used ... to calculate the correspondence"), ties to the lowest target index.
     The exact KD-tree search starts its bound at the distance to the previous partner, which
-    prunes most of the tree without changing the answer.
+    prunes most of the tree without changing the answer; a point whose partner provably stays
+    its nearest (the next point was farther than the partner by more than twice the distance the
+    point has moved since) skips the tree altogether, and the normal equations below are summed
+    in the same pass (:class:`minegeo.registration.loop.GICPNearestInGate`).
 
     *Step* ([Ren2019 Eq. 6] linearised about the current pose): with ``p_i = T b_i``,
     ``d_i = p_i - m_i``, ``M_i = C_i^M + R C_i^B Rᵀ`` ([Ren2019 Eq. 5]) and the left perturbation
@@ -418,8 +486,8 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
         source_points, target_points, T_init, params, source_covariances, target_covariances, source_normals,
         target_normals, target_index, check_target, timer)
     d = float(params.max_correspondence_distance_m)
-    search = NearestInGate(Q, d, tree=tree, parallel_rows=KG.PARALLEL_MIN_PAIRS)
-    factor = GICPFactor(Q, Cs, Ct)
+    factor = GICPFactor(Q, Cs, Ct, T)
+    search = GICPNearestInGate(Q, d, tree, factor, parallel_rows=PARALLEL_SEARCH_ROWS)
     P = P0 if is_identity(T) else K.transform_points_kernel(P0, T)
     out = run_loop(P, T, search, factor, _termination(params), params.max_iterations, timer)
     cyc_m = cyc_rad = 0.0
@@ -503,9 +571,13 @@ def _gicp_inputs(source_points, target_points, T_init, params, source_covariance
             tree = kd_build(Q, KD_LEAF)
     with timer("covariances"):
         Nt = None
+        pending = None
         if source_covariances is not None:
             Cs = _as_covariances(source_covariances, P0.shape[0], "source_covariances")
             src_from = "given"
+        elif (target_covariances is None and source_normals is None and target_normals is None
+              and min(P0.shape[0], Q.shape[0]) >= CONCURRENT_MIN_POINTS and numba.get_num_threads() > 1):
+            pending = _executor().submit(_covariances_and_normals, P0, params, None, "source")
         else:
             Cs, _, src_from = _covariances_and_normals(P0, params, source_normals, "source")
         if target_covariances is not None and not check_target:
@@ -520,4 +592,41 @@ def _gicp_inputs(source_points, target_points, T_init, params, source_covariance
             tgt_from = "given"
         else:
             Ct, Nt, tgt_from = _covariances_and_normals(Q, params, target_normals, "target", tree=tree)
+        if pending is not None:
+            Cs, _, src_from = pending.result()
     return P0, Q, T, tree, Cs, Ct, Nt, src_from, tgt_from
+
+
+_EXECUTOR = []
+
+
+def _executor() -> ThreadPoolExecutor:
+    """One worker thread for the concurrent covariance estimate (created on first use)."""
+    if not _EXECUTOR:
+        _EXECUTOR.append(ThreadPoolExecutor(1, thread_name_prefix="minegeo-gicp"))
+    return _EXECUTOR[0]
+
+
+def _warmup() -> None:
+    """Compile the GICP kernels of issue 17 (fused search + sums and pair sums of
+    :mod:`minegeo.registration._kernels_gicp`, serial and ``prange``; :func:`~minegeo.registration._kernels_gicp.knn_normals_tasks`) on tiny
+    inputs (called by ``minegeo.registration._warmup``)."""
+    from minegeo.registration import _kernels_gicp as L
+
+    P = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    Q = np.vstack([P, P + 2.0, P + 4.0])
+    tree = kd_build(Q, 2)
+    C = np.tile(np.eye(3), (Q.shape[0], 1, 1))
+    R = np.eye(3)
+    warm = np.full(4, Q.shape[0], dtype=np.int64)
+    for parallel in (False, True):
+        state = (np.empty((0, 3)), np.empty(4), np.empty(4), np.zeros(4))
+        idx = L.gicp_fused_search(P, Q, tree, 1.0, warm, C[:4], C, R, parallel, state)[0]
+        L.gicp_fused_search(P, Q, tree, 1.0, idx, C[:4], C, R, parallel, (P.copy(), *state[1:]))
+    si = np.arange(4, dtype=np.int64)
+    L.gicp_pairs_system(P, Q, C[:4], C, R, si, si)
+    L._gicp_pairs_parallel(P, Q, C[:4], C, R, si, si, np.zeros((1, L.GICP_ACC)))
+    m = Q.shape[0]
+    for mode in (False, True):
+        KG.knn_normals_tasks(Q, *tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((m, 3)), np.empty((m, 3)),
+                           np.empty(m, dtype=np.int8))

@@ -43,16 +43,19 @@ import numpy as np
 from minegeo.errors import DegenerateGeometryError, TooFewPointsError
 from minegeo.geometry.se3 import rotation_from_euler_xyz
 from minegeo.kernels.chunks import PARALLEL_QUERY_ROWS
-from minegeo.kernels.kdtree import kd_nn_warm_parallel, kd_nn_warm_serial
+from minegeo.kernels.kdtree import (
+    kd_nn_warm_parallel,
+    kd_nn_warm_serial,
+)
 from minegeo.kernels.rigid import umeyama_from_moments
 from minegeo.registration import _kernels as K
-from minegeo.registration import _kernels_gicp as KG
+from minegeo.registration._kernels_gicp import gicp_fused_search, gicp_pairs_system
 from minegeo.registration._kernels_loop import compact_matches
 from minegeo.registration.estimation import RANK_TOL
 
 __all__ = [
     "Matches", "NearestInGate", "GaussNewtonFactor", "PointToPointFactor",
-    "PointToPlaneFactor", "GICPFactor", "PointToLine2DFactor", "SE3Euler", "SE2Points", "Termination",
+    "PointToPlaneFactor", "GICPFactor", "GICPSystem", "GICPNearestInGate", "PointToLine2DFactor", "SE3Euler", "SE2Points", "Termination",
     "LoopOutcome", "run_loop", "solve_normal_equations", "euler6_to_transform", "rotation_angle", "rot2",
 ]
 
@@ -171,8 +174,9 @@ class Matches:
         ``(source index, target index)`` pairs in ascending source index.
     raw : (n,) int64 ndarray or None
         Partner per source point (the target size ``m`` = none), the warm start of the next search.
-    extra : ndarray or None
-        Per-pair data of the search (MAST: signed point-to-line distances, m).
+    extra : ndarray, GICPSystem or None
+        Per-pair data of the search (MAST: signed point-to-line distances, m), or the GICP
+        normal equations summed by :class:`GICPNearestInGate`.
     """
 
     fitness: float
@@ -292,19 +296,84 @@ class PointToPlaneFactor(GaussNewtonFactor):
 class GICPFactor(GaussNewtonFactor):
     """Generalized-ICP ([Ren2019 Eqs. 4-6]; Segal 2009): ``d = p - q``, ``M = C_q + R C_p Rᵀ``,
     ``J = [-[p]×, I3]``, ``H = Σ Jᵀ M⁻¹ J``, ``g = Σ Jᵀ M⁻¹ d``; ``aux`` = ``Σ dᵀ M⁻¹ d`` (m²).
-    ``Cs`` / ``Ct`` are the per-point covariances in their own clouds' frames."""
+    ``Cs`` / ``Ct`` are the per-point covariances in their own clouds' frames.
 
-    def __init__(self, Q: np.ndarray, Cs: np.ndarray, Ct: np.ndarray):
+    With :class:`GICPNearestInGate` the system is summed during the search (one pass) and
+    carried in ``matches.extra`` (a :class:`GICPSystem`); ``linearize`` returns it when it was
+    summed at the rotation of ``pose`` and sums the pairs again otherwise. ``next_R`` is the
+    rotation of the pose the next search runs at: the initial pose's (set by the caller), then
+    ``(ΔT T)`` of each step, as :class:`SE3Euler` composes it.
+    """
+
+    def __init__(self, Q: np.ndarray, Cs: np.ndarray, Ct: np.ndarray, R0: np.ndarray | None = None):
         self.Q, self.Cs, self.Ct = Q, Cs, Ct
+        self.next_R = np.ascontiguousarray(np.eye(3) if R0 is None else R0[:3, :3])
 
     def linearize(self, P, pose, matches: Matches):
+        R = np.ascontiguousarray(pose[:3, :3])
+        fused = matches.extra
+        if isinstance(fused, GICPSystem) and np.array_equal(fused.R, R):
+            return fused.H, fused.g, fused.cost
         si, ti = matches.pairs()
-        return KG.gicp_system_kernel(P, self.Q, self.Cs, self.Ct, np.ascontiguousarray(pose[:3, :3]), si, ti)
+        return gicp_pairs_system(P, self.Q, self.Cs, self.Ct, R, si, ti)
+
+    def step(self, P, pose, matches: Matches):
+        delta, singular, aux = super().step(P, pose, matches)
+        self.next_R = np.ascontiguousarray(self.manifold.compose(delta, pose)[:3, :3])
+        return delta, singular, aux
 
     def mean_cost(self, P, pose, matches: Matches) -> float:
         """Mean Mahalanobis cost of the pairs (m², inf without pairs)."""
         k = matches.corr.shape[0]
         return math.inf if k == 0 else float(self.linearize(P, pose, matches)[2]) / k
+
+
+@dataclass
+class GICPSystem:
+    """The GICP normal equations of one search, summed at rotation ``R`` (3x3): ``H`` (6x6),
+    ``g`` (6,), ``cost`` = ``Σ dᵀ M⁻¹ d`` (m²)."""
+
+    R: np.ndarray
+    H: np.ndarray
+    g: np.ndarray
+    cost: float
+
+
+class GICPNearestInGate(NearestInGate):
+    """:class:`NearestInGate` on a KD-tree that also sums the GICP system of its pairs in the same
+    pass ([Ren2019 Eqs. 4-6]; :func:`gicp_fused_search`), at the rotation ``factor.next_R``.
+
+    The pairs, fitness and RMSE are those of :class:`NearestInGate` bit for bit; the system is
+    carried in ``Matches.extra`` as a :class:`GICPSystem` for :meth:`GICPFactor.linearize`.
+    """
+
+    def __init__(self, Q: np.ndarray, d: float, tree, factor: GICPFactor,
+                 parallel_rows: int = PARALLEL_QUERY_ROWS):
+        super().__init__(Q, d, tree=tree, parallel_rows=parallel_rows)
+        self.factor = factor
+        self._last = None  # (matches, points, r1, r2, moved) of the previous call
+
+    def __call__(self, P: np.ndarray, prev: Matches | None) -> Matches:
+        n, m = P.shape[0], self.Q.shape[0]
+        last = self._last
+        if prev is not None and last is not None and prev is last[0] and last[1].shape[0] == n:
+            state, warm = last[1:], prev.raw
+        else:
+            state = (np.empty((0, 3)), np.empty(n), np.empty(n), np.zeros(n))
+            warm = prev.raw if prev is not None and prev.raw is not None else np.full(n, m, dtype=np.int64)
+        f = self.factor
+        R = f.next_R
+        idx, sq, H, g, cost = gicp_fused_search(P, self.Q, self.tree, self.d * self.d, warm, f.Cs, f.Ct, R,
+                                                n >= self.parallel_rows, state)
+        corr, total = compact_matches(idx, sq, m)
+        k = corr.shape[0]
+        system = GICPSystem(R, H, g, cost)
+        if k == 0:
+            out = Matches(0.0, 0.0, corr, idx, system)
+        else:
+            out = Matches(float(k / n), float(np.sqrt(total / k)), corr, idx, system)
+        self._last = (out, P, *state[1:])
+        return out
 
 
 class PointToLine2DFactor(GaussNewtonFactor):
@@ -480,3 +549,4 @@ def run_loop(points, pose, search, factor, termination: Termination, max_iterati
             break
     out.pose, out.points, out.matches = pose, points, cur
     return out
+

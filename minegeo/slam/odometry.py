@@ -32,14 +32,17 @@ import logging
 import math
 import time
 from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 
+import numba
 import numpy as np
 
 from minegeo.errors import InputError
 from minegeo.geometry import voxel_downsample
 from minegeo.kernels.lie import se3_adjoint
-from minegeo.registration import GICPParams, build_target_index, estimate_gicp_covariances, register_gicp
+from minegeo.registration import GICPParams, build_target_index, register_gicp
+from minegeo.registration.gicp import gicp_covariances_on_tree
 from minegeo.slam.observability import keep_prior_along, translation_observability
 
 __all__ = ["OdometryParams", "PreparedFrame", "OdometryResult", "prepare_frame", "register_frames", "run_odometry"]
@@ -149,12 +152,49 @@ class OdometryResult:
 
 
 def prepare_frame(points: np.ndarray, time_s: float, params: OdometryParams) -> PreparedFrame:
-    """Downsample a frame (voxel centroids) and estimate its GICP covariances once."""
+    """Downsample a frame (voxel centroids) and estimate its GICP covariances once.
+
+    The covariances are those of :func:`minegeo.registration.estimate_gicp_covariances`, from
+    the kNN of the frame's own search tree (built once, for both)."""
     P = voxel_downsample(np.asarray(points, dtype=np.float64), params.voxel_size_m).points
     if P.shape[0] < params.min_points:
         return PreparedFrame(float(time_s), P, np.zeros((P.shape[0], 3, 3)), None)
-    C = estimate_gicp_covariances(P, params.gicp())
-    return PreparedFrame(float(time_s), P, C, build_target_index(P))
+    index = build_target_index(P)
+    C = gicp_covariances_on_tree(P, params.gicp(), index)
+    return PreparedFrame(float(time_s), P, C, index)
+
+
+def _prepared_frames(frames: Iterable[tuple[float, np.ndarray]], params: OdometryParams):
+    """``(time_s, PreparedFrame, seconds spent preparing)`` of every frame in order.
+
+    With two or more Numba threads the next frame is read and prepared in a worker thread (one
+    Numba thread there) while the caller registers the current one: the kernels release the GIL,
+    so the two run on two cores without a barrier per kernel. The frames are the same either way.
+    """
+    it = iter(frames)
+
+    def job():
+        item = next(it, None)
+        if item is None:
+            return None
+        t0 = time.perf_counter()
+        cur = prepare_frame(item[1], item[0], params)
+        return item[0], cur, time.perf_counter() - t0
+
+    if numba.get_num_threads() < 2:
+        while (r := job()) is not None:
+            yield r
+        return
+
+    def job_one_thread():
+        numba.set_num_threads(1)  # this worker's own kernels; the caller's count is unchanged
+        return job()
+
+    with ThreadPoolExecutor(1, thread_name_prefix="minegeo-odometry") as ex:
+        fut = ex.submit(job_one_thread)
+        while (r := fut.result()) is not None:
+            fut = ex.submit(job_one_thread)
+            yield r
 
 
 def register_frames(source: PreparedFrame, target: PreparedFrame, T_init: np.ndarray,
@@ -231,10 +271,8 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
     kf_idx, kf_edges, kf_info, kf_clouds, kf_covs = [], [], [], [], []
     prev = last_kf = None
     velocity = np.eye(4)
-    for k, (t, pts) in enumerate(frames):
-        t0 = time.perf_counter()
-        cur = prepare_frame(pts, t, params)
-        t_prep += time.perf_counter() - t0
+    for k, (t, cur, dt_prep) in enumerate(_prepared_frames(frames, params)):
+        t_prep += dt_prep
         if times and t <= times[-1]:
             raise InputError(f"frame {k}: time {t} s is not after the previous frame's {times[-1]} s")
         times.append(float(t))

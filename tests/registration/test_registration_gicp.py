@@ -627,3 +627,116 @@ def test_gicp_unchecked_target_gives_the_same_fit():
         register_gicp(P, Q, np.eye(4), prm, target_covariances=C[:-1], check_target=False)
     with pytest.raises(InputError, match="different cloud"):
         register_gicp(P, Q.copy(), np.eye(4), prm, target_covariances=C, target_index=idx, check_target=False)
+
+
+# ---------------------------------------------------------------- fused search + GICP sums (issue 17 speed)
+
+
+def _fused_inputs(seed=0, n=3000):
+    from minegeo.kernels.kdtree import KD_LEAF, kd_build
+
+    src, tgt, T = _pair()
+    rng = np.random.default_rng(seed)
+    P0 = np.ascontiguousarray(src[rng.permutation(src.shape[0])[:n]])
+    Cs, Ct = estimate_gicp_covariances(P0), estimate_gicp_covariances(tgt)
+    return P0, tgt, T, Cs, Ct, kd_build(tgt, KD_LEAF)
+
+
+def test_fused_search_equals_search_then_pair_sums():
+    """One pass (search + sums) = the warm 1-NN search, then the GICP sums of its pairs."""
+    from minegeo.registration._kernels_gicp import gicp_fused_search, gicp_pairs_system
+
+    P0, Q, T, Cs, Ct, tree = _fused_inputs()
+    P = transform_points(T, P0)
+    R = np.ascontiguousarray(T[:3, :3])
+    m = Q.shape[0]
+    warm = np.full(P.shape[0], m, dtype=np.int64)
+    i_ref, s_ref = KG.nearest_warm_kernel(P, Q, tree, 1.0, warm)
+    out = [gicp_fused_search(P, Q, tree, 1.0, warm, Cs, Ct, R, par) for par in (False, True)]
+    for a, b in zip(out[0], out[1], strict=True):  # prange driver: the same bits
+        assert np.array_equal(a, b)
+    idx, sq, H, g, cost = out[0]
+    assert np.array_equal(idx, i_ref) and np.array_equal(sq, s_ref)
+    si = np.flatnonzero(idx < m).astype(np.int64)
+    ti = np.ascontiguousarray(idx[si])
+    H0, g0, c0 = KG.gicp_system_kernel(P, Q, Cs, Ct, R, si, ti)  # the chunk-of-1024 sums
+    np.testing.assert_allclose(H, H0, rtol=1e-12, atol=1e-12 * np.abs(H0).max())
+    np.testing.assert_allclose(g, g0, rtol=1e-12, atol=1e-12 * np.abs(g0).max())
+    assert cost == pytest.approx(c0, rel=1e-12)
+    H1, g1, c1 = gicp_pairs_system(P, Q, Cs, Ct, R, si, ti)
+    np.testing.assert_allclose(H1, H0, rtol=1e-12, atol=1e-12 * np.abs(H0).max())
+    # per pair the terms are those of the reference kernel bit for bit (only the chunking differs)
+    for k in range(0, si.size, max(1, si.size // 40)):
+        a, b = si[k:k + 1], ti[k:k + 1]
+        ref, new = KG.gicp_system_kernel(P, Q, Cs, Ct, R, a, b), gicp_pairs_system(P, Q, Cs, Ct, R, a, b)
+        assert np.array_equal(ref[0], new[0]) and np.array_equal(ref[1], new[1]) and ref[2] == new[2]
+
+
+@pytest.mark.parametrize("step_m", [0.0, 1e-4, 0.02, 0.3])
+def test_fused_search_skip_equals_full_search(step_m):
+    """Rows whose partner provably stays nearest skip the tree: the same answer as a full search."""
+    from minegeo.registration._kernels_gicp import gicp_fused_search
+
+    P0, Q, T, Cs, Ct, tree = _fused_inputs(seed=1)
+    m, n = Q.shape[0], P0.shape[0]
+    rng = np.random.default_rng(5)
+    state = (np.empty((0, 3)), np.empty(n), np.empty(n), np.zeros(n))
+    warm = np.full(n, m, dtype=np.int64)
+    Tk = T.copy()
+    for it in range(4):
+        D = random_transform(rng, step_m / 5.0, step_m) if step_m else np.eye(4)
+        Tk = D @ Tk
+        P = transform_points(Tk, P0)
+        R = np.ascontiguousarray(Tk[:3, :3])
+        fast = gicp_fused_search(P, Q, tree, 1.0, warm, Cs, Ct, R, it % 2 == 1, state)
+        full = gicp_fused_search(P, Q, tree, 1.0, warm, Cs, Ct, R, False)
+        for a, b in zip(fast, full, strict=True):
+            assert np.array_equal(a, b)
+        state = (P, *state[1:])
+        warm = fast[0]
+
+
+def test_second_nearest_distance_is_exact():
+    from minegeo.kernels.kdtree import KD_LEAF, kd_build, kd_nn2_descend
+
+    rng = np.random.default_rng(3)
+    Q = np.round(rng.uniform(-1, 1, size=(400, 3)), 1)  # a lattice: many equal distances
+    Q = np.ascontiguousarray(np.vstack([Q, Q[:20]]))  # and coincident points
+    tree = kd_build(Q, KD_LEAF)
+    st_node, st_lb = np.empty(tree[-1] + 2, np.int64), np.empty(tree[-1] + 2)
+    for p in rng.uniform(-1.1, 1.1, size=(200, 3)):
+        sq = (p[0] - Q[:, 0]) ** 2 + (p[1] - Q[:, 1]) ** 2 + (p[2] - Q[:, 2]) ** 2
+        for d2 in (0.05, 0.3, 10.0):
+            b, bj, s2 = kd_nn2_descend(p[0], p[1], p[2], d2, Q.shape[0], *tree[:-1], d2, st_node, st_lb)
+            inside = np.flatnonzero(sq < d2)
+            if inside.size == 0:
+                assert bj == Q.shape[0] and s2 == d2
+                continue
+            order = inside[np.lexsort((inside, sq[inside]))]
+            assert bj == order[0] and b == sq[order[0]]
+            assert s2 == (sq[order[1]] if order.size > 1 else d2)
+
+
+def test_gicp_prange_and_concurrent_covariances_are_thread_independent(monkeypatch):
+    """With the prange thresholds lowered (fused search, kNN covariances) and the two clouds'
+    covariances estimated concurrently, 1 and 2 threads give the same bits."""
+    import minegeo.registration.gicp as G
+
+    monkeypatch.setattr(G, "PARALLEL_MIN_ROWS", 512)
+    monkeypatch.setattr(G, "PARALLEL_SEARCH_ROWS", 512)
+    src, tgt, T_gt = _pair()
+    T0 = _perturbed_starts(T_gt, 1, seed=11)[0]
+    old = numba.get_num_threads()
+    out = []
+    try:
+        for nt in (1, min(2, numba.config.NUMBA_NUM_THREADS), 1):
+            numba.set_num_threads(nt)
+            out.append(register_gicp(src, tgt, T0, GICPParams(GATE_M)))
+    finally:
+        numba.set_num_threads(old)
+    for a in out[1:]:
+        assert np.array_equal(a.T_target_source, out[0].T_target_source)
+        assert np.array_equal(a.information_6x6, out[0].information_6x6)
+        assert np.array_equal(a.correspondences, out[0].correspondences)
+        assert (a.iterations, a.mahalanobis_cost, a.history) == (out[0].iterations, out[0].mahalanobis_cost,
+                                                                out[0].history)
