@@ -1,32 +1,53 @@
-"""``minegeo demo``: the whole chain on the built-in small synthetic mine.
+"""``minegeo demo``: the whole chain on the built-in small synthetic mine, from LiDAR frames to grid coordinates.
 
-Steps (each through the same CLI verb a surveyor would run, so the demo exercises the
-real contracts and writes the real reports):
+Steps (each CLI step through the same verb a surveyor would run, so the demo exercises the real
+contracts and writes the real reports):
 
-1. ``minegeo synth``   - generate the small mine: map, local scans, trajectories, GCPs, truth.
-2. ``minegeo georef``  - georeference the map into EPSG:5186 from the GCPs.
-3. ``minegeo mast``    - position a 2D scanner from wall beacons (synthetic MAST scenario).
-4. ``minegeo localize`` - place three local scans and their trajectories in the CRS
-   (``--profile fast``, the CLI default: 1 m voxels, 3-point RANSAC, point-to-plane ICP; the
-   paper-faithful Table 3 profile is ``--profile table3``, see docs/localization.md).
+1. ``minegeo synth``   - generate the small mine: local scans, trajectories, control points (40, on
+   the drift walls), truth. Its survey ``map.ply`` (assembled with the true poses) is not used.
+2. ``sequence``        - a vehicle drives a 114 m loop of the mine (main drift, crosscut, parallel
+   drift, crosscut, back through the X junction; junction turns on 3 m arcs) with a VLP-16 (2 degree
+   azimuth step, 16 rings); one frame every 0.5 s (1.25 m) at the true poses, written to
+   ``OUT/sequence/frames/`` (binary PLY, ``times.txt``), the true poses to ``OUT/sequence/truth.tum``
+   (world frame, for the comparison only). See docs/demo.md.
+3. ``minegeo slam``    - map and trajectory from those frames alone: ``OUT/slam/map.ply`` in the
+   SLAM frame (origin: the first sensor pose). Its trajectory is compared with the truth (ATE,
+   no alignment).
+4. ``minegeo georef``  - georeference the SLAM map into EPSG:5186. The control points come from
+   the synthetic survey (grid coordinates with 5 mm noise); their map coordinates are *read off the
+   SLAM map*: each target is seen from the nearest frame and placed by SLAM's estimate of that
+   frame (:func:`minegeo.synth.sequence.pick_gcps_in_map`), so they carry the SLAM error; targets
+   outside the mapped drifts are left out. The true world-to-SLAM transform is never given to it.
+5. ``minegeo mast``    - position a 2D scanner from wall beacons (synthetic MAST scenario).
+6. ``minegeo localize`` - place the local scans that lie in the mapped drifts, and their
+   trajectories, in the georeferenced SLAM map (``--profile fast``, the CLI default).
 
-A summary table compares every answer with the synthetic ground truth; it is printed and
-written to ``OUT/report.html`` (:mod:`minegeo.report.demo_report`) with a relative link to each
-step's own ``report.html``.
+A summary table compares every answer with the synthetic ground truth (the localized scans in
+EPSG:5186 against ``T_crs_map · T_map_scan`` of the truth); it is printed and written to
+``OUT/report.html`` (:mod:`minegeo.report.demo_report`) with a relative link to each step's own
+``report.html``, and to ``OUT/result.json``.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import shutil
 import time
 from pathlib import Path
 
 import numpy as np
 
-HELP = "run the whole chain on the built-in small synthetic mine and print a summary"
+HELP = "run the whole chain (frames -> SLAM map -> georeference -> localize) on the small synthetic mine"
 
 log = logging.getLogger(__name__)
+
+#: the demo's fixed choices (recorded in result.json)
+N_GCPS = 40
+FRAME_RATE_HZ = 2.0
+AZIMUTH_STEP_DEG = 2.0
+SIGMA_PICK_M = 0.02  # stated std. dev. of a target read off the SLAM map (georef --sigma-local-m)
+MAX_SCAN_GAP_M = 4.0  # a scan is localized when its whole true trajectory is this close to the drive
 
 
 def add_arguments(parser) -> None:
@@ -101,44 +122,134 @@ def _run(args, out: Path) -> int:
 
     from minegeo._output import progress_enabled
 
-    with tqdm(total=6, desc="demo", unit="step", file=sys.stderr, disable=not progress_enabled(args)) as bar:
+    with tqdm(total=7, desc="demo", unit="step", file=sys.stderr, disable=not progress_enabled(args)) as bar:
         return _steps(args, out, _Rows(bar))
 
 
-def _steps(args, out: Path, rows) -> int:
-    t_start = time.perf_counter()
-    mine = out / "mine"
-
-    # 1. synthetic mine
+def _synth(args, out: Path, rows) -> dict | None:
+    """Step 1: the synthetic mine (``OUT/mine``); its truth.json, or None when the verb failed."""
     t0 = time.perf_counter()
-    argv = ["synth", str(mine), "--preset", "small", "--seed", str(args.seed)]
+    mine = out / "mine"
+    argv = ["synth", str(mine), "--preset", "small", "--seed", str(args.seed), "--gcps", str(N_GCPS)]
     if args.force:
         argv.append("--force")
     if _run_verb(argv) != 0:
-        return 1
-    truth = _json(mine / "truth.json")
+        return None
     rows.append(_row("synth", t0, "ok", f"small mine written to {mine}", mine / "report.html", out))
+    return _json(mine / "truth.json")
 
-    # 2. georeference the map
+
+def _sequence(args, out: Path, rows) -> dict:
+    """Step 2: the VLP-16 frames of the demo loop (``OUT/sequence``); the true trajectory and path."""
+    from minegeo.io import write_trajectory
+    from minegeo.synth.sensors import Velodyne16
+    from minegeo.synth.sequence import DEMO_LOOP, route_path, simulate_sequence, write_frames
+    from minegeo.synth.world import build_world
+
     t0 = time.perf_counter()
+    world = build_world("small", args.seed)
+    path = route_path(world, DEMO_LOOP["drifts"], DEMO_LOOP["start_m"], DEMO_LOOP["end_m"])
+    truth, frames = simulate_sequence(world, path, rate_hz=FRAME_RATE_HZ,
+                                      sensor=Velodyne16(azimuth_step_deg=AZIMUTH_STEP_DEG), seed=args.seed)
+    seq = out / "sequence"
+    if seq.is_dir():  # an earlier demo's (--force): the frames folder is read whole
+        shutil.rmtree(seq)
+    write_frames(seq / "frames", truth.times_s, frames)
+    write_trajectory(seq / "truth.tum", truth, format="tum")
+    length = float(np.linalg.norm(np.diff(truth.poses[:, :3, 3], axis=0), axis=1).sum())
+    n_pts = sum(f.shape[0] for f in frames)
+    rows.append(_row("sequence", t0, "ok", f"{len(frames)} VLP-16 frames ({AZIMUTH_STEP_DEG:g} deg azimuth step, "
+                     f"{FRAME_RATE_HZ:g} Hz, {n_pts:,} points) along a {length:.0f} m loop, in "
+                     f"{seq.name}/frames", None, out))
+    return {"truth": truth, "frames": seq / "frames", "n_frames": len(frames), "length_m": length}
+
+
+def _slam(args, out: Path, rows, seq: dict) -> dict | None:
+    """Step 3: ``minegeo slam`` on the frames; its result.json (with the ATE against the truth) or None."""
+    from minegeo.io import read_trajectory
+    from minegeo.io.types import Trajectory
+    from minegeo.slam.evaluate import evaluate_trajectory
+
+    t0 = time.perf_counter()
+    dest = out / "slam"
+    rc = _run_verb(["slam", "--frames", str(seq["frames"]), "--out", str(dest), "--seed", str(args.seed)])
+    if rc != 0 or not (dest / "result.json").is_file():
+        rows.append(_row("slam", None, "failed", f"failed (exit {rc})", dest / "report.html", out))
+        return None
+    s = _json(dest / "result.json")
+    res = s["result"]
+    truth = seq["truth"]
+    T0inv = np.linalg.inv(truth.poses[0])  # evaluation only: the truth in the SLAM frame
+    gt = Trajectory(truth.times_s, np.einsum("ij,njk->nik", T0inv, truth.poses))
+    ev = evaluate_trajectory(read_trajectory(dest / "trajectory.tum"), gt, align=False)
+    s["ate_rmse_m"], s["ate_max_m"] = float(ev.ate.rmse), float(ev.ate.max)
+    rows.append(_row("slam", t0, str(s.get("status")),
+                     f"{res['frames']} frames, {res['keyframes']} keyframes, {res['loops_accepted']} loop(s) "
+                     f"accepted, map {res['map_points']:,} points; trajectory vs truth (no alignment) "
+                     f"ATE RMSE {ev.ate.rmse:.3f} m, max {ev.ate.max:.3f} m", dest / "report.html", out))
+    return s
+
+
+def _georef(args, out: Path, rows, truth: dict, seq: dict, slam: dict | None) -> dict | None:
+    """Step 4: control points read off the SLAM map, then ``minegeo georef`` of ``OUT/slam/map.ply``."""
+    from minegeo.errors import InputError
+    from minegeo.io import read_gcps, read_point_cloud, read_trajectory, write_gcps
+    from minegeo.synth.sequence import pick_gcps_in_map
+
     geo_dir = out / "georef"
-    geo_map = out / "map_geo.ply"
-    rc = _run_verb(["georef", "--map", str(mine / "map.ply"), "--gcps", str(mine / "gcps.csv"),
-                    "--crs", "EPSG:5186", "--out", str(geo_map), "--report", str(geo_dir), "--force"])
-    if rc == 0:
-        g = _json(geo_dir / "result.json")
-        T_est = g.get("T_crs_map") or g.get("result", {}).get("T_crs_map")
-        dt, dr = _err_m(T_est, truth["T_crs_map"]) if T_est is not None else (float("nan"),) * 2
-        rows.append(_row("georef", t0, str(g.get("status")),
-                         f"status {g.get('status')}, sigma0 {g.get('result', {}).get('sigma0', float('nan')):.3f}, "
-                         f"vs truth {dt * 1000:.1f} mm / {dr * 3600:.1f}\"", geo_dir / "report.html", out))
-    else:
-        rows.append(_row("georef", None, "failed", f"failed (exit {rc})", geo_dir / "report.html", out))
-
-    # 3. MAST beacon positioning
+    if slam is None:
+        rows.append(_row("georef", None, "failed", "no SLAM map to georeference", None, out))
+        return None
     t0 = time.perf_counter()
+    slam_map = out / "slam" / "map.ply"
+    gcps = read_gcps(out / "mine" / "gcps.csv")
+    cloud = read_point_cloud(slam_map)
+    est = read_trajectory(out / "slam" / "trajectory.tum")
+    try:
+        picked, pick_rows = pick_gcps_in_map(gcps, seq["truth"], est, cloud.points + np.asarray(cloud.origin))
+    except InputError as exc:  # fewer than 3 targets in the mapped drifts
+        rows.append(_row("georef", None, "failed", str(exc), None, out))
+        return None
+    gcp_file = out / "gcps_slam.csv"
+    write_gcps(gcp_file, picked)
+    geo_map = out / "map_geo.ply"
+    rc = _run_verb(["georef", "--map", str(slam_map), "--gcps", str(gcp_file), "--crs", "EPSG:5186",
+                    "--sigma-local-m", str(SIGMA_PICK_M), "--out", str(geo_map), "--report", str(geo_dir),
+                    "--force"])
+    info = {"map": str(slam_map), "gcps": str(gcp_file), "n_gcps": len(picked.ids), "gcps_picked": pick_rows,
+            "map_geo": str(geo_map) if rc == 0 else None}
+    if rc != 0 or not (geo_dir / "result.json").is_file():
+        rows.append(_row("georef", None, "failed", f"failed (exit {rc})", geo_dir / "report.html", out))
+        return info
+    g = _json(geo_dir / "result.json")
+    T_est = g.get("T_crs_map") or g.get("result", {}).get("T_crs_map")
+    rms, worst = _placement_error(T_est, est, seq["truth"], np.asarray(truth["T_crs_map"]))
+    sigma0 = g.get("result", {}).get("sigma0", float("nan"))
+    info.update(status=g.get("status"), sigma0=sigma0, trajectory_error_rms_m=rms, trajectory_error_max_m=worst)
+    rows.append(_row("georef", t0, str(g.get("status")),
+                     f"SLAM map with {len(picked.ids)} control points read off it: status {g.get('status')}, "
+                     f"sigma0 {sigma0:.3f}; georeferenced SLAM trajectory vs truth in EPSG:5186 RMS {rms:.3f} m, "
+                     f"max {worst:.3f} m", geo_dir / "report.html", out))
+    return info
+
+
+def _placement_error(T_crs_slam, est, truth, T_crs_map) -> tuple[float, float]:
+    """RMS and largest distance (m) between the georeferenced SLAM positions and the true ones in the grid."""
+    if T_crs_slam is None:
+        return float("nan"), float("nan")
+    T = np.asarray(T_crs_slam, dtype=float)
+    k = np.searchsorted(truth.times_s, est.times_s).clip(0, len(truth.times_s) - 1)
+    p_est = est.poses[:, :3, 3] @ T[:3, :3].T + T[:3, 3]
+    p_true = truth.poses[k, :3, 3] @ T_crs_map[:3, :3].T + T_crs_map[:3, 3]
+    d = np.linalg.norm(p_est - p_true, axis=1)
+    return float(np.sqrt(np.mean(d**2))), float(d.max())
+
+
+def _mast(args, out: Path, rows) -> None:
+    """Step 5: MAST beacon positioning of a 2D scanner."""
     from minegeo.mast.scenario import write_mast_scenario
 
+    t0 = time.perf_counter()
     mast_in = out / "mast_scenario"
     paths = write_mast_scenario(mast_in, seed=args.seed)
     rc = _run_verb(["mast", "--scan", str(paths["scan"]), "--beacons", str(paths["beacons"]),
@@ -156,53 +267,98 @@ def _steps(args, out: Path, rows) -> int:
         rows.append(_row("mast", None, str(m.get("status") or "failed"),
                          f"status {m.get('status')}: {m.get('reason')} (exit {rc})", out / "mast" / "report.html", out))
 
-    # 4. localize the local scans
-    from minegeo.cli import VERBS
 
-    if "localize" in VERBS:
-        try:
-            __import__(VERBS["localize"])
-            have_localize = True
-        except ImportError:
-            have_localize = False
-        if have_localize:
-            scans = truth.get("scans", [])
-            for sc in scans[:3]:
-                t0 = time.perf_counter()
-                name = Path(sc["file"]).stem if "file" in sc else sc.get("name", "scan")
-                dest = out / "localize" / name
-                argv = ["localize", "--map", str(geo_map if geo_map.exists() else mine / "map.ply"),
-                        "--scan", str(mine / sc["file"]), "--out", str(dest), "--seed", str(args.seed),
-                        "--profile", "fast"]
-                if sc.get("trajectory"):
-                    argv += ["--trajectory", str(mine / sc["trajectory"])]
-                rc = _run_verb(argv)
-                res = dest / "result.json"
-                if not res.exists():
-                    rows.append(_row(f"localize {name}", None, "failed", f"failed (exit {rc})", None, out))
-                    continue
-                r = _json(res)
-                txt = f"status {r['status']}"
-                if r.get("T_map_scan") is not None and r.get("inlier_rmse_m") is not None:
-                    dt, dr = _err_m(r["T_map_scan"], sc["T_map_scan"])
-                    txt += f", inlier RMSE {r['inlier_rmse_m']:.3f} m, vs truth {dt:.3f} m / {dr:.2f} deg"
-                if r["status"] != "ok":
-                    txt += f" ({r.get('reason')})"
-                rows.append(_row(f"localize {name}", t0, str(r["status"]), txt, dest / "report.html", out))
+def _scans_in_map(truth: dict, mine: Path, drive: np.ndarray) -> list[dict]:
+    """The synthetic scans whose whole true trajectory stays within ``MAX_SCAN_GAP_M`` of the drive."""
+    from scipy.spatial import cKDTree
 
+    from minegeo.io import read_trajectory
+
+    tree = cKDTree(drive)
+    keep = []
+    for sc in truth.get("scans", []):
+        if not sc.get("trajectory"):
+            continue
+        tr = read_trajectory(mine / sc["trajectory"])
+        pos = tr.poses[:, :3, 3] @ np.asarray(sc["T_map_scan"])[:3, :3].T + np.asarray(sc["T_map_scan"])[:3, 3]
+        if float(tree.query(pos)[0].max()) <= MAX_SCAN_GAP_M:
+            keep.append(sc)
+    return keep
+
+
+def _localize(args, out: Path, rows, truth: dict, scans: list[dict], geo: dict | None) -> None:
+    """Step 6: ``minegeo localize`` of each scan in the georeferenced SLAM map; errors in the grid."""
+    mine = out / "mine"
+    T_crs_map = np.asarray(truth["T_crs_map"])
+    geo_map = None if geo is None or not geo.get("map_geo") else Path(geo["map_geo"])
+    for sc in scans:
+        name = Path(sc["file"]).stem
+        if geo_map is None or not geo_map.exists():
+            rows.append(_row(f"localize {name}", None, "failed", "no georeferenced map", None, out))
+            continue
+        t0 = time.perf_counter()
+        dest = out / "localize" / name
+        argv = ["localize", "--map", str(geo_map), "--scan", str(mine / sc["file"]), "--out", str(dest),
+                "--seed", str(args.seed), "--profile", "fast"]
+        if sc.get("trajectory"):
+            argv += ["--trajectory", str(mine / sc["trajectory"])]
+        rc = _run_verb(argv)
+        res = dest / "result.json"
+        if not res.exists():
+            rows.append(_row(f"localize {name}", None, "failed", f"failed (exit {rc})", None, out))
+            continue
+        r = _json(res)
+        txt = f"status {r['status']}"
+        if r.get("T_crs_scan") is not None and r.get("inlier_rmse_m") is not None:
+            dt, dr = _err_m(r["T_crs_scan"], T_crs_map @ np.asarray(sc["T_map_scan"]))
+            txt += f", inlier RMSE {r['inlier_rmse_m']:.3f} m, vs truth in EPSG:5186 {dt:.3f} m / {dr:.2f} deg"
+            r["error_m"], r["error_deg"] = dt, dr
+        if r["status"] != "ok":
+            txt += f" ({r.get('reason')})"
+        rows.append(_row(f"localize {name}", t0, str(r["status"]), txt, dest / "report.html", out))
+
+
+def _steps(args, out: Path, rows) -> int:
+    t_start = time.perf_counter()
+    truth = _synth(args, out, rows)
+    if truth is None:
+        return 1
+    seq = _sequence(args, out, rows)
+    slam = _slam(args, out, rows, seq)
+    geo = _georef(args, out, rows, truth, seq, slam)
+    _mast(args, out, rows)
+    scans = _scans_in_map(truth, out / "mine", seq["truth"].poses[:, :3, 3])
+    _localize(args, out, rows, truth, scans, geo)
+    return _finish(args, out, rows, t_start, seq, slam, geo, scans)
+
+
+def _finish(args, out: Path, rows, t_start: float, seq: dict, slam: dict | None, geo: dict | None,
+            scans: list[dict]) -> int:
+    """The demo's report.html, result.json and the printed table."""
+    from minegeo._output import run_timings
+    from minegeo._provenance import versions, write_json_atomic
     from minegeo.report.demo_report import write_demo_report
 
     total = time.perf_counter() - t_start
+    names = [Path(sc["file"]).stem for sc in scans]
     report = write_demo_report(out / "report.html", rows, args.seed, total,
                                {"preset": "small", "crs": "EPSG:5186", "localize profile": "fast",
-                                "localized scans": "first 3"})
-    from minegeo._output import run_timings
-    from minegeo._provenance import versions, write_json_atomic
-
+                                "sequence": f"VLP-16, {AZIMUTH_STEP_DEG:g} deg azimuth step, {FRAME_RATE_HZ:g} Hz, "
+                                            f"{seq['n_frames']} frames, {seq['length_m']:.0f} m loop",
+                                "map": "slam/map.ply (SLAM frame), georeferenced from control points read off it",
+                                "localized scans": ", ".join(names) or "none (in the mapped drifts)"})
+    params = {"preset": "small", "crs": "EPSG:5186", "localize_profile": "fast", "localized_scans": names,
+              "n_gcps_surveyed": N_GCPS, "sigma_pick_m": SIGMA_PICK_M,
+              "sequence": {"frames": seq["n_frames"], "length_m": seq["length_m"], "rate_hz": FRAME_RATE_HZ,
+                           "azimuth_step_deg": AZIMUTH_STEP_DEG, "folder": str(seq["frames"])}}
+    slam_rec = None if slam is None else {
+        "map": str(out / "slam" / "map.ply"), "map_points": slam["result"]["map_points"],
+        "frames": slam["result"]["frames"], "keyframes": slam["result"]["keyframes"],
+        "loops_accepted": slam["result"]["loops_accepted"], "ate_rmse_m": slam["ate_rmse_m"],
+        "ate_max_m": slam["ate_max_m"]}
     write_json_atomic(out / "result.json", {
         "command": "demo", "status": "ok" if all(r.get("status") == "ok" for r in rows) else "warnings",
-        "seed": int(args.seed), "steps": list(rows),
-        "parameters": {"preset": "small", "crs": "EPSG:5186", "localize_profile": "fast", "localized_scans": 3},
+        "seed": int(args.seed), "steps": list(rows), "parameters": params, "slam": slam_rec, "georef": geo,
         "timings_s": {"total": total, **run_timings(args)}, "versions": versions(),
     })
     w = max(len(r["step"]) for r in rows)

@@ -74,10 +74,13 @@ def demo_report_html(rows, seed: int, total_s: float | None = None, parameters: 
                         numeric=[1], raw_cols=[0, 2, 4])
          + "<p class=\"small\">Each link opens that step's own report (relative to this folder).</p>"),
         ("What the demo does", "<ol><li><b>synth</b>: a small synthetic mine with ground truth.</li>"
-                               "<li><b>georef</b>: the map georeferenced into EPSG:5186 from the GCPs.</li>"
+                               "<li><b>sequence</b>: VLP-16 frames of a vehicle driving a loop of the mine.</li>"
+                               "<li><b>slam</b>: the map and trajectory built from those frames alone.</li>"
+                               "<li><b>georef</b>: the SLAM map georeferenced into EPSG:5186 from control "
+                               "points read off it.</li>"
                                "<li><b>mast</b>: a 2D scanner positioned from two wall beacons.</li>"
-                               "<li><b>localize</b>: local scans and their trajectories placed in the "
-                               "georeferenced map (fast profile).</li></ol>"),
+                               "<li><b>localize</b>: the local scans of the mapped drifts and their "
+                               "trajectories placed in the georeferenced SLAM map (fast profile).</li></ol>"),
         ("Parameters used", params_table({"seed": seed, **(parameters or {})})),
     ]
     return page("minegeo demo", secs, subtitle=f"the whole chain on the built-in small synthetic mine, seed {seed}",
