@@ -3,7 +3,9 @@
 * Each frame is prepared once (voxel downsampling, GICP covariances [Ren2019 Eqs. 2-3], a search
   tree) and serves as the source of its own registration, then as the target of the next one.
 * Frame-to-frame GICP gives ``ΔT_{t-1,t}`` (current frame into the previous one) from a
-  constant-velocity initial guess (the previous motion); the pose is chained,
+  constant-velocity initial guess (the previous motion; when the time step differs from the
+  previous one by more than 25 %, as in keyframe logs, also the previous motion scaled to the time
+  step, and the better overlap wins); the pose is chained,
   ``T_t = T_{t-1} ΔT_{t-1,t}`` [Ren2019 Eq. 7].
 * A frame becomes a keyframe when, relative to the last keyframe,
   ``ΔT = T_{k-1}⁻¹ T_k = [[ΔR, Δs], [0, 1]]`` [Ren2019 Eq. 8] has ``|Δs|`` above a distance,
@@ -40,7 +42,7 @@ import numpy as np
 
 from minegeo.errors import InputError
 from minegeo.geometry import voxel_downsample
-from minegeo.kernels.lie import se3_adjoint
+from minegeo.kernels.lie import se3_adjoint, se3_exp, se3_log
 from minegeo.registration import GICPParams, build_target_index, register_gicp
 from minegeo.registration.gicp import gicp_covariances_on_tree
 from minegeo.slam.observability import keep_prior_along, translation_observability
@@ -242,6 +244,15 @@ def _register_with_retries(cur: PreparedFrame, prev: PreparedFrame, guess: np.nd
     return max(good, key=lambda r: r.fitness) if good else reg
 
 
+def _time_scaled_guess(velocity: np.ndarray, dt: float, velocity_dt: float) -> np.ndarray | None:
+    """The previous motion scaled to this frame's time step, ``Exp((Δt/Δt_prev) Log(ΔT_prev))``, or
+    None when the two steps agree within 25 % (frames at a steady rate: the previous motion is the
+    guess as it is) or there is no previous motion yet."""
+    if not velocity_dt > 0 or not dt > 0 or abs(dt / velocity_dt - 1.0) <= 0.25:
+        return None
+    return se3_exp(np.ascontiguousarray((dt / velocity_dt) * se3_log(np.ascontiguousarray(velocity))))
+
+
 def _keyframe_due(dT: np.ndarray, dt: float, params: OdometryParams) -> bool:
     """[Ren2019 Eq. 8]: distance |Δs|, angle arccos((tr ΔR − 1)/2) or time above its threshold."""
     angle = math.degrees(math.acos(min(1.0, max(-1.0, (np.trace(dT[:3, :3]) - 1.0) / 2.0))))
@@ -270,7 +281,7 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
     times, poses, ok, reasons, fitness, weak = [], [], [], [], [], []
     kf_idx, kf_edges, kf_info, kf_clouds, kf_covs = [], [], [], [], []
     prev = last_kf = None
-    velocity = np.eye(4)
+    velocity, velocity_dt = np.eye(4), 0.0
     for k, (t, cur, dt_prep) in enumerate(_prepared_frames(frames, params)):
         t_prep += dt_prep
         if times and t <= times[-1]:
@@ -289,6 +300,11 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
             continue
         t0 = time.perf_counter()
         reg = _register_with_retries(cur, prev, velocity, params)  # [Ren2019 Eq. 7]: ΔT_{t-1,t}
+        scaled = _time_scaled_guess(velocity, t - prev.time_s, velocity_dt)
+        if scaled is not None:  # irregular frame times (keyframe logs, dropped frames): same speed, not same step
+            alt = _register_with_retries(cur, prev, scaled, params)
+            if alt.ok and (not reg.ok or alt.fitness > reg.fitness):
+                reg = alt
         t_f2f += time.perf_counter() - t0
         dT = reg.T if reg.ok else velocity
         if not reg.ok:
@@ -317,7 +333,8 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
             kf_covs.append(cur.covariances)
             last_kf = cur
         poses.append(pose)
-        velocity = np.linalg.solve(poses[-2], poses[-1]) if reg.ok else velocity
+        if reg.ok:
+            velocity, velocity_dt = np.linalg.solve(poses[-2], poses[-1]), t - times[-2]
         prev = cur if cur.index is not None else prev
         if progress is not None:
             progress(k)
