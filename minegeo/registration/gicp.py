@@ -261,8 +261,8 @@ class GICPResult(ICPResult):
 
 
 def _knn_normals(points: np.ndarray, tree, k: int, mode_open3d: bool):
-    """``(normals, status)`` of :func:`~minegeo.registration._kernels_gicp.knn_normals_kernel`, with
-    the points cut into ``prange`` tasks from ``PARALLEL_MIN_ROWS`` points (the same bits)."""
+    """``(normals, status, eigenvalues)`` of :func:`~minegeo.registration._kernels_gicp.knn_normals_kernel`,
+    with the points cut into ``prange`` tasks from ``PARALLEL_MIN_ROWS`` points (the same bits)."""
     m = points.shape[0]
     out_n = np.empty((m, 3))
     out_eval = np.empty((m, 3))
@@ -273,7 +273,7 @@ def _knn_normals(points: np.ndarray, tree, k: int, mode_open3d: bool):
         KG.knn_normals_tasks(*args)
     else:
         KG._knn_normals_serial(*args)
-    return out_n, out_status
+    return out_n, out_status, out_eval
 
 
 def _plane_covariances(normals: np.ndarray, isotropic: np.ndarray, params: GICPParams) -> np.ndarray:
@@ -295,7 +295,7 @@ def _covariances_and_normals(points: np.ndarray, params: GICPParams, normals=Non
         iso = np.zeros(n, dtype=np.bool_) if o3d else ~(np.linalg.norm(N, axis=1) > 0)
         return _plane_covariances(N, iso, params), N, "normals"
     tree = kd_build(points, KD_LEAF) if tree is None else tree
-    N, status = _knn_normals(points, tree, int(params.covariance_neighbours), o3d)
+    N, status, _ = _knn_normals(points, tree, int(params.covariance_neighbours), o3d)
     iso = np.zeros(n, dtype=np.bool_) if o3d else status != STATUS_OK
     return _plane_covariances(N, iso, params), N, "estimated"
 
@@ -337,7 +337,8 @@ def estimate_gicp_covariances(points, params: GICPParams | None = None, normals=
     return _covariances_and_normals(P, params, normals)[0]
 
 
-def gicp_covariances_on_tree(points: np.ndarray, params: GICPParams, index: GatedKDTree) -> np.ndarray:
+def gicp_covariances_on_tree(points: np.ndarray, params: GICPParams, index: GatedKDTree,
+                             with_surface: bool = False):
     """:func:`estimate_gicp_covariances` of ``points`` from the kNN of an existing search tree.
 
     Parameters
@@ -350,10 +351,16 @@ def gicp_covariances_on_tree(points: np.ndarray, params: GICPParams, index: Gate
     index : GatedKDTree
         The tree of :func:`minegeo.registration.build_target_index` over these very points.
 
+    with_surface : bool
+        Also return the kNN PCA behind the covariances.
+
     Returns
     -------
     (n, 3, 3) ndarray
         The covariances of :func:`estimate_gicp_covariances` (the same bits: the kNN is exact).
+        With ``with_surface``: ``(covariances, normals (n, 3), eigenvalues (n, 3) of the
+        neighbourhood covariance (m², any order), status (n,) int8 of
+        :mod:`minegeo.geometry.normals`)``.
 
     Raises
     ------
@@ -362,7 +369,12 @@ def gicp_covariances_on_tree(points: np.ndarray, params: GICPParams, index: Gate
     """
     if not isinstance(index, GatedKDTree) or not (index.data is points or np.array_equal(index.data, points)):
         raise InputError("index must be the KD-tree of build_target_index over these points")
-    return _covariances_and_normals(index.data, params, tree=index._tree)[0]
+    if not with_surface:
+        return _covariances_and_normals(index.data, params, tree=index._tree)[0]
+    o3d = params.covariance_mode == "open3d"
+    N, status, ev = _knn_normals(index.data, index._tree, int(params.covariance_neighbours), o3d)
+    iso = np.zeros(N.shape[0], dtype=np.bool_) if o3d else status != STATUS_OK
+    return _plane_covariances(N, iso, params), N, ev, status
 
 
 def _as_covariances(C, n: int, name: str) -> np.ndarray:

@@ -19,9 +19,11 @@
   weakness into the pose graph.
 * The sensor translation is checked on its own (:mod:`minegeo.slam.observability`): when the
   rotation-marginalised translation information has ``λ_min / λ_max`` below
-  ``translation_observability_ratio`` (a straight featureless drift, where GICP matches laser ring
-  to laser ring and would report a stop), the motion along that axis is taken from the
-  registration's initial guess (the constant-velocity prior) and the frame is flagged with the axis.
+  ``translation_observability_ratio`` and the surface patches of both frames (ring lines left out)
+  have theirs below ``surface_observability_ratio`` (a straight featureless drift, where GICP
+  matches laser ring to laser ring and would report a stop), the motion along that axis is taken
+  from the registration's initial guess (the constant-velocity prior) and the frame is flagged with
+  the axis.
 
 Edge information: GICP's Gauss–Newton matrix ``H`` is for a left perturbation in the target frame,
 parameters (ω, t); the pose graph perturbs on the right, so the edge information is
@@ -45,7 +47,7 @@ from minegeo.geometry import voxel_downsample
 from minegeo.kernels.lie import se3_adjoint, se3_exp, se3_log
 from minegeo.registration import GICPParams, build_target_index, register_gicp
 from minegeo.registration.gicp import gicp_covariances_on_tree
-from minegeo.slam.observability import keep_prior_along, translation_observability
+from minegeo.slam.observability import keep_prior_along, surface_translation_ratio, translation_observability
 
 __all__ = ["OdometryParams", "PreparedFrame", "OdometryResult", "prepare_frame", "register_frames", "run_odometry"]
 
@@ -68,10 +70,12 @@ class OdometryParams:
     sigma_floor_m: float = 0.01
     coarse_gate_factor: float = 3.0
     translation_observability_ratio: float = 0.03
+    surface_observability_ratio: float = 0.004
 
     def __post_init__(self):
         for name in ("voxel_size_m", "max_correspondence_distance_m", "keyframe_distance_m", "keyframe_angle_deg",
-                     "keyframe_interval_s", "sigma_floor_m", "coarse_gate_factor", "translation_observability_ratio"):
+                     "keyframe_interval_s", "sigma_floor_m", "coarse_gate_factor", "translation_observability_ratio",
+                     "surface_observability_ratio"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise InputError(f"{name} must be a finite number > 0, got {v!r}")
@@ -91,6 +95,7 @@ class PreparedFrame:
     points: np.ndarray
     covariances: np.ndarray
     index: object
+    surface_ratio: float = 1.0  # :func:`minegeo.slam.observability.surface_translation_ratio`
 
 
 @dataclass
@@ -162,8 +167,8 @@ def prepare_frame(points: np.ndarray, time_s: float, params: OdometryParams) -> 
     if P.shape[0] < params.min_points:
         return PreparedFrame(float(time_s), P, np.zeros((P.shape[0], 3, 3)), None)
     index = build_target_index(P)
-    C = gicp_covariances_on_tree(P, params.gicp(), index)
-    return PreparedFrame(float(time_s), P, C, index)
+    C, N, ev, status = gicp_covariances_on_tree(P, params.gicp(), index, with_surface=True)
+    return PreparedFrame(float(time_s), P, C, index, surface_translation_ratio(P, N, ev, status))
 
 
 def _prepared_frames(frames: Iterable[tuple[float, np.ndarray]], params: OdometryParams):
@@ -214,7 +219,8 @@ def register_frames(source: PreparedFrame, target: PreparedFrame, T_init: np.nda
     weak = res.degeneracy_reason if res.degenerate else ""
     T = res.T_target_source
     obs = translation_observability(res.information_6x6, params.translation_observability_ratio)
-    if obs.weak and not reason:  # e.g. a straight featureless drift: keep the prior along the free axis
+    surface = min(source.surface_ratio, target.surface_ratio)
+    if obs.weak and surface < params.surface_observability_ratio and not reason:  # e.g. a straight featureless drift: keep the prior along the free axis
         T = keep_prior_along(T, T_init, obs.axis)
         weak = (weak + "; " if weak else "") + obs.describe()
     if not res.converged and not reason:  # still creeping (a weak direction): better than a guess, flagged
