@@ -38,7 +38,7 @@ from minegeo.slam.planes import (
 )
 from minegeo.slam.posegraph import PlaneSet, PoseGraphParams, PoseGraphResult, optimize_pose_graph
 
-__all__ = ["SlamParams", "SlamResult", "run_slam"]
+__all__ = ["SlamParams", "SlamResult", "run_backend", "run_slam"]
 
 
 @dataclass(frozen=True)
@@ -55,9 +55,18 @@ class SlamParams:
         1 to 3.5 m below the sensor, is for a vehicle-mounted sensor about 2 m above the floor: it
         leaves out most of the walls, which otherwise outnumber the floor's inliers.
     plane_max_angle_deg, plane_max_offset_m : float
-        A keyframe's floor joins the plane node of the previous keyframe's floor while the normals
-        differ by at most this angle and the two planes' heights below the keyframe by at most
-        this offset (a roadway section of constant grade); else a new node starts.
+        A keyframe's floor joins the plane node of the previous keyframe's floor while its normal
+        and the node's running floor differ by at most this angle and the two planes' heights below
+        the keyframe by at most this offset (a roadway section of constant grade); else a new node
+        starts (see ``_associate_floors``).
+    plane_revisit_distance_m : float
+        A floor that matches neither of the latest plane nodes joins an older node (a floor driven
+        again after a loop) when a keyframe of that node lies within this horizontal distance at
+        the current poses and its floor agrees within the angle and offset above (m; 0 turns the
+        linking off: every revisit starts a new node).
+    plane_smoothing : float
+        Weight of a new floor in its node's running floor, which the next floors are compared with
+        (0 < w ≤ 1; 1 compares with the latest floor only).
     plane_sigma_angle_deg, plane_sigma_offset_m : float
         Lower bounds of the standard deviations of a floor observation (normal angles, offset):
         the fit's own ``rms/√N`` is far below the floor's departure from a plane.
@@ -77,6 +86,8 @@ class SlamParams:
     plane_max_offset_m: float = 0.3
     plane_sigma_angle_deg: float = 0.5
     plane_sigma_offset_m: float = 0.05
+    plane_revisit_distance_m: float = 4.0
+    plane_smoothing: float = 0.2
     remove_noise: bool = True
     noise: RoadwayNoiseParams = field(default_factory=RoadwayNoiseParams)
 
@@ -85,6 +96,10 @@ class SlamParams:
                 self.plane_sigma_offset_m)
         if not all(np.isfinite(v) and v > 0 for v in vals):
             raise InputError(f"plane association and sigma parameters must be finite and > 0, got {vals}")
+        if not 0 < self.plane_smoothing <= 1:
+            raise InputError(f"plane_smoothing must be in (0, 1], got {self.plane_smoothing}")
+        if not (np.isfinite(self.plane_revisit_distance_m) and self.plane_revisit_distance_m >= 0):
+            raise InputError(f"plane_revisit_distance_m must be finite and >= 0, got {self.plane_revisit_distance_m}")
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -174,22 +189,18 @@ def _floor_observations(odo: OdometryResult, kf_poses: np.ndarray, params: SlamP
 
     The sub-map of keyframe ``k``: the clouds of the keyframes within ``floor.radius_m`` of it along
     the path, in the world frame from the current poses; the floor is extracted about the keyframe
-    position with ``up`` its sensor z axis (seed ``k``). Consecutive floors share a node while the
-    normals differ by at most ``plane_max_angle_deg`` and their heights below the later keyframe by
-    at most ``plane_max_offset_m`` (a floor that matches neither the latest node nor the one before
-    starts a new node; one that matches the one before returns to it). The information of an observation is
+    position with ``up`` its sensor z axis (seed ``k``). The information of an observation is
     ``diag(1/σ_a², 1/σ_a², 1/σ_d²)`` with ``σ_d = max(rms/√N, plane_sigma_offset_m)`` and
     ``σ_a = max(rms/(√N·s), plane_sigma_angle_deg)``, ``s`` the RMS in-plane spread of the inliers.
+    The nodes are assigned by :func:`_associate_floors` at ``kf_poses``.
 
     Returns ``(pose index, node) edges, measurements (m, 4), information (m, 3, 3), status per keyframe``.
     """
     fp = params.floor
     path = _path_lengths(kf_poses)
     world = [P @ T[:3, :3].T + T[:3, 3] for P, T in zip(odo.keyframe_clouds, kf_poses, strict=True)]
-    cos_max = np.cos(np.deg2rad(params.plane_max_angle_deg))
     sa_min, sd_min = np.deg2rad(params.plane_sigma_angle_deg), params.plane_sigma_offset_m
-    edges, meas, info, status = [], [], [], []
-    last: dict[int, np.ndarray] = {}  # node → its latest floor (world frame)
+    kfs, meas, info, status = [], [], [], []
     for k, T in enumerate(kf_poses):
         near = np.flatnonzero(np.abs(path - path[k]) <= fp.radius_m)
         sub = np.concatenate([world[j] for j in near])
@@ -197,24 +208,64 @@ def _floor_observations(odo: OdometryResult, kf_poses: np.ndarray, params: SlamP
         status.append(res.status)
         if res.status != "ok":
             continue
-        pl = res.plane
-        t = T[:3, 3]
-
-        # the previous floor's node, else the node before it (a single odd floor, e.g. a muck pile
-        # or a junction, gets its own node and does not split the section), else a new node
-        hit = [q for q in sorted(last, reverse=True)[:2] if _same_section(pl, last[q], t, cos_max, params)]
-        node = hit[0] if hit else (max(last) + 1 if last else 0)
-        last[node] = pl
         Q = sub[res.inliers]
         spread = np.sqrt(max(float(np.mean(np.sum((Q - Q.mean(axis=0)) ** 2, axis=1))) / 2.0, 1e-12))
         sd = max(res.rms_m / np.sqrt(res.n_inliers), sd_min)
         sa = max(res.rms_m / (np.sqrt(res.n_inliers) * spread), sa_min)
-        edges.append((k, node))
-        meas.append(plane_in_sensor_frame(pl, T))
+        kfs.append(k)
+        meas.append(plane_in_sensor_frame(res.plane, T))
         info.append(np.diag([1.0 / sa ** 2, 1.0 / sa ** 2, 1.0 / sd ** 2]))
-    m = len(edges)
-    return (np.asarray(edges, dtype=np.int64).reshape(m, 2), np.asarray(meas).reshape(m, 4),
-            np.asarray(info).reshape(m, 3, 3), status)
+    m = len(kfs)
+    meas_a = np.asarray(meas).reshape(m, 4)
+    kf_a = np.asarray(kfs, dtype=np.int64)
+    return (np.column_stack([kf_a, _associate_floors(kf_a, meas_a, kf_poses, params)]).astype(np.int64).reshape(m, 2),
+            meas_a, np.asarray(info).reshape(m, 3, 3), status)
+
+
+def _associate_floors(kfs: np.ndarray, meas: np.ndarray, kf_poses: np.ndarray, params: SlamParams) -> np.ndarray:
+    """Plane node of each floor observation (keyframe ``kfs[e]``, plane ``meas[e]`` in its sensor frame).
+
+    The floors are taken into the world frame at ``kf_poses`` [Ren2019 Eq. 9] [Ren2019 Eq. 10] (inverse),
+    in keyframe order. Each node keeps a running floor, ``(1 − w)·floor + w·new floor`` renormalised,
+    ``w = plane_smoothing`` (w = 1: the latest floor): single floors scatter by 1-4° in normal (the
+    sub-map fit), and compared with the latest floor alone a level drift split into a new node every
+    50-100 m (benchmarks/bench_slam.py). A floor joins, in this order of preference:
+
+    1. the node of the previous floor, else the node before it (a single odd floor, a muck pile or a
+       junction, gets its own node and does not split the section), while its normal and the node's
+       running floor differ by at most ``plane_max_angle_deg`` and their heights below the keyframe
+       by at most ``plane_max_offset_m`` (a roadway section of constant grade);
+    2. with ``plane_revisit_distance_m > 0``, an older node (a floor driven again after a loop) with
+       an observing keyframe within that horizontal distance (at the current poses) whose floor
+       agrees in the same way (which also excludes another level); the nearest such keyframe's node;
+    3. a new node.
+    """
+    cos_max = np.cos(np.deg2rad(params.plane_max_angle_deg))
+    last: dict[int, np.ndarray] = {}  # node → its running floor (world frame)
+    nodes = np.zeros(kfs.size, dtype=np.int64)
+    world = np.zeros((kfs.size, 4))
+    pos = kf_poses[kfs, :3, 3] if kfs.size else np.zeros((0, 3))
+    for e, k in enumerate(kfs):
+        pl = plane_in_world_frame(meas[e], kf_poses[k])
+        t = kf_poses[k, :3, 3]
+        world[e] = pl
+        hit = [q for q in sorted(last, reverse=True)[:2] if _same_section(pl, last[q], t, cos_max, params)]
+        if not hit and params.plane_revisit_distance_m > 0 and e:
+            recent = set(sorted(last, reverse=True)[:2])
+            d = np.hypot(pos[:e, 0] - t[0], pos[:e, 1] - t[1])
+            ok = (d <= params.plane_revisit_distance_m) & ~np.isin(nodes[:e], list(recent))
+            for f in np.flatnonzero(ok)[np.argsort(d[ok], kind="stable")]:
+                if _same_section(pl, world[f], t, cos_max, params):
+                    hit = [int(nodes[f])]
+                    break
+        node = hit[0] if hit else (max(last) + 1 if last else 0)
+        if node in last:  # the node's running floor: one noisy floor moves it by a fraction only
+            q = (1.0 - params.plane_smoothing) * last[node] + params.plane_smoothing * pl
+            last[node] = q / np.linalg.norm(q[:3])
+        else:
+            last[node] = pl
+        nodes[e] = node
+    return nodes
 
 
 def _same_section(pl, q, t, cos_max: float, params: SlamParams) -> bool:
@@ -223,11 +274,14 @@ def _same_section(pl, q, t, cos_max: float, params: SlamParams) -> bool:
             and abs((pl[:3] @ t + pl[3]) - (q[:3] @ t + q[3])) <= params.plane_max_offset_m)
 
 
-def _plane_set(obs, kf_poses: np.ndarray) -> PlaneSet | None:
-    """Plane nodes initialised from their first observation at the current poses."""
+def _plane_set(obs, kf_poses: np.ndarray, params: SlamParams) -> PlaneSet | None:
+    """Plane nodes associated (:func:`_associate_floors`) and initialised from their first observation,
+    both at the current poses ``kf_poses`` (after a loop closure a revisited floor is then near its
+    earlier observations and joins their node)."""
     edges, meas, info, _ = obs
     if edges.shape[0] == 0:
         return None
+    edges = np.column_stack([edges[:, 0], _associate_floors(edges[:, 0], meas, kf_poses, params)])
     n_nodes = int(edges[:, 1].max()) + 1
     first = [int(np.flatnonzero(edges[:, 1] == q)[0]) for q in range(n_nodes)]
     planes = np.stack([plane_in_world_frame(meas[e], kf_poses[edges[e, 0]]) for e in first])
@@ -236,7 +290,7 @@ def _plane_set(obs, kf_poses: np.ndarray) -> PlaneSet | None:
 
 def _optimise(kf_poses, odo, loops, obs, params: SlamParams) -> PoseGraphResult:
     return optimize_pose_graph(_graph(kf_poses, odo, loops), params.posegraph,
-                               _plane_set(obs, kf_poses) if obs is not None else None)
+                               _plane_set(obs, kf_poses, params) if obs is not None else None)
 
 
 def _close_loops(odo: OdometryResult, params: SlamParams, obs=None):
@@ -248,8 +302,10 @@ def _close_loops(odo: OdometryResult, params: SlamParams, obs=None):
     def prepared(k: int) -> PreparedFrame:
         if k not in frames:
             P = odo.keyframe_clouds[k]
-            frames[k] = PreparedFrame(float(odo.times_s[odo.keyframes[k]]), P, odo.keyframe_covariances[k],
-                                      build_target_index(P) if P.shape[0] >= params.odometry.min_points else None)
+            index = build_target_index(P) if P.shape[0] >= params.odometry.min_points else None
+            if index is not None:
+                P = index.data  # the very array the index holds (GICP checks the target by identity)
+            frames[k] = PreparedFrame(float(odo.times_s[odo.keyframes[k]]), P, odo.keyframe_covariances[k], index)
         return frames[k]
 
     loops: list[LoopCandidate] = []
@@ -291,6 +347,8 @@ def _all_poses(odo: OdometryResult, kf_poses: np.ndarray) -> np.ndarray:
 def run_slam(frames: Iterable[tuple[float, np.ndarray]], params: SlamParams | None = None, progress=None) -> SlamResult:
     """Run the SLAM chain on frames ``(time_s, points in the sensor frame)`` in time order.
 
+    The odometry (:func:`minegeo.slam.odometry.run_odometry`) then :func:`run_backend` on its result.
+
     Returns
     -------
     SlamResult
@@ -300,14 +358,48 @@ def run_slam(frames: Iterable[tuple[float, np.ndarray]], params: SlamParams | No
     params = params or SlamParams()
     t0 = time.perf_counter()
     odo = run_odometry(frames, params.odometry, progress)
+    return run_backend(odo, params, odometry_s=time.perf_counter() - t0)
+
+
+def run_backend(odo: OdometryResult, params: SlamParams | None = None, *, use_loops: bool = True,
+                odometry_s: float = 0.0) -> SlamResult:
+    """The back end on a finished odometry: floor planes, loop closure, pose graph, map.
+
+    Lets the same odometry be run through several back ends (the ablation of Ren et al. 2019,
+    Figs. 13-15): ``params.use_planes`` switches the floor-plane landmarks, ``use_loops`` the loop
+    closure. With neither, the keyframe graph holds only the odometry edges and its optimum is the
+    chained odometry itself, so no optimisation is run (``optimisation`` is None).
+
+    Parameters
+    ----------
+    odo : OdometryResult
+        From :func:`minegeo.slam.odometry.run_odometry` (it is not modified).
+    params : SlamParams, optional
+        ``params.odometry`` must be the parameters the odometry ran with (loop verification reuses
+        them).
+    use_loops : bool
+        Search and verify loop closures (Sec. 3.4.1).
+    odometry_s : float
+        Time the odometry took (s), recorded in ``timings_s``.
+
+    Returns
+    -------
+    SlamResult
+    """
+    params = params or SlamParams()
     t1 = time.perf_counter()
     obs = None
     if params.use_planes and odo.keyframes.size > 1:
         obs = _floor_observations(odo, odo.poses[odo.keyframes], params)
     t_planes = time.perf_counter()
-    kf_poses, loops = _close_loops(odo, params, obs)
+    if use_loops:
+        kf_poses, loops = _close_loops(odo, params, obs)
+    else:
+        kf_poses, loops = odo.poses[odo.keyframes].copy(), []
     t2 = time.perf_counter()
-    opt = _optimise(kf_poses, odo, loops, obs, params) if odo.keyframes.size > 1 else None
+    opt = None
+    if odo.keyframes.size > 1 and (use_loops or obs is not None):
+        opt = _optimise(kf_poses, odo, loops, obs, params)
     if opt is not None and opt.status != "failed":
         kf_poses = opt.graph.poses.copy()
     graph = opt.graph if opt is not None else _graph(kf_poses, odo, loops)
@@ -324,9 +416,9 @@ def run_slam(frames: Iterable[tuple[float, np.ndarray]], params: SlamParams | No
     t_noise = time.perf_counter() - t_noise
     map_points = voxel_downsample(cloud, params.map_voxel_m).points if cloud.shape[0] else cloud
     t4 = time.perf_counter()
-    timings = {**{f"odometry_{k}": v for k, v in odo.timings_s.items()}, "odometry": t1 - t0,
+    timings = {**{f"odometry_{k}": v for k, v in odo.timings_s.items()}, "odometry": odometry_s,
                "floor_planes": t_planes - t1, "loop_closure": t2 - t_planes, "pose_graph": t3 - t2,
-               "map_noise": t_noise, "map": t4 - t3, "total": t4 - t0}
+               "map_noise": t_noise, "map": t4 - t3, "total": odometry_s + (t4 - t1)}
     planes = opt.planes if opt is not None else None
     return SlamResult(odo.times_s, poses, odo.keyframes, kf_poses, graph, loops, map_points, odo, opt, params, timings,
                       planes, obs[3] if obs is not None else [], noise)
