@@ -40,6 +40,7 @@ KNOWN_SOURCES = frozenset({
     "Barfoot2017",       # State Estimation for Robotics, 1st ed.
     "Sturm2012",         # Sturm et al.: A benchmark for the evaluation of RGB-D SLAM systems (IROS 2012)
     "Nocedal2006",       # Nocedal & Wright: Numerical Optimization, 2nd ed.
+    "Davis2006",         # Davis: Direct Methods for Sparse Linear Systems (SIAM)
 })
 
 _NUM = r"\d+(?:\.\d+)*[a-z]?"

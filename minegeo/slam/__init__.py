@@ -23,7 +23,26 @@ def _warmup() -> None:
         r, Ji, Jj = np.empty((1, n)), np.empty((1, n, n)), np.empty((1, n, n))
         terms(poses, edges, Z, r, Ji, Jj)
         res(poses, edges, Z, r)
+    _warmup_solver()
     _warmup_planes_and_map()
+
+
+def _warmup_solver() -> None:
+    """Run the Levenberg–Marquardt solver on a tiny SE(3) and SE(2) loop (block Cholesky path)."""
+    import numpy as np
+
+    from minegeo.io.g2o import PoseGraph
+    from minegeo.slam.posegraph import optimize_pose_graph
+
+    for kind, d, m in (("SE3", 4, 6), ("SE2", 3, 3)):
+        poses = np.tile(np.eye(d), (4, 1, 1))
+        for k in range(4):
+            poses[k, 0, d - 1] = float(k)
+        edges = np.array([[0, 1], [1, 2], [2, 3], [0, 3]], dtype=np.int64)
+        Z = np.stack([np.linalg.solve(poses[i], poses[j]) for i, j in edges])
+        Z[:, 1, d - 1] += 0.01
+        graph = PoseGraph(kind, np.arange(4, dtype=np.int64), poses, edges, Z, np.tile(np.eye(m), (4, 1, 1)))
+        optimize_pose_graph(graph)
 
 
 def _warmup_planes_and_map() -> None:

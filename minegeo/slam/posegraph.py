@@ -15,13 +15,21 @@ analytic Jacobians ``J_i``, ``J_j``), assembles the sparse normal equations
 
 .. math::
 
-    (H + \\lambda\\, \\mathrm{diag}(H))\\, \\delta = -g, \\quad
+    (H + \\lambda D)\\, \\delta = -g, \\quad
     H = \\sum J^\\top W \\Omega J, \\quad g = \\sum J^\\top W \\Omega r
 
-by hand into a ``scipy.sparse`` matrix (blocks ``(i,i), (i,j), (j,i), (j,j)`` per edge), removes
-the fixed poses (gauge: the ``FIX`` vertices, else the first one), solves with a sparse LU
-factorisation, and retracts ``T ← T · Exp(δ)``. A step is accepted when it lowers the cost (λ ÷ 10),
-else rejected (λ × 10) [Nocedal2006 Sec. 10.3]. Robust kernels reweight each edge by its whitened
+with ``D = I`` (GTSAM's default damping) or ``D = diag(H)`` (Marquardt's, ``damping="diagonal"``),
+over the free poses (gauge: the ``FIX`` vertices, else the first one), and retracts
+``T ← T · Exp(δ)``. A step is accepted when it lowers the cost (λ ÷ 10), else rejected (λ × 10)
+[Nocedal2006 Sec. 10.3]. The linear algebra is by d×d blocks (d = 6 or 3): the free poses are put
+in a fill-reducing order once (minimum degree on the pose graph), the pattern of the Cholesky factor
+is computed once (elimination tree), every edge's blocks are accumulated by a serial Numba kernel
+straight into that pattern, and each damping trial is a left-looking block Cholesky and two block
+triangular solves (:mod:`minegeo.slam._kernels`); a trial whose damped matrix is not positive
+definite is rejected like a step that raises the cost. Graphs with an indefinite information
+matrix (the real ``cubicle.g2o``) or with plane landmarks use the general path instead: the same
+normal equations as a ``scipy.sparse`` matrix (blocks ``(i,i), (i,j), (j,i), (j,j)`` per edge)
+solved by a sparse LU factorisation, which does not need ``H + λD`` to be positive definite. Robust kernels reweight each edge by its whitened
 residual ``s = sqrt(rᵀΩr)`` (IRLS): Huber ``w = min(1, k/s)``, Cauchy ``w = 1/(1 + (s/k)²)``.
 
 Optional plane landmarks (:class:`PlaneSet`, Ren et al. 2019 Sec. 3.4.2-3.4.3): world planes
@@ -66,7 +74,7 @@ class PoseGraphParams:
     max_iterations : int
         Largest number of linearisations.
     lambda_init : float
-        Initial LM damping (relative to ``diag(H)``).
+        Initial LM damping λ (see ``damping``).
     relative_cost_tolerance : float
         Stop when an accepted step lowers the cost by less than this fraction.
     step_tolerance : float
@@ -75,6 +83,9 @@ class PoseGraphParams:
         Robust kernel on the whitened residual norm.
     robust_scale : float
         Kernel width ``k`` in whitened units (1 = one standard deviation).
+    damping : {"diagonal", "identity"}
+        LM damping matrix ``D`` in ``(H + λD) δ = -g``: ``diag(H)`` (Marquardt, unit-free) or
+        ``I`` (GTSAM's default; fewer iterations on graphs with very large information values).
     """
 
     max_iterations: int = 100
@@ -83,8 +94,11 @@ class PoseGraphParams:
     step_tolerance: float = 1e-10
     robust: str = "none"
     robust_scale: float = 1.0
+    damping: str = "identity"
 
     def __post_init__(self):
+        if self.damping not in ("diagonal", "identity"):
+            raise InputError(f"damping must be 'diagonal' or 'identity', got {self.damping!r}")
         if self.robust not in ROBUST:
             raise InputError(f"robust must be one of {ROBUST}, got {self.robust!r}")
         if not (self.max_iterations >= 1 and self.lambda_init > 0 and self.robust_scale > 0):
@@ -318,6 +332,108 @@ def _normal_equations(kind, poses, edges, Z, info, w, free_col, plane_part=None)
     return H, g, r
 
 
+def _elimination_order(nf: int, pairs: np.ndarray) -> np.ndarray:
+    """A fill-reducing elimination order of the free poses (minimum degree on ``AᵀA + A``).
+
+    The order comes from SuperLU's multiple-minimum-degree ordering (``MMD_AT_PLUS_A``) applied to
+    the pose-level pattern of ``H`` (one scalar per d×d block, made diagonally dominant so that
+    SuperLU keeps the diagonal pivots); ``order[k]`` is the free pose eliminated k-th. The same
+    order serves every iteration (the pattern of ``H`` does not change).
+    """
+    if nf <= 1 or pairs.shape[0] == 0:
+        return np.arange(nf, dtype=np.int64)
+    a, b = pairs[:, 0], pairs[:, 1]
+    deg = np.bincount(np.r_[a, b], minlength=nf).astype(np.float64)
+    P = sp.coo_matrix((np.r_[np.full(a.size, -1.0), np.full(a.size, -1.0), deg + 1.0],
+                       (np.r_[a, b, np.arange(nf)], np.r_[b, a, np.arange(nf)])), shape=(nf, nf)).tocsc()
+    lu = spla.splu(P, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    return np.argsort(lu.perm_c).astype(np.int64)
+
+
+def _symbolic_cholesky(nb: int, lower: np.ndarray):
+    """Column patterns of the block Cholesky factor: ``(Lp, Li)`` from the lower block pattern of ``H``.
+
+    ``lower`` holds ``(row, col)`` block pairs with ``row > col``. The pattern of column j is its own
+    rows in ``H`` united with the patterns of its children in the elimination tree (the columns whose
+    first sub-diagonal row is j) [Davis2006 Thm. 4.2]; the diagonal block comes first.
+    """
+    by_col = [[] for _ in range(nb)]
+    for r_, c_ in lower.tolist():
+        by_col[c_].append(r_)
+    children = [[] for _ in range(nb)]
+    cols = []
+    for j in range(nb):
+        parts = [np.asarray(by_col[j], dtype=np.int64)] + [cols[c][cols[c] > j] for c in children[j]]
+        rows = np.unique(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
+        rows = rows[rows > j]
+        cols.append(rows)
+        if rows.size:
+            children[int(rows[0])].append(j)
+    Lp = np.zeros(nb + 1, dtype=np.int64)
+    Lp[1:] = np.cumsum([c.size + 1 for c in cols])
+    Li = np.concatenate([np.r_[j, c] for j, c in enumerate(cols)]).astype(np.int64) if nb else np.zeros(0, np.int64)
+    return Lp, Li
+
+
+class _BlockSystem:
+    """The pose-only normal equations as d×d blocks in the pattern of their Cholesky factor.
+
+    Built once per optimisation (ordering and symbolic factorisation); each iteration accumulates
+    ``H``, ``g`` (:func:`minegeo.slam._kernels.accumulate_normal_equations`), and each damping trial
+    factorises ``H + λD`` (:func:`~minegeo.slam._kernels.block_cholesky`) and solves. Vertex
+    ``v``'s step is ``δ[col[v] : col[v] + d]`` (``col = -1`` for a fixed pose)."""
+
+    def __init__(self, kind: str, n: int, edges: np.ndarray, free: np.ndarray):
+        d = self.d = _dof(kind)
+        self.kind = kind
+        nf = int(free.sum())
+        fidx = np.full(n, -1, dtype=np.int64)
+        fidx[free] = np.arange(nf)
+        fe = fidx[edges]
+        both = (fe >= 0).all(axis=1) & (fe[:, 0] != fe[:, 1])
+        order = _elimination_order(nf, fe[both])
+        rank = np.empty(nf, dtype=np.int64)
+        rank[order] = np.arange(nf)
+        blk = np.where(fidx >= 0, rank[np.maximum(fidx, 0)], -1)  # block index of each vertex, -1 fixed
+        self.bcol = np.ascontiguousarray(blk[edges])
+        bi, bj = self.bcol[:, 0], self.bcol[:, 1]
+        lo_r, lo_c = np.maximum(bi, bj), np.minimum(bi, bj)
+        self.Lp, self.Li = _symbolic_cholesky(nf, np.c_[lo_r, lo_c][both])
+        key = np.repeat(np.arange(nf, dtype=np.int64), np.diff(self.Lp)) * max(nf, 1) + self.Li
+        self.slot_ii = np.where(bi >= 0, self.Lp[np.maximum(bi, 0)], -1)
+        self.slot_jj = np.where(bj >= 0, self.Lp[np.maximum(bj, 0)], -1)
+        self.slot_ij = np.where(both, np.searchsorted(key, lo_c * max(nf, 1) + lo_r), -1)
+        self.ij_lower = (bi > bj).astype(np.int64)
+        self.col = np.ascontiguousarray(np.where(blk >= 0, blk * d, -1))
+        self.n_cols = nf * d
+        self.Hx = self.g = None
+
+    def assemble(self, poses, edges, Z, info, w):
+        """Linearise every edge at ``poses`` and accumulate ``H`` (blocks) and ``g``."""
+        d, m = self.d, edges.shape[0]
+        r, Ji, Jj = np.empty((m, d)), np.empty((m, d, d)), np.empty((m, d, d))
+        (K.se3_edge_terms if self.kind == "SE3" else K.se2_edge_terms)(poses, edges, Z, r, Ji, Jj)
+        self.Hx = np.zeros((self.Li.size, d, d))
+        self.g = np.zeros(self.n_cols)
+        WO = np.ascontiguousarray(info * w[:, None, None])
+        K.accumulate_normal_equations(r, Ji, Jj, WO, self.bcol, self.slot_ii, self.slot_jj, self.slot_ij,
+                                      self.ij_lower, self.Hx, self.g)
+
+    def solve(self, lam: float, relative: bool):
+        """``δ`` with ``(H + λ D) δ = -g`` (elimination order), or None if not positive definite;
+        ``D = diag(H)`` when ``relative``, else ``I``."""
+        Lx = np.empty_like(self.Hx)
+        if not K.block_cholesky(self.Lp, self.Li, self.Hx, lam, relative, Lx):
+            return None
+        return K.block_cholesky_solve(self.Lp, self.Li, Lx, -self.g)
+
+    def retract(self, poses, delta):
+        """``T_v ← T_v · Exp(δ_v)`` for every free pose."""
+        out = np.empty_like(poses)
+        (K.se3_retract_all if self.kind == "SE3" else K.se2_retract_all)(poses, self.col, delta, out)
+        return out
+
+
 def _unanchored(n: int, edges: np.ndarray, fixed_idx) -> np.ndarray:
     """Vertices in a connected component without a fixed vertex (their gauge is free: H is singular)."""
     from scipy.sparse.csgraph import connected_components
@@ -366,6 +482,20 @@ def _check_planes(graph: PoseGraph, ps: PlaneSet | None) -> str:
     return f"{lost.size} plane(s) observed by no pose (first: plane {int(lost[0])})" if lost.size else ""
 
 
+def _gauge(graph: PoseGraph):
+    """The fixed vertices (``FIX`` records, else the first) and the column layout of the free ones:
+    ``(fixed indices, fixed ids, free mask, first column per vertex (-1 fixed), free indices, pose columns)``."""
+    d = _dof(graph.kind)
+    n = graph.n_vertices
+    fixed_idx = [int(np.flatnonzero(graph.ids == f)[0]) for f in graph.fixed] or [0]
+    fixed_ids = tuple(int(graph.ids[k]) for k in fixed_idx)
+    free = np.ones(n, dtype=bool)
+    free[fixed_idx] = False
+    free_col = np.full(n, -1, dtype=np.int64)
+    free_col[free] = np.arange(int(free.sum())) * d
+    return fixed_idx, fixed_ids, free, free_col, np.flatnonzero(free), int(free.sum()) * d
+
+
 def optimize_pose_graph(graph: PoseGraph, params: PoseGraphParams | None = None,
                         planes: PlaneSet | None = None) -> PoseGraphResult:
     """Minimise the contract cost of a pose graph by Levenberg–Marquardt on the Lie algebra.
@@ -398,16 +528,8 @@ def optimize_pose_graph(graph: PoseGraph, params: PoseGraphParams | None = None,
     plane_problem = _check_planes(graph, planes)
     poses, edges, Z = _arrays(graph)
     info = _information_rt(graph)
-    d = _dof(graph.kind)
     n = graph.n_vertices
-    fixed_idx = [int(np.flatnonzero(graph.ids == f)[0]) for f in graph.fixed] or [0]
-    fixed_ids = tuple(int(graph.ids[k]) for k in fixed_idx)
-    free = np.ones(n, dtype=bool)
-    free[fixed_idx] = False
-    free_col = np.full(n, -1, dtype=np.int64)
-    free_col[free] = np.arange(int(free.sum())) * d
-    free_ids = np.flatnonzero(free)
-    n_pose_cols = int(free.sum()) * d
+    fixed_idx, fixed_ids, free, free_col, free_ids, n_pose_cols = _gauge(graph)
 
     def result(status, reason, cost_i, cost_f, iters, hist, n_bad, pl=None, g=graph):
         return PoseGraphResult(g, status, reason, cost_i, cost_f, iters, hist, fixed_ids, n_bad, params,
@@ -437,20 +559,38 @@ def optimize_pose_graph(graph: PoseGraph, params: PoseGraphParams | None = None,
     status, reason, it = "max_iterations", f"stopped after {params.max_iterations} iterations", 0
     if not np.isfinite(cost0):
         return result("failed", "the initial cost is not finite", cost0, cost0, 0, [], n_bad)
+    # block Cholesky unless planes are present or an information matrix is indefinite (H may then be
+    # indefinite: the general sparse LU path, as GTSAM cannot represent such an edge either)
+    no_planes = planes is None or (planes.n_planes == 0 and planes.n_edges == 0)
+    blocks = _BlockSystem(graph.kind, n, edges, free) if no_planes and not n_bad else None
     for it in range(1, params.max_iterations + 1):
         w = _robust_weights(r, info, params)
-        part = None if planes is None else (pl, planes, _robust_weights(rp, planes.information, params))
-        H, g, _ = _normal_equations(graph.kind, poses, edges, Z, info, w, free_col, part)
-        diag = H.diagonal()
-        accepted = False
+        if blocks is not None:
+            blocks.assemble(poses, edges, Z, info, w)
+        else:
+            part = None if planes is None else (pl, planes, _robust_weights(rp, planes.information, params))
+            H, g, _ = _normal_equations(graph.kind, poses, edges, Z, info, w, free_col, part)
+            diag = H.diagonal()
+        accepted, factorised = False, False
         while lam < 1e12:
-            A = (H + sp.diags(lam * np.maximum(diag, 1e-12))).tocsc()
-            try:
-                delta = spla.splu(A).solve(-g)
-            except RuntimeError:  # exactly singular: a vertex no edge reaches
-                return result("failed", "singular normal equations: a vertex is not constrained by any edge "
-                              "(disconnected graph?)", cost0, cost0, it, history, n_bad)
-            trial = _retract(graph.kind, poses, free_ids, free_col, delta)
+            if blocks is not None:
+                delta = blocks.solve(lam, params.damping == "diagonal")
+                if delta is None:  # H + λ diag(H) not positive definite: more damping
+                    history.append({"iteration": it, "cost": cost, "lambda": lam, "accepted": False, "step": 0.0,
+                                    "factorised": False})
+                    lam *= 10.0
+                    continue
+                trial = blocks.retract(poses, delta)
+            else:
+                D = np.maximum(diag, 1e-12) if params.damping == "diagonal" else np.ones(diag.size)
+                A = (H + sp.diags(lam * D)).tocsc()
+                try:
+                    delta = spla.splu(A).solve(-g)
+                except RuntimeError:  # exactly singular: a vertex no edge reaches
+                    return result("failed", "singular normal equations: a vertex is not constrained by any edge "
+                                  "(disconnected graph?)", cost0, cost0, it, history, n_bad)
+                trial = _retract(graph.kind, poses, free_ids, free_col, delta)
+            factorised = True
             r_trial = _residuals(graph.kind, trial, edges, Z)
             cost_trial = _robust_cost(r_trial, info, params)
             if planes is not None:
@@ -468,14 +608,15 @@ def optimize_pose_graph(graph: PoseGraph, params: PoseGraphParams | None = None,
                 break
             history.append({"iteration": it, "cost": cost_trial, "lambda": lam, "accepted": False, "step": step})
             lam *= 10.0
+        if not accepted and not factorised:
+            return result("failed", "the damped normal equations are not positive definite at any damping "
+                          "(indefinite information matrices?)", cost0, cost0, it, history, n_bad)
         if not accepted:
             status, reason = "converged", "no step lowers the cost (damping exhausted): at a minimum"
             break
         if rel < params.relative_cost_tolerance or step < params.step_tolerance:
             status, reason = "converged", f"relative cost decrease {rel:.2e}, largest step {step:.2e}"
             break
-    cost_final = _cost(r, info)
-    if planes is not None:
-        cost_final += _cost(rp, planes.information)
+    cost_final = _cost(r, info) + (_cost(rp, planes.information) if planes is not None else 0.0)
     return result(status, reason, cost0, cost_final, it, history, n_bad,
                   planes.with_planes(pl) if planes is not None else None, graph.with_poses(poses))

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from reference import naive_posegraph as NP
 
-from minegeo.io.g2o import PoseGraph, read_g2o
+from minegeo.io.g2o import PoseGraph, non_psd_edges, read_g2o
 from minegeo.slam import _kernels as K
 from minegeo.slam.posegraph import PoseGraphParams, optimize_pose_graph, pose_graph_cost
 
@@ -156,6 +156,18 @@ def test_an_unconstrained_vertex_fails_with_a_reason():
     assert np.array_equal(res.graph.poses, lonely.poses)
 
 
+def test_a_disconnected_g2o_graph_fails_naming_a_vertex(tmp_path):
+    """Two chains with no edge between them: the second has no gauge; a clear reason, not a crash."""
+    p = tmp_path / "two.g2o"
+    vert = "".join(f"VERTEX_SE2 {k} {k} 0 0\n" for k in (0, 1, 2, 10, 11))
+    info = "1 0 0 1 0 1"
+    p.write_text(vert + f"EDGE_SE2 0 1 1 0 0 {info}\nEDGE_SE2 1 2 1 0 0 {info}\nEDGE_SE2 10 11 1 0 0 {info}\n")
+    res = optimize_pose_graph(read_g2o(p))
+    assert res.status == "failed"
+    assert "2 vertex(es) not constrained by any edge path to a fixed vertex (first: id 10)" in res.reason
+    assert "disconnected" in res.reason
+
+
 def test_same_input_gives_bit_identical_output():
     g = read_g2o(shared_data("pose_graph_g2o", "smallGrid3D.g2o"))
     a, b = optimize_pose_graph(g), optimize_pose_graph(g)
@@ -170,29 +182,72 @@ def _gtsam():
     return require_oracle("gtsam")
 
 
-def _gtsam_optimum(path):
+def _gtsam_graph(path):
+    """GTSAM's factor graph and initial values for a g2o file (``readG2o``), and the information
+    matrices GTSAM actually uses, ``RᵀR`` of each factor's square-root information ``R``, in the
+    file's (t, r) order. For a positive-definite Ω this is Ω; ``Gaussian.Information`` takes ``R``
+    from an LLᵀ factorisation that stops at the first non-positive pivot, so for the indefinite
+    matrices of cubicle.g2o ``RᵀR`` is another (positive semi-definite) matrix."""
     gtsam = _gtsam()
     is3d = read_g2o(path).kind == "SE3"
     graph, initial = gtsam.readG2o(str(path), is3d)
+    R = np.stack([np.asarray(graph.at(k).noiseModel().R()) for k in range(graph.size())])
+    p = np.argsort([3, 4, 5, 0, 1, 2] if is3d else [2, 0, 1])  # GTSAM's (r, t) back to the file's order
+    used = np.einsum("eki,ekj->eij", R, R)[:, p][:, :, p]
+    return graph, initial, used
+
+
+def _gtsam_optimum(path, max_iterations=200):
+    """(F before, F after) of GTSAM's LM from the file's initial values, first pose held by a tight prior."""
+    gtsam = _gtsam()
+    graph, initial, _ = _gtsam_graph(path)
     between = gtsam.NonlinearFactorGraph(graph)
     key0 = min(initial.keys())
-    if is3d:
+    if read_g2o(path).kind == "SE3":
         graph.add(gtsam.PriorFactorPose3(key0, initial.atPose3(key0), gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)))
     else:
         graph.add(gtsam.PriorFactorPose2(key0, initial.atPose2(key0), gtsam.noiseModel.Isotropic.Sigma(3, 1e-9)))
     p = gtsam.LevenbergMarquardtParams()
-    p.setMaxIterations(200)
+    p.setMaxIterations(max_iterations)
     p.setRelativeErrorTol(1e-12)
     p.setAbsoluteErrorTol(1e-14)
     result = gtsam.LevenbergMarquardtOptimizer(graph, initial, p).optimize()
     return between.error(initial), between.error(result)
 
 
-@pytest.mark.parametrize("name", ["parking-garage.g2o", "smallGrid3D.g2o", "sphere2500.g2o", "intel.g2o", "MIT.g2o"])
+#: torus3D: Gauss-Newton converges only linearly there (about 7 % of the remaining excess per
+#: iteration, for GTSAM as for minegeo), so both need a few hundred iterations to reach 1e-6.
+GTSAM_FILES = ["parking-garage.g2o", "smallGrid3D.g2o", "sphere2500.g2o", "torus3D.g2o", "cubicle.g2o",
+               "intel.g2o", "MIT.g2o"]
+
+
+@pytest.mark.parametrize("name", GTSAM_FILES)
 def test_same_cost_and_optimum_as_gtsam(name):
+    """minegeo's optimum equals GTSAM's LM optimum from the same start under the contract cost.
+
+    cubicle.g2o holds 5021 indefinite information matrices, which GTSAM cannot represent (see
+    :func:`_gtsam_graph`); the comparison gives minegeo the matrices GTSAM uses (``RᵀR``), so both
+    minimise the same cost (the file as read is a different cost, checked below)."""
     path = shared_data("pose_graph_g2o", name)
-    f0_ref, f_ref = _gtsam_optimum(path)
-    res = optimize_pose_graph(read_g2o(path))
+    f0_ref, f_ref = _gtsam_optimum(path, 250 if name == "torus3D.g2o" else 200)
+    g = read_g2o(path)
+    if non_psd_edges(g).size:
+        g = PoseGraph(g.kind, g.ids, g.poses, g.edges, g.measurements, _gtsam_graph(path)[2], g.fixed)
+    res = optimize_pose_graph(g, PoseGraphParams(max_iterations=500))
     assert res.cost_initial == pytest.approx(f0_ref, rel=1e-9)
     assert res.status == "converged", res.reason
     assert res.cost_final == pytest.approx(f_ref, rel=1e-6)
+
+
+def test_cubicle_indefinite_information_is_not_what_gtsam_minimises():
+    """Why the cubicle comparison uses GTSAM's ``RᵀR``: for the file's indefinite Ω, GTSAM's
+    square-root information does not reproduce Ω (its cost is another function), while at the
+    initial values (zero residual on those odometry edges) both costs agree."""
+    path = shared_data("pose_graph_g2o", "cubicle.g2o")
+    g = read_g2o(path)
+    bad = non_psd_edges(g)
+    _, _, used = _gtsam_graph(path)
+    good = np.setdiff1d(np.arange(g.n_edges), bad)
+    assert np.allclose(used[good], g.information[good], rtol=1e-9, atol=1e-6 * np.abs(g.information).max())
+    worst = np.abs(used[bad] - g.information[bad]).max(axis=(1, 2)) / np.abs(g.information[bad]).max(axis=(1, 2))
+    assert bad.size == 5021 and np.median(worst) > 0.1
