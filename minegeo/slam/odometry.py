@@ -71,6 +71,9 @@ class OdometryParams:
     coarse_gate_factor: float = 3.0
     translation_observability_ratio: float = 0.03
     surface_observability_ratio: float = 0.004
+    keyframe_submap_size: int = 5
+    turn_retry_yaw_deg: tuple = (20.0, -20.0, 40.0, -40.0, 60.0, -60.0)
+    unconverged_retry_fitness: float = 0.6
 
     def __post_init__(self):
         for name in ("voxel_size_m", "max_correspondence_distance_m", "keyframe_distance_m", "keyframe_angle_deg",
@@ -109,6 +112,7 @@ class Registration:
     rmse_m: float
     information: np.ndarray
     weak: str = ""  # a weakly observed pose direction (a straight smooth drift): kept, flagged
+    converged: bool = True
 
 
 @dataclass
@@ -229,16 +233,19 @@ def register_frames(source: PreparedFrame, target: PreparedFrame, T_init: np.nda
     A = se3_adjoint(np.ascontiguousarray(T))
     info = A.T @ res.information_6x6 @ A / sigma**2
     return Registration(T, not reason, reason, float(res.fitness), float(res.inlier_rmse_m),
-                        0.5 * (info + info.T), weak)
+                        0.5 * (info + info.T), weak, bool(res.converged))
 
 
 def _register_with_retries(cur: PreparedFrame, prev: PreparedFrame, guess: np.ndarray,
                            params: OdometryParams) -> Registration:
     """GICP from the constant-velocity guess; when that fails (e.g. a sharp turn at a junction, where
     the previous motion is a poor guess), again from no motion, then coarse-to-fine with a gate
-    ``coarse_gate_factor`` times wider from both guesses; the best overlap that passes wins."""
-    reg = register_frames(cur, prev, guess, params)
-    if reg.ok or cur.index is None or prev.index is None:
+    ``coarse_gate_factor`` times wider from both guesses; the best overlap that passes wins. A
+    result farther than the wide gate from the constant-velocity guess fails as implausible (the
+    vehicle cannot change its speed by that much between two frames: a wrong minimum)."""
+    reg = _plausible(register_frames(cur, prev, guess, params), guess, params)
+    if (reg.ok and (reg.converged or reg.fitness >= params.unconverged_retry_fitness)) \
+            or cur.index is None or prev.index is None:
         return reg
     coarse = replace(params, max_correspondence_distance_m=params.max_correspondence_distance_m
                      * params.coarse_gate_factor)
@@ -246,8 +253,43 @@ def _register_with_retries(cur: PreparedFrame, prev: PreparedFrame, guess: np.nd
     for T0 in (guess, np.eye(4)):
         c = register_frames(cur, prev, T0, coarse)
         tries.append(register_frames(cur, prev, c.T, params))
-    good = [r for r in tries if r.ok]
+    good = [r for r in (_plausible(r, guess, params) for r in tries) if r.ok]
+    if not good or max(r.fitness for r in good) < params.unconverged_retry_fitness:
+        # a sharp turn (a junction): the heading changed more than the gate can follow
+        for yaw in params.turn_retry_yaw_deg:
+            c = math.radians(yaw)
+            T0 = guess.copy()
+            T0[:3, :3] = np.array([[math.cos(c), -math.sin(c), 0.0], [math.sin(c), math.cos(c), 0.0],
+                                   [0.0, 0.0, 1.0]]) @ guess[:3, :3]
+            r = register_frames(cur, prev, register_frames(cur, prev, T0, coarse).T, params)
+            r = _plausible(r, guess, params)
+            if r.ok:
+                good.append(r)
     return max(good, key=lambda r: r.fitness) if good else reg
+
+
+def _plausible(reg: Registration, guess: np.ndarray, params: OdometryParams) -> Registration:
+    """``reg``, failed when its translation is more than ``coarse_gate_factor`` correspondence gates
+    from the guess's."""
+    d = float(np.linalg.norm(reg.T[:3, 3] - guess[:3, 3]))
+    limit = params.coarse_gate_factor * params.max_correspondence_distance_m
+    if reg.ok and d > limit:
+        return replace(reg, ok=False, reason=f"{d:.2f} m from the constant-velocity guess (more than {limit:.2f} m: "
+                                             "a wrong minimum)")
+    return reg
+
+
+def _keyframe_submap(kf_clouds: list, kf_poses: list, params: OdometryParams) -> PreparedFrame:
+    """The last ``keyframe_submap_size`` keyframe clouds in the frame of the last keyframe, as one
+    prepared target (voxel centroids, covariances, tree): the laser rings of several keyframes
+    interleave, so the covariances describe the surfaces rather than the ring lines."""
+    n = min(params.keyframe_submap_size, len(kf_clouds))
+    T_last_inv = np.linalg.inv(kf_poses[-1])
+    parts = []
+    for P, T in zip(kf_clouds[-n:], kf_poses[-n:], strict=True):
+        A = T_last_inv @ T
+        parts.append(P @ A[:3, :3].T + A[:3, 3])
+    return prepare_frame(np.concatenate(parts), 0.0, params)
 
 
 def _time_scaled_guess(velocity: np.ndarray, dt: float, velocity_dt: float) -> np.ndarray | None:
@@ -324,7 +366,9 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
         rel = np.linalg.solve(T_kf, pose)
         if _keyframe_due(rel, t - times[kf_idx[-1]], params):
             t0 = time.perf_counter()
-            ref = register_frames(cur, last_kf, rel, params)  # keyframe-to-keyframe refinement
+            target = last_kf if params.keyframe_submap_size <= 1 else _keyframe_submap(
+                kf_clouds, [poses[i] for i in kf_idx], params)
+            ref = register_frames(cur, target, rel, params)  # keyframe-to-keyframe refinement
             t_kf += time.perf_counter() - t0
             if ref.ok:
                 rel, info = ref.T, ref.information
