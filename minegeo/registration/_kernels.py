@@ -450,8 +450,15 @@ def _p2l_idx_totals(P, Q, N, si, ti):
     nc = n_chunks(si.shape[0])
     part = np.zeros((nc, 28))
     _p2l_idx_serial(P, Q, N, si, ti, part)
+    return system_from_partials(part)
+
+
+@njit
+def system_from_partials(part):
+    """``(H (6, 6), g (6,), cost)`` from chunk partials ``(c, 28)`` (21 upper-triangle entries of
+    ``H`` row by row, 6 of ``g``, the cost) added serially in chunk order; ``H`` mirrored."""
     tot = np.zeros(28)
-    for c in range(nc):
+    for c in range(part.shape[0]):
         for k in range(28):
             tot[k] = tot[k] + part[c, k]
     H = np.empty((6, 6))

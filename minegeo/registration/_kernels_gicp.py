@@ -27,7 +27,7 @@ from minegeo.kernels.kdtree import (
     kd_nn_warm_parallel,
     kd_nn_warm_serial,
 )
-from minegeo.registration._kernels import _add_partials
+from minegeo.registration._kernels import _add_partials, system_from_partials
 
 #: Below this many pairs (or search queries) the serial driver is used. Measured on the shared
 #: 2-core machine under load (load average ~9): for 10^4 pairs the prange drivers made a whole
@@ -587,23 +587,6 @@ def _gicp_fused_parallel(P, Q, idx, Qs, start, end, dim, split, left, right, dep
                          out_idx, out_sq, part, P_old, r1, r2, moved, c, c + 1)
 
 
-@njit
-def _gicp_system_from_partials(part):
-    """``(H (6, 6), g (6,), cost)`` from chunk partials added serially in chunk order."""
-    tot = np.zeros(GICP_ACC)
-    for c in range(part.shape[0]):
-        for v in range(GICP_ACC):
-            tot[v] = tot[v] + part[c, v]
-    H = np.empty((6, 6))
-    k = 0
-    for a in range(6):
-        for b in range(a, 6):
-            H[a, b] = tot[k]
-            H[b, a] = tot[k]
-            k += 1
-    return H, tot[21:27].copy(), tot[27]
-
-
 def gicp_fused_search(P, Q, tree, d2, warm, Cs, Ct, R, parallel, state=None):
     """Gated nearest neighbour of every row of ``P`` and the GICP system of the pairs, in one pass.
 
@@ -630,7 +613,7 @@ def gicp_fused_search(P, Q, tree, d2, warm, Cs, Ct, R, parallel, state=None):
         state = (np.empty((0, 3)), np.empty(n), np.empty(n), np.zeros(n))
     drive = _gicp_fused_parallel if parallel else _gicp_fused_serial
     drive(P, Q, *tree, float(d2), warm, Cs, Ct, R, out_idx, out_sq, part, *state)
-    H, g, cost = _gicp_system_from_partials(part)
+    H, g, cost = system_from_partials(part)
     return out_idx, out_sq, H, g, float(cost)
 
 
@@ -658,7 +641,7 @@ def gicp_pairs_system(P, Q, Cs, Ct, R, si, ti):
         _gicp_pairs_parallel(P, Q, Cs, Ct, R, si, ti, part)
     else:
         _gicp_pairs_rows(P, Q, Cs, Ct, R, si, ti, part, 0, part.shape[0])
-    H, g, cost = _gicp_system_from_partials(part)
+    H, g, cost = system_from_partials(part)
     return H, g, float(cost)
 
 
