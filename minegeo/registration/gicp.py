@@ -36,6 +36,7 @@ Open3D 0.20 ``registration_generalized_icp`` (``../shared/specs/open3d_oracle.md
 from __future__ import annotations
 
 import logging
+import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -87,9 +88,15 @@ SYMMETRY_RTOL = 1e-9
 #: either way (per-point results; sums over fixed chunks of ``GICP_ROWS`` rows, added in order).
 #: Measured on the shared 2-core machine (load average ~9, benchmarks/results/gicp_2026-11-25.md):
 #: on the 5,004-point small_gicp pair a ``prange`` region per iteration made a registration 4-8x
-#: slower (each region waits for a descheduled worker thread), so small clouds stay serial.
+#: slower (each region waits for a descheduled worker thread), so on a busy machine small clouds
+#: stay serial ...
 PARALLEL_MIN_ROWS = 1 << 16
 PARALLEL_SEARCH_ROWS = 1 << 16
+#: ... while on a machine that is not oversubscribed (1-minute load average <= number of CPUs,
+#: :func:`_parallel_rows`) clouds from this size run in ``prange`` already: on the same pair at
+#: load 0.3 the fused search went from 11.2 to 7.0 ms per registration on 2 threads
+#: (benchmarks/results/gicp_2026-11-25_parallel.md). Speed only: the same bits either way.
+IDLE_PARALLEL_ROWS = 2048
 #: With two or more Numba threads, the source and target covariances of at least this many points
 #: each are estimated concurrently in two threads (the kernels release the GIL; one task per cloud,
 #: no barrier per iteration). The bits are those of the sequential estimate.
@@ -260,16 +267,30 @@ class GICPResult(ICPResult):
     cycle_amplitude_rad: float = 0.0
 
 
-def _knn_normals(points: np.ndarray, tree, k: int, mode_open3d: bool):
+def _parallel_rows(busy_rows: int) -> int:
+    """The ``prange`` threshold (rows) to use now: ``busy_rows``, or :data:`IDLE_PARALLEL_ROWS` when
+    this thread has two or more Numba threads and the machine is not oversubscribed (1-minute load
+    average <= CPU count). Speed only: serial and ``prange`` drivers give the same bits."""
+    if numba.get_num_threads() < 2:
+        return busy_rows
+    try:
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):  # no load average on this platform
+        return busy_rows
+    return min(busy_rows, IDLE_PARALLEL_ROWS) if load <= (os.cpu_count() or 1) else busy_rows
+
+
+def _knn_normals(points: np.ndarray, tree, k: int, mode_open3d: bool, parallel: bool = True):
     """``(normals, status, eigenvalues)`` of :func:`~minegeo.registration._kernels_gicp.knn_normals_kernel`,
-    with the points cut into ``prange`` tasks from ``PARALLEL_MIN_ROWS`` points (the same bits)."""
+    with the points cut into ``prange`` tasks from :func:`_parallel_rows` points when ``parallel``
+    (the same bits)."""
     m = points.shape[0]
     out_n = np.empty((m, 3))
     out_eval = np.empty((m, 3))
     out_status = np.empty(m, dtype=np.int8)
     args = (points, *tree, min(int(k), m), bool(mode_open3d), float(KG.DEGENERATE_RATIO), out_n, out_eval,
             out_status)
-    if m >= PARALLEL_MIN_ROWS:
+    if parallel and m >= _parallel_rows(PARALLEL_MIN_ROWS):
         KG.knn_normals_tasks(*args)
     else:
         KG._knn_normals_serial(*args)
@@ -284,7 +305,7 @@ def _plane_covariances(normals: np.ndarray, isotropic: np.ndarray, params: GICPP
 
 
 def _covariances_and_normals(points: np.ndarray, params: GICPParams, normals=None, name: str = "points",
-                             tree=None):
+                             tree=None, parallel: bool = True):
     """``(C (n,3,3), N (n,3), source)`` for validated ``points``; see :func:`estimate_gicp_covariances`."""
     n = points.shape[0]
     o3d = params.covariance_mode == "open3d"
@@ -295,7 +316,7 @@ def _covariances_and_normals(points: np.ndarray, params: GICPParams, normals=Non
         iso = np.zeros(n, dtype=np.bool_) if o3d else ~(np.linalg.norm(N, axis=1) > 0)
         return _plane_covariances(N, iso, params), N, "normals"
     tree = kd_build(points, KD_LEAF) if tree is None else tree
-    N, status, _ = _knn_normals(points, tree, int(params.covariance_neighbours), o3d)
+    N, status, _ = _knn_normals(points, tree, int(params.covariance_neighbours), o3d, parallel)
     iso = np.zeros(n, dtype=np.bool_) if o3d else status != STATUS_OK
     return _plane_covariances(N, iso, params), N, "estimated"
 
@@ -499,7 +520,7 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
         target_normals, target_index, check_target, timer)
     d = float(params.max_correspondence_distance_m)
     factor = GICPFactor(Q, Cs, Ct, T)
-    search = GICPNearestInGate(Q, d, tree, factor, parallel_rows=PARALLEL_SEARCH_ROWS)
+    search = GICPNearestInGate(Q, d, tree, factor, parallel_rows=_parallel_rows(PARALLEL_SEARCH_ROWS))
     P = P0 if is_identity(T) else K.transform_points_kernel(P0, T)
     out = run_loop(P, T, search, factor, _termination(params), params.max_iterations, timer)
     cyc_m = cyc_rad = 0.0
@@ -589,7 +610,7 @@ def _gicp_inputs(source_points, target_points, T_init, params, source_covariance
             src_from = "given"
         elif (target_covariances is None and source_normals is None and target_normals is None
               and min(P0.shape[0], Q.shape[0]) >= CONCURRENT_MIN_POINTS and numba.get_num_threads() > 1):
-            pending = _executor().submit(_covariances_and_normals, P0, params, None, "source")
+            pending = _executor().submit(_covariances_and_normals, P0, params, None, "source", None, False)
         else:
             Cs, _, src_from = _covariances_and_normals(P0, params, source_normals, "source")
         if target_covariances is not None and not check_target:
@@ -603,7 +624,9 @@ def _gicp_inputs(source_points, target_points, T_init, params, source_covariance
             Ct = _as_covariances(target_covariances, Q.shape[0], "target_covariances")
             tgt_from = "given"
         else:
-            Ct, Nt, tgt_from = _covariances_and_normals(Q, params, target_normals, "target", tree=tree)
+            # concurrently with the source's (one serial task per cloud) or alone (prange)
+            Ct, Nt, tgt_from = _covariances_and_normals(Q, params, target_normals, "target", tree=tree,
+                                                        parallel=pending is None)
         if pending is not None:
             Cs, _, src_from = pending.result()
     return P0, Q, T, tree, Cs, Ct, Nt, src_from, tgt_from
