@@ -22,6 +22,7 @@ EXPECTED = {
     "mast_beacon_fix.py": "status ok  beacons used ['B1', 'B2']",
     "georeference_map.py": "GCP05 N + 6 cm: status warning",
     "register_scan_icp.py": "error vs truth:",
+    "intersections_figures.py": "intersections: 5 found",
 }
 if (EXAMPLES / "localize_scan.py").exists():
     EXPECTED["localize_scan.py"] = "status ok"

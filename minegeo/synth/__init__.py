@@ -121,3 +121,15 @@ def _warmup() -> None:
     K.cast_rays(P[:1].repeat(2, 0), D, 10.0, 0.45, 1e-3, 100, 1e-4, a["grid_f"], a["grid_i"], a["void_prims"],
                 a["void_type"], start, v_items, a["solid_prims"], a["solid_type"], s_start, s_items, a["waves"],
                 a["octaves"], a["zones"], *veh, True, -0.011, 0.8, out, np.empty(2, np.int64))
+
+from minegeo.synth.network import (  # noqa: E402  (issue 18: drift networks for intersection studies)
+    DriftNetwork,
+    NetworkCloud,
+    intersections_network,
+    junction_truth,
+    network_cloud,
+    niosh_network,
+)
+
+__all__ += ["DriftNetwork", "NetworkCloud", "intersections_network", "junction_truth", "network_cloud",
+            "niosh_network"]

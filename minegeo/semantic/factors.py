@@ -1,0 +1,733 @@
+"""The intersection factor graph of Liang et al. (2024), Sec. 3: keyframe poses, LiDAR relative-pose
+factors and intersection position factors, solved by Levenberg–Marquardt on SE(3).
+
+Frames and conventions
+----------------------
+* A pose is ``T_world_keyframe`` (4×4), ``p_world = R p_keyframe + t`` (m); the world frame is the
+  frame of the intersection knowledge base.
+* Tangent vectors are ordered rotation first, ``δ = (φ, ρ)`` (rad, m), perturbations on the right,
+  ``T ← T · Exp(δ)``: the convention of :mod:`minegeo.slam.posegraph` and of GTSAM's ``Pose3``. The
+  paper writes ``ξ = (ρ, φ)`` and perturbs on the left; :func:`relative_jacobians_left` and
+  :func:`intersection_jacobians_paper` give its forms, and the right-perturbation Jacobians the
+  solver uses are those times the chart change (``δ_left = Ad(T) δ_right``).
+* Information matrices are in the residual's order: (rotation, translation) for relative factors,
+  world (x, y, z) for intersection factors.
+
+Factors
+-------
+* Relative pose ``(i, j, Z_ij)``, ``Z_ij`` the registered ``T_i⁻¹ T_j`` (keyframe j in keyframe i):
+  ``r = Log(Z_ij⁻¹ T_i⁻¹ T_j)`` [Liang2024 Eq. 11]. The paper's ``T_i^j`` of [Liang2024 Eq. 10]
+  is written as ``(T_j^W)⁻¹ T_i^W``, but only its inverse ``T_i⁻¹ T_j`` makes the residual of
+  [Liang2024 Eq. 11] vanish at the truth: that is the measurement here. The residual and its
+  Jacobians are :func:`minegeo.slam._kernels.se3_edge_terms` (GTSAM's ``BetweenFactorPose3``).
+* Intersection position ``(i, z, C)``, ``z`` the intersection's invariant point observed in keyframe
+  i (m, keyframe frame), ``C`` its position in the knowledge base (m, world frame):
+  ``e = C − t_i − R_i z`` [Liang2024 Eq. 22] (:mod:`minegeo.semantic._kernels`). The paper also
+  lists ``z`` among the variables [Liang2024 Eq. 23]; here it is a measurement, and its
+  Jacobian ``−R_i`` [Liang2024 Eq. 28] serves only to propagate its covariance.
+* Pose prior ``(i, T_prior)``: ``r = Log(T_prior⁻¹ T_i)`` (GTSAM's ``PriorFactorPose3``), solved as a
+  between-edge from a held identity vertex.
+
+The cost is ``F = ½ Σ rᵀ Ω r + ½ Σ eᵀ Ω e``, the contract cost of ``slam_contract.md``, equal to
+GTSAM's ``NonlinearFactorGraph.error(values)`` for the same factors (the paper's objective
+[Liang2024 Eq. 7] is ``2F``).
+
+Covariances
+-----------
+:func:`relative_pose_information` / :func:`relative_pose_covariance` implement
+[Liang2024 Eqs. 15-18] exactly for matched point pairs, and :func:`intersection_covariance`
+implements [Liang2024 Eqs. 29-32]; their docstrings state where the paper is ambiguous and what is
+done instead.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from minegeo.errors import DegenerateGeometryError, InputError
+from minegeo.kernels.lie import hat, se3_adjoint, se3_inverse, se3_right_jacobian_inv
+from minegeo.semantic import _kernels as KS
+from minegeo.slam import _kernels as K
+from minegeo.slam.posegraph import PoseGraphParams, _BlockSystem, _robust_cost, _robust_weights
+
+__all__ = [
+    "FactorGraph", "FactorGraphResult", "PoseGraphParams", "descriptor_completeness",
+    "intersection_covariance", "intersection_jacobians_paper", "intersection_terms",
+    "point_pair_information", "relative_jacobians_left", "relative_pose_covariance",
+    "relative_pose_information", "relative_terms",
+]
+
+log = logging.getLogger(__name__)
+
+GAUGES = ("hold_first", "error")
+
+
+# ------------------------------------------------------------------ validation
+
+
+def _pose(T, name: str) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise InputError(f"{name} must be a finite 4x4 rigid transform, got shape {T.shape}")
+    R = T[:3, :3]
+    if not (np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
+            and np.allclose(T[3], [0.0, 0.0, 0.0, 1.0])):
+        raise InputError(f"{name} is not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
+    return np.ascontiguousarray(T)
+
+
+def _vector3(v, name: str) -> np.ndarray:
+    v = np.asarray(v, dtype=np.float64)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise InputError(f"{name} must be a finite 3-vector (m), got shape {v.shape}")
+    return np.ascontiguousarray(v)
+
+
+def _information(W, k: int, name: str) -> np.ndarray:
+    """A finite, symmetric, positive-definite k×k information matrix (else :class:`InputError`)."""
+    W = np.asarray(W, dtype=np.float64)
+    if W.shape != (k, k) or not np.all(np.isfinite(W)):
+        raise InputError(f"{name} must be a finite {k}x{k} information matrix, got shape {W.shape}")
+    scale = max(float(np.abs(W).max()), 1e-300)
+    if not np.allclose(W, W.T, rtol=0.0, atol=1e-9 * scale):
+        raise InputError(f"{name} is not symmetric")
+    if np.linalg.eigvalsh(W)[0] <= 1e-14 * scale:
+        raise InputError(f"{name} is not positive definite (smallest eigenvalue {np.linalg.eigvalsh(W)[0]:.3g})")
+    return np.ascontiguousarray(0.5 * (W + W.T))
+
+
+def _points(P, name: str) -> np.ndarray:
+    P = np.asarray(P, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3 or not np.all(np.isfinite(P)):
+        raise InputError(f"{name} must be a finite (N, 3) array of points (m), got shape {P.shape}")
+    return np.ascontiguousarray(P)
+
+
+# ------------------------------------------------------------------ single-factor terms
+
+
+def relative_terms(T_i, T_j, Z_ij):
+    """Residual and right-perturbation Jacobians of one relative-pose factor [Liang2024 Eq. 11].
+
+    Parameters
+    ----------
+    T_i, T_j : ndarray (4, 4)
+        ``T_world_keyframe`` of keyframes i and j.
+    Z_ij : ndarray (4, 4)
+        Measured ``T_i⁻¹ T_j`` (keyframe j in keyframe i).
+
+    Returns
+    -------
+    r : ndarray (6,)
+        ``Log(Z⁻¹ T_i⁻¹ T_j)`` as ``(φ, ρ)`` (rad, m).
+    J_i, J_j : ndarray (6, 6)
+        ``∂r/∂δ_i = −J_r⁻¹(r) Ad(T_j⁻¹ T_i)``, ``∂r/∂δ_j = J_r⁻¹(r)`` for ``T ← T Exp(δ)``.
+    """
+    poses = np.ascontiguousarray(np.stack([_pose(T_i, "T_i"), _pose(T_j, "T_j")]))
+    r, Ji, Jj = np.empty((1, 6)), np.empty((1, 6, 6)), np.empty((1, 6, 6))
+    K.se3_edge_terms(poses, np.array([[0, 1]], dtype=np.int64), _pose(Z_ij, "Z_ij")[None].copy(), r, Ji, Jj)
+    return r[0], Ji[0], Jj[0]
+
+
+def relative_jacobians_left(T_i, T_j, Z_ij):
+    """The paper's left-perturbation Jacobians [Liang2024 Eqs. 12-14], rotation-first order.
+
+    With ``T ← Exp(δ) T``: ``∂r/∂δ_i = −J_r⁻¹(r) Ad(T_j⁻¹)`` [Liang2024 Eq. 13] and
+    ``∂r/∂δ_j = J_r⁻¹(r) Ad(T_j⁻¹)`` [Liang2024 Eq. 14]. They equal the right-perturbation
+    Jacobians of :func:`relative_terms` times ``Ad(T)⁻¹`` (``δ_left = Ad(T) δ_right``). The paper
+    orders ``ξ = (ρ, φ)``; here both rows and columns are ``(φ, ρ)``.
+
+    Returns
+    -------
+    J_i, J_j : ndarray (6, 6)
+    """
+    r = relative_terms(T_i, T_j, Z_ij)[0]
+    B = se3_right_jacobian_inv.py_func(r) @ se3_adjoint.py_func(se3_inverse.py_func(_pose(T_j, "T_j")))
+    return -B, B
+
+
+def intersection_terms(T_world_keyframe, z, C):
+    """Residual and right-perturbation Jacobian of one intersection factor [Liang2024 Eq. 22].
+
+    Parameters
+    ----------
+    T_world_keyframe : ndarray (4, 4)
+    z : ndarray (3,)
+        Intersection invariant point observed in the keyframe (m, keyframe frame).
+    C : ndarray (3,)
+        Its position in the knowledge base (m, world frame).
+
+    Returns
+    -------
+    e : ndarray (3,)
+        ``C − t − R z`` (m, world frame).
+    J : ndarray (3, 6)
+        ``[R hat(z), −R]`` with respect to ``δ = (φ, ρ)`` of ``T ← T Exp(δ)``.
+    """
+    r, J = np.empty((1, 3)), np.empty((1, 3, 6))
+    KS.intersection_terms(_pose(T_world_keyframe, "T_world_keyframe")[None].copy(), np.zeros(1, dtype=np.int64),
+                          _vector3(z, "z")[None].copy(), _vector3(C, "C")[None].copy(), r, J)
+    return r[0], J[0]
+
+
+def intersection_jacobians_paper(T_world_keyframe, z):
+    """The paper's Jacobians of ``e = C − t − R z``: rotation by a left perturbation
+    ``R ← Exp(φ) R`` and translation additively ``t ← t + δt``.
+
+    Returns
+    -------
+    d_phi : ndarray (3, 3)
+        ``hat(R z)`` [Liang2024 Eq. 26].
+    d_t : ndarray (3, 3)
+        ``−I`` [Liang2024 Eq. 27].
+    d_z : ndarray (3, 3)
+        ``−R``, with respect to the observation ``z`` [Liang2024 Eq. 28].
+    """
+    T = _pose(T_world_keyframe, "T_world_keyframe")
+    R = T[:3, :3]
+    return hat.py_func(R @ _vector3(z, "z")), -np.eye(3), -R.copy()
+
+
+# ------------------------------------------------------------------ covariances
+
+
+def _axis_covariance(sigma, name: str) -> np.ndarray:
+    s = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (3,))
+    if not (np.all(np.isfinite(s)) and np.all(s > 0)):
+        raise InputError(f"{name} must be positive and finite (m), got {sigma!r}")
+    return np.diag(s * s)
+
+
+def _hats(P: np.ndarray) -> np.ndarray:
+    """``hat(p)`` (N, 3, 3) of every row of ``P``."""
+    out = np.zeros((P.shape[0], 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -P[:, 2], P[:, 1], -P[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = P[:, 2], -P[:, 1], P[:, 0]
+    return out
+
+
+def point_pair_information(points_a, points_b, T_a_b, cov_a, cov_b) -> np.ndarray:
+    """Information (6×6, ``(φ, ρ)`` order) of ``T_a_b`` from matched points, ``Σ Hᵀ Λ⁻¹ H``.
+
+    Pair ``m``: ``p_a ≈ T_a_b p_b``; residual ``d = T_a_b p_b − p_a`` (m, frame a), Jacobian
+    ``H = [−R hat(p_b), R]`` for ``T_a_b ← T_a_b Exp(δ)``, covariance ``Λ = Σ_a + R Σ_b Rᵀ`` (each
+    point's noise in its own frame). This is the Gauss–Newton information of the point-to-point
+    registration at its optimum; its inverse is the covariance of ``δ``, hence of the pose.
+
+    Parameters
+    ----------
+    points_a, points_b : ndarray (N, 3)
+        Matched points (m) in frames a and b.
+    T_a_b : ndarray (4, 4)
+    cov_a, cov_b : ndarray (3, 3)
+        Point noise covariance (m²) in frames a and b.
+
+    Returns
+    -------
+    ndarray (6, 6)
+        Information, 1/rad² and 1/m² blocks.
+    """
+    Pa, Pb = _points(points_a, "points_a"), _points(points_b, "points_b")
+    if Pa.shape != Pb.shape:
+        raise InputError(f"matched point arrays differ in shape: {Pa.shape} vs {Pb.shape}")
+    T = _pose(T_a_b, "T_a_b")
+    R = T[:3, :3]
+    Lam_inv = np.linalg.inv(np.asarray(cov_a, dtype=np.float64) + R @ np.asarray(cov_b, dtype=np.float64) @ R.T)
+    H = np.empty((Pb.shape[0], 3, 6))
+    H[:, :, :3] = -np.einsum("ij,njk->nik", R, _hats(Pb))
+    H[:, :, 3:] = R
+    return np.einsum("nki,kl,nlj->ij", H, Lam_inv, H)
+
+
+def relative_pose_information(points_i, points_j, Z_ij, sigma_xyz_m) -> np.ndarray:
+    """Information (6×6, ``(φ, ρ)``) of a relative-pose factor from its matched feature points
+    [Liang2024 Eqs. 15-18].
+
+    Pair ``m``: ``p_i ≈ Z_ij p_j`` ([Liang2024 Eq. 15], written from j into i), ``H`` the Jacobian
+    of that projection [Liang2024 Eq. 17], ``Ω = Σ Hᵀ Λ⁻¹ H`` [Liang2024 Eq. 16] with the LiDAR
+    noise ``diag(σx², σy², σz²)`` on each point. The pair's covariance is
+    ``Λ = Σ + R Σ Rᵀ``: the paper's ``Λ_L = diag(2σx², 2σy², 2σz²)`` [Liang2024 Eq. 18] is this
+    exactly when ``σx = σy = σz`` or ``R = I`` (and an approximation otherwise).
+
+    The paper calls Ω a covariance but uses it as ``Σ HᵀΛ⁻¹H``, an information matrix (it grows
+    with the number of pairs); here it is the information, and :func:`relative_pose_covariance`
+    its inverse. [Liang2024 Eq. 19] adds these matrices along the odometry to get a keyframe's
+    accumulated covariance starting from zero; that is not a factor's weight (information
+    does not add along a chain of relative poses) and is not implemented: each factor gets its own
+    pair information, and the graph yields the keyframes' marginal covariances.
+
+    Parameters
+    ----------
+    points_i, points_j : ndarray (N, 3)
+        Matched feature points (m) in keyframes i and j (N ≥ 3, not collinear).
+    Z_ij : ndarray (4, 4)
+        Registered ``T_i⁻¹ T_j``.
+    sigma_xyz_m : float or array (3,)
+        LiDAR noise σ along the sensor's x, y, z axes (m).
+
+    Returns
+    -------
+    ndarray (6, 6)
+    """
+    S = _axis_covariance(sigma_xyz_m, "sigma_xyz_m")
+    return point_pair_information(points_i, points_j, Z_ij, S, S)
+
+
+def relative_pose_covariance(points_i, points_j, Z_ij, sigma_xyz_m) -> np.ndarray:
+    """Covariance (6×6, ``(φ, ρ)``, rad² / m²) of ``Z_ij``: the inverse of
+    :func:`relative_pose_information` [Liang2024 Eqs. 15-18].
+
+    Raises
+    ------
+    DegenerateGeometryError
+        Fewer than 3 pairs or collinear points (the information is singular).
+    """
+    W = relative_pose_information(points_i, points_j, Z_ij, sigma_xyz_m)
+    return _inverse_pd(W, "the matched points do not determine the relative pose (fewer than 3 or collinear)")
+
+
+def _inverse_pd(W: np.ndarray, why: str) -> np.ndarray:
+    ev = np.linalg.eigvalsh(W)
+    if ev[0] <= 1e-12 * max(ev[-1], 1e-300):
+        raise DegenerateGeometryError(why)
+    out = np.linalg.inv(W)
+    return 0.5 * (out + out.T)
+
+
+def descriptor_completeness(k_c: int, k_b: int) -> float:
+    """``k_c / k_b``: nonzero wall-contour dimensions of the PWCV descriptor seen from the keyframe
+    (``k_c``) over those of the knowledge-base descriptor (``k_b``) [Liang2024 Eq. 32].
+
+    From two descriptors directly: :func:`minegeo.semantic.descriptors.completeness` (capped at 1;
+    0 when nothing is seen, which :func:`intersection_covariance` rejects)."""
+    try:
+        ok = float(k_c) == int(k_c) and float(k_b) == int(k_b) and int(k_c) > 0 and int(k_b) > 0
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        raise InputError(f"k_c and k_b must be positive integers, got {k_c!r}, {k_b!r}")
+    return float(k_c) / float(k_b)
+
+
+def intersection_covariance(completeness: float, base_sigma_m: float, *, scaling: str = "paper",
+                            points_keyframe=None, points_map=None, T_world_keyframe=None, z=None) -> np.ndarray:
+    """Covariance (3×3, m², world frame) of an intersection factor's residual [Liang2024 Eqs. 29-32].
+
+    The noise of a matched point is ``Λ_I = s σ² I₃`` [Liang2024 Eq. 32], with ``σ = base_sigma_m``
+    and ``s = k_c / k_b`` (``scaling="paper"``, literally the paper: a *less* complete descriptor
+    gets a *smaller* noise) or ``s = k_b / k_c`` (``scaling="inverse"``: less complete, larger noise).
+
+    * Without matched points the residual's covariance is ``Λ_I`` itself.
+    * With the keyframe's points matched to the knowledge base's (``points_keyframe[m] ≈
+      T⁻¹ points_map[m]``, [Liang2024 Eq. 29]) the pose information is
+      ``Ω = Σ Qᵀ Λ_I⁻¹ Q`` [Liang2024 Eqs. 30-31] (:func:`point_pair_information` with the
+      knowledge-base points noise-free), a 6×6 matrix: the paper pairs it with the 3-vector
+      residual of [Liang2024 Eq. 22] without saying how. Here it is propagated to the residual,
+      ``Σ_e = J Ω⁻¹ Jᵀ`` with ``J = [R hat(z), −R]`` (:func:`intersection_terms`): the covariance of
+      the observed invariant point ``T z`` in the world given the registration's pose uncertainty.
+
+    Parameters
+    ----------
+    completeness : float
+        ``k_c / k_b`` (:func:`descriptor_completeness`), > 0.
+    base_sigma_m : float
+        Base noise σ (m) of a complete descriptor's match.
+    scaling : {"paper", "inverse"}
+    points_keyframe, points_map : ndarray (N, 3), optional
+        Matched points (m) in the keyframe and in the world (knowledge base).
+    T_world_keyframe : ndarray (4, 4), optional
+        Needed with the points: the registered pose.
+    z : ndarray (3,), optional
+        Needed with the points: the observed invariant point (m, keyframe frame).
+
+    Returns
+    -------
+    ndarray (3, 3)
+    """
+    c = float(completeness)
+    if not (np.isfinite(c) and c > 0):
+        raise InputError(f"completeness must be a positive ratio k_c/k_b, got {completeness!r}")
+    if not (np.isfinite(base_sigma_m) and base_sigma_m > 0):
+        raise InputError(f"base_sigma_m must be positive (m), got {base_sigma_m!r}")
+    if scaling not in ("paper", "inverse"):
+        raise InputError(f"scaling must be 'paper' or 'inverse', got {scaling!r}")
+    lam = base_sigma_m**2 * (c if scaling == "paper" else 1.0 / c) * np.eye(3)  # [Liang2024 Eq. 32]
+    if points_keyframe is None and points_map is None:
+        return lam
+    if T_world_keyframe is None or z is None or points_keyframe is None or points_map is None:
+        raise InputError("with matched points, points_keyframe, points_map, T_world_keyframe and z are all needed")
+    W = point_pair_information(points_map, points_keyframe, T_world_keyframe, np.zeros((3, 3)), lam)
+    Sigma = _inverse_pd(W, "the matched intersection points do not determine the pose (fewer than 3 or collinear)")
+    J = intersection_terms(T_world_keyframe, z, np.zeros(3))[1]
+    out = J @ Sigma @ J.T
+    return 0.5 * (out + out.T)
+
+
+# ------------------------------------------------------------------ the graph
+
+
+@dataclass
+class FactorGraphResult:
+    """Outcome of :meth:`FactorGraph.optimize`.
+
+    Attributes
+    ----------
+    poses : ndarray (n, 4, 4)
+        Optimised ``T_world_keyframe`` (the start poses when ``status == "failed"``).
+    status : {"converged", "max_iterations", "failed"}
+    reason : str
+    cost_initial, cost_final : float
+        ``F = ½ Σ rᵀΩr + ½ Σ eᵀΩe`` (no robust kernel) before and after; GTSAM's ``graph.error``.
+    iterations : int
+        Linearisations performed.
+    history : list of dict
+        Per damping trial: iteration, cost, lambda, accepted, largest step component.
+    held : tuple of int
+        Keyframes held at their start value: the ones added with ``fixed=True`` and, with
+        ``gauge="hold_first"``, the first keyframe of every component the factors do not anchor.
+    params : PoseGraphParams
+    timings_s : dict
+    """
+
+    poses: np.ndarray
+    status: str
+    reason: str
+    cost_initial: float
+    cost_final: float
+    iterations: int
+    history: list = field(default_factory=list)
+    held: tuple = ()
+    params: PoseGraphParams = field(default_factory=PoseGraphParams)
+    timings_s: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        return {"status": self.status, "reason": self.reason, "cost_initial": self.cost_initial,
+                "cost_final": self.cost_final, "iterations": self.iterations, "held": list(self.held),
+                "params": asdict(self.params)}
+
+
+@dataclass
+class _Arrays:
+    """The graph as contiguous arrays for the kernels; vertex ``n`` is the held identity that priors hang on."""
+
+    edges: np.ndarray        # (m, 2) int64: relative factors, then priors as (n, i)
+    Z: np.ndarray            # (m, 4, 4)
+    info: np.ndarray         # (m, 6, 6), (φ, ρ) order
+    kf: np.ndarray           # (q,) int64: keyframe of each intersection factor
+    z: np.ndarray            # (q, 3) keyframe frame
+    C: np.ndarray            # (q, 3) world frame
+    info_int: np.ndarray     # (q, 3, 3)
+
+
+class FactorGraph:
+    """Keyframe poses with relative-pose, intersection and prior factors [Liang2024 Eq. 7].
+
+    Keyframes are numbered in the order they are added (0, 1, ...). Incremental use: add the new
+    keyframe (its start pose, e.g. the previous optimum composed with the odometry,
+    :meth:`predict`), its factors, and call :meth:`optimize`, which starts from the previous
+    optimum (``warm_start=True``) or from the poses given when the keyframes were added.
+
+    Examples
+    --------
+    >>> g = FactorGraph()
+    >>> a = g.add_keyframe(np.eye(4))
+    >>> b = g.add_keyframe(g.predict(a, Z_ab))                       # doctest: +SKIP
+    >>> g.add_relative(a, b, Z_ab, np.eye(6) * 1e4)                  # doctest: +SKIP
+    >>> g.add_intersection(b, z, C, np.eye(3) * 100, intersection_id=7)  # doctest: +SKIP
+    >>> res = g.optimize()                                           # doctest: +SKIP
+    """
+
+    def __init__(self):
+        self._initial: list[np.ndarray] = []
+        self._estimate: list[np.ndarray] = []
+        self._fixed: list[bool] = []
+        self._rel: list[tuple] = []
+        self._prior: list[tuple] = []
+        self._int: list[tuple] = []
+
+    # -- building
+    @property
+    def n_keyframes(self) -> int:
+        return len(self._initial)
+
+    @property
+    def poses(self) -> np.ndarray:
+        """Current estimate ``T_world_keyframe`` (n, 4, 4): the last optimum, or the start poses."""
+        return np.stack(self._estimate) if self._estimate else np.zeros((0, 4, 4))
+
+    def add_keyframe(self, T_world_keyframe, *, fixed: bool = False) -> int:
+        """Add a keyframe with its start pose; ``fixed=True`` holds it there. Returns its index."""
+        T = _pose(T_world_keyframe, "T_world_keyframe")
+        self._initial.append(T.copy())
+        self._estimate.append(T.copy())
+        self._fixed.append(bool(fixed))
+        return self.n_keyframes - 1
+
+    def predict(self, i: int, Z_ij) -> np.ndarray:
+        """Start pose of a new keyframe j: the current estimate of keyframe i times ``Z_ij``."""
+        return self._estimate[self._index(i, "predict")] @ _pose(Z_ij, "Z_ij")
+
+    def _index(self, i, what: str) -> int:
+        if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or not 0 <= int(i) < self.n_keyframes:
+            raise InputError(f"{what} references keyframe {i!r}, but the graph has keyframes 0..{self.n_keyframes - 1}")
+        return int(i)
+
+    def add_relative(self, i: int, j: int, Z_ij, information) -> None:
+        """Relative-pose factor ``r = Log(Z_ij⁻¹ T_i⁻¹ T_j)`` [Liang2024 Eq. 11].
+
+        Parameters
+        ----------
+        i, j : int
+            Keyframe indices (distinct).
+        Z_ij : ndarray (4, 4)
+            Measured ``T_i⁻¹ T_j`` (keyframe j in keyframe i).
+        information : ndarray (6, 6)
+            Positive definite, ``(φ, ρ)`` order (1/rad², 1/m²), e.g. :func:`relative_pose_information`.
+        """
+        i, j = self._index(i, "a relative factor"), self._index(j, "a relative factor")
+        if i == j:
+            raise InputError(f"a relative factor needs two different keyframes, got {i} twice")
+        self._rel.append((i, j, _pose(Z_ij, "Z_ij"), _information(information, 6, "relative information")))
+
+    def add_intersection(self, i: int, z, C, information, intersection_id: int = -1) -> None:
+        """Intersection position factor ``e = C − t_i − R_i z`` [Liang2024 Eq. 22].
+
+        Parameters
+        ----------
+        i : int
+            Keyframe index.
+        z : ndarray (3,)
+            Invariant point of the intersection observed in keyframe i (m, keyframe frame).
+        C : ndarray (3,)
+            Its position in the knowledge base (m, world frame).
+        information : ndarray (3, 3)
+            Positive definite (1/m², world frame), e.g. the inverse of :func:`intersection_covariance`.
+        intersection_id : int
+            The knowledge base's id of the intersection (kept for reports).
+        """
+        i = self._index(i, "an intersection factor")
+        self._int.append((i, _vector3(z, "z"), _vector3(C, "C"), _information(information, 3, "intersection information"),
+                          int(intersection_id)))
+
+    def add_prior(self, i: int, T_prior, information) -> None:
+        """Pose prior ``r = Log(T_prior⁻¹ T_i)`` (GTSAM's ``PriorFactorPose3``), information ``(φ, ρ)``."""
+        i = self._index(i, "a prior")
+        self._prior.append((i, _pose(T_prior, "T_prior"), _information(information, 6, "prior information")))
+
+    @property
+    def n_factors(self) -> dict:
+        return {"relative": len(self._rel), "intersection": len(self._int), "prior": len(self._prior)}
+
+    def relative_factors(self) -> list[tuple]:
+        """Every relative factor as ``(i, j, Z_ij, information)`` (copies), in the order added."""
+        return [(i, j, Z.copy(), W.copy()) for i, j, Z, W in self._rel]
+
+    def intersection_factors(self) -> list[tuple]:
+        """Every intersection factor as ``(i, z, C, information, intersection_id)`` (copies)."""
+        return [(i, z.copy(), C.copy(), W.copy(), cid) for i, z, C, W, cid in self._int]
+
+    def prior_factors(self) -> list[tuple]:
+        """Every prior as ``(i, T_prior, information)`` (copies)."""
+        return [(i, T.copy(), W.copy()) for i, T, W in self._prior]
+
+    def set_estimate(self, poses) -> None:
+        """Replace the current estimate (the next warm start) by ``poses`` (n, 4, 4) ``T_world_keyframe``."""
+        P = np.asarray(poses, dtype=np.float64)
+        if P.shape != (self.n_keyframes, 4, 4):
+            raise InputError(f"poses must have shape {(self.n_keyframes, 4, 4)}, got {P.shape}")
+        self._estimate = [_pose(T, f"poses[{k}]").copy() for k, T in enumerate(P)]
+
+    def intersection_ids(self) -> np.ndarray:
+        """The knowledge-base id of every intersection factor, in the order added."""
+        return np.array([f[4] for f in self._int], dtype=np.int64)
+
+    # -- arrays, cost, gauge
+    def _arrays(self) -> _Arrays:
+        n = self.n_keyframes
+        edges = [(i, j) for i, j, _, _ in self._rel] + [(n, i) for i, _, _ in self._prior]
+        Z = [f[2] for f in self._rel] + [f[1] for f in self._prior]
+        info = [f[3] for f in self._rel] + [f[2] for f in self._prior]
+        q = len(self._int)
+        return _Arrays(
+            np.ascontiguousarray(np.asarray(edges, dtype=np.int64).reshape(-1, 2)),
+            np.ascontiguousarray(np.asarray(Z, dtype=np.float64).reshape(-1, 4, 4)),
+            np.ascontiguousarray(np.asarray(info, dtype=np.float64).reshape(-1, 6, 6)),
+            np.array([f[0] for f in self._int], dtype=np.int64),
+            np.ascontiguousarray(np.asarray([f[1] for f in self._int], dtype=np.float64).reshape(q, 3)),
+            np.ascontiguousarray(np.asarray([f[2] for f in self._int], dtype=np.float64).reshape(q, 3)),
+            np.ascontiguousarray(np.asarray([f[3] for f in self._int], dtype=np.float64).reshape(q, 3, 3)))
+
+    def cost(self, poses=None) -> float:
+        """``F = ½ Σ rᵀΩr + ½ Σ eᵀΩe`` at ``poses`` (default: the current estimate); GTSAM's ``graph.error``."""
+        P = self._with_anchor(self.poses if poses is None else np.asarray(poses, dtype=np.float64))
+        a = self._arrays()
+        r, e = _residuals(P, a)
+        return _quad(r, a.info) + _quad(e, a.info_int)
+
+    def _with_anchor(self, poses: np.ndarray) -> np.ndarray:
+        if poses.shape != (self.n_keyframes, 4, 4) or not np.all(np.isfinite(poses)):
+            raise InputError(f"poses must be finite with shape {(self.n_keyframes, 4, 4)}, got {poses.shape}")
+        return np.ascontiguousarray(np.concatenate([poses, np.eye(4)[None]]))
+
+    def _components(self) -> tuple[int, np.ndarray]:
+        """Connected components of the keyframes under the relative factors (labels)."""
+        import scipy.sparse as sp
+        from scipy.sparse.csgraph import connected_components
+
+        n = self.n_keyframes
+        e = np.asarray([(i, j) for i, j, _, _ in self._rel], dtype=np.int64).reshape(-1, 2)
+        adj = sp.coo_matrix((np.ones(e.shape[0]), (e[:, 0], e[:, 1])), shape=(n, n))
+        return connected_components(adj, directed=False)
+
+    def gauge(self, mode: str = "hold_first") -> tuple[int, ...]:
+        """Keyframes to hold so that every component of the graph is anchored in the world.
+
+        A component (keyframes joined by relative factors) is anchored by a held keyframe, a prior,
+        or intersection factors whose knowledge-base points ``C`` span a plane (three or more
+        non-collinear points fix all six degrees of freedom; one point, or points on a line, leave a
+        rotation free). ``mode="hold_first"`` holds the first keyframe of every other component at
+        its current pose (with intersection factors on one or two points this is a constraint, not
+        only a gauge); ``mode="error"`` raises :class:`DegenerateGeometryError` naming it.
+
+        Returns
+        -------
+        tuple of int
+            The held keyframes (the ``fixed`` ones and those added for the gauge).
+        """
+        if mode not in GAUGES:
+            raise InputError(f"gauge must be one of {GAUGES}, got {mode!r}")
+        n_comp, label = self._components()
+        anchored = np.zeros(n_comp, dtype=bool)
+        anchored[label[[i for i, _, _ in self._prior]]] = True
+        anchored[label[np.flatnonzero(self._fixed)]] = True
+        for c in np.flatnonzero(~anchored):
+            pts = np.asarray([f[2] for f in self._int if label[f[0]] == c]).reshape(-1, 3)
+            if pts.shape[0] >= 3:
+                s = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False)
+                anchored[c] = s[1] > 1e-6 * max(s[0], 1.0)
+        held = [k for k in range(self.n_keyframes) if self._fixed[k]]
+        for c in np.flatnonzero(~anchored):
+            first = int(np.flatnonzero(label == c)[0])
+            if mode == "error":
+                raise DegenerateGeometryError(
+                    f"keyframes {first}.. form a component that no prior, held keyframe or set of three "
+                    f"non-collinear intersections anchors in the world: its position or rotation is free "
+                    f"(add a prior, join it by a relative factor, or use gauge='hold_first')")
+            held.append(first)
+        return tuple(sorted(set(held)))
+
+    # -- solving
+    def optimize(self, params: PoseGraphParams | None = None, *, warm_start: bool = True,
+                 gauge: str = "hold_first") -> FactorGraphResult:
+        """Minimise ``F`` by Levenberg–Marquardt on SE(3) (the solver of :mod:`minegeo.slam.posegraph`).
+
+        Parameters
+        ----------
+        params : PoseGraphParams, optional
+            Iterations, damping, tolerances and robust kernel (applied to every factor's whitened
+            residual), as for :func:`minegeo.slam.posegraph.optimize_pose_graph`.
+        warm_start : bool
+            Start from the current estimate (the previous optimum, new keyframes at their start
+            pose); else from the poses given to :meth:`add_keyframe`.
+        gauge : {"hold_first", "error"}
+            What to do with components no factor anchors in the world (:meth:`gauge`).
+
+        Returns
+        -------
+        FactorGraphResult
+            The current estimate is set to its poses unless ``status == "failed"``.
+        """
+        params = params or PoseGraphParams()
+        t0 = time.perf_counter()
+        if self.n_keyframes == 0 or not (self._rel or self._int or self._prior):
+            raise InputError("the factor graph has no keyframes or no factors: nothing to optimise")
+        held = self.gauge(gauge)
+        start = np.stack(self._estimate if warm_start else self._initial)
+        res = _levenberg_marquardt(self._with_anchor(start), self._arrays(), held, params)
+        poses, status, reason, c0, c1, it, hist = res
+        if status != "failed":
+            self._estimate = [p.copy() for p in poses]
+        return FactorGraphResult(poses, status, reason, c0, c1, it, hist, held, params,
+                                 {"total": time.perf_counter() - t0})
+
+
+def _quad(r: np.ndarray, info: np.ndarray) -> float:
+    return 0.5 * float(np.einsum("ei,eij,ej->", r, info, r))
+
+
+def _residuals(P: np.ndarray, a: _Arrays):
+    """Relative/prior residuals (m, 6) [Liang2024 Eq. 11] and intersection residuals (q, 3) [Liang2024 Eq. 22]."""
+    r = np.empty((a.edges.shape[0], 6))
+    K.se3_residuals(P, a.edges, a.Z, r)
+    e = np.empty((a.kf.shape[0], 3))
+    KS.intersection_residuals(P, a.kf, a.z, a.C, e)
+    return r, e
+
+
+def _robust(r, e, a: _Arrays, params: PoseGraphParams) -> float:
+    return _robust_cost(r, a.info, params) + _robust_cost(e, a.info_int, params)
+
+
+def _levenberg_marquardt(P: np.ndarray, a: _Arrays, held: tuple, params: PoseGraphParams):
+    """LM over the free keyframes (row ``n`` of ``P`` is the held prior anchor).
+
+    Each iteration: the relative and prior factors' blocks by
+    :meth:`minegeo.slam.posegraph._BlockSystem.assemble`, the intersection factors' diagonal blocks
+    ``JᵀWΩJ`` and gradient ``JᵀWΩe`` [Liang2024 Eqs. 22, 26-27] by
+    :func:`minegeo.semantic._kernels.accumulate_unary` (unary factors add no fill-in, so the
+    Cholesky pattern of the pose graph serves), then the damping trials of ``optimize_pose_graph``.
+
+    Returns ``(poses, status, reason, cost_initial, cost_final, iterations, history)``.
+    """
+    n = P.shape[0] - 1
+    free = np.ones(n + 1, dtype=bool)
+    free[list(held) + [n]] = False
+    blocks = _BlockSystem("SE3", n + 1, a.edges, free)
+    bcol_int = np.ascontiguousarray(np.where(blocks.col[a.kf] >= 0, blocks.col[a.kf] // 6, -1))
+    r, e = _residuals(P, a)
+    cost0 = _quad(r, a.info) + _quad(e, a.info_int)
+    if not np.isfinite(cost0):
+        return P[:n], "failed", "the initial cost is not finite", cost0, cost0, 0, []
+    cost, lam, history = _robust(r, e, a, params), params.lambda_init, []
+    status, reason, it = "max_iterations", f"stopped after {params.max_iterations} iterations", 0
+    q = a.kf.shape[0]
+    for it in range(1, params.max_iterations + 1):
+        blocks.assemble(P, a.edges, a.Z, a.info, _robust_weights(r, a.info, params))
+        ei, Ji = np.empty((q, 3)), np.empty((q, 3, 6))
+        KS.intersection_terms(P, a.kf, a.z, a.C, ei, Ji)
+        WO = np.ascontiguousarray(a.info_int * _robust_weights(e, a.info_int, params)[:, None, None])
+        KS.accumulate_unary(ei, Ji, WO, bcol_int, blocks.Lp, blocks.Hx, blocks.g)
+        accepted, factorised = False, False
+        while lam < 1e12:
+            delta = blocks.solve(lam, params.damping == "diagonal")
+            if delta is None:  # H + λD not positive definite: more damping
+                history.append({"iteration": it, "cost": cost, "lambda": lam, "accepted": False, "step": 0.0})
+                lam *= 10.0
+                continue
+            factorised = True
+            trial = blocks.retract(P, delta)
+            r_t, e_t = _residuals(trial, a)
+            cost_t = _robust(r_t, e_t, a, params)
+            step = float(np.abs(delta).max()) if delta.size else 0.0
+            history.append({"iteration": it, "cost": cost_t, "lambda": lam, "accepted": False, "step": step})
+            if np.isfinite(cost_t) and cost_t <= cost:
+                history[-1]["accepted"] = True
+                rel = (cost - cost_t) / max(cost, 1e-300)
+                P, r, e, cost, accepted = trial, r_t, e_t, cost_t, True
+                lam = max(lam / 10.0, 1e-12)
+                break
+            lam *= 10.0
+        if not factorised:
+            return P[:n], "failed", ("the damped normal equations are not positive definite at any damping "
+                                     "(a keyframe no factor constrains?)"), cost0, cost0, it, history
+        if not accepted:
+            status, reason = "converged", "no step lowers the cost (damping exhausted): at a minimum"
+            break
+        if rel < params.relative_cost_tolerance or step < params.step_tolerance:
+            status, reason = "converged", f"relative cost decrease {rel:.2e}, largest step {step:.2e}"
+            break
+    return P[:n].copy(), status, reason, cost0, _quad(r, a.info) + _quad(e, a.info_int), it, history
