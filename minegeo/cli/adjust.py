@@ -49,6 +49,45 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--alpha-tau", type=float, default=0.05, help="overall significance of Pope's tau-test (default 0.05)"
     )
     parser.add_argument("--max-iterations", type=int, default=50, help="Gauss-Newton iterations (default 50)")
+    parser.add_argument(
+        "--dxf", action="store_true",
+        help="also write DIR/adjusted.dxf for mine-planning CAD: adjusted and fixed points with names and their "
+             "confidence ellipses on MINEGEO_* layers, network coordinates (needs minegeo[dxf])",
+    )
+
+
+def _write_dxf(stage: Path, res, confidence: float) -> Path:
+    """``adjusted.dxf`` (points, names, confidence ellipses), recorded under ``"dxf"`` in the staged result.json."""
+    import json
+
+    from minegeo._provenance import write_json_atomic
+    from minegeo.cli._dxf import dxf_record
+    from minegeo.io.dxf import DxfDrawing
+
+    pct = f"{100.0 * confidence:.4g}".replace(".", "_")
+    dwg = DxfDrawing(frame="network coordinates (x = E, y = N, z = h; 0 when the network has no heights)",
+                     ellipse_layer=f"ELLIPSE{pct}")
+    skipped = []
+    for pid, p in res.points.items():
+        if p.x is None or p.y is None:  # a levelling-only point has no plan position to draw
+            skipped.append(pid)
+            continue
+        at = (p.x, p.y, p.h if p.h is not None else 0.0)
+        free = [a for a in ("x", "y", "z") if a not in p.fixed and (a != "z" or p.h is not None)]
+        dwg.point("adjusted_points" if free else "fixed_points", at, label=pid)
+        e = p.ellipse_95
+        if e is not None:
+            dwg.ellipse(at, e.semi_major_m, e.semi_minor_m, e.azimuth_rad)
+    if skipped:
+        dwg.property("MINEGEO_NOT_DRAWN", "; ".join(skipped) + " (no plan coordinates)")
+    path = stage / "adjusted.dxf"
+    rec = dxf_record(path, dwg.save(path))
+    rec["confidence"] = confidence
+    rj = stage / "result.json"
+    d = json.loads(rj.read_text(encoding="utf-8"))
+    d["dxf"] = rec
+    write_json_atomic(rj, d)
+    return path
 
 
 def run(args) -> int:
@@ -65,6 +104,10 @@ def run(args) -> int:
     from minegeo._output import OutputTransaction, run_timings
 
     out = Path(args.out)
+    if args.dxf:
+        from minegeo.cli._dxf import require_dxf
+
+        require_dxf()  # a missing ezdxf stops the run before any work
     with OutputTransaction("adjust", inputs={"NETWORK": path}, folders={"--out": out}) as tx:
         timer = StageTimer()
         with timer("read"):
@@ -89,6 +132,8 @@ def run(args) -> int:
         }
         prov = provenance(seed=None, origin=res.local_origin, inputs=[path])
         staged = write_survey_report(res, tx.folder("--out"), params, prov)
+        if args.dxf:
+            staged["dxf"] = _write_dxf(tx.folder("--out"), res, args.confidence)
     paths = {k: out / Path(v).name for k, v in staged.items()}
     if getattr(args, "quiet", False):  # -q: only warnings and errors (the result is in the files)
         return 0

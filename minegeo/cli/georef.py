@@ -40,6 +40,40 @@ def add_arguments(parser) -> None:
                         help="write MAP_GEO even when the fit failed (never for production use)")
 
 
+def streamable_map(map_path: Path, out_path: Path):
+    """The map opened for chunked reading (:mod:`minegeo.io.chunked`) when ``georef`` can stream it:
+    a PLY/PCD map whose records are x, y, z only (nothing else to carry over), read in chunks, and
+    a ``.ply`` output. Otherwise None: the map is read whole (attributes, normals and colour are
+    transformed and written as before)."""
+    from minegeo.errors import MinegeoError
+    from minegeo.io.chunked import open_point_chunks
+
+    if out_path.suffix.lower() != ".ply" or map_path.suffix.lower() not in (".ply", ".pcd"):
+        return None
+    try:
+        chunks = open_point_chunks(map_path)
+    except (MinegeoError, OSError):
+        return None  # the whole-file reader reports the problem in its own words
+    return chunks if chunks.chunked and chunks.metadata.get("xyz_only") else None
+
+
+def map_origin_auto(chunks) -> int:
+    """Pass 1 over a streamed map: set ``chunks.origin`` to ``read_point_cloud(..., origin="auto")``'s
+    origin (0 within +-10 km, else the rounded bounding-box centre) and return the point count."""
+    import numpy as np
+
+    from minegeo.errors import TooFewPointsError
+    from minegeo.io.chunked import scan_bounds
+
+    try:
+        n, lo, hi = scan_bounds(chunks)
+    except TooFewPointsError:
+        return 0
+    if max(abs(lo).max(), abs(hi).max()) > 1e4:
+        chunks.origin = np.round(0.5 * (lo + hi))
+    return n
+
+
 def run(args) -> int:
     from minegeo._output import OutputTransaction, run_timings
     from minegeo._provenance import StageTimer, input_record, provenance, write_json_atomic
@@ -50,6 +84,7 @@ def run(args) -> int:
         apply_georef,
         georeference,
         sidecar_path,
+        stream_georeferenced_map,
         write_georeferenced_map,
     )
     from minegeo.report.georef_report import write_georef_report
@@ -91,8 +126,13 @@ def run(args) -> int:
         bar.set_postfix_str("read")
         with timer("read"):
             gcps = read_gcps(args.gcps, default_sigma_m=args.default_sigma_m)
-            cloud = read_point_cloud(map_path, origin="auto")
-        if len(cloud) == 0:
+            chunks = streamable_map(map_path, out_path)
+            if chunks is None:
+                cloud = read_point_cloud(map_path, origin="auto")
+                n_map = len(cloud)
+            else:  # pass 1 of 2: the count and the local origin ("auto"), one chunk in memory
+                n_map = map_origin_auto(chunks)
+        if n_map == 0:
             raise TooFewPointsError(f"the map {map_path} holds no points: there is nothing to georeference")
         step("fit")
         with timer("fit"):
@@ -101,15 +141,19 @@ def run(args) -> int:
         outputs = {}
         cloud_geo = None
         if result.ok or args.force:
+            extra = {"inputs": inputs, "report": str(report_dir / "report.html")}
             step("transform")
-            with timer("transform"):
-                cloud_geo = apply_georef(cloud, result, allow_failed=args.force)
-            step("write map")
-            with timer("write_map"):
-                write_georeferenced_map(
-                    tx.file("--out"), cloud_geo, result,
-                    extra={"inputs": inputs, "report": str(report_dir / "report.html")},
-                )
+            if chunks is None:
+                with timer("transform"):
+                    cloud_geo = apply_georef(cloud, result, allow_failed=args.force)
+                step("write map")
+                with timer("write_map"):
+                    write_georeferenced_map(tx.file("--out"), cloud_geo, result, extra=extra)
+            else:  # pass 2 of 2: transformed and written chunk by chunk
+                step("write map")
+                with timer("transform_and_write_map"):
+                    _, _, cloud_geo = stream_georeferenced_map(tx.file("--out"), chunks, result, n_map,
+                                                               allow_failed=args.force, extra=extra)
             outputs = {"map_geo": str(out_path), "sidecar": str(sidecar_path(out_path))}
         outputs["result_json"] = str(report_dir / "result.json")
         outputs["report_html"] = str(report_dir / "report.html")

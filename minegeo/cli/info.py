@@ -19,7 +19,7 @@ _TRAJ_SUFFIXES = (".tum", ".kitti")
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("file", metavar="FILE", help="point cloud (ply pcd las laz xyz txt csv pts 3d zip), "
+    parser.add_argument("file", metavar="FILE", help="point cloud (ply pcd las laz xyz txt csv pts 3d e57 zip), "
                         "trajectory (--kind trajectory) or GCP CSV (--kind gcp)")  # fmt: skip
     parser.add_argument("--format", default=None, help="file format if the suffix does not tell (e.g. pcd, tum)")
     parser.add_argument(
@@ -79,6 +79,20 @@ def _gcp_info(path: Path) -> dict:
     }
 
 
+def _print_e57_scans(meta: dict) -> None:
+    """The scans of an E57 file and their poses (scan frame -> file frame)."""
+    from minegeo.io._quat import matrix_to_quat
+
+    scans = meta["e57_scans"]
+    extra = f"; {meta['e57_invalid_dropped']:,} invalid returns dropped" if meta.get("e57_invalid_dropped") else ""
+    print(f"scans     {len(scans)} (points merged into the file frame by each scan's pose{extra})")
+    for s in scans:
+        T = np.asarray(s["T_file_scan"], dtype=np.float64)
+        q = matrix_to_quat(T[:3, :3], order="wxyz", atol=1e-3)
+        print(f"  #{s['index']} {s['name']!r}: {s['points']:,} points ({s['coordinates']}), position "
+              f"{_fmt_vec(T[:3, 3])}, rotation wxyz ({', '.join(f'{v:.6f}' for v in q)}), guid {s['guid']}")
+
+
 def _print_cloud(info: dict) -> None:
     print(f"file      {info['path']}")
     enc = f" ({info['encoding']})" if info.get("encoding") else ""
@@ -94,6 +108,8 @@ def _print_cloud(info: dict) -> None:
     meta = info["metadata"]
     if "las_scale" in meta:
         print(f"las       scale {meta['las_scale']} offset {meta['las_offset']} point format {meta['las_point_format']}")
+    if "e57_scans" in meta:
+        _print_e57_scans(meta)
     if info["attributes"]:
         print("fields")
         for k, a in info["attributes"].items():

@@ -87,6 +87,9 @@ def add_arguments(parser) -> None:
                         help="gate (m) of the final tight point-to-plane polish of the chosen pose (default 0.25; "
                              "the gate used is max(M, 3 x the scan's surface noise)); 0 turns it off")
     parser.add_argument("--no-cache", action="store_true", help="do not read or write the prepared-map cache")
+    parser.add_argument("--dxf", action="store_true",
+                        help="also write DIR/placement.dxf for mine-planning CAD: scan origin, 95 %% ellipse and "
+                             "trajectory on MINEGEO_* layers in CRS coordinates (ok results only; needs minegeo[dxf])")
     parser.add_argument("--drop-nonfinite", action="store_true",
                         help="drop scan points with NaN/inf coordinates (organised PCD/PLY files mark missing "
                              "returns that way) instead of refusing the file")
@@ -215,6 +218,10 @@ def run(args) -> int:
 
         raise InputError(f"--seed must be >= 0, got {args.seed}")
     prep, lp = params_from_args(args)
+    if getattr(args, "dxf", False):
+        from minegeo.cli._dxf import require_dxf
+
+        require_dxf()  # a missing ezdxf stops the run before any work
     for name in ("map", "scan", "trajectory"):
         v = getattr(args, name)
         if v is not None and not Path(v).exists():
@@ -236,12 +243,8 @@ def run(args) -> int:
 
 
 def _run(args, prep, lp, stage: Path, out: Path, progress):
-    from minegeo._provenance import input_record, versions, write_json_atomic
-    from minegeo.errors import TooFewPointsError
-    from minegeo.io import read_point_cloud, read_trajectory
-    from minegeo.localize.pipeline import localize_scan
+    from minegeo._provenance import input_record
     from minegeo.localize.prepared import cache_path, load_or_prepare
-    from minegeo.report.localize_report import write_localize_report
 
     t_start = time.perf_counter()
     inputs = [input_record(args.map), input_record(args.scan)]
@@ -250,13 +253,8 @@ def _run(args, prep, lp, stage: Path, out: Path, progress):
 
     # read and check the scan first: a user mistake there should not cost a map preparation
     progress("read scan")
-    t0 = time.perf_counter()
-    scan = read_point_cloud(args.scan, drop_nonfinite=bool(getattr(args, "drop_nonfinite", False)))
-    if len(scan) < lp.min_scan_points:
-        raise TooFewPointsError(f"the scan {args.scan} has only {len(scan)} points; at least {lp.min_scan_points} "
-                                "are needed to localize it")
-    traj = read_trajectory(args.trajectory, frame="scan") if args.trajectory else None
-    t_read = time.perf_counter() - t0
+    scan, traj, t_read = read_scan_inputs(args.scan, args.trajectory, lp,
+                                          drop_nonfinite=bool(getattr(args, "drop_nonfinite", False)))
     progress("load map" if str(args.map).lower().endswith(".npz") else "load or prepare map")
     t0 = time.perf_counter()
     # the cache of a freshly prepared map is written below, once, with its search structures
@@ -266,18 +264,12 @@ def _run(args, prep, lp, stage: Path, out: Path, progress):
     # the map's search structures (KD-trees, descriptor tree, occupancy bitmap): once per
     # process, timed apart from the scan's own localization
     index_s = pm.build_indexes(lp, progress=lambda name: progress(f"search structure {name}"))
-    base = {
-        "profile": getattr(args, "profile", None) or DEFAULT_PROFILE,
-        "inputs": inputs,
-        "map_preparation": {"source": how, "seconds": t_map, "timings_s": index_s, "n_points": len(pm),
-                            "params_hash": pm.params_hash,
-                            "cache_file": None if (how == "prepared_file" or args.no_cache)
-                            else str(cache_path(args.map, prep))},
-        "versions": versions(),
-        "seed": int(args.seed),
-    }
+    base = result_base(pm, how, t_map, index_s, profile=getattr(args, "profile", None) or DEFAULT_PROFILE,
+                       inputs=inputs, seed=args.seed,
+                       cache_file=None if (how == "prepared_file" or args.no_cache) else cache_path(args.map, prep))
     # an unusable scan (too few points, flat, degenerate) raises a typed error: exit 2, nothing written
-    res = localize_scan(pm, scan, traj, lp, seed=args.seed, progress=progress)
+    res, d = localize_and_write(stage, pm, scan, traj, lp, seed=args.seed, base=base, t_read=t_read, t_start=t_start,
+                                run_timings=lambda: whole_run_timings(args), progress=progress)
     if how == "computed" and not args.no_cache:
         # only once the scan was usable: a run stopped by a user mistake leaves nothing new behind
         progress("write map cache")
@@ -285,11 +277,91 @@ def _run(args, prep, lp, stage: Path, out: Path, progress):
             pm.save(cache_path(args.map, prep))
         except OSError as exc:
             log.warning("could not write the prepared-map cache: %s", exc)
+    if getattr(args, "dxf", False):  # placement.dxf for CAD (coordinates only for ok), recorded in result.json
+        from minegeo._provenance import write_json_atomic
+        from minegeo.cli._dxf import write_localize_result_dxf
+
+        d["dxf"] = write_localize_result_dxf(stage, d)
+        write_json_atomic(stage / "result.json", d)
+    return res, d, how
+
+
+def read_scan_inputs(scan_path, trajectory_path, lp, *, drop_nonfinite: bool = False):
+    """Read and check a scan (and its trajectory) for :func:`localize_and_write`.
+
+    Returns ``(scan, trajectory or None, seconds)``; raises the typed errors of the readers and
+    :class:`~minegeo.errors.TooFewPointsError` for a scan with fewer than ``lp.min_scan_points``
+    points (shared by ``localize`` and ``localize-batch``)."""
+    from minegeo.errors import TooFewPointsError
+    from minegeo.io import read_point_cloud, read_trajectory
+
+    t0 = time.perf_counter()
+    scan = read_point_cloud(scan_path, drop_nonfinite=drop_nonfinite)
+    if len(scan) < lp.min_scan_points:
+        raise TooFewPointsError(f"the scan {scan_path} has only {len(scan)} points; at least {lp.min_scan_points} "
+                                "are needed to localize it")
+    traj = read_trajectory(trajectory_path, frame="scan") if trajectory_path else None
+    return scan, traj, time.perf_counter() - t0
+
+
+def result_base(pm, how: str, t_map: float, index_s: dict, *, profile: str, inputs: list, seed: int,
+                cache_file=None) -> dict:
+    """The run-level fields of ``result.json`` (profile, inputs, map preparation, versions, seed)."""
+    from minegeo._provenance import versions
+
+    return {
+        "profile": profile,
+        "inputs": inputs,
+        "map_preparation": {"source": how, "seconds": t_map, "timings_s": index_s, "n_points": len(pm),
+                            "params_hash": pm.params_hash,
+                            "cache_file": None if cache_file is None else str(cache_file)},
+        "versions": versions(),
+        "seed": int(seed),
+    }
+
+
+def localize_and_write(stage: Path, pm, scan, traj, lp, *, seed: int, base: dict, t_read: float, t_start: float,
+                       run_timings, progress=None):
+    """Localize one scan in a loaded map and write its result folder's files into ``stage``.
+
+    The per-scan work of ``minegeo localize``, shared with ``minegeo localize-batch`` so that both
+    write the same ``result.json`` (up to its timings), ``report.html`` and
+    ``trajectory_global.csv`` for the same map, scan, parameters and seed.
+
+    Parameters
+    ----------
+    stage : Path
+        Folder to write into (the staging folder of an :class:`~minegeo._output.OutputTransaction`).
+    pm : PreparedMap
+    scan, traj : PointCloud, Trajectory or None
+        From :func:`read_scan_inputs`.
+    lp : LocalizeParams
+    seed : int
+    base : dict
+        :func:`result_base` (its ``map_preparation`` seconds become ``timings_s`` entries).
+    t_read, t_start : float
+        Seconds spent reading the inputs; ``time.perf_counter()`` when the run started.
+    run_timings : callable
+        Returns the run's ``wall_s``, ``compile_s``, ``work_s`` (added to ``timings_s``).
+    progress : callable, optional
+        ``progress(step)`` as each step starts.
+
+    Returns
+    -------
+    (LocalizationResult, dict)
+        The result and its ``result.json`` record.
+    """
+    from minegeo._provenance import write_json_atomic
+    from minegeo.localize.pipeline import localize_scan
+    from minegeo.report.localize_report import write_localize_report
+
+    progress = progress or (lambda step: None)
+    res = localize_scan(pm, scan, traj, lp, seed=seed, progress=progress)
     d = res.to_dict()
     timings = dict(d["timings_s"])
     timings["localize_total"] = timings.pop("total")
-    timings["map_load_or_prepare"] = t_map
-    timings["map_indexes"] = float(sum(index_s.values()))
+    timings["map_load_or_prepare"] = base["map_preparation"]["seconds"]
+    timings["map_indexes"] = float(sum(base["map_preparation"]["timings_s"].values()))
     timings["read_inputs"] = t_read
     d["timings_s"] = timings
     d.update(base)
@@ -302,11 +374,11 @@ def _run(args, prep, lp, stage: Path, out: Path, progress):
         d["trajectory_note"] = (f"no trajectory_global.csv: the localization is {res.status}, so no sensor pose "
                                 "in the map or the CRS is known")
     d["timings_s"]["total"] = time.perf_counter() - t_start
-    d["timings_s"].update(whole_run_timings(args))  # wall_s, compile_s (Numba), work_s of the whole run
+    d["timings_s"].update(run_timings())  # wall_s, compile_s (Numba), work_s of the whole run
     progress("report")
-    write_localize_report(stage / "report.html", res, pm, scan=scan, inputs=inputs, extra=d)
+    write_localize_report(stage / "report.html", res, pm, scan=scan, inputs=base["inputs"], extra=d)
     write_json_atomic(stage / "result.json", d)
-    return res, d, how
+    return res, d
 
 
 def _candidate_lines(res, limit: int = 3) -> list[str]:
@@ -369,6 +441,8 @@ def print_result(res, d: dict, how: str, out: Path) -> None:
         files = [out / "result.json", out / "report.html"]
         if d.get("trajectory_csv"):
             files.append(out / "trajectory_global.csv")
+        if d.get("dxf"):
+            files.append(out / d["dxf"]["file"])
         print("  wrote " + ", ".join(str(f) for f in files))
         return
     word = res.status.upper()

@@ -27,6 +27,29 @@ def add_arguments(parser) -> None:
                         help="segmentation options of the paper's Table 1 allowed (default 1,2,3,4,5,6)")
     parser.add_argument("--variance", choices=("aposteriori", "apriori"), default="aposteriori",
                         help="sigma0 scaling the covariance (default aposteriori)")
+    parser.add_argument("--dxf", action="store_true",
+                        help="also write DIR/mast.dxf for mine-planning CAD: station with its 95 %% ellipse and the "
+                             "beacons on MINEGEO_* layers, mine-frame coordinates, z = 0 (needs minegeo[dxf])")
+
+
+def _write_dxf(path: Path, res, beacons) -> dict:
+    """``mast.dxf``: the station (ok only) with its 95 % ellipse, and the surveyed beacons (mine frame, z = 0)."""
+    import math
+
+    from minegeo.cli._dxf import dxf_record
+    from minegeo.io.dxf import DxfDrawing
+
+    dwg = DxfDrawing(frame="mine frame of the beacons (E, N; 2-D: z = 0)")
+    for b in beacons:
+        dwg.polyline3d("beacons", b.vertices_m, label=b.beacon_id)
+    if res.ok:
+        dwg.point("stations", (res.x_m, res.y_m, 0.0), label=f"MAST station, azimuth {res.azimuth_dms}")
+        e = res.ellipse95 or {}
+        if e.get("a_m") is not None:
+            dwg.ellipse((res.x_m, res.y_m, 0.0), float(e["a_m"]), float(e["b_m"]), math.radians(e["orientation_deg"]))
+    else:
+        dwg.property("MINEGEO_NOT_PLACED", f"MAST station ({res.status}: no position)")
+    return dxf_record(path, dwg.save(path))
 
 
 def run(args) -> int:
@@ -51,6 +74,10 @@ def run(args) -> int:
         variance=args.variance,
     )
     out = Path(args.out)
+    if args.dxf:
+        from minegeo.cli._dxf import require_dxf
+
+        require_dxf()  # a missing ezdxf stops the run before any work
     with OutputTransaction("mast", inputs={"--scan": args.scan, "--beacons": args.beacons},
                            folders={"--out": out}) as tx:
         with timer("read"):
@@ -65,6 +92,8 @@ def run(args) -> int:
         summary["timings_s"] = {**timer.as_dict(), **run_timings(args)}
         summary["provenance"] = provenance(seed=None, origin=res.details.get("origin_m"),
                                            inputs=list(inputs.values()))
+        if args.dxf:
+            summary["dxf"] = _write_dxf(stage / "mast.dxf", res, beacons)
         write_json_atomic(stage / "result.json", summary)
         write_mast_report(res, beacons, stage, inputs, timings=summary["timings_s"])
         # exactly the files in the result folder, named at their final (committed) paths

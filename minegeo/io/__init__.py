@@ -1,11 +1,13 @@
 """minegeo.io: point clouds, trajectories and ground control points.
 
 Point clouds: PLY, PCD (incl. LZF ``binary_compressed``), LAS/LAZ (optional laspy),
-XYZ/TXT/CSV, Leica PTS, 3DTK ``.3d``; ``.zip`` holding one of them. Trajectories: TUM,
+XYZ/TXT/CSV, Leica PTS, 3DTK ``.3d``, E57 (optional pye57: scans merged by their poses);
+``.zip`` holding one of them. DXF drawings for CAD: :mod:`minegeo.io.dxf` (optional ezdxf). Trajectories: TUM,
 KITTI, GeoSLAM-style text, CSV. Control points: CSV. See ``docs/io.md``.
 """
 
 from minegeo.io._quat import matrix_to_quat, quat_to_matrix
+from minegeo.io.e57 import e57_scan_poses, iter_e57_chunks, read_e57
 from minegeo.io.gcp import read_gcps, write_gcps
 from minegeo.io.pointcloud import cloud_info, read_point_cloud, write_point_cloud
 from minegeo.io.trajectory import read_trajectory, read_transform, write_trajectory
@@ -18,6 +20,9 @@ __all__ = [
     "read_point_cloud",
     "write_point_cloud",
     "cloud_info",
+    "read_e57",
+    "e57_scan_poses",
+    "iter_e57_chunks",
     "read_trajectory",
     "write_trajectory",
     "read_transform",

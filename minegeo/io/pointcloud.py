@@ -12,6 +12,7 @@ xyz        .xyz .txt                  :mod:`minegeo.io.xyz`
 csv        .csv                       :mod:`minegeo.io.xyz`
 pts        .pts                       :mod:`minegeo.io.xyz` (Leica PTS)
 3d         .3d                        :mod:`minegeo.io.xyz` (3DTK scans, centimetres)
+e57        .e57                       :mod:`minegeo.io.e57` (optional pye57; scans merged by their poses)
 =========  =========================  ==========================================
 
 A ``.zip`` holding exactly one point-cloud file (e.g. ``scan.pcd.zip``) is read directly.
@@ -52,9 +53,10 @@ _SUFFIX = {
     ".csv": "csv",
     ".pts": "pts",
     ".3d": "3d",
+    ".e57": "e57",
     ".zip": "zip",
 }
-POINT_CLOUD_FORMATS = ("ply", "pcd", "las", "laz", "xyz", "csv", "pts", "3d")
+POINT_CLOUD_FORMATS = ("ply", "pcd", "las", "laz", "xyz", "csv", "pts", "3d", "e57")
 
 
 def detect_format(path, format: str | None = None) -> str:
@@ -88,6 +90,18 @@ def _read_raw(name: str, data: bytes, fmt: str, columns=None):
         from minegeo.io.las import read_las_bytes
 
         return read_las_bytes(name, data)
+    if fmt == "e57":  # libE57 reads from a path: an E57 inside a zip goes through a temporary file
+        import tempfile
+
+        from minegeo.io.e57 import read_e57_raw
+
+        with tempfile.TemporaryDirectory(prefix="minegeo-e57-") as td:
+            tmp = Path(td) / "member.e57"
+            tmp.write_bytes(data)
+            try:
+                return read_e57_raw(tmp)
+            except FileFormatError as exc:
+                raise FileFormatError(name, exc.problem) from None
     from minegeo.io.xyz import read_text_bytes
 
     return read_text_bytes(name, data, fmt, columns=columns)
@@ -147,7 +161,7 @@ def read_point_cloud(
         The file (opened read-only, never modified). A ``.zip`` with one point-cloud file
         inside is read directly.
     format : str, optional
-        ``ply pcd las laz xyz csv pts 3d`` (default: from the suffix).
+        ``ply pcd las laz xyz csv pts 3d e57`` (default: from the suffix).
     origin : None, "auto", "file" or (3,) array_like, optional
         Local origin (m) to subtract so that large projected coordinates keep their
         precision: ``points = global - origin`` and ``cloud.origin = origin``.
@@ -187,13 +201,15 @@ def read_point_cloud(
         beyond :data:`~minegeo.io._limits.MAX_ZIP_RATIO` times its size, or not enough memory
         for the file; the message names the file and the problem (and the line for text data).
     OptionalDependencyError
-        LAS/LAZ without laspy installed.
+        LAS/LAZ without laspy installed; E57 without pye57.
     FileNotFoundError
         The file does not exist.
     """
     p = Path(path)
     is_zip = p.suffix.lower() == ".zip" or (format is not None and str(format).lower() == "zip")
     fmt = "zip" if is_zip else detect_format(p, format)
+    if fmt == "e57":  # libE57 reads the file itself, block by block (minegeo.io.e57)
+        return _read_e57_cloud(p, origin, drop_nonfinite, scale)
     data = read_file_bytes(p, what="point-cloud file")  # regular files only: size known before allocating
     name = str(p)
     size = len(data)
@@ -216,6 +232,19 @@ def read_point_cloud(
     if "unterminated_last_line" in cloud.metadata:  # told only once the whole file has been read
         log.warning("%s: %s", name, cloud.metadata["warnings"][-1])
     log.debug("read %d points from %s (%s)", len(cloud), name, fmt)
+    return cloud
+
+
+def _read_e57_cloud(p: Path, origin, drop_nonfinite: bool, scale) -> PointCloud:
+    from minegeo.io.e57 import read_e57_raw
+
+    try:
+        raw = read_e57_raw(p)
+        cloud = assemble(str(p), raw, origin=origin, drop_nonfinite=drop_nonfinite, scale=scale)
+    except MemoryError:
+        raise FileFormatError(p, f"not enough memory to read this {p.stat().st_size}-byte E57 file") from None
+    cloud.metadata["source"] = str(p)
+    log.debug("read %d points from %s (e57, %d scans)", len(cloud), p, len(raw.metadata["e57_scans_read"]))
     return cloud
 
 
@@ -270,6 +299,8 @@ def write_point_cloud(
     fmt = detect_format(p, format)
     if fmt == "zip":
         raise InputError("writing .zip archives is not supported; write the point-cloud file itself")
+    if fmt == "e57":
+        raise InputError("writing E57 is not supported; write PLY, LAS or PCD")
     if fmt == "ply":
         from minegeo.io.ply import write_ply_bytes
 

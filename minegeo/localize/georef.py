@@ -1175,7 +1175,6 @@ def write_georeferenced_map(path, cloud_geo: PointCloud, result: GeorefResult, *
     (Path, Path)
         The cloud file and the sidecar.
     """
-    from minegeo._provenance import sha256_file, write_json_atomic
     from minegeo.io import write_point_cloud
 
     if not isinstance(result, GeorefResult):
@@ -1188,6 +1187,13 @@ def write_georeferenced_map(path, cloud_geo: PointCloud, result: GeorefResult, *
         write_point_cloud(p, cloud_geo, las_offset=result.origin)
     else:
         write_point_cloud(p, cloud_geo, coordinates="local")
+    return p, _write_sidecar(p, result, extra)
+
+
+def _write_sidecar(p: Path, result: GeorefResult, extra: dict | None) -> Path:
+    """The ``<p>.georef.json`` of a written georeferenced cloud ``p`` (see :func:`write_georeferenced_map`)."""
+    from minegeo._provenance import sha256_file, write_json_atomic
+
     side = {
         "format": SIDECAR_FORMAT,
         "version": SIDECAR_VERSION,
@@ -1204,8 +1210,78 @@ def write_georeferenced_map(path, cloud_geo: PointCloud, result: GeorefResult, *
     }
     if extra:
         side.update(extra)
-    sp = write_json_atomic(sidecar_path(p), side)
-    return p, sp
+    return write_json_atomic(sidecar_path(p), side)
+
+
+#: Points of the map kept for the report's plan view (:func:`minegeo.report.georef_report.plot_georef_png`).
+REPORT_CLOUD_POINTS = 20000
+
+
+def report_sample_rows(n: int, max_points: int = REPORT_CLOUD_POINTS, seed: int = 0) -> np.ndarray:
+    """Rows of an ``n``-point map that the report's plot draws (its own subsampling rule), sorted."""
+    if n <= max_points:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
+
+
+def stream_georeferenced_map(path, chunks, result: GeorefResult, n_points: int, *, allow_failed: bool = False,
+                             extra: dict | None = None, progress=None) -> tuple:
+    """:func:`apply_georef` + :func:`write_georeferenced_map` chunk by chunk, for a binary PLY output.
+
+    The bytes written are those of ``write_georeferenced_map(path, apply_georef(cloud, result), ...)``
+    for a cloud with x, y, z only (float64 binary little-endian PLY, ``geo`` coordinates with the
+    origin in the header): the header of the same writer with the vertex count of the map, then
+    each chunk through :func:`map_to_crs`. Memory: one chunk.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output ``.ply`` (written in place: call it on a staged path, e.g. ``OutputTransaction.file``).
+    chunks : PointChunks
+        The map (:func:`minegeo.io.chunked.open_point_chunks`) opened with ``origin`` = the map
+        cloud's local origin; every chunk is ``points`` of that cloud.
+    result : GeorefResult
+    n_points : int
+        Points of the map (pass 1).
+    allow_failed : bool
+    extra : dict, optional
+        Added to the sidecar.
+    progress : callable, optional
+        ``progress(bytes_read, size_bytes)`` after each chunk.
+
+    Returns
+    -------
+    (Path, Path, PointCloud)
+        The cloud file, the sidecar, and the rows :func:`report_sample_rows` of the
+        georeferenced cloud (for the report's plot).
+    """
+    from minegeo.io.ply import write_ply_bytes
+
+    _check_usable(result, allow_failed)
+    p = Path(path)
+    empty = PointCloud(points=np.zeros((0, 3)), origin=result.origin.copy(), crs=result.crs, frame="crs")
+    head = write_ply_bytes(empty, coordinates="local")
+    old = b"element vertex 0\n"
+    if head.count(old) != 1:  # pragma: no cover - the writer's header layout changed
+        raise InputError("internal error: unexpected PLY header layout for the chunked georeferenced map")
+    head = head.replace(old, f"element vertex {int(n_points)}\n".encode("ascii"))
+    rows = report_sample_rows(int(n_points))
+    sample = np.empty((rows.size, 3))
+    done = 0
+    with open(p, "wb") as fh:
+        fh.write(head)
+        for c in chunks:
+            g = map_to_crs(c, result, chunks.origin, allow_failed=allow_failed)
+            fh.write(np.ascontiguousarray(g, dtype="<f8").tobytes())
+            lo, hi = np.searchsorted(rows, [done, done + g.shape[0]])
+            sample[lo:hi] = g[rows[lo:hi] - done]
+            done += g.shape[0]
+            if progress is not None:
+                progress(chunks.bytes_read, chunks.size_bytes)
+    if done != n_points:
+        raise FileFormatError(chunks.path, f"the map changed while it was read ({n_points} then {done} points)")
+    cloud = PointCloud(points=sample, origin=result.origin.copy(), crs=result.crs, frame="crs")
+    return p, _write_sidecar(p, result, extra), cloud
 
 
 def read_georef(path) -> GeorefResult:
@@ -1224,30 +1300,11 @@ def read_georef(path) -> GeorefResult:
         raise FileFormatError(p, str(exc)) from None
 
 
-def load_georeferenced_map(path, *, check_hash: bool = True) -> tuple:
-    """Load a map written by ``minegeo georef`` (or :func:`write_georeferenced_map`).
-
-    Parameters
-    ----------
-    path : str or Path
-        The georeferenced cloud (``map_geo.ply``) or its sidecar (``map_geo.ply.georef.json``).
-    check_hash : bool
-        Verify the cloud's SHA-256 against the sidecar (a modified cloud is an error).
-
-    Returns
-    -------
-    (PointCloud, GeorefResult)
-        The cloud with ``points`` relative to ``result.origin`` (``cloud.origin``), ``crs`` and
-        ``frame = "crs"``; and the georeferencing (``T_crs_map``, ``T_geo_map``, ``origin``,
-        ``crs``, statistics).
-
-    Raises
-    ------
-    FileFormatError
-        Missing/invalid sidecar, hash mismatch, or a cloud whose recorded CRS differs.
-    """
+def read_georef_sidecar(path, *, check_hash: bool = True) -> tuple:
+    """The checks of :func:`load_georeferenced_map` without reading the cloud: ``(cloud path,
+    sidecar path, GeorefResult)`` (for chunked reading of large maps, see
+    :func:`minegeo.localize.prepared.prepare_map_file`). Raises as :func:`load_georeferenced_map`."""
     from minegeo._provenance import sha256_file
-    from minegeo.io import read_point_cloud
     from minegeo.io._json import load_json_file
 
     p = Path(path)
@@ -1286,6 +1343,34 @@ def load_georeferenced_map(path, *, check_hash: bool = True) -> tuple:
         validate_crs(result.crs)
     except CRSError as exc:
         raise FileFormatError(side_p, f"the sidecar's CRS cannot be used: {exc}") from None
+    return cloud_p, side_p, result
+
+
+def load_georeferenced_map(path, *, check_hash: bool = True) -> tuple:
+    """Load a map written by ``minegeo georef`` (or :func:`write_georeferenced_map`).
+
+    Parameters
+    ----------
+    path : str or Path
+        The georeferenced cloud (``map_geo.ply``) or its sidecar (``map_geo.ply.georef.json``).
+    check_hash : bool
+        Verify the cloud's SHA-256 against the sidecar (a modified cloud is an error).
+
+    Returns
+    -------
+    (PointCloud, GeorefResult)
+        The cloud with ``points`` relative to ``result.origin`` (``cloud.origin``), ``crs`` and
+        ``frame = "crs"``; and the georeferencing (``T_crs_map``, ``T_geo_map``, ``origin``,
+        ``crs``, statistics).
+
+    Raises
+    ------
+    FileFormatError
+        Missing/invalid sidecar, hash mismatch, or a cloud whose recorded CRS differs.
+    """
+    from minegeo.io import read_point_cloud
+
+    cloud_p, side_p, result = read_georef_sidecar(path, check_hash=check_hash)
     cloud = read_point_cloud(cloud_p, origin=result.origin)
     if cloud.crs and not _same_crs(str(cloud.crs), result.crs):
         raise FileFormatError(cloud_p, f"the file says CRS {cloud.crs} but its sidecar says {result.crs}")

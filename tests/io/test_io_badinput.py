@@ -29,11 +29,11 @@ def test_empty_file(tmp_path, suffix):
 
 
 def test_unknown_extension(tmp_path):
-    p = tmp_path / "cloud.e57"
+    p = tmp_path / "cloud.fls"
     p.write_bytes(b"x")
-    _err(p, "unknown point-cloud file extension '.e57'")
+    _err(p, "unknown point-cloud file extension '.fls'")
     with pytest.raises(InputError, match="unknown point-cloud format"):
-        read_point_cloud(p, format="e57")
+        read_point_cloud(p, format="fls")
 
 
 def _binary_cloud(tmp_path, name, **kw):

@@ -149,7 +149,7 @@ def test_cli_info_trajectory_and_gcp(tmp_path, rng, capsys):
     [
         ("bad.ply", "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n", "header declares 3 points but 1"),
         ("bad.xyz", "", "empty"),
-        ("bad.e57", "x", "unknown point-cloud file extension"),
+        ("bad.fls", "x", "unknown point-cloud file extension"),
         ("missing.ply", None, "no such file"),
     ],
 )
