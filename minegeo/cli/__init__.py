@@ -27,6 +27,7 @@ VERBS: dict[str, str] = {
     "georef": "minegeo.cli.georef",
     "prepare-map": "minegeo.cli.prepare_map",
     "localize": "minegeo.cli.localize",
+    "localize-batch": "minegeo.cli.localize_batch",
     "slam": "minegeo.cli.slam",
     "posegraph": "minegeo.cli.posegraph",
     "evaluate": "minegeo.cli.evaluate",

@@ -174,6 +174,17 @@ def reports(browser, tmp_path_factory):
     _run(["localize", "--map", geo_map, "--scan", blob, "--out", bad / "localize", "--seed", "0",
           "--profile", "fast"], ok=(1,))
     cases["localize_failed"] = (bad / "localize" / "report.html", "FAILED")
+    # localize-batch (one local Dask worker): a scan of the mine and an empty file (its own FAILED folder)
+    bscans = bad / "batch_scans"
+    bscans.mkdir()
+    shutil.copy2(mine / "scans" / "scan_01.ply", bscans / "scan_01.ply")
+    (bscans / "empty.ply").write_bytes(b"")
+    _run(["localize-batch", "--map", root / "prepared" / "map.npz", "--scans", bscans, "--out", root / "batch",
+          "--workers", "1", "--seed", "0", "--profile", "fast"], ok=(1,))
+    cases["localize_batch"] = (root / "batch" / "report.html", "WARNINGS")
+    cases["localize_batch_failed_scan"] = (root / "batch" / "empty" / "report.html", "FAILED")
+    assert json.loads((root / "batch" / "batch_result.json").read_text(encoding="utf-8"))["counts"] == \
+        {"ok": 1, "ambiguous": 0, "failed": 1}
     # the inputs behave as intended (else the expected banners above would be wrong)
     assert _status(demo / "georef") == "ok" and _status(bad / "georef") == "failed"
     assert _status(demo / "mast") == "ok" and _status(bad / "mast") == "failed"
@@ -283,7 +294,7 @@ def check_report(ctx, path: Path, expected: str, shot: Path | None = None, min_i
 
 
 CASES = ["adjust_passed", "adjust_failed", "mast_ok", "mast_failed", "georef_ok", "georef_failed", "prepare_map",
-         "localize_ok", "localize_failed", "synth", "demo"]
+         "localize_ok", "localize_failed", "localize_batch", "localize_batch_failed_scan", "synth", "demo"]
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -291,7 +302,7 @@ def test_report_in_browser(case, reports, browser, shots):
     path, expected = reports[case]
     assert path.is_file(), f"{case}: {path} was not written"
     info = check_report(browser, path, expected, shots / f"{case}.png",
-                        min_images=1 if HAVE_MPL and case != "demo" else 0)
+                        min_images=1 if HAVE_MPL and case not in ("demo", "localize_batch_failed_scan") else 0)
     if case == "demo":
         assert len([h for h in info["links"] if not h.startswith("#")]) == 4
 
