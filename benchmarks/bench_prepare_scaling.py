@@ -126,11 +126,44 @@ def write_gcps(path: Path) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
+def make_las_tile(n: int) -> Path:
+    """The PLY tile of ``n`` points as LAS 1.2, point format 1 (intensity, return numbers,
+    classification, GPS time: 28 B per point), scale 1 mm, offset = the tile's origin; written
+    chunk by chunk (random intensity and GPS time, so the streamed georef has fields to carry)."""
+    import laspy
+
+    from minegeo.io.chunked import open_point_chunks
+
+    p = CACHE / f"drifts_{n}.las"
+    if p.exists():
+        return p
+    src = make_tile(n)
+    chunks = open_point_chunks(src, origin="file")
+    hdr = laspy.LasHeader(point_format=1, version="1.2")
+    hdr.scales = np.array([0.001, 0.001, 0.001])
+    hdr.offsets = np.asarray(ORIGIN, dtype=np.float64)
+    rng = np.random.default_rng(n)
+    tmp = p.with_suffix(".tmp")
+    t = 0.0
+    with laspy.open(tmp, mode="w", header=hdr, do_compress=False) as wr:
+        for c in chunks:
+            rec = laspy.ScaleAwarePointRecord.zeros(len(c), header=hdr)
+            X = np.round(c / hdr.scales).astype(np.int32)
+            rec.X, rec.Y, rec.Z = X[:, 0], X[:, 1], X[:, 2]
+            rec.intensity = rng.integers(0, 65535, len(c)).astype(np.uint16)
+            rec.gps_time = t + np.arange(len(c)) * 1e-6
+            t += len(c) * 1e-6
+            wr.write_points(rec)
+    tmp.replace(p)
+    return p
+
+
 def run_georef(path: Path) -> dict:
-    """``minegeo georef`` of a tile (x, y, z only -> streamed) in a fresh process: wall time, peak RSS."""
+    """``minegeo georef`` of a tile in a fresh process (x, y, z PLY -> PLY, or LAS -> LAS with every
+    field carried: both streamed): wall time, peak RSS."""
     gcp = CACHE / "gcps.csv"
     write_gcps(gcp)
-    out = CACHE / f"geo_{path.stem}.ply"
+    out = CACHE / f"geo_{path.stem}{'.las' if path.suffix == '.las' else '.ply'}"
     cmd = [sys.executable, "-m", "minegeo", "-q", "georef", "--map", str(path), "--gcps", str(gcp), "--out", str(out),
            "--report", str(CACHE / f"geo_{path.stem}_report"), "--model", "rigid"]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
@@ -146,7 +179,7 @@ def run_georef(path: Path) -> dict:
     if os.waitstatus_to_exitcode(status) != 0:
         raise RuntimeError(f"georef failed: {proc.stderr.read().decode()}")
     res = json.loads((CACHE / f"geo_{path.stem}_report" / "result.json").read_text())
-    row = {"n_points": int(path.stem.split("_")[-1]), "wall_s": wall, "peak_rss_gb": ru.ru_maxrss * 1024 / 1e9,
+    row = {"format": path.suffix[1:], "n_points": int(path.stem.split("_")[-1]), "wall_s": wall, "peak_rss_gb": ru.ru_maxrss * 1024 / 1e9,
            "out_bytes": out.stat().st_size, "status": res["status"],
            "streamed": "transform_and_write_map" in res["timings_s"], "load_before": os.getloadavg()}
     out.unlink()  # 24 B per point: not kept
@@ -189,6 +222,7 @@ def main() -> None:
     ap.add_argument("--tag", default="")
     ap.add_argument("--georef", action="store_true", help="also time minegeo georef of each tile (streamed)")
     ap.add_argument("--no-prepare", action="store_true", help="skip prepare-map (with --georef)")
+    ap.add_argument("--las", action="store_true", help="with --georef: LAS tiles (point format 1) -> LAS")
     args = ap.parse_args()
     rows, geo_rows = [], []
     for s in args.sizes:
@@ -199,11 +233,12 @@ def main() -> None:
             print(json.dumps(r), flush=True)
             rows.append(r)
         if args.georef:
-            geo_rows.append(run_georef(path))
+            geo_rows.append(run_georef(make_las_tile(n) if args.las else path))
             print(json.dumps(geo_rows[-1]), flush=True)
     if args.no_prepare:
         out = ROOT / "benchmarks" / "results" / f"georef_scaling_{args.date}{args.tag}.json"
-        out.write_text(json.dumps({"rows": geo_rows}, indent=1))
+        out.write_text(json.dumps({"rows": geo_rows, "load_after": os.getloadavg(),
+                                   "machine": f"{os.cpu_count()} cores, shared"}, indent=1))
         return
     fit = fit_power(rows)
     meta = {"date": args.date, "machine": f"{os.cpu_count()} cores, shared", "uname": " ".join(os.uname()),

@@ -43,17 +43,23 @@ def add_arguments(parser) -> None:
 def streamable_map(map_path: Path, out_path: Path):
     """The map opened for chunked reading (:mod:`minegeo.io.chunked`) when ``georef`` can stream it:
     a PLY/PCD map whose records are x, y, z only (nothing else to carry over), read in chunks, and
-    a ``.ply`` output. Otherwise None: the map is read whole (attributes, normals and colour are
-    transformed and written as before)."""
+    a ``.ply`` output; or a LAS/LAZ map and a ``.las``/``.laz`` output (every field of every record
+    is copied, only the coordinates change: :func:`~minegeo.localize.georef.stream_georeferenced_las`).
+    Otherwise None: the map is read whole (attributes, normals and colour are transformed and
+    written as before)."""
     from minegeo.errors import MinegeoError
     from minegeo.io.chunked import open_point_chunks
 
-    if out_path.suffix.lower() != ".ply" or map_path.suffix.lower() not in (".ply", ".pcd"):
+    src, dst = map_path.suffix.lower(), out_path.suffix.lower()
+    las = src in (".las", ".laz") and dst in (".las", ".laz")
+    if not las and (dst != ".ply" or src not in (".ply", ".pcd")):
         return None
     try:
         chunks = open_point_chunks(map_path)
     except (MinegeoError, OSError):
         return None  # the whole-file reader reports the problem in its own words
+    if las:  # every field of each record is carried over by stream_georeferenced_las
+        return chunks if chunks.chunked and chunks.format in ("las", "laz") else None
     return chunks if chunks.chunked and chunks.metadata.get("xyz_only") else None
 
 
@@ -84,6 +90,7 @@ def run(args) -> int:
         apply_georef,
         georeference,
         sidecar_path,
+        stream_georeferenced_las,
         stream_georeferenced_map,
         write_georeferenced_map,
     )
@@ -151,9 +158,10 @@ def run(args) -> int:
                     write_georeferenced_map(tx.file("--out"), cloud_geo, result, extra=extra)
             else:  # pass 2 of 2: transformed and written chunk by chunk
                 step("write map")
+                writer = stream_georeferenced_las if chunks.format in ("las", "laz") else stream_georeferenced_map
                 with timer("transform_and_write_map"):
-                    _, _, cloud_geo = stream_georeferenced_map(tx.file("--out"), chunks, result, n_map,
-                                                               allow_failed=args.force, extra=extra)
+                    _, _, cloud_geo = writer(tx.file("--out"), chunks, result, n_map, allow_failed=args.force,
+                                             extra=extra)
             outputs = {"map_geo": str(out_path), "sidecar": str(sidecar_path(out_path))}
         outputs["result_json"] = str(report_dir / "result.json")
         outputs["report_html"] = str(report_dir / "report.html")

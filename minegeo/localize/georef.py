@@ -1284,6 +1284,102 @@ def stream_georeferenced_map(path, chunks, result: GeorefResult, n_points: int, 
     return p, _write_sidecar(p, result, extra), cloud
 
 
+def stream_georeferenced_las(path, chunks, result: GeorefResult, n_points: int, *, allow_failed: bool = False,
+                             extra: dict | None = None, progress=None) -> tuple:
+    """:func:`apply_georef` + :func:`write_georeferenced_map` chunk by chunk, LAS/LAZ in, LAS/LAZ out.
+
+    Every record of the map is copied with **all its fields** (intensity, return numbers,
+    classification, GPS time, colour, extra bytes) in the map's own point format and LAS version;
+    only ``X, Y, Z`` change: ``X = round(p_geo / scale)`` with ``p_geo`` = :func:`map_to_crs` of
+    the chunk and the header offset set to ``result.origin``, so the file holds full CRS
+    coordinates ``X·scale + origin`` at the map's resolution (its own ``scale``), the same integers
+    as the whole-file path writes (``write_georeferenced_map`` with ``las_offset = result.origin``
+    and the scale the map was read with). The CRS record is replaced by ``result.crs``; the input's
+    other VLRs are kept. Memory: one chunk.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output ``.las`` or ``.laz`` (written in place: call it on a staged path).
+    chunks : PointChunks
+        The map (:func:`minegeo.io.chunked.open_point_chunks` of a LAS/LAZ file), ``origin`` set by
+        pass 1; its chunks are the map cloud's ``points``.
+    result : GeorefResult
+    n_points : int
+        Points of the map (pass 1).
+    allow_failed : bool
+    extra : dict, optional
+        Added to the sidecar.
+    progress : callable, optional
+        ``progress(bytes_read, size_bytes)`` after each chunk.
+
+    Returns
+    -------
+    (Path, Path, PointCloud)
+        As :func:`stream_georeferenced_map`.
+    """
+    from minegeo.io.las import _laspy
+
+    _check_usable(result, allow_failed)
+    laspy = _laspy()
+    p = Path(path)
+    src = Path(chunks.path)
+    rows = report_sample_rows(int(n_points))
+    sample = np.empty((rows.size, 3))
+    done = 0
+    it = iter(chunks)  # the coordinates, with every check of the chunked reader
+    try:
+        with laspy.open(src) as rd:
+            ih = rd.header
+            hdr = laspy.LasHeader(point_format=ih.point_format, version=ih.version)
+            hdr.scales = np.asarray(ih.scales, dtype=np.float64)
+            hdr.offsets = result.origin.copy()
+            crs_ids = {(b"LASF_Projection", 2111), (b"LASF_Projection", 2112), (b"LASF_Projection", 34735),
+                       (b"LASF_Projection", 34736), (b"LASF_Projection", 34737)}
+
+            def _keep(v):
+                uid = v.user_id.encode() if isinstance(v.user_id, str) else bytes(v.user_id)
+                return (uid.rstrip(b"\0"), int(v.record_id)) not in crs_ids and type(v).__name__ != "ExtraBytesVlr"
+
+            hdr.vlrs.extend(v for v in ih.vlrs if _keep(v))
+            if result.crs:
+                import pyproj
+
+                hdr.add_crs(pyproj.CRS.from_user_input(result.crs))
+            scale = hdr.scales
+            with laspy.open(p, mode="w", header=hdr, do_compress=p.suffix.lower() == ".laz") as wr:
+                for pts in rd.chunk_iterator(chunks.chunk_points):
+                    c = next(it)
+                    if c.shape[0] != len(pts):  # pragma: no cover - both read the same file in the same chunks
+                        raise FileFormatError(src, "the map changed while it was read")
+                    g = map_to_crs(c, result, chunks.origin, allow_failed=allow_failed)
+                    Xf = np.round(g / scale)
+                    if Xf.size and (np.abs(Xf).max() > 2**31 - 1):
+                        raise InputError(f"the georeferenced coordinates do not fit LAS 32-bit integers at the map's "
+                                         f"scale {scale.tolist()} (the fit moves points by more than 2^31 units)")
+                    rec = laspy.ScaleAwarePointRecord(pts.array.copy(), pts.point_format, scales=hdr.scales,
+                                                      offsets=hdr.offsets)
+                    rec.X = Xf[:, 0].astype(np.int32)
+                    rec.Y = Xf[:, 1].astype(np.int32)
+                    rec.Z = Xf[:, 2].astype(np.int32)
+                    wr.write_points(rec)
+                    lo, hi = np.searchsorted(rows, [done, done + g.shape[0]])
+                    sample[lo:hi] = g[rows[lo:hi] - done]
+                    done += g.shape[0]
+                    if progress is not None:
+                        progress(chunks.bytes_read, chunks.size_bytes)
+    except (FileFormatError, InputError):
+        raise
+    except (KeyboardInterrupt, SystemExit, MemoryError):
+        raise
+    except BaseException as exc:  # laspy/lazrs raise several types
+        raise FileFormatError(src, f"unreadable LAS/LAZ: truncated or corrupt ({type(exc).__name__}: {exc})") from None
+    if done != n_points:
+        raise FileFormatError(src, f"the map changed while it was read ({n_points} then {done} points)")
+    cloud = PointCloud(points=sample, origin=result.origin.copy(), crs=result.crs, frame="crs")
+    return p, _write_sidecar(p, result, extra), cloud
+
+
 def read_georef(path) -> GeorefResult:
     """Read a :class:`GeorefResult` from a ``.georef.json`` sidecar or a ``georef`` ``result.json``."""
     from minegeo.io._json import load_json_file
