@@ -644,6 +644,30 @@ def voxel_reduce_columns(values, order, starts, out):
 # ---------------------------------------------------------------------------------------
 
 
+@njit(inline="always")
+def octree_descend(x, y, z, origin, size, depth):
+    """Morton code of the leaf of ``(x, y, z)`` (inside the cube), by Open3D's midpoint descent:
+    child ``ix + 2 iy + 4 iz`` with ``i = 1`` when the coordinate is >= ``o + s/2``, child
+    origin ``o + i s/2``. Shared by :func:`octree_codes` and the streamed octree
+    (:func:`minegeo.geometry._kernels_stream.octree_accumulate`)."""
+    ox = origin[0]
+    oy = origin[1]
+    oz = origin[2]
+    s = size
+    code = np.int64(0)
+    for _lvl in range(depth):
+        h = s / 2.0
+        bx = 0 if x < ox + h else 1
+        by = 0 if y < oy + h else 1
+        bz = 0 if z < oz + h else 1
+        code = (code << 3) | (bx + 2 * by + 4 * bz)
+        ox = ox + bx * h
+        oy = oy + by * h
+        oz = oz + bz * h
+        s = h
+    return code
+
+
 @njit_parallel
 def octree_codes(points, origin, size, depth, out_codes, out_inside):
     """Morton code of the leaf containing each point, descending like Open3D's Octree.
@@ -666,22 +690,7 @@ def octree_codes(points, origin, size, depth, out_codes, out_inside):
             out_codes[i] = -1
             out_inside[i] = False
             continue
-        ox = origin[0]
-        oy = origin[1]
-        oz = origin[2]
-        s = size
-        code = np.int64(0)
-        for _lvl in range(depth):
-            h = s / 2.0
-            bx = 0 if x < ox + h else 1
-            by = 0 if y < oy + h else 1
-            bz = 0 if z < oz + h else 1
-            code = (code << 3) | (bx + 2 * by + 4 * bz)
-            ox = ox + bx * h
-            oy = oy + by * h
-            oz = oz + bz * h
-            s = h
-        out_codes[i] = code
+        out_codes[i] = octree_descend(x, y, z, origin, size, depth)
         out_inside[i] = True
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo._jit import njit
-from minegeo.geometry._kernels import morton_decode
+from minegeo.geometry._kernels import morton_decode, octree_descend
 from minegeo.kernels.hashgrid import hash_slot
 
 
@@ -97,21 +97,7 @@ def octree_accumulate(points, first_index, origin, size, depth, keys, bits, best
             c = points[i, a]
             if not (c >= origin[a] and c < origin[a] + size):
                 return n_used, -1 - i
-        ox = origin[0]
-        oy = origin[1]
-        oz = origin[2]
-        s = size
-        code = np.int64(0)
-        for _lvl in range(depth):
-            hh = s / 2.0
-            bx = 0 if x < ox + hh else 1
-            by = 0 if y < oy + hh else 1
-            bz = 0 if z < oz + hh else 1
-            code = (code << 3) | (bx + 2 * by + 4 * bz)
-            ox = ox + bx * hh
-            oy = oy + by * hh
-            oz = oz + bz * hh
-            s = hh
+        code = octree_descend(x, y, z, origin, size, depth)
         ix, iy, iz = morton_decode(code, depth)
         c0 = origin[0] + (ix + 0.5) * cs
         c1 = origin[1] + (iy + 0.5) * cs
