@@ -29,6 +29,8 @@ VERBS: dict[str, str] = {
     "localize": "minegeo.cli.localize",
     "localize-batch": "minegeo.cli.localize_batch",
     "slam": "minegeo.cli.slam",
+    "intersections": "minegeo.cli.intersections",
+    "track": "minegeo.cli.track",
     "posegraph": "minegeo.cli.posegraph",
     "evaluate": "minegeo.cli.evaluate",
     "warmup": "minegeo.cli.warmup",

@@ -55,3 +55,15 @@ __all__ += [
     "relative_pose_covariance",
     "relative_pose_information",
 ]
+
+# online recognition and tracking (minegeo/semantic/recognition.py, tracking.py)
+from minegeo.semantic.recognition import (  # noqa: E402
+    Recognition,
+    RecognitionParams,
+    RecognitionState,
+    recognise_keyframe,
+)
+from minegeo.semantic.tracking import TrackParams, TrackRecognition, TrackResult, track  # noqa: E402
+
+__all__ += ["Recognition", "RecognitionParams", "RecognitionState", "recognise_keyframe", "TrackParams",
+            "TrackRecognition", "TrackResult", "track"]

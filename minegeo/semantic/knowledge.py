@@ -83,6 +83,10 @@ class IntersectionKB:
     params : KBParams
     provenance : dict
         Number and SHA-256 of the input points, number of skeleton branches, format version.
+    georef : dict
+        Georeferencing of the map the base was built from (empty when none): ``crs`` (e.g.
+        ``"EPSG:5186"``, or None) and ``origin_m`` (3,), the CRS coordinates of the base's frame
+        origin (a georeferenced map's points are relative to it), so ``p_crs = p + origin_m``.
     """
 
     status: str
@@ -97,6 +101,7 @@ class IntersectionKB:
     cwc: np.ndarray
     params: KBParams
     provenance: dict
+    georef: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
@@ -114,6 +119,7 @@ class IntersectionKB:
         arrays = {k: np.ascontiguousarray(getattr(self, k)) for k in _ARRAYS}
         meta = {"format": KB_FORMAT, "version": KB_VERSION, "status": self.status, "reason": self.reason,
                 "params": to_jsonable(asdict(self.params)), "provenance": to_jsonable(self.provenance),
+                "georef": to_jsonable(self.georef),
                 "sha256": {k: _digest(v) for k, v in arrays.items()}}
         buf = io.BytesIO()
         np.savez(buf, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays)
@@ -152,7 +158,7 @@ class IntersectionKB:
         except (KeyError, TypeError) as exc:
             raise FileFormatError(p, f"parameters unreadable ({exc})") from None
         kb = cls(str(meta["status"]), str(meta["reason"]), params=params, provenance=dict(meta["provenance"]),
-                 **arrays)
+                 georef=dict(meta.get("georef") or {}), **arrays)
         _check_shapes(kb, p)
         return kb
 

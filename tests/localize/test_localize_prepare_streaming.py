@@ -280,7 +280,12 @@ def test_georef_streams_las_with_every_field(tmp_path, suffix):
     from minegeo.cli import main
     from minegeo.cli.georef import map_origin_auto, streamable_map
     from minegeo.io import read_point_cloud, write_gcps
-    from minegeo.localize.georef import apply_georef, read_georef, stream_georeferenced_las, write_georeferenced_map
+    from minegeo.localize.georef import (
+        apply_georef,
+        read_georef,
+        stream_georeferenced_las,
+        write_georeferenced_map,
+    )
     from minegeo.synth import build_world, make_gcps
 
     world = build_world("small", seed=0)

@@ -185,6 +185,9 @@ def reports(browser, tmp_path_factory):
     cases["localize_batch_failed_scan"] = (root / "batch" / "empty" / "report.html", "FAILED")
     assert json.loads((root / "batch" / "batch_result.json").read_text(encoding="utf-8"))["counts"] == \
         {"ok": 1, "ambiguous": 0, "failed": 1}
+    # intersections build (a crossing and a T) and track (a drone flight through the crossing, with
+    # --truth: the error map), and a track on a base without intersections (odometry only: FAILED)
+    _intersection_reports(root, cases)
     # the inputs behave as intended (else the expected banners above would be wrong)
     assert _status(demo / "georef") == "ok" and _status(bad / "georef") == "failed"
     assert _status(demo / "mast") == "ok" and _status(bad / "mast") == "failed"
@@ -200,6 +203,39 @@ def reports(browser, tmp_path_factory):
     write_demo_report(demo / "report.html", rows, SEED, 4.0, {"localize profile": "fast"})
     cases["demo"] = (demo / "report.html", "OK")
     return cases
+
+
+def _intersection_reports(root: Path, cases: dict) -> None:
+    from minegeo.io import PointCloud, write_point_cloud, write_trajectory
+    from minegeo.synth.flight import FlightParams, make_flight, simulate_flight
+    from minegeo.synth.network import DriftNetwork, network_cloud
+
+    net = DriftNetwork(np.array([(0, 0), (40, 0), (-20, 0), (0, 20), (0, -20), (40, 20), (40, -20)], float),
+                       np.array([(2, 0), (0, 1), (0, 3), (0, 4), (1, 5), (1, 6)]), np.full(6, 4.5), np.full(7, 3.6))
+    d = root / "intersections"
+    d.mkdir()
+    write_point_cloud(d / "map.ply", PointCloud(points=network_cloud(net, seed=1).points))
+    _run(["intersections", "build", "--map", d / "map.ply", "--out", d / "kb.npz"])
+    cases["intersections"] = (d / "kb.npz.html", "OK")
+    flight = make_flight(net, FlightParams(length_m=30.0, seed=SEED, azimuth_step_deg=1.0), route=[2, 0, 1])
+    frames = simulate_flight(net, flight, d / "cache")
+    f = d / "frames"
+    f.mkdir()
+    for k, (_, P) in enumerate(frames):
+        write_point_cloud(f / f"{k:06d}.ply", PointCloud(points=P))
+    (f / "times.txt").write_text("".join(f"{t:.6f}\n" for t in frames.truth.times_s), encoding="utf-8")
+    write_trajectory(d / "truth.tum", frames.truth, "tum", coordinates="local")
+    T = frames.truth.poses[0]
+    start = [*(f"{v:.6f}" for v in T[:3, 3]), f"{np.degrees(np.arctan2(T[1, 0], T[0, 0])):.6f}"]
+    _run(["track", "--frames", f, "--db", d / "kb.npz", "--out", d / "track", "--truth", d / "truth.tum",
+          "--start", *start])
+    cases["track"] = (d / "track" / "report.html", "OK")
+    line = DriftNetwork(np.array([[-30.0, 0.0], [30.0, 0.0]]), np.array([[0, 1]]), np.array([4.5]), np.full(2, 3.6))
+    write_point_cloud(d / "drift.ply", PointCloud(points=network_cloud(line, seed=2).points))
+    _run(["intersections", "build", "--map", d / "drift.ply", "--out", d / "none.npz"], ok=(1,))
+    _run(["track", "--frames", f, "--db", d / "none.npz", "--out", d / "track_none", "--start", *start], ok=(1,))
+    cases["track_failed"] = (d / "track_none" / "report.html", "FAILED")
+    assert _status(d / "track") == "ok" and _status(d / "track_none") == "no_intersections"
 
 
 # ------------------------------------------------------------------------------------ the check
@@ -294,7 +330,8 @@ def check_report(ctx, path: Path, expected: str, shot: Path | None = None, min_i
 
 
 CASES = ["adjust_passed", "adjust_failed", "mast_ok", "mast_failed", "georef_ok", "georef_failed", "prepare_map",
-         "localize_ok", "localize_failed", "localize_batch", "localize_batch_failed_scan", "synth", "demo"]
+         "localize_ok", "localize_failed", "localize_batch", "localize_batch_failed_scan", "synth", "demo",
+         "intersections", "track", "track_failed"]
 
 
 @pytest.mark.parametrize("case", CASES)

@@ -1,0 +1,470 @@
+"""Issue-18 acceptance experiments: a drone flight through a drift network (Liang et al. 2024, Table I).
+
+Network (``--network``): ``synthetic`` = ``intersections_network()`` (three alike 4-way crossings
+X1-X3 differing only in roof height, a T and a Y; 4.5 m drifts), or ``niosh`` = ``niosh_network`` of
+the DARPA SubT NIOSH EX edge list (2.9 m x 2.6 m drifts; a plausible embedding, not the real mine).
+Prior map: ``network_cloud`` (0.2 m spacing, 2 cm noise, seed 7); knowledge base
+``build_knowledge_base`` on it. Flight (``minegeo.synth.flight``): a graph walk of >= ``--length-km``
+passing every junction several times from different directions, 1.5 m/s cruise, height half the lowest
+roof, a VLP-16 rotation (16 rings, +-15 deg, 0.4 deg azimuth step, 3 cm range noise) per frame, one
+frame per 1 m of travel / 15 deg of yaw / 2 s, simulated at the frame pose (no motion distortion).
+
+Methods on the same frames:
+
+(a) ``odometry``: ``run_odometry`` (default ``OdometryParams``) chained, ``run_backend(use_loops=False,
+    use_planes=False)``;
+(b) ``odometry + loops``: ``run_backend(use_loops=True, use_planes=False)`` (generic geometric loop
+    closure of ``minegeo.slam.loops``);
+(c) ``ours (no map)``: ``minegeo.semantic.tracking.track(frames, kb, use_map=False)``;
+(d) ``ours (map)``: ``track(..., use_map=True)``.
+
+(a) and (b) start in the first frame's sensor frame; their poses are put into the map frame with the
+**true first pose** (a known take-off pose); (c) and (d) get the same pose as ``TrackParams.T_world_start``
+and reuse the odometry of (a) (same parameters, same frames). No alignment is fitted: the map frame is
+the world frame. Precision counts the recognitions that became factors.
+
+Metrics per method over all frames (position error ``e_k = |t_est,k - t_true,k|``, m): MAE (mean
+``e_k``), RMSE, max (the paper's "MAE" is this maximum), REP-1..5 = ``e`` at the frame where 20, 40, ..,
+100 % of the path is flown, as % of the path flown so far. Recognition (``track`` only, status
+``verified``): a **visit** of junction j = a maximal run of frames within 15 m (horizontal) of its true
+invariant point (``junction_truth``), a **pass** = a visit coming within 3 m. With the map a recognition
+is **correct** when its knowledge-base id belongs (within 2 m) to the true junction nearest to the true
+position at its time and that junction is within 15 m; precision = correct / verified recognitions;
+recall = passes with a correct recognition of that junction during the visit / passes. Without the map
+ids are the tracker's own online entries: an entry's junction is the true junction nearest to the true
+position of the keyframe that created it, and a recognition is correct when its nearest true junction
+is its entry's junction.
+
+``--corridor``: the corridor experiment in the spirit of Sec. 4.2: a 160 m drift with a crossing at
+40 m, a T at 80 m and a crossing at 120 m (4 m wide; roofs 3.0 / 3.6 / 4.2 m), flown out and back with
+two side legs (400 m); 20 "surveyed tags" on the drift walls at 1.5 m height; the error of a tag seen
+from frame k is ``|T_est,k T_true,k^-1 p - p|`` (the tag placed with the estimated pose), per pass.
+
+Usage::
+
+    python benchmarks/bench_intersections.py --quick
+    python benchmarks/bench_intersections.py --length-km 3.2 [--network niosh] [--corridor] [--threads 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import pickle
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+CACHE = Path.home() / ".cache" / "minegeo_bench" / "intersections"
+NIOSH_EX = REPO.parent / "shared" / "data" / "subt_tunnel_niosh_mine" / "ex_edgelist.csv"
+METHODS = ("odometry", "odometry + loops", "ours (no map)", "ours (map)")
+VISIT_M, PASS_M, ID_MATCH_M = 15.0, 3.0, 2.0
+
+
+def _log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
+
+
+# ---------------------------------------------------------------------------------------- setup
+def corridor_network():
+    """The corridor network, its 400 m route and the 20 tag positions (map frame, m)."""
+    from minegeo.synth.network import DriftNetwork
+
+    nodes = [(0, 0), (40, 0), (80, 0), (120, 0), (160, 0), (40, 20), (40, -20), (80, 20), (120, 20), (120, -20)]
+    edges = [(0, 1), (1, 2), (2, 3), (3, 4), (1, 5), (1, 6), (2, 7), (3, 8), (3, 9)]
+    h = np.full(len(nodes), 3.6)
+    h[1], h[3] = 3.0, 4.2
+    names = ("", "X1", "T", "X3") + ("",) * 6
+    net = DriftNetwork(np.array(nodes, float), np.array(edges), np.full(len(edges), 4.0), h, names,
+                       {"kind": "corridor", "width_m": 4.0})
+    route = [0, 1, 2, 3, 4, 3, 8, 3, 2, 1, 6, 1, 0]
+    x = 4.0 + 8.0 * np.arange(20)
+    tags = np.column_stack([x, np.where(np.arange(20) % 2 == 0, 2.0, -2.0), np.full(20, 1.5)])
+    return net, route, tags
+
+
+def setup(args):
+    """Network, KB parameters and the route (None = planned) for the options."""
+    from minegeo.semantic import KBParams, SkeletonParams
+    from minegeo.synth.network import intersections_network, niosh_network
+
+    if args.corridor:
+        net, route, _ = corridor_network()
+        return net, KBParams(), route
+    if args.network == "niosh":
+        return niosh_network(NIOSH_EX), KBParams(SkeletonParams(min_branch_m=2.5, merge_radius_m=2.0,
+                                                                refine_radius_m=2.0)), None
+    return intersections_network(), KBParams(), None
+
+
+# ---------------------------------------------------------------------------------------- methods
+def _odometry(frames, folder: Path, params):
+    from minegeo.slam.odometry import run_odometry
+
+    f = folder / f"odometry.{hashlib.sha256(repr(params).encode()).hexdigest()[:10]}.pkl"
+    if f.exists():
+        with open(f, "rb") as fh:
+            return pickle.load(fh)
+    t0 = time.perf_counter()
+    odo = run_odometry(iter(frames), params)
+    out = (odo, time.perf_counter() - t0)
+    with open(f, "wb") as fh:
+        pickle.dump(out, fh)
+    return out
+
+
+def run_slam_methods(frames, T0: np.ndarray) -> dict:
+    """(a) odometry and (b) odometry + loops, poses in the map frame (anchored at the true first pose)."""
+    from minegeo.slam.pipeline import SlamParams, run_backend
+
+    params = SlamParams(use_planes=False, remove_noise=False)
+    odo, t_odo = _odometry(frames, frames.folder, params.odometry)
+    _log(f"odometry: {len(odo.times_s)} frames, {odo.keyframes.size} keyframes, "
+         f"{int((~odo.frame_ok).sum())} failed, {t_odo:.0f} s")
+    out = {"_odometry": odo, "_odo_keep": odo, "_odo_time": t_odo}
+    for name, loops in (("odometry", False), ("odometry + loops", True)):
+        t0 = time.perf_counter()
+        res = run_backend(odo, params, use_loops=loops)
+        out[name] = {"poses": np.einsum("ij,njk->nik", T0, res.poses), "time_s": t_odo + time.perf_counter() - t0,
+                     "anchored": "true first pose", "loops_accepted": sum(c.accepted for c in res.loops),
+                     "loop_candidates": len(res.loops), "failed_frames": int((~odo.frame_ok).sum())}
+    return out
+
+
+def run_track(frames, kb, T0: np.ndarray, use_map: bool, odo=None) -> dict:
+    """``minegeo.semantic.tracking.track`` from the true first pose (``TrackParams.T_world_start``), on the
+    odometry already computed for (a) and (b) when its parameters are the tracker's (the same frames)."""
+    from minegeo.semantic.recognition import RecognitionParams
+    from minegeo.semantic.tracking import TrackParams, track
+
+    # the online detection uses the skeleton parameters the base was built with (narrow NIOSH drifts)
+    params = TrackParams(recognition=RecognitionParams(skeleton=kb.params.skeleton), T_world_start=T0)
+    if odo is not None and odo.params != params.odometry:
+        odo = None
+    t0 = time.perf_counter()
+    try:
+        res = track(iter(frames), kb, params, use_map=use_map, odometry=odo)
+    except Exception as exc:  # noqa: BLE001  (reported in the table, the other methods still count)
+        return {"error": f"failed: {type(exc).__name__}: {exc}", "traceback": traceback.format_exc(limit=4)}
+    t = time.perf_counter() - t0
+    return {"poses": np.asarray(res.poses, dtype=np.float64), "times_s": np.asarray(res.times_s, float),
+            "time_s": t, "anchored": "true first pose (TrackParams.T_world_start)", "status": res.status,
+            "summary": res.summary(), "recognitions": [e.summary() for e in res.recognitions],
+            "timings_s": {k: float(v) for k, v in res.timings_s.items()}, "_result": res,
+            "_online_frames": res.keyframes[res.online_keyframes].tolist()}
+
+
+# ---------------------------------------------------------------------------------------- metrics
+def _on_truth(res: dict, truth) -> tuple[np.ndarray, np.ndarray]:
+    """Estimated poses at the truth frames (matched by time within 1 ms) and the matched truth indices."""
+    t = res.get("times_s", truth.times_s)
+    idx = np.clip(np.searchsorted(t, truth.times_s), 0, len(t) - 1)
+    ok = np.abs(np.asarray(t)[idx] - truth.times_s) < 1e-3
+    return res["poses"][idx[ok]], np.flatnonzero(ok)
+
+
+def trajectory_metrics(res: dict, truth) -> dict:
+    P, k = _on_truth(res, truth)
+    e = np.linalg.norm(P[:, :3, 3] - truth.poses[k, :3, 3], axis=1)
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(truth.poses[:, :3, 3], axis=0), axis=1))][k]
+    rep = {}
+    for q in range(1, 6):
+        i = min(int(np.searchsorted(s, q / 5 * s[-1])), len(s) - 1)
+        rep[f"rep{q}_pct"] = float(100.0 * e[i] / max(s[i], 1e-9))
+    return {"n": int(len(e)), "path_m": float(s[-1]), "mae_m": float(e.mean()), "rmse_m": float(np.sqrt((e**2).mean())),
+            "max_m": float(e.max()), "end_m": float(e[-1]), **rep, "_err": e, "_idx": k}
+
+
+def _get(obj, *names, default=None):
+    for n in names:
+        v = obj.get(n) if isinstance(obj, dict) else getattr(obj, n, None)
+        if v is not None:
+            return v
+    return default
+
+
+def recognition_metrics(res: dict, truth, kb, J: np.ndarray, passes: list, use_map: bool) -> dict:
+    """Precision / recall of the verified recognitions (module docstring)."""
+    recs = res.get("recognitions", [])
+    status = [str(_get(r, "status", default="")) for r in recs]
+    ver = [r for r, s in zip(recs, status, strict=True) if r.get("factor", s == "verified")]   # factors added
+    out = {"recognitions": len(recs), "by_status": {s: status.count(s) for s in sorted(set(status))},
+           "verified": len(ver), "passes": len(passes)}
+    if not ver:
+        return {**out, "precision": None, "recall": 0.0 if passes else None, "confusion": []}
+    t = np.array([float(_get(r, "time_s", "t", "time", default=np.nan)) for r in ver])
+    ids = np.array([int(_get(r, "intersection_id", "kb_id", "id", default=-1)) for r in ver])
+    k = np.clip(np.searchsorted(truth.times_s, t), 0, len(truth) - 1)
+    d = np.linalg.norm(truth.poses[k, None, :2, 3] - J[None], axis=2)
+    near = np.where(d.min(1) <= VISIT_M, d.argmin(1), -1)
+    if use_map:
+        kbj = np.linalg.norm(kb.invariant_points[:, None, :2] - J[None], axis=2)
+        id_to_j = np.where(kbj.min(1) <= ID_MATCH_M, kbj.argmin(1), -2)
+        assigned = np.array([id_to_j[i] if 0 <= i < len(id_to_j) else -2 for i in ids])
+    else:                 # an online id is the true junction nearest the true position where it was created
+        ent = res.get("online_entry_junction", [])
+        assigned = np.array([ent[i] if 0 <= i < len(ent) else -2 for i in ids])
+    correct = (assigned == near) & (near >= 0)
+    hit = 0
+    for p in passes:
+        hit += bool(np.any(correct & (near == p["junction"]) & (k >= p["first"]) & (k <= p["last"])))
+    conf = [[int(np.sum((near == a) & (assigned == b))) for b in range(len(J))] for a in range(len(J))]
+    return {**out, "precision": float(correct.mean()), "recall": float(hit / max(len(passes), 1)),
+            "wrong": int((~correct).sum()), "confusion": conf}
+
+
+def tag_errors(res: dict, truth, tags: np.ndarray) -> list:
+    """Per tag pass (time order): tag id, frame, error (m) of the tag placed with the estimated pose."""
+    from minegeo.synth.flight import junction_passes
+
+    P, k = _on_truth(res, truth)
+    est = dict(zip(k.tolist(), P, strict=True))
+    rows = []
+    for p in junction_passes(truth.poses[:, :3, 3], tags[:, :2], pass_radius_m=3.0, visit_radius_m=4.0):
+        f = p["closest"]
+        if f not in est:
+            continue
+        Tt, Te = truth.poses[f], est[f]
+        q = Tt[:3, :3].T @ (tags[p["junction"]] - Tt[:3, 3])
+        rows.append({"tag": p["junction"], "frame": f, "err_m": float(np.linalg.norm(Te[:3, :3] @ q + Te[:3, 3]
+                                                                                   - tags[p["junction"]]))})
+    return sorted(rows, key=lambda r: r["frame"])
+
+
+# ---------------------------------------------------------------------------------------- figures
+def error_map_figure(net, truth, results: dict, path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from minegeo.synth.network import network_cloud
+
+    W = network_cloud(net, 0.5, 0.0)
+    W = W.points[W.labels == 1]
+    names = [m for m in METHODS if "metrics" in results.get(m, {})]
+    fig, axes = plt.subplots(1, max(len(names), 1), figsize=(4.6 * max(len(names), 1), 4.4), squeeze=False)
+    for ax, m in zip(axes[0], names, strict=False):
+        r, met = results[m], results[m]["metrics"]
+        ax.scatter(W[:, 0], W[:, 1], s=0.2, c="0.75", rasterized=True)
+        P = truth.poses[met["_idx"], :3, 3]
+        sc = ax.scatter(P[:, 0], P[:, 1], c=met["_err"], s=2, cmap="jet", vmin=0, rasterized=True)
+        fig.colorbar(sc, ax=ax, shrink=0.7, label="position error (m)")
+        ax.set_title(f"{m}\nRMSE {met['rmse_m']:.2f} m, max {met['max_m']:.2f} m", fontsize=9)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (m)")
+        del r
+    axes[0][0].set_ylabel("y (m)")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def corridor_figure(rows: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    for m, rr in rows.items():
+        ax.plot(range(len(rr)), [r["err_m"] for r in rr], "o-", ms=3, label=m)
+    any_rows = next(iter(rows.values()), [])
+    ax.set_xticks(range(len(any_rows)), [str(r["tag"]) for r in any_rows], fontsize=6)
+    ax.set_xlabel("tag id, in the order passed")
+    ax.set_ylabel("tag position error (m)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------------------------- output
+def _fmt(x, f="{:.2f}"):
+    return "–" if x is None else f.format(x)
+
+
+def markdown(meta: dict, results: dict, corridor: dict | None) -> str:
+    L = [f"# Drone flight through a drift network, Table I form ({meta['date']})", "", meta["conditions"], "",
+         "| Method | MAE (m) | RMSE (m) | max (m) | REP-1 (%) | REP-2 (%) | REP-3 (%) | REP-4 (%) | REP-5 (%) "
+         "| precision | recall | time (s) |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for m in METHODS:
+        r = results.get(m, {})
+        if "metrics" not in r:
+            L.append(f"| {m} | not available: {r.get('error', '?')} |||||||||||")
+            continue
+        x, rec = r["metrics"], r.get("recognition") or {}
+        L.append(f"| {m} | {x['mae_m']:.2f} | {x['rmse_m']:.2f} | {x['max_m']:.2f} | "
+                 + " | ".join(f"{x[f'rep{q}_pct']:.2f}" for q in range(1, 6))
+                 + f" | {_fmt(rec.get('precision'), '{:.1%}')} | {_fmt(rec.get('recall'), '{:.1%}')} "
+                 f"| {r['time_s']:.0f} |")
+    fl = meta["flight"]
+    L += ["", f"Flight: {fl['path_length_m']:.0f} m, {fl['frames']} frames, {fl['duration_s']:.0f} s; route of "
+          f"{fl['route_nodes']} nodes; junction passes: {fl['passes_per_junction']}; entry directions per junction: "
+          f"{fl['directions_per_junction']}. Knowledge base: {meta['kb']}.", "",
+          "Target (ours with map): RMSE <= 0.5 m over >= 3 km; recognition precision 100 %, recall >= 90 %: "
+          + meta.get("target", "not evaluated"), ""]
+    for m in METHODS:
+        r = results.get(m, {})
+        extra = {k: v for k, v in r.items() if k in ("anchored", "loops_accepted", "loop_candidates", "failed_frames")}
+        if r.get("recognition"):
+            extra["recognition"] = {k: v for k, v in r["recognition"].items() if k != "confusion"}
+        if extra:
+            L.append(f"* {m}: {json.dumps(extra, default=str)}")
+    if corridor:
+        L += ["", "## Corridor (400 m, 20 tags)", "", "| pass | tag | " + " | ".join(corridor) + " |",
+              "|---|---|" + "---|" * len(corridor)]
+        base = next(iter(corridor.values()))
+        for i, r0 in enumerate(base):
+            L.append(f"| {i} | {r0['tag']} | " + " | ".join(f"{rr[i]['err_m']:.2f}" if i < len(rr) else "–"
+                                                         for rr in corridor.values()) + " |")
+        L.append("| mean | | " + " | ".join(f"{np.mean([r['err_m'] for r in rr]):.2f}" for rr in corridor.values())
+                 + " |")
+        L.append("| max | | " + " | ".join(f"{np.max([r['err_m'] for r in rr]):.2f}" for rr in corridor.values())
+                 + " |")
+    L += ["", f"Machine: {meta['machine']}; wall time {meta['wall_s']:.0f} s; code {meta['git']}."]
+    return "\n".join(L) + "\n"
+
+
+def _git() -> str:
+    import subprocess
+
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
+                              check=True).stdout.strip()
+        return head + "+dirty"
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _flight_meta(net, flight, truth, J, passes) -> dict:
+    per = {net.names[i] or str(i): 0 for i in net.junctions()}
+    dirs = {k: set() for k in per}
+    for p in passes:
+        nm = net.names[net.junctions()[p["junction"]]] or str(net.junctions()[p["junction"]])
+        per[nm] += 1
+        dirs[nm].add(int(round(p["entry_bearing_deg"] / 15.0)) * 15 % 360)
+    return {"path_length_m": flight.path_length_m, "frames": len(truth), "duration_s": float(truth.times_s[-1]),
+            "route_nodes": int(len(flight.route)), "route": flight.route.tolist(), "passes_per_junction": per,
+            "directions_per_junction": {k: len(v) for k, v in dirs.items()}}
+
+
+def main() -> None:  # noqa: PLR0915
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--length-km", type=float, default=3.2)
+    ap.add_argument("--network", choices=("synthetic", "niosh"), default="synthetic")
+    ap.add_argument("--corridor", action="store_true")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--quick", action="store_true", help="a 0.5 km flight (smoke test)")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
+    ap.add_argument("--img", type=Path, default=REPO / "docs" / "img")
+    args = ap.parse_args()
+    import numba
+
+    from minegeo.semantic import build_knowledge_base
+    from minegeo.synth.flight import FlightParams, junction_passes, make_flight, simulate_flight
+    from minegeo.synth.network import junction_truth, network_cloud
+
+    numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+    wall0 = time.perf_counter()
+    import os
+    import subprocess
+
+    def _uptime() -> str:
+        try:
+            return subprocess.run(["uptime"], capture_output=True, text=True, check=True).stdout.strip()
+        except (OSError, subprocess.CalledProcessError):
+            return f"load average {os.getloadavg()}"
+
+    uptime_start = _uptime()
+    net, kbp, route = setup(args)
+    length = 0.5 if args.quick else args.length_km
+    cloud = network_cloud(net, 0.2, 0.02, seed=7)
+    kb = build_knowledge_base(cloud.points, kbp)
+    J = junction_truth(net)
+    kb_txt = f"{len(kb.ids)} junctions found of {len(J)} ({kb.status})"
+    _log(f"network {net.info.get('kind')}: {len(net.nodes)} nodes, {len(net.edges)} drifts; KB {kb_txt}")
+    flight = make_flight(net, FlightParams(length_m=1000 * length, seed=args.seed), route=route)
+    frames = simulate_flight(net, flight, CACHE, progress=lambda d, n: _log(f"frames {d}/{n}"))
+    truth = frames.truth
+    T0 = truth.poses[0]
+    passes = junction_passes(truth.poses[:, :3, 3], J, PASS_M, VISIT_M)
+    _log(f"flight {flight.path_length_m:.0f} m, {len(truth)} frames, {len(passes)} junction passes ({frames.folder})")
+    results = run_slam_methods(frames, T0)
+    for m, use_map in (("ours (no map)", False), ("ours (map)", True)):
+        _log(f"{m} ...")
+        results[m] = run_track(frames, kb, T0, use_map, results.pop("_odometry", None) if not use_map
+                               else results.get("_odo_keep"))
+        if "time_s" in results[m]:
+            results[m]["time_s"] += results.get("_odo_time", 0.0)
+    for k in ("_odometry", "_odo_keep", "_odo_time"):
+        results.pop(k, None)
+    for m, r in results.items():
+        if "poses" in r:
+            r["metrics"] = trajectory_metrics(r, truth)
+            if m == "ours (no map)":
+                f = np.asarray(r.pop("_online_frames", []), np.int64)
+                d = np.linalg.norm(truth.poses[f, None, :2, 3] - J[None], axis=2).reshape(len(f), len(J))
+                r["online_entry_junction"] = [int(j) if d[e, j] <= VISIT_M else -1
+                                              for e, j in enumerate(d.argmin(1) if len(f) else [])]
+            if m.startswith("ours"):
+                r["recognition"] = recognition_metrics(r, truth, kb, J, passes, m == "ours (map)")
+            x = r["metrics"]
+            _log(f"{m}: MAE {x['mae_m']:.2f} RMSE {x['rmse_m']:.2f} max {x['max_m']:.2f} m")
+        else:
+            _log(f"{m}: {r['error']}")
+    tag = "corridor" if args.corridor else args.network
+    suffix = f"{tag}{'_quick' if args.quick else ''}"
+    date = time.strftime("%Y-%m-%d")
+    args.out.mkdir(parents=True, exist_ok=True)
+    img_dir = args.out if args.quick else args.img
+    error_map_figure(net, truth, results, img_dir / f"intersections_error_{suffix}.png",
+                     f"{tag}: {flight.path_length_m / 1000:.2f} km, {len(truth)} frames")
+    from minegeo.report.intersections_report import plot_similarity_png
+    from minegeo.semantic import similarity_matrix
+
+    if len(kb):
+        png = plot_similarity_png(similarity_matrix(kb), similarity_matrix(kb, "cwc"))
+        if png:
+            (img_dir / f"intersections_similarity_{suffix}.png").write_bytes(png)
+    corridor = None
+    if args.corridor:
+        _, _, tags = corridor_network()
+        corridor = {m: tag_errors(r, truth, tags) for m, r in results.items() if "poses" in r}
+        corridor_figure(corridor, img_dir / f"intersections_corridor{'_quick' if args.quick else ''}.png")
+    ours = results.get("ours (map)", {})
+    target = "not evaluated (ours (map) not available)"
+    if "metrics" in ours:
+        rec = ours.get("recognition", {})
+        ok = (ours["metrics"]["rmse_m"] <= 0.5 and ours["metrics"]["path_m"] >= 3000 and rec.get("precision") == 1.0
+              and (rec.get("recall") or 0) >= 0.9)
+        target = "met" if ok else "missed"
+    meta = {"date": date, "conditions": __doc__.split("\n\n")[1].replace("\n", " "), "seed": args.seed,
+            "network": tag, "quick": args.quick, "kb": kb_txt, "flight": _flight_meta(net, flight, truth, J, passes),
+            "target": target, "git": _git(), "threads": args.threads, "wall_s": time.perf_counter() - wall0,
+            "machine": f"{os.cpu_count()} cores; uptime at the start: {uptime_start}; at the end: {_uptime()}",
+            "cache": str(frames.folder)}
+    clean = {m: {k: v for k, v in r.items() if k not in ("poses", "times_s", "recognitions", "traceback")}
+             | ({"metrics": {k: v for k, v in r["metrics"].items() if not k.startswith("_")}} if "metrics" in r else {})
+             for m, r in results.items()}
+    for r in clean.values():
+        r.pop("_result", None)
+    stem = args.out / ("intersections_" + date + ("" if tag == "synthetic" else f"_{tag}") + ("_quick" if args.quick else ""))
+    Path(f"{stem}.json").write_text(json.dumps({"meta": meta, "results": clean, "corridor": corridor}, indent=1,
+                                               default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+    Path(f"{stem}.md").write_text(markdown(meta, clean, corridor))
+    print(Path(f"{stem}.md").read_text())
+
+
+if __name__ == "__main__":
+    main()

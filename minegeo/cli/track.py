@@ -1,0 +1,178 @@
+"""``minegeo track --frames DIR --db DB --out OUT``: LiDAR tracking with intersection factors
+(Liang et al. 2024; ``docs/intersections.md``, "Online recognition and tracking").
+
+Frames are read as ``minegeo slam`` reads them. Writes ``OUT/trajectory.tum`` (every frame, base
+frame), ``keyframes.tum``, ``trajectory_crs.tum`` (when the base is georeferenced: ``p + origin``),
+``recognitions.csv`` (every keyframe that saw an intersection: time, status, id, scores), ``result.json``
+(provenance) and ``report.html`` (plan view / error map, recognitions, similarity matrix, timings).
+Exit status 0 when the run is ``ok`` (at least one intersection factor); 1 with one line on stderr
+for ``no_recognition``, ``no_intersections`` or ``unanchored`` (outputs written, odometry-only poses);
+2 for a user mistake (one line, no traceback).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+HELP = "LiDAR tracking with intersection recognition against a knowledge base (Liang et al. 2024)"
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--frames", required=True, help="folder of frames, as for `minegeo slam`")
+    parser.add_argument("--db", required=True, help="knowledge base of `minegeo intersections build`")
+    parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument("--times", default=None, help="file of frame times (s) (default FRAMES/times.txt or names)")
+    parser.add_argument("--pattern", default=None, help='frame file-name pattern, e.g. "*.pcd"')
+    parser.add_argument("--truth", default=None, help="ground-truth TUM trajectory (base frame): error map + RMSE")
+    parser.add_argument("--start", type=float, nargs=4, metavar=("X", "Y", "Z", "YAW_DEG"), default=None,
+                        help="pose of the first frame in the base frame (m, deg); default: unanchored until the "
+                        "first verified recognition")
+    parser.add_argument("--no-map", action="store_true", help="ignore the base's intersections: recognise "
+                        "re-visits of an online base built from the run (the paper's 'no map')")
+    parser.add_argument("--pwcv-threshold", type=float, default=0.8, help="PWCV similarity threshold (default 0.8)")
+    parser.add_argument("--n-his", type=int, default=5, help="keyframes stacked with the current one (Eq. 20)")
+    parser.add_argument("--consecutive", type=int, default=2, help="consecutive keyframes matching the same id")
+    parser.add_argument("--icp-max-distance", type=float, default=0.135, help="ICP verification RMS limit "
+                        "(m; default 0.135 for a map sampled every 0.2 m, see docs/intersections.md)")
+    parser.add_argument("--gate", type=float, default=3.0, help="odometry gate at an anchor (m)")
+    parser.add_argument("--gate-drift", type=float, default=0.25, help="gate growth per metre of path since the "
+                        "last verified recognition (default 0.25)")
+    parser.add_argument("--voxel", type=float, default=0.3, help="odometry voxel size (m)")
+    parser.add_argument("--keyframe-distance", type=float, default=2.0, help="keyframe distance threshold (m)")
+    parser.add_argument("--seed", type=int, default=0, help="recorded seed (the run draws no random numbers)")
+
+
+def _params(args):
+    import numpy as np
+
+    from minegeo.semantic.recognition import RecognitionParams
+    from minegeo.semantic.tracking import TrackParams
+    from minegeo.slam.odometry import OdometryParams
+
+    T = None
+    if args.start is not None:
+        x, y, z, yaw = args.start
+        c, s = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
+        T = np.array([[c, -s, 0, x], [s, c, 0, y], [0, 0, 1, z], [0, 0, 0, 1]], float)
+    rec = RecognitionParams(pwcv_threshold=args.pwcv_threshold, n_his=args.n_his,
+                            consecutive_required=args.consecutive, icp_max_distance_m=args.icp_max_distance,
+                            gate_m=args.gate)
+    return TrackParams(OdometryParams(voxel_size_m=args.voxel, keyframe_distance_m=args.keyframe_distance), rec,
+                       T_world_start=T, gate_drift_fraction=args.gate_drift)
+
+
+def _truth_errors(truth_path, res):
+    """Position error (m) of every frame against the truth at the same time (nearest within 0.05 s)."""
+    import numpy as np
+
+    from minegeo.errors import InputError
+    from minegeo.io import read_trajectory
+
+    tr = read_trajectory(truth_path)
+    j = np.clip(np.searchsorted(tr.times_s, res.times_s), 1, len(tr.times_s) - 1)
+    j = np.where(np.abs(tr.times_s[j - 1] - res.times_s) < np.abs(tr.times_s[j] - res.times_s), j - 1, j)
+    ok = np.abs(tr.times_s[j] - res.times_s) <= 0.05
+    if not ok.any():
+        raise InputError(f"--truth {truth_path}: no pose within 0.05 s of a frame time")
+    err = np.full(res.times_s.size, np.nan)
+    err[ok] = np.linalg.norm(res.poses[ok, :3, 3] - tr.poses[j[ok], :3, 3], axis=1)
+    return err
+
+
+def _write(stage: Path, res, kb) -> list[str]:
+    import numpy as np
+
+    from minegeo._provenance import atomic_write_text
+    from minegeo.io import write_trajectory
+    from minegeo.io.types import Trajectory
+
+    names = ["trajectory.tum", "keyframes.tum", "recognitions.csv"]
+    write_trajectory(stage / "trajectory.tum", Trajectory(res.times_s, res.poses, frame="map", body="sensor"))
+    write_trajectory(stage / "keyframes.tum", Trajectory(res.times_s[res.keyframes], res.keyframe_poses,
+                                                         frame="map", body="sensor"))
+    geo = kb.georef if kb is not None else {}
+    if geo.get("origin_m") is not None and geo.get("crs") and res.status != "unanchored":
+        P = res.poses.copy()
+        P[:, :3, 3] += np.asarray(geo["origin_m"], float)
+        write_trajectory(stage / "trajectory_crs.tum", Trajectory(res.times_s, P, frame=str(geo["crs"]), body="sensor"))
+        names.append("trajectory_crs.tum")
+    rows = ["time_s,keyframe,status,intersection_id,pwcv,cwc,icp_rms_m,icp_fitness,completeness,factor,reason"]
+    for e in res.recognitions:
+        r = e.recognition
+        if r.status == "none":
+            continue
+        reason = r.reason.replace('"', "'")
+        rows.append(f"{e.time_s:.6f},{e.keyframe},{r.status},{r.intersection_id},{r.pwcv_score:.6f},"
+                    f"{r.cwc_score:.6f},{r.icp_rms_m:.6f},{r.icp_fitness:.6f},{r.completeness:.6f},{int(e.factor)},"
+                    f'"{reason}"')
+    atomic_write_text(stage / "recognitions.csv", "\n".join(rows) + "\n")
+    return names
+
+
+def run(args) -> int:
+    import numpy as np
+    from tqdm import tqdm
+
+    from minegeo._output import OutputTransaction, progress_enabled, run_timings
+    from minegeo._provenance import StageTimer, provenance, sha256_file, write_json_atomic
+    from minegeo.cli.slam import _frames
+    from minegeo.errors import InputError
+    from minegeo.io.frames import list_frames, times_source
+    from minegeo.report.intersections_report import write_track_report
+    from minegeo.semantic import IntersectionKB, similarity_matrix
+    from minegeo.semantic.tracking import track
+
+    timer = StageTimer()
+    params = _params(args)
+    out = Path(args.out)
+    named = {"--frames": args.frames, "--db": args.db, **({"--times": args.times} if args.times else {}),
+             **({"--truth": args.truth} if args.truth else {})}
+    with OutputTransaction("track", inputs=named, folders={"--out": out}) as tx:
+        kb = IntersectionKB.load(args.db)
+        files = list_frames(args.frames, times_file=args.times, pattern=args.pattern)
+        skipped: list[dict] = []
+        bar = tqdm(total=len(files), desc="track", unit="frame", file=sys.stderr, disable=not progress_enabled(args))
+        reg_log = logging.getLogger("minegeo.registration")
+        level = reg_log.level
+        reg_log.setLevel(logging.ERROR)
+        try:
+            with bar, timer("track"):
+                res = track(_frames(files, skipped, bar, params.odometry.min_points), kb, params,
+                            use_map=not args.no_map)
+        finally:
+            reg_log.setLevel(level)
+        if res.times_s.size < 2:
+            raise InputError(f"--frames {args.frames}: fewer than 2 readable frames")
+        err = _truth_errors(args.truth, res) if args.truth else None
+        stage = tx.folder("--out")
+        with timer("write"):
+            names = _write(stage, res, kb)
+        S = similarity_matrix(kb) if len(kb) else None
+        result = {**res.summary(), "times_from": times_source(args.frames, args.times), "skipped_frames": skipped,
+                  "georef": kb.georef, "recognitions": [e.summary() for e in res.recognitions
+                                                        if e.recognition.status != "none"]}
+        if err is not None:
+            e = err[np.isfinite(err)]
+            result["truth"] = {"rmse_m": float(np.sqrt(np.mean(e**2))), "max_m": float(e.max()),
+                               "mean_m": float(e.mean()), "n": int(e.size)}
+        inputs = [{"path": str(f.path), "sha256": sha256_file(f.path)} for f in files]
+        inputs += [{"path": str(p), "sha256": sha256_file(p)} for p in (args.db, args.times, args.truth) if p]
+        summary = {"command": "track", "status": res.status, "reason": res.reason, "parameters": params.as_dict(),
+                   "inputs": {"frames": str(args.frames), "db": str(args.db)}, "result": result,
+                   "outputs": {n: str(out / n) for n in [*names, "result.json", "report.html"]},
+                   "module_timings_s": res.timings_s, "timings_s": {**timer.as_dict(), **run_timings(args)},
+                   "provenance": provenance(seed=args.seed, origin=kb.georef.get("origin_m"), inputs=inputs)}
+        write_json_atomic(stage / "result.json", summary)
+        write_track_report(stage / "report.html", summary, res, kb, S, err)
+    if not getattr(args, "quiet", False):
+        s = summary["result"]
+        print(f"{s['frames']} frames, {s['keyframes']} keyframes, status {res.status}; {s['factors']} intersection "
+              f"factor(s), ids {s['recognised_ids']}" + (f"; position error RMSE {result['truth']['rmse_m']:.2f} m"
+                                                        if err is not None else ""))
+        print(f"written: {out}/({', '.join([*names, 'result.json', 'report.html'])})")
+    if res.status != "ok":
+        print(f"minegeo track: {res.status}: {res.reason} (written: {out})", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,516 @@
+"""Tracking with intersection factors: GICP odometry + online recognition + incremental factor graph
+(Liang et al. 2024, Sec. 3; ``docs/intersections.md``, "Online recognition and tracking").
+
+:func:`track` runs :func:`minegeo.slam.odometry.run_odometry` over the frames (it is a batch function:
+there is no per-frame API), then replays its keyframes **in time order** as they would arrive:
+
+* keyframe ``k`` enters the :class:`~minegeo.semantic.factors.FactorGraph` at the current estimate of
+  ``k - 1`` composed with the odometry edge, with a relative-pose factor whose information is GICP's
+  [Liang2024 Eqs. 15-18] (``OdometryResult.keyframe_information``, (φ, ρ) order) with a model-noise
+  floor added to its covariance (:func:`odometry_edge_information`: GICP's own information claims
+  millimetres where the odometry drifts by metres in a smooth drift);
+* :func:`~minegeo.semantic.recognition.recognise_keyframe` runs on it with its ``n_his`` predecessors
+  stacked [Liang2024 Eq. 20], the graph's current estimate as the prediction, and a gate
+  ``gate_m + gate_drift_fraction · (path since the last verified recognition)``;
+* a ``verified`` recognition adds an intersection factor (``z`` = the observed invariant point, ``C`` = the
+  knowledge-base point, covariance ``Λ_I`` of :func:`~minegeo.semantic.factors.intersection_covariance`
+  from the PWCV completeness [Liang2024 Eq. 32]; residual [Liang2024 Eq. 22]) and the graph is re-optimised from the previous
+  optimum (warm start). Only verified recognitions make factors; every other status is recorded.
+* frames between keyframes take the keyframes' correction interpolated in time (:func:`_frame_poses`).
+
+**Start pose.** ``TrackParams.T_world_start`` (the first frame in the knowledge-base frame) holds keyframe
+0 there. Without it the run is *unanchored*: the first verified recognition (ICP only, no gate) places
+the keyframes so far by its registered pose, keyframe 0 is then held (gauge), and later recognitions are
+gated.
+
+**Without a map** (``use_map=False``, the paper's "Ours (no map)"): the knowledge base is built online.
+A junction detected within ``online_add_range_m`` of the sensor, more than ``online_merge_m`` from every
+entry, becomes an entry (its invariant point, stacked cloud and descriptors in the world frame of the
+current estimate, remembered with its keyframe). An entry can be recognised only after
+``revisit_min_path_m`` more metres of path (a re-visit, not the same pass); a verified re-visit adds a
+relative-pose (loop) factor between the entry's keyframe and the current one from the ICP pose,
+information ``diag(1/σ_φ², 1/σ_t²)`` with ``σ_t = intersection_sigma_m``, ``σ_φ = loop_sigma_deg``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from minegeo._validate import as_transform
+from minegeo.errors import InputError
+from minegeo.semantic.descriptors import cwc, pwcv
+from minegeo.semantic.factors import FactorGraph, intersection_covariance
+from minegeo.semantic.knowledge import IntersectionKB, KBParams
+from minegeo.semantic.recognition import (
+    Recognition,
+    RecognitionParams,
+    RecognitionState,
+    _detect,
+    recognise_keyframe,
+)
+from minegeo.slam.odometry import OdometryParams, run_odometry
+
+__all__ = ["TrackParams", "TrackRecognition", "TrackResult", "track", "odometry_edge_information"]
+
+
+def odometry_edge_information(information, Z, sigma_fraction: float, sigma_deg_per_m: float, dt_s: float = 0.0,
+                              sigma_mps: float = 0.0) -> np.ndarray:
+    """Information (6×6, (φ, ρ)) of an odometry edge with a model-noise floor.
+
+    GICP's information (``OdometryResult.keyframe_information``, the sum of the matched points'
+    ``Hᵀ Λ⁻¹ H`` [Liang2024 Eqs. 15-18]) only holds the sensor noise of the matched points. It ignores
+    what dominates the drift in a smooth, self-similar drift: ring-to-ring matches, the
+    constant-velocity prior along an unobserved axis, and unmodelled geometry. It claims millimetres per
+    2 m edge where the odometry drifts by centimetres. Used as is, it leaves an intersection factor no
+    weight against the chain. The edge covariance is therefore
+
+    ``Σ = Ω_GICP⁻¹ + diag(σ_φ² I₃, σ_t² I₃)``,
+    ``σ_t² = (sigma_fraction · max(|t|, 0.1 m))² + (sigma_mps · Δt)²``,
+    ``σ_φ = sigma_deg_per_m · π/180 · max(|t|, 0.1 m)``,
+
+    and the information is ``Σ⁻¹`` (minegeo's model-noise floor; not in the paper). The time term is the
+    dead-reckoning part: along an axis the geometry does not observe, the odometry's motion is a
+    constant-velocity prior (or a false stop when GICP matches laser ring to laser ring), whose error
+    grows with the time the edge spans, not with the distance it claims. A non-positive-definite
+    ``Ω_GICP`` (a failed edge) counts as no information (only the floor remains).
+
+    Parameters
+    ----------
+    information : array (6, 6)
+        GICP information of the edge, (φ, ρ) order.
+    Z : array (4, 4)
+        The edge's relative pose (its translation length sets the floor).
+    sigma_fraction, sigma_deg_per_m : float
+        Floor parameters (all 0: the GICP information, symmetrised and floored at 1e-9).
+    dt_s, sigma_mps : float
+        Time spanned by the edge (s) and the velocity uncertainty (m/s) of the time term.
+    """
+    W = 0.5 * (np.asarray(information, np.float64) + np.asarray(information, np.float64).T)
+    lam, V = np.linalg.eigh(W)
+    lam = np.maximum(lam, 1e-9)
+    d = max(float(np.linalg.norm(np.asarray(Z, np.float64)[:3, 3])), 0.1)
+    s_t = math.hypot(sigma_fraction * d, sigma_mps * max(float(dt_s), 0.0))
+    s_phi = math.radians(sigma_deg_per_m) * d
+    if s_t <= 0 and s_phi <= 0:
+        return (V * lam) @ V.T
+    S = (V / lam) @ V.T + np.diag([s_phi**2] * 3 + [s_t**2] * 3)
+    out = np.linalg.inv(S)
+    return 0.5 * (out + out.T)
+
+
+@dataclass(frozen=True, eq=False)
+class TrackParams:
+    """Parameters of :func:`track` (lengths in m).
+
+    Attributes
+    ----------
+    odometry : OdometryParams
+    recognition : RecognitionParams
+    T_world_start : array_like (4, 4), optional
+        Pose of the first frame in the knowledge-base frame (None: unanchored until recognised).
+    gate_drift_fraction : float
+        Gate growth per metre of path since the last verified recognition, with the map. Wide (0.25) on
+        purpose: in a smooth drift the odometry can lose a fifth of the distance (a false stop); a wrong
+        look-alike is kept out by the uniqueness rule of the verification (no other PWCV candidate
+        within the gate), which needs the map's base to hold every look-alike.
+    online_gate_drift_fraction : float
+        The same without the map: the online base holds only the intersections seen so far, so an
+        unseen look-alike cannot be ruled out and the gate stays narrow (0.05).
+    intersection_sigma_m : float
+        ``σ`` of :func:`~minegeo.semantic.factors.intersection_covariance` [Liang2024 Eq. 32].
+    completeness_scaling : {"paper", "inverse"}
+    same_place_m : float
+        Two different ids verified within this of each other (world): ``conflict``.
+    online_add_range_m, online_merge_m, revisit_min_path_m, loop_sigma_deg : float
+        Without a map (see the module docstring).
+    online_icp_max_distance_m : float
+        ICP verification limit against the online base, whose clouds are keyframes downsampled at the
+        odometry voxel ``v`` = 0.3 m with the sensor noise on both sides: 1.5 times
+        ``sqrt(v²/6 + 2 · 0.03²)`` = 0.2 m (as ``RecognitionParams.icp_max_distance_m`` for the map).
+    odometry_sigma_fraction, odometry_sigma_deg_per_m, odometry_sigma_mps : float
+        Model-noise floor added to every odometry edge's covariance (see :func:`odometry_edge_information`):
+        translation σ as a fraction of the edge length, rotation σ in degrees per metre of edge, and
+        a velocity uncertainty (m/s) times the time the edge spans.
+    """
+
+    odometry: OdometryParams = field(default_factory=OdometryParams)
+    recognition: RecognitionParams = field(default_factory=RecognitionParams)
+    T_world_start: object = None
+    gate_drift_fraction: float = 0.25
+    online_gate_drift_fraction: float = 0.05
+    intersection_sigma_m: float = 0.2
+    completeness_scaling: str = "paper"
+    same_place_m: float = 5.0
+    online_add_range_m: float = 3.0
+    online_merge_m: float = 10.0
+    revisit_min_path_m: float = 30.0
+    loop_sigma_deg: float = 1.0
+    online_icp_max_distance_m: float = 0.2
+    odometry_sigma_fraction: float = 0.05
+    odometry_sigma_deg_per_m: float = 0.1
+    odometry_sigma_mps: float = 0.1
+
+    def __post_init__(self):
+        for name in ("gate_drift_fraction", "online_gate_drift_fraction", "intersection_sigma_m", "same_place_m", "online_add_range_m",
+                     "online_merge_m", "revisit_min_path_m", "loop_sigma_deg", "online_icp_max_distance_m",
+                     "odometry_sigma_fraction",
+                     "odometry_sigma_deg_per_m", "odometry_sigma_mps"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+                raise InputError(f"{name} must be a finite number >= 0, got {v!r}")
+        if self.intersection_sigma_m <= 0:
+            raise InputError(f"intersection_sigma_m must be > 0, got {self.intersection_sigma_m!r}")
+        if self.completeness_scaling not in ("paper", "inverse"):
+            raise InputError(f"completeness_scaling must be 'paper' or 'inverse', got {self.completeness_scaling!r}")
+        if self.T_world_start is not None:
+            as_transform(self.T_world_start, "T_world_start")
+
+    def as_dict(self) -> dict:
+        from dataclasses import asdict
+
+        d = asdict(self)
+        d["T_world_start"] = None if self.T_world_start is None else np.asarray(self.T_world_start).tolist()
+        return d
+
+
+@dataclass
+class TrackRecognition:
+    """One keyframe's recognition in a run: the :class:`Recognition`, its keyframe and time, and whether
+    it became a factor."""
+
+    keyframe: int
+    frame: int
+    time_s: float
+    recognition: Recognition
+    factor: bool = False
+
+    def summary(self) -> dict:
+        return {"keyframe": self.keyframe, "frame": self.frame, "time_s": self.time_s, "factor": self.factor,
+                **self.recognition.summary()}
+
+
+@dataclass
+class TrackResult:
+    """Outcome of :func:`track`.
+
+    Attributes
+    ----------
+    status : str
+        ``ok`` (at least one factor), ``no_recognition`` (none verified; odometry only),
+        ``unanchored`` (no start pose and nothing verified: poses in the first frame's frame) or
+        ``no_intersections`` (the knowledge base has none; odometry only).
+    reason : str
+    times_s : ndarray (n,)
+    poses : ndarray (n, 4, 4)
+        ``T_world_frame`` of every frame after the last optimisation (world = knowledge-base frame).
+    keyframes : ndarray (k,) int
+        Frame index of each keyframe.
+    keyframe_poses, keyframe_poses_online : ndarray (k, 4, 4)
+        Final estimate, and the estimate right after each keyframe was processed (causal).
+    recognitions : list of TrackRecognition
+        Every keyframe's recognition (status ``none`` included).
+    timings_s : dict
+        Seconds per module: odometry, recognition steps, optimisation.
+    use_map : bool
+    odometry : OdometryResult
+    online_points, online_keyframes : ndarray (e, 3), (e,)
+        Without the map: the online base's invariant points (world) and the keyframe that created each
+        entry (the entry's id is its row).
+    n_optimisations : int
+    """
+
+    status: str
+    reason: str
+    times_s: np.ndarray
+    poses: np.ndarray
+    keyframes: np.ndarray
+    keyframe_poses: np.ndarray
+    keyframe_poses_online: np.ndarray
+    recognitions: list
+    timings_s: dict
+    use_map: bool = True
+    odometry: object = None
+    online_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    online_keyframes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    n_optimisations: int = 0
+
+    def verified(self) -> list:
+        """The recognitions that became factors."""
+        return [r for r in self.recognitions if r.factor]
+
+    def summary(self) -> dict:
+        counts: dict[str, int] = {}
+        for r in self.recognitions:
+            counts[r.recognition.status] = counts.get(r.recognition.status, 0) + 1
+        return {"status": self.status, "reason": self.reason, "frames": int(self.times_s.size),
+                "keyframes": int(self.keyframes.size), "use_map": self.use_map, "status_counts": counts,
+                "factors": len(self.verified()), "optimisations": self.n_optimisations,
+                "recognised_ids": sorted({r.recognition.intersection_id for r in self.verified()})}
+
+
+class _OnlineKB:
+    """Knowledge base grown from the run itself (``use_map=False``)."""
+
+    def __init__(self, params: KBParams):
+        self.params = params
+        self.C, self.clouds, self.V, self.M, self.kf, self.path, self.T = [], [], [], [], [], [], []
+        self.entry_of: dict = {}
+
+    def add(self, C, cloud, kf: int, path_m: float, T_kf) -> None:
+        d = self.params.descriptor
+        self.C.append(C)
+        self.clouds.append(cloud)
+        self.V.append(pwcv(cloud, C, d))
+        self.M.append(cwc(cloud, C, d))
+        self.kf.append(kf)
+        self.path.append(path_m)
+        self.T.append(T_kf.copy())
+
+    def view(self, path_m: float, min_gap_m: float) -> tuple[IntersectionKB, list]:
+        """The entries made at least ``min_gap_m`` of path ago, as a knowledge base, and their indices."""
+        idx = [i for i, p in enumerate(self.path) if path_m - p >= min_gap_m]
+        d = self.params.descriptor
+        k = len(idx)
+        clouds = [self.clouds[i] for i in idx]
+        off = np.r_[0, np.cumsum([len(c) for c in clouds])].astype(np.int64)
+        kb = IntersectionKB("ok" if k else "no_intersections", "", np.arange(k, dtype=np.int64),
+                            np.full(k, 3, np.int64), np.array([self.C[i] for i in idx]).reshape(k, 3),
+                            np.zeros(k), off, np.concatenate(clouds) if k else np.zeros((0, 3)),
+                            np.array([self.V[i] for i in idx]).reshape(k, d.n_sectors),
+                            np.array([self.M[i] for i in idx]).reshape(k, d.n_bands, d.n_sectors), self.params, {})
+        return kb, idx
+
+
+def _frame_poses(odo, kf_poses: np.ndarray) -> np.ndarray:
+    """Every frame placed by the keyframe correction interpolated in time.
+
+    The correction of keyframe ``k`` is ``C_k = T_world_k T_odom_k⁻¹``; a frame at time ``t`` between
+    keyframes ``k`` and ``k + 1`` gets ``C(t)`` (rotation by the SO(3) geodesic, translation linearly,
+    ``α = (t − t_k) / (t_{k+1} − t_k)``) and ``T_world_f = C(t) T_odom_f``. Frames after the last keyframe
+    keep its correction. A correction that the graph puts on one keyframe edge (e.g. where the
+    odometry reported a false stop) is so spread over that edge's frames, not left at its end.
+    """
+    from minegeo.geometry.se3 import exp_so3, log_so3
+
+    kf = odo.keyframes
+    C = np.einsum("nij,njk->nik", kf_poses, np.linalg.inv(odo.poses[kf]))
+    t = odo.times_s
+    out = np.empty_like(odo.poses)
+    kf_of = np.searchsorted(kf, np.arange(t.size), side="right") - 1
+    for f, k in enumerate(kf_of):
+        Cf = C[k]
+        if k + 1 < kf.size and f != kf[k]:
+            a = (t[f] - t[kf[k]]) / max(t[kf[k + 1]] - t[kf[k]], 1e-12)
+            Cf = np.eye(4)
+            Cf[:3, :3] = C[k, :3, :3] @ exp_so3(a * log_so3(C[k, :3, :3].T @ C[k + 1, :3, :3]))
+            Cf[:3, 3] = (1.0 - a) * C[k, :3, 3] + a * C[k + 1, :3, 3]
+        out[f] = Cf @ odo.poses[f]
+    return out
+
+
+def _conflicting(rec: Recognition, T_world_kf: np.ndarray, done: list, same_place_m: float) -> str:
+    """A reason when another id was verified at the same place (world estimate), else ''."""
+    p = (T_world_kf @ np.r_[rec.z_keyframe, 1.0])[:3]
+    for q, j in done:
+        if j != rec.intersection_id and np.linalg.norm(p[:2] - q[:2]) < same_place_m:
+            return (f"intersection {rec.intersection_id} verified where intersection {j} was verified before "
+                    f"({np.linalg.norm(p[:2] - q[:2]):.1f} m apart)")
+    return ""
+
+
+def track(frames: Iterable[tuple[float, np.ndarray]], kb: IntersectionKB | None, params: TrackParams | None = None,
+          *, use_map: bool = True, progress=None, odometry=None) -> TrackResult:
+    """Track a LiDAR sequence with intersection factors (Liang et al. 2024, Sec. 3).
+
+    Parameters
+    ----------
+    frames : iterable of (time_s, (m, 3) points)
+        Frames in time order, points in the sensor frame (m), z roughly up.
+    kb : IntersectionKB or None
+        The knowledge base of the prior map (world = its frame). Not used with ``use_map=False``.
+    params : TrackParams, optional
+    use_map : bool
+        True: recognise against ``kb`` ("ours (map)"); False: against the run's own online base
+        ("ours (no map)", re-visits only).
+    progress : callable, optional
+        Called with the frame index after each odometry frame.
+    odometry : OdometryResult, optional
+        The result of :func:`~minegeo.slam.odometry.run_odometry` on these ``frames`` with
+        ``params.odometry``, when already computed (``frames`` is then not read): a benchmark runs
+        the odometry once for several methods.
+
+    Returns
+    -------
+    TrackResult
+    """
+    params = params or TrackParams()
+    rp = params.recognition
+    if use_map and kb is None:
+        raise InputError("use_map=True needs a knowledge base (kb)")
+    t0 = time.perf_counter()
+    odo = run_odometry(frames, params.odometry, progress) if odometry is None else odometry
+    timings = {"odometry": time.perf_counter() - t0, **{f"odometry_{k}": v for k, v in odo.timings_s.items()}}
+    T_start = None if params.T_world_start is None else np.asarray(params.T_world_start, np.float64)
+    if not use_map and T_start is None:
+        T_start = np.eye(4)
+    st = _State(odo, params, T_start, use_map)
+    online = None if use_map else _OnlineKB(kb.params if kb is not None else KBParams())
+    usable = (not use_map) or (kb.status == "ok" and len(kb) > 0)
+    state = RecognitionState()
+    for k, f in enumerate(odo.keyframes):
+        st.add_keyframe(k)
+        hist = [(odo.keyframe_clouds[h], np.linalg.solve(st.T_odom(k), st.T_odom(h)))
+                for h in range(max(0, k - rp.n_his), k)]
+        tr = time.perf_counter()
+        if not usable:
+            rec = Recognition("none", f"the knowledge base holds no intersection ({kb.status})")
+        elif use_map:
+            rec = recognise_keyframe(odo.keyframe_clouds[k], hist, kb, rp, T_world_kf_pred=st.prediction(k),
+                                     gate_m=st.gate(k), state=state)
+        else:
+            rec = st.online_step(k, hist, online, state)
+        for name, v in rec.timings_s.items():
+            timings[f"recognition_{name}"] = timings.get(f"recognition_{name}", 0.0) + v
+        timings["recognition"] = timings.get("recognition", 0.0) + time.perf_counter() - tr
+        entry = TrackRecognition(k, int(f), float(odo.times_s[f]), rec)
+        if rec.status == "verified":
+            why = _conflicting(rec, st.pose_for_conflict(k, rec), st.done, params.same_place_m)
+            if why:
+                rec.status, rec.reason = "conflict", why
+            else:
+                entry.factor = st.add_factor(k, rec, kb, online, timings)
+        st.online_poses.append(st.current(k))
+        st.recognitions.append(entry)
+    return st.result(use_map, usable, kb, online, timings)
+
+
+class _State:
+    """The incremental graph of :func:`track` (keyframes in the odometry frame until anchored)."""
+
+    def __init__(self, odo, params: TrackParams, T_start, use_map: bool = True):
+        self.odo, self.params, self.use_map = odo, params, use_map
+        self.g: FactorGraph | None = None
+        self.T_world_odom = None if T_start is None else T_start @ np.linalg.inv(odo.poses[0])
+        self.path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(odo.poses[odo.keyframes, :3, 3], axis=0), axis=1))]
+        self.last_anchor_path = 0.0
+        self.done: list = []
+        self.recognitions: list = []
+        self.online_poses: list = []
+        self.n_opt = 0
+        if self.T_world_odom is not None:
+            self._build(0)
+
+    def T_odom(self, k: int) -> np.ndarray:
+        return self.odo.poses[self.odo.keyframes[k]]
+
+    def _build(self, upto: int) -> None:
+        """Graph of keyframes 0..upto placed by ``T_world_odom``, keyframe 0 held."""
+        g = FactorGraph()
+        g.add_keyframe(self.T_world_odom @ self.T_odom(0), fixed=True)
+        for k in range(1, upto + 1):
+            self._append(g, k)
+        self.g = g
+
+    def _append(self, g: FactorGraph, k: int) -> None:
+        Z = self.odo.keyframe_edges[k - 1]
+        g.add_keyframe(g.predict(k - 1, Z))
+        p = self.params
+        t = self.odo.times_s[self.odo.keyframes]
+        info = odometry_edge_information(self.odo.keyframe_information[k - 1], Z, p.odometry_sigma_fraction,
+                                         p.odometry_sigma_deg_per_m, t[k] - t[k - 1], p.odometry_sigma_mps)
+        g.add_relative(k - 1, k, Z, info)
+
+    def add_keyframe(self, k: int) -> None:
+        if self.g is not None and k > 0:
+            self._append(self.g, k)
+
+    def prediction(self, k: int):
+        return None if self.g is None else self.g.poses[k]
+
+    def current(self, k: int) -> np.ndarray:
+        if self.g is not None:
+            return self.g.poses[k]
+        return self.T_odom(k)
+
+    def gate(self, k: int) -> float:
+        p = self.params
+        frac = p.gate_drift_fraction if self.use_map else p.online_gate_drift_fraction
+        return p.recognition.gate_m + frac * (self.path[k] - self.last_anchor_path)
+
+    def pose_for_conflict(self, k: int, rec: Recognition) -> np.ndarray:
+        return self.g.poses[k] if self.g is not None else rec.T_world_keyframe_icp
+
+    def add_factor(self, k: int, rec: Recognition, kb, online, timings: dict) -> bool:
+        """Intersection factor (map) or loop factor (online base) for a verified recognition; re-optimise."""
+        p = self.params
+        if self.g is None:                    # unanchored: the first verification places the run
+            self.T_world_odom = rec.T_world_keyframe_icp @ np.linalg.inv(self.T_odom(k))
+            self._build(k)
+        if online is None:
+            cov = intersection_covariance(max(rec.completeness, 1e-3), p.intersection_sigma_m,
+                                          scaling=p.completeness_scaling)      # [Liang2024 Eq. 32]
+            C = kb.invariant_points[rec.intersection_id]
+            self.g.add_intersection(k, rec.z_keyframe, C, np.linalg.inv(cov), intersection_id=rec.intersection_id)
+        else:
+            e = online.entry_of[rec.intersection_id]
+            Z = np.linalg.solve(online.T[e], rec.T_world_keyframe_icp)
+            s_phi, s_t = math.radians(p.loop_sigma_deg), p.intersection_sigma_m
+            self.g.add_relative(online.kf[e], k, Z, np.diag([s_phi**-2] * 3 + [s_t**-2] * 3))
+        t0 = time.perf_counter()
+        res = self.g.optimize(warm_start=True)
+        timings["optimisation"] = timings.get("optimisation", 0.0) + time.perf_counter() - t0
+        self.n_opt += 1
+        self.last_anchor_path = self.path[k]
+        self.done.append(((self.g.poses[k] @ np.r_[rec.z_keyframe, 1.0])[:3], rec.intersection_id))
+        return res.status != "failed"
+
+    def online_step(self, k: int, hist, online: _OnlineKB, state: RecognitionState) -> Recognition:
+        """``use_map=False``: recognise re-visits of the online base, else maybe add a new entry."""
+        rp = replace(self.params.recognition, icp_max_distance_m=self.params.online_icp_max_distance_m)
+        conflict = None
+        view, idx = online.view(self.path[k], self.params.revisit_min_path_m)
+        online.entry_of = {i: e for i, e in enumerate(idx)}
+        if len(view):
+            rec = recognise_keyframe(self.odo.keyframe_clouds[k], hist, view, rp, T_world_kf_pred=self.g.poses[k],
+                                     gate_m=self.gate(k), state=state)
+            if rec.status in ("verified", "candidate", "rejected", "ambiguous"):
+                return rec
+            if rec.status == "conflict":          # a look-alike of an entry, far from it: maybe a new entry
+                conflict = rec
+        t0 = time.perf_counter()
+        status, reason, L, T_L_k, c_L = _detect([self.odo.keyframe_clouds[k]] + [h[0] for h in hist],
+                                                [h[1] for h in hist], rp)
+        rec = conflict or Recognition(status or "none", reason or "no re-visit of the online knowledge base",
+                                      timings_s={"detect": time.perf_counter() - t0})
+        if c_L is None or np.hypot(c_L[0], c_L[1]) > self.params.online_add_range_m:
+            return rec
+        T_wL = self.g.poses[k] @ np.linalg.inv(T_L_k)
+        C = T_wL[:3, :3] @ c_L + T_wL[:3, 3]
+        if any(np.linalg.norm(C[:2] - q[:2]) < self.params.online_merge_m for q in online.C):
+            return rec
+        online.add(C, L @ T_wL[:3, :3].T + T_wL[:3, 3], k, self.path[k], self.g.poses[k])
+        new = f"new online intersection {len(online.C) - 1} at ({C[0]:.1f}, {C[1]:.1f}) m"
+        rec.reason = f"{rec.reason}; {new}" if conflict is not None else new
+        return rec
+
+    def result(self, use_map: bool, usable: bool, kb, online, timings: dict) -> TrackResult:
+        odo = self.odo
+        kf = np.stack([self.current(k) for k in range(odo.keyframes.size)])
+        if self.g is None:
+            status, reason = "unanchored", "no start pose and no verified recognition: poses in the first frame's frame"
+        elif not usable:
+            status, reason = "no_intersections", f"the knowledge base holds no intersection ({kb.status}): odometry only"
+        elif not self.n_opt:
+            status, reason = "no_recognition", "no recognition was verified: odometry only"
+        else:
+            status, reason = "ok", ""
+        pts = np.array(online.C).reshape(-1, 3) if online is not None else np.zeros((0, 3))
+        okf = np.array(online.kf if online is not None else [], np.int64)
+        return TrackResult(status, reason, odo.times_s, _frame_poses(odo, kf), odo.keyframes.copy(), kf,
+                           np.stack(self.online_poses), self.recognitions, timings, use_map, odo, pts, okf,
+                           self.n_opt)

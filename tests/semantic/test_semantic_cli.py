@@ -1,0 +1,201 @@
+"""``minegeo intersections build`` and ``minegeo track`` end to end on a small drift network (issue 18,
+deliverable 4): the contract outputs with provenance, the right intersection recognised as a factor,
+the bad inputs of the issue as clear statuses (a map without intersections, keyframes without walls,
+a look-alike intersection in the wrong place) and one-line errors, and determinism."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from _netsim import drive
+
+from minegeo.cli import main
+from minegeo.io import PointCloud, read_trajectory, write_point_cloud
+from minegeo.synth.network import DriftNetwork, junction_truth, network_cloud
+
+
+def _net(two_crossings: bool = False) -> DriftNetwork:
+    """A 4-way crossing X at (0, 0) and a T at (40, 0) (20 m legs); with ``two_crossings`` a twin of X at
+    (80, 0) instead of the T (same plan, same roof)."""
+    if two_crossings:
+        nodes = [(0, 0), (80, 0), (-20, 0), (0, 20), (0, -20), (100, 0), (80, 20), (80, -20)]
+        edges = [(2, 0), (0, 1), (0, 3), (0, 4), (1, 5), (1, 6), (1, 7)]
+    else:
+        nodes = [(0, 0), (40, 0), (-20, 0), (0, 20), (0, -20), (40, 20), (40, -20)]
+        edges = [(2, 0), (0, 1), (0, 3), (0, 4), (1, 5), (1, 6)]
+    return DriftNetwork(np.array(nodes, float), np.array(edges), np.full(len(edges), 4.5), np.full(len(nodes), 3.6))
+
+
+def _write_frames(folder, frames) -> None:
+    folder.mkdir()
+    for k, (_, P) in enumerate(frames):
+        write_point_cloud(folder / f"{k:06d}.ply", PointCloud(points=P))
+    (folder / "times.txt").write_text("".join(f"{t:.6f}\n" for t, _ in frames))
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """Map, frames of a drive east through X (x = -14 .. 10 m) and the true poses."""
+    d = tmp_path_factory.mktemp("track")
+    net = _net()
+    write_point_cloud(d / "map.ply", PointCloud(points=network_cloud(net, seed=1).points))
+    frames, truth = drive(net, [(-14.0, 0.0), (10.0, 0.0)], step_m=1.2, seed=3)
+    _write_frames(d / "frames", frames)
+    return d, net, truth
+
+
+@pytest.fixture(scope="module")
+def db(scene):
+    d, _, _ = scene
+    assert main(["-q", "intersections", "build", "--map", str(d / "map.ply"), "--out", str(d / "kb.npz")]) == 0
+    return d / "kb.npz"
+
+
+def _start(truth) -> list[str]:
+    T = truth[0]
+    return ["--start", *(f"{v:.6f}" for v in (*T[:3, 3], np.degrees(np.arctan2(T[1, 0], T[0, 0]))))]
+
+
+def test_build_writes_the_base_with_provenance(scene, db):
+    d, net, _ = scene
+    rec = json.loads(db.with_name("kb.npz.json").read_text())
+    assert rec["status"] == "ok" and rec["result"]["intersections"] == 2
+    assert sorted(rec["result"]["degree"]) == [3, 4]
+    C = np.array(rec["result"]["invariant_points_m"])[:, :2]
+    J = junction_truth(net)
+    assert np.linalg.norm(C[:, None] - J[None], axis=2).min(1).max() < 0.1   # both junctions, in place
+    import hashlib
+
+    sha = hashlib.sha256((d / "map.ply").read_bytes()).hexdigest()
+    assert rec["provenance"]["inputs"] == [{"path": str(d / "map.ply"), "sha256": sha}]
+    assert db.with_name("kb.npz.html").is_file() and "Similarity" in db.with_name("kb.npz.html").read_text()
+
+
+def test_track_end_to_end(scene, db, tmp_path):
+    """Contract outputs; the crossing X is recognised and verified, its factors only from ``verified``;
+    the poses follow the truth (TUM, one per frame, times from times.txt)."""
+    d, _, truth = scene
+    out = tmp_path / "o"
+    assert main(["-q", "track", "--frames", str(d / "frames"), "--db", str(db), "--out", str(out),
+                 *_start(truth)]) == 0
+    for name in ("trajectory.tum", "keyframes.tum", "recognitions.csv", "result.json", "report.html"):
+        assert (out / name).is_file(), name
+    est = read_trajectory(out / "trajectory.tum")
+    assert est.poses.shape == truth.shape
+    assert np.linalg.norm(est.poses[:, :3, 3] - truth[:, :3, 3], axis=1).max() < 0.5
+    rec = json.loads((out / "result.json").read_text())
+    r = rec["result"]
+    x_id = int(np.argmin(np.linalg.norm(np.array(json.loads(db.with_name("kb.npz.json").read_text())
+                                                 ["result"]["invariant_points_m"])[:, :2], axis=1)))
+    assert rec["status"] == "ok" and r["recognised_ids"] == [x_id] and r["factors"] >= 1
+    assert all(e["status"] == "verified" for e in r["recognitions"] if e["factor"])
+    assert {e["status"] for e in r["recognitions"]} <= {"verified", "candidate", "ambiguous", "no_walls"}
+    names = {i["path"].rsplit("/", 1)[-1] for i in rec["provenance"]["inputs"]}
+    assert {"kb.npz", "000000.ply", f"{len(truth) - 1:06d}.ply"} <= names
+    assert rec["parameters"]["T_world_start"] is not None
+    csv = (out / "recognitions.csv").read_text().splitlines()
+    assert csv[0].startswith("time_s,keyframe,status,intersection_id") and any(",verified," in x for x in csv)
+
+
+def test_track_is_deterministic(scene, db, tmp_path):
+    d, _, truth = scene
+    outs = []
+    for name in ("a", "b"):
+        assert main(["-q", "track", "--frames", str(d / "frames"), "--db", str(db), "--out", str(tmp_path / name),
+                     *_start(truth)]) == 0
+        outs.append(tmp_path / name)
+    for f in ("trajectory.tum", "keyframes.tum", "recognitions.csv"):
+        assert (outs[0] / f).read_bytes() == (outs[1] / f).read_bytes(), f
+    a, b = (json.loads((o / "result.json").read_text())["result"] for o in outs)
+    assert a == b
+
+
+def test_map_without_intersections(tmp_path, capsys, scene):
+    """A single straight drift: ``build`` writes a base with status ``no_intersections`` and exits 1 with
+    one line; ``track`` on it runs odometry only, status ``no_intersections``, no factor, exit 1."""
+    d, _, truth = scene
+    net = DriftNetwork(np.array([[-30.0, 0.0], [30.0, 0.0]]), np.array([[0, 1]]), np.array([4.5]), np.array([3.6, 3.6]))
+    write_point_cloud(tmp_path / "drift.ply", PointCloud(points=network_cloud(net, seed=2).points))
+    capsys.readouterr()
+    assert main(["-q", "intersections", "build", "--map", str(tmp_path / "drift.ply"),
+                 "--out", str(tmp_path / "kb.npz")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no_intersections" in err[0] and "Traceback" not in err[0]
+    assert json.loads((tmp_path / "kb.npz.json").read_text())["status"] == "no_intersections"
+    assert main(["-q", "track", "--frames", str(d / "frames"), "--db", str(tmp_path / "kb.npz"),
+                 "--out", str(tmp_path / "o"), *_start(truth)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("minegeo track: no_intersections")
+    rec = json.loads((tmp_path / "o" / "result.json").read_text())
+    assert rec["status"] == "no_intersections" and rec["result"]["factors"] == 0
+    assert read_trajectory(tmp_path / "o" / "trajectory.tum").times_s.size == len(truth)
+
+
+def test_keyframes_without_walls(tmp_path, db, capsys):
+    """Frames of an open floor (no wall in the wall band): every keyframe is ``no_walls`` with the reason,
+    no factor, status ``no_recognition``, exit 1."""
+    rng = np.random.default_rng(0)
+    g = np.stack(np.meshgrid(np.linspace(-15, 15, 90), np.linspace(-15, 15, 90)), -1).reshape(-1, 2)
+    frames = [(0.5 * k, np.c_[g + [-0.5 * k, 0.0], -1.5 + 0.02 * rng.standard_normal(len(g))]) for k in range(6)]
+    _write_frames(tmp_path / "f", frames)
+    assert main(["-q", "track", "--frames", str(tmp_path / "f"), "--db", str(db), "--out", str(tmp_path / "o"),
+                 "--start", "0", "0", "1.5", "0"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("minegeo track: no_recognition")
+    rec = json.loads((tmp_path / "o" / "result.json").read_text())
+    assert rec["result"]["factors"] == 0 and rec["result"]["status_counts"] == {"no_walls": rec["result"]["keyframes"]}
+    assert all(e["status"] == "no_walls" and "wall points" in e["reason"] for e in rec["result"]["recognitions"])
+
+
+def test_look_alike_in_the_wrong_place_is_a_conflict(tmp_path, capsys):
+    """The base holds only the twin of the crossing driven through (80 m away): the recognitions are
+    ``conflict`` (the ICP fits, the pose is 80 m from the odometry), no factor, status ``no_recognition``."""
+    net = _net(two_crossings=True)
+    P = network_cloud(net, seed=1).points
+    write_point_cloud(tmp_path / "map.ply", PointCloud(points=P[P[:, 0] > 40.0]))
+    assert main(["-q", "intersections", "build", "--map", str(tmp_path / "map.ply"),
+                 "--out", str(tmp_path / "kb.npz")]) == 0
+    frames, truth = drive(net, [(-14.0, 0.0), (6.0, 0.0)], step_m=1.2, seed=3)
+    _write_frames(tmp_path / "f", frames)
+    capsys.readouterr()
+    assert main(["-q", "track", "--frames", str(tmp_path / "f"), "--db", str(tmp_path / "kb.npz"),
+                 "--out", str(tmp_path / "o"), *_start(truth)]) == 1
+    rec = json.loads((tmp_path / "o" / "result.json").read_text())
+    st = [e["status"] for e in rec["result"]["recognitions"]]
+    assert "conflict" in st and "verified" not in st and rec["result"]["factors"] == 0, st
+    c = next(e for e in rec["result"]["recognitions"] if e["status"] == "conflict")
+    assert c["prediction_error_m"] > 60.0 and "odometry prediction" in c["reason"]
+    assert rec["status"] == "no_recognition"
+
+
+@pytest.mark.parametrize("case", ["missing_db", "not_a_db", "no_frames"])
+def test_user_mistakes_are_one_line_errors(case, scene, db, tmp_path, capsys):
+    d, _, _ = scene
+    frames, base = str(d / "frames"), str(db)
+    if case == "missing_db":
+        base = str(tmp_path / "nope.npz")
+    elif case == "not_a_db":
+        (tmp_path / "bad.npz").write_bytes(b"not a knowledge base")
+        base = str(tmp_path / "bad.npz")
+    else:
+        (tmp_path / "empty").mkdir()
+        frames = str(tmp_path / "empty")
+    capsys.readouterr()
+    assert main(["-q", "track", "--frames", frames, "--db", base, "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("minegeo track: error:") and "Traceback" not in err[0], err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("case", ["missing", "not_a_cloud"])
+def test_build_user_mistakes_are_one_line_errors(case, tmp_path, capsys):
+    m = tmp_path / "map.ply"
+    if case == "not_a_cloud":
+        m.write_text("ply\nthis is not a point cloud\n")
+    capsys.readouterr()
+    assert main(["-q", "intersections", "build", "--map", str(m), "--out", str(tmp_path / "kb.npz")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("minegeo intersections: error:") and "Traceback" not in err[0], err
+    assert not (tmp_path / "kb.npz").exists()

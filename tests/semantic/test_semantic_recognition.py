@@ -1,0 +1,133 @@
+"""Online recognition and tracking (issue 18, deliverable 2): the right intersection is recognised from
+ray-cast VLP-16 keyframes, a nearly-alike wrong one is refused by the verification, a keyframe without
+walls gets ``no_walls``, and the tracker adds factors only for verified recognitions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from _netsim import drive
+
+from minegeo.semantic import (
+    RecognitionParams,
+    RecognitionState,
+    TrackParams,
+    build_knowledge_base,
+    recognise_keyframe,
+    track,
+)
+from minegeo.synth import intersections_network, network_cloud
+
+
+@pytest.fixture(scope="module")
+def net():
+    return intersections_network()
+
+
+@pytest.fixture(scope="module")
+def cloud(net):
+    return network_cloud(net, seed=1).points
+
+
+@pytest.fixture(scope="module")
+def kb(cloud):
+    return build_knowledge_base(cloud)
+
+
+@pytest.fixture(scope="module")
+def run(net):
+    """A drive east through X1 (0, 0), frames every 1.2 m (2 Hz), with the true poses."""
+    return drive(net, [(-14.0, 0.0), (16.0, 0.0)], step_m=1.2, seed=3)
+
+
+def _id_at(kb, xy):
+    return int(np.argmin(np.hypot(*(kb.invariant_points[:, :2] - np.asarray(xy)).T)))
+
+
+def _keyframe(run, j, n_his=5):
+    frames, truth = run
+    hs = [h for h in range(j - 2 * n_his, j, 2) if h >= 0]          # keyframes every 2.4 m
+    hist = [(frames[h][1], np.linalg.solve(truth[j], truth[h])) for h in hs]
+    return frames[j][1], hist, truth[j]
+
+
+def test_recognises_the_right_intersection(run, kb):
+    """Keyframes 2-5 m before X1 and just past it: X1 is the match (X2/X3/T also pass the PWCV; the CWC
+    decides), verified by ICP; the registered pose agrees with the truth to 0.2 m, the observed point
+    with X1 to 0.3 m. (At x = -0.8 m, 0.8 m from the crossing's centre, the detector finds no junction
+    within 8 m: a known weakness, docs/intersections.md "Results".)"""
+    x1 = _id_at(kb, (0, 0))
+    done = 0
+    for j in (8, 9, 10, 12):        # sensor at x = -4.4, -3.2, -2.0, +0.4 m
+        P, hist, T = _keyframe(run, j)
+        r = recognise_keyframe(P, hist, kb, T_world_kf_pred=T)
+        assert r.status == "verified", r.reason
+        assert r.intersection_id == x1
+        assert r.pwcv_score >= 0.8 and len(r.candidates) > 1 and np.isfinite(r.cwc_score)
+        assert r.icp_rms_m < 0.135 and r.icp_fitness > 0.6
+        assert np.linalg.norm(r.T_world_keyframe_icp[:3, 3] - T[:3, 3]) < 0.2
+        assert np.linalg.norm((T @ np.r_[r.z_keyframe, 1.0])[:2] - kb.invariant_points[x1, :2]) < 0.3
+        done += 1
+    assert done == 4
+
+
+def test_nearly_alike_wrong_intersection_is_refused(run, cloud):
+    """A base whose only crossing is X1's twin X2 (map cropped to 30 m < x < 90 m; same plan, roof 3.6 m
+    instead of 3.0 m). The ICP verification rejects it: the walls fit, the roof does not (RMS 0.2 m
+    against 0.09-0.1 m for the right crossing). With a loose ICP limit (0.25 m) the pose it implies is
+    60 m from the odometry prediction -> ``conflict``; only without a prediction would that loose
+    verification accept it (what the gate is for). No case gives a factor for X2.
+    (With X2 and X3 both in the base, the CWC cannot choose between them for X1: ``ambiguous``.)"""
+    kb2 = build_knowledge_base(cloud[(cloud[:, 0] > 30.0) & (cloud[:, 0] < 90.0)])
+    x2 = _id_at(kb2, (60, 0))
+    P, hist, T = _keyframe(run, 10)
+    r = recognise_keyframe(P, hist, kb2, T_world_kf_pred=T)
+    assert r.intersection_id == x2
+    assert r.status == "rejected" and r.icp_rms_m > 0.135 and "ICP distance" in r.reason, (r.status, r.reason)
+    assert recognise_keyframe(P, hist, kb2).status == "rejected"
+    loose = RecognitionParams(icp_max_distance_m=0.25)
+    r = recognise_keyframe(P, hist, kb2, loose, T_world_kf_pred=T)
+    assert r.status == "conflict", (r.status, r.reason)
+    assert r.prediction_error_m > 50.0 and "odometry prediction" in r.reason
+    free = recognise_keyframe(P, hist, kb2, loose)
+    assert free.status == "verified" and free.intersection_id == x2
+
+
+def test_no_walls_and_none(kb, run):
+    """A floor-only keyframe and an empty one: ``no_walls``; a keyframe in a plain drift: ``none``."""
+    g = np.stack(np.meshgrid(np.linspace(-10, 10, 60), np.linspace(-10, 10, 60)), -1).reshape(-1, 2)
+    floor = np.c_[g, np.full(len(g), -1.5)]
+    assert recognise_keyframe(floor, [], kb).status == "no_walls"
+    assert recognise_keyframe(np.zeros((0, 3)), [], kb).status == "no_walls"
+    P, hist, T = _keyframe(run, 0)         # x = -14 m: 14 m before X1
+    r = recognise_keyframe(P, hist, kb, T_world_kf_pred=T)
+    assert r.status == "none" and r.intersection_id == -1
+
+
+def test_consecutive_count(run, kb):
+    """With a state, the first match is only a ``candidate``; the second in a row is verified."""
+    st = RecognitionState()
+    p = RecognitionParams(consecutive_required=2)
+    a = recognise_keyframe(*_keyframe(run, 9)[:2], kb, p, T_world_kf_pred=_keyframe(run, 9)[2], state=st)
+    b = recognise_keyframe(*_keyframe(run, 10)[:2], kb, p, T_world_kf_pred=_keyframe(run, 10)[2], state=st)
+    assert a.status == "candidate" and a.streak == 1
+    assert b.status == "verified" and b.streak == 2 and st.streak == 0
+
+
+def test_track_adds_factors_only_for_verified(run, kb):
+    """The tracker over the drive: X1 verified (factors), poses within 0.3 m of the truth; a base
+    without intersections gives status ``no_intersections`` and odometry-only poses."""
+    frames, truth = run
+    res = track(frames, kb, TrackParams(T_world_start=truth[0]))
+    assert res.status == "ok", res.reason
+    assert res.poses.shape == (len(frames), 4, 4) and res.times_s.shape == (len(frames),)
+    assert res.summary()["recognised_ids"] == [_id_at(kb, (0, 0))]
+    assert all(e.recognition.status == "verified" for e in res.recognitions if e.factor)
+    assert len(res.verified()) >= 1 and res.n_optimisations == len(res.verified())
+    err = np.linalg.norm(res.poses[:, :3, 3] - truth[:, :3, 3], axis=1)
+    assert err.max() < 0.5
+    from dataclasses import replace
+
+    empty = replace(kb, status="no_intersections")
+    r0 = track(frames, empty, TrackParams(T_world_start=truth[0]))
+    assert r0.status == "no_intersections" and not r0.verified()

@@ -1,0 +1,93 @@
+"""The tracker's own pieces (issue 18): the odometry-edge noise floor, the frame placement between
+keyframes, the uniqueness rule that keeps a look-alike intersection from becoming a factor, and the
+parameter checks."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from _netsim import drive
+
+from minegeo.errors import InputError
+from minegeo.semantic import TrackParams, build_knowledge_base, recognise_keyframe
+from minegeo.semantic.tracking import _frame_poses, odometry_edge_information
+from minegeo.synth import intersections_network, network_cloud
+
+
+def _T(x=0.0, y=0.0, yaw=0.0):
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0, x], [s, c, 0, y], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+
+
+def test_edge_information_floor():
+    """Zero floor: GICP's information back. With the floor: the covariance is GICP's plus
+    ``diag(σ_φ², σ_t²)``, exactly; a longer time span weakens the translation only."""
+    rng = np.random.default_rng(1)
+    A = rng.standard_normal((6, 6))
+    W = A @ A.T * 1e4 + np.eye(6) * 1e3
+    Z = _T(2.0)
+    assert np.allclose(odometry_edge_information(W, Z, 0.0, 0.0), W, rtol=1e-9)
+    I1 = odometry_edge_information(W, Z, 0.05, 0.1, dt_s=2.0, sigma_mps=0.1)
+    s_t2, s_p2 = (0.05 * 2.0) ** 2 + (0.1 * 2.0) ** 2, math.radians(0.1 * 2.0) ** 2
+    assert np.allclose(np.linalg.inv(I1), np.linalg.inv(W) + np.diag([s_p2] * 3 + [s_t2] * 3), rtol=1e-9, atol=1e-15)
+    I2 = odometry_edge_information(W, Z, 0.05, 0.1, dt_s=14.0, sigma_mps=0.1)
+    C1, C2 = np.linalg.inv(I1), np.linalg.inv(I2)
+    assert np.allclose(C2[:3, :3], C1[:3, :3]) and np.all(np.diag(C2)[3:] > np.diag(C1)[3:] + 0.18)
+    # a failed edge (not positive definite): only the floor remains, finite and PD
+    I3 = odometry_edge_information(np.zeros((6, 6)), Z, 0.05, 0.1, dt_s=2.0, sigma_mps=0.1)
+    assert np.all(np.linalg.eigvalsh(I3) > 0) and np.all(np.isfinite(I3))
+
+
+def test_frames_between_keyframes_follow_the_interpolated_correction():
+    """Odometry that reports a stop for 4 s inside one keyframe edge: after the graph moved the next
+    keyframe by 4 m, the frames in between move with the correction interpolated in time, instead of
+    all staying at the first keyframe's place; keyframes keep the graph's poses exactly."""
+    t = np.arange(7.0)
+    odo_x = np.array([0.0, 1.0, 1.0, 1.0, 1.0, 1.0, 2.0])          # a false stop between frames 1 and 5
+    odo = SimpleNamespace(times_s=t, poses=np.stack([_T(x) for x in odo_x]), keyframes=np.array([0, 1, 5, 6]))
+    kf_true = np.stack([_T(0.0), _T(1.0), _T(5.0), _T(6.0)])
+    P = _frame_poses(odo, kf_true)
+    assert np.allclose(P[odo.keyframes], kf_true, atol=1e-12)
+    assert np.allclose(P[:, 0, 3], np.arange(7.0), atol=1e-12)
+    # rotation correction: geodesic in time
+    kf_rot = np.stack([_T(0.0), _T(1.0), _T(1.0, yaw=0.4), _T(2.0, yaw=0.4)])
+    P = _frame_poses(odo, kf_rot)
+    yaw = np.arctan2(P[:, 1, 0], P[:, 0, 0])
+    assert np.allclose(yaw[1:6], [0.0, 0.1, 0.2, 0.3, 0.4], atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def x1_keyframe():
+    """A keyframe 2 m before X1 of the issue-18 network with 5 stacked predecessors, the true pose and
+    the full base (X1, X2, X3 are twins in plan, 60 m apart)."""
+    net = intersections_network()
+    kb = build_knowledge_base(network_cloud(net, seed=1).points)
+    frames, truth = drive(net, [(-14.0, 0.0), (2.0, 0.0)], step_m=1.2, seed=3)
+    j = 10
+    hist = [(frames[h][1], np.linalg.solve(truth[j], truth[h])) for h in range(j - 10, j, 2)]
+    return frames[j][1], hist, truth[j], kb
+
+
+def test_a_look_alike_within_the_gate_blocks_the_factor(x1_keyframe):
+    """Prediction 8 m off toward X2: with a 20 m gate only X1 is inside -> ``verified`` as X1; with a
+    60 m gate X2 is inside too -> ``ambiguous`` (no factor), although the ICP would fit X1."""
+    P, hist, T, kb = x1_keyframe
+    x1 = int(np.argmin(np.linalg.norm(kb.invariant_points[:, :2], axis=1)))
+    pred = T.copy()
+    pred[0, 3] += 8.0
+    r = recognise_keyframe(P, hist, kb, T_world_kf_pred=pred, gate_m=20.0)
+    assert r.status == "verified" and r.intersection_id == x1, r.reason
+    assert np.linalg.norm(r.T_world_keyframe_icp[:3, 3] - T[:3, 3]) < 0.2
+    r = recognise_keyframe(P, hist, kb, T_world_kf_pred=pred, gate_m=60.0)
+    assert r.status == "ambiguous" and "within the 60.0 m gate" in r.reason, (r.status, r.reason)
+
+
+@pytest.mark.parametrize("kw", [{"gate_drift_fraction": -0.1}, {"intersection_sigma_m": 0.0},
+                                {"completeness_scaling": "bogus"}, {"odometry_sigma_mps": float("nan")},
+                                {"T_world_start": np.eye(3)}])
+def test_bad_parameters(kw):
+    with pytest.raises(InputError):
+        TrackParams(**kw)
