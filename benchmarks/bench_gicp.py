@@ -18,6 +18,9 @@ because Open3D and small_gicp compute their covariances inside the call)
 * ``minegeo_open3d``: ``GICPParams.open3d(d)`` (Open3D's covariances and loop);
 * ``minegeo_cached``: default parameters with both clouds' covariances precomputed (what a
   prepared map and a cached previous frame give; registration only);
+* ``minegeo_cached_pyloop``: ``minegeo_cached`` through the Python loop
+  (``registration.loop.run_loop``, ``gicp.USE_LOOP_KERNEL = False``) instead of the one-kernel
+  default loop: what the loop kernel saves;
 * ``minegeo_sg_stop``: like for like with small_gicp's loop: its convergence test (step below
   0.1° **and** 1 mm) and its 20-iteration cap (``GICPParams(d, max_iterations=20,
   step_translation_m=1e-3, step_rotation_rad=radians(0.1))``), covariances computed in the call;
@@ -51,7 +54,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # this checkout's minegeo, not whatever copy is installed
 SHARED = REPO.parent / "shared" / "data"
 
-VARIANTS = ("minegeo", "minegeo_sg_stop", "minegeo_open3d", "minegeo_cached", "open3d", "small_gicp")
+VARIANTS = ("minegeo", "minegeo_sg_stop", "minegeo_open3d", "minegeo_cached", "minegeo_cached_pyloop", "open3d",
+            "small_gicp")
 
 
 def _log(msg: str) -> None:
@@ -135,6 +139,16 @@ def run_case(name, src, tgt, T_true, starts, d, threads, repeats):
         r = register_gicp(src, tgt, T0, prm, source_covariances=covs[0], target_covariances=covs[1])
         return r.T_target_source, r.iterations, r.fitness
 
+    def v_minegeo_cached_pyloop(T0):
+        from minegeo.registration import gicp as G
+
+        G.USE_LOOP_KERNEL = False
+        try:
+            r = register_gicp(src, tgt, T0, prm, source_covariances=covs[0], target_covariances=covs[1])
+        finally:
+            G.USE_LOOP_KERNEL = True
+        return r.T_target_source, r.iterations, r.fitness
+
     def v_open3d(T0):
         ps = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src))
         pt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt))
@@ -153,7 +167,7 @@ def run_case(name, src, tgt, T_true, starts, d, threads, repeats):
         return np.asarray(o.T_target_source), o.iterations, o.num_inliers / len(src)
 
     fns = {"minegeo": v_minegeo, "minegeo_sg_stop": v_minegeo_sg_stop, "minegeo_open3d": v_minegeo_open3d, "minegeo_cached": v_minegeo_cached,
-           "open3d": v_open3d, "small_gicp": v_small_gicp}
+           "minegeo_cached_pyloop": v_minegeo_cached_pyloop, "open3d": v_open3d, "small_gicp": v_small_gicp}
     from minegeo.registration import gicp as G
 
     prange_rows = [G._parallel_rows(G.PARALLEL_SEARCH_ROWS)]  # load-dependent (speed only, same bits)
@@ -214,13 +228,15 @@ def markdown(results: dict, meta: dict) -> str:
                   f"{'/'.join(str(r) for r in s['minegeo_prange_from_rows_start_end'])} rows (start/end of the case; "
                   "2048 when the load average <= CPU count)", "",
                   "| variant | median time per registration (ms) | min (ms) | / Open3D | / small_gicp | "
-                  "max rot. error to truth (°) | max transl. error to truth (m) |",
-                  "|---|---:|---:|---:|---:|---:|---:|"]
+                  "max rot. error to truth (°) | max transl. error to truth (m) | iterations per start |",
+                  "|---|---:|---:|---:|---:|---:|---:|---|"]
         for v in VARIANTS:
             e = s["max_error_to_truth"][v]
+            its = ",".join("?" if r[v]["iterations"] is None else str(r[v]["iterations"]) for r in s["per_start"])
             lines.append(f"| {v} | {1e3 * s['median_s'][v]:.1f} | {1e3 * s['min_s'][v]:.1f} | "
                          f"{s['ratio_vs_open3d'][v]:.2f} | "
-                         f"{s['ratio_vs_small_gicp'][v]:.2f} | {np.degrees(e['rot_rad']):.4f} | {e['trans_m']:.4f} |")
+                         f"{s['ratio_vs_small_gicp'][v]:.2f} | {np.degrees(e['rot_rad']):.4f} | {e['trans_m']:.4f} | "
+                         f"{its} |")
         a, b = s["max_agreement_minegeo_open3d_vs_open3d"], s["max_agreement_minegeo_vs_small_gicp"]
         lines += ["", f"minegeo_open3d vs Open3D: max {a['rot_rad']:.1e} rad, {a['trans_m']:.1e} m; "
                   f"minegeo (default) vs small_gicp: max {b['rot_rad']:.1e} rad, {b['trans_m']:.1e} m.", ""]

@@ -27,7 +27,12 @@ from minegeo.kernels.kdtree import (
     kd_nn_warm_parallel,
     kd_nn_warm_serial,
 )
-from minegeo.registration._kernels import _add_partials, system_from_partials
+from minegeo.registration._kernels import (
+    _add_partials,
+    _transform_parallel,
+    _transform_serial,
+    system_from_partials,
+)
 
 #: Below this many pairs (or search queries) the serial driver is used. Measured on the shared
 #: 2-core machine under load (load average ~9): for 10^4 pairs the prange drivers made a whole
@@ -134,7 +139,7 @@ def plane_covariances_kernel(N, isotropic, eps, rodrigues):
 
 @njit
 def _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
-                      out_n, out_eval, out_status, t0, t1):
+                      out_n, out_eval, out_status, t0, t1, out_nb, out_rk):
     bi = np.empty(k, np.int64)
     bs = np.empty(k)
     st_node = np.empty(depth + 2, np.int64)
@@ -147,6 +152,10 @@ def _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k,
         i = idx[t]  # leaf order: consecutive queries are neighbours (cache locality)
         cnt = kd_knn_one(Q[i, 0], Q[i, 1], Q[i, 2], idx, Qs, start, end, dim, split, left, right, k,
                        bi, bs, st_node, st_lb)
+        if out_nb.shape[0] > 0:  # the neighbour list and its radius (gicp_fused_search's shortcut)
+            for a in range(cnt):
+                out_nb[i, a] = bi[a]
+            out_rk[i] = np.inf if cnt == Q.shape[0] else np.sqrt(bs[cnt - 1])  # all nearer points listed
         pca_normal(Q, bi, cnt, i, i, mode_open3d, ratio, A, V, w, tmp, out_n, out_eval, out_status)
 
 
@@ -154,7 +163,7 @@ def _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k,
 def _knn_normals_serial(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
                         out_n, out_eval, out_status):
     _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
-                      out_n, out_eval, out_status, 0, Q.shape[0])
+                      out_n, out_eval, out_status, 0, Q.shape[0], np.empty((0, k), np.int64), np.empty(0))
 
 
 @njit_parallel
@@ -163,7 +172,8 @@ def _knn_normals_parallel(Q, idx, Qs, start, end, dim, split, left, right, depth
     m = Q.shape[0]
     for c in prange(n_chunks(m)):
         _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
-                          out_n, out_eval, out_status, c * CHUNK, min(m, (c + 1) * CHUNK))
+                          out_n, out_eval, out_status, c * CHUNK, min(m, (c + 1) * CHUNK), np.empty((0, k), np.int64),
+                          np.empty(0))
 
 
 def knn_normals_kernel(Q, tree, k, mode_open3d, ratio=DEGENERATE_RATIO):
@@ -385,6 +395,7 @@ def _warmup() -> None:
     out = np.empty((4, 3))
     _min_eigvec_serial(C, idx, out)
     _min_eigvec_parallel(C, idx, out)
+    covariances_valid(np.ascontiguousarray(C.reshape(4, 9)), 1e-9)
 
 
 # GICP kernels. Per pair the arithmetic is that of ``registration._kernels_gicp._gicp_chunk``
@@ -394,6 +405,10 @@ def _warmup() -> None:
 # the fused search, pairs in ``gicp_pairs_system``), partials added serially in chunk order, so
 # the bits depend on the number of rows only, never on the thread count.
 
+#: Steps of the walk on the neighbour lists (:func:`_list_nearest`) before the tree is searched.
+LIST_HOPS = 3
+#: "No neighbour lists" for :func:`gicp_fused_search` (its tree search only).
+NO_LISTS = (np.empty((0, 1), np.int64), np.empty(0))
 #: Rows per chunk of the GICP sums: 4,661 pairs are 19 chunks that two threads share evenly.
 GICP_ROWS = 256
 #: Accumulated values per chunk: 21 (upper triangle of H) + 6 (g) + 1 (cost).
@@ -508,8 +523,60 @@ def _gicp_pair_add(P, a_, Q, b_, Cs, Ct, R, part, c):
 
 
 @njit
+def _list_nearest(px, py, pz, Q, nb, rk, j0, d2, tol):
+    """Gated nearest neighbour of ``p`` from the target's neighbour lists, when it is certain:
+    ``(best, best_j, r2)`` (``best_j = m``: no point within the gate), or ``best_j = -1``.
+
+    ``nb[j]`` holds every target point strictly nearer to ``q_j`` than ``rk[j]``. Starting at the
+    previous partner ``j0``, with ``d = |p - q_j|``: the answer (if any) is no farther from ``p``
+    than ``q_j`` when ``q_j`` is within the gate, and nearer than the gate ``<= d`` when it is not,
+    so it lies within ``2 d`` of ``q_j`` (triangle inequality). So when ``2 d + tol < rk[j]`` (``tol``
+    covers rounding) the list of ``j`` holds the answer, and the lexicographic minimum of
+    ``(sq, index)`` over it (``sq < d2``) is the tree search's answer, bit for bit. Otherwise the
+    walk moves to the list's point nearest to ``p`` (at most :data:`LIST_HOPS` times, only while it
+    gets nearer). ``r2`` bounds every other point's distance from below (the list's second
+    distance, ``rk[j] - d`` outside it, at most the gate), for the skip test of the next search."""
+    m = Q.shape[0]
+    k = nb.shape[1]
+    j = j0
+    sj = _sq_to(px, py, pz, Q, j)
+    for _hop in range(LIST_HOPS + 1):
+        dj = np.sqrt(sj)
+        if 2.0 * dj + tol < rk[j]:
+            best = d2
+            best_j = m
+            second = d2
+            for a in range(k):
+                jj = nb[j, a]
+                s = _sq_to(px, py, pz, Q, jj)
+                if s < d2:
+                    if s < best or (s == best and jj < best_j):
+                        if best < second:
+                            second = best
+                        best = s
+                        best_j = jj
+                    elif s < second:
+                        second = s
+            return best, best_j, min(np.sqrt(second), rk[j] - dj)
+        # not certain here: walk to the listed point nearest to p
+        sn = sj
+        jn = j
+        for a in range(k):
+            jj = nb[j, a]
+            s = _sq_to(px, py, pz, Q, jj)
+            if s < sn or (s == sn and jj < jn):
+                sn = s
+                jn = jj
+        if jn == j:
+            break
+        j = jn
+        sj = sn
+    return 0.0, -1, 0.0
+
+
+@njit
 def _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
-                     out_idx, out_sq, part, P_old, r1, r2, moved, c0, c1):
+                     out_idx, out_sq, part, P_old, r1, r2, moved, c0, c1, nb, rk):
     """Chunks ``c0 .. c1-1`` (``GICP_ROWS`` rows each) of :func:`gicp_fused_search`."""
     m = idx.shape[0]
     n = P.shape[0]
@@ -517,12 +584,15 @@ def _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, 
     st_lb = np.empty(depth + 2)
     keep = P_old.shape[0] == n
     for c in range(c0, c1):
+        last_j = m  # the last partner found in this chunk: where a row without a partner starts its list walk
         for i in range(c * GICP_ROWS, min(n, (c + 1) * GICP_ROWS)):
             px = P[i, 0]
             py = P[i, 1]
             pz = P[i, 2]
             j0 = warm[i]
-            want_second = True
+            # the first search finds the second distance only without lists (with them, the next
+            # search takes most rows from the lists, which need no second distance)
+            want_second = nb.shape[0] == 0
             if keep:
                 ex = px - P_old[i, 0]
                 ey = py - P_old[i, 1]
@@ -539,11 +609,29 @@ def _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, 
                 if r2[i] - moved[i] > r1[i] + moved[i] + tol:
                     sq0 = _sq_to(px, py, pz, Q, j0)
                     if sq0 < d2:
+                        last_j = j0
                         out_idx[i] = j0
                         out_sq[i] = sq0
                         _gicp_pair_add(P, i, Q, j0, Cs, Ct, R, part, c)
                     else:
                         out_idx[i] = m
+                        out_sq[i] = np.inf
+                    continue
+            js = j0 if j0 < m else last_j  # any target point is a valid start (the answer is certified)
+            if js < m and nb.shape[0] > 0:  # the neighbour lists, when they must hold the answer
+                tol = 1e-9 * (1.0 + abs(px) + abs(py) + abs(pz))
+                lb, lj, lr2 = _list_nearest(px, py, pz, Q, nb, rk, js, d2, tol)
+                if lj >= 0:
+                    moved[i] = 0.0
+                    out_idx[i] = lj
+                    if lj < m:
+                        last_j = lj
+                        r1[i] = np.sqrt(lb)
+                        r2[i] = lr2
+                        out_sq[i] = lb
+                        _gicp_pair_add(P, i, Q, lj, Cs, Ct, R, part, c)
+                    else:
+                        r1[i] = np.inf
                         out_sq[i] = np.inf
                     continue
             best = d2
@@ -564,6 +652,7 @@ def _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, 
             moved[i] = 0.0
             out_idx[i] = best_j
             if best_j < m:
+                last_j = best_j
                 r1[i] = np.sqrt(best)
                 out_sq[i] = best
                 _gicp_pair_add(P, i, Q, best_j, Cs, Ct, R, part, c)
@@ -574,20 +663,20 @@ def _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, 
 
 @njit
 def _gicp_fused_serial(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
-                       out_idx, out_sq, part, P_old, r1, r2, moved):
+                       out_idx, out_sq, part, P_old, r1, r2, moved, nb, rk):
     _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
-                     out_idx, out_sq, part, P_old, r1, r2, moved, 0, part.shape[0])
+                     out_idx, out_sq, part, P_old, r1, r2, moved, 0, part.shape[0], nb, rk)
 
 
 @njit_parallel
 def _gicp_fused_parallel(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
-                         out_idx, out_sq, part, P_old, r1, r2, moved):
+                         out_idx, out_sq, part, P_old, r1, r2, moved, nb, rk):
     for c in prange(part.shape[0]):
         _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
-                         out_idx, out_sq, part, P_old, r1, r2, moved, c, c + 1)
+                         out_idx, out_sq, part, P_old, r1, r2, moved, c, c + 1, nb, rk)
 
 
-def gicp_fused_search(P, Q, tree, d2, warm, Cs, Ct, R, parallel, state=None):
+def gicp_fused_search(P, Q, tree, d2, warm, Cs, Ct, R, parallel, state=None, lists=None):
     """Gated nearest neighbour of every row of ``P`` and the GICP system of the pairs, in one pass.
 
     ``P`` (n, 3) are the source points moved by the current pose (rotation ``R``), ``tree`` the
@@ -604,6 +693,11 @@ def gicp_fused_search(P, Q, tree, d2, warm, Cs, Ct, R, parallel, state=None):
     moved by ``moved`` since, and ``r2 - moved > r1 + moved``. The answer is that of the full
     search, bit for bit. ``r1``, ``r2``, ``moved`` (n,) are updated in place; an empty ``P_old``
     searches every row.
+
+    ``lists`` = ``(nb (m, k), rk (m,))``: every target point's ``k`` nearest target points and
+    the distance of the last (:func:`knn_normals_tasks`). A row whose previous partner ``j0`` is
+    within ``rk[j0] / 2`` takes its partner from ``nb[j0]`` instead of the tree
+    (:func:`_list_nearest`): the same answer, bit for bit.
     """
     n = P.shape[0]
     out_idx = np.empty(n, dtype=np.int64)
@@ -611,8 +705,10 @@ def gicp_fused_search(P, Q, tree, d2, warm, Cs, Ct, R, parallel, state=None):
     part = np.zeros(((n + GICP_ROWS - 1) // GICP_ROWS, GICP_ACC))
     if state is None:
         state = (np.empty((0, 3)), np.empty(n), np.empty(n), np.zeros(n))
+    if lists is None:
+        lists = NO_LISTS
     drive = _gicp_fused_parallel if parallel else _gicp_fused_serial
-    drive(P, Q, *tree, float(d2), warm, Cs, Ct, R, out_idx, out_sq, part, *state)
+    drive(P, Q, *tree, float(d2), warm, Cs, Ct, R, out_idx, out_sq, part, *state, *lists)
     H, g, cost = system_from_partials(part)
     return out_idx, out_sq, H, g, float(cost)
 
@@ -647,10 +743,316 @@ def gicp_pairs_system(P, Q, Cs, Ct, R, si, ti):
 
 @njit_parallel
 def knn_normals_tasks(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio, out_n, out_eval,
-                       out_status):
+                       out_status, out_nb, out_rk):
     """``_knn_normals_rows`` in ``prange`` over ``GICP_ROWS``-point tasks (leaf order;
-    one row per point, so any split gives the same bits)."""
+    one row per point, so any split gives the same bits); ``out_nb`` (m, k) / ``out_rk`` (m,)
+    receive each point's neighbour list and the distance of its last neighbour (empty: not kept)."""
     m = Q.shape[0]
     for c in prange((m + GICP_ROWS - 1) // GICP_ROWS):
         _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio, out_n,
-                          out_eval, out_status, c * GICP_ROWS, min(m, (c + 1) * GICP_ROWS))
+                          out_eval, out_status, c * GICP_ROWS, min(m, (c + 1) * GICP_ROWS), out_nb, out_rk)
+
+
+@njit_parallel
+def knn_normals_pair_tasks(QA, idxA, QsA, startA, endA, dimA, splitA, leftA, rightA, depthA, kA, QB, idxB, QsB,
+                           startB, endB, dimB, splitB, leftB, rightB, depthB, kB, mode_open3d, ratio, nA, eA, sA, nbA,
+                           rkA, nB, eB, sB, nbB, rkB):
+    """:func:`knn_normals_tasks` of two clouds in one ``prange`` region (the tasks of A, then those
+    of B): both clouds' normals on the Numba threads at once, with no Python thread beside them
+    (which would compete with the threads of the last ``prange`` region while they spin). Per-row
+    outputs: the bits of one cloud at a time."""
+    ta = (QA.shape[0] + GICP_ROWS - 1) // GICP_ROWS
+    tb = (QB.shape[0] + GICP_ROWS - 1) // GICP_ROWS
+    for c in prange(ta + tb):
+        if c < ta:
+            _knn_normals_rows(QA, idxA, QsA, startA, endA, dimA, splitA, leftA, rightA, depthA, kA, mode_open3d, ratio,
+                              nA, eA, sA, c * GICP_ROWS, min(QA.shape[0], (c + 1) * GICP_ROWS), nbA, rkA)
+        else:
+            cb = c - ta
+            _knn_normals_rows(QB, idxB, QsB, startB, endB, dimB, splitB, leftB, rightB, depthB, kB, mode_open3d, ratio,
+                              nB, eB, sB, cb * GICP_ROWS, min(QB.shape[0], (cb + 1) * GICP_ROWS), nbB, rkB)
+
+
+@njit
+def knn_normals_lists_serial(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio, out_n,
+                             out_eval, out_status, out_nb, out_rk):
+    """:func:`knn_normals_tasks` without ``prange``."""
+    _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio, out_n, out_eval,
+                      out_status, 0, Q.shape[0], out_nb, out_rk)
+
+
+# ----------------------------------------------------------------------------- checks of given covariances
+
+
+@njit
+def covariances_valid(f, rtol):
+    """True when every row of ``f`` (n, 9) (row-major 3x3 matrices) is finite, symmetric to
+    ``rtol`` times its largest absolute entry and positive definite by Sylvester's criterion
+    (``a00 > 0``, ``a00 a11 - a01² > 0``, ``det > 0``): the checks of
+    ``registration.gicp._as_covariances``, with the same arithmetic, in one pass. False sends the
+    caller to its NumPy checks, which name the failing rows."""
+    for i in range(f.shape[0]):
+        scale = 0.0
+        for c in range(9):
+            v = f[i, c]
+            if not np.isfinite(v):
+                return False
+            if abs(v) > scale:
+                scale = abs(v)
+        asym = max(max(abs(f[i, 1] - f[i, 3]), abs(f[i, 2] - f[i, 6])), abs(f[i, 5] - f[i, 7]))
+        if asym > rtol * max(scale, 1e-300):
+            return False
+        a00 = f[i, 0]
+        a01 = f[i, 1]
+        a02 = f[i, 2]
+        a11 = f[i, 4]
+        a12 = f[i, 5]
+        a22 = f[i, 8]
+        m2 = a00 * a11 - a01 * a01
+        m3 = a00 * (a11 * a22 - a12 * a12) - a01 * (a01 * a22 - a12 * a02) + a02 * (a01 * a12 - a11 * a02)
+        if not (a00 > 0 and m2 > 0 and m3 > 0):
+            return False
+    return True
+
+
+# ----------------------------------------------------------------------------- the whole GICP loop (step test)
+# The default GICP loop (``convergence="step"``) in one kernel: the same sequence as
+# ``registration.loop.run_loop`` with ``GICPNearestInGate`` / ``GICPFactor`` / ``SE3Euler`` and the
+# step and 2-cycle tests, without a return to Python per iteration. Its 6x6 solve, Euler matrix and
+# pose products are compiled (LAPACK through Numba, libm cos/sin, explicit 3x3/4x4 products), so its
+# bits may differ from the Python loop's (NumPy/BLAS) in the last place; the pairs, the fixed-chunk
+# sums and the search are the same kernels.
+
+#: ``gicp_step_loop`` stop codes: budget ran out, step test held, 2-cycle of correspondence sets.
+LOOP_NONE = 0
+LOOP_STEP = 1
+LOOP_CYCLE = 2
+
+
+@njit
+def _solve6(H, g, out):
+    """``H x = -g`` as :func:`minegeo.registration.loop.solve_normal_equations` (eigenvalues of ``H``;
+    ``solve`` when the smallest exceeds 1e-12 of the largest, else the minimum-norm step); ``x`` into
+    ``out``, returns ``singular``."""
+    for a in range(6):
+        for b in range(6):
+            if not np.isfinite(H[a, b]):
+                out[:] = 0.0
+                return True
+    ev, V = np.linalg.eigh(H)
+    if not ev[-1] > 0.0:
+        out[:] = 0.0
+        return True
+    if ev[0] > 1e-12 * ev[-1]:
+        x = np.linalg.solve(H, -g)
+        out[:] = x
+        return False
+    for a in range(6):
+        out[a] = 0.0
+    for j in range(6):
+        if ev[j] > 1e-12 * ev[-1]:
+            s = 0.0
+            for a in range(6):
+                s += V[a, j] * g[a]
+            s = s * (1.0 / (ev[j] if ev[j] > 0 else 1.0))
+            for a in range(6):
+                out[a] -= V[a, j] * s
+    return True
+
+
+@njit
+def _euler6_transform(x, D):
+    """Open3D's ``TransformVector6dToMatrix4d``: ``D = [[R_z(x2) R_y(x1) R_x(x0), x[3:]], [0, 1]]``."""
+    cx = np.cos(x[0])
+    sx = np.sin(x[0])
+    cy = np.cos(x[1])
+    sy = np.sin(x[1])
+    cz = np.cos(x[2])
+    sz = np.sin(x[2])
+    # R_z R_y, then (R_z R_y) R_x
+    a00 = cz * cy
+    a01 = -sz
+    a02 = cz * sy
+    a10 = sz * cy
+    a11 = cz
+    a12 = sz * sy
+    a20 = -sy
+    a21 = 0.0
+    a22 = cy
+    D[0, 0] = a00
+    D[0, 1] = a01 * cx + a02 * sx
+    D[0, 2] = -a01 * sx + a02 * cx
+    D[1, 0] = a10
+    D[1, 1] = a11 * cx + a12 * sx
+    D[1, 2] = -a11 * sx + a12 * cx
+    D[2, 0] = a20
+    D[2, 1] = a21 * cx + a22 * sx
+    D[2, 2] = -a21 * sx + a22 * cx
+    D[0, 3] = x[3]
+    D[1, 3] = x[4]
+    D[2, 3] = x[5]
+    D[3, 0] = 0.0
+    D[3, 1] = 0.0
+    D[3, 2] = 0.0
+    D[3, 3] = 1.0
+
+
+@njit
+def _compose4(D, T):
+    """``D @ T`` (4x4), sums in index order."""
+    out = np.empty((4, 4))
+    for r in range(4):
+        for c in range(4):
+            out[r, c] = D[r, 0] * T[0, c] + D[r, 1] * T[1, c] + D[r, 2] * T[2, c] + D[r, 3] * T[3, c]
+    return out
+
+
+@njit
+def _step_below(D, step_t, step_r):
+    """The step test of ``SE3Euler.step_below``: ``|Δt| < step_t`` and ``angle(ΔR) < step_r``, the
+    angle as ``atan2(|v|/2, (tr ΔR - 1)/2)``."""
+    tn = np.sqrt(D[0, 3] * D[0, 3] + D[1, 3] * D[1, 3] + D[2, 3] * D[2, 3])
+    if not tn < step_t:
+        return False
+    v0 = D[2, 1] - D[1, 2]
+    v1 = D[0, 2] - D[2, 0]
+    v2 = D[1, 0] - D[0, 1]
+    ang = np.arctan2(0.5 * np.sqrt(v0 * v0 + v1 * v1 + v2 * v2), 0.5 * (D[0, 0] + D[1, 1] + D[2, 2] - 1.0))
+    return ang < step_r
+
+
+@njit
+def _match_stats(idx, sq, m):
+    """``(k, total)``: the number of rows with a partner and the sum of their ``sq`` with the
+    chunking of :func:`minegeo.registration._kernels_loop.compact_matches` (the same bits)."""
+    total = 0.0
+    part = 0.0
+    r = 0
+    for i in range(idx.shape[0]):
+        if idx[i] < m:
+            part += sq[i]
+            r += 1
+            if r % CHUNK == 0:
+                total = total + part
+                part = 0.0
+    if r % CHUNK != 0:
+        total = total + part
+    return r, total
+
+
+@njit
+def _loop_search(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, T, parallel,
+                 P_old, r1, r2, moved, nb, rk):
+    """One fused search + sums at the pose ``T`` (:func:`gicp_fused_search` inside a kernel)."""
+    n = P.shape[0]
+    out_idx = np.empty(n, dtype=np.int64)
+    out_sq = np.empty(n)
+    part = np.zeros(((n + GICP_ROWS - 1) // GICP_ROWS, GICP_ACC))
+    R = np.ascontiguousarray(T[:3, :3])
+    if parallel:
+        _gicp_fused_parallel(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
+                             out_idx, out_sq, part, P_old, r1, r2, moved, nb, rk)
+    else:
+        _gicp_fused_serial(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
+                           out_idx, out_sq, part, P_old, r1, r2, moved, nb, rk)
+    H, g, cost = system_from_partials(part)
+    return out_idx, out_sq, H, g, cost
+
+
+@njit
+def _move(P, D, parallel):
+    out = np.empty((P.shape[0], 3))
+    if parallel:
+        _transform_parallel(P, D, out)
+    else:
+        _transform_serial(P, D, out)
+    return out
+
+
+@njit
+def gicp_step_loop(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, Cs, Ct, T0, max_iterations,
+                   step_t, step_r, stop_on_cycle, parallel, parallel_move, hist, nb, rk):
+    """The GICP registration loop with the step test (see the comment above this block).
+
+    ``P`` (n, 3) are the source points moved by ``T0`` (the 4x4 initial ``T_target_source``),
+    ``(idx .. depth)`` the :func:`~minegeo.kernels.kdtree.kd_build` tree of ``Q``, ``d2`` the squared
+    gate, ``Cs``/``Ct`` the covariances in their own frames. Per iteration: the Gauss-Newton step of
+    the current pairs ([Ren2019 Eq. 6], ``H x = -g`` by :func:`_solve6`; the identity without pairs),
+    ``T ← ΔT T``, ``P ← ΔT P``, the fused search + sums at the new pose, then the step test (``|Δt|
+    < step_t`` and ``angle(ΔR) < step_r``) and, with ``stop_on_cycle``, the 2-cycle test (partners
+    equal to those of two searches before and not to the last; the state of lower mean Mahalanobis
+    cost of the two is kept). ``hist`` (max_iterations + 2, 2) receives ``(fitness, rmse)`` per
+    search; ``nb``, ``rk``: the target's neighbour lists of :func:`gicp_fused_search` (empty: none).
+
+    Returns ``(T, P, partners (n,), sq (n,), H, g, cost, iterations, stop code, singular,
+    cycle ΔT, history length)``; ``H, g, cost`` are the sums of the returned pairs at ``T``.
+    """
+    n = P.shape[0]
+    m = Q.shape[0]
+    T = T0.copy()
+    P_old = np.empty((0, 3))
+    r1 = np.empty(n)
+    r2 = np.empty(n)
+    moved = np.zeros(n)
+    warm = np.full(n, m, dtype=np.int64)
+    cur_i, cur_sq, H, g, cost = _loop_search(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm,
+                                            Cs, Ct, T, parallel, P_old, r1, r2, moved, nb, rk)
+    k, total = _match_stats(cur_i, cur_sq, m)
+    nh = 0
+    hist[nh, 0] = k / n if k > 0 else 0.0
+    hist[nh, 1] = np.sqrt(total / k) if k > 0 else 0.0
+    nh += 1
+    prev_i = cur_i
+    prev2_i = cur_i
+    have_prev = False
+    prev_sq = cur_sq
+    prev_H = H
+    prev_g = g
+    prev_cost = cost
+    prev_k = k
+    iterations = 0
+    reason = LOOP_NONE
+    singular = False
+    cycle_delta = np.eye(4)
+    D = np.eye(4)
+    x = np.zeros(6)
+    for _it in range(max_iterations):
+        if k == 0:
+            D = np.eye(4)
+        else:
+            singular |= _solve6(H, g, x)
+            D = np.empty((4, 4))
+            _euler6_transform(x, D)
+        T_before = T
+        P_before = P
+        T = _compose4(D, T)
+        P_old = P
+        P = _move(P, D, parallel_move)
+        iterations += 1
+        have_prev2 = have_prev
+        prev2_i = prev_i
+        prev_i, prev_sq, prev_H, prev_g, prev_cost, prev_k = cur_i, cur_sq, H, g, cost, k
+        have_prev = True
+        cur_i, cur_sq, H, g, cost = _loop_search(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2,
+                                                prev_i, Cs, Ct, T, parallel, P_old, r1, r2, moved, nb, rk)
+        k, total = _match_stats(cur_i, cur_sq, m)
+        hist[nh, 0] = k / n if k > 0 else 0.0
+        hist[nh, 1] = np.sqrt(total / k) if k > 0 else 0.0
+        nh += 1
+        if _step_below(D, step_t, step_r):
+            reason = LOOP_STEP
+            break
+        if stop_on_cycle and have_prev2 and np.array_equal(cur_i, prev2_i) and not np.array_equal(cur_i, prev_i):
+            reason = LOOP_CYCLE
+            cycle_delta = D
+            mean_prev = prev_cost / prev_k if prev_k > 0 else np.inf
+            mean_cur = cost / k if k > 0 else np.inf
+            if mean_prev < mean_cur:
+                T = T_before
+                P = P_before
+                cur_i, cur_sq, H, g, cost, k = prev_i, prev_sq, prev_H, prev_g, prev_cost, prev_k
+                hist[nh, 0] = hist[nh - 2, 0]
+                hist[nh, 1] = hist[nh - 2, 1]
+                nh += 1
+            break
+    return T, P, cur_i, cur_sq, H, g, cost, iterations, reason, singular, cycle_delta, nh

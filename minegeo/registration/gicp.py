@@ -51,11 +51,15 @@ from minegeo.geometry.normals import STATUS_OK
 from minegeo.kernels.kdtree import KD_LEAF, GatedKDTree, kd_build
 from minegeo.registration import _kernels as K
 from minegeo.registration import _kernels_gicp as KG
+from minegeo.registration._kernels_loop import compact_matches
 from minegeo.registration.evaluation import is_identity
 from minegeo.registration.icp import ICPResult, constraint_analysis, final_diagnosis
 from minegeo.registration.loop import (
     GICPFactor,
     GICPNearestInGate,
+    GICPSystem,
+    LoopOutcome,
+    Matches,
     Termination,
     rotation_angle,
     run_loop,
@@ -101,6 +105,23 @@ IDLE_PARALLEL_ROWS = 2048
 #: each are estimated concurrently in two threads (the kernels release the GIL; one task per cloud,
 #: no barrier per iteration). The bits are those of the sequential estimate.
 CONCURRENT_MIN_POINTS = 1024
+#: True: that concurrent estimate is one ``prange`` region over both clouds' tasks
+#: (:func:`~minegeo.registration._kernels_gicp.knn_normals_pair_tasks`) instead of one Python
+#: thread per cloud, which competes with the OpenMP threads of the last ``prange`` region while they
+#: spin after it (measured on the small_gicp pair, 2 threads: covariances 12.6-14.4 ms with the
+#: Python thread, 8.5 ms with it and ``OMP_WAIT_POLICY=passive``, 9.4 ms in one region). Same bits.
+PAIR_IN_ONE_REGION = True
+#: The default loop (``convergence="step"``) runs as one kernel
+#: (:func:`~minegeo.registration._kernels_gicp.gicp_step_loop`) instead of
+#: :func:`~minegeo.registration.loop.run_loop` with a return to Python per iteration (measured on the
+#: small_gicp pair: 0.4-0.8 ms less per registration of 7-10 iterations). False runs the Python loop
+#: (the reference the kernel is tested against); ``convergence="open3d"`` always runs it.
+USE_LOOP_KERNEL = True
+#: When the target's covariances are estimated in the call, its kNN lists are kept and a source
+#: point whose previous partner ``j`` is nearer than half the distance of ``j``'s last neighbour
+#: takes its new partner from that list instead of the tree (the same answer, bit for bit:
+#: :func:`~minegeo.registration._kernels_gicp._list_nearest`). False searches the tree only.
+USE_NEIGHBOUR_LISTS = True
 
 
 def _is_number(v) -> bool:
@@ -280,21 +301,40 @@ def _parallel_rows(busy_rows: int) -> int:
     return min(busy_rows, IDLE_PARALLEL_ROWS) if load <= (os.cpu_count() or 1) else busy_rows
 
 
-def _knn_normals(points: np.ndarray, tree, k: int, mode_open3d: bool, parallel: bool = True):
+def _knn_normals(points: np.ndarray, tree, k: int, mode_open3d: bool, parallel: bool = True, lists=None):
     """``(normals, status, eigenvalues)`` of :func:`~minegeo.registration._kernels_gicp.knn_normals_kernel`,
     with the points cut into ``prange`` tasks from :func:`_parallel_rows` points when ``parallel``
-    (the same bits)."""
+    (the same bits). ``lists`` = ``(nb (m, k), rk (m,))`` also receives the neighbour lists."""
     m = points.shape[0]
     out_n = np.empty((m, 3))
     out_eval = np.empty((m, 3))
     out_status = np.empty(m, dtype=np.int8)
-    args = (points, *tree, min(int(k), m), bool(mode_open3d), float(KG.DEGENERATE_RATIO), out_n, out_eval,
+    kk = min(int(k), m)
+    args = (points, *tree, kk, bool(mode_open3d), float(KG.DEGENERATE_RATIO), out_n, out_eval,
             out_status)
+    if lists is None:
+        lists = (np.empty((0, kk), np.int64), np.empty(0))
     if parallel and m >= _parallel_rows(PARALLEL_MIN_ROWS):
-        KG.knn_normals_tasks(*args)
+        KG.knn_normals_tasks(*args, *lists)
     else:
-        KG._knn_normals_serial(*args)
+        KG.knn_normals_lists_serial(*args, *lists)
     return out_n, out_status, out_eval
+
+
+def _covariances_of_pair(P0: np.ndarray, Q: np.ndarray, tree_q, params: GICPParams, lists):
+    """``(Cs, Ct, Nt)`` of :func:`_covariances_and_normals` for both clouds, their kNN PCA in one
+    ``prange`` region (:func:`~minegeo.registration._kernels_gicp.knn_normals_pair_tasks`; the same
+    bits); ``lists`` receives the target's kNN lists."""
+    o3d = params.covariance_mode == "open3d"
+    k = int(params.covariance_neighbours)
+    tree_p = kd_build(P0, KD_LEAF)
+    n, m = P0.shape[0], Q.shape[0]
+    out = [(np.empty((c, 3)), np.empty((c, 3)), np.empty(c, dtype=np.int8)) for c in (n, m)]
+    KG.knn_normals_pair_tasks(P0, *tree_p, min(k, n), Q, *tree_q, min(k, m), o3d, float(KG.DEGENERATE_RATIO),
+                              *out[0], np.empty((0, min(k, n)), np.int64), np.empty(0), *out[1], *lists)
+    Cs, Ct = (_plane_covariances(N, np.zeros(N.shape[0], dtype=np.bool_) if o3d else st != STATUS_OK, params)
+              for N, _, st in out)
+    return Cs, Ct, out[1][0]
 
 
 def _plane_covariances(normals: np.ndarray, isotropic: np.ndarray, params: GICPParams) -> np.ndarray:
@@ -305,8 +345,9 @@ def _plane_covariances(normals: np.ndarray, isotropic: np.ndarray, params: GICPP
 
 
 def _covariances_and_normals(points: np.ndarray, params: GICPParams, normals=None, name: str = "points",
-                             tree=None, parallel: bool = True):
-    """``(C (n,3,3), N (n,3), source)`` for validated ``points``; see :func:`estimate_gicp_covariances`."""
+                             tree=None, parallel: bool = True, lists=None):
+    """``(C (n,3,3), N (n,3), source)`` for validated ``points``; see :func:`estimate_gicp_covariances`.
+    ``lists`` (see :func:`_knn_normals`) receives the kNN lists when the PCA runs."""
     n = points.shape[0]
     o3d = params.covariance_mode == "open3d"
     if normals is not None:
@@ -316,7 +357,7 @@ def _covariances_and_normals(points: np.ndarray, params: GICPParams, normals=Non
         iso = np.zeros(n, dtype=np.bool_) if o3d else ~(np.linalg.norm(N, axis=1) > 0)
         return _plane_covariances(N, iso, params), N, "normals"
     tree = kd_build(points, KD_LEAF) if tree is None else tree
-    N, status, _ = _knn_normals(points, tree, int(params.covariance_neighbours), o3d, parallel)
+    N, status, _ = _knn_normals(points, tree, int(params.covariance_neighbours), o3d, parallel, lists)
     iso = np.zeros(n, dtype=np.bool_) if o3d else status != STATUS_OK
     return _plane_covariances(N, iso, params), N, "estimated"
 
@@ -407,6 +448,8 @@ def _as_covariances(C, n: int, name: str) -> np.ndarray:
     if a.shape != (n, 3, 3):
         raise InputError(f"{name} must have shape ({n}, 3, 3) (one 3x3 matrix per point), got {a.shape}")
     f = a.reshape(n, 9)
+    if KG.covariances_valid(np.ascontiguousarray(f), SYMMETRY_RTOL):  # the checks below in one pass
+        return np.ascontiguousarray(a)
     if not np.isfinite(f).all():
         bad = np.flatnonzero(~np.isfinite(f).all(axis=1))
         raise InputError(f"{name} has {bad.size} matrix(es) with NaN or inf (first at row {int(bad[0])})")
@@ -496,8 +539,10 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
     The exact KD-tree search starts its bound at the distance to the previous partner, which
     prunes most of the tree without changing the answer; a point whose partner provably stays
     its nearest (the next point was farther than the partner by more than twice the distance the
-    point has moved since) skips the tree altogether, and the normal equations below are summed
-    in the same pass (:class:`minegeo.registration.loop.GICPNearestInGate`).
+    point has moved since) skips the tree altogether, a point within half the neighbour radius of
+    its previous partner takes the answer from that partner's kNN list when the target's
+    covariances were estimated here (exact by the triangle inequality), and the normal equations
+    below are summed in the same pass (:class:`minegeo.registration.loop.GICPNearestInGate`).
 
     *Step* ([Ren2019 Eq. 6] linearised about the current pose): with ``p_i = T b_i``,
     ``d_i = p_i - m_i``, ``M_i = C_i^M + R C_i^B Rᵀ`` ([Ren2019 Eq. 5]) and the left perturbation
@@ -515,14 +560,13 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
     """
     t_start = time.perf_counter()
     timer = StageTimer()
-    P0, Q, T, tree, Cs, Ct, Nt, src_from, tgt_from = _gicp_inputs(
+    P0, Q, T, tree, Cs, Ct, Nt, src_from, tgt_from, lists = _gicp_inputs(
         source_points, target_points, T_init, params, source_covariances, target_covariances, source_normals,
         target_normals, target_index, check_target, timer)
     d = float(params.max_correspondence_distance_m)
     factor = GICPFactor(Q, Cs, Ct, T)
-    search = GICPNearestInGate(Q, d, tree, factor, parallel_rows=_parallel_rows(PARALLEL_SEARCH_ROWS))
     P = P0 if is_identity(T) else K.transform_points_kernel(P0, T)
-    out = run_loop(P, T, search, factor, _termination(params), params.max_iterations, timer)
+    out = _gicp_loop(P, T, tree, factor, d, params, timer, lists if USE_NEIGHBOUR_LISTS else None)
     cyc_m = cyc_rad = 0.0
     if out.reason == "cycle":
         cyc_m = float(np.linalg.norm(out.cycle_delta[:3, 3]))
@@ -552,6 +596,45 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
     )
 
 
+def _gicp_loop(P: np.ndarray, T: np.ndarray, tree, factor: GICPFactor, d: float, params: GICPParams, timer,
+               lists) -> LoopOutcome:
+    """The registration loop: the one-kernel loop for ``convergence="step"`` (unless
+    :data:`USE_LOOP_KERNEL` is False), :func:`~minegeo.registration.loop.run_loop` otherwise."""
+    if params.convergence == "step" and USE_LOOP_KERNEL:
+        return _step_loop(P, T, tree, factor, d, params, timer, lists)
+    search = GICPNearestInGate(factor.Q, d, tree, factor, parallel_rows=_parallel_rows(PARALLEL_SEARCH_ROWS),
+                               lists=lists)
+    return run_loop(P, T, search, factor, _termination(params), params.max_iterations, timer)
+
+
+def _step_loop(P: np.ndarray, T: np.ndarray, tree, factor: GICPFactor, d: float, params: GICPParams,
+               timer, lists=None) -> LoopOutcome:
+    """:func:`~minegeo.registration.loop.run_loop` with :class:`GICPNearestInGate`, the step test and
+    the 2-cycle test, as one kernel (:func:`~minegeo.registration._kernels_gicp.gicp_step_loop`; no
+    return to Python per iteration). Its ``timings_s["search"]`` is the whole kernel (searches and
+    steps), ``"estimate"`` the assembly of the outcome."""
+    n, m = P.shape[0], factor.Q.shape[0]
+    hist = np.empty((int(params.max_iterations) + 2, 2))
+    with timer("search"):
+        T_out, P_out, idx, sq, H, g, cost, iters, code, singular, cyc, nh = KG.gicp_step_loop(
+            P, factor.Q, *tree, d * d, factor.Cs, factor.Ct, np.ascontiguousarray(T), int(params.max_iterations),
+            float(params.step_translation_m), float(params.step_rotation_rad), bool(params.stop_on_cycle),
+            n >= _parallel_rows(PARALLEL_SEARCH_ROWS), n >= K.PARALLEL_MIN_ROWS, hist,
+            *(KG.NO_LISTS if lists is None else lists))
+    with timer("estimate"):
+        corr, total = compact_matches(idx, sq, m)
+        k = corr.shape[0]
+        system = GICPSystem(np.ascontiguousarray(T_out[:3, :3]), H, g, float(cost))
+        matches = Matches(float(k / n), float(np.sqrt(total / k)), corr, idx, system) if k else Matches(
+            0.0, 0.0, corr, idx, system)
+        out = LoopOutcome(T_out, P_out, matches, [(float(a), float(b)) for a, b in hist[:nh]], iterations=int(iters),
+                          reason={KG.LOOP_STEP: "step", KG.LOOP_CYCLE: "cycle"}.get(int(code), ""),
+                          singular_step=bool(singular))
+        if code == KG.LOOP_CYCLE:
+            out.cycle_delta = cyc
+    return out
+
+
 def _termination(params: GICPParams) -> Termination:
     """Open3D's fitness/RMSE test (``convergence="open3d"``) or the step test, and the 2-cycle test."""
     o3d = params.convergence == "open3d"
@@ -579,7 +662,8 @@ def _gicp_information(factor: GICPFactor, out, Nt, params: GICPParams):
 def _gicp_inputs(source_points, target_points, T_init, params, source_covariances, target_covariances,
                  source_normals, target_normals, target_index, check_target: bool, timer):
     """Validated inputs of :func:`register_gicp`: ``(P0, Q, T_init copy, KD-tree of Q, Cs, Ct,
-    target normals or None, source_covariances_from, target_covariances_from)``."""
+    target normals or None, source_covariances_from, target_covariances_from, the target's kNN
+    lists (nb, rk) or None)``."""
     if not isinstance(params, GICPParams):
         raise InputError(f"params must be a GICPParams, got {type(params).__name__}")
     P0 = as_points(source_points, "source_points", min_points=MIN_POINTS)
@@ -605,11 +689,17 @@ def _gicp_inputs(source_points, target_points, T_init, params, source_covariance
     with timer("covariances"):
         Nt = None
         pending = None
+        lists = None  # the target's kNN lists, when its covariances are estimated here
         if source_covariances is not None:
             Cs = _as_covariances(source_covariances, P0.shape[0], "source_covariances")
             src_from = "given"
         elif (target_covariances is None and source_normals is None and target_normals is None
               and min(P0.shape[0], Q.shape[0]) >= CONCURRENT_MIN_POINTS and numba.get_num_threads() > 1):
+            if PAIR_IN_ONE_REGION:  # both clouds' kNN PCA in one prange region
+                kk = min(int(params.covariance_neighbours), Q.shape[0])
+                lists = (np.empty((Q.shape[0], kk), np.int64), np.empty(Q.shape[0]))
+                Cs, Ct, Nt = _covariances_of_pair(P0, Q, tree, params, lists)
+                return P0, Q, T, tree, Cs, Ct, Nt, "estimated", "estimated", lists
             pending = _executor().submit(_covariances_and_normals, P0, params, None, "source", None, False)
         else:
             Cs, _, src_from = _covariances_and_normals(P0, params, source_normals, "source")
@@ -624,12 +714,16 @@ def _gicp_inputs(source_points, target_points, T_init, params, source_covariance
             Ct = _as_covariances(target_covariances, Q.shape[0], "target_covariances")
             tgt_from = "given"
         else:
-            # concurrently with the source's (one serial task per cloud) or alone (prange)
+            # concurrently with the source's (one serial task per cloud) or alone (prange); the kNN
+            # lists are kept for the correspondence search (gicp_fused_search's shortcut)
+            if target_normals is None:
+                kk = min(int(params.covariance_neighbours), Q.shape[0])
+                lists = (np.empty((Q.shape[0], kk), np.int64), np.empty(Q.shape[0]))
             Ct, Nt, tgt_from = _covariances_and_normals(Q, params, target_normals, "target", tree=tree,
-                                                        parallel=pending is None)
+                                                        parallel=pending is None, lists=lists)
         if pending is not None:
             Cs, _, src_from = pending.result()
-    return P0, Q, T, tree, Cs, Ct, Nt, src_from, tgt_from
+    return P0, Q, T, tree, Cs, Ct, Nt, src_from, tgt_from, lists
 
 
 _EXECUTOR = []
@@ -644,7 +738,9 @@ def _executor() -> ThreadPoolExecutor:
 
 def _warmup() -> None:
     """Compile the GICP kernels of issue 17 (fused search + sums and pair sums of
-    :mod:`minegeo.registration._kernels_gicp`, serial and ``prange``; :func:`~minegeo.registration._kernels_gicp.knn_normals_tasks`) on tiny
+    :mod:`minegeo.registration._kernels_gicp`, serial and ``prange``, with and without neighbour
+    lists; the loop kernel :func:`~minegeo.registration._kernels_gicp.gicp_step_loop`;
+    :func:`~minegeo.registration._kernels_gicp.knn_normals_tasks`, ``knn_normals_pair_tasks``) on tiny
     inputs (called by ``minegeo.registration._warmup``)."""
     from minegeo.registration import _kernels_gicp as L
 
@@ -661,7 +757,21 @@ def _warmup() -> None:
     si = np.arange(4, dtype=np.int64)
     L.gicp_pairs_system(P, Q, C[:4], C, R, si, si)
     L._gicp_pairs_parallel(P, Q, C[:4], C, R, si, si, np.zeros((1, L.GICP_ACC)))
+    hist = np.empty((4, 2))
+    for parallel in (False, True):  # the loop kernel (one compilation; both drivers inside)
+        KG.gicp_step_loop(P, Q, *tree, 1.0, C[:4], C, np.eye(4), 2, 1e-5, 1e-6, True, parallel, parallel, hist,
+                          *KG.NO_LISTS)
+        lists = (np.empty((Q.shape[0], 3), np.int64), np.empty(Q.shape[0]))
+        _knn_normals(Q, tree, 3, False, parallel, lists)
+        KG.gicp_step_loop(P, Q, *tree, 1.0, C[:4], C, np.eye(4), 2, 1e-5, 1e-6, True, parallel, parallel, hist,
+                          *lists)
     m = Q.shape[0]
     for mode in (False, True):
+        KG.knn_normals_pair_tasks(P, *kd_build(P, 2), 3, Q, *tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((4, 3)),
+                                  np.empty((4, 3)), np.empty(4, dtype=np.int8), np.empty((0, 3), np.int64), np.empty(0),
+                                  np.empty((m, 3)), np.empty((m, 3)), np.empty(m, dtype=np.int8),
+                                  np.empty((m, 3), np.int64), np.empty(m))
         KG.knn_normals_tasks(Q, *tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((m, 3)), np.empty((m, 3)),
-                           np.empty(m, dtype=np.int8))
+                             np.empty(m, dtype=np.int8), np.empty((0, 3), np.int64), np.empty(0))
+        KG.knn_normals_lists_serial(Q, *tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((m, 3)), np.empty((m, 3)),
+                                    np.empty(m, dtype=np.int8), np.empty((0, 3), np.int64), np.empty(0))

@@ -348,9 +348,10 @@ class GICPNearestInGate(NearestInGate):
     """
 
     def __init__(self, Q: np.ndarray, d: float, tree, factor: GICPFactor,
-                 parallel_rows: int = PARALLEL_QUERY_ROWS):
+                 parallel_rows: int = PARALLEL_QUERY_ROWS, lists=None):
         super().__init__(Q, d, tree=tree, parallel_rows=parallel_rows)
         self.factor = factor
+        self.lists = lists  # the target's kNN lists (nb, rk): gicp_fused_search's shortcut
         self._last = None  # (matches, points, r1, r2, moved) of the previous call
 
     def __call__(self, P: np.ndarray, prev: Matches | None) -> Matches:
@@ -364,7 +365,7 @@ class GICPNearestInGate(NearestInGate):
         f = self.factor
         R = f.next_R
         idx, sq, H, g, cost = gicp_fused_search(P, self.Q, self.tree, self.d * self.d, warm, f.Cs, f.Ct, R,
-                                                n >= self.parallel_rows, state)
+                                                n >= self.parallel_rows, state, self.lists)
         corr, total = compact_matches(idx, sq, m)
         k = corr.shape[0]
         system = GICPSystem(R, H, g, cost)

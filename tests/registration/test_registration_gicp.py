@@ -740,3 +740,236 @@ def test_gicp_prange_and_concurrent_covariances_are_thread_independent(monkeypat
         assert np.array_equal(a.correspondences, out[0].correspondences)
         assert (a.iterations, a.mahalanobis_cost, a.history) == (out[0].iterations, out[0].mahalanobis_cost,
                                                                 out[0].history)
+
+
+# ---------------------------------------------------------------- the loop kernel vs the Python loop
+
+
+def _python_loop(monkeypatch, *args, **kw):
+    """``register_gicp`` through :func:`minegeo.registration.loop.run_loop` (the reference loop)."""
+    import minegeo.registration.gicp as G
+
+    with monkeypatch.context() as mp:
+        mp.setattr(G, "USE_LOOP_KERNEL", False)
+        return register_gicp(*args, **kw)
+
+
+def _same_run(a, b, tol_pose=1e-12, rel_info=1e-9):
+    """Same path (iterations, stop, pairs) and the same answer up to the last bits of the compiled
+    solve / Euler matrix / products."""
+    assert (a.iterations, a.convergence_reason, a.converged, a.status, a.degenerate) == (
+        b.iterations, b.convergence_reason, b.converged, b.status, b.degenerate)
+    assert np.array_equal(a.correspondences, b.correspondences)
+    assert np.abs(a.T_target_source - b.T_target_source).max() <= tol_pose
+    scale = np.abs(b.information_6x6).max()
+    assert np.abs(a.information_6x6 - b.information_6x6).max() <= rel_info * scale
+    assert a.mahalanobis_cost == pytest.approx(b.mahalanobis_cost, rel=rel_info)
+    assert len(a.history) == len(b.history)
+    np.testing.assert_allclose(np.array(a.history), np.array(b.history), rtol=1e-9, atol=1e-12)
+    assert a.cycle_amplitude_m == pytest.approx(b.cycle_amplitude_m, rel=1e-6, abs=1e-12)
+    assert a.fitness == b.fitness
+
+
+def test_loop_kernel_equals_python_loop_on_the_real_pair(monkeypatch):
+    """The one-kernel default loop (``gicp_step_loop``) takes the steps of ``run_loop``: on the
+    small_gicp pair from the upstream starts (one ends on a 2-cycle), swapped, and with a loose and
+    a zero step test and a 2-iteration budget."""
+    src, tgt, T_gt = _pair()
+    Cs, Ct = estimate_gicp_covariances(src), estimate_gicp_covariances(tgt)
+    reasons = set()
+    for T0 in [T_gt] + _perturbed_starts(T_gt, 4, seed=2024):
+        for prm in (GICPParams(GATE_M), GICPParams(GATE_M, step_translation_m=1e-3, step_rotation_rad=1.7e-3),
+                    GICPParams(GATE_M, max_iterations=2), GICPParams(GATE_M, step_translation_m=0.0,
+                                                                      max_iterations=12)):
+            a = register_gicp(src, tgt, T0, prm, source_covariances=Cs, target_covariances=Ct)
+            b = _python_loop(monkeypatch, src, tgt, T0, prm, source_covariances=Cs, target_covariances=Ct)
+            _same_run(a, b)
+            reasons.add(a.convergence_reason)
+    assert reasons == {"step", "cycle", ""}
+    T0 = _perturbed_starts(invert(T_gt), 1, seed=7)[0]
+    _same_run(register_gicp(tgt, src, T0, GICPParams(GATE_M)), _python_loop(monkeypatch, tgt, src, T0,
+                                                                             GICPParams(GATE_M)))
+
+
+@SETTINGS
+@given(seed=st.integers(0, 10_000), mode=st.sampled_from(["minegeo", "open3d"]),
+       cycle=st.booleans(), iters=st.integers(0, 30))
+def test_loop_kernel_equals_python_loop_hypothesis(seed, mode, cycle, iters):
+    P, Q, _ = _scene(seed, n_src=150, n_tgt=400)
+    T0 = random_transform(np.random.default_rng(seed), 0.08, 0.1)
+    prm = GICPParams(0.3, covariance_mode=mode, stop_on_cycle=cycle, max_iterations=iters)
+    with pytest.MonkeyPatch.context() as mp:
+        a = register_gicp(P, Q, T0, prm)
+        _same_run(a, _python_loop(mp, P, Q, T0, prm))
+
+
+def test_loop_kernel_without_pairs_and_degenerate_plane(monkeypatch):
+    P, Q, _ = _scene(2)
+    for args in ((P + 100.0, Q, np.eye(4), GICPParams(0.3)), (P, Q, np.eye(4), GICPParams(0.3, max_iterations=0))):
+        _same_run(register_gicp(*args), _python_loop(monkeypatch, *args))
+    rng = np.random.default_rng(4)
+    Qp = np.c_[rng.uniform(-2, 2, (600, 2)), np.zeros(600)]
+    args = (Qp[:300] + [0.05, 0.02, 0.01], Qp, np.eye(4), GICPParams(0.3))
+    a = register_gicp(*args)
+    assert a.degenerate
+    _same_run(a, _python_loop(monkeypatch, *args), tol_pose=1e-9)
+
+
+def _naive_covariances_valid_rows(f, rtol=1e-9):
+    """Per row: finite, symmetric to rtol x its largest entry, Sylvester's minors > 0 (NumPy)."""
+    fin = np.isfinite(f).all(axis=1)
+    g = np.where(np.isfinite(f), f, 0.0)
+    scale = np.abs(g).max(axis=1)
+    asym = np.maximum(np.maximum(np.abs(g[:, 1] - g[:, 3]), np.abs(g[:, 2] - g[:, 6])), np.abs(g[:, 5] - g[:, 7]))
+    sym = ~(asym > rtol * np.maximum(scale, 1e-300))
+    a00, a01, a02, a11, a12, a22 = g[:, 0], g[:, 1], g[:, 2], g[:, 4], g[:, 5], g[:, 8]
+    m2 = a00 * a11 - a01 * a01
+    m3 = a00 * (a11 * a22 - a12 * a12) - a01 * (a01 * a22 - a12 * a02) + a02 * (a01 * a12 - a11 * a02)
+    return fin & sym & (a00 > 0) & (m2 > 0) & (m3 > 0)
+
+
+@SETTINGS
+@given(seed=st.integers(0, 10_000))
+def test_covariance_check_kernel_equals_numpy_checks(seed):
+    """``covariances_valid`` (the one-pass check of given covariances) decides every row as the
+    NumPy checks of ``_as_covariances`` do, and an invalid row still gets the NumPy error."""
+    rng = np.random.default_rng(seed)
+    n = 60
+    A = rng.normal(size=(n, 3, 3))
+    C = A @ A.transpose(0, 2, 1) + 1e-3 * np.eye(3)
+    C[:, 0, 0] += rng.choice([0.0, -50.0], size=n, p=[0.8, 0.2])  # some not positive definite
+    C[:, 2, 2] -= rng.choice([0.0, 50.0], size=n, p=[0.8, 0.2])  # a00, a00 a11 - a01² > 0 but det < 0
+    C[:, 1, 2] += rng.choice([0.0, 1e-12, 5e-10, 3e-9, 1e-6], size=n) * np.abs(C).max(axis=(1, 2))  # around rtol
+    C[:, 2, 2] = np.where(rng.random(n) < 0.05, np.nan, C[:, 2, 2])
+    C[:, 0, 1] = np.where(rng.random(n) < 0.05, np.inf, C[:, 0, 1])
+    C[:, 1, 1] = np.where(rng.random(n) < 0.05, 0.0, C[:, 1, 1])  # singular / zero minors
+    f = np.ascontiguousarray(C.reshape(n, 9))
+    ref = _naive_covariances_valid_rows(f)
+    got = np.array([KG.covariances_valid(f[i:i + 1], 1e-9) for i in range(n)])
+    assert np.array_equal(got, ref)
+    assert KG.covariances_valid(f, 1e-9) == bool(ref.all())
+    good = np.ascontiguousarray(C[ref])
+    if good.shape[0]:
+        assert KG.covariances_valid(np.ascontiguousarray(good.reshape(-1, 9)), 1e-9)
+    if not ref.all():
+        from minegeo.registration.gicp import _as_covariances
+
+        with pytest.raises(InputError):
+            _as_covariances(C, n, "source_covariances")
+
+
+# ---------------------------------------------------------------- neighbour-list shortcut of the fused search
+
+
+def _lists(Q, tree, k):
+    """The target's kNN lists as register_gicp keeps them (through the covariance kernel)."""
+    import minegeo.registration.gicp as G
+
+    kk = min(k, Q.shape[0])
+    lists = (np.empty((Q.shape[0], kk), np.int64), np.empty(Q.shape[0]))
+    G._knn_normals(Q, tree, k, False, True, lists)
+    return lists
+
+
+def _lattice_target(seed):
+    """A tie-heavy target: a 0.1 m lattice with coincident duplicates, and its tree."""
+    from minegeo.kernels.kdtree import KD_LEAF, kd_build
+
+    rng = np.random.default_rng(seed)
+    Q = np.round(rng.uniform(-1, 1, size=(500, 3)), 1)
+    Q = np.ascontiguousarray(np.vstack([Q, Q[:30]]))
+    return Q, kd_build(Q, KD_LEAF)
+
+
+def test_neighbour_lists_equal_knn():
+    """The lists kept by the covariance kernel are the exact kNN (``kd_knn``) and ``rk`` the
+    distance of the last neighbour (inf when the whole cloud is listed)."""
+    from minegeo.kernels.kdtree import kd_knn
+
+    for Q, tree in (_fused_inputs()[1::4], _lattice_target(1)):
+        for k in (5, 20):
+            nb, rk = _lists(Q, tree, k)
+            i_ref, s_ref = kd_knn(Q, tree, k)
+            assert np.array_equal(nb, i_ref) and np.array_equal(rk, np.sqrt(s_ref[:, -1]))
+    from minegeo.kernels.kdtree import kd_build
+
+    Q7 = np.ascontiguousarray(_lattice_target(2)[0][:7])
+    nb, rk = _lists(Q7, kd_build(Q7, 2), 20)
+    assert nb.shape == (7, 7) and np.isinf(rk).all()
+
+
+@pytest.mark.parametrize("k", [4, 20])
+@pytest.mark.parametrize("case", ["pair", "lattice"])
+@pytest.mark.parametrize("step_m", [0.0, 0.02, 0.3, 1.0])
+def test_fused_search_lists_equal_tree_search(case, step_m, k):
+    """With the target's neighbour lists the fused search answers as the tree does, bit for bit
+    (partners, distances, H, g, cost), over iterations of small to large moves, with the skip
+    state, both drivers, and gates that leave rows without a partner."""
+    from minegeo.registration._kernels_gicp import gicp_fused_search
+
+    if case == "pair":
+        P0, Q, T, Cs, Ct, tree = _fused_inputs(seed=2, n=2000)
+        gates = (1.0, 0.2)
+    else:
+        Q, tree = _lattice_target(3)
+        rng0 = np.random.default_rng(4)
+        P0 = np.ascontiguousarray(np.round(rng0.uniform(-1.1, 1.1, size=(600, 3)), 1) + rng0.choice(
+            [0.0, 0.05], size=(600, 3)))
+        T = np.eye(4)
+        Cs = np.tile(np.eye(3), (P0.shape[0], 1, 1))
+        Ct = np.tile(np.eye(3), (Q.shape[0], 1, 1))
+        gates = (0.3, 0.12)
+    lists = _lists(Q, tree, k)
+    m, n = Q.shape[0], P0.shape[0]
+    for gate in gates:
+        rng = np.random.default_rng(5)
+        st_fast = (np.empty((0, 3)), np.empty(n), np.empty(n), np.zeros(n))
+        warm = np.full(n, m, dtype=np.int64)
+        Tk = T.copy()
+        for it in range(5):
+            D = random_transform(rng, step_m / 5.0, step_m) if (step_m and it) else np.eye(4)
+            Tk = D @ Tk
+            P = np.ascontiguousarray(transform_points(Tk, P0))
+            R = np.ascontiguousarray(Tk[:3, :3])
+            fast = gicp_fused_search(P, Q, tree, gate * gate, warm, Cs, Ct, R, it % 2 == 1, st_fast, lists)
+            full = gicp_fused_search(P, Q, tree, gate * gate, warm, Cs, Ct, R, False)
+            for a, b in zip(fast, full, strict=True):
+                assert np.array_equal(a, b)
+            st_fast = (P, *st_fast[1:])
+            warm = fast[0]
+
+
+def test_pair_region_covariances_equal_one_cloud_at_a_time(monkeypatch):
+    """Both clouds' kNN PCA in one prange region (``knn_normals_pair_tasks``) = each cloud alone,
+    bit for bit (normals, eigenvalues, status, the target's lists), and register_gicp gives the
+    same bits with it or with one Python thread per cloud, on 1 or 2 threads."""
+    import minegeo.registration.gicp as G
+    from minegeo.kernels.kdtree import KD_LEAF, kd_build
+
+    src, tgt, T_gt = _pair()
+    src = np.ascontiguousarray(src[:3001])  # tasks of unequal counts
+    for mode in (False, True):
+        tp, tq = kd_build(src, KD_LEAF), kd_build(tgt, KD_LEAF)
+        ref_p = G._knn_normals(src, tp, 20, mode, False)
+        lists_ref = (np.empty((tgt.shape[0], 20), np.int64), np.empty(tgt.shape[0]))
+        ref_q = G._knn_normals(tgt, tq, 20, mode, False, lists_ref)
+        outs = [(np.empty((c, 3)), np.empty((c, 3)), np.empty(c, dtype=np.int8)) for c in (src.shape[0], tgt.shape[0])]
+        lists = (np.empty((tgt.shape[0], 20), np.int64), np.empty(tgt.shape[0]))
+        KG.knn_normals_pair_tasks(src, *tp, 20, tgt, *tq, 20, mode, KG.DEGENERATE_RATIO, *outs[0],
+                                  np.empty((0, 20), np.int64), np.empty(0), *outs[1], *lists)
+        for (n, e, s), (rn, rs, re) in zip(outs, (ref_p, ref_q), strict=True):
+            assert np.array_equal(n, rn) and np.array_equal(s, rs) and np.array_equal(e, re, equal_nan=True)
+        assert np.array_equal(lists[0], lists_ref[0]) and np.array_equal(lists[1], lists_ref[1])
+    T0 = _perturbed_starts(T_gt, 1, seed=5)[0]
+    old = numba.get_num_threads()
+    out = []
+    try:
+        for nt, pair in ((1, True), (min(2, numba.config.NUMBA_NUM_THREADS), True), (2, False)):
+            numba.set_num_threads(min(nt, numba.config.NUMBA_NUM_THREADS))
+            monkeypatch.setattr(G, "PAIR_IN_ONE_REGION", pair)
+            out.append(register_gicp(src, tgt, T0, GICPParams(GATE_M)))
+    finally:
+        numba.set_num_threads(old)
+    for a in out[1:]:
+        assert np.array_equal(a.T_target_source, out[0].T_target_source)
+        assert np.array_equal(a.information_6x6, out[0].information_6x6) and a.history == out[0].history
