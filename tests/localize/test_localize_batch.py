@@ -328,7 +328,8 @@ def test_worker_killed_mid_batch_then_rerun_completes(world, cluster, tmp_path):
     assert sum(1 for k in finished if k.endswith("result.json")) == 5 - len(crashed)
     assert _batch(world, out, "--scheduler", lc.scheduler_address) in (0, 1)
     after = _tree(out)
-    assert all(after[k] == v for k, v in finished.items())  # finished results untouched
+    changed = sorted(k for k, v in finished.items() if after.get(k) != v)
+    assert not changed, f"finished results touched by the re-run: {changed} (crashed: {crashed})"  # untouched
     r = _json(out / "batch_result.json")
     assert r["n_run"] == len(crashed) and r["n_resumed"] == 5 - len(crashed)
     assert not [x for x in r["scans"] if x["error_kind"] == "crash"]
