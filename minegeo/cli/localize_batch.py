@@ -139,7 +139,7 @@ def run(args) -> int:
                            map_how=how, map_cache=str(cache), cache_file=cache_file, params_hash=pm.params_hash,
                            manifest_sha256=B.manifest_digest(manifest), lp=lp, seed=int(args.seed),
                            profile=profile, drop_nonfinite=bool(args.drop_nonfinite), batch_id=batch_id,
-                           numba_threads=B.numba_share(args.workers, args.scheduler))
+                           numba_threads=B.numba_share(args.workers, args.scheduler), manifest=manifest)
                 for s, n in zip(scans, B.result_names(scans), strict=True)]
         # distributed's own INFO lines (scheduler, nanny, worker start and stop) only with --debug
         dlog = logging.getLogger("distributed")
@@ -295,8 +295,15 @@ def localize_task(job) -> dict:
     from minegeo._provenance import input_record, write_json_atomic
     from minegeo.cli.localize import localize_and_write, read_scan_inputs, result_base
     from minegeo.errors import MinegeoError, OutputError
-    from minegeo.localize.batch import apply_numba_share, summary_row, worker_map
+    from minegeo.localize.batch import apply_numba_share, done_record, summary_row, worker_map
 
+    if getattr(job, "manifest", None):
+        # run twice (Dask recomputes a finished task whose worker died before its result was
+        # released): the result this batch wrote is complete and valid, so it is kept as it is
+        rec = done_record(job, job.manifest)
+        if rec is not None:
+            log.info("scan %s: already done for this batch; its result folder is kept", job.scan)
+            return summary_row(job, rec)
     apply_numba_share(getattr(job, "numba_threads", 0))
     clock = RunClock()
     t_start = time.perf_counter()

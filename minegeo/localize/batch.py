@@ -319,6 +319,9 @@ class BatchJob:
     params_hash: str = ""
     manifest_sha256: str = ""
     numba_threads: int = 0
+    #: the batch's :func:`manifest_record`: a task that finds its scan already done for it (a
+    #: recomputation after a worker died holding the finished task's result) leaves the folder as it is
+    manifest: dict | None = None
 
 
 def done_record(job: BatchJob, manifest: dict) -> dict | None:
@@ -554,15 +557,21 @@ def _run_todo(cl, task, on_lost, jobs, todo, rows, on_row, n_total) -> None:
     futs = {}
     for i in todo:
         f = cl.submit(task, jobs[i], key=f"minegeo-localize-{jobs[i].batch_id}-{i}", pure=False)
-        futs[f] = i
-    for f in as_completed(list(futs)):
-        i = futs[f]
+        futs[f.key] = (i, f)
+    ac = as_completed([f for _, f in futs.values()])
+    for f in ac:
+        i, _ = futs.pop(f.key)
         try:
             row = f.result()
         except Exception as exc:  # noqa: BLE001 - a dead worker (KilledWorker) or a lost task
             log.warning("scan %s: its worker failed (%s: %s); recorded as failed, redone on the next run",
                         jobs[i].scan, type(exc).__name__, exc)
             row = on_lost(jobs[i], exc)
+        # Release the finished task at once: while a future is held, the scheduler recomputes it when
+        # the worker holding its (already gathered) result dies, and that recomputation would run on
+        # after the batch has ended and rewrite a finished scan folder.
+        f.release()
+        del f
         rows[i] = row
         if on_row is not None:
             on_row(row, len(rows), n_total)

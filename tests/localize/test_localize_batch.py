@@ -252,6 +252,36 @@ def test_resume_skips_complete_results(world, batch_out, cluster, tmp_path):
             assert now[k] == before[k], k
 
 
+def test_a_task_run_again_keeps_the_finished_folder(world, batch_out, cluster, tmp_path, monkeypatch):
+    """Dask recomputes a finished task when the worker holding its result dies while the driver
+    still holds the future; that second run (which may outlive the batch) must not rewrite the
+    scan's finished folder. The task itself checks :func:`done_record` first."""
+    from minegeo.cli.localize_batch import localize_task
+    from minegeo.localize import batch as B
+
+    out = tmp_path / "out"
+    shutil.copytree(batch_out, out)
+    seen = []
+    orig = B.run_batch
+
+    def spy(jobs, manifest, *a, **k):
+        seen.extend(jobs)
+        return orig(jobs, manifest, *a, **k)
+
+    monkeypatch.setattr(B, "run_batch", spy)
+    assert _batch(world, out, "--scheduler", cluster[0].scheduler_address, "--seed", 3) in (0, 1)
+    before = _tree(out)
+    job = next(j for j in seen if j.name == "scan_01")
+    assert job.manifest is not None
+    row = localize_task(job)  # as a recomputation on a worker would run it
+    assert _tree(out) == before
+    assert row == B.summary_row(job, _json(out / "scan_01" / "result.json"))
+    # an incomplete folder (its report missing) is not done: the task runs and rewrites it
+    (out / "scan_01" / "report.html").unlink()
+    localize_task(job)
+    assert _tree(out)["scan_01/result.json"] != before["scan_01/result.json"]
+
+
 def test_out_of_another_map_is_refused(world, batch_out, tmp_path, capsys):
     out = tmp_path / "out"
     shutil.copytree(batch_out, out)
