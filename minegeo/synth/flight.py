@@ -41,6 +41,7 @@ import numpy as np
 from minegeo._jit import njit, njit_parallel, prange
 from minegeo.errors import InputError
 from minegeo.io.types import Trajectory
+from minegeo.synth.network import surface_offset
 
 __all__ = ["NetworkWorld", "FlightParams", "Flight", "FlightFrames", "plan_route", "make_flight", "simulate_flight",
            "flight_clearance", "junction_passes"]
@@ -152,8 +153,38 @@ def _roof_hit(o, d, nodes, heights, t_limit):
     return np.inf
 
 
+@njit
+def _wall_normal(p, A, B, rad):
+    """Outward (into the rock) horizontal unit normal at a wall point ``p`` of the union of capsules:
+    from the axis of the capsule whose boundary ``p`` lies on (the smallest |distance - radius|)."""
+    best, nx, ny = np.inf, 0.0, 0.0
+    for e in range(A.shape[0]):
+        dx, dy = B[e, 0] - A[e, 0], B[e, 1] - A[e, 1]
+        L2 = max(dx * dx + dy * dy, 1e-12)
+        t = min(max(((p[0] - A[e, 0]) * dx + (p[1] - A[e, 1]) * dy) / L2, 0.0), 1.0)
+        rx, ry = p[0] - (A[e, 0] + t * dx), p[1] - (A[e, 1] + t * dy)
+        r = np.sqrt(rx * rx + ry * ry)
+        if abs(r - rad[e]) < best and r > 1e-9:
+            best, nx, ny = abs(r - rad[e]), rx / r, ry / r
+    return nx, ny
+
+
+@njit
+def _rough_t(o, d, t, nx, ny, nz, freq, amp, phase):
+    """Ray parameter of the rough rock near the smooth hit ``o + t d`` with outward normal n: the
+    surface lies h(q) along n from the plane of the hit (:func:`~minegeo.synth.network.roughness_field`),
+    so ``t' = t + h(o + t' d) / (d . n)``, solved by fixed-point iteration (4 steps; the field's slope
+    is small). Grazing rays are limited to ``d . n >= 0.2``."""
+    dn = max(d[0] * nx + d[1] * ny + d[2] * nz, 0.2)
+    tt = t
+    for _ in range(4):
+        tt = t + surface_offset(o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2], freq, amp, phase) / dn
+    return tt
+
+
 @njit_parallel
-def _cast_network(O, D, A, B, rad, nodes, heights, max_range, out):
+def _cast_network(O, D, A, B, rad, nodes, heights, max_range, freq, amp, phase, out):
+    rough = amp.shape[0] > 0
     for k in prange(O.shape[0]):
         o, d = O[k], D[k]
         tw = _wall_exit(o, d, A, B, rad)
@@ -164,6 +195,24 @@ def _cast_network(O, D, A, B, rad, nodes, heights, max_range, out):
         lim = min(tw, tf, max_range)
         tr = _roof_hit(o, d, nodes, heights, lim)
         t = min(tw, tf, tr)
+        if rough and np.isfinite(t):
+            if t == tf:
+                t = _rough_t(o, d, t, 0.0, 0.0, -1.0, freq, amp, phase)
+            elif t == tw:
+                p = o + t * d
+                nx, ny = _wall_normal(p, A, B, rad)
+                t = _rough_t(o, d, t, nx, ny, 0.0, freq, amp, phase)
+            elif d[2] > 0.0:
+                # a flat roof (z = its node's height); a step face between two roofs is left smooth
+                z = o[2] + t * d[2]
+                j = 0
+                best = np.inf
+                for i in range(nodes.shape[0]):
+                    q = (o[0] + t * d[0] - nodes[i, 0]) ** 2 + (o[1] + t * d[1] - nodes[i, 1]) ** 2
+                    if q < best:
+                        best, j = q, i
+                if abs(z - heights[j]) < 1e-9:
+                    t = _rough_t(o, d, t, 0.0, 0.0, 1.0, freq, amp, phase)
         out[k] = t if t <= max_range else np.nan
 
 
@@ -172,7 +221,11 @@ class NetworkWorld:
 
     The free space is the union of vertical capsules (``width / 2`` around each drift's segment), from
     the floor z = 0 to the roof of the nearest node (``node_heights``); rays are cast exactly against
-    these surfaces, including the vertical step between two roofs of different height.
+    these surfaces, including the vertical step between two roofs of different height. A network
+    with ``roughness_m > 0`` has rough rock: floor, walls and flat roofs are displaced along their
+    outward normal by the network's :func:`~minegeo.synth.network.roughness_field` (the offsets
+    :func:`~minegeo.synth.network.network_cloud` applies to the prior map), and each ray meets that
+    surface near its smooth hit (:func:`_rough_t`); step faces between roofs stay smooth.
 
     Parameters
     ----------
@@ -186,6 +239,14 @@ class NetworkWorld:
         self._r = np.ascontiguousarray(0.5 * net.widths, dtype=np.float64)
         self._nodes = np.ascontiguousarray(net.nodes, dtype=np.float64)
         self._h = np.ascontiguousarray(net.node_heights, dtype=np.float64)
+        rough = float(getattr(net, "roughness_m", 0.0))
+        if rough > 0.0:
+            from minegeo.synth.network import roughness_field
+
+            f = roughness_field(rough, int(getattr(net, "roughness_seed", 0)))
+            self._rough = (f.freq, f.amp, f.phase)
+        else:
+            self._rough = (np.zeros((0, 3)), np.zeros(0), np.zeros(0))
 
     def cast(self, origins, directions, max_range_m: float, with_noise: bool = True) -> np.ndarray:
         """Ranges (m) along unit ``directions`` from ``origins`` (world frame) to the first surface; NaN = none.
@@ -197,7 +258,7 @@ class NetworkWorld:
         if O.shape != D.shape:
             raise InputError(f"origins {O.shape} and directions {D.shape} must have the same shape")
         out = np.empty(O.shape[0])
-        _cast_network(O, D, self._A, self._B, self._r, self._nodes, self._h, float(max_range_m), out)
+        _cast_network(O, D, self._A, self._B, self._r, self._nodes, self._h, float(max_range_m), *self._rough, out)
         return out
 
 
@@ -567,6 +628,8 @@ def _key(net, flight: Flight) -> str:
     for a in (net.nodes, net.edges, net.widths, net.node_heights, flight.route):
         h.update(np.ascontiguousarray(a).tobytes())
     h.update(json.dumps(asdict(flight.params), sort_keys=True, default=str).encode())
+    if getattr(net, "roughness_m", 0.0):  # (flat networks keep their earlier cache keys)
+        h.update(json.dumps([float(net.roughness_m), int(net.roughness_seed)]).encode())
     return h.hexdigest()[:16]
 
 
