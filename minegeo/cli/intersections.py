@@ -25,6 +25,8 @@ def add_arguments(parser) -> None:
     b.add_argument("--report", default=None, help="report file (default: OUT.html)")
     b.add_argument("--json", default=None, help="result file (default: OUT.json)")
     b.add_argument("--cloud-radius", type=float, default=15.0, help="dense cloud radius per intersection (m)")
+    b.add_argument("--floor-cell", type=float, default=2.0, help="floor-height cell of the drift skeleton (m; "
+                   "default 2); 1 for rough floors (bumps of 0.1 m RMS or more), see docs/intersections.md")
     b.add_argument("--seed", type=int, default=0, help="recorded seed (the build draws no random numbers)")
 
 
@@ -50,13 +52,13 @@ def run(args) -> int:
     from minegeo._output import OutputTransaction, run_timings
     from minegeo._provenance import StageTimer, provenance, sha256_file, to_jsonable, write_json_atomic
     from minegeo.report.intersections_report import write_kb_report
-    from minegeo.semantic import KBParams, build_knowledge_base, similarity_matrix
+    from minegeo.semantic import KBParams, SkeletonParams, build_knowledge_base, similarity_matrix
 
     timer = StageTimer()
     out = Path(args.out)
     report = Path(args.report) if args.report else out.with_name(out.name + ".html")
     js = Path(args.json) if args.json else out.with_name(out.name + ".json")
-    params = KBParams(cloud_radius_m=args.cloud_radius)
+    params = KBParams(SkeletonParams(floor_cell_m=args.floor_cell), cloud_radius_m=args.cloud_radius)
     params.check()
     with OutputTransaction("intersections", inputs={"--map": args.map},
                            files={"--out": out, "--report": report, "--json": js}) as tx:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 HELP = "LiDAR tracking with intersection recognition against a knowledge base (Liang et al. 2024)"
@@ -39,6 +40,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--gate", type=float, default=3.0, help="odometry gate at an anchor (m)")
     parser.add_argument("--gate-drift", type=float, default=0.25, help="gate growth per metre of path since the "
                         "last verified recognition (default 0.25)")
+    parser.add_argument("--odometry", choices=("submap", "frame"), default="submap",
+                        help="odometry target of each frame: the local map of the last 5 keyframes (default) or "
+                        "the previous frame (Ren2019 Eq. 7)")
     parser.add_argument("--voxel", type=float, default=0.3, help="odometry voxel size (m)")
     parser.add_argument("--keyframe-distance", type=float, default=2.0, help="keyframe distance threshold (m)")
     parser.add_argument("--seed", type=int, default=0, help="recorded seed (the run draws no random numbers)")
@@ -59,7 +63,9 @@ def _params(args):
     rec = RecognitionParams(pwcv_threshold=args.pwcv_threshold, n_his=args.n_his,
                             consecutive_required=args.consecutive, icp_max_distance_m=args.icp_max_distance,
                             gate_m=args.gate)
-    return TrackParams(OdometryParams(voxel_size_m=args.voxel, keyframe_distance_m=args.keyframe_distance), rec,
+    odo = OdometryParams(voxel_size_m=args.voxel, keyframe_distance_m=args.keyframe_distance,
+                         frame_target=getattr(args, "odometry", "submap"))
+    return TrackParams(odo, rec,
                        T_world_start=T, gate_drift_fraction=args.gate_drift)
 
 
@@ -131,6 +137,8 @@ def run(args) -> int:
              **({"--truth": args.truth} if args.truth else {})}
     with OutputTransaction("track", inputs=named, folders={"--out": out}) as tx:
         kb = IntersectionKB.load(args.db)
+        # the keyframes' drift skeleton uses the base's own skeleton parameters (floor cell, wall band)
+        params = replace(params, recognition=replace(params.recognition, skeleton=kb.params.skeleton))
         files = list_frames(args.frames, times_file=args.times, pattern=args.pattern)
         skipped: list[dict] = []
         bar = tqdm(total=len(files), desc="track", unit="frame", file=sys.stderr, disable=not progress_enabled(args))

@@ -110,6 +110,9 @@ class TrackParams:
     Attributes
     ----------
     odometry : OdometryParams
+        Default: frame-to-local-map GICP (``frame_target="submap"``): in long drifts frame-to-frame
+        GICP with a VLP-16's sparse rings is biased towards no tilt change and no motion (see
+        ``docs/intersections.md``, "Odometry").
     recognition : RecognitionParams
     T_world_start : array_like (4, 4), optional
         Pose of the first frame in the knowledge-base frame (None: unanchored until recognised).
@@ -138,7 +141,7 @@ class TrackParams:
         a velocity uncertainty (m/s) times the time the edge spans.
     """
 
-    odometry: OdometryParams = field(default_factory=OdometryParams)
+    odometry: OdometryParams = field(default_factory=lambda: OdometryParams(frame_target="submap"))
     recognition: RecognitionParams = field(default_factory=RecognitionParams)
     T_world_start: object = None
     gate_drift_fraction: float = 0.25

@@ -12,6 +12,15 @@
   ``arccos((tr ΔR − 1)/2)`` above an angle, or the time since the last keyframe above an interval.
   Its pose is then refined by GICP against the last keyframe from the chained relative pose, and
   the refined relative pose is the keyframe edge of the pose graph.
+* ``frame_target="submap"`` (frame to local map, not in the paper): each frame registers to the
+  sub-map of the last ``keyframe_submap_size`` keyframes (the one the keyframe refinement uses), from
+  the previous pose moved by the constant velocity; a keyframe's edge is that registration and the
+  sub-map is rebuilt at each new keyframe. A frame that fails against the sub-map is registered to
+  the previous frame instead (flagged in ``frame_weak``), and a keyframe made from such a frame starts
+  a fresh sub-map; a keyframe placed by the guess (no registration) never enters the sub-map, so the
+  frames after a short gap register to the sub-map from before it, and a long gap cannot keep the run
+  lost. With a VLP-16's sparse rings, frame-to-frame GICP
+  under-reads tilt changes (the floor rings move with the sensor); see ``docs/slam.md``.
 * A frame that fails to register (too few points, low overlap) is flagged with the reason and
   placed by the constant-velocity guess; the run goes on. A registration with a weakly observed
   direction (e.g. along a straight smooth drift), or one still creeping along it when the
@@ -74,8 +83,16 @@ class OdometryParams:
     keyframe_submap_size: int = 5
     turn_retry_yaw_deg: tuple = (20.0, -20.0, 40.0, -40.0, 60.0, -60.0)
     unconverged_retry_fitness: float = 0.6
+    #: what each frame registers to: ``"frame"`` the previous frame (Ren2019 Sec. 3.3, chained by
+    #: [Ren2019 Eq. 7]), ``"submap"`` the local map of the last ``keyframe_submap_size`` keyframes (frame to
+    #: local map: the laser rings of several keyframes interleave, so neither the partner search nor
+    #: the target's covariances follow the ring pattern, which biases frame-to-frame GICP towards no
+    #: motion and no tilt change with sparse rings)
+    frame_target: str = "frame"
 
     def __post_init__(self):
+        if self.frame_target not in ("frame", "submap"):
+            raise InputError(f"frame_target must be 'frame' or 'submap', got {self.frame_target!r}")
         for name in ("voxel_size_m", "max_correspondence_distance_m", "keyframe_distance_m", "keyframe_angle_deg",
                      "keyframe_interval_s", "sigma_floor_m", "coarse_gate_factor", "translation_observability_ratio",
                      "surface_observability_ratio"):
@@ -237,20 +254,23 @@ def register_frames(source: PreparedFrame, target: PreparedFrame, T_init: np.nda
 
 
 def _register_with_retries(cur: PreparedFrame, prev: PreparedFrame, guess: np.ndarray,
-                           params: OdometryParams) -> Registration:
+                           params: OdometryParams, still: np.ndarray | None = None) -> Registration:
     """GICP from the constant-velocity guess; when that fails (e.g. a sharp turn at a junction, where
     the previous motion is a poor guess), again from no motion, then coarse-to-fine with a gate
     ``coarse_gate_factor`` times wider from both guesses; the best overlap that passes wins. A
     result farther than the wide gate from the constant-velocity guess fails as implausible (the
-    vehicle cannot change its speed by that much between two frames: a wrong minimum)."""
+    vehicle cannot change its speed by that much between two frames: a wrong minimum). ``still`` is
+    the "no motion" pose of ``cur`` in ``prev``'s frame (identity for the previous frame; the previous
+    frame's pose for a local map)."""
+    still = np.eye(4) if still is None else still
     reg = _plausible(register_frames(cur, prev, guess, params), guess, params)
     if (reg.ok and (reg.converged or reg.fitness >= params.unconverged_retry_fitness)) \
             or cur.index is None or prev.index is None:
         return reg
     coarse = replace(params, max_correspondence_distance_m=params.max_correspondence_distance_m
                      * params.coarse_gate_factor)
-    tries = [reg, register_frames(cur, prev, np.eye(4), params)]
-    for T0 in (guess, np.eye(4)):
+    tries = [reg, register_frames(cur, prev, still, params)]
+    for T0 in (guess, still):
         c = register_frames(cur, prev, T0, coarse)
         tries.append(register_frames(cur, prev, c.T, params))
     good = [r for r in (_plausible(r, guess, params) for r in tries) if r.ok]
@@ -328,7 +348,10 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
     t_prep = t_f2f = t_kf = 0.0
     times, poses, ok, reasons, fitness, weak = [], [], [], [], [], []
     kf_idx, kf_edges, kf_info, kf_clouds, kf_covs = [], [], [], [], []
-    prev = last_kf = None
+    prev = last_kf = submap = None
+    to_submap = params.frame_target == "submap"
+    sub_clouds, sub_poses = [], []  # the keyframes the local map is made of (registered ones only)
+    T_sub = np.eye(4)  # pose of the local map's frame (its last keyframe)
     velocity, velocity_dt = np.eye(4), 0.0
     for k, (t, cur, dt_prep) in enumerate(_prepared_frames(frames, params)):
         t_prep += dt_prep
@@ -344,44 +367,81 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
             kf_idx.append(0)
             kf_clouds.append(cur.points)
             kf_covs.append(cur.covariances)
-            prev = last_kf = cur
+            prev = last_kf = submap = cur
+            sub_clouds, sub_poses = [cur.points], [np.eye(4)]
             continue
         t0 = time.perf_counter()
-        reg = _register_with_retries(cur, prev, velocity, params)  # [Ren2019 Eq. 7]: ΔT_{t-1,t}
-        scaled = _time_scaled_guess(velocity, t - prev.time_s, velocity_dt)
-        if scaled is not None:  # irregular frame times (keyframe logs, dropped frames): same speed, not same step
-            alt = _register_with_retries(cur, prev, scaled, params)
-            if alt.ok and (not reg.ok or alt.fitness > reg.fitness):
-                reg = alt
+        T_kf = poses[kf_idx[-1]]
+        if to_submap:
+            # frame to local map: the guesses are the previous pose (in the last keyframe's frame)
+            # moved by the constant velocity, and not moved
+            still = np.linalg.solve(T_sub, poses[-1])
+            reg = _register_with_retries(cur, submap, still @ velocity, params, still)
+            scaled = _time_scaled_guess(velocity, t - times[-1], velocity_dt)
+            if scaled is not None:
+                alt = _register_with_retries(cur, submap, still @ scaled, params, still)
+                if alt.ok and (not reg.ok or alt.fitness > reg.fitness):
+                    reg = alt
+        else:
+            reg = _register_with_retries(cur, prev, velocity, params)  # [Ren2019 Eq. 7]: ΔT_{t-1,t}
+            scaled = _time_scaled_guess(velocity, t - prev.time_s, velocity_dt)
+            if scaled is not None:  # irregular frame times (keyframe logs, dropped frames): same speed, not same step
+                alt = _register_with_retries(cur, prev, scaled, params)
+                if alt.ok and (not reg.ok or alt.fitness > reg.fitness):
+                    reg = alt
         t_f2f += time.perf_counter() - t0
-        dT = reg.T if reg.ok else velocity
         if not reg.ok:
             log.info("frame %d (t = %.3f s) not registered: %s; placed by constant velocity", k, t, reg.reason)
-        pose = poses[-1] @ dT
+        via_prev = False
+        if to_submap:
+            if reg.ok:
+                pose = T_sub @ reg.T
+            else:
+                # the local map failed (e.g. it holds keyframes placed by the guess): the previous frame
+                alt = _register_with_retries(cur, prev, velocity, params)
+                if alt.ok:
+                    reg = replace(alt, weak=(alt.weak + "; " if alt.weak else "")
+                                  + f"registered to the previous frame (the local map failed: {reg.reason})")
+                    pose, via_prev = poses[-1] @ alt.T, True
+                else:
+                    pose = poses[-1] @ velocity
+        else:
+            pose = poses[-1] @ (reg.T if reg.ok else velocity)
         ok.append(reg.ok)
         reasons.append(reg.reason)
         fitness.append(reg.fitness)
         weak.append(reg.weak)
-        T_kf = poses[kf_idx[-1]]
         rel = np.linalg.solve(T_kf, pose)
         if _keyframe_due(rel, t - times[kf_idx[-1]], params):
             t0 = time.perf_counter()
-            target = last_kf if params.keyframe_submap_size <= 1 else _keyframe_submap(
-                kf_clouds, [poses[i] for i in kf_idx], params)
-            ref = register_frames(cur, target, rel, params)  # keyframe-to-keyframe refinement
-            t_kf += time.perf_counter() - t0
-            if ref.ok:
-                rel, info = ref.T, ref.information
-                pose = T_kf @ rel
-            else:  # keep the chained relative pose with the frame-to-frame information
+            if to_submap:  # the registration already was to the local map of the last keyframes
                 info = reg.information if reg.ok else np.eye(6) * 1e-6
-                log.info("keyframe %d refinement failed (%s); chained odometry kept", k, ref.reason)
+            else:
+                target = last_kf if params.keyframe_submap_size <= 1 else _keyframe_submap(
+                    kf_clouds, [poses[i] for i in kf_idx], params)
+                ref = register_frames(cur, target, rel, params)  # keyframe-to-keyframe refinement
+                if ref.ok:
+                    rel, info = ref.T, ref.information
+                    pose = T_kf @ rel
+                else:  # keep the chained relative pose with the frame-to-frame information
+                    info = reg.information if reg.ok else np.eye(6) * 1e-6
+                    log.info("keyframe %d refinement failed (%s); chained odometry kept", k, ref.reason)
             kf_idx.append(k)
             kf_edges.append(rel)
             kf_info.append(info)
             kf_clouds.append(cur.points)
             kf_covs.append(cur.covariances)
             last_kf = cur
+            if to_submap and cur.index is not None and reg.ok:
+                # a keyframe placed by the guess stays out of the local map; one registered to the
+                # previous frame (the local map failed) starts a fresh local map
+                if via_prev:
+                    sub_clouds, sub_poses = [], []
+                sub_clouds.append(cur.points)
+                sub_poses.append(pose)
+                sub_clouds, sub_poses = sub_clouds[-params.keyframe_submap_size:], sub_poses[-params.keyframe_submap_size:]
+                submap, T_sub = _keyframe_submap(sub_clouds, sub_poses, params), pose
+            t_kf += time.perf_counter() - t0
         poses.append(pose)
         if reg.ok:
             velocity, velocity_dt = np.linalg.solve(poses[-2], poses[-1]), t - times[-2]

@@ -199,3 +199,22 @@ def test_build_user_mistakes_are_one_line_errors(case, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("minegeo intersections: error:") and "Traceback" not in err[0], err
     assert not (tmp_path / "kb.npz").exists()
+
+
+def test_floor_cell_and_odometry_options_reach_the_run(scene, tmp_path):
+    """``intersections build --floor-cell`` is the base's skeleton floor cell, and ``track`` detects the
+    keyframes' junctions with the base's skeleton parameters; ``track`` registers each frame to the local
+    map by default (``--odometry frame``: to the previous frame). Both are recorded in result.json."""
+    d, _, truth = scene
+    kb = tmp_path / "kb1.npz"
+    assert main(["-q", "intersections", "build", "--map", str(d / "map.ply"), "--out", str(kb),
+                 "--floor-cell", "1"]) == 0
+    assert json.loads(kb.with_name("kb1.npz.json").read_text())["parameters"]["skeleton"]["floor_cell_m"] == 1.0
+    for mode in ("submap", "frame"):
+        out = tmp_path / mode
+        extra = [] if mode == "submap" else ["--odometry", "frame"]
+        assert main(["-q", "track", "--frames", str(d / "frames"), "--db", str(kb), "--out", str(out),
+                     *_start(truth), *extra]) in (0, 1)
+        p = json.loads((out / "result.json").read_text())["parameters"]
+        assert p["recognition"]["skeleton"]["floor_cell_m"] == 1.0
+        assert p["odometry"]["frame_target"] == mode
