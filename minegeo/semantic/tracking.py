@@ -135,6 +135,12 @@ class TrackParams:
         ICP verification limit against the online base, whose clouds are keyframes downsampled at the
         odometry voxel ``v`` = 0.3 m with the sensor noise on both sides: 1.5 times
         ``sqrt(v²/6 + 2 · 0.03²)`` = 0.2 m (as ``RecognitionParams.icp_max_distance_m`` for the map).
+    intersection_observation : {"icp", "detected"}
+        The observation ``z`` of an intersection factor [Liang2024 Eq. 22]: ``"icp"`` (default) the base's
+        invariant point put into the keyframe by the verification's ICP, ``"detected"`` the paper's
+        invariant point detected in the keyframe. The detected point's height is the floor under it
+        from a few laser rings and its position comes from a 0.25 m grid: on rough floors it lies
+        0.1-0.3 m from the base's (corridor, 0.1 m rock: height error RMS 0.25 m with it).
     odometry_sigma_fraction, odometry_sigma_deg_per_m, odometry_sigma_mps : float
         Model-noise floor added to every odometry edge's covariance (see :func:`odometry_edge_information`):
         translation σ as a fraction of the edge length, rotation σ in degrees per metre of edge, and
@@ -157,8 +163,11 @@ class TrackParams:
     odometry_sigma_fraction: float = 0.05
     odometry_sigma_deg_per_m: float = 0.1
     odometry_sigma_mps: float = 0.1
+    intersection_observation: str = "icp"
 
     def __post_init__(self):
+        if self.intersection_observation not in ("icp", "detected"):
+            raise InputError(f"intersection_observation must be 'icp' or 'detected', got {self.intersection_observation!r}")
         for name in ("gate_drift_fraction", "online_gate_drift_fraction", "intersection_sigma_m", "same_place_m", "online_add_range_m",
                      "online_merge_m", "revisit_min_path_m", "loop_sigma_deg", "online_icp_max_distance_m",
                      "odometry_sigma_fraction",
@@ -458,7 +467,13 @@ class _State:
             cov = intersection_covariance(max(rec.completeness, 1e-3), p.intersection_sigma_m,
                                           scaling=p.completeness_scaling)      # [Liang2024 Eq. 32]
             C = kb.invariant_points[rec.intersection_id]
-            self.g.add_intersection(k, rec.z_keyframe, C, np.linalg.inv(cov), intersection_id=rec.intersection_id)
+            z = rec.z_keyframe
+            if p.intersection_observation == "icp" and rec.T_world_keyframe_icp is not None:
+                # where the verification's ICP (the keyframes' clouds on the base's dense cloud) puts the
+                # base's invariant point in the keyframe: the detected point's own error (its floor height
+                # from a few rings, its xy from a 0.25 m grid) stays out of the factor
+                z = np.linalg.solve(rec.T_world_keyframe_icp, np.r_[C, 1.0])[:3]
+            self.g.add_intersection(k, z, C, np.linalg.inv(cov), intersection_id=rec.intersection_id)
         else:
             e = online.entry_of[rec.intersection_id]
             Z = np.linalg.solve(online.T[e], rec.T_world_keyframe_icp)
