@@ -3,15 +3,21 @@
 Network (``--network``): ``synthetic`` = ``intersections_network()`` (three alike 4-way crossings
 X1-X3 differing only in roof height, a T and a Y; 4.5 m drifts), or ``niosh`` = ``niosh_network`` of
 the DARPA SubT NIOSH EX edge list (2.9 m x 2.6 m drifts; a plausible embedding, not the real mine).
-Prior map: ``network_cloud`` (0.2 m spacing, 2 cm noise, seed 7); knowledge base
-``build_knowledge_base`` on it. Flight (``minegeo.synth.flight``): a graph walk of >= ``--length-km``
+Rock (``--roughness-m``, default 0.1 m RMS): floor, walls and roofs displaced along their normal by the
+seeded smooth field ``roughness_field`` (0.5-6 m wavelengths, seed 1), the same rock in the map and in
+every frame; 0 gives the flat, smooth surfaces of the plan (a degenerate stress case: nothing observes
+the motion along a straight drift). Prior map: ``network_cloud`` (0.2 m spacing, 2 cm noise, seed 7);
+knowledge base ``build_knowledge_base`` on it, with floor cells of ``--floor-cell-m`` (default 1 m; the
+library's 2 m cells let the bumps of a 0.1 m rough floor into the wall band and moved X1's invariant
+point 1.55 m), the same skeleton parameters in the tracker. Flight (``minegeo.synth.flight``): a graph walk of >= ``--length-km``
 passing every junction several times from different directions, 1.5 m/s cruise, height half the lowest
 roof, a VLP-16 rotation (16 rings, +-15 deg, 0.4 deg azimuth step, 3 cm range noise) per frame, one
 frame per 1 m of travel / 15 deg of yaw / 2 s, simulated at the frame pose (no motion distortion).
 
 Methods on the same frames:
 
-(a) ``odometry``: ``run_odometry`` (default ``OdometryParams``) chained, ``run_backend(use_loops=False,
+(a) ``odometry``: ``run_odometry`` (``OdometryParams(frame_target=--odometry)``, default ``submap``:
+    frame to the local map of the last 5 keyframes; ``frame``: frame to frame, Ren2019 Eq. 7), ``run_backend(use_loops=False,
     use_planes=False)``;
 (b) ``odometry + loops``: ``run_backend(use_loops=True, use_planes=False)`` (generic geometric loop
     closure of ``minegeo.slam.loops``);
@@ -95,13 +101,14 @@ def setup(args):
     from minegeo.semantic import KBParams, SkeletonParams
     from minegeo.synth.network import intersections_network, niosh_network
 
+    fc = args.floor_cell_m
     if args.corridor:
         net, route, _ = corridor_network()
-        return net, KBParams(), route
+        return net, KBParams(SkeletonParams(floor_cell_m=fc)), route
     if args.network == "niosh":
         return niosh_network(NIOSH_EX), KBParams(SkeletonParams(min_branch_m=2.5, merge_radius_m=2.0,
-                                                                refine_radius_m=2.0)), None
-    return intersections_network(), KBParams(), None
+                                                                refine_radius_m=2.0, floor_cell_m=fc)), None
+    return intersections_network(), KBParams(SkeletonParams(floor_cell_m=fc)), None
 
 
 # ---------------------------------------------------------------------------------------- methods
@@ -120,11 +127,11 @@ def _odometry(frames, folder: Path, params):
     return out
 
 
-def run_slam_methods(frames, T0: np.ndarray) -> dict:
+def run_slam_methods(frames, T0: np.ndarray, odometry) -> dict:
     """(a) odometry and (b) odometry + loops, poses in the map frame (anchored at the true first pose)."""
     from minegeo.slam.pipeline import SlamParams, run_backend
 
-    params = SlamParams(use_planes=False, remove_noise=False)
+    params = SlamParams(use_planes=False, remove_noise=False, odometry=odometry)
     odo, t_odo = _odometry(frames, frames.folder, params.odometry)
     _log(f"odometry: {len(odo.times_s)} frames, {odo.keyframes.size} keyframes, "
          f"{int((~odo.frame_ok).sum())} failed, {t_odo:.0f} s")
@@ -138,14 +145,15 @@ def run_slam_methods(frames, T0: np.ndarray) -> dict:
     return out
 
 
-def run_track(frames, kb, T0: np.ndarray, use_map: bool, odo=None) -> dict:
+def run_track(frames, kb, T0: np.ndarray, use_map: bool, odometry, odo=None) -> dict:
     """``minegeo.semantic.tracking.track`` from the true first pose (``TrackParams.T_world_start``), on the
     odometry already computed for (a) and (b) when its parameters are the tracker's (the same frames)."""
     from minegeo.semantic.recognition import RecognitionParams
     from minegeo.semantic.tracking import TrackParams, track
 
     # the online detection uses the skeleton parameters the base was built with (narrow NIOSH drifts)
-    params = TrackParams(recognition=RecognitionParams(skeleton=kb.params.skeleton), T_world_start=T0)
+    params = TrackParams(recognition=RecognitionParams(skeleton=kb.params.skeleton), T_world_start=T0,
+                         odometry=odometry)
     if odo is not None and odo.params != params.odometry:
         odo = None
     t0 = time.perf_counter()
@@ -366,6 +374,12 @@ def main() -> None:  # noqa: PLR0915
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--quick", action="store_true", help="a 0.5 km flight (smoke test)")
+    ap.add_argument("--roughness-m", type=float, default=0.1,
+                    help="RMS rock roughness of the drifts (m; 0 = flat smooth surfaces, a degenerate stress case)")
+    ap.add_argument("--floor-cell-m", type=float, default=1.0,
+                    help="SkeletonParams.floor_cell_m of the knowledge base and the tracker (library default 2 m)")
+    ap.add_argument("--odometry", choices=("submap", "frame"), default="submap",
+                    help="frame target of the GICP odometry of every method (OdometryParams.frame_target)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     ap.add_argument("--img", type=Path, default=REPO / "docs" / "img")
     args = ap.parse_args()
@@ -388,6 +402,12 @@ def main() -> None:  # noqa: PLR0915
 
     uptime_start = _uptime()
     net, kbp, route = setup(args)
+    from minegeo.slam.odometry import OdometryParams
+    from minegeo.synth.network import with_roughness
+
+    if args.roughness_m > 0:
+        net = with_roughness(net, args.roughness_m, seed=1)
+    odometry = OdometryParams(frame_target=args.odometry)
     length = 0.5 if args.quick else args.length_km
     cloud = network_cloud(net, 0.2, 0.02, seed=7)
     kb = build_knowledge_base(cloud.points, kbp)
@@ -400,10 +420,10 @@ def main() -> None:  # noqa: PLR0915
     T0 = truth.poses[0]
     passes = junction_passes(truth.poses[:, :3, 3], J, PASS_M, VISIT_M)
     _log(f"flight {flight.path_length_m:.0f} m, {len(truth)} frames, {len(passes)} junction passes ({frames.folder})")
-    results = run_slam_methods(frames, T0)
+    results = run_slam_methods(frames, T0, odometry)
     for m, use_map in (("ours (no map)", False), ("ours (map)", True)):
         _log(f"{m} ...")
-        results[m] = run_track(frames, kb, T0, use_map, results.pop("_odometry", None) if not use_map
+        results[m] = run_track(frames, kb, T0, use_map, odometry, results.pop("_odometry", None) if not use_map
                                else results.get("_odo_keep"))
         if "time_s" in results[m]:
             results[m]["time_s"] += results.get("_odo_time", 0.0)
@@ -424,7 +444,8 @@ def main() -> None:  # noqa: PLR0915
         else:
             _log(f"{m}: {r['error']}")
     tag = "corridor" if args.corridor else args.network
-    suffix = f"{tag}{'_quick' if args.quick else ''}"
+    variant = ("" if args.roughness_m > 0 else "_flat") + ("" if args.odometry == "submap" else "_f2f")
+    suffix = f"{tag}{variant}{'_quick' if args.quick else ''}"
     date = time.strftime("%Y-%m-%d")
     args.out.mkdir(parents=True, exist_ok=True)
     img_dir = args.out if args.quick else args.img
@@ -441,7 +462,7 @@ def main() -> None:  # noqa: PLR0915
     if args.corridor:
         _, _, tags = corridor_network()
         corridor = {m: tag_errors(r, truth, tags) for m, r in results.items() if "poses" in r}
-        corridor_figure(corridor, img_dir / f"intersections_corridor{'_quick' if args.quick else ''}.png")
+        corridor_figure(corridor, img_dir / f"intersections_corridor{variant}{'_quick' if args.quick else ''}.png")
     ours = results.get("ours (map)", {})
     target = "not evaluated (ours (map) not available)"
     if "metrics" in ours:
@@ -450,7 +471,8 @@ def main() -> None:  # noqa: PLR0915
               and (rec.get("recall") or 0) >= 0.9)
         target = "met" if ok else "missed"
     meta = {"date": date, "conditions": __doc__.split("\n\n")[1].replace("\n", " "), "seed": args.seed,
-            "network": tag, "quick": args.quick, "kb": kb_txt, "flight": _flight_meta(net, flight, truth, J, passes),
+            "network": tag, "quick": args.quick, "roughness_m": args.roughness_m, "odometry": args.odometry,
+            "floor_cell_m": args.floor_cell_m, "kb": kb_txt, "flight": _flight_meta(net, flight, truth, J, passes),
             "target": target, "git": _git(), "threads": args.threads, "wall_s": time.perf_counter() - wall0,
             "machine": f"{os.cpu_count()} cores; uptime at the start: {uptime_start}; at the end: {_uptime()}",
             "cache": str(frames.folder)}
@@ -459,7 +481,8 @@ def main() -> None:  # noqa: PLR0915
              for m, r in results.items()}
     for r in clean.values():
         r.pop("_result", None)
-    stem = args.out / ("intersections_" + date + ("" if tag == "synthetic" else f"_{tag}") + ("_quick" if args.quick else ""))
+    stem = args.out / ("intersections_" + date + ("" if tag == "synthetic" else f"_{tag}") + variant
+                       + ("_quick" if args.quick else ""))
     Path(f"{stem}.json").write_text(json.dumps({"meta": meta, "results": clean, "corridor": corridor}, indent=1,
                                                default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
     Path(f"{stem}.md").write_text(markdown(meta, clean, corridor))
