@@ -312,6 +312,30 @@ def _keyframe_submap(kf_clouds: list, kf_poses: list, params: OdometryParams) ->
     return prepare_frame(np.concatenate(parts), 0.0, params)
 
 
+def _register_to_submap(cur: PreparedFrame, prev: PreparedFrame, submap: PreparedFrame, T_sub: np.ndarray,
+                        T_prev: np.ndarray, velocity: np.ndarray, scaled: np.ndarray | None,
+                        params: OdometryParams) -> tuple[Registration, np.ndarray, bool]:
+    """Frame to local map (``frame_target="submap"``): ``(registration, pose, registered to the previous
+    frame instead)``. The guesses are the previous pose ``T_prev`` (in the local map's frame ``T_sub``)
+    moved by the constant velocity (and by the time-scaled one), and not moved. When the local map
+    fails (e.g. it holds keyframes placed by the guess), the previous frame is tried; when that fails
+    too, the frame is placed by the constant velocity."""
+    still = np.linalg.solve(T_sub, T_prev)
+    reg = _register_with_retries(cur, submap, still @ velocity, params, still)
+    if scaled is not None:
+        alt = _register_with_retries(cur, submap, still @ scaled, params, still)
+        if alt.ok and (not reg.ok or alt.fitness > reg.fitness):
+            reg = alt
+    if reg.ok:
+        return reg, T_sub @ reg.T, False
+    alt = _register_with_retries(cur, prev, velocity, params)
+    if alt.ok:
+        alt = replace(alt, weak=(alt.weak + "; " if alt.weak else "")
+                      + f"registered to the previous frame (the local map failed: {reg.reason})")
+        return alt, T_prev @ alt.T, True
+    return reg, T_prev @ velocity, False
+
+
 def _time_scaled_guess(velocity: np.ndarray, dt: float, velocity_dt: float) -> np.ndarray | None:
     """The previous motion scaled to this frame's time step, ``Exp((Δt/Δt_prev) Log(ΔT_prev))``, or
     None when the two steps agree within 25 % (frames at a steady rate: the previous motion is the
@@ -373,15 +397,8 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
         t0 = time.perf_counter()
         T_kf = poses[kf_idx[-1]]
         if to_submap:
-            # frame to local map: the guesses are the previous pose (in the last keyframe's frame)
-            # moved by the constant velocity, and not moved
-            still = np.linalg.solve(T_sub, poses[-1])
-            reg = _register_with_retries(cur, submap, still @ velocity, params, still)
-            scaled = _time_scaled_guess(velocity, t - times[-1], velocity_dt)
-            if scaled is not None:
-                alt = _register_with_retries(cur, submap, still @ scaled, params, still)
-                if alt.ok and (not reg.ok or alt.fitness > reg.fitness):
-                    reg = alt
+            reg, pose, via_prev = _register_to_submap(cur, prev, submap, T_sub, poses[-1], velocity,
+                                                      _time_scaled_guess(velocity, t - times[-1], velocity_dt), params)
         else:
             reg = _register_with_retries(cur, prev, velocity, params)  # [Ren2019 Eq. 7]: ΔT_{t-1,t}
             scaled = _time_scaled_guess(velocity, t - prev.time_s, velocity_dt)
@@ -392,20 +409,7 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
         t_f2f += time.perf_counter() - t0
         if not reg.ok:
             log.info("frame %d (t = %.3f s) not registered: %s; placed by constant velocity", k, t, reg.reason)
-        via_prev = False
-        if to_submap:
-            if reg.ok:
-                pose = T_sub @ reg.T
-            else:
-                # the local map failed (e.g. it holds keyframes placed by the guess): the previous frame
-                alt = _register_with_retries(cur, prev, velocity, params)
-                if alt.ok:
-                    reg = replace(alt, weak=(alt.weak + "; " if alt.weak else "")
-                                  + f"registered to the previous frame (the local map failed: {reg.reason})")
-                    pose, via_prev = poses[-1] @ alt.T, True
-                else:
-                    pose = poses[-1] @ velocity
-        else:
+        if not to_submap:
             pose = poses[-1] @ (reg.T if reg.ok else velocity)
         ok.append(reg.ok)
         reasons.append(reg.reason)
@@ -435,11 +439,9 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
             if to_submap and cur.index is not None and reg.ok:
                 # a keyframe placed by the guess stays out of the local map; one registered to the
                 # previous frame (the local map failed) starts a fresh local map
-                if via_prev:
-                    sub_clouds, sub_poses = [], []
-                sub_clouds.append(cur.points)
-                sub_poses.append(pose)
-                sub_clouds, sub_poses = sub_clouds[-params.keyframe_submap_size:], sub_poses[-params.keyframe_submap_size:]
+                n = params.keyframe_submap_size
+                sub_clouds = ([] if via_prev else sub_clouds[-(n - 1):] if n > 1 else []) + [cur.points]
+                sub_poses = ([] if via_prev else sub_poses[-(n - 1):] if n > 1 else []) + [pose]
                 submap, T_sub = _keyframe_submap(sub_clouds, sub_poses, params), pose
             t_kf += time.perf_counter() - t0
         poses.append(pose)
