@@ -29,7 +29,12 @@ because Open3D and small_gicp compute their covariances inside the call)
   with its default convergence (0.1°, 1 mm, 20 iterations).
 
 Timings are steady-state medians over ``--repeats`` interleaved runs (the machine is shared:
-interleaving gives every library the same load). minegeo's compile / cache-load time is the
+interleaving gives every library the same load). Each timed call is preceded by ``--idle-ms``
+(default 50) of sleep: the three libraries use three different OpenMP runtimes, and a runtime
+keeps its worker threads spinning for a while after a parallel region, so without the gap a call
+runs against the previous library's spinning threads on the same 2 cores (measured at 2 threads:
+small_gicp 19.5 ms right after minegeo, 13.9 ms after the gap; minegeo's default 20.3 vs 15.0 ms).
+The gap measures each library as it runs in an application that uses only it. minegeo's compile / cache-load time is the
 first call in this process and is reported separately. Accuracy: rotation (rad) and
 translation (m) error to the known answer; agreement of ``minegeo_open3d`` with Open3D and of
 ``minegeo`` with small_gicp.
@@ -110,7 +115,7 @@ def tunnel_data(seed: int):
     return np.ascontiguousarray(src), np.ascontiguousarray(tgt), T_map_scan
 
 
-def run_case(name, src, tgt, T_true, starts, d, threads, repeats):
+def run_case(name, src, tgt, T_true, starts, d, threads, repeats, idle_s=0.05):
     import open3d as o3d
     import small_gicp as sg
 
@@ -179,6 +184,7 @@ def run_case(name, src, tgt, T_true, starts, d, threads, repeats):
             fns[v](T0)  # warm (caches, allocators)
         for _ in range(repeats):
             for v in VARIANTS:  # interleaved
+                time.sleep(idle_s)  # the previous library's OpenMP threads stop spinning
                 t0 = time.perf_counter()
                 T, it, fit = fns[v](T0)
                 times[v].append(time.perf_counter() - t0)
@@ -199,6 +205,7 @@ def run_case(name, src, tgt, T_true, starts, d, threads, repeats):
     summary = {
         "minegeo_prange_from_rows_start_end": prange_rows,
         "n_source": len(src), "n_target": len(tgt), "gate_m": d, "starts": len(starts), "repeats": repeats,
+        "idle_before_each_call_s": idle_s,
         "median_s": med,
         "min_s": {v: min(times[v]) for v in VARIANTS},
         "ratio_vs_open3d": {v: med[v] / med["open3d"] for v in VARIANTS},
@@ -217,7 +224,8 @@ def run_case(name, src, tgt, T_true, starts, d, threads, repeats):
 
 def markdown(results: dict, meta: dict) -> str:
     lines = [f"GICP benchmark ({meta['threads']} thread(s), medians of {meta['repeats']} interleaved runs per "
-             f"start; minegeo compile/cache-load {meta['compile_s']:.2f} s, first call, excluded). Load before / "
+             f"start, {meta.get('idle_ms', 0):g} ms idle before each call; minegeo compile/cache-load "
+             f"{meta['compile_s']:.2f} s, first call, excluded). Load before / "
              f"after: `{meta.get('uptime_before', '?')}` / `{meta.get('uptime_after', '?')}` (2 cores shared "
              "with other workers).", ""]
     for case, s in results.items():
@@ -253,6 +261,9 @@ def main(argv=None) -> int:
     ap.add_argument("--starts", type=int, default=5)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--synthetic", action="store_true", help="also run the synthetic tunnel case")
+    ap.add_argument("--idle-ms", type=float, default=50.0,
+                    help="sleep before each timed call so the previous library's OpenMP threads stop spinning "
+                         "(default 50; 0 = back to back)")
     a = ap.parse_args(argv)
 
     import os
@@ -285,15 +296,17 @@ def main(argv=None) -> int:
         src, tgt, T = pair_data()
         results[f"small_gicp_pair_threads{threads}"] = run_case(
             "small_gicp_pair", src, tgt, T, [T @ np.eye(4)] + _starts(T, a.starts - 1, a.seed, 0.5, 10.0),
-            1.0, threads, a.repeats)
+            1.0, threads, a.repeats, a.idle_ms / 1e3)
         if a.synthetic:
             t0 = time.perf_counter()
             src, tgt, T = tunnel_data(a.seed)
             _log(f"synthetic tunnel: scan {len(src)} pts, map crop {len(tgt)} pts ({time.perf_counter() - t0:.1f} s)")
             results[f"synthetic_tunnel_threads{threads}"] = run_case(
-                "synthetic_tunnel", src, tgt, T, _starts(T, a.starts, a.seed + 1, 0.3, 3.0), 1.0, threads, a.repeats)
+                "synthetic_tunnel", src, tgt, T, _starts(T, a.starts, a.seed + 1, 0.3, 3.0), 1.0, threads, a.repeats,
+                a.idle_ms / 1e3)
     threads = ",".join(str(t) for t in run_threads)
     meta = {"threads": threads, "seed": a.seed, "repeats": a.repeats, "starts": a.starts, "compile_s": compile_s,
+            "idle_ms": a.idle_ms,
             "total_s": time.perf_counter() - t_all, "versions": versions(), "uptime_before": uptime_before,
             "uptime_after": os.popen("uptime").read().strip()}
     meta["versions"]["open3d"] = o3d.__version__

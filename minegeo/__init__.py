@@ -37,8 +37,16 @@ _WARMUP_MODULES = (
 )
 
 
-def warmup(verbose: bool = False) -> dict[str, float]:
+def warmup(verbose: bool = False, modules=None) -> dict[str, float]:
     """Compile (or load from cache) every Numba kernel on tiny inputs.
+
+    Parameters
+    ----------
+    verbose : bool
+        Log the time of each subpackage.
+    modules : iterable of str, optional
+        Only these subpackages (names of ``_WARMUP_MODULES``, e.g. ``"minegeo.localize"``), in
+        this order; default all.
 
     Returns
     -------
@@ -47,7 +55,13 @@ def warmup(verbose: bool = False) -> dict[str, float]:
     """
     log = logging.getLogger(__name__)
     out: dict[str, float] = {}
-    for name in _WARMUP_MODULES:
+    names = _WARMUP_MODULES if modules is None else tuple(modules)
+    unknown = [n for n in names if n not in _WARMUP_MODULES]
+    if unknown:
+        from minegeo.errors import InputError
+
+        raise InputError(f"unknown warm-up module(s) {unknown}; choose from {list(_WARMUP_MODULES)}")
+    for name in names:
         t0 = time.perf_counter()
         try:
             mod = importlib.import_module(name)

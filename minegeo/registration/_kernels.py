@@ -471,6 +471,58 @@ def system_from_partials(part):
     return H, tot[21:27].copy(), tot[27]
 
 
+@njit
+def constraint_system_idx(P, si, N, ti):
+    """The inputs of :func:`minegeo.registration.constraint_analysis` on the pairs ``(P[si], N[ti])`` in
+    one pass, without gathering them: ``(H, L)`` with ``H = Σ JᵢᵀJᵢ``, ``Jᵢ = [(pᵢ − c) × nᵢ, nᵢ]``
+    (6x6, chunked as :func:`_p2l_idx_serial`), ``c`` the centroid of the points, ``nᵢ`` the normal
+    scaled to unit length (0 when it is 0) and ``L`` the RMS distance of the points from ``c``
+    (metres; ``k = len(si) >= 1``)."""
+    k = si.shape[0]
+    c0 = 0.0
+    c1 = 0.0
+    c2 = 0.0
+    for i in range(k):
+        a_ = si[i]
+        c0 += P[a_, 0]
+        c1 += P[a_, 1]
+        c2 += P[a_, 2]
+    c0 /= k
+    c1 /= k
+    c2 /= k
+    ss = 0.0
+    for i in range(k):
+        a_ = si[i]
+        x = P[a_, 0] - c0
+        y = P[a_, 1] - c1
+        z = P[a_, 2] - c2
+        ss += x * x + y * y + z * z
+    part = np.zeros((n_chunks(k), 28))
+    J = np.empty(6)
+    for c in range(part.shape[0]):
+        for i in range(c * CHUNK, min(k, (c + 1) * CHUNK)):
+            a_ = si[i]
+            b_ = ti[i]
+            nx = N[b_, 0]
+            ny = N[b_, 1]
+            nz = N[b_, 2]
+            nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+            if nn > 0.0:
+                nx /= nn
+                ny /= nn
+                nz /= nn
+            else:
+                nx = 0.0
+                ny = 0.0
+                nz = 0.0
+            x = P[a_, 0] - c0
+            y = P[a_, 1] - c1
+            z = P[a_, 2] - c2
+            _p2l_add(part, c, J, x, y, z, x, y, z, nx, ny, nz)
+    H, _, _ = system_from_partials(part)
+    return H, np.sqrt(ss / k)
+
+
 def point_to_plane_system_idx(P, Q, N, si, ti):
     """:func:`point_to_plane_system_kernel` on the pairs ``(P[si], Q[ti], N[ti])``."""
     H, g, cost = _p2l_idx_totals(P, Q, N, si, ti)

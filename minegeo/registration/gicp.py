@@ -654,9 +654,12 @@ def _gicp_information(factor: GICPFactor, out, Nt, params: GICPParams):
     if out.matches.corr.shape[0] == 0:
         return info, info_ev, cost, np.zeros(6), np.eye(6), 0.0, "no correspondences"
     si, ti = out.matches.pairs()
-    Ns = np.ascontiguousarray(Nt[ti]) if Nt is not None else KG.min_eigvec_kernel(factor.Ct, ti)
-    return (info, info_ev, cost, *constraint_analysis(np.ascontiguousarray(out.points[si]), Ns,
-                                                       params.degeneracy_ratio_threshold))
+    if Nt is not None:  # the pairs index the clouds directly (nothing gathered)
+        return (info, info_ev, cost, *constraint_analysis(out.points, Nt, params.degeneracy_ratio_threshold,
+                                                           pairs=(si, ti)))
+    Ns = KG.min_eigvec_kernel(factor.Ct, ti)
+    return (info, info_ev, cost, *constraint_analysis(out.points, Ns, params.degeneracy_ratio_threshold,
+                                                       pairs=(si, np.arange(ti.shape[0], dtype=np.int64))))
 
 
 def _gicp_inputs(source_points, target_points, T_init, params, source_covariances, target_covariances,

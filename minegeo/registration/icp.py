@@ -185,7 +185,7 @@ _AXIS_NAMES = ("rotation about x", "rotation about y", "rotation about z",
                "translation along x", "translation along y", "translation along z")
 
 
-def constraint_analysis(points, normals, threshold: float = 1e-2):
+def constraint_analysis(points, normals, threshold: float = 1e-2, pairs=None):
     """Eigen-analysis of the point-to-plane constraint matrix (Gelfand et al. 2003).
 
     Parameters
@@ -196,6 +196,9 @@ def constraint_analysis(points, normals, threshold: float = 1e-2):
         Target normals at the matched target points (unit length).
     threshold : float
         Degeneracy threshold on ``λ_min / λ_max``.
+    pairs : (source indices, target indices), optional
+        Analyse ``points[si]`` with ``normals[ti]`` (``k = len(si)`` pairs) without gathering them
+        (the registrations pass their whole clouds and the pairs); default: row ``i`` with row ``i``.
 
     Returns
     -------
@@ -219,18 +222,17 @@ def constraint_analysis(points, normals, threshold: float = 1e-2):
     in which the surfaces can slide without changing any residual: translation along a
     straight, featureless tunnel, or in-plane motion on a single plane.
     """
-    P = np.asarray(points, dtype=np.float64)
-    N = np.asarray(normals, dtype=np.float64)
-    k = P.shape[0]
+    P = np.ascontiguousarray(points, dtype=np.float64)
+    N = np.ascontiguousarray(normals, dtype=np.float64)
+    if pairs is None:
+        si = ti = np.arange(P.shape[0], dtype=np.int64)
+    else:
+        si, ti = (np.ascontiguousarray(a, dtype=np.int64) for a in pairs)
+    k = si.shape[0]
     if k == 0:
         return np.zeros(6), np.eye(6), 0.0, "no correspondences"
-    nn = np.linalg.norm(N, axis=1, keepdims=True)
-    N = np.where(nn > 0, N / np.where(nn > 0, nn, 1.0), 0.0)
-    c = P.mean(axis=0)
-    Pc = np.ascontiguousarray(P - c)
-    L = float(np.sqrt((Pc * Pc).sum() / k))
-    # Computing H directly at the centred points is the same as M^T H M (exact identity).
-    H, _, _ = K.point_to_plane_system_kernel(Pc, Pc, np.ascontiguousarray(N))
+    # H computed directly at the centred points is M^T H M (an exact identity)
+    H, L = K.constraint_system_idx(P, si, N, ti)
     s = np.array([1.0 / L if L > 0 else 0.0] * 3 + [1.0] * 3)
     C = (H * s[:, None] * s[None, :]) / k
     ev, V = np.linalg.eigh(C)

@@ -38,6 +38,11 @@ def test_the_slam_step_ran_and_wrote_the_map(demo):
     assert rec["slam"]["ate_rmse_m"] < 0.3  # SLAM trajectory against the truth, no alignment
     html = (out / "report.html").read_text()
     assert 'href="slam/report.html"' in html and "sequence" in html
+    # the second process that compiles the mast/localize kernels on a cold cache (else not needed)
+    bc = rec["background_compilation"]
+    assert bc["modules"] == ["minegeo.mast", "minegeo.localize"]
+    assert bc["status"] in ("ok", "not needed (kernels already cached)"), bc
+    assert "background compilation" in html
 
 
 def test_georef_takes_the_slam_map_and_control_points_read_off_it(demo):

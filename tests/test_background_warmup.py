@@ -1,0 +1,114 @@
+"""The demo's background compilation (:mod:`minegeo._background_warmup`): a second process compiles into
+its own cache folder, and only the kernels this process has no cache entry for are copied in, each
+loaded afterwards from the cache (no compilation here) with the same results; a child that fails is
+reported and changes nothing.
+
+The positive cases run in a fresh interpreter with an empty ``NUMBA_CACHE_DIR`` (the test process's
+own cache is warm): one child compiles ``minegeo.mast`` (a few seconds)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from minegeo import _background_warmup as BW
+
+SCRIPT = textwrap.dedent("""
+    import json, os, sys
+    import numpy as np
+    from minegeo import _background_warmup as BW
+    from minegeo.mast import _kernels as K
+
+    out = {}
+    sentinel = (("minegeo.mast._kernels", "_grow_segments"),)
+    segs = np.array([[1.0, -1.0, 1.0, 1.0], [2.0, -1.0, 2.0, 1.0]])
+    dirs = np.array([[1.0, 0.0], [0.0, 1.0]])
+    if sys.argv[1] == "own-first":  # this process compiles one kernel before the child's cache arrives
+        K._cast_rays(np.zeros(2), dirs, segs, 10.0)
+    before = {f: BW.is_cached("minegeo.mast._kernels", f) for f in ("_cast_rays", "_grow_segments")}
+    ipath = K._cast_rays._cache._cache_file._index_path
+    st = os.stat(ipath) if before["_cast_rays"] else None
+    own = (st.st_ino, st.st_mtime_ns) if st else None
+    bg = BW.start(["minegeo.mast"], sentinel)
+    out["started"] = bg is not None
+    rec = bg.merge(timeout_s=300)
+    out["record"] = rec
+    out["folder_removed"] = not bg.folder.exists()
+    out["before"] = before
+    out["after"] = {f: BW.is_cached("minegeo.mast._kernels", f) for f in ("_cast_rays", "_grow_segments")}
+    if own is not None:
+        st = os.stat(ipath)
+        out["own_index_kept"] = (st.st_ino, st.st_mtime_ns) == own  # the very same file, not rewritten
+    xy = np.column_stack([np.linspace(0, 1, 8), np.zeros(8)])
+    se = K._grow_segments(xy, np.full(8, 0.01), np.full(8, 1.0), 3, 2, 3)
+    out["segments"] = np.asarray(se).tolist()
+    out["hits"] = sum(K._grow_segments.stats.cache_hits.values())
+    out["misses"] = sum(K._grow_segments.stats.cache_misses.values())
+    out["again"] = BW.start(["minegeo.mast"], sentinel) is None  # now cached: nothing to do
+    print(json.dumps(out))
+""")
+
+
+def _run(tmp_path, mode: str) -> dict:
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}
+    r = subprocess.run([sys.executable, "-c", SCRIPT, mode], env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.slow
+def test_the_childs_kernels_are_copied_and_loaded_from_the_cache(tmp_path):
+    out = _run(tmp_path, "cold")
+    assert out["started"] and out["record"]["status"] == "ok" and out["folder_removed"]
+    assert out["before"] == {"_cast_rays": False, "_grow_segments": False}
+    assert out["after"] == {"_cast_rays": True, "_grow_segments": True}
+    assert out["record"]["functions_copied"] >= 4  # the four mast kernels
+    # loaded from the copied cache: no compilation in this process
+    assert out["hits"] == 1 and out["misses"] == 0
+    # the same answer as a kernel compiled here
+    import numpy as np
+
+    from minegeo.mast import _kernels as K
+
+    xy = np.column_stack([np.linspace(0, 1, 8), np.zeros(8)])
+    assert out["segments"] == np.asarray(K._grow_segments(xy, np.full(8, 0.01), np.full(8, 1.0), 3, 2, 3)).tolist()
+    assert out["again"]
+
+
+@pytest.mark.slow
+def test_a_kernel_this_process_cached_itself_is_not_overwritten(tmp_path):
+    out = _run(tmp_path, "own-first")
+    assert out["before"] == {"_cast_rays": True, "_grow_segments": False}
+    assert out["own_index_kept"]
+    assert out["after"]["_grow_segments"] and out["hits"] == 1 and out["misses"] == 0
+
+
+def test_a_failing_child_is_reported_and_nothing_is_copied(tmp_path):
+    bg = BW.start(["minegeo.no_such_package"])
+    assert bg is not None
+    rec = bg.merge(timeout_s=120)
+    assert rec["status"].startswith("failed (exit ") and rec["functions_copied"] == 0
+    assert not bg.folder.exists()
+
+
+def test_nothing_starts_when_the_sentinels_are_cached():
+    import numpy as np
+
+    from minegeo.registration import _kernels as K
+
+    K.finite_max_abs(np.zeros((2, 3)))  # compiled or loaded: its index is in this process's cache
+    assert BW.is_cached("minegeo.registration._kernels", "finite_max_abs")
+    assert BW.start(["minegeo.mast"], (("minegeo.registration._kernels", "finite_max_abs"),)) is None
+
+
+def test_warmup_rejects_an_unknown_module():
+    import minegeo
+    from minegeo.errors import InputError
+
+    with pytest.raises(InputError, match="unknown warm-up module"):
+        minegeo.warmup(modules=["minegeo.nope"])
