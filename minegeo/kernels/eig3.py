@@ -7,7 +7,9 @@ Three genuinely different solvers are kept, each because a caller's numbers depe
   covariances).
 * :func:`jacobi_eigh3` -- cyclic Jacobi with the Demmel-Veselic stopping rule (mode "minegeo"
   normals: eigenvalues to high relative accuracy, where the closed form loses digits for thin
-  planes).
+  planes). Its sweeps run on scalars (:func:`jacobi3_sweeps`); :func:`jacobi_min3` (and
+  :func:`jacobi_min3_x2`, two matrices interleaved) return only the smallest eigenvector and the
+  eigenvalues, the same bits, for GICP's covariance kernel.
 * LAPACK ``np.linalg.eigh`` (:func:`pca_normals_eigh_rows`) -- the point-to-plane ICP target
   normals; kept because its eigenvector signs (LAPACK's) enter the ICP results.
 
@@ -21,7 +23,8 @@ import numpy as np
 
 from minegeo._jit import njit
 
-__all__ = ["fast_eigen3x3", "jacobi_eigh3", "pca_normal", "pca_normals_eigh_rows",
+__all__ = ["fast_eigen3x3", "jacobi_eigh3", "jacobi3_sweeps", "jacobi_min3", "jacobi_min3_x2", "pca_normal",
+           "pca_normals_eigh_rows",
            "STATUS_OK", "STATUS_TOO_FEW", "STATUS_COLLINEAR", "STATUS_COINCIDENT"]
 
 
@@ -218,98 +221,203 @@ def fast_eigen3x3(c00, c01, c02, c11, c12, c22, out):
 _EPS = 2.220446049250313e-16
 
 
-@njit
-def jacobi_eigh3(A, V, w):
-    """Cyclic Jacobi eigen-decomposition of the symmetric 3x3 ``A`` (overwritten).
+@njit(inline="always")
+def _jacobi_rot(app, aqq, apq, arp, arq):
+    """One Jacobi rotation zeroing ``a_pq`` (Numerical Recipes 3rd ed., Sec. 11.1,
+    [NumericalRecipes2007 Eqs. 11.1.8-11.1.18]): ``(c, s, new a_rp, new a_rq, new a_pp, new a_qq)``."""
+    theta = (aqq - app) / (2.0 * apq)
+    if abs(theta) > 1e150:
+        t = 0.5 / theta
+    else:
+        t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
+        if theta < 0.0:
+            t = -t
+    c = 1.0 / np.sqrt(t * t + 1.0)
+    s = t * c
+    return c, s, c * arp - s * arq, s * arp + c * arq, app - t * apq, aqq + t * apq
 
-    On return ``w`` holds the eigenvalues ascending and the columns of ``V`` the matching
-    orthonormal eigenvectors. A rotation (p, q) is applied while
-    ``|a_pq| > eps * sqrt(|a_pp a_qq|)`` (Demmel-Veselic stopping rule, which gives
-    eigenvalues to high relative accuracy); the sweep loop ends when no rotation was
-    needed (at most 50 sweeps; 3x3 matrices converge in a handful).
-    Rotation formulas: Numerical Recipes 3rd ed., Sec. 11.1, [NumericalRecipes2007 Eqs. 11.1.8-11.1.18].
-    """
-    for i in range(3):
-        for j in range(3):
-            V[i, j] = 1.0 if i == j else 0.0
-    for _sweep in range(50):
-        rotated = False
-        for k in range(3):
-            if k == 0:
-                p = 0
-                q = 1
-                r = 2
-            elif k == 1:
-                p = 0
-                q = 2
-                r = 1
-            else:
-                p = 1
-                q = 2
-                r = 0
-            apq = A[p, q]
-            if apq == 0.0:
-                continue
-            app = A[p, p]
-            aqq = A[q, q]
-            if abs(apq) <= _EPS * np.sqrt(abs(app * aqq)):
-                A[p, q] = 0.0
-                A[q, p] = 0.0
-                continue
-            rotated = True
-            theta = (aqq - app) / (2.0 * apq)
-            if abs(theta) > 1e150:
-                t = 0.5 / theta
-            else:
-                t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
-                if theta < 0.0:
-                    t = -t
-            c = 1.0 / np.sqrt(t * t + 1.0)
-            s = t * c
-            arp = A[r, p]
-            arq = A[r, q]
-            A[r, p] = c * arp - s * arq
-            A[p, r] = A[r, p]
-            A[r, q] = s * arp + c * arq
-            A[q, r] = A[r, q]
-            A[p, p] = app - t * apq
-            A[q, q] = aqq + t * apq
-            A[p, q] = 0.0
-            A[q, p] = 0.0
-            for m in range(3):
-                vmp = V[m, p]
-                vmq = V[m, q]
-                V[m, p] = c * vmp - s * vmq
-                V[m, q] = s * vmp + c * vmq
-        if not rotated:
-            break
-    # sort ascending, permuting the eigenvector columns along
+
+
+@njit(inline="always")
+def _jac01(st):
+    """Rotation (p, q, r) = (0, 1, 2) of a sweep on the scalars ``st = (a00, a01, a02, a11, a12, a22,
+    v00, .., v22)``, skipped when ``a01`` is 0 or below the Demmel-Veselic test (then set to 0):
+    ``(rotated, a.., v..)``."""
+    a00, a01, a02, a11, a12, a22, v00, v01, v02, v10, v11, v12, v20, v21, v22 = st
+    rot = False
+    if a01 != 0.0:
+        if abs(a01) <= _EPS * np.sqrt(abs(a00 * a11)):
+            a01 = 0.0
+        else:
+            rot = True
+            c, s, a02, a12, a00, a11 = _jacobi_rot(a00, a11, a01, a02, a12)
+            a01 = 0.0
+            v00, v01 = c * v00 - s * v01, s * v00 + c * v01
+            v10, v11 = c * v10 - s * v11, s * v10 + c * v11
+            v20, v21 = c * v20 - s * v21, s * v20 + c * v21
+    return rot, a00, a01, a02, a11, a12, a22, v00, v01, v02, v10, v11, v12, v20, v21, v22
+
+
+@njit(inline="always")
+def _jac02(st):
+    """Rotation (0, 2, 1) of a sweep (as :func:`_jac01`)."""
+    a00, a01, a02, a11, a12, a22, v00, v01, v02, v10, v11, v12, v20, v21, v22 = st
+    rot = False
+    if a02 != 0.0:
+        if abs(a02) <= _EPS * np.sqrt(abs(a00 * a22)):
+            a02 = 0.0
+        else:
+            rot = True
+            c, s, a01, a12, a00, a22 = _jacobi_rot(a00, a22, a02, a01, a12)
+            a02 = 0.0
+            v00, v02 = c * v00 - s * v02, s * v00 + c * v02
+            v10, v12 = c * v10 - s * v12, s * v10 + c * v12
+            v20, v22 = c * v20 - s * v22, s * v20 + c * v22
+    return rot, a00, a01, a02, a11, a12, a22, v00, v01, v02, v10, v11, v12, v20, v21, v22
+
+
+@njit(inline="always")
+def _jac12(st):
+    """Rotation (1, 2, 0) of a sweep (as :func:`_jac01`)."""
+    a00, a01, a02, a11, a12, a22, v00, v01, v02, v10, v11, v12, v20, v21, v22 = st
+    rot = False
+    if a12 != 0.0:
+        if abs(a12) <= _EPS * np.sqrt(abs(a11 * a22)):
+            a12 = 0.0
+        else:
+            rot = True
+            c, s, a01, a02, a11, a22 = _jacobi_rot(a11, a22, a12, a01, a02)
+            a12 = 0.0
+            v01, v02 = c * v01 - s * v02, s * v01 + c * v02
+            v11, v12 = c * v11 - s * v12, s * v11 + c * v12
+            v21, v22 = c * v21 - s * v22, s * v21 + c * v22
+    return rot, a00, a01, a02, a11, a12, a22, v00, v01, v02, v10, v11, v12, v20, v21, v22
+
+
+@njit(inline="always")
+def _jac_result(a00, a11, a22, v00, v01, v02, v10, v11, v12, v20, v21, v22):
+    """The ascending sort of :func:`jacobi_eigh3` (strict comparisons): ``(eigenvector of the smallest
+    eigenvalue, the eigenvalues ascending)``."""
+    d = (a00, a11, a22)
     i0 = 0
     i1 = 1
     i2 = 2
-    if A[i0, i0] > A[i1, i1]:
+    if d[i0] > d[i1]:
         i0, i1 = i1, i0
-    if A[i1, i1] > A[i2, i2]:
+    if d[i1] > d[i2]:
         i1, i2 = i2, i1
-    if A[i0, i0] > A[i1, i1]:
+    if d[i0] > d[i1]:
         i0, i1 = i1, i0
-    d0 = A[i0, i0]
-    d1 = A[i1, i1]
-    d2 = A[i2, i2]
+    if i0 == 0:
+        return v00, v10, v20, d[i0], d[i1], d[i2]
+    if i0 == 1:
+        return v01, v11, v21, d[i0], d[i1], d[i2]
+    return v02, v12, v22, d[i0], d[i1], d[i2]
+
+
+@njit
+def jacobi3_sweeps(a00, a01, a02, a11, a12, a22):
+    """Cyclic Jacobi sweeps of the symmetric 3x3 with upper triangle ``a00 .. a22`` (rotations
+    (0,1), (0,2), (1,2); a sweep without a rotation ends it, at most 50): the final
+    ``(a00, a01, a02, a11, a12, a22, v00, v01, v02, v10, .., v22)``, diagonal = eigenvalues
+    (unsorted), ``V`` (row-major) = the eigenvectors in columns."""
+    a = (a00, a01, a02, a11, a12, a22, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    for _sweep in range(50):
+        s = _jac01(a)
+        r = s[0]
+        a = s[1:]
+        s = _jac02(a)
+        r = r or s[0]
+        a = s[1:]
+        s = _jac12(a)
+        r = r or s[0]
+        a = s[1:]
+        if not r:
+            break
+    return a
+
+
+@njit
+def jacobi_min3(a00, a01, a02, a11, a12, a22):
+    """:func:`jacobi_eigh3` on scalars (the same sweeps and sort, :func:`jacobi3_sweeps`):
+    ``(eigenvector of the smallest eigenvalue, the three eigenvalues ascending)``."""
+    a = jacobi3_sweeps(a00, a01, a02, a11, a12, a22)
+    return _jac_result(a[0], a[3], a[5], a[6], a[7], a[8], a[9], a[10], a[11], a[12], a[13], a[14])
+
+
+@njit
+def jacobi_min3_x2(A, B):
+    """:func:`jacobi_min3` of two matrices (6-tuples ``a00, a01, a02, a11, a12, a22``) with their
+    rotations interleaved, so that the two chains of divisions and square roots overlap; each matrix
+    goes through exactly its own sweeps (same bits as one at a time)."""
+    a = (A[0], A[1], A[2], A[3], A[4], A[5], 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    b = (B[0], B[1], B[2], B[3], B[4], B[5], 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    da = False
+    db = False
+    for _sweep in range(50):
+        ra = False
+        rb = False
+        if not da:
+            s = _jac01(a)
+            ra = ra or s[0]
+            a = s[1:]
+        if not db:
+            s = _jac01(b)
+            rb = rb or s[0]
+            b = s[1:]
+        if not da:
+            s = _jac02(a)
+            ra = ra or s[0]
+            a = s[1:]
+        if not db:
+            s = _jac02(b)
+            rb = rb or s[0]
+            b = s[1:]
+        if not da:
+            s = _jac12(a)
+            ra = ra or s[0]
+            a = s[1:]
+        if not db:
+            s = _jac12(b)
+            rb = rb or s[0]
+            b = s[1:]
+        da = da or not ra
+        db = db or not rb
+        if da and db:
+            break
+    return (_jac_result(a[0], a[3], a[5], a[6], a[7], a[8], a[9], a[10], a[11], a[12], a[13], a[14]),
+            _jac_result(b[0], b[3], b[5], b[6], b[7], b[8], b[9], b[10], b[11], b[12], b[13], b[14]))
+
+
+@njit
+def jacobi_eigh3(A, V, w):
+    """Cyclic Jacobi eigen-decomposition of the symmetric 3x3 ``A`` (its upper triangle is read).
+
+    On return ``w`` holds the eigenvalues ascending and the columns of ``V`` the matching
+    orthonormal eigenvectors; ``A`` is not modified. A rotation (p, q) is applied while
+    ``|a_pq| > eps * sqrt(|a_pp a_qq|)`` (Demmel-Veselic stopping rule, which gives
+    eigenvalues to high relative accuracy); the sweep loop ends when no rotation was
+    needed (at most 50 sweeps; 3x3 matrices converge in a handful): :func:`jacobi3_sweeps`.
+    Rotation formulas: Numerical Recipes 3rd ed., Sec. 11.1, [NumericalRecipes2007 Eqs. 11.1.8-11.1.18].
+    """
+    a = jacobi3_sweeps(A[0, 0], A[0, 1], A[0, 2], A[1, 1], A[1, 2], A[2, 2])
+    d = (a[0], a[3], a[5])
+    i0 = 0
+    i1 = 1
+    i2 = 2
+    if d[i0] > d[i1]:  # sort ascending, permuting the eigenvector columns along
+        i0, i1 = i1, i0
+    if d[i1] > d[i2]:
+        i1, i2 = i2, i1
+    if d[i0] > d[i1]:
+        i0, i1 = i1, i0
     for m in range(3):
-        t0 = V[m, i0]
-        t1 = V[m, i1]
-        t2 = V[m, i2]
-        A[m, 0] = t0  # reuse A as scratch for the permuted columns
-        A[m, 1] = t1
-        A[m, 2] = t2
-    for m in range(3):
-        V[m, 0] = A[m, 0]
-        V[m, 1] = A[m, 1]
-        V[m, 2] = A[m, 2]
-    w[0] = d0
-    w[1] = d1
-    w[2] = d2
+        V[m, 0] = a[6 + 3 * m + i0]
+        V[m, 1] = a[6 + 3 * m + i1]
+        V[m, 2] = a[6 + 3 * m + i2]
+    w[0] = d[i0]
+    w[1] = d[i1]
+    w[2] = d[i2]
 
 
 # ---------------------------------------------------------------------------------------

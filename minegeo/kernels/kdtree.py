@@ -25,7 +25,7 @@ from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, QUERY_TASK_ROWS, 
 
 __all__ = ["KD_LEAF", "kd_build", "kd_walk_to_leaf", "kd_nn_descend", "kd_nn2_descend", "kd_nn_rows", "kd_nn_serial",
            "kd_nn_parallel", "kd_nn_warm_rows", "kd_nn_warm_serial", "kd_nn_warm_parallel", "kd_knn_one",
-           "kd_knn", "kd_radius_one", "kd_radius_count", "GatedKDTree"]
+           "kd_knn", "kd_radius_one", "kd_radius_count", "kd_boxes", "kd_knn_leaf_batch", "GatedKDTree"]
 
 #: Maximum number of points in a KD-tree leaf.
 KD_LEAF = 12
@@ -566,3 +566,155 @@ def kd_radius_count(P, tree, radius):
     if P.shape[0] > 0:
         _kd_radius_count_parallel(P, *tree, float(radius) ** 2, counts)
     return counts
+
+
+# ----------------------------------------------------------------------------- batched kNN of a leaf's points
+
+
+@njit
+def kd_boxes(Qs, start, end, dim, left, right):
+    """``(box (nodes, 6), leaf_at (m,))`` of a :func:`kd_build` tree: the exact
+    bounding box (lo x, y, z, hi x, y, z) of every node's points, and the leaf holding each position
+    of ``Qs`` (children are numbered after their parent, so one reverse pass gives every box)."""
+    nn = start.shape[0]
+    box = np.empty((nn, 6))
+    leaf_at = np.empty(Qs.shape[0], np.int64)
+    for nd in range(nn - 1, -1, -1):
+        if dim[nd] < 0:
+            l0 = l1 = l2 = np.inf
+            h0 = h1 = h2 = -np.inf
+            for a in range(start[nd], end[nd]):
+                leaf_at[a] = nd
+                x = Qs[a, 0]
+                y = Qs[a, 1]
+                z = Qs[a, 2]
+                l0 = min(l0, x)
+                l1 = min(l1, y)
+                l2 = min(l2, z)
+                h0 = max(h0, x)
+                h1 = max(h1, y)
+                h2 = max(h2, z)
+            box[nd, 0] = l0
+            box[nd, 1] = l1
+            box[nd, 2] = l2
+            box[nd, 3] = h0
+            box[nd, 4] = h1
+            box[nd, 5] = h2
+        else:
+            a = left[nd]
+            b = right[nd]
+            for c in range(3):
+                box[nd, c] = min(box[a, c], box[b, c])
+                box[nd, 3 + c] = max(box[a, 3 + c], box[b, 3 + c])
+    return box, leaf_at
+
+
+@njit
+def _box_gap2(box, nd, l0, l1, l2, h0, h1, h2):
+    """Squared gap between node ``nd``'s box and the box ``(l, h)``, summed as ``_sq_to`` sums: a lower
+    bound of the ``sq`` of any pair of points of the two boxes *in floating point* (each gap is a
+    rounded difference no larger than the pair's, and sums and products of non-negative numbers are
+    monotone), so pruning on it is exact."""
+    g0 = 0.0
+    g1 = 0.0
+    g2 = 0.0
+    t = box[nd, 0] - h0
+    if t > 0.0:
+        g0 = t
+    t = l0 - box[nd, 3]
+    if t > 0.0:
+        g0 = t
+    t = box[nd, 1] - h1
+    if t > 0.0:
+        g1 = t
+    t = l1 - box[nd, 4]
+    if t > 0.0:
+        g1 = t
+    t = box[nd, 2] - h2
+    if t > 0.0:
+        g2 = t
+    t = l2 - box[nd, 5]
+    if t > 0.0:
+        g2 = t
+    return g0 * g0 + g1 * g1 + g2 * g2
+
+
+@njit
+def kd_knn_leaf_batch(Qs, idx, start, end, dim, left, right, k, box, L, a0, nq, bi, bs, cnt, wq, st_node, st_lb):
+    """The exact ``k`` nearest points (sorted by ``(sq, index)``, the answer of
+    :func:`kd_knn_one`) of the ``nq`` points at positions ``a0 ..`` of leaf ``L``,
+    with one traversal of the tree for all of them: a node is visited while its box is within the
+    largest current k-th distance of the batch from the leaf's box, a leaf is scanned for a query
+    while its box is within that query's k-th distance, and a point enters a query's sorted buffer
+    (``bi[q]``, ``bs[q]``; ``cnt[q]`` entries) as in ``kd_knn_one`` (ties: the lower index wins).
+    Every bound is a floating-point lower bound of the pair distances, so the visiting order changes
+    the work only, never the answer."""
+    l0 = box[L, 0]
+    l1 = box[L, 1]
+    l2 = box[L, 2]
+    h0 = box[L, 3]
+    h1 = box[L, 4]
+    h2 = box[L, 5]
+    for q in range(nq):
+        cnt[q] = 0
+        wq[q] = np.inf
+    W = np.inf
+    st_node[0] = 0
+    st_lb[0] = 0.0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        if st_lb[sp] > W:
+            continue
+        nd = st_node[sp]
+        if dim[nd] >= 0:  # push the farther child first: the nearer is scanned first
+            a = left[nd]
+            b = right[nd]
+            ga = _box_gap2(box, a, l0, l1, l2, h0, h1, h2)
+            gb = _box_gap2(box, b, l0, l1, l2, h0, h1, h2)
+            if ga > gb:
+                a, b = b, a
+                ga, gb = gb, ga
+            if gb <= W:
+                st_node[sp] = b
+                st_lb[sp] = gb
+                sp += 1
+            if ga <= W:
+                st_node[sp] = a
+                st_lb[sp] = ga
+                sp += 1
+            continue
+        for q in range(nq):
+            px = Qs[a0 + q, 0]
+            py = Qs[a0 + q, 1]
+            pz = Qs[a0 + q, 2]
+            worst = wq[q]
+            if _box_gap2(box, nd, px, py, pz, px, py, pz) > worst:
+                continue
+            c = cnt[q]
+            for a in range(start[nd], end[nd]):
+                dx = px - Qs[a, 0]
+                dy = py - Qs[a, 1]
+                dz = pz - Qs[a, 2]
+                sq = dx * dx + dy * dy + dz * dz
+                if sq > worst:
+                    continue
+                j = idx[a]
+                if c == k and sq == worst and j > bi[q, k - 1]:
+                    continue
+                pos = c if c < k else k - 1  # insertion into the sorted buffer
+                while pos > 0 and (bs[q, pos - 1] > sq or (bs[q, pos - 1] == sq and bi[q, pos - 1] > j)):
+                    bs[q, pos] = bs[q, pos - 1]
+                    bi[q, pos] = bi[q, pos - 1]
+                    pos -= 1
+                bs[q, pos] = sq
+                bi[q, pos] = j
+                if c < k:
+                    c += 1
+                if c == k:
+                    worst = bs[q, k - 1]
+            cnt[q] = c
+            wq[q] = worst
+        W = 0.0
+        for q in range(nq):
+            W = max(W, wq[q])

@@ -18,17 +18,20 @@ import numpy as np
 from minegeo._jit import njit, njit_parallel, prange
 from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, n_chunks
 from minegeo.kernels.eig3 import (
-    _EPS,
     STATUS_COINCIDENT,
     STATUS_COLLINEAR,
     STATUS_OK,
     STATUS_TOO_FEW,
     fast_eigen3x3,
+    jacobi_min3,
+    jacobi_min3_x2,
     pca_normal,
 )
 from minegeo.kernels.kdtree import (
     _sq_to,
+    kd_boxes,
     kd_build,
+    kd_knn_leaf_batch,
     kd_nn2_descend,
     kd_nn_descend,
     kd_nn_warm_parallel,
@@ -40,6 +43,7 @@ from minegeo.registration._kernels import (
     _transform_serial,
     system_from_partials,
 )
+from minegeo.registration._kernels_loop import match_stats
 
 #: Below this many pairs (or search queries) the serial driver is used. Measured on the shared
 #: 2-core machine under load (load average ~9): for 10^4 pairs the prange drivers made a whole
@@ -148,313 +152,6 @@ def plane_covariances_kernel(N, isotropic, eps, rodrigues):
 KNN_BATCH = 16
 
 
-@njit
-def _tree_aux(Qs, start, end, dim, left, right):
-    """``(box (nodes, 6), leaf_at (m,))`` of a :func:`~minegeo.kernels.kdtree.kd_build` tree: the exact
-    bounding box (lo x, y, z, hi x, y, z) of every node's points, and the leaf holding each position
-    of ``Qs`` (children are numbered after their parent, so one reverse pass gives every box)."""
-    nn = start.shape[0]
-    box = np.empty((nn, 6))
-    leaf_at = np.empty(Qs.shape[0], np.int64)
-    for nd in range(nn - 1, -1, -1):
-        if dim[nd] < 0:
-            l0 = l1 = l2 = np.inf
-            h0 = h1 = h2 = -np.inf
-            for a in range(start[nd], end[nd]):
-                leaf_at[a] = nd
-                x = Qs[a, 0]
-                y = Qs[a, 1]
-                z = Qs[a, 2]
-                l0 = min(l0, x)
-                l1 = min(l1, y)
-                l2 = min(l2, z)
-                h0 = max(h0, x)
-                h1 = max(h1, y)
-                h2 = max(h2, z)
-            box[nd, 0] = l0
-            box[nd, 1] = l1
-            box[nd, 2] = l2
-            box[nd, 3] = h0
-            box[nd, 4] = h1
-            box[nd, 5] = h2
-        else:
-            a = left[nd]
-            b = right[nd]
-            for c in range(3):
-                box[nd, c] = min(box[a, c], box[b, c])
-                box[nd, 3 + c] = max(box[a, 3 + c], box[b, 3 + c])
-    return box, leaf_at
-
-
-@njit
-def _box_gap2(box, nd, l0, l1, l2, h0, h1, h2):
-    """Squared gap between node ``nd``'s box and the box ``(l, h)``, summed as ``_sq_to`` sums: a lower
-    bound of the ``sq`` of any pair of points of the two boxes *in floating point* (each gap is a
-    rounded difference no larger than the pair's, and sums and products of non-negative numbers are
-    monotone), so pruning on it is exact."""
-    g0 = 0.0
-    g1 = 0.0
-    g2 = 0.0
-    t = box[nd, 0] - h0
-    if t > 0.0:
-        g0 = t
-    t = l0 - box[nd, 3]
-    if t > 0.0:
-        g0 = t
-    t = box[nd, 1] - h1
-    if t > 0.0:
-        g1 = t
-    t = l1 - box[nd, 4]
-    if t > 0.0:
-        g1 = t
-    t = box[nd, 2] - h2
-    if t > 0.0:
-        g2 = t
-    t = l2 - box[nd, 5]
-    if t > 0.0:
-        g2 = t
-    return g0 * g0 + g1 * g1 + g2 * g2
-
-
-@njit
-def _knn_batch(Qs, idx, start, end, dim, left, right, k, box, L, a0, nq, bi, bs, cnt, wq, st_node, st_lb):
-    """The exact ``k`` nearest points (sorted by ``(sq, index)``, the answer of
-    :func:`~minegeo.kernels.kdtree.kd_knn_one`) of the ``nq`` points at positions ``a0 ..`` of leaf ``L``,
-    with one traversal of the tree for all of them: a node is visited while its box is within the
-    largest current k-th distance of the batch from the leaf's box, a leaf is scanned for a query
-    while its box is within that query's k-th distance, and a point enters a query's sorted buffer
-    (``bi[q]``, ``bs[q]``; ``cnt[q]`` entries) as in ``kd_knn_one`` (ties: the lower index wins).
-    Every bound is a floating-point lower bound of the pair distances, so the visiting order changes
-    the work only, never the answer."""
-    l0 = box[L, 0]
-    l1 = box[L, 1]
-    l2 = box[L, 2]
-    h0 = box[L, 3]
-    h1 = box[L, 4]
-    h2 = box[L, 5]
-    for q in range(nq):
-        cnt[q] = 0
-        wq[q] = np.inf
-    W = np.inf
-    st_node[0] = 0
-    st_lb[0] = 0.0
-    sp = 1
-    while sp > 0:
-        sp -= 1
-        if st_lb[sp] > W:
-            continue
-        nd = st_node[sp]
-        if dim[nd] >= 0:  # push the farther child first: the nearer is scanned first
-            a = left[nd]
-            b = right[nd]
-            ga = _box_gap2(box, a, l0, l1, l2, h0, h1, h2)
-            gb = _box_gap2(box, b, l0, l1, l2, h0, h1, h2)
-            if ga > gb:
-                a, b = b, a
-                ga, gb = gb, ga
-            if gb <= W:
-                st_node[sp] = b
-                st_lb[sp] = gb
-                sp += 1
-            if ga <= W:
-                st_node[sp] = a
-                st_lb[sp] = ga
-                sp += 1
-            continue
-        for q in range(nq):
-            px = Qs[a0 + q, 0]
-            py = Qs[a0 + q, 1]
-            pz = Qs[a0 + q, 2]
-            worst = wq[q]
-            if _box_gap2(box, nd, px, py, pz, px, py, pz) > worst:
-                continue
-            c = cnt[q]
-            for a in range(start[nd], end[nd]):
-                dx = px - Qs[a, 0]
-                dy = py - Qs[a, 1]
-                dz = pz - Qs[a, 2]
-                sq = dx * dx + dy * dy + dz * dz
-                if sq > worst:
-                    continue
-                j = idx[a]
-                if c == k and sq == worst and j > bi[q, k - 1]:
-                    continue
-                pos = c if c < k else k - 1  # insertion into the sorted buffer
-                while pos > 0 and (bs[q, pos - 1] > sq or (bs[q, pos - 1] == sq and bi[q, pos - 1] > j)):
-                    bs[q, pos] = bs[q, pos - 1]
-                    bi[q, pos] = bi[q, pos - 1]
-                    pos -= 1
-                bs[q, pos] = sq
-                bi[q, pos] = j
-                if c < k:
-                    c += 1
-                if c == k:
-                    worst = bs[q, k - 1]
-            cnt[q] = c
-            wq[q] = worst
-        W = 0.0
-        for q in range(nq):
-            W = max(W, wq[q])
-
-
-@njit(inline="always")
-def _jacobi_rot(app, aqq, apq, arp, arq):
-    """One rotation of :func:`minegeo.kernels.eig3.jacobi_eigh3` (the same operations): ``(c, s, new
-    a_rp, new a_rq, new a_pp, new a_qq)``."""
-    theta = (aqq - app) / (2.0 * apq)
-    if abs(theta) > 1e150:
-        t = 0.5 / theta
-    else:
-        t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
-        if theta < 0.0:
-            t = -t
-    c = 1.0 / np.sqrt(t * t + 1.0)
-    s = t * c
-    return c, s, c * arp - s * arq, s * arp + c * arq, app - t * apq, aqq + t * apq
-
-
-
-@njit(inline="always")
-def _jac01(st):
-    """Rotation (p, q, r) = (0, 1, 2) of :func:`minegeo.kernels.eig3.jacobi_eigh3` on the scalars
-    ``st = (a00, a01, a02, a11, a12, a22, v00, .., v22)``: ``(rotated, a.., v..)``."""
-    a00, a01, a02, a11, a12, a22, v00, v01, v02, v10, v11, v12, v20, v21, v22 = st
-    rot = False
-    if a01 != 0.0:
-        if abs(a01) <= _EPS * np.sqrt(abs(a00 * a11)):
-            a01 = 0.0
-        else:
-            rot = True
-            c, s, a02, a12, a00, a11 = _jacobi_rot(a00, a11, a01, a02, a12)
-            a01 = 0.0
-            v00, v01 = c * v00 - s * v01, s * v00 + c * v01
-            v10, v11 = c * v10 - s * v11, s * v10 + c * v11
-            v20, v21 = c * v20 - s * v21, s * v20 + c * v21
-    return rot, a00, a01, a02, a11, a12, a22, v00, v01, v02, v10, v11, v12, v20, v21, v22
-
-
-@njit(inline="always")
-def _jac02(st):
-    """Rotation (0, 2, 1) of ``jacobi_eigh3`` on scalars."""
-    a00, a01, a02, a11, a12, a22, v00, v01, v02, v10, v11, v12, v20, v21, v22 = st
-    rot = False
-    if a02 != 0.0:
-        if abs(a02) <= _EPS * np.sqrt(abs(a00 * a22)):
-            a02 = 0.0
-        else:
-            rot = True
-            c, s, a01, a12, a00, a22 = _jacobi_rot(a00, a22, a02, a01, a12)
-            a02 = 0.0
-            v00, v02 = c * v00 - s * v02, s * v00 + c * v02
-            v10, v12 = c * v10 - s * v12, s * v10 + c * v12
-            v20, v22 = c * v20 - s * v22, s * v20 + c * v22
-    return rot, a00, a01, a02, a11, a12, a22, v00, v01, v02, v10, v11, v12, v20, v21, v22
-
-
-@njit(inline="always")
-def _jac12(st):
-    """Rotation (1, 2, 0) of ``jacobi_eigh3`` on scalars."""
-    a00, a01, a02, a11, a12, a22, v00, v01, v02, v10, v11, v12, v20, v21, v22 = st
-    rot = False
-    if a12 != 0.0:
-        if abs(a12) <= _EPS * np.sqrt(abs(a11 * a22)):
-            a12 = 0.0
-        else:
-            rot = True
-            c, s, a01, a02, a11, a22 = _jacobi_rot(a11, a22, a12, a01, a02)
-            a12 = 0.0
-            v01, v02 = c * v01 - s * v02, s * v01 + c * v02
-            v11, v12 = c * v11 - s * v12, s * v11 + c * v12
-            v21, v22 = c * v21 - s * v22, s * v21 + c * v22
-    return rot, a00, a01, a02, a11, a12, a22, v00, v01, v02, v10, v11, v12, v20, v21, v22
-
-
-@njit(inline="always")
-def _jac_result(a00, a11, a22, v00, v01, v02, v10, v11, v12, v20, v21, v22):
-    """``jacobi_eigh3``'s ascending sort (strict comparisons, same permutations): ``(eigenvector of the
-    smallest eigenvalue, the eigenvalues ascending)``."""
-    d = (a00, a11, a22)
-    i0 = 0
-    i1 = 1
-    i2 = 2
-    if d[i0] > d[i1]:
-        i0, i1 = i1, i0
-    if d[i1] > d[i2]:
-        i1, i2 = i2, i1
-    if d[i0] > d[i1]:
-        i0, i1 = i1, i0
-    if i0 == 0:
-        return v00, v10, v20, d[i0], d[i1], d[i2]
-    if i0 == 1:
-        return v01, v11, v21, d[i0], d[i1], d[i2]
-    return v02, v12, v22, d[i0], d[i1], d[i2]
-
-
-@njit
-def _jacobi_min3(a00, a01, a02, a11, a12, a22):
-    """:func:`minegeo.kernels.eig3.jacobi_eigh3` on scalars, bit for bit (same rotations, same
-    Demmel-Veselic test, same sweeps and sort): ``(eigenvector of the smallest eigenvalue, the three
-    eigenvalues ascending)``."""
-    a = (a00, a01, a02, a11, a12, a22, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
-    for _sweep in range(50):
-        s = _jac01(a)
-        r = s[0]
-        a = s[1:]
-        s = _jac02(a)
-        r = r or s[0]
-        a = s[1:]
-        s = _jac12(a)
-        r = r or s[0]
-        a = s[1:]
-        if not r:
-            break
-    return _jac_result(a[0], a[3], a[5], a[6], a[7], a[8], a[9], a[10], a[11], a[12], a[13], a[14])
-
-
-@njit
-def _jacobi_min3_x2(A, B):
-    """:func:`_jacobi_min3` of two matrices (6-tuples ``a00, a01, a02, a11, a12, a22``) with their
-    rotations interleaved, so that the two chains of divisions and square roots overlap; each matrix
-    goes through exactly its own sweeps (same bits as one at a time)."""
-    a = (A[0], A[1], A[2], A[3], A[4], A[5], 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
-    b = (B[0], B[1], B[2], B[3], B[4], B[5], 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
-    da = False
-    db = False
-    for _sweep in range(50):
-        ra = False
-        rb = False
-        if not da:
-            s = _jac01(a)
-            ra = ra or s[0]
-            a = s[1:]
-        if not db:
-            s = _jac01(b)
-            rb = rb or s[0]
-            b = s[1:]
-        if not da:
-            s = _jac02(a)
-            ra = ra or s[0]
-            a = s[1:]
-        if not db:
-            s = _jac02(b)
-            rb = rb or s[0]
-            b = s[1:]
-        if not da:
-            s = _jac12(a)
-            ra = ra or s[0]
-            a = s[1:]
-        if not db:
-            s = _jac12(b)
-            rb = rb or s[0]
-            b = s[1:]
-        da = da or not ra
-        db = db or not rb
-        if da and db:
-            break
-    return (_jac_result(a[0], a[3], a[5], a[6], a[7], a[8], a[9], a[10], a[11], a[12], a[13], a[14]),
-            _jac_result(b[0], b[3], b[5], b[6], b[7], b[8], b[9], b[10], b[11], b[12], b[13], b[14]))
-
-
 @njit(inline="always")
 def _centred_cov(points, nbr, cnt, qi):
     """The neighbourhood covariance of :func:`minegeo.kernels.eig3.pca_normal` (mode "minegeo", ``cnt >= 3``):
@@ -498,7 +195,7 @@ def _centred_cov(points, nbr, cnt, qi):
 @njit(inline="always")
 def _normal_out(e, qi, ratio, out_n, out_eval, out_status):
     """Row ``qi`` of the outputs of :func:`minegeo.kernels.eig3.pca_normal` (mode "minegeo") from
-    ``e`` = :func:`_jacobi_min3`'s answer: unit normal, eigenvalues, status."""
+    ``e`` = :func:`minegeo.kernels.eig3.jacobi_min3`'s answer: unit normal, eigenvalues, status."""
     n0, n1, n2, l0, l1, l2 = e
     nn = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
     n0 /= nn
@@ -525,7 +222,7 @@ def _normal_out(e, qi, ratio, out_n, out_eval, out_status):
 def _pca_normal_minegeo(points, nbr, cnt, qi, ratio, out_n, out_eval, out_status):
     """:func:`minegeo.kernels.eig3.pca_normal` with ``mode_open3d=False`` (two-pass covariance centred
     on the query point, cyclic Jacobi), bit for bit, with the eigen-solve on scalars
-    (:func:`_jacobi_min3`) instead of 3x3 arrays; output row ``qi``."""
+    (:func:`minegeo.kernels.eig3.jacobi_min3`) instead of 3x3 arrays; output row ``qi``."""
     if cnt < 3:
         out_n[qi, 0] = 0.0
         out_n[qi, 1] = 0.0
@@ -536,18 +233,18 @@ def _pca_normal_minegeo(points, nbr, cnt, qi, ratio, out_n, out_eval, out_status
         out_status[qi] = STATUS_TOO_FEW
         return
     c = _centred_cov(points, nbr, cnt, qi)
-    _normal_out(_jacobi_min3(c[0], c[1], c[2], c[3], c[4], c[5]), qi, ratio, out_n, out_eval, out_status)
+    _normal_out(jacobi_min3(c[0], c[1], c[2], c[3], c[4], c[5]), qi, ratio, out_n, out_eval, out_status)
 
 
 @njit
 def _pca_normal_minegeo_x2(points, nbr_a, cnt_a, qa, nbr_b, cnt_b, qb, ratio, out_n, out_eval, out_status):
     """:func:`_pca_normal_minegeo` of two points, their eigen-solves interleaved
-    (:func:`_jacobi_min3_x2`; the same bits)."""
+    (:func:`minegeo.kernels.eig3.jacobi_min3_x2`; the same bits)."""
     if cnt_a < 3 or cnt_b < 3:
         _pca_normal_minegeo(points, nbr_a, cnt_a, qa, ratio, out_n, out_eval, out_status)
         _pca_normal_minegeo(points, nbr_b, cnt_b, qb, ratio, out_n, out_eval, out_status)
         return
-    ea, eb = _jacobi_min3_x2(_centred_cov(points, nbr_a, cnt_a, qa), _centred_cov(points, nbr_b, cnt_b, qb))
+    ea, eb = jacobi_min3_x2(_centred_cov(points, nbr_a, cnt_a, qa), _centred_cov(points, nbr_b, cnt_b, qb))
     _normal_out(ea, qa, ratio, out_n, out_eval, out_status)
     _normal_out(eb, qb, ratio, out_n, out_eval, out_status)
 
@@ -555,9 +252,10 @@ def _pca_normal_minegeo_x2(points, nbr_a, cnt_a, qa, nbr_b, cnt_b, qb, ratio, ou
 @njit
 def _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
                       out_n, out_eval, out_status, t0, t1, out_nb, out_rk, box, leaf_at):
-    """kNN (:func:`_knn_batch`, up to :data:`KNN_BATCH` points of a leaf per traversal) and PCA normal
-    (:func:`minegeo.kernels.eig3.pca_normal`'s numbers) of the points at tree positions ``t0 .. t1-1``
-    (leaf order: consecutive queries are neighbours); ``box, leaf_at`` = :func:`_tree_aux`."""
+    """kNN (:func:`minegeo.kernels.kdtree.kd_knn_leaf_batch`, up to :data:`KNN_BATCH` points of a leaf
+    per traversal) and PCA normal (:func:`minegeo.kernels.eig3.pca_normal`'s numbers) of the points at
+    tree positions ``t0 .. t1-1`` (leaf order: consecutive queries are neighbours); ``box, leaf_at`` =
+    :func:`minegeo.kernels.kdtree.kd_boxes`."""
     bi = np.empty((KNN_BATCH, k), np.int64)
     bs = np.empty((KNN_BATCH, k))
     cnt = np.empty(KNN_BATCH, np.int64)
@@ -573,7 +271,7 @@ def _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k,
     while a0 < t1:
         L = leaf_at[a0]
         nq = min(end[L], t1, a0 + KNN_BATCH) - a0
-        _knn_batch(Qs, idx, start, end, dim, left, right, k, box, L, a0, nq, bi, bs, cnt, wq, st_node, st_lb)
+        kd_knn_leaf_batch(Qs, idx, start, end, dim, left, right, k, box, L, a0, nq, bi, bs, cnt, wq, st_node, st_lb)
         for q in range(nq):
             i = idx[a0 + q]
             c = cnt[q]
@@ -595,7 +293,7 @@ def _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k,
 @njit
 def _knn_normals_serial(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
                         out_n, out_eval, out_status):
-    box, leaf_at = _tree_aux(Qs, start, end, dim, left, right)
+    box, leaf_at = kd_boxes(Qs, start, end, dim, left, right)
     _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
                       out_n, out_eval, out_status, 0, Q.shape[0], np.empty((0, k), np.int64), np.empty(0), box,
                       leaf_at)
@@ -605,7 +303,7 @@ def _knn_normals_serial(Q, idx, Qs, start, end, dim, split, left, right, depth, 
 def _knn_normals_parallel(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
                           out_n, out_eval, out_status):
     m = Q.shape[0]
-    box, leaf_at = _tree_aux(Qs, start, end, dim, left, right)
+    box, leaf_at = kd_boxes(Qs, start, end, dim, left, right)
     for c in prange(n_chunks(m)):
         _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
                           out_n, out_eval, out_status, c * CHUNK, min(m, (c + 1) * CHUNK), np.empty((0, k), np.int64),
@@ -619,8 +317,8 @@ def knn_normals_kernel(Q, tree, k, mode_open3d, ratio=DEGENERATE_RATIO):
     :func:`minegeo.kernels.eig3.pca_normal` (as :mod:`minegeo.geometry`'s): mode "open3d" = raw moments + FastEigen3x3 (Open3D 0.20),
     otherwise two-pass centred covariance + Jacobi (for mode "minegeo" the same operations on scalars,
     two points at a time: :func:`_pca_normal_minegeo_x2`, the same bits). The kNN is exact and sorted
-    as :func:`~minegeo.kernels.kdtree.kd_knn`'s (:func:`_knn_batch`). Returns ``(normals, eigenvalues,
-    status)`` with the status codes of :mod:`minegeo.geometry.normals`.
+    as :func:`~minegeo.kernels.kdtree.kd_knn`'s (:func:`minegeo.kernels.kdtree.kd_knn_leaf_batch`).
+    Returns ``(normals, eigenvalues, status)`` with the status codes of :mod:`minegeo.geometry.normals`.
     """
     m = Q.shape[0]
     out_n = np.empty((m, 3))
@@ -1186,7 +884,7 @@ def knn_normals_tasks(Q, idx, Qs, start, end, dim, split, left, right, depth, k,
     one row per point, so any split gives the same bits); ``out_nb`` (m, k) / ``out_rk`` (m,)
     receive each point's neighbour list and the distance of its last neighbour (empty: not kept)."""
     m = Q.shape[0]
-    box, leaf_at = _tree_aux(Qs, start, end, dim, left, right)
+    box, leaf_at = kd_boxes(Qs, start, end, dim, left, right)
     for c in prange((m + GICP_ROWS - 1) // GICP_ROWS):
         _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio, out_n,
                           out_eval, out_status, c * GICP_ROWS, min(m, (c + 1) * GICP_ROWS), out_nb, out_rk, box, leaf_at)
@@ -1202,8 +900,8 @@ def knn_normals_pair_tasks(QA, idxA, QsA, startA, endA, dimA, splitA, leftA, rig
     outputs: the bits of one cloud at a time."""
     ta = (QA.shape[0] + GICP_ROWS - 1) // GICP_ROWS
     tb = (QB.shape[0] + GICP_ROWS - 1) // GICP_ROWS
-    boxA, leafA = _tree_aux(QsA, startA, endA, dimA, leftA, rightA)
-    boxB, leafB = _tree_aux(QsB, startB, endB, dimB, leftB, rightB)
+    boxA, leafA = kd_boxes(QsA, startA, endA, dimA, leftA, rightA)
+    boxB, leafB = kd_boxes(QsB, startB, endB, dimB, leftB, rightB)
     for c in prange(ta + tb):
         if c < ta:
             _knn_normals_rows(QA, idxA, QsA, startA, endA, dimA, splitA, leftA, rightA, depthA, kA, mode_open3d, ratio,
@@ -1218,7 +916,7 @@ def knn_normals_pair_tasks(QA, idxA, QsA, startA, endA, dimA, splitA, leftA, rig
 def knn_normals_lists_serial(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio, out_n,
                              out_eval, out_status, out_nb, out_rk):
     """:func:`knn_normals_tasks` without ``prange``."""
-    box, leaf_at = _tree_aux(Qs, start, end, dim, left, right)
+    box, leaf_at = kd_boxes(Qs, start, end, dim, left, right)
     _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio, out_n, out_eval,
                       out_status, 0, Q.shape[0], out_nb, out_rk, box, leaf_at)
 
@@ -1364,25 +1062,6 @@ def _step_below(D, step_t, step_r):
 
 
 @njit
-def _match_stats(idx, sq, m):
-    """``(k, total)``: the number of rows with a partner and the sum of their ``sq`` with the
-    chunking of :func:`minegeo.registration._kernels_loop.compact_matches` (the same bits)."""
-    total = 0.0
-    part = 0.0
-    r = 0
-    for i in range(idx.shape[0]):
-        if idx[i] < m:
-            part += sq[i]
-            r += 1
-            if r % CHUNK == 0:
-                total = total + part
-                part = 0.0
-    if r % CHUNK != 0:
-        total = total + part
-    return r, total
-
-
-@njit
 def _loop_search(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, T, parallel,
                  P_old, r1, r2, moved, nb, rk):
     """One fused search + sums at the pose ``T`` (:func:`gicp_fused_search` inside a kernel)."""
@@ -1439,7 +1118,7 @@ def gicp_step_loop(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2
     warm = np.full(n, m, dtype=np.int64)
     cur_i, cur_sq, H, g, cost = _loop_search(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm,
                                             Cs, Ct, T, parallel, P_old, r1, r2, moved, nb, rk)
-    k, total = _match_stats(cur_i, cur_sq, m)
+    k, total = match_stats(cur_i, cur_sq, m)
     nh = 0
     hist[nh, 0] = k / n if k > 0 else 0.0
     hist[nh, 1] = np.sqrt(total / k) if k > 0 else 0.0
@@ -1477,7 +1156,7 @@ def gicp_step_loop(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2
         have_prev = True
         cur_i, cur_sq, H, g, cost = _loop_search(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2,
                                                 prev_i, Cs, Ct, T, parallel, P_old, r1, r2, moved, nb, rk)
-        k, total = _match_stats(cur_i, cur_sq, m)
+        k, total = match_stats(cur_i, cur_sq, m)
         hist[nh, 0] = k / n if k > 0 else 0.0
         hist[nh, 1] = np.sqrt(total / k) if k > 0 else 0.0
         nh += 1

@@ -27,24 +27,15 @@ from minegeo.kernels.chunks import CHUNK
 
 
 @njit
-def compact_matches(idx, sq, m):
-    """``(corr (k, 2), total)``: the pairs ``(i, idx[i])`` with ``idx[i] < m`` in ascending ``i``
-    and the fixed-chunk sum of their ``sq`` (partials of ``CHUNK`` pairs added in chunk order
-    from 0.0: the bits of ``registration._kernels.sum_kernel`` on ``sq[i]``)."""
-    n = idx.shape[0]
-    k = 0
-    for i in range(n):
-        if idx[i] < m:
-            k += 1
-    corr = np.empty((k, 2), dtype=np.int64)
+def match_stats(idx, sq, m):
+    """``(k, total)``: the number of rows with a partner (``idx[i] < m``) and the fixed-chunk sum of
+    their ``sq`` (partials of ``CHUNK`` pairs added in chunk order from 0.0: the bits of
+    ``registration._kernels.sum_kernel`` on the gathered ``sq[i]``)."""
     total = 0.0
     part = 0.0
     r = 0
-    for i in range(n):
-        j = idx[i]
-        if j < m:
-            corr[r, 0] = i
-            corr[r, 1] = j
+    for i in range(idx.shape[0]):
+        if idx[i] < m:
             part += sq[i]
             r += 1
             if r % CHUNK == 0:
@@ -52,6 +43,22 @@ def compact_matches(idx, sq, m):
                 part = 0.0
     if r % CHUNK != 0:
         total = total + part
+    return r, total
+
+
+@njit
+def compact_matches(idx, sq, m):
+    """``(corr (k, 2), total)``: the pairs ``(i, idx[i])`` with ``idx[i] < m`` in ascending ``i``
+    and the sum of their ``sq`` (:func:`match_stats`)."""
+    k, total = match_stats(idx, sq, m)
+    corr = np.empty((k, 2), dtype=np.int64)
+    r = 0
+    for i in range(idx.shape[0]):
+        j = idx[i]
+        if j < m:
+            corr[r, 0] = i
+            corr[r, 1] = j
+            r += 1
     return corr, total
 
 
