@@ -66,9 +66,13 @@ def cache_path_of(module_name: str) -> str | None:
 
 
 def is_cached(module_name: str, function: str) -> bool:
-    """True when this process's Numba cache holds an index for ``module_name.function``."""
+    """True when this process's Numba cache holds entries for ``module_name.function`` that are valid
+    for its current source (Numba ignores an index whose source stamp or Numba version differs)."""
     obj = getattr(importlib.import_module(module_name), function)
-    return Path(obj._cache._cache_file._index_path).is_file()
+    try:
+        return bool(obj._cache._cache_file._load_index())
+    except (OSError, EOFError, pickle.UnpicklingError):
+        return False
 
 
 @dataclass
@@ -199,9 +203,22 @@ def _merge_caches(folder: Path) -> int:
     return copied
 
 
+def _watch_parent(folder: Path, parent: int, poll_s: float = 0.5) -> None:
+    """Child: when the process that started this one is gone (nobody will merge), remove the folder
+    and exit at once."""
+    while True:
+        time.sleep(poll_s)
+        if os.getppid() != parent:
+            shutil.rmtree(folder, ignore_errors=True)
+            os._exit(0)
+
+
 def _main(argv: list[str]) -> int:
     """Child: ``python -m minegeo._background_warmup FOLDER MODULE...``."""
+    import threading
+
     folder = Path(argv[0])
+    threading.Thread(target=_watch_parent, args=(folder, os.getppid()), daemon=True).start()
     import minegeo
 
     minegeo.warmup(modules=argv[1:])

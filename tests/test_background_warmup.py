@@ -112,3 +112,28 @@ def test_warmup_rejects_an_unknown_module():
 
     with pytest.raises(InputError, match="unknown warm-up module"):
         minegeo.warmup(modules=["minegeo.nope"])
+
+
+@pytest.mark.slow
+def test_the_child_stops_and_cleans_up_when_its_parent_dies(tmp_path):
+    import signal
+    import time
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}
+    parent = subprocess.Popen(
+        [sys.executable, "-c", "import time; from minegeo import _background_warmup as BW; "
+         "bg = BW.start(['minegeo.localize']); print(bg.folder, bg.proc.pid, flush=True); time.sleep(120)"],
+        env=env, stdout=subprocess.PIPE, text=True)
+    folder, pid = parent.stdout.readline().split()
+    assert os.path.isdir(folder)
+    time.sleep(2.0)  # the child is compiling (localize takes ~45 s)
+    parent.send_signal(signal.SIGKILL)
+    parent.wait()
+    for _ in range(120):
+        if not os.path.exists(f"/proc/{pid}") and not os.path.isdir(folder):
+            break
+        time.sleep(0.25)
+    # a zombie child of the killed parent is reaped by init; /proc/PID of a zombie still exists briefly
+    state = open(f"/proc/{pid}/stat").read().split()[2] if os.path.exists(f"/proc/{pid}") else "gone"
+    assert state in ("gone", "Z") and not os.path.isdir(folder)
+
