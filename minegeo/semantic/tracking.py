@@ -436,6 +436,10 @@ class _State:
         info = odometry_edge_information(self.odo.keyframe_information[k - 1], Z, p.odometry_sigma_fraction,
                                          p.odometry_sigma_deg_per_m, t[k] - t[k - 1], p.odometry_sigma_mps)
         g.add_relative(k - 1, k, Z, info)
+        for i, j, Zij, I in self.odo.keyframe_extra_edges:  # across keyframes placed by the guess
+            if j == k:
+                g.add_relative(i, k, Zij, odometry_edge_information(
+                    I, Zij, p.odometry_sigma_fraction, p.odometry_sigma_deg_per_m, t[k] - t[i], p.odometry_sigma_mps))
 
     def add_keyframe(self, k: int) -> None:
         if self.g is not None and k > 0:

@@ -157,6 +157,12 @@ class OdometryResult:
         Their information matrices, right perturbation, (ω, ρ) order.
     keyframe_clouds : list of (m, 3) arrays
         Downsampled keyframe points in the keyframe's sensor frame (for loops and the map).
+    keyframe_extra_edges : list of (i, j, (4, 4), (6, 6))
+        Keyframe edges ``(i, j, T_i⁻¹ T_j, information)`` between non-consecutive keyframes (numbers
+        into ``keyframes``): with ``frame_target="submap"``, a keyframe registered to the local map of
+        keyframe ``i`` when the keyframes between them were placed by the guess (not registered). That
+        registration measures ``T_i⁻¹ T_j``; the consecutive edge into ``j`` then carries the guess's
+        weak information (1e-6), since it is relative to a guessed pose.
     """
 
     times_s: np.ndarray
@@ -172,6 +178,7 @@ class OdometryResult:
     keyframe_covariances: list = field(repr=False, default_factory=list)
     params: OdometryParams = field(default_factory=OdometryParams)
     timings_s: dict = field(default_factory=dict)
+    keyframe_extra_edges: list = field(default_factory=list)
 
     def summary(self) -> dict:
         return {"frames": int(self.times_s.size), "failed_frames": int((~self.frame_ok).sum()),
@@ -375,7 +382,8 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
     prev = last_kf = submap = None
     to_submap = params.frame_target == "submap"
     sub_clouds, sub_poses = [], []  # the keyframes the local map is made of (registered ones only)
-    T_sub = np.eye(4)  # pose of the local map's frame (its last keyframe)
+    T_sub, sub_kf = np.eye(4), 0  # pose and keyframe number of the local map's frame (its last keyframe)
+    extra = []  # keyframe edges (i, j, T_i⁻¹ T_j, information) measured against an older keyframe's local map
     velocity, velocity_dt = np.eye(4), 0.0
     for k, (t, cur, dt_prep) in enumerate(_prepared_frames(frames, params)):
         t_prep += dt_prep
@@ -420,6 +428,11 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
             t0 = time.perf_counter()
             if to_submap:  # the registration already was to the local map of the last keyframes
                 info = reg.information if reg.ok else np.eye(6) * 1e-6
+                if reg.ok and not via_prev and sub_kf != len(kf_idx) - 1:
+                    # the keyframes since sub_kf were placed by the guess: the registration measures
+                    # T_sub⁻¹ T, not the relative pose to the (guessed) last keyframe
+                    extra.append((sub_kf, len(kf_idx), np.linalg.solve(T_sub, pose), info))
+                    info = np.eye(6) * 1e-6
             else:
                 target = last_kf if params.keyframe_submap_size <= 1 else _keyframe_submap(
                     kf_clouds, [poses[i] for i in kf_idx], params)
@@ -442,7 +455,7 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
                 n = params.keyframe_submap_size
                 sub_clouds = ([] if via_prev else sub_clouds[-(n - 1):] if n > 1 else []) + [cur.points]
                 sub_poses = ([] if via_prev else sub_poses[-(n - 1):] if n > 1 else []) + [pose]
-                submap, T_sub = _keyframe_submap(sub_clouds, sub_poses, params), pose
+                submap, T_sub, sub_kf = _keyframe_submap(sub_clouds, sub_poses, params), pose, len(kf_idx) - 1
             t_kf += time.perf_counter() - t0
         poses.append(pose)
         if reg.ok:
@@ -458,5 +471,5 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
         keyframe_edges=np.stack(kf_edges) if kf_edges else np.zeros((0, 4, 4)),
         keyframe_information=np.stack(kf_info) if kf_info else np.zeros((0, 6, 6)),
         keyframe_clouds=kf_clouds, keyframe_covariances=kf_covs, params=params,
-        timings_s={"prepare": t_prep, "frame_to_frame": t_f2f, "keyframe_refine": t_kf},
+        timings_s={"prepare": t_prep, "frame_to_frame": t_f2f, "keyframe_refine": t_kf}, keyframe_extra_edges=extra,
     )

@@ -167,11 +167,15 @@ class SlamResult:
 
 
 def _graph(kf_poses, odo: OdometryResult, loops: list[LoopCandidate]) -> PoseGraph:
-    """Keyframe graph: odometry edges (k-1, k) then the accepted loops, information in g2o order (t, r)."""
+    """Keyframe graph: odometry edges (k-1, k), the odometry's edges across keyframes placed by the guess
+    (``OdometryResult.keyframe_extra_edges``), then the accepted loops; information in g2o order (t, r)."""
     k = kf_poses.shape[0]
-    edges = [(a, a + 1) for a in range(k - 1)] + [(c.i, c.j) for c in loops if c.accepted]
-    Z = list(odo.keyframe_edges) + [c.T_i_j for c in loops if c.accepted]
-    info_rt = list(odo.keyframe_information) + [c.information for c in loops if c.accepted]
+    extra = odo.keyframe_extra_edges
+    edges = ([(a, a + 1) for a in range(k - 1)] + [(i, j) for i, j, _, _ in extra]
+             + [(c.i, c.j) for c in loops if c.accepted])
+    Z = list(odo.keyframe_edges) + [Z for _, _, Z, _ in extra] + [c.T_i_j for c in loops if c.accepted]
+    info_rt = (list(odo.keyframe_information) + [I for _, _, _, I in extra]
+               + [c.information for c in loops if c.accepted])
     p = [3, 4, 5, 0, 1, 2]  # (ω, ρ) → the file's (t, r) order; the solver permutes back
     info = [np.asarray(I)[p][:, p] for I in info_rt]
     m = len(edges)

@@ -124,3 +124,32 @@ def test_submap_target_recovers_after_lost_frames(drive):
     assert res.frame_ok[15:].all(), [r for r in res.frame_reason[15:] if r]
     ev = evaluate_trajectory(Trajectory(res.times_s, res.poses), truth, align=False)
     assert ev.ate.max < 0.05 * ev.path_length_m
+
+
+def test_a_keyframe_registered_across_guessed_keyframes_gets_an_edge_to_the_local_maps_keyframe(drive):
+    """Frames 10-11 are noise and (1 keyframe per 0.3 m) become keyframes placed by the guess; frame 12
+    registers to the local map of frame 9's keyframe. That registration measures ``T_9⁻¹ T_12``: it is
+    an extra keyframe edge (9 → 12) with the registration's information, close to the truth, and the
+    consecutive edge into 12 (relative to a guessed pose) carries only the guess's 1e-6. The SLAM pose
+    graph takes the extra edge."""
+    from minegeo.slam.pipeline import _graph
+
+    frames, truth = drive
+    rng = np.random.default_rng(5)
+    broken = list(frames)
+    for k in (10, 11):
+        broken[k] = (broken[k][0], rng.uniform(-20.0, 20.0, (3000, 3)))
+    res = run_odometry(broken, OdometryParams(frame_target="submap", keyframe_distance_m=0.3))
+    kf = list(res.keyframes)
+    assert {9, 10, 11, 12} <= set(kf) and not res.frame_ok[10:12].any() and res.frame_ok[12]
+    i, j = kf.index(9), kf.index(12)
+    extra = [e for e in res.keyframe_extra_edges if e[:2] == (i, j)]
+    assert len(extra) == 1 and len(res.keyframe_extra_edges) == 1
+    _, _, Z, info = extra[0]
+    assert np.allclose(Z, np.linalg.solve(res.poses[9], res.poses[12]), atol=1e-9)
+    assert np.linalg.eigvalsh(info).min() > 1.0  # the registration's information, not the guess's
+    assert np.array_equal(res.keyframe_information[j - 1], np.eye(6) * 1e-6)
+    Zt = np.linalg.solve(truth.poses[9], truth.poses[12])
+    assert np.linalg.norm(Z[:3, 3] - Zt[:3, 3]) < 0.05
+    g = _graph(res.poses[res.keyframes], res, [])
+    assert [i, j] in g.edges.tolist() and len(g.edges) == len(kf)  # k-1 consecutive + the extra one
