@@ -137,3 +137,13 @@ def test_the_child_stops_and_cleans_up_when_its_parent_dies(tmp_path):
     state = open(f"/proc/{pid}/stat").read().split()[2] if os.path.exists(f"/proc/{pid}") else "gone"
     assert state in ("gone", "Z") and not os.path.isdir(folder)
 
+
+
+def test_warmup_verb_takes_modules(capsys):
+    from minegeo.cli import main
+
+    assert main(["warmup", "--module", "minegeo.survey"]) == 0
+    out = capsys.readouterr().out
+    assert "minegeo.survey" in out and "minegeo.slam" not in out
+    assert main(["warmup", "--module", "minegeo.nope"]) == 2
+    assert "unknown warm-up module" in capsys.readouterr().err
