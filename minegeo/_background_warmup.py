@@ -128,19 +128,38 @@ class BackgroundWarmup:
                            "seconds": time.perf_counter() - self.t_start, "waited_s": 0.0, "functions_copied": 0}
 
 
-def start(modules, sentinels=()) -> BackgroundWarmup | None:
-    """Start compiling the kernels of ``modules`` (names of :data:`minegeo._WARMUP_MODULES`) in a
-    second process; None when every ``(module, function)`` of ``sentinels`` is already in this
-    process's Numba cache (nothing to gain), when JIT or caching is off, or when the process cannot
-    start."""
+def usable_cpus() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        return os.cpu_count() or 1
+
+
+def reason_not_to_start(sentinels=()) -> str | None:
+    """Why a second compiling process would not help (None: it would): the JIT is off, only one CPU
+    core is usable (the two processes would share it: slower than compiling here), or every
+    ``(module, function)`` of ``sentinels`` is already in this process's Numba cache."""
     import numba
 
     if numba.config.DISABLE_JIT:
-        return None
+        return "not started (Numba JIT disabled)"
+    if usable_cpus() < 2:
+        return "not started (one CPU core: a second process would compete with this one)"
     try:
         if sentinels and all(is_cached(m, f) for m, f in sentinels):
-            return None
-    except (AttributeError, ImportError):
+            return "not needed (kernels already cached)"
+    except (AttributeError, ImportError) as e:
+        return f"not started (cache not readable: {e})"
+    return None
+
+
+def start(modules, sentinels=()) -> BackgroundWarmup | None:
+    """Start compiling the kernels of ``modules`` (names of :data:`minegeo._WARMUP_MODULES`) in a
+    second process; None when :func:`reason_not_to_start` gives a reason or the process cannot start."""
+    why = reason_not_to_start(sentinels)
+    if why is not None:
+        log.info("background compilation %s", why)
         return None
     folder = Path(tempfile.mkdtemp(prefix="minegeo-warmup-"))
     env = {**os.environ, "NUMBA_CACHE_DIR": str(folder / "cache")}

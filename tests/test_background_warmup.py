@@ -147,3 +147,10 @@ def test_warmup_verb_takes_modules(capsys):
     assert "minegeo.survey" in out and "minegeo.slam" not in out
     assert main(["warmup", "--module", "minegeo.nope"]) == 2
     assert "unknown warm-up module" in capsys.readouterr().err
+
+
+def test_nothing_starts_on_one_cpu_core(monkeypatch):
+    monkeypatch.setattr(BW, "usable_cpus", lambda: 1)
+    assert "one CPU core" in BW.reason_not_to_start()
+    assert BW.start(["minegeo.mast"]) is None
+

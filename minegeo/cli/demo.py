@@ -335,9 +335,10 @@ def _steps(args, out: Path, rows) -> int:
     from minegeo import _background_warmup
 
     t_start = time.perf_counter()
-    bg = None if args.no_background_compile else _background_warmup.start(BACKGROUND_MODULES, BACKGROUND_SENTINELS)
-    compile_rec = {"modules": list(BACKGROUND_MODULES), "status": "disabled (--no-background-compile)"
-                   if args.no_background_compile else "not needed (kernels already cached)"}
+    why = ("disabled (--no-background-compile)" if args.no_background_compile
+           else _background_warmup.reason_not_to_start(BACKGROUND_SENTINELS))
+    bg = None if why else _background_warmup.start(BACKGROUND_MODULES, BACKGROUND_SENTINELS)
+    compile_rec = {"modules": list(BACKGROUND_MODULES), "status": why or "could not start (see the log)"}
     try:
         truth = _synth(args, out, rows)
         if truth is None:

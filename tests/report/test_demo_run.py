@@ -41,7 +41,8 @@ def test_the_slam_step_ran_and_wrote_the_map(demo):
     # the second process that compiles the mast/localize kernels on a cold cache (else not needed)
     bc = rec["background_compilation"]
     assert bc["modules"] == ["minegeo.mast", "minegeo.localize"]
-    assert bc["status"] in ("ok", "not needed (kernels already cached)"), bc
+    assert bc["status"] in ("ok", "not needed (kernels already cached)",
+                            "not started (one CPU core: a second process would compete with this one)"), bc
     assert "background compilation" in html
 
 
