@@ -161,6 +161,12 @@ def start(modules, sentinels=()) -> BackgroundWarmup | None:
     if why is not None:
         log.info("background compilation %s", why)
         return None
+    return launch(modules)
+
+
+def launch(modules) -> BackgroundWarmup | None:
+    """Start the second process without the checks of :func:`reason_not_to_start` (for a caller that
+    made them); None when it cannot start."""
     folder = Path(tempfile.mkdtemp(prefix="minegeo-warmup-"))
     env = {**os.environ, "NUMBA_CACHE_DIR": str(folder / "cache")}
     cmd = [sys.executable, "-m", "minegeo._background_warmup", str(folder), *modules]

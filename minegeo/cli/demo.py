@@ -337,7 +337,7 @@ def _steps(args, out: Path, rows) -> int:
     t_start = time.perf_counter()
     why = ("disabled (--no-background-compile)" if args.no_background_compile
            else _background_warmup.reason_not_to_start(BACKGROUND_SENTINELS))
-    bg = None if why else _background_warmup.start(BACKGROUND_MODULES, BACKGROUND_SENTINELS)
+    bg = None if why else _background_warmup.launch(BACKGROUND_MODULES)
     compile_rec = {"modules": list(BACKGROUND_MODULES), "status": why or "could not start (see the log)"}
     try:
         truth = _synth(args, out, rows)
