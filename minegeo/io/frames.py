@@ -6,9 +6,15 @@
 * Frame order: file names sorted lexicographically (zero-padded numbers, as loggers write them).
 * Times: ``DIR/times.txt`` when present (one time in seconds per frame in that order, the KITTI
   odometry convention); otherwise a number in every file name is its time in seconds; otherwise an
-  error that says so. Non-increasing times are an input error naming the first offending frame.
-  A times file elsewhere can be named (``--times FILE``), and the frames chosen by a file-name
-  pattern (``--pattern "*.pcd"``) when the folder holds other files (e.g. pose text files).
+  error that says so. A times file elsewhere can be named (``--times FILE``), and the frames chosen
+  by a file-name pattern (``--pattern "*.pcd"``) when the folder holds other files (e.g. pose text
+  files).
+* Every time passes the trajectory readers' one check (:func:`minegeo.io.trajectory.time_problem`):
+  finite, within +-1e20 s (so differences are finite and the 17-digit ``trajectory.tum`` written
+  from them reads back) and strictly increasing in name order; otherwise an input error naming the
+  first offending frame (and the times file's line). A times file is read by
+  :func:`minegeo.io.trajectory.read_times`: a folder, FIFO or device is refused without being
+  opened, saying what it is.
 * Times read from names that are consecutive integers from 0 or 1 (``000000.pcd``, ``000001.pcd``,
   ...) are most likely frame numbers, not seconds: :func:`list_frames` logs a warning and says so in
   :attr:`FrameList.times_source` (the run still takes them as seconds, as the contract says).
@@ -25,8 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from minegeo.errors import FileFormatError, InputError
-from minegeo.io._limits import read_file_bytes, read_file_text
+from minegeo.io._limits import read_file_bytes
 from minegeo.io.pointcloud import _SUFFIX
+from minegeo.io.trajectory import read_times, time_problem
 
 __all__ = ["FrameFile", "list_frames", "read_frame", "read_kitti_bin", "times_source"]
 
@@ -88,21 +95,10 @@ def _frame_files(folder: Path, pattern: str | None = None) -> list[Path]:
     return names
 
 
-def _times_from_file(path: Path, n: int) -> np.ndarray:
-    text = read_file_text(path, what="times file")
-    vals = []
-    for k, line in enumerate(text.splitlines(), start=1):
-        s = line.split("#", 1)[0].strip()
-        if not s:
-            continue
-        try:
-            vals.append(float(s.split()[0]))
-        except ValueError:
-            raise FileFormatError(path, f"line {k}: {s!r} is not a time in seconds") from None
-    if len(vals) != n:
-        raise InputError(f"{path} holds {len(vals)} times for {n} frames: one time per frame, in "
-                         "the frames' name order (choose the frames with --pattern if the folder holds other files)")
-    return np.asarray(vals)
+def _times_from_file(path: Path, paths: list[Path]) -> np.ndarray:
+    return read_times(path, len(paths), noun="frame", labels=[f"frame {p.name}" for p in paths],
+                      hint=", in the frames' name order (choose the frames with --pattern if the folder holds "
+                      "other files)")
 
 
 def _times_from_names(paths: list[Path]) -> np.ndarray:
@@ -138,30 +134,34 @@ def list_frames(folder, times_file=None, pattern: str | None = None) -> list[Fra
     pattern : str, optional
         Shell pattern on the file names (``"*.pcd"``); default every point-cloud file.
 
+    Returns
+    -------
+    list of FrameFile
+        At least one frame; times finite, within +-1e20 s and strictly increasing (the check of
+        :func:`minegeo.io.trajectory.time_problem`), so a trajectory written from them reads back.
+
     Raises
     ------
     InputError
-        Not a folder, no frames, no times, a count mismatch, or non-increasing times (the first
-        offending frame is named).
+        Not a folder, no frames, no number in a frame name, or times from the names that fail the check
+        (the first offending frame is named).
+    FileFormatError
+        A times file that is missing, not a regular file (a folder, FIFO or device, named as such and
+        never opened), not one decimal number per line, holding another count of times than of
+        frames, or failing the check (its line and frame are named).
     """
     folder = Path(folder)
     paths = _frame_files(folder, pattern)
     if times_file is not None:
-        if not Path(times_file).is_file():
-            raise InputError(f"--times {times_file}: no such file")
-        times = _times_from_file(Path(times_file), len(paths))
+        times = _times_from_file(Path(times_file), paths)
     elif (folder / "times.txt").is_file():
-        times = _times_from_file(folder / "times.txt", len(paths))
+        times = _times_from_file(folder / "times.txt", paths)
     else:
         times = _times_from_names(paths)
+        bad = time_problem(times, noun="frame")
+        if bad is not None:
+            raise InputError(f"frame {paths[bad[0]].name}: {bad[1]} (times taken from the file names)")
         if _looks_like_frame_numbers(times):
             log.warning("the frame names of %s are consecutive numbers from %g: they are taken as times in seconds; "
                         "if they are frame numbers, give the times with --times FILE or DIR/times.txt", folder, times[0])
-    if not np.all(np.isfinite(times)):
-        raise InputError(f"frame {paths[int(np.flatnonzero(~np.isfinite(times))[0])].name}: time is not finite")
-    bad = np.flatnonzero(np.diff(times) <= 0)
-    if bad.size:
-        k = int(bad[0]) + 1
-        raise InputError(f"frame {paths[k].name}: time {times[k]:.6f} s is not after the previous frame's "
-                         f"{times[k - 1]:.6f} s (times must increase in name order)")
     return [FrameFile(p, float(t)) for p, t in zip(paths, times, strict=True)]

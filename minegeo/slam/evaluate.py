@@ -3,8 +3,17 @@
 Conventions follow ``slam_contract.md`` and evo (``evo_ape``, ``evo_rpe``), so that the numbers agree
 with evo on the same files:
 
-* **Association** by timestamp: every pose of the shorter trajectory is matched with the nearest
-  time of the other within ``max_diff_s`` (default 10 ms; evo's ``matching_time_indices``).
+* **Association** by timestamp (``match="time"``): every pose of the shorter trajectory is matched
+  with the nearest time of the other within ``max_diff_s`` (default 10 ms; evo's
+  ``matching_time_indices``); or by index (``match="index"``, poses without times such as KITTI's):
+  pose k with pose k, and both trajectories must hold the same number of poses (evo's
+  ``APE.process_data`` refuses different lengths: "trajectories must have same number of poses").
+* **Inputs** pass the trajectory readers' check (:func:`minegeo.io.trajectory.time_problem`,
+  :func:`~minegeo.io.trajectory.rotation_problem`): finite, strictly increasing times and proper
+  rotations (evo's ``PoseTrajectory3D.check``: ascending unique stamps, SO(3) rotations); ``scale``
+  requires ``align`` (the scale is part of the alignment); the RPE pair distance is a whole number of
+  frames (evo: "delta must be integer for delta unit frames") or finite metres, and must give at least
+  one pair (evo: "produced an empty index list").
 * **ATE**: the estimate is aligned to the ground truth by Umeyama's least-squares rigid (SE(3)) or
   similarity (Sim(3), ``scale=True``) fit of the matched positions (:func:`minegeo.registration.umeyama`); the
   error of pose k is ``e_k = t_gt,k − (s R t_est,k + t)`` (m); statistics of ``|e_k|`` (evo's APE,
@@ -23,10 +32,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from minegeo.errors import InputError
+from minegeo.io.trajectory import rotation_problem, time_problem
 from minegeo.io.types import Trajectory
 from minegeo.registration.estimation import umeyama
 
-__all__ = ["ErrorStats", "TrajectoryEvaluation", "associate", "evaluate_trajectory", "error_stats"]
+__all__ = ["ErrorStats", "TrajectoryEvaluation", "associate", "evaluate_trajectory", "error_stats", "MAX_DELTA_FRAMES"]
+
+#: largest RPE pair distance in frames (a count above this is a typo; as ``minegeo.cli._argtypes.MAX_COUNT``)
+MAX_DELTA_FRAMES = 10**9
 
 
 @dataclass(frozen=True)
@@ -160,8 +173,41 @@ def _rigid_inv(T):
     return Ti
 
 
+def _check_params(scale, max_diff_s, rpe_delta, rpe_unit, align, match) -> None:
+    """Refuse parameters that are out of range or contradict each other (before any work)."""
+    if rpe_unit not in ("frames", "m"):
+        raise InputError(f"rpe_unit must be 'frames' or 'm', got {rpe_unit!r}")
+    if match not in ("time", "index"):
+        raise InputError(f"match must be 'time' or 'index', got {match!r}")
+    try:
+        d = float(rpe_delta)
+    except (TypeError, ValueError):
+        raise InputError(f"rpe_delta must be a number, got {rpe_delta!r}") from None
+    if rpe_unit == "frames" and not (np.isfinite(d) and d.is_integer() and 1 <= d <= MAX_DELTA_FRAMES):
+        raise InputError(f"rpe_delta {rpe_delta!r}: with rpe_unit 'frames' the pair distance is a whole number of "
+                         f"frames from 1 to {MAX_DELTA_FRAMES}")
+    if rpe_unit == "m" and not (np.isfinite(d) and d > 0):
+        raise InputError(f"rpe_delta {rpe_delta!r}: with rpe_unit 'm' the pair distance is a positive finite number "
+                         "of metres")
+    if match == "time" and not (isinstance(max_diff_s, (int, float, np.floating)) and np.isfinite(max_diff_s)
+                                and max_diff_s > 0):
+        raise InputError(f"max_diff_s must be a positive finite number of seconds, got {max_diff_s!r}")
+    if scale and not align:
+        raise InputError("scale=True corrects the scale in the alignment, and align=False turns the alignment off: "
+                         "they contradict")
+
+
+def _check_trajectory(traj: Trajectory, name: str, timed: bool) -> None:
+    if not isinstance(traj, Trajectory):
+        raise InputError(f"{name} must be a Trajectory, got {type(traj).__name__}")
+    problem = (time_problem(traj.times_s) if timed else None) or rotation_problem(traj.poses[:, :3, :3])
+    if problem is not None:
+        raise InputError(f"{name} pose {problem[0]}: {problem[1]}")
+
+
 def evaluate_trajectory(est: Trajectory, gt: Trajectory, *, scale: bool = False, max_diff_s: float = 0.01,
-                        rpe_delta: float = 1.0, rpe_unit: str = "frames", align: bool = True) -> TrajectoryEvaluation:
+                        rpe_delta: float = 1.0, rpe_unit: str = "frames", align: bool = True,
+                        match: str = "time") -> TrajectoryEvaluation:
     """ATE and RPE of ``est`` against ``gt`` (see the module docstring for every formula).
 
     Parameters
@@ -171,26 +217,41 @@ def evaluate_trajectory(est: Trajectory, gt: Trajectory, *, scale: bool = False,
     scale : bool
         Sim(3) alignment (monocular-style scale drift) instead of SE(3).
     max_diff_s : float
-        Largest time difference of an association (s).
+        Largest time difference of an association (s), positive and finite (``match="time"``).
     rpe_delta : float
-        Pair distance: a frame count (``rpe_unit="frames"``) or metres of reference path (``"m"``).
+        Pair distance: a whole number of frames from 1 (``rpe_unit="frames"``) or positive finite
+        metres of reference path (``"m"``).
     align : bool
-        Umeyama alignment before ATE (False: the frames are already the same).
+        Umeyama alignment before ATE (False: the frames are already the same; ``scale`` needs it).
+    match : {"time", "index"}
+        Associate poses by nearest time, or pose k with pose k (same number of poses required; the
+        times are then not used, as for KITTI files).
 
     Raises
     ------
     InputError
-        Fewer than 3 poses associated, or a bad unit. (A straight ground-truth path is evaluated, with
-        a warning: the alignment's rotation about the line is then undetermined.)
+        A parameter out of range or contradicting another (``scale`` without ``align``), a trajectory
+        whose times are not finite and strictly increasing or whose rotations are not proper (the
+        pose is named), different lengths with ``match="index"``, fewer than 3 poses associated, or
+        an RPE pair distance that gives no pair. (A straight ground-truth path is evaluated, with a
+        warning: the alignment's rotation about the line is then undetermined.)
     """
-    if rpe_unit not in ("frames", "m"):
-        raise InputError(f"rpe_unit must be 'frames' or 'm', got {rpe_unit!r}")
-    if not rpe_delta > 0:
-        raise InputError(f"rpe_delta must be positive, got {rpe_delta}")
-    i_gt, i_est = associate(gt.times_s, est.times_s, max_diff_s)
+    _check_params(scale, max_diff_s, rpe_delta, rpe_unit, align, match)
+    if rpe_unit == "frames":
+        rpe_delta = int(rpe_delta)
+    _check_trajectory(est, "estimate", match == "time")
+    _check_trajectory(gt, "ground truth", match == "time")
+    if match == "index":
+        if len(est) != len(gt):
+            raise InputError(f"the estimate holds {len(est)} poses and the ground truth {len(gt)}: matched by index "
+                             "(no times), both must hold the same number of poses")
+        i_gt = i_est = np.arange(len(gt), dtype=np.int64)
+    else:
+        i_gt, i_est = associate(gt.times_s, est.times_s, max_diff_s)
     if i_gt.size < 3:
-        raise InputError(f"only {i_gt.size} pose(s) of the estimate match the ground truth within {max_diff_s} s: "
-                         "check the time stamps (same clock and unit?)")
+        raise InputError(f"only {i_gt.size} pose(s) of the estimate match the ground truth"
+                         + (f" within {max_diff_s} s: check the time stamps (same clock and unit?)"
+                            if match == "time" else ": at least 3 are needed"))
     Q = gt.poses[i_gt].copy()
     P = est.poses[i_est].copy()
     Q[:, :3, 3] += gt.origin  # positions in the trajectory's frame, its recorded local origin added
@@ -212,6 +273,10 @@ def evaluate_trajectory(est: Trajectory, gt: Trajectory, *, scale: bool = False,
     seg = np.linalg.norm(np.diff(Q[:, :3, 3], axis=0), axis=1)
     path = float(seg.sum())
     pairs = _pairs(Q, rpe_delta, rpe_unit)
+    if pairs.shape[0] == 0:
+        unit = "frames" if rpe_unit == "frames" else "m of ground-truth path"
+        raise InputError(f"no pose pair is {rpe_delta:g} {unit} apart ({i_gt.size} matched poses, path "
+                         f"{path:.3f} m): choose a smaller RPE pair distance")
     Pr = P.copy()
     Pr[:, :3, 3] *= s  # RPE on the scale-corrected estimate (evo_rpe -s); rigid alignment does not change RPE
     Qrel = np.einsum("nij,njk->nik", _rigid_inv(Q[pairs[:, 0]]), Q[pairs[:, 1]])
@@ -229,5 +294,6 @@ def evaluate_trajectory(est: Trajectory, gt: Trajectory, *, scale: bool = False,
         rpe_translation_percent=100.0 * float(et.sum()) / tot if tot > 0 else float("nan"),
         rpe_rotation_deg_per_m=float(er.sum()) / tot if tot > 0 else float("nan"),
         rpe_pairs=pairs, times_s=gt.times_s[i_gt], errors_m=err, gt_index=i_gt, warnings=warnings,
-        params={"scale": scale, "max_diff_s": max_diff_s, "rpe_delta": rpe_delta, "rpe_unit": rpe_unit, "align": align},
+        params={"scale": scale, "max_diff_s": max_diff_s if match == "time" else None, "rpe_delta": rpe_delta,
+                "rpe_unit": rpe_unit, "align": align, "match": match},
     )

@@ -113,8 +113,8 @@ def test_global_local_and_origin(tmp_path, rng):
         ("# only a comment\n", "no numeric pose"),
         ("1 2 3 4 5 6 7\n", "7 numbers per line"),
         ("0 0 0 0 0 0 0 1\n1 0 0 0 0 0 0\n", "line 2: expected 8 values, found 7"),
-        ("0 0 0 0 0 0 0 1\n1 nan 0 0 0 0 0 1\n", "NaN"),
-        ("0 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 2\n", "not unit length"),
+        ("0 0 0 0 0 0 0 1\n1 nan 0 0 0 0 0 1\n", "line 2: a value is NaN"),
+        ("0 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 2\n", r"line 2: the quaternion \(qx qy qz qw\) = \(0, 0, 0, 2\) has norm 2, not 1"),
         ("0 0 0 0 0 0 0 1\n1 0 0 0 0 0 x 1\n", "line 2: 'x' is not a number"),
         ("time_s,x,y,z,qw\n0,0,0,0,1\n", "names no quaternion|lacks"),
     ],
@@ -130,8 +130,103 @@ def test_trajectory_errors(tmp_path, content, match):
 def test_kitti_non_orthonormal(tmp_path):
     p = tmp_path / "k.txt"
     p.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n2 0 0 0 0 1 0 0 0 0 1 0\n")
-    with pytest.raises(FileFormatError, match="pose 1: rotation block is not orthonormal"):
+    with pytest.raises(FileFormatError, match=r"line 2: the rotation block is not a rotation: max \|R\^T R - I\| = 3"):
         read_trajectory(p)
+
+
+#: the shared check of every reader: (file text, the line and problem the message must name)
+CHECK_CASES = {
+    "reflection_kitti": ("# KITTI\n1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 1 0 1 0 0 0 0 -1 0\n",
+                         r"line 3: the rotation block is a reflection \(det R = -1\)"),
+    "duplicated_time": ("0 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n",
+                        r"line 3: time 1.000000 s is not after the previous pose's 1.000000 s"),
+    "decreasing_time": ("5 0 0 0 0 0 0 1\n\n# c\n4.5 0 0 0 0 0 0 1\n",
+                        r"line 4: time 4.500000 s is not after the previous pose's 5.000000 s"),
+    "huge_time": ("-1.7e308 0 0 0 0 0 0 1\n0 0 0 0 0 0 0 1\n", r"line 1: time -1.7e\+308 s is not a time stamp"),
+    "inf_time": ("0 0 0 0 0 0 0 1\ninf 0 0 0 0 0 0 1\n", r"line 2: a value is NaN or inf"),
+    "zero_quaternion": ("0 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 0\n", r"line 2: the quaternion \(qx qy qz qw\) = \(0, 0, 0, 0\) is zero"),
+    "close_times_differ_late": ("1.0000000000000002 0 0 0 0 0 0 1\n1.0000000000000002 0 0 0 0 0 0 1\n",
+                                r"line 2: time 1.0000000000000002 s is not after the previous pose's 1.0000000000000002 s"),
+    "csv_decreasing": ("time_s,x,y,z,qx,qy,qz,qw\n2,0,0,0,0,0,0,1\n1,0,0,0,0,0,0,1\n", r"line 3: time 1.000000 s"),
+    "geoslam_zero_q": ("Time X Y Z q0 q1 q2 q3\n0 0 0 0 1 0 0 0\n1 0 0 0 0 0 0 0\n",
+                       r"line 3: the quaternion \(q0 q1 q2 q3\) = \(0, 0, 0, 0\) is zero"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CHECK_CASES))
+def test_the_shared_check_names_file_line_and_problem(tmp_path, case):
+    text, match = CHECK_CASES[case]
+    p = tmp_path / "t.txt"
+    p.write_text(text)
+    with pytest.raises(FileFormatError, match=match) as ei:
+        read_trajectory(p)
+    assert str(ei.value).startswith(str(p) + ": ")
+
+
+def test_kitti_at_six_digits_is_a_rotation_and_a_small_reflection_is_not(tmp_path):
+    """KITTI files print ~6 significant digits (|R^T R - I| ~ 1e-6, the MulRan files): accepted; the same
+    matrix with one column negated (det -1, exactly as orthonormal) is refused."""
+    R = exp_so3(np.array([0.3, -0.2, 1.1]))
+    row = " ".join(f"{v:.6g}" for v in np.c_[R, [1.0, 2.0, 3.0]].ravel())
+    p = tmp_path / "k.kitti"
+    p.write_text(row + "\n" + row + "\n")
+    np.testing.assert_allclose(read_trajectory(p).poses[1, :3, :3], R, atol=1e-6)
+    M = np.c_[R[:, :2], -R[:, 2], [1.0, 2.0, 3.0]]
+    p.write_text(row + "\n" + " ".join(f"{v:.6g}" for v in M.ravel()) + "\n")
+    with pytest.raises(FileFormatError, match="line 2: the rotation block is a reflection"):
+        read_trajectory(p)
+
+
+def test_kitti_times_file(tmp_path, rng):
+    from minegeo.io.trajectory import read_times
+
+    t = _traj(rng, m=5)
+    write_trajectory(tmp_path / "00.txt", Trajectory(np.arange(5.0), t.poses), format="kitti")
+    (tmp_path / "times.txt").write_text("# KITTI\n0.0\n1.0e-1\n0.2 # c\n\n0.35\n4.5e2\n")
+    back = read_trajectory(tmp_path / "00.txt", times=tmp_path / "times.txt")
+    assert back.times_s.tolist() == [0.0, 0.1, 0.2, 0.35, 450.0]
+    (tmp_path / "short.txt").write_text("0\n1\n")
+    with pytest.raises(FileFormatError, match="holds 2 times for 5 poses"):
+        read_trajectory(tmp_path / "00.txt", times=tmp_path / "short.txt")
+    write_trajectory(tmp_path / "t.tum", t)
+    with pytest.raises(InputError, match="tum trajectory with its own times"):
+        read_trajectory(tmp_path / "t.tum", times=tmp_path / "times.txt")
+    for text, match in [("0\n1 2\n", "line 2: 2 values"), ("0\nnan\n", "line 2: 'nan' is not a number of seconds"),
+                        ("0\n1_000\n", "line 2: '1_000' is not a time in seconds"), ("", "holds no times"),
+                        ("0\n2\n1\n", "line 3: time 1.000000 s is not after the previous pose's 2.000000 s"),
+                        ("0\n1e400\n", r"line 2: time inf is not a number"),
+                        ("1.7e308\n1.71e308\n", "line 1: time 1.7e\\+308 s is not a time stamp")]:
+        (tmp_path / "bad.txt").write_text(text)
+        with pytest.raises(FileFormatError, match=match):
+            read_times(tmp_path / "bad.txt")
+
+
+def test_times_file_that_is_not_a_file_is_named_without_blocking(tmp_path):
+    import os
+
+    from minegeo.io.trajectory import read_times
+
+    os.mkfifo(tmp_path / "fifo")  # opening it would block until a writer comes
+    (tmp_path / "d").mkdir()
+    for path, what in [(tmp_path / "fifo", "is a FIFO"), (tmp_path / "d", "is a folder, not a times file"),
+                       ("/dev/zero", "is a character device"), (tmp_path / "none", "no such file")]:
+        with pytest.raises(FileFormatError, match=what):
+            read_times(path)
+
+
+def test_write_refuses_what_read_would_refuse(tmp_path, rng):
+    t = _traj(rng, m=4)
+    times = t.times_s.copy()
+    times[2] = times[1]
+    with pytest.raises(InputError, match="pose 2: time .* is not after"):
+        write_trajectory(tmp_path / "a.tum", Trajectory(times, t.poses))
+    with pytest.raises(InputError, match="pose 0: time -1.7e\\+308 s is not a time stamp"):
+        write_trajectory(tmp_path / "a.tum", Trajectory([-1.7e308, 0.0, 1.7e308, 1.71e308], t.poses))
+    poses = t.poses.copy()
+    poses[3, :3, 2] *= -1.0
+    with pytest.raises(InputError, match="pose 3: the rotation block is a reflection"):
+        write_trajectory(tmp_path / "a.kitti", Trajectory(np.arange(4.0), poses))
+    assert not any(tmp_path.iterdir())
 
 
 CTU = {

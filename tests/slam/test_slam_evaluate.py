@@ -118,3 +118,75 @@ def test_misalignment_is_seen_without_alignment():
     t = np.arange(30.0)
     assert evaluate_trajectory(Trajectory(t, est), Trajectory(t, gt), align=False).ate.rmse == pytest.approx(1.0)
     assert evaluate_trajectory(Trajectory(t, est), Trajectory(t, gt)).ate.rmse < 1e-9
+
+
+def test_kitti_files_are_matched_by_index_as_evo_ape_kitti(tmp_path):
+    """Two KITTI files (no times): pose k with pose k, ATE equal to evo's on the files it reads itself;
+    different lengths are refused, as evo's APE refuses them."""
+    _evo()
+    from evo.core import metrics
+    from evo.tools import file_interface
+
+    from minegeo.io import read_trajectory, write_trajectory
+
+    rng = np.random.default_rng(11)
+    gt_p = _path(rng, n=60)
+    est_p = np.einsum("ij,njk->nik", random_transform(rng, max_angle_rad=2.0, max_translation=20.0), _noisy(rng, gt_p))
+    t = np.arange(60.0)
+    write_trajectory(tmp_path / "gt.kitti", Trajectory(t, gt_p))
+    write_trajectory(tmp_path / "est.kitti", Trajectory(t, est_p))
+    write_trajectory(tmp_path / "est20.kitti", Trajectory(t[:20], est_p[:20]))
+    gt, est = read_trajectory(tmp_path / "gt.kitti"), read_trajectory(tmp_path / "est.kitti")
+    res = evaluate_trajectory(est, gt, match="index", rpe_delta=3)
+
+    ref = file_interface.read_kitti_poses_file(str(tmp_path / "gt.kitti"))
+    e = file_interface.read_kitti_poses_file(str(tmp_path / "est.kitti"))
+    e.align(ref)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, e))
+    assert res.n_matched == 60
+    assert res.ate.rmse == pytest.approx(ape.get_statistic(metrics.StatisticsType.rmse), rel=1e-9)
+
+    short = read_trajectory(tmp_path / "est20.kitti")
+    with pytest.raises(metrics.MetricsException, match="same number of poses"):
+        metrics.APE().process_data((ref, file_interface.read_kitti_poses_file(str(tmp_path / "est20.kitti"))))
+    with pytest.raises(InputError, match="the estimate holds 20 poses and the ground truth 60"):
+        evaluate_trajectory(short, gt, match="index")
+
+
+def test_parameters_evo_refuses_are_refused():
+    """evo: a frame delta must be whole (MetricsException), a delta with no pair is an error (FilterException);
+    Sim(3) scale is part of the alignment, so scale without alignment contradicts."""
+    _evo()
+    from evo.core import metrics
+
+    rng = np.random.default_rng(2)
+    p = _path(rng, n=20)
+    t = np.arange(20.0)
+    with pytest.raises(metrics.MetricsException, match="integer"):
+        metrics.RPE(delta=0.5, delta_unit=metrics.Unit.frames)
+    for kw, match in [({"rpe_delta": 0.5}, "whole number of frames"), ({"rpe_delta": float("inf")}, "whole number"),
+                      ({"rpe_delta": float("inf"), "rpe_unit": "m"}, "positive finite"),
+                      ({"rpe_delta": 0.0, "rpe_unit": "m"}, "positive finite"),
+                      ({"max_diff_s": float("nan")}, "max_diff_s"), ({"max_diff_s": 0.0}, "max_diff_s"),
+                      ({"scale": True, "align": False}, "contradict"),
+                      ({"rpe_delta": 20}, "no pose pair is 20 frames apart"),
+                      ({"rpe_delta": 1e6, "rpe_unit": "m"}, "no pose pair is 1e\\+06 m")]:
+        with pytest.raises(InputError, match=match):
+            evaluate_trajectory(Trajectory(t, p), Trajectory(t, p), **kw)
+    assert evaluate_trajectory(Trajectory(t, p), Trajectory(t, p), rpe_delta=19.0).rpe_translation.n == 1
+
+
+def test_trajectories_that_fail_the_readers_check_are_refused():
+    """Built in code (not read from a file), a reflection or duplicated times is still refused, naming the pose."""
+    rng = np.random.default_rng(3)
+    p = _path(rng, n=10)
+    t = np.arange(10.0)
+    bad = p.copy()
+    bad[4, :3, 2] *= -1.0
+    with pytest.raises(InputError, match="estimate pose 4: the rotation block is a reflection"):
+        evaluate_trajectory(Trajectory(t, bad), Trajectory(t, p))
+    td = t.copy()
+    td[6] = td[5]
+    with pytest.raises(InputError, match="ground truth pose 6: time 5.000000 s is not after"):
+        evaluate_trajectory(Trajectory(t, p), Trajectory(td, p))
