@@ -18,6 +18,11 @@ The contract a surveyor relies on (README, "Every CLI run ..."):
   ``.NAME.minegeo-lock`` in its parent folder (created with ``O_EXCL``); a second run refuses
   with a message that names the other run's process. A lock left by a process that no longer
   runs (same host) is taken over with a warning.
+* **Ctrl-C leaves nothing behind.** Creating a lock or a staging folder and recording it, the
+  commit (the renames into place) and the cleanup run with SIGINT deferred
+  (:func:`sigint_deferred`): a Ctrl-C that arrives there takes effect right after, so a lock or
+  staging folder is always either recorded (and removed by the cleanup) or not created, and a
+  commit is never half done: it is all in place, or none of it.
 
 Usage in a verb::
 
@@ -37,8 +42,10 @@ import json
 import logging
 import os
 import shutil
+import signal
 import socket
 import sys
+import threading
 import time
 import uuid
 from collections.abc import Mapping
@@ -48,13 +55,47 @@ from pathlib import Path
 from minegeo.errors import OutputError
 
 __all__ = ["OutputTransaction", "RunClock", "check_outputs", "is_result_folder", "run_timings", "progress_enabled",
-           "output_lock"]
+           "output_lock", "sigint_deferred"]
 
 log = logging.getLogger(__name__)
 
 _LOCK_SUFFIX = ".minegeo-lock"
 _TMP_TAG = ".minegeo-tmp-"
 _OLD_TAG = ".minegeo-old-"
+
+
+@contextmanager
+def sigint_deferred():
+    """Run a short critical section with SIGINT (Ctrl-C) held back until it ends.
+
+    A SIGINT that arrives inside the block is recorded; when the block ends, the handler that was
+    in force before is called with it (Python's default handler raises
+    :class:`KeyboardInterrupt` there, after the block). Nested blocks defer to the outermost.
+    Outside the main thread (a Dask worker's task thread, where Python never runs signal
+    handlers) it does nothing. Keep the block short: a user's Ctrl-C waits for it.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pending: list[int] = []
+
+    def _hold(signum, frame):  # noqa: ARG001 - signal handler signature
+        pending.append(signum)
+
+    try:
+        old = signal.signal(signal.SIGINT, _hold)
+    except (ValueError, OSError):  # no signal handling here (an embedded interpreter)
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+        if pending:
+            if callable(old):
+                old(signal.SIGINT, None)
+            elif old == signal.SIG_DFL:
+                raise KeyboardInterrupt
 
 
 def _real(p) -> Path:
@@ -166,7 +207,9 @@ class _Lock:
                 "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
         for attempt in range(2):
             try:
-                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+                with sigint_deferred():  # created <=> recorded as held (released by the cleanup)
+                    fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+                    self.held = True
             except FileExistsError:
                 other = self._read()
                 if attempt == 0 and other is not None and other.get("host") == info["host"] \
@@ -182,9 +225,12 @@ class _Lock:
                        f"started {other.get('started_utc')})") if other else "another minegeo run"
                 raise OutputError(f"{self.label} {self.target} is being written by {who}; wait for it to "
                                   f"finish, or delete the lock file {self.path} if that run has died") from None
-            with os.fdopen(fd, "w", encoding="utf-8") as fh:
-                json.dump(info, fh)
-            self.held = True
+            try:
+                with os.fdopen(fd, "w", encoding="utf-8") as fh:
+                    json.dump(info, fh)
+            except BaseException:
+                self.release()
+                raise
             return
 
     def _read(self):
@@ -196,12 +242,13 @@ class _Lock:
             return None
 
     def release(self) -> None:
-        if self.held:
-            try:
-                self.path.unlink()
-            except FileNotFoundError:
-                pass
-            self.held = False
+        with sigint_deferred():
+            if self.held:
+                try:
+                    self.path.unlink()
+                except FileNotFoundError:
+                    pass
+                self.held = False
 
 
 class OutputTransaction:
@@ -223,10 +270,15 @@ class OutputTransaction:
         explicit ``--force``).
     overwrite_files : bool
         Whether existing output files may be replaced (default True).
+    drop_unwritten : bool
+        An output file this run did not write is removed at the commit (default False: left as
+        it is). For a set of files that describe one run together (a batch's summary, report,
+        record and optional drawing): an earlier run's drawing is not left beside this run's record.
     """
 
     def __init__(self, verb: str, *, inputs: Mapping[str, object] = (), folders: Mapping[str, object] = (),
-                 files: Mapping[str, object] = (), replace: str = "result", overwrite_files: bool = True):
+                 files: Mapping[str, object] = (), replace: str = "result", overwrite_files: bool = True,
+                 drop_unwritten: bool = False):
         self.verb = verb
         self.inputs = {k: v for k, v in dict(inputs or {}).items() if v is not None}
         self.folders = {k: Path(os.fspath(v)) for k, v in dict(folders or {}).items() if v is not None}
@@ -235,6 +287,7 @@ class OutputTransaction:
             raise ValueError(f"replace must be 'result' or 'any', got {replace!r}")
         self.replace = replace
         self.overwrite_files = overwrite_files
+        self.drop_unwritten = drop_unwritten
         self._locks: list[_Lock] = []
         self._stage: dict[str, Path] = {}
         self._tmpfiles: dict[str, Path] = {}
@@ -277,17 +330,21 @@ class OutputTransaction:
             if top is not None and top not in self._created:
                 self._created.append(top)
         try:
+            # each lock and staging folder is created and recorded with Ctrl-C held back, so the
+            # cleanup below always knows it (sigint_deferred)
             for _, lab, p in targets:
                 lk = _Lock(_real(p), lab, self.verb)
-                lk.acquire()
-                self._locks.append(lk)
+                with sigint_deferred():
+                    self._locks.append(lk)
+                    lk.acquire()
             self.check()  # again, under the locks
             tag = f"{os.getpid()}-{uuid.uuid4().hex[:8]}"
             for lab, d in self.folders.items():
                 rd = _real(d)
                 s = rd.parent / f".{rd.name}{_TMP_TAG}{tag}"
-                s.mkdir(parents=True)
-                self._stage[lab] = s
+                with sigint_deferred():
+                    s.mkdir(parents=True)
+                    self._stage[lab] = s
             for lab, (flab, rel) in self._in_folder.items():
                 self._tmpfiles[lab] = self._stage[flab] / rel
                 self._tmpfiles[lab].parent.mkdir(parents=True, exist_ok=True)
@@ -297,8 +354,9 @@ class OutputTransaction:
                 rf = _real(f)
                 sd = rf.parent / f"{_TMP_TAG[:-1]}-{tag}"  # one hidden staging folder per parent
                 if sd not in self._filedirs:
-                    sd.mkdir(parents=True)
-                    self._filedirs.append(sd)
+                    with sigint_deferred():
+                        sd.mkdir(parents=True)
+                        self._filedirs.append(sd)
                 self._tmpfiles[lab] = sd / rf.name  # same name: sidecars named after it stay right
         except BaseException:
             self._cleanup()
@@ -321,11 +379,14 @@ class OutputTransaction:
         return self.folders.get(label) or self.files[label]
 
     def __exit__(self, exc_type, exc, tb) -> bool:
-        try:
-            if exc_type is None:
-                self._commit()
-        finally:
-            self._cleanup()
+        # commit and cleanup with Ctrl-C held back: the renames are all done or none is, and the
+        # staging folders and locks are always removed; the Ctrl-C takes effect just after
+        with sigint_deferred():
+            try:
+                if exc_type is None:
+                    self._commit()
+            finally:
+                self._cleanup()
         return False
 
     # -- commit / cleanup ---------------------------------------------------------------------
@@ -347,6 +408,8 @@ class OutputTransaction:
         for lab, t in self._tmpfiles.items():
             if lab not in self._in_folder and t.exists():
                 os.replace(t, _real(self.files[lab]))
+            elif lab not in self._in_folder and self.drop_unwritten:
+                _real(self.files[lab]).unlink(missing_ok=True)  # an earlier run's file this run did not write
         self.committed = True
 
     def _cleanup(self) -> None:
@@ -411,8 +474,8 @@ class RunClock:
 def output_lock(verb: str, label: str, path):
     """Hold the lock of one output (file or folder) without staging it (for composite verbs)."""
     lk = _Lock(_real(path), label, verb)
-    lk.acquire()
     try:
+        lk.acquire()
         yield lk
     finally:
         lk.release()

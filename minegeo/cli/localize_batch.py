@@ -32,6 +32,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import socket
 import time
 import uuid
@@ -44,24 +45,26 @@ HELP = "localize many scans in one prepared map in parallel (Dask): one result f
 
 
 def add_arguments(parser) -> None:
+    from minegeo.cli._argtypes import float_in_range, nonnegative_int, positive_int
     from minegeo.cli.localize import add_profile_arguments
 
     parser.add_argument("--map", required=True, help="prepared map (.npz from minegeo prepare-map) or a map file")
     parser.add_argument("--scans", required=True, help="folder of scan files, or a glob pattern ('scans/*.ply')")
     parser.add_argument("--out", required=True, help="batch folder (one result folder per scan, summary.csv, "
                                                      "report.html, batch_result.json); re-running resumes it")
-    parser.add_argument("--workers", type=int, default=2,
-                        help="worker processes of the local Dask cluster, one thread each (default 2)")
-    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
+    parser.add_argument("--workers", type=positive_int, default=None,
+                        help=f"worker processes of the local Dask cluster, one thread each (default {DEFAULT_WORKERS}, "
+                             f"at most {WORKERS_PER_CORE} per CPU core; not with --scheduler)")
+    parser.add_argument("--scheduler", type=scheduler_address, default=None, metavar="ADDRESS",
                         help="address of a running dask.distributed scheduler (e.g. tcp://10.0.0.5:8786) instead "
                              "of a local cluster; its workers must see --map, --scans and --out at the same paths")
-    parser.add_argument("--seed", type=int, default=0,
+    parser.add_argument("--seed", type=nonnegative_int, default=0,
                         help="random seed of every scan (default 0): the same as minegeo localize --seed")
     add_profile_arguments(parser)
     parser.add_argument("--icp", default=None, choices=("point_to_point", "point_to_plane", "gicp"),
                         help="ICP variant (as minegeo localize)")
-    parser.add_argument("--levelled", type=float, default=None, metavar="DEG",
-                        help="the scans are levelled (as minegeo localize --levelled)")
+    parser.add_argument("--levelled", type=float_in_range(0.0, 90.0, lo_open=True), default=None, metavar="DEG",
+                        help="the scans are levelled (as minegeo localize --levelled), a tilt in (0, 90] degrees")
     parser.add_argument("--no-cache", action="store_true",
                         help="a map file given as --map: do not read or write its prepared-map cache")
     parser.add_argument("--drop-nonfinite", action="store_true", help="drop scan points with NaN/inf coordinates")
@@ -70,43 +73,108 @@ def add_arguments(parser) -> None:
                              "and label on MINEGEO_* layers (needs minegeo[dxf])")
 
 
+#: local cluster size without --workers
+DEFAULT_WORKERS = 2
+#: most worker processes per CPU core --workers accepts (more only wait for the cores)
+WORKERS_PER_CORE = 4
+#: transports a dask.distributed scheduler address may name
+SCHEDULER_SCHEMES = ("tcp", "tls", "ws", "wss", "ucx")
+_HOSTNAME = re.compile(r"^(?=.{1,253}$)[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+                       r"(?:\.[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$")
+
+
+def scheduler_address(text: str) -> str:
+    """argparse type of ``--scheduler``: ``[SCHEME://]HOST:PORT``.
+
+    ``SCHEME`` one of :data:`SCHEDULER_SCHEMES` (default ``tcp``), ``HOST`` a host name, an IPv4
+    address or an IPv6 address in brackets (``[::1]``), ``PORT`` 1-65535. Checked before any work;
+    whether a scheduler answers there is found out when the batch connects.
+    """
+    import argparse
+    import ipaddress
+
+    t = str(text).strip()
+    form = "give it as tcp://HOST:PORT, e.g. tcp://10.0.0.5:8786 (an IPv6 address in brackets: tcp://[::1]:8786)"
+    scheme, sep, rest = t.partition("://")
+    if not sep:
+        scheme, rest = "tcp", t
+    if scheme.lower() not in SCHEDULER_SCHEMES:
+        raise argparse.ArgumentTypeError(f"{text!r}: unknown transport {scheme!r} (one of "
+                                         f"{', '.join(SCHEDULER_SCHEMES)}); {form}")
+    if rest.startswith("["):
+        host, close, port = rest[1:].partition("]")
+        if not close or not port.startswith(":"):
+            raise argparse.ArgumentTypeError(f"{text!r} is not a scheduler address; {form}")
+        port = port[1:]
+        try:
+            ipaddress.IPv6Address(host)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: {host!r} is not an IPv6 address; {form}") from None
+    else:
+        host, colon, port = rest.rpartition(":")
+        if not colon:
+            raise argparse.ArgumentTypeError(f"{text!r} has no port; {form}")
+        if ":" in host:
+            raise argparse.ArgumentTypeError(f"{text!r}: an IPv6 address needs brackets; {form}")
+        if not _HOSTNAME.match(host):
+            raise argparse.ArgumentTypeError(f"{text!r}: {host!r} is not a host name or address; {form}")
+    if not (port.isdigit() and port.isascii() and 1 <= int(port) <= 65535):
+        raise argparse.ArgumentTypeError(f"{text!r}: the port must be a whole number from 1 to 65535; {form}")
+    return t
+
+
 def _check_options(args) -> None:
+    """Option combinations and the environment, before any file is read (the values themselves
+    were checked by their argparse types)."""
     from minegeo.errors import InputError
 
-    if args.seed < 0:
-        raise InputError(f"--seed must be >= 0, got {args.seed}")
-    if args.workers < 1:
-        raise InputError(f"--workers must be >= 1, got {args.workers}")
+    if args.scheduler is not None and args.workers is not None:
+        raise InputError("--workers sets the size of the local cluster and --scheduler uses a running cluster "
+                         "instead; give one of them")
+    if args.workers is None:
+        args.workers = DEFAULT_WORKERS
+    most = WORKERS_PER_CORE * (os.cpu_count() or 1)
+    if args.workers > most:
+        raise InputError(f"--workers {args.workers}: at most {most} on this machine ({WORKERS_PER_CORE} per CPU "
+                         f"core); each worker is a process running one scan at a time")
     if not Path(args.map).exists():
         raise InputError(f"--map {args.map} does not exist")
     if args.dxf:
         from minegeo.cli._dxf import require_dxf
 
         require_dxf()  # a missing ezdxf stops the run before any work
-    if args.scheduler is None:
-        import importlib.util
+    import importlib.util
 
-        if importlib.util.find_spec("distributed") is None or importlib.util.find_spec("dask") is None:
-            from minegeo.localize.batch import DaskUnavailableError
+    if importlib.util.find_spec("distributed") is None or importlib.util.find_spec("dask") is None:
+        from minegeo.localize.batch import DaskUnavailableError
 
-            raise DaskUnavailableError()
+        raise DaskUnavailableError()
 
 
 def run(args) -> int:
-    from minegeo._output import check_outputs, output_lock
+    """The batch, in the order that keeps ``OUT``'s contract (docs/localization.md): every check
+    before any work; the lock of ``OUT``; the cluster started (nothing written yet, so a cluster
+    that cannot start leaves ``OUT`` as it was); ``OUT`` prepared (manifest, map cache); the scans;
+    the summary, report and record staged and renamed into place together. A run that stops
+    early takes back everything but its completed scan folders (:class:`~minegeo.localize.batch.OutState`)."""
+    from minegeo._output import OutputTransaction, check_outputs, output_lock
     from minegeo._provenance import input_record, to_jsonable
     from minegeo.cli._common import summary_lines_quiet
     from minegeo.cli.localize import DEFAULT_PROFILE, params_from_args
     from minegeo.localize import batch as B
-    from minegeo.localize.prepared import cache_path, is_prepared_file, load_or_prepare, params_hash
+    from minegeo.localize.prepared import is_prepared_file, load_or_prepare, params_hash
 
     _check_options(args)
     prep, lp = params_from_args(args)
     out = Path(args.out)
     scans = B.find_scans(args.scans)
+    names = B.result_names(scans)  # checked: unique, none a name the batch uses itself
     ins = {"--map": args.map, **({"--scans": args.scans} if Path(args.scans).is_dir() else {})}
     ins.update({f"scan {s}": s for s in scans})
     check_outputs(ins, folders={"--out": out})
+    B.check_out_entries(out, names)
+    files = {n: out / n for n in B.BATCH_FILES}
+    OutputTransaction("localize-batch", inputs=ins, files=files).check()
     map_input = input_record(args.map)
     profile = getattr(args, "profile", None) or DEFAULT_PROFILE
     lp_dict = to_jsonable(asdict(lp))
@@ -123,47 +191,95 @@ def run(args) -> int:
         with summary_lines_quiet():
             pm, how = load_or_prepare(args.map, prep, use_cache=not args.no_cache, write_cache=not args.no_cache)
     t_map = time.perf_counter() - t0
-    with output_lock("localize-batch", "--out", out):
-        resuming = B.check_out_folder(out, manifest)
-        out.mkdir(parents=True, exist_ok=True)
-        B.clean_leftovers(out)  # staging folders and locks of scans whose worker died
-        if not resuming:
-            from minegeo._provenance import write_json_atomic
-
-            write_json_atomic(out / B.MANIFEST, manifest)
-        pm.build_indexes(lp)  # exported with the map: workers restore them instead of building them
-        cache = B.export_map_cache(pm, out, map_input["sha256"])
-        batch_id = uuid.uuid4().hex[:12]
-        cache_file = None if (is_prepared_file(args.map) or args.no_cache) else str(cache_path(args.map, prep))
-        jobs = [B.BatchJob(scan=str(s), name=n, folder=str(out / n), map_path=str(args.map), map_input=map_input,
-                           map_how=how, map_cache=str(cache), cache_file=cache_file, params_hash=pm.params_hash,
-                           manifest_sha256=B.manifest_digest(manifest), lp=lp, seed=int(args.seed),
-                           profile=profile, drop_nonfinite=bool(args.drop_nonfinite), batch_id=batch_id,
-                           numba_threads=B.numba_share(args.workers, args.scheduler), manifest=manifest)
-                for s, n in zip(scans, B.result_names(scans), strict=True)]
-        # distributed's own INFO lines (scheduler, nanny, worker start and stop) only with --debug
-        dlog = logging.getLogger("distributed")
-        old_prop = dlog.propagate
-        dlog.propagate = bool(args.debug)
-        try:
-            with _Bar(args, len(jobs)) as bar:
-                res = B.run_batch(jobs, manifest, localize_task, lost_task, workers=args.workers,
-                                  scheduler=args.scheduler, on_row=bar)
-        finally:
-            dlog.propagate = old_prop
-        record = _write_batch_outputs(args, out, res, pm, manifest, map_input, t_map, how)
+    created = _missing_top(out)
+    try:
+        with output_lock("localize-batch", "--out", out):
+            B.check_out_folder(out, manifest)
+            B.check_out_entries(out, names)
+            state = B.OutState(out, names)
+            try:
+                res, record = _run_locked(args, out, scans, names, pm, how, manifest, map_input, t_map, state,
+                                          files, prep, lp)
+            except BaseException:
+                state.rollback()  # after the cluster closed (no worker writes any more), under the lock
+                raise
+    except BaseException:
+        _remove_if_empty(created)
+        raise
     if not getattr(args, "quiet", False):
         _print(res, record, out)
     return 0 if res.counts.get("ok", 0) == len(res.rows) else 1
 
 
-def _write_batch_outputs(args, out: Path, res, pm, manifest: dict, map_input: dict, t_map: float, how: str) -> dict:
+def _run_locked(args, out, scans, names, pm, how, manifest, map_input, t_map, state, files, prep, lp):
+    from minegeo._output import OutputTransaction
+    from minegeo.localize import batch as B
+    from minegeo.localize.prepared import cache_path, is_prepared_file
+
+    cache = B.map_cache_dir(out, map_input["sha256"], pm.params_hash)
+    batch_id = uuid.uuid4().hex[:12]
+    cache_file = None if (is_prepared_file(args.map) or args.no_cache) else str(cache_path(args.map, prep))
+    jobs = [B.BatchJob(scan=str(s), name=n, folder=str(out / n), map_path=str(args.map), map_input=map_input,
+                       map_how=how, map_cache=str(cache), cache_file=cache_file, params_hash=pm.params_hash,
+                       manifest_sha256=B.manifest_digest(manifest), lp=lp, seed=int(args.seed),
+                       profile=manifest["profile"], drop_nonfinite=bool(args.drop_nonfinite), batch_id=batch_id,
+                       numba_threads=B.numba_share(args.workers, args.scheduler), manifest=manifest)
+            for s, n in zip(scans, names, strict=True)]
+    _, todo = B.plan_batch(jobs, manifest)
+    cluster = B.BatchCluster(args.workers, args.scheduler, quiet=not args.debug)
+    try:
+        if todo:
+            cluster.start()  # before anything is written: a cluster that cannot start leaves OUT as it was
+        state.prepare(manifest)
+        if todo:
+            pm.build_indexes(lp)  # exported with the map: workers restore them instead of building them
+            B.export_map_cache(pm, out, map_input["sha256"])
+        with _Bar(args, len(jobs)) as bar:
+            res = B.run_batch(jobs, manifest, localize_task, lost_task, workers=args.workers,
+                              scheduler=args.scheduler, client=cluster if todo else None, on_row=bar)
+    finally:
+        cluster.close()
+    # the summary, report, record (and drawing) of this run: staged, renamed into place together
+    with OutputTransaction("localize-batch", files=files, drop_unwritten=True) as tx:
+        record = _write_batch_outputs(args, out, res, pm, manifest, map_input, t_map, how,
+                                      {n: tx.file(n) for n in files})
+        B.pause_for_test("commit")
+    return res, record
+
+
+def _missing_top(p: Path) -> Path | None:
+    """The outermost missing folder of ``p`` and its parents (what a run creates to write ``p``)."""
+    top = None
+    for anc in [Path(os.path.abspath(p)), *Path(os.path.abspath(p)).parents]:
+        if anc.exists():
+            break
+        top = anc
+    return top
+
+
+def _remove_if_empty(top: Path | None) -> None:
+    """Remove ``top`` (a folder this run created) when no file was put under it."""
+    import shutil
+
+    from minegeo._output import sigint_deferred
+
+    if top is None:
+        return
+    with sigint_deferred():
+        if top.is_dir() and not any(q.is_file() or q.is_symlink() for q in top.rglob("*")):
+            shutil.rmtree(top, ignore_errors=True)
+
+
+def _write_batch_outputs(args, out: Path, res, pm, manifest: dict, map_input: dict, t_map: float, how: str,
+                         to: dict) -> dict:
+    """Write the batch's own files to the paths ``to`` (``{name in BATCH_FILES: staged path}``);
+    ``out`` is the batch folder whose scan folders they describe."""
     from minegeo._provenance import versions, write_json_atomic
     from minegeo.cli._common import whole_run_timings
     from minegeo.localize import batch as B
     from minegeo.report.batch_report import batch_status, write_batch_report
 
-    B.write_summary_csv(out / "summary.csv", res.rows)
+    B.write_summary_csv(to["summary.csv"], res.rows)
     word, text = batch_status(res.counts)
     timings = {"map_load_or_prepare": t_map, "batch": res.seconds, **whole_run_timings(args)}
     rows = [{k: v for k, v in r.items() if k != "T_map_scan"} for r in res.rows]
@@ -193,9 +309,9 @@ def _write_batch_outputs(args, out: Path, res, pm, manifest: dict, map_input: di
                 log.warning("%s: no result.json for the DXF (%s)", r["folder"], exc)
                 continue
             recs.append({**d, "name": r["name"], "result_dir": str(out / r["folder"])})
-        record["dxf"] = dxf_record(out / "placements.dxf", write_localize_dxf(out / "placements.dxf", recs))
-    write_batch_report(out / "report.html", record, res.rows, pm)
-    write_json_atomic(out / "batch_result.json", record)
+        record["dxf"] = dxf_record(to["placements.dxf"], write_localize_dxf(to["placements.dxf"], recs))
+    write_batch_report(to["report.html"], record, res.rows, pm)
+    write_json_atomic(to["batch_result.json"], record)
     return record
 
 

@@ -76,6 +76,10 @@ VOLATILE_FIELDS = ("*.timings_s", "map_preparation.seconds", "batch")
 SUMMARY_COLUMNS = ("scan", "status", "reason", "E", "N", "H", "heading", "radius95_m", "time_s")
 MANIFEST = "batch_manifest.json"
 MAP_CACHE = ".map_cache"
+#: the files the batch writes at its end, together (``minegeo localize-batch``)
+BATCH_FILES = ("summary.csv", "report.html", "batch_result.json", "placements.dxf")
+#: every name the batch itself uses in ``OUT``: no scan's result folder may take one of them
+RESERVED_NAMES = (*BATCH_FILES, MANIFEST, MAP_CACHE)
 _MANIFEST_FORMAT = "minegeo-localize-batch"
 
 
@@ -132,18 +136,51 @@ def find_scans(spec) -> list[Path]:
 
 def result_names(scans) -> list[str]:
     """Result folder name of each scan: its file name without extension, or the whole file name
-    when two scans share a stem (``a.ply`` and ``a.las``); ``_2``, ``_3``... for equal names of
-    different folders."""
-    stems = [Path(s).stem for s in scans]
+    when two scans share a stem (``a.ply`` and ``a.las``) or the stem is a name the batch uses
+    itself (:data:`RESERVED_NAMES`: ``summary.csv.ply`` gets the folder ``summary.csv.ply``);
+    ``_2``, ``_3``... for equal names of different folders; leading dots dropped (a scan given by
+    its path may be a hidden file).
+
+    Names are compared without regard to case (``Scan.ply`` and ``scan.ply`` would be one folder
+    on a case-insensitive shared drive). The result always passes :func:`check_result_names`.
+    """
+    reserved = {r.casefold() for r in RESERVED_NAMES}
+    stems = [Path(s).stem.casefold() for s in scans]
     names, seen = [], set()
-    for s, stem in zip(scans, stems, strict=True):
-        base = stem if stems.count(stem) == 1 and stem else Path(s).name
+    for s in scans:
+        stem = Path(s).stem
+        key = stem.casefold()
+        base = stem if stem and stems.count(key) == 1 and key not in reserved else Path(s).name
+        base = base.lstrip(".") or "scan"  # a hidden name would look like a staging folder or lock
         name, k = base, 2
-        while name in seen or name in (MAP_CACHE, MANIFEST):
+        while name.casefold() in seen or name.casefold() in reserved:
             name, k = f"{base}_{k}", k + 1
-        seen.add(name)
+        seen.add(name.casefold())
         names.append(name)
+    check_result_names(scans, names)
     return names
+
+
+def check_result_names(scans, names) -> None:
+    """The invariant of the name mapping, checked before any scan runs: one plain, visible name
+    per scan, no two equal (ignoring case), none a name the batch uses itself.
+
+    Raises
+    ------
+    RuntimeError
+        A violated invariant of :func:`result_names` (a bug, not the user's input).
+    """
+    reserved = {r.casefold() for r in RESERVED_NAMES}
+    if len(names) != len(scans):
+        raise RuntimeError(f"result_names gave {len(names)} names for {len(scans)} scans")
+    seen: dict[str, str] = {}
+    for scan, n in zip(scans, names, strict=True):
+        bad = (not n or n in (".", "..") or n.startswith(".") or "/" in n or "\\" in n or "\0" in n
+               or n.casefold() in reserved or n.casefold() in seen)
+        if bad:
+            raise RuntimeError(f"result folder name {n!r} of scan {scan} is not usable (reserved, hidden or "
+                               f"equal to the folder of {seen.get(n.casefold())})")
+        seen[n.casefold()] = str(scan)
 
 
 def manifest_record(map_input: dict, params_hash: str, lp_dict: dict, seed: int, profile: str) -> dict:
@@ -194,12 +231,13 @@ def check_out_folder(out: Path, manifest: dict) -> bool:
     return True
 
 
-def clean_leftovers(out: Path) -> list[str]:
+def clean_leftovers(out: Path, quiet: bool = False) -> list[str]:
     """Remove what a dead run left inside ``OUT``: scan staging folders (``.NAME.minegeo-tmp-*``,
     ``.NAME.minegeo-old-*``) and scan lock files (``.NAME.minegeo-lock``). Call it only while
     holding the lock of ``OUT`` itself: then no other batch writes there, so every such entry is
     a leftover (also of workers on other hosts, whose locks the host-local stale-lock rule of
-    :mod:`minegeo._output` could not take over). Returns the names removed."""
+    :mod:`minegeo._output` could not take over). Returns the names removed (logged as a warning
+    unless ``quiet``: the rollback of an interrupted run removes its own)."""
     from minegeo._output import _LOCK_SUFFIX, _OLD_TAG, _TMP_TAG
 
     gone = []
@@ -213,14 +251,130 @@ def clean_leftovers(out: Path) -> list[str]:
             else:
                 q.unlink(missing_ok=True)
             gone.append(n)
-    if gone:
+    if gone and not quiet:
         log.warning("removed %d leftover(s) of an interrupted run in %s: %s", len(gone), out, ", ".join(sorted(gone)))
     return gone
+
+
+def check_out_entries(out: Path, names) -> None:
+    """Refuse, before any work, an ``OUT`` whose entries cannot take this batch's outputs: a scan's
+    result folder name (``names``) that exists there as a file, a batch file
+    (:data:`BATCH_FILES`) that is a folder, or a ``.map_cache`` that is not a folder.
+
+    Raises
+    ------
+    OutputError
+        Naming the entry and what the batch would write there. Nothing is written.
+    """
+    if not out.is_dir():
+        return
+    for n in names:
+        q = out / n
+        if os.path.lexists(q) and (q.is_symlink() or not q.is_dir()):
+            raise OutputError(f"--out {out}: {q} exists and is not a folder, but it is where the result folder of "
+                              f"scan {n} goes; move it away or choose another --out")
+    for n in BATCH_FILES:
+        q = out / n
+        if os.path.lexists(q) and (q.is_symlink() or not q.is_file()):
+            raise OutputError(f"--out {out}: {q} exists and is not a plain file, but the batch writes its {n} there; "
+                              "move it away or choose another --out")
+    q = out / MAP_CACHE
+    if os.path.lexists(q) and (q.is_symlink() or not q.is_dir()):
+        raise OutputError(f"--out {out}: {q} exists and is not a folder (the batch's map cache); move it away")
+
+
+def _sig(p: Path):
+    try:
+        st = os.lstat(p)
+    except OSError:
+        return None
+    return (st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+class OutState:
+    """What ``OUT`` held before a batch run, and how a run that does not finish is taken back.
+
+    The rule (docs/localization.md, "What a run that does not finish leaves"): after a run that
+    stops early (a user mistake, a cluster that cannot start, Ctrl-C, a crash) ``OUT`` holds what
+    it held before, plus the scan result folders this run completed (each written aside and
+    renamed into place whole, so each is complete) and, when it added at least one and ``OUT``
+    had none, the ``batch_manifest.json`` they belong to. Nothing else: no map cache this run
+    wrote, no lock, no staging folder, no summary, report or record of this run. A run that stops
+    before its first scan finishes leaves ``OUT`` as it was (absent if it was absent).
+
+    Parameters
+    ----------
+    out : Path
+        The batch folder.
+    names : list of str
+        The result folder names of this batch's scans.
+    """
+
+    def __init__(self, out: Path, names):
+        self.out = Path(out)
+        self.names = list(names)
+        self.existed = self.out.is_dir()
+        self.manifest_existed = (self.out / MANIFEST).exists()
+        cache = self.out / MAP_CACHE
+        self.cache_entries = {q.name for q in cache.iterdir()} if cache.is_dir() else None
+        self.scans_before = {n: _sig(self.out / n / "result.json") for n in self.names}
+        self.prepared = False
+
+    def prepare(self, manifest: dict) -> None:
+        """Create ``OUT``, remove a dead run's leftovers (:func:`clean_leftovers`), write the
+        manifest. Call it only once the cluster runs, holding the lock of ``OUT``."""
+        from minegeo._output import sigint_deferred
+        from minegeo._provenance import write_json_atomic
+
+        with sigint_deferred():
+            self.prepared = True
+            self.out.mkdir(parents=True, exist_ok=True)
+        clean_leftovers(self.out)
+        if not self.manifest_existed:
+            write_json_atomic(self.out / MANIFEST, manifest)
+
+    def added_scans(self) -> list[str]:
+        """Result folders this run put in place (a new or replaced, complete ``result.json``)."""
+        return [n for n in self.names if (self.out / n / "result.json").is_file()
+                and _sig(self.out / n / "result.json") != self.scans_before[n]]
+
+    def rollback(self) -> None:
+        """Take back what this run added to ``OUT`` except its completed scan folders (the rule
+        above). Call it after the workers have stopped, still holding the lock of ``OUT``."""
+        from minegeo._output import sigint_deferred
+
+        if not self.prepared:
+            return
+        with sigint_deferred():
+            clean_leftovers(self.out, quiet=True)
+            cache = self.out / MAP_CACHE
+            if cache.is_dir():
+                for q in list(cache.iterdir()):
+                    if self.cache_entries is None or q.name not in self.cache_entries:
+                        if q.is_dir() and not q.is_symlink():
+                            shutil.rmtree(q, ignore_errors=True)
+                        else:
+                            q.unlink(missing_ok=True)
+                if self.cache_entries is None and not any(cache.iterdir()):
+                    cache.rmdir()
+            added = self.added_scans()
+            if not self.manifest_existed and not added:
+                (self.out / MANIFEST).unlink(missing_ok=True)
+            if not self.existed and self.out.is_dir() and not any(self.out.iterdir()):
+                self.out.rmdir()
+        if added:
+            log.debug("kept %d complete scan result folder(s) of the interrupted run: %s", len(added), ", ".join(added))
 
 
 # ------------------------------------------------------------------------------------ map cache
 def _cache_key(map_sha256: str, params_hash: str) -> str:
     return hashlib.sha256(f"{map_sha256}|{params_hash}".encode("ascii")).hexdigest()[:16]
+
+
+def map_cache_dir(out: Path, map_sha256: str, params_hash: str) -> Path:
+    """``out/.map_cache/<key>/``: where :func:`export_map_cache` puts the map of this SHA-256 and
+    prepared-parameter hash."""
+    return Path(out) / MAP_CACHE / _cache_key(map_sha256, params_hash)
 
 
 def export_map_cache(pm, out: Path, map_sha256: str) -> Path:
@@ -233,9 +387,8 @@ def export_map_cache(pm, out: Path, map_sha256: str) -> Path:
     from minegeo._provenance import to_jsonable
     from minegeo.localize.prepared import CORE_ARRAYS
 
-    key = _cache_key(map_sha256, pm.params_hash)
-    root = out / MAP_CACHE
-    d = root / key
+    d = map_cache_dir(out, map_sha256, pm.params_hash)
+    root, key = d.parent, d.name
     if (d / "meta.json").is_file():
         return d
     try:
@@ -418,16 +571,169 @@ def _client(workers: int, scheduler: str | None, client):
     """``(client, owned)``: the given client, one connected to ``scheduler``, or a local cluster."""
     if client is not None:
         return client, False
-    try:
-        from dask.distributed import Client
-    except ImportError:
-        raise DaskUnavailableError() from None
-    if scheduler:
+    bc = BatchCluster(workers, scheduler)
+    bc.start()
+    return bc, True
+
+
+#: test hook: ``MINEGEO_TEST_BATCH_PAUSE=<stage>`` makes the driver wait at that stage (see :func:`pause_for_test`)
+TEST_PAUSE_ENV = "MINEGEO_TEST_BATCH_PAUSE"
+#: test hook: the file the driver writes when it has reached the stage it waits at
+TEST_READY_ENV = "MINEGEO_TEST_BATCH_READY"
+#: the stages :func:`pause_for_test` knows, in the order a run reaches them
+TEST_STAGES = ("cluster-start", "scans", "commit")
+
+
+def pause_for_test(stage: str) -> None:
+    """Test hook: when ``$MINEGEO_TEST_BATCH_PAUSE`` names ``stage``, write the file
+    ``$MINEGEO_TEST_BATCH_READY`` and wait (at most 120 s) for the test's Ctrl-C.
+
+    Stages: ``cluster-start`` (the cluster is starting in its own thread), ``scans`` (the first
+    scan has finished, the others are running), ``commit`` (every scan is done; the summary,
+    report and record are staged, not yet in place). Without the variable it does nothing.
+    """
+    if os.environ.get(TEST_PAUSE_ENV) != stage:
+        return
+    ready = os.environ.get(TEST_READY_ENV)
+    if ready:
+        Path(ready).write_text(stage, encoding="utf-8")
+    deadline = time.monotonic() + 120.0
+    while time.monotonic() < deadline:
+        time.sleep(0.02)
+
+
+class BatchCluster:
+    """The Dask client of a batch (a local cluster, or a running scheduler's), started so that a
+    Ctrl-C leaves nothing running and prints nothing.
+
+    * **Started in its own thread, with SIGINT blocked there.** Every thread ``distributed``
+      creates for the cluster descends from it, and so do the worker processes (a thread's signal
+      mask is inherited by the threads it starts and by a process it spawns): the terminal's
+      Ctrl-C, sent to the whole foreground process group, reaches only the driver, never a worker
+      (no worker traceback). The driver stops the workers itself.
+    * **A Ctrl-C while the cluster starts** waits for the start to end (with further Ctrl-C held
+      back), closes what it made, then raises :class:`KeyboardInterrupt`: a half-built
+      ``LocalCluster`` would make distributed's exit hook fail (``AssertionError: Status.init``).
+    * **Quiet.** Unless ``quiet=False``, the ``distributed`` loggers (driver side) print nothing
+      while the batch runs and closes; the batch records every scan's outcome itself.
+
+    Parameters
+    ----------
+    workers : int
+        Worker processes of the local cluster, one thread each (ignored with ``scheduler``).
+    scheduler : str, optional
+        Address of a running ``dask.distributed`` scheduler.
+    quiet : bool
+        Silence distributed's log lines (default True).
+    """
+
+    def __init__(self, workers: int, scheduler: str | None = None, quiet: bool = True):
+        self.workers = int(workers)
+        self.scheduler = scheduler
+        self.quiet = quiet
+        self.client = None
+        self.cluster = None
+        self._levels: dict = {}
+
+    # a Client-like face for run_batch
+    def submit(self, *a, **k):
+        return self.client.submit(*a, **k)
+
+    @property
+    def loop(self):
+        return self.client.loop
+
+    def _connect(self, box: dict) -> None:
+        import signal
+
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})  # this thread and all it starts
         try:
-            return Client(scheduler, timeout="20s"), True
-        except (OSError, TimeoutError) as exc:
-            raise InputError(f"--scheduler {scheduler}: cannot connect to the Dask scheduler ({exc})") from None
-    return Client(local_cluster(workers)), True
+            from dask.distributed import Client
+        except ImportError:
+            box["error"] = DaskUnavailableError()
+            return
+        try:
+            if self.scheduler:
+                try:
+                    box["client"] = Client(self.scheduler, timeout="20s", set_as_default=False)
+                except (OSError, TimeoutError) as exc:
+                    box["error"] = InputError(f"--scheduler {self.scheduler}: cannot connect to the Dask scheduler "
+                                              f"({exc})")
+                return
+            box["cluster"] = local_cluster(self.workers,
+                                           silence_logs=(logging.CRITICAL + 1) if self.quiet else logging.ERROR)
+            box["client"] = Client(box["cluster"], set_as_default=False)
+        except BaseException as exc:  # noqa: BLE001 - handed to the main thread, which raises it
+            box["error"] = exc
+
+    def start(self) -> BatchCluster:
+        """Start the cluster (or connect); a Ctrl-C meanwhile closes it again and is re-raised."""
+        import threading
+
+        from minegeo._output import sigint_deferred
+
+        self._silence()
+        box: dict = {}
+        t = threading.Thread(target=self._connect, args=(box,), name="minegeo-batch-cluster-start", daemon=True)
+        try:
+            t.start()
+            pause_for_test("cluster-start")
+            while t.is_alive():
+                t.join(0.05)
+        except BaseException:
+            with sigint_deferred():
+                t.join()
+                self.client, self.cluster = box.get("client"), box.get("cluster")
+                self.close()
+            raise
+        self.client, self.cluster = box.get("client"), box.get("cluster")
+        if "error" in box:
+            self.close()
+            raise box["error"]
+        return self
+
+    def close(self) -> None:
+        """Close the client and the local cluster (its worker processes end), with Ctrl-C held back."""
+        from minegeo._output import sigint_deferred
+
+        with sigint_deferred():
+            try:
+                if self.client is not None:
+                    try:
+                        self.client.close(timeout=30)
+                    except Exception as exc:  # noqa: BLE001 - closing a broken connection: nothing left to do
+                        log.debug("closing the Dask client: %s", exc)
+                if self.cluster is not None:
+                    try:
+                        self.cluster.close(timeout=30)
+                    except Exception as exc:  # noqa: BLE001
+                        log.debug("closing the local Dask cluster: %s", exc)
+            finally:
+                self.client = self.cluster = None
+                self._unsilence()
+
+    def _silence(self) -> None:
+        if not self.quiet or self._levels:
+            return
+        for name in ("distributed", "tornado", "asyncio"):
+            lg = logging.getLogger(name)
+            self._levels[name] = (lg.level, lg.propagate)
+            lg.setLevel(logging.CRITICAL + 1)
+            lg.propagate = False
+
+    def _unsilence(self) -> None:
+        for name, (level, prop) in self._levels.items():
+            lg = logging.getLogger(name)
+            lg.setLevel(level)
+            lg.propagate = prop
+        self._levels.clear()
+
+    def __enter__(self) -> BatchCluster:
+        return self.start()
+
+    def __exit__(self, *exc) -> bool:
+        self.close()
+        return False
 
 
 #: thread-count variables ``distributed`` sets to 1 in every worker it spawns; left as the
@@ -435,7 +741,7 @@ def _client(workers: int, scheduler: str | None, client):
 BLAS_THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 
-def local_cluster(workers: int):
+def local_cluster(workers: int, silence_logs=logging.ERROR):
     """A ``distributed.LocalCluster`` of ``workers`` processes, one thread each, no dashboard,
     whose workers keep the driver's BLAS thread settings.
 
@@ -465,7 +771,7 @@ def local_cluster(workers: int):
     try:
         with dask.config.set({"distributed.nanny.pre-spawn-environ": env}):
             return LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                                dashboard_address=None, silence_logs=logging.ERROR)
+                                dashboard_address=None, silence_logs=silence_logs)
     finally:  # the nannies wrote env into this process's os.environ: put it back
         for k, v in before.items():
             if v is None:
@@ -505,8 +811,9 @@ def run_batch(jobs, manifest: dict, task, on_lost, *, workers: int = 1, schedule
     scheduler : str, optional
         Address of a running ``dask.distributed`` scheduler (its workers must see the same
         files: the scans, ``OUT`` and its map cache).
-    client : distributed.Client, optional
-        An existing client (tests); not closed here.
+    client : distributed.Client or BatchCluster, optional
+        An existing client (anything with ``submit``), not closed here; without it a
+        :class:`BatchCluster` is started for the jobs to run and closed at the end.
     task : callable
         ``task(job) -> row`` run on a worker for each job to do: writes the scan's result folder
         and returns its :func:`summary_row`; must not raise for a bad scan
@@ -522,6 +829,28 @@ def run_batch(jobs, manifest: dict, task, on_lost, *, workers: int = 1, schedule
     BatchResult
     """
     t0 = time.perf_counter()
+    rows, todo = plan_batch(jobs, manifest)
+    rows = dict(rows)
+    n_res = len(rows)
+    if n_res:
+        log.debug("resuming: %d of %d scans already have a complete result for this map; %d to run",
+                  n_res, len(jobs), len(todo))
+    if todo:
+        cl, owned = _client(workers, scheduler, client)
+        try:
+            _run_todo(cl, task, on_lost, jobs, todo, rows, on_row, len(jobs))
+        finally:
+            if owned:
+                cl.close()
+    ordered = [rows[i] for i in range(len(jobs))]
+    counts = {s: sum(1 for r in ordered if r["status"] == s) for s in ("ok", "ambiguous", "failed")}
+    return BatchResult(rows=ordered, n_resumed=n_res, n_run=len(todo), seconds=time.perf_counter() - t0,
+                       workers=None if scheduler else int(workers), scheduler=scheduler, counts=counts)
+
+
+def plan_batch(jobs, manifest: dict) -> tuple[dict, list]:
+    """``(rows, todo)``: the :func:`summary_row` of every job already done (:func:`done_record`),
+    by index, and the indexes of the jobs to run. Reads only."""
     rows: dict[int, dict] = {}
     todo = []
     for i, job in enumerate(jobs):
@@ -530,25 +859,7 @@ def run_batch(jobs, manifest: dict, task, on_lost, *, workers: int = 1, schedule
             rows[i] = summary_row(job, rec, resumed=True)
         else:
             todo.append(i)
-    n_res = len(rows)
-    if n_res:
-        log.info("resuming: %d of %d scans already have a complete result for this map; %d to run",
-                 n_res, len(jobs), len(todo))
-    if todo:
-        cl, owned = _client(workers, scheduler, client)
-        try:
-            _run_todo(cl, task, on_lost, jobs, todo, rows, on_row, len(jobs))
-        finally:
-            if owned:
-                cluster = getattr(cl, "cluster", None)
-                cl.close()
-                if cluster is not None:
-                    cluster.close()
-    ordered = [rows[i] for i in range(len(jobs))]
-    counts = {s: sum(1 for r in ordered if r["status"] == s) for s in ("ok", "ambiguous", "failed")}
-    return BatchResult(rows=ordered, n_resumed=n_res, n_run=len(todo), seconds=time.perf_counter() - t0,
-                       workers=None if (scheduler or client is not None) else int(workers), scheduler=scheduler,
-                       counts=counts)
+    return rows, todo
 
 
 def _run_todo(cl, task, on_lost, jobs, todo, rows, on_row, n_total) -> None:
@@ -558,7 +869,7 @@ def _run_todo(cl, task, on_lost, jobs, todo, rows, on_row, n_total) -> None:
     for i in todo:
         f = cl.submit(task, jobs[i], key=f"minegeo-localize-{jobs[i].batch_id}-{i}", pure=False)
         futs[f.key] = (i, f)
-    ac = as_completed([f for _, f in futs.values()])
+    ac = as_completed([f for _, f in futs.values()], loop=cl.loop)
     for f in ac:
         i, _ = futs.pop(f.key)
         try:
@@ -575,3 +886,5 @@ def _run_todo(cl, task, on_lost, jobs, todo, rows, on_row, n_total) -> None:
         rows[i] = row
         if on_row is not None:
             on_row(row, len(rows), n_total)
+        if len(rows) < n_total:
+            pause_for_test("scans")
