@@ -12,6 +12,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from minegeo.cli._argtypes import int_in_range, positive_float
+
 HELP = "intersection knowledge base of a prior map (subcommand: build), for `minegeo track` (Liang et al. 2024)"
 
 
@@ -24,10 +26,11 @@ def add_arguments(parser) -> None:
     b.add_argument("--out", required=True, help="knowledge base file (.npz)")
     b.add_argument("--report", default=None, help="report file (default: OUT.html)")
     b.add_argument("--json", default=None, help="result file (default: OUT.json)")
-    b.add_argument("--cloud-radius", type=float, default=15.0, help="dense cloud radius per intersection (m)")
-    b.add_argument("--floor-cell", type=float, default=2.0, help="floor-height cell of the drift skeleton (m; "
+    b.add_argument("--cloud-radius", type=positive_float, default=15.0, help="dense cloud radius per intersection "
+                   "(m; default 15, at least the 12 m descriptor radius)")
+    b.add_argument("--floor-cell", type=positive_float, default=2.0, help="floor-height cell of the drift skeleton (m; "
                    "default 2); 1 for rough floors (bumps of 0.1 m RMS or more), see docs/intersections.md")
-    b.add_argument("--seed", type=int, default=0, help="recorded seed (the build draws no random numbers)")
+    b.add_argument("--seed", type=int_in_range(0, 2**32 - 1), default=0, help="recorded seed (the build draws no random numbers)")
 
 
 def _read_map(path):
@@ -51,6 +54,7 @@ def run(args) -> int:
 
     from minegeo._output import OutputTransaction, run_timings
     from minegeo._provenance import StageTimer, provenance, sha256_file, to_jsonable, write_json_atomic
+    from minegeo.errors import InputError
     from minegeo.report.intersections_report import write_kb_report
     from minegeo.semantic import KBParams, SkeletonParams, build_knowledge_base, similarity_matrix
 
@@ -59,6 +63,10 @@ def run(args) -> int:
     report = Path(args.report) if args.report else out.with_name(out.name + ".html")
     js = Path(args.json) if args.json else out.with_name(out.name + ".json")
     params = KBParams(SkeletonParams(floor_cell_m=args.floor_cell), cloud_radius_m=args.cloud_radius)
+    if params.cloud_radius_m < params.descriptor.radius_m:
+        raise InputError(f"--cloud-radius {args.cloud_radius:g} m is less than the descriptor radius "
+                         f"({params.descriptor.radius_m:g} m): the dense cloud of an intersection must hold what its "
+                         "descriptor saw, for the ICP verification of `minegeo track`")
     params.check()
     with OutputTransaction("intersections", inputs={"--map": args.map},
                            files={"--out": out, "--report": report, "--json": js}) as tx:

@@ -17,6 +17,16 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+from minegeo.cli._argtypes import (
+    finite_float,
+    float_in_range,
+    int_in_range,
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+)
+
 HELP = "LiDAR tracking with intersection recognition against a knowledge base (Liang et al. 2024)"
 
 
@@ -27,25 +37,43 @@ def add_arguments(parser) -> None:
     parser.add_argument("--times", default=None, help="file of frame times (s) (default FRAMES/times.txt or names)")
     parser.add_argument("--pattern", default=None, help='frame file-name pattern, e.g. "*.pcd"')
     parser.add_argument("--truth", default=None, help="ground-truth TUM trajectory (base frame): error map + RMSE")
-    parser.add_argument("--start", type=float, nargs=4, metavar=("X", "Y", "Z", "YAW_DEG"), default=None,
+    parser.add_argument("--start", type=finite_float, nargs=4, metavar=("X", "Y", "Z", "YAW_DEG"), default=None,
                         help="pose of the first frame in the base frame (m, deg); default: unanchored until the "
                         "first verified recognition")
     parser.add_argument("--no-map", action="store_true", help="ignore the base's intersections: recognise "
                         "re-visits of an online base built from the run (the paper's 'no map')")
-    parser.add_argument("--pwcv-threshold", type=float, default=0.8, help="PWCV similarity threshold (default 0.8)")
-    parser.add_argument("--n-his", type=int, default=5, help="keyframes stacked with the current one (Eq. 20)")
-    parser.add_argument("--consecutive", type=int, default=2, help="consecutive keyframes matching the same id")
-    parser.add_argument("--icp-max-distance", type=float, default=0.135, help="ICP verification RMS limit "
-                        "(m; default 0.135 for a map sampled every 0.2 m, see docs/intersections.md)")
-    parser.add_argument("--gate", type=float, default=3.0, help="odometry gate at an anchor (m)")
-    parser.add_argument("--gate-drift", type=float, default=0.25, help="gate growth per metre of path since the "
-                        "last verified recognition (default 0.25)")
+    parser.add_argument("--pwcv-threshold", type=float_in_range(0.0, 1.0, lo_open=True), default=0.8,
+                        help="PWCV similarity threshold, in (0, 1] (default 0.8)")
+    parser.add_argument("--n-his", type=nonnegative_int, default=5,
+                        help="previous keyframes stacked with the current one (Eq. 20; 0 = the current one alone)")
+    parser.add_argument("--consecutive", type=positive_int, default=2,
+                        help="consecutive keyframes matching the same id")
+    parser.add_argument("--icp-max-distance", type=positive_float, default=None, help="ICP verification RMS limit "
+                        "against the base (m; default 0.135 for a map sampled every 0.2 m, see "
+                        "docs/intersections.md); not with --no-map")
+    parser.add_argument("--gate", type=positive_float, default=3.0, help="odometry gate at an anchor (m)")
+    parser.add_argument("--gate-drift", type=nonnegative_float, default=None, help="gate growth per metre of path "
+                        "since the last verified recognition against the base (default 0.25); not with --no-map")
     parser.add_argument("--odometry", choices=("submap", "frame"), default="submap",
                         help="odometry target of each frame: the local map of the last 5 keyframes (default) or "
                         "the previous frame (Ren2019 Eq. 7)")
-    parser.add_argument("--voxel", type=float, default=0.3, help="odometry voxel size (m)")
-    parser.add_argument("--keyframe-distance", type=float, default=2.0, help="keyframe distance threshold (m)")
-    parser.add_argument("--seed", type=int, default=0, help="recorded seed (the run draws no random numbers)")
+    parser.add_argument("--voxel", type=positive_float, default=0.3, help="odometry voxel size (m)")
+    parser.add_argument("--keyframe-distance", type=positive_float, default=2.0,
+                        help="keyframe distance threshold (m)")
+    parser.add_argument("--seed", type=int_in_range(0, 2**32 - 1), default=0,
+                        help="recorded seed (the run draws no random numbers)")
+
+
+def _check_combinations(args) -> None:
+    """Refuse options that contradict each other (before any file is read)."""
+    from minegeo.errors import InputError
+
+    if args.no_map:
+        given = [name for name, v in (("--icp-max-distance", args.icp_max_distance),
+                                      ("--gate-drift", args.gate_drift)) if v is not None]
+        if given:
+            raise InputError(f"{given[0]} applies to recognitions against the base's intersections, which --no-map "
+                             "ignores (the online base has its own limits): drop one of the two options")
 
 
 def _params(args):
@@ -61,12 +89,12 @@ def _params(args):
         c, s = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
         T = np.array([[c, -s, 0, x], [s, c, 0, y], [0, 0, 1, z], [0, 0, 0, 1]], float)
     rec = RecognitionParams(pwcv_threshold=args.pwcv_threshold, n_his=args.n_his,
-                            consecutive_required=args.consecutive, icp_max_distance_m=args.icp_max_distance,
-                            gate_m=args.gate)
+                            consecutive_required=args.consecutive, gate_m=args.gate,
+                            **({} if args.icp_max_distance is None else {"icp_max_distance_m": args.icp_max_distance}))
     odo = OdometryParams(voxel_size_m=args.voxel, keyframe_distance_m=args.keyframe_distance,
                          frame_target=getattr(args, "odometry", "submap"))
-    return TrackParams(odo, rec,
-                       T_world_start=T, gate_drift_fraction=args.gate_drift)
+    return TrackParams(odo, rec, T_world_start=T,
+                       **({} if args.gate_drift is None else {"gate_drift_fraction": args.gate_drift}))
 
 
 def _truth_errors(truth_path, res):
@@ -131,6 +159,7 @@ def run(args) -> int:
     from minegeo.semantic.tracking import track
 
     timer = StageTimer()
+    _check_combinations(args)
     params = _params(args)
     out = Path(args.out)
     named = {"--frames": args.frames, "--db": args.db, **({"--times": args.times} if args.times else {}),

@@ -46,6 +46,10 @@ from minegeo._provenance import atomic_write_bytes, sha256_file, to_jsonable
 from minegeo._validate import as_points, is_permutation
 from minegeo.errors import FileFormatError, InputError, TooFewPointsError
 from minegeo.io._json import load_json_text
+from minegeo.io._npz import array_digest as _array_digest
+from minegeo.io._npz import json_digest as _json_digest
+from minegeo.io._npz import member_header as _member_header
+from minegeo.io._npz import open_store
 from minegeo.io.types import PointCloud
 from minegeo.localize._progress import FEATURE_STEPS, StepTimings, announce
 from minegeo.localize.params import FAST_FEATURES, FeatureParams, LocalizeParams, PrepareParams
@@ -696,24 +700,6 @@ class PreparedMap:
 
 
 # ----------------------------------------------------------------------------- file checks
-def _array_digest(a: np.ndarray) -> str:
-    """SHA-256 (hex) of one stored array: its dtype (with byte order), its shape and its bytes
-    in C order."""
-    a = np.ascontiguousarray(a)
-    h = hashlib.sha256(f"{a.dtype.str}|{json.dumps(list(a.shape))}|".encode("ascii"))
-    try:
-        h.update(a.reshape(-1).view(np.uint8))
-    except (ValueError, TypeError):  # a dtype without a byte view (not one minegeo writes)
-        h.update(a.tobytes())
-    return h.hexdigest()
-
-
-def _json_digest(obj) -> str:
-    """SHA-256 (hex) of the canonical JSON of ``obj`` (sorted keys, no spaces, ASCII)."""
-    blob = json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
-    return hashlib.sha256(blob.encode("ascii")).hexdigest()
-
-
 def _manifest(meta: dict, digests: dict) -> str:
     """Hash of the meta (without ``integrity`` and the search structures' ``indexes``) and of the
     map arrays' hashes."""
@@ -735,33 +721,6 @@ def _integrity_record(meta: dict, arrays: dict) -> dict:
             "indexes": {e["name"]: _entry_digest(e, e["name"], digests) for e in entries}}
 
 
-def _member_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo):
-    """``(problem, shape, dtype)`` of one ``.npy`` member of the archive; ``problem`` is None
-    when the member is stored uncompressed and holds exactly the bytes its header announces."""
-    if not info.filename.endswith(".npy"):
-        return "not a NumPy array", None, None
-    if info.compress_type != zipfile.ZIP_STORED or info.compress_size != info.file_size:
-        return "compressed (minegeo writes prepared maps uncompressed)", None, None
-    try:
-        with zf.open(info) as fp:
-            version = np.lib.format.read_magic(fp)
-            if version == (1, 0):
-                shape, _, dtype = np.lib.format.read_array_header_1_0(fp)
-            elif version == (2, 0):
-                shape, _, dtype = np.lib.format.read_array_header_2_0(fp)
-            else:
-                return f"NumPy format version {version} is not supported", None, None
-            header = fp.tell()
-    except (ValueError, OSError, EOFError, RuntimeError, zipfile.BadZipFile) as exc:
-        return f"unreadable array header ({exc})", None, None
-    if dtype.hasobject:
-        return "holds Python objects", None, None
-    nbytes = math.prod(shape) * dtype.itemsize
-    if header + nbytes != info.file_size:
-        return f"its header announces {nbytes} bytes but it holds {info.file_size - header}", None, None
-    return None, shape, dtype
-
-
 def _read_prepared_file(p: Path):
     """``(meta, map arrays, index arrays, damaged members)`` of a prepared-map file.
 
@@ -771,10 +730,8 @@ def _read_prepared_file(p: Path):
     reported (``{name: problem}``); one of the map is a :class:`FileFormatError`.
     """
     try:
+        z = open_store(p, "minegeo prepared map")
         size = p.stat().st_size
-        z = np.load(p, allow_pickle=False)
-        if not isinstance(z, np.lib.npyio.NpzFile):
-            raise FileFormatError(p, "not a minegeo prepared map (not an .npz archive)")
         with z:
             infos = z.zip.infolist()
             names = [i.filename[:-4] if i.filename.endswith(".npy") else i.filename for i in infos]

@@ -13,8 +13,9 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
 import zipfile
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -22,13 +23,16 @@ import numpy as np
 from minegeo._provenance import atomic_write_bytes, to_jsonable
 from minegeo._validate import as_points, check_positive
 from minegeo.errors import FileFormatError, InputError
+from minegeo.io._json import load_json_text
+from minegeo.io._npz import array_digest, json_digest, member_header, open_store
 from minegeo.semantic.descriptors import DescriptorParams, cwc, pwcv, similarity
 from minegeo.semantic.skeleton import SkeletonParams, drift_skeleton
 
 __all__ = ["KBParams", "IntersectionKB", "build_knowledge_base", "similarity_matrix", "KB_FORMAT", "KB_VERSION"]
 
 KB_FORMAT = "minegeo-intersection-kb"
-KB_VERSION = 1
+#: format version of the file; 2: every stored record, meta included, under the integrity hash
+KB_VERSION = 2
 _ARRAYS = ("ids", "degree", "invariant_points", "clearance_m", "cloud_offsets", "cloud_points", "pwcv", "cwc")
 
 
@@ -41,8 +45,9 @@ class KBParams:
     skeleton : SkeletonParams
     descriptor : DescriptorParams
     cloud_radius_m : float
-        Horizontal radius (m) of the dense intersection cloud kept per junction (>= the descriptor radius
-        so the online side can verify by ICP against it).
+        Horizontal radius (m) of the dense intersection cloud kept per junction, at least the descriptor
+        radius ``descriptor.radius_m`` (:meth:`check` refuses less) so the online side can verify by ICP
+        against it.
     """
 
     skeleton: SkeletonParams = field(default_factory=SkeletonParams)
@@ -54,6 +59,10 @@ class KBParams:
         self.skeleton.check()
         self.descriptor.check()
         check_positive(self.cloud_radius_m, "cloud_radius_m")
+        if self.cloud_radius_m < self.descriptor.radius_m:
+            raise InputError(f"cloud_radius_m ({self.cloud_radius_m:g} m) must be at least the descriptor radius "
+                             f"({self.descriptor.radius_m:g} m): the online side verifies a recognition by ICP "
+                             "against the dense cloud of what the descriptor saw")
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,72 +122,251 @@ class IntersectionKB:
     def save(self, path) -> Path:
         """Write the knowledge base to ``path`` (``.npz``, uncompressed, no pickles), atomically.
 
-        The archive holds the arrays of :data:`_ARRAYS` and a JSON ``meta`` string (format, version,
-        status, reason, params, provenance, SHA-256 of every array).
+        The archive holds the arrays of :data:`_ARRAYS` and a JSON ``meta`` string: ``format``,
+        ``version``, ``status``, ``reason``, ``params``, ``provenance``, ``georef`` and ``integrity``.
+        ``meta["integrity"]`` holds the SHA-256 of every array (of its dtype, shape and bytes,
+        :func:`minegeo.io._npz.array_digest`) and a ``manifest``: the SHA-256 of the canonical JSON of
+        the rest of the meta together with the arrays' hashes, so that no stored record (array,
+        parameter, provenance, georeferencing, status) can change without :meth:`load` noticing.
         """
         arrays = {k: np.ascontiguousarray(getattr(self, k)) for k in _ARRAYS}
         meta = {"format": KB_FORMAT, "version": KB_VERSION, "status": self.status, "reason": self.reason,
                 "params": to_jsonable(asdict(self.params)), "provenance": to_jsonable(self.provenance),
-                "georef": to_jsonable(self.georef),
-                "sha256": {k: _digest(v) for k, v in arrays.items()}}
+                "georef": to_jsonable(self.georef)}
+        meta = json.loads(json.dumps(meta, sort_keys=True, allow_nan=False))  # hash exactly what load reads back
+        meta["integrity"] = _integrity_record(meta, arrays)
         buf = io.BytesIO()
-        np.savez(buf, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays)
+        np.savez(buf, meta=np.array(json.dumps(meta, sort_keys=True, allow_nan=False)), **arrays)
         return atomic_write_bytes(path, buf.getvalue())
 
     @classmethod
     def load(cls, path) -> IntersectionKB:
-        """Read a knowledge base written by :meth:`save`.
+        """Read a knowledge base written by :meth:`save`, checking all of it.
+
+        In this order: the file is an uncompressed ``.npz`` archive of exactly the members
+        :meth:`save` writes, each holding the bytes its header announces; its ``meta`` is JSON of
+        this format and version; every array and the meta match the integrity record (a mismatch
+        means the file was changed after it was written); the stored values are valid: the
+        parameters within the bounds :meth:`KBParams.check` sets (the field is named), the status,
+        reason, provenance and georeferencing of the right types, the arrays of the right dtypes,
+        finite, of consistent shapes. The arrays are returned as stored (bit for bit).
 
         Raises
         ------
+        FileNotFoundError
+            No such file.
         FileFormatError
-            Not such an archive, another format version, a missing or altered array, or
-            inconsistent shapes.
+            Not such an archive, written by another format version (rebuild it with
+            ``minegeo intersections build``), changed after it was written (integrity hash
+            mismatch), or holding a value out of range.
         """
         p = Path(path)
-        try:
-            with np.load(p, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta"]))
-                arrays = {k: np.array(z[k]) for k in _ARRAYS}
-        except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError) as exc:
-            raise FileFormatError(p, f"not a minegeo intersection knowledge base ({exc})") from None
-        if meta.get("format") != KB_FORMAT or meta.get("version") != KB_VERSION:
-            raise FileFormatError(p, f"format {meta.get('format')!r} version {meta.get('version')!r}, expected "
-                                     f"{KB_FORMAT!r} version {KB_VERSION}")
-        for k, v in arrays.items():
-            if meta.get("sha256", {}).get(k) != _digest(v):
-                raise FileFormatError(p, f"array {k!r} does not match its recorded SHA-256")
-        try:
-            pr = meta["params"]
-            params = KBParams(SkeletonParams(**{k: tuple(v) if isinstance(v, list) else v
-                                                for k, v in pr["skeleton"].items()}),
-                              DescriptorParams(**{k: tuple(v) if isinstance(v, list) else v
-                                                  for k, v in pr["descriptor"].items()}),
-                              float(pr["cloud_radius_m"]))
-        except (KeyError, TypeError) as exc:
-            raise FileFormatError(p, f"parameters unreadable ({exc})") from None
-        kb = cls(str(meta["status"]), str(meta["reason"]), params=params, provenance=dict(meta["provenance"]),
-                 georef=dict(meta.get("georef") or {}), **arrays)
-        _check_shapes(kb, p)
+        meta, arrays = _read_kb_file(p)
+        _check_format(meta, p)
+        _verify_integrity(meta, arrays, p)
+        params = _params_from_meta(meta.get("params"), p)
+        status, reason, provenance, georef = _check_records(meta, p)
+        kb = cls(status, reason, params=params, provenance=provenance, georef=georef, **arrays)
+        _check_arrays(kb, p)
         return kb
 
 
-def _digest(a: np.ndarray) -> str:
-    h = hashlib.sha256(f"{a.dtype.str}|{list(a.shape)}|".encode("ascii"))
-    h.update(np.ascontiguousarray(a).tobytes())
-    return h.hexdigest()
+#: what a file that is not a base is called in the messages
+_WHAT = "minegeo intersection base"
+_REBUILD = "rebuild it with minegeo intersections build"
+_INT_ARRAYS = ("ids", "degree", "cloud_offsets")
+_INTEGRITY_ALGORITHM = "sha256"
 
 
-def _check_shapes(kb: IntersectionKB, p: Path) -> None:
+class _Bad(Exception):
+    """A stored value out of range (turned into a :class:`FileFormatError` naming the field)."""
+
+
+def _manifest(meta: dict, digests: dict) -> str:
+    """SHA-256 of the meta (without ``integrity``) together with the arrays' hashes."""
+    core = {k: v for k, v in meta.items() if k != "integrity"}
+    return json_digest({"meta": core, "arrays": {k: digests.get(k) for k in _ARRAYS}})
+
+
+def _integrity_record(meta: dict, arrays: dict) -> dict:
+    digests = {k: array_digest(arrays[k]) for k in _ARRAYS}
+    return {"algorithm": _INTEGRITY_ALGORITHM, "arrays": digests, "manifest": _manifest(meta, digests)}
+
+
+def _read_kb_file(p: Path) -> tuple[dict, dict]:
+    """``(meta, arrays)`` of a base file; nothing is read before its members are checked."""
+    try:
+        z = open_store(p, _WHAT)
+        size = p.stat().st_size
+        with z:
+            infos = z.zip.infolist()
+            names = [i.filename[:-4] if i.filename.endswith(".npy") else i.filename for i in infos]
+            if len(set(names)) != len(names) or sum(i.compress_size for i in infos) > size:
+                raise FileFormatError(p, f"not a {_WHAT} (the archive's members overlap or repeat)")
+            extra = sorted(set(names) - {"meta", *_ARRAYS})
+            if "meta" not in names or extra:
+                why = "no 'meta' entry" if "meta" not in names else f"unexpected entry {extra[0][:60]!r}"
+                raise FileFormatError(p, f"not a {_WHAT} ({why})")
+            headers = {}
+            for name, info in zip(names, infos, strict=True):
+                problem, shape, dtype = member_header(z.zip, info)
+                if problem is not None:
+                    raise FileFormatError(p, f"{_WHAT} entry {name!r} is damaged ({problem}): {_REBUILD}")
+                headers[name] = (shape, dtype)
+            if headers["meta"][1].kind != "U" or headers["meta"][0] != ():
+                raise FileFormatError(p, f"not a {_WHAT} (its 'meta' entry is not a text record)")
+            meta = load_json_text(str(z["meta"]), p)
+            if not isinstance(meta, dict):
+                raise FileFormatError(p, f"not a {_WHAT} (its meta is not a JSON object)")
+            if meta.get("format") != KB_FORMAT:
+                raise FileFormatError(p, f"not a {_WHAT} (format {str(meta.get('format'))[:80]!r})")
+            arrays = {}
+            for k in _ARRAYS:
+                if k not in headers:
+                    raise FileFormatError(p, f"{_WHAT} has no array {k!r}: {_REBUILD}")
+                want = np.int64 if k in _INT_ARRAYS else np.float64
+                if headers[k][1] != want:
+                    raise FileFormatError(p, f"array {k!r} has dtype {headers[k][1]}, not {np.dtype(want)}: the "
+                                             f"file was edited or corrupted; {_REBUILD}")
+                arrays[k] = np.ascontiguousarray(z[k])
+    except (FileFormatError, FileNotFoundError):
+        raise
+    except (OSError, ValueError, KeyError, EOFError, RuntimeError, zipfile.BadZipFile) as exc:
+        raise FileFormatError(p, f"not a {_WHAT} (unreadable archive: {str(exc)[:200]})") from None
+    return meta, arrays
+
+
+def _check_format(meta: dict, p: Path) -> None:
+    v = meta.get("version")
+    if not (isinstance(v, int) and not isinstance(v, bool)):
+        raise FileFormatError(p, f"{_WHAT} format version {str(v)[:40]!r} is not an integer: {_REBUILD}")
+    if v < KB_VERSION:
+        raise FileFormatError(p, f"written by an older minegeo ({_WHAT} format version {v}, without integrity "
+                                 f"hashes; this minegeo reads version {KB_VERSION}): {_REBUILD}")
+    if v > KB_VERSION:
+        raise FileFormatError(p, f"{_WHAT} format version {v} is newer than this minegeo reads ({KB_VERSION}): "
+                                 f"update minegeo or {_REBUILD}")
+
+
+def _verify_integrity(meta: dict, arrays: dict, p: Path) -> None:
+    rec = meta.get("integrity")
+    if (not isinstance(rec, dict) or rec.get("algorithm") != _INTEGRITY_ALGORITHM
+            or not isinstance(rec.get("arrays"), dict) or not isinstance(rec.get("manifest"), str)):
+        raise FileFormatError(p, f"was changed after it was written (its integrity record is missing or malformed); "
+                                 f"{_REBUILD}")
+    digests = {k: array_digest(arrays[k]) for k in _ARRAYS}
+    for k in _ARRAYS:
+        if digests[k] != rec["arrays"].get(k):
+            raise FileFormatError(p, f"was changed after it was written (integrity hash mismatch: array {k!r}); "
+                                     f"{_REBUILD}")
+    if _manifest(meta, digests) != rec["manifest"]:
+        raise FileFormatError(p, f"was changed after it was written (integrity hash mismatch: its meta record of "
+                                 f"status, parameters, provenance and georeferencing); {_REBUILD}")
+
+
+def _number(v, where: str, integer: bool) -> float | int:
+    if isinstance(v, bool) or not isinstance(v, int | float) or (integer and not isinstance(v, int)):
+        raise _Bad(f"{where} must be {'a whole number' if integer else 'a number'}, got {str(v)[:40]!r}")
+    if not math.isfinite(v):
+        raise _Bad(f"{where} must be finite, got {v!r}")
+    return v
+
+
+def _dataclass_from(cls, d, where: str):
+    """An instance of the parameter dataclass ``cls`` from its stored JSON object ``d``: exactly its
+    fields, each of the type of the field's default (whole number, number, pair of numbers)."""
+    if not isinstance(d, dict):
+        raise _Bad(f"{where} must be an object, got {type(d).__name__}")
+    names = [f.name for f in fields(cls)]
+    unknown, missing = sorted(set(d) - set(names)), [n for n in names if n not in d]
+    if unknown or missing:
+        raise _Bad(f"{where}: " + (f"unknown field {where}.{unknown[0][:40]}" if unknown
+                                   else f"missing field {where}.{missing[0]}"))
+    default = cls()
+    out = {}
+    for n in names:
+        ref, v, w = getattr(default, n), d[n], f"{where}.{n}"
+        if isinstance(ref, tuple):
+            if not isinstance(v, list) or len(v) != len(ref):
+                raise _Bad(f"{w} must be a list of {len(ref)} numbers, got {str(v)[:40]!r}")
+            out[n] = tuple(_number(x, w, False) for x in v)
+        else:
+            out[n] = _number(v, w, isinstance(ref, int))
+    return cls(**out)
+
+
+def _params_from_meta(d, p: Path) -> KBParams:
+    """The stored :class:`KBParams`, checked against the bounds the parameters have when building."""
+    try:
+        if not isinstance(d, dict) or sorted(d) != ["cloud_radius_m", "descriptor", "skeleton"]:
+            raise _Bad("params must be an object with the fields cloud_radius_m, descriptor, skeleton")
+        sk = _dataclass_from(SkeletonParams, d["skeleton"], "params.skeleton")
+        de = _dataclass_from(DescriptorParams, d["descriptor"], "params.descriptor")
+        params = KBParams(sk, de, float(_number(d["cloud_radius_m"], "params.cloud_radius_m", False)))
+        _checked("params.skeleton", sk.check)
+        _checked("params.descriptor", de.check)
+        _checked("params", params.check)
+    except _Bad as exc:
+        raise FileFormatError(p, f"stored value out of range: {exc}; {_REBUILD}") from None
+    return params
+
+
+def _checked(where: str, check) -> None:
+    try:
+        check()
+    except (InputError, TypeError, ValueError) as exc:
+        raise _Bad(f"{where}: {exc}") from None
+
+
+def _check_records(meta: dict, p: Path) -> tuple[str, str, dict, dict]:
+    """Status, reason, provenance and georeferencing of the meta, of the right types and values."""
+    status, reason, prov, geo = (meta.get(k) for k in ("status", "reason", "provenance", "georef"))
+    try:
+        if status not in ("ok", "no_intersections"):
+            raise _Bad(f"status must be 'ok' or 'no_intersections', got {str(status)[:40]!r}")
+        if not isinstance(reason, str):
+            raise _Bad("reason must be a text")
+        if not isinstance(prov, dict):
+            raise _Bad("provenance must be an object")
+        if not isinstance(geo, dict) or set(geo) - {"crs", "origin_m"}:
+            raise _Bad("georef must be an object with the fields crs and origin_m")
+        if geo:
+            if not (geo.get("crs") is None or isinstance(geo.get("crs"), str)):
+                raise _Bad("georef.crs must be a text or null")
+            o = geo.get("origin_m")
+            if o is not None and not (isinstance(o, list) and len(o) == 3):
+                raise _Bad("georef.origin_m must be a list of 3 numbers")
+            for x in o or []:
+                _number(x, "georef.origin_m", False)
+    except _Bad as exc:
+        raise FileFormatError(p, f"stored value out of range: {exc}; {_REBUILD}") from None
+    return status, reason, dict(prov), dict(geo)
+
+
+def _check_arrays(kb: IntersectionKB, p: Path) -> None:
+    """Shapes consistent with each other and with the descriptor parameters; values in range."""
     k = kb.ids.shape[0]
     d = kb.params.descriptor
-    ok = (kb.degree.shape == (k,) and kb.invariant_points.shape == (k, 3) and kb.clearance_m.shape == (k,)
-          and kb.cloud_offsets.shape == (k + 1,) and kb.cloud_points.ndim == 2 and kb.cloud_points.shape[1] == 3
-          and kb.pwcv.shape == (k, d.n_sectors) and kb.cwc.shape == (k, d.n_bands, d.n_sectors)
-          and int(kb.cloud_offsets[0]) == 0 and int(kb.cloud_offsets[-1]) == kb.cloud_points.shape[0]
-          and bool(np.all(np.diff(kb.cloud_offsets) >= 0)) and kb.status in ("ok", "no_intersections"))
+    ok = (kb.ids.ndim == 1 and kb.degree.shape == (k,) and kb.invariant_points.shape == (k, 3)
+          and kb.clearance_m.shape == (k,) and kb.cloud_offsets.shape == (k + 1,) and kb.cloud_points.ndim == 2
+          and kb.cloud_points.shape[1] == 3 and kb.pwcv.shape == (k, d.n_sectors)
+          and kb.cwc.shape == (k, d.n_bands, d.n_sectors))
     if not ok:
-        raise FileFormatError(p, "inconsistent array shapes in the knowledge base")
+        raise FileFormatError(p, f"inconsistent array shapes in the {_WHAT}: {_REBUILD}")
+    if (kb.status == "ok") != (k > 0):
+        raise FileFormatError(p, f"status {kb.status!r} with {k} intersection(s): {_REBUILD}")
+    problems = [
+        ("ids", not np.array_equal(kb.ids, np.arange(k))),
+        ("degree", bool(np.any(kb.degree < 3))),
+        ("cloud_offsets", not (int(kb.cloud_offsets[0]) == 0 and int(kb.cloud_offsets[-1]) == kb.cloud_points.shape[0]
+                               and bool(np.all(np.diff(kb.cloud_offsets) >= 0)))),
+        *((name, not bool(np.isfinite(getattr(kb, name)).all()))
+          for name in ("invariant_points", "clearance_m", "cloud_points", "pwcv", "cwc")),
+        ("clearance_m", bool(np.any(kb.clearance_m < 0))),
+    ]
+    bad = next((name for name, b in problems if b), None)
+    if bad is not None:
+        raise FileFormatError(p, f"array {bad!r} holds values out of range: {_REBUILD}")
 
 
 def _points_of(map_cloud) -> np.ndarray:

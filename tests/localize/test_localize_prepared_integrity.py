@@ -465,7 +465,7 @@ def test_archive_members_cannot_announce_more_than_they_hold(prepared, tmp_path)
     with zipfile.ZipFile(src) as zin, zipfile.ZipFile(comp, "w", zipfile.ZIP_DEFLATED) as zout:
         for info in zin.infolist():
             zout.writestr(info.filename, zin.read(info.filename))
-    with pytest.raises(FileFormatError, match=r"compressed \(minegeo writes prepared maps uncompressed\)"):
+    with pytest.raises(FileFormatError, match=r"compressed \(minegeo writes its stores uncompressed\)"):
         PreparedMap.load(comp)
     # the header of 'points' announces 10^10 rows (240 GB) while the member holds the real ones
     big = tmp_path / "header.npz"
@@ -554,3 +554,32 @@ def test_localization_with_every_structure_forged_is_bit_identical(prepared, tmp
 if __name__ == "__main__":  # the memory-capped child of the ``prepared`` fixture
     _child(sys.argv[1], sys.argv[2])
     os._exit(0)
+
+
+@pytest.mark.parametrize("case, words", [
+    ("random_bytes", "not a NumPy .npz archive"), ("empty", "empty file"), ("npy", "single NumPy array"),
+    ("folder", "is a folder"), ("pickled_meta", "holds Python objects"), ("stream", "not a regular file")])
+def test_a_file_that_is_not_a_prepared_map_is_named_so(case, words, prepared, tmp_path):
+    """Issue 27: random bytes passed NumPy's advice to load them with ``allow_pickle`` on to the user."""
+    from minegeo.errors import FileFormatError
+    from minegeo.localize import PreparedMap
+
+    f = tmp_path / "map.npz"
+    if case == "random_bytes":
+        f.write_bytes(np.random.default_rng(27).bytes(5000))
+    elif case == "empty":
+        f.write_bytes(b"")
+    elif case == "npy":
+        with open(f, "wb") as fh:
+            np.save(fh, prepared["arrays"]["points"])
+    elif case == "folder":
+        f.mkdir()
+    elif case == "pickled_meta":
+        np.savez(f, meta=np.array([{"format": "minegeo-prepared-map"}], dtype=object), **prepared["arrays"])
+    else:
+        f.symlink_to("/dev/zero")
+    with pytest.raises(FileFormatError, match=words) as ei:
+        PreparedMap.load(f)
+    msg = str(ei.value)
+    assert "pickle" not in msg.replace("holds Python objects", "") and "\n" not in msg
+    assert msg.startswith(str(f)) and ("not a minegeo prepared map" in msg or case in ("folder", "pickled_meta"))

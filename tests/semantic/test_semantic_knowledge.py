@@ -3,12 +3,22 @@ bad input gives statuses or typed errors, the .npz round trip."""
 
 from __future__ import annotations
 
+import json
+import re
+
 import numpy as np
 import pytest
 from helpers import shared_data
 
 from minegeo.errors import FileFormatError, InputError
-from minegeo.semantic import IntersectionKB, KBParams, SkeletonParams, build_knowledge_base, similarity_matrix
+from minegeo.semantic import (
+    IntersectionKB,
+    KBParams,
+    SkeletonParams,
+    build_knowledge_base,
+    knowledge,
+    similarity_matrix,
+)
 from minegeo.synth import DriftNetwork, intersections_network, junction_truth, network_cloud, niosh_network
 
 
@@ -100,17 +110,142 @@ def test_save_load_roundtrip(kb, tmp_path):
     kb2 = IntersectionKB.load(p)
     assert kb2.status == kb.status and kb2.params == kb.params and kb2.provenance == kb.provenance
     for k in ("ids", "degree", "invariant_points", "clearance_m", "cloud_offsets", "cloud_points", "pwcv", "cwc"):
-        assert np.array_equal(getattr(kb2, k), getattr(kb, k))
+        a, b = getattr(kb2, k), getattr(kb, k)
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), k   # bit for bit
     assert np.array_equal(kb2.cloud(2), kb.cloud(2))
     with np.load(p) as z:
         arrays = {k: z[k] for k in z.files}
     arrays["pwcv"] = arrays["pwcv"] + 1e-9
     np.savez(tmp_path / "bad.npz", **arrays)
-    with pytest.raises(FileFormatError, match="SHA-256"):
+    with pytest.raises(FileFormatError, match=r"changed after it was written \(integrity hash mismatch: array 'pwcv'"):
         IntersectionKB.load(tmp_path / "bad.npz")
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
-    with pytest.raises(FileFormatError):
+    with pytest.raises(FileFormatError, match=r"not a minegeo intersection base \(not a NumPy .npz archive\)"):
         IntersectionKB.load(tmp_path / "junk.npz")
+
+
+# -- the stored records: every one under the integrity hash and checked on loading ------------------------------
+
+def _arrays_meta(p):
+    with np.load(p) as z:
+        arrays = {k: z[k] for k in z.files if k != "meta"}
+        meta = json.loads(str(z["meta"]))
+    return arrays, meta
+
+
+def _write(path, arrays, meta, rehash: bool):
+    """The archive with ``meta`` as given; with ``rehash`` its integrity record recomputed (as a writer with
+    a bug, or someone covering an edit, would), so only the value checks stand between it and a run."""
+    if rehash:
+        meta = {k: v for k, v in meta.items() if k != "integrity"}
+        meta["integrity"] = knowledge._integrity_record(meta, arrays)
+    np.savez(path, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays)
+    return path
+
+
+def _edit(meta, dotted, value):
+    m = json.loads(json.dumps(meta))
+    *head, last = dotted.split(".")
+    d = m
+    for k in head:
+        d = d[k]
+    d[last] = value
+    return m
+
+
+META_EDITS = {  # (field, value, words of the error)
+    "negative_cloud_radius": ("params.cloud_radius_m", -5, "cloud_radius_m must be > 0"),
+    "nan_cloud_radius": ("params.cloud_radius_m", "NaN", "params.cloud_radius_m must be a number"),
+    "cloud_radius_below_descriptor": ("params.cloud_radius_m", 5.0, "at least the descriptor radius"),
+    "zero_cell": ("params.skeleton.cell_m", 0.0, "params.skeleton: cell_m must be > 0"),
+    "float_sectors": ("params.descriptor.n_sectors", 360.5, "params.descriptor.n_sectors must be a whole number"),
+    "few_sectors": ("params.descriptor.n_sectors", 4, "params.descriptor: n_sectors must be >= 8"),
+    "bool_radius": ("params.descriptor.radius_m", True, "params.descriptor.radius_m must be a number"),
+    "band_reversed": ("params.skeleton.wall_band_m", [2.2, 0.4], "params.skeleton: floor_quantile"),
+    "unknown_param": ("params.skeleton.extra_m", 1.0, "unknown field params.skeleton.extra_m"),
+    "status": ("status", "great", "status must be"),
+    "georef_origin": ("georef", {"crs": "EPSG:5186", "origin_m": [1.0, 2.0]}, "georef.origin_m"),
+    "provenance": ("provenance", [], "provenance must be an object"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(META_EDITS))
+def test_edited_meta_is_refused(case, kb, tmp_path):
+    """An edited meta record is refused as changed after writing; with its hash recomputed, the value check
+    refuses it naming the field (issue 27: cloud_radius_m = -5 was accepted)."""
+    p = kb.save(tmp_path / "kb.npz")
+    arrays, meta = _arrays_meta(p)
+    field, value, words = META_EDITS[case]
+    if field.endswith("extra_m"):
+        meta2 = json.loads(json.dumps(meta))
+        meta2["params"]["skeleton"]["extra_m"] = value
+    else:
+        meta2 = _edit(meta, field, value)
+    with pytest.raises(FileFormatError, match=r"changed after it was written \(integrity hash mismatch: its meta"):
+        IntersectionKB.load(_write(tmp_path / "edited.npz", arrays, meta2, rehash=False))
+    with pytest.raises(FileFormatError, match=re.escape(words)) as ei:
+        IntersectionKB.load(_write(tmp_path / "rehashed.npz", arrays, meta2, rehash=True))
+    assert "rebuild it with minegeo intersections build" in str(ei.value) and "\n" not in str(ei.value)
+
+
+def test_rehashed_unedited_file_loads(kb, tmp_path):
+    """The rehashing helper of the test above changes nothing by itself (so its refusals are the edits')."""
+    p = kb.save(tmp_path / "kb.npz")
+    arrays, meta = _arrays_meta(p)
+    kb2 = IntersectionKB.load(_write(tmp_path / "same.npz", arrays, meta, rehash=True))
+    assert kb2.params == kb.params and kb2.pwcv.tobytes() == kb.pwcv.tobytes()
+
+
+ARRAY_EDITS = {
+    "nan_cloud": ("cloud_points", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 7, np.nan, a), "cloud_points"),
+    "offsets_past_end": ("cloud_offsets", lambda a: a + np.r_[np.zeros(a.size - 1, np.int64), 5], "cloud_offsets"),
+    "degree_two": ("degree", lambda a: np.full_like(a, 2), "degree"),
+    "float_ids": ("ids", lambda a: a.astype(np.float64), "dtype float64, not int64"),
+    "pwcv_short": ("pwcv", lambda a: a[:, :-1], "inconsistent array shapes"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(ARRAY_EDITS))
+def test_edited_arrays_are_refused(case, kb, tmp_path):
+    p = kb.save(tmp_path / "kb.npz")
+    arrays, meta = _arrays_meta(p)
+    name, f, words = ARRAY_EDITS[case]
+    arrays[name] = np.ascontiguousarray(f(arrays[name]))
+    with pytest.raises(FileFormatError, match=r"changed after it was written|dtype"):
+        IntersectionKB.load(_write(tmp_path / "edited.npz", arrays, meta, rehash=False))
+    with pytest.raises(FileFormatError, match=re.escape(words)):
+        IntersectionKB.load(_write(tmp_path / "rehashed.npz", arrays, meta, rehash=True))
+
+
+def test_other_versions_and_non_bases(kb, tmp_path):
+    p = kb.save(tmp_path / "kb.npz")
+    arrays, meta = _arrays_meta(p)
+    old = {k: v for k, v in meta.items() if k != "integrity"}
+    old["version"] = 1
+    old["sha256"] = {k: v for k, v in meta["integrity"]["arrays"].items()}
+    np.savez(tmp_path / "v1.npz", meta=np.array(json.dumps(old, sort_keys=True)), **arrays)
+    with pytest.raises(FileFormatError, match=r"older minegeo .*version 1.*rebuild it with minegeo intersections build"):
+        IntersectionKB.load(tmp_path / "v1.npz")
+    with pytest.raises(FileFormatError, match="newer than this minegeo reads"):
+        IntersectionKB.load(_write(tmp_path / "v9.npz", arrays, _edit(meta, "version", 9), rehash=True))
+    for name, data, words in (("rnd.npz", np.random.default_rng(0).bytes(5000), "not a NumPy .npz archive"),
+                              ("empty.npz", b"", "empty file")):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(FileFormatError, match=re.escape(words)) as ei:
+            IntersectionKB.load(tmp_path / name)
+        assert "allow_pickle" not in str(ei.value) and "not a minegeo intersection base" in str(ei.value)
+    np.save(tmp_path / "one.npy", arrays["pwcv"])
+    with pytest.raises(FileFormatError, match="single NumPy array"):
+        IntersectionKB.load(tmp_path / "one.npy")
+    np.savez(tmp_path / "pickled.npz", meta=np.array([{"a": 1}], dtype=object), **arrays)
+    with pytest.raises(FileFormatError, match="holds Python objects"):
+        IntersectionKB.load(tmp_path / "pickled.npz")
+    np.savez(tmp_path / "other.npz", x=np.zeros(3))
+    with pytest.raises(FileFormatError, match=r"not a minegeo intersection base \(no 'meta' entry\)"):
+        IntersectionKB.load(tmp_path / "other.npz")
+    np.savez_compressed(tmp_path / "zipped.npz", meta=np.array(json.dumps(meta, sort_keys=True)), **arrays)
+    with pytest.raises(FileFormatError, match="compressed"):
+        IntersectionKB.load(tmp_path / "zipped.npz")
 
 
 def test_deterministic(net):
