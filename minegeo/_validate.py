@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from minegeo.errors import InputError, TooFewPointsError
+from minegeo.errors import InputError, InternalError, TooFewPointsError
 
-__all__ = ["as_points", "as_trusted_points", "as_matrix", "as_transform", "check_positive"]
+__all__ = ["as_points", "as_trusted_points", "as_matrix", "as_transform", "internal_transform", "check_positive"]
+
+#: How far (``‖RᵀR − I‖`` entries, last row) a transform the package made itself may be from SE(3)
+#: before it is a bug: re-projected poses are at rounding level (about 1e-15).
+INTERNAL_TRANSFORM_ATOL = 1e-9
 
 
 def as_points(arr, name: str = "points", dim: int = 3, min_points: int = 1) -> np.ndarray:
@@ -71,7 +75,16 @@ def as_matrix(arr, shape: tuple, name: str) -> np.ndarray:
 
 
 def as_transform(T, name: str = "T", atol: float = 1e-6) -> np.ndarray:
-    """Validate a 4x4 rigid transform (orthonormal rotation, det +1, last row 0 0 0 1)."""
+    """Validate a 4x4 rigid transform given by a user (orthonormal rotation, det +1, last row 0 0 0 1).
+
+    ``atol`` is the tolerance of a typed or file-read matrix (its digits). A transform the package
+    composed itself is not user input: check it with :func:`internal_transform`.
+
+    Raises
+    ------
+    InputError
+        Not a finite (4, 4) array, last row not ``[0, 0, 0, 1]``, or ``|RᵀR − I| > atol`` / ``det R < 0``.
+    """
     T = as_matrix(T, (4, 4), name)
     R = T[:3, :3]
     if not np.allclose(T[3], [0, 0, 0, 1], atol=atol):
@@ -79,6 +92,34 @@ def as_transform(T, name: str = "T", atol: float = 1e-6) -> np.ndarray:
     if not np.allclose(R.T @ R, np.eye(3), atol=atol) or np.linalg.det(R) < 0:
         raise InputError(f"{name} rotation block is not a proper rotation (orthonormal, det=+1)")
     return T
+
+
+def internal_transform(T, name: str = "T", atol: float = INTERNAL_TRANSFORM_ATOL) -> np.ndarray:
+    """Check the invariant "``T`` is a rigid transform" of a transform the package made itself
+    (a chained, inverted or interpolated pose, already re-projected with
+    :func:`minegeo.geometry.se3.project`), and return it re-projected onto SE(3) (a float64 copy).
+
+    Raises
+    ------
+    InternalError
+        Not a finite float (4, 4) array, or off SE(3) by more than ``atol`` (last row, ``RᵀR − I``,
+        ``det R``): a bug (a composition that skipped the re-projection, a NaN from a solver), never
+        the user's input.
+    """
+    from minegeo.kernels.lie import se3_project
+
+    a = np.asarray(T)
+    if a.shape != (4, 4) or a.dtype.kind != "f" or not np.isfinite(a).all():
+        raise InternalError(f"{name}: an internal transform is not a finite 4x4 float matrix "
+                            f"(shape {a.shape}, dtype {a.dtype})")
+    a = a.astype(np.float64)
+    R = a[:3, :3]
+    drift = float(np.abs(R.T @ R - np.eye(3)).max())
+    row = float(np.abs(a[3] - [0.0, 0.0, 0.0, 1.0]).max())
+    if not (drift <= atol and row <= atol and np.linalg.det(R) > 0):
+        raise InternalError(f"{name}: an internal transform has left SE(3) (|RᵀR − I| = {drift:.2e}, last row off by "
+                            f"{row:.2e}, det R = {np.linalg.det(R):.6f}; tolerance {atol:.0e})")
+    return se3_project.py_func(a)
 
 
 def check_positive(value, name: str, allow_zero: bool = False) -> float:

@@ -5,6 +5,14 @@ Each verb lives in its own module of this package (``minegeo.cli.<verb>``, liste
 ``add_arguments(parser)`` and ``run(args) -> int``; this file only dispatches. User mistakes (any
 :class:`~minegeo.errors.MinegeoError`, a missing file) print one clear line to
 stderr and exit with status 2, without a traceback. ``--debug`` shows tracebacks.
+
+Exit statuses: 0 done; 2 the user's mistake (one line); 3 a bug minegeo detected itself (an
+:class:`~minegeo.errors.InternalError`, a violated internal invariant: one line saying it is a bug
+and asking for a report, the run's log kept); 1 an unexpected crash (Python's traceback); 130
+interrupted (Ctrl-C: one line ``minegeo <verb>: interrupted``, also when the interrupt arrives
+inside a compiled Numba kernel, which re-raises it as a ``SystemError`` with the
+``KeyboardInterrupt`` as its context); 141 stdout closed by its reader. Outputs are written
+through :class:`minegeo._output.OutputTransaction`: on any non-zero status they are left as they were.
 """
 
 from __future__ import annotations
@@ -15,7 +23,7 @@ import logging
 import sys
 
 from minegeo import __version__
-from minegeo.errors import MinegeoError
+from minegeo.errors import InternalError, MinegeoError
 
 #: verb -> module implementing it. Modules are imported lazily so ``--help`` stays fast.
 VERBS: dict[str, str] = {
@@ -66,6 +74,20 @@ class _DeferredLog(logging.Handler):
                 if r.levelno >= self.target.level:
                     self.target.handle(r)
         self.records.clear()
+
+
+def _interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` is an interrupt: a ``KeyboardInterrupt``, or an exception whose cause or
+    context chain holds one (a Numba dispatcher that meets Ctrl-C inside a compiled kernel raises
+    ``SystemError: CPUDispatcher(...) returned a result with an exception set`` from it)."""
+    seen = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
 
 
 def build_parser(verbs: list[str] | None = None) -> argparse.ArgumentParser:
@@ -130,7 +152,21 @@ def main(argv: list[str] | None = None) -> int:
         name = getattr(exc, "filename", None) or ""
         print(f"minegeo {args.verb}: error: {exc.strerror or exc}: {name}", file=sys.stderr)
         return 2
+    except InternalError as exc:
+        if args.debug:
+            raise
+        print(f"minegeo {args.verb}: internal error (a bug in minegeo, not a problem with your data): {exc}; "
+              "please report it to the minegeo maintainers with the command line, the output of "
+              "`minegeo --version` and the traceback that --debug shows", file=sys.stderr)
+        return 3
     except KeyboardInterrupt:
+        show_log = False
+        print(f"minegeo {args.verb}: interrupted", file=sys.stderr)
+        return 130
+    except SystemError as exc:
+        if not _interrupted(exc) or args.debug:
+            raise
+        show_log = False
         print(f"minegeo {args.verb}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:

@@ -10,8 +10,11 @@ few points are reported and skipped; the run goes on.
 from __future__ import annotations
 
 import logging
+import stat
 import sys
 from pathlib import Path
+
+from minegeo.cli._argtypes import float_in_range, nonnegative_int, positive_float
 
 HELP = "LiDAR SLAM from a folder of frames: GICP odometry, loop closure, pose graph; trajectory + map (Ren et al. 2019)"
 
@@ -26,20 +29,71 @@ def add_arguments(parser) -> None:
                         "(default: FRAMES/times.txt, else the numbers in the file names)")
     parser.add_argument("--pattern", default=None, help='frame file-name pattern, e.g. "*.pcd" (default: every '
                         "point-cloud file in the folder)")
-    parser.add_argument("--voxel", type=float, default=0.3, help="odometry voxel size (m, default 0.3)")
-    parser.add_argument("--max-distance", type=float, default=1.0, help="GICP correspondence gate (m, default 1.0)")
-    parser.add_argument("--keyframe-distance", type=float, default=2.0, help="keyframe distance threshold (m)")
-    parser.add_argument("--keyframe-angle", type=float, default=10.0, help="keyframe rotation threshold (deg)")
-    parser.add_argument("--keyframe-interval", type=float, default=10.0, help="keyframe time threshold (s)")
-    parser.add_argument("--loop-gap", type=float, default=30.0, help="loop candidates: path gap above (m)")
-    parser.add_argument("--loop-radius", type=float, default=8.0, help="loop candidates: distance below (m)")
+    parser.add_argument("--voxel", type=positive_float, default=0.3, help="odometry voxel size (m, default 0.3)")
+    parser.add_argument("--max-distance", type=positive_float, default=1.0,
+                        help="GICP correspondence gate (m, default 1.0)")
+    parser.add_argument("--keyframe-distance", type=positive_float, default=2.0, help="keyframe distance threshold (m)")
+    parser.add_argument("--keyframe-angle", type=float_in_range(0.0, 180.0, lo_open=True), default=10.0,
+                        help="keyframe rotation threshold (deg, in (0, 180])")
+    parser.add_argument("--keyframe-interval", type=positive_float, default=10.0, help="keyframe time threshold (s)")
+    parser.add_argument("--loop-gap", type=positive_float, default=30.0, help="loop candidates: path gap above (m)")
+    parser.add_argument("--loop-radius", type=positive_float, default=8.0,
+                        help="loop candidates: distance below (m; less than --loop-gap)")
     parser.add_argument("--no-planes", action="store_true", help="no floor-plane landmarks in the pose graph "
                         "(default: floor planes of the keyframe sub-maps as nodes, Ren et al. 2019 Sec. 3.4.2)")
     parser.add_argument("--no-noise-removal", action="store_true", help="keep the roadway noise in the map "
                         "(default: points inside the roadway away from the fitted floor, walls and roof, e.g. "
                         "pedestrians, are removed section by section along the keyframe track, Ren et al. 2019 Sec. 3.5)")
-    parser.add_argument("--map-voxel", type=float, default=0.1, help="map voxel (m, default 0.1)")
-    parser.add_argument("--seed", type=int, default=0, help="recorded seed (the run draws no random numbers)")
+    parser.add_argument("--map-voxel", type=positive_float, default=0.1, help="map voxel (m, default 0.1)")
+    parser.add_argument("--seed", type=nonnegative_int, default=0,
+                        help="recorded seed (the run draws no random numbers)")
+
+
+def _check_options(args) -> None:
+    """Option combinations and paths, before any work.
+
+    * ``--loop-radius`` must be below ``--loop-gap``: a candidate lies more than the gap along the
+      path and less than the radius away, and the straight-line distance never exceeds the path
+      distance, so with radius >= gap every keyframe one gap back on a straight drift would be a
+      "loop" (no revisit at all).
+    * ``--times`` must name a regular file (not a folder, FIFO or device).
+    """
+    from minegeo.errors import InputError
+
+    if args.loop_radius >= args.loop_gap:
+        raise InputError(f"--loop-radius {args.loop_radius:g} m must be less than --loop-gap {args.loop_gap:g} m "
+                         "(otherwise any stretch of straight drift one gap long counts as a loop)")
+    if args.times is not None:
+        p = Path(args.times)
+        try:
+            mode = p.stat().st_mode
+        except FileNotFoundError:
+            raise InputError(f"--times {args.times}: no such file") from None
+        except OSError as exc:
+            raise InputError(f"--times {args.times}: cannot be read ({exc.strerror or exc})") from None
+        if stat.S_ISDIR(mode):
+            raise InputError(f"--times {args.times} is a folder: name the file of frame times (one time in s per "
+                             "line), e.g. FOLDER/times.txt")
+        if not stat.S_ISREG(mode):
+            raise InputError(f"--times {args.times} is not a regular file (a FIFO, socket or device): name a file "
+                             "of frame times")
+
+
+def _check_times(files) -> None:
+    """The frame times as the run needs them (the frames reader checks order and finiteness; this
+    adds the trajectory files' range, so that ``trajectory.tum`` can be read back): every time within
+    ``±MAX_ABS_TIME`` s, hence every difference finite."""
+    from minegeo.errors import InputError
+    from minegeo.io._limits import MAX_ABS_TIME
+
+    for k, f in enumerate(files):
+        t = f.time_s
+        if not abs(t) <= MAX_ABS_TIME:
+            raise InputError(f"frame {f.path.name}: time {t!r} s is beyond ±{MAX_ABS_TIME:.0e} s, the range a "
+                             "trajectory file holds (give times in seconds from a nearby epoch)")
+        if k and not t > files[k - 1].time_s:
+            raise InputError(f"frame {f.path.name}: time {t!r} s is not after the previous frame's "
+                             f"{files[k - 1].time_s!r} s")
 
 
 def _params(args):
@@ -77,6 +131,13 @@ def _frames(files, skipped: list, bar, min_points: int):
         yield f.time_s, pts
 
 
+def _all_skipped(frames_dir, skipped: list[dict]) -> str:
+    """The message when no frame could be used: how many, and the first reasons."""
+    first = "; ".join(f"{s['frame']}: {s['reason']}" for s in skipped[:2])
+    more = f" (and {len(skipped) - 2} more)" if len(skipped) > 2 else ""
+    return f"--frames {frames_dir}: none of the {len(skipped)} frames can be used ({first}{more})"
+
+
 def _write_outputs(stage: Path, res, files_used: list[str]) -> None:
     import numpy as np
 
@@ -112,8 +173,10 @@ def run(args) -> int:
     params = _params(args)
     out = Path(args.out)
     inputs_named = {"--frames": args.frames, **({"--times": args.times} if args.times else {})}
+    _check_options(args)
     with OutputTransaction("slam", inputs=inputs_named, folders={"--out": out}) as tx:
         files = list_frames(args.frames, times_file=args.times, pattern=args.pattern)
+        _check_times(files)
         skipped: list[dict] = []
         bar = tqdm(total=len(files), desc="slam", unit="frame", file=sys.stderr, disable=not progress_enabled(args))
         # each registration's warnings (weak direction, 2-cycle) are recorded per frame in
@@ -124,6 +187,10 @@ def run(args) -> int:
         try:
             with bar, timer("slam"):
                 res = run_slam(_frames(files, skipped, bar, params.odometry.min_points), params)
+        except InputError:
+            if files and len(skipped) == len(files):  # every frame skipped: say why, not "the sequence is empty"
+                raise InputError(_all_skipped(args.frames, skipped)) from None
+            raise
         finally:
             reg_log.setLevel(level)
         used = {f.path.name for f in files} - {s["frame"] for s in skipped}

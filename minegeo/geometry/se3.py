@@ -37,6 +37,10 @@ __all__ = [
     "se2_log",
     "make_transform",
     "invert",
+    "project",
+    "compose",
+    "relative",
+    "orthonormality_error",
     "transform_points",
     "rotation_from_euler_xyz",
     "rotation_angle",
@@ -105,6 +109,44 @@ def invert(T) -> np.ndarray:
     Ti[:3, :3] = T[:3, :3].T
     Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
     return Ti
+
+
+def project(T) -> np.ndarray:
+    """``T`` re-projected onto SE(3): nearest rotation (Frobenius) of its rotation block, translation
+    kept, last row ``[0, 0, 0, 1]`` (:func:`minegeo.kernels.lie.se3_project`, under NumPy).
+
+    No validation: for transforms the package made itself (chained products that drifted by
+    rounding). Validate user input with :func:`minegeo._validate.as_transform` first.
+    """
+    return lie.se3_project.py_func(np.asarray(T, dtype=np.float64))
+
+
+def compose(*Ts) -> np.ndarray:
+    """Product ``T_1 @ T_2 @ ... @ T_n`` of rigid transforms, re-projected onto SE(3) (:func:`project`).
+
+    ``T_a_c = compose(T_a_b, T_b_c)``. Every chained pose of the SLAM, tracking and localization
+    code is composed here, so the rotation stays orthonormal to rounding (about 1e-15) however long
+    the chain (``tests/kernels/test_kernels_manifold.py`` chains 10^5 relative poses).
+    """
+    if not Ts:
+        return np.eye(4)
+    out = np.asarray(Ts[0], dtype=np.float64)
+    for T in Ts[1:]:
+        out = out @ np.asarray(T, dtype=np.float64)
+    return project(out)
+
+
+def relative(T_w_a, T_w_b) -> np.ndarray:
+    """``T_a_b = T_w_a⁻¹ T_w_b`` (the pose of *b* in *a*), by :func:`invert` (exact form, no general
+    inverse or solve), re-projected onto SE(3)."""
+    return compose(invert(T_w_a), T_w_b)
+
+
+def orthonormality_error(T) -> float:
+    """``‖RᵀR − I‖_F`` of the rotation block of ``T`` (4x4 or 3x3): how far it has left SO(3)."""
+    A = np.asarray(T, dtype=np.float64)
+    R = A[:3, :3]
+    return float(np.linalg.norm(R.T @ R - np.eye(3)))
 
 
 def transform_points(T, points) -> np.ndarray:

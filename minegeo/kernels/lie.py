@@ -36,7 +36,8 @@ from minegeo._jit import njit
 
 __all__ = [
     "SMALL_ANGLE", "hat", "vee", "so3_exp", "so3_log", "so3_angle", "so3_left_jacobian",
-    "so3_left_jacobian_inv", "so3_right_jacobian", "so3_right_jacobian_inv", "se3_inverse", "se3_exp",
+    "so3_left_jacobian_inv", "so3_right_jacobian", "so3_right_jacobian_inv", "so3_project", "se3_project",
+    "se3_inverse", "se3_exp",
     "se3_log", "se3_adjoint", "se3_left_jacobian", "se3_left_jacobian_inv", "se3_right_jacobian",
     "se3_right_jacobian_inv", "se2_exp", "se2_log", "se2_adjoint", "se2_right_jacobian_inv",
 ]
@@ -145,6 +146,43 @@ def so3_left_jacobian_inv(w):
 def so3_right_jacobian_inv(w):
     """``J_r⁻¹(w) = J_l⁻¹(-w)`` ([Sola2018 Eq. 144])."""
     return so3_left_jacobian_inv(-w)
+
+
+@njit
+def so3_project(R):
+    """Nearest rotation matrix to the 3x3 ``R`` in the Frobenius norm (the orthogonal polar factor).
+
+    ``R = U Σ Vᵀ`` (SVD), ``R' = U diag(1, 1, det(U Vᵀ)) Vᵀ`` (Higham 1986, *Computing the polar
+    decomposition*; Horn, Hilden, Negahdaripour 1988 for the det = +1 constraint). For an ``R``
+    that has drifted from SO(3) by ``ε = ‖RᵀR − I‖`` after chained products, ``‖R' − R‖ ≈ ε / 2``
+    and ``‖R'ᵀR' − I‖`` is at rounding level (about 1e-15). Meant for drift, not for repairing
+    arbitrary matrices: the caller decides what "drifted" means.
+    """
+    U, _, Vt = np.linalg.svd(np.ascontiguousarray(R))
+    Q = U @ Vt
+    if np.linalg.det(Q) < 0.0:
+        for r in range(3):
+            U[r, 2] = -U[r, 2]
+        Q = U @ Vt
+    return Q
+
+
+@njit
+def se3_project(T):
+    """``T`` (4x4) re-projected onto SE(3): rotation block :func:`so3_project`, translation kept,
+    last row ``[0, 0, 0, 1]``.
+
+    The one re-projection of the package: every product, inversion and interpolation of poses that
+    is chained (odometry, pose graph inputs, tracking, localization) goes through it (via
+    :func:`minegeo.geometry.se3.compose` / :func:`~minegeo.geometry.se3.relative` /
+    :func:`~minegeo.geometry.se3.project`), so rounding cannot accumulate across thousands of
+    frames. Float64; a non-finite ``T`` gives a non-finite result (callers check).
+    """
+    out = np.eye(4)
+    out[:3, :3] = so3_project(np.ascontiguousarray(T[:3, :3]))
+    for r in range(3):
+        out[r, 3] = T[r, 3]
+    return out
 
 
 @njit

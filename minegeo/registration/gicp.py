@@ -45,7 +45,7 @@ import numba
 import numpy as np
 
 from minegeo._provenance import StageTimer
-from minegeo._validate import as_points, as_transform, as_trusted_points
+from minegeo._validate import as_points, as_transform, as_trusted_points, internal_transform
 from minegeo.errors import InputError
 from minegeo.geometry.normals import STATUS_OK
 from minegeo.kernels.kdtree import KD_LEAF, GatedKDTree, kd_build
@@ -474,7 +474,7 @@ def _as_covariances(C, n: int, name: str) -> np.ndarray:
 
 def register_gicp(source_points, target_points, T_init, params: GICPParams, source_covariances=None,
                   target_covariances=None, source_normals=None, target_normals=None,
-                  target_index=None, *, check_target: bool = True) -> GICPResult:
+                  target_index=None, *, check_target: bool = True, trusted_init: bool = False) -> GICPResult:
     """Refine ``T_target_source`` by Generalized-ICP (Segal 2009; Ren 2019 Sec. 3.2, [Ren2019 Eqs. 1-6]).
 
     Parameters
@@ -503,6 +503,12 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
         ``target_points`` (C-contiguous float64 (m, 3)) and the shape of
         ``target_covariances``, and requires ``target_index`` (if given) to hold the very same
         array: for a map validated once (e.g. a prepared map's cached covariances).
+    trusted_init : bool
+        False (default): ``T_init`` is user input, validated as such (rigid within 1e-6, else
+        :class:`~minegeo.errors.InputError`). True: ``T_init`` is a transform the caller composed
+        itself (chained odometry poses, loop guesses), already re-projected onto SE(3)
+        (:func:`minegeo.geometry.se3.compose`); it is checked as an internal invariant (within 1e-9,
+        else :class:`~minegeo.errors.InternalError`: a bug, not the user's data) and used re-projected.
 
     Returns
     -------
@@ -518,6 +524,8 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
         symmetric positive definite, bad parameters.
     TooFewPointsError
         Fewer than 3 points in either cloud.
+    InternalError
+        ``trusted_init`` and ``T_init`` not a rigid transform (a bug of the caller).
 
     Notes
     -----
@@ -562,7 +570,7 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
     timer = StageTimer()
     P0, Q, T, tree, Cs, Ct, Nt, src_from, tgt_from, lists = _gicp_inputs(
         source_points, target_points, T_init, params, source_covariances, target_covariances, source_normals,
-        target_normals, target_index, check_target, timer)
+        target_normals, target_index, check_target, timer, trusted_init)
     d = float(params.max_correspondence_distance_m)
     factor = GICPFactor(Q, Cs, Ct, T)
     P = P0 if is_identity(T) else K.transform_points_kernel(P0, T)
@@ -663,7 +671,7 @@ def _gicp_information(factor: GICPFactor, out, Nt, params: GICPParams):
 
 
 def _gicp_inputs(source_points, target_points, T_init, params, source_covariances, target_covariances,
-                 source_normals, target_normals, target_index, check_target: bool, timer):
+                 source_normals, target_normals, target_index, check_target: bool, timer, trusted_init: bool = False):
     """Validated inputs of :func:`register_gicp`: ``(P0, Q, T_init copy, KD-tree of Q, Cs, Ct,
     target normals or None, source_covariances_from, target_covariances_from, the target's kNN
     lists (nb, rk) or None)``."""
@@ -675,7 +683,8 @@ def _gicp_inputs(source_points, target_points, T_init, params, source_covariance
         q_max = float(np.abs(Q).max())
     else:
         Q, q_max = as_trusted_points(target_points, "target_points", min_points=MIN_POINTS), 0.0
-    T = as_transform(T_init, "T_init").copy()
+    # user input at the user's tolerance; a transform the caller composed is an internal invariant
+    T = internal_transform(T_init, "T_init") if trusted_init else as_transform(T_init, "T_init").copy()
     if max(float(np.abs(P0).max()), q_max) > LARGE_COORDINATE_M:
         log.warning(
             "GICP input coordinates exceed %.0e m: subtract a local origin first for full precision",

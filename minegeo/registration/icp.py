@@ -30,7 +30,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from minegeo._provenance import StageTimer
-from minegeo._validate import as_points, as_transform, as_trusted_points
+from minegeo._validate import as_points, as_transform, as_trusted_points, internal_transform
 from minegeo.errors import InputError
 from minegeo.kernels.kdtree import KD_LEAF, GatedKDTree, kd_build
 from minegeo.registration import _kernels as K
@@ -323,7 +323,7 @@ def final_diagnosis(k: int, need: int, gate_m: float, method: str, singular_step
 
 
 def register_icp(source_points, target_points, T_init, params: ICPParams, target_normals=None,
-                 target_index=None, *, check_target: bool = True) -> ICPResult:
+                 target_index=None, *, check_target: bool = True, trusted_init: bool = False) -> ICPResult:
     """Refine ``T_target_source`` by ICP (Baek 2022 Sec. 2.4; Open3D ``registration_icp``).
 
     Parameters
@@ -348,6 +348,10 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
         checks their layout (C-contiguous float64 (m, 3)): for a map validated once and
         registered against many times (as ``scipy.linalg``'s ``check_finite=False``); the
         large-coordinate warning then looks at the source alone.
+    trusted_init : bool
+        As in :func:`minegeo.registration.register_gicp`: False validates ``T_init`` as user input
+        (:class:`~minegeo.errors.InputError`), True checks it as a transform the caller composed and
+        re-projected itself (:class:`~minegeo.errors.InternalError` when it is not rigid: a bug).
 
     Returns
     -------
@@ -389,7 +393,8 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
     cross-covariance (collinear pairs).
     """
     t_start = time.perf_counter()
-    P0, Q, Nt, T = _icp_inputs(source_points, target_points, T_init, params, target_normals, check_target)
+    P0, Q, Nt, T = _icp_inputs(source_points, target_points, T_init, params, target_normals, check_target,
+                               trusted_init)
     timer = StageTimer()
     if target_index is None:
         with timer("search"):
@@ -422,7 +427,8 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
     )
 
 
-def _icp_inputs(source_points, target_points, T_init, params, target_normals, check_target: bool):
+def _icp_inputs(source_points, target_points, T_init, params, target_normals, check_target: bool,
+                trusted_init: bool = False):
     """Validated ``(P0, Q, target normals or None, T_init copy)`` of :func:`register_icp`
     (logs a warning for coordinates beyond ``LARGE_COORDINATE_M``)."""
     if not isinstance(params, ICPParams):
@@ -433,7 +439,8 @@ def _icp_inputs(source_points, target_points, T_init, params, target_normals, ch
         Q, q_max = _points(target_points, "target_points", need)
     else:
         Q, q_max = as_trusted_points(target_points, "target_points", min_points=need), 0.0
-    T = as_transform(T_init, "T_init").copy()
+    # user input at the user's tolerance; a transform the caller composed is an internal invariant
+    T = internal_transform(T_init, "T_init") if trusted_init else as_transform(T_init, "T_init").copy()
     Nt = None
     if target_normals is not None:
         Nt = (_points(target_normals, "target_normals", 1)[0] if check_target

@@ -40,6 +40,7 @@ import numpy as np
 
 from minegeo._validate import as_points, as_transform, check_positive
 from minegeo.errors import InputError, MinegeoError
+from minegeo.geometry.se3 import compose, invert
 from minegeo.semantic.descriptors import completeness, cwc, pwcv, similarity, stack_keyframes
 from minegeo.semantic.knowledge import IntersectionKB
 from minegeo.semantic.skeleton import SkeletonParams, drift_skeleton
@@ -429,7 +430,7 @@ def recognise_keyframe(points_kf, history, kb: IntersectionKB, params: Recogniti
     z = np.linalg.solve(T_L_k, np.r_[c_L, 1.0])[:3]
     yaw_pred_L = None
     if T_pred is not None:                    # heading of the levelled frame L in the world, predicted
-        T_wL = T_pred @ np.linalg.inv(T_L_k)
+        T_wL = compose(T_pred, invert(T_L_k))
         yaw_pred_L = -_yaw(T_wL[:3, :3])       # descriptor yaw = -(yaw of L in the world)
     t1 = time.perf_counter()
     status, reason, i, s, cand, cscore, sim, V = _match(L, c_L, kb, params, yaw_pred_L)
@@ -492,7 +493,7 @@ def _verify_step(rec: Recognition, L, c_L, T_L_k, sim, kb, params, T_pred, yaw_p
         rec.status, rec.reason = "rejected", "too few points for the ICP verification"
         return
     rec.icp_rms_m, rec.icp_fitness = float(res.inlier_rmse_m), float(res.fitness)
-    T_wk = T_wL @ T_L_k
+    T_wk = compose(T_wL, T_L_k)
     rec.T_world_keyframe_icp = T_wk
     if T_pred is not None:
         rec.prediction_error_m = float(np.linalg.norm(T_wk[:3, 3] - T_pred[:3, 3]))

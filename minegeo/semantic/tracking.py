@@ -41,8 +41,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from minegeo._validate import as_transform
+from minegeo._validate import as_transform, internal_transform
 from minegeo.errors import InputError
+from minegeo.geometry.se3 import compose, invert, relative
 from minegeo.semantic.descriptors import cwc, pwcv
 from minegeo.semantic.factors import FactorGraph, intersection_covariance
 from minegeo.semantic.knowledge import IntersectionKB, KBParams
@@ -310,7 +311,7 @@ def _frame_poses(odo, kf_poses: np.ndarray) -> np.ndarray:
     from minegeo.geometry.se3 import exp_so3, log_so3
 
     kf = odo.keyframes
-    C = np.einsum("nij,njk->nik", kf_poses, np.linalg.inv(odo.poses[kf]))
+    C = np.stack([compose(Tk, invert(To)) for Tk, To in zip(kf_poses, odo.poses[kf], strict=True)])
     t = odo.times_s
     out = np.empty_like(odo.poses)
     kf_of = np.searchsorted(kf, np.arange(t.size), side="right") - 1
@@ -321,7 +322,7 @@ def _frame_poses(odo, kf_poses: np.ndarray) -> np.ndarray:
             Cf = np.eye(4)
             Cf[:3, :3] = C[k, :3, :3] @ exp_so3(a * log_so3(C[k, :3, :3].T @ C[k + 1, :3, :3]))
             Cf[:3, 3] = (1.0 - a) * C[k, :3, 3] + a * C[k + 1, :3, 3]
-        out[f] = Cf @ odo.poses[f]
+        out[f] = compose(Cf, odo.poses[f])
     return out
 
 
@@ -376,7 +377,7 @@ def track(frames: Iterable[tuple[float, np.ndarray]], kb: IntersectionKB | None,
     state = RecognitionState()
     for k, f in enumerate(odo.keyframes):
         st.add_keyframe(k)
-        hist = [(odo.keyframe_clouds[h], np.linalg.solve(st.T_odom(k), st.T_odom(h)))
+        hist = [(odo.keyframe_clouds[h], relative(st.T_odom(k), st.T_odom(h)))
                 for h in range(max(0, k - rp.n_his), k)]
         tr = time.perf_counter()
         if not usable:
@@ -407,7 +408,7 @@ class _State:
     def __init__(self, odo, params: TrackParams, T_start, use_map: bool = True):
         self.odo, self.params, self.use_map = odo, params, use_map
         self.g: FactorGraph | None = None
-        self.T_world_odom = None if T_start is None else T_start @ np.linalg.inv(odo.poses[0])
+        self.T_world_odom = None if T_start is None else compose(T_start, invert(odo.poses[0]))
         self.path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(odo.poses[odo.keyframes, :3, 3], axis=0), axis=1))]
         self.last_anchor_path = 0.0
         self.done: list = []
@@ -423,7 +424,7 @@ class _State:
     def _build(self, upto: int) -> None:
         """Graph of keyframes 0..upto placed by ``T_world_odom``, keyframe 0 held."""
         g = FactorGraph()
-        g.add_keyframe(self.T_world_odom @ self.T_odom(0), fixed=True)
+        g.add_keyframe(compose(self.T_world_odom, self.T_odom(0)), fixed=True)
         for k in range(1, upto + 1):
             self._append(g, k)
         self.g = g
@@ -446,7 +447,8 @@ class _State:
             self._append(self.g, k)
 
     def prediction(self, k: int):
-        return None if self.g is None else self.g.poses[k]
+        """Keyframe ``k``'s pose in the graph (checked as an internal invariant, re-projected), or None."""
+        return None if self.g is None else internal_transform(self.g.poses[k], f"graph pose of keyframe {k}")
 
     def current(self, k: int) -> np.ndarray:
         if self.g is not None:
@@ -465,7 +467,7 @@ class _State:
         """Intersection factor (map) or loop factor (online base) for a verified recognition; re-optimise."""
         p = self.params
         if self.g is None:                    # unanchored: the first verification places the run
-            self.T_world_odom = rec.T_world_keyframe_icp @ np.linalg.inv(self.T_odom(k))
+            self.T_world_odom = compose(rec.T_world_keyframe_icp, invert(self.T_odom(k)))
             self._build(k)
         if online is None:
             cov = intersection_covariance(max(rec.completeness, 1e-3), p.intersection_sigma_m,
@@ -480,7 +482,7 @@ class _State:
             self.g.add_intersection(k, z, C, np.linalg.inv(cov), intersection_id=rec.intersection_id)
         else:
             e = online.entry_of[rec.intersection_id]
-            Z = np.linalg.solve(online.T[e], rec.T_world_keyframe_icp)
+            Z = relative(online.T[e], rec.T_world_keyframe_icp)
             s_phi, s_t = math.radians(p.loop_sigma_deg), p.intersection_sigma_m
             self.g.add_relative(online.kf[e], k, Z, np.diag([s_phi**-2] * 3 + [s_t**-2] * 3))
         t0 = time.perf_counter()
@@ -498,7 +500,7 @@ class _State:
         view, idx = online.view(self.path[k], self.params.revisit_min_path_m)
         online.entry_of = {i: e for i, e in enumerate(idx)}
         if len(view):
-            rec = recognise_keyframe(self.odo.keyframe_clouds[k], hist, view, rp, T_world_kf_pred=self.g.poses[k],
+            rec = recognise_keyframe(self.odo.keyframe_clouds[k], hist, view, rp, T_world_kf_pred=self.prediction(k),
                                      gate_m=self.gate(k), state=state)
             if rec.status in ("verified", "candidate", "rejected", "ambiguous"):
                 return rec
@@ -511,7 +513,7 @@ class _State:
                                       timings_s={"detect": time.perf_counter() - t0})
         if c_L is None or np.hypot(c_L[0], c_L[1]) > self.params.online_add_range_m:
             return rec
-        T_wL = self.g.poses[k] @ np.linalg.inv(T_L_k)
+        T_wL = compose(self.g.poses[k], invert(T_L_k))
         C = T_wL[:3, :3] @ c_L + T_wL[:3, 3]
         if any(np.linalg.norm(C[:2] - q[:2]) < self.params.online_merge_m for q in online.C):
             return rec

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from minegeo.errors import InputError
+from minegeo.geometry.se3 import compose, project, relative
 from minegeo.slam.odometry import OdometryParams, PreparedFrame, register_frames
 
 __all__ = ["LoopParams", "LoopCandidate", "find_loop"]
@@ -115,9 +116,10 @@ def find_loop(k: int, poses: np.ndarray, path_m: np.ndarray, frames: list[Prepar
     """
     tried, world = [], []
     for j in candidates(k, poses[:, :3, 3], path_m, params):
-        guess = np.linalg.solve(poses[j], poses[k])  # T_j_k from the odometry
+        guess = relative(poses[j], poses[k])  # T_j_k from the odometry (re-projected onto SE(3))
         reg = register_frames(frames[k], frames[j], guess, odo)
-        corr = np.linalg.solve(guess, reg.T)
+        T_jk = project(reg.T)
+        corr = relative(guess, T_jk)
         limit_m = max(params.max_correction_m, params.max_correction_per_path * float(path_m[k] - path_m[j]))
         reason = reg.reason
         if not reason and reg.fitness < params.min_fitness:
@@ -130,8 +132,8 @@ def find_loop(k: int, poses: np.ndarray, path_m: np.ndarray, frames: list[Prepar
                       f" deg: beyond the limits ({limit_m:.1f} m / {params.max_correction_deg:.0f} deg), "
                       "a look-alike place")
         tried.append(LoopCandidate(int(j), int(k), float(np.linalg.norm(poses[j, :3, 3] - poses[k, :3, 3])),
-                                   reg.fitness, reg.rmse_m, False, reason, reg.T, reg.information))
-        world.append(poses[j] @ reg.T)  # where this registration puts keyframe k
+                                   reg.fitness, reg.rmse_m, False, reason, T_jk, reg.information))
+        world.append(compose(poses[j], T_jk))  # where this registration puts keyframe k
     _confirm(tried, world, params)
     good = [c for c in tried if not c.reason]
     if good:

@@ -34,6 +34,12 @@
   from the registration's initial guess (the constant-velocity prior) and the frame is flagged with
   the axis.
 
+Poses stay on SE(3): every product, inverse and relative pose of the chain is
+:func:`minegeo.geometry.se3.compose` / :func:`~minegeo.geometry.se3.relative` (re-projected onto
+SE(3)), so thousands of chained frames keep orthonormal rotations to rounding (about 1e-15), and
+a registration's initial guess is passed as the package's own transform (``trusted_init``: a
+non-rigid one is an :class:`~minegeo.errors.InternalError`, a bug, never "your input").
+
 Edge information: GICP's Gauss–Newton matrix ``H`` is for a left perturbation in the target frame,
 parameters (ω, t); the pose graph perturbs on the right, so the edge information is
 ``Ad(Z)ᵀ H Ad(Z) / σ²`` with ``σ`` GICP's a-posteriori scale (floored at ``sigma_floor_m``).
@@ -53,6 +59,8 @@ import numpy as np
 
 from minegeo.errors import InputError
 from minegeo.geometry import voxel_downsample
+from minegeo.geometry.se3 import compose, project, relative
+from minegeo.io._limits import MAX_ABS_TIME
 from minegeo.kernels.lie import se3_adjoint, se3_exp, se3_log
 from minegeo.registration import GICPParams, build_target_index, register_gicp
 from minegeo.registration.gicp import gicp_covariances_on_tree
@@ -234,13 +242,17 @@ def _prepared_frames(frames: Iterable[tuple[float, np.ndarray]], params: Odometr
 
 def register_frames(source: PreparedFrame, target: PreparedFrame, T_init: np.ndarray,
                     params: OdometryParams) -> Registration:
-    """GICP of ``source`` into ``target`` from ``T_init``; a verdict and the edge information."""
+    """GICP of ``source`` into ``target`` from ``T_init``; a verdict and the edge information.
+
+    ``T_init`` is a transform the odometry composed (:func:`minegeo.geometry.se3.compose`), checked
+    as an internal invariant (``register_gicp(..., trusted_init=True)``)."""
     if source.index is None or target.index is None:
         n = min(source.points.shape[0], target.points.shape[0])
         return Registration(T_init, False, f"too few points after downsampling ({n} < {params.min_points})",
                             0.0, float("nan"), np.zeros((6, 6)))
     res = register_gicp(source.points, target.points, T_init, params.gicp(), source_covariances=source.covariances,
-                        target_covariances=target.covariances, target_index=target.index, check_target=False)
+                        target_covariances=target.covariances, target_index=target.index, check_target=False,
+                        trusted_init=True)
     reason = ""
     if res.fitness < params.min_fitness:
         reason = f"overlap {res.fitness:.2f} below {params.min_fitness:.2f}"
@@ -285,9 +297,10 @@ def _register_with_retries(cur: PreparedFrame, prev: PreparedFrame, guess: np.nd
         # a sharp turn (a junction): the heading changed more than the gate can follow
         for yaw in params.turn_retry_yaw_deg:
             c = math.radians(yaw)
-            T0 = guess.copy()
-            T0[:3, :3] = np.array([[math.cos(c), -math.sin(c), 0.0], [math.sin(c), math.cos(c), 0.0],
-                                   [0.0, 0.0, 1.0]]) @ guess[:3, :3]
+            Rz = np.eye(4)
+            Rz[:2, :2] = [[math.cos(c), -math.sin(c)], [math.sin(c), math.cos(c)]]
+            T0 = compose(Rz, guess)
+            T0[:3, 3] = guess[:3, 3]  # the yaw turns the rotation only
             r = register_frames(cur, prev, register_frames(cur, prev, T0, coarse).T, params)
             r = _plausible(r, guess, params)
             if r.ok:
@@ -311,10 +324,9 @@ def _keyframe_submap(kf_clouds: list, kf_poses: list, params: OdometryParams) ->
     prepared target (voxel centroids, covariances, tree): the laser rings of several keyframes
     interleave, so the covariances describe the surfaces rather than the ring lines."""
     n = min(params.keyframe_submap_size, len(kf_clouds))
-    T_last_inv = np.linalg.inv(kf_poses[-1])
     parts = []
     for P, T in zip(kf_clouds[-n:], kf_poses[-n:], strict=True):
-        A = T_last_inv @ T
+        A = relative(kf_poses[-1], T)
         parts.append(P @ A[:3, :3].T + A[:3, 3])
     return prepare_frame(np.concatenate(parts), 0.0, params)
 
@@ -327,20 +339,20 @@ def _register_to_submap(cur: PreparedFrame, prev: PreparedFrame, submap: Prepare
     moved by the constant velocity (and by the time-scaled one), and not moved. When the local map
     fails (e.g. it holds keyframes placed by the guess), the previous frame is tried; when that fails
     too, the frame is placed by the constant velocity."""
-    still = np.linalg.solve(T_sub, T_prev)
-    reg = _register_with_retries(cur, submap, still @ velocity, params, still)
+    still = relative(T_sub, T_prev)
+    reg = _register_with_retries(cur, submap, compose(still, velocity), params, still)
     if scaled is not None:
-        alt = _register_with_retries(cur, submap, still @ scaled, params, still)
+        alt = _register_with_retries(cur, submap, compose(still, scaled), params, still)
         if alt.ok and (not reg.ok or alt.fitness > reg.fitness):
             reg = alt
     if reg.ok:
-        return reg, T_sub @ reg.T, False
+        return reg, compose(T_sub, reg.T), False
     alt = _register_with_retries(cur, prev, velocity, params)
     if alt.ok:
         alt = replace(alt, weak=(alt.weak + "; " if alt.weak else "")
                       + f"registered to the previous frame (the local map failed: {reg.reason})")
-        return alt, T_prev @ alt.T, True
-    return reg, T_prev @ velocity, False
+        return alt, compose(T_prev, alt.T), True
+    return reg, compose(T_prev, velocity), False
 
 
 def _time_scaled_guess(velocity: np.ndarray, dt: float, velocity_dt: float) -> np.ndarray | None:
@@ -349,7 +361,7 @@ def _time_scaled_guess(velocity: np.ndarray, dt: float, velocity_dt: float) -> n
     guess as it is) or there is no previous motion yet."""
     if not velocity_dt > 0 or not dt > 0 or abs(dt / velocity_dt - 1.0) <= 0.25:
         return None
-    return se3_exp(np.ascontiguousarray((dt / velocity_dt) * se3_log(np.ascontiguousarray(velocity))))
+    return project(se3_exp(np.ascontiguousarray((dt / velocity_dt) * se3_log(np.ascontiguousarray(velocity)))))
 
 
 def _keyframe_due(dT: np.ndarray, dt: float, params: OdometryParams) -> bool:
@@ -357,6 +369,21 @@ def _keyframe_due(dT: np.ndarray, dt: float, params: OdometryParams) -> bool:
     angle = math.degrees(math.acos(min(1.0, max(-1.0, (np.trace(dT[:3, :3]) - 1.0) / 2.0))))
     return (np.linalg.norm(dT[:3, 3]) > params.keyframe_distance_m or angle > params.keyframe_angle_deg
             or dt > params.keyframe_interval_s)
+
+
+def _check_time(k: int, t, times: list) -> None:
+    """Frame ``k``'s time: a finite number of seconds within ``±MAX_ABS_TIME`` (the trajectory
+    files' limit, so the outputs read back; every difference of two such times, e.g. the keyframe
+    interval, is then finite) and after the previous frame's."""
+    try:
+        tf = float(t)
+    except (TypeError, ValueError):
+        raise InputError(f"frame {k}: time {t!r} is not a number of seconds") from None
+    if not (math.isfinite(tf) and abs(tf) <= MAX_ABS_TIME):
+        raise InputError(f"frame {k}: time {t!r} s is not finite or beyond ±{MAX_ABS_TIME:.0e} s "
+                         "(the trajectory file's limit)")
+    if times and not tf > times[-1]:
+        raise InputError(f"frame {k}: time {tf!r} s is not after the previous frame's {times[-1]!r} s")
 
 
 def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryParams | None = None,
@@ -387,8 +414,7 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
     velocity, velocity_dt = np.eye(4), 0.0
     for k, (t, cur, dt_prep) in enumerate(_prepared_frames(frames, params)):
         t_prep += dt_prep
-        if times and t <= times[-1]:
-            raise InputError(f"frame {k}: time {t} s is not after the previous frame's {times[-1]} s")
+        _check_time(k, t, times)
         times.append(float(t))
         if prev is None:
             poses.append(np.eye(4))
@@ -418,12 +444,12 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
         if not reg.ok:
             log.info("frame %d (t = %.3f s) not registered: %s; placed by constant velocity", k, t, reg.reason)
         if not to_submap:
-            pose = poses[-1] @ (reg.T if reg.ok else velocity)
+            pose = compose(poses[-1], reg.T if reg.ok else velocity)
         ok.append(reg.ok)
         reasons.append(reg.reason)
         fitness.append(reg.fitness)
         weak.append(reg.weak)
-        rel = np.linalg.solve(T_kf, pose)
+        rel = relative(T_kf, pose)
         if _keyframe_due(rel, t - times[kf_idx[-1]], params):
             t0 = time.perf_counter()
             if to_submap:  # the registration already was to the local map of the last keyframes
@@ -431,15 +457,15 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
                 if reg.ok and not via_prev and sub_kf != len(kf_idx) - 1:
                     # the keyframes since sub_kf were placed by the guess: the registration measures
                     # T_sub⁻¹ T, not the relative pose to the (guessed) last keyframe
-                    extra.append((sub_kf, len(kf_idx), np.linalg.solve(T_sub, pose), info))
+                    extra.append((sub_kf, len(kf_idx), relative(T_sub, pose), info))
                     info = np.eye(6) * 1e-6
             else:
                 target = last_kf if params.keyframe_submap_size <= 1 else _keyframe_submap(
                     kf_clouds, [poses[i] for i in kf_idx], params)
                 ref = register_frames(cur, target, rel, params)  # keyframe-to-keyframe refinement
                 if ref.ok:
-                    rel, info = ref.T, ref.information
-                    pose = T_kf @ rel
+                    rel, info = project(ref.T), ref.information
+                    pose = compose(T_kf, rel)
                 else:  # keep the chained relative pose with the frame-to-frame information
                     info = reg.information if reg.ok else np.eye(6) * 1e-6
                     log.info("keyframe %d refinement failed (%s); chained odometry kept", k, ref.reason)
@@ -459,7 +485,7 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
             t_kf += time.perf_counter() - t0
         poses.append(pose)
         if reg.ok:
-            velocity, velocity_dt = np.linalg.solve(poses[-2], poses[-1]), t - times[-2]
+            velocity, velocity_dt = relative(poses[-2], poses[-1]), t - times[-2]
         prev = cur if cur.index is not None else prev
         if progress is not None:
             progress(k)

@@ -23,8 +23,10 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from minegeo._validate import internal_transform
 from minegeo.errors import InputError
 from minegeo.geometry import voxel_downsample
+from minegeo.geometry.se3 import compose, relative
 from minegeo.io.g2o import PoseGraph
 from minegeo.registration import build_target_index
 from minegeo.slam.loops import LoopCandidate, LoopParams, find_loop
@@ -320,8 +322,15 @@ def _close_loops(odo: OdometryResult, params: SlamParams, obs=None):
         if any(c.accepted for c in tried):
             opt = _optimise(kf_poses, odo, loops, obs, params)
             if opt.status != "failed":
-                kf_poses = opt.graph.poses.copy()
+                kf_poses = _optimised_poses(opt)
     return kf_poses, loops
+
+
+def _optimised_poses(opt: PoseGraphResult) -> np.ndarray:
+    """The optimised keyframe poses, each checked as an internal invariant (a rigid transform: a
+    solver that returned a non-rigid pose with a status other than "failed" is a bug) and
+    re-projected onto SE(3)."""
+    return np.stack([internal_transform(T, f"optimised pose of keyframe {k}") for k, T in enumerate(opt.graph.poses)])
 
 
 class _LazyFrames:
@@ -338,13 +347,14 @@ class _LazyFrames:
 
 
 def _all_poses(odo: OdometryResult, kf_poses: np.ndarray) -> np.ndarray:
-    """Every frame: keyframes as optimised, the others by odometry from the preceding keyframe."""
+    """Every frame: keyframes as optimised, the others by odometry from the preceding keyframe,
+    ``T_f = T_kf^opt (T_kf^odo)⁻¹ T_f^odo`` (each product re-projected onto SE(3))."""
     out = odo.poses.copy()
     kf = odo.keyframes
     for a in range(kf.size):
         start, stop = kf[a], kf[a + 1] if a + 1 < kf.size else odo.poses.shape[0]
-        corr = kf_poses[a] @ np.linalg.inv(odo.poses[start])
-        out[start:stop] = np.einsum("ij,njk->nik", corr, odo.poses[start:stop])
+        for f in range(start, stop):
+            out[f] = compose(kf_poses[a], relative(odo.poses[start], odo.poses[f]))
     return out
 
 
@@ -405,7 +415,7 @@ def run_backend(odo: OdometryResult, params: SlamParams | None = None, *, use_lo
     if odo.keyframes.size > 1 and (use_loops or obs is not None):
         opt = _optimise(kf_poses, odo, loops, obs, params)
     if opt is not None and opt.status != "failed":
-        kf_poses = opt.graph.poses.copy()
+        kf_poses = _optimised_poses(opt)
     graph = opt.graph if opt is not None else _graph(kf_poses, odo, loops)
     t3 = time.perf_counter()
     poses = _all_poses(odo, kf_poses)

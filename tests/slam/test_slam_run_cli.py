@@ -128,3 +128,78 @@ def test_times_file_elsewhere_pattern_and_frame_numbers(sequence, tmp_path, capl
     assert res["result"]["times_from"] == "file" and res["result"]["frames"] == 5
     assert any(i["path"].endswith("t.txt") for i in res["provenance"]["inputs"])
     assert read_trajectory(out / "trajectory.tum").times_s[0] == 10.0
+
+
+def _interrupt_in_a_kernel(*args, **kwargs):
+    """What Numba does on Ctrl-C inside a compiled kernel: a SystemError with the interrupt as context."""
+    try:
+        raise KeyboardInterrupt
+    except KeyboardInterrupt:  # the SystemError's __context__ is the interrupt, as Numba's
+        raise SystemError("CPUDispatcher(<function gicp_step_loop at 0x7f>) returned a result with an "  # noqa: B904
+                          "exception set")
+
+
+@pytest.mark.parametrize("how", ["numba", "python"])
+def test_ctrl_c_is_one_line_exit_130_and_leaves_out_as_it_was(sequence, tmp_path, capsys, monkeypatch, how):
+    """Issue 27, 7b: Ctrl-C inside a Numba kernel surfaces as ``SystemError`` (context KeyboardInterrupt);
+    either way the run says ``minegeo slam: interrupted`` once, exits 130 and writes nothing."""
+    from minegeo.slam import pipeline
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "run_slam", _interrupt_in_a_kernel if how == "numba" else interrupted)
+    frames, _ = sequence
+    before = sorted(p.name for p in tmp_path.iterdir())
+    capsys.readouterr()
+    assert main(["slam", "--frames", str(frames), "--out", str(tmp_path / "o")]) == 130
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert err == ["minegeo slam: interrupted"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no OUT, no staging folder, no lock
+
+
+def test_a_system_error_that_is_not_an_interrupt_stays_a_crash(sequence, tmp_path, monkeypatch):
+    from minegeo.slam import pipeline
+
+    def broken(*args, **kwargs):
+        raise SystemError("something else")
+
+    monkeypatch.setattr(pipeline, "run_slam", broken)
+    frames, _ = sequence
+    with pytest.raises(SystemError, match="something else"):
+        main(["slam", "--frames", str(frames), "--out", str(tmp_path / "o")])
+
+
+def test_an_internal_invariant_is_reported_as_a_bug_exit_3(sequence, tmp_path, capsys, monkeypatch):
+    """A violated internal invariant is a bug: exit 3, one line that says so and asks for a report,
+    never "error:" (the user's mistake, exit 2); nothing is written."""
+    from minegeo.errors import InternalError
+    from minegeo.slam import pipeline
+
+    def bug(*args, **kwargs):
+        raise InternalError("T_init: an internal transform has left SE(3)")
+
+    monkeypatch.setattr(pipeline, "run_slam", bug)
+    frames, _ = sequence
+    capsys.readouterr()
+    assert main(["slam", "--frames", str(frames), "--out", str(tmp_path / "o")]) == 3
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith("minegeo slam: internal error (a bug in minegeo")
+    assert "please report it" in err[0] and "left SE(3)" in err[0]
+    assert not (tmp_path / "o").exists()
+
+
+def test_long_fast_rotating_walk_keeps_every_pose_on_se3(tmp_path):
+    """A short run of the issue-27 stress sequence (handheld sway +-15-25 deg at 0.5-1.5 Hz, motion-
+    distorted sweeps, 3.2 m drifts) through the CLI: it completes and its trajectory reads back
+    with every rotation orthonormal to rounding."""
+    from minegeo.geometry.se3 import orthonormality_error
+    from minegeo.synth.sequence import write_frames
+    from minegeo.synth.sequence_sway import SwayWalkParams, sway_walk
+
+    truth, frames, _ = sway_walk(SwayWalkParams(n_frames=40, azimuth_step_deg=2.0, seed=3))
+    write_frames(tmp_path / "f", truth.times_s, frames)
+    assert main(["-q", "slam", "--frames", str(tmp_path / "f"), "--out", str(tmp_path / "o")]) == 0
+    est = read_trajectory(tmp_path / "o" / "trajectory.tum")
+    assert est.times_s.size == 40
+    assert max(orthonormality_error(T) for T in est.poses) < 1e-12
