@@ -43,14 +43,23 @@ physical length against the file size, page size), then every libE57 failure (ch
 mismatch, bad XML, bad compressed-vector packet) becomes a :class:`FileFormatError` with the
 first line of libE57's message; a file without scans, or a scan without cartesian or spherical
 coordinates, is a :class:`FileFormatError` too.
+
+Poses are checked against the text of the file's XML section as written (:func:`_xml_pose_texts`):
+libE57 turns a float element it cannot parse (``<w>nan</w>``, ``<x>inf</x>``, ``<y>abc</y>``) into 0
+without a word, which can make a damaged quaternion look like another rotation and a damaged
+translation look like the origin. A pose element that is not a finite number, a quaternion of zero
+length or far from unit length is a :class:`FileFormatError` naming the scan and the values as
+written, e.g. ``scan 0 ('station 1'): pose rotation quaternion (w=nan, x=0, y=0, z=0) ...``.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import stat
 import struct
+import xml.etree.ElementTree as ET
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -72,6 +81,10 @@ _SPHERICAL = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
 _COLOUR = ("colorRed", "colorGreen", "colorBlue")
 #: records read per libE57 call by :func:`read_e57` (its own buffers: 3 doubles + extras per record)
 _READ_BLOCK = 1 << 20
+#: largest XML section whose pose texts are checked as written (larger: libE57's values only)
+_MAX_XML_BYTES = 64 << 20
+#: a pose quaternion's length may differ from 1 by this much (rounding of a written unit quaternion)
+_UNIT_TOLERANCE = 1e-2
 
 
 def _pye57():
@@ -128,7 +141,75 @@ def e57_header_check(path) -> dict:
     if page == 0 or page > (1 << 20) or phys % page != 0 or xml_off + xml_len > phys:
         raise FileFormatError(path, f"corrupt E57 header (page size {page}, XML section at {xml_off}+{xml_len}, "
                                     f"file {phys} bytes)")
-    return {"version": f"{major}.{minor}", "physical_length": int(phys), "page_size": int(page)}
+    return {"version": f"{major}.{minor}", "physical_length": int(phys), "page_size": int(page),
+            "xml_offset": int(xml_off), "xml_length": int(xml_len)}
+
+
+def _xml_section(path, header: dict) -> bytes | None:
+    """The XML section of an E57 file (logical bytes: each page's trailing 4-byte checksum removed,
+    ASTM E2807 Sec. 8.2.2), or None when it is larger than :data:`_MAX_XML_BYTES`."""
+    page, off, n = header["page_size"], header["xml_offset"], header["xml_length"]
+    if n > _MAX_XML_BYTES or page <= 4 or off % page >= page - 4:
+        return None
+    data = page - 4
+    out = bytearray()
+    with open(path, "rb") as fh:
+        fh.seek(off - off % page)
+        skip = off % page
+        while len(out) < n:
+            block = fh.read(page)
+            if len(block) < page:
+                return None
+            out += block[skip:data]
+            skip = 0
+    return bytes(out[:n])
+
+
+def _xml_pose_texts(path, header: dict) -> list[dict] | None:
+    """Per scan of ``/data3D`` (file order), the text of each pose element as written in the XML:
+    ``{"rotation": {"w": "nan", "x": "0", ...}, "translation": {...}}`` (an empty element is "0", the
+    E57 default; a missing one is absent). None when the section cannot be read here (too large, or
+    XML this parser refuses): the poses are then checked on libE57's values only."""
+    try:
+        raw = _xml_section(path, header)
+        if raw is None:
+            return None
+        root = ET.fromstring(raw)
+    except (OSError, ET.ParseError, ValueError) as exc:
+        log.debug("%s: XML section not read for the pose check (%s)", path, exc)
+        return None
+
+    def local(el) -> str:
+        return el.tag.rsplit("}", 1)[-1]
+
+    def child(el, name):
+        return next((c for c in el if local(c) == name), None) if el is not None else None
+
+    scans = []
+    for vc in child(root, "data3D") if child(root, "data3D") is not None else []:
+        pose = child(vc, "pose")
+        rec = {}
+        for part, keys in (("rotation", "wxyz"), ("translation", "xyz")):
+            node = child(pose, part)
+            if node is not None:
+                rec[part] = {k: ((child(node, k).text or "").strip() or "0") for k in keys if child(node, k) is not None}
+        scans.append(rec)
+    return scans
+
+
+def _pose_values(texts: dict | None, read: np.ndarray, keys: str):
+    """``(values as written, shown text)`` of one pose element group: the written texts parsed as
+    floats (NaN for a text that is not a number) when known, else libE57's values."""
+    if not texts or set(texts) != set(keys):
+        return read, ", ".join(f"{k}={v:g}" for k, v in zip(keys, read.tolist(), strict=True))
+    vals = []
+    for k in keys:
+        try:
+            vals.append(float(texts[k]))
+        except ValueError:
+            vals.append(math.nan)
+    shown = ", ".join(f"{k}={texts[k][:24]}" for k in keys)
+    return np.array(vals, dtype=np.float64), shown
 
 
 class _E57File:
@@ -148,6 +229,12 @@ class _E57File:
 
     def __enter__(self) -> _E57File:
         return self
+
+    def pose_texts(self) -> list[dict] | None:
+        """:func:`_xml_pose_texts` of this file (read once)."""
+        if not hasattr(self, "_pose_texts"):
+            self._pose_texts = _xml_pose_texts(self.path, self.header)
+        return self._pose_texts
 
     def __exit__(self, *exc) -> None:
         try:
@@ -191,34 +278,58 @@ def _string(node, name: str) -> str | None:
         return None
 
 
+def _same(written: np.ndarray, read: np.ndarray) -> bool:
+    """Whether libE57 read the values written (to single-precision rounding: a pose element may be
+    stored as a single-precision float)."""
+    return bool(np.all(np.abs(written - read) <= 1e-6 * np.maximum(1.0, np.abs(written))))
+
+
 def _pose(f: _E57File, h, index: int) -> np.ndarray:
-    """``T_file_scan`` (4x4 float64) of one scan header (identity without a pose)."""
+    """``T_file_scan`` (4x4 float64) of one scan header (identity without a pose).
+
+    Each pose element is checked as written in the XML (:func:`_xml_pose_texts`): a value that is not
+    a finite number, a quaternion of zero length or whose length differs from 1 by more than
+    :data:`_UNIT_TOLERANCE`, is a :class:`FileFormatError` naming the scan and the values as written.
+    A value written differently from what libE57 read (libE57 reads an unparsable float as 0) is
+    refused the same way."""
     T = np.eye(4)
     node = h.node
+    name = _string(node, "name")
+    scan = f"scan {index}" + (f" ({name[:60]!r})" if name else "")
+    texts = f.pose_texts()
+    written = texts[index] if texts is not None and index < len(texts) else None
     try:
         if not node.isDefined("pose"):
             return T
         pose = node["pose"]
         if pose.isDefined("rotation"):
             r = pose["rotation"]
-            q = np.array([float(r[k].value()) for k in ("w", "x", "y", "z")], dtype=np.float64)
-            nq = float(np.linalg.norm(q))
-            if not np.isfinite(q).all() or abs(nq - 1.0) > 1e-2:
-                raise FileFormatError(f.path, f"scan {index}: pose rotation quaternion {q.tolist()} is not a unit "
-                                              "quaternion (damaged file?)")
-            w, x, y, z = q / nq
+            read = np.array([float(r[k].value()) for k in ("w", "x", "y", "z")], dtype=np.float64)
+            q, shown = _pose_values((written or {}).get("rotation"), read, "wxyz")
+            nq = float(np.linalg.norm(q)) if np.isfinite(q).all() else math.nan
+            problem = ("holds a value that is not a finite number" if not math.isfinite(nq)
+                       else "has zero length" if nq == 0.0
+                       else f"has length {nq:.6g}, not 1" if abs(nq - 1.0) > _UNIT_TOLERANCE
+                       else "was read by libE57 as other values" if not _same(q, read) else "")
+            if problem:
+                raise FileFormatError(f.path, f"{scan}: pose rotation quaternion ({shown}) {problem}: not a "
+                                              "rotation (damaged file?)")
+            w, x, y, z = read / float(np.linalg.norm(read))
             T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
                          [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
                          [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
         if pose.isDefined("translation"):
             tr = pose["translation"]
-            T[:3, 3] = [float(tr[k].value()) for k in ("x", "y", "z")]
-            if not np.isfinite(T[:3, 3]).all():
-                raise FileFormatError(f.path, f"scan {index}: pose translation is not finite")
+            read = np.array([float(tr[k].value()) for k in ("x", "y", "z")], dtype=np.float64)
+            t, shown = _pose_values((written or {}).get("translation"), read, "xyz")
+            if not np.isfinite(t).all() or not _same(t, read):
+                raise FileFormatError(f.path, f"{scan}: pose translation ({shown}) holds a value that is not a "
+                                              "finite number (damaged file?)")
+            T[:3, 3] = read
     except FileFormatError:
         raise
     except Exception as exc:  # noqa: BLE001
-        raise f._fail(f"scan {index}: unreadable pose", exc) from None
+        raise f._fail(f"{scan}: unreadable pose", exc) from None
     return T
 
 

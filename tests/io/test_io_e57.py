@@ -8,6 +8,7 @@ pye57's libE57 bindings directly.
 
 from __future__ import annotations
 
+import re
 import sys
 import zipfile
 
@@ -280,6 +281,78 @@ def test_without_pye57_the_error_names_the_extra(two_scans, monkeypatch):
     with pytest.raises(OptionalDependencyError, match=r"minegeo\[e57\]"):
         read_e57(two_scans[0])
     assert issubclass(OptionalDependencyError, MinegeoError)
+
+
+def _crc32c(data: bytes) -> int:
+    """CRC-32C (Castagnoli) of ``data``: the checksum of every E57 page (ASTM E2807 Sec. 8.2.2)."""
+    crc = 0xFFFFFFFF
+    for b in data:
+        crc ^= b
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0x82F63B78 if crc & 1 else crc >> 1
+    return crc ^ 0xFFFFFFFF
+
+
+def _edit_pose_text(src, dst, scan: int, part: str, key: str, text: str):
+    """Copy of the E57 ``src`` whose XML element ``pose/part/key`` of scan ``scan`` reads ``text`` (padded
+    with spaces to the written length), with the page checksums recomputed: a file damaged or written by
+    another program, not one libE57 would refuse."""
+
+    raw = bytearray(src.read_bytes())
+    page = 1024
+    logical = b"".join(raw[i:i + page - 4] for i in range(0, len(raw), page))
+    starts = [m.start() for m in re.finditer(rb"<vectorChild", logical)]
+    seg = logical.index(f"<{part} ".encode(), starts[scan])
+    m = re.compile(rf"<{key} type=\"Float\">([^<]*)</{key}>".encode()).search(logical, seg)
+    old = m.group(1)
+    assert len(text) <= len(old), (text, old)
+    new = text.encode().ljust(len(old))
+    logical = logical[:m.start(1)] + new + logical[m.end(1):]
+    for k, i in enumerate(range(0, len(raw), page)):
+        chunk = logical[k * (page - 4):(k + 1) * (page - 4)]
+        raw[i:i + page - 4] = chunk
+        raw[i + page - 4:i + page] = _crc32c(chunk).to_bytes(4, "big")
+    dst.write_bytes(bytes(raw))
+    return dst
+
+
+def _posed(tmp_path, q, t=(1.25, -2.5, 3.75)):
+    p = tmp_path / "posed.e57"
+    _write_raw_scan(p, [{"fields": _xyz_fields(_scan_points(3, 40)), "pose": (q, t), "name": "station A"}])
+    return p
+
+
+@pytest.mark.parametrize("q, part, key, text, words", [
+    # issue 27: <w>nan</w> in an identity pose was reported as "quaternion [0,0,0,0]"
+    ((1 + 2**-52, 0, 0, 0), "rotation", "w", "nan", "(w=nan, x=0, y=0, z=0) holds a value that is not a finite"),
+    ((0.5, 0.5, 0.5, 0.5), "rotation", "x", "inf", "(w=5e-01, x=inf, y=5e-01, z=5e-01)"),
+    ((0.5, 0.5, 0.5, 0.5), "rotation", "y", "abc", "(w=5e-01, x=5e-01, y=abc, z=5e-01)"),
+    # libE57 reads an unparsable w as 0, leaving the unit quaternion (0, 0, 0, 1): a silent 180 deg turn
+    ((1e-9, 0, 0, 1), "rotation", "w", "nan", "(w=nan, x=0, y=0, z=1)"),
+    ((0.5, 0.5, 0.5, 0.5), "rotation", "w", "0", "has length 0.866025, not 1"),
+    # libE57 reads an unparsable translation as 0: the scan would sit at the origin
+    ((1, 0, 0, 0), "translation", "y", "nan", "pose translation (x=1.25, y=nan, z=3.75)"),
+])
+def test_bad_pose_values_are_named_as_written(tmp_path, q, part, key, text, words):
+    bad = _edit_pose_text(_posed(tmp_path, q), tmp_path / "bad.e57", 0, part, key, text)
+    for fn in (read_e57, e57_scan_poses):
+        with pytest.raises(FileFormatError, match=re.escape(words)) as ei:
+            fn(bad)
+        msg = str(ei.value)
+        assert msg.startswith(f"{bad}: scan 0 ('station A'): pose ") and "\n" not in msg
+
+
+def test_zero_quaternion_is_named(tmp_path):
+    with pytest.raises(FileFormatError, match=re.escape("quaternion (w=0, x=0, y=0, z=0) has zero length")):
+        read_e57(_posed(tmp_path, (0.0, 0.0, 0.0, 0.0)))
+
+
+def test_pose_edit_helper_alone_changes_nothing(tmp_path):
+    """The editing helper of the tests above, rewriting a value as itself, gives a file read as written."""
+    src = _posed(tmp_path, (0.5, 0.5, 0.5, 0.5))
+    same = _edit_pose_text(src, tmp_path / "same.e57", 0, "rotation", "w", "5e-01")
+    assert same.read_bytes() == src.read_bytes()
+    np.testing.assert_array_equal(read_e57(same).points, read_e57(src).points)
 
 
 # -- CLI ---------------------------------------------------------------------------------------------------------
