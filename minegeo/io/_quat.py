@@ -12,6 +12,12 @@ Shuster, M. D. (1993). A survey of attitude representations. J. Astronautical Sc
 Shepperd, S. W. (1978). Quaternion from rotation matrix. J. Guidance and Control 1(3),
 223-224 -- the largest-diagonal branch selection used in :func:`matrix_to_quat`.
 
+The checks every trajectory reader shares for its rotations live here:
+:func:`rotation_problem` (orthonormal within :data:`ROTATION_TOLERANCE`, ``det R > 0``; a reflection
+named as such) and :func:`quaternion_problem` (finite, norm 1 within
+:data:`QUATERNION_NORM_TOLERANCE`; a zero quaternion named as such). :func:`normalize_quat` and
+:func:`matrix_to_quat` refuse what they refuse.
+
 Notes
 -----
 The matrix is the *active* rotation ``p' = R p`` (the usual robotics convention, identical
@@ -32,7 +38,13 @@ import numpy as np
 
 from minegeo.errors import InputError
 
-__all__ = ["quat_to_matrix", "matrix_to_quat", "normalize_quat"]
+__all__ = ["quat_to_matrix", "matrix_to_quat", "normalize_quat", "rotation_problem", "quaternion_problem",
+           "ROTATION_TOLERANCE", "QUATERNION_NORM_TOLERANCE"]
+
+#: largest ``max |R^T R - I|`` of a rotation block read or written (KITTI files print 6-7 digits: ~1e-6)
+ROTATION_TOLERANCE = 1e-4
+#: largest ``| |q| - 1 |`` of a quaternion read (it is then renormalised); files print few digits
+QUATERNION_NORM_TOLERANCE = 1e-2
 
 
 def _reorder_in(q: np.ndarray, order: str) -> np.ndarray:
@@ -43,7 +55,65 @@ def _reorder_in(q: np.ndarray, order: str) -> np.ndarray:
     raise InputError(f"quaternion order must be 'xyzw' or 'wxyz', got {order!r}")
 
 
-def normalize_quat(q, order: str = "xyzw", tol: float = 1e-2) -> np.ndarray:
+def rotation_problem(R, tol: float = ROTATION_TOLERANCE) -> tuple[int, str] | None:
+    """The first rotation block that is not a proper rotation: ``(index, sentence)``, or None.
+
+    A proper rotation has ``max |R^T R - I| <= tol`` (orthonormal) and ``det R > 0``; together these
+    give ``|det R - 1| <= 3 tol`` to first order. An orthonormal block with ``det R = -1`` is a
+    reflection (a mirrored axis: a left-handed frame or a sign error), named as such.
+
+    Parameters
+    ----------
+    R : (m, 3, 3) array_like
+        Rotation blocks.
+    tol : float
+        Orthonormality tolerance (default :data:`ROTATION_TOLERANCE`).
+    """
+    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
+    with np.errstate(over="ignore", invalid="ignore"):
+        err = np.abs(np.einsum("mji,mjk->mik", R, R) - np.eye(3)).max(axis=(1, 2))
+        det = np.linalg.det(R) if np.isfinite(R).all() else np.full(R.shape[0], np.nan)
+    ok = np.isfinite(R).all(axis=(1, 2)) & (err <= tol) & (det > 0.0)
+    if ok.all():
+        return None
+    i = int(np.flatnonzero(~ok)[0])
+    if not np.isfinite(R[i]).all():
+        return i, "the rotation block holds NaN or inf"
+    if err[i] <= tol:
+        return i, (f"the rotation block is a reflection (det R = {det[i]:.6g}), not a rotation: one axis is "
+                   "mirrored (a left-handed frame, or a sign error in a row or column)")
+    return i, f"the rotation block is not a rotation: max |R^T R - I| = {err[i]:.3g} (tolerance {tol:g})"
+
+
+def quaternion_problem(q, tol: float = QUATERNION_NORM_TOLERANCE, names: str = "qx qy qz qw") -> tuple[int, str] | None:
+    """The first quaternion that is not finite or not of unit norm within ``tol``: ``(index, sentence)``, or None.
+
+    Parameters
+    ----------
+    q : (m, 4) array_like
+        Quaternions in the file's order.
+    tol : float
+        Largest accepted ``| |q| - 1 |`` (default :data:`QUATERNION_NORM_TOLERANCE`).
+    names : str
+        The file's names of the four components, for the sentence.
+    """
+    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
+    with np.errstate(over="ignore", invalid="ignore"):
+        n = np.sqrt(np.einsum("mi,mi->m", q, q))
+        ok = np.isfinite(q).all(axis=1) & (np.abs(n - 1.0) <= tol)
+    if ok.all():
+        return None
+    i = int(np.flatnonzero(~ok)[0])
+    vals = ", ".join(f"{v:.6g}" for v in q[i])
+    if not np.isfinite(q[i]).all():
+        return i, f"the quaternion ({names}) = ({vals}) holds NaN or inf"
+    if n[i] == 0.0:
+        return i, f"the quaternion ({names}) = ({vals}) is zero: it is not a rotation"
+    return i, (f"the quaternion ({names}) = ({vals}) has norm {n[i]:.6g}, not 1 (within {tol:g}): not a unit "
+               "quaternion (wrong columns, or a damaged line?)")
+
+
+def normalize_quat(q, order: str = "xyzw", tol: float = QUATERNION_NORM_TOLERANCE) -> np.ndarray:
     """Return unit quaternions ``q / |q|``; raise if any norm is off by more than ``tol``.
 
     Parameters
@@ -67,15 +137,10 @@ def normalize_quat(q, order: str = "xyzw", tol: float = 1e-2) -> np.ndarray:
         raise InputError(f"quaternions must have shape (..., 4), got {q.shape}")
     if order not in ("xyzw", "wxyz"):
         raise InputError(f"quaternion order must be 'xyzw' or 'wxyz', got {order!r}")
-    norm = np.linalg.norm(q, axis=-1)
-    bad = ~np.isfinite(norm) | (np.abs(norm - 1.0) > tol)
-    if np.any(bad):
-        flat = np.flatnonzero(bad.reshape(-1))
-        raise InputError(
-            f"{flat.size} quaternion(s) are not unit length (first at row {int(flat[0])}, "
-            f"norm {float(norm.reshape(-1)[flat[0]]):.6g}); expected |q| = 1 within {tol:g}"
-        )
-    return q / norm[..., None]
+    problem = quaternion_problem(q.reshape(-1, 4), tol, names="qx qy qz qw" if order == "xyzw" else "qw qx qy qz")
+    if problem is not None:
+        raise InputError(f"quaternion(s) not unit length: row {problem[0]}: {problem[1]}")
+    return q / np.linalg.norm(q, axis=-1)[..., None]
 
 
 def quat_to_matrix(q, order: str = "xyzw") -> np.ndarray:
@@ -145,14 +210,9 @@ def matrix_to_quat(R, order: str = "xyzw", atol: float = 1e-6) -> np.ndarray:
         raise InputError(f"quaternion order must be 'xyzw' or 'wxyz', got {order!r}")
     single = R.ndim == 2
     Rm = R.reshape(-1, 3, 3)
-    err = np.abs(np.einsum("mji,mjk->mik", Rm, Rm) - np.eye(3)).max(axis=(1, 2))
-    bad = ~np.isfinite(err) | (err > atol) | (np.linalg.det(Rm) < 0)
-    if np.any(bad):
-        i = int(np.flatnonzero(bad)[0])
-        raise InputError(
-            f"{int(bad.sum())} matrix/matrices are not proper rotations (first at row {i}, "
-            f"|R^T R - I| = {float(err[i]):.3g}, tolerance {atol:g})"
-        )
+    problem = rotation_problem(Rm, atol)
+    if problem is not None:
+        raise InputError(f"matrix not a proper rotation: row {problem[0]}: {problem[1]}")
     m = Rm.shape[0]
     tr = Rm[:, 0, 0] + Rm[:, 1, 1] + Rm[:, 2, 2]
     choice = np.argmax(np.stack([tr, Rm[:, 0, 0], Rm[:, 1, 1], Rm[:, 2, 2]], axis=1), axis=1)

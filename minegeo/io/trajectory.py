@@ -55,7 +55,14 @@ from minegeo.io._limits import (
     read_file_bytes,
     read_file_text,
 )
-from minegeo.io._quat import matrix_to_quat, quat_to_matrix
+from minegeo.io._quat import (
+    QUATERNION_NORM_TOLERANCE,
+    ROTATION_TOLERANCE,
+    matrix_to_quat,
+    quat_to_matrix,
+    quaternion_problem,
+    rotation_problem,
+)
 from minegeo.io._text import data_line_locator, format_table, is_number, parse_table, unterminated_last_line
 from minegeo.io.types import Trajectory
 
@@ -70,10 +77,6 @@ _SUFFIX = {".tum": "tum", ".kitti": "kitti", ".csv": "csv"}
 _CSV_COLS = ("time_s", "x", "y", "z", "qx", "qy", "qz", "qw")
 _GEOSLAM_COLS = ("time", "x", "y", "z", "q0", "q1", "q2", "q3")
 _ALIASES = {"t": "time_s", "time": "time_s", "timestamp": "time_s", "time_s": "time_s"}
-#: largest ``max |R^T R - I|`` of a rotation block read or written (KITTI files print 6-7 digits: ~1e-6)
-ROTATION_TOLERANCE = 1e-4
-#: largest ``| |q| - 1 |`` of a quaternion read (it is then renormalised); files print few digits
-QUATERNION_NORM_TOLERANCE = 1e-2
 #: a time in a times file: a decimal number (no ``nan``/``inf``, no ``1_000``)
 _TIME_TOKEN = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 _NOT_FINITE = {"nan", "+nan", "-nan", "inf", "+inf", "-inf", "infinity", "+infinity", "-infinity"}
@@ -120,64 +123,6 @@ def time_problem(times, noun: str = "pose") -> tuple[int, str] | None:
             return k, (f"time {_fmt_time(t[k])} s is not after the previous {noun}'s {_fmt_time(t[k - 1])} s: "
                        f"times must increase strictly from {noun} to {noun} (a duplicated or unsorted time stamp)")
     return None
-
-
-def rotation_problem(R, tol: float = ROTATION_TOLERANCE) -> tuple[int, str] | None:
-    """The first rotation block that is not a proper rotation: ``(index, sentence)``, or None.
-
-    A proper rotation has ``max |R^T R - I| <= tol`` (orthonormal) and ``det R > 0``; together these
-    give ``|det R - 1| <= 3 tol`` to first order. An orthonormal block with ``det R = -1`` is a
-    reflection (a mirrored axis: a left-handed frame or a sign error), named as such.
-
-    Parameters
-    ----------
-    R : (m, 3, 3) array_like
-        Rotation blocks.
-    tol : float
-        Orthonormality tolerance (default :data:`ROTATION_TOLERANCE`).
-    """
-    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
-    with np.errstate(over="ignore", invalid="ignore"):
-        err = np.abs(np.einsum("mji,mjk->mik", R, R) - np.eye(3)).max(axis=(1, 2))
-        det = np.linalg.det(R) if np.isfinite(R).all() else np.full(R.shape[0], np.nan)
-    ok = np.isfinite(R).all(axis=(1, 2)) & (err <= tol) & (det > 0.0)
-    if ok.all():
-        return None
-    i = int(np.flatnonzero(~ok)[0])
-    if not np.isfinite(R[i]).all():
-        return i, "the rotation block holds NaN or inf"
-    if err[i] <= tol:
-        return i, (f"the rotation block is a reflection (det R = {det[i]:.6g}), not a rotation: one axis is "
-                   "mirrored (a left-handed frame, or a sign error in a row or column)")
-    return i, f"the rotation block is not a rotation: max |R^T R - I| = {err[i]:.3g} (tolerance {tol:g})"
-
-
-def quaternion_problem(q, tol: float = QUATERNION_NORM_TOLERANCE, names: str = "qx qy qz qw") -> tuple[int, str] | None:
-    """The first quaternion that is not finite or not of unit norm within ``tol``: ``(index, sentence)``, or None.
-
-    Parameters
-    ----------
-    q : (m, 4) array_like
-        Quaternions in the file's order.
-    tol : float
-        Largest accepted ``| |q| - 1 |`` (default :data:`QUATERNION_NORM_TOLERANCE`).
-    names : str
-        The file's names of the four components, for the sentence.
-    """
-    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
-    with np.errstate(over="ignore", invalid="ignore"):
-        n = np.sqrt(np.einsum("mi,mi->m", q, q))
-        ok = np.isfinite(q).all(axis=1) & (np.abs(n - 1.0) <= tol)
-    if ok.all():
-        return None
-    i = int(np.flatnonzero(~ok)[0])
-    vals = ", ".join(f"{v:.6g}" for v in q[i])
-    if not np.isfinite(q[i]).all():
-        return i, f"the quaternion ({names}) = ({vals}) holds NaN or inf"
-    if n[i] == 0.0:
-        return i, f"the quaternion ({names}) = ({vals}) is zero: it is not a rotation"
-    return i, (f"the quaternion ({names}) = ({vals}) has norm {n[i]:.6g}, not 1 (within {tol:g}): not a unit "
-               "quaternion (wrong columns, or a damaged line?)")
 
 
 def read_times(path, count: int | None = None, *, noun: str = "pose", labels=None, hint: str = "") -> np.ndarray:
