@@ -18,7 +18,16 @@ HELP = "intersection knowledge base of a prior map (subcommand: build), for `min
 
 
 def add_arguments(parser) -> None:
-    sub = parser.add_subparsers(dest="action", metavar="ACTION", parser_class=type(parser), required=True)
+    verb = parser.prog  # "minegeo intersections"
+
+    class _ActionParser(type(parser)):
+        """An action's parser: its one error line starts ``minegeo intersections: error:``, as the
+        verb's other errors do (not ``minegeo intersections build: error:``)."""
+
+        def error(self, message):  # noqa: D102 - argparse API
+            self.exit(2, f"{verb}: error: {message} (see {self.prog} --help)\n")
+
+    sub = parser.add_subparsers(dest="action", metavar="ACTION", parser_class=_ActionParser, required=True)
     b = sub.add_parser("build", help="build the knowledge base of a map", description="build the intersection "
                        "knowledge base (invariant points, dense clouds, PWCV/CWC descriptors) of a prior map")
     b.add_argument("--map", required=True, help="prior map (PLY/PCD/LAS/XYZ, m, z up, one mine level); a "

@@ -231,7 +231,13 @@ def _read_kb_file(p: Path) -> tuple[dict, dict]:
                 arrays[k] = np.ascontiguousarray(z[k])
     except (FileFormatError, FileNotFoundError):
         raise
-    except (OSError, ValueError, KeyError, EOFError, RuntimeError, zipfile.BadZipFile) as exc:
+    except zipfile.BadZipFile as exc:
+        if str(exc).startswith("Bad CRC-32 for file"):
+            member = str(exc).removeprefix("Bad CRC-32 for file").strip()
+            raise FileFormatError(p, f"was changed after it was written (archive checksum mismatch of {member}); "
+                                     f"{_REBUILD}") from None
+        raise FileFormatError(p, f"not a {_WHAT} (damaged archive: {str(exc)[:200]})") from None
+    except (OSError, ValueError, KeyError, EOFError, RuntimeError) as exc:
         raise FileFormatError(p, f"not a {_WHAT} (unreadable archive: {str(exc)[:200]})") from None
     return meta, arrays
 
