@@ -208,3 +208,79 @@ def test_closed_stdout_after_the_commit_is_not_a_traceback(tmp_path):
     assert "Traceback" not in p.stderr, p.stderr
     assert p.stdout.strip() in ("0", "141"), p.stdout
     assert (tmp_path / "o" / "result.json").is_file()
+
+
+def _interrupt_self():
+    import signal
+
+    os.kill(os.getpid(), signal.SIGINT)  # Python raises KeyboardInterrupt at the next bytecode of the main thread
+
+
+def test_ctrl_c_during_the_commit_takes_effect_after_it(tmp_path, monkeypatch):
+    """A Ctrl-C between the renames of a commit (two result folders and a file): every output is
+    in place and then the KeyboardInterrupt is raised, no staging folder or lock left; never half
+    a commit (issue 27)."""
+    import minegeo._output as O
+
+    a, b, f = tmp_path / "a", tmp_path / "b", tmp_path / "x.json"
+    real_rename, calls = os.rename, []
+
+    def rename(src, dst):
+        real_rename(src, dst)
+        calls.append(dst)
+        if len(calls) == 1:
+            _interrupt_self()
+
+    monkeypatch.setattr(O.os, "rename", rename)
+    with pytest.raises(KeyboardInterrupt):
+        with OutputTransaction("t", folders={"--a": a, "--b": b}, files={"--json": f}) as tx:
+            (tx.folder("--a") / "result.json").write_text("{}")
+            (tx.folder("--b") / "result.json").write_text("{}")
+            tx.file("--json").write_text("{}")
+    assert len(calls) == 2
+    assert tree(tmp_path) == {"a/result.json": b"{}", "b/result.json": b"{}", "x.json": b"{}"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b", "x.json"]
+
+
+def test_ctrl_c_while_a_lock_is_taken_leaves_no_lock(tmp_path, monkeypatch):
+    """A Ctrl-C right after the lock file is created (while its record is written): the run stops,
+    and neither the lock nor a staging folder stays behind."""
+    import json as _json
+
+    import minegeo._output as O
+
+    class J:
+        loads = staticmethod(_json.loads)
+
+        @staticmethod
+        def dump(obj, fh):
+            _interrupt_self()
+            _json.dump(obj, fh)
+
+    monkeypatch.setattr(O, "json", J)
+    with pytest.raises(KeyboardInterrupt):
+        with OutputTransaction("t", folders={"--out": tmp_path / "out"}):
+            pass
+    with pytest.raises(KeyboardInterrupt):
+        with output_lock("t", "--out", tmp_path / "out"):
+            pass
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_sigint_deferred_nests_and_delivers_once():
+    import signal
+
+    from minegeo._output import sigint_deferred
+
+    seen = []
+    old = signal.signal(signal.SIGINT, lambda s, f: seen.append(s))
+    try:
+        with sigint_deferred():
+            with sigint_deferred():
+                _interrupt_self()
+                _interrupt_self()
+                time.sleep(0.01)
+            assert seen == []  # held by both blocks
+        assert seen == [signal.SIGINT]  # the handler in force before is called once, after the outer block
+    finally:
+        signal.signal(signal.SIGINT, old)

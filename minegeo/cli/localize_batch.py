@@ -24,7 +24,10 @@ goes on. Re-running the same command skips the scans whose results are complete 
 another map (or other parameters) is refused, nothing written.
 
 Exit status 0 when every scan is ``ok``, 1 when any is ``ambiguous`` or ``failed`` (summary.csv
-says which), 2 for a user mistake (one stderr line; nothing written).
+says which), 2 for a user mistake (one stderr line; ``OUT`` as it was), 130 for Ctrl-C (one
+stderr line). A run that stops early leaves ``OUT`` as it was plus the scan folders it completed
+(each whole) and their manifest, nothing else (:class:`minegeo.localize.batch.OutState`;
+docs/localization.md, "What a run that does not finish leaves in OUT").
 """
 
 from __future__ import annotations
@@ -239,6 +242,8 @@ def _run_locked(args, out, scans, names, pm, how, manifest, map_input, t_map, st
                               scheduler=args.scheduler, client=cluster if todo else None, on_row=bar)
     finally:
         cluster.close()
+    if todo:  # every task has ended: a staging folder or lock of a worker that died is a leftover
+        B.clean_leftovers(out, quiet=True)
     # the summary, report, record (and drawing) of this run: staged, renamed into place together
     with OutputTransaction("localize-batch", files=files, drop_unwritten=True) as tx:
         record = _write_batch_outputs(args, out, res, pm, manifest, map_input, t_map, how,

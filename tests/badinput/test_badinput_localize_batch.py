@@ -2,6 +2,12 @@
 exit 2, nothing written (no OUT, no manifest, no map cache), before any Dask worker starts; an
 ``OUT`` holding another batch stays byte-identical.
 
+Option values (counts, the scheduler's address) and contradicting options are refused by their
+argparse types and checks before any file is read; an ``OUT`` whose entries cannot take the
+batch's outputs (a batch file that is a folder, a scan's folder name taken by a file) before any
+scan runs; a scheduler that does not answer leaves ``OUT`` exactly as it was (the cluster is
+reached before anything is written).
+
 Bad *scan files* are not user mistakes for a batch: each gets a ``failed`` result folder and the
 batch goes on (tests/localize/test_localize_batch.py). An ``OUT`` of another map, seed or
 profile is one, shown here with a manifest as an earlier batch writes it (no cluster needed).
@@ -46,11 +52,32 @@ def _write(tmp: Path, name: str, data) -> Path:
 
 OPTION_CASES = {
     "seed_negative": ["--seed", "-1"],
+    "seed_float": ["--seed", "1.5"],
+    "seed_nan": ["--seed", "nan"],
     "workers_0": ["--workers", "0"],
     "workers_negative": ["--workers", "-2"],
+    "workers_float": ["--workers", "2.0"],
+    "workers_inf": ["--workers", "inf"],
+    "workers_huge": ["--workers", "1000000"],
+    "workers_above_four_per_core": ["--workers", str(4 * (os.cpu_count() or 1) + 1)],
     "voxel_0": ["--voxel", "0"],
     "levelled_above_90": ["--levelled", "91"],
+    "levelled_0": ["--levelled", "0"],
+    "levelled_nan": ["--levelled", "nan"],
     "workers_not_a_number": ["--workers", "two"],
+    "workers_with_scheduler": ["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"],
+    "scheduler_colons": ["--scheduler", "::::"],
+    "scheduler_empty": ["--scheduler", ""],
+    "scheduler_no_port": ["--scheduler", "tcp://127.0.0.1"],
+    "scheduler_port_0": ["--scheduler", "tcp://127.0.0.1:0"],
+    "scheduler_port_too_big": ["--scheduler", "tcp://127.0.0.1:70000"],
+    "scheduler_port_not_a_number": ["--scheduler", "tcp://127.0.0.1:http"],
+    "scheduler_unknown_transport": ["--scheduler", "http://127.0.0.1:8786"],
+    "scheduler_ipv6_unbracketed": ["--scheduler", "tcp://::1:8786"],
+    "scheduler_ipv6_bad": ["--scheduler", "tcp://[::g]:8786"],
+    "scheduler_bracket_unclosed": ["--scheduler", "tcp://[::1:8786"],
+    "scheduler_host_with_space": ["--scheduler", "tcp://my host:8786"],
+    "scheduler_host_slash": ["--scheduler", "tcp://host/x:8786"],
 }
 
 
@@ -164,6 +191,52 @@ def test_out_is_a_scan(prep, scans, capsys):
     out = scans / "scan_00.ply"
     assert_user_error("localize-batch", ["--map", prep, "--scans", scans / "*.ply", "--out", out, *FAST], capsys,
                       inputs=[prep, scans], outputs=[out])
+
+
+def _closed_port() -> int:
+    """A loopback port nothing listens on (bound, then closed)."""
+    import socket
+
+    with socket.socket() as so:
+        so.bind(("127.0.0.1", 0))
+        return so.getsockname()[1]
+
+
+@pytest.mark.parametrize("earlier", [False, True], ids=["new_out", "out_of_an_earlier_batch"])
+def test_scheduler_not_answering_writes_nothing(earlier, prep, scans, tmp_path, capsys):
+    """Issue 27 case 1: the cluster is reached before OUT is touched (no manifest, no map cache)."""
+    pytest.importorskip("distributed")
+    out = _manifest(tmp_path / "out", prep) if earlier else tmp_path / "out"
+    before = tree_snapshot(out, with_mtime=True)
+    assert_user_error("localize-batch", ["--map", prep, "--scans", scans, "--out", out, *FAST, "--scheduler",
+                                         f"tcp://127.0.0.1:{_closed_port()}"], capsys,
+                      inputs=[prep, scans], outputs=[out], expect="cannot connect to the Dask scheduler")
+    assert tree_snapshot(out, with_mtime=True) == before
+
+
+ENTRY_CASES = {
+    # an earlier minegeo version put the folder of a scan named summary.csv.ply at OUT/summary.csv
+    "summary_csv_is_a_folder": lambda o: (o / "summary.csv" / "result.json"),
+    "report_html_is_a_folder": lambda o: (o / "report.html" / "x"),
+    "map_cache_is_a_file": lambda o: o / ".map_cache",
+    "scan_folder_is_a_file": lambda o: o / "scan_00",
+}
+
+
+@pytest.mark.parametrize("case", sorted(ENTRY_CASES))
+def test_out_entry_that_cannot_take_an_output(case, prep, scans, tmp_path, capsys):
+    """Issue 27 case 2, the class: OUT's entries are checked against the batch's own names and the
+    scans' folder names before any work, not when the summary is written after every scan ran."""
+    out = _manifest(tmp_path / "out", prep)
+    p = ENTRY_CASES[case](out)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    if p.exists() and p.is_dir():
+        shutil.rmtree(p)
+    p.write_text("{}", encoding="utf-8")
+    before = tree_snapshot(out, with_mtime=True)
+    assert_user_error("localize-batch", ["--map", prep, "--scans", scans, "--out", out, *FAST], capsys,
+                      inputs=[prep, scans], outputs=[out], expect="move it away")
+    assert tree_snapshot(out, with_mtime=True) == before
 
 
 def test_out_locked_by_live_run(prep, scans, tmp_path, capsys):

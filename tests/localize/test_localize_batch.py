@@ -10,8 +10,11 @@
   missing or changed one;
 * an ``OUT`` of another map is refused, nothing changed;
 * a worker killed mid-batch (``os._exit`` in the worker process while it writes a scan's staged
-  folder) loses no finished result and leaves no half folder; the re-run removes the leftovers
-  and completes the rest.
+  folder) loses no finished result and leaves no half folder, staging folder or lock; the re-run
+  completes the rest;
+* issue 27: scans named after the batch's own files; Ctrl-C (SIGINT to the process group) while
+  the cluster starts, while scans run and before the final renames: exit 130, one stderr line, no
+  process left, ``OUT`` as the rule in docs/localization.md says.
 """
 
 from __future__ import annotations
@@ -350,8 +353,9 @@ def test_worker_killed_mid_batch_then_rerun_completes(world, cluster, tmp_path):
     first = _json(out / "batch_result.json")
     crashed = sorted(r["name"] for r in first["scans"] if r["error_kind"] == "crash")
     assert "scan_03" in crashed and len(crashed) < 5
-    # the dead worker's staging folder and lock are left (nothing half-written is in scan_03/)
-    assert [p.name for p in out.iterdir() if p.name.startswith(".scan_03.minegeo-")]
+    # the dead worker's staging folder and lock are removed when the batch ends (nothing
+    # half-written is in scan_03/ or anywhere in OUT)
+    assert not [p.name for p in out.iterdir() if ".minegeo-" in p.name]
     assert not (out / "scan_03" / "partial.txt").exists()
     finished = {k: v for k, v in _tree(out).items() if "/" in k and k.split("/")[0] not in crashed
                 and not k.startswith(".")}
@@ -378,3 +382,135 @@ def test_without_dask_one_clear_line(world, tmp_path, capsys, monkeypatch):
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert code == 2 and len(err) == 1 and "minegeo[dask]" in err[0], err
     assert not (tmp_path / "o").exists()
+
+
+# ---------------------------------------------------------------------------------- issue 27
+
+
+def test_scan_names_never_take_the_batchs_own_names(world, cluster, tmp_path):
+    """Scans named after the batch's own files (``summary.csv.ply``, ``report.html.ply``) get
+    folders of their whole file names; the batch's summary, report and record are written
+    (before: every scan ran, then "Is a directory: .../summary.csv")."""
+    from minegeo.localize.batch import RESERVED_NAMES, result_names
+
+    d = tmp_path / "scans"
+    d.mkdir()
+    shutil.copy2(world["scans"] / "scan_00.ply", d / "summary.csv.ply")
+    shutil.copy2(world["scans"] / "scan_01.ply", d / "report.html.ply")
+    out = tmp_path / "out"
+    assert _batch(world, out, "--scheduler", cluster[0].scheduler_address, scans=d) in (0, 1)
+    rec = _json(out / "batch_result.json")
+    assert sorted(r["folder"] for r in rec["scans"]) == ["report.html.ply", "summary.csv.ply"]
+    assert (out / "summary.csv").is_file() and (out / "report.html").is_file()
+    assert _json(out / "summary.csv.ply" / "result.json")["inputs"][1]["path"] == str(d / "summary.csv.ply")
+    # the mapping alone, on names a hand-made list says must not collide (case ignored)
+    scans = [f"a/{n}.ply" for n in RESERVED_NAMES] + ["a/X.ply", "b/x.las", "a/x_2.ply", "c/x.ply", "d/.hidden.ply"]
+    names = result_names(scans)
+    assert len({n.casefold() for n in names}) == len(scans)
+    assert not {n.casefold() for n in names} & {r.casefold() for r in RESERVED_NAMES}
+    assert not [n for n in names if n.startswith(".")]
+
+
+def _tree_all(d: Path) -> dict:
+    """Every entry under ``d`` (hidden ones and the map cache included): kind, bytes, mtime."""
+    if not d.exists():
+        return {}
+    return {str(p.relative_to(d)): ("dir",) if p.is_dir() else (hashlib.sha256(p.read_bytes()).hexdigest(),
+                                                                p.stat().st_mtime_ns)
+            for p in sorted(d.rglob("*"))}
+
+
+def _interrupt_at(stage: str, world, out: Path, tmp_path: Path, *extra) -> tuple[int, list[str]]:
+    """Run the CLI in its own process group (as a terminal runs it), wait until it reaches
+    ``stage`` (:func:`minegeo.localize.batch.pause_for_test`), then send SIGINT to the whole group
+    as Ctrl-C does. Returns (exit status, non-empty stderr lines); asserts no process is left."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    ready = tmp_path / f"ready-{stage}"
+    env = dict(os.environ, MINEGEO_TEST_BATCH_PAUSE=stage, MINEGEO_TEST_BATCH_READY=str(ready))
+    argv = [sys.executable, "-m", "minegeo", "localize-batch", "--map", str(world["map"]), "--scans",
+            str(world.get("two", world["scans"])), "--out", str(out), *FAST, *map(str, extra)]
+    p = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True)
+    try:
+        t0 = time.monotonic()
+        while not ready.exists() and p.poll() is None and time.monotonic() - t0 < 300:
+            time.sleep(0.05)
+        assert ready.exists(), f"never reached {stage}: {p.poll()} {p.stderr.read() if p.poll() is not None else ''}"
+        os.killpg(p.pid, signal.SIGINT)
+        _, err = p.communicate(timeout=300)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    time.sleep(0.5)
+    ps = subprocess.run(["ps", "-o", "pid=,stat=,args=", "-g", str(p.pid)], capture_output=True, text=True).stdout
+    left = [ln for ln in ps.splitlines() if ln.split()[1:2] and not ln.split()[1].startswith("Z")]
+    assert not left, f"processes of the run still alive: {left}"  # (an exited, unreaped child is not)
+    return p.returncode, [ln for ln in err.splitlines() if ln.strip()]
+
+
+@pytest.fixture(scope="module")
+def two(world, tmp_path_factory):
+    """The world with a scans folder of 2 scans (the interrupted runs)."""
+    d = tmp_path_factory.mktemp("two") / "scans"
+    d.mkdir()
+    for i in (0, 1):
+        shutil.copy2(world["scans"] / f"scan_{i:02d}.ply", d / f"scan_{i:02d}.ply")
+    return {**world, "two": d}
+
+
+def _assert_rule(out: Path, before: dict, names=("scan_00", "scan_01")) -> list[str]:
+    """OUT after an interrupted run: as before, plus complete scan folders this run added, plus
+    the manifest when it added one to an OUT without one; nothing hidden of a run (docs rule)."""
+    after = _tree_all(out)
+    added = sorted({k.split("/")[0] for k in after if k not in before or after[k] != before[k]}
+                   - {"batch_manifest.json"})
+    assert set(added) <= set(names), f"entries this run left: {added}"
+    for n in added:  # each complete, as minegeo localize writes it
+        assert {"result.json", "report.html"} <= {p.name for p in (out / n).iterdir()}, n
+        assert _json(out / n / "result.json")["status"] in ("ok", "ambiguous", "failed")
+    assert not [k for k in before if k not in after], "an entry of the earlier OUT was removed"
+    manifest_new = "batch_manifest.json" in after and "batch_manifest.json" not in before
+    assert manifest_new == bool(added and "batch_manifest.json" not in before)
+    if "batch_manifest.json" in before:
+        assert after["batch_manifest.json"] == before["batch_manifest.json"]
+    leftovers = [p.name for p in out.parent.iterdir() if ".minegeo-" in p.name]
+    leftovers += [k for k in after if ".minegeo-" in k or k not in before and k.startswith(".map_cache")]
+    assert not leftovers, leftovers
+    return added
+
+
+@pytest.mark.parametrize("stage", ["cluster-start", "scans"])
+def test_ctrl_c_leaves_out_as_it_was(stage, two, tmp_path):
+    """Issue 27 case 3: Ctrl-C (SIGINT to the whole process group) while the local cluster starts
+    and while scans run (--workers 1: the second scan is running): exit 130, one line, no worker
+    traceback, no process left; OUT follows the rule: absent after an interrupted start, else only
+    complete scan folders and their manifest (no lock, staging folder, map cache or summary)."""
+    out = tmp_path / "out"
+    code, err = _interrupt_at(stage, two, out, tmp_path, "--workers", 1)
+    assert code == 130 and err == ["minegeo localize-batch: interrupted"], err
+    if stage == "cluster-start":
+        assert sorted(p.name for p in tmp_path.iterdir()) == [f"ready-{stage}"]
+    else:
+        added = _assert_rule(out, {})
+        assert "scan_00" in added  # the scan that finished before the Ctrl-C is kept
+        assert _batch(two, out, "--workers", 1, scans=two["two"]) in (0, 1)  # and the re-run resumes it
+        assert _json(out / "batch_result.json")["n_resumed"] == len(added)
+
+
+def test_ctrl_c_before_the_commit_leaves_an_earlier_batch(two, batch_out, tmp_path):
+    """Ctrl-C once every scan is done, before the summary, report and record are renamed into
+    place, on an OUT of an earlier batch (one of its scan folders deleted, so this run adds it):
+    every earlier file byte-identical (mtimes too), the added scan folder complete, nothing else."""
+    out = tmp_path / "out"
+    shutil.copytree(batch_out, out)
+    for n in ("scan_02", "scan_03", "scan_04"):
+        shutil.rmtree(out / n)
+    shutil.rmtree(out / "scan_01")
+    before = _tree_all(out)
+    code, err = _interrupt_at("commit", two, out, tmp_path, "--workers", 1, "--seed", 3)
+    assert code == 130 and err == ["minegeo localize-batch: interrupted"], err
+    assert _assert_rule(out, before) == ["scan_01"]
