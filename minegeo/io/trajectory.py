@@ -167,7 +167,8 @@ def read_times(path, count: int | None = None, *, noun: str = "pose", labels=Non
         raise FileFormatError(p, "no such file: a part of the path is a file, not a folder") from None
     if not stat.S_ISREG(st.st_mode):
         kind = "a folder" if stat.S_ISDIR(st.st_mode) else file_kind(st.st_mode)
-        raise FileFormatError(p, f"is {kind}, not a times file (a text file with one time in seconds per line)")
+        raise FileFormatError(p, f"is {kind}, not a times file (not a regular file; expected text, one time in "
+                              "seconds per line)")
     text = read_file_text(p, encoding="utf-8-sig", what="times file")
     vals, lines = [], []
     for k, line in enumerate(text.splitlines(), start=1):
