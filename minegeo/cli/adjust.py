@@ -15,6 +15,7 @@ import logging
 from pathlib import Path
 
 from minegeo._provenance import StageTimer, provenance
+from minegeo.cli._argtypes import open_unit_interval, positive_int
 from minegeo.errors import InputError
 
 HELP = "adjust a survey network (Krumm/Gama text or JSON) by least squares: coordinates, sigma0, chi-square, residuals, ellipses"
@@ -34,21 +35,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="scale covariances with the estimated sigma0 (default, like adjustment packages) or the a-priori sigma0 = 1",
     )
     parser.add_argument(
-        "--confidence", type=float, default=0.95, help="confidence level of the ellipses (default 0.95)"
+        "--confidence", type=open_unit_interval, default=0.95, help="confidence level of the ellipses (default 0.95)"
     )
     parser.add_argument(
         "--alpha",
-        type=float,
+        type=open_unit_interval,
         default=0.05,
         help="significance of the two-tailed chi-square test (default 0.05)",
     )
     parser.add_argument(
-        "--alpha-w", type=float, default=0.001, help="significance of Baarda's w-test (default 0.001 -> 3.29)"
+        "--alpha-w", type=open_unit_interval, default=0.001, help="significance of Baarda's w-test (default 0.001 -> 3.29)"
     )
     parser.add_argument(
-        "--alpha-tau", type=float, default=0.05, help="overall significance of Pope's tau-test (default 0.05)"
+        "--alpha-tau", type=open_unit_interval, default=0.05, help="overall significance of Pope's tau-test (default 0.05)"
     )
-    parser.add_argument("--max-iterations", type=int, default=50, help="Gauss-Newton iterations (default 50)")
+    parser.add_argument("--max-iterations", type=positive_int, default=50, help="Gauss-Newton iterations (default 50)")
     parser.add_argument(
         "--dxf", action="store_true",
         help="also write DIR/adjusted.dxf for mine-planning CAD: adjusted and fixed points with names and their "

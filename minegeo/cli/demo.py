@@ -38,6 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
+from minegeo.cli._argtypes import int_in_range
+
 HELP = "run the whole chain (frames -> SLAM map -> georeference -> localize) on the small synthetic mine"
 
 log = logging.getLogger(__name__)
@@ -55,7 +57,7 @@ MAX_SCAN_GAP_M = 4.0  # a scan is localized when its whole true trajectory is th
 
 def add_arguments(parser) -> None:
     parser.add_argument("--out", default="minegeo-demo", help="output directory (default ./minegeo-demo)")
-    parser.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    parser.add_argument("--seed", type=int_in_range(0, 2**32 - 1), default=1, help="random seed (default 1)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing demo directory")
     parser.add_argument("--no-background-compile", action="store_true",
                         help="do not compile the mast/localize kernels in a second process while the first "

@@ -28,6 +28,15 @@ import math
 import time
 from pathlib import Path
 
+from minegeo.cli._argtypes import (
+    MAX_COUNT,
+    float_in_range,
+    int_in_range,
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+)
 from minegeo.cli._common import StepBar, summary_lines_quiet, time_line, whole_run_timings
 
 log = logging.getLogger(__name__)
@@ -54,23 +63,23 @@ def add_arguments(parser) -> None:
     parser.add_argument("--scan", required=True, help="local scan point cloud in its own frame")
     parser.add_argument("--trajectory", default=None, help="sensor trajectory of the scan (TUM/KITTI/CSV, scan frame)")
     parser.add_argument("--out", required=True, help="output directory (result.json, report.html, trajectory_global.csv)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--seed", type=int_in_range(0, 2**32 - 1), default=0, help="random seed (default 0)")
     add_profile_arguments(parser)
     parser.add_argument("--icp", default=None, choices=("point_to_point", "point_to_plane", "gicp"),
                         help="ICP variant (table3 profile: point_to_point as the paper; fast: point_to_plane; "
                              "gicp: Generalized-ICP)")
-    parser.add_argument("--ransac-max-iterations", type=int, default=None,
+    parser.add_argument("--ransac-max-iterations", type=positive_int, default=None,
                         help="RANSAC iteration cap (table3 profile: 4e6, the paper's Table 3 uses 4e8; fast: 1e6)")
-    parser.add_argument("--ransac-runs", type=int, default=1,
+    parser.add_argument("--ransac-runs", type=positive_int, default=1,
                         help="independent RANSAC runs whose hypotheses are all verified by ICP (default 1)")
     parser.add_argument("--no-mutual-filter", action="store_true",
                         help="use every FPFH nearest neighbour as a putative match (the paper) instead of mutual ones")
-    parser.add_argument("--ransac-min-iterations", type=int, default=None,
+    parser.add_argument("--ransac-min-iterations", type=nonnegative_int, default=None,
                         help="RANSAC draws before Eq. 8 may stop the search (fast profile: 1e6; table3: 0 = Eq. 8 "
                              "alone, as the paper)")
-    parser.add_argument("--hypotheses", type=int, default=None, metavar="K",
+    parser.add_argument("--hypotheses", type=int_in_range(2, MAX_COUNT), default=None, metavar="K",
                         help="distinct RANSAC hypotheses verified by ICP per run (default 2: best and runner-up)")
-    parser.add_argument("--levelled", type=float, default=None, metavar="DEG",
+    parser.add_argument("--levelled", type=float_in_range(0.0, 90.0, lo_open=True), default=None, metavar="DEG",
                         help="the scan frame is levelled (z up, e.g. by the scanner's IMU) like the map: RANSAC "
                              "draws 2-point yaw+translation hypotheses and rejects placements tilting the "
                              "vertical by more than DEG degrees (e.g. 3); ICP still refines all 6 DOF")
@@ -80,10 +89,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-gravity-fallback", action="store_true",
                         help="without --levelled: do not retry a failed 6-DOF scan levelled by its own up direction "
                              "(floor, roof, walls; residual tilts up to 15 deg searched for ramps)")
-    parser.add_argument("--fine-tolerance", type=float, default=None, metavar="M",
+    parser.add_argument("--fine-tolerance", type=nonnegative_float, default=None, metavar="M",
                         help="plane tolerance (m) of the fine agreement that tells smooth drifts apart (default "
                              "0.04, widened to 2 x the scan's surface noise); 0 turns it off")
-    parser.add_argument("--polish", type=float, default=None, metavar="M",
+    parser.add_argument("--polish", type=nonnegative_float, default=None, metavar="M",
                         help="gate (m) of the final tight point-to-plane polish of the chosen pose (default 0.25; "
                              "the gate used is max(M, 3 x the scan's surface noise)); 0 turns it off")
     parser.add_argument("--no-cache", action="store_true", help="do not read or write the prepared-map cache")
@@ -102,12 +111,30 @@ def add_profile_arguments(parser) -> None:
                              "Map and scan must use the same profile. Measured on the synthetic mine: fast 17/25 "
                              "scans ok and correct, table3 7/25 (docs/localization.md)")
     g = parser.add_mutually_exclusive_group()
-    g.add_argument("--voxel", type=float, default=None, metavar="M",
+    g.add_argument("--voxel", type=positive_float, default=None, metavar="M",
                    help="voxel size in m for map and scan (profile default: fast 1.0, table3 0.5); the normal and FPFH "
                         "radii scale with it (2x and 5x, the Table 3 ratios)")
-    g.add_argument("--octree-level", type=int, default=None, metavar="L",
+    g.add_argument("--octree-level", type=int_in_range(1, 21), default=None, metavar="L",
                    help="octree subsampling level of the scan (Sec. 2.2, e.g. 6, 8, 10, 12) instead of a voxel "
                         "(localize) or of the map (prepare-map)")
+
+
+def check_combinations(args) -> None:
+    """Refuse options that contradict each other (an option that cannot act with the others given),
+    before any file is read. Options missing from ``args`` (another verb's) count as not given."""
+    from minegeo.errors import InputError
+
+    levelled = getattr(args, "levelled", None) is not None
+    lo, hi = getattr(args, "ransac_min_iterations", None), getattr(args, "ransac_max_iterations", None)
+    if lo is not None and hi is not None and lo > hi:
+        raise InputError(f"--ransac-min-iterations {lo} exceeds --ransac-max-iterations {hi}: the search would "
+                         "stop at the cap before its stopping rule may act; lower the first or raise the second")
+    if levelled and getattr(args, "no_gravity_fallback", False):
+        raise InputError("--no-gravity-fallback applies to 6-DOF scans (without --levelled): a levelled scan has no "
+                         "gravity fallback; drop one of the two options")
+    if not levelled and getattr(args, "no_gravity_fallback", False) and getattr(args, "correlative", None) is not None:
+        raise InputError("--correlative acts on levelled searches (--levelled, or the gravity fallback of a 6-DOF "
+                         "scan), and --no-gravity-fallback without --levelled leaves none; drop one of the options")
 
 
 def params_from_args(args):
@@ -116,6 +143,8 @@ def params_from_args(args):
 
     from minegeo.errors import InputError
     from minegeo.localize import FeatureParams, LocalizeParams, PrepareParams
+
+    check_combinations(args)
 
     profile = getattr(args, "profile", None) or DEFAULT_PROFILE
     if profile == "fast":

@@ -15,6 +15,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from minegeo.cli._argtypes import nonnegative_float, positive_float, positive_int
+
 HELP = "prepare a prior map for localization once (downsample, normals, FPFH -> .npz)"
 
 
@@ -24,12 +26,12 @@ def add_arguments(parser) -> None:
     from minegeo.cli.localize import add_profile_arguments
 
     add_profile_arguments(parser)
-    parser.add_argument("--icp-voxel", type=float, default=0.1,
+    parser.add_argument("--icp-voxel", type=nonnegative_float, default=0.1,
                         help="voxel of the ICP target copy of the map, m (default 0.1; 0 = every point)")
-    parser.add_argument("--chunk-points", type=int, default=None,
+    parser.add_argument("--chunk-points", type=positive_int, default=None,
                         help="points read per chunk (default 2097152); the map is read twice in chunks "
                              "(bounds, then downsampling), so memory is the downsampled map plus one chunk")
-    parser.add_argument("--max-memory-gb", type=float, default=None,
+    parser.add_argument("--max-memory-gb", type=positive_float, default=None,
                         help="ceiling on the estimated peak memory, GB: the chunk shrinks to fit, and the run stops "
                              "with an error (exit 2) before exceeding it (default: no ceiling)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing output file")

@@ -13,6 +13,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from minegeo.cli._argtypes import int_in_range, nonnegative_int, positive_float
+
 HELP = "write a seeded synthetic mine: map, local scans, trajectories, GCPs and truth.json"
 
 
@@ -20,10 +22,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("outdir", metavar="OUTDIR", help="output directory (created; must be empty unless --force)")
     parser.add_argument("--preset", choices=("small", "paper"), default="small",
                         help="small: ~0.6 km, seconds (tests); paper: ~7 km, map ~1e7 points (benchmarks)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--seed", type=int_in_range(0, 2**32 - 1), default=0, help="random seed (default 0)")
     parser.add_argument("--force", action="store_true",
                         help="replace a non-empty OUTDIR as a whole (everything in it is deleted)")
-    parser.add_argument("--gcps", type=int, default=10, help="number of ground control points (default 10)")
+    parser.add_argument("--gcps", type=int_in_range(3, 100_000), default=10, help="number of ground control points (default 10)")
     parser.add_argument("--crs", default="EPSG:5186", help="CRS of the control points (default EPSG:5186)")
     parser.add_argument("--mast", action="store_true",
                         help="also write a MAST beacon scenario (2D scan.csv, beacons.csv, truth.json) "
@@ -31,7 +33,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--mast-only", action="store_true",
                         help="write only the MAST beacon scenario into OUTDIR (no mine)")
     g = parser.add_argument_group("study options (docs/synth.md, 'Study worlds'; default: the preset as is)")
-    g.add_argument("--roughness-m", type=float, default=None, metavar="M",
+    g.add_argument("--roughness-m", type=positive_float, default=None, metavar="M",
                    help="std (m) of the wall-bump field, e.g. 0.05 / 0.08 (shotcrete-like) or 0.25 (blasted); "
                         "the preset's own is 0.064")
     g.add_argument("--lining", choices=("blasted", "shotcrete"), default=None,
@@ -39,7 +41,7 @@ def add_arguments(parser) -> None:
     g.add_argument("--twins", choices=("none", "exact", "near"), default="none",
                    help="repeat level 0 on every level: exact copies (same rock and structures) or near copies "
                         "(same layout, independent rock)")
-    g.add_argument("--unmapped", type=int, default=0, metavar="N",
+    g.add_argument("--unmapped", type=nonnegative_int, default=0, metavar="N",
                    help="add N headings that exist in the world but not in map.ply")
 
 
@@ -48,6 +50,13 @@ def run(args) -> int:
 
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0, got {args.seed}")
+    if args.mast_only:  # options that only shape the mine, which --mast-only does not write
+        given = [o for o, v in (("--mast", args.mast), ("--roughness-m", args.roughness_m is not None),
+                                ("--lining", args.lining is not None), ("--twins", args.twins != "none"),
+                                ("--unmapped", args.unmapped != 0)) if v]
+        if given:
+            raise InputError(f"--mast-only writes the MAST scenario alone, no mine: {given[0]} has nothing to act on; "
+                             "drop one of the two options")
     out = Path(args.outdir)
     # Validate every option before any work is done, so a mistake costs nothing and
     # leaves no half-written OUTDIR.

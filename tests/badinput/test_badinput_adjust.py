@@ -120,6 +120,10 @@ OPTION_CASES = {
     "alpha_tau_nan": ["--alpha-tau", "nan"],
     "max_iterations_0": ["--max-iterations", "0"],
     "max_iterations_negative": ["--max-iterations", "-5"],
+    "max_iterations_huge": ["--max-iterations", "1000000000000"],
+    "confidence_inf": ["--confidence", "inf"],
+    "alpha_w_1": ["--alpha-w", "1"],
+    "alpha_tau_text": ["--alpha-tau", "five percent"],
 }
 
 

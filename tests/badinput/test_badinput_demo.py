@@ -26,6 +26,7 @@ def _earlier(tmp):
 #: case -> (--out maker, extra options)
 CASES = {
     "negative_seed": (lambda t: t / "demo", ["--seed", "-1"]),
+    "seed_beyond_numpy": (lambda t: t / "demo", ["--seed", str(2**32)]),
     "out_is_an_existing_file": (_a_file, []),
     "out_through_a_file": (lambda t: _a_file(t) / "demo", []),
     "out_not_empty_no_result": (lambda t: a_folder(t, "busy"), []),

@@ -136,6 +136,11 @@ OPTION_CASES = {
     "max_scale_deviation_negative": ["--max-scale-deviation", "-0.1"],
     "max_sigma0_zero": ["--max-sigma0", "0"],
     "max_sigma0_nan": ["--max-sigma0", "nan"],
+    "max_sigma0_1": ["--max-sigma0", "1"],
+    "max_scale_deviation_1": ["--max-scale-deviation", "1"],
+    "max_scale_deviation_nan": ["--max-scale-deviation", "nan"],
+    "default_sigma_inf": ["--default-sigma-m", "inf"],
+    "blunder_alpha_nan": ["--blunder-alpha", "nan"],
 }
 
 

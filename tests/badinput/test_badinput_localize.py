@@ -173,6 +173,16 @@ OPTION_CASES = {
     "polish_nan": ["--polish", "nan"],
     "fine_tolerance_negative": ["--fine-tolerance", "-0.01"],
     "fine_tolerance_nan": ["--fine-tolerance", "nan"],
+    "seed_beyond_numpy": ["--seed", str(2**32)],
+    "voxel_inf": ["--voxel", "inf"],
+    "octree_level_huge": ["--octree-level", "30"],
+    "hypotheses_1": ["--hypotheses", "1"],
+    "ransac_runs_fraction": ["--ransac-runs", "1.5"],
+    "ransac_max_iterations_huge": ["--ransac-max-iterations", "1e12"],
+    "ransac_min_above_max": ["--ransac-min-iterations", "1000", "--ransac-max-iterations", "100"],
+    "levelled_with_no_gravity_fallback": ["--levelled", "3", "--no-gravity-fallback"],
+    "correlative_with_no_gravity_fallback": ["--correlative", "always", "--no-gravity-fallback"],
+    "polish_inf": ["--polish", "inf"],
 }
 
 

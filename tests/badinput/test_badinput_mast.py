@@ -130,6 +130,9 @@ OPTION_CASES = {
     "min_beacons_0": ["--min-beacons", "0"],
     "options_7": ["--options", "7"],
     "options_not_numbers": ["--options", "a,b"],
+    "min_beacons_negative": ["--min-beacons", "-1"],
+    "sigma_bearing_nan": ["--sigma-bearing-deg", "nan"],
+    "sigma_panel_inf": ["--sigma-panel-m", "inf"],
 }
 
 

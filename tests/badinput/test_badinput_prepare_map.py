@@ -80,6 +80,12 @@ OPTION_CASES = {
     "octree_level_huge": ["--octree-level", "99"],
     "icp_voxel_nan": ["--icp-voxel", "nan"],
     "icp_voxel_inf": ["--icp-voxel", "inf"],
+    "icp_voxel_negative": ["--icp-voxel", "-0.1"],
+    "chunk_points_0": ["--chunk-points", "0"],
+    "chunk_points_fraction": ["--chunk-points", "1e5"],
+    "max_memory_gb_nan": ["--max-memory-gb", "nan"],
+    "max_memory_gb_negative": ["--max-memory-gb", "-1"],
+    "octree_level_0": ["--octree-level", "0"],
 }
 
 

@@ -30,6 +30,14 @@ OPTION_CASES = {
     "crs_not_a_code": ["--crs", "not-a-crs"],
     "geographic_crs": ["--crs", "EPSG:4326"],
     "non_numeric_seed": ["--seed", "seven"],
+    "seed_beyond_numpy": ["--seed", str(2**32)],
+    "gcps_huge": ["--gcps", "1000000000"],
+    "roughness_nan": ["--roughness-m", "nan"],
+    "roughness_0": ["--roughness-m", "0"],
+    "unmapped_negative": ["--unmapped", "-1"],
+    "mast_only_with_twins": ["--mast-only", "--twins", "exact"],
+    "mast_only_with_roughness": ["--mast-only", "--roughness-m", "0.1"],
+    "mast_only_with_mast": ["--mast-only", "--mast"],
 }
 
 
