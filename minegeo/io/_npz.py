@@ -32,7 +32,7 @@ import numpy as np
 
 from minegeo.errors import FileFormatError
 
-__all__ = ["open_store", "member_header", "array_digest", "json_digest"]
+__all__ = ["open_store", "member_header", "array_digest", "json_digest", "crc_failure"]
 
 #: first bytes of a ZIP archive (a local file header; an archive without members starts with the
 #: end-of-central-directory record)
@@ -132,3 +132,13 @@ def json_digest(obj) -> str:
     """SHA-256 (hex) of the canonical JSON of ``obj`` (sorted keys, no spaces, ASCII)."""
     blob = json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
     return hashlib.sha256(blob.encode("ascii")).hexdigest()
+
+
+def crc_failure(exc: BaseException) -> str | None:
+    """The member named by a ZIP checksum failure (``zipfile.BadZipFile: Bad CRC-32 for file 'x'``,
+    raised on reading a member whose bytes changed after the archive was written), else None."""
+    text = str(exc)
+    prefix = "Bad CRC-32 for file"
+    if isinstance(exc, zipfile.BadZipFile) and text.startswith(prefix):
+        return text[len(prefix):].strip()[:80]
+    return None

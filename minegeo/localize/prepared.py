@@ -47,9 +47,9 @@ from minegeo._validate import as_points, is_permutation
 from minegeo.errors import FileFormatError, InputError, TooFewPointsError
 from minegeo.io._json import load_json_text
 from minegeo.io._npz import array_digest as _array_digest
+from minegeo.io._npz import crc_failure, open_store
 from minegeo.io._npz import json_digest as _json_digest
 from minegeo.io._npz import member_header as _member_header
-from minegeo.io._npz import open_store
 from minegeo.io.types import PointCloud
 from minegeo.localize._progress import FEATURE_STEPS, StepTimings, announce
 from minegeo.localize.params import FAST_FEATURES, FeatureParams, LocalizeParams, PrepareParams
@@ -772,6 +772,9 @@ def _read_prepared_file(p: Path):
     except FileFormatError:
         raise
     except (OSError, ValueError, KeyError, EOFError, RuntimeError, zipfile.BadZipFile) as exc:
+        if (member := crc_failure(exc)) is not None:
+            raise FileFormatError(p, f"was changed after it was written (archive checksum mismatch of {member}): "
+                                     f"{_REPREPARE}") from None
         raise FileFormatError(p, f"cannot read prepared map ({exc})") from None
     return meta, arrays, index_arrays, {k: v for k, v in bad.items() if k.startswith(INDEX_PREFIX)}
 

@@ -24,7 +24,7 @@ from minegeo._provenance import atomic_write_bytes, to_jsonable
 from minegeo._validate import as_points, check_positive
 from minegeo.errors import FileFormatError, InputError
 from minegeo.io._json import load_json_text
-from minegeo.io._npz import array_digest, json_digest, member_header, open_store
+from minegeo.io._npz import array_digest, crc_failure, json_digest, member_header, open_store
 from minegeo.semantic.descriptors import DescriptorParams, cwc, pwcv, similarity
 from minegeo.semantic.skeleton import SkeletonParams, drift_skeleton
 
@@ -232,8 +232,7 @@ def _read_kb_file(p: Path) -> tuple[dict, dict]:
     except (FileFormatError, FileNotFoundError):
         raise
     except zipfile.BadZipFile as exc:
-        if str(exc).startswith("Bad CRC-32 for file"):
-            member = str(exc).removeprefix("Bad CRC-32 for file").strip()
+        if (member := crc_failure(exc)) is not None:
             raise FileFormatError(p, f"was changed after it was written (archive checksum mismatch of {member}); "
                                      f"{_REBUILD}") from None
         raise FileFormatError(p, f"not a {_WHAT} (damaged archive: {str(exc)[:200]})") from None

@@ -583,3 +583,20 @@ def test_a_file_that_is_not_a_prepared_map_is_named_so(case, words, prepared, tm
     msg = str(ei.value)
     assert "pickle" not in msg.replace("holds Python objects", "") and "\n" not in msg
     assert msg.startswith(str(f)) and ("not a minegeo prepared map" in msg or case in ("folder", "pickled_meta"))
+
+
+def test_a_byte_changed_in_place_is_named_a_change(prepared, tmp_path):
+    """One byte of the meta changed in the file itself (the archive's own CRC no longer matches): refused
+    as changed after it was written, not as an unreadable archive."""
+    from minegeo.errors import FileFormatError
+    from minegeo.localize import PreparedMap
+
+    raw = bytearray(prepared["path"].read_bytes())
+    key = '"format"'.encode("utf-32-le")  # the meta is a NumPy unicode array: 4 bytes per character
+    i = raw.index(key) + 4
+    raw[i] ^= 0x01  # "format" -> "gormat"
+    f = tmp_path / "edited.npz"
+    f.write_bytes(bytes(raw))
+    with pytest.raises(FileFormatError, match=r"was changed after it was written \(archive checksum mismatch of "
+                                              r"'meta.npy'\): prepare the map again"):
+        PreparedMap.load(f)
