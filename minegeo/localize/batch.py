@@ -606,11 +606,12 @@ class BatchCluster:
     """The Dask client of a batch (a local cluster, or a running scheduler's), started so that a
     Ctrl-C leaves nothing running and prints nothing.
 
-    * **Started in its own thread, with SIGINT blocked there.** Every thread ``distributed``
-      creates for the cluster descends from it, and so do the worker processes (a thread's signal
-      mask is inherited by the threads it starts and by a process it spawns): the terminal's
-      Ctrl-C, sent to the whole foreground process group, reaches only the driver, never a worker
-      (no worker traceback). The driver stops the workers itself.
+    * **Workers never see Ctrl-C, and print nothing.** The terminal's Ctrl-C goes to the whole
+      foreground process group, worker processes included. While the local cluster starts, this
+      process's stderr and stdout point at ``/dev/null`` (unless ``quiet=False``), so the worker
+      processes it spawns inherit them (a worker interrupted while it starts prints nothing), and
+      each worker ignores SIGINT once it runs (:mod:`minegeo.localize._batch_worker`, a preload;
+      it also silences a worker restarted later). The driver stops the workers itself.
     * **A Ctrl-C while the cluster starts** waits for the start to end (with further Ctrl-C held
       back), closes what it made, then raises :class:`KeyboardInterrupt`: a half-built
       ``LocalCluster`` would make distributed's exit hook fail (``AssertionError: Status.init``).
@@ -644,9 +645,6 @@ class BatchCluster:
         return self.client.loop
 
     def _connect(self, box: dict) -> None:
-        import signal
-
-        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})  # this thread and all it starts
         try:
             from dask.distributed import Client
         except ImportError:
@@ -660,8 +658,12 @@ class BatchCluster:
                     box["error"] = InputError(f"--scheduler {self.scheduler}: cannot connect to the Dask scheduler "
                                               f"({exc})")
                 return
+            from minegeo.localize._batch_worker import QUIET_ENV
+
             box["cluster"] = local_cluster(self.workers,
-                                           silence_logs=(logging.CRITICAL + 1) if self.quiet else logging.ERROR)
+                                           silence_logs=(logging.CRITICAL + 1) if self.quiet else logging.ERROR,
+                                           preload=["minegeo.localize._batch_worker"],
+                                           env={QUIET_ENV: "1" if self.quiet else "0"})
             box["client"] = Client(box["cluster"], set_as_default=False)
         except BaseException as exc:  # noqa: BLE001 - handed to the main thread, which raises it
             box["error"] = exc
@@ -675,17 +677,21 @@ class BatchCluster:
         self._silence()
         box: dict = {}
         t = threading.Thread(target=self._connect, args=(box,), name="minegeo-batch-cluster-start", daemon=True)
+        saved = _std_to_devnull() if (self.quiet and not self.scheduler) else None
         try:
-            t.start()
-            pause_for_test("cluster-start")
-            while t.is_alive():
-                t.join(0.05)
-        except BaseException:
-            with sigint_deferred():
-                t.join()
-                self.client, self.cluster = box.get("client"), box.get("cluster")
-                self.close()
-            raise
+            try:
+                t.start()
+                pause_for_test("cluster-start")
+                while t.is_alive():
+                    t.join(0.05)
+            except BaseException:
+                with sigint_deferred():
+                    t.join()
+                    self.client, self.cluster = box.get("client"), box.get("cluster")
+                    self.close()
+                raise
+        finally:
+            _std_restore(saved)
         self.client, self.cluster = box.get("client"), box.get("cluster")
         if "error" in box:
             self.close()
@@ -736,14 +742,45 @@ class BatchCluster:
         return False
 
 
+def _std_to_devnull():
+    """Point file descriptors 1 and 2 at ``/dev/null``; returns the saved copies (for :func:`_std_restore`)."""
+    import sys
+
+    for f in (sys.stdout, sys.stderr):
+        try:
+            f.flush()
+        except (AttributeError, ValueError, OSError):
+            pass
+    saved = (os.dup(1), os.dup(2))
+    fd = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(fd, 1)
+        os.dup2(fd, 2)
+    finally:
+        os.close(fd)
+    return saved
+
+
+def _std_restore(saved) -> None:
+    if saved is None:
+        return
+    from minegeo._output import sigint_deferred
+
+    with sigint_deferred():
+        for fd, copy in zip((1, 2), saved, strict=True):
+            os.dup2(copy, fd)
+            os.close(copy)
+
+
 #: thread-count variables ``distributed`` sets to 1 in every worker it spawns; left as the
 #: driver has them (see :func:`local_cluster`)
 BLAS_THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 
-def local_cluster(workers: int, silence_logs=logging.ERROR):
+def local_cluster(workers: int, silence_logs=logging.ERROR, **kwargs):
     """A ``distributed.LocalCluster`` of ``workers`` processes, one thread each, no dashboard,
-    whose workers keep the driver's BLAS thread settings.
+    whose workers keep the driver's BLAS thread settings; ``kwargs`` go to ``LocalCluster`` (and
+    on to each worker's nanny: ``preload``, ``env``).
 
     ``distributed`` starts workers with ``OMP/MKL/OPENBLAS_NUM_THREADS=1``
     (``distributed.nanny.pre-spawn-environ``); minegeo's covariance goes through BLAS, whose
@@ -771,7 +808,7 @@ def local_cluster(workers: int, silence_logs=logging.ERROR):
     try:
         with dask.config.set({"distributed.nanny.pre-spawn-environ": env}):
             return LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                                dashboard_address=None, silence_logs=silence_logs)
+                                dashboard_address=None, silence_logs=silence_logs, **kwargs)
     finally:  # the nannies wrote env into this process's os.environ: put it back
         for k, v in before.items():
             if v is None:
