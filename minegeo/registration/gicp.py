@@ -504,11 +504,8 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
         ``target_covariances``, and requires ``target_index`` (if given) to hold the very same
         array: for a map validated once (e.g. a prepared map's cached covariances).
     trusted_init : bool
-        False (default): ``T_init`` is user input, validated as such (rigid within 1e-6, else
-        :class:`~minegeo.errors.InputError`). True: ``T_init`` is a transform the caller composed
-        itself (chained odometry poses, loop guesses), already re-projected onto SE(3)
-        (:func:`minegeo.geometry.se3.compose`); it is checked as an internal invariant (within 1e-9,
-        else :class:`~minegeo.errors.InternalError`: a bug, not the user's data) and used re-projected.
+        False: ``T_init`` is user input (rigid within 1e-6, else InputError). True: the caller's own
+        transform (``se3.compose``), checked within 1e-9 (else InternalError, a bug), re-projected.
 
     Returns
     -------
@@ -524,8 +521,6 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
         symmetric positive definite, bad parameters.
     TooFewPointsError
         Fewer than 3 points in either cloud.
-    InternalError
-        ``trusted_init`` and ``T_init`` not a rigid transform (a bug of the caller).
 
     Notes
     -----

@@ -120,3 +120,30 @@ def test_compose_and_relative_match_the_plain_products(eps):
     assert np.allclose(se3.compose(A, B), A @ B, atol=10 * eps + 1e-13)
     assert np.allclose(se3.relative(A, B), np.linalg.solve(A, B), atol=100 * eps + 1e-12)
     assert _orth(se3.compose(A, B)) < 1e-14 and _orth(se3.relative(A, B)) < 1e-14
+
+
+@pytest.mark.parametrize("register", ["icp", "gicp"])
+def test_user_and_internal_initial_guesses_are_told_apart(register):
+    """``register_icp``/``register_gicp``: a user's ``T_init`` off SE(3) is an InputError (exit 2); the
+    same matrix passed as the caller's own transform (``trusted_init=True``) is an InternalError, a bug
+    (not a MinegeoError); a rounding-level drift is accepted either way."""
+    from minegeo.errors import InputError, InternalError, MinegeoError
+    from minegeo.registration import GICPParams, ICPParams, register_gicp, register_icp
+
+    rng = np.random.default_rng(5)
+    P = rng.uniform(-3.0, 3.0, (400, 3))
+    run = ((lambda T, **kw: register_icp(P, P, T, ICPParams(0.5), **kw)) if register == "icp"
+           else (lambda T, **kw: register_gicp(P, P, T, GICPParams(0.5), **kw)))
+    bad = np.eye(4)
+    bad[:3, :3] *= 1.0 + 1e-5
+    with pytest.raises(InputError, match="not a proper rotation"):
+        run(bad)
+    with pytest.raises(InternalError, match="left SE\\(3\\)") as exc:
+        run(bad, trusted_init=True)
+    assert not isinstance(exc.value, MinegeoError)
+    with pytest.raises(InternalError, match="not a finite"):
+        run(np.full((4, 4), np.nan), trusted_init=True)
+    near = np.eye(4)
+    near[:3, :3] *= 1.0 + 1e-13
+    for kw in ({}, {"trusted_init": True}):
+        assert np.allclose(run(near, **kw).T_target_source, np.eye(4), atol=1e-6)
