@@ -8,6 +8,10 @@ missing they are skipped with a clear reason, unless ``MINEGEO_REQUIRE_SHARED_DA
 Oracle libraries (the ``oracle`` extra: Open3D, small_gicp, kiss-icp) are imported only through
 :func:`require_oracle`: missing, a test is skipped with the reason, unless
 ``MINEGEO_REQUIRE_ORACLE=1`` (set by ``.ci/run``), in which case it fails.
+
+Optional extras of minegeo itself (``las``: laspy, ``e57``: pye57, ``dxf``: ezdxf, ``dask``:
+distributed) are imported only through :func:`require_extra`: missing, a test is skipped with the
+extra to install, unless ``MINEGEO_REQUIRE_EXTRAS=1`` (set by ``.ci/run``), in which case it fails.
 """
 
 from __future__ import annotations
@@ -55,6 +59,31 @@ def require_oracle(name: str):
         if oracle_required():
             pytest.fail(msg + " and MINEGEO_REQUIRE_ORACLE=1", pytrace=False)
         pytest.skip(msg)
+
+
+#: minegeo's optional extras as (import name -> extra of pyproject.toml).
+EXTRAS = {"laspy": "las", "pye57": "e57", "ezdxf": "dxf", "distributed": "dask", "dask": "dask"}
+
+
+def extras_required() -> bool:
+    """True when a missing optional extra must fail the test (``MINEGEO_REQUIRE_EXTRAS=1``)."""
+    return os.environ.get("MINEGEO_REQUIRE_EXTRAS", "") == "1"
+
+
+def require_extra(name: str):
+    """Import the optional package ``name`` (a key of :data:`EXTRAS`) and return the module; when it
+    cannot be imported, skip naming the extra to install, or fail under ``MINEGEO_REQUIRE_EXTRAS=1``."""
+    import importlib
+
+    if name not in EXTRAS:
+        raise ValueError(f"{name!r} is not an optional extra of minegeo {tuple(EXTRAS)}")
+    try:
+        return importlib.import_module(name)
+    except ImportError as exc:
+        msg = f"the {EXTRAS[name]} extra ({name}) is not installed: {exc} (pip install -e '.[{EXTRAS[name]}]')"
+        if extras_required():
+            pytest.fail(msg + " and MINEGEO_REQUIRE_EXTRAS=1", pytrace=False)
+        pytest.skip(msg, allow_module_level=True)
 
 
 def require_open3d():

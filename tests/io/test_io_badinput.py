@@ -7,6 +7,7 @@ import zipfile
 
 import numpy as np
 import pytest
+from helpers import require_extra
 
 from minegeo.errors import FileFormatError, InputError
 from minegeo.io import PointCloud, read_point_cloud, write_point_cloud
@@ -76,7 +77,7 @@ def test_truncated_header(tmp_path):
 
 
 def test_truncated_las(tmp_path):
-    pytest.importorskip("laspy")
+    require_extra("laspy")
     p = tmp_path / "t.las"
     write_point_cloud(p, PointCloud(np.random.default_rng(2).normal(size=(100, 3))))
     q = tmp_path / "cut.las"

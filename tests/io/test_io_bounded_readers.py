@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import require_extra
 
 from minegeo.cli import main
 from minegeo.errors import FileFormatError
@@ -170,9 +171,7 @@ def _fill(argv, good: Path, out: Path) -> list[str]:
 @pytest.mark.skipif(not os.path.exists("/dev/zero"), reason="needs /dev/zero and /dev/urandom")
 @pytest.mark.parametrize("argv, match", STREAM_CASES, ids=[" ".join(c[0][:4]) for c in STREAM_CASES])
 def test_character_devices_are_refused(argv, match, good, tmp_path):
-    t0 = time.perf_counter()
-    assert_limited_error(_fill(argv, good, tmp_path / "out"), match)
-    assert time.perf_counter() - t0 < TIMEOUT_S
+    assert_limited_error(_fill(argv, good, tmp_path / "out"), match)  # under its SIGALRM limit (a hang fails)
 
 
 @pytest.fixture
@@ -243,7 +242,7 @@ def _pcd(n_declared: int, mode: str, body: bytes) -> bytes:
 
 
 def _las_with_count(tmp: Path, count: int) -> bytes:
-    laspy = pytest.importorskip("laspy")
+    laspy = require_extra("laspy")
     p = tmp / "ok.las"
     write_point_cloud(p, PointCloud(np.random.default_rng(0).normal(size=(20, 3))))
     b = bytearray(p.read_bytes())
@@ -328,9 +327,7 @@ def test_header_that_never_ends(case, tmp_path, capsys, caplog):
     name, data, match = NEVER_ENDING[case]
     p = tmp_path / name
     p.write_bytes(data)
-    t0 = time.perf_counter()
-    assert_user_error(["info", p], capsys, caplog, match, inputs=[p])
-    assert time.perf_counter() - t0 < 30
+    assert_user_error(["info", p], capsys, caplog, match, inputs=[p])  # under its SIGALRM limit (a hang fails)
 
 
 # --------------------------------------------------------------------------------------------

@@ -10,8 +10,9 @@ import sys
 
 import numpy as np
 import pytest
+from helpers import require_extra
 
-ezdxf = pytest.importorskip("ezdxf", reason="the dxf extra (ezdxf) is not installed")
+ezdxf = require_extra("ezdxf")
 
 from minegeo.cli import main  # noqa: E402
 from minegeo.errors import InputError, OptionalDependencyError  # noqa: E402

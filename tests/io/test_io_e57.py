@@ -14,8 +14,9 @@ import zipfile
 
 import numpy as np
 import pytest
+from helpers import require_extra
 
-pye57 = pytest.importorskip("pye57", reason="the e57 extra (pye57) is not installed")
+pye57 = require_extra("pye57")
 from pye57 import libe57  # noqa: E402
 
 from minegeo.cli import main  # noqa: E402

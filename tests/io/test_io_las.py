@@ -7,11 +7,12 @@ import sys
 
 import numpy as np
 import pytest
+from helpers import require_extra
 
 from minegeo.errors import InputError, OptionalDependencyError
 from minegeo.io import PointCloud, read_point_cloud, write_point_cloud
 
-laspy = pytest.importorskip("laspy")
+laspy = require_extra("laspy")
 
 E0, N0, H0 = 201_234.0, 551_987.0, 85.0  # Korea 2000 / Central Belt 2010 (EPSG:5186) range
 

@@ -9,9 +9,10 @@ import json
 
 import numpy as np
 import pytest
+from helpers import require_extra
 
-pye57 = pytest.importorskip("pye57", reason="the e57 extra (pye57) is not installed")
-ezdxf = pytest.importorskip("ezdxf", reason="the dxf extra (ezdxf) is not installed")
+pye57 = require_extra("pye57")
+ezdxf = require_extra("ezdxf")
 
 from minegeo.cli import main  # noqa: E402
 

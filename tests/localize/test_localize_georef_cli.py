@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from helpers import require_extra
 
 from minegeo.cli import main
 from minegeo.errors import FileFormatError
@@ -85,7 +86,7 @@ def test_cli_end_to_end_synth(tmp_path, synth_gcps, capsys):
 
 
 def test_cli_las_output_and_deterministic(tmp_path, synth_gcps, capsys):
-    pytest.importorskip("laspy")
+    require_extra("laspy")
     gcps, _ = synth_gcps
     mp, gp = _write_inputs(tmp_path, gcps)
     outs = []

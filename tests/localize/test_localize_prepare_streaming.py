@@ -11,6 +11,7 @@ import textwrap
 
 import numpy as np
 import pytest
+from helpers import require_extra
 
 from minegeo.geometry import octree_downsample, voxel_downsample
 from minegeo.geometry.stream import OctreeAccumulator, VoxelAccumulator
@@ -252,7 +253,7 @@ def test_load_or_prepare_streams_map_files(maps, tmp_path):
 
 def test_e57_map_streams(tmp_path):
     """An E57 map (two scans with poses, written by pye57) prepares through ``iter_e57_chunks``."""
-    pye57 = pytest.importorskip("pye57", reason="the e57 extra (pye57) is not installed")
+    pye57 = require_extra("pye57")
     p = tmp_path / "map.e57"
     P = _drift(6000, seed=9).astype(np.float32).astype(np.float64)
     with pye57.E57(str(p), mode="w") as e:
@@ -274,7 +275,7 @@ def test_georef_streams_las_with_every_field(tmp_path, suffix):
     input's, in its point format; X, Y, Z are the integers the whole-file path writes
     (``write_georeferenced_map`` of ``apply_georef``), at the map's scale with the header offset
     = the result's origin; the CRS is the target's. Chunks of 997 points, so many chunks."""
-    laspy = pytest.importorskip("laspy")
+    laspy = require_extra("laspy")
     import pyproj
 
     from minegeo.cli import main
