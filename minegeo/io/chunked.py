@@ -17,7 +17,7 @@ PLY ascii                   blocks of whole lines parsed by :func:`minegeo.io._t
 PCD binary / ascii          as PLY
 PCD binary_compressed       read whole (one LZF stream cannot be split), then sliced
 LAS / LAZ                   ``laspy.open(...).chunk_iterator`` (LAZ decoded chunk by chunk)
-E57                         :func:`minegeo.io.e57.iter_e57_chunks` when that reader exists
+E57                         :func:`minegeo.io.e57.iter_e57_chunks` (the ``e57`` extra)
 XYZ / CSV / PTS / 3D / zip  read whole with :func:`~minegeo.io.read_point_cloud`, then sliced
 ==========================  =====================================================================
 
@@ -160,7 +160,8 @@ def open_point_chunks(path, chunk_points: int = DEFAULT_CHUNK_POINTS, origin=Non
     FileFormatError
         Unreadable header, or a binary body shorter than the header's point count.
     InputError
-        Bad ``chunk_points``/``origin``; an E57 file when no E57 reader is installed.
+        Bad ``chunk_points``/``origin``. An E57 file without the ``e57`` extra raises
+        :class:`~minegeo.errors.OptionalDependencyError`.
     """
     k = _check_chunk_points(chunk_points)
     p = Path(path)
@@ -528,22 +529,16 @@ def _open_las(p: Path, size: int) -> PointChunks:
 
 # ----------------------------------------------------------------------------- E57
 def _open_e57(p: Path) -> PointChunks:
-    try:
-        from minegeo.io import e57 as _e57
-    except ImportError:
-        _e57 = None
-    fn = getattr(_e57, "iter_e57_chunks", None)
-    if fn is None:
-        raise InputError(f"{p}: E57 maps cannot be read by this installation (no minegeo.io.e57.iter_e57_chunks); "
-                         "convert the map to PLY, PCD or LAS/LAZ")
+    """E57 maps through :func:`minegeo.io.e57.iter_e57_chunks` (the ``e57`` extra: without pye57,
+    :class:`~minegeo.errors.OptionalDependencyError` names the extra to install)."""
+    from minegeo.io import e57 as _e57
+
+    _e57._pye57()  # the extra is installed, or the one-line error that says how to install it
+    fn = _e57.iter_e57_chunks
     size = _regular_size(p)
-    crs = None
-    try:  # the CRS the whole-file reader finds (coordinateMetadata), without reading points
-        f, _, _, _ = _e57._open_scans(p, None)
-        with f:
-            crs = _e57._crs_of(p, f.coordinate_metadata())
-    except AttributeError:  # pragma: no cover - the E57 module's layout changed: no CRS then
-        log.warning("%s: the E57 reader does not expose its CRS record: the map has no CRS", p)
+    f, _, _, _ = _e57._open_scans(p, None)  # the CRS the whole-file reader finds, without reading points
+    with f:
+        crs = _e57._crs_of(p, f.coordinate_metadata())
 
     def values(src: PointChunks):
         for c in fn(p, src.chunk_points):

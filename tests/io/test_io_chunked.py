@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from minegeo.errors import FileFormatError, InputError
+from minegeo.errors import FileFormatError, InputError, OptionalDependencyError
 from minegeo.io import read_point_cloud, write_point_cloud
 from minegeo.io.chunked import iter_point_chunks, open_point_chunks, scan_bounds
 from minegeo.io.types import PointCloud
@@ -97,17 +97,21 @@ def test_nan_and_bad_arguments(tmp_path):
         open_point_chunks(tmp_path / "missing.ply", 10)
 
 
-def test_e57_without_reader_is_an_input_error(tmp_path):
+def test_e57_without_the_extra_names_it(tmp_path, monkeypatch):
+    """An E57 map on an installation without pye57: the one-line error names the extra to install."""
+    import builtins
+
     p = tmp_path / "m.e57"
     p.write_bytes(b"ASTM-E57" + b"\0" * 100)
-    try:
-        from minegeo.io import e57  # noqa: F401 - written by another change
+    real_import = builtins.__import__
 
-        if hasattr(e57, "iter_e57_chunks"):
-            pytest.skip("an E57 chunk reader is installed")
-    except ImportError:
-        pass
-    with pytest.raises(InputError, match="E57"):
+    def no_pye57(name, *args, **kwargs):
+        if name == "pye57" or name.startswith("pye57."):
+            raise ImportError("No module named 'pye57' (simulated)")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_pye57)
+    with pytest.raises(OptionalDependencyError, match=r"minegeo\[e57\]"):
         open_point_chunks(p, 10)
 
 
