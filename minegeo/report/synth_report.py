@@ -33,16 +33,16 @@ def _T(m) -> np.ndarray:
 
 
 def _scan_paths(folder: Path, truth: dict) -> list[tuple[str, np.ndarray]]:
-    """Each scan's trajectory in the map frame, ``[(name, (m, 3) xyz), ...]`` (start pose only if unreadable)."""
+    """Each scan's trajectory in the map frame, ``[(name, (m, 3) xyz), ...]`` (the start pose alone for a scan without a trajectory file)."""
     from minegeo.io import read_trajectory
 
     out = []
     for sc in truth.get("scans", []):
         T = _T(sc["T_map_scan"])
-        try:
+        if sc.get("trajectory"):  # written by the same synth run: an unreadable one is a bug, not hidden
             tr = read_trajectory(folder / sc["trajectory"], frame="scan")
             p = tr.poses[:, :3, 3] @ T[:3, :3].T + T[:3, 3]
-        except Exception:  # noqa: BLE001 - a report never fails on a figure; the start pose is in truth.json
+        else:  # a scan without a trajectory file: its start pose from truth.json
             p = T[None, :3, 3]
         out.append((sc["name"], p))
     return out
@@ -66,7 +66,7 @@ def plot_synth_png(folder, truth: dict) -> bytes | None:
     fig = Figure(figsize=(10, 8), dpi=100)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
-    try:
+    if truth.get("map", {}).get("file"):  # the map this synth run wrote (a MAST-only run has none)
         P = read_point_cloud(folder / truth["map"]["file"]).points
         step = max(1, -(-len(P) // MAX_PLOT_POINTS))
         P = P[::step]
@@ -77,8 +77,6 @@ def plot_synth_png(folder, truth: dict) -> bytes | None:
                         linewidths=0, rasterized=True)
         cb = fig.colorbar(sc, ax=ax, shrink=0.7, label="map point height z (m)")
         cb.ax.set_ylim(z0, z1)
-    except Exception:  # noqa: BLE001 - the map is optional in the figure
-        pass
     colours = ["tab:red", "tab:blue", "tab:green", "tab:orange", "tab:purple", "tab:brown", "tab:pink",
                "tab:olive", "tab:cyan"]
     for i, (name, p) in enumerate(_scan_paths(folder, truth)):
@@ -87,14 +85,12 @@ def plot_synth_png(folder, truth: dict) -> bytes | None:
         ax.plot(p[0, 0], p[0, 1], "o", color=c, ms=7, mec="k")
         ax.annotate(name, (p[0, 0], p[0, 1]), textcoords="offset points", xytext=(6, 6 if i % 2 == 0 else -16),
                     fontsize=9, color=c, fontweight="bold")
-    try:
+    if truth.get("gcps", {}).get("file"):  # the control points this synth run wrote
         g = read_gcps(folder / truth["gcps"]["file"])
         ax.scatter(g.local_xyz[:, 0], g.local_xyz[:, 1], marker="^", s=70, c="gold", edgecolors="k", zorder=4,
                    label="GCP")
         for gid, xy in zip(g.ids, g.local_xyz[:, :2], strict=True):
             ax.annotate(str(gid), tuple(xy), textcoords="offset points", xytext=(5, -10), fontsize=7)
-    except Exception:  # noqa: BLE001
-        pass
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("map x (m)")
     ax.set_ylabel("map y (m)")
