@@ -2,8 +2,16 @@
 
 Writes the optimised graph (every vertex at its optimised value, every edge as read) and, in
 ``--report DIR`` (default ``OUT.g2o.report``), ``result.json`` and ``report.html`` with the cost
-before and after, the iterations and a plan view. Exit status 0 when the optimiser converged,
-1 when it stopped at the iteration limit or failed (the reason is printed and recorded).
+before and after, the iterations, what was done with information matrices that are not positive
+semi-definite, and a plan view.
+
+Exit status: 0 converged (the stopping test held and the result passed its check); 1 a completed
+run that is not converged (stopped at ``--max-iterations``, the line says how far from converged,
+or a result that failed its check; both written with their status); 2 a user error, nothing
+written: an unreadable or malformed file, an option value out of range, a self-loop edge, every
+vertex fixed, a vertex that no edge with non-zero information ties to a fixed vertex (or whose
+edges leave a direction of its pose free), or, with ``--indefinite-information refuse``, an edge
+whose information matrix is not positive semi-definite.
 """
 
 from __future__ import annotations
@@ -17,21 +25,33 @@ def add_arguments(parser) -> None:
     parser.add_argument("graph", help="pose graph in g2o format (VERTEX_SE3:QUAT/EDGE_SE3:QUAT or VERTEX_SE2/EDGE_SE2)")
     parser.add_argument("--out", required=True, help="optimised graph to write (g2o)")
     parser.add_argument("--report", default=None, help="folder for result.json and report.html (default OUT.report)")
-    parser.add_argument("--max-iterations", type=int, default=100, help="largest number of LM iterations (default 100)")
+    from minegeo.cli._argtypes import int_in_range, positive_float
+
+    # defaults None: PoseGraphParams' own (not imported here: the parser is built for every verb)
+    parser.add_argument("--max-iterations", type=int_in_range(1, 100000), default=None,
+                        help="largest number of LM iterations (default: PoseGraphParams.max_iterations)")
     parser.add_argument("--robust", choices=("none", "huber", "cauchy"), default="none",
                         help="robust kernel on the whitened edge residual (default none: the contract cost)")
-    parser.add_argument("--robust-scale", type=float, default=1.0, help="kernel width in standard deviations")
+    parser.add_argument("--robust-scale", type=positive_float, default=1.0,
+                        help="kernel width in standard deviations")
+    parser.add_argument("--indefinite-information", choices=("gtsam", "refuse"), default="gtsam",
+                        help="an edge information matrix that is not positive semi-definite: 'gtsam' (default) uses "
+                             "the matrix GTSAM's readG2o uses (R^T R, R from the LLT stopped at its first "
+                             "non-positive pivot) and reports how many; 'refuse' stops with exit 2 naming the first")
 
 
 def run(args) -> int:
     from minegeo._output import OutputTransaction, run_timings
     from minegeo._provenance import StageTimer, input_record, provenance, write_json_atomic
+    from minegeo.errors import InputError
     from minegeo.io.g2o import read_g2o, write_g2o
     from minegeo.report.slam_report import plot_posegraph_png, write_posegraph_report
     from minegeo.slam.posegraph import PoseGraphParams, optimize_pose_graph
 
     timer = StageTimer()
-    params = PoseGraphParams(max_iterations=args.max_iterations, robust=args.robust, robust_scale=args.robust_scale)
+    given = {"max_iterations": args.max_iterations} if args.max_iterations is not None else {}
+    params = PoseGraphParams(robust=args.robust, robust_scale=args.robust_scale,
+                             indefinite_information=args.indefinite_information, **given)
     out = Path(args.out)
     report = Path(args.report) if args.report else out.with_name(out.name + ".report")
     with OutputTransaction("posegraph", inputs={"graph": args.graph}, files={"--out": out},
@@ -40,6 +60,8 @@ def run(args) -> int:
             graph = read_g2o(args.graph)
         with timer("optimise"):
             res = optimize_pose_graph(graph, params)
+        if res.user_error:  # the graph leaves a vertex unconstrained: the user's input, nothing written
+            raise InputError(res.reason)
         with timer("write"):
             write_g2o(tx.file("--out"), res.graph)
         inputs = {"graph": input_record(args.graph)}

@@ -10,14 +10,20 @@ by ``slam_contract.md`` (the minegeo SLAM contract, see docs/slam.md):
 * ``VERTEX_SE2 id x y theta`` and ``EDGE_SE2 i j dx dy dtheta I11 I12 I13 I22 I23 I33``;
 * ``FIX id``: the vertex is held fixed.
 
-An unknown record type, a short or non-numeric record, an edge to a vertex id that is never
-defined and cannot be chained, a duplicate vertex id, or SE2 and SE3 records mixed in one file are
-input errors that name the line. Files without (some) ``VERTEX`` lines (CSAIL, M3500, kitti_00)
+An unknown record type, a short or non-numeric record, a vertex id that is not a whole number of
+magnitude at most 2**53 (:data:`MAX_VERTEX_ID`), an edge from a vertex to itself, an edge to a
+vertex id that is never defined and cannot be chained, a duplicate vertex id, or SE2 and SE3 records
+mixed in one file are input errors that name the line. Files without (some) ``VERTEX`` lines (CSAIL, M3500, kitti_00)
 get the missing poses by chaining the odometry edges ``(i, i + 1)`` from the first vertex, and the
 graph says so (:attr:`PoseGraph.chained_ids`).
 
 The writer keeps every edge exactly as read (its numbers are stored as read and printed with the
 shortest round-trip repr), so ``read → optimise → write`` changes only the vertices.
+
+Information matrices are kept as read, even when not positive semi-definite (the real
+``cubicle.g2o`` holds 5021 such edges). :func:`non_psd_edges` lists them, and
+:func:`gtsam_information` is what GTSAM's ``readG2o`` turns each of them into (the optimiser's
+default for such edges, :mod:`minegeo.slam.posegraph`).
 """
 
 from __future__ import annotations
@@ -33,10 +39,14 @@ from minegeo.errors import FileFormatError, InputError
 from minegeo.io._limits import read_file_text
 from minegeo.io._quat import matrix_to_quat, quat_to_matrix
 
-__all__ = ["PoseGraph", "read_g2o", "write_g2o", "format_g2o", "non_psd_edges", "se2_matrix"]
+__all__ = ["PoseGraph", "read_g2o", "write_g2o", "format_g2o", "non_psd_edges", "gtsam_information",
+           "edge_label", "se2_matrix", "MAX_VERTEX_ID"]
 
 #: Largest g2o file read (the biggest standard benchmark, grid3D, is 19 MiB).
 MAX_G2O_BYTES = 1 << 30
+
+#: Largest vertex id magnitude read: every id is then an exact float64 and an int64 (g2o itself uses int).
+MAX_VERTEX_ID = 2**53
 
 _RECORDS = {  # name -> (kind, number of numeric fields after the tag)
     "VERTEX_SE3:QUAT": ("SE3", 8),
@@ -73,11 +83,14 @@ class PoseGraph:
         Vertex ids with no ``VERTEX`` record, initialised by chaining odometry edges.
     edge_values : (m, 7) or (m, 3) float64
         The measurement numbers exactly as read (x y z qx qy qz qw, or dx dy dθ), for writing back.
+    edge_lines : (m,) int64 or None
+        The file line of each edge (1-based), when read from a file; None for a graph built in memory.
 
     Notes
     -----
     Information matrices are kept as read, even when not positive semi-definite (the real
-    ``cubicle.g2o`` holds such edges); :func:`non_psd_edges` lists them, and the optimiser reports them.
+    ``cubicle.g2o`` holds such edges); :func:`non_psd_edges` lists them, and the optimiser replaces
+    them by :func:`gtsam_information` or refuses them (``PoseGraphParams.indefinite_information``).
     """
 
     kind: str
@@ -89,6 +102,7 @@ class PoseGraph:
     fixed: tuple = ()
     chained_ids: tuple = ()
     edge_values: np.ndarray = field(default=None, repr=False)
+    edge_lines: np.ndarray = field(default=None, repr=False)
 
     @property
     def n_vertices(self) -> int:
@@ -104,7 +118,15 @@ class PoseGraph:
         if poses.shape != self.poses.shape:
             raise InputError(f"poses must have shape {self.poses.shape}, got {poses.shape}")
         return PoseGraph(self.kind, self.ids, poses, self.edges, self.measurements, self.information,
-                         self.fixed, self.chained_ids, self.edge_values)
+                         self.fixed, self.chained_ids, self.edge_values, self.edge_lines)
+
+
+def edge_label(graph: PoseGraph, k: int) -> str:
+    """How a message names edge ``k``: ``"line L (edge i -> j)"`` for a file, ``"edge k (i -> j)"`` else."""
+    i, j = (int(graph.ids[v]) for v in graph.edges[k])
+    if graph.edge_lines is not None:
+        return f"line {int(graph.edge_lines[k])} (edge {i} -> {j})"
+    return f"edge {k} ({i} -> {j})"
 
 
 def non_psd_edges(graph: PoseGraph, rtol: float = 1e-9) -> np.ndarray:
@@ -114,6 +136,63 @@ def non_psd_edges(graph: PoseGraph, rtol: float = 1e-9) -> np.ndarray:
     ev = np.linalg.eigvalsh(graph.information)
     scale = np.maximum(1.0, np.abs(graph.information).reshape(graph.n_edges, -1).max(axis=1))
     return np.flatnonzero(ev[:, 0] < -rtol * scale)
+
+
+def _gtsam_llt_r(A: np.ndarray) -> np.ndarray:
+    """``R = Lᵀ`` of Eigen's unblocked ``LLT<Lower>`` of each matrix of the stack ``A`` (m, n, n),
+    as left when it stops.
+
+    Column k: ``x = a_kk − Σ_{j<k} L_kj²``; if ``x ≤ 0`` stop (columns k.. keep the input's lower
+    triangle); else ``L_kk = √x``, ``L_ik = (a_ik − Σ_{j<k} L_ij L_kj) / L_kk`` for i > k. This is
+    Eigen's ``llt_inplace::unblocked`` (matrices below 32 columns are never blocked); ``matrixU()``
+    is the transpose of the lower triangle of the work matrix.
+    """
+    n = A.shape[-1]
+    L = np.tril(np.array(A, dtype=np.float64))
+    going = np.ones(L.shape[0], dtype=bool)
+    for k in range(n):
+        x = L[:, k, k] - np.einsum("ej,ej->e", L[:, k, :k], L[:, k, :k])
+        going &= x > 0.0
+        e = np.flatnonzero(going)
+        if e.size == 0:
+            break
+        s = np.sqrt(x[e])
+        L[e, k, k] = s
+        if k + 1 < n:
+            L[e, k + 1:, k] = (L[e, k + 1:, k] - np.einsum("eij,ej->ei", L[e, k + 1:, :k], L[e, k, :k])) / s[:, None]
+    return np.swapaxes(L, 1, 2)
+
+
+def gtsam_information(information: np.ndarray, kind: str) -> np.ndarray:
+    """The information matrices GTSAM's ``readG2o`` actually uses for g2o edges: ``RᵀR``.
+
+    ``readG2o`` builds ``noiseModel::Gaussian::Information(Ω_g)`` from the edge's matrix ``Ω_g`` in
+    GTSAM's tangent order (SE3: rotation first, the file's (t, r) blocks swapped; SE2: the file's
+    (x, y, θ)), which keeps ``R = matrixU()`` of Eigen's ``LLT`` of ``Ω_g`` (:func:`_gtsam_llt_r`)
+    and whitens residuals with it, so the cost of the edge is ``½ rᵀ RᵀR r``. For a positive-definite
+    ``Ω`` the factorisation completes and ``RᵀR = Ω`` (to rounding); for an indefinite one it stops at
+    the first non-positive pivot and ``RᵀR`` is another matrix, positive semi-definite by
+    construction (a Gram matrix). GTSAM's diagonal shortcut (``smart``: a diagonal ``Ω`` becomes
+    ``Diagonal::Precisions``, NaN for a negative entry) is not reproduced: this is the ``LLT`` path.
+
+    Parameters
+    ----------
+    information : (m, 6, 6) or (m, 3, 3) array (or one matrix)
+        Symmetric information matrices in the file's order ((tx, ty, tz, rx, ry, rz) or (x, y, θ)).
+    kind : {"SE3", "SE2"}
+
+    Returns
+    -------
+    ndarray
+        ``RᵀR`` in the file's order, symmetric positive semi-definite, the shape of ``information``.
+    """
+    info = np.asarray(information, dtype=np.float64)
+    stack = info.reshape(-1, *info.shape[-2:])
+    p = np.array([3, 4, 5, 0, 1, 2]) if kind == "SE3" else np.arange(3)
+    R = _gtsam_llt_r(stack[:, p][:, :, p])
+    used = np.einsum("eki,ekj->eij", R, R)
+    q = np.argsort(p)
+    return used[:, q][:, :, q].reshape(info.shape)
 
 
 def se2_matrix(x: float, y: float, theta: float) -> np.ndarray:
@@ -133,6 +212,20 @@ def _upper_to_full(vals, n: int) -> np.ndarray:
     M = np.zeros((n, n))
     M[np.triu_indices(n)] = vals
     return M + np.triu(M, 1).T
+
+
+def _check_id(path, lineno: int, token: str, value: float) -> None:
+    """A vertex id must be a whole number of magnitude at most :data:`MAX_VERTEX_ID` (checked on the
+    token itself, so that a long integer is never rounded to another id by ``float``)."""
+    try:
+        exact = int(token, 10)
+    except ValueError:
+        if value != int(value):
+            raise FileFormatError(path, f"line {lineno}: vertex id {value!r} is not an integer") from None
+        exact = int(value)
+    if abs(exact) > MAX_VERTEX_ID:
+        raise FileFormatError(path, f"line {lineno}: vertex id {token} is outside the ids minegeo reads "
+                              "(whole numbers of magnitude at most 2**53)")
 
 
 def _parse_lines(path, text: str):
@@ -162,8 +255,10 @@ def _parse_lines(path, text: str):
             elif kind != rkind:
                 raise FileFormatError(path, f"line {lineno}: {tag} in a file of {kind} records (SE2 and SE3 mixed)")
         for k in (0, 1) if tag.startswith("EDGE") else (0,):
-            if nums[k] != int(nums[k]):
-                raise FileFormatError(path, f"line {lineno}: vertex id {nums[k]!r} is not an integer")
+            _check_id(path, lineno, rest[k], nums[k])
+        if tag.startswith("EDGE") and nums[0] == nums[1]:
+            raise FileFormatError(path, f"line {lineno}: edge from vertex {int(nums[0])} to itself (a self-loop "
+                                  "constrains nothing)")
         records.append((lineno, tag, nums))
     if kind is None:
         raise FileFormatError(path, "no VERTEX or EDGE record: not a g2o pose-graph file?")
@@ -204,8 +299,9 @@ def read_g2o(path) -> PoseGraph:
     Raises
     ------
     FileFormatError
-        Unknown record (named with its line), short or non-numeric record, duplicate vertex id,
-        SE2 and SE3 mixed, an edge whose vertex is undefined and cannot be chained, or no records.
+        Unknown record (named with its line), short or non-numeric record, a vertex id that is not
+        a whole number of magnitude at most 2**53, a self-loop edge, duplicate vertex id, SE2 and
+        SE3 mixed, an edge whose vertex is undefined and cannot be chained, or no records.
     """
     text = read_file_text(path, max_bytes=MAX_G2O_BYTES, what="g2o file")
     kind, records = _parse_lines(path, text)
@@ -231,7 +327,7 @@ def read_g2o(path) -> PoseGraph:
             except InputError as exc:
                 raise FileFormatError(path, f"line {lineno}: {exc}") from None
             info = _upper_to_full(v[2 + nv:], nt)
-            edge_rows.append((int(v[0]), int(v[1]), Z, (info, vals)))
+            edge_rows.append((int(v[0]), int(v[1]), Z, (info, vals, lineno)))
     ids, chained = _chain(path, kind, vertex, edge_rows)
     index = {vid: k for k, vid in enumerate(ids)}
     for f in fixed:
@@ -249,6 +345,7 @@ def read_g2o(path) -> PoseGraph:
         fixed=tuple(sorted(set(fixed))),
         chained_ids=chained,
         edge_values=np.stack([e[1] for _, _, _, e in edge_rows]) if m else np.zeros((0, 7 if kind == "SE3" else 3)),
+        edge_lines=np.asarray([e[2] for _, _, _, e in edge_rows], dtype=np.int64),
     )
 
 

@@ -52,7 +52,14 @@ from minegeo.errors import DegenerateGeometryError, InputError
 from minegeo.kernels.lie import hat, se3_adjoint, se3_inverse, se3_right_jacobian_inv
 from minegeo.semantic import _kernels as KS
 from minegeo.slam import _kernels as K
-from minegeo.slam.posegraph import PoseGraphParams, _BlockSystem, _robust_cost, _robust_weights
+from minegeo.slam.posegraph import (
+    PoseGraphParams,
+    _BlockSystem,
+    _robust_cost,
+    _robust_weights,
+    accept_step,
+    check_result,
+)
 
 __all__ = [
     "FactorGraph", "FactorGraphResult", "PoseGraphParams", "descriptor_completeness",
@@ -688,6 +695,7 @@ def _levenberg_marquardt(P: np.ndarray, a: _Arrays, held: tuple, params: PoseGra
     free[list(held) + [n]] = False
     blocks = _BlockSystem("SE3", n + 1, a.edges, free)
     bcol_int = np.ascontiguousarray(np.where(blocks.col[a.kf] >= 0, blocks.col[a.kf] // 6, -1))
+    P0 = P
     r, e = _residuals(P, a)
     cost0 = _quad(r, a.info) + _quad(e, a.info_int)
     if not np.isfinite(cost0):
@@ -714,7 +722,7 @@ def _levenberg_marquardt(P: np.ndarray, a: _Arrays, held: tuple, params: PoseGra
             cost_t = _robust(r_t, e_t, a, params)
             step = float(np.abs(delta).max()) if delta.size else 0.0
             history.append({"iteration": it, "cost": cost_t, "lambda": lam, "accepted": False, "step": step})
-            if np.isfinite(cost_t) and cost_t <= cost:
+            if accept_step(cost_t, cost):  # finite, not negative, not above the current cost
                 history[-1]["accepted"] = True
                 rel = (cost - cost_t) / max(cost, 1e-300)
                 P, r, e, cost, accepted = trial, r_t, e_t, cost_t, True
@@ -730,4 +738,8 @@ def _levenberg_marquardt(P: np.ndarray, a: _Arrays, held: tuple, params: PoseGra
         if rel < params.relative_cost_tolerance or step < params.step_tolerance:
             status, reason = "converged", f"relative cost decrease {rel:.2e}, largest step {step:.2e}"
             break
-    return P[:n].copy(), status, reason, cost0, _quad(r, a.info) + _quad(e, a.info_int), it, history
+    cost_final = _quad(r, a.info) + _quad(e, a.info_int)
+    problem = check_result(P0[:n], P[:n], held, cost_final, cost0)  # gates "converged"
+    if problem:
+        return P0[:n], "failed", f"the result failed its check: {problem}", cost0, cost0, it, history
+    return P[:n].copy(), status, reason, cost0, cost_final, it, history

@@ -196,15 +196,17 @@ def accumulate_normal_equations(r, Ji, Jj, WO, bcol, slot_ii, slot_jj, slot_ij, 
 
 
 @njit
-def block_cholesky(Lp, Li, Hx, lam, relative, Lx):
+def block_cholesky(Lp, Li, Hx, lam, relative, Lx, tiny=0.0):
     """Left-looking block Cholesky ``L Lᵀ = H + λ·D`` in the pattern of ``L``.
 
     ``D = diag(max(diag H, 1e-12))`` when ``relative`` (Marquardt's scaling), else ``D = I``
     (GTSAM's default ``diagonalDamping = false``).
 
     ``Hx`` holds the lower blocks of ``H`` in that pattern (not modified); ``Lx`` receives ``L``.
-    Returns True, or False when a pivot block is not positive definite (the damped matrix is
-    indefinite or singular: the caller raises the damping).
+    Returns -1, or the block column whose pivot block is not positive definite (a scalar pivot
+    ``s ≤ tiny · max_a H_aa``, the largest undamped diagonal entry of that block: the damped matrix
+    is indefinite or (numerically) singular; the caller raises the damping, or names that column's
+    pose).
     """
     nb = Lp.shape[0] - 1
     d = Hx.shape[1]
@@ -250,14 +252,17 @@ def block_cholesky(Lp, Li, Hx, lam, relative, Lx):
                 head[rnext] = k
             k = nxt
         # dense Cholesky of the pivot block: C Cᵀ = W[j]
+        floor = 0.0
+        for a in range(d):
+            floor = max(floor, tiny * Hx[p0, a, a])
         for a in range(d):
             for c in range(a + 1):
                 s = W[j, a, c]
                 for t in range(c):
                     s -= C[a, t] * C[c, t]
                 if a == c:
-                    if not (s > 0.0):
-                        return False
+                    if not (s > 0.0 and s > floor):
+                        return j
                     C[a, a] = np.sqrt(s)
                 else:
                     C[a, c] = s / C[c, c]
@@ -278,7 +283,7 @@ def block_cholesky(Lp, Li, Hx, lam, relative, Lx):
             rnext = Li[p0 + 1]
             link[j] = head[rnext]
             head[rnext] = j
-    return True
+    return -1
 
 
 @njit
