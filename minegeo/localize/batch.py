@@ -612,9 +612,11 @@ class BatchCluster:
       processes it spawns inherit them (a worker interrupted while it starts prints nothing), and
       each worker ignores SIGINT once it runs (:mod:`minegeo.localize._batch_worker`, a preload;
       it also silences a worker restarted later). The driver stops the workers itself.
-    * **A Ctrl-C while the cluster starts** waits for the start to end (with further Ctrl-C held
-      back), closes what it made, then raises :class:`KeyboardInterrupt`: a half-built
-      ``LocalCluster`` would make distributed's exit hook fail (``AssertionError: Status.init``).
+    * **A Ctrl-C while the cluster starts** never interrupts its constructor: the cluster is built
+      in a helper thread while the main thread waits; on Ctrl-C the main thread waits for the
+      start to end (further Ctrl-C held back), closes what it made, then raises
+      :class:`KeyboardInterrupt`. A half-built ``LocalCluster`` would make distributed's exit
+      hook fail (``AssertionError: Status.init``).
     * **Quiet.** Unless ``quiet=False``, the ``distributed`` loggers (driver side) print nothing
       while the batch runs and closes; the batch records every scan's outcome itself.
 
