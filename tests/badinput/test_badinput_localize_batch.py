@@ -22,6 +22,7 @@ from pathlib import Path
 
 import pytest
 from _contract import a_file, a_folder, assert_user_error, dead_pid, tree_snapshot, truncated_copy, write_lock
+from helpers import require_extra
 
 FAST = ["--profile", "fast"]
 
@@ -205,7 +206,7 @@ def _closed_port() -> int:
 @pytest.mark.parametrize("earlier", [False, True], ids=["new_out", "out_of_an_earlier_batch"])
 def test_scheduler_not_answering_writes_nothing(earlier, prep, scans, tmp_path, capsys):
     """Issue 27 case 1: the cluster is reached before OUT is touched (no manifest, no map cache)."""
-    pytest.importorskip("distributed")
+    require_extra("distributed")
     out = _manifest(tmp_path / "out", prep) if earlier else tmp_path / "out"
     before = tree_snapshot(out, with_mtime=True)
     assert_user_error("localize-batch", ["--map", prep, "--scans", scans, "--out", out, *FAST, "--scheduler",

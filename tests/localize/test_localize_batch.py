@@ -28,8 +28,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import require_extra
 
-pytest.importorskip("distributed")
+require_extra("distributed")
 
 from minegeo.cli import main  # noqa: E402
 from minegeo.localize.batch import SUMMARY_COLUMNS, comparable_record  # noqa: E402
@@ -156,7 +157,7 @@ def test_batch_dxf_reads_back_every_ok_scan(world, batch_out, cluster, tmp_path)
     the scan origin its result.json states (map frame here: the synthetic map is not georeferenced),
     to the millimetre (in fact exactly); failed and ambiguous scans are not drawn. The run resumes
     every scan of ``batch_out`` (same map, options and seed) and only adds the drawing."""
-    ezdxf = pytest.importorskip("ezdxf", reason="the dxf extra (ezdxf) is not installed")
+    ezdxf = require_extra("ezdxf")
     out = tmp_path / "out"
     shutil.copytree(batch_out, out)
     assert _batch(world, out, "--scheduler", cluster[0].scheduler_address, "--seed", 3, "--dxf") in (0, 1)
