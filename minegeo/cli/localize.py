@@ -410,69 +410,142 @@ def localize_and_write(stage: Path, pm, scan, traj, lp, *, seed: int, base: dict
     return res, d
 
 
+#: What to do next after a ``failed`` / ``ambiguous`` result, for the printout.
+NEXT_STEP = {
+    "failed": "check that the scan lies inside the mapped area and that the map is current there; if it does, scan a "
+              "longer section (20 m or more) that includes a distinctive feature (intersection, curve, structure) "
+              "and run again; a scanner levelled by its IMU: add --levelled 3",
+    "ambiguous": "scan a longer section that reaches a distinctive feature (intersection, curve, structure) so that "
+                 "only one place fits, and run again",
+}
+
+
+def heading_text(res) -> str:
+    """The scan's heading for the printout: azimuth of the scan x axis, clockwise from grid north
+    (CRS), or its angle anticlockwise from the map x axis (map frame), degrees in [0, 360)."""
+    if res.T_crs_scan is not None:
+        R = res.T_crs_scan[:3, :3]
+        return (f"heading {math.degrees(math.atan2(R[0, 0], R[1, 0])) % 360.0:.1f} deg (azimuth of the scan's x axis, "
+                "clockwise from grid north)")
+    R = res.T_map_scan[:3, :3]
+    return (f"heading {math.degrees(math.atan2(R[1, 0], R[0, 0])) % 360.0:.1f} deg (the scan's x axis, anticlockwise "
+            "from the map x axis)")
+
+
+def position_line(res) -> str:
+    """Position of the scan origin with its 95 % radius: E N H in the CRS when the map is
+    georeferenced, else map x y z (metres)."""
+    if res.T_crs_scan is not None:
+        e, n, h = res.T_crs_scan[:3, 3]
+        where = f"{res.crs}: E {e:.3f}  N {n:.3f}  H {h:.3f} m"
+    else:
+        x, y, z = res.T_map_scan[:3, 3]
+        where = f"map frame (not georeferenced): x {x:.3f}  y {y:.3f}  z {z:.3f} m"
+    return f"position of the scan origin, {where}; 95 % radius {res.position_95_radius_m:.3f} m"
+
+
+def fit_line(res) -> str:
+    """One line of fit quality of an ``ok`` result: share of the scan on the map surface, ICP
+    fitness and RMSE, and how far the best other place falls short."""
+    pf = res.hypotheses[0]["plane_fitness"] if res.hypotheses else float("nan")
+    txt = (f"fit: {100 * pf:.0f} % of the scan within {res.plane_tolerance_m:.3g} m of the map surface, "
+           f"{100 * res.fitness:.0f} % matched by ICP, RMSE {res.inlier_rmse_m:.3f} m")
+    rv = getattr(res, "rival_search", None) or {}
+    b = rv.get("best_rival")
+    if rv and b is None:
+        txt += "; the whole-map search found no other place that fits"
+    elif b is not None:
+        txt += (f"; the best other place ({b['distance_to_chosen_m']:.0f} m away) fits {b['plane_fitness']:.2f} "
+                f"against {b['chosen_plane_fitness']:.2f}")
+    return txt
+
+
+def _rank_reason(h: dict, h0: dict) -> str:
+    """Why the verified hypothesis ``h`` ranks below ``h0`` (the first ranked), by the ranking's
+    own criterion (:func:`minegeo.localize.decision.hypothesis_records`): fully refined before
+    screened out, then fine agreement, plane fitness, ICP fitness."""
+    if "screened out" in h["source"] and "screened out" not in h0["source"]:
+        return "screened out on the coarse scan"
+    for key, name in (("fine_fitness", "fine agreement"), ("plane_fitness", "plane fitness"),
+                      ("icp_fitness", "ICP fitness")):
+        if f"{h[key]:.3f}" != f"{h0[key]:.3f}":
+            return f"{name} {h[key]:.3f} vs {h0[key]:.3f} of #0"
+    return "fits as well as #0 to 3 decimals"
+
+
 def _candidate_lines(res, limit: int = 3) -> list[str]:
-    """Rejected candidates for the printout: map frame, separation, scores; labelled NOT a position."""
+    """Rejected candidates for the printout: map frame, each against the first ranked (#0) by the
+    ranking criterion; labelled NOT a position."""
     from minegeo.localize.pipeline import rejected_candidates
 
     cands = rejected_candidates(res)
     if not cands:
         return ["  rejected candidates: none (no placement of the scan was proposed)"]
+    hyps = {int(h["rank"]): h for h in res.hypotheses or []}
     lines = [f"  rejected candidates ({len(cands)}; NOT positions: where the scan origin would be if that "
-             "placement were right, map frame, m):"]
+             "placement were right, map frame x y z, m; ranked by fine agreement, then plane fitness):"]
+    h0 = hyps.get(0)
     for c in cands[:limit]:
         x, y, z = c["origin_map_m"]
-        sep = "best rejected" if c["rank"] == 0 else f"{c['distance_to_best_m']:.1f} m / " \
-                                                     f"{c['rotation_to_best_deg']:.1f} deg from the best"
-        lines.append(f"    #{c['rank']} map x {x:.1f} y {y:.1f} z {z:.1f} (not a position; {sep}), plane fitness "
-                     f"{c['plane_fitness']:.3f}, {c['source']}")
+        h = hyps.get(c["rank"])
+        if c["rank"] == 0 or h is None or h0 is None:
+            why = "ranked first" if c["rank"] == 0 else ""
+        else:
+            why = (f"{c['distance_to_best_m']:.1f} m / {c['rotation_to_best_deg']:.1f} deg from #0, "
+                   f"{_rank_reason(h, h0)}")
+        fine = f", fine agreement {h['fine_fitness']:.3f}" if h is not None else ""
+        lines.append(f"    #{c['rank']} map x {x:.1f} y {y:.1f} z {z:.1f} (not a position; {why}): plane fitness "
+                     f"{c['plane_fitness']:.3f}{fine}; {c['source']}")
     if len(cands) > limit:
         lines.append(f"    ... {len(cands) - limit} more in result.json -> rejected_candidates")
     return lines
 
 
 def _rival_line(res) -> str | None:
-    """The whole-map rival search's best rival for the printout (map frame, labelled NOT a position)."""
+    """The whole-map rival search's best rival (map frame, labelled NOT a position; printed for a
+    failed / ambiguous result, an ok result's is in its fit line)."""
     rv = getattr(res, "rival_search", None)
     if not rv:
         return None
     b = rv.get("best_rival")
-    tail = f"search {res.timings_s.get('rival_search', float('nan')):.2f} s" + ("" if rv.get("covered") else
-                                                               "; coverage incomplete, see result.json")
+    tail = "" if rv.get("covered") else "; coverage incomplete, see result.json"
     if b is None:
-        return f"  whole-map rival search at the chosen attitude: no other placement found ({tail})"
+        return f"  whole-map rival search at the chosen attitude: no other placement found{tail}"
     x, y, z = b["origin_map_m"]
     test = f"; passes the {b['test_passed']} test" if b.get("test_passed") else ""
     return (f"  best rival (NOT a position; {'rejected' if res.status == 'ok' else 'a rival'}; whole-map rival "
             f"search): map x {x:.1f} y {y:.1f} z {z:.1f}, {b['distance_to_chosen_m']:.1f} m / "
-            f"{b['rotation_to_chosen_deg']:.1f} deg from the {'answer' if res.status == 'ok' else 'best'}, plane "
+            f"{b['rotation_to_chosen_deg']:.1f} deg from {'the answer' if res.status == 'ok' else '#0'}, plane "
             f"fitness {b['plane_fitness']:.3f} vs {b['chosen_plane_fitness']:.3f} (margin {b['margin']:.2f}, "
             f"ambiguous at <= {1.0 / rv['ambiguity_ratio']:.2f}), support-matched {b['matched_ratio']:.2f} "
-            f"(ambiguous at >= {rv['params']['matched_ratio']:g}){test}; {tail}")
+            f"(ambiguous at >= {rv['params']['matched_ratio']:g}){test}{tail}")
 
 
 def print_result(res, d: dict, how: str, out: Path) -> None:
-    """The stdout of ``minegeo localize``: coordinates only for an ``ok`` result."""
+    """The stdout of ``minegeo localize``, for a surveyor.
+
+    ``ok``: the status, the position of the scan origin (E N H in the CRS when the map is
+    georeferenced, else map x y z) with its 95 % radius from the calibrated covariance, the
+    heading, one line of fit quality, the files written and the time. ``failed`` / ``ambiguous``:
+    the status, why, what to do next, the rejected candidates (map frame, NOT positions) and the
+    files; **never a position**.
+    """
     t = d["timings_s"]
-    times = (f"scan {t['localize_total']:.2f} s (+ map {how} {t['map_load_or_prepare']:.2f} s, its search "
+    times = (f"time: scan {t['localize_total']:.2f} s (+ map {how} {t['map_load_or_prepare']:.2f} s, its search "
              f"structures {t['map_indexes']:.2f} s); run {time_line(t)}")
     profile = d.get("profile") or DEFAULT_PROFILE
     if res.status == "ok":
-        T = res.T_crs_scan if res.T_crs_scan is not None else res.T_map_scan
-        frame = f"CRS {res.crs}" if res.T_crs_scan is not None else "map frame"
-        print(f"OK: {res.reason}")
-        print(f"  scan origin in {frame}: {T[0, 3]:.3f} {T[1, 3]:.3f} {T[2, 3]:.3f} "
-              f"(95 % radius {res.position_95_radius_m:.3f} m); fitness {res.fitness:.3f}, "
-              f"inlier RMSE {res.inlier_rmse_m:.3f} m; profile {profile}")
-        rival = _rival_line(res)
-        if rival:
-            print(rival)
-        print(f"  {times}")
+        print(f"OK: the scan is placed in the map (profile {profile})")
+        print(f"  {position_line(res)}")
+        print(f"  {heading_text(res)}")
+        print(f"  {fit_line(res)}")
         files = [out / "result.json", out / "report.html"]
         if d.get("trajectory_csv"):
             files.append(out / "trajectory_global.csv")
         if d.get("dxf"):
             files.append(out / d["dxf"]["file"])
         print("  wrote " + ", ".join(str(f) for f in files))
+        print(f"  {times}")
         return
     word = res.status.upper()
     print(f"{word}: {res.reason}")
@@ -480,11 +553,12 @@ def print_result(res, d: dict, how: str, out: Path) -> None:
 
     print(f"  NO POSITION: the scan was not localized ({word}); result.json, report.html and this output give no "
           "coordinates of it" + (" (the candidates below were rejected)" if rejected_candidates(res) else ""))
+    print(f"  next: {NEXT_STEP.get(res.status, 'see report.html')}")
     for line in _candidate_lines(res):
         print(line)
     rival = _rival_line(res)
     if rival:
         print(rival)
-    print(f"  profile {profile}; {times}")
     extra = " (no trajectory_global.csv: written only for an ok result)" if res.trajectory_map is not None else ""
     print(f"  wrote {out / 'result.json'}, {out / 'report.html'}{extra}")
+    print(f"  profile {profile}; {times}")

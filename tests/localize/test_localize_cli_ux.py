@@ -116,6 +116,8 @@ def _assert_no_answer(out, stdout: str, status: str, georef=None, *, has_traject
     assert lines[0].startswith(f"{word}: "), lines[0]
     assert "NO POSITION" in lines[1]
     assert "scan origin in" not in stdout and "CRS EPSG" not in stdout
+    assert "position of" not in stdout and "heading" not in stdout and " E " not in stdout
+    assert lines[2].startswith("  next: ")  # what to do next, right after the status and why
     assert not (out / "trajectory_global.csv").exists()
     if has_trajectory:
         assert "no trajectory_global.csv" in stdout
@@ -146,9 +148,19 @@ def test_ok_run_prints_the_position_and_writes_the_trajectory(mine, tmp_path, ca
     out = tmp_path / "loc"
     assert _localize(mine["prep"], scan, traj, out) == 0
     stdout = capsys.readouterr().out
-    assert stdout.startswith("OK: ") and "scan origin in CRS" in stdout and "NO POSITION" not in stdout
+    assert stdout.startswith("OK: ") and "NO POSITION" not in stdout
     assert (out / "trajectory_global.csv").exists()
     r = json.loads((out / "result.json").read_text())
+    # status, then the position (E N H in the CRS) with its 95 % radius, heading, one line of fit, the files
+    lines = stdout.splitlines()
+    e, n, h = r["T_crs_scan"][0][3], r["T_crs_scan"][1][3], r["T_crs_scan"][2][3]
+    assert lines[1] == (f"  position of the scan origin, EPSG:5186: E {e:.3f}  N {n:.3f}  H {h:.3f} m; "
+                        f"95 % radius {r['position_95_radius_m']:.3f} m"), lines[1]
+    # heading: azimuth of the scan x axis from grid north, by hand from T_crs_scan's first column
+    az = np.degrees(np.arctan2(r["T_crs_scan"][0][0], r["T_crs_scan"][1][0])) % 360.0
+    assert lines[2].startswith(f"  heading {az:.1f} deg (azimuth"), lines[2]
+    assert lines[3].startswith("  fit: ") and "ICP fitness" not in lines[0]
+    assert lines[4].startswith("  wrote ") and "trajectory_global.csv" in lines[4]
     assert r["status"] == "ok" and r["T_map_scan"] is not None and r["T_crs_scan"] is not None
     assert "rejected_candidates" not in r and r["hypotheses"]
     html = (out / "report.html").read_text()
@@ -192,7 +204,7 @@ def test_ambiguous_run_gives_no_coordinates_and_says_it_once(tube, tmp_path, cap
     cap = capsys.readouterr()
     r = _assert_no_answer(out, cap.out, "ambiguous", has_trajectory=False)
     assert len(r["rejected_candidates"]["candidates"]) >= 2
-    assert "from the best" in cap.out  # the separation of the candidates is shown
+    assert "from #0" in cap.out and "ranked first" in cap.out  # the separation of the candidates is shown
     # the candidates' degenerate ICP fits were seen (DEBUG) but not one of them is a warning
     assert any("candidate fit: ICP result is degenerate" in m for m in caplog.messages)
     assert not [x for x in caplog.records if x.levelno >= logging.WARNING and "degenerate" in x.getMessage()]
