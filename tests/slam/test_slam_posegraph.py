@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from helpers import shared_data
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from reference import naive_posegraph as NP
 
@@ -76,8 +76,7 @@ def test_analytic_jacobians_match_finite_differences(kind, seed):
     Z = _random_pose(rng, kind, angle=0.5, trans=1.0)[None]
     # keep the residual away from the ±π cut where Log is not differentiable
     r_true = NP.residual(poses[0], poses[1], Z[0])
-    if np.linalg.norm(r_true[:3] if kind == "SE3" else r_true[:1]) > 2.8:
-        return
+    assume(np.linalg.norm(r_true[:3] if kind == "SE3" else r_true[:1]) <= 2.8)
     r, Ji, Jj = np.empty((1, d)), np.empty((1, d, d)), np.empty((1, d, d))
     (K.se3_edge_terms if kind == "SE3" else K.se2_edge_terms)(poses, np.array([[0, 1]]), Z, r, Ji, Jj)
     nJi, nJj = NP.numeric_jacobians(poses[0], poses[1], Z[0])
