@@ -137,6 +137,16 @@ MIN_PAIRS = 7
 #: Model terms :func:`pose_uncertainty` may add to the data term, in summation order (a caller may
 #: add more with :meth:`PoseUncertainty.with_model_term`, e.g. the pipeline's ``weak_axis_polish``).
 MODEL_TERMS = ("small_G", "formal_floor", "pending_step", "registration_floor", "map_floor")
+#: Each model term in a surveyor's words (the report and ``model_terms[name]["meaning"]`` of
+#: result.json; the names stay the machine-readable keys).
+MODEL_TERM_TEXT = {
+    "small_G": "allowance for estimating the spread from few blocks of the scan",
+    "formal_floor": "raised to at least the textbook least-squares uncertainty in every direction",
+    "pending_step": "the last correction the fit had not yet applied",
+    "registration_floor": "scan-to-map matching error that no residual shows (calibrated on the synthetic study)",
+    "map_floor": "the stated error of the map itself",
+    "weak_axis_polish": "the shift of the final polish along the weakly constrained direction",
+}
 #: Default ``registration_sigma_m`` (m): maximum-likelihood isotropic floor over the tuning worlds
 
 
@@ -263,7 +273,8 @@ class PoseUncertainty:
         for name, M in self.model_terms.items():
             s = np.sqrt(np.maximum(np.diag(M)[3:], 0.0))
             model[name] = {"covariance_6x6": M, "position_sigma_m": s,
-                           "position_rms_m": float(math.sqrt(max(float(np.trace(M[3:, 3:])), 0.0)))}
+                           "position_rms_m": float(math.sqrt(max(float(np.trace(M[3:, 3:])), 0.0))),
+                           "meaning": MODEL_TERM_TEXT.get(name, name)}
         return {"data_term": data, "model_terms": model}
 
     def to_dict(self) -> dict:

@@ -165,35 +165,41 @@ def profile_label(p, map_params, profile: str | None) -> str:
 
 
 def _uncertainty_text(u: dict | None) -> str:
-    """One paragraph saying which covariance estimator the numbers above come from."""
+    """One paragraph, in plain words, saying where the uncertainty above comes from (the
+    estimator, then each part added to it; the machine-readable names are in result.json)."""
     if not u:
-        return "No covariance: the fit leaves a pose direction unconstrained."
+        return "No uncertainty: the fit leaves a direction of the pose unconstrained."
     method = u.get("method")
-    base = ("Uncertainty: covariance of the final point-to-plane fit about the scan origin, from the "
-            "final ICP pairs")
+    base = "How sure the position is: from how well the scan's points lie on the map's surfaces in the final fit"
     if method == "jackknife":
-        txt = (f"{base}, by the delete-one-block jackknife over {u.get('n_clusters')} blocks of "
-               f"{num(u.get('cluster_size_used_m'), 'g')} m (neighbouring residuals are correlated; it is "
-               f"{num(u.get('inflation'), '.1f')}x the formal σ²(JᵀJ)⁻¹ in position), never below the formal one")
+        txt = (f"{base}, measured by leaving out one of {u.get('n_clusters')} blocks of "
+               f"{num(u.get('cluster_size_used_m'), 'g')} m at a time (neighbouring points err together; this is "
+               f"{num(u.get('inflation'), '.1f')}x the textbook least-squares value in position, and never below it; "
+               "delete-one-block jackknife)")
     elif method == "cluster":
-        txt = (f"{base}, cluster-robust over {u.get('n_clusters')} blocks of "
-               f"{num(u.get('cluster_size_used_m'), 'g')} m, never below the formal σ²(JᵀJ)⁻¹")
+        txt = (f"{base}, measured over {u.get('n_clusters')} blocks of {num(u.get('cluster_size_used_m'), 'g')} m "
+               "(cluster-robust), never below the textbook least-squares value")
     else:
-        txt = f"{base}, formal σ²(JᵀJ)⁻¹ (independent residuals assumed: optimistic)"
-    if u.get("params", {}).get("add_pending_step"):
-        txt += "; plus the remaining Gauss-Newton step"
+        txt = (f"{base}, textbook least-squares value σ²(JᵀJ)⁻¹ (every point assumed to err independently: "
+               "optimistic)")
+    if u.get("params", {}).get("add_pending_step") and "pending_step" not in (u.get("model_terms") or {}):
+        txt += "; it includes the last correction the fit had not yet applied"
     if u.get("weak_axis_polish_term"):
-        txt += ("; plus the polish's pose shift along the weakly constrained direction (the estimate depends "
-                "on the correspondence gate there)")
+        txt += ("; and the shift of the final polish along the weakly constrained direction (the position there "
+                "depends on how far apart matched points may be)")
     dt = u.get("data_term") or {}
     terms = u.get("model_terms") or {}
     if dt.get("position_95_radius_m") is not None:
-        txt += (f". What the data determine alone: 95 % radius {num(dt.get('position_95_radius_m'), '.4f')} m, "
-                f"information ratio {num(dt.get('information_ratio'), '.2e')}")
+        txt += (f". The scan's fit alone gives a 95 % radius of {num(dt.get('position_95_radius_m'), '.4f')} m "
+                f"(weakest-to-strongest constraint ratio {num(dt.get('information_ratio'), '.2e')})")
     if terms:
-        txt += "; model terms added (RMS position, m): " + ", ".join(
-            f"{k} {num(v.get('position_rms_m'), '.4f')}" for k, v in terms.items())
-    return txt + ". It excludes the map's own error and the georeferencing error (docs/uncertainty.md)."
+        from minegeo.localize.uncertainty import MODEL_TERM_TEXT
+
+        txt += "; added to it (RMS of the position, m): " + "; ".join(
+            f"{v.get('meaning') or MODEL_TERM_TEXT.get(k, k)}: {num(v.get('position_rms_m'), '.4f')}"
+            for k, v in terms.items())
+    return txt + (". It does not include the map's own error or the georeferencing error (see the georef report; "
+                  "docs/uncertainty.md).")
 
 
 def _mat(T) -> str:

@@ -169,6 +169,16 @@ def test_ok_run_prints_the_position_and_writes_the_trajectory(mine, tmp_path, ca
     # the headings state the parameters actually used, and the compile time is apart
     assert "Parameters used (profile fast;" in html and "Table 3 defaults" not in html
     assert "compiling Numba kernels" in html
+    # the uncertainty paragraph in plain words: each part named by its meaning, no internal term name
+    from minegeo.localize.uncertainty import MODEL_TERM_TEXT
+    from minegeo.report.localize_report import _uncertainty_text
+
+    terms = r["uncertainty"]["model_terms"]
+    assert terms and {t["meaning"] for t in terms.values()} <= set(MODEL_TERM_TEXT.values())
+    para = _uncertainty_text(r["uncertainty"])
+    assert all(t["meaning"] in para for t in terms.values()) and para in html.replace("&#x27;", "'")
+    for name in (*MODEL_TERM_TEXT, "formal σ²", "jackknife over"):
+        assert name not in para, name
     for k in ("wall_s", "compile_s", "work_s"):
         assert k in r["timings_s"]
     assert r["profile"] == "fast"
