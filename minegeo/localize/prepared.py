@@ -434,16 +434,30 @@ class PreparedMap:
         return self.points + self.work_origin
 
     def check_params(self, params: PrepareParams | FeatureParams) -> None:
-        """Raise :class:`InputError` if ``params`` differ from those the map was prepared with."""
+        """Raise :class:`InputError` if ``params`` differ from those the map was prepared with.
+
+        The message names the ``--profile`` the map was prepared with and the one asked (or says
+        that either is not a profile's values, e.g. after ``--voxel``), the differing values, and
+        the two ways out: the map's profile for this run, or the map prepared again."""
         mine = self.params.features if isinstance(params, FeatureParams) else self.params
         if params != mine:
             a, b = to_jsonable(asdict(mine)), to_jsonable(asdict(params))
-            diff = _diff(a, b)
-            raise InputError(
-                "the prepared map was made with other parameters than requested ("
-                + "; ".join(f"{k}: map {va!r}, requested {vb!r}" for k, va, vb in diff)
-                + "): prepare the map again with 'minegeo prepare-map' and these parameters"
-            )
+            diff = "; ".join(f"{k}: map {va!r}, this run {vb!r}" for k, va, vb in _diff(a, b))
+            have, want = _profile_name(mine), _profile_name(params)
+            other = "values of no profile (e.g. --voxel or --octree-level)"
+            have_t = f"the values of --profile {have}" if have else other
+            want_t = f"the values of --profile {want}" if want else other
+            if have and want:
+                todo = (f"run again with --profile {have}, or prepare the map again with "
+                        f"'minegeo prepare-map --profile {want}'")
+            elif have:
+                todo = (f"run again with --profile {have} and without --voxel / --octree-level, or prepare the map "
+                        "again with 'minegeo prepare-map' and this run's --profile / --voxel")
+            else:
+                todo = ("run again with the --profile / --voxel the map was prepared with (see its .json record), "
+                        "or prepare the map again with 'minegeo prepare-map' and this run's --profile / --voxel")
+            raise InputError(f"the prepared map was prepared with {have_t} and this run asks for {want_t} ({diff}): "
+                             f"{todo}")
 
     # -- files --------------------------------------------------------------------------
     def save(self, path, *, indexes: bool = True) -> Path:
@@ -1060,6 +1074,14 @@ def _expand_occupancy(pk: dict):
     return MapOccupancy(block_keys=keys, bits=bits, log2_blocks=pk["log2"], table=table, table_lo=table_lo,
                         n_cells=pk["n_cells"], n_blocks=pk["n_blocks"], anchors=pk["anchors"], cell_size_m=float(cell),
                         dilation_cells=int(dil), build_s=pk["build_s"])
+
+
+def _profile_name(params: PrepareParams | FeatureParams) -> str | None:
+    """The CLI ``--profile`` whose values ``params`` are exactly (``fast``, ``table3``), else None."""
+    for name, ref in (("fast", PrepareParams.fast()), ("table3", PrepareParams())):
+        if params == (ref.features if isinstance(params, FeatureParams) else ref):
+            return name
+    return None
 
 
 def _diff(a: dict, b: dict, prefix: str = "") -> list:

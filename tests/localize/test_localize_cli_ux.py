@@ -204,6 +204,19 @@ def test_failed_run_gives_no_coordinates(mine, tmp_path, capsys, case):
         assert "not a position" in stdout and "rejected candidates (" in stdout
 
 
+def test_map_of_another_profile_names_both_profiles(mine, tmp_path, capsys):
+    """A map prepared with --profile fast asked for --profile table3: the one line names both
+    profiles and --profile, and how to go on (exit 2, nothing written)."""
+    from tests.badinput._contract import assert_user_error
+
+    scan, _ = mine["paths"]["ok"]
+    out = tmp_path / "loc"
+    err = assert_user_error("localize", ["--map", mine["prep"], "--scan", scan, "--out", out, "--profile", "table3"],
+                            capsys, inputs=[mine["prep"], scan], outputs=[out])
+    assert "prepared with the values of --profile fast and this run asks for the values of --profile table3" in err
+    assert "run again with --profile fast, or prepare the map again with 'minegeo prepare-map --profile table3'" in err
+
+
 def test_ambiguous_run_gives_no_coordinates_and_says_it_once(tube, tmp_path, capsys, caplog):
     """A smooth straight tube: ambiguous (it fits flipped as well). Its candidates' ICP fits are
     degenerate (weak direction along the tube); that is said once, in the reason, not as one
