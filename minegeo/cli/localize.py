@@ -460,23 +460,11 @@ def fit_line(res) -> str:
     return txt
 
 
-def _rank_reason(h: dict, h0: dict) -> str:
-    """Why the verified hypothesis ``h`` ranks below ``h0`` (the first ranked), by the ranking's
-    own criterion (:func:`minegeo.localize.decision.hypothesis_records`): fully refined before
-    screened out, then fine agreement, plane fitness, ICP fitness."""
-    if "screened out" in h["source"] and "screened out" not in h0["source"]:
-        return "screened out on the coarse scan"
-    for key, name in (("fine_fitness", "fine agreement"), ("plane_fitness", "plane fitness"),
-                      ("icp_fitness", "ICP fitness")):
-        if f"{h[key]:.3f}" != f"{h0[key]:.3f}":
-            return f"{name} {h[key]:.3f} vs {h0[key]:.3f} of #0"
-    return "fits as well as #0 to 3 decimals"
-
-
 def _candidate_lines(res, limit: int = 3) -> list[str]:
     """Rejected candidates for the printout: map frame, each against the first ranked (#0) by the
     ranking criterion; labelled NOT a position."""
     from minegeo.localize.pipeline import rejected_candidates
+    from minegeo.report.localize_report import rank_reason
 
     cands = rejected_candidates(res)
     if not cands:
@@ -492,7 +480,7 @@ def _candidate_lines(res, limit: int = 3) -> list[str]:
             why = "ranked first" if c["rank"] == 0 else ""
         else:
             why = (f"{c['distance_to_best_m']:.1f} m / {c['rotation_to_best_deg']:.1f} deg from #0, "
-                   f"{_rank_reason(h, h0)}")
+                   f"{rank_reason(h, h0)}")
         fine = f", fine agreement {h['fine_fitness']:.3f}" if h is not None else ""
         lines.append(f"    #{c['rank']} map x {x:.1f} y {y:.1f} z {z:.1f} (not a position; {why}): plane fitness "
                      f"{c['plane_fitness']:.3f}{fine}; {c['source']}")

@@ -125,12 +125,12 @@ def _failure(ctx: VerifyContext, best: Refined) -> str:
     p = ctx.p
     f, e, pf_best = best.ic.fitness, best.ic.inlier_rmse_m, best.pf
     if pf_best < p.min_plane_fitness:
-        return (f"the best placement has only {100 * pf_best:.0f} % of the scan points within "
+        return (f"the first-ranked placement (#0) has only {100 * pf_best:.0f} % of the scan points within "
                 f"{ctx.tol:.3g} m of the map surface (need {100 * p.min_plane_fitness:.0f} %; "
                 f"ICP fitness {f:.3f}): no placement matches the drift's shape — the scan is probably not in "
                 "the mapped area, the map changed there, or the right place was not found")
     if f < p.min_fitness:
-        return (f"the best placement explains only {100 * f:.0f} % of the scan points within "
+        return (f"the first-ranked placement (#0) explains only {100 * f:.0f} % of the scan points within "
                 f"{p.icp_max_correspondence_m:g} m of the map (need {100 * p.min_fitness:.0f} %): the scan is "
                 "probably not in the mapped area, or the map changed there")
     if e > p.max_inlier_rmse_m:
@@ -175,7 +175,8 @@ def decide(ctx: VerifyContext, refined: list[Refined], r0, work_origin: np.ndarr
                 f"eigenvalue ratio {ic_best.degeneracy_ratio:.2e} < {p.degeneracy_ratio:g}")
     if status == "ok":
         reason = (f"ICP fitness {f:.3f}, inlier RMSE {e:.3f} m, plane fitness {pf_best:.3f}; "
-                  + (f"{len(hyps) - 1} other hypothesis(es) verified and clearly worse"
+                  + (f"{len(hyps) - 1} other hypothesis(es) verified, none of them elsewhere reaching "
+                     f"{amb_ratio:g} x its plane fitness and {fine_ratio:.3g} x its fine agreement"
                      if len(hyps) > 1 else "no competing hypothesis found by RANSAC"))
     if r0.ambiguity_ratio >= p.ambiguity_ratio and not (status == "ambiguous" and rivals):
         warnings.append(f"RANSAC's runner-up scored {r0.ambiguity_ratio:.2f} of the best; ICP verification "

@@ -53,7 +53,8 @@ def plot_localization_png(res, prepared, max_map_points: int = 40000, seed: int 
 
     ``ok``: map (grey), placed scan and trajectory, overview and detail. ``failed`` /
     ``ambiguous``: the map and the scan origin of each rejected candidate, marked ``x`` and
-    numbered, titled "rejected candidates — NOT positions"; no placed scan, no trajectory.
+    numbered, titled "rejected candidates — NOT positions", in the map frame as their table;
+    no placed scan, no trajectory.
     """
     try:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -65,8 +66,10 @@ def plot_localization_png(res, prepared, max_map_points: int = 40000, seed: int 
     if M.shape[0] > max_map_points:
         idx = np.sort(np.random.default_rng(seed).choice(M.shape[0], max_map_points, replace=False))
         M = M[idx]
-    Mx = _frame_xy(g, M)
     ok = res.status == "ok"
+    if not ok:  # the rejected candidates are drawn in the map frame, as their table
+        g = None
+    Mx = _frame_xy(g, M)
     fig = Figure(figsize=(11, 5.2) if ok else (7.5, 5.2), dpi=100)
     FigureCanvasAgg(fig)
     axes = [fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)] if ok else [fig.add_subplot(1, 1, 1)]
@@ -90,14 +93,14 @@ def plot_localization_png(res, prepared, max_map_points: int = 40000, seed: int 
             from minegeo.localize.pipeline import rejected_candidates
 
             cands = rejected_candidates(res)
-            if cands:
-                C = _frame_xy(g, np.array([c["origin_map_m"] for c in cands]))
+            if cands:  # map frame, as the rejected-candidates table (never CRS coordinates)
+                C = np.array([c["origin_map_m"] for c in cands])
                 ax.plot(C[:, 0], C[:, 1], "x", c="tab:red", ms=9, mew=2,
                         label="rejected candidates (NOT positions)")
                 for c, xy in zip(cands, C, strict=True):
                     ax.annotate(f"#{c['rank']}", xy[:2], xytext=(4, 4), textcoords="offset points", fontsize=8,
                                 color="tab:red")
-            ax.set_title(f"{res.status.upper()}: rejected candidates — NOT positions")
+            ax.set_title(f"{res.status.upper()}: rejected candidates — NOT positions (map frame)")
         if ok and k == 1 and Sx.shape[0]:
             c = Sx[:, :2].mean(axis=0)
             r = max(float(np.max(np.ptp(Sx[:, :2], axis=0))) * 0.75, 5.0)
@@ -208,24 +211,51 @@ def _mat(T) -> str:
     return "<pre>" + esc("\n".join(" ".join(f"{v:14.6f}" for v in row) for row in np.asarray(T))) + "</pre>"
 
 
+#: How the verified hypotheses are ranked (:func:`minegeo.localize.decision.hypothesis_records`).
+RANKING = ("ranked fully refined first (a candidate screened out on the coarse scan last), then by fine agreement "
+           "(share of the scan within the fine tolerance of the map surface), plane fitness, ICP fitness")
+
+
+def rank_reason(h: dict, h0: dict) -> str:
+    """Why the verified hypothesis ``h`` ranks below ``h0`` (ranked first), by the ranking's own
+    criterion (:data:`RANKING`): the first key that differs at the printed 3 decimals."""
+    if "screened out" in h["source"] and "screened out" not in h0["source"]:
+        return "screened out on the coarse scan"
+    for key, name in (("fine_fitness", "fine agreement"), ("plane_fitness", "plane fitness"),
+                      ("icp_fitness", "ICP fitness")):
+        if f"{h[key]:.3f}" != f"{h0[key]:.3f}":
+            return f"{name} {h[key]:.3f} vs {h0[key]:.3f} of #0"
+    return "fits as well as #0 to 3 decimals"
+
+
 def _rejected_section(res) -> str:
-    """Table of the rejected candidates of a failed / ambiguous result (map frame, not positions)."""
+    """Table of the rejected candidates of a failed / ambiguous result (map frame, not positions),
+    each against #0 by the ranking criterion."""
     from minegeo.localize.pipeline import rejected_candidates
 
     cands = rejected_candidates(res)
     if not cands:
         why = res.ransac.reason if res.ransac is not None else ""
         return f"<p>No candidate placement was proposed ({esc(why)}).</p>"
-    rows = [[c["rank"], c["source"], "NOT a position: " + "  ".join(f"{v:.1f}" for v in c["origin_map_m"]),
-             num(c["distance_to_best_m"], ".1f"), num(c["rotation_to_best_deg"], ".1f"), num(c["plane_fitness"], ".3f"),
-             num(c["icp_fitness"], ".3f"), num(c["icp_inlier_rmse_m"], ".3f")] for c in cands]
+    hyps = {int(h["rank"]): h for h in res.hypotheses or []}
+    h0 = hyps.get(0)
+    rows = []
+    for c in cands:
+        h = hyps.get(c["rank"])
+        why = "ranked first" if c["rank"] == 0 else (rank_reason(h, h0) if h is not None and h0 is not None else "")
+        rows.append([c["rank"], c["source"], "NOT a position: " + "  ".join(f"{v:.1f}" for v in c["origin_map_m"]),
+                     num(c["distance_to_best_m"], ".1f"), num(c["rotation_to_best_deg"], ".1f"),
+                     num(h["fine_fitness"] if h is not None else None, ".3f"), num(c["plane_fitness"], ".3f"),
+                     num(c["icp_fitness"], ".3f"), num(c["icp_inlier_rmse_m"], ".3f"), why])
     sec = ("<p><b>These placements were tried and rejected; none of them is the position of the scan.</b> "
            "The map-frame location is where the scan origin would be if that placement were right; it is given "
-           "to show how far apart the candidates are (a repeated drift), never to be used.</p>")
+           "to show how far apart the candidates are (a repeated drift), never to be used. The table and the plan "
+           f"view below are both in the map frame (x, y, z of the prior map, m). The candidates are {RANKING}.</p>")
     sec += table(["#", "candidate", "scan origin if this were right (map frame x y z, m)", "from #0 m",
-                  "from #0 °", "plane fitness", "ICP fitness", "ICP RMSE m"], rows, numeric=range(3, 8))
+                  "from #0 °", "fine agreement", "plane fitness", "ICP fitness", "ICP RMSE m", "below #0 by"], rows,
+                 numeric=range(3, 9))
     sec += (f"<p class='sub'>An ok result needs plane fitness >= {res.params.min_plane_fitness:g} and no distinct "
-            f"rival reaching {res.params.ambiguity_ratio:g} x the best (plane tolerance "
+            f"rival reaching {res.params.ambiguity_ratio:g} x #0's (plane tolerance "
             f"{num(res.plane_tolerance_m, '.3f')} m).</p>")
     return sec
 
@@ -346,7 +376,7 @@ def _hypotheses_section(res, ok: bool) -> str:
                       num(h["plane_rmse_m"], ".3f"), num(h["distance_to_chosen_m"], ".2f"),
                       num(h["rotation_to_chosen_deg"], ".2f")])
     r = res.ransac
-    ref = "chosen" if ok else "best rejected"
+    ref = "chosen" if ok else "#0"
     sec = table(["rank", "hypothesis", "RANSAC fitness", "RANSAC RMSE m", "ICP fitness", "ICP RMSE m",
                  "plane fitness", "plane RMSE m", f"distance to {ref} m", f"rotation to {ref} °"], hrows,
                 numeric=range(2, 10))

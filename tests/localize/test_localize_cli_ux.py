@@ -342,3 +342,41 @@ def test_prepare_map_prints_the_whole_wall_time(mine, tmp_path, capsys):
     t = json.loads((tmp_path / "b.npz.json").read_text())["timings_s"]
     parts = t["read"] + t["sha256"] + t["total"] + sum(t["search_structures"].values()) + t["write"]
     assert t["startup_s"] > 0 and wall + 0.05 >= t["process_wall_s"] >= t["startup_s"] + parts - 1e-9, (wall, t)
+
+
+def test_rank_reason_uses_the_ranking_criterion():
+    """A candidate with a higher plane fitness than #0 but a lower fine agreement (the ranking's
+    first score) is described by the fine agreement, never as fitting worse in plane fitness."""
+    from minegeo.report.localize_report import rank_reason
+
+    h0 = {"source": "ransac[0] best", "fine_fitness": 0.60, "plane_fitness": 0.80, "icp_fitness": 0.9}
+    h1 = {"source": "ransac[0] runner-up", "fine_fitness": 0.50, "plane_fitness": 0.90, "icp_fitness": 0.95}
+    assert rank_reason(h1, h0) == "fine agreement 0.500 vs 0.600 of #0"
+    assert rank_reason({**h0, "source": "x (screened out on the coarse scan)"}, h0) == "screened out on the coarse scan"
+    assert rank_reason({**h0, "fine_fitness": 0.6001}, h0) == "fits as well as #0 to 3 decimals"
+
+
+def test_rejected_candidates_plot_in_the_map_frame_as_their_table(mine, monkeypatch):
+    """Failed run on the georeferenced map: the plan view draws each rejected candidate at its
+    map-frame origin (the table's numbers), with map-frame axis labels, not E/N of the CRS."""
+    from matplotlib.axes import Axes
+
+    from minegeo.localize import LocalizeParams, localize_scan
+    from minegeo.localize.pipeline import rejected_candidates
+    from minegeo.report.localize_report import localize_report_html, plot_localization_png
+
+    c, tr, _ = mine["scans"]["elsewhere"]
+    res = localize_scan(mine["pm"], c, tr, LocalizeParams.fast(gravity_fallback=False), seed=0)
+    assert res.status == "failed" and rejected_candidates(res)
+    drawn, labels = [], []
+    real_plot, real_xl = Axes.plot, Axes.set_xlabel
+    monkeypatch.setattr(Axes, "plot", lambda self, *a, **k: (drawn.append((a, k)), real_plot(self, *a, **k))[1])
+    monkeypatch.setattr(Axes, "set_xlabel", lambda self, t, *a, **k: (labels.append(t), real_xl(self, t, *a, **k))[1])
+    assert plot_localization_png(res, mine["pm"]) is not None
+    xs = [np.asarray(a[0]) for a, k in drawn if "rejected" in str(k.get("label", ""))]
+    assert len(xs) == 1
+    table_x = [cd["origin_map_m"][0] for cd in rejected_candidates(res)]
+    np.testing.assert_allclose(xs[0], table_x, rtol=0, atol=1e-9)
+    assert labels and all(t == "x map (m)" for t in labels), labels
+    html = localize_report_html(res, mine["pm"])
+    assert "both in the map frame" in html and "below #0 by" in html
