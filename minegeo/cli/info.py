@@ -1,8 +1,15 @@
-"""``minegeo info FILE``: what is in a point-cloud, trajectory or control-point file.
+"""``minegeo info FILE``: what a file holds, told from its content, and a summary of it.
 
-Prints format, point count, bounds, attributes with dtypes, CRS, recorded origin, file
-size and SHA-256. ``--json OUT`` also writes the summary with provenance (versions,
-input hash) atomically. A file that cannot be read gives one line on stderr and exit 2.
+:func:`detect_kind` looks at the first bytes of the file (never its name alone): a point cloud
+(PLY, PCD, LAS/LAZ, E57, zip, xyz text), control points (a CSV header naming ``id x y z E N H``),
+a trajectory (TUM: 8 numbers a line with a unit quaternion and rising times; KITTI: 12 with an
+orthonormal rotation; CSV/GeoSLAM: a header naming the quaternion), a g2o pose graph
+(``VERTEX_*`` / ``EDGE_*`` records), a prepared map or an intersection base (``.npz`` archives
+told apart by their members) or a minegeo ``result.json``. ``--kind`` forces the kind. For a point
+cloud it prints format, point count, bounds, attributes with dtypes, CRS, recorded origin; for
+the other kinds their own summary; always the file size and SHA-256. ``--json OUT`` also writes
+the summary with provenance (versions, input hash) atomically. A file that cannot be read gives
+one line on stderr and exit 2.
 """
 
 from __future__ import annotations
@@ -13,20 +20,37 @@ from pathlib import Path
 
 import numpy as np
 
-HELP = "summarise a point-cloud / trajectory / control-point file: counts, bounds, attributes, CRS"
+HELP = ("tell what a file holds (point cloud, control points, trajectory, g2o pose graph, prepared map, "
+        "intersection base, result.json) and summarise it: counts, bounds, attributes, CRS")
 
 _TRAJ_SUFFIXES = (".tum", ".kitti")
+#: ``--kind`` values (``auto``: :func:`detect_kind`).
+KINDS = ("auto", "cloud", "gcp", "trajectory", "posegraph", "prepared_map", "intersection_base", "result")
+#: What each kind is called in the printout.
+KIND_TEXT = {
+    "cloud": "point cloud",
+    "gcp": "control points (GCP CSV)",
+    "trajectory": "trajectory",
+    "posegraph": "pose graph (g2o)",
+    "prepared_map": "prepared map (minegeo prepare-map)",
+    "intersection_base": "intersection base (minegeo intersections build)",
+    "result": "minegeo result record (result.json)",
+}
+#: Bytes read to tell the kind.
+_SNIFF_BYTES = 65536
+_TRAJ_FORMATS = ("tum", "kitti", "geoslam")
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("file", metavar="FILE", help="point cloud (ply pcd las laz xyz txt csv pts 3d e57 zip), "
-                        "trajectory (--kind trajectory) or GCP CSV (--kind gcp)")  # fmt: skip
+                        "trajectory (TUM, KITTI, CSV), GCP CSV, g2o pose graph, prepared map or intersection base "
+                        "(.npz), result.json")  # fmt: skip
     parser.add_argument("--format", default=None, help="file format if the suffix does not tell (e.g. pcd, tum)")
     parser.add_argument(
         "--kind",
-        choices=("auto", "cloud", "trajectory", "gcp"),
+        choices=KINDS,
         default="auto",
-        help="what the file holds (default: point cloud, or trajectory for .tum/.kitti)",
+        help="what the file holds (default auto: told from the content); a value forces it",
     )
     parser.add_argument("--json", metavar="OUT", default=None, help="also write the summary as JSON ('-' = stdout)")
 
@@ -79,6 +103,190 @@ def _gcp_info(path: Path) -> dict:
     }
 
 
+def _sniff_head(path: Path) -> bytes | None:
+    """The first :data:`_SNIFF_BYTES` of a regular file, else None (a FIFO or device is never
+    opened here: the reader of the kind refuses it)."""
+    import os
+    import stat
+
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return None
+        with open(path, "rb") as fh:
+            return fh.read(_SNIFF_BYTES)
+    except OSError:
+        return None
+
+
+def _npz_kind(path: Path) -> str | None:
+    """``prepared_map`` / ``intersection_base`` from the member names of an ``.npz`` archive."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            names = set(z.namelist())
+    except (OSError, zipfile.BadZipFile, ValueError):
+        return None
+    if {"meta.npy", "points.npy", "features.npy", "icp_points.npy"} <= names:
+        return "prepared_map"
+    if {"meta.npy", "cloud_points.npy", "invariant_points.npy"} <= names:
+        return "intersection_base"
+    return None
+
+
+def _numbers(line: str) -> list[float] | None:
+    """The numbers of a text line (comma, semicolon or white space), or None if one is not a number."""
+    delim = "," if "," in line else (";" if ";" in line else None)
+    toks = [t.strip() for t in line.split(delim)] if delim else line.split()
+    try:
+        vals = [float(t) for t in toks]
+    except ValueError:
+        return None
+    return vals if vals and all(np.isfinite(vals)) else None
+
+
+def _numeric_trajectory(rows: list[list[float]]) -> str | None:
+    """``tum`` when every row has 8 numbers, rising times and a unit quaternion (|q| within 1e-3
+    of 1); ``kitti`` when every row has 12 numbers whose 3x3 rotation is orthonormal (1e-3)."""
+    n = len(rows[0])
+    if any(len(r) != n for r in rows):
+        return None
+    A = np.asarray(rows, dtype=np.float64)
+    if n == 8:
+        q = np.linalg.norm(A[:, 4:8], axis=1)
+        if np.all(np.abs(q - 1.0) < 1e-3) and np.all(np.diff(A[:, 0]) > 0):
+            return "tum"
+    if n == 12:
+        R = A.reshape(-1, 3, 4)[:, :, :3]
+        err = np.abs(np.einsum("kji,kjl->kil", R, R) - np.eye(3)).max()
+        if err < 1e-3:
+            return "kitti"
+    return None
+
+
+def _text_kind(path: Path, head: bytes) -> tuple[str, str | None, str]:
+    """Kind, format hint and why, from the first lines of a text file."""
+    text = head.decode("utf-8", errors="replace").lstrip("\ufeff")
+    lines = text.splitlines()
+    if len(head) == _SNIFF_BYTES and lines:
+        lines = lines[:-1]  # the last line may be cut
+    body = [ln.strip() for ln in lines if ln.strip() and not ln.strip().startswith(("#", "//"))]
+    if not body:
+        return "cloud", None, "no data lines"
+    first = body[0]
+    if first.startswith("{"):
+        return "result", None, "a JSON object"
+    word = first.split()[0].upper()
+    if word.startswith(("VERTEX_SE", "EDGE_SE")) or word == "FIX":
+        return "posegraph", None, f"g2o records ({word})"
+    if _numbers(first) is None:  # a header line
+        delim = "," if "," in first else (";" if ";" in first else ("\t" if "\t" in first else None))
+        names = [t.strip().lower() for t in (first.split(delim) if delim else first.split())]
+        from minegeo.io.gcp import _ALIASES, _REQUIRED
+
+        canon = {_ALIASES.get(n, n) for n in names}
+        if set(_REQUIRED) <= canon:
+            return "gcp", None, "a header naming id, local x y z and E N H"
+        if "qw" in names or "q0" in names:
+            return "trajectory", None, "a header naming a quaternion"
+        return "cloud", None, "a header without quaternion or control-point columns"
+    rows = []
+    for ln in body[:200]:
+        r = _numbers(ln)
+        if r is None:
+            break
+        rows.append(r)
+    fmt = _numeric_trajectory(rows)
+    if fmt == "tum":
+        return "trajectory", "tum", "8 numbers a line: rising times and unit quaternions (TUM)"
+    if fmt == "kitti":
+        return "trajectory", "kitti", "12 numbers a line: orthonormal rotations (KITTI)"
+    return "cloud", None, f"{len(rows[0]) if rows else 0} numbers a line"
+
+
+def detect_kind(path) -> tuple[str, str | None, str]:
+    """What a file holds, from its content: ``(kind, format hint or None, why)``.
+
+    ``kind`` is one of :data:`KINDS` (not ``auto``). Binary signatures first (PLY, PCD, LAS,
+    E57, zip/npz: a prepared map or an intersection base by its members, else a zipped cloud),
+    then the first data lines of a text file (:func:`_text_kind`). A file that is not regular
+    (FIFO, device) or unreadable is called a point cloud by its name (``.tum``/``.kitti``: a
+    trajectory), and its reader gives the error.
+    """
+    p = Path(path)
+    head = _sniff_head(p)
+    if head is None or not head:
+        if p.suffix.lower() in _TRAJ_SUFFIXES:
+            return "trajectory", None, "its suffix"
+        return "cloud", None, "its suffix" if head is None else "an empty file"
+    if head.startswith(b"PK\x03\x04"):
+        k = _npz_kind(p)
+        return (k, None, "its archive members") if k else ("cloud", None, "a zip archive")
+    for magic, fmt in ((b"ply", "PLY"), (b"LASF", "LAS"), (b"ASTM-E57", "E57")):
+        if head.startswith(magic):
+            return "cloud", None, f"{fmt} signature"
+    if head.lstrip().startswith((b"# .PCD", b"VERSION")) or b"\nDATA " in head[:4096]:
+        return "cloud", None, "PCD header"
+    if b"\x00" in head[:4096]:
+        return "cloud", None, "binary content"
+    if p.suffix.lower() in _TRAJ_SUFFIXES:
+        return "trajectory", None, "its suffix"
+    return _text_kind(p, head)
+
+
+def _posegraph_info(path: Path) -> dict:
+    from minegeo._provenance import sha256_file
+    from minegeo.io.g2o import read_g2o
+
+    g = read_g2o(path)
+    pos = g.poses[:, :-1, -1]
+    return {"path": str(path), "kind": "posegraph", "pose_type": g.kind, "vertices": g.n_vertices,
+            "edges": g.n_edges, "fixed": list(g.fixed), "chained_vertices": len(g.chained_ids),
+            "bounds_min": pos.min(axis=0).tolist() if len(pos) else None,
+            "bounds_max": pos.max(axis=0).tolist() if len(pos) else None,
+            "size_bytes": path.stat().st_size, "sha256": sha256_file(path)}
+
+
+def _prepared_map_info(path: Path) -> dict:
+    from minegeo._provenance import sha256_file
+    from minegeo.localize.prepared import PreparedMap, _profile_name
+
+    pm = PreparedMap.load(path)
+    P = pm.points_map()
+    return {"path": str(path), "kind": "prepared_map", "points": len(pm), "icp_points": int(pm.icp_points.shape[0]),
+            "profile": _profile_name(pm.params) or "values of no profile (e.g. --voxel)",
+            "voxel_size_m": pm.params.voxel_size_m, "crs": pm.crs, "work_origin": pm.work_origin.tolist(),
+            "bounds_min_map": P.min(axis=0).tolist(), "bounds_max_map": P.max(axis=0).tolist(),
+            "params_hash": pm.params_hash, "size_bytes": path.stat().st_size, "sha256": sha256_file(path)}
+
+
+def _intersection_base_info(path: Path) -> dict:
+    from minegeo._provenance import sha256_file
+    from minegeo.semantic.knowledge import IntersectionKB
+
+    kb = IntersectionKB.load(path)
+    return {"path": str(path), "kind": "intersection_base", "intersections": len(kb), "status": kb.status,
+            "reason": kb.reason, "crs": (kb.georef or {}).get("crs"),
+            "size_bytes": path.stat().st_size, "sha256": sha256_file(path)}
+
+
+def _result_info(path: Path) -> dict:
+    """A minegeo result record: its status and reason (never a position: see its report)."""
+    from minegeo._provenance import sha256_file
+    from minegeo.errors import FileFormatError
+    from minegeo.io._json import MAX_JSON_BYTES, load_json_text
+    from minegeo.io._limits import read_file_bytes
+
+    raw = read_file_bytes(path, max_bytes=MAX_JSON_BYTES, what="result.json")
+    d = load_json_text(raw, path, allow_nonfinite=True)  # minegeo writes inf radii as Infinity
+    if not isinstance(d, dict) or not ({"status", "verb", "provenance", "versions"} & set(d)):
+        raise FileFormatError(path, "a JSON file but not a minegeo result record (no status, verb or provenance)")
+    return {"path": str(path), "kind": "result", "verb": d.get("verb"), "status": d.get("status"),
+            "reason": d.get("reason"), "profile": d.get("profile"), "crs": d.get("crs"), "seed": d.get("seed"),
+            "inputs": [i.get("path") for i in d.get("inputs") or [] if isinstance(i, dict)],
+            "size_bytes": path.stat().st_size, "sha256": sha256_file(path)}
+
+
 def _print_e57_scans(meta: dict) -> None:
     """The scans of an E57 file and their poses (scan frame -> file frame)."""
     from minegeo.io._quat import matrix_to_quat
@@ -123,6 +331,22 @@ def _print_cloud(info: dict) -> None:
     print(f"sha256    {info['sha256']}")
 
 
+def resolve_kind(path: Path, kind: str, fmt: str | None) -> tuple[str, str | None, str]:
+    """``(kind, format, how it was told)``: ``--kind`` when given; with ``--format`` a trajectory
+    format (tum, kitti, geoslam) means a trajectory and any other a point cloud; else
+    :func:`detect_kind`."""
+    if kind != "auto":
+        return kind, fmt, "--kind"
+    if fmt is not None:
+        return ("trajectory" if str(fmt).lower() in _TRAJ_FORMATS else "cloud"), fmt, "--format"
+    k, f, why = detect_kind(path)
+    return k, f, f"detected: {why}"
+
+
+_READERS = {"gcp": _gcp_info, "posegraph": _posegraph_info, "prepared_map": _prepared_map_info,
+            "intersection_base": _intersection_base_info, "result": _result_info}
+
+
 def run(args) -> int:
     from minegeo._output import OutputTransaction, check_outputs
     from minegeo._provenance import provenance, to_jsonable, write_json_atomic
@@ -134,27 +358,27 @@ def run(args) -> int:
     out_json = args.json if args.json and args.json != "-" else None
     # an output never equals or lies inside an input: checked before the file is even read
     check_outputs({"FILE": path}, files={"--json": out_json})
-    kind = args.kind
-    if kind == "auto":
-        kind = "trajectory" if path.suffix.lower() in _TRAJ_SUFFIXES else "cloud"
+    kind, fmt, how = resolve_kind(path, args.kind, args.format)
     if kind == "cloud":
-        info = cloud_info(path, format=args.format)
+        info = cloud_info(path, format=fmt)
         info["kind"] = "cloud"
     elif kind == "trajectory":
-        info = _trajectory_info(path, args.format)
+        info = _trajectory_info(path, fmt)
     else:
-        info = _gcp_info(path)
+        info = _READERS[kind](path)
+    info["kind_text"] = f"{KIND_TEXT[kind]} ({how})"
     if args.json != "-":
+        print(f"{'kind':<14} {info['kind_text']}")
         if kind == "cloud":
             _print_cloud(info)
         else:
             for k, v in info.items():
-                if k != "ids":
-                    print(f"{k:<14} {v}")
+                if k not in ("ids", "kind", "kind_text"):
+                    print(f"{k:<14} {'-' if v is None else v}")
     if args.json:
         doc = {
             "verb": "info",
-            "parameters": {"file": str(path), "format": args.format, "kind": kind},
+            "parameters": {"file": str(path), "format": args.format, "kind": kind, "kind_asked": args.kind},
             "result": info,
             "provenance": provenance(seed=None, origin=None, inputs=[{"path": str(path), "sha256": info["sha256"],
                                                                       "size_bytes": info["size_bytes"]}]),
