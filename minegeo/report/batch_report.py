@@ -54,7 +54,7 @@ def plot_batch_png(rows, prepared, max_map_points: int = 40000) -> bytes | None:
         from matplotlib.figure import Figure
     except ImportError:
         return None
-    from minegeo.report.localize_report import _frame_xy
+    from minegeo.report.localize_report import _frame_xy, label_offsets
 
     g = prepared.georef_result
     M = prepared.points_map()
@@ -72,9 +72,10 @@ def plot_batch_png(rows, prepared, max_map_points: int = 40000) -> bytes | None:
         O = _frame_xy(g, np.array([T[:3, 3] for _, T in placed]))
         X = _frame_xy(g, np.array([T[:3, 3] + 4.0 * T[:3, 0] for _, T in placed]))
         ax.plot(O[:, 0], O[:, 1], "o", c="tab:green", ms=5, label="scan origin (ok)")
-        for (k, _), o, x in zip(placed, O, X, strict=True):
+        sep = 0.04 * float(max(np.ptp(Mx[:, 0]), np.ptp(Mx[:, 1]), 1.0)) if len(Mx) else 1.0
+        for (k, _), o, x, off in zip(placed, O, X, label_offsets(O[:, :2], sep, step_pt=9.0), strict=True):
             ax.plot([o[0], x[0]], [o[1], x[1]], "-", c="tab:green", lw=1.0)
-            ax.annotate(str(k), o[:2], xytext=(4, 4), textcoords="offset points", fontsize=7, color="tab:green")
+            ax.annotate(str(k), o[:2], xytext=off, textcoords="offset points", fontsize=7, color="tab:green")
     ax.set_title(f"{len(placed)} of {len(rows)} scans placed (ok); line: scan x axis")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, color="0.92")

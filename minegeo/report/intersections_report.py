@@ -67,6 +67,7 @@ def plot_track_png(kb, xy: np.ndarray, recognised: np.ndarray, err_m: np.ndarray
     if kb is not None and len(kb):
         P = kb.cloud_points[:: max(1, len(kb.cloud_points) // 30000)]
         ax.plot(P[:, 0], P[:, 1], ",", color="0.75")
+        ax.plot([], [], "s", color="0.75", ms=5, label="prior map (points around the base's intersections)")
         ax.plot(kb.invariant_points[:, 0], kb.invariant_points[:, 1], "s", mfc="none", color="k", ms=8,
                 label="knowledge-base intersections")
         for i, c in enumerate(kb.invariant_points):

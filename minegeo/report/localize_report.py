@@ -48,6 +48,21 @@ def _frame_xy(g, pts_map: np.ndarray):
     return pts_map
 
 
+def label_offsets(xy, min_sep: float, step_pt: float = 10.0) -> list[tuple[float, float]]:
+    """Text offsets (points) for the labels of the points ``xy`` (n, 2) so that labels do not overlap.
+
+    Deterministic: label ``i`` sits ``(4, 4 + step_pt * j)`` points from its point, ``j`` the
+    number of earlier points closer than ``min_sep`` (data units) to it, so the labels of nearby
+    points (e.g. two candidates 0.1 m apart) are stacked in their order and far ones keep (4, 4).
+    """
+    P = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    out = []
+    for i in range(P.shape[0]):
+        j = int(np.count_nonzero(np.hypot(*(P[:i] - P[i]).T) < min_sep)) if i else 0
+        out.append((4.0, 4.0 + step_pt * j))
+    return out
+
+
 def plot_localization_png(res, prepared, max_map_points: int = 40000, seed: int = 0) -> bytes | None:
     """Plan view as PNG bytes (None without matplotlib).
 
@@ -97,8 +112,9 @@ def plot_localization_png(res, prepared, max_map_points: int = 40000, seed: int 
                 C = np.array([c["origin_map_m"] for c in cands])
                 ax.plot(C[:, 0], C[:, 1], "x", c="tab:red", ms=9, mew=2,
                         label="rejected candidates (NOT positions)")
-                for c, xy in zip(cands, C, strict=True):
-                    ax.annotate(f"#{c['rank']}", xy[:2], xytext=(4, 4), textcoords="offset points", fontsize=8,
+                sep = 0.04 * float(max(np.ptp(Mx[:, 0]), np.ptp(Mx[:, 1]), 1.0)) if len(Mx) else 1.0
+                for c, xy, off in zip(cands, C, label_offsets(C[:, :2], sep), strict=True):
+                    ax.annotate(f"#{c['rank']}", xy[:2], xytext=off, textcoords="offset points", fontsize=8,
                                 color="tab:red")
             ax.set_title(f"{res.status.upper()}: rejected candidates — NOT positions (map frame)")
         if ok and k == 1 and Sx.shape[0]:

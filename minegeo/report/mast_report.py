@@ -217,6 +217,8 @@ def plot_mast(result, beacons) -> bytes | None:
         axz.set_ylim(c[1] - r, c[1] + r)
         axz.set_aspect("equal")
         axz.set_title(f"beacon {b.beacon_id}", fontsize=9)
+        axz.set_xlabel("Easting x (m)", fontsize=8)
+        axz.set_ylabel("Northing y (m)", fontsize=8)
         axz.legend(loc="best", fontsize=7)
         axz.ticklabel_format(useOffset=False, style="plain")
         axz.tick_params(axis="x", labelrotation=30)
