@@ -254,20 +254,70 @@ def test_deterministic(net):
     assert np.array_equal(a.invariant_points, b.invariant_points) and np.array_equal(a.cwc, b.cwc)
 
 
+def _seg_dist(P, a, b):
+    """Distance (m) of the points P (k, 2) to the segment a-b."""
+    ab = b - a
+    t = np.clip(((P - a) @ ab) / (ab @ ab), 0.0, 1.0)
+    return np.linalg.norm(P - (a + t[:, None] * ab), axis=1)
+
+
+def _layout_defects(net, search_m=2.0):
+    """What the straight-line layout makes of the topology, from the network geometry alone (no detector).
+
+    Returns (ill_posed, contacts): ``ill_posed`` (k,) bool per junction (in ``net.junctions()`` order):
+    two of its drifts at angle a do not separate before the shorter one ends (centrelines a width w apart
+    only after ``w / sin(min(a, 90 deg))``: one tunnel in the cloud, no fork), or its largest empty circle
+    lies beyond ``search_m`` (the reference point ``junction_truth(net, search_m)`` is then the edge of the
+    search, not the invariant point). ``contacts`` (m, 2): points of a drift within one width of a
+    non-adjacent drift (walls touching: a junction of the generated geometry, absent from the topology).
+    """
+    A, B, w = net.nodes[net.edges[:, 0]], net.nodes[net.edges[:, 1]], net.widths
+    ill = []
+    for n in net.junctions():
+        inc = np.flatnonzero((net.edges == n).any(axis=1))
+        v = [net.nodes[net.edges[e][net.edges[e] != n][0]] - net.nodes[n] for e in inc]
+        merged = False
+        for a in range(len(inc)):
+            for b in range(a + 1, len(inc)):
+                ang = np.arccos(np.clip(v[a] @ v[b] / np.linalg.norm(v[a]) / np.linalg.norm(v[b]), -1.0, 1.0))
+                sep = max(w[inc[a]], w[inc[b]]) / np.sin(min(ang, np.pi / 2))
+                merged |= bool(sep >= min(np.linalg.norm(v[a]), np.linalg.norm(v[b])))
+        ill.append(merged)
+    shift = np.linalg.norm(junction_truth(net, 3 * search_m) - junction_truth(net, search_m), axis=1)
+    ill = np.asarray(ill) | (shift > 0.1)
+    contacts = []
+    s = np.linspace(0.0, 1.0, 1001)[:, None]
+    for i in range(len(net.edges)):
+        P = A[i] + s * (B[i] - A[i])
+        for j in range(len(net.edges)):
+            if i != j and not set(net.edges[i]) & set(net.edges[j]):
+                contacts.append(P[_seg_dist(P, A[j], B[j]) < 0.5 * (w[i] + w[j])])
+    return ill, np.concatenate(contacts)
+
+
 def test_niosh_ex_layout():
-    """The NIOSH EX course topology laid out by stress majorization: most of its 19 junctions are found
-    at their exact invariant points; the extras are where the straight-line layout makes two drifts
-    touch (a limitation of the layout, documented in docs/intersections.md)."""
+    """The NIOSH EX course topology laid out by stress majorization. The junctions the layout leaves
+    well posed (read off the geometry by ``_layout_defects``, not off the detector) are all found at their
+    exact invariant points (1 m; median 0.1 m); every extra intersection lies where the layout makes two
+    non-adjacent drifts touch (within one drift width of the contact) or at an ill-posed junction's
+    invariant point (a limitation of the layout, documented in docs/intersections.md)."""
     net = niosh_network(shared_data("subt_tunnel_niosh_mine", "ex_edgelist.csv"))
     assert len(net.junctions()) == 19
     kb = build_knowledge_base(network_cloud(net, seed=1).points,
                               KBParams(SkeletonParams(min_branch_m=2.5, merge_radius_m=2.0, refine_radius_m=2.0)))
+    ill, contacts = _layout_defects(net, 2.0)
+    assert 0 < ill.sum() <= 4 and len(contacts) > 0      # the layout's defects are few, and present
     truth = junction_truth(net, 2.0)
     d = np.hypot(*(kb.invariant_points[:, None, :2] - truth[None]).transpose(2, 0, 1))
-    found = d.min(axis=0) < 1.0
-    assert found.sum() >= 16                        # measured 16 / 19
-    assert np.median(d.min(axis=0)[found]) < 0.1    # measured 0.05 m
-    assert (d.min(axis=1) > 1.0).sum() <= 4         # measured 4 extras (touching drifts)
+    err = d.min(axis=0)[~ill]
+    assert np.all(err < 1.0), f"well-posed junctions missed: {np.flatnonzero(~ill)[err >= 1.0].tolist()}"
+    assert np.median(err) < 0.1
+    ill_points = junction_truth(net, 6.0)[ill]         # their largest empty circles, searched wider
+    for k in np.flatnonzero(d.min(axis=1) > 1.0):
+        x = kb.invariant_points[k, :2]
+        near_contact = np.min(np.linalg.norm(contacts - x, axis=1)) <= net.widths.max()
+        near_ill = np.min(np.linalg.norm(ill_points - x, axis=1)) <= 1.0
+        assert near_contact or near_ill, f"extra intersection at {x.round(2).tolist()} with no cause in the layout"
 
 
 def test_online_side_finds_the_same_invariant_point(kb, net):
