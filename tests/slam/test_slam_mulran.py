@@ -10,12 +10,16 @@ thresholds are read from that sentence and from the issue, not fitted to minegeo
 * ``TRUST_ROT_DEG = 0.5`` deg per relative pose: "a few tenths of a degree", up to five tenths;
 * ``TYPICAL_T_M = 0.10`` m for the median pair: "decimetre-level";
 * ``MIN_WITHIN = 0.95``: at least 95 % of the 99 pairs within both bounds, and each pair outside them
-  must be a pair where the *reference* is the odd one out, shown from the scans themselves: GICP
+  must be a pair where the *reference* is the odd one out, shown from the scans themselves with
+  nothing of minegeo's registration: small_gicp's GICP (the oracle, ``helpers.require_oracle``)
   started at the reference's relative pose leaves it and ends within the trust bounds of minegeo's
   estimate (the reference is not a fit of the two scans, minegeo's is the one next to it), and the
   reference leaves the two scans further apart than minegeo's pose (median nearest-neighbour
   distance of the raw points within 50 m, by at least 1 cm). Three such pairs are known: keyframes
-  34, 35 and 62, where the reference's relative pose misaligns the scans by 0.3-1.9 m;
+  34, 35 and 62, where the reference's relative pose misaligns the scans by 0.3-1.9 m (small_gicp from
+  the reference ends 0.165 / 0.022 / 0.003 m from minegeo's pose);
+* every one of minegeo's 99 relative poses is a fit for small_gicp too: started there, it stays within
+  the same trust bounds;
 * the path length within 1 % of the reference's (the issue's wording).
 
 Parameters: every frame is a keyframe (``keyframe_interval_s=0.1``, below the smallest time step,
@@ -30,17 +34,18 @@ path ratio 0.829). The odometry now also tries the previous motion scaled to the
 the steps differ by more than 25 %) and keeps the better overlap.
 
 The data folder missing: skipped with the reason, or failed under ``MINEGEO_REQUIRE_SHARED_DATA=1``
-(``helpers.shared_data``). Runtime about 20 s on 2 shared cores.
+(``helpers.shared_data``); small_gicp missing: skipped, or failed under ``MINEGEO_REQUIRE_ORACLE=1``.
+Runtime about 40 s on 2 shared cores.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import shared_data
+from helpers import require_oracle, shared_data
 
 from minegeo.io.frames import read_frame
-from minegeo.slam.odometry import OdometryParams, prepare_frame, register_frames, run_odometry
+from minegeo.slam.odometry import OdometryParams, run_odometry
 
 TRUST_T_M = 0.30
 TRUST_ROT_DEG = 0.5
@@ -49,6 +54,7 @@ MIN_WITHIN = 0.95
 ARBITER_MARGIN_M = 0.01
 ARBITER_RANGE_M = 50.0
 PATH_TOL = 0.01
+ORACLE_VOXEL_M, ORACLE_GATE_M, ORACLE_ITERS = 0.3, 1.0, 64
 
 PARAMS = OdometryParams(keyframe_interval_s=0.1)
 
@@ -99,18 +105,30 @@ def scan_gap_m(source: np.ndarray, target: np.ndarray, T: np.ndarray) -> float:
     return float(np.median(d))
 
 
-def reference_is_the_odd_one(source, target, Z_ref, Z_est, R_world, params=PARAMS) -> tuple[bool, str]:
+def oracle_gicp(source, target, T_init) -> np.ndarray:
+    """small_gicp's GICP (the oracle, not minegeo's) of the raw ``source`` into ``target`` from ``T_init``
+    (target ← source): the same voxel (0.3 m) and gate (1 m) as minegeo's odometry, one thread."""
+    small_gicp = require_oracle("small_gicp")
+    res = small_gicp.align(np.ascontiguousarray(target, dtype=np.float64),
+                           np.ascontiguousarray(source, dtype=np.float64), np.asarray(T_init, dtype=np.float64),
+                           registration_type="GICP", downsampling_resolution=ORACLE_VOXEL_M,
+                           max_correspondence_distance=ORACLE_GATE_M, num_threads=1, max_iterations=ORACLE_ITERS)
+    return np.asarray(res.T_target_source)
+
+
+def reference_is_the_odd_one(source, target, Z_ref, Z_est, R_world) -> tuple[bool, str]:
     """The reference's relative pose ``Z_ref`` (target ← source) is not a fit of the scans, and
-    minegeo's ``Z_est`` is: GICP from ``Z_ref`` ends within the trust bounds of ``Z_est``, and
-    ``Z_ref`` leaves the scans at least ``ARBITER_MARGIN_M`` further apart than ``Z_est``."""
-    src, tgt = prepare_frame(source, 0.0, params), prepare_frame(target, 0.0, params)
-    Z_fit = register_frames(src, tgt, Z_ref, params).T
+    minegeo's ``Z_est`` is: small_gicp's GICP started at ``Z_ref`` leaves it and ends within the trust
+    bounds of ``Z_est``, and ``Z_ref`` leaves the scans at least ``ARBITER_MARGIN_M`` further apart than
+    ``Z_est`` (raw nearest-neighbour distances). Neither judgement uses minegeo's registration."""
+    Z_fit = oracle_gicp(source, target, Z_ref)
     diff = pose_difference(Z_est[None], Z_fit[None], R_world[None])
     near = diff["translation_m"][0] <= TRUST_T_M and diff["rotation_deg"][0] <= TRUST_ROT_DEG
     gap_ref, gap_est = scan_gap_m(source, target, Z_ref), scan_gap_m(source, target, Z_est)
     ok = near and gap_ref >= gap_est + ARBITER_MARGIN_M
-    return ok, (f"GICP from the reference ends {diff['translation_m'][0]:.3f} m / {diff['rotation_deg'][0]:.3f} deg "
-                f"from minegeo's pose; scan gap {gap_ref:.3f} m (reference) vs {gap_est:.3f} m (minegeo)")
+    return ok, (f"small_gicp from the reference ends {diff['translation_m'][0]:.3f} m / "
+                f"{diff['rotation_deg'][0]:.3f} deg from minegeo's pose; scan gap {gap_ref:.3f} m (reference) "
+                f"vs {gap_est:.3f} m (minegeo)")
 
 
 @pytest.fixture(scope="module")
@@ -148,6 +166,19 @@ def test_relative_poses_agree_with_the_reference_within_its_trust(mulran):
             unexplained.append(f"keyframe {i + 1}: {t[i]:.3f} m / {rot[i]:.3f} deg off; {why}")
     assert not unexplained, "beyond the reference's trust, and the reference is not shown wrong:\n" + "\n".join(
         unexplained)
+
+
+def test_every_relative_pose_is_a_fit_for_an_independent_gicp(mulran):
+    """small_gicp (the oracle) started at each of minegeo's 99 relative poses stays within the reference's
+    trust bounds of it (measured: median 0.016 m / 0.04 deg, max 0.20 m / 0.29 deg): minegeo's poses are
+    minima of another implementation's GICP cost on the raw scans, not of its own only."""
+    frames, ref, odo = mulran
+    Ze = relative(odo.poses)
+    Zf = np.stack([oracle_gicp(frames[i + 1][1], frames[i][1], Ze[i]) for i in range(len(Ze))])
+    diff = pose_difference(Ze, Zf, ref[:-1, :3, :3])
+    bad = np.flatnonzero((diff["translation_m"] > TRUST_T_M) | (diff["rotation_deg"] > TRUST_ROT_DEG))
+    assert bad.size == 0, [(int(i) + 1, round(float(diff["translation_m"][i]), 3),
+                            round(float(diff["rotation_deg"][i]), 3)) for i in bad]
 
 
 def test_path_length_within_one_percent(mulran):
