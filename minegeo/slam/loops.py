@@ -117,7 +117,7 @@ def find_loop(k: int, poses: np.ndarray, path_m: np.ndarray, frames: list[Prepar
     tried, world = [], []
     for j in candidates(k, poses[:, :3, 3], path_m, params):
         guess = relative(poses[j], poses[k])  # T_j_k from the odometry (re-projected onto SE(3))
-        reg = register_frames(frames[k], frames[j], guess, odo)
+        reg = register_frames(frames[k], frames[j], guess, odo, trusted_init=True)
         T_jk = project(reg.T)
         corr = relative(guess, T_jk)
         limit_m = max(params.max_correction_m, params.max_correction_per_path * float(path_m[k] - path_m[j]))

@@ -241,18 +241,21 @@ def _prepared_frames(frames: Iterable[tuple[float, np.ndarray]], params: Odometr
 
 
 def register_frames(source: PreparedFrame, target: PreparedFrame, T_init: np.ndarray,
-                    params: OdometryParams) -> Registration:
+                    params: OdometryParams, *, trusted_init: bool = False) -> Registration:
     """GICP of ``source`` into ``target`` from ``T_init``; a verdict and the edge information.
 
-    ``T_init`` is a transform the odometry composed (:func:`minegeo.geometry.se3.compose`), checked
-    as an internal invariant (``register_gicp(..., trusted_init=True)``)."""
+    ``T_init`` (target ← source) is the caller's input, checked as such by :func:`register_gicp`
+    (a proper rigid transform to 1e-6, else :class:`~minegeo.errors.InputError`), unless
+    ``trusted_init``: the odometry and loop closure pass the transforms they composed themselves
+    (:func:`minegeo.geometry.se3.compose`), checked as an internal invariant (off SE(3) by more than
+    1e-9 is :class:`~minegeo.errors.InternalError`, a bug)."""
     if source.index is None or target.index is None:
         n = min(source.points.shape[0], target.points.shape[0])
         return Registration(T_init, False, f"too few points after downsampling ({n} < {params.min_points})",
                             0.0, float("nan"), np.zeros((6, 6)))
     res = register_gicp(source.points, target.points, T_init, params.gicp(), source_covariances=source.covariances,
                         target_covariances=target.covariances, target_index=target.index, check_target=False,
-                        trusted_init=True)
+                        trusted_init=trusted_init)
     reason = ""
     if res.fitness < params.min_fitness:
         reason = f"overlap {res.fitness:.2f} below {params.min_fitness:.2f}"
@@ -282,16 +285,16 @@ def _register_with_retries(cur: PreparedFrame, prev: PreparedFrame, guess: np.nd
     the "no motion" pose of ``cur`` in ``prev``'s frame (identity for the previous frame; the previous
     frame's pose for a local map)."""
     still = np.eye(4) if still is None else still
-    reg = _plausible(register_frames(cur, prev, guess, params), guess, params)
+    reg = _plausible(register_frames(cur, prev, guess, params, trusted_init=True), guess, params)
     if (reg.ok and (reg.converged or reg.fitness >= params.unconverged_retry_fitness)) \
             or cur.index is None or prev.index is None:
         return reg
     coarse = replace(params, max_correspondence_distance_m=params.max_correspondence_distance_m
                      * params.coarse_gate_factor)
-    tries = [reg, register_frames(cur, prev, still, params)]
+    tries = [reg, register_frames(cur, prev, still, params, trusted_init=True)]
     for T0 in (guess, still):
-        c = register_frames(cur, prev, T0, coarse)
-        tries.append(register_frames(cur, prev, c.T, params))
+        c = register_frames(cur, prev, T0, coarse, trusted_init=True)
+        tries.append(register_frames(cur, prev, c.T, params, trusted_init=True))
     good = [r for r in (_plausible(r, guess, params) for r in tries) if r.ok]
     if not good or max(r.fitness for r in good) < params.unconverged_retry_fitness:
         # a sharp turn (a junction): the heading changed more than the gate can follow
@@ -301,7 +304,8 @@ def _register_with_retries(cur: PreparedFrame, prev: PreparedFrame, guess: np.nd
             Rz[:2, :2] = [[math.cos(c), -math.sin(c)], [math.sin(c), math.cos(c)]]
             T0 = compose(Rz, guess)
             T0[:3, 3] = guess[:3, 3]  # the yaw turns the rotation only
-            r = register_frames(cur, prev, register_frames(cur, prev, T0, coarse).T, params)
+            r = register_frames(cur, prev, register_frames(cur, prev, T0, coarse, trusted_init=True).T, params,
+                                trusted_init=True)
             r = _plausible(r, guess, params)
             if r.ok:
                 good.append(r)
@@ -462,7 +466,7 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
             else:
                 target = last_kf if params.keyframe_submap_size <= 1 else _keyframe_submap(
                     kf_clouds, [poses[i] for i in kf_idx], params)
-                ref = register_frames(cur, target, rel, params)  # keyframe-to-keyframe refinement
+                ref = register_frames(cur, target, rel, params, trusted_init=True)  # keyframe-to-keyframe refinement
                 if ref.ok:
                     rel, info = project(ref.T), ref.information
                     pose = compose(T_kf, rel)

@@ -196,8 +196,18 @@ def test_a_non_rigid_internal_initial_guess_is_a_bug_not_the_users_input(drive):
     bad = np.eye(4)
     bad[:3, :3] *= 1.0 + 1e-6
     with pytest.raises(InternalError, match="left SE\\(3\\)") as exc:
-        register_frames(b, a, bad, p)
+        register_frames(b, a, bad, p, trusted_init=True)
     assert not isinstance(exc.value, MinegeoError)
+    # the same function called with a caller's transform: that one is input, checked as input
+    from minegeo.errors import InputError
+
+    sheared = np.eye(4)
+    sheared[0, 1] = 1e-3  # not a rotation at any reading precision
+    with pytest.raises(InputError, match="T_init"):
+        register_frames(b, a, sheared, p)
+    near = np.eye(4)
+    near[:3, :3] *= 1.0 + 5e-7  # a rotation read from a 6-digit KITTI file is this far off (MulRan: 5.9e-7)
+    assert np.isfinite(register_frames(b, a, near, p).T).all()
     ok = np.eye(4)
     ok[:3, :3] *= 1.0 + 1e-12  # rounding-level drift: re-projected and used
     assert register_frames(b, a, ok, p).ok
