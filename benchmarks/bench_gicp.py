@@ -175,7 +175,7 @@ def run_case(name, src, tgt, T_true, starts, d, threads, repeats, idle_s=0.05):
            "minegeo_cached_pyloop": v_minegeo_cached_pyloop, "open3d": v_open3d, "small_gicp": v_small_gicp}
     from minegeo.registration import gicp as G
 
-    prange_rows = [G._parallel_rows(G.PARALLEL_SEARCH_ROWS)]  # load-dependent (speed only, same bits)
+    prange_rows = [G._parallel_rows(G.PARALLEL_SEARCH_ROWS)]  # from the thread count (speed only, same bits)
     per_start = []
     times = {v: [] for v in VARIANTS}
     for k, T0 in enumerate(starts):

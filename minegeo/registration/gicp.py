@@ -36,7 +36,6 @@ Open3D 0.20 ``registration_generalized_icp`` (``../shared/specs/open3d_oracle.md
 from __future__ import annotations
 
 import logging
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -96,8 +95,8 @@ SYMMETRY_RTOL = 1e-9
 #: stay serial ...
 PARALLEL_MIN_ROWS = 1 << 16
 PARALLEL_SEARCH_ROWS = 1 << 16
-#: ... while on a machine that is not oversubscribed (1-minute load average <= number of CPUs,
-#: :func:`_parallel_rows`) clouds from this size run in ``prange`` already: on the same pair at
+#: ... while with two or more Numba threads (:func:`_parallel_rows`; never chosen from the machine's
+#: load) clouds from this size run in ``prange`` already: on the same pair at
 #: load 0.3 the fused search went from 11.2 to 7.0 ms per registration on 2 threads
 #: (benchmarks/results/gicp_2026-11-25_parallel.md). Speed only: the same bits either way.
 IDLE_PARALLEL_ROWS = 2048
@@ -289,16 +288,13 @@ class GICPResult(ICPResult):
 
 
 def _parallel_rows(busy_rows: int) -> int:
-    """The ``prange`` threshold (rows) to use now: ``busy_rows``, or :data:`IDLE_PARALLEL_ROWS` when
-    this thread has two or more Numba threads and the machine is not oversubscribed (1-minute load
-    average <= CPU count). Speed only: serial and ``prange`` drivers give the same bits."""
+    """The ``prange`` threshold (rows): :data:`IDLE_PARALLEL_ROWS` when this thread has two or more
+    Numba threads (the thread count the user set), else ``busy_rows``. Chosen from the problem size
+    and the thread count only, never from the machine's load. Speed only: serial and ``prange``
+    drivers give the same bits."""
     if numba.get_num_threads() < 2:
         return busy_rows
-    try:
-        load = os.getloadavg()[0]
-    except (AttributeError, OSError):  # no load average on this platform
-        return busy_rows
-    return min(busy_rows, IDLE_PARALLEL_ROWS) if load <= (os.cpu_count() or 1) else busy_rows
+    return min(busy_rows, IDLE_PARALLEL_ROWS)
 
 
 def _knn_normals(points: np.ndarray, tree, k: int, mode_open3d: bool, parallel: bool = True, lists=None):
