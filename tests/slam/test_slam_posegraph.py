@@ -3,6 +3,9 @@ finite differences and GTSAM (the oracle named by the SLAM contract)."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 from helpers import shared_data
@@ -12,15 +15,9 @@ from reference import naive_posegraph as NP
 
 from minegeo.errors import InputError
 from minegeo.io.g2o import PoseGraph, non_psd_edges, read_g2o, se2_matrix
-from minegeo.slam import _kernels as K
-from minegeo.slam.posegraph import (
-    PoseGraphParams,
-    accept_step,
-    check_result,
-    optimize_pose_graph,
-    pose_graph_cost,
-    remaining_decrease,
-)
+from minegeo.optim import _kernels as K
+from minegeo.optim import accept_step, check_result, remaining_decrease
+from minegeo.slam.posegraph import PoseGraphParams, optimize_pose_graph, pose_graph_cost
 
 
 def _random_pose(rng, kind, angle=np.pi * 0.95, trans=5.0):
@@ -230,6 +227,20 @@ GTSAM_FILES = ["parking-garage.g2o", "smallGrid3D.g2o", "sphere2500.g2o", "torus
                "intel.g2o", "MIT.g2o"]
 
 
+#: The two graphs whose GTSAM optimum takes minutes to run to convergence (torus3D: 290 iterations,
+#: 102 s; cubicle: 40 iterations, 23 s): GTSAM's converged optimum is read from the committed
+#: benchmark results file written by GTSAM itself (``benchmarks/bench_posegraph.py``), and the file
+#: is tied to the data by GTSAM's cost of the initial values, evaluated here.
+GTSAM_OPTIMA_FILE = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "posegraph_2026-11-29.json"
+GTSAM_OPTIMUM_FROM_FILE = {"torus3D.g2o", "cubicle.g2o"}
+
+
+def _gtsam_initial_cost(path):
+    """GTSAM's cost of the file's initial values under the file's own factors."""
+    graph, initial, _ = _gtsam_graph(path)
+    return graph.error(initial)
+
+
 @pytest.mark.parametrize("name", GTSAM_FILES)
 def test_same_cost_and_optimum_as_gtsam(name):
     """The files as shipped, minegeo's default parameters: the optimum equals GTSAM's LM optimum
@@ -239,7 +250,12 @@ def test_same_cost_and_optimum_as_gtsam(name):
     GTSAM's reader uses (``RᵀR``, :func:`minegeo.io.g2o.gtsam_information`), so both minimise the
     same cost."""
     path = shared_data("pose_graph_g2o", name)
-    f0_ref, f_ref = _gtsam_optimum(path, 400 if name == "torus3D.g2o" else 200)
+    if name in GTSAM_OPTIMUM_FROM_FILE:
+        rec = json.loads(GTSAM_OPTIMA_FILE.read_text())["results"][name]["gtsam_converged"]
+        f0_ref, f_ref = _gtsam_initial_cost(path), rec["cost"]
+        assert f0_ref == pytest.approx(rec["cost_initial"], rel=1e-12)  # the file is about these data
+    else:
+        f0_ref, f_ref = _gtsam_optimum(path)
     g = read_g2o(path)
     res = optimize_pose_graph(g)
     assert res.information_changed == non_psd_edges(g).size
