@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from helpers import shared_data
-from test_reports_browser import HAVE_MPL, browser, check_report, shots  # noqa: F401 - fixtures
+from test_reports_browser import browser, check_report, shots  # noqa: F401 - fixtures
 
 from minegeo.cli import main
 
@@ -60,4 +60,4 @@ def slam_reports(browser, tmp_path_factory):  # noqa: F811 - the imported fixtur
 @pytest.mark.parametrize("case", ["slam", "posegraph_ok", "posegraph_stopped", "evaluate"])
 def test_slam_report_in_browser(case, slam_reports, browser, shots):  # noqa: F811
     path, expected = slam_reports[case]
-    check_report(browser, path, expected, shots / f"{case}.png", min_images=1 if HAVE_MPL else 0)
+    check_report(browser, path, expected, shots / f"{case}.png", min_images=1)

@@ -9,7 +9,7 @@ is opened from its ``file:`` URL and must:
 * load nothing but itself and ``data:`` URIs (every request is recorded; anything else is
   aborted and fails the test; no ``<script>``, no external ``src``/``href``);
 * log no console error and no page error, and decode every ``<img>`` (``naturalWidth > 0``;
-  at least one figure per report when matplotlib is installed);
+  at least one figure per report: matplotlib is a core dependency);
 * open with the status banner: ``#status`` with the expected ``data-status`` is the first
   visible element of the body, nothing visible lies above it, and the page's first text line
   starts with ``STATUS:``;
@@ -44,12 +44,6 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic"
                  "--host-resolver-rules=MAP * ~NOTFOUND"]
 SEED = 1
 
-try:
-    import matplotlib  # noqa: F401
-
-    HAVE_MPL = True
-except ImportError:
-    HAVE_MPL = False
 
 
 def _missing() -> str | None:
@@ -339,7 +333,7 @@ def test_report_in_browser(case, reports, browser, shots):
     path, expected = reports[case]
     assert path.is_file(), f"{case}: {path} was not written"
     info = check_report(browser, path, expected, shots / f"{case}.png",
-                        min_images=1 if HAVE_MPL and case not in ("demo", "localize_batch_failed_scan") else 0)
+                        min_images=1 if case not in ("demo", "localize_batch_failed_scan") else 0)
     if case == "demo":
         assert len([h for h in info["links"] if not h.startswith("#")]) == 4
 
@@ -366,4 +360,4 @@ def test_check_catches_broken_reports(reports, browser, tmp_path):
         with pytest.raises(AssertionError):
             check_report(browser, p, "OK")
     shutil.copy(src, tmp_path / "report.html")
-    check_report(browser, tmp_path / "report.html", "OK", min_images=1 if HAVE_MPL else 0)  # the original passes
+    check_report(browser, tmp_path / "report.html", "OK", min_images=1)  # the original passes
