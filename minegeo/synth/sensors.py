@@ -186,13 +186,15 @@ def simulate_scan(world, sensor, pose, seed: int = 0, *, frame_stride: int = 1, 
     ----------
     world : MineWorld
     sensor : Velodyne16 | ZebRevo | FlashSensor | Horizontal2D
-    pose : (4, 4) array or Trajectory
+    pose : (4, 4) array, Trajectory or MotionCurve
         ``T_world_sensor``. A fixed pose simulates one frame (one rotation / one flash; the
         ZEB-REVO a full half-turn of its head, i.e. ``0.5 / rotation_rate_hz`` s of lines).
         A trajectory simulates frames over its time span; each beam uses the pose
-        interpolated at its own firing time (motion distortion is real).
-    seed : int
-        Seeds the range noise.
+        interpolated at its own firing time (motion distortion is real). A
+        :class:`~minegeo.synth.motion.MotionCurve` (needs ``frame_times_s``) gives each beam the
+        curve's exact pose at its firing time.
+    seed : int, SeedSequence or Generator
+        Seeds the range noise (a Generator is drawn from and left advanced).
     frame_stride : int
         Simulate every ``frame_stride``-th frame only (thins long sequences).
     frame_times_s : array, optional
@@ -210,7 +212,11 @@ def simulate_scan(world, sensor, pose, seed: int = 0, *, frame_stride: int = 1, 
     _check_sensor(sensor)
     if frame_stride < 1:
         raise InputError("frame_stride must be >= 1")
-    if isinstance(pose, Trajectory):
+    if hasattr(pose, "rotation_position"):  # a continuous-time MotionCurve (minegeo.synth.motion)
+        if frame_times_s is None:
+            raise InputError("simulate_scan on a motion curve needs frame_times_s")
+        traj = Trajectory(times_s=np.zeros(1), poses=np.eye(4)[None], frame="world", body="sensor")
+    elif isinstance(pose, Trajectory):
         traj = pose
     else:
         T = as_transform(pose, "T_world_sensor")
@@ -228,7 +234,7 @@ def simulate_scan(world, sensor, pose, seed: int = 0, *, frame_stride: int = 1, 
         starts = t0 + np.arange(0.0, t1 - t0, sensor.frame_period_s)
         starts = starts[::frame_stride]
     rng = np.random.default_rng(seed)
-    interp = _Interp(traj)
+    interp = pose.rotation_position if hasattr(pose, "rotation_position") else _Interp(traj)
     out_p, out_t, out_r, out_a = [], [], [], {}
     # group frames into chunks of about chunk_rays rays
     d1, _, _ = sensor.rays(starts[:1])

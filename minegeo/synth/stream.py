@@ -1,0 +1,441 @@
+"""Sensor streams as a scanner records them: motion-distorted LiDAR sweeps with per-point times and an IMU.
+
+One continuous pose curve (:class:`~minegeo.synth.motion.MotionCurve`) drives both sensors:
+
+* **LiDAR**: a VLP-16-like spinning sensor at ``lidar_hz`` (10-20 Hz), every sweep kept. Each beam
+  is cast from the curve's pose at its own firing time (:func:`~minegeo.synth.sensors.simulate_scan`
+  on the curve), so a sweep taken while moving is distorted as a real one is. A point is written in
+  the sensor frame **at its own firing time** with ``time`` = seconds after the frame time; the
+  frame time is the **start of the sweep** (slam_contract.md, "Sensor streams").
+* **IMU**: :func:`~minegeo.synth.imu.simulate_imu` at ``imu.rate_hz`` (100-400 Hz) from the same
+  curve, axes of the LiDAR frame (no lever arm, no extrinsic), white noise + bias random walk.
+
+Presets (:data:`PRESETS`): ``vehicle`` (3 m/s, smooth yaw from the path, small road bumps),
+``handheld`` (1.2 m/s walk: 3 cm step bounce at 1.8 Hz, sway of a few degrees; the narrow loop of
+:func:`~minegeo.synth.sequence_sway.sway_network`), ``drone`` (4 m/s cruise in the drifts, full 3-D
+attitude: pitch and roll of a multirotor from its acceleration, ``atan(a_fwd / g)`` and
+``-atan(a_left / g)``, plus seeded tilt noise; hover turns at dead ends). Networks
+(:func:`stream_network`): ``loop`` (3.2 m wide, 3.0 m high), ``junctions`` (the issue-18 network at
+3.5 m) or an edge list CSV (the NIOSH layout, :func:`~minegeo.synth.network.niosh_network`, 2.9 m x
+2.6 m unless a width is given); rough rock of 5 cm RMS.
+
+Time line: the curve starts at 0 s at rest; the carrier starts moving at ``STILL_S`` = 1 s; the
+first sweep starts at ``LEAD_S`` = 0.5 s; the IMU spans ``[0, last sweep end + LEAD_S]``.
+
+Determinism: ``np.random.SeedSequence(seed).spawn(4)`` gives the streams ``motion`` (route
+tie-breaks, sway and tilt draws), ``lidar`` (range noise), ``imu_noise`` and ``imu_bias``; every
+array is float64. Same seed, same bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from minegeo.errors import InputError
+from minegeo.synth.imu import GRAVITY_MPS2, ImuParams, imu_csv_text, imu_truth_csv_text, simulate_imu
+from minegeo.synth.motion import MotionCurve, curve_from_samples, gaussian_smooth
+
+__all__ = ["StreamPreset", "PRESETS", "StreamParams", "Stream", "stream_network", "stream_motion",
+           "simulate_stream", "iter_sweeps", "write_stream", "STILL_S", "LEAD_S"]
+
+log = logging.getLogger(__name__)
+
+#: the carrier stands still for this long at the start (s)
+STILL_S = 1.0
+#: the first sweep starts this long after the IMU's first sample; the IMU runs this long past the last sweep (s)
+LEAD_S = 0.5
+#: spacing of the curve's control points (s)
+KNOT_DT_S = 0.01
+
+
+@dataclass(frozen=True)
+class StreamPreset:
+    """How a carrier moves (m, s, deg, Hz).
+
+    Attributes
+    ----------
+    speed_mps, accel_mps2, lat_accel_mps2 : float
+        Cruise speed, along-path and lateral acceleration limits of the path's speed profile.
+    height_m : float or None
+        Sensor height above the floor (None: half the lowest roof).
+    corner_m : float
+        Corner cut at junctions (capped at half the narrowest drift width).
+    path_smooth_s : float
+        Gaussian smoothing (s) of the planned path and heading.
+    bob_m, bob_hz : float
+        Vertical step bounce (amplitude, frequency; a sinusoid while moving).
+    lateral_m : float
+        Lateral sway amplitude at half the bob frequency (walking), or seeded smooth drift.
+    yaw_sway_deg, tilt_deg : float
+        Peak seeded yaw sway and roll / pitch sway.
+    tilt_hz : tuple of float
+        Frequency range (Hz) of the roll / pitch sway.
+    tilt_from_accel : bool
+        Multirotor attitude: pitch and roll from the horizontal acceleration.
+    vertical_m : float
+        Peak seeded smooth height oscillation.
+    yaw_rate_dps : float
+        Turn rate of the 180-degree turn at dead ends.
+    """
+
+    speed_mps: float
+    accel_mps2: float
+    lat_accel_mps2: float
+    height_m: float | None
+    corner_m: float
+    path_smooth_s: float
+    bob_m: float
+    bob_hz: float
+    lateral_m: float
+    yaw_sway_deg: float
+    tilt_deg: float
+    tilt_hz: tuple
+    tilt_from_accel: bool
+    vertical_m: float
+    yaw_rate_dps: float
+
+
+PRESETS: dict[str, StreamPreset] = {
+    "vehicle": StreamPreset(3.0, 0.8, 1.0, 1.8, 1.6, 0.3, 0.01, 2.5, 0.0, 0.5, 0.5, (0.5, 2.0), False, 0.0, 30.0),
+    "handheld": StreamPreset(1.2, 0.6, 0.8, 1.4, 1.5, 0.2, 0.03, 1.8, 0.03, 5.0, 4.0, (0.4, 1.2), False, 0.0,
+                             60.0),
+    "drone": StreamPreset(4.0, 2.0, 2.0, None, 1.5, 0.2, 0.0, 0.0, 0.1, 5.0, 2.0, (0.2, 0.8), True, 0.15, 60.0),
+}
+
+
+@dataclass(frozen=True)
+class StreamParams:
+    """A sensor stream (see the module docstring).
+
+    Attributes
+    ----------
+    preset : str
+        ``vehicle``, ``handheld`` or ``drone`` (:data:`PRESETS`).
+    duration_s : float
+        Time covered by the sweeps (s); ``floor(duration_s * lidar_hz)`` sweeps.
+    lidar_hz : float
+        Sweeps per second (one rotation each), 10-20.
+    azimuth_step_deg : float
+        Azimuth step of a rotation (0.2 deg at 10 Hz, 0.4 deg at 20 Hz for a VLP-16).
+    range_noise_m : float
+        Range noise sigma (m).
+    imu : ImuParams
+    network : str
+        ``loop``, ``junctions`` or the path of an edge list CSV (NIOSH layout).
+    width_m : float or None
+        Drift width (None: the network's own).
+    roughness_m : float
+        RMS rock roughness (m).
+    seed : int
+    """
+
+    preset: str = "vehicle"
+    duration_s: float = 5.0
+    lidar_hz: float = 10.0
+    azimuth_step_deg: float = 0.2
+    range_noise_m: float = 0.02
+    imu: ImuParams = field(default_factory=ImuParams)
+    network: str = "loop"
+    width_m: float | None = None
+    roughness_m: float = 0.05
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.preset not in PRESETS:
+            raise InputError(f"unknown stream preset {self.preset!r}; one of {', '.join(PRESETS)}")
+        for k in ("duration_s", "lidar_hz", "azimuth_step_deg"):
+            v = getattr(self, k)
+            if not (np.isfinite(v) and v > 0):
+                raise InputError(f"stream {k} must be > 0, got {v}")
+        if not (np.isfinite(self.range_noise_m) and self.range_noise_m >= 0 and np.isfinite(self.roughness_m)
+                and self.roughness_m >= 0):
+            raise InputError("stream range_noise_m and roughness_m must be >= 0")
+        if self.width_m is not None and not (np.isfinite(self.width_m) and self.width_m > 0):
+            raise InputError(f"stream width_m must be > 0, got {self.width_m}")
+
+
+def stream_network(name: str, width_m: float | None = None, roughness_m: float = 0.05, seed: int = 0):
+    """The drift network of a stream: ``loop``, ``junctions`` or an edge list CSV (NIOSH layout)."""
+    from minegeo.synth.network import intersections_network, niosh_network, with_roughness
+    from minegeo.synth.sequence_sway import sway_network
+
+    if name == "loop":
+        net = sway_network(width_m=width_m or 3.2, height_m=3.0, roughness_m=0.0)
+    elif name == "junctions":
+        net = intersections_network(width_m=width_m or 3.5, heights_m=(3.0, 3.3, 3.6), default_height_m=3.3)
+    else:
+        net = niosh_network(name, width_m=width_m or 2.9)
+    return with_roughness(net, roughness_m, seed) if roughness_m > 0 else net
+
+
+def _speed_profile(C: np.ndarray, pre: StreamPreset) -> np.ndarray:
+    """Times (s) at the vertices of a dense 2-D path: 0 at both ends, the speed limited by the cruise
+    speed, the lateral acceleration (``v <= sqrt(a_lat / kappa)``) and the turn rate
+    (``v <= yaw_rate / kappa``), reached within ``accel_mps2`` (forward and backward passes).
+    ``kappa`` is the heading change per metre, its peak spread over +-0.5 m so a sharp corner is
+    entered slowly."""
+    from scipy.ndimage import maximum_filter1d
+
+    ds = np.linalg.norm(np.diff(C, axis=0), axis=1)
+    h = np.unwrap(np.arctan2(*np.diff(C, axis=0).T[::-1]))
+    kappa = np.zeros(len(C))
+    kappa[1:-1] = np.abs(np.diff(h)) / np.maximum(0.5 * (ds[1:] + ds[:-1]), 1e-9)
+    step = max(float(np.median(ds)) if len(ds) else 0.05, 1e-3)
+    kappa = maximum_filter1d(kappa, size=2 * int(np.ceil(0.5 / step)) + 1)
+    k = np.maximum(kappa, 1e-9)
+    v = np.minimum(pre.speed_mps, np.minimum(np.sqrt(pre.lat_accel_mps2 / k), np.radians(pre.yaw_rate_dps) / k))
+    v[0] = v[-1] = 0.0
+    for i in range(1, len(v)):
+        v[i] = min(v[i], np.sqrt(v[i - 1] ** 2 + 2 * pre.accel_mps2 * ds[i - 1]))
+    for i in range(len(v) - 2, -1, -1):
+        v[i] = min(v[i], np.sqrt(v[i + 1] ** 2 + 2 * pre.accel_mps2 * ds[i]))
+    vm = np.maximum(0.5 * (v[1:] + v[:-1]), 1e-3)
+    return np.concatenate([[0.0], np.cumsum(ds / vm)])
+
+
+def _route_samples(net, pre: StreamPreset, length_m: float, seed: int, t: np.ndarray):
+    """Planned path (k, 2), unwrapped heading (k,) and speed (k,) at times ``t``, smoothed.
+
+    The route is :func:`~minegeo.synth.flight.plan_route`; corners are cut by
+    :func:`~minegeo.synth.flight._cut_corners`; at a dead end the carrier stops and turns on the spot
+    (smoothstep in yaw at ``yaw_rate_dps`` on average). Motion starts at :data:`STILL_S`.
+    """
+    from minegeo.synth.flight import _cut_corners, _legs, plan_route
+
+    rng = np.random.default_rng(seed)
+    corner = min(pre.corner_m, 0.5 * float(net.widths.min()))
+    T, X, Y = [], [], []
+    t0, yaw_prev = STILL_S, None
+    for leg in _legs(net, plan_route(net, length_m, seed)):
+        C = _cut_corners(leg, corner)
+        ts = _speed_profile(C, pre) + t0
+        d = np.gradient(C, axis=0)
+        yaw = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+        if yaw_prev is not None:                            # turn on the spot at the dead end
+            yaw += 2 * np.pi * np.round((yaw_prev + (1.0 if rng.random() < 0.5 else -1.0) * np.pi - yaw[0])
+                                        / (2 * np.pi))
+            dur = abs(yaw[0] - yaw_prev) / np.radians(pre.yaw_rate_dps)
+            u = np.linspace(0.0, 1.0, 41)[1:-1]
+            T.append(t0 + u * dur)
+            X.append(np.repeat(C[:1], len(u), 0))
+            Y.append(yaw_prev + (yaw[0] - yaw_prev) * (3 * u**2 - 2 * u**3))
+            ts = ts + dur
+        T.append(ts)
+        X.append(C)
+        Y.append(yaw)
+        t0, yaw_prev = ts[-1], yaw[-1]
+    t_n, xy_n, yaw_n = np.concatenate(T), np.concatenate(X), np.concatenate(Y)
+    keep = np.concatenate([[True], np.diff(t_n) > 1e-9])
+    t_n, xy_n, yaw_n = t_n[keep], xy_n[keep], yaw_n[keep]
+    if t_n[-1] < t[-1]:
+        raise InputError(f"the planned route lasts {t_n[-1]:.0f} s, {t[-1]:.0f} s are needed")
+    base = np.column_stack([np.interp(t, t_n, xy_n[:, 0]), np.interp(t, t_n, xy_n[:, 1]), np.interp(t, t_n, yaw_n)])
+    base = gaussian_smooth(base, pre.path_smooth_s / KNOT_DT_S)
+    speed = np.linalg.norm(np.gradient(base[:, :2], KNOT_DT_S, axis=0), axis=1)
+    return base[:, :2], base[:, 2], speed
+
+
+def stream_motion(net, preset: str | StreamPreset, duration_s: float, rng: np.random.Generator) -> MotionCurve:
+    """The carrier's pose curve over ``[0, duration_s]`` in ``net`` (see :class:`StreamPreset`).
+
+    Parameters
+    ----------
+    net : DriftNetwork
+    preset : str or StreamPreset
+    duration_s : float
+        Time span the curve must cover (s).
+    rng : numpy.random.Generator
+        The ``motion`` stream (route tie-breaks, sway and tilt draws).
+
+    Raises
+    ------
+    InputError
+        A route too short, or a motion that leaves the drifts (too narrow for the preset).
+    """
+    from minegeo.synth.flight import flight_clearance
+    from minegeo.synth.network import _roof
+    from minegeo.synth.trajectory import _smooth_noise
+
+    pre = PRESETS[preset] if isinstance(preset, str) else preset
+    dt = KNOT_DT_S
+    # samples over [-dt, duration_s + 2 s]: the smoothing's end padding stays 2 s past the span used
+    t = (np.arange(int(np.ceil((duration_s + 2.0) / dt)) + 4) - 1) * dt
+    route_seed = int(rng.integers(0, 2**31 - 1))
+    xy, yaw, speed = _route_samples(net, pre, 1.3 * duration_s * pre.speed_mps + 50.0, route_seed, t)
+    moving = np.clip(speed / max(pre.speed_mps, 1e-9), 0.0, 1.0)      # gait and sway scale with speed
+    ph = rng.uniform(0, 2 * np.pi, 3)
+    bob = pre.bob_m * moving * np.sin(2 * np.pi * pre.bob_hz * t + ph[0])
+    lat_amp = min(pre.lateral_m, 0.05 * float(net.widths.min()))
+    if pre.bob_hz > 0:
+        lat = lat_amp * moving * np.sin(np.pi * pre.bob_hz * t + ph[1])
+    else:
+        lat = _smooth_noise(rng, t, lat_amp, 0.02, 0.1)
+    yaw = yaw + np.radians(_smooth_noise(rng, t, pre.yaw_sway_deg, 0.05, 0.3))
+    xy = xy + lat[:, None] * np.column_stack([-np.sin(yaw), np.cos(yaw)])
+    pitch = np.radians(_smooth_noise(rng, t, pre.tilt_deg, *pre.tilt_hz))
+    roll = np.radians(_smooth_noise(rng, t, pre.tilt_deg, *pre.tilt_hz))
+    if pre.tilt_from_accel:
+        acc = gaussian_smooth(np.gradient(np.gradient(xy, dt, axis=0), dt, axis=0), 0.25 / dt)
+        a_f = acc[:, 0] * np.cos(yaw) + acc[:, 1] * np.sin(yaw)
+        a_l = -acc[:, 0] * np.sin(yaw) + acc[:, 1] * np.cos(yaw)
+        pitch = pitch + np.arctan(a_f / GRAVITY_MPS2)
+        roll = roll - np.arctan(a_l / GRAVITY_MPS2)
+    h0 = 0.5 * float(net.node_heights.min()) if pre.height_m is None else float(pre.height_m)
+    z = h0 + bob + _smooth_noise(rng, t, pre.vertical_m, 0.02, 0.1)
+    z = np.minimum(z, _roof(net, xy) - 0.5)
+    z = gaussian_smooth(z, 0.05 / dt)
+    curve = curve_from_samples(t[0], dt, np.column_stack([xy, z]), np.column_stack([yaw, pitch, roll]))
+    tc = np.arange(curve.t_start, curve.t_end, 0.05)
+    clear = flight_clearance(net, curve.rotation_position(tc)[1])
+    if clear.min() < 0.2:
+        raise InputError(f"the {preset if isinstance(preset, str) else 'given'} motion comes within "
+                         f"{clear.min():.2f} m of the rock at t = {tc[np.argmin(clear)]:.1f} s: the drifts are too "
+                         "narrow or low for it (give a wider drift)")
+    return curve
+
+
+@dataclass(frozen=True, eq=False)
+class Stream:
+    """A simulated stream before its sweeps are cast (they are produced lazily by :func:`iter_sweeps`).
+
+    Attributes
+    ----------
+    params : StreamParams
+    net : DriftNetwork
+    curve : MotionCurve
+        The truth: ``T_world_sensor(t)``.
+    frame_times : (n,) s
+        Sweep start times (= frame times).
+    imu : ImuData
+    sensor : Velodyne16
+    lidar_seed : numpy.random.SeedSequence
+    """
+
+    params: StreamParams
+    net: object
+    curve: MotionCurve
+    frame_times: np.ndarray
+    imu: object
+    sensor: object
+    lidar_seed: np.random.SeedSequence
+
+
+def simulate_stream(params: StreamParams, net=None) -> Stream:
+    """Plan the motion and simulate the IMU of a stream (the sweeps: :func:`iter_sweeps`).
+
+    Parameters
+    ----------
+    params : StreamParams
+    net : DriftNetwork, optional
+        Default :func:`stream_network` of ``params.network``.
+    """
+    from minegeo.synth.sensors import Velodyne16
+
+    ss_motion, ss_lidar, ss_noise, ss_bias = np.random.SeedSequence(int(params.seed)).spawn(4)
+    if net is None:
+        net = stream_network(params.network, params.width_m, params.roughness_m, int(params.seed))
+    n = int(np.floor(params.duration_s * params.lidar_hz + 1e-9))
+    if n < 1:
+        raise InputError(f"a stream of {params.duration_s} s at {params.lidar_hz} Hz holds no sweep")
+    period = 1.0 / params.lidar_hz
+    frame_times = LEAD_S + np.arange(n) * period
+    t_imu_end = frame_times[-1] + period + LEAD_S
+    curve = stream_motion(net, params.preset, t_imu_end, np.random.default_rng(ss_motion))
+    imu = simulate_imu(curve, params.imu, 0.0, t_imu_end, np.random.default_rng(ss_noise),
+                       np.random.default_rng(ss_bias))
+    sensor = Velodyne16(azimuth_step_deg=params.azimuth_step_deg, rotation_rate_hz=params.lidar_hz,
+                        range_noise_sigma_m=params.range_noise_m, max_range_m=100.0)
+    return Stream(params=params, net=net, curve=curve, frame_times=frame_times, imu=imu, sensor=sensor,
+                  lidar_seed=ss_lidar)
+
+
+def iter_sweeps(world, sensor, curve, frame_times, seed, chunk: int = 10):
+    """Cast the sweeps starting at ``frame_times`` from ``curve``, one beam at its own time.
+
+    Yields
+    ------
+    (t_frame, points, time, ring)
+        Frame time (s, sweep start); points (k, 3) in the sensor frame at each point's own firing
+        time; ``time`` (k,) seconds after ``t_frame``; ``ring`` (k,) uint16.
+    """
+    from minegeo.synth.sensors import simulate_scan
+
+    rng = np.random.default_rng(seed)
+    ft = np.asarray(frame_times, dtype=np.float64)
+    for c0 in range(0, len(ft), chunk):
+        s = ft[c0:c0 + chunk]
+        cloud = simulate_scan(world, sensor, curve, seed=rng, frame_times_s=s)
+        tt = cloud.attributes["time_s"]
+        # a beam belongs to the sweep whose [start, start + period) holds its firing time
+        k = np.clip(np.searchsorted(s, tt, side="right") - 1, 0, len(s) - 1)
+        cut = np.searchsorted(k, np.arange(len(s) + 1), side="left")
+        for j in range(len(s)):
+            sl = slice(cut[j], cut[j + 1])
+            yield float(s[j]), cloud.points[sl], tt[sl] - s[j], cloud.attributes["ring"][sl]
+
+
+def write_stream(folder, params: StreamParams, net=None, progress=None) -> dict:
+    """Write a stream into ``folder`` (created): ``frames/NNNNNN.ply``, ``times.txt``, ``imu.csv``,
+    ``imu_truth.csv``, ``groundtruth.txt`` (TUM at the frame times) and ``result.json``.
+
+    Returns
+    -------
+    dict
+        The ``result.json`` record (parameters, counts, measured motion statistics).
+    """
+    from minegeo.io import write_point_cloud, write_trajectory
+    from minegeo.io.types import PointCloud
+    from minegeo.synth.flight import NetworkWorld
+
+    out = Path(folder)
+    (out / "frames").mkdir(parents=True, exist_ok=True)
+    st = simulate_stream(params, net)
+    world = NetworkWorld(st.net)
+    n_pts = []
+    for i, (_tf, P, tt, ring) in enumerate(iter_sweeps(world, st.sensor, st.curve, st.frame_times, st.lidar_seed)):
+        cloud = PointCloud(points=np.ascontiguousarray(P), attributes={"time": np.ascontiguousarray(tt),
+                                                                        "ring": np.ascontiguousarray(ring)})
+        write_point_cloud(out / "frames" / f"{i:06d}.ply", cloud)
+        n_pts.append(len(P))
+        if progress is not None:
+            progress(i + 1, len(st.frame_times))
+    (out / "times.txt").write_text("".join(f"{t:.9f}\n" for t in st.frame_times))
+    (out / "imu.csv").write_text(imu_csv_text(st.imu))
+    (out / "imu_truth.csv").write_text(imu_truth_csv_text(st.imu))
+    write_trajectory(out / "groundtruth.txt", st.curve.trajectory(st.frame_times), format="tum")
+    rec = stream_record(st, n_pts)
+    (out / "result.json").write_text(json.dumps(rec, indent=2, sort_keys=True) + "\n")
+    return rec
+
+
+def stream_record(st: Stream, n_points: list) -> dict:
+    """The JSON record of a stream: parameters, files, counts and measured motion statistics."""
+    p = st.params
+    s = st.curve.state(st.imu.t)
+    speed = np.linalg.norm(s.v, axis=1)
+    dist = float(np.sum(np.linalg.norm(np.diff(s.p, axis=0), axis=1)))
+    params = asdict(replace(p, imu=ImuParams()))
+    params["imu"] = asdict(p.imu)
+    params["motion"] = asdict(PRESETS[p.preset])
+    return {
+        "verb": "synth", "kind": "sensor_stream", "status": "ok", "params": params,
+        "conventions": {"frame_time": "sweep start", "point_time": "time: float seconds after the frame time",
+                        "point_frame": "sensor frame at the point's own firing time (raw, motion-distorted)",
+                        "imu_frame": "LiDAR frame (identity extrinsic, no lever arm)",
+                        "gravity_mps2": GRAVITY_MPS2, "groundtruth": "TUM T_world_sensor at the frame times"},
+        "network": {k: v for k, v in st.net.info.items() if k != "node_ids"},
+        "files": {"frames": "frames/NNNNNN.ply (x y z time ring)", "times": "times.txt", "imu": "imu.csv",
+                  "imu_truth": "imu_truth.csv", "groundtruth": "groundtruth.txt"},
+        "n_frames": int(len(st.frame_times)), "n_points": int(np.sum(n_points)),
+        "points_per_frame": {"min": int(np.min(n_points)), "max": int(np.max(n_points))},
+        "n_imu": int(len(st.imu.t)),
+        "motion_stats": {"path_length_m": dist, "max_speed_mps": float(speed.max()),
+                         "max_accel_mps2": float(np.linalg.norm(s.a, axis=1).max()),
+                         "max_angular_rate_dps": float(np.degrees(np.linalg.norm(s.omega, axis=1).max())),
+                         "max_tilt_deg": float(np.degrees(np.arccos(np.clip(s.R[:, 2, 2], -1, 1))).max())},
+    }
