@@ -13,7 +13,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from minegeo.cli._argtypes import int_in_range, nonnegative_int, positive_float
+from minegeo.cli._argtypes import float_in_range, int_in_range, nonnegative_int, positive_float
 
 HELP = "write a seeded synthetic mine: map, local scans, trajectories, GCPs and truth.json"
 
@@ -43,6 +43,20 @@ def add_arguments(parser) -> None:
                         "(same layout, independent rock)")
     g.add_argument("--unmapped", type=nonnegative_int, default=0, metavar="N",
                    help="add N headings that exist in the world but not in map.ply")
+    s = parser.add_argument_group("sensor stream (docs/synth.md, 'Sensor streams'): raw motion-distorted sweeps "
+                                  "with per-point times and an IMU, instead of the mine")
+    s.add_argument("--stream", choices=("vehicle", "handheld", "drone"), default=None,
+                   help="write a sensor stream of this carrier into OUTDIR (frames/, times.txt, imu.csv, "
+                        "imu_truth.csv, groundtruth.txt, result.json)")
+    s.add_argument("--duration-s", type=positive_float, default=None, metavar="S", help="stream length (default 5 s)")
+    s.add_argument("--lidar-hz", type=float_in_range(5.0, 20.0), default=None, metavar="HZ",
+                   help="sweeps per second (default 10)")
+    s.add_argument("--imu-hz", type=float_in_range(50.0, 1000.0), default=None, metavar="HZ",
+                   help="IMU rate (default 200)")
+    s.add_argument("--stream-network", default=None, metavar="NET",
+                   help="loop (3.2 m drifts, default), junctions (3.5 m) or an edge list CSV (NIOSH layout, 2.9 m)")
+    s.add_argument("--drift-width-m", type=float_in_range(2.0, 10.0), default=None, metavar="M",
+                   help="drift width of the stream network (default: the network's own)")
 
 
 def run(args) -> int:
@@ -57,6 +71,7 @@ def run(args) -> int:
         if given:
             raise InputError(f"--mast-only writes the MAST scenario alone, no mine: {given[0]} has nothing to act on; "
                              "drop one of the two options")
+    stream_params = _stream_params(args)  # None without --stream; raises InputError for a contradiction
     out = Path(args.outdir)
     # Validate every option before any work is done, so a mistake costs nothing and
     # leaves no half-written OUTDIR.
@@ -64,10 +79,10 @@ def run(args) -> int:
         raise InputError(f"{out} exists and is not a directory")
     if out.is_dir() and any(out.iterdir()) and not args.force:
         raise InputError(f"{out} is not empty; use --force to overwrite")
-    if not args.mast_only:
+    if not args.mast_only and stream_params is None:
         if args.gcps < 3:
             raise InputError(f"--gcps: need at least 3 control points, got {args.gcps}")
-        from minegeo.localize.crs import validate_crs
+        from minegeo.georef import validate_crs
         from minegeo.synth.dataset import _crs_origin
 
         validate_crs(args.crs)  # a projected CRS in metres, as minegeo georef needs (not degrees)
@@ -93,6 +108,8 @@ def _write(args, stage, out) -> int:
 
     if args.mast_only:
         return _write_mast(stage, args.seed, out)
+    if getattr(args, "stream", None):
+        return _write_stream(args, stage, out)
     steps = 4 + len(SCAN_PLANS[args.preset])
     with tqdm(total=steps, desc=f"synth {args.preset}", unit="step", file=sys.stderr,
               disable=not progress_enabled(args)) as bar:
@@ -147,4 +164,46 @@ def _write_mast(outdir, seed: int, final) -> int:
 
     paths = write_mast_scenario(outdir, seed=seed)
     print(f"wrote MAST scenario (seed {seed}): " + ", ".join(str(Path(final) / Path(p).name) for p in paths.values()))
+    return 0
+
+
+def _stream_params(args):
+    """The :class:`~minegeo.synth.stream.StreamParams` of ``--stream`` (None without it), checked before any work."""
+    from minegeo.errors import InputError
+
+    opts = {"--duration-s": args.duration_s, "--lidar-hz": args.lidar_hz, "--imu-hz": args.imu_hz,
+            "--stream-network": args.stream_network, "--drift-width-m": args.drift_width_m}
+    if not args.stream:
+        given = [k for k, v in opts.items() if v is not None]
+        if given:
+            raise InputError(f"{given[0]} shapes a sensor stream: give --stream vehicle|handheld|drone with it")
+        return None
+    other = [o for o, v in (("--mast", args.mast), ("--mast-only", args.mast_only),
+                            ("--roughness-m", args.roughness_m is not None), ("--lining", args.lining is not None),
+                            ("--twins", args.twins != "none"), ("--unmapped", args.unmapped != 0)) if v]
+    if other:
+        raise InputError(f"--stream writes a sensor stream in a drift network, not the mine: {other[0]} has nothing "
+                         "to act on; drop one of the two options")
+    from minegeo.synth.imu import ImuParams
+    from minegeo.synth.stream import StreamParams
+
+    net = args.stream_network or "loop"
+    if net not in ("loop", "junctions") and not Path(net).is_file():
+        raise InputError(f"--stream-network: {net} is neither loop, junctions nor an edge list file")
+    return StreamParams(preset=args.stream, duration_s=args.duration_s or 5.0, lidar_hz=args.lidar_hz or 10.0,
+                        azimuth_step_deg=0.02 * (args.lidar_hz or 10.0), imu=ImuParams(rate_hz=args.imu_hz or 200.0),
+                        network=net, width_m=args.drift_width_m, seed=args.seed)
+
+
+def _write_stream(args, stage, out) -> int:
+    """Write the sensor stream of ``--stream`` (:func:`minegeo.synth.stream.write_stream`)."""
+    from minegeo.synth.stream import write_stream
+
+    rec = write_stream(stage, _stream_params(args))
+    m = rec["motion_stats"]
+    print(f"wrote {out}: {args.stream} stream, seed {args.seed}: {rec['n_frames']} sweeps at "
+          f"{rec['params']['lidar_hz']:g} Hz ({rec['n_points']} points), {rec['n_imu']} IMU samples at "
+          f"{rec['params']['imu']['rate_hz']:g} Hz")
+    print(f"  path {m['path_length_m']:.1f} m, speed up to {m['max_speed_mps']:.2f} m/s, angular rate up to "
+          f"{m['max_angular_rate_dps']:.0f} deg/s, tilt up to {m['max_tilt_deg']:.1f} deg")
     return 0
