@@ -1,6 +1,6 @@
 """Georeference a mine map into EPSG:5186 from ground control points (7-parameter Helmert).
 
-What a surveyor learns: how ``minegeo.localize.georeference`` turns control points surveyed in
+What a surveyor learns: how ``minegeo.georef.georeference`` turns control points surveyed in
 both the map's local frame and the projected CRS into a similarity transform (scale, rotation,
 translation) with standard deviations, sigma0 and the chi-square test, and how per-GCP residuals,
 redundancy numbers and Baarda's w-test point at a bad control point: the script fits the
@@ -11,7 +11,7 @@ Usage: ``python examples/georeference_map.py``.
 
 import math
 
-from minegeo.localize import georeference
+from minegeo.georef import georeference
 from minegeo.synth import build_world, make_gcps
 
 gcps, truth = make_gcps(build_world("small", 1), n=10, seed=1, crs="EPSG:5186")

@@ -46,7 +46,7 @@ def streamable_map(map_path: Path, out_path: Path):
     """The map opened for chunked reading (:mod:`minegeo.io.chunked`) when ``georef`` can stream it:
     a PLY/PCD map whose records are x, y, z only (nothing else to carry over), read in chunks, and
     a ``.ply`` output; or a LAS/LAZ map and a ``.las``/``.laz`` output (every field of every record
-    is copied, only the coordinates change: :func:`~minegeo.localize.georef.stream_georeferenced_las`).
+    is copied, only the coordinates change: :func:`~minegeo.georef.stream_georeferenced_las`).
     Otherwise None: the map is read whole (attributes, normals and colour are transformed and
     written as before)."""
     from minegeo.errors import MinegeoError
@@ -86,8 +86,7 @@ def run(args) -> int:
     from minegeo._output import OutputTransaction, run_timings
     from minegeo._provenance import StageTimer, input_record, provenance, write_json_atomic
     from minegeo.errors import InputError, TooFewPointsError
-    from minegeo.io import read_gcps, read_point_cloud
-    from minegeo.localize.georef import (
+    from minegeo.georef import (
         GeorefParams,
         apply_georef,
         georeference,
@@ -96,6 +95,7 @@ def run(args) -> int:
         stream_georeferenced_map,
         write_georeferenced_map,
     )
+    from minegeo.io import read_gcps, read_point_cloud
     from minegeo.report.georef_report import write_georef_report
 
     timer = StageTimer()

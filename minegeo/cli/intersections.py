@@ -46,8 +46,8 @@ def _read_map(path):
     """(points (n, 3) m, georef dict): a georeferenced map relative to its origin, else the file's points."""
     import numpy as np
 
+    from minegeo.georef import load_georeferenced_map, sidecar_path
     from minegeo.io import read_point_cloud
-    from minegeo.localize.georef import load_georeferenced_map, sidecar_path
 
     if sidecar_path(path).exists():
         cloud, geo = load_georeferenced_map(path)

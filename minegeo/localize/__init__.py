@@ -1,4 +1,4 @@
-"""minegeo.localize: georeferencing a map and global localization of scans in it."""
+"""minegeo.localize: global localization of scans in a map (georeferencing is :mod:`minegeo.georef`)."""
 
 from minegeo.localize.correlative import (
     CorrelativeParams,
@@ -6,42 +6,11 @@ from minegeo.localize.correlative import (
     correlative_candidates,
     map_occupancy,
 )
-from minegeo.localize.crs import CRSInfo, crs_info, local_origin, validate_crs
-from minegeo.localize.georef import (
-    GeorefParams,
-    GeorefResult,
-    apply_georef,
-    crs_to_map,
-    georeference,
-    load_georeferenced_map,
-    map_to_crs,
-    point_covariance_crs,
-    pose_to_crs,
-    read_georef,
-    sidecar_path,
-    write_georeferenced_map,
-)
 from minegeo.localize.pipeline import LocalizationResult, LocalizeParams, localize_scan
 from minegeo.localize.prepared import FeatureParams, PreparedMap, PrepareParams, prepare_map
 from minegeo.localize.uncertainty import PoseUncertainty, UncertaintyParams, pose_uncertainty
 
 __all__ = [
-    "CRSInfo",
-    "crs_info",
-    "local_origin",
-    "validate_crs",
-    "GeorefParams",
-    "GeorefResult",
-    "apply_georef",
-    "crs_to_map",
-    "georeference",
-    "load_georeferenced_map",
-    "map_to_crs",
-    "point_covariance_crs",
-    "pose_to_crs",
-    "read_georef",
-    "sidecar_path",
-    "write_georeferenced_map",
     "LocalizeParams",
     "LocalizationResult",
     "localize_scan",
@@ -55,7 +24,7 @@ __all__ += ["CorrelativeParams", "CorrelativeResult", "correlative_candidates", 
 
 
 def _warmup() -> None:
-    """Georeferencing has no Numba kernels; the localization pipeline only calls the kernels of
+    """The localization pipeline only calls the kernels of
     geometry, features and registration (warmed up by their packages): run it once on a tiny box."""
     import numpy as np
 

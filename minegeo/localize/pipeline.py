@@ -26,7 +26,7 @@ Frames
           ``T_crs_map``). **``T_map_scan`` always refers to this frame**:
           ``p_map = R p_scan + t``.
 ``geo``   CRS coordinates minus the georeferencing origin; ``T_geo_scan`` is obtained with
-          :func:`~minegeo.localize.georef.pose_to_crs` (the position goes through the
+          :func:`~minegeo.georef.pose_to_crs` (the position goes through the
           similarity, the orientation only through its rotation, so the pose stays rigid).
 ``crs``   full projected coordinates = ``geo`` + origin (only added when printing).
 

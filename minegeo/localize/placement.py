@@ -1,7 +1,7 @@
 """Stage 6 of :func:`~minegeo.localize.localize_scan`: the pose and trajectory in the map and the CRS.
 
 ``T_map_sensor(τ) = T_map_scan · T_scan_sensor(τ)`` ([Baek2022 Eq. 18]); the ``geo`` / CRS poses
-go through the map's georeferencing (:func:`~minegeo.localize.georef.pose_to_crs`: the position
+go through the map's georeferencing (:func:`~minegeo.georef.pose_to_crs`: the position
 through the similarity, the orientation through its rotation only, so the pose stays rigid).
 """
 
@@ -14,8 +14,8 @@ import numpy as np
 
 from minegeo.errors import InputError
 from minegeo.geometry.se3 import hat
+from minegeo.georef import pose_to_crs
 from minegeo.io.types import Trajectory
-from minegeo.localize.georef import pose_to_crs
 from minegeo.localize.prepared import PreparedMap
 
 __all__ = ["Placement", "place"]

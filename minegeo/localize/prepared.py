@@ -17,7 +17,7 @@ Frames
           map without georeferencing sidecar, the file's own coordinates.
 ``work``  ``map`` minus ``work_origin`` (a rounded point near the map's centre): all
           arrays of a :class:`PreparedMap` are in this frame (float64 precision for any map).
-``geo``   CRS minus the georeferencing origin (see :mod:`minegeo.localize.georef`).
+``geo``   CRS minus the georeferencing origin (see :mod:`minegeo.georef`).
 
 Normal orientation
 ------------------
@@ -420,11 +420,11 @@ class PreparedMap:
 
     @property
     def georef_result(self):
-        """The :class:`~minegeo.localize.georef.GeorefResult` or None."""
+        """The :class:`~minegeo.georef.GeorefResult` or None."""
         if self.georef is None:
             return None
         if self._georef_obj is None:
-            from minegeo.localize.georef import GeorefResult
+            from minegeo.georef import GeorefResult
 
             self._georef_obj = GeorefResult.from_dict(self.georef)
         return self._georef_obj
@@ -1201,13 +1201,13 @@ def load_map_cloud(path):
     """Read a map file in its ``map`` frame: ``(PointCloud, GeorefResult or None)``.
 
     A georeferenced map (``minegeo georef`` output with its ``.georef.json`` sidecar) is read
-    through :func:`~minegeo.localize.georef.load_georeferenced_map` and taken back to the map
-    frame with :func:`~minegeo.localize.georef.crs_to_map` (exact inverse of the similarity),
+    through :func:`~minegeo.georef.load_georeferenced_map` and taken back to the map
+    frame with :func:`~minegeo.georef.crs_to_map` (exact inverse of the similarity),
     so registration is rigid in the frame the map was surveyed in, even when the
     georeferencing has a scale. A plain cloud is used as is.
     """
+    from minegeo.georef import crs_to_map, load_georeferenced_map, sidecar_path
     from minegeo.io import read_point_cloud
-    from minegeo.localize.georef import crs_to_map, load_georeferenced_map, sidecar_path
 
     p = Path(path)
     if not p.exists():
@@ -1280,8 +1280,8 @@ class _MemoryBudget:
 
 def _open_map(path, chunk_points: int):
     """``(PointChunks, GeorefResult or None, transform or None)`` of a map file (see :func:`load_map_cloud`)."""
+    from minegeo.georef import crs_to_map, read_georef_sidecar, same_crs, sidecar_path
     from minegeo.io.chunked import open_point_chunks
-    from minegeo.localize.georef import _same_crs, crs_to_map, read_georef_sidecar, sidecar_path
 
     p = Path(path)
     if not p.exists():
@@ -1289,7 +1289,7 @@ def _open_map(path, chunk_points: int):
     if sidecar_path(p).exists() or p.name.endswith(".georef.json"):
         cloud_p, _, g = read_georef_sidecar(p)
         chunks = open_point_chunks(cloud_p, chunk_points, origin=g.origin)
-        if chunks.crs and not _same_crs(str(chunks.crs), g.crs):
+        if chunks.crs and not same_crs(str(chunks.crs), g.crs):
             raise FileFormatError(cloud_p, f"the file says CRS {chunks.crs} but its sidecar says {g.crs}")
         return chunks, g, lambda q: crs_to_map(q, g)
     return open_point_chunks(p, chunk_points), None, None
@@ -1395,7 +1395,7 @@ def prepare_map_file(path, params: PrepareParams | None = None, *, chunk_points:
 
 
 def _is_georeferenced(p: Path) -> bool:
-    from minegeo.localize.georef import sidecar_path
+    from minegeo.georef import sidecar_path
 
     return sidecar_path(p).exists() or p.name.endswith(".georef.json")
 

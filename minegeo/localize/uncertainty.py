@@ -98,7 +98,7 @@ The reported covariance is a sum of named parts (``PoseUncertainty.covariance_da
   already and the block estimate sees its sharing between neighbouring pairs.
 
 Not included: the georeferencing error of the map (``T_crs_map``), which is the same for every
-scan of the map; combine it with :func:`minegeo.localize.georef.point_covariance_crs`.
+scan of the map; combine it with :func:`minegeo.georef.point_covariance_crs`.
 
 95 % regions. The position refers to the **scan origin** (the translation of ``T_map_scan``), the
 point the covariance is taken about. ``position_95_radius_m`` is the radius of the ball that holds

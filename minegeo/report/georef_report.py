@@ -1,4 +1,4 @@
-"""Self-contained HTML report of a map georeferencing (:func:`minegeo.localize.georeference`).
+"""Self-contained HTML report of a map georeferencing (:func:`minegeo.georef.georeference`).
 
 ``report.html`` holds everything a surveyor checks, in one file that can be mailed or archived.
 It opens with the status banner (``OK``, ``WARNINGS`` or ``FAILED`` from ``result.status``, with

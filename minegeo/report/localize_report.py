@@ -42,7 +42,7 @@ _STATUS_TEXT = {
 def _frame_xy(g, pts_map: np.ndarray):
     """Plan coordinates for plotting: geo frame (CRS − origin) if georeferenced (``g``), else map."""
     if g is not None:
-        from minegeo.localize.georef import map_to_crs
+        from minegeo.georef import map_to_crs
 
         return map_to_crs(pts_map, g, allow_failed=True)
     return pts_map

@@ -345,7 +345,7 @@ JSON_CASES = {
 
 @pytest.mark.parametrize("case", list(JSON_CASES))
 def test_georef_json_readers(case, tmp_path):
-    from minegeo.localize.georef import load_georeferenced_map, read_georef
+    from minegeo.georef import load_georeferenced_map, read_georef
 
     text, match = JSON_CASES[case]
     side = tmp_path / "map.ply.georef.json"

@@ -28,14 +28,9 @@ _E_DIGITS = 3
 def mine(tmp_path_factory):
     """Georeferenced small mine (seed 0), its fast-profile prepared map, an ok scan and a scan of
     another mine, all on disk as the CLI sees them."""
+    from minegeo.georef import apply_georef, georeference, write_georeferenced_map
     from minegeo.io import write_point_cloud, write_trajectory
-    from minegeo.localize import (
-        PrepareParams,
-        apply_georef,
-        georeference,
-        prepare_map,
-        write_georeferenced_map,
-    )
+    from minegeo.localize import PrepareParams, prepare_map
     from minegeo.localize.prepared import load_map_cloud
     from minegeo.synth import Velodyne16, build_map, build_world, local_scan, make_gcps
 
@@ -100,7 +95,7 @@ def _banner(html: str) -> str:
 
 def _rejected_crs_strings(res_json: dict, georef) -> list[str]:
     """How the rejected best placement's CRS coordinates would be printed (E N H at 3 decimals)."""
-    from minegeo.localize import pose_to_crs
+    from minegeo.georef import pose_to_crs
 
     best = (res_json.get("rejected_candidates") or {}).get("best")
     if not best or georef is None:

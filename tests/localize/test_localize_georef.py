@@ -10,8 +10,7 @@ from hypothesis import strategies as st
 
 from minegeo.errors import CRSError, DegenerateGeometryError, InputError, TooFewPointsError
 from minegeo.geometry.se3 import exp_so3, log_so3
-from minegeo.io import ControlPoints, PointCloud
-from minegeo.localize import (
+from minegeo.georef import (
     GeorefParams,
     GeorefResult,
     apply_georef,
@@ -23,6 +22,7 @@ from minegeo.localize import (
     pose_to_crs,
     validate_crs,
 )
+from minegeo.io import ControlPoints, PointCloud
 
 # a mine near Pohang-ish / Korea in UTM 52N (E ~ 4e5, N ~ 4.1e6) and in the Pilbara, UTM 50S (N ~ 7.5e6)
 UTM52 = "EPSG:32652"

@@ -10,8 +10,8 @@ from helpers import require_extra
 
 from minegeo.cli import main
 from minegeo.errors import FileFormatError
+from minegeo.georef import load_georeferenced_map, read_georef, sidecar_path
 from minegeo.io import ControlPoints, PointCloud, read_gcps, read_point_cloud, write_gcps, write_point_cloud
-from minegeo.localize import load_georeferenced_map, read_georef, sidecar_path
 
 
 @pytest.fixture(scope="module")
@@ -184,7 +184,7 @@ def test_cli_refuses_to_overwrite_input_map(tmp_path, synth_gcps, capsys):
 
 
 def test_report_html_flags_escapes_and_no_plot_fallback():
-    from minegeo.localize import georeference
+    from minegeo.georef import georeference
     from minegeo.report.georef_report import georef_report_html, plot_georef_png
 
     rng = np.random.default_rng(5)

@@ -1,4 +1,4 @@
-"""Georeferencing validated on published answers through :func:`minegeo.localize.georeference`.
+"""Georeferencing validated on published answers through :func:`minegeo.georef.georeference`.
 
 * SK-42 -> SK-95 (20 real geocentric points, ~6e6 m): helmparms3d parameters and the GOST
   32453-2017 datum definitions (``shared/data/sk42_sk95_helmert7``).
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from helpers import shared_data
 
+from minegeo.georef import GeorefParams, georeference
 from minegeo.io import ControlPoints
-from minegeo.localize import GeorefParams, georeference
 from minegeo.survey import apply_helmert7, helmert7_matrix
 from minegeo.survey.angles import RHO_ARCSEC
 
@@ -201,7 +201,7 @@ def test_niosh_mine_fiducials_real_layout(model):
 def test_gigs_5101_tm_inverse_used_by_grid_factors():
     """The pyproj path behind the grid-factor and area-of-use checks reproduces IOGP GIGS 5101
     (Transverse Mercator, the method of EPSG:5186) reference points: (E, N) -> (lon, lat)."""
-    from minegeo.localize.crs import grid_scale_factors
+    from minegeo.georef import grid_scale_factors
 
     path = shared_data("proj_helmert_gigs", "gigs_5101.1-jhs.gie")
     text = path.read_text(encoding="utf-8")

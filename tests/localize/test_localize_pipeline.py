@@ -243,8 +243,8 @@ def test_cli_end_to_end_georeferenced(world_map, tmp_path):
     """georef'd map + scan + trajectory through ``minegeo localize`` (cache written), then
     ``minegeo prepare-map`` and ``localize`` against the prepared file."""
     from minegeo.cli import main
+    from minegeo.georef import apply_georef, georeference, pose_to_crs, write_georeferenced_map
     from minegeo.io import write_point_cloud, write_trajectory
-    from minegeo.localize import apply_georef, georeference, pose_to_crs, write_georeferenced_map
     from minegeo.synth import make_gcps
 
     world, cloud, _, scans = world_map

@@ -84,7 +84,7 @@ def test_one_point_chunks_and_every_point_icp(tmp_path):
 
 
 def test_georeferenced_map_streams(tmp_path):
-    from minegeo.localize.georef import apply_georef, georeference, write_georeferenced_map
+    from minegeo.georef import apply_georef, georeference, write_georeferenced_map
     from minegeo.synth import build_map, build_world, make_gcps
 
     world = build_world("small", 0)
@@ -185,8 +185,7 @@ def test_georef_streams_the_same_bytes(tmp_path, capsys, far):
     transform + write) and writes the bytes, sidecar and report sample of the in-memory path."""
     from minegeo.cli import main
     from minegeo.cli.georef import streamable_map
-    from minegeo.io import read_point_cloud, write_gcps
-    from minegeo.localize.georef import (
+    from minegeo.georef import (
         GeorefParams,
         apply_georef,
         georeference,
@@ -194,6 +193,7 @@ def test_georef_streams_the_same_bytes(tmp_path, capsys, far):
         report_sample_rows,
         write_georeferenced_map,
     )
+    from minegeo.io import read_point_cloud, write_gcps
     from minegeo.synth import build_world, make_gcps
 
     world = build_world("small", seed=0)
@@ -226,7 +226,7 @@ def test_georef_streams_the_same_bytes(tmp_path, capsys, far):
     rows = report_sample_rows(len(cloud_geo))
     assert rows.size == 20_000 and np.all(np.diff(rows) > 0)
     from minegeo.cli.georef import map_origin_auto
-    from minegeo.localize.georef import stream_georeferenced_map
+    from minegeo.georef import stream_georeferenced_map
 
     chunks = streamable_map(mp, out)
     n = map_origin_auto(chunks)
@@ -280,13 +280,13 @@ def test_georef_streams_las_with_every_field(tmp_path, suffix):
 
     from minegeo.cli import main
     from minegeo.cli.georef import map_origin_auto, streamable_map
-    from minegeo.io import read_point_cloud, write_gcps
-    from minegeo.localize.georef import (
+    from minegeo.georef import (
         apply_georef,
         read_georef,
         stream_georeferenced_las,
         write_georeferenced_map,
     )
+    from minegeo.io import read_point_cloud, write_gcps
     from minegeo.synth import build_world, make_gcps
 
     world = build_world("small", seed=0)

@@ -31,7 +31,7 @@ from minegeo.errors import CRSError, InputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CRSInfo", "validate_crs", "crs_info", "local_origin", "grid_scale_factors"]
+__all__ = ["CRSInfo", "validate_crs", "crs_info", "local_origin", "grid_scale_factors", "outside_area_of_use", "same_crs"]
 
 _METRE_NAMES = ("metre", "meter", "m")
 
@@ -309,3 +309,16 @@ def outside_area_of_use(crs, east_north, margin_deg: float = 1.0) -> str | None:
         f"{c.name} ({area.name}; first: E {en[k, 0]:.3f}, N {en[k, 1]:.3f} -> {where}): check the EPSG "
         "code, the zone, and that the columns are Easting then Northing"
     )
+
+
+def same_crs(a: str, b: str) -> bool:
+    """True when the CRS names ``a`` and ``b`` are the same text (case-insensitive) or pyproj finds
+    them equal (e.g. ``"EPSG:5186"`` and its WKT); False when either cannot be interpreted."""
+    if a.strip().upper() == b.strip().upper():
+        return True
+    try:
+        from pyproj import CRS
+
+        return CRS.from_user_input(a) == CRS.from_user_input(b)
+    except Exception:
+        return False

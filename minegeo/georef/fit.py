@@ -24,7 +24,7 @@ at the solution (left perturbation ``R = exp([δ]×)·R̂``).
 
 The weighted least-squares adjustment (Gauss-Markov, ``N = BᵀWB``, ``Σxx = σ0²N⁻¹``) is
 :func:`minegeo.survey.helmert3d` on coordinates reduced to a recorded local origin (a CRS
-point rounded to whole kilometres, see :mod:`minegeo.localize.crs`), so coordinates of
+point rounded to whole kilometres, see :mod:`minegeo.georef.crs`), so coordinates of
 10⁶–10⁷ m lose no precision. Weights are ``W = Σll⁻¹`` from the a-priori standard deviations
 of the CRS coordinates, optionally inflated by those of the map coordinates
 (``σ² = σ_ENH² + s²·(R Σ_xyz Rᵀ)_jj``, exact for isotropic map sigmas, diagonal otherwise).
@@ -77,14 +77,15 @@ from minegeo.errors import (
     TooFewPointsError,
 )
 from minegeo.geometry.se3 import hat, log_so3
-from minegeo.io.types import ControlPoints, PointCloud
-from minegeo.localize.crs import (
+from minegeo.georef.crs import (
     CRSInfo,
     crs_info,
     grid_scale_factors,
     local_origin,
     outside_area_of_use,
+    same_crs,
 )
+from minegeo.io.types import ControlPoints, PointCloud
 from minegeo.survey.angles import RHO_ARCSEC, format_dms
 from minegeo.survey.helmert import helmert3d
 from minegeo.survey.lsq import LSQOptions, LSQResult
@@ -566,17 +567,6 @@ def _euler_zyx(R: np.ndarray) -> np.ndarray:
     return np.array([roll, pitch, yaw])
 
 
-def _same_crs(a: str, b: str) -> bool:
-    if a.strip().upper() == b.strip().upper():
-        return True
-    try:
-        from pyproj import CRS
-
-        return CRS.from_user_input(a) == CRS.from_user_input(b)
-    except Exception:
-        return False
-
-
 # ---------------------------------------------------------------------------- estimation
 @dataclass(frozen=True)
 class _Screening:
@@ -638,7 +628,7 @@ def _checked_inputs(gcps: ControlPoints, crs, p: GeorefParams):
         raise InputError(f"gcps must be ControlPoints (see minegeo.io.read_gcps), got {type(gcps).__name__}")
     if crs is None:
         crs = gcps.crs
-    elif gcps.crs and not _same_crs(str(crs), str(gcps.crs)):
+    elif gcps.crs and not same_crs(str(crs), str(gcps.crs)):
         raise CRSError(
             f"the control points are in {gcps.crs} but {crs} was requested: give the CRS of the E, N, H "
             "coordinates (or transform them first)"
@@ -1433,7 +1423,7 @@ def read_georef_sidecar(path, *, check_hash: bool = True) -> tuple:
     except (KeyError, InputError) as exc:
         raise FileFormatError(side_p, f"bad georeferencing record: {exc}") from None
     from minegeo.errors import CRSError
-    from minegeo.localize.crs import validate_crs
+    from minegeo.georef.crs import validate_crs
 
     try:  # the CRS a map claims must be one pyproj knows and minegeo can work in
         validate_crs(result.crs)
@@ -1468,7 +1458,7 @@ def load_georeferenced_map(path, *, check_hash: bool = True) -> tuple:
 
     cloud_p, side_p, result = read_georef_sidecar(path, check_hash=check_hash)
     cloud = read_point_cloud(cloud_p, origin=result.origin)
-    if cloud.crs and not _same_crs(str(cloud.crs), result.crs):
+    if cloud.crs and not same_crs(str(cloud.crs), result.crs):
         raise FileFormatError(cloud_p, f"the file says CRS {cloud.crs} but its sidecar says {result.crs}")
     cloud.crs = result.crs
     cloud.frame = "crs"
