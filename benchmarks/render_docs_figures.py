@@ -1,0 +1,404 @@
+"""Render the benchmark figures of README.md and docs/*.md from the committed results files.
+
+A page holds a benchmark figure only between two markers::
+
+    <!-- figures: NAME -->
+    ... generated text ...
+    <!-- /figures -->
+
+``NAME`` is a key of :data:`RENDERERS`; its function reads one results file under
+``benchmarks/results`` and returns the block's text: a line of conditions (results file, date,
+commit, threads on both sides, machine load, each "not recorded" when the file lacks it) and the
+table or lines. Nothing between the markers is written by hand.
+
+Usage::
+
+    python benchmarks/render_docs_figures.py --check   # exit 1 and a diff when a page disagrees
+    python benchmarks/render_docs_figures.py --write   # rewrite every block from its file
+
+``tests/docs/test_docs_figures.py`` runs the check.
+"""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import json
+import re
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+
+BEGIN = re.compile(r"^<!-- figures: (?P<name>[\w.-]+) -->\s*$")
+END = re.compile(r"^<!-- /figures -->\s*$")
+NOT_RECORDED = "not recorded"
+
+
+# -- helpers -----------------------------------------------------------------------------------
+
+def _load(name: str, results: Path) -> dict:
+    return json.loads((results / name).read_text(encoding="utf-8"))
+
+
+def _uptime_load(text: str | None) -> str | None:
+    """The 1-minute load average of an ``uptime`` line."""
+    if not text:
+        return None
+    m = re.search(r"load average:\s*([\d.]+)", text)
+    return m.group(1) if m else None
+
+
+def _fmt_load(values) -> str | None:
+    vals = [float(v) for v in values if v is not None]
+    if not vals:
+        return None
+    lo, hi = min(vals), max(vals)
+    return f"{lo:.1f}" if f"{lo:.1f}" == f"{hi:.1f}" else f"{lo:.1f}-{hi:.1f}"
+
+
+def conditions(file: str, *, date: str | None, commit: str | None, threads: str | None,
+               load: str | None, extra: str = "") -> str:
+    """The conditions line every rendered block starts with."""
+    parts = [f"Results file `benchmarks/results/{file}`",
+             f"measured {date or NOT_RECORDED}",
+             f"commit {commit or NOT_RECORDED}",
+             f"threads {threads or NOT_RECORDED}",
+             f"1-minute load {load or NOT_RECORDED} (2-core machine shared with other jobs)"]
+    return "*" + "; ".join(parts) + (f"; {extra}" if extra else "") + ".*"
+
+
+def _date_from_name(file: str) -> str | None:
+    m = re.search(r"(\d{4}-\d{2}-\d{2})", file)
+    return m.group(1) if m else None
+
+
+def _thin(n: int) -> str:
+    return f"{n:,}".replace(",", "\u202f")
+
+
+# -- renderers ---------------------------------------------------------------------------------
+
+REGISTRATION_FILE = "registration_quick_2026-11-25_issue16_after.json"
+REGISTRATION_TARGETS = {"normals": 0.8, "fpfh": 0.8, "icp_point_to_point": 0.8, "icp_point_to_plane": 0.8,
+                        "ransac": 0.5}
+
+
+def render_registration_quick(results: Path) -> str:
+    """The quick registration benchmark (minegeo against Open3D 0.20, light parameter set)."""
+    d = _load(REGISTRATION_FILE, results)
+    meta = d["meta"]
+    th = meta.get("threads")
+    head = conditions(REGISTRATION_FILE, date=_date_from_name(REGISTRATION_FILE), commit=None,
+                      threads=f"{th} for minegeo (Numba) and {th} for Open3D" if th else None, load=None,
+                      extra=f"open3d {meta['versions'].get('open3d', '?')}, "
+                            f"`python benchmarks/bench_registration.py --quick`")
+    sizes = d.get("_sizes", {})
+    lines = [head, "",
+             f"Map {_thin(sizes['map_points'])} points, scan "
+             f"{_thin(sizes['scan_points'])} points after voxel downsampling; ratio = minegeo / Open3D "
+             "(lower is better), median or minimum of the interleaved runs.", "",
+             "| stage | minegeo s | Open3D s | ratio | target | meets | agreement with Open3D |",
+             "|---|---:|---:|---:|---:|---|---|"]
+    for stage in ("voxel", "octree", "normals", "fpfh", "ransac", "icp_point_to_point", "icp_point_to_plane"):
+        r = d[stage]
+        tgt = REGISTRATION_TARGETS.get(stage)
+        ratio = f"{r['ratio']:.2f}"
+        meets = "—" if tgt is None else ("yes" if float(ratio) <= tgt else "**no (miss)**")
+        lines.append(f"| {stage} | {r['minegeo_s']:.4f} | {r['open3d_s']:.4f} | {ratio} | "
+                     f"{'—' if tgt is None else f'≤ {tgt}'} | {meets} | {_registration_agreement(stage, r)} |")
+    return "\n".join(lines)
+
+
+def _registration_agreement(stage: str, r: dict) -> str:
+    a = r["agreement"]
+    if stage in ("voxel", "octree"):
+        return "identical" if a == 1.0 else f"{a:.4f} identical"
+    if stage == "normals":
+        return f"{100 * a:.3f} % of normals within 1e-6 rad"
+    if stage == "fpfh":
+        return f"max relative L1 difference {a:.1e}"
+    if stage == "ransac":
+        n = a["runs"]
+        return (f"success {a['minegeo_successes']}/{n} (minegeo, Open3D mode), {a['minegeo_mode_successes']}/{n} "
+                f"(minegeo mode) vs {a['open3d_successes']}/{n} (Open3D), {r['seeds_per_section']} seeds × "
+                f"{len(r['sections'])} sections, budget {_thin(r['budget'])} iterations")
+    return (f"Δ {a['rot_rad']:.1e} rad / {a['trans_m']:.1e} m; {r['iterations']} iterations, "
+            f"{r['status']}")
+
+
+POSEGRAPH_FILE = "posegraph_2026-11-29.json"
+
+
+def render_posegraph(results: Path) -> str:
+    """``minegeo posegraph`` on one Numba thread against GTSAM's single-threaded LM."""
+    d = _load(POSEGRAPH_FILE, results)
+    meta = d["meta"]
+    head = conditions(POSEGRAPH_FILE, date=meta.get("date"), commit=meta.get("commit"),
+                      threads="1 for minegeo (Numba) and 1 for GTSAM (single-threaded wheel)",
+                      load=_fmt_load([_uptime_load(meta.get("uptime_before")),
+                                      _uptime_load(meta.get("uptime_after"))]),
+                      extra=f"GTSAM {meta.get('gtsam', '?')}; `python benchmarks/bench_posegraph.py --cli`")
+    lines = [head, "",
+             "F = the written graph's cost evaluated by GTSAM on the file's own factors; F* = GTSAM's LM run "
+             "to convergence; process = CPU of the whole `minegeo posegraph` process, optimiser = wall time "
+             "of the optimisation inside it; GTSAM = CPU of its `optimize()`.", "",
+             "| graph | minegeo exit, status, iterations | (F − F*)/F* | minegeo process / optimiser s "
+             "| GTSAM default: iterations, F, s | GTSAM converged: iterations, s |",
+             "|---|---|---:|---|---|---|"]
+    for name, r in d["results"].items():
+        m = r["minegeo"]["1"]
+        gd, gc = r["gtsam_default"], r["gtsam_converged"]
+        above = (gd["cost"] - gc["cost"]) / gc["cost"]
+        gd_note = f" ({above:.1e} above F*)" if above > 1e-6 else ""
+        lines.append(f"| {name.removesuffix('.g2o')} | {m['exit']}, {m['status']}, {m['iterations']} "
+                     f"| {m['relative_to_gtsam_converged']:.1e} | {m['process_s']:.1f} / {m['optimise_s']:.1f} "
+                     f"| {gd['iterations']}, {gd['cost']:.10g}{gd_note}, {gd['process_s']:.1f} "
+                     f"| {gc['iterations']}, {gc['process_s']:.1f} |")
+    return "\n".join(lines)
+
+
+BATCH_FILE = "batch_2026-11-25.json"
+
+
+def render_batch(results: Path) -> str:
+    """``minegeo localize-batch`` throughput and accuracy against the synthetic truth."""
+    d = _load(BATCH_FILE, results)
+    head = conditions(BATCH_FILE, date=d.get("date"), commit=d.get("commit"),
+                      threads=f"{d.get('cpus', '?')} cores shared by the workers (each `cores // workers` "
+                              "Numba threads)",
+                      load=_fmt_load([_uptime_load(d.get("uptime_before")), _uptime_load(d.get("uptime_after"))]
+                                     + [_uptime_load(r.get("uptime_after")) for r in d["runs"]]),
+                      extra=f"{d['n_scans']} scans of `minegeo synth --preset small --seed {d['synth_seed']}` "
+                            f"moved by random rigid motions, `--seed {d['seed']}`")
+    lines = [head, "",
+             "| workers | command wall s | scans/min (command) | scans/min (batch) | ok / ambiguous / failed "
+             "| ok within its 95 % radius | ok within 0.10 m | worst ok error m | ok at a wrong place |",
+             "|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
+    for r in d["runs"]:
+        c, s = r["counts"], r["score"]
+        lines.append(f"| {r['workers']} | {r['wall_s']:.1f} | {r['scans_per_minute_wall']:.1f} "
+                     f"| {r['scans_per_minute_batch']:.1f} | {c['ok']} / {c['ambiguous']} / {c['failed']} "
+                     f"| {s['ok_within_95_radius']}/{s['ok']} | {s['ok_within_0.10_m']}/{s['ok']} "
+                     f"| {s['worst_ok_error_m']:.3f} | {s['wrong_place_ok']} |")
+    o = d["one_by_one"]
+    lines += ["", f"One by one with `minegeo localize`: {o['identical']} of {o['n']} `result.json` identical to "
+              f"the batch's (timings aside); {o['in_process_scans_per_minute']:.1f} scans/min in one Python "
+              f"process, {o['subprocess_scans_per_minute']:.1f} scans/min as a shell loop "
+              f"({o['subprocess_s_per_scan']:.2f} s per scan); poses equal across worker counts: "
+              f"{'yes' if d.get('poses_equal_across_worker_counts') else 'no'}."]
+    return "\n".join(lines)
+
+
+PREPARE_FILE = "prepare_scaling_2026-11-25.json"
+GEOREF_FILE = "georef_scaling_2026-11-25.json"
+GEOREF_LAS_FILE = "georef_scaling_2026-11-28_las.json"
+_POW = {10 ** 6: "10⁶", 10 ** 7: "10⁷", 10 ** 8: "10⁸", 10 ** 9: "10⁹"}
+
+
+def render_prepare_scaling(results: Path) -> str:
+    """``minegeo prepare-map`` wall time and peak memory from 10⁶ to 10⁸ points."""
+    d = _load(PREPARE_FILE, results)
+    rows = d["rows"]
+    head = conditions(PREPARE_FILE, date=d["meta"].get("date"), commit=d["meta"].get("commit"),
+                      threads=d["meta"].get("threads"),
+                      load=_fmt_load([r["load_before"][0] for r in rows]),
+                      extra=f"profile {d['meta'].get('profile')}, {d['meta'].get('extent')}")
+    lines = [head, "",
+             "| input points | file GB | wall s | peak RSS GB | read + downsample s | normals + FPFH s "
+             "| ICP target s | search structures s | map / ICP points | chunks |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {_POW.get(r['n_points'], r['n_points'])} | {r['file_bytes'] / 1e9:.3f} "
+                     f"| {r['wall_s']:.1f} | {r['peak_rss_gb']:.2f} | {r['read_downsample_s']:.1f} "
+                     f"| {r['features_s']:.1f} | {r['icp_target_s']:.1f} | {r['search_structures_s']:.1f} "
+                     f"| {_thin(r['n_down'])} / {_thin(r['n_icp_points'])} | {r['n_chunks']} |")
+    f = d["fit"]
+    lines += ["", f"Fit over the sizes: wall time ∝ n^{f['a_wall']:.2f}, read + downsample ∝ "
+              f"n^{f['a_read_downsample']:.2f}."]
+    return "\n".join(lines)
+
+
+def _render_georef(file: str, results: Path) -> str:
+    d = _load(file, results)
+    rows = d["rows"]
+    head = conditions(file, date=_date_from_name(file), commit=d.get("commit"), threads=d.get("threads"),
+                      load=_fmt_load([r["load_before"][0] for r in rows]),
+                      extra="streamed (`--georef --no-prepare`)")
+    lines = [head, "", "| input points | wall s | peak RSS GB | written GB | fit status |",
+             "|---:|---:|---:|---:|---|"]
+    for r in rows:
+        lines.append(f"| {_POW.get(r['n_points'], r['n_points'])} | {r['wall_s']:.1f} | {r['peak_rss_gb']:.2f} "
+                     f"| {r['out_bytes'] / 1e9:.3f} | {r['status']} |")
+    return "\n".join(lines)
+
+
+def render_georef_scaling(results: Path) -> str:
+    """``georef`` streamed, PLY in / PLY out."""
+    return _render_georef(GEOREF_FILE, results)
+
+
+def render_georef_scaling_las(results: Path) -> str:
+    """``georef`` streamed, LAS in / LAS out with every field."""
+    return _render_georef(GEOREF_LAS_FILE, results)
+
+
+SLAM_FILE = "slam_2026-11-25.json"
+
+
+def render_slam_ablation(results: Path) -> str:
+    """The SLAM ablation on the synthetic VLP-16 sequences against KISS-ICP."""
+    d = _load(SLAM_FILE, results)
+    meta = d["meta"]
+    th = meta.get("threads")
+    head = conditions(SLAM_FILE, date=meta.get("date"), commit=meta.get("git"),
+                      threads=f"{th} for minegeo (Numba) and {th} for KISS-ICP" if th else None, load=None,
+                      extra="`python benchmarks/bench_slam.py`")
+    lines = [head, "",
+             "| sequence | method | ATE RMSE | ATE RMSE, aligned | RPE 10 m | RPE 100 m | end-point drift "
+             "| loops / plane nodes |",
+             "|---|---|---|---|---|---|---|---|"]
+    names = {"odometry": "odometry", "+loops": "+ loops", "+planes": "+ planes",
+             "+loops+planes": "+ both (default)"}
+    for seq, r in d["results"].items():
+        first = True
+        for v, m in r["methods"].items():
+            label = names.get(v, v)
+            seq_cell = f"{seq} {m['path_m']:.0f} m" if first else ""
+            first = False
+            loops = m.get("loops_accepted")
+            planes = m.get("plane_nodes")
+            lp = "" if v.startswith("KISS") or v == "odometry" else \
+                f"{loops if 'loops' in v else '–'} / {planes if 'planes' in v else '–'}"
+            lines.append(f"| {seq_cell} | {label} | {m['ate_m']:.3f} m ({m['ate_pct']:.3f} %) "
+                         f"| {m['ate_aligned_m']:.3f} m ({m['ate_aligned_pct']:.3f} %) | {m['rpe10_pct']:.2f} % "
+                         f"| {m['rpe100_pct']:.2f} % | {m['end_m']:.2f} m ({m['end_pct']:.2f} %) | {lp} |")
+    return "\n".join(lines)
+
+
+MULRAN_FILE = "mulran_2026-11-25.json"
+
+
+def render_mulran(results: Path) -> str:
+    """minegeo's odometry and ``minegeo slam`` against the MulRan Riverside02 reference poses."""
+    d = _load(MULRAN_FILE, results)
+    commit = d.get("git", {}).get("commit")
+    dirty = d.get("git", {}).get("dirty_files")
+    head = conditions(MULRAN_FILE, date=_date_from_name(MULRAN_FILE),
+                      commit=(commit[:7] + ("+dirty" if dirty else "")) if commit else None,
+                      threads=None, load=_fmt_load([(d.get("load_average_1_5_15") or [None])[0]]),
+                      extra=f"{d['frames']} keyframes; trust bounds {d['trust_bounds']['translation_m']} m and "
+                            f"{d['trust_bounds']['rotation_deg']}° per pair")
+    lines = [head, "",
+             "| variant (pairs) | translation median / p90 / p95 / max (m) | rotation median / p95 / max (°) "
+             "| within bounds | path ratio | s per frame |",
+             "|---|---|---|---:|---:|---:|"]
+
+    def row(label, dist, within, pairs, ratio, s):
+        t, r = dist["translation_m"], dist["rotation_deg"]
+        return (f"| {label} ({pairs}) | {t['median']:.3f} / {t['p90']:.3f} / {t['p95']:.3f} / {t['max']:.2f} "
+                f"| {r['median']:.2f} / {r['p95']:.2f} / {r['max']:.2f} | {within} | {ratio:.3f} | {s} |")
+
+    for v in d["variants"]:
+        p = v["params"]
+        label = f"odometry, voxel {p['voxel_size_m']} m, gate {p['max_correspondence_distance_m']} m"
+        lines.append(row(label, v["distribution"], v["within_trust"], v["pairs"], v["path_ratio"],
+                         f"{v['time_per_frame_s']:.2f}"))
+    c = d["cli"]
+    lines.append(row(f"`{c['command'].replace('minegeo -q', 'minegeo')}`", c["distribution"], c["within_trust"],
+                     d["variants"][0]["pairs"], c["path_ratio"],
+                     f"{c['wall_s'] / c['summary']['frames']:.2f} (whole command)"))
+    return "\n".join(lines)
+
+
+RENDERERS = {
+    "registration_quick": render_registration_quick,
+    "posegraph": render_posegraph,
+    "batch": render_batch,
+    "prepare_scaling": render_prepare_scaling,
+    "georef_scaling": render_georef_scaling,
+    "georef_scaling_las": render_georef_scaling_las,
+    "slam_ablation": render_slam_ablation,
+    "mulran": render_mulran,
+}
+
+
+# -- pages ---------------------------------------------------------------------------------------
+
+def pages(root: Path = ROOT) -> list[Path]:
+    """README.md and every page of docs/."""
+    return [root / "README.md"] + sorted((root / "docs").glob("*.md"))
+
+
+def blocks(text: str) -> list[tuple[str, int, int]]:
+    """``(name, first, last)`` line indices (0-based, the marker lines) of every figures block."""
+    out, open_ = [], None
+    for i, line in enumerate(text.splitlines()):
+        b, e = BEGIN.match(line), END.match(line)
+        if b:
+            if open_ is not None:
+                raise ValueError(f"line {i + 1}: figures block opened inside another (line {open_[1] + 1})")
+            open_ = (b["name"], i)
+        elif e:
+            if open_ is None:
+                raise ValueError(f"line {i + 1}: <!-- /figures --> without an opening marker")
+            out.append((open_[0], open_[1], i))
+            open_ = None
+        elif "<!-- figures" in line or "<!-- /figures" in line:
+            raise ValueError(f"line {i + 1}: malformed figures marker: {line.strip()}")
+    if open_ is not None:
+        raise ValueError(f"line {open_[1] + 1}: figures block '{open_[0]}' never closed")
+    return out
+
+
+def render_page(text: str, results: Path = RESULTS) -> str:
+    """``text`` with every figures block rendered from its results file."""
+    lines = text.splitlines()
+    for name, first, last in reversed(blocks(text)):
+        if name not in RENDERERS:
+            raise ValueError(f"line {first + 1}: no renderer for figures '{name}' (known: {sorted(RENDERERS)})")
+        lines[first + 1:last] = [""] + RENDERERS[name](results).splitlines() + [""]
+    return "\n".join(lines) + ("\n" if text.endswith("\n") else "")
+
+
+def check(root: Path = ROOT, results: Path = RESULTS) -> list[str]:
+    """A unified diff per page whose figures blocks disagree with their results files."""
+    diffs = []
+    for page in pages(root):
+        text = page.read_text(encoding="utf-8")
+        try:
+            want = render_page(text, results)
+        except ValueError as exc:
+            diffs.append(f"{page.relative_to(root)}: {exc}")
+            continue
+        if want != text:
+            rel = str(page.relative_to(root))
+            diffs.append("".join(difflib.unified_diff(text.splitlines(True), want.splitlines(True),
+                                                      f"{rel} (page)", f"{rel} (from results)")))
+    return diffs
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    mode = ap.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--check", action="store_true", help="exit 1 when a page disagrees with its results")
+    mode.add_argument("--write", action="store_true", help="rewrite every figures block from its results")
+    args = ap.parse_args(argv)
+    if args.check:
+        diffs = check()
+        for d in diffs:
+            print(d)
+        print(f"{len(diffs)} page(s) disagree with their results files" if diffs else "all figures agree")
+        return 1 if diffs else 0
+    for page in pages():
+        text = page.read_text(encoding="utf-8")
+        new = render_page(text)
+        if new != text:
+            page.write_text(new, encoding="utf-8")
+            print(f"rewrote {page.relative_to(ROOT)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
