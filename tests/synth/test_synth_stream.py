@@ -120,13 +120,14 @@ def _files(folder: Path) -> dict:
 
 
 def test_stream_deterministic_and_streams_independent(tmp_path):
-    a, b, c, d = (tmp_path / k for k in "abcd")
+    a, b, c, d, e = (tmp_path / k for k in "abcde")
     write_stream(a, StreamParams(preset="handheld", seed=3, imu=ImuParams(rate_hz=100.0), **TINY))
     write_stream(b, StreamParams(preset="handheld", seed=3, imu=ImuParams(rate_hz=100.0), **TINY))
     write_stream(c, StreamParams(preset="handheld", seed=4, imu=ImuParams(rate_hz=100.0), **TINY))
     write_stream(d, StreamParams(preset="handheld", seed=3, imu=ImuParams(rate_hz=100.0,
                                                                          gyroscope_noise_density=1e-3), **TINY))
-    fa, fb, fc, fd = _files(a), _files(b), _files(c), _files(d)
+    write_stream(e, StreamParams(preset="handheld", seed=3, imu=ImuParams(rate_hz=200.0), **TINY))
+    fa, fb, fc, fd, fe = _files(a), _files(b), _files(c), _files(d), _files(e)
     assert fa == fb
     assert len([k for k in fa if k.startswith("frames/")]) == 10
     assert fa["imu.csv"] != fc["imu.csv"] and fa["frames/000003.ply"] != fc["frames/000003.ply"]
@@ -136,6 +137,8 @@ def test_stream_deterministic_and_streams_independent(tmp_path):
     ta = np.loadtxt(a / "imu_truth.csv", delimiter=",", skiprows=1)
     td = np.loadtxt(d / "imu_truth.csv", delimiter=",", skiprows=1)
     assert np.array_equal(ta, td) and fa["imu.csv"] != fd["imu.csv"]
+    # twice the IMU rate (twice the IMU draws): the sweeps are the same bytes
+    assert all(fa[k] == fe[k] for k in fa if k.startswith("frames/")) and fa["imu.csv"] != fe["imu.csv"]
 
 
 def test_cli_stream_outputs(tmp_path):
