@@ -15,6 +15,10 @@
   first offending frame (and the times file's line). A times file is read by
   :func:`minegeo.io.trajectory.read_times`: a folder, FIFO or device is refused without being
   opened, saying what it is.
+* Per-point times (:func:`read_frame` with ``with_times=True``): a PLY/PCD/text field ``time``, ``t``,
+  ``timestamp`` or ``offset_time`` (the first found) holds each point's offset from the frame time
+  (float: seconds; unsigned integer: nanoseconds), within [-0.01 s, 1 s]; LAS/LAZ ``gps_time`` is
+  absolute, made an offset with the frame time (:mod:`minegeo.io.times`).
 * Times read from names that are consecutive integers from 0 or 1 (``000000.pcd``, ``000001.pcd``,
   ...) are most likely frame numbers, not seconds: :func:`list_frames` logs a warning and says so in
   :attr:`FrameList.times_source` (the run still takes them as seconds, as the contract says).
@@ -72,14 +76,46 @@ def read_kitti_bin(path) -> np.ndarray:
     return pts
 
 
-def read_frame(path) -> np.ndarray:
-    """Points (n, 3) float64 of one frame file (sensor frame, m)."""
-    if Path(path).suffix.lower() == ".bin":
-        return read_kitti_bin(path)
-    from minegeo.io.pointcloud import read_point_cloud
+def read_frame(path, *, with_times: bool = False, time_s: float | None = None):
+    """Points (n, 3) float64 of one frame file (sensor frame, m), and on request their times.
 
-    cloud = read_point_cloud(path)
-    return cloud.points + cloud.origin
+    Parameters
+    ----------
+    path : path
+        The frame file.
+    with_times : bool
+        ``False`` (default): the (n, 3) array. ``True``: a :class:`~minegeo.io.times.TimedPoints`
+        whose ``t_offset_s`` holds each point's seconds after the frame time (PLY/PCD/text time
+        fields, :mod:`minegeo.io.times`), None when the file has no time field (KITTI ``.bin`` never
+        has one).
+    time_s : float, optional
+        The frame time (s). Needed only for LAS/LAZ frames, whose ``gps_time`` is absolute: their
+        offsets are ``gps_time - time_s`` (same clock as the frame times).
+
+    Raises
+    ------
+    FileFormatError
+        As the readers; with ``with_times``, per-point offsets outside [-0.01 s, 1 s] or NaN, or a
+        time field stored as a signed integer (the frame file is named).
+    """
+    if Path(path).suffix.lower() == ".bin":
+        pts = read_kitti_bin(path)
+        if not with_times:
+            return pts
+        from minegeo.io.times import TimedPoints
+
+        return TimedPoints(pts, None, source=str(path))
+    from minegeo.io.pointcloud import read_point_cloud, read_points
+
+    if not with_times:
+        cloud = read_point_cloud(path)
+        return cloud.points + cloud.origin
+    tp = read_points(path, with_times=True)
+    if tp.t_abs_s is not None and time_s is not None:
+        from minegeo.io.times import offsets_from_absolute
+
+        tp = offsets_from_absolute(tp, time_s)
+    return tp
 
 
 def _frame_files(folder: Path, pattern: str | None = None) -> list[Path]:

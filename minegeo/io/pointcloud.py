@@ -41,7 +41,7 @@ from minegeo.io.types import PointCloud
 
 log = logging.getLogger(__name__)
 
-__all__ = ["read_point_cloud", "write_point_cloud", "cloud_info", "detect_format", "POINT_CLOUD_FORMATS"]
+__all__ = ["read_point_cloud", "read_points", "write_point_cloud", "cloud_info", "detect_format", "POINT_CLOUD_FORMATS"]
 
 _SUFFIX = {
     ".ply": "ply",
@@ -235,6 +235,42 @@ def read_point_cloud(
     return cloud
 
 
+def read_points(path, *, with_times: bool = False, format: str | None = None, drop_nonfinite: bool = False):
+    """Coordinates of a point-cloud file, and on request its per-point times.
+
+    Parameters
+    ----------
+    path : str or Path
+        Any file :func:`read_point_cloud` reads.
+    with_times : bool
+        ``False`` (default): return the (n, 3) float64 coordinates only. ``True``: return a
+        :class:`~minegeo.io.times.TimedPoints` with the per-point times
+        (:mod:`minegeo.io.times`: PLY/PCD/text fields ``time``, ``t``, ``timestamp``,
+        ``offset_time``, the first found; float = seconds after the frame time, unsigned integer =
+        nanoseconds, converted; LAS/LAZ ``gps_time`` as absolute seconds).
+    format, drop_nonfinite
+        As for :func:`read_point_cloud` (a dropped point's time is dropped with it).
+
+    Returns
+    -------
+    ndarray (n, 3) float64 or TimedPoints
+        Global coordinates (the file's own offset added; no local origin subtracted), metres.
+
+    Raises
+    ------
+    FileFormatError
+        As :func:`read_point_cloud`; with ``with_times``, also a time field stored as a signed
+        integer, or offsets outside [-0.01 s, 1 s] or NaN (the file is named).
+    """
+    cloud = read_point_cloud(path, format=format, drop_nonfinite=drop_nonfinite)
+    xyz = cloud.points + cloud.origin if np.any(cloud.origin != 0) else cloud.points
+    if not with_times:
+        return xyz
+    from minegeo.io.times import timed_points
+
+    return timed_points(xyz, cloud.attributes, cloud.metadata.get("source", str(path)), cloud.metadata.get("format"))
+
+
 def _read_e57_cloud(p: Path, origin, drop_nonfinite: bool, scale) -> PointCloud:
     from minegeo.io.e57 import read_e57_raw
 
@@ -347,7 +383,8 @@ def cloud_info(path, format: str | None = None) -> dict:
         ``path``, ``format``, ``encoding``, ``points``, ``bounds_min``/``bounds_max``
         (global coordinates, m or file units), ``extent``, ``attributes`` (name -> dtype
         and shape), ``normals``, ``crs``, ``recorded_origin``, ``units``, ``size_bytes``,
-        ``sha256`` and the reader's ``metadata``.
+        ``sha256``, the reader's ``metadata`` and ``point_times``
+        (:func:`minegeo.io.times.times_summary`: time field, encoding, span; None without times).
     """
     p = Path(path)
     cloud = read_point_cloud(p, format=format)
@@ -378,4 +415,7 @@ def cloud_info(path, format: str | None = None) -> dict:
         "sha256": sha256_file(p),
         "metadata": meta,
     }
+    from minegeo.io.times import times_summary
+
+    info["point_times"] = times_summary(cloud.attributes, meta.get("format"))
     return info
