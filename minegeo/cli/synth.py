@@ -32,6 +32,10 @@ def add_arguments(parser) -> None:
                              "into OUTDIR/mast/ (see docs/mast.md)")
     parser.add_argument("--mast-only", action="store_true",
                         help="write only the MAST beacon scenario into OUTDIR (no mine)")
+    parser.add_argument("--flight", action="store_true",
+                        help="also write a drone flight through level 0 (small preset) into OUTDIR/flight/: VLP-16 "
+                             "frames and times as `minegeo track` reads them, the true trajectory in the map frame "
+                             "(truth.tum) and in the CRS (truth_crs.tum), and start.txt (docs/intersections.md)")
     g = parser.add_argument_group("study options (docs/synth.md, 'Study worlds'; default: the preset as is)")
     g.add_argument("--roughness-m", type=positive_float, default=None, metavar="M",
                    help="std (m) of the wall-bump field, e.g. 0.05 / 0.08 (shotcrete-like) or 0.25 (blasted); "
@@ -65,7 +69,8 @@ def run(args) -> int:
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0, got {args.seed}")
     if args.mast_only:  # options that only shape the mine, which --mast-only does not write
-        given = [o for o, v in (("--mast", args.mast), ("--roughness-m", args.roughness_m is not None),
+        given = [o for o, v in (("--mast", args.mast), ("--flight", getattr(args, "flight", False)),
+                                ("--roughness-m", args.roughness_m is not None),
                                 ("--lining", args.lining is not None), ("--twins", args.twins != "none"),
                                 ("--unmapped", args.unmapped != 0)) if v]
         if given:
@@ -94,6 +99,9 @@ def run(args) -> int:
         from minegeo.synth.dataset import study_params
 
         study_params(args.preset, _study_options(args))  # raises InputError for a bad study option
+        if getattr(args, "flight", False) and (args.preset != "small" or _study_options(args)):
+            raise InputError("--flight flies the small preset's own mine (its route names its drifts): it does not "
+                             "go with --preset paper or a study option; drop one of the two")
     from minegeo._output import OutputTransaction
 
     with OutputTransaction("synth", folders={"OUTDIR": out}, replace="any" if args.force else "result") as tx:
@@ -137,6 +145,8 @@ def _write(args, stage, out) -> int:
               f"{s['sensor']['model']}, {s['carrier']})")
     print(f"  gcps.csv: {truth['gcps']['n']} control points in {truth['crs']}; truth.json, report.txt")
     rc = _write_mast(stage / "mast", args.seed, out / "mast") if args.mast else 0
+    if getattr(args, "flight", False):
+        _write_flight(stage / "flight", args.seed, truth, out / "flight")
     from minegeo.report.synth_report import write_synth_report
 
     write_synth_report(stage, truth)
@@ -180,7 +190,9 @@ def _stream_params(args):
         return None
     other = [o for o, v in (("--mast", args.mast), ("--mast-only", args.mast_only),
                             ("--roughness-m", args.roughness_m is not None), ("--lining", args.lining is not None),
-                            ("--twins", args.twins != "none"), ("--unmapped", args.unmapped != 0)) if v]
+                            ("--twins", args.twins != "none"), ("--unmapped", args.unmapped != 0),
+                            ("--preset", args.preset != "small"), ("--gcps", args.gcps != 10),
+                            ("--crs", args.crs != "EPSG:5186")) if v]
     if other:
         raise InputError(f"--stream writes a sensor stream in a drift network, not the mine: {other[0]} has nothing "
                          "to act on; drop one of the two options")
@@ -207,3 +219,40 @@ def _write_stream(args, stage, out) -> int:
     print(f"  path {m['path_length_m']:.1f} m, speed up to {m['max_speed_mps']:.2f} m/s, angular rate up to "
           f"{m['max_angular_rate_dps']:.0f} deg/s, tilt up to {m['max_tilt_deg']:.1f} deg")
     return 0
+
+
+def _write_flight(folder: Path, seed: int, truth: dict, final: Path) -> None:
+    """The drone flight of :func:`minegeo.synth.flight.mine_flight` as ``minegeo track`` reads it.
+
+    ``frames/`` (binary PLY per frame, sensor frame, ``times.txt``), ``truth.tum`` (``T_map_sensor``,
+    map frame = the frame of ``map.ply``), ``truth_crs.tum`` (``T_crs_map T_map_sensor``, CRS grid
+    coordinates E, N, H) and ``start.txt`` (the first pose as ``x y z yaw_deg`` in both frames, yaw
+    counter-clockwise from the frame's +x / grid east).
+    """
+    import numpy as np
+
+    from minegeo._provenance import atomic_write_text
+    from minegeo.io import write_trajectory
+    from minegeo.io.types import Trajectory
+    from minegeo.synth.flight import mine_flight
+    from minegeo.synth.sequence import write_frames
+    from minegeo.synth.world import build_world
+
+    tr, frames = mine_flight(build_world("small", seed), seed=seed)
+    write_frames(folder / "frames", tr.times_s, frames)
+    write_trajectory(folder / "truth.tum", tr, format="tum")
+    T_crs_map = np.asarray(truth["T_crs_map"], float)
+    crs = Trajectory(tr.times_s, np.einsum("ij,njk->nik", T_crs_map, tr.poses), frame=str(truth["crs"]), body="sensor")
+    write_trajectory(folder / "truth_crs.tum", crs, format="tum")
+
+    def pose(T):
+        return (f"{T[0, 3]:.3f} {T[1, 3]:.3f} {T[2, 3]:.3f} "
+                f"{np.degrees(np.arctan2(T[1, 0], T[0, 0])):.3f}")
+
+    lines = [f"map {pose(tr.poses[0])}", f"crs {pose(crs.poses[0])}"]
+    atomic_write_text(folder / "start.txt", "# first pose: frame x y z yaw_deg (yaw counter-clockwise from +x / "
+                      "grid east)\n" + "\n".join(lines) + "\n")
+    length = float(np.linalg.norm(np.diff(tr.poses[:, :3, 3], axis=0), axis=1).sum())
+    print(f"  flight/: {len(frames)} VLP-16 frames over {length:.0f} m ({tr.times_s[-1]:.0f} s), truth.tum (map), "
+          f"truth_crs.tum ({truth['crs']})")
+    print(f"  flight start (x y z yaw_deg): map {pose(tr.poses[0])}; crs {pose(crs.poses[0])}")

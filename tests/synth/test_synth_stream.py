@@ -168,6 +168,7 @@ def test_cli_stream_outputs(tmp_path):
 
 @pytest.mark.parametrize("argv,expect", [
     (["--stream", "drone", "--mast"], "--mast"),
+    (["--stream", "drone", "--preset", "paper"], "--preset"),
     (["--duration-s", "2"], "--stream"),
     (["--stream", "drone", "--stream-network", "no_such_edgelist.csv"], "edge list"),
     (["--stream", "drone", "--lidar-hz", "40"], "--lidar-hz"),
