@@ -2,13 +2,26 @@
 
 * :mod:`~minegeo.georef.crs`: projected CRSs through pyproj, the recorded local origin, grid scale factors;
 * :mod:`~minegeo.georef.fit`: the control-point fit (similarity / rigid), its statistics and blunder checks;
+* :mod:`~minegeo.georef.result`: its parameters (:class:`GeorefParams`) and result record (:class:`GeorefResult`);
 * :mod:`~minegeo.georef.apply`: the transformation applied to points, poses and maps (streamed for large maps);
 * :mod:`~minegeo.georef.sidecar`: the georeferenced map on disk with its ``.georef.json`` sidecar.
 
-It sits beside :mod:`minegeo.survey` (whose Helmert adjustment it calls) and below the packages
-that place results in the CRS (:mod:`minegeo.localize`, :mod:`minegeo.slam`).
+It sits beside :mod:`minegeo.survey` (whose Helmert adjustment it calls) and below
+:mod:`minegeo.localize`, which places its results in the CRS through it; it never imports a
+package above it.
 """
 
+from minegeo.georef.apply import (
+    REPORT_CLOUD_POINTS,
+    apply_georef,
+    crs_to_map,
+    map_to_crs,
+    point_covariance_crs,
+    pose_to_crs,
+    report_sample_rows,
+    stream_georeferenced_las,
+    stream_georeferenced_map,
+)
 from minegeo.georef.crs import (
     CRSInfo,
     crs_info,
@@ -18,26 +31,15 @@ from minegeo.georef.crs import (
     same_crs,
     validate_crs,
 )
-from minegeo.georef.fit import (
-    REPORT_CLOUD_POINTS,
+from minegeo.georef.fit import georeference, unit_diagnosis
+from minegeo.georef.result import GeorefParams, GeorefResult
+from minegeo.georef.sidecar import (
     SIDECAR_FORMAT,
     SIDECAR_VERSION,
-    GeorefParams,
-    GeorefResult,
-    apply_georef,
-    crs_to_map,
-    georeference,
     load_georeferenced_map,
-    map_to_crs,
-    point_covariance_crs,
-    pose_to_crs,
     read_georef,
     read_georef_sidecar,
-    report_sample_rows,
     sidecar_path,
-    stream_georeferenced_las,
-    stream_georeferenced_map,
-    unit_diagnosis,
     write_georeferenced_map,
 )
 

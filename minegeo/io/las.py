@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import io
 import logging
+from pathlib import Path
 
 import numpy as np
 
@@ -32,7 +33,7 @@ from minegeo.io.types import PointCloud
 
 log = logging.getLogger(__name__)
 
-__all__ = ["read_las_bytes", "write_las_bytes"]
+__all__ = ["read_las_bytes", "write_las_bytes", "rewrite_las_xyz"]
 
 #: largest plausible LAZ compression ratio (uncompressed / compressed bytes) before a header
 #: point count is treated as corrupt; real LiDAR compresses 5-15x
@@ -334,3 +335,77 @@ def write_las_bytes(
     buf = io.BytesIO()
     las.write(buf, do_compress=compress)
     return buf.getvalue()
+
+
+#: LAS VLRs that carry a CRS (GeoTIFF keys 34735-34737, OGC WKT 2111/2112): replaced by :func:`rewrite_las_xyz`
+_CRS_VLR_IDS = frozenset({(b"LASF_Projection", 2111), (b"LASF_Projection", 2112), (b"LASF_Projection", 34735),
+                          (b"LASF_Projection", 34736), (b"LASF_Projection", 34737)})
+
+
+def rewrite_las_xyz(src, dst, xyz, *, offsets, crs, chunk_points: int) -> None:
+    """Copy the LAS/LAZ file ``src`` to ``dst`` record by record, with new integer coordinates.
+
+    Every record keeps **all its fields** (intensity, return numbers, classification, GPS time,
+    colour, extra bytes) in the source's point format, LAS version and ``scale``; only the integers
+    ``X, Y, Z`` change (``x = X·scale + offset``, ASPRS LAS 1.4 R15 Sec. 2.4). The header offset
+    becomes ``offsets``, the CRS records (GeoTIFF keys, WKT) are replaced by ``crs`` and the other
+    VLRs are kept. ``dst`` is compressed (LAZ) when its suffix is ``.laz``. Memory: one chunk.
+
+    Parameters
+    ----------
+    src, dst : str or Path
+        The LAS/LAZ file read, and the file written (in place: pass a staged path).
+    xyz : callable
+        ``xyz(n, scales) -> ndarray (n, 3)``, called once per chunk of ``n`` records of ``src``
+        in file order with the per-axis ``scales`` (m): the chunk's new integer coordinates as
+        float64 values, rounded and within the int32 range (the caller checks the range, in the
+        words of what the coordinates are).
+    offsets : (3,) floats
+        The LAS offset of ``dst`` (m).
+    crs : str or None
+        The CRS written to ``dst`` (pyproj user input, e.g. ``"EPSG:5186"``); none when empty.
+    chunk_points : int
+        Records per chunk.
+
+    Raises
+    ------
+    FileFormatError
+        ``src`` is truncated or corrupt (any error of laspy/lazrs while reading or writing).
+        A :class:`~minegeo.errors.FileFormatError` or :class:`~minegeo.errors.InputError` raised
+        by ``xyz`` passes through unchanged.
+    OptionalDependencyError
+        ``laspy`` is not installed (the ``las`` extra).
+    """
+    laspy = _laspy()
+    src, dst = Path(src), Path(dst)
+    try:
+        with laspy.open(src) as rd:
+            ih = rd.header
+            hdr = laspy.LasHeader(point_format=ih.point_format, version=ih.version)
+            hdr.scales = np.asarray(ih.scales, dtype=np.float64)
+            hdr.offsets = np.array(offsets, dtype=np.float64).reshape(3)
+
+            def _keep(v):
+                uid = v.user_id.encode() if isinstance(v.user_id, str) else bytes(v.user_id)
+                return (uid.rstrip(b"\0"), int(v.record_id)) not in _CRS_VLR_IDS and type(v).__name__ != "ExtraBytesVlr"
+
+            hdr.vlrs.extend(v for v in ih.vlrs if _keep(v))
+            if crs:
+                import pyproj
+
+                hdr.add_crs(pyproj.CRS.from_user_input(crs))
+            with laspy.open(dst, mode="w", header=hdr, do_compress=dst.suffix.lower() == ".laz") as wr:
+                for pts in rd.chunk_iterator(chunk_points):
+                    Xf = xyz(len(pts), hdr.scales)
+                    rec = laspy.ScaleAwarePointRecord(pts.array.copy(), pts.point_format, scales=hdr.scales,
+                                                      offsets=hdr.offsets)
+                    rec.X = Xf[:, 0].astype(np.int32)
+                    rec.Y = Xf[:, 1].astype(np.int32)
+                    rec.Z = Xf[:, 2].astype(np.int32)
+                    wr.write_points(rec)
+    except (FileFormatError, InputError):
+        raise
+    except (KeyboardInterrupt, SystemExit, MemoryError):
+        raise
+    except BaseException as exc:  # laspy/lazrs raise several types
+        raise FileFormatError(src, f"unreadable LAS/LAZ: truncated or corrupt ({type(exc).__name__}: {exc})") from None
