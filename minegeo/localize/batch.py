@@ -748,18 +748,15 @@ def _std_to_devnull():
     """Point file descriptors 1 and 2 at ``/dev/null``; returns the saved copies (for :func:`_std_restore`)."""
     import sys
 
+    from minegeo.localize._batch_worker import quiet_std_streams
+
     for f in (sys.stdout, sys.stderr):
         try:
             f.flush()
         except (AttributeError, ValueError, OSError):
             pass
     saved = (os.dup(1), os.dup(2))
-    fd = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(fd, 1)
-        os.dup2(fd, 2)
-    finally:
-        os.close(fd)
+    quiet_std_streams()
     return saved
 
 
