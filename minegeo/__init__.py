@@ -37,7 +37,7 @@ _WARMUP_MODULES = (
 )
 
 
-def warmup(verbose: bool = False, modules=None) -> dict[str, float]:
+def warmup(verbose: bool = False, modules=None, progress=None) -> dict[str, float]:
     """Compile (or load from cache) every Numba kernel on tiny inputs.
 
     Parameters
@@ -47,6 +47,11 @@ def warmup(verbose: bool = False, modules=None) -> dict[str, float]:
     modules : iterable of str, optional
         Only these subpackages (names of ``_WARMUP_MODULES``, e.g. ``"minegeo.localize"``), in
         this order; default all.
+    progress : callable, optional
+        ``progress(name, i, n, seconds)``, called twice per subpackage: when it starts
+        (``seconds=None``) and when it is done (``seconds``: wall seconds it took); ``i`` counts
+        from 1 to ``n``, the number of subpackages asked for. A subpackage absent from this build
+        is reported done in 0 s and left out of the returned times.
 
     Returns
     -------
@@ -61,11 +66,16 @@ def warmup(verbose: bool = False, modules=None) -> dict[str, float]:
         from minegeo.errors import InputError
 
         raise InputError(f"unknown warm-up module(s) {unknown}; choose from {list(_WARMUP_MODULES)}")
-    for name in names:
+    n = len(names)
+    for i, name in enumerate(names, start=1):
+        if progress is not None:
+            progress(name, i, n, None)
         t0 = time.perf_counter()
         try:
             mod = importlib.import_module(name)
         except ImportError:  # subpackage not present in this build
+            if progress is not None:
+                progress(name, i, n, 0.0)
             continue
         fn = getattr(mod, "_warmup", None)
         if fn is not None:
@@ -73,6 +83,8 @@ def warmup(verbose: bool = False, modules=None) -> dict[str, float]:
         out[name] = time.perf_counter() - t0
         if verbose:
             log.info("warmup %s: %.2f s", name, out[name])
+        if progress is not None:
+            progress(name, i, n, out[name])
     return out
 
 

@@ -13,6 +13,12 @@ interrupted (Ctrl-C: one line ``minegeo <verb>: interrupted``, also when the int
 inside a compiled Numba kernel, which re-raises it as a ``SystemError`` with the
 ``KeyboardInterrupt`` as its context); 141 stdout closed by its reader. Outputs are written
 through :class:`minegeo._output.OutputTransaction`: on any non-zero status they are left as they were.
+
+One-time Numba compilation is said apart (not with ``-q``): when a run starts compiling kernels that
+are not in Numba's cache yet, one line ``compiling numerical kernels for first use (...) ...`` on stderr
+before the wait; when a run spent 0.5 s or more compiling and the verb printed no time line of its own
+(:func:`minegeo.cli._common.time_line`), one line after it, e.g. ``minegeo slam: 12.3 s of this run was
+one-time Numba compilation (cached for later runs)``.
 """
 
 from __future__ import annotations
@@ -47,6 +53,21 @@ VERBS: dict[str, str] = {
 
 def _load(verb: str):
     return importlib.import_module(VERBS[verb])
+
+
+#: CPU seconds of one-time Numba compilation of each verb's documented small example on an empty
+#: Numba cache (``benchmarks/bench_first_use.py``, ``cpu_s`` of the newest ``first_use_*_after`` results
+#: file, rounded up; docs/first_use.md). Only for the "about N s" of the first-use notice.
+COLD_COMPILE_S: dict[str, float] = {
+    "synth": 30, "info": 0, "adjust": 0, "mast": 10, "georef": 5, "prepare-map": 40, "localize": 60,
+    "localize-batch": 60, "posegraph": 40, "demo": 120, "slam": 90, "evaluate": 10,
+    "intersections": 30, "track": 90, "warmup": 300,
+}
+
+
+def _cold_compile_estimate(args) -> float | None:
+    """The "about N s" of the first-use notice for ``args.verb`` (None when unknown)."""
+    return COLD_COMPILE_S.get(args.verb)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -134,8 +155,11 @@ def main(argv: list[str] | None = None) -> int:
     logging.captureWarnings(True)  # a Python warning is a log record too ("py.warnings")
     show_log = True
     from minegeo._output import RunClock
+    from minegeo.cli import _common
 
     args._clock = RunClock()  # wall time and Numba compile time of this run, reported apart
+    shown_before = _common.time_line_shown(False)  # a nested run (demo's steps) keeps the outer's flag
+    notice = None if args.quiet else _common.FirstCompileNotice(args.verb, _cold_compile_estimate(args))
     try:
         return int(args._run(args) or 0)
     except MinegeoError as exc:
@@ -182,9 +206,15 @@ def main(argv: list[str] | None = None) -> int:
         return 141
     finally:
         args._clock.close()
+        if notice is not None:
+            notice.close()
         logging.captureWarnings(False)
         root.removeHandler(handler)
         root.setLevel(old_level)
         if isinstance(handler, _DeferredLog):
             handler.finish(show_log)
+        if show_log and not args.quiet and not _common.time_line_shown(shown_before):
+            line = _common.compile_line(args.verb, args._clock.compile_s)
+            if line:
+                print(line, file=sys.stderr, flush=True)
 

@@ -10,7 +10,88 @@ from __future__ import annotations
 import logging
 import sys
 
-__all__ = ["StepBar", "startup_s", "whole_run_timings", "time_line", "summary_lines_quiet"]
+__all__ = ["StepBar", "startup_s", "whole_run_timings", "time_line", "summary_lines_quiet", "FirstCompileNotice",
+           "compile_line", "time_line_shown"]
+
+#: whether the running verb has formatted its own time line (:func:`time_line`): then ``minegeo.cli``
+#: does not add its compile line (:func:`compile_line`) after the run.
+_TIME_LINE_SHOWN = False
+
+
+def time_line_shown(set_to: bool) -> bool:
+    """Set the "verb printed its own time line" flag to ``set_to``; return its value before.
+
+    ``minegeo.cli.main`` calls ``prev = time_line_shown(False)`` when a run starts and
+    ``time_line_shown(prev)`` when it ends (which tells whether this run showed one, and gives a
+    nested run such as the demo's steps the outer run's flag back)."""
+    global _TIME_LINE_SHOWN
+    old, _TIME_LINE_SHOWN = _TIME_LINE_SHOWN, bool(set_to)
+    return old
+
+
+#: compile seconds below which a run's compilation is not worth a line of its own
+COMPILE_LINE_MIN_S = 0.5
+
+
+def compile_line(verb: str, compile_s: float) -> str | None:
+    """``minegeo slam: 12.3 s of this run was one-time Numba compilation (cached for later runs)``, or
+    None when the run compiled less than :data:`COMPILE_LINE_MIN_S` seconds."""
+    if not compile_s >= COMPILE_LINE_MIN_S:
+        return None
+    return f"minegeo {verb}: {compile_s:.1f} s of this run was one-time Numba compilation (cached for later runs)"
+
+
+class FirstCompileNotice:
+    """Print ``compiling numerical kernels for first use (once; about N s) ...`` to stderr once, when
+    the first Numba compilation of a run starts (a kernel, or a signature of it, not in Numba's
+    on-disk cache yet: loading from the cache is not compilation and says nothing).
+
+    Listens to Numba's ``numba:compile`` event from construction to :meth:`close`. ``estimate_s``
+    is the verb's one-time compile time on an empty cache (``minegeo.cli.COLD_COMPILE_S``); a
+    partly filled cache compiles less."""
+
+    def __init__(self, verb: str, estimate_s: float | None = None):
+        self.verb = verb
+        self.estimate_s = estimate_s
+        self.shown = False
+        self._listener = None
+        try:
+            from numba.core import event
+
+            notice = self
+
+            class _Listener(event.Listener):
+                def on_start(self, ev):
+                    notice._first()
+
+                def on_end(self, ev):
+                    pass
+
+            self._listener = _Listener()
+            event.register("numba:compile", self._listener)
+        except Exception:  # noqa: BLE001 - an old Numba without the event API: no notice
+            self._listener = None
+
+    def _first(self) -> None:
+        if self.shown:
+            return
+        self.shown = True
+        about = (f"; about {self.estimate_s:.0f} s on a fresh install" if self.estimate_s and self.estimate_s >= 1
+                 else "")
+        try:
+            print(f"minegeo {self.verb}: compiling numerical kernels for first use (once, cached for later "
+                  f"runs{about}) ...", file=sys.stderr, flush=True)
+        except (OSError, ValueError):
+            pass
+
+    def close(self) -> None:
+        if self._listener is not None:
+            from numba.core import event
+
+            try:
+                event.unregister("numba:compile", self._listener)
+            finally:
+                self._listener = None
 
 
 class StepBar:
@@ -103,7 +184,11 @@ def whole_run_timings(args) -> dict[str, float]:
 
 
 def time_line(t: dict) -> str:
-    """``12.3 s wall (0.0 s compiling Numba kernels [once, then cached], 1.2 s Python start-up and imports)``."""
+    """``12.3 s wall (0.0 s compiling Numba kernels [once, then cached], 1.2 s Python start-up and imports)``.
+
+    Marks the run as having shown its own time line (:func:`time_line_shown`)."""
+    global _TIME_LINE_SHOWN
+    _TIME_LINE_SHOWN = True
     wall = t.get("process_wall_s", t["wall_s"])
     parts = [f"{t['compile_s']:.1f} s compiling Numba kernels [once, then cached]"]
     if "startup_s" in t:
