@@ -11,7 +11,7 @@ import logging
 import sys
 
 __all__ = ["StepBar", "startup_s", "whole_run_timings", "time_line", "summary_lines_quiet", "FirstCompileNotice",
-           "compile_line", "time_line_shown"]
+           "compile_line", "compile_note", "time_line_shown"]
 
 #: whether the running verb has formatted its own time line (:func:`time_line`): then ``minegeo.cli``
 #: does not add its compile line (:func:`compile_line`) after the run.
@@ -39,6 +39,20 @@ def compile_line(verb: str, compile_s: float) -> str | None:
     if not compile_s >= COMPILE_LINE_MIN_S:
         return None
     return f"minegeo {verb}: {compile_s:.1f} s of this run was one-time Numba compilation (cached for later runs)"
+
+
+def compile_note(args) -> str:
+    """``12.3 s of it one-time Numba compilation, cached for later runs`` (``0.0 s`` when every kernel
+    came from Numba's cache): the compile seconds of the run ``args`` so far
+    (:class:`minegeo._output.RunClock`). Marks the run as having shown its own time line."""
+    global _TIME_LINE_SHOWN
+    from minegeo._output import run_timings
+
+    _TIME_LINE_SHOWN = True
+    c = run_timings(args)["compile_s"]
+    if c < 0.05:
+        return "0.0 s of it Numba compilation: every kernel came from the cache"
+    return f"{c:.1f} s of it one-time Numba compilation, cached for later runs"
 
 
 class FirstCompileNotice:

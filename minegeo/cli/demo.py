@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from minegeo.cli import _common
 from minegeo.cli._argtypes import int_in_range
 
 HELP = "run the whole chain (frames -> SLAM map -> georeference -> localize) on the small synthetic mine"
@@ -405,6 +406,6 @@ def _finish(args, out: Path, rows, t_start: float, seq: dict, slam: dict | None,
     for r in rows:
         t = "-" if r["time_s"] is None else f"{r['time_s']:.1f} s"
         print(f"{r['step']:<{w}}  {t:>7}  {r['result']}")
-    print(f"{'total':<{w}}  {total:6.1f}s  (includes one-time Numba compilation on a fresh install)")
+    print(f"{'total':<{w}}  {total:6.1f}s  ({_common.compile_note(args)})")
     print(f"report: {report}")
     return 0
