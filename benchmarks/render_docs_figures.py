@@ -312,6 +312,85 @@ def render_mulran(results: Path) -> str:
     return "\n".join(lines)
 
 
+DEMO_FILE = "demo_2026-11-29.json"
+
+
+def render_demo(results: Path) -> str:
+    """One ``minegeo demo`` run: each step's result against the synthetic truth, and its time."""
+    d = _load(DEMO_FILE, results)
+    meta = d["meta"]
+    head = conditions(DEMO_FILE, date=meta.get("date"), commit=meta.get("commit"), threads=meta.get("threads"),
+                      load=_fmt_load([_uptime_load(meta.get("uptime_before")),
+                                      _uptime_load(meta.get("uptime_after"))]),
+                      extra=f"`{meta['command']}`, seed {d['seed']}, Numba cache {meta['numba_cache']}")
+    lines = [head, "", "| step | status | result against the truth | time s |", "|---|---|---|---:|"]
+    for r in d["steps"]:
+        lines.append(f"| {r['step']} | {r['status']} | {r['result'].replace('|', '/')} | {r['time_s']:.1f} |")
+    lines += ["", f"Whole command: {meta['wall_s_time_v']:.1f} s wall, {meta['cpu_s_time_v']:.1f} s CPU (user + "
+              f"system, `/usr/bin/time -v`), exit {meta['exit']}; {meta['note']}."]
+    return "\n".join(lines)
+
+
+def _md_tables(text: str) -> list[list[str]]:
+    """The Markdown tables of ``text``, each as its lines."""
+    out, cur = [], []
+    for line in text.splitlines():
+        if line.startswith("|"):
+            cur.append(line)
+        elif cur:
+            out.append(cur)
+            cur = []
+    if cur:
+        out.append(cur)
+    return out
+
+
+def _json_conditions(stem: str, results: Path, extra: str = "") -> str:
+    """The conditions line of a results file (its ``meta`` record, or its top level)."""
+    d = _load(stem + ".json", results)
+    meta = {**d, **d["meta"]} if isinstance(d.get("meta"), dict) else d
+    date = meta.get("date") or meta.get("created_utc") or _date_from_name(stem)
+    git = meta.get("git")
+    commit = meta.get("commit") or (git.get("commit", "")[:7] if isinstance(git, dict) else git)
+    th = meta.get("threads")
+    if isinstance(th, dict):
+        mg = (th.get("minegeo") or {}).get("numba_get_num_threads", th.get("requested"))
+        o3 = (th.get("open3d") or {}).get("open3d_get_max_threads")
+        th = f"{mg} for minegeo (Numba)" + (f" and {o3} for Open3D" if o3 else "")
+    loads = []
+    for key in ("loadavg_start", "loadavg_end", "load_before", "load_after", "load_average_1_5_15"):
+        v = meta.get(key)
+        if isinstance(v, list) and v:
+            loads.append(v[0])
+    for key in ("uptime_before", "uptime_after"):
+        loads.append(_uptime_load(meta.get(key)))
+    return conditions(stem + ".json", date=date, commit=commit or None, threads=str(th) if th else None,
+                      load=_fmt_load(loads), extra=extra)
+
+
+def md_copy(stem: str, tables: list[int] | None = None, extra: str = ""):
+    """A renderer that copies a committed results ``.md`` (all of it but its title, headings made
+    bold; or only the tables numbered ``tables``) under the conditions of its ``.json``."""
+
+    def render(results: Path) -> str:
+        text = (results / (stem + ".md")).read_text(encoding="utf-8")
+        if tables is not None:
+            found = _md_tables(text)
+            body = "\n\n".join("\n".join(found[i]) for i in tables)
+        else:
+            lines = []
+            for line in text.splitlines():
+                if line.startswith("# "):
+                    continue
+                m = re.match(r"^#{2,6} (.*)$", line)
+                lines.append(f"**{m.group(1)}**" if m else line)
+            body = "\n".join(lines).strip("\n")
+        return _json_conditions(stem, results, extra) + "\n\n" + body
+
+    render.__doc__ = f"``benchmarks/results/{stem}.md`` ({'tables ' + str(tables) if tables else 'whole'})."
+    return render
+
+
 RENDERERS = {
     "registration_quick": render_registration_quick,
     "posegraph": render_posegraph,
@@ -321,6 +400,25 @@ RENDERERS = {
     "georef_scaling_las": render_georef_scaling_las,
     "slam_ablation": render_slam_ablation,
     "mulran": render_mulran,
+    "demo": render_demo,
+    "localization_study": md_copy("study_2026-11-25", extra="`python benchmarks/bench_study.py --seed 31 --n 20`"),
+    "like_for_like_same": md_copy("like_for_like_2026-11-25", [0]),
+    "like_for_like_best": md_copy("like_for_like_2026-11-25", [1]),
+    "like_for_like_cold": md_copy("like_for_like_2026-11-25", [3]),
+    "default_profile": md_copy("default_profile_2026-11-25"),
+    "localization_paper": md_copy("localization_paper_passes2_levelled_2026-11-23b"),
+    "gravity": md_copy("gravity_2026-11-25"),
+    "gicp": md_copy("gicp_2026-11-29_idle50",
+                    extra="`python benchmarks/bench_gicp.py --threads 1 2 --repeats 7` (50 ms idle before each call)"),
+    "gicp_back_to_back": md_copy("gicp_2026-11-29_idle0", [1],
+                                 extra="the same with `--idle-ms 0` (calls back to back), 2 threads"),
+    "uncertainty_study": md_copy("uncertainty_study_2026-11-25", [0],
+                                 extra="`python benchmarks/bench_uncertainty_study.py run --seeds 21,22 --n 6`"),
+    "mast_coverage": md_copy("mast/mast_benchmark", [2]),
+    "mast_partial": md_copy("mast/mast_benchmark", [3]),
+    "mast_beacon_survey": md_copy("mast/mast_benchmark", [4]),
+    "mast_table2_summary": md_copy("mast/mast_benchmark", [1]),
+    "mast_table2_rows": md_copy("mast/mast_benchmark", [0]),
 }
 
 

@@ -9,7 +9,7 @@ before it. ```` ```console ```` and ```` ```text ```` blocks are not run.
 
 A ```` ```text ```` block preceded by ``<!-- docs-test: output -->`` is the expected output of the
 ``bash`` block before it: each of its lines (except lines that are only ``...``) must appear in
-that block's stdout + stderr, in order. In a line, ``...`` stands for any text, runs of spaces for
+that block's output (stdout and stderr as they interleave), in order. In a line, ``...`` stands for any text, runs of spaces for
 any white space, and every number must equal the printed one within one unit of its last printed
 digit (``0.018`` accepts 0.017 to 0.019; ``37`` accepts 36 to 38), so a figure off by more than
 its printed precision fails the test. One test case per page.
@@ -198,9 +198,9 @@ def run_page(page: Path, tmp_path: Path) -> list[str]:
     failures = []
     for b in blocks:
         proc = subprocess.run(["bash", "-e", "-o", "pipefail", "-c", b.text], cwd=clone, env=env,
-                              stdin=subprocess.DEVNULL, capture_output=True, text=True,
-                              timeout=HANG_TIMEOUT_S)
-        out = proc.stdout + proc.stderr
+                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True, timeout=HANG_TIMEOUT_S)
+        out = proc.stdout
         if proc.returncode != b.exit_status:
             failures.append(f"{rel}:{b.line}: exit {proc.returncode}, the page says {b.exit_status}\n"
                             f"--- block ---\n{b.text}\n--- output (last 30 lines) ---\n"
