@@ -62,7 +62,7 @@ def require_oracle(name: str):
 
 
 #: minegeo's optional extras as (import name -> extra of pyproject.toml).
-EXTRAS = {"laspy": "las", "pye57": "e57", "ezdxf": "dxf", "distributed": "dask", "dask": "dask"}
+EXTRAS = {"laspy": "las", "pye57": "e57", "ezdxf": "dxf", "distributed": "dask", "dask": "dask", "rosbags": "bag"}
 
 
 def extras_required() -> bool:

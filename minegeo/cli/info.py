@@ -5,8 +5,11 @@
 a trajectory (TUM: 8 numbers a line with a unit quaternion and rising times; KITTI: 12 with an
 orthonormal rotation; CSV/GeoSLAM: a header naming the quaternion), a g2o pose graph
 (``VERTEX_*`` / ``EDGE_*`` records), a prepared map or an intersection base (``.npz`` archives
-told apart by their members) or a minegeo ``result.json``. ``--kind`` forces the kind. For a point
-cloud it prints format, point count, bounds, attributes with dtypes, CRS, recorded origin; for
+told apart by their members), a minegeo ``result.json``, a ROS bag (a ROS 1 ``.bag``, a ROS 2 bag
+folder or ``.mcap``/``.db3`` file: topics with type, count, rate, time span, PointCloud2 fields and
+time field) or an IMU CSV (header ``t,gx,gy,gz,ax,ay,az``). ``--kind`` forces the kind. For a point
+cloud it prints format, point count, bounds, attributes with dtypes, CRS, recorded origin, the
+per-point time field and the span of its offsets; for
 the other kinds their own summary; always the file size and SHA-256. ``--json OUT`` also writes
 the summary with provenance (versions, input hash) atomically. A file that cannot be read gives
 one line on stderr and exit 2.
@@ -21,11 +24,13 @@ from pathlib import Path
 import numpy as np
 
 HELP = ("tell what a file holds (point cloud, control points, trajectory, g2o pose graph, prepared map, "
-        "intersection base, result.json) and summarise it: counts, bounds, attributes, CRS")
+        "intersection base, result.json, ROS bag, IMU CSV) and summarise it: counts, bounds, attributes, CRS, "
+        "topics, times")
 
 _TRAJ_SUFFIXES = (".tum", ".kitti")
 #: ``--kind`` values (``auto``: :func:`detect_kind`).
-KINDS = ("auto", "cloud", "gcp", "trajectory", "posegraph", "prepared_map", "intersection_base", "result")
+KINDS = ("auto", "cloud", "gcp", "trajectory", "posegraph", "prepared_map", "intersection_base", "result", "bag",
+         "imu")
 #: What each kind is called in the printout.
 KIND_TEXT = {
     "cloud": "point cloud",
@@ -35,7 +40,11 @@ KIND_TEXT = {
     "prepared_map": "prepared map (minegeo prepare-map)",
     "intersection_base": "intersection base (minegeo intersections build)",
     "result": "minegeo result record (result.json)",
+    "bag": "ROS bag",
+    "imu": "IMU samples (IMU CSV)",
 }
+#: header names that mark an IMU CSV (t,gx,gy,gz,ax,ay,az)
+_IMU_NAMES = {"gx", "gy", "gz", "ax", "ay", "az"}
 #: Bytes read to tell the kind.
 _SNIFF_BYTES = 65536
 _TRAJ_FORMATS = ("tum", "kitti", "geoslam")
@@ -44,7 +53,7 @@ _TRAJ_FORMATS = ("tum", "kitti", "geoslam")
 def add_arguments(parser) -> None:
     parser.add_argument("file", metavar="FILE", help="point cloud (ply pcd las laz xyz txt csv pts 3d e57 zip), "
                         "trajectory (TUM, KITTI, CSV), GCP CSV, g2o pose graph, prepared map or intersection base "
-                        "(.npz), result.json")  # fmt: skip
+                        "(.npz), result.json, ROS bag (.bag file or ROS 2 folder), IMU CSV")  # fmt: skip
     parser.add_argument("--format", default=None, help="file format if the suffix does not tell (e.g. pcd, tum)")
     parser.add_argument(
         "--kind",
@@ -189,6 +198,8 @@ def _text_kind(path: Path, head: bytes) -> tuple[str, str | None, str]:
             return "gcp", None, "a header naming id, local x y z and E N H"
         if "qw" in names or "q0" in names:
             return "trajectory", None, "a header naming a quaternion"
+        if set(names) & _IMU_NAMES and not {"x", "y", "z"} <= set(names):
+            return "imu", None, "a header naming gyro/accelerometer columns"
         return "cloud", None, "a header without quaternion or control-point columns"
     rows = []
     for ln in body[:200]:
@@ -214,6 +225,12 @@ def detect_kind(path) -> tuple[str, str | None, str]:
     trajectory), and its reader gives the error.
     """
     p = Path(path)
+    from minegeo.io.bag import bag_kind
+
+    bk = bag_kind(p)
+    if bk is not None:
+        return "bag", None, {"ros1": "ROS 1 bag signature", "ros2": "a ROS 2 bag folder (metadata.yaml)",
+                             "ros2-mcap": "MCAP signature", "ros2-sqlite3": "a ROS 2 sqlite3 storage file"}[bk]
     head = _sniff_head(p)
     if head is None or not head:
         if p.suffix.lower() in _TRAJ_SUFFIXES:
@@ -287,6 +304,48 @@ def _result_info(path: Path) -> dict:
             "size_bytes": path.stat().st_size, "sha256": sha256_file(path)}
 
 
+def _bag_info(path: Path) -> dict:
+    from minegeo.io.bag import bag_summary
+
+    return bag_summary(path)
+
+
+def _imu_info(path: Path) -> dict:
+    from minegeo._provenance import sha256_file
+    from minegeo.io.imu import read_imu_csv
+
+    imu = read_imu_csv(path)
+    t = imu.t_s
+    dt = np.diff(t)
+    return {"path": str(path), "kind": "imu", "samples": len(imu), "frame": imu.frame,
+            "time_start_s": float(t[0]), "time_end_s": float(t[-1]), "duration_s": float(t[-1] - t[0]),
+            "rate_hz": imu.rate_hz, "largest_gap_s": float(dt.max()) if dt.size else None,
+            "gyro_rad_s_mean": imu.gyro_rad_s.mean(axis=0).tolist(),
+            "accel_m_s2_mean": imu.accel_m_s2.mean(axis=0).tolist(),
+            "accel_norm_m_s2_median": float(np.median(np.linalg.norm(imu.accel_m_s2, axis=1))),
+            "size_bytes": path.stat().st_size, "sha256": sha256_file(path)}
+
+
+def _print_bag(info: dict) -> None:
+    print(f"file      {info['path']}")
+    print(f"format    {info['bag_format']}")
+    print(f"messages  {info['messages']:,} on {len(info['topics'])} topic(s) (times: log/record time, s)")
+    for t in info["topics"]:
+        rate = f"{t['rate_hz']:.3f} Hz" if t["rate_hz"] else "-"
+        span = (f"{t['t_start_s']:.6f} .. {t['t_end_s']:.6f} s ({t['t_end_s'] - t['t_start_s']:.3f} s)"
+                if t["t_start_s"] is not None else "no messages")
+        print(f"  {t['name']}  {t['msgtype']}  {t['count']:,} msgs  {rate}  {span}")
+        if t["frame_id"] is not None:
+            print(f"    frame_id {t['frame_id']!r}")
+        if t["fields"]:
+            print("    fields   " + " ".join(f"{n}:{d}@{o}" + (f"x{c}" if c != 1 else "") for n, d, o, c in t["fields"]))
+            tf = t["time_field"]
+            print("    time     " + (f"per-point field {tf!r} (offsets from the header stamp)" if tf else
+                                     "no per-point time field (time, t, timestamp, offset_time)"))
+    print(f"size      {info['size_bytes']:,} bytes")
+    print(f"sha256    {info['sha256']}")
+
+
 def _print_e57_scans(meta: dict) -> None:
     """The scans of an E57 file and their poses (scan frame -> file frame)."""
     from minegeo.io._quat import matrix_to_quat
@@ -327,6 +386,15 @@ def _print_cloud(info: dict) -> None:
             print(f"  {k:<20} {a['dtype']:<8} {'x'.join(map(str, a['shape']))}{rng}")
     else:
         print("fields    x y z only")
+    pt = info.get("point_times")
+    if pt:
+        if pt["min_s"] is None:
+            print(f"times     field {pt['field']!r} ({pt['dtype']}): {pt['problem']}")
+        else:
+            print(f"times     field {pt['field']!r} ({pt['dtype']}, {pt['encoding']}): {pt['min_s']:.9g} .. "
+                  f"{pt['max_s']:.9g} s (span {pt['span_s']:.6g} s)")
+            if pt["problem"]:
+                print(f"          warning: {pt['problem']}")
     print(f"size      {info['size_bytes']:,} bytes")
     print(f"sha256    {info['sha256']}")
 
@@ -344,7 +412,8 @@ def resolve_kind(path: Path, kind: str, fmt: str | None) -> tuple[str, str | Non
 
 
 _READERS = {"gcp": _gcp_info, "posegraph": _posegraph_info, "prepared_map": _prepared_map_info,
-            "intersection_base": _intersection_base_info, "result": _result_info}
+            "intersection_base": _intersection_base_info, "result": _result_info, "bag": _bag_info,
+            "imu": _imu_info}
 
 
 def run(args) -> int:
@@ -371,6 +440,8 @@ def run(args) -> int:
         print(f"{'kind':<14} {info['kind_text']}")
         if kind == "cloud":
             _print_cloud(info)
+        elif kind == "bag":
+            _print_bag(info)
         else:
             for k, v in info.items():
                 if k not in ("ids", "kind", "kind_text"):
