@@ -364,6 +364,8 @@ def _json_conditions(stem: str, results: Path, extra: str = "") -> str:
             loads.append(v[0])
     for key in ("uptime_before", "uptime_after"):
         loads.append(_uptime_load(meta.get(key)))
+    if isinstance(meta.get("load_avg"), list) and meta["load_avg"]:
+        loads.append(meta["load_avg"][0])
     return conditions(stem + ".json", date=date, commit=commit or None, threads=str(th) if th else None,
                       load=_fmt_load(loads), extra=extra)
 
@@ -414,6 +416,7 @@ RENDERERS = {
                                  extra="the same with `--idle-ms 0` (calls back to back), 2 threads"),
     "uncertainty_study": md_copy("uncertainty_study_2026-11-25", [0],
                                  extra="`python benchmarks/bench_uncertainty_study.py run --seeds 21,22 --n 6`"),
+    "kernels_search": md_copy("kernels", [0], extra="`python benchmarks/bench_kernels.py`, median of 3, ms"),
     "mast_coverage": md_copy("mast/mast_benchmark", [2]),
     "mast_partial": md_copy("mast/mast_benchmark", [3]),
     "mast_beacon_survey": md_copy("mast/mast_benchmark", [4]),

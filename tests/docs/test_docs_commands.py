@@ -105,7 +105,9 @@ def parse_page(text: str) -> list[Block]:
 def _line_pattern(expected: str) -> tuple[re.Pattern, list[str]]:
     """A regex for one expected line (numbers captured, ``...`` any text) and its numbers."""
     parts, numbers, pos = [], [], 0
-    token = re.compile(r"\.\.\.|" + NUMBER.pattern + r"|\s+")
+    # a number is compared as a number only when it stands apart from letters (a hash, an id such
+    # as GCP05 or a name such as scan_00 is compared as text)
+    token = re.compile(r"\.\.\.|(?<![A-Za-z_\d])" + NUMBER.pattern + r"(?![A-Za-z_\d])|\s+")
     for m in token.finditer(expected):
         parts.append(re.escape(expected[pos:m.start()]))
         tok = m.group(0)
@@ -250,6 +252,8 @@ def test_parse_page_refuses_a_misused_marker(bad):
     ("sigma0 = 0.6030", "sigma0 = 0.6033", False),
     ("cost 8,363.6", "cost 8,363.7", True),
     ("status: OK", "status: FAILED", False),
+    ("sha256 0fe24c3d", "sha256 0fe24c3e", False),
+    ("GCP05 ok", "GCP06 ok", False),
 ])
 def test_line_matches_numbers_within_printed_precision(expected, actual, ok):
     assert line_matches(expected, actual) is ok
