@@ -26,7 +26,7 @@ from minegeo.errors import FileFormatError, InputError
 from minegeo.io._json import load_json_text
 from minegeo.io._npz import array_digest, crc_failure, json_digest, member_header, open_store
 from minegeo.semantic.descriptors import DescriptorParams, cwc, pwcv, similarity
-from minegeo.semantic.skeleton import SkeletonParams, drift_skeleton
+from minegeo.semantic.skeleton import SkeletonParams, drift_skeleton, mine_levels
 
 __all__ = ["KBParams", "IntersectionKB", "build_knowledge_base", "similarity_matrix", "KB_FORMAT", "KB_VERSION"]
 
@@ -386,7 +386,8 @@ def build_knowledge_base(map_cloud, params: KBParams | None = None) -> Intersect
     ----------
     map_cloud : PointCloud or array_like (n, 3)
         The map (m, map frame, z up; a :class:`~minegeo.io.types.PointCloud`'s ``points`` are used
-        as they are, relative to its origin), one mine level.
+        as they are, relative to its origin). Several mine levels are split by
+        :func:`~minegeo.semantic.skeleton.mine_levels` and each level's skeleton is built on its own.
     params : KBParams, optional
 
     Returns
@@ -403,29 +404,41 @@ def build_knowledge_base(map_cloud, params: KBParams | None = None) -> Intersect
     params = params or KBParams()
     params.check()
     P = _points_of(map_cloud)
-    sk = drift_skeleton(P, params.skeleton)
-    k = sk.junction_xy.shape[0]
-    z = sk.floor.height(sk.junction_xy) if k else np.zeros(0)
-    C = np.c_[sk.junction_xy, z].reshape(-1, 3)
-    d = params.descriptor
     from scipy.spatial import cKDTree
 
-    clear = cKDTree(sk.wall_xy).query(sk.junction_xy)[0] if k else np.zeros(0)
-    dxy = P[:, :2]
-    clouds = [P[np.einsum("ij,ij->i", dxy - c[:2], dxy - c[:2]) <= params.cloud_radius_m ** 2] for c in C]
+    C_all, deg_all, clear_all, clouds, n_branches = [], [], [], [], 0
+    for idx in mine_levels(P, params.skeleton):  # the skeleton is 2-D: one level at a time
+        L = P[idx]
+        if L.shape[0] < 100:
+            continue
+        sk = drift_skeleton(L, params.skeleton)
+        n_branches += int(sk.n_branches)
+        if sk.junction_xy.shape[0] == 0:
+            continue
+        C_all.append(np.c_[sk.junction_xy, sk.floor.height(sk.junction_xy)])
+        deg_all.append(sk.junction_degree)
+        clear_all.append(cKDTree(sk.wall_xy).query(sk.junction_xy)[0])
+        dxy = L[:, :2]
+        clouds += [L[np.einsum("ij,ij->i", dxy - c[:2], dxy - c[:2]) <= params.cloud_radius_m ** 2]
+                   for c in C_all[-1]]
+    C = np.concatenate(C_all).reshape(-1, 3) if C_all else np.zeros((0, 3))
+    k = C.shape[0]
+    degree = np.concatenate(deg_all).astype(np.int64) if deg_all else np.zeros(0, np.int64)
+    clear = np.concatenate(clear_all) if clear_all else np.zeros(0)
+    d = params.descriptor
     offsets = np.r_[0, np.cumsum([len(c) for c in clouds])].astype(np.int64)
     V = np.array([pwcv(c, ci, d) for c, ci in zip(clouds, C, strict=True)]).reshape(k, d.n_sectors)
     M = np.array([cwc(c, ci, d) for c, ci in zip(clouds, C, strict=True)]).reshape(k, d.n_bands, d.n_sectors)
     h = hashlib.sha256(P.tobytes()).hexdigest()
-    prov = {"n_points": int(P.shape[0]), "points_sha256": h, "n_branches": int(sk.n_branches),
+    prov = {"n_points": int(P.shape[0]), "points_sha256": h, "n_branches": int(n_branches),
             "format": KB_FORMAT, "version": KB_VERSION}
     status, reason = "ok", ""
     if k == 0:
         status = "no_intersections"
-        reason = (f"the drift skeleton has {sk.n_branches} branch(es) and no junction of degree >= 3 "
+        reason = (f"the drift skeleton has {n_branches} branch(es) and no junction of degree >= 3 "
                   f"(merge radius {params.skeleton.merge_radius_m} m, spurs < {params.skeleton.min_branch_m} m "
                   "ignored)")
-    return IntersectionKB(status, reason, np.arange(k, dtype=np.int64), sk.junction_degree.astype(np.int64), C,
+    return IntersectionKB(status, reason, np.arange(k, dtype=np.int64), degree, C,
                           np.asarray(clear, np.float64), offsets,
                           np.ascontiguousarray(np.concatenate(clouds) if k else np.zeros((0, 3))),
                           np.ascontiguousarray(V), np.ascontiguousarray(M), params, prov)

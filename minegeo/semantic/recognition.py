@@ -34,7 +34,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -350,7 +350,9 @@ def _detect(clouds, T_his, params: RecognitionParams):
         return "no_walls", (f"{n_wall} wall points between {params.skeleton.wall_band_m} m above the floor plane "
                             f"(fewer than {params.min_wall_points})"), L, T_L_k, None
     try:
-        sk = drift_skeleton(np.concatenate([L, V]), params.skeleton)
+        # the keyframe's free space is carved along its rays (V), dense; the footprint closing is for a map's
+        # unsampled floor and roof, and on a keyframe it would bridge the openings the rays did not reach
+        sk = drift_skeleton(np.concatenate([L, V]), replace(params.skeleton, fill_radius_m=0.0))
     except MinegeoError as exc:
         return "no_walls", f"no drift skeleton: {exc}", L, T_L_k, None
     if sk.junction_xy.shape[0] == 0:
@@ -467,7 +469,8 @@ def _verify_step(rec: Recognition, L, c_L, T_L_k, sim, kb, params, T_pred, yaw_p
     gate = params.gate_m if gate_m is None else float(gate_m)
     ids = [rec.intersection_id]
     if rec.status == "ambiguous":             # CWC did not decide: the odometry gate may (nearest candidate)
-        d = [np.linalg.norm(kb.invariant_points[c, :2] - (T_pred @ np.r_[rec.z_keyframe, 1.0])[:2]) for c in cand]
+        # 3-D distances, as the conflict gate below: a look-alike on another level is not within the gate
+        d = [np.linalg.norm(kb.invariant_points[c] - (T_pred @ np.r_[rec.z_keyframe, 1.0])[:3]) for c in cand]
         inside = [c for c, dc in zip(cand, d, strict=True) if dc <= gate]
         if len(inside) != 1:
             rec.reason += f"; {len(inside)} of them within the {gate:.1f} m gate of the prediction"
@@ -477,9 +480,9 @@ def _verify_step(rec: Recognition, L, c_L, T_L_k, sim, kb, params, T_pred, yaw_p
         sim = similarity(pwcv(L, c_L, kb.params.descriptor), kb.pwcv[ids[0]])
         rec.pwcv_score = float(sim.score)
     elif T_pred is not None and len(cand) > 1:  # a factor only when the match is the one look-alike in the gate
-        p = (T_pred @ np.r_[rec.z_keyframe, 1.0])[:2]
+        p = (T_pred @ np.r_[rec.z_keyframe, 1.0])[:3]
         rivals = [int(c) for c in cand if c != rec.intersection_id
-                  and np.linalg.norm(kb.invariant_points[c, :2] - p) <= gate]
+                  and np.linalg.norm(kb.invariant_points[c] - p) <= gate]
         if rivals:
             rec.status = "ambiguous"
             rec.reason = (f"intersection {rec.intersection_id} matched, but the look-alike candidate(s) "

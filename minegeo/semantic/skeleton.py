@@ -6,9 +6,11 @@ Pipeline (every step is defined exactly in ``docs/intersections.md``, "Knowledge
    filled cell; the height of a point is ``h = z - floor(x, y)``.
 2. **Wall points**: ``wall_band_m[0] <= h <= wall_band_m[1]`` (floor and roof excluded by height; the
    band must stay under the lowest roof).
-3. **Occupancy grid** (``cell_m``): wall cells hold a wall point; free cells hold another point and
-   are not within one cell of a wall cell; holes in the free space smaller than ``max_hole_m2`` are
-   filled, free components smaller than ``min_component_m2`` dropped.
+3. **Occupancy grid** (``cell_m``): wall cells hold a wall point; the *footprint* is the cells that
+   hold any point, closed by a disc of radius ``fill_radius_m`` (a LiDAR map leaves floor and roof
+   unsampled between its rings and under each scan position: no sample is not rock); free cells are
+   footprint cells not within one cell of a wall cell; holes in the free space smaller than
+   ``max_hole_m2`` are filled, free components smaller than ``min_component_m2`` dropped.
 4. **Medial axis** by Zhang-Suen thinning of the free space (``_kernels_skeleton.zhang_suen``); the
    one-pixel rings it can leave at symmetric crossings are filled and thinned again.
 5. **Graph**: skeleton pixels with >= 3 branches crossing the square ring of radius 3 pixels around
@@ -34,7 +36,8 @@ from minegeo._validate import as_points, check_positive
 from minegeo.errors import InputError
 from minegeo.semantic import _kernels_skeleton as K
 
-__all__ = ["SkeletonParams", "FloorMap", "Skeleton", "floor_map", "wall_mask", "drift_skeleton", "invariant_point"]
+__all__ = ["SkeletonParams", "FloorMap", "Skeleton", "floor_map", "wall_mask", "drift_skeleton", "invariant_point",
+           "point_floor", "mine_levels"]
 
 _EIGHT = np.ones((3, 3), bool)
 
@@ -52,12 +55,14 @@ class SkeletonParams:
     min_branch_m: float = 4.0
     merge_radius_m: float = 3.0
     refine_radius_m: float = 3.0
+    fill_radius_m: float = 1.5
+    level_gap_m: float = 6.0
 
     def check(self) -> None:
         """Raise :class:`InputError` for a value out of range."""
-        for name in ("cell_m", "floor_cell_m", "min_branch_m", "merge_radius_m", "refine_radius_m"):
+        for name in ("cell_m", "floor_cell_m", "min_branch_m", "merge_radius_m", "refine_radius_m", "level_gap_m"):
             check_positive(getattr(self, name), name)
-        for name in ("max_hole_m2", "min_component_m2"):
+        for name in ("max_hole_m2", "min_component_m2", "fill_radius_m"):
             check_positive(getattr(self, name), name, allow_zero=True)
         lo, hi = (float(v) for v in self.wall_band_m)
         if not (0.0 <= self.floor_quantile < 1.0 and np.isfinite(lo) and np.isfinite(hi) and lo < hi):
@@ -141,6 +146,55 @@ def floor_map(points: np.ndarray, cell_m: float = 2.0, quantile: float = 0.02) -
     return FloorMap(origin, float(cell_m), z)
 
 
+def point_floor(points: np.ndarray, cell_m: float = 2.0, quantile: float = 0.02, gap_m: float = 6.0) -> np.ndarray:
+    """Floor height (m) under each point, level by level.
+
+    The points of a ``cell_m`` cell are sorted by z and split where two consecutive heights differ by
+    more than ``gap_m`` (the rock between two levels; a drift's own floor-to-roof gap is smaller); a
+    point's floor is the ``quantile`` of the z of its own group.
+    """
+    P = np.asarray(points, np.float64)
+    ij = np.floor((P[:, :2] - P[:, :2].min(0)) / cell_m).astype(np.int64)
+    key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+    order = np.lexsort((P[:, 2], key))
+    ks, zs = key[order], P[order, 2]
+    new = np.r_[True, (ks[1:] != ks[:-1]) | (np.diff(zs) > gap_m)]
+    group = np.cumsum(new) - 1
+    starts = np.flatnonzero(new)
+    counts = np.diff(np.r_[starts, len(ks)])
+    fz = zs[starts + np.floor(quantile * (counts - 1)).astype(np.int64)]
+    out = np.empty(len(P))
+    out[order] = fz[group]
+    return out
+
+
+def mine_levels(points, params: SkeletonParams | None = None, min_share: float = 0.05) -> list[np.ndarray]:
+    """Split a map into mine levels: index arrays of the points of each level, lowest first.
+
+    The drift skeleton is 2-D; two levels in one projection merge their drifts (and the low quantile
+    of a floor cell picks the lower level, so the upper level has no wall points). Level floors are
+    the peaks of the histogram (1 m bins) of :func:`point_floor` that hold at least ``min_share`` of
+    the points and are the largest within ``level_gap_m``; level ``k`` is the slab
+    ``floor_k - 1 m <= z < floor_(k+1) - 1 m`` (a ramp between levels is cut between them). One peak:
+    one level, every point.
+    """
+    params = params or SkeletonParams()
+    P = as_points(points, "points", min_points=1)
+    f = point_floor(P, params.floor_cell_m, params.floor_quantile, params.level_gap_m)
+    lo = np.floor(f.min())
+    counts = np.bincount(np.floor(f - lo).astype(np.int64))
+    w = int(np.ceil(params.level_gap_m))
+    padded = np.r_[np.zeros(w, np.int64), counts, np.zeros(w, np.int64)]
+    local_max = np.array([counts[i] >= padded[i:i + 2 * w + 1].max() for i in range(counts.size)], bool)
+    peaks = np.flatnonzero(local_max & (counts >= min_share * len(P)))
+    if peaks.size <= 1:
+        return [np.arange(len(P))]
+    floors = lo + peaks + 0.5
+    edges = np.r_[-np.inf, floors[1:] - 1.0, np.inf]
+    k = np.searchsorted(edges, P[:, 2], side="right") - 1
+    return [np.flatnonzero(k == i) for i in range(floors.size)]
+
+
 def wall_mask(points: np.ndarray, floor: FloorMap, band_m=(0.4, 2.2)) -> np.ndarray:
     """True for the points whose height above the floor map lies in ``band_m`` (m): the wall points."""
     h = points[:, 2] - floor.height(points[:, :2])
@@ -184,16 +238,26 @@ def invariant_point(wall_xy: np.ndarray, guess_xy, radius_m: float = 3.0, inside
 
 
 def _occupancy(P: np.ndarray, is_wall: np.ndarray, params: SkeletonParams):
-    """Free and wall grids (bool) and the grid origin."""
+    """Free and wall grids (bool) and the grid origin.
+
+    The footprint (cells holding any point) is closed by a disc of ``fill_radius_m``: a LiDAR map samples
+    floor and roof along rings, with gaps of up to a few metres under each scan position, and an
+    unsampled cell inside a drift is not rock. Rock is bounded by wall cells, which are removed (with
+    their 8 neighbours) after the closing.
+    """
     cell = params.cell_m
-    origin = P[:, :2].min(0) - 2.0 * cell
+    r = int(np.ceil(params.fill_radius_m / cell - 1e-9))
+    origin = P[:, :2].min(0) - (2.0 + r) * cell
     ij = np.floor((P[:, :2] - origin) / cell).astype(np.int64)
-    shape = tuple(ij.max(0) + 3)
+    shape = tuple(ij.max(0) + 3 + 2 * r)
     wall = np.zeros(shape, bool)
     wall[ij[is_wall, 0], ij[is_wall, 1]] = True
-    other = np.zeros(shape, bool)
-    other[ij[~is_wall, 0], ij[~is_wall, 1]] = True
-    free = other & ~ndimage.binary_dilation(wall, _EIGHT)
+    foot = np.zeros(shape, bool)
+    foot[ij[:, 0], ij[:, 1]] = True
+    if r > 0:
+        di, dj = np.mgrid[-r:r + 1, -r:r + 1]
+        foot = ndimage.binary_closing(foot, (di * di + dj * dj) <= r * r)
+    free = foot & ~ndimage.binary_dilation(wall, _EIGHT)
     lab, n = ndimage.label(~free)
     if n:
         area = ndimage.sum_labels(np.ones(shape), lab, np.arange(1, n + 1)) * cell * cell
@@ -308,6 +372,12 @@ def drift_skeleton(points, params: SkeletonParams | None = None) -> Skeleton:
         ij = np.argwhere(jpix & (zones == z))
         g = origin + (ij.mean(0) + 0.5) * params.cell_m
         c, _ = invariant_point(wall_xy, g, params.refine_radius_m, inside)
+        s = g
+        for _ in range(3):  # the maximum on the edge of the search square: the zone's centroid was off
+            if np.max(np.abs(c - s)) < params.refine_radius_m - 0.2:
+                break
+            s = c
+            c, _ = invariant_point(wall_xy, s, params.refine_radius_m, inside)
         guess.append(g)
         pts.append(c)
         deg.append(int(degree[z - 1]))
