@@ -44,6 +44,7 @@ from minegeo.io.types import Trajectory
 from minegeo.synth.network import surface_offset
 
 __all__ = ["NetworkWorld", "FlightParams", "Flight", "FlightFrames", "plan_route", "make_flight", "simulate_flight",
+           "MINE_FLIGHT", "mine_flight",
            "flight_clearance", "junction_passes"]
 
 log = logging.getLogger(__name__)
@@ -680,3 +681,39 @@ def simulate_flight(net, flight: Flight, cache_root, *, chunk: int = 200, progre
                 "path_length_m": flight.path_length_m, "chunk": chunk, "network": net.info}
         (folder / "meta.json").write_text(json.dumps(meta, indent=1, default=str))
     return FlightFrames(folder=folder, truth=truth, chunk=chunk)
+
+
+#: The drone flight of ``minegeo synth --flight`` on the small mine's level 0 (drift name, flown
+#: forwards): from 2 m past the T junction at the west end of the main drift, past the Y and the X
+#: junction, down the crosscut to the T of the parallel drift and 8 m west along it (about 55 m).
+MINE_FLIGHT = {
+    "drifts": (("main_L0_001", True), ("main_L0_002", True), ("crosscut_L0_006", True), ("parallel_L0_009", False)),
+    "start_m": 2.0,
+    "end_m": 8.0,
+}
+
+
+def mine_flight(world, *, rate_hz: float = 1.0, azimuth_step_deg: float = 2.0, seed: int = 0):
+    """A drone flight through a :class:`~minegeo.synth.world.MineWorld` (``MINE_FLIGHT``, small preset).
+
+    The carrier is :func:`~minegeo.synth.trajectory.make_trajectory`'s ``"fly"`` (1.0 m/s, 2.3 m above
+    the floor, yaw and tilt sway); a VLP-16 (16 rings, +-15 deg, ``azimuth_step_deg``) records one
+    rotation per frame at each pose of a ``rate_hz`` clock (no motion distortion), ray cast against
+    the world the survey map was scanned from.
+
+    Returns
+    -------
+    truth : Trajectory
+        ``T_map_sensor`` (m; ``frame="map"``: the world frame of the mine, the frame of ``map.ply``).
+    frames : list of (n_i, 3) ndarray
+        Each frame's points in its sensor frame (m; x forward, y left, z up).
+    """
+    from dataclasses import replace as _replace
+
+    from minegeo.synth.sensors import Velodyne16
+    from minegeo.synth.sequence import route_path, simulate_sequence
+
+    path = route_path(world, MINE_FLIGHT["drifts"], MINE_FLIGHT["start_m"], MINE_FLIGHT["end_m"])
+    truth, frames = simulate_sequence(world, path, rate_hz=rate_hz, kind="fly", seed=seed,
+                                      sensor=Velodyne16(azimuth_step_deg=azimuth_step_deg))
+    return _replace(truth, frame="map"), frames
