@@ -36,10 +36,17 @@ def add_arguments(parser) -> None:
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--times", default=None, help="file of frame times (s) (default FRAMES/times.txt or names)")
     parser.add_argument("--pattern", default=None, help='frame file-name pattern, e.g. "*.pcd"')
-    parser.add_argument("--truth", default=None, help="ground-truth TUM trajectory (base frame): error map + RMSE")
+    parser.add_argument("--truth", default=None, help="ground-truth TUM trajectory (in --truth-frame): error map + "
+                        "RMSE")
+    parser.add_argument("--truth-frame", choices=("map", "crs"), default=None,
+                        help="frame of --truth: map (default; the frame of the map the base was built from) or crs "
+                        "(CRS grid E N H; a georeferenced base: p_map = p_crs - origin)")
     parser.add_argument("--start", type=finite_float, nargs=4, metavar=("X", "Y", "Z", "YAW_DEG"), default=None,
-                        help="pose of the first frame in the base frame (m, deg); default: unanchored until the "
-                        "first verified recognition")
+                        help="pose of the first frame (m, deg; yaw counter-clockwise from +x / grid east) in "
+                        "--start-frame; default: unanchored until the first verified recognition")
+    parser.add_argument("--start-frame", choices=("map", "crs"), default=None,
+                        help="frame of --start: map (default; the frame of the map the base was built from) or crs "
+                        "(CRS grid E N H; a georeferenced base: p_map = p_crs - origin)")
     parser.add_argument("--no-map", action="store_true", help="ignore the base's intersections: recognise "
                         "re-visits of an online base built from the run (the paper's 'no map')")
     parser.add_argument("--pwcv-threshold", type=float_in_range(0.0, 1.0, lo_open=True), default=0.8,
@@ -68,12 +75,38 @@ def _check_combinations(args) -> None:
     """Refuse options that contradict each other (before any file is read)."""
     from minegeo.errors import InputError
 
+    for opt, frame, value in (("--start", "start_frame", args.start), ("--truth", "truth_frame", args.truth)):
+        if getattr(args, frame, None) is not None and value is None:
+            raise InputError(f"--{frame.replace('_', '-')} gives the frame of {opt}, which is not given: give "
+                             f"{opt} or drop --{frame.replace('_', '-')}")
     if args.no_map:
         given = [name for name, v in (("--icp-max-distance", args.icp_max_distance),
                                       ("--gate-drift", args.gate_drift)) if v is not None]
         if given:
             raise InputError(f"{given[0]} applies to recognitions against the base's intersections, which --no-map "
                              "ignores (the online base has its own limits): drop one of the two options")
+
+
+def _check_frames(args, kb) -> None:
+    """Refuse a pose or truth given in the CRS for a base that carries no CRS (before any tracking)."""
+    from minegeo.errors import InputError
+
+    geo = kb.georef or {}
+    for opt, frame in (("--start", args.start_frame), ("--truth", args.truth_frame)):
+        if frame == "crs" and not (geo.get("crs") and geo.get("origin_m") is not None):
+            raise InputError(f"{opt} is given in the CRS (--{opt[2:]}-frame crs) but the base {args.db} is not "
+                             "georeferenced (it was built from a map without a CRS): give it in the map frame, or "
+                             "build the base from the georeferenced map (`minegeo georef` output)")
+
+
+def _to_map(args, kb, T):
+    """A pose of --start (4x4) from its frame to the base's map frame: ``p_map = p_crs - origin``."""
+    import numpy as np
+
+    if args.start_frame == "crs":
+        T = T.copy()
+        T[:3, 3] -= np.asarray(kb.georef["origin_m"], float)
+    return T
 
 
 def _params(args):
@@ -97,14 +130,19 @@ def _params(args):
                        **({} if args.gate_drift is None else {"gate_drift_fraction": args.gate_drift}))
 
 
-def _truth_errors(truth_path, res):
-    """Position error (m) of every frame against the truth at the same time (nearest within 0.05 s)."""
+def _truth_errors(truth_path, res, origin=None):
+    """Position error (m) of every frame against the truth at the same time (nearest within 0.05 s);
+    ``origin`` (3,): the truth is in the CRS and ``p_map = p_crs - origin``."""
     import numpy as np
 
     from minegeo.errors import InputError
     from minegeo.io import read_trajectory
 
     tr = read_trajectory(truth_path)
+    if origin is not None:
+        P = tr.poses.copy()
+        P[:, :3, 3] -= np.asarray(origin, float) - np.asarray(tr.origin if tr.origin is not None else np.zeros(3))
+        tr = replace(tr, poses=P)
     j = np.clip(np.searchsorted(tr.times_s, res.times_s), 1, len(tr.times_s) - 1)
     j = np.where(np.abs(tr.times_s[j - 1] - res.times_s) < np.abs(tr.times_s[j] - res.times_s), j - 1, j)
     ok = np.abs(tr.times_s[j] - res.times_s) <= 0.05
@@ -166,6 +204,9 @@ def run(args) -> int:
              **({"--truth": args.truth} if args.truth else {})}
     with OutputTransaction("track", inputs=named, folders={"--out": out}) as tx:
         kb = IntersectionKB.load(args.db)
+        _check_frames(args, kb)
+        if params.T_world_start is not None:
+            params = replace(params, T_world_start=_to_map(args, kb, params.T_world_start))
         # the keyframes' drift skeleton uses the base's own skeleton parameters (floor cell, wall band)
         params = replace(params, recognition=replace(params.recognition, skeleton=kb.params.skeleton))
         files = list_frames(args.frames, times_file=args.times, pattern=args.pattern)
@@ -182,7 +223,8 @@ def run(args) -> int:
             reg_log.setLevel(level)
         if res.times_s.size < 2:
             raise InputError(f"--frames {args.frames}: fewer than 2 readable frames")
-        err = _truth_errors(args.truth, res) if args.truth else None
+        err = (_truth_errors(args.truth, res, kb.georef["origin_m"] if args.truth_frame == "crs" else None)
+               if args.truth else None)
         stage = tx.folder("--out")
         with timer("write"):
             names = _write(stage, res, kb)

@@ -257,6 +257,11 @@ OPTION_CASES = {  # (options, words of the error line)
     "no_map_with_gate_drift": (["--no-map", "--gate-drift", "0.1"], "--gate-drift applies"),
     "no_map_with_icp_max_distance": (["--no-map", "--icp-max-distance", "0.2"], "--icp-max-distance applies"),
     "odometry_unknown": (["--odometry", "imu"], "argument --odometry"),
+    "start_frame_without_start": (["--start-frame", "crs"], "--start-frame gives the frame of --start"),
+    "truth_frame_without_truth": (["--truth-frame", "map"], "--truth-frame gives the frame of --truth"),
+    "start_frame_unknown": (["--start", "0", "0", "1.5", "0", "--start-frame", "wgs84"], "argument --start-frame"),
+    "start_in_crs_base_without_crs": (["--start", "-14", "0", "1.5", "0", "--start-frame", "crs"],
+                                      "not georeferenced"),
 }
 
 
@@ -283,6 +288,16 @@ def test_bad_truth(case, scene, tmp_path, capsys):
     assert_user_error("track", ["--frames", scene / "frames", "--db", scene / "kb.npz", "--out", out,
                                 "--truth", truth], capsys, inputs=[scene / "frames", scene / "kb.npz", truth],
                       outputs=[out])
+
+
+def test_truth_in_crs_for_a_base_without_crs(scene, tmp_path, capsys):
+    """``--truth-frame crs`` needs a georeferenced base (its origin converts the truth): refused before
+    any frame is tracked."""
+    truth = _write(tmp_path, "truth.tum", "0.0 -14 0 1.5 0 0 0 1\n0.5 -13 0 1.5 0 0 0 1\n")
+    out = tmp_path / "out"
+    assert_user_error("track", ["--frames", scene / "frames", "--db", scene / "kb.npz", "--out", out,
+                                "--truth", truth, "--truth-frame", "crs"], capsys,
+                      inputs=[scene / "frames", scene / "kb.npz", truth], outputs=[out], expect="not georeferenced")
 
 
 # ------------------------------------------------------------------------------------ outputs

@@ -99,6 +99,40 @@ def test_track_end_to_end(scene, db, tmp_path):
     assert csv[0].startswith("time_s,keyframe,status,intersection_id") and any(",verified," in x for x in csv)
 
 
+def test_start_and_truth_in_the_crs(scene, db, tmp_path):
+    """``--start-frame crs`` and ``--truth-frame crs`` on a georeferenced base (CRS and origin recorded in
+    the base): the pose and the truth given in CRS grid coordinates (map + origin, by hand) give the
+    same run as in the map frame; ``trajectory_crs.tum`` is ``trajectory.tum`` + origin."""
+    from dataclasses import replace
+
+    from minegeo.semantic import IntersectionKB
+
+    d, _, truth = scene
+    origin = np.array([220000.0, 613000.0, 50.0])
+    geo_db = tmp_path / "kb_geo.npz"
+    replace(IntersectionKB.load(db), georef={"crs": "EPSG:5186", "origin_m": origin.tolist()}).save(geo_db)
+    T = truth[0]
+    yaw = np.degrees(np.arctan2(T[1, 0], T[0, 0]))
+    rows = ["".join(f"{k * 0.5:.6f} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} 0 0 0 1\n") for k, p in enumerate(truth[:, :3, 3])]
+    (tmp_path / "truth_map.tum").write_text("".join(rows))
+    rows_crs = ["".join(f"{k * 0.5:.6f} {p[0] + origin[0]:.6f} {p[1] + origin[1]:.6f} {p[2] + origin[2]:.6f} 0 0 0 1\n")
+                for k, p in enumerate(truth[:, :3, 3])]
+    (tmp_path / "truth_crs.tum").write_text("".join(rows_crs))
+    base = ["-q", "track", "--frames", str(d / "frames"), "--db", str(geo_db)]
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main([*base, "--out", str(a), "--start", *(f"{v:.6f}" for v in (*T[:3, 3], yaw)),
+                 "--truth", str(tmp_path / "truth_map.tum")]) == 0
+    assert main([*base, "--out", str(b), "--start-frame", "crs", "--truth-frame", "crs",
+                 "--start", *(f"{v:.6f}" for v in (*(T[:3, 3] + origin), yaw)),
+                 "--truth", str(tmp_path / "truth_crs.tum")]) == 0
+    ta, tb = read_trajectory(a / "trajectory.tum"), read_trajectory(b / "trajectory.tum")
+    assert np.abs(ta.poses - tb.poses).max() < 1e-6
+    ra, rb = (json.loads((x / "result.json").read_text())["result"]["truth"] for x in (a, b))
+    assert abs(ra["rmse_m"] - rb["rmse_m"]) < 1e-6 and ra["rmse_m"] < 0.5
+    tc = read_trajectory(b / "trajectory_crs.tum")
+    assert np.abs(tc.poses[:, :3, 3] + tc.origin - (tb.poses[:, :3, 3] + origin)).max() < 1e-6
+
+
 def test_track_is_deterministic(scene, db, tmp_path):
     d, _, truth = scene
     outs = []
