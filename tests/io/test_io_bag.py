@@ -312,3 +312,16 @@ def test_cli_info_lists_topics(bag, capsys):
     assert "/a  sensor_msgs/msg/PointCloud2  3 msgs  10.000 Hz" in out
     assert "/imu  sensor_msgs/msg/Imu  40 msgs  400.000 Hz" in out
     assert "time     per-point field 't'" in out and "t:uint32@20" in out
+
+
+def test_ros2_storage_file_read_alone(bag):
+    """A ROS 2 ``.db3`` / ``.mcap`` storage file without its folder reads as the folder does."""
+    fmt, path = bag
+    files = [path] if fmt == "ros1" else sorted(path.glob("*.mcap")) + sorted(path.glob("*.db3"))
+    assert len(files) == 1
+    assert bag_kind(files[0]) == {"ros1": "ros1", "sqlite3": "ros2-sqlite3", "mcap": "ros2-mcap"}[fmt]
+    whole, alone = read_bag_frames(path, "/b"), read_bag_frames(files[0], "/b")
+    assert [f.stamp_ns for f in alone] == [f.stamp_ns for f in whole]
+    for a, w in zip(alone, whole, strict=True):
+        np.testing.assert_array_equal(a.points.xyz, w.points.xyz)
+        np.testing.assert_array_equal(a.points.t_offset_s, w.points.t_offset_s)
