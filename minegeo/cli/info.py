@@ -5,7 +5,8 @@
 a trajectory (TUM: 8 numbers a line with a unit quaternion and rising times; KITTI: 12 with an
 orthonormal rotation; CSV/GeoSLAM: a header naming the quaternion), a g2o pose graph
 (``VERTEX_*`` / ``EDGE_*`` records), a prepared map or an intersection base (``.npz`` archives
-told apart by their members), a minegeo ``result.json``, a ROS bag (a ROS 1 ``.bag``, a ROS 2 bag
+told apart by their members), a minegeo ``result.json``, control/check stations of a SLAM run (header
+``id,t_start,t_end,E,N,H,sigma_h_m,sigma_v_m,role``), a ROS bag (a ROS 1 ``.bag``, a ROS 2 bag
 folder or ``.mcap``/``.db3`` file: topics with type, count, rate, time span, PointCloud2 fields and
 time field) or an IMU CSV (header ``t,gx,gy,gz,ax,ay,az``). ``--kind`` forces the kind. For a point
 cloud it prints format, point count, bounds, attributes with dtypes, CRS, recorded origin, the
@@ -24,13 +25,13 @@ from pathlib import Path
 import numpy as np
 
 HELP = ("tell what a file holds (point cloud, control points, trajectory, g2o pose graph, prepared map, "
-        "intersection base, result.json, ROS bag, IMU CSV) and summarise it: counts, bounds, attributes, CRS, "
+        "intersection base, result.json, ROS bag, IMU CSV, stations CSV) and summarise it: counts, bounds, attributes, CRS, "
         "topics, times")
 
 _TRAJ_SUFFIXES = (".tum", ".kitti")
 #: ``--kind`` values (``auto``: :func:`detect_kind`).
 KINDS = ("auto", "cloud", "gcp", "trajectory", "posegraph", "prepared_map", "intersection_base", "result", "bag",
-         "imu")
+         "imu", "stations")
 #: What each kind is called in the printout.
 KIND_TEXT = {
     "cloud": "point cloud",
@@ -42,6 +43,7 @@ KIND_TEXT = {
     "result": "minegeo result record (result.json)",
     "bag": "ROS bag",
     "imu": "IMU samples (IMU CSV)",
+    "stations": "control and check stations (stations CSV)",
 }
 #: header names that mark an IMU CSV (t,gx,gy,gz,ax,ay,az)
 _IMU_NAMES = {"gx", "gy", "gz", "ax", "ay", "az"}
@@ -53,7 +55,7 @@ _TRAJ_FORMATS = ("tum", "kitti", "geoslam")
 def add_arguments(parser) -> None:
     parser.add_argument("file", metavar="FILE", help="point cloud (ply pcd las laz xyz txt csv pts 3d e57 zip), "
                         "trajectory (TUM, KITTI, CSV), GCP CSV, g2o pose graph, prepared map or intersection base "
-                        "(.npz), result.json, ROS bag (.bag file or ROS 2 folder), IMU CSV")  # fmt: skip
+                        "(.npz), result.json, ROS bag (.bag file or ROS 2 folder), IMU CSV, stations CSV")  # fmt: skip
     parser.add_argument("--format", default=None, help="file format if the suffix does not tell (e.g. pcd, tum)")
     parser.add_argument(
         "--kind",
@@ -194,6 +196,10 @@ def _text_kind(path: Path, head: bytes) -> tuple[str, str | None, str]:
         from minegeo.io.gcp import _ALIASES, _REQUIRED
 
         canon = {_ALIASES.get(n, n) for n in names}
+        from minegeo.io.stations import is_stations_header
+
+        if is_stations_header(names) or {"t_start", "t_end"} <= set(names):
+            return "stations", None, "a header naming id, t_start, t_end, E N H, sigmas and role"
         if set(_REQUIRED) <= canon:
             return "gcp", None, "a header naming id, local x y z and E N H"
         if "qw" in names or "q0" in names:
@@ -326,6 +332,25 @@ def _imu_info(path: Path) -> dict:
             "size_bytes": path.stat().st_size, "sha256": sha256_file(path)}
 
 
+def _stations_info(path: Path) -> dict:
+    from minegeo._provenance import sha256_file
+    from minegeo.io.stations import read_stations
+
+    st = read_stations(path)
+    enh = st.enh
+    ctrl = st.is_control
+    dwell = st.t_end_s - st.t_start_s
+    return {"path": str(path), "kind": "stations", "stations": len(st), "control": int(ctrl.sum()),
+            "check": int((~ctrl).sum()), "ids": list(st.ids), "control_ids": [i for i, c in zip(st.ids, ctrl, strict=True) if c],
+            "check_ids": [i for i, c in zip(st.ids, ctrl, strict=True) if not c], "crs": st.crs,
+            "origin_enh": st.origin_enh.tolist(),
+            "bounds_min": enh.min(axis=0).tolist(), "bounds_max": enh.max(axis=0).tolist(),
+            "time_start_s": float(st.t_start_s.min()), "time_end_s": float(st.t_end_s.max()),
+            "dwell_s_min": float(dwell.min()), "dwell_s_max": float(dwell.max()),
+            "sigma_h_m_median": float(np.median(st.sigma_h_m)), "sigma_v_m_median": float(np.median(st.sigma_v_m)),
+            "size_bytes": path.stat().st_size, "sha256": sha256_file(path)}
+
+
 def _print_bag(info: dict) -> None:
     print(f"file      {info['path']}")
     print(f"format    {info['bag_format']}")
@@ -413,7 +438,7 @@ def resolve_kind(path: Path, kind: str, fmt: str | None) -> tuple[str, str | Non
 
 _READERS = {"gcp": _gcp_info, "posegraph": _posegraph_info, "prepared_map": _prepared_map_info,
             "intersection_base": _intersection_base_info, "result": _result_info, "bag": _bag_info,
-            "imu": _imu_info}
+            "imu": _imu_info, "stations": _stations_info}
 
 
 def run(args) -> int:
