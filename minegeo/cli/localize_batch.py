@@ -48,7 +48,7 @@ HELP = "localize many scans in one prepared map in parallel (Dask): one result f
 
 
 def add_arguments(parser) -> None:
-    from minegeo.cli._argtypes import float_in_range, nonnegative_int, positive_int
+    from minegeo.cli._argtypes import float_in_range, nonnegative_int, positive_float, positive_int
     from minegeo.cli.localize import add_profile_arguments
 
     parser.add_argument("--map", required=True, help="prepared map (.npz from minegeo prepare-map) or a map file")
@@ -61,6 +61,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--scheduler", type=scheduler_address, default=None, metavar="ADDRESS",
                         help="address of a running dask.distributed scheduler (e.g. tcp://10.0.0.5:8786) instead "
                              "of a local cluster; its workers must see --map, --scans and --out at the same paths")
+    parser.add_argument("--scheduler-timeout-s", type=positive_float, default=20.0, metavar="S",
+                        help="how long to try reaching --scheduler before giving up (default 20 s)")
     parser.add_argument("--seed", type=nonnegative_int, default=0,
                         help="random seed of every scan (default 0): the same as minegeo localize --seed")
     add_profile_arguments(parser)
@@ -229,7 +231,8 @@ def _run_locked(args, out, scans, names, pm, how, manifest, map_input, t_map, st
                        numba_threads=B.numba_share(args.workers, args.scheduler), manifest=manifest)
             for s, n in zip(scans, names, strict=True)]
     _, todo = B.plan_batch(jobs, manifest)
-    cluster = B.BatchCluster(args.workers, args.scheduler, quiet=not args.debug)
+    cluster = B.BatchCluster(args.workers, args.scheduler, quiet=not args.debug,
+                               connect_timeout_s=args.scheduler_timeout_s)
     try:
         if todo:
             cluster.start()  # before anything is written: a cluster that cannot start leaves OUT as it was

@@ -628,11 +628,15 @@ class BatchCluster:
         Address of a running ``dask.distributed`` scheduler.
     quiet : bool
         Silence distributed's log lines (default True).
+    connect_timeout_s : float
+        How long to try reaching ``scheduler`` before giving up (s, default 20).
     """
 
-    def __init__(self, workers: int, scheduler: str | None = None, quiet: bool = True):
+    def __init__(self, workers: int, scheduler: str | None = None, quiet: bool = True,
+                 connect_timeout_s: float = 20.0):
         self.workers = int(workers)
         self.scheduler = scheduler
+        self.connect_timeout_s = float(connect_timeout_s)
         self.quiet = quiet
         self.client = None
         self.cluster = None
@@ -655,10 +659,11 @@ class BatchCluster:
         try:
             if self.scheduler:
                 try:
-                    box["client"] = Client(self.scheduler, timeout="20s", set_as_default=False)
+                    box["client"] = Client(self.scheduler, timeout=f"{self.connect_timeout_s}s",
+                                           set_as_default=False)
                 except (OSError, TimeoutError) as exc:
                     box["error"] = InputError(f"--scheduler {self.scheduler}: cannot connect to the Dask scheduler "
-                                              f"({exc})")
+                                              f"within {self.connect_timeout_s:g} s ({exc})")
                 return
             from minegeo.localize._batch_worker import QUIET_ENV
 

@@ -210,7 +210,7 @@ def test_scheduler_not_answering_writes_nothing(earlier, prep, scans, tmp_path, 
     out = _manifest(tmp_path / "out", prep) if earlier else tmp_path / "out"
     before = tree_snapshot(out, with_mtime=True)
     assert_user_error("localize-batch", ["--map", prep, "--scans", scans, "--out", out, *FAST, "--scheduler",
-                                         f"tcp://127.0.0.1:{_closed_port()}"], capsys,
+                                         f"tcp://127.0.0.1:{_closed_port()}", "--scheduler-timeout-s", "2"], capsys,
                       inputs=[prep, scans], outputs=[out], expect="cannot connect to the Dask scheduler")
     assert tree_snapshot(out, with_mtime=True) == before
 
