@@ -28,6 +28,8 @@ def plot_kb_png(kb, map_xy: np.ndarray | None = None, max_points: int = 40000) -
     if len(P):
         step = max(1, len(P) // max_points)
         ax.plot(P[::step, 0], P[::step, 1], ",", color="0.6")
+        ax.plot([], [], "s", color="0.6", ms=5, label="prior map" if map_xy is not None else
+                "prior map (dense clouds of the intersections)")
     C = kb.invariant_points
     ax.plot(C[:, 0], C[:, 1], "o", color="tab:red", ms=6, label="invariant points")
     for i, c in enumerate(C):

@@ -352,7 +352,7 @@ def _detect(clouds, T_his, params: RecognitionParams):
     try:
         # the keyframe's free space is carved along its rays (V), dense; the footprint closing is for a map's
         # unsampled floor and roof, and on a keyframe it would bridge the openings the rays did not reach
-        sk = drift_skeleton(np.concatenate([L, V]), replace(params.skeleton, fill_radius_m=0.0))
+        sk = drift_skeleton(np.concatenate([L, V]), replace(params.skeleton, fill_radius_m=0.0), complete_walls=False)
     except MinegeoError as exc:
         return "no_walls", f"no drift skeleton: {exc}", L, T_L_k, None
     if sk.junction_xy.shape[0] == 0:

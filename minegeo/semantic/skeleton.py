@@ -174,9 +174,10 @@ def mine_levels(points, params: SkeletonParams | None = None, min_share: float =
     The drift skeleton is 2-D; two levels in one projection merge their drifts (and the low quantile
     of a floor cell picks the lower level, so the upper level has no wall points). Level floors are
     the peaks of the histogram (1 m bins) of :func:`point_floor` that hold at least ``min_share`` of
-    the points and are the largest within ``level_gap_m``; level ``k`` is the slab
-    ``floor_k - 1 m <= z < floor_(k+1) - 1 m`` (a ramp between levels is cut between them). One peak:
-    one level, every point.
+    the points and are the largest within ``level_gap_m``; level ``k`` is the slab between the
+    mid-heights to the floors below and above it (a ramp between two levels is cut half-way, as far
+    as possible from both floors, and appears in each level as a drift leaving it). One peak: one
+    level, every point.
     """
     params = params or SkeletonParams()
     P = as_points(points, "points", min_points=1)
@@ -190,7 +191,7 @@ def mine_levels(points, params: SkeletonParams | None = None, min_share: float =
     if peaks.size <= 1:
         return [np.arange(len(P))]
     floors = lo + peaks + 0.5
-    edges = np.r_[-np.inf, floors[1:] - 1.0, np.inf]
+    edges = np.r_[-np.inf, 0.5 * (floors[:-1] + floors[1:]), np.inf]
     k = np.searchsorted(edges, P[:, 2], side="right") - 1
     return [np.flatnonzero(k == i) for i in range(floors.size)]
 
@@ -324,7 +325,7 @@ def _junction_zones(sk: np.ndarray, params: SkeletonParams):
     return zones, nz, degree, jpix, int((~spur).sum())
 
 
-def drift_skeleton(points, params: SkeletonParams | None = None) -> Skeleton:
+def drift_skeleton(points, params: SkeletonParams | None = None, *, complete_walls: bool = True) -> Skeleton:
     """Skeleton and junctions of the drifts of a point cloud (map or stacked keyframes).
 
     Parameters
@@ -332,6 +333,12 @@ def drift_skeleton(points, params: SkeletonParams | None = None) -> Skeleton:
     points : array_like (n, 3)
         Points (m), z up; one mine level (the 2-D projection merges levels).
     params : SkeletonParams, optional
+    complete_walls : bool
+        True for a map (every wall around a junction is in the cloud): the search for a junction's
+        invariant point starts at the junction pixel of its zone farthest from the walls (a zone can
+        chain junction pixels over metres, e.g. along a wall structure, and its centroid then misses
+        the crossing). False for stacked keyframes (walls partial; the clearance grows toward what
+        the sensor did not see): it starts at the zone's centroid.
 
     Returns
     -------
@@ -368,9 +375,14 @@ def drift_skeleton(points, params: SkeletonParams | None = None) -> Skeleton:
         return out
 
     guess, pts, deg = [], [], []
+    from scipy.spatial import cKDTree
+
+    wall_tree = cKDTree(wall_xy)
     for z in np.flatnonzero(degree >= 3) + 1:
         ij = np.argwhere(jpix & (zones == z))
-        g = origin + (ij.mean(0) + 0.5) * params.cell_m
+        # the search starts at the zone's junction pixel farthest from the walls, or its centroid
+        q = origin + (ij + 0.5) * params.cell_m
+        g = q[int(np.argmax(wall_tree.query(q)[0]))] if complete_walls else q.mean(0)
         c, _ = invariant_point(wall_xy, g, params.refine_radius_m, inside)
         s = g
         for _ in range(3):  # the maximum on the edge of the search square: the zone's centroid was off
