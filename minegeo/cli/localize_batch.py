@@ -287,7 +287,7 @@ def _write_batch_outputs(args, out: Path, res, pm, manifest: dict, map_input: di
     from minegeo.localize import batch as B
     from minegeo.report.batch_report import batch_status, write_batch_report
 
-    B.write_summary_csv(to["summary.csv"], res.rows)
+    B.write_summary_csv(to["summary.csv"], res.rows, georeferenced=pm.georef is not None)
     word, text = batch_status(res.counts)
     timings = {"map_load_or_prepare": t_map, "batch": res.seconds, **whole_run_timings(args)}
     rows = [{k: v for k, v in r.items() if k != "T_map_scan"} for r in res.rows]
@@ -296,7 +296,7 @@ def _write_batch_outputs(args, out: Path, res, pm, manifest: dict, map_input: di
         "counts": res.counts, "n_scans": len(res.rows), "n_resumed": res.n_resumed, "n_run": res.n_run,
         "scans_per_minute": (60.0 * res.n_run / res.seconds) if res.n_run and res.seconds > 0 else None,
         "frame": "crs" if pm.georef is not None else "map", "crs": pm.crs,
-        "summary_csv": "summary.csv", "summary_columns": list(B.SUMMARY_COLUMNS),
+        "summary_csv": "summary.csv", "summary_columns": list(B.summary_columns(pm.georef is not None)),
         "comparable_to_localize": "each scan's result.json equals minegeo localize's with the same --map, --scan, "
                                   "options and --seed except " + ", ".join(B.VOLATILE_FIELDS),
         "profile": manifest["profile"], "seed": int(args.seed), "workers": res.workers, "scheduler": res.scheduler,

@@ -60,7 +60,7 @@ from minegeo.errors import InputError, MinegeoError, OptionalDependencyError, Ou
 log = logging.getLogger(__name__)
 
 __all__ = ["DaskUnavailableError", "VOLATILE_FIELDS", "SUMMARY_COLUMNS", "BatchJob", "BatchResult",
-           "comparable_record", "find_scans", "result_names", "check_out_folder", "clean_leftovers", "manifest_record", "manifest_digest",
+           "summary_columns", "comparable_record", "find_scans", "result_names", "check_out_folder", "clean_leftovers", "manifest_record", "manifest_digest",
            "export_map_cache", "worker_map", "local_cluster", "numba_share", "apply_numba_share", "BLAS_THREAD_VARIABLES", "done_record", "summary_row", "write_summary_csv",
            "run_batch"]
 
@@ -70,10 +70,18 @@ __all__ = ["DaskUnavailableError", "VOLATILE_FIELDS", "SUMMARY_COLUMNS", "BatchJ
 #: host, map cache). Everything else, poses, covariances, status, reason, scores, parameters,
 #: inputs, is equal in its JSON text.
 VOLATILE_FIELDS = ("*.timings_s", "map_preparation.seconds", "batch")
-#: Columns of ``summary.csv`` (E, N, H: CRS coordinates of the scan origin, or map x, y, z for a
-#: map without georeferencing; heading: azimuth of the scan's x axis, degrees clockwise from
-#: grid north / the map's +y; radius95_m: the 95 % position radius; time_s: the scan's own run).
+#: Columns of ``summary.csv`` for a georeferenced map (E, N, H: CRS coordinates of the scan origin;
+#: heading: azimuth of the scan's x axis, degrees clockwise from grid north; radius95_m: the 95 %
+#: position radius; time_s: the scan's own run). For a map without georeferencing the coordinate
+#: columns are the map's ``x, y, z`` and the heading is clockwise from the map's +y
+#: (:func:`summary_columns`).
 SUMMARY_COLUMNS = ("scan", "status", "reason", "E", "N", "H", "heading", "radius95_m", "time_s")
+
+
+def summary_columns(georeferenced: bool) -> tuple[str, ...]:
+    """The ``summary.csv`` header: :data:`SUMMARY_COLUMNS` in a CRS, map ``x, y, z`` otherwise."""
+    return SUMMARY_COLUMNS if georeferenced else tuple({"E": "x", "N": "y", "H": "z"}.get(c, c)
+                                                       for c in SUMMARY_COLUMNS)
 MANIFEST = "batch_manifest.json"
 MAP_CACHE = ".map_cache"
 #: the files the batch writes at its end, together (``minegeo localize-batch``)
@@ -539,13 +547,14 @@ def _fmt(v, fmt: str) -> str:
     return "" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, fmt)
 
 
-def write_summary_csv(path, rows) -> Path:
-    """``summary.csv`` (:data:`SUMMARY_COLUMNS`; empty cells for a scan without coordinates), atomically."""
+def write_summary_csv(path, rows, georeferenced: bool = True) -> Path:
+    """``summary.csv`` (:func:`summary_columns`: E, N, H in a CRS, x, y, z in a map frame; empty
+    cells for a scan without coordinates), atomically."""
     from minegeo._provenance import atomic_write_text
 
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(SUMMARY_COLUMNS)
+    w.writerow(summary_columns(georeferenced))
     for r in rows:
         w.writerow([r["scan"], r["status"], r["reason"], _fmt(r["E"], ".4f"), _fmt(r["N"], ".4f"),
                     _fmt(r["H"], ".4f"), _fmt(r["heading"], ".4f"), _fmt(r["radius95_m"], ".4f"),

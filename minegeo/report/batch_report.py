@@ -95,7 +95,9 @@ def plot_batch_png(rows, prepared, max_map_points: int = 40000) -> bytes | None:
 def batch_report_html(record: dict, rows, prepared) -> str:
     """HTML text of the batch summary (``record``: the ``batch_result.json`` record)."""
     status, text = batch_status(record["counts"])
-    frame = "CRS " + str(record.get("crs")) if record.get("frame") == "crs" else "map frame"
+    crs = record.get("frame") == "crs"
+    frame = "CRS " + str(record.get("crs")) if crs else "map frame"
+    xyz = ["E", "N", "H"] if crs else ["x", "y", "z"]
     body = []
     for k, r in enumerate(rows, 1):
         w = status_word(r["status"])
@@ -119,13 +121,13 @@ def batch_report_html(record: dict, rows, prepared) -> str:
         ("Plan view", (img_png(png, "plan view of the placed scans") if png else f"<p>{esc(NO_PLOT)}</p>")
          + f"<p class=\"small\">Coordinates in the {esc(frame)}. Only <b>ok</b> scans have a position; "
            "ambiguous and failed scans are not drawn.</p>"),
-        ("Scans", table(["#", "scan", "status", "reason", "E", "N", "H", "heading (deg)", "95 % radius (m)", "time (s)",
+        ("Scans", table(["#", "scan", "status", "reason", *xyz, "heading (deg)", "95 % radius (m)", "time (s)",
                          "resumed", "scan report"], body, numeric=[0, 4, 5, 6, 7, 8, 9], raw_cols=[2, 11])
-         + "<p class=\"small\">E, N, H: the scan origin "
-           + ("in the CRS" if record.get("frame") == "crs" else "in the map frame (x, y, z: the map is not "
-                                                                  "georeferenced)")
-           + "; heading: azimuth of the scan's x axis, degrees clockwise from grid north (the map's +y). Each "
-             "link opens the scan's own report (as minegeo localize writes it).</p>"),
+         + f"<p class=\"small\">{', '.join(xyz)}: the scan origin "
+           + ("in the CRS; heading: azimuth of the scan's x axis, degrees clockwise from grid north"
+              if crs else "in the map frame (the map is not georeferenced); heading: azimuth of the scan's x axis, "
+                          "degrees clockwise from the map's +y")
+           + ". Each link opens the scan's own report (as minegeo localize writes it).</p>"),
         ("Parameters used", params_table({"seed": record.get("seed"), "profile": record.get("profile"),
                                           "workers": record.get("workers"), "scheduler": record.get("scheduler"),
                                           "localize": record["params"]["localize"]})),

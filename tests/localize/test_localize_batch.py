@@ -33,7 +33,7 @@ from helpers import require_extra
 require_extra("distributed")
 
 from minegeo.cli import main  # noqa: E402
-from minegeo.localize.batch import SUMMARY_COLUMNS, comparable_record  # noqa: E402
+from minegeo.localize.batch import SUMMARY_COLUMNS, comparable_record, summary_columns  # noqa: E402
 
 FAST = ["--profile", "fast"]
 SEED = 7
@@ -97,8 +97,10 @@ def batch_out(world, cluster, tmp_path_factory):
 
 def test_batch_equals_localize_one_by_one(world, batch_out, tmp_path):
     summary = list(csv.reader((batch_out / "summary.csv").read_text(encoding="utf-8").splitlines()))
-    assert tuple(summary[0]) == SUMMARY_COLUMNS
-    rows = {Path(r[0]).stem: dict(zip(SUMMARY_COLUMNS, r, strict=True)) for r in summary[1:]}
+    # the module's map is not georeferenced: map x, y, z, never headed E, N, H
+    assert tuple(summary[0]) == ("scan", "status", "reason", "x", "y", "z", "heading", "radius95_m", "time_s")
+    assert summary_columns(True) == SUMMARY_COLUMNS and SUMMARY_COLUMNS[3:6] == ("E", "N", "H")
+    rows = {Path(r[0]).stem: dict(zip(summary[0], r, strict=True)) for r in summary[1:]}
     assert sorted(rows) == [f"scan_{i:02d}" for i in range(5)]
     n_ok = 0
     for name, row in rows.items():
@@ -114,10 +116,10 @@ def test_batch_equals_localize_one_by_one(world, batch_out, tmp_path):
         assert row["status"] == a["status"]
         if a["status"] == "ok":
             n_ok += 1
-            assert float(row["E"]) == pytest.approx(a["T_map_scan"][0][3], abs=1e-4)
+            assert float(row["x"]) == pytest.approx(a["T_map_scan"][0][3], abs=1e-4)
             assert float(row["radius95_m"]) == pytest.approx(a["position_95_radius_m"], abs=1e-4)
         else:
-            assert row["E"] == "" and row["radius95_m"] == ""
+            assert row["x"] == "" and row["radius95_m"] == ""
     assert n_ok >= 3
     rec = _json(batch_out / "batch_result.json")
     assert rec["seed"] == 3 and {"minegeo", "numpy"} <= set(rec["versions"])
