@@ -13,7 +13,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from minegeo.cli._argtypes import float_in_range, int_in_range, nonnegative_int, positive_float
+from minegeo.cli._argtypes import finite_float, float_in_range, int_in_range, nonnegative_int, positive_float
 
 HELP = "write a seeded synthetic mine: map, local scans, trajectories, GCPs and truth.json"
 
@@ -61,6 +61,15 @@ def add_arguments(parser) -> None:
                    help="loop (3.2 m drifts, default), junctions (3.5 m) or an edge list CSV (NIOSH layout, 2.9 m)")
     s.add_argument("--drift-width-m", type=float_in_range(2.0, 10.0), default=None, metavar="M",
                    help="drift width of the stream network (default: the network's own)")
+    s.add_argument("--station-spacing-m", type=float_in_range(6.0, 100_000.0), default=None, metavar="M",
+                   help="stop-and-go survey stations every M m of path: the carrier stands still a few seconds on "
+                        "each; writes stations.csv (surveyed, in --crs) and stations_truth.csv (docs/survey.md)")
+    s.add_argument("--control-every", type=int_in_range(1, 100_000), default=None, metavar="K",
+                   help="every K-th station (the first included) is a control station, the others check stations "
+                        "(default 5: with 100 m spacing, control every 500 m)")
+    s.add_argument("--station-offset", type=finite_float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                   help="surveyed point of a station in the sensor frame (m; default 0 0 0), as minegeo slam "
+                        "--station-offset")
 
 
 def run(args) -> int:
@@ -181,8 +190,15 @@ def _stream_params(args):
     """The :class:`~minegeo.synth.stream.StreamParams` of ``--stream`` (None without it), checked before any work."""
     from minegeo.errors import InputError
 
+    spacing = getattr(args, "station_spacing_m", None)
     opts = {"--duration-s": args.duration_s, "--lidar-hz": args.lidar_hz, "--imu-hz": args.imu_hz,
-            "--stream-network": args.stream_network, "--drift-width-m": args.drift_width_m}
+            "--stream-network": args.stream_network, "--drift-width-m": args.drift_width_m,
+            "--station-spacing-m": spacing}
+    for o, v in (("--control-every", getattr(args, "control_every", None)),
+                 ("--station-offset", getattr(args, "station_offset", None))):
+        if v is not None and spacing is None:
+            raise InputError(f"{o} shapes the survey stations of a stream: give --stream and --station-spacing-m "
+                             "with it")
     if not args.stream:
         given = [k for k, v in opts.items() if v is not None]
         if given:
@@ -192,7 +208,7 @@ def _stream_params(args):
                             ("--roughness-m", args.roughness_m is not None), ("--lining", args.lining is not None),
                             ("--twins", args.twins != "none"), ("--unmapped", args.unmapped != 0),
                             ("--preset", args.preset != "small"), ("--gcps", args.gcps != 10),
-                            ("--crs", args.crs != "EPSG:5186")) if v]
+                            ("--crs", args.crs != "EPSG:5186" and spacing is None)) if v]
     if other:
         raise InputError(f"--stream writes a sensor stream in a drift network, not the mine: {other[0]} has nothing "
                          "to act on; drop one of the two options")
@@ -202,9 +218,20 @@ def _stream_params(args):
     net = args.stream_network or "loop"
     if net not in ("loop", "junctions") and not Path(net).is_file():
         raise InputError(f"--stream-network: {net} is neither loop, junctions nor an edge list file")
+    station = {}
+    if spacing is not None:
+        from minegeo.georef import validate_crs
+        from minegeo.io.stations import parse_station_offset
+        from minegeo.synth.dataset import _crs_origin
+
+        validate_crs(args.crs)  # a projected CRS in metres
+        _crs_origin(args.crs)
+        station = {"station_spacing_m": spacing, "control_every": getattr(args, "control_every", None) or 5,
+                   "station_offset_m": tuple(parse_station_offset(getattr(args, "station_offset", None) or
+                                                                  [0.0, 0.0, 0.0])), "crs": args.crs}
     return StreamParams(preset=args.stream, duration_s=args.duration_s or 5.0, lidar_hz=args.lidar_hz or 10.0,
                         azimuth_step_deg=0.02 * (args.lidar_hz or 10.0), imu=ImuParams(rate_hz=args.imu_hz or 200.0),
-                        network=net, width_m=args.drift_width_m, seed=args.seed)
+                        network=net, width_m=args.drift_width_m, seed=args.seed, **station)
 
 
 def _write_stream(args, stage, out) -> int:
@@ -218,6 +245,10 @@ def _write_stream(args, stage, out) -> int:
           f"{rec['params']['imu']['rate_hz']:g} Hz")
     print(f"  path {m['path_length_m']:.1f} m, speed up to {m['max_speed_mps']:.2f} m/s, angular rate up to "
           f"{m['max_angular_rate_dps']:.0f} deg/s, tilt up to {m['max_tilt_deg']:.1f} deg")
+    if "stations" in rec:
+        s = rec["stations"]
+        print(f"  stations.csv: {s['n']} stations ({s['control']} control, {s['check']} check) every "
+              f"{s['spacing_m']:g} m of path, {s['still_s']:g} s still on each, in {s['crs']}; stations_truth.csv")
     return 0
 
 

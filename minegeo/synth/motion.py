@@ -11,7 +11,9 @@ fraction of the segment) a channel is ``c(t) = sum_k B_k(u) c_{i+k}`` with the u
     B0 = (1-u)^3/6,  B1 = (3u^3 - 6u^2 + 4)/6,  B2 = (-3u^3 + 3u^2 + 3u + 1)/6,  B3 = u^3/6,
 
 so position, velocity ``v = dp/dt`` and acceleration ``a = d2p/dt2`` are exact polynomials (``a``
-continuous, piecewise linear) and the angular rate in the sensor frame is exact too:
+continuous, piecewise linear) and the angular rate in the sensor frame is exact too. It is
+evaluated as ``c_{i+1} + sum_k B_k (c_{i+k} - c_{i+1})``, so where four control points are equal
+(a stop) the pose is bit-for-bit constant and the derivatives exactly zero:
 
     omega_sensor = [roll' - yaw' sin(pitch),
                     pitch' cos(roll) + yaw' sin(roll) cos(pitch),
@@ -147,7 +149,13 @@ class MotionCurve:
                          / (2.0 * self.dt_knot_s))
         if order >= 2:
             bases.append(np.stack([1 - u, 3 * u - 2, 1 - 3 * u, u], 1) / self.dt_knot_s ** 2)
-        return [sum(B[:, k, None] * C[k] for k in range(4)) for B in bases]
+        # sum_k B_k (C_k - C_1) (+ C_1 for the value; the derivative bases sum to 0): where the four
+        # control points are equal the differences are exactly 0, so a standing carrier's pose is
+        # exactly constant and its velocity, acceleration and angular rate exactly 0
+        D = [C[k] - C[1] for k in range(4)]
+        out = [sum(B[:, k, None] * D[k] for k in range(4)) for B in bases]
+        out[0] = out[0] + C[1]
+        return out
 
     def rotation_position(self, t):
         """``(R (n, 3, 3), p (n, 3))`` of ``T_world_sensor`` at times ``t`` (s)."""
