@@ -53,3 +53,24 @@ def test_bad_stations_csv(case, tmp_path, capsys):
 def test_bad_stations_header(tmp_path, capsys):
     f = _csv(tmp_path, ROWS, header="id,t_start,t_end,E,N,H,sigma_h_m,role")
     assert_user_error("info", [f], capsys, inputs=[f], expect="line 2: the stations header lacks column(s) sigma_v_m")
+
+
+#: minegeo synth --stream ... stations options -> (extra argv, text of the error line)
+SYNTH_CASES = {
+    "control_every_without_spacing": (["--stream", "vehicle", "--control-every", "3"], "--station-spacing-m"),
+    "offset_without_spacing": (["--stream", "vehicle", "--station-offset", "0", "0", "1"], "--station-spacing-m"),
+    "offset_wrong_units": (["--stream", "vehicle", "--station-spacing-m", "50", "--station-offset", "0", "0", "-450"],
+                           "wrong units"),
+    "geographic_crs": (["--stream", "vehicle", "--station-spacing-m", "50", "--crs", "EPSG:4326"], "projected"),
+    "spacing_too_short": (["--stream", "vehicle", "--station-spacing-m", "2"], "--station-spacing-m"),
+    "no_station_in_run": (["--stream", "vehicle", "--station-spacing-m", "300", "--duration-s", "2"],
+                          "no station stop falls inside the 2 s run"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(SYNTH_CASES))
+def test_bad_synth_station_options(case, tmp_path, capsys):
+    extra, expect = SYNTH_CASES[case]
+    out = tmp_path / "out"
+    assert_user_error("synth", [out, *extra], capsys, outputs=[out / "stations.csv"], expect=expect)
+    assert not out.exists()
