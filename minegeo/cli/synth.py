@@ -205,6 +205,7 @@ def _stream_params(args):
             raise InputError(f"{given[0]} shapes a sensor stream: give --stream vehicle|handheld|drone with it")
         return None
     other = [o for o, v in (("--mast", args.mast), ("--mast-only", args.mast_only),
+                            ("--flight", getattr(args, "flight", False)),
                             ("--roughness-m", args.roughness_m is not None), ("--lining", args.lining is not None),
                             ("--twins", args.twins != "none"), ("--unmapped", args.unmapped != 0),
                             ("--preset", args.preset != "small"), ("--gcps", args.gcps != 10),

@@ -72,6 +72,7 @@ def test_crs_truth_and_start(mine):
     (["--flight", "--preset", "paper"], "--flight flies the small preset"),
     (["--flight", "--roughness-m", "0.1"], "--flight flies the small preset"),
     (["--flight", "--mast-only"], "--flight has nothing to act on"),
+    (["--flight", "--stream", "drone"], "--flight has nothing to act on"),
 ])
 def test_flight_contradictions_refused(opts, words, tmp_path, capsys):
     out = tmp_path / "out"
