@@ -248,7 +248,7 @@ def _write_stream(args, stage, out) -> int:
           f"{m['max_angular_rate_dps']:.0f} deg/s, tilt up to {m['max_tilt_deg']:.1f} deg")
     if "stations" in rec:
         s = rec["stations"]
-        print(f"  stations.csv: {s['n']} stations ({s['control']} control, {s['check']} check) every "
+        print(f"  stations.csv: {s['n']} station{'' if s['n'] == 1 else 's'} ({s['control']} control, {s['check']} check) every "
               f"{s['spacing_m']:g} m of path, {s['still_s']:g} s still on each, in {s['crs']}; stations_truth.csv")
     return 0
 
