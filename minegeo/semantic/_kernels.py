@@ -2,7 +2,7 @@
 
 Contiguous float64 arrays in, no checks (:mod:`minegeo.semantic.factors` validates). Poses are
 ``T_world_keyframe`` (4×4); tangent vectors are ordered rotation first, ``δ = (φ, ρ)`` (rad, m),
-and perturbations are on the right, ``T ← T · Exp(δ)``, as in :mod:`minegeo.slam._kernels` and
+and perturbations are on the right, ``T ← T · Exp(δ)``, as in :mod:`minegeo.optim` and
 GTSAM's ``Pose3``. To first order the right perturbation moves ``R ← R (I + hat(φ))`` and
 ``t ← t + R ρ``.
 
@@ -20,8 +20,6 @@ times ``∂φ_left/∂φ_right = R_i``), ``∂e/∂ρ = −R_i`` (the paper's ``
 """
 
 from __future__ import annotations
-
-import numpy as np
 
 from minegeo._jit import njit
 
@@ -57,37 +55,3 @@ def intersection_residuals(poses, kf, z, C, r):
         T = poses[kf[e]]
         for a in range(3):
             r[e, a] = C[e, a] - T[a, 3] - (T[a, 0] * z[e, 0] + T[a, 1] * z[e, 1] + T[a, 2] * z[e, 2])
-
-
-@njit
-def accumulate_unary(r, J, WO, bcol, Lp, Hx, g):
-    """Add unary factors to block normal equations (serial: bit-reproducible).
-
-    Per factor ``e`` on a free pose of block ``b = bcol[e] ≥ 0`` (−1: a held pose, skipped):
-    ``H_bb += Jᵀ WΩ J`` (stored at ``Hx[Lp[b]]``, the diagonal block of the Cholesky pattern of
-    :class:`minegeo.slam.posegraph._BlockSystem`) and ``g_b += Jᵀ WΩ r``. ``J`` is (m, k, 6),
-    ``r`` (m, k), ``WO`` (m, k, k): the robust weight times the information matrix.
-    """
-    m, k = r.shape
-    A = np.empty((6, k))
-    for e in range(m):
-        b = bcol[e]
-        if b < 0:
-            continue
-        for a in range(6):
-            for c in range(k):
-                s = 0.0
-                for q in range(k):
-                    s += J[e, q, a] * WO[e, q, c]
-                A[a, c] = s
-        s0 = Lp[b]
-        for a in range(6):
-            ga = 0.0
-            for q in range(k):
-                ga += A[a, q] * r[e, q]
-            g[b * 6 + a] += ga
-            for c in range(6):
-                h = 0.0
-                for q in range(k):
-                    h += A[a, q] * J[e, q, c]
-                Hx[s0, a, c] += h

@@ -19,14 +19,17 @@ Factors
   ``r = Log(Z_ij⁻¹ T_i⁻¹ T_j)`` [Liang2024 Eq. 11]. The paper's ``T_i^j`` of [Liang2024 Eq. 10]
   is written as ``(T_j^W)⁻¹ T_i^W``, but only its inverse ``T_i⁻¹ T_j`` makes the residual of
   [Liang2024 Eq. 11] vanish at the truth: that is the measurement here. The residual and its
-  Jacobians are :func:`minegeo.slam._kernels.se3_edge_terms` (GTSAM's ``BetweenFactorPose3``).
+  Jacobians are :func:`minegeo.optim.factors.between_terms` (GTSAM's ``BetweenFactorPose3``).
 * Intersection position ``(i, z, C)``, ``z`` the intersection's invariant point observed in keyframe
   i (m, keyframe frame), ``C`` its position in the knowledge base (m, world frame):
   ``e = C − t_i − R_i z`` [Liang2024 Eq. 22] (:mod:`minegeo.semantic._kernels`). The paper also
   lists ``z`` among the variables [Liang2024 Eq. 23]; here it is a measurement, and its
   Jacobian ``−R_i`` [Liang2024 Eq. 28] serves only to propagate its covariance.
-* Pose prior ``(i, T_prior)``: ``r = Log(T_prior⁻¹ T_i)`` (GTSAM's ``PriorFactorPose3``), solved as a
-  between-edge from a held identity vertex.
+* Pose prior ``(i, T_prior)``: ``r = Log(T_prior⁻¹ T_i)`` (GTSAM's ``PriorFactorPose3``,
+  :class:`minegeo.optim.factors.PriorFactors`).
+
+The graph is solved by the one optimiser, :func:`minegeo.optim.lm.levenberg_marquardt` (block normal
+equations, damping, stopping rule and result check shared with :mod:`minegeo.slam.posegraph`).
 
 The cost is ``F = ½ Σ rᵀ Ω r + ½ Σ eᵀ Ω e``, the contract cost of ``slam_contract.md``, equal to
 GTSAM's ``NonlinearFactorGraph.error(values)`` for the same factors (the paper's objective
@@ -50,16 +53,18 @@ import numpy as np
 
 from minegeo.errors import DegenerateGeometryError, InputError
 from minegeo.kernels.lie import hat, se3_adjoint, se3_inverse, se3_right_jacobian_inv
-from minegeo.semantic import _kernels as KS
-from minegeo.slam import _kernels as K
-from minegeo.slam.posegraph import (
-    PoseGraphParams,
-    _BlockSystem,
-    _robust_cost,
-    _robust_weights,
-    accept_step,
-    check_result,
+from minegeo.optim import (
+    BetweenFactors,
+    FactorGroup,
+    FactorProblem,
+    PriorFactors,
+    Values,
+    between_terms,
+    levenberg_marquardt,
+    quadratic_cost,
 )
+from minegeo.semantic import _kernels as KS
+from minegeo.slam.posegraph import PoseGraphParams
 
 __all__ = [
     "FactorGraph", "FactorGraphResult", "PoseGraphParams", "descriptor_completeness",
@@ -135,8 +140,7 @@ def relative_terms(T_i, T_j, Z_ij):
         ``∂r/∂δ_i = −J_r⁻¹(r) Ad(T_j⁻¹ T_i)``, ``∂r/∂δ_j = J_r⁻¹(r)`` for ``T ← T Exp(δ)``.
     """
     poses = np.ascontiguousarray(np.stack([_pose(T_i, "T_i"), _pose(T_j, "T_j")]))
-    r, Ji, Jj = np.empty((1, 6)), np.empty((1, 6, 6)), np.empty((1, 6, 6))
-    K.se3_edge_terms(poses, np.array([[0, 1]], dtype=np.int64), _pose(Z_ij, "Z_ij")[None].copy(), r, Ji, Jj)
+    r, Ji, Jj = between_terms("SE3", poses, np.array([[0, 1]], dtype=np.int64), _pose(Z_ij, "Z_ij")[None].copy())
     return r[0], Ji[0], Jj[0]
 
 
@@ -419,15 +423,39 @@ class FactorGraphResult:
 
 @dataclass
 class _Arrays:
-    """The graph as contiguous arrays for the kernels; vertex ``n`` is the held identity that priors hang on."""
+    """The graph as contiguous arrays for the kernels."""
 
-    edges: np.ndarray        # (m, 2) int64: relative factors, then priors as (n, i)
+    edges: np.ndarray        # (m, 2) int64: relative factors
     Z: np.ndarray            # (m, 4, 4)
     info: np.ndarray         # (m, 6, 6), (φ, ρ) order
+    prior_kf: np.ndarray     # (p,) int64
+    prior_T: np.ndarray      # (p, 4, 4)
+    prior_info: np.ndarray   # (p, 6, 6)
     kf: np.ndarray           # (q,) int64: keyframe of each intersection factor
     z: np.ndarray            # (q, 3) keyframe frame
     C: np.ndarray            # (q, 3) world frame
     info_int: np.ndarray     # (q, 3, 3)
+
+
+class IntersectionFactors(FactorGroup):
+    """Intersection position factors ``e = C − t_i − R_i z`` [Liang2024 Eq. 22] as a unary factor
+    group of :mod:`minegeo.optim` (Jacobian ``[R hat(z), −R]``, [Liang2024 Eqs. 22, 26-27])."""
+
+    def __init__(self, kf, z, C, information):
+        self.variables = np.ascontiguousarray(kf, dtype=np.int64).reshape(-1, 1)
+        self.kf = np.ascontiguousarray(self.variables[:, 0])
+        self.z, self.C, self.information = z, C, information
+
+    def residuals(self, values: Values) -> np.ndarray:
+        e = np.empty((self.kf.shape[0], 3))
+        KS.intersection_residuals(values.poses, self.kf, self.z, self.C, e)
+        return e
+
+    def linearize(self, values: Values) -> tuple:
+        q = self.kf.shape[0]
+        e, J = np.empty((q, 3)), np.empty((q, 3, 6))
+        KS.intersection_terms(values.poses, self.kf, self.z, self.C, e, J)
+        return e, (J,)
 
 
 class FactorGraph:
@@ -554,31 +582,40 @@ class FactorGraph:
 
     # -- arrays, cost, gauge
     def _arrays(self) -> _Arrays:
-        n = self.n_keyframes
-        edges = [(i, j) for i, j, _, _ in self._rel] + [(n, i) for i, _, _ in self._prior]
-        Z = [f[2] for f in self._rel] + [f[1] for f in self._prior]
-        info = [f[3] for f in self._rel] + [f[2] for f in self._prior]
-        q = len(self._int)
+        q, p = len(self._int), len(self._prior)
         return _Arrays(
-            np.ascontiguousarray(np.asarray(edges, dtype=np.int64).reshape(-1, 2)),
-            np.ascontiguousarray(np.asarray(Z, dtype=np.float64).reshape(-1, 4, 4)),
-            np.ascontiguousarray(np.asarray(info, dtype=np.float64).reshape(-1, 6, 6)),
+            np.ascontiguousarray(np.asarray([(i, j) for i, j, _, _ in self._rel], dtype=np.int64).reshape(-1, 2)),
+            np.ascontiguousarray(np.asarray([f[2] for f in self._rel], dtype=np.float64).reshape(-1, 4, 4)),
+            np.ascontiguousarray(np.asarray([f[3] for f in self._rel], dtype=np.float64).reshape(-1, 6, 6)),
+            np.array([f[0] for f in self._prior], dtype=np.int64),
+            np.ascontiguousarray(np.asarray([f[1] for f in self._prior], dtype=np.float64).reshape(p, 4, 4)),
+            np.ascontiguousarray(np.asarray([f[2] for f in self._prior], dtype=np.float64).reshape(p, 6, 6)),
             np.array([f[0] for f in self._int], dtype=np.int64),
             np.ascontiguousarray(np.asarray([f[1] for f in self._int], dtype=np.float64).reshape(q, 3)),
             np.ascontiguousarray(np.asarray([f[2] for f in self._int], dtype=np.float64).reshape(q, 3)),
             np.ascontiguousarray(np.asarray([f[3] for f in self._int], dtype=np.float64).reshape(q, 3, 3)))
 
+    def _groups(self) -> list:
+        """The factors as groups of :mod:`minegeo.optim` over the keyframe poses."""
+        a = self._arrays()
+        return [BetweenFactors(a.edges, a.Z, a.info), PriorFactors(a.prior_kf, a.prior_T, a.prior_info),
+                IntersectionFactors(a.kf, a.z, a.C, a.info_int)]
+
+    def _problem(self, held, params) -> FactorProblem:
+        return FactorProblem(self.n_keyframes, 6, self._groups(), held, params,
+                             labels=lambda v: (f"keyframe {v}", int(v)), hint=" (a keyframe no factor constrains?)")
+
     def cost(self, poses=None) -> float:
         """``F = ½ Σ rᵀΩr + ½ Σ eᵀΩe`` at ``poses`` (default: the current estimate); GTSAM's ``graph.error``."""
-        P = self._with_anchor(self.poses if poses is None else np.asarray(poses, dtype=np.float64))
-        a = self._arrays()
-        r, e = _residuals(P, a)
-        return _quad(r, a.info) + _quad(e, a.info_int)
-
-    def _with_anchor(self, poses: np.ndarray) -> np.ndarray:
-        if poses.shape != (self.n_keyframes, 4, 4) or not np.all(np.isfinite(poses)):
-            raise InputError(f"poses must be finite with shape {(self.n_keyframes, 4, 4)}, got {poses.shape}")
-        return np.ascontiguousarray(np.concatenate([poses, np.eye(4)[None]]))
+        P = self.poses if poses is None else np.asarray(poses, dtype=np.float64)
+        if P.shape != (self.n_keyframes, 4, 4) or not np.all(np.isfinite(P)):
+            raise InputError(f"poses must be finite with shape {(self.n_keyframes, 4, 4)}, got {P.shape}")
+        V = Values(np.ascontiguousarray(P))
+        total = 0.0
+        for g in self._groups():
+            if g.variables.shape[0]:
+                total += quadratic_cost(g.residuals(V), g.information)
+        return total
 
     def _components(self) -> tuple[int, np.ndarray]:
         """Connected components of the keyframes under the relative factors (labels)."""
@@ -630,7 +667,7 @@ class FactorGraph:
     # -- solving
     def optimize(self, params: PoseGraphParams | None = None, *, warm_start: bool = True,
                  gauge: str = "hold_first") -> FactorGraphResult:
-        """Minimise ``F`` by Levenberg–Marquardt on SE(3) (the solver of :mod:`minegeo.slam.posegraph`).
+        """Minimise ``F`` by Levenberg–Marquardt on SE(3) (:func:`minegeo.optim.lm.levenberg_marquardt`).
 
         Parameters
         ----------
@@ -653,93 +690,10 @@ class FactorGraph:
         if self.n_keyframes == 0 or not (self._rel or self._int or self._prior):
             raise InputError("the factor graph has no keyframes or no factors: nothing to optimise")
         held = self.gauge(gauge)
-        start = np.stack(self._estimate if warm_start else self._initial)
-        res = _levenberg_marquardt(self._with_anchor(start), self._arrays(), held, params)
-        poses, status, reason, c0, c1, it, hist = res
-        if status != "failed":
+        start = np.ascontiguousarray(np.stack(self._estimate if warm_start else self._initial))
+        out = levenberg_marquardt(self._problem(held, params), Values(start), params)
+        poses = out.values.poses.copy()
+        if out.status != "failed":
             self._estimate = [p.copy() for p in poses]
-        return FactorGraphResult(poses, status, reason, c0, c1, it, hist, held, params,
-                                 {"total": time.perf_counter() - t0})
-
-
-def _quad(r: np.ndarray, info: np.ndarray) -> float:
-    return 0.5 * float(np.einsum("ei,eij,ej->", r, info, r))
-
-
-def _residuals(P: np.ndarray, a: _Arrays):
-    """Relative/prior residuals (m, 6) [Liang2024 Eq. 11] and intersection residuals (q, 3) [Liang2024 Eq. 22]."""
-    r = np.empty((a.edges.shape[0], 6))
-    K.se3_residuals(P, a.edges, a.Z, r)
-    e = np.empty((a.kf.shape[0], 3))
-    KS.intersection_residuals(P, a.kf, a.z, a.C, e)
-    return r, e
-
-
-def _robust(r, e, a: _Arrays, params: PoseGraphParams) -> float:
-    return _robust_cost(r, a.info, params) + _robust_cost(e, a.info_int, params)
-
-
-def _levenberg_marquardt(P: np.ndarray, a: _Arrays, held: tuple, params: PoseGraphParams):
-    """LM over the free keyframes (row ``n`` of ``P`` is the held prior anchor).
-
-    Each iteration: the relative and prior factors' blocks by
-    :meth:`minegeo.slam.posegraph._BlockSystem.assemble`, the intersection factors' diagonal blocks
-    ``JᵀWΩJ`` and gradient ``JᵀWΩe`` [Liang2024 Eqs. 22, 26-27] by
-    :func:`minegeo.semantic._kernels.accumulate_unary` (unary factors add no fill-in, so the
-    Cholesky pattern of the pose graph serves), then the damping trials of ``optimize_pose_graph``.
-
-    Returns ``(poses, status, reason, cost_initial, cost_final, iterations, history)``.
-    """
-    n = P.shape[0] - 1
-    free = np.ones(n + 1, dtype=bool)
-    free[list(held) + [n]] = False
-    blocks = _BlockSystem("SE3", n + 1, a.edges, free)
-    bcol_int = np.ascontiguousarray(np.where(blocks.col[a.kf] >= 0, blocks.col[a.kf] // 6, -1))
-    P0 = P
-    r, e = _residuals(P, a)
-    cost0 = _quad(r, a.info) + _quad(e, a.info_int)
-    if not np.isfinite(cost0):
-        return P[:n], "failed", "the initial cost is not finite", cost0, cost0, 0, []
-    cost, lam, history = _robust(r, e, a, params), params.lambda_init, []
-    status, reason, it = "max_iterations", f"stopped after {params.max_iterations} iterations", 0
-    q = a.kf.shape[0]
-    for it in range(1, params.max_iterations + 1):
-        blocks.assemble(P, a.edges, a.Z, a.info, _robust_weights(r, a.info, params))
-        ei, Ji = np.empty((q, 3)), np.empty((q, 3, 6))
-        KS.intersection_terms(P, a.kf, a.z, a.C, ei, Ji)
-        WO = np.ascontiguousarray(a.info_int * _robust_weights(e, a.info_int, params)[:, None, None])
-        KS.accumulate_unary(ei, Ji, WO, bcol_int, blocks.Lp, blocks.Hx, blocks.g)
-        accepted, factorised = False, False
-        while lam < 1e12:
-            delta = blocks.solve(lam, params.damping == "diagonal")
-            if delta is None:  # H + λD not positive definite: more damping
-                history.append({"iteration": it, "cost": cost, "lambda": lam, "accepted": False, "step": 0.0})
-                lam *= 10.0
-                continue
-            factorised = True
-            trial = blocks.retract(P, delta)
-            r_t, e_t = _residuals(trial, a)
-            cost_t = _robust(r_t, e_t, a, params)
-            step = float(np.abs(delta).max()) if delta.size else 0.0
-            history.append({"iteration": it, "cost": cost_t, "lambda": lam, "accepted": False, "step": step})
-            if accept_step(cost_t, cost):  # finite, not negative, not above the current cost
-                history[-1]["accepted"] = True
-                rel = (cost - cost_t) / max(cost, 1e-300)
-                P, r, e, cost, accepted = trial, r_t, e_t, cost_t, True
-                lam = max(lam / 10.0, 1e-12)
-                break
-            lam *= 10.0
-        if not factorised:
-            return P[:n], "failed", ("the damped normal equations are not positive definite at any damping "
-                                     "(a keyframe no factor constrains?)"), cost0, cost0, it, history
-        if not accepted:
-            status, reason = "converged", "no step lowers the cost (damping exhausted): at a minimum"
-            break
-        if rel < params.relative_cost_tolerance or step < params.step_tolerance:
-            status, reason = "converged", f"relative cost decrease {rel:.2e}, largest step {step:.2e}"
-            break
-    cost_final = _quad(r, a.info) + _quad(e, a.info_int)
-    problem = check_result(P0[:n], P[:n], held, cost_final, cost0)  # gates "converged"
-    if problem:
-        return P0[:n], "failed", f"the result failed its check: {problem}", cost0, cost0, it, history
-    return P[:n].copy(), status, reason, cost0, cost_final, it, history
+        return FactorGraphResult(poses, out.status, out.reason, out.cost_initial, out.cost_final, out.iterations,
+                                 out.history, held, params, {"total": time.perf_counter() - t0})

@@ -13,16 +13,14 @@ def _warmup() -> None:
     """Compile the pose-graph kernels (SE(3) and SE(2) edge terms and residuals) on tiny graphs."""
     import numpy as np
 
-    from minegeo.slam import _kernels as K
+    from minegeo.optim import between_residuals, between_terms
 
-    for d, terms, res in ((4, K.se3_edge_terms, K.se3_residuals), (3, K.se2_edge_terms, K.se2_residuals)):
-        n = 6 if d == 4 else 3
+    for kind, d in (("SE3", 4), ("SE2", 3)):
         poses = np.tile(np.eye(d), (2, 1, 1))
         edges = np.array([[0, 1]], dtype=np.int64)
         Z = np.eye(d)[None].copy()
-        r, Ji, Jj = np.empty((1, n)), np.empty((1, n, n)), np.empty((1, n, n))
-        terms(poses, edges, Z, r, Ji, Jj)
-        res(poses, edges, Z, r)
+        between_terms(kind, poses, edges, Z)
+        between_residuals(kind, poses, edges, Z)
     _warmup_solver()
     _warmup_planes_and_map()
 
