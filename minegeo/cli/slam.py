@@ -14,7 +14,7 @@ import stat
 import sys
 from pathlib import Path
 
-from minegeo.cli._argtypes import float_in_range, nonnegative_int, positive_float
+from minegeo.cli._argtypes import float_in_range, int_in_range, nonnegative_int, positive_float
 
 HELP = "LiDAR SLAM from a folder of frames: GICP odometry, loop closure, pose graph; trajectory + map (Ren et al. 2019)"
 
@@ -45,6 +45,19 @@ def add_arguments(parser) -> None:
                         "(default: points inside the roadway away from the fitted floor, walls and roof, e.g. "
                         "pedestrians, are removed section by section along the keyframe track, Ren et al. 2019 Sec. 3.5)")
     parser.add_argument("--map-voxel", type=positive_float, default=0.1, help="map voxel (m, default 0.1)")
+    parser.add_argument("--no-deskew", action="store_true", help="do not deskew frames whose points carry times "
+                        "(default: each such frame is moved to its frame time by the constant-velocity motion of the "
+                        "odometry before registration; frames without times are never deskewed)")
+    parser.add_argument("--deskew-iterations", type=int_in_range(0, 1), default=None,
+                        help="1 (default): after registering a frame, deskew it again with its own estimated motion "
+                        "and register once more; 0: one pass")
+    parser.add_argument("--max-speed", type=positive_float, default=30.0,
+                        help="plausible motion: a registration faster than this is rejected (m/s, default 30)")
+    parser.add_argument("--max-angular-rate", type=positive_float, default=180.0,
+                        help="plausible motion: a registration turning faster is rejected (deg/s, default 180)")
+    parser.add_argument("--max-acceleration", type=positive_float, default=20.0,
+                        help="plausible motion: a registration whose velocity changes faster than this against the "
+                        "previous motion is rejected (m/s^2, default 20)")
     parser.add_argument("--seed", type=nonnegative_int, default=0,
                         help="recorded seed (the run draws no random numbers)")
 
@@ -60,6 +73,9 @@ def _check_options(args) -> None:
     """
     from minegeo.errors import InputError
 
+    if getattr(args, "no_deskew", False) and getattr(args, "deskew_iterations", None) is not None:
+        raise InputError(f"--deskew-iterations {args.deskew_iterations} contradicts --no-deskew (no deskewing, no "
+                         "deskewing passes): give one of them")
     if args.loop_radius >= args.loop_gap:
         raise InputError(f"--loop-radius {args.loop_radius:g} m must be less than --loop-gap {args.loop_gap:g} m "
                          "(otherwise any stretch of straight drift one gap long counts as a loop)")
@@ -103,21 +119,32 @@ def _params(args):
 
     odo = OdometryParams(voxel_size_m=args.voxel, max_correspondence_distance_m=args.max_distance,
                          keyframe_distance_m=args.keyframe_distance, keyframe_angle_deg=args.keyframe_angle,
-                         keyframe_interval_s=args.keyframe_interval)
+                         keyframe_interval_s=args.keyframe_interval, deskew=not getattr(args, "no_deskew", False),
+                         deskew_iterations=1 if getattr(args, "deskew_iterations", None) is None
+                         else args.deskew_iterations,
+                         max_speed_m_s=getattr(args, "max_speed", 30.0),
+                         max_angular_rate_deg_s=getattr(args, "max_angular_rate", 180.0),
+                         max_acceleration_m_s2=getattr(args, "max_acceleration", 20.0))
     return SlamParams(odometry=odo, loops=LoopParams(min_path_gap_m=args.loop_gap, max_distance_m=args.loop_radius),
                       map_voxel_m=args.map_voxel, use_planes=not getattr(args, "no_planes", False),
                       remove_noise=not getattr(args, "no_noise_removal", False))
 
 
-def _frames(files, skipped: list, bar, min_points: int):
-    """Yield (time, points) of the readable frames; unreadable ones and frames with fewer than
-    ``min_points`` points are recorded and skipped (the contract)."""
+def _frames(files, skipped: list, bar, min_points: int, with_times: bool = False):
+    """Yield (time, points) of the readable frames, or with ``with_times`` (time, points, per-point
+    offsets in s after the frame time, or None when the file holds no times); unreadable ones and
+    frames with fewer than ``min_points`` points are recorded and skipped (the contract)."""
     from minegeo.errors import MinegeoError
     from minegeo.io.frames import read_frame
 
     for f in files:
+        tau = None
         try:
-            pts = read_frame(f.path)
+            if with_times:
+                tp = read_frame(f.path, with_times=True, time_s=f.time_s)
+                pts, tau = tp.xyz, tp.t_offset_s
+            else:
+                pts = read_frame(f.path)
         except (MinegeoError, OSError) as exc:
             skipped.append({"frame": f.path.name, "reason": str(exc)})
             log.warning("frame %s skipped: %s", f.path.name, exc)
@@ -128,7 +155,7 @@ def _frames(files, skipped: list, bar, min_points: int):
             skipped.append({"frame": f.path.name, "reason": f"{pts.shape[0]} points, fewer than {min_points}"})
             log.warning("frame %s skipped: %d points", f.path.name, pts.shape[0])
             continue
-        yield f.time_s, pts
+        yield (f.time_s, pts) if tau is None else (f.time_s, pts, tau)
 
 
 def _all_skipped(frames_dir, skipped: list[dict]) -> str:
@@ -159,6 +186,26 @@ def _write_outputs(stage: Path, res, files_used: list[str]) -> None:
     atomic_write_text(stage / "frames_used.txt", "\n".join(files_used) + "\n")
 
 
+def _deskew_and_runaway(odo) -> dict:
+    """result.json: whether deskewing ran and the twist each frame was deskewed with, and the
+    stretches held by the constant-velocity motion prior (no silent runaway)."""
+    held = odo.held_stretches()
+    d = odo.deskewed
+    s = odo.summary()
+    return {
+        "deskew": {"ran": bool(d.any()), "frames_deskewed": int(d.sum()), "frames": int(d.size),
+                   "enabled": bool(odo.params.deskew), "iterations": int(odo.params.deskew_iterations),
+                   "convention": "q = exp(tau xi) p: xi = (omega rad/s, v m/s), sensor frame, constant over the "
+                                 "sweep; tau = point time after the frame time (s); poses at the frame time",
+                   "per_frame": [{"frame": k, "time_s": float(odo.times_s[k]),
+                                  "twist_rad_s_m_s": [float(x) for x in odo.deskew_twist[k]]}
+                                 for k in range(d.size) if d[k]]},
+        "motion_prior_stretches": held,
+        "motion_prior_held_s": s["held_s_total"],
+        "min_constraint_ratio": s["min_constraint_ratio"],
+    }
+
+
 def run(args) -> int:
     from tqdm import tqdm
 
@@ -186,7 +233,8 @@ def run(args) -> int:
         reg_log.setLevel(logging.ERROR)
         try:
             with bar, timer("slam"):
-                res = run_slam(_frames(files, skipped, bar, params.odometry.min_points), params)
+                res = run_slam(_frames(files, skipped, bar, params.odometry.min_points, params.odometry.deskew),
+                               params)
         except InputError:
             if files and len(skipped) == len(files):  # every frame skipped: say why, not "the sequence is empty"
                 raise InputError(_all_skipped(args.frames, skipped)) from None
@@ -208,7 +256,8 @@ def run(args) -> int:
                        "frames_not_registered": [{"time_s": float(res.times_s[k]), "reason": r}
                                                  for k, r in enumerate(res.odometry.frame_reason) if r],
                        "low_observability_frames": [{"time_s": float(res.times_s[k]), "direction": w}
-                                                    for k, w in enumerate(res.odometry.frame_weak) if w]},
+                                                    for k, w in enumerate(res.odometry.frame_weak) if w],
+                       **_deskew_and_runaway(res.odometry)},
             "outputs": {n: str(out / n) for n in ("trajectory.tum", "keyframes.tum", "graph.g2o", "loops.csv", "map.ply",
                                                   "result.json", "report.html")},
             "module_timings_s": res.timings_s,
@@ -222,5 +271,10 @@ def run(args) -> int:
         print(f"{s['frames']} frames ({len(skipped)} skipped, {s['failed_frames']} not registered), {s['keyframes']} "
               f"keyframes, {s['loops_accepted']} loop(s) of {s['loop_candidates']} candidates, path "
               f"{s['path_length_m']:.1f} m, map {s['map_points']:,} points")
+        held = s["motion_prior_stretches"]
+        if held:
+            where = ", ".join(f"frames {h['first_frame']}-{h['last_frame']} ({h['first_time_s']:.2f}-"
+                              f"{h['last_time_s']:.2f} s)" for h in held[:5]) + (" ..." if len(held) > 5 else "")
+            print(f"held by the motion prior alone: {len(held)} stretch(es), {s['motion_prior_held_s']:.2f} s: {where}")
         print(f"written: {out}/(trajectory.tum, keyframes.tum, graph.g2o, loops.csv, map.ply, result.json, report.html)")
     return 0

@@ -218,10 +218,39 @@ def slam_report_html(summary: dict, png: bytes | None) -> str:
     skipped = table(["frame", "reason"], [[s["frame"], s["reason"]] for s in r["skipped_frames"]]) \
         if r["skipped_frames"] else "<p>none</p>"
     sections = [("Result", overview), ("Map and trajectory", img_png(png, "plan view of the map and trajectory")),
+                ("Motion distortion and implausible motion", _motion_html(r)),
                 ("Time per module (cf. Ren et al. 2019, Table 2)", timing), ("Skipped frames", skipped),
                 ("Parameters", params_table(summary["parameters"])), ("Timings", timings_html(summary.get("timings_s")))]
+    held = r.get("motion_prior_stretches") or []
+    note = (f"; trajectory held by the motion prior alone in {len(held)} stretch(es), "
+            f"{r.get('motion_prior_held_s', 0.0):.2f} s" if held else "")
     return page("minegeo slam", sections, status="ok",
-                status_text=f"{r['frames']} frames, {r['keyframes']} keyframes, {r['loops_accepted']} loop(s)")
+                status_text=f"{r['frames']} frames, {r['keyframes']} keyframes, {r['loops_accepted']} loop(s){note}")
+
+
+def _motion_html(r: dict) -> str:
+    """Deskewing (whether it ran, on how many frames) and the stretches held by the motion prior."""
+    d = r.get("deskew") or {}
+    if d.get("ran"):
+        tw = np.array([f["twist_rad_s_m_s"] for f in d.get("per_frame", [])]).reshape(-1, 6)
+        speed = np.linalg.norm(tw[:, 3:], axis=1) if tw.size else np.zeros(1)
+        rate = np.degrees(np.linalg.norm(tw[:, :3], axis=1)) if tw.size else np.zeros(1)
+        text = (f"<p>Deskewed {d['frames_deskewed']} of {d['frames']} frames to their frame time "
+                f"({d.get('iterations', 0) + 1} pass(es); {esc(d.get('convention', ''))}). Twist used: speed up to "
+                f"{speed.max():.2f} m/s, angular rate up to {rate.max():.1f} deg/s (per frame in result.json).</p>")
+    elif d.get("enabled"):
+        text = "<p>Not deskewed: the frames carry no per-point times.</p>"
+    else:
+        text = "<p>Not deskewed (--no-deskew).</p>"
+    held = r.get("motion_prior_stretches") or []
+    if not held:
+        return text + "<p>Every frame after the first was registered: no stretch held by the motion prior alone.</p>"
+    rows = [[f"{h['first_frame']}–{h['last_frame']}", h["frames"], f"{h['first_time_s']:.3f}–{h['last_time_s']:.3f}",
+             f"{h['held_s']:.3f}", "; ".join(h["reasons"])] for h in held]
+    return (text + f"<p><b>Held by the constant-velocity motion prior alone</b> (registration failed or rejected as "
+            f"implausible): {len(held)} stretch(es), {r.get('motion_prior_held_s', 0.0):.3f} s in total.</p>"
+            + table(["frames", "count", "times (s)", "held for (s, since the last registered frame)", "reason"],
+                    rows, numeric=(1, 3)))
 
 
 def write_slam_report(path, summary: dict, res) -> None:

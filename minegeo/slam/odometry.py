@@ -26,6 +26,16 @@
   direction (e.g. along a straight smooth drift), or one still creeping along it when the
   iterations run out, is kept and flagged as low observability: its information matrix carries the
   weakness into the pose graph.
+* Frames whose points carry times (``(time_s, points, offsets_s)``) are deskewed to their frame
+  time before registration (:mod:`minegeo.slam.deskew`, ``q = exp(τ ξ) p``) by the body twist of the
+  last registered motion, then once more by the twist of their own registered motion
+  (``deskew_iterations``); the pose of a frame is the sensor pose at its frame time.
+* No silent runaway: a registration whose motion since the last registered frame exceeds
+  ``max_speed_m_s`` or ``max_angular_rate_deg_s``, whose velocity changes against the previous
+  motion by more than ``max_acceleration_m_s2``, or whose normalised constraint ratio is below
+  ``min_constraint_ratio`` (degenerate geometry) is rejected: the frame is held by the
+  constant-velocity prior, flagged (:meth:`OdometryResult.held_stretches`), and the next frame
+  registers to the last registered one.
 * The sensor translation is checked on its own (:mod:`minegeo.slam.observability`): when the
   rotation-marginalised translation information has ``λ_min / λ_max`` below
   ``translation_observability_ratio`` and the surface patches of both frames (ring lines left out)
@@ -64,6 +74,7 @@ from minegeo.io._limits import MAX_ABS_TIME
 from minegeo.kernels.lie import se3_adjoint, se3_exp, se3_log
 from minegeo.registration import GICPParams, build_target_index, register_gicp
 from minegeo.registration.gicp import gicp_covariances_on_tree
+from minegeo.slam.deskew import deskew_points, twist_from_motion
 from minegeo.slam.observability import keep_prior_along, surface_translation_ratio, translation_observability
 
 __all__ = ["OdometryParams", "PreparedFrame", "OdometryResult", "prepare_frame", "register_frames", "run_odometry"]
@@ -97,18 +108,40 @@ class OdometryParams:
     #: the target's covariances follow the ring pattern, which biases frame-to-frame GICP towards no
     #: motion and no tilt change with sparse rings)
     frame_target: str = "frame"
+    #: deskew frames whose points carry per-point times (:mod:`minegeo.slam.deskew`), from the
+    #: constant-velocity twist of the odometry's last motion; frames without times are unaffected
+    deskew: bool = True
+    #: after a frame's registration, deskew it again with the twist of its own newly estimated motion
+    #: (from the previous registered frame to it) and register once more (0: no second pass)
+    deskew_iterations: int = 1
+    #: plausible-motion bounds (no silent runaway): a registration whose motion since the last
+    #: registered frame exceeds a speed (m/s) or an angular rate (deg/s), or whose velocity differs
+    #: from the previous motion's by more than an acceleration (m/s², between the middles of the two
+    #: intervals), is rejected and the frame held by the constant-velocity prior
+    max_speed_m_s: float = 30.0
+    max_angular_rate_deg_s: float = 180.0
+    max_acceleration_m_s2: float = 20.0
+    #: degenerate geometry: a registration whose normalised point-to-plane constraint matrix
+    #: (:func:`minegeo.registration.constraint_analysis`, GICP's ``degeneracy_ratio``) has
+    #: ``λ_min / λ_max`` below this is rejected (dimensionless; GICP flags below 1e-2 as weak)
+    min_constraint_ratio: float = 1e-4
 
     def __post_init__(self):
         if self.frame_target not in ("frame", "submap"):
             raise InputError(f"frame_target must be 'frame' or 'submap', got {self.frame_target!r}")
         for name in ("voxel_size_m", "max_correspondence_distance_m", "keyframe_distance_m", "keyframe_angle_deg",
                      "keyframe_interval_s", "sigma_floor_m", "coarse_gate_factor", "translation_observability_ratio",
-                     "surface_observability_ratio"):
+                     "surface_observability_ratio", "max_speed_m_s", "max_angular_rate_deg_s",
+                     "max_acceleration_m_s2"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise InputError(f"{name} must be a finite number > 0, got {v!r}")
         if not 0 <= self.min_fitness <= 1:
             raise InputError(f"min_fitness must be in [0, 1], got {self.min_fitness!r}")
+        if not 0 <= self.min_constraint_ratio < 1:
+            raise InputError(f"min_constraint_ratio must be in [0, 1), got {self.min_constraint_ratio!r}")
+        if self.deskew_iterations not in (0, 1):
+            raise InputError(f"deskew_iterations must be 0 or 1, got {self.deskew_iterations!r}")
 
     def gicp(self) -> GICPParams:
         return GICPParams(self.max_correspondence_distance_m, max_iterations=self.gicp_max_iterations,
@@ -138,6 +171,7 @@ class Registration:
     information: np.ndarray
     weak: str = ""  # a weakly observed pose direction (a straight smooth drift): kept, flagged
     converged: bool = True
+    constraint_ratio: float = 1.0  # GICP's normalised constraint λ_min / λ_max (degenerate geometry near 0)
 
 
 @dataclass
@@ -165,6 +199,14 @@ class OdometryResult:
         Their information matrices, right perturbation, (ω, ρ) order.
     keyframe_clouds : list of (m, 3) arrays
         Downsampled keyframe points in the keyframe's sensor frame (for loops and the map).
+    deskewed : (n,) bool
+        True for the frames deskewed to their frame time (points with times, ``params.deskew``).
+    deskew_twist : (n, 6) float64
+        The body twist ``(ω, v)`` (rad/s, m/s, sensor frame) each deskewed frame was finally
+        deskewed with (:mod:`minegeo.slam.deskew`); zeros for frames not deskewed.
+    constraint_ratio : (n,) float64
+        GICP's normalised constraint ratio of each frame's registration (1 for the first frame; NaN
+        when no registration ran).
     keyframe_extra_edges : list of (i, j, (4, 4), (6, 6))
         Keyframe edges ``(i, j, T_i⁻¹ T_j, information)`` between non-consecutive keyframes (numbers
         into ``keyframes``): with ``frame_target="submap"``, a keyframe registered to the local map of
@@ -187,11 +229,48 @@ class OdometryResult:
     params: OdometryParams = field(default_factory=OdometryParams)
     timings_s: dict = field(default_factory=dict)
     keyframe_extra_edges: list = field(default_factory=list)
+    deskewed: np.ndarray | None = None
+    deskew_twist: np.ndarray | None = None
+    constraint_ratio: np.ndarray | None = None
+
+    def held_stretches(self) -> list[dict]:
+        """The stretches of consecutive frames placed by the constant-velocity motion prior alone
+        (not registered: failed or rejected as implausible), in time order.
+
+        Each is ``{"first_frame", "last_frame", "frames", "first_time_s", "last_time_s",
+        "from_time_s", "held_s", "reasons"}``: frame indices (0-based, in the frames used), their
+        times (s), ``from_time_s`` the time of the last registered frame before the stretch (the
+        first frame when the stretch starts the run) and ``held_s = last_time_s − from_time_s``, how
+        long the trajectory was carried by the motion prior alone; ``reasons`` the distinct reasons.
+        """
+        out = []
+        ok = np.asarray(self.frame_ok, dtype=bool)
+        k, n = 1, ok.size  # frame 0 is the origin of the map frame, never held
+        while k < n:
+            if ok[k]:
+                k += 1
+                continue
+            j = k
+            while j + 1 < n and not ok[j + 1]:
+                j += 1
+            t = self.times_s
+            reasons = list(dict.fromkeys(self.frame_reason[i] for i in range(k, j + 1)))
+            out.append({"first_frame": int(k), "last_frame": int(j), "frames": int(j - k + 1),
+                        "first_time_s": float(t[k]), "last_time_s": float(t[j]), "from_time_s": float(t[k - 1]),
+                        "held_s": float(t[j] - t[k - 1]), "reasons": reasons})
+            k = j + 1
+        return out
 
     def summary(self) -> dict:
+        cr = self.constraint_ratio
+        finite = cr[np.isfinite(cr)] if cr is not None else np.zeros(0)
+        held = self.held_stretches()
         return {"frames": int(self.times_s.size), "failed_frames": int((~self.frame_ok).sum()),
                 "weak_frames": sum(bool(w) for w in self.frame_weak),
-                "keyframes": int(self.keyframes.size), "params": asdict(self.params)}
+                "keyframes": int(self.keyframes.size), "params": asdict(self.params),
+                "deskewed_frames": int(self.deskewed.sum()) if self.deskewed is not None else 0,
+                "held_stretches": held, "held_s_total": float(sum(h["held_s"] for h in held)),
+                "min_constraint_ratio": float(finite.min()) if finite.size else None}
 
 
 def prepare_frame(points: np.ndarray, time_s: float, params: OdometryParams) -> PreparedFrame:
@@ -207,12 +286,30 @@ def prepare_frame(points: np.ndarray, time_s: float, params: OdometryParams) -> 
     return PreparedFrame(float(time_s), P, C, index, surface_translation_ratio(P, N, ev, status))
 
 
-def _prepared_frames(frames: Iterable[tuple[float, np.ndarray]], params: OdometryParams):
-    """``(time_s, PreparedFrame, seconds spent preparing)`` of every frame in order.
+def _frame_item(item) -> tuple[float, np.ndarray, np.ndarray | None]:
+    """``(time_s, points, per-point offsets or None)`` of one input frame: ``(time_s, points)`` or
+    ``(time_s, points, offsets_s)`` (offsets in s after the frame time, one per point)."""
+    if len(item) == 2:
+        return item[0], item[1], None
+    t, pts, tau = item
+    if tau is not None:
+        tau = np.asarray(tau, dtype=np.float64).reshape(-1)
+        n = np.asarray(pts).shape[0]
+        if tau.shape[0] != n:
+            raise InputError(f"frame at t = {t!r} s: {tau.shape[0]} point times for {n} points")
+    return t, pts, tau
 
-    With two or more Numba threads the next frame is read and prepared in a worker thread (one
-    Numba thread there) while the caller registers the current one: the kernels release the GIL,
-    so the two run on two cores without a barrier per kernel. The frames are the same either way.
+
+def _prepared_frames(frames: Iterable, params: OdometryParams):
+    """``(time_s, PreparedFrame or None, seconds spent preparing, (points, offsets) or None)`` of
+    every frame in order.
+
+    A frame to be deskewed (per-point offsets and ``params.deskew``) is yielded raw, ``(points,
+    offsets)`` with no PreparedFrame: its deskewing needs the motion of the registration before it.
+    Every other frame is prepared here. With two or more Numba threads the next frame is read and
+    prepared in a worker thread (one Numba thread there) while the caller registers the current one:
+    the kernels release the GIL, so the two run on two cores without a barrier per kernel. The
+    frames are the same either way.
     """
     it = iter(frames)
 
@@ -220,9 +317,12 @@ def _prepared_frames(frames: Iterable[tuple[float, np.ndarray]], params: Odometr
         item = next(it, None)
         if item is None:
             return None
+        t, pts, tau = _frame_item(item)
+        if tau is not None and params.deskew:
+            return t, None, 0.0, (np.asarray(pts, dtype=np.float64), tau)
         t0 = time.perf_counter()
-        cur = prepare_frame(item[1], item[0], params)
-        return item[0], cur, time.perf_counter() - t0
+        cur = prepare_frame(pts, t, params)
+        return t, cur, time.perf_counter() - t0, None
 
     if numba.get_num_threads() < 2:
         while (r := job()) is not None:
@@ -272,7 +372,7 @@ def register_frames(source: PreparedFrame, target: PreparedFrame, T_init: np.nda
     A = se3_adjoint(np.ascontiguousarray(T))
     info = A.T @ res.information_6x6 @ A / sigma**2
     return Registration(T, not reason, reason, float(res.fitness), float(res.inlier_rmse_m),
-                        0.5 * (info + info.T), weak, bool(res.converged))
+                        0.5 * (info + info.T), weak, bool(res.converged), float(res.degeneracy_ratio))
 
 
 def _register_with_retries(cur: PreparedFrame, prev: PreparedFrame, guess: np.ndarray,
@@ -390,14 +490,55 @@ def _check_time(k: int, t, times: list) -> None:
         raise InputError(f"frame {k}: time {tf!r} s is not after the previous frame's {times[-1]!r} s")
 
 
-def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryParams | None = None,
-                 progress=None) -> OdometryResult:
-    """GICP odometry over a sequence of frames.
+def _scaled_motion(velocity: np.ndarray, dt: float, velocity_dt: float) -> np.ndarray:
+    """The constant-velocity motion over ``dt``: ``Exp((Δt/Δt_v) Log(ΔT_v))`` (identity without a
+    previous motion)."""
+    if not velocity_dt > 0:
+        return np.eye(4)
+    return project(se3_exp(np.ascontiguousarray((dt / velocity_dt) * se3_log(np.ascontiguousarray(velocity)))))
+
+
+def _implausible(reg: Registration, motion: np.ndarray, dt: float, v_prev_w: np.ndarray | None, velocity_dt: float,
+                 R_from: np.ndarray, params: OdometryParams) -> str:
+    """Why a registration is not a plausible motion ("" when it is): the motion ``motion`` (the pose
+    in the sensor frame of the last registered frame, ``dt`` s earlier, whose world rotation is
+    ``R_from``) against the speed, angular rate and acceleration bounds, and the registration's
+    constraint ratio against ``min_constraint_ratio`` (degenerate geometry).
+
+    speed ``|Δt| / dt``; angular rate ``arccos((tr ΔR − 1)/2) / dt``; acceleration
+    ``|v − v_prev| / ((dt + dt_prev)/2)`` with the world velocities ``v = R_from Δt / dt`` and
+    ``v_prev`` of the previous motion (not checked before there is one)."""
+    if reg.constraint_ratio < params.min_constraint_ratio:
+        return (f"degenerate geometry: constraint ratio {reg.constraint_ratio:.2e} below "
+                f"{params.min_constraint_ratio:.0e} (the registration does not fix the pose)")
+    speed = float(np.linalg.norm(motion[:3, 3])) / dt
+    if speed > params.max_speed_m_s:
+        return f"implausible motion: speed {speed:.1f} m/s above {params.max_speed_m_s:g} m/s"
+    angle = math.degrees(math.acos(min(1.0, max(-1.0, (np.trace(motion[:3, :3]) - 1.0) / 2.0))))
+    if angle / dt > params.max_angular_rate_deg_s:
+        return (f"implausible motion: angular rate {angle / dt:.0f} deg/s above "
+                f"{params.max_angular_rate_deg_s:g} deg/s")
+    if v_prev_w is not None and velocity_dt > 0:
+        v = R_from @ motion[:3, 3] / dt
+        acc = float(np.linalg.norm(v - v_prev_w)) / (0.5 * (dt + velocity_dt))
+        if acc > params.max_acceleration_m_s2:
+            return (f"implausible motion: acceleration {acc:.1f} m/s² above {params.max_acceleration_m_s2:g} m/s² "
+                    "(speed change against the previous motion)")
+    return ""
+
+
+def run_odometry(frames: Iterable, params: OdometryParams | None = None, progress=None) -> OdometryResult:
+    """GICP odometry over a sequence of frames, deskewed when their points carry times.
 
     Parameters
     ----------
-    frames : iterable of (time_s, (m, 3) points)
-        Frames in time order, points in the sensor frame (m).
+    frames : iterable of (time_s, (m, 3) points) or (time_s, (m, 3) points, (m,) offsets_s)
+        Frames in time order, points in the sensor frame (m). With per-point offsets (seconds after
+        the frame time; None for a frame without) and ``params.deskew``, each frame is deskewed to
+        its frame time (:func:`minegeo.slam.deskew.deskew_points`) by the body twist of the last
+        registered motion, ``ξ = Log(T_a⁻¹ T_b) / (t_b − t_a)`` (zero before the first one), then,
+        with ``deskew_iterations = 1``, once more by the twist of its own registered motion and
+        registered again. The pose of every frame is the sensor pose at its frame time.
     params : OdometryParams, optional
     progress : callable, optional
         Called with the frame index after each frame.
@@ -405,27 +546,69 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
     Returns
     -------
     OdometryResult
+
+    Notes
+    -----
+    No silent runaway: a registration whose motion since the last registered frame is implausible
+    (:func:`_implausible`: speed, angular rate, acceleration, degenerate geometry) is rejected; the
+    frame is held by the constant-velocity prior (flagged with the reason, see
+    :meth:`OdometryResult.held_stretches`), is not the target of the next registration (that is the
+    last registered frame, from the constant-velocity guess scaled to the time between them), and
+    the run goes on.
     """
     params = params or OdometryParams()
     t_prep = t_f2f = t_kf = 0.0
     times, poses, ok, reasons, fitness, weak = [], [], [], [], [], []
     kf_idx, kf_edges, kf_info, kf_clouds, kf_covs = [], [], [], [], []
+    deskewed, twists, cratio = [], [], []
     prev = last_kf = submap = None
+    prev_k = last_ok = 0  # frame index of `prev` and of the last registered frame
     to_submap = params.frame_target == "submap"
     sub_clouds, sub_poses = [], []  # the keyframes the local map is made of (registered ones only)
     T_sub, sub_kf = np.eye(4), 0  # pose and keyframe number of the local map's frame (its last keyframe)
     extra = []  # keyframe edges (i, j, T_i⁻¹ T_j, information) measured against an older keyframe's local map
     velocity, velocity_dt = np.eye(4), 0.0
-    for k, (t, cur, dt_prep) in enumerate(_prepared_frames(frames, params)):
+    v_prev_w = None  # world velocity (m/s) of the last registered motion
+    first_raw = None  # the first frame's raw points and times until the first motion is known
+
+    def register(cur: PreparedFrame, k: int, t: float):
+        """(registration, pose or None when not registered, registered to the previous frame instead)."""
+        if to_submap:
+            # (t - times[-1] is 0 here: the time-scaled guess is not used with the local map)
+            return _register_to_submap(cur, prev, submap, T_sub, poses[-1], velocity,
+                                       _time_scaled_guess(velocity, t - times[-1], velocity_dt), params)
+        if prev_k == k - 1:
+            reg = _register_with_retries(cur, prev, velocity, params)  # [Ren2019 Eq. 7]: ΔT_{t-1,t}
+            scaled = _time_scaled_guess(velocity, t - prev.time_s, velocity_dt)
+            if scaled is not None:  # irregular frame times (keyframe logs, dropped frames): same speed, not same step
+                alt = _register_with_retries(cur, prev, scaled, params)
+                if alt.ok and (not reg.ok or alt.fitness > reg.fitness):
+                    reg = alt
+        else:  # frames since `prev` were held by the prior: the constant-velocity motion since `prev`
+            reg = _register_with_retries(cur, prev, _scaled_motion(velocity, t - prev.time_s, velocity_dt), params)
+        return reg, (compose(poses[prev_k], reg.T) if reg.ok else None), False
+
+    for k, (t, cur, dt_prep, raw) in enumerate(_prepared_frames(frames, params)):
         t_prep += dt_prep
         _check_time(k, t, times)
+        twist = np.zeros(6)
+        if raw is not None:  # deskewed by the constant-velocity twist of the last registered motion
+            t0 = time.perf_counter()
+            if velocity_dt > 0:
+                twist = twist_from_motion(velocity, velocity_dt)
+            cur = prepare_frame(deskew_points(raw[0], raw[1], twist), t, params)
+            t_prep += time.perf_counter() - t0
         times.append(float(t))
+        deskewed.append(raw is not None)
         if prev is None:
+            first_raw = raw
             poses.append(np.eye(4))
             ok.append(cur.index is not None)
             reasons.append("" if cur.index is not None else "too few points")
             fitness.append(1.0)
             weak.append("")
+            twists.append(twist)
+            cratio.append(1.0)
             kf_idx.append(0)
             kf_clouds.append(cur.points)
             kf_covs.append(cur.covariances)
@@ -434,25 +617,52 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
             continue
         t0 = time.perf_counter()
         T_kf = poses[kf_idx[-1]]
-        if to_submap:
-            reg, pose, via_prev = _register_to_submap(cur, prev, submap, T_sub, poses[-1], velocity,
-                                                      _time_scaled_guess(velocity, t - times[-1], velocity_dt), params)
-        else:
-            reg = _register_with_retries(cur, prev, velocity, params)  # [Ren2019 Eq. 7]: ΔT_{t-1,t}
-            scaled = _time_scaled_guess(velocity, t - prev.time_s, velocity_dt)
-            if scaled is not None:  # irregular frame times (keyframe logs, dropped frames): same speed, not same step
-                alt = _register_with_retries(cur, prev, scaled, params)
-                if alt.ok and (not reg.ok or alt.fitness > reg.fitness):
-                    reg = alt
+        reg, pose, via_prev = register(cur, k, t)
+        if first_raw is not None and reg.ok and pose is not None and prev_k == 0:
+            # the first frame was deskewed by no motion (none known yet): deskew it, and this frame,
+            # by the first registered motion, then register this frame again against it
+            t1 = time.perf_counter()
+            twist0 = twist_from_motion(relative(poses[0], pose), t - times[0])
+            first = prepare_frame(deskew_points(first_raw[0], first_raw[1], twist0), times[0], params)
+            if raw is not None:
+                cur, twist = prepare_frame(deskew_points(raw[0], raw[1], twist0), t, params), twist0
+            t_prep += time.perf_counter() - t1
+            if first.index is not None:
+                prev = last_kf = first
+                kf_clouds[0], kf_covs[0], twists[0] = first.points, first.covariances, twist0
+                if to_submap:
+                    submap, sub_clouds = first, [first.points]
+                reg0, pose0, via0 = register(cur, k, t)
+                if reg0.ok and pose0 is not None:
+                    reg, pose, via_prev = reg0, pose0, via0
+        first_raw = None
+        if raw is not None and params.deskew_iterations and reg.ok and pose is not None:
+            # deskew again with this frame's own motion (from the last registered frame to it)
+            t1 = time.perf_counter()
+            twist2 = twist_from_motion(relative(poses[last_ok], pose), t - times[last_ok])
+            cur2 = prepare_frame(deskew_points(raw[0], raw[1], twist2), t, params)
+            t_prep += time.perf_counter() - t1
+            reg2, pose2, via2 = register(cur2, k, t)
+            if reg2.ok and pose2 is not None:
+                cur, reg, pose, via_prev, twist = cur2, reg2, pose2, via2, twist2
+        if reg.ok:
+            why = _implausible(reg, relative(poses[last_ok], pose), t - times[last_ok], v_prev_w, velocity_dt,
+                               poses[last_ok][:3, :3], params)
+            if why:
+                log.warning("frame %d (t = %.3f s) rejected: %s; held by the constant-velocity prior", k, t, why)
+                reg = replace(reg, ok=False, reason=why)
+                via_prev = False
         t_f2f += time.perf_counter() - t0
         if not reg.ok:
             log.info("frame %d (t = %.3f s) not registered: %s; placed by constant velocity", k, t, reg.reason)
-        if not to_submap:
-            pose = compose(poses[-1], reg.T if reg.ok else velocity)
+            step = _time_scaled_guess(velocity, t - times[-2], velocity_dt)
+            pose = compose(poses[-1], velocity if step is None else step)
         ok.append(reg.ok)
         reasons.append(reg.reason)
         fitness.append(reg.fitness)
         weak.append(reg.weak)
+        twists.append(twist)
+        cratio.append(reg.constraint_ratio if cur.index is not None and prev.index is not None else float("nan"))
         rel = relative(T_kf, pose)
         if _keyframe_due(rel, t - times[kf_idx[-1]], params):
             t0 = time.perf_counter()
@@ -467,12 +677,17 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
                 target = last_kf if params.keyframe_submap_size <= 1 else _keyframe_submap(
                     kf_clouds, [poses[i] for i in kf_idx], params)
                 ref = register_frames(cur, target, rel, params, trusted_init=True)  # keyframe-to-keyframe refinement
+                why = ""
                 if ref.ok:
+                    refined = compose(T_kf, project(ref.T))
+                    why = _implausible(ref, relative(poses[last_ok], refined), t - times[last_ok], v_prev_w,
+                                       velocity_dt, poses[last_ok][:3, :3], params)
+                if ref.ok and not why:
                     rel, info = project(ref.T), ref.information
                     pose = compose(T_kf, rel)
                 else:  # keep the chained relative pose with the frame-to-frame information
                     info = reg.information if reg.ok else np.eye(6) * 1e-6
-                    log.info("keyframe %d refinement failed (%s); chained odometry kept", k, ref.reason)
+                    log.info("keyframe %d refinement failed (%s); chained odometry kept", k, why or ref.reason)
             kf_idx.append(k)
             kf_edges.append(rel)
             kf_info.append(info)
@@ -489,8 +704,13 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
             t_kf += time.perf_counter() - t0
         poses.append(pose)
         if reg.ok:
-            velocity, velocity_dt = relative(poses[-2], poses[-1]), t - times[-2]
-        prev = cur if cur.index is not None else prev
+            velocity, velocity_dt = relative(poses[last_ok], poses[-1]), t - times[last_ok]
+            v_prev_w = (poses[-1][:3, 3] - poses[last_ok][:3, 3]) / velocity_dt
+            last_ok = k
+        if to_submap:
+            prev = cur if cur.index is not None else prev
+        elif cur.index is not None and reg.ok:  # a frame held by the prior is no registration target
+            prev, prev_k = cur, k
         if progress is not None:
             progress(k)
     if not times:
@@ -502,4 +722,6 @@ def run_odometry(frames: Iterable[tuple[float, np.ndarray]], params: OdometryPar
         keyframe_information=np.stack(kf_info) if kf_info else np.zeros((0, 6, 6)),
         keyframe_clouds=kf_clouds, keyframe_covariances=kf_covs, params=params,
         timings_s={"prepare": t_prep, "frame_to_frame": t_f2f, "keyframe_refine": t_kf}, keyframe_extra_edges=extra,
+        deskewed=np.asarray(deskewed, dtype=bool), deskew_twist=np.asarray(twists, dtype=np.float64).reshape(-1, 6),
+        constraint_ratio=np.asarray(cratio, dtype=np.float64),
     )

@@ -166,3 +166,33 @@ def test_an_earlier_result_survives_a_bad_run(frames, tmp_path, capsys):
     assert code == 0 and (out / "result.json").is_file(), lines
     assert_user_error("slam", ["--frames", _times(frames, "0.0\n0.0\n0.2\n0.3\n"), "--out", out], capsys,
                       inputs=[frames], outputs=[out])
+
+
+DESKEW_OPTION_CASES = {
+    "no_deskew_with_deskew_iterations": ["--no-deskew", "--deskew-iterations", "1"],
+    "deskew_iterations_2": ["--deskew-iterations", "2"],
+    "deskew_iterations_not_whole": ["--deskew-iterations", "0.5"],
+    "max_speed_0": ["--max-speed", "0"],
+    "max_angular_rate_nan": ["--max-angular-rate", "nan"],
+    "max_acceleration_negative": ["--max-acceleration", "-1"],
+}
+
+
+@pytest.mark.parametrize("case", sorted(DESKEW_OPTION_CASES))
+def test_bad_deskew_or_motion_option(case, frames, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert_user_error("slam", ["--frames", frames, "--out", out, *DESKEW_OPTION_CASES[case]], capsys,
+                      inputs=[frames], outputs=[out])
+
+
+def test_no_deskew_on_frames_without_times_is_fine(frames, tmp_path, capsys):
+    """``--no-deskew`` with frames that carry no per-point times is not a contradiction: it runs."""
+    import json
+
+    from _contract import run_cli
+
+    out = tmp_path / "out"
+    code, _, lines = run_cli("slam", ["--frames", frames, "--out", out, "--no-deskew"], capsys)
+    assert code == 0, lines
+    d = json.loads((out / "result.json").read_text())["result"]["deskew"]
+    assert d["ran"] is False and d["enabled"] is False
