@@ -1,7 +1,10 @@
 """``minegeo track --frames DIR --db DB --out OUT``: LiDAR tracking with intersection factors
 (Liang et al. 2024; ``docs/intersections.md``, "Online recognition and tracking").
 
-Frames are read as ``minegeo slam`` reads them. Writes ``OUT/trajectory.tum`` (every frame, base
+Frames are read as ``minegeo slam`` reads them. ``--start`` and ``--truth`` are in the base's map
+frame (the frame of the map the base was built from) or, with ``--start-frame crs`` /
+``--truth-frame crs``, in the CRS of a georeferenced base (``p_map = p_crs - origin``, the origin the
+base records). Writes ``OUT/trajectory.tum`` (every frame, base
 frame), ``keyframes.tum``, ``trajectory_crs.tum`` (when the base is georeferenced: ``p + origin``),
 ``recognitions.csv`` (every keyframe that saw an intersection: time, status, id, scores), ``result.json``
 (provenance) and ``report.html`` (plan view / error map, recognitions, similarity matrix, timings).
