@@ -186,6 +186,17 @@ def _write(stage: Path, res, kb) -> list[str]:
     return names
 
 
+class _Collect(logging.Handler):
+    """Keeps the messages of WARNING and above (the odometry's held frames) for result.json."""
+
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record) -> None:  # noqa: D102 - logging API
+        self.messages.append(record.getMessage())
+
+
 def run(args) -> int:
     import numpy as np
     from tqdm import tqdm
@@ -218,12 +229,19 @@ def run(args) -> int:
         reg_log = logging.getLogger("minegeo.registration")
         level = reg_log.level
         reg_log.setLevel(logging.ERROR)
+        # the odometry's per-frame notes (a frame held by the motion prior) go to result.json, not stderr
+        odo_log, held = logging.getLogger("minegeo.slam.odometry"), _Collect()
+        odo_prop = odo_log.propagate
+        odo_log.addHandler(held)
+        odo_log.propagate = False
         try:
             with bar, timer("track"):
                 res = track(_frames(files, skipped, bar, params.odometry.min_points), kb, params,
                             use_map=not args.no_map)
         finally:
             reg_log.setLevel(level)
+            odo_log.removeHandler(held)
+            odo_log.propagate = odo_prop
         if res.times_s.size < 2:
             raise InputError(f"--frames {args.frames}: fewer than 2 readable frames")
         err = (_truth_errors(args.truth, res, kb.georef["origin_m"] if args.truth_frame == "crs" else None)
@@ -233,6 +251,7 @@ def run(args) -> int:
             names = _write(stage, res, kb)
         S = similarity_matrix(kb) if len(kb) else None
         result = {**res.summary(), "times_from": times_source(args.frames, args.times), "skipped_frames": skipped,
+                  "odometry_notes": held.messages,
                   "georef": kb.georef, "recognitions": [e.summary() for e in res.recognitions
                                                         if e.recognition.status != "none"]}
         if err is not None:

@@ -181,6 +181,8 @@ def test_keyframes_without_walls(tmp_path, db, capsys):
     rec = json.loads((tmp_path / "o" / "result.json").read_text())
     assert rec["result"]["factors"] == 0 and rec["result"]["status_counts"] == {"no_walls": rec["result"]["keyframes"]}
     assert all(e["status"] == "no_walls" and "wall points" in e["reason"] for e in rec["result"]["recognitions"])
+    # a flat floor does not fix the pose: the odometry's held frames are recorded, not printed
+    assert rec["result"]["odometry_notes"] and all("degenerate" in m for m in rec["result"]["odometry_notes"])
 
 
 def test_look_alike_in_the_wrong_place_is_a_conflict(tmp_path, capsys):
