@@ -233,6 +233,11 @@ def _georef(args, out: Path, rows, truth: dict, seq: dict, slam: dict | None) ->
     g = _json(geo_dir / "result.json")
     T_est = g.get("T_crs_map") or g.get("result", {}).get("T_crs_map")
     rms, worst = _placement_error(T_est, est, seq["truth"], np.asarray(truth["T_crs_map"]))
+    if T_est is not None:  # for the demo report's plan view (not written to result.json)
+        T = np.asarray(T_est, dtype=float)
+        seq["plan_slam_crs"] = est.poses[:, :3, 3] @ T[:3, :3].T + T[:3, 3]
+        Tm = np.asarray(truth["T_crs_map"], dtype=float)
+        seq["plan_true_crs"] = seq["truth"].poses[:, :3, 3] @ Tm[:3, :3].T + Tm[:3, 3]
     sigma0 = g.get("result", {}).get("sigma0", float("nan"))
     info.update(status=g.get("status"), sigma0=sigma0, trajectory_error_rms_m=rms, trajectory_error_max_m=worst)
     rows.append(_row("georef", t0, str(g.get("status")),
@@ -300,6 +305,7 @@ def _localize(args, out: Path, rows, truth: dict, scans: list[dict], geo: dict |
     mine = out / "mine"
     T_crs_map = np.asarray(truth["T_crs_map"])
     geo_map = None if geo is None or not geo.get("map_geo") else Path(geo["map_geo"])
+    plan_scans = geo.setdefault("_plan_scans", []) if geo is not None else []
     for sc in scans:
         name = Path(sc["file"]).stem
         if geo_map is None or not geo_map.exists():
@@ -322,6 +328,9 @@ def _localize(args, out: Path, rows, truth: dict, scans: list[dict], geo: dict |
             dt, dr = _err_m(r["T_crs_scan"], T_crs_map @ np.asarray(sc["T_map_scan"]))
             txt += f", inlier RMSE {r['inlier_rmse_m']:.3f} m, vs truth in EPSG:5186 {dt:.3f} m / {dr:.2f} deg"
             r["error_m"], r["error_deg"] = dt, dr
+        T_true = T_crs_map @ np.asarray(sc["T_map_scan"])
+        T_got = r.get("T_crs_scan") if r["status"] == "ok" else None
+        plan_scans.append((name, None if T_got is None else np.asarray(T_got)[:3, 3], T_true[:3, 3]))
         if r["status"] != "ok":
             txt += f" ({r.get('reason')})"
         rows.append(_row(f"localize {name}", t0, str(r["status"]), txt, dest / "report.html", out))
@@ -374,8 +383,13 @@ def _finish(args, out: Path, rows, t_start: float, seq: dict, slam: dict | None,
     """The demo's report.html, result.json and the printed table."""
     from minegeo._output import run_timings
     from minegeo._provenance import versions, write_json_atomic
-    from minegeo.report.demo_report import write_demo_report
+    from minegeo.report.demo_report import plot_demo_png, write_demo_report
 
+    plan_scans = geo.pop("_plan_scans", []) if geo is not None else []
+    plan = None
+    if "plan_slam_crs" in seq:
+        origin = np.floor(seq["plan_true_crs"][0, :2] / 100.0) * 100.0
+        plan = plot_demo_png(seq["plan_true_crs"], seq["plan_slam_crs"], plan_scans, origin)
     total = time.perf_counter() - t_start
     names = [Path(sc["file"]).stem for sc in scans]
     report = write_demo_report(out / "report.html", rows, args.seed, total,
@@ -384,7 +398,8 @@ def _finish(args, out: Path, rows, t_start: float, seq: dict, slam: dict | None,
                                             f"{seq['n_frames']} frames, {seq['length_m']:.0f} m loop",
                                 "map": "slam/map.ply (SLAM frame), georeferenced from control points read off it",
                                 "localized scans": ", ".join(names) or "none (in the mapped drifts)",
-                                "background compilation": _compile_text(compile_rec)})
+                                "background compilation": _compile_text(compile_rec)},
+                               plan_png=plan, compile_s=run_timings(args)["compile_s"])
     params = {"preset": "small", "crs": "EPSG:5186", "localize_profile": "fast", "localized_scans": names,
               "n_gcps_surveyed": N_GCPS, "sigma_pick_m": SIGMA_PICK_M,
               "sequence": {"frames": seq["n_frames"], "length_m": seq["length_m"], "rate_hz": FRAME_RATE_HZ,

@@ -8,12 +8,15 @@ or could not run), then one table row per step with a relative link to that step
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
-from minegeo._provenance import atomic_write_text
-from minegeo.report._html import badge, esc, page, params_table, status_word, table
+import numpy as np
 
-__all__ = ["demo_status", "demo_report_html", "write_demo_report"]
+from minegeo._provenance import atomic_write_text
+from minegeo.report._html import badge, esc, img_png, page, params_table, status_word, table
+
+__all__ = ["demo_status", "demo_report_html", "write_demo_report", "plot_demo_png"]
 
 _GOOD = {"OK": True, "PASSED": True, "WARNINGS": None, "AMBIGUOUS": False, "FAILED": False, "ERROR": False}
 
@@ -34,7 +37,57 @@ def demo_status(rows) -> tuple[str, str]:
     return "OK", text
 
 
-def demo_report_html(rows, seed: int, total_s: float | None = None, parameters: dict | None = None) -> str:
+def plot_demo_png(p_true, p_slam, scans=(), origin=(0.0, 0.0)) -> bytes:
+    """Plan view of the demo in EPSG:5186 (PNG bytes): the true drive, the georeferenced SLAM
+    trajectory, and each localized scan's origin against its true origin.
+
+    Parameters
+    ----------
+    p_true, p_slam : (n, 3) and (m, 3) array_like
+        True drive positions and georeferenced SLAM positions (E, N, H in metres, CRS).
+    scans : iterable of (name, est (3,), true (3,))
+        Localized scans (``est`` None when the scan got no position).
+    origin : (2,) array_like
+        E, N subtracted for the axes (m).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    o = np.asarray(origin, dtype=np.float64)[:2]
+    fig = Figure(figsize=(8.5, 6.0), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    t = np.asarray(p_true, dtype=np.float64)
+    e = np.asarray(p_slam, dtype=np.float64)
+    if len(t):
+        ax.plot(t[:, 0] - o[0], t[:, 1] - o[1], "-", c="0.55", lw=2.5, label="true drive (synthetic truth)")
+    if len(e):
+        ax.plot(e[:, 0] - o[0], e[:, 1] - o[1], "-", c="tab:blue", lw=1.0, label="SLAM trajectory, georeferenced")
+    first = True
+    for name, est, true in scans:
+        tr = np.asarray(true, dtype=np.float64)
+        ax.plot(tr[0] - o[0], tr[1] - o[1], "s", mfc="none", mec="0.2", ms=8,
+                label="scan origin, true" if first else None)
+        if est is not None:
+            es = np.asarray(est, dtype=np.float64)
+            ax.plot(es[0] - o[0], es[1] - o[1], "x", c="tab:green", ms=8, mew=2,
+                    label="scan origin, localized" if first else None)
+        ax.annotate(name, (tr[0] - o[0], tr[1] - o[1]), xytext=(6, 6), textcoords="offset points", fontsize=8)
+        first = False
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, color="0.92")
+    ax.set_xlabel(f"E − {o[0]:.0f} m (EPSG:5186)")
+    ax.set_ylabel(f"N − {o[1]:.0f} m (EPSG:5186)")
+    ax.set_title("plan view: the drive, the SLAM trajectory and the localized scans in the grid")
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    return buf.getvalue()
+
+
+def demo_report_html(rows, seed: int, total_s: float | None = None, parameters: dict | None = None,
+                     plan_png: bytes | None = None, compile_s: float | None = None) -> str:
     """HTML text of the demo summary.
 
     Parameters
@@ -49,6 +102,10 @@ def demo_report_html(rows, seed: int, total_s: float | None = None, parameters: 
         Wall time of the whole demo.
     parameters : dict, optional
         Parameters of the run (shown under "Parameters used").
+    plan_png : bytes, optional
+        The plan view (:func:`plot_demo_png`).
+    compile_s : float, optional
+        Seconds of this run spent compiling Numba kernels (0 when every kernel came from the cache).
     """
     status, text = demo_status(rows)
     body = []
@@ -67,12 +124,15 @@ def demo_report_html(rows, seed: int, total_s: float | None = None, parameters: 
             f'<a href="{esc(link)}">{esc(link)}</a>' if link else "–",
         ])
     if total_s is not None:
-        body.append(["<b>total</b>", f"{total_s:.1f} s", "", "includes one-time Numba compilation on a fresh "
-                     "install", ""])
+        note = ("" if compile_s is None else
+                f"of which {compile_s:.1f} s compiling numerical kernels (once; cached for later runs)")
+        body.append(["<b>total</b>", f"{total_s:.1f} s", "", esc(note), ""])
     secs = [
         ("Steps", table(["step", "time", "status", "result against the synthetic truth", "step report"], body,
                         numeric=[1], raw_cols=[0, 2, 4])
          + "<p class=\"small\">Each link opens that step's own report (relative to this folder).</p>"),
+        ("Plan view", img_png(plan_png, "plan view of the drive, the SLAM trajectory and the localized scans")
+         if plan_png else "<p>No plan view: the SLAM or georef step did not give a georeferenced trajectory.</p>"),
         ("What the demo does", "<ol><li><b>synth</b>: a small synthetic mine with ground truth.</li>"
                                "<li><b>sequence</b>: VLP-16 frames of a vehicle driving a loop of the mine.</li>"
                                "<li><b>slam</b>: the map and trajectory built from those frames alone.</li>"
@@ -87,6 +147,7 @@ def demo_report_html(rows, seed: int, total_s: float | None = None, parameters: 
                 status=status, status_text=text)
 
 
-def write_demo_report(path, rows, seed: int, total_s: float | None = None, parameters: dict | None = None) -> Path:
+def write_demo_report(path, rows, seed: int, total_s: float | None = None, parameters: dict | None = None,
+                      plan_png: bytes | None = None, compile_s: float | None = None) -> Path:
     """Write the demo summary (:func:`demo_report_html`) to ``path`` atomically and return the path."""
-    return atomic_write_text(Path(path), demo_report_html(rows, seed, total_s, parameters))
+    return atomic_write_text(Path(path), demo_report_html(rows, seed, total_s, parameters, plan_png, compile_s))

@@ -79,7 +79,7 @@ def test_the_scans_of_the_mapped_drifts_are_localized_close_to_the_truth(demo):
 
 def test_demo_report_and_the_slam_report_in_the_browser(demo, browser):  # noqa: F811
     out, rec = demo
-    info = check_report(browser, out / "report.html", "OK")
+    info = check_report(browser, out / "report.html", "OK", min_images=1)  # the plan view
     links = [h for h in info["links"] if not h.startswith("#")]
     assert "slam/report.html" in links and len(links) == sum(1 for r in rec["steps"] if r["report"])
     check_report(browser, out / "slam" / "report.html", "OK")

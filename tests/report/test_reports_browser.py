@@ -123,7 +123,7 @@ def reports(browser, tmp_path_factory):
     """Run every verb (ok and failing runs); ``{case: (report.html, expected data-status)}``."""
     from minegeo.io import PointCloud, write_point_cloud
     from minegeo.mast.scenario import write_mast_scenario
-    from minegeo.report.demo_report import write_demo_report
+    from minegeo.report.demo_report import plot_demo_png, write_demo_report
 
     root = tmp_path_factory.mktemp("reports")
     demo, bad = root / "demo", root / "failing"
@@ -194,7 +194,10 @@ def reports(browser, tmp_path_factory):
              "report": "mast/report.html"},
             {"step": "localize scan_01", "time_s": 1.0, "status": _status(loc), "result": "placed",
              "report": "localize/scan_01/report.html"}]
-    write_demo_report(demo / "report.html", rows, SEED, 4.0, {"localize profile": "fast"})
+    drive = np.column_stack([np.linspace(0.0, 40.0, 30), np.zeros(30), np.zeros(30)]) + [2.0e5, 5.5e5, 100.0]
+    plan = plot_demo_png(drive, drive + 0.05, [("scan_01", drive[10] + 0.02, drive[10])], drive[0])
+    write_demo_report(demo / "report.html", rows, SEED, 4.0, {"localize profile": "fast"}, plan_png=plan,
+                      compile_s=0.0)
     cases["demo"] = (demo / "report.html", "OK")
     return cases
 
@@ -333,7 +336,7 @@ def test_report_in_browser(case, reports, browser, shots):
     path, expected = reports[case]
     assert path.is_file(), f"{case}: {path} was not written"
     info = check_report(browser, path, expected, shots / f"{case}.png",
-                        min_images=1 if case not in ("demo", "localize_batch_failed_scan") else 0)
+                        min_images=1 if case != "localize_batch_failed_scan" else 0)
     if case == "demo":
         assert len([h for h in info["links"] if not h.startswith("#")]) == 4
 
