@@ -1,0 +1,508 @@
+"""Control and check stations in a SLAM result: rigid fit or position factors in the pose graph.
+
+Frames: ``map`` (the SLAM world frame, first frame = origin), ``local`` (the CRS, ``E N H`` minus
+the stations' recorded origin ``o``, a multiple of 1000 m, float64: ``E N H = local + o``).
+
+Station point
+-------------
+Station ``k`` stands still on ``[t_start, t_end]``; its time is the middle ``t_k``. The point the
+run puts on it is the sensor origin plus the offset ``a`` (``--station-offset``, sensor frame, m)::
+
+    p_k = R(t_k) a + t(t_k)                                                             (C1)
+
+with ``T(t_k) = (R, t)`` the sensor pose at ``t_k``, interpolated on SE(3) between the two
+bracketing poses ``T_0``, ``T_1`` (times ``t_0 ≤ t_k ≤ t_1``): ``T = T_0 Exp(s Log(T_0⁻¹ T_1))``,
+``s = (t_k − t_0)/(t_1 − t_0)``.
+
+Modes
+-----
+``rigid``: :func:`minegeo.georef.georeference` fits ``T_local_map`` (rigid, or 7-parameter) to
+the control stations' points (C1) and their ``E N H``; every pose becomes ``T_local_map T``.
+
+``graph``: every station (control and check) gets a pose variable at its time ``t_k`` in the
+keyframe graph: the odometry edge ``(a, b)`` of the keyframes bracketing ``t_k`` (consecutive,
+``b = a + 1``) is split into ``a → k → b`` with measurements ``Exp(s Log Z_ab)`` and
+``Exp((1 − s) Log Z_ab)`` (their product is ``Z_ab``) and information ``Ω_ab / s`` and
+``Ω_ab / (1 − s)`` (a random walk: the two halves' covariances add up to the edge's), ``s`` the
+time fraction (several stations in one edge split it in time order). A control station adds the
+position factor (:class:`PositionFactors`)::
+
+    r_k = R_k a + t_k − p̄_k,      Ω_k = diag(σ_h⁻², σ_h⁻², σ_v⁻²)                    (C2)
+    ∂r/∂φ = −R_k [a]ₓ,   ∂r/∂ρ = R_k      (right perturbation T ← T Exp(φ, ρ))
+
+``p̄_k`` the surveyed ``E N H`` (local). The graph is solved by the one optimiser
+(:func:`minegeo.optim.levenberg_marquardt`), started from the rigid fit of the control stations
+(rigid model), no pose held: the position factors fix the gauge (≥ 3 control stations not on a
+line). A check station's variable carries no factor of its coordinates: check stations never enter
+the fit (moving one leaves the solution bit-identical).
+
+Uncertainty
+-----------
+The marginal covariance of every pose is the diagonal block of ``H⁻¹`` at the solution, computed by
+the selected inverse (Takahashi recursion) on the block Cholesky factor ``H = L Lᵀ`` the optimiser
+uses, in its fill-reducing order, never a dense inverse (:func:`selected_inverse`)::
+
+    Σ_ij = −Σ_{s∈S_j} Σ_is L_sj L_jj⁻¹     (i ∈ S_j, the rows below j in column j of L)
+    Σ_jj = L_jj⁻ᵀ L_jj⁻¹ − Σ_{s∈S_j} Σ_js L_sj L_jj⁻¹                                  (C3)
+
+The covariance of a station point is ``J Σ_kk Jᵀ`` with ``J = [−R[a]ₓ, R]`` (C2), its 95 %
+horizontal ellipse that of the E N block (:func:`minegeo.survey.ellipse.error_ellipse`).
+
+Statistics (:mod:`minegeo.survey.control_stats`)
+------------------------------------------------
+Control residuals ``v_k = p_k − p̄_k`` (adjusted minus observed); their cofactors (graph)
+``Qvv_k = Σll_k − J Σ_kk Jᵀ`` (exact per station, cross-station blocks not formed: the w-tests of
+a diagonal ``P`` need only the diagonal); redundancy ``r = 6·(edges) + 3·(controls) − 6·(variables)``
+(graph) or ``3·controls − 6`` (``−7`` similarity) (rigid). σ̂0² and the χ² test are those of the
+whole adjustment, ``vᵀPv = 2F`` (every factor of the graph; the control residuals only in rigid
+mode). Check stations: errors and RMSE (CS4), class test against the nearest control (CS5), with
+the 95 % relative ellipse when covariances are known, misclosure ratio ``1:N`` (CS6) with ``L`` the
+path length from the nearest control station in time.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from minegeo.errors import InputError
+from minegeo.kernels.lie import se3_exp, se3_inverse, se3_log
+from minegeo.optim import (
+    SINGULAR_PIVOT,
+    BetweenFactors,
+    FactorGroup,
+    FactorProblem,
+    LMParams,
+    Values,
+    levenberg_marquardt,
+)
+
+__all__ = ["ControlParams", "ControlResult", "PositionFactors", "apply_control", "graph_inputs", "interpolate_poses",
+           "selected_inverse", "station_points"]
+
+log = logging.getLogger(__name__)
+
+MODES = ("rigid", "graph")
+#: a station time within this of a keyframe's time uses that keyframe (s)
+SAME_TIME_S = 1e-6
+
+
+def _hat(a: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+
+
+def interpolate_poses(times_s: np.ndarray, poses: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Poses at times ``t`` (k,): ``T_0 Exp(s Log(T_0⁻¹ T_1))`` between the bracketing poses (C1).
+
+    Raises
+    ------
+    InputError
+        A time outside ``[times_s[0], times_s[-1]]``.
+    """
+    times_s = np.asarray(times_s, dtype=np.float64)
+    t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+    if np.any(t < times_s[0]) or np.any(t > times_s[-1]):
+        raise InputError(f"station times [{t.min():.3f}, {t.max():.3f}] s outside the trajectory "
+                         f"[{times_s[0]:.3f}, {times_s[-1]:.3f}] s")
+    out = np.empty((t.size, 4, 4))
+    for q, tq in enumerate(t):
+        a = min(int(np.searchsorted(times_s, tq, side="right")) - 1, times_s.size - 2)
+        a = max(a, 0)
+        if times_s.size == 1 or tq == times_s[a]:
+            out[q] = poses[a]
+            continue
+        s = (tq - times_s[a]) / (times_s[a + 1] - times_s[a])
+        out[q] = poses[a] @ se3_exp(s * se3_log(se3_inverse(poses[a]) @ poses[a + 1]))
+    return out
+
+
+def station_points(poses: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """``R a + t`` (k, 3) of poses (k, 4, 4) and the offset ``a`` (3,) (C1)."""
+    return poses[:, :3, :3] @ np.asarray(offset, dtype=np.float64) + poses[:, :3, 3]
+
+
+class PositionFactors(FactorGroup):
+    """Unary position factors (C2): ``r = R a + t − p̄`` on poses ``index`` (m,).
+
+    Parameters
+    ----------
+    index : (m,) int
+        Pose variable of each factor.
+    target : (m, 3)
+        ``p̄`` (m, the frame of the poses).
+    offset : (3,)
+        ``a`` in the sensor frame (m).
+    information : (m, 3, 3)
+        ``Ω`` (m⁻²).
+    """
+
+    def __init__(self, index, target, offset, information):
+        self.variables = np.ascontiguousarray(index, dtype=np.int64).reshape(-1, 1)
+        self.target = np.ascontiguousarray(target, dtype=np.float64).reshape(-1, 3)
+        self.offset = np.asarray(offset, dtype=np.float64).reshape(3)
+        self.information = np.ascontiguousarray(information, dtype=np.float64).reshape(-1, 3, 3)
+
+    def residuals(self, values: Values) -> np.ndarray:
+        return station_points(values.poses[self.variables[:, 0]], self.offset) - self.target
+
+    def linearize(self, values: Values) -> tuple:
+        P = values.poses[self.variables[:, 0]]
+        R = P[:, :3, :3]
+        J = np.empty((P.shape[0], 3, 6))
+        J[:, :, :3] = -R @ _hat(self.offset)
+        J[:, :, 3:] = R
+        return self.residuals(values), (J,)
+
+
+def selected_inverse(Lp: np.ndarray, Li: np.ndarray, Lx: np.ndarray) -> np.ndarray:
+    """Blocks of ``H⁻¹`` in the pattern of its block Cholesky factor ``H = L Lᵀ`` (C3).
+
+    ``Lx[p]`` is the block ``L[Li[p], j]`` for ``Lp[j] ≤ p < Lp[j+1]``, the diagonal block first
+    (lower triangular). Returns ``S`` with ``S[p] = (H⁻¹)[Li[p], j]`` in the same slots: the
+    diagonal blocks are the marginal covariances. Cost: one pass over the columns from the last,
+    each touching only blocks of the factor's pattern (closed under the recursion: the rows of a
+    column form a clique of the filled graph).
+    """
+    nb = Lp.size - 1
+    d = Lx.shape[1]
+    slot = {}
+    for j in range(nb):
+        for p in range(Lp[j], Lp[j + 1]):
+            slot[(int(Li[p]), j)] = p
+    S = np.zeros_like(Lx)
+
+    def get(i, k):
+        return S[slot[(i, k)]] if i >= k else S[slot[(k, i)]].T
+
+    eye = np.eye(d)
+    for j in range(nb - 1, -1, -1):
+        p0, p1 = Lp[j], Lp[j + 1]
+        Ljj_inv = np.linalg.solve(Lx[p0], eye)
+        rows = [int(r) for r in Li[p0 + 1:p1]]
+        LS = [Lx[p] @ Ljj_inv for p in range(p0 + 1, p1)]  # L_sj L_jj⁻¹
+        for q, i in enumerate(rows):
+            acc = np.zeros((d, d))
+            for s, Ls in zip(rows, LS, strict=True):
+                acc -= get(i, s) @ Ls
+            S[p0 + 1 + q] = acc
+        acc = Ljj_inv.T @ Ljj_inv
+        for q, Ls in enumerate(LS):
+            acc -= S[p0 + 1 + q].T @ Ls
+        S[p0] = 0.5 * (acc + acc.T)
+    return S
+
+
+def marginal_covariances(problem: FactorProblem, values: Values) -> np.ndarray:
+    """Marginal covariances (n, d, d) of every free variable at ``values`` (held ones: zero),
+    ``H⁻¹`` diagonal blocks by :func:`selected_inverse` on the optimiser's block Cholesky factor
+    (undamped, the fill-reducing order of :class:`minegeo.optim.BlockSystem`; tangent order
+    rotation first)."""
+    from minegeo.optim import _kernels as KO  # the block Cholesky of BlockSystem.solve (no public hook yet)
+
+    system = problem.linearize(values, problem.evaluate(values))
+    Lx = np.empty_like(system.Hx)
+    bad = int(KO.block_cholesky(system.Lp, system.Li, system.Hx, 0.0, False, Lx, SINGULAR_PIVOT))
+    if bad >= 0:
+        raise ArithmeticError(f"the information matrix is singular at variable {int(system.block_vertex[bad])}")
+    S = selected_inverse(system.Lp, system.Li, Lx)
+    n = system.blk.size
+    out = np.zeros((n, system.d, system.d))
+    free = system.blk >= 0
+    out[free] = S[system.Lp[system.blk[free]]]
+    return out
+
+
+@dataclass(frozen=True)
+class ControlParams:
+    """Parameters of :func:`apply_control`.
+
+    Attributes
+    ----------
+    mode : {"rigid", "graph"}
+    model : {"rigid", "similarity"}
+        The fit of ``rigid`` mode (``graph`` mode starts from a rigid fit).
+    class_c : float
+        ICSM SP1 class constant (mm), 50 = Class D.
+    lm : LMParams
+    """
+
+    mode: str = "graph"
+    model: str = "rigid"
+    class_c: float = 50.0
+    lm: LMParams = field(default_factory=LMParams)
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise InputError(f"control mode must be 'rigid' or 'graph', got {self.mode!r}")
+        if self.model not in ("rigid", "similarity"):
+            raise InputError(f"control fit model must be 'rigid' or 'similarity', got {self.model!r}")
+
+
+@dataclass
+class ControlResult:
+    """Outcome of :func:`apply_control`.
+
+    Attributes
+    ----------
+    mode, status, reason : str
+        ``status`` "ok", "warning" (χ² test failed or a control flagged) or "failed" (the graph did
+        not converge: the poses are the rigid fit's).
+    origin_enh : (3,)
+        Recorded origin ``o`` of the local CRS frame (m).
+    times_s, poses : (k,), (k, 4, 4)
+        Graph variables (keyframes and station variables, in time order), ``T_local_sensor``.
+    station_var : (n,) int
+        Variable of each station (graph mode) or -1 (rigid).
+    station_enh_local : (n, 3)
+        The run's point of every station (C1), local frame (m).
+    station_cov_enh : (n, 3, 3) or None
+        Its covariance (m², graph mode).
+    covariances : (k, 6, 6) or None
+        Marginal covariance of every variable (rotation first; rad², m²).
+    T_local_map : (4, 4)
+        The rigid (or similarity) fit of the control stations.
+    stats, check, classes : ControlStatistics, CheckErrors or None, ClassTest or None
+    global_chi2 : Chi2Test
+    misclosure_ratio : (n_check,)
+    ellipses_check : list of ErrorEllipse
+        95 % horizontal ellipses at the check stations (graph mode).
+    keyframe_note : str
+        How the station poses entered the graph.
+    """
+
+    mode: str
+    status: str
+    reason: str
+    origin_enh: np.ndarray
+    times_s: np.ndarray
+    poses: np.ndarray
+    station_var: np.ndarray
+    station_enh_local: np.ndarray
+    station_cov_enh: np.ndarray | None
+    covariances: np.ndarray | None
+    T_local_map: np.ndarray
+    stats: object
+    check: object
+    classes: object
+    global_chi2: object
+    misclosure_ratio: np.ndarray
+    ellipses_check: list
+    keyframe_note: str
+    optimisation: object = None
+
+    def transform(self, times_s: np.ndarray, poses_map: np.ndarray, graph_times_s: np.ndarray,
+                  graph_poses_map: np.ndarray) -> np.ndarray:
+        """Frames (times, ``T_map_sensor``) into the local CRS frame: each frame's correction
+        ``C = T_local_var T_map_var⁻¹`` interpolated on SE(3) between the two bracketing graph variables
+        (``graph_*`` the variables' map poses before the correction, in :attr:`times_s` order)."""
+        C = self.poses @ np.stack([se3_inverse(T) for T in graph_poses_map])
+        t = np.clip(np.asarray(times_s, dtype=np.float64), graph_times_s[0], graph_times_s[-1])
+        return interpolate_poses(graph_times_s, C, t) @ poses_map
+
+
+def graph_inputs(slam_result) -> tuple:
+    """``(times_s, poses, edges, Z, information)`` of a :class:`~minegeo.slam.pipeline.SlamResult`'s
+    keyframe graph: keyframe times and ``T_map_sensor``, edges, measurements and the information in
+    the residual order (rotation first; the graph stores the g2o order (t, r))."""
+    g = slam_result.graph
+    p = [3, 4, 5, 0, 1, 2]
+    info = np.ascontiguousarray(np.asarray(g.information)[:, p][:, :, p])
+    return (np.asarray(slam_result.times_s)[slam_result.keyframes], np.asarray(slam_result.keyframe_poses),
+            np.asarray(g.edges), np.asarray(g.measurements), info)
+
+
+def _insert_stations(times_s, poses, edges, Z, info, t_st):
+    """Graph variables at the station times (see the module docstring): returns the new times,
+    poses, edges, measurements, information and the variable of each station."""
+    k = times_s.size
+    var_of = np.full(t_st.size, -1, dtype=np.int64)
+    new_t = []
+    for q, t in enumerate(t_st):
+        hit = np.flatnonzero(np.abs(times_s - t) <= SAME_TIME_S)
+        if hit.size:
+            var_of[q] = hit[0]
+        else:
+            new_t.append((t, q))
+    all_t = np.r_[times_s, [t for t, _ in new_t]]
+    order = np.argsort(all_t, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    T_new = np.empty((all_t.size, 4, 4))
+    T_new[:k] = poses
+    if new_t:
+        T_new[k:] = interpolate_poses(times_s, poses, np.array([t for t, _ in new_t]))
+    for m, (_, q) in enumerate(new_t):
+        var_of[q] = k + m
+    # split consecutive keyframe edges that contain inserted variables
+    E, ZZ, OO = [], [], []
+    inserted = np.arange(k, all_t.size)
+    ins_t = all_t[k:]
+    for e in range(edges.shape[0]):
+        a, b = int(edges[e, 0]), int(edges[e, 1])
+        inside = inserted[(ins_t > times_s[min(a, b)]) & (ins_t < times_s[max(a, b)])] if abs(b - a) == 1 else []
+        if len(inside) == 0 or b != a + 1:
+            E.append((a, b))
+            ZZ.append(Z[e])
+            OO.append(info[e])
+            continue
+        xi = se3_log(np.ascontiguousarray(Z[e]))
+        chain = [a] + sorted(inside.tolist(), key=lambda v: all_t[v]) + [b]
+        s = (all_t[chain] - times_s[a]) / (times_s[b] - times_s[a])
+        for u in range(len(chain) - 1):
+            f = s[u + 1] - s[u]
+            E.append((chain[u], chain[u + 1]))
+            ZZ.append(se3_exp(f * xi))
+            OO.append(info[e] / f)
+    edges_new = rank[np.asarray(E, dtype=np.int64)]
+    T_sorted = np.empty_like(T_new)
+    T_sorted[rank] = T_new
+    return all_t[order], T_sorted, edges_new, np.stack(ZZ), np.stack(OO), rank[var_of], len(new_t)
+
+
+def _rigid_fit(points_map, stations, crs, model):
+    """``T_local_map`` (4x4) by :func:`minegeo.georef.georeference` on the control stations."""
+    from minegeo.georef import GeorefParams, georeference
+    from minegeo.io.types import ControlPoints
+
+    c = stations.is_control
+    sig = np.c_[stations.sigma_h_m, stations.sigma_h_m, stations.sigma_v_m][c]
+    gcps = ControlPoints(ids=[i for i, k in zip(stations.ids, c, strict=True) if k], local_xyz=points_map[c],
+                         crs_enh=stations.enh[c], sigma_enh_m=sig, crs=crs)
+    res = georeference(gcps, crs, GeorefParams(model=model, max_sigma0=1e12))
+    T = np.array(res.T_geo_map, dtype=np.float64)
+    T[:3, 3] += np.asarray(res.origin, dtype=np.float64) - stations.origin_enh  # whole km: exact
+    return T, res
+
+
+def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=None,
+                  params: ControlParams | None = None) -> ControlResult:
+    """Put a SLAM keyframe graph into the CRS of its control stations (see the module docstring).
+
+    Parameters
+    ----------
+    times_s : (k,) s
+        Keyframe times, increasing.
+    poses : (k, 4, 4)
+        ``T_map_sensor`` of the keyframes (the optimised SLAM graph).
+    edges, Z, information : (m, 2), (m, 4, 4), (m, 6, 6)
+        The graph's between factors (``r = Log(Z⁻¹ T_i⁻¹ T_j)``, information rotation first).
+    stations : minegeo.io.stations.Stations
+    offset : (3,)
+        Surveyed point in the sensor frame (m).
+    crs : str, optional
+        Default ``stations.crs``.
+    params : ControlParams
+
+    Raises
+    ------
+    InputError
+        A station outside the keyframes' time span, fewer than 3 control stations, stations whose
+        spans overlap, no CRS.
+    """
+    from minegeo.survey.control_stats import check_errors, class_test, control_statistics, misclosure_ratio
+    from minegeo.survey.ellipse import error_ellipse
+    from minegeo.survey.lsq import chi2_global_test
+
+    p = params or ControlParams()
+    crs = crs or stations.crs
+    if not crs:
+        raise InputError("the stations need a CRS (--crs or a '# crs:' line in the stations file)")
+    times_s = np.asarray(times_s, dtype=np.float64)
+    poses = np.ascontiguousarray(poses, dtype=np.float64)
+    offset = np.asarray(offset, dtype=np.float64).reshape(3)
+    if times_s.size < 2 or np.any(np.diff(times_s) <= 0):
+        raise InputError("the keyframe times must be at least two, strictly increasing")
+    n_ctrl = int(stations.is_control.sum())
+    if n_ctrl < 3:
+        raise InputError(f"{n_ctrl} control station(s): the {p.mode} mode needs at least 3 not on one line "
+                         "(make more stations control, or add stations)")
+    stations.check_time_span(times_s[0], times_s[-1], "the SLAM keyframes")
+    t_st = stations.t_mid_s
+    ctrl, chk = stations.is_control, stations.is_check
+    pts_map = station_points(interpolate_poses(times_s, poses, t_st), offset)
+    T_lm, fit = _rigid_fit(pts_map, stations, crs, "rigid" if p.mode == "graph" else p.model)
+    cov_ll = stations.covariance()
+    ids = np.array(stations.ids, dtype=object)
+    status, reason, opt, covs, st_cov, ellipses = "ok", "", None, None, None, []
+    if p.mode == "rigid":
+        s_fit = np.cbrt(np.linalg.det(T_lm[:3, :3]))
+        Rt = T_lm.copy()
+        Rt[:3, :3] /= s_fit  # poses keep a rotation; the points carry the scale
+        G_times, G_poses = times_s, Rt @ poses
+        G_poses[:, :3, 3] = poses[:, :3, 3] @ T_lm[:3, :3].T + T_lm[:3, 3]
+        pts = pts_map @ T_lm[:3, :3].T + T_lm[:3, 3]
+        dof = 3 * n_ctrl - (6 if p.model == "rigid" else 7)
+        v = pts[ctrl] - stations.enh_local[ctrl]
+        stats = control_statistics(v, cov_ll[ctrl], dof=dof, ids=ids[ctrl])
+        gchi = stats.chi2
+        var = np.full(len(stations), -1, dtype=np.int64)
+        note = "rigid fit: station poses interpolated on SE(3) between keyframes"
+    else:
+        G_times, G_poses0, G_edges, G_Z, G_info, var, n_new = _insert_stations(
+            times_s, poses, np.asarray(edges, np.int64).reshape(-1, 2), np.asarray(Z, np.float64),
+            np.asarray(information, np.float64), t_st)
+        note = (f"{n_new} station variable(s) inserted at the station times (odometry edge split by time "
+                f"fraction), {len(stations) - n_new} on keyframes at the same time")
+        start = Values(np.ascontiguousarray(T_lm @ G_poses0))
+        W = np.zeros((n_ctrl, 3, 3))
+        W[:, 0, 0] = W[:, 1, 1] = stations.sigma_h_m[ctrl] ** -2
+        W[:, 2, 2] = stations.sigma_v_m[ctrl] ** -2
+        groups = [BetweenFactors(G_edges, G_Z, G_info),
+                  PositionFactors(var[ctrl], stations.enh_local[ctrl], offset, W)]
+        problem = FactorProblem(G_times.size, 6, groups, (), p.lm,
+                                labels=lambda v: (f"graph variable {v} (t = {G_times[v]:.3f} s)", int(v)),
+                                hint=": fewer than 3 control stations off one line leave the map free to turn")
+        opt = levenberg_marquardt(problem, start, p.lm)
+        if opt.status != "converged":
+            status, reason = "failed", f"the graph with control did not converge: {opt.reason}"
+            G_poses = start.poses
+        else:
+            G_poses = opt.values.poses
+        covs = marginal_covariances(problem, Values(np.ascontiguousarray(G_poses)))
+        Pk = G_poses[var]
+        J = np.empty((len(stations), 3, 6))
+        J[:, :, :3] = -Pk[:, :3, :3] @ _hat(offset)
+        J[:, :, 3:] = Pk[:, :3, :3]
+        st_cov = J @ covs[var] @ np.swapaxes(J, 1, 2)
+        pts = station_points(Pk, offset)
+        v = pts[ctrl] - stations.enh_local[ctrl]
+        qvv = np.zeros((3 * n_ctrl, 3 * n_ctrl))
+        for q, c in enumerate(np.flatnonzero(ctrl)):
+            qvv[3 * q:3 * q + 3, 3 * q:3 * q + 3] = cov_ll[c] - st_cov[c]
+        dof = 6 * G_edges.shape[0] + 3 * n_ctrl - 6 * G_times.size
+        stats = control_statistics(v, cov_ll[ctrl], qvv=qvv, dof=max(dof, 0), ids=ids[ctrl])
+        gchi = chi2_global_test(2.0 * problem.cost(problem.evaluate(Values(np.ascontiguousarray(G_poses)))),
+                                max(dof, 0))
+        ellipses = [error_ellipse(st_cov[c][:2, :2], confidence=0.95) for c in np.flatnonzero(chk)]
+    check = classes = None
+    ratio = np.zeros(0)
+    if chk.any():
+        check = check_errors(pts[chk], stations.enh_local[chk], ids[chk])
+        rel = None
+        if st_cov is not None:
+            # relative covariance ignores the check-control cross covariance (not in the selected inverse)
+            ci, kj = np.flatnonzero(chk), np.flatnonzero(ctrl)
+            d = np.hypot(*(stations.enh_local[ci, None, :2] - stations.enh_local[None, kj, :2]).transpose(2, 0, 1))
+            near = kj[np.argmin(d, axis=1)]
+            rel = st_cov[ci][:, :2, :2] + st_cov[near][:, :2, :2]
+        classes = class_test(stations.enh_local[chk], check.delta, stations.enh_local[ctrl], v,
+                             check_ids=ids[chk], control_ids=ids[ctrl], c=p.class_c, relative_cov_h=rel)
+        path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(G_poses[:, :3, 3], axis=0), axis=1))]
+        s_at = np.interp(t_st, G_times, path)
+        tc = np.flatnonzero(ctrl)
+        L = np.array([np.min(np.abs(s_at[i] - s_at[tc])) for i in np.flatnonzero(chk)])
+        ratio = misclosure_ratio(L, check.horizontal)
+    if status == "ok" and (gchi.passed is False or stats.flagged):
+        status = "warning"
+        reason = "; ".join(x for x in (
+            "" if gchi.passed is not False else f"the chi-square test of the adjustment failed (sigma0 {np.sqrt(gchi.statistic / max(gchi.dof, 1)):.2f})",
+            "" if not stats.flagged else "control station(s) flagged by the w-test: " + ", ".join(stats.flagged_ids),
+        ) if x)
+    log.info("control (%s): %s %s", p.mode, status, reason)
+    return ControlResult(mode=p.mode, status=status, reason=reason, origin_enh=stations.origin_enh.copy(),
+                         times_s=G_times, poses=G_poses, station_var=var, station_enh_local=pts,
+                         station_cov_enh=st_cov, covariances=covs, T_local_map=T_lm, stats=stats, check=check,
+                         classes=classes, global_chi2=gchi, misclosure_ratio=ratio, ellipses_check=ellipses,
+                         keyframe_note=note, optimisation=opt)
