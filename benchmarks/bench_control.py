@@ -1,0 +1,236 @@
+"""Control stations in the pose graph vs a rigid fit vs no control, on a drifting synthetic drive.
+
+Truth: the motion of ``minegeo synth --stream vehicle`` (``simulate_stream``: junctions-free loop
+network, stop-and-go stations every ``--station-spacing-m``, every ``--control-every``-th a control
+station) and its stations (:func:`minegeo.synth.stream.stream_stations`: surveyed with σ_h = 5 mm,
+σ_v = 10 mm, the truth without noise). No sweeps are made: the odometry of a keyframe graph
+(keyframes every ``--keyframe-s`` s of the true motion) is the true relative motion perturbed
+per edge by ``ξ = bias + noise`` on the right (``Z = Z_true Exp(ξ)``), no loop closures:
+
+* bias (drift): scale ``--scale-bias`` of the travelled translation, a yaw rate ``--yaw-bias`` and
+  a pitch rate ``--pitch-bias`` (rad per metre travelled); the same on every edge;
+* noise: random walk, σ_rot = ``--sigma-rot`` rad/√m, σ = ``--sigma-trans`` m/√m across the
+  edge's motion and ``--sigma-along`` m/√m along it (LiDAR odometry in a drift is weakest along
+  its axis) per edge (floors 1e-6 rad, 1e-5 m: edges standing still), seeded. The information of every edge is the inverse of this noise
+  covariance: the bias is *not* modelled (as a real odometry's is not).
+
+Measured: check-station errors (truth, not the surveyed coordinates) for (i) no control: the
+SLAM map placed in the CRS by the true pose at the first control station (one set-up with a perfect
+backsight: the best a single station gives); (ii) the rigid fit of all control stations; (iii) control
+in the graph. Calibration: ``--mc`` runs with noise only (no bias), new seeds: fraction of check
+stations whose true horizontal error lies inside the 95 % ellipse (``eᵀ C⁻¹ e ≤ χ²₂(0.95)``).
+
+Run: ``NUMBA_NUM_THREADS=1 python benchmarks/bench_control.py --out benchmarks/results/control_<date>.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+
+from minegeo.io.stations import Stations
+from minegeo.kernels.lie import se3_exp, se3_inverse
+from minegeo.slam.control import ControlParams, apply_control, interpolate_poses, station_points
+from minegeo.synth.stream import StreamParams, simulate_stream, stream_stations
+
+CHI2_2_95 = 5.991464547107979
+
+
+def truth(duration_s: float, spacing_m: float, control_every: int, seed: int, keyframe_s: float):
+    """True keyframe times/poses (``T_world_sensor``), stations, ``T_crs_world`` and path length."""
+    st = simulate_stream(StreamParams(preset="vehicle", duration_s=duration_s, station_spacing_m=spacing_m,
+                                      control_every=control_every, seed=seed))
+    stations, tr = stream_stations(st)
+    t = np.arange(st.frame_times[0], st.frame_times[-1] + 1e-9, keyframe_s)
+    R, p = st.curve.rotation_position(t)
+    T = np.tile(np.eye(4), (t.size, 1, 1))
+    T[:, :3, :3], T[:, :3, 3] = R, p
+    length = float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+    return t, T, stations, tr, length
+
+
+def odometry(T_true, rng, scale_bias, yaw_bias, pitch_bias, sigma_rot, sigma_trans, sigma_along):
+    """Chain edges ``(i, i+1)``: measurements with bias and noise, information (rotation first)."""
+    k = T_true.shape[0]
+    edges = np.c_[np.arange(k - 1), np.arange(1, k)]
+    Z = np.empty((k - 1, 4, 4))
+    info = np.zeros((k - 1, 6, 6))
+    for e in range(k - 1):
+        Zt = se3_inverse(T_true[e]) @ T_true[e + 1]
+        d = float(np.linalg.norm(Zt[:3, 3]))
+        sr = max(sigma_rot * np.sqrt(d), 1e-6)
+        sc, sa = max(sigma_trans * np.sqrt(d), 1e-5), max(sigma_along * np.sqrt(d), 1e-5)
+        u = Zt[:3, 3] / d if d > 1e-9 else np.array([1.0, 0.0, 0.0])
+        C = np.zeros((6, 6))
+        C[:3, :3] = sr**2 * np.eye(3)
+        C[3:, 3:] = sc**2 * np.eye(3) + (sa**2 - sc**2) * np.outer(u, u)
+        xi = np.r_[0.0, pitch_bias * d, yaw_bias * d, scale_bias * Zt[:3, 3]] + np.linalg.cholesky(C) @ rng.standard_normal(6)
+        Z[e] = Zt @ se3_exp(xi)
+        info[e] = np.linalg.inv(C)
+    return edges, Z, info
+
+
+def chain(Z, T0):
+    P = np.empty((Z.shape[0] + 1, 4, 4))
+    P[0] = T0
+    for e in range(Z.shape[0]):
+        P[e + 1] = P[e] @ Z[e]
+    return P
+
+
+def run_once(t, T_true, stations: Stations, tr, rng, drift, offset, crs):
+    """The three modes on one odometry draw; returns errors at the check stations (truth)."""
+    edges, Z, info = odometry(T_true, rng, *drift)
+    P = chain(Z, np.eye(4))  # SLAM map frame = first keyframe
+    T_cw = np.array(tr["T_crs_world"])
+    true_local = tr["enh_true"] - stations.origin_enh
+    # check stations between two control stations in time (the acceptance's); the others extrapolate
+    tc = stations.t_mid_s[stations.is_control]
+    chk = stations.is_check & (stations.t_mid_s > tc.min()) & (stations.t_mid_s < tc.max())
+    out = {"n_check_between": int(chk.sum()), "n_check_outside": int((stations.is_check & ~chk).sum())}
+    # (i) no control: placed by the first control station only (its surveyed point and the true
+    # heading at it: what a surveyor gets from one set-up and a backsight)
+    c0 = int(np.flatnonzero(stations.is_control)[0])
+    T_s = interpolate_poses(t, P, stations.t_mid_s[c0:c0 + 1])[0]
+    T_s_true = T_cw @ interpolate_poses(t, T_true, stations.t_mid_s[c0:c0 + 1])[0]
+    G = T_s_true @ se3_inverse(T_s)
+    pts = station_points(G @ interpolate_poses(t, P, stations.t_mid_s), offset) - stations.origin_enh
+    out["none"] = pts[chk] - true_local[chk]
+    for mode in ("rigid", "graph"):
+        res = apply_control(t, P, edges, Z, info, stations, offset, crs, ControlParams(mode=mode))
+        out[mode] = res.station_enh_local[chk] - true_local[chk]
+        out[mode + "_outside"] = (res.station_enh_local - true_local)[stations.is_check & ~chk]
+        if mode == "graph":
+            out["graph_status"] = res.status
+            out["graph_cov"] = res.station_cov_enh[chk]
+            out["sigma0"] = float(np.sqrt(res.global_chi2.statistic / max(res.global_chi2.dof, 1)))
+            out["flagged"] = list(res.stats.flagged_ids)
+            out["class_passed"] = int(res.classes.passed.sum())
+            out["misclosure_N_min"] = float(np.min(res.misclosure_ratio))
+            out["iterations"] = res.optimisation.iterations
+    return out
+
+
+def rmse(e):
+    h = np.hypot(e[:, 0], e[:, 1])
+    return float(np.sqrt(np.mean(h**2))), float(np.sqrt(np.mean(e[:, 2] ** 2)))
+
+
+def markdown(path) -> str:
+    """The docs table (docs/survey.md, "Control in the pose graph") from a results file."""
+    with open(path) as f:
+        d = json.load(f)
+    c = d["conditions"]
+    lines = [f"<!-- generated by: python benchmarks/bench_control.py --markdown {path} -->",
+             "| odometry drift | mode | check RMSE h (m) | check RMSE v (m) | max h (m) | max v (m) |",
+             "|---|---|---|---|---|---|"]
+    names = {"none": "no control (placed by the first control station, true heading)",
+             "rigid": "rigid fit of the control stations", "graph": "control in the pose graph"}
+    for cname, tab in d["table"].items():
+        for m, r in tab.items():
+            lines.append(f"| {cname.replace('_', ' ')} | {names[m]} | {r['rmse_h_m']:.3f} | {r['rmse_v_m']:.3f} | "
+                         f"{r['max_h_m']:.3f} | {r['max_v_m']:.3f} |")
+    cal = d["calibration"]
+    lines.append("")
+    lines.append(f"Drive {c['path_length_m']:.0f} m, {c['keyframes']} keyframes, {c['control']} control and "
+                 f"{c['check']} check stations ({d['graph']['bias']['n_check_between']} between two controls, "
+                 f"in the table), seed {c['seed']}. 95 % ellipse coverage at the check stations over "
+                 f"{cal['runs']} runs ({cal['check_points']} points, noise only): {100 * cal['coverage_95']:.1f} % "
+                 f"(binomial s.e. {100 * cal['binomial_se']:.1f} %).")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration-s", type=float, default=1100.0)
+    ap.add_argument("--spacing-m", type=float, default=100.0)
+    ap.add_argument("--control-every", type=int, default=5)
+    ap.add_argument("--keyframe-s", type=float, default=1.0)
+    ap.add_argument("--scale-bias", type=float, default=0.005)
+    ap.add_argument("--yaw-bias", type=float, default=2e-5)
+    ap.add_argument("--pitch-bias", type=float, default=1e-5)
+    ap.add_argument("--sigma-rot", type=float, default=2e-5)
+    ap.add_argument("--sigma-trans", type=float, default=0.002)
+    ap.add_argument("--sigma-along", type=float, default=0.01)
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--mc", type=int, default=200)
+    ap.add_argument("--mc-duration-s", type=float, default=1100.0)
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--markdown", default=None, help="print the docs table of this results file and exit")
+    a = ap.parse_args(argv)
+    if a.markdown:
+        print(markdown(a.markdown))
+        return None
+    t0 = time.perf_counter()
+    offset = np.zeros(3)
+    t, T_true, stations, tr, length = truth(a.duration_s, a.spacing_m, a.control_every, a.seed, a.keyframe_s)
+    drift = (a.scale_bias, a.yaw_bias, a.pitch_bias, a.sigma_rot, a.sigma_trans, a.sigma_along)
+    tables, graph_info = {}, {}
+    conds = {"bias": drift, "noise_only": (0.0, 0.0, 0.0) + drift[3:]}
+    print(f"drive {length:.0f} m, {len(stations)} stations ({int(stations.is_control.sum())} control), "
+          f"{t.size} keyframes", flush=True)
+    for cname, dr in conds.items():
+        one = run_once(t, T_true, stations, tr, np.random.default_rng(a.seed), dr, offset, tr["crs"])
+        table = {}
+        for m in ("none", "rigid", "graph"):
+            h, v = rmse(one[m])
+            table[m] = {"rmse_h_m": h, "rmse_v_m": v, "max_h_m": float(np.max(np.hypot(one[m][:, 0], one[m][:, 1]))),
+                        "max_v_m": float(np.max(np.abs(one[m][:, 2])))}
+            if m != "none" and one[m + "_outside"].shape[0]:
+                table[m]["rmse_h_outside_m"], table[m]["rmse_v_outside_m"] = rmse(one[m + "_outside"])
+            print(f"  {cname:10s} {m:6s} RMSE h {h:.4f} m  v {v:.4f} m", flush=True)
+        tables[cname] = table
+        graph_info[cname] = {k: one[k] for k in ("graph_status", "sigma0", "flagged", "class_passed",
+                                                 "misclosure_N_min", "iterations", "n_check_between",
+                                                 "n_check_outside")}
+    # calibration: noise only (no bias), the information is the true noise
+    inside, total, sig0, t_mc = 0, 0, [], time.perf_counter()
+    if a.mc:
+        tm, Tm, sm, trm, len_mc = truth(a.mc_duration_s, a.spacing_m, a.control_every, a.seed, a.keyframe_s)
+    for r in range(a.mc):
+        o = run_once(tm, Tm, sm, trm, np.random.default_rng([a.seed, 1000 + r]),
+                     (0.0, 0.0, 0.0, a.sigma_rot, a.sigma_trans, a.sigma_along), offset, trm["crs"])
+        e = o["graph"][:, :2]
+        C = o["graph_cov"][:, :2, :2]
+        m2 = np.einsum("ni,nij,nj->n", e, np.linalg.inv(C), e)
+        inside += int((m2 <= CHI2_2_95).sum())
+        total += e.shape[0]
+        sig0.append(o["sigma0"])
+        if (r + 1) % 20 == 0:
+            print(f"  mc {r + 1}/{a.mc}: coverage {inside / total:.4f}", flush=True)
+    cov = inside / total if total else float("nan")
+    se = np.sqrt(0.95 * 0.05 / total) if total else float("nan")
+    res = {
+        "date": datetime.date.today().isoformat(), "host": platform.node(), "python": sys.version.split()[0],
+        "threads": os.environ.get("NUMBA_NUM_THREADS"), "load": os.getloadavg(),
+        "conditions": {"duration_s": a.duration_s, "path_length_m": length, "stations": len(stations),
+                       "control": int(stations.is_control.sum()), "check": int(stations.is_check.sum()),
+                       "spacing_m": a.spacing_m, "control_every": a.control_every, "keyframe_s": a.keyframe_s,
+                       "keyframes": int(t.size), "scale_bias": a.scale_bias, "yaw_bias_rad_per_m": a.yaw_bias,
+                       "pitch_bias_rad_per_m": a.pitch_bias, "sigma_rot_rad_per_sqrt_m": a.sigma_rot,
+                       "sigma_trans_m_per_sqrt_m": a.sigma_trans, "sigma_along_m_per_sqrt_m": a.sigma_along, "seed": a.seed,
+                       "station_sigma_h_m": float(stations.sigma_h_m[0]),
+                       "station_sigma_v_m": float(stations.sigma_v_m[0]), "loop_closures": 0},
+        "table": tables,
+        "graph": graph_info,
+        "calibration": {"runs": a.mc, "check_points": total, "coverage_95": cov, "binomial_se": se,
+                        "duration_s": a.mc_duration_s, "mean_sigma0": float(np.mean(sig0)) if sig0 else None,
+                        "bias": "none (noise drawn from the graph's information)"},
+        "seconds": time.perf_counter() - t0, "mc_seconds": time.perf_counter() - t_mc,
+    }
+    print(json.dumps({k: res[k] for k in ("table", "calibration")}, indent=1))
+    if a.out:
+        with open(a.out, "w") as f:
+            json.dump(res, f, indent=1, default=float)
+    return res
+
+
+if __name__ == "__main__":
+    main()
