@@ -209,3 +209,40 @@ def test_too_few_control_stations_is_a_user_error():
     st, _ = _stations(t, T, np.array([2.5, 10.5, 20.5]), ["control", "check", "control"], rng, OFFSET)
     with pytest.raises(InputError, match="at least 3"):
         _run("graph", st, t, _chain(Z), edges, Z, info)
+
+
+def test_a_blunder_in_one_control_station_is_flagged_and_named():
+    """0.5 m added to the E of one control station (the issue's acceptance case, small chain): its
+    w-test flags it by name; the others are not flagged; without the blunder nothing is flagged."""
+    t, T = _truth()
+    rng = np.random.default_rng(11)
+    edges, Z, info = _odometry(T, rng)
+    P = _chain(Z)
+    st, _ = _stations(t, T, TIMES, ROLES, rng, OFFSET)
+    clean = _run("graph", st, t, P, edges, Z, info)
+    enh = st.enh_local.copy()
+    enh[3, 0] += 0.5  # S03, a control station
+    bad = Stations(ids=st.ids, t_start_s=st.t_start_s, t_end_s=st.t_end_s, enh_local=enh, origin_enh=st.origin_enh,
+                   sigma_h_m=st.sigma_h_m, sigma_v_m=st.sigma_v_m, roles=st.roles, crs=CRS)
+    res = _run("graph", bad, t, P, edges, Z, info)
+    assert clean.stats.flagged_ids == ()
+    assert res.stats.flagged_ids[:1] == ("S03",)
+    assert res.status == "warning" and "S03" in res.reason
+
+
+def test_station_on_a_keyframe_time_uses_that_keyframe_and_frames_follow_the_graph():
+    """A station at a keyframe's time adds no variable; ControlResult.transform maps the graph's own
+    map poses onto its CRS poses (the frames between follow the interpolated correction)."""
+    from minegeo.slam.control import _insert_stations
+
+    t, T = _truth(n=40)
+    rng = np.random.default_rng(4)
+    edges, Z, info = _odometry(T, rng)
+    P = _chain(Z)
+    times = np.array([1.0, 10.5, 20.0, 30.5, 38.0])
+    st, _ = _stations(t, T, times, ["control", "check", "control", "check", "control"], rng, OFFSET)
+    res = _run("graph", st, t, P, edges, Z, info)
+    assert res.times_s.size == t.size + 2 and "2 station variable(s) inserted" in res.keyframe_note
+    assert np.array_equal(res.times_s[res.station_var[[0, 2, 4]]], times[[0, 2, 4]])
+    g_t, g_P = _insert_stations(t, P, edges, Z, info, st.t_mid_s)[:2]
+    np.testing.assert_allclose(res.transform(g_t, g_P, g_t, g_P), res.poses, atol=1e-9)
