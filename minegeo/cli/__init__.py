@@ -55,13 +55,14 @@ def _load(verb: str):
     return importlib.import_module(VERBS[verb])
 
 
-#: CPU seconds of one-time Numba compilation of each verb's documented small example on an empty
-#: Numba cache (``benchmarks/bench_first_use.py``, ``cpu_s`` of the newest ``first_use_*_after`` results
-#: file, rounded up; docs/first_use.md). Only for the "about N s" of the first-use notice.
+#: About how long each verb's first run compiles on an empty Numba cache, on an idle 2-core machine:
+#: the CPU seconds of its documented small example in ``benchmarks/results/first_use_2026-11-29_before.json``
+#: (``benchmarks/bench_first_use.py``; docs/first_use.md), rounded up to 5 s; ``localize-batch`` and ``demo``
+#: compile in two processes at once (half their CPU seconds). Only for the "about N s" of the first-use notice.
 COLD_COMPILE_S: dict[str, float] = {
-    "synth": 30, "info": 0, "adjust": 0, "mast": 10, "georef": 5, "prepare-map": 40, "localize": 60,
-    "localize-batch": 60, "posegraph": 40, "demo": 120, "slam": 90, "evaluate": 10,
-    "intersections": 30, "track": 90, "warmup": 300,
+    "synth": 30, "info": 0, "adjust": 0, "mast": 10, "georef": 5, "prepare-map": 75, "localize": 90,
+    "localize-batch": 140, "posegraph": 40, "demo": 140, "slam": 125, "evaluate": 15,
+    "intersections": 10, "track": 125, "warmup": 400,
 }
 
 

@@ -90,7 +90,7 @@ class FirstCompileNotice:
         if self.shown:
             return
         self.shown = True
-        about = (f"; about {self.estimate_s:.0f} s on a fresh install" if self.estimate_s and self.estimate_s >= 1
+        about = (f"; about {self.estimate_s:.0f} s on an idle machine" if self.estimate_s and self.estimate_s >= 1
                  else "")
         try:
             print(f"minegeo {self.verb}: compiling numerical kernels for first use (once, cached for later "
