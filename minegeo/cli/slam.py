@@ -57,7 +57,7 @@ def add_arguments(parser) -> None:
                         help="plausible motion: a registration turning faster is rejected (deg/s, default 180)")
     parser.add_argument("--max-acceleration", type=positive_float, default=20.0,
                         help="plausible motion: a registration whose velocity changes faster than this against the "
-                        "previous motion is rejected (m/s^2, default 20)")
+                        "previous motion, beyond 0.1 m of registration scatter, is rejected (m/s^2, default 20)")
     parser.add_argument("--seed", type=nonnegative_int, default=0,
                         help="recorded seed (the run draws no random numbers)")
 

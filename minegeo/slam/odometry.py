@@ -32,7 +32,7 @@
   (``deskew_iterations``); the pose of a frame is the sensor pose at its frame time.
 * No silent runaway: a registration whose motion since the last registered frame exceeds
   ``max_speed_m_s`` or ``max_angular_rate_deg_s``, whose velocity changes against the previous
-  motion by more than ``max_acceleration_m_s2``, or whose normalised constraint ratio is below
+  motion by more than ``max_acceleration_m_s2`` (with ``motion_noise_m`` of registration noise), or whose normalised constraint ratio is below
   ``min_constraint_ratio`` (degenerate geometry) is rejected: the frame is held by the
   constant-velocity prior, flagged (:meth:`OdometryResult.held_stretches`), and the next frame
   registers to the last registered one.
@@ -121,6 +121,10 @@ class OdometryParams:
     max_speed_m_s: float = 30.0
     max_angular_rate_deg_s: float = 180.0
     max_acceleration_m_s2: float = 20.0
+    #: registration noise allowed in the acceleration test (m): two positions off by this much change
+    #: a velocity over ``dt`` by ``2·motion_noise_m/dt`` (in a smooth box drift at 1 m per 0.1 s frame,
+    #: frame-to-frame GICP scattered by up to 0.13 m: 25 m/s² of apparent acceleration)
+    motion_noise_m: float = 0.1
     #: degenerate geometry: a registration whose normalised point-to-plane constraint matrix
     #: (:func:`minegeo.registration.constraint_analysis`, GICP's ``degeneracy_ratio``) has
     #: ``λ_min / λ_max`` below this is rejected (dimensionless; GICP flags below 1e-2 as weak)
@@ -132,7 +136,7 @@ class OdometryParams:
         for name in ("voxel_size_m", "max_correspondence_distance_m", "keyframe_distance_m", "keyframe_angle_deg",
                      "keyframe_interval_s", "sigma_floor_m", "coarse_gate_factor", "translation_observability_ratio",
                      "surface_observability_ratio", "max_speed_m_s", "max_angular_rate_deg_s",
-                     "max_acceleration_m_s2"):
+                     "max_acceleration_m_s2", "motion_noise_m"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise InputError(f"{name} must be a finite number > 0, got {v!r}")
@@ -505,9 +509,9 @@ def _implausible(reg: Registration, motion: np.ndarray, dt: float, v_prev_w: np.
     ``R_from``) against the speed, angular rate and acceleration bounds, and the registration's
     constraint ratio against ``min_constraint_ratio`` (degenerate geometry).
 
-    speed ``|Δt| / dt``; angular rate ``arccos((tr ΔR − 1)/2) / dt``; acceleration
-    ``|v − v_prev| / ((dt + dt_prev)/2)`` with the world velocities ``v = R_from Δt / dt`` and
-    ``v_prev`` of the previous motion (not checked before there is one)."""
+    speed ``|Δt| / dt``; angular rate ``arccos((tr ΔR − 1)/2) / dt``; acceleration: rejected when
+    ``|v − v_prev| > a_max (dt + dt_prev)/2 + 2 motion_noise_m / dt`` with the world velocities
+    ``v = R_from Δt / dt`` and ``v_prev`` of the previous motion (not checked before there is one)."""
     if reg.constraint_ratio < params.min_constraint_ratio:
         return (f"degenerate geometry: constraint ratio {reg.constraint_ratio:.2e} below "
                 f"{params.min_constraint_ratio:.0e} (the registration does not fix the pose)")
@@ -520,11 +524,24 @@ def _implausible(reg: Registration, motion: np.ndarray, dt: float, v_prev_w: np.
                 f"{params.max_angular_rate_deg_s:g} deg/s")
     if v_prev_w is not None and velocity_dt > 0:
         v = R_from @ motion[:3, 3] / dt
-        acc = float(np.linalg.norm(v - v_prev_w)) / (0.5 * (dt + velocity_dt))
-        if acc > params.max_acceleration_m_s2:
-            return (f"implausible motion: acceleration {acc:.1f} m/s² above {params.max_acceleration_m_s2:g} m/s² "
-                    "(speed change against the previous motion)")
+        dv = float(np.linalg.norm(v - v_prev_w))
+        mid = 0.5 * (dt + velocity_dt)
+        if dv > params.max_acceleration_m_s2 * mid + 2.0 * params.motion_noise_m / dt:
+            return (f"implausible motion: velocity change {dv:.1f} m/s in {mid:.3f} s ({dv / mid:.0f} m/s²) above "
+                    f"{params.max_acceleration_m_s2:g} m/s² with {params.motion_noise_m:g} m of registration noise")
     return ""
+
+
+def _checked(reg: Registration, pose, k: int, t: float, poses: list, times: list, last_ok: int, v_prev_w,
+             velocity_dt: float, params: OdometryParams) -> Registration:
+    """``reg`` (frame ``k`` at ``t``, placed at ``pose``), rejected when :func:`_implausible` says its
+    motion since the last registered frame ``last_ok`` is implausible."""
+    why = _implausible(reg, relative(poses[last_ok], pose), t - times[last_ok], v_prev_w, velocity_dt,
+                       poses[last_ok][:3, :3], params) if reg.ok else ""
+    if why:
+        log.warning("frame %d (t = %.3f s) rejected: %s; held by the constant-velocity prior", k, t, why)
+        return replace(reg, ok=False, reason=why)
+    return reg
 
 
 def run_odometry(frames: Iterable, params: OdometryParams | None = None, progress=None) -> OdometryResult:
@@ -636,6 +653,8 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
                 if reg0.ok and pose0 is not None:
                     reg, pose, via_prev = reg0, pose0, via0
         first_raw = None
+        motion_args = (k, t, poses, times, last_ok, v_prev_w, velocity_dt, params)
+        reg = _checked(reg, pose, *motion_args)  # an implausible first pass does not seed the second
         if raw is not None and params.deskew_iterations and reg.ok and pose is not None:
             # deskew again with this frame's own motion (from the last registered frame to it)
             t1 = time.perf_counter()
@@ -644,14 +663,9 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
             t_prep += time.perf_counter() - t1
             reg2, pose2, via2 = register(cur2, k, t)
             if reg2.ok and pose2 is not None:
-                cur, reg, pose, via_prev, twist = cur2, reg2, pose2, via2, twist2
-        if reg.ok:
-            why = _implausible(reg, relative(poses[last_ok], pose), t - times[last_ok], v_prev_w, velocity_dt,
-                               poses[last_ok][:3, :3], params)
-            if why:
-                log.warning("frame %d (t = %.3f s) rejected: %s; held by the constant-velocity prior", k, t, why)
-                reg = replace(reg, ok=False, reason=why)
-                via_prev = False
+                cur, reg, pose, via_prev, twist = cur2, _checked(reg2, pose2, *motion_args), pose2, via2, twist2
+        if not reg.ok:
+            via_prev = False
         t_f2f += time.perf_counter() - t0
         if not reg.ok:
             log.info("frame %d (t = %.3f s) not registered: %s; placed by constant velocity", k, t, reg.reason)
