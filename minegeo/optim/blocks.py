@@ -155,13 +155,20 @@ class BlockSystem:
         """Accumulate unary factors: ``r`` (m, k), ``J`` (m, k, d), ``WO`` (m, k, k)."""
         K.accumulate_unary(r, J, WO, bcol, self.Lp, self.Hx, self.g)
 
-    def solve(self, lam: float, relative: bool, tiny: float = 0.0):
-        """``δ`` with ``(H + λ D) δ = -g`` (elimination order), or None if not positive definite
-        (a pivot ``≤ tiny ·`` its diagonal entry; :attr:`failed_block` is then the block column);
-        ``D = diag(H)`` when ``relative``, else ``I``."""
+    def cholesky(self, lam: float = 0.0, relative: bool = False, tiny: float = SINGULAR_PIVOT):
+        """The block Cholesky factor ``L`` (values ``Lx`` (nnz, d, d) in the pattern ``(Lp, Li)``,
+        elimination order) of ``H + λ D`` last assembled, or None if that matrix is not positive
+        definite (a pivot ``≤ tiny ·`` its diagonal entry; :attr:`failed_block` is then the block
+        column). ``D = diag(H)`` when ``relative``, else ``I``."""
         Lx = np.empty_like(self.Hx)
         self.failed_block = int(K.block_cholesky(self.Lp, self.Li, self.Hx, lam, relative, Lx, tiny))
-        if self.failed_block >= 0:
+        return None if self.failed_block >= 0 else Lx
+
+    def solve(self, lam: float, relative: bool, tiny: float = 0.0):
+        """``δ`` with ``(H + λ D) δ = -g`` (elimination order), or None if not positive definite
+        (see :meth:`cholesky`)."""
+        Lx = self.cholesky(lam, relative, tiny)
+        if Lx is None:
             return None
         return K.block_cholesky_solve(self.Lp, self.Li, Lx, -self.g)
 
