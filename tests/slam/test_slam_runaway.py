@@ -92,3 +92,43 @@ def test_the_cli_reports_the_held_stretch(stream, tmp_path):
     assert "implausible motion" in h["reasons"][0]
     html = (out / "report.html").read_text()
     assert "Held by the constant-velocity motion prior" in html and f"{BAD}–{BAD}" in html
+
+
+def _reg(ratio=0.01):
+    from minegeo.slam.odometry import Registration
+
+    return Registration(np.eye(4), True, "", 1.0, 0.01, np.eye(6), constraint_ratio=ratio)
+
+
+def _step(dx, yaw_deg=0.0):
+    T = np.eye(4)
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[0, 3] = dx
+    return T
+
+
+def test_the_bounds_by_hand():
+    """Hand-computed limits at 10 Hz with the default bounds (30 m/s, 180 deg/s, 20 m/s² + 0.1 m of
+    noise: a velocity change of at most 20·0.1 + 2·0.1/0.1 = 4 m/s after a 3 m/s motion)."""
+    from minegeo.slam.odometry import _implausible
+
+    p, R, v0 = OdometryParams(), np.eye(3), np.array([3.0, 0.0, 0.0])
+    assert _implausible(_reg(), _step(0.69), 0.1, v0, 0.1, R, p) == ""          # 6.9 m/s: Δv 3.9
+    assert "velocity change 4.1" in _implausible(_reg(), _step(0.71), 0.1, v0, 0.1, R, p)
+    assert _implausible(_reg(), _step(-0.09), 0.1, v0, 0.1, R, p) == ""         # braking: Δv 3.9
+    assert "speed 31.0" in _implausible(_reg(), _step(3.1), 0.1, None, 0.0, R, p)  # no previous motion
+    assert "angular rate 190" in _implausible(_reg(), _step(0.0, 19.0), 0.1, None, 0.0, R, p)
+    assert _implausible(_reg(), _step(0.0, 17.0), 0.1, None, 0.0, R, p) == ""
+    # the previous velocity is compared in the world frame: a 90 deg yawed sensor driving along its x
+    Rz = _step(0.0, 90.0)[:3, :3]
+    assert _implausible(_reg(), _step(0.3), 0.1, np.array([0.0, 3.0, 0.0]), 0.1, Rz, p) == ""
+    assert "velocity change" in _implausible(_reg(), _step(0.3), 0.1, v0, 0.1, Rz, p)  # 3 m/s x -> 3 m/s y
+
+
+def test_degenerate_geometry_is_rejected():
+    from minegeo.slam.odometry import _implausible
+
+    p = OdometryParams()
+    assert "degenerate geometry" in _implausible(_reg(5e-5), _step(0.3), 0.1, None, 0.0, np.eye(3), p)
+    assert _implausible(_reg(2e-4), _step(0.3), 0.1, None, 0.0, np.eye(3), p) == ""
