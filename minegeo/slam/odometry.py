@@ -539,7 +539,7 @@ def _checked(reg: Registration, pose, k: int, t: float, poses: list, times: list
     why = _implausible(reg, relative(poses[last_ok], pose), t - times[last_ok], v_prev_w, velocity_dt,
                        poses[last_ok][:3, :3], params) if reg.ok else ""
     if why:
-        log.warning("frame %d (t = %.3f s) rejected: %s; held by the constant-velocity prior", k, t, why)
+        log.info("frame %d (t = %.3f s) rejected: %s; held by the constant-velocity prior", k, t, why)
         return replace(reg, ok=False, reason=why)
     return reg
 
