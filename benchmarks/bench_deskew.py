@@ -77,7 +77,7 @@ def main(argv=None) -> int:
                   "--force"])
         for mode, opts in MODES.items():
             run = a.work / f"{stream.name}_{'_'.join(mode.replace(',', '').split()[:3])}"
-            wall = _cli(["slam", "--frames", str(stream / "frames"), "--times", str(stream / "times.txt"),
+            wall = _cli(["slam", "--frames", str(stream / "frames"),
                          "--out", str(run), *opts])
             rows.append({"preset": preset, "mode": mode, "options": opts, "wall_s": wall, **_ate(run, stream)})
             print(rows[-1], flush=True)

@@ -50,7 +50,7 @@ def add_arguments(parser) -> None:
     s = parser.add_argument_group("sensor stream (docs/synth.md, 'Sensor streams'): raw motion-distorted sweeps "
                                   "with per-point times and an IMU, instead of the mine")
     s.add_argument("--stream", choices=("vehicle", "handheld", "drone"), default=None,
-                   help="write a sensor stream of this carrier into OUTDIR (frames/, times.txt, imu.csv, "
+                   help="write a sensor stream of this carrier into OUTDIR (frames/ with times.txt, imu.csv, "
                         "imu_truth.csv, groundtruth.txt, result.json)")
     s.add_argument("--duration-s", type=positive_float, default=None, metavar="S", help="stream length (default 5 s)")
     s.add_argument("--lidar-hz", type=float_in_range(5.0, 20.0), default=None, metavar="HZ",

@@ -549,7 +549,7 @@ def iter_sweeps(world, sensor, curve, frame_times, seed, chunk: int = 10):
 
 
 def write_stream(folder, params: StreamParams, net=None, progress=None) -> dict:
-    """Write a stream into ``folder`` (created): ``frames/NNNNNN.ply``, ``times.txt``, ``imu.csv``,
+    """Write a stream into ``folder`` (created): ``frames/NNNNNN.ply`` with ``frames/times.txt``, ``imu.csv``,
     ``imu_truth.csv``, ``groundtruth.txt`` (TUM at the frame times), ``result.json`` and, with
     stations, ``stations.csv`` and ``stations_truth.csv``.
 
@@ -574,7 +574,8 @@ def write_stream(folder, params: StreamParams, net=None, progress=None) -> dict:
         n_pts.append(len(P))
         if progress is not None:
             progress(i + 1, len(st.frame_times))
-    (out / "times.txt").write_text("".join(f"{t:.9f}\n" for t in st.frame_times))
+    # the SLAM contract's frames folder: DIR/times.txt, one frame time (s) per frame in name order
+    (out / "frames" / "times.txt").write_text("".join(f"{t:.9f}\n" for t in st.frame_times))
     (out / "imu.csv").write_text(imu_csv_text(st.imu))
     (out / "imu_truth.csv").write_text(imu_truth_csv_text(st.imu))
     write_trajectory(out / "groundtruth.txt", st.curve.trajectory(st.frame_times), format="tum")
@@ -624,7 +625,7 @@ def stream_record(st: Stream, n_points: list) -> dict:
                         "imu_frame": "LiDAR frame (identity extrinsic, no lever arm)",
                         "gravity_mps2": GRAVITY_MPS2, "groundtruth": "TUM T_world_sensor at the frame times"},
         "network": {k: v for k, v in st.net.info.items() if k != "node_ids"},
-        "files": {"frames": "frames/NNNNNN.ply (x y z time ring)", "times": "times.txt", "imu": "imu.csv",
+        "files": {"frames": "frames/NNNNNN.ply (x y z time ring)", "times": "frames/times.txt", "imu": "imu.csv",
                   "imu_truth": "imu_truth.csv", "groundtruth": "groundtruth.txt"},
         "n_frames": int(len(st.frame_times)), "n_points": int(np.sum(n_points)),
         "points_per_frame": {"min": int(np.min(n_points)), "max": int(np.max(n_points))},

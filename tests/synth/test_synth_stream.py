@@ -129,7 +129,7 @@ def test_stream_deterministic_and_streams_independent(tmp_path):
     write_stream(e, StreamParams(preset="handheld", seed=3, imu=ImuParams(rate_hz=200.0), **TINY))
     fa, fb, fc, fd, fe = _files(a), _files(b), _files(c), _files(d), _files(e)
     assert fa == fb
-    assert len([k for k in fa if k.startswith("frames/")]) == 10
+    assert len([k for k in fa if k.startswith("frames/") and k.endswith(".ply")]) == 10 and "frames/times.txt" in fa
     assert fa["imu.csv"] != fc["imu.csv"] and fa["frames/000003.ply"] != fc["frames/000003.ply"]
     assert fa["groundtruth.txt"] != fc["groundtruth.txt"]                 # the motion's draws differ too
     # another gyro noise density: same motion, same LiDAR noise, same bias walk; only the IMU readings change
@@ -150,7 +150,7 @@ def test_cli_stream_outputs(tmp_path):
     out = tmp_path / "s"
     assert main(["synth", str(out), "--stream", "vehicle", "--duration-s", "0.5", "--lidar-hz", "20",
                  "--imu-hz", "400", "--seed", "2"]) == 0
-    times = np.loadtxt(out / "times.txt")
+    times = np.loadtxt(out / "frames" / "times.txt")  # the SLAM contract's DIR/times.txt
     assert np.allclose(times, 0.5 + 0.05 * np.arange(10))
     gt = read_trajectory(out / "groundtruth.txt")
     assert np.allclose(gt.times_s, times)
