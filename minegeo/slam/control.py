@@ -36,6 +36,12 @@ position factor (:class:`PositionFactors`)::
 line). A check station's variable carries no factor of its coordinates: check stations never enter
 the fit (moving one leaves the solution bit-identical).
 
+With ``ControlParams(drift_states=True)`` every variable also carries drift states
+``β = (s, p, y)`` (odometry scale error, pitch and yaw rate per metre) taken out of each odometry
+measurement (:class:`DriftBetweenFactors`, C4), a random walk between consecutive variables and a
+prior at the first (:class:`DriftWalkFactors`): a systematic drift that between factors alone
+cannot represent.
+
 Uncertainty
 -----------
 The marginal covariance of every pose is the diagonal block of ``H⁻¹`` at the solution, computed by
@@ -79,7 +85,7 @@ from minegeo.optim import (
     levenberg_marquardt,
 )
 
-__all__ = ["ControlParams", "ControlResult", "PositionFactors", "apply_control", "graph_inputs", "interpolate_poses",
+__all__ = ["ControlParams", "ControlResult", "DriftBetweenFactors", "DriftWalkFactors", "PositionFactors", "apply_control", "graph_inputs", "interpolate_poses",
            "selected_inverse", "station_points"]
 
 log = logging.getLogger(__name__)
@@ -156,6 +162,85 @@ class PositionFactors(FactorGroup):
         return self.residuals(values), (J,)
 
 
+class DriftBetweenFactors(FactorGroup):
+    """Between factors whose odometry carries a slowly varying systematic drift (C4).
+
+    Every variable has the vector part ``β_i = (s, p, y)``: scale error of the odometry's translation
+    (dimensionless), pitch and yaw rates (rad per metre travelled, about the sensor's y and z axes).
+    The measurement of edge ``(i, j)`` with translation ``t_Z`` (``d = |t_Z|``) is taken as
+    ``Z = Z_true Exp(ε)``, ``ε = (0, p d, y d, s t_Z)``, so the factor is::
+
+        r = Log(Exp(ε(β_i)) Z⁻¹ T_i⁻¹ T_j)                                                (C4)
+        ∂r/∂β_i ≈ J_l⁻¹(r) Ad(Exp ε) J_r(ε) ∂ε/∂β_i
+
+    (pose Jacobians those of :class:`~minegeo.optim.BetweenFactors` with ``Z Exp(−ε)``).
+    """
+
+    def __init__(self, edges, Z, information):
+        self.variables = np.ascontiguousarray(edges, dtype=np.int64).reshape(-1, 2)
+        self.Z = np.ascontiguousarray(Z, dtype=np.float64)
+        self.information = np.ascontiguousarray(information, dtype=np.float64)
+        self.tz = self.Z[:, :3, 3].copy()
+        self.d = np.linalg.norm(self.tz, axis=1)
+
+    def _eps(self, values: Values) -> np.ndarray:
+        b = values.vectors[self.variables[:, 0]]
+        eps = np.zeros((self.variables.shape[0], 6))
+        eps[:, 1] = b[:, 1] * self.d
+        eps[:, 2] = b[:, 2] * self.d
+        eps[:, 3:] = b[:, :1] * self.tz
+        return eps
+
+    def _corrected(self, values: Values):
+        eps = self._eps(values)
+        Zc = np.ascontiguousarray(np.stack([Z @ se3_exp(-e) for Z, e in zip(self.Z, eps, strict=True)]))
+        return eps, Zc
+
+    def residuals(self, values: Values) -> np.ndarray:
+        from minegeo.optim import between_residuals
+
+        return between_residuals("SE3", values.poses, self.variables, self._corrected(values)[1])
+
+    def linearize(self, values: Values) -> tuple:
+        from minegeo.kernels.lie import se3_adjoint, se3_left_jacobian_inv, se3_right_jacobian
+        from minegeo.optim import between_terms
+
+        eps, Zc = self._corrected(values)
+        r, Ji, Jj = between_terms("SE3", values.poses, self.variables, Zc)
+        m = r.shape[0]
+        Jb = np.zeros((m, 6, 3))
+        for e in range(m):
+            A = se3_left_jacobian_inv(r[e]) @ se3_adjoint(se3_exp(eps[e])) @ se3_right_jacobian(eps[e])
+            Jb[e, :, 0] = A[:, 3:] @ self.tz[e]
+            Jb[e, :, 1] = A[:, 1] * self.d[e]
+            Jb[e, :, 2] = A[:, 2] * self.d[e]
+        Ji9 = np.concatenate([Ji, Jb], axis=2)
+        return r, (Ji9, Jj)
+
+
+class DriftWalkFactors(FactorGroup):
+    """``r = β_j − β_i`` on consecutive variables (a random walk of the drift states, C4), or a prior
+    ``r = β_i`` (arity 1)."""
+
+    def __init__(self, variables, information):
+        self.variables = np.ascontiguousarray(variables, dtype=np.int64)
+        self.information = np.ascontiguousarray(information, dtype=np.float64)
+
+    def residuals(self, values: Values) -> np.ndarray:
+        b = values.vectors
+        if self.arity == 1:
+            return b[self.variables[:, 0]].copy()
+        return b[self.variables[:, 1]] - b[self.variables[:, 0]]
+
+    def linearize(self, values: Values) -> tuple:
+        m = self.variables.shape[0]
+        J = np.zeros((m, 3, 9))
+        J[:, :, 6:] = np.eye(3)
+        if self.arity == 1:
+            return self.residuals(values), (J,)
+        return self.residuals(values), (-J, J)
+
+
 def selected_inverse(Lp: np.ndarray, Li: np.ndarray, Lx: np.ndarray) -> np.ndarray:
     """Blocks of ``H⁻¹`` in the pattern of its block Cholesky factor ``H = L Lᵀ`` (C3).
 
@@ -226,12 +311,22 @@ class ControlParams:
     class_c : float
         ICSM SP1 class constant (mm), 50 = Class D.
     lm : LMParams
+    drift_states : bool
+        Graph mode: estimate a systematic odometry drift (scale, pitch and yaw rate) per variable
+        as a random walk (C4) besides the poses.
+    drift_prior : tuple of 3 float
+        A-priori standard deviations of the drift states at the first variable (scale, rad/m, rad/m).
+    drift_walk : tuple of 3 float
+        Their random-walk standard deviations per second of time between variables.
     """
 
     mode: str = "graph"
     model: str = "rigid"
     class_c: float = 50.0
     lm: LMParams = field(default_factory=LMParams)
+    drift_states: bool = False
+    drift_prior: tuple = (0.02, 1e-4, 1e-4)
+    drift_walk: tuple = (1e-4, 1e-6, 1e-6)
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -445,13 +540,26 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
             np.asarray(information, np.float64), t_st)
         note = (f"{n_new} station variable(s) inserted at the station times (odometry edge split by time "
                 f"fraction), {len(stations) - n_new} on keyframes at the same time")
-        start = Values(np.ascontiguousarray(T_lm @ G_poses0))
         W = np.zeros((n_ctrl, 3, 3))
         W[:, 0, 0] = W[:, 1, 1] = stations.sigma_h_m[ctrl] ** -2
         W[:, 2, 2] = stations.sigma_v_m[ctrl] ** -2
-        groups = [BetweenFactors(G_edges, G_Z, G_info),
-                  PositionFactors(var[ctrl], stations.enh_local[ctrl], offset, W)]
-        problem = FactorProblem(G_times.size, 6, groups, (), p.lm,
+        nv = G_times.size
+        if p.drift_states:
+            start = Values(np.ascontiguousarray(T_lm @ G_poses0), np.zeros((nv, 3)))
+            dt = np.diff(G_times)
+            walk = np.zeros((nv - 1, 3, 3))
+            walk[:, [0, 1, 2], [0, 1, 2]] = 1.0 / (np.asarray(p.drift_walk)[None, :] ** 2 * dt[:, None])
+            groups = [DriftBetweenFactors(G_edges, G_Z, G_info),
+                      PositionFactors(var[ctrl], stations.enh_local[ctrl], offset, W),
+                      DriftWalkFactors(np.c_[np.arange(nv - 1), np.arange(1, nv)], walk),
+                      DriftWalkFactors(np.zeros((1, 1)), np.diag(np.asarray(p.drift_prior) ** -2.0)[None])]
+            dim, n_vec = 9, 3
+        else:
+            start = Values(np.ascontiguousarray(T_lm @ G_poses0))
+            groups = [BetweenFactors(G_edges, G_Z, G_info),
+                      PositionFactors(var[ctrl], stations.enh_local[ctrl], offset, W)]
+            dim, n_vec = 6, 0
+        problem = FactorProblem(nv, dim, groups, (), p.lm,
                                 labels=lambda v: (f"graph variable {v} (t = {G_times[v]:.3f} s)", int(v)),
                                 hint=": fewer than 3 control stations off one line leave the map free to turn")
         opt = levenberg_marquardt(problem, start, p.lm)
@@ -460,7 +568,8 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
             G_poses = start.poses
         else:
             G_poses = opt.values.poses
-        covs = marginal_covariances(problem, Values(np.ascontiguousarray(G_poses)))
+        G_vec = (opt.values.vectors if opt.status == "converged" else start.vectors) if n_vec else None
+        covs = marginal_covariances(problem, Values(np.ascontiguousarray(G_poses), G_vec))[:, :6, :6]
         Pk = G_poses[var]
         J = np.empty((len(stations), 3, 6))
         J[:, :, :3] = -Pk[:, :3, :3] @ _hat(offset)
@@ -471,9 +580,9 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
         qvv = np.zeros((3 * n_ctrl, 3 * n_ctrl))
         for q, c in enumerate(np.flatnonzero(ctrl)):
             qvv[3 * q:3 * q + 3, 3 * q:3 * q + 3] = cov_ll[c] - st_cov[c]
-        dof = 6 * G_edges.shape[0] + 3 * n_ctrl - 6 * G_times.size
+        dof = 6 * G_edges.shape[0] + 3 * n_ctrl - 6 * nv  # the drift states bring as many factors as unknowns
         stats = control_statistics(v, cov_ll[ctrl], qvv=qvv, dof=max(dof, 0), ids=ids[ctrl])
-        gchi = chi2_global_test(2.0 * problem.cost(problem.evaluate(Values(np.ascontiguousarray(G_poses)))),
+        gchi = chi2_global_test(2.0 * problem.cost(problem.evaluate(Values(np.ascontiguousarray(G_poses), G_vec))),
                                 max(dof, 0))
         ellipses = [error_ellipse(st_cov[c][:2, :2], confidence=0.95) for c in np.flatnonzero(chk)]
     check = classes = None

@@ -246,3 +246,51 @@ def test_station_on_a_keyframe_time_uses_that_keyframe_and_frames_follow_the_gra
     assert np.array_equal(res.times_s[res.station_var[[0, 2, 4]]], times[[0, 2, 4]])
     g_t, g_P = _insert_stations(t, P, edges, Z, info, st.t_mid_s)[:2]
     np.testing.assert_allclose(res.transform(g_t, g_P, g_t, g_P), res.poses, atol=1e-9)
+
+
+def test_drift_between_factor_jacobians_match_finite_differences():
+    from minegeo.slam.control import DriftBetweenFactors
+
+    rng = np.random.default_rng(0)
+    T = np.stack([se3_exp(rng.standard_normal(6)) for _ in range(3)])
+    Z = np.stack([se3_exp(rng.standard_normal(6)) for _ in range(2)])
+    f = DriftBetweenFactors([[0, 1], [2, 1]], Z, np.tile(np.eye(6), (2, 1, 1)))
+    v = Values(T, rng.standard_normal((3, 3)) * [0.01, 1e-3, 1e-3])
+    _, J = f.linearize(v)
+    col, h = np.arange(3) * 9, 1e-6
+    for slot in (0, 1):
+        Jn = np.zeros((2, 6, 9))
+        for e in range(2):
+            for k in range(9):
+                dp = np.zeros(27)
+                dp[9 * f.variables[e, slot] + k] = h
+                Jn[e, :, k] = (f.residuals(v.retract(col, dp))[e] - f.residuals(v.retract(col, -dp))[e]) / (2 * h)
+        w = J[slot].shape[2]
+        np.testing.assert_allclose(J[slot], Jn[:, :, :w], atol=1e-7)
+        if w < 9:
+            assert np.abs(Jn[:, :, w:]).max() < 1e-9  # the end pose's drift states do not enter
+
+
+def test_drift_states_take_out_a_scale_and_heading_bias():
+    """Odometry with 1 % scale and 1e-4 rad/m yaw bias (not in its information): control in the
+    graph with drift states (C4) brings the check stations to the truth within 2 cm horizontally,
+    the plain graph does not (measured RMSE h 1.1 cm vs 13.9 cm), and its states are the injected bias."""
+    t, T = _truth()
+    rng = np.random.default_rng(11)
+    edges, Z, info = _odometry(T, rng, sigma_rot=2e-5, sigma_trans=0.002)
+    for e in range(Z.shape[0]):
+        Zt = se3_inverse(T[e]) @ T[e + 1]
+        Z[e] = Z[e] @ se3_exp(np.r_[0.0, 0.0, 1e-4 * np.linalg.norm(Zt[:3, 3]), 0.01 * Zt[:3, 3]])
+    P = _chain(Z)
+    st, true = _stations(t, T, TIMES, ROLES, rng, OFFSET)
+    err = {}
+    for name, cp in (("graph", ControlParams()), ("drift", ControlParams(drift_states=True))):
+        res = apply_control(t, P, edges, Z, info, st, OFFSET, CRS, cp)
+        e = (res.station_enh_local - true)[st.is_check]
+        err[name] = float(np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2)))
+        if name == "drift":
+            beta = np.median(res.optimisation.values.vectors, axis=0)
+    assert res.optimisation.status == "converged"
+    assert err["drift"] < 0.02 < err["graph"]
+    # the drift states recover the injected bias (measured 0.00988, 3e-6, 9.94e-5)
+    assert abs(beta[0] - 0.01) < 1e-3 and abs(beta[1]) < 1e-5 and abs(beta[2] - 1e-4) < 1e-5
