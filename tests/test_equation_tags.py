@@ -41,6 +41,7 @@ KNOWN_SOURCES = frozenset({
     "Sturm2012",         # Sturm et al.: A benchmark for the evaluation of RGB-D SLAM systems (IROS 2012)
     "Nocedal2006",       # Nocedal & Wright: Numerical Optimization, 2nd ed.
     "Davis2006",         # Davis: Direct Methods for Sparse Linear Systems (SIAM)
+    "Forster2017",       # Forster, Carlone, Dellaert, Scaramuzza: On-Manifold Preintegration (IEEE T-RO 33(1))
 })
 
 _NUM = r"\d+(?:\.\d+)*[a-z]?"
