@@ -85,7 +85,7 @@ def chain(Z, T0):
     return P
 
 
-def run_once(t, T_true, stations: Stations, tr, rng, drift, offset, crs):
+def run_once(t, T_true, stations: Stations, tr, rng, drift, offset, crs, modes=("rigid", "graph", "graph_drift")):
     """The three modes on one odometry draw; returns errors at the check stations (truth)."""
     edges, Z, info = odometry(T_true, rng, *drift)
     P = chain(Z, np.eye(4))  # SLAM map frame = first keyframe
@@ -103,10 +103,15 @@ def run_once(t, T_true, stations: Stations, tr, rng, drift, offset, crs):
     G = T_s_true @ se3_inverse(T_s)
     pts = station_points(G @ interpolate_poses(t, P, stations.t_mid_s), offset) - stations.origin_enh
     out["none"] = pts[chk] - true_local[chk]
-    for mode in ("rigid", "graph"):
-        res = apply_control(t, P, edges, Z, info, stations, offset, crs, ControlParams(mode=mode))
+    for mode in modes:
+        cp = ControlParams(mode=mode[:5], drift_states=mode == "graph_drift")
+        res = apply_control(t, P, edges, Z, info, stations, offset, crs, cp)
         out[mode] = res.station_enh_local[chk] - true_local[chk]
         out[mode + "_outside"] = (res.station_enh_local - true_local)[stations.is_check & ~chk]
+        if mode == "graph_drift":
+            out["graph_drift_status"] = res.status
+            out["graph_drift_cov"] = res.station_cov_enh[chk]
+            out["graph_drift_sigma0"] = float(np.sqrt(res.global_chi2.statistic / max(res.global_chi2.dof, 1)))
         if mode == "graph":
             out["graph_status"] = res.status
             out["graph_cov"] = res.station_cov_enh[chk]
@@ -132,7 +137,8 @@ def markdown(path) -> str:
              "| odometry drift | mode | check RMSE h (m) | check RMSE v (m) | max h (m) | max v (m) |",
              "|---|---|---|---|---|---|"]
     names = {"none": "no control (placed by the first control station, true heading)",
-             "rigid": "rigid fit of the control stations", "graph": "control in the pose graph"}
+             "rigid": "rigid fit of the control stations", "graph": "control in the pose graph",
+             "graph_drift": "control in the pose graph + drift states (C4)"}
     for cname, tab in d["table"].items():
         for m, r in tab.items():
             lines.append(f"| {cname.replace('_', ' ')} | {names[m]} | {r['rmse_h_m']:.3f} | {r['rmse_v_m']:.3f} | "
@@ -143,7 +149,8 @@ def markdown(path) -> str:
                  f"{c['check']} check stations ({d['graph']['bias']['n_check_between']} between two controls, "
                  f"in the table), seed {c['seed']}. 95 % ellipse coverage at the check stations over "
                  f"{cal['runs']} runs ({cal['check_points']} points, noise only): {100 * cal['coverage_95']:.1f} % "
-                 f"(binomial s.e. {100 * cal['binomial_se']:.1f} %).")
+                 f"(binomial s.e. {100 * cal['binomial_se']:.1f} %); with the drift states "
+                 f"{100 * cal.get('coverage_95_drift_states', float('nan')):.1f} %.")
     return "\n".join(lines)
 
 
@@ -179,7 +186,7 @@ def main(argv=None):
     for cname, dr in conds.items():
         one = run_once(t, T_true, stations, tr, np.random.default_rng(a.seed), dr, offset, tr["crs"])
         table = {}
-        for m in ("none", "rigid", "graph"):
+        for m in ("none", "rigid", "graph", "graph_drift"):
             h, v = rmse(one[m])
             table[m] = {"rmse_h_m": h, "rmse_v_m": v, "max_h_m": float(np.max(np.hypot(one[m][:, 0], one[m][:, 1]))),
                         "max_v_m": float(np.max(np.abs(one[m][:, 2])))}
@@ -191,21 +198,24 @@ def main(argv=None):
                                                  "misclosure_N_min", "iterations", "n_check_between",
                                                  "n_check_outside")}
     # calibration: noise only (no bias), the information is the true noise
-    inside, total, sig0, t_mc = 0, 0, [], time.perf_counter()
+    inside, total, sig0, t_mc = {"graph": 0, "graph_drift": 0}, 0, [], time.perf_counter()
     if a.mc:
         tm, Tm, sm, trm, len_mc = truth(a.mc_duration_s, a.spacing_m, a.control_every, a.seed, a.keyframe_s)
     for r in range(a.mc):
         o = run_once(tm, Tm, sm, trm, np.random.default_rng([a.seed, 1000 + r]),
-                     (0.0, 0.0, 0.0, a.sigma_rot, a.sigma_trans, a.sigma_along), offset, trm["crs"])
-        e = o["graph"][:, :2]
-        C = o["graph_cov"][:, :2, :2]
-        m2 = np.einsum("ni,nij,nj->n", e, np.linalg.inv(C), e)
-        inside += int((m2 <= CHI2_2_95).sum())
-        total += e.shape[0]
+                     (0.0, 0.0, 0.0, a.sigma_rot, a.sigma_trans, a.sigma_along), offset, trm["crs"],
+                     modes=("graph", "graph_drift"))
+        for m in inside:
+            e = o[m][:, :2]
+            C = o[m + "_cov"][:, :2, :2]
+            inside[m] += int((np.einsum("ni,nij,nj->n", e, np.linalg.inv(C), e) <= CHI2_2_95).sum())
+        total += o["graph"].shape[0]
         sig0.append(o["sigma0"])
         if (r + 1) % 20 == 0:
-            print(f"  mc {r + 1}/{a.mc}: coverage {inside / total:.4f}", flush=True)
-    cov = inside / total if total else float("nan")
+            print(f"  mc {r + 1}/{a.mc}: coverage {inside['graph'] / total:.4f} "
+                  f"(drift states {inside['graph_drift'] / total:.4f})", flush=True)
+    cov = inside["graph"] / total if total else float("nan")
+    cov_d = inside["graph_drift"] / total if total else float("nan")
     se = np.sqrt(0.95 * 0.05 / total) if total else float("nan")
     res = {
         "date": datetime.date.today().isoformat(), "host": platform.node(), "python": sys.version.split()[0],
@@ -220,7 +230,7 @@ def main(argv=None):
                        "station_sigma_v_m": float(stations.sigma_v_m[0]), "loop_closures": 0},
         "table": tables,
         "graph": graph_info,
-        "calibration": {"runs": a.mc, "check_points": total, "coverage_95": cov, "binomial_se": se,
+        "calibration": {"runs": a.mc, "check_points": total, "coverage_95": cov, "coverage_95_drift_states": cov_d, "binomial_se": se,
                         "duration_s": a.mc_duration_s, "mean_sigma0": float(np.mean(sig0)) if sig0 else None,
                         "bias": "none (noise drawn from the graph's information)"},
         "seconds": time.perf_counter() - t0, "mc_seconds": time.perf_counter() - t_mc,
