@@ -284,13 +284,11 @@ def marginal_covariances(problem: FactorProblem, values: Values) -> np.ndarray:
     ``H⁻¹`` diagonal blocks by :func:`selected_inverse` on the optimiser's block Cholesky factor
     (undamped, the fill-reducing order of :class:`minegeo.optim.BlockSystem`; tangent order
     rotation first)."""
-    from minegeo.optim import _kernels as KO  # the block Cholesky of BlockSystem.solve (no public hook yet)
-
     system = problem.linearize(values, problem.evaluate(values))
-    Lx = np.empty_like(system.Hx)
-    bad = int(KO.block_cholesky(system.Lp, system.Li, system.Hx, 0.0, False, Lx, SINGULAR_PIVOT))
-    if bad >= 0:
-        raise ArithmeticError(f"the information matrix is singular at variable {int(system.block_vertex[bad])}")
+    Lx = system.cholesky(0.0, False, SINGULAR_PIVOT)
+    if Lx is None:
+        raise ArithmeticError("the information matrix is singular at variable "
+                              f"{int(system.block_vertex[system.failed_block])}")
     S = selected_inverse(system.Lp, system.Li, Lx)
     n = system.blk.size
     out = np.zeros((n, system.d, system.d))
