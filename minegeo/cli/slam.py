@@ -14,7 +14,7 @@ import stat
 import sys
 from pathlib import Path
 
-from minegeo.cli._argtypes import float_in_range, int_in_range, nonnegative_int, positive_float
+from minegeo.cli._argtypes import finite_float, float_in_range, int_in_range, nonnegative_int, positive_float
 
 HELP = "LiDAR SLAM from a folder of frames: GICP odometry, loop closure, pose graph; trajectory + map (Ren et al. 2019)"
 
@@ -60,6 +60,15 @@ def add_arguments(parser) -> None:
                         "previous motion, beyond 0.1 m of registration scatter, is rejected (m/s^2, default 20)")
     parser.add_argument("--seed", type=nonnegative_int, default=0,
                         help="recorded seed (the run draws no random numbers)")
+    g = parser.add_argument_group("survey control (docs/survey.md, 'Control in the pose graph')")
+    g.add_argument("--control", default=None, metavar="STATIONS.csv",
+                   help="stations CSV (id,t_start,t_end,E,N,H,sigma_h_m,sigma_v_m,role): control stations put the "
+                   "trajectory and map into the CRS, check stations are withheld and compared")
+    g.add_argument("--crs", default=None, help="CRS of the stations, e.g. EPSG:5186 (default: the file's '# crs:' line)")
+    g.add_argument("--station-offset", nargs=3, type=finite_float, default=None, metavar=("X", "Y", "Z"),
+                   help="surveyed point in the sensor frame (m, default 0 0 0)")
+    g.add_argument("--control-mode", choices=("rigid", "graph"), default=None,
+                   help="graph (default): position factors in the pose graph; rigid: one rigid fit after SLAM")
 
 
 def _check_options(args) -> None:
@@ -73,6 +82,10 @@ def _check_options(args) -> None:
     """
     from minegeo.errors import InputError
 
+    if getattr(args, "control", None) is None:
+        for opt, name in (("control_mode", "--control-mode"), ("station_offset", "--station-offset"), ("crs", "--crs")):
+            if getattr(args, opt, None) is not None:
+                raise InputError(f"{name} needs --control STATIONS.csv (the stations it applies to)")
     if getattr(args, "no_deskew", False) and getattr(args, "deskew_iterations", None) is not None:
         raise InputError(f"--deskew-iterations {args.deskew_iterations} contradicts --no-deskew (no deskewing, no "
                          "deskewing passes): give one of them")
@@ -206,6 +219,133 @@ def _deskew_and_runaway(odo) -> dict:
     }
 
 
+def _read_control(args):
+    """``(stations, offset, crs, mode)`` of the survey-control options, or None without ``--control``
+    (read and checked before any work: the CRS given twice must agree)."""
+    from minegeo.errors import InputError
+    from minegeo.georef.crs import same_crs
+    from minegeo.io.stations import parse_station_offset, read_stations
+
+    if args.control is None:
+        return None
+    st = read_stations(args.control)
+    if args.crs and st.crs and not same_crs(args.crs, st.crs):
+        raise InputError(f"--crs {args.crs} contradicts the '# crs: {st.crs}' line of --control {args.control}: "
+                         "give one CRS")
+    crs = args.crs or st.crs
+    if not crs:
+        raise InputError(f"--control {args.control}: no CRS (give --crs EPSG:... or a '# crs:' line in the file)")
+    offset = parse_station_offset(args.station_offset if args.station_offset is not None else (0.0, 0.0, 0.0))
+    return st, offset, crs, args.control_mode or "graph"
+
+
+def _map_corrected(map_points, var_xyz_map, C):
+    """Map points (map frame) into the local CRS frame: each point moved by the correction ``C`` (k, 4, 4)
+    of the graph variable nearest to it in the map frame (rigid mode: one correction for all)."""
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    if map_points.shape[0] == 0:
+        return np.zeros((0, 3))
+    _, near = cKDTree(var_xyz_map).query(map_points)
+    return np.einsum("nij,nj->ni", C[near, :3, :3], map_points) + C[near, :3, 3]
+
+
+def _control_outputs(stage: Path, res, ctrl_in, params) -> tuple[dict, dict]:
+    """Apply the control to the SLAM result and write the CRS deliverables; returns the ``control``
+    record of result.json and the plot data of the report."""
+    import numpy as np
+
+    from minegeo._provenance import atomic_write_text
+    from minegeo.georef import GeorefParams, georeference
+    from minegeo.georef.sidecar import write_georeferenced_map
+    from minegeo.io import PointCloud, write_trajectory
+    from minegeo.io.types import ControlPoints, Trajectory
+    from minegeo.slam.control import apply_control, graph_inputs, interpolate_poses, station_points
+
+    st, offset, crs, mode = ctrl_in
+    kt, kP, edges, Z, info = graph_inputs(res, st.t_mid_s)
+    c = apply_control(kt, kP, edges, Z, info, st, offset, crs, params)
+    var_map = interpolate_poses(kt, kP, c.times_s)  # the variables' map poses before the correction
+    P_local = c.transform(res.times_s, res.poses, c.times_s, var_map)
+    o = c.origin_enh
+    write_trajectory(stage / "trajectory_crs.tum",
+                     Trajectory(res.times_s, P_local, frame="local CRS (origin added back in the CSV)", body="sensor"))
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(P_local[:, :3, :3]).as_quat()  # x y z w
+    enh = P_local[:, :3, 3] + o
+    rows = ["t,E,N,H,qx,qy,qz,qw"] + [f"{t:.6f},{e[0]:.4f},{e[1]:.4f},{e[2]:.4f},{qq[0]:.9f},{qq[1]:.9f},{qq[2]:.9f},"
+                                      f"{qq[3]:.9f}" for t, e, qq in zip(res.times_s, enh, q, strict=True)]
+    atomic_write_text(stage / "trajectory_crs.csv", "\n".join(rows) + "\n")
+    # stations
+    chk = st.is_check
+    w = np.full((len(st), 3), np.nan)
+    w[st.is_control] = c.stats.w
+    flagged = {f[0] for f in c.stats.flagged}
+    ell = {}
+    for k, i in enumerate(np.flatnonzero(chk)):
+        if k < len(c.ellipses_check):
+            ell[i] = c.ellipses_check[k]
+    hdr = ("id,role,E,N,H,E_est,N_est,H_est,dE,dN,dH,horizontal,d3,w_max,flagged,ellipse95_a_m,ellipse95_b_m,"
+           "ellipse95_azimuth_deg")
+    lines = [hdr]
+    for i, sid in enumerate(st.ids):
+        s_enh, e_enh = st.enh[i], c.station_enh_local[i] + o
+        d = c.station_enh_local[i] - st.enh_local[i]
+        wm = np.nanmax(np.abs(w[i])) if np.isfinite(w[i]).any() else np.nan
+        el = ell.get(i)
+        el_s = (f"{el.semi_major_m:.4f},{el.semi_minor_m:.4f},{np.degrees(el.azimuth_rad):.2f}" if el is not None
+                else ",,")
+        lines.append(f"{sid},{st.roles[i]},{s_enh[0]:.4f},{s_enh[1]:.4f},{s_enh[2]:.4f},{e_enh[0]:.4f},{e_enh[1]:.4f},"
+                     f"{e_enh[2]:.4f},{d[0]:.4f},{d[1]:.4f},{d[2]:.4f},{np.hypot(d[0], d[1]):.4f},"
+                     f"{np.linalg.norm(d):.4f},{'' if np.isnan(wm) else f'{wm:.3f}'},{int(sid in flagged)},{el_s}")
+    atomic_write_text(stage / "stations_result.csv", "\n".join(lines) + "\n")
+    # map in the CRS: PLY (geo = CRS - origin) and its sidecar (the rigid fit of the control stations)
+    C = c.poses @ np.linalg.inv(var_map)
+    local = _map_corrected(np.asarray(res.map_points, dtype=np.float64), var_map[:, :3, 3], C)
+    ctrl = st.is_control
+    pts_map = station_points(interpolate_poses(kt, kP, st.t_mid_s), offset)
+    sig = np.c_[st.sigma_h_m, st.sigma_h_m, st.sigma_v_m][ctrl]
+    fit = georeference(ControlPoints(ids=[i for i, k in zip(st.ids, ctrl, strict=True) if k], local_xyz=pts_map[ctrl],
+                                     crs_enh=st.enh[ctrl], sigma_enh_m=sig, crs=crs),
+                       crs, GeorefParams(model="rigid", max_sigma0=1e12))
+    geo = local + (o - np.asarray(fit.origin, dtype=np.float64))
+    write_georeferenced_map(stage / "map_crs.ply", PointCloud(points=np.ascontiguousarray(geo), origin=fit.origin,
+                                                              crs=crs, frame="geo"), fit,
+                            extra={"slam_control": {
+                                "mode": mode, "points": "each map point moved by the correction of the graph variable "
+                                "nearest to it (graph mode: non-rigid; T_crs_map is the rigid fit of the control "
+                                "stations, for reference)"}})
+    chi = c.global_chi2
+    rec = {
+        "mode": mode, "status": c.status, "reason": c.reason, "crs": crs, "origin_enh": o.tolist(),
+        "station_offset_m": offset.tolist(), "source": str(st.source), "note": c.keyframe_note,
+        "sigma0": float(np.sqrt(chi.statistic / chi.dof)) if chi.dof else None,
+        "chi2_test": {"statistic": float(chi.statistic), "dof": int(chi.dof), "alpha": float(chi.alpha),
+                      "lower": float(chi.lower), "upper": float(chi.upper), "passed": chi.passed,
+                      "verdict": chi.verdict},
+        "flagged": [{"id": f[0], "component": f[1], "w": float(f[2])} for f in c.stats.flagged],
+        "control_residuals": [{"id": sid, "v_enh_m": c.stats.v[k].tolist()} for k, sid in enumerate(c.stats.ids)],
+        "check": None if c.check is None else {
+            "rmse_horizontal_m": float(c.check.rmse_horizontal), "rmse_vertical_m": float(c.check.rmse_vertical),
+            "rmse_3d_m": float(c.check.rmse_3d),
+            "stations": [{"id": sid, "delta_enh_m": c.check.delta[k].tolist(), "horizontal_m": float(c.check.horizontal[k]),
+                          "d3_m": float(c.check.d3[k]),
+                          "misclosure_ratio": float(c.misclosure_ratio[k]) if k < c.misclosure_ratio.size else None}
+                         for k, sid in enumerate(c.check.ids)]},
+        "class_test": None if c.classes is None else {
+            "c": float(c.classes.c), "ids": list(c.classes.ids), "nearest_control": list(c.classes.nearest_control),
+            "distance_m": c.classes.distance_m.tolist(), "allowed_mm": c.classes.allowed_mm.tolist(),
+            "relative_error_mm": c.classes.relative_error_mm.tolist(),
+            "passed": [bool(x) for x in c.classes.passed]},
+        "misclosure_ratio": [float(x) for x in c.misclosure_ratio],
+    }
+    plot = {"enh": enh, "origin": o, "stations_enh": st.enh, "est_enh": c.station_enh_local + o, "is_control": ctrl,
+            "ids": st.ids, "ellipses": ell}
+    return rec, plot
+
+
 def run(args) -> int:
     from tqdm import tqdm
 
@@ -221,9 +361,17 @@ def run(args) -> int:
     out = Path(args.out)
     inputs_named = {"--frames": args.frames, **({"--times": args.times} if args.times else {})}
     _check_options(args)
+    ctrl_in = _read_control(args)
+    if ctrl_in is not None:
+        from minegeo.slam.control import ControlParams
+
+        ctrl_params = ControlParams(mode=ctrl_in[3])
+        inputs_named["--control"] = args.control
     with OutputTransaction("slam", inputs=inputs_named, folders={"--out": out}) as tx:
         files = list_frames(args.frames, times_file=args.times, pattern=args.pattern)
         _check_times(files)
+        if ctrl_in is not None and files:
+            ctrl_in[0].check_time_span(files[0].time_s, files[-1].time_s, f"the frames of --frames {args.frames}")
         skipped: list[dict] = []
         bar = tqdm(total=len(files), desc="slam", unit="frame", file=sys.stderr, disable=not progress_enabled(args))
         # each registration's warnings (weak direction, 2-cycle) are recorded per frame in
@@ -250,6 +398,11 @@ def run(args) -> int:
         stage = tx.folder("--out")
         with timer("write"):
             _write_outputs(stage, res, sorted(used))
+        control_rec = control_plot = None
+        if ctrl_in is not None:
+            inputs.append({"path": str(args.control), "sha256": sha256_file(args.control)})
+            with timer("control"):
+                control_rec, control_plot = _control_outputs(stage, res, ctrl_in, ctrl_params)
         summary = {
             "command": "slam", "status": "ok", "reason": "", "parameters": params.as_dict(),
             "result": {**res.summary(), "times_from": times_source(args.frames, args.times), "skipped_frames": skipped,
@@ -260,12 +413,17 @@ def run(args) -> int:
                        **_deskew_and_runaway(res.odometry)},
             "outputs": {n: str(out / n) for n in ("trajectory.tum", "keyframes.tum", "graph.g2o", "loops.csv", "map.ply",
                                                   "result.json", "report.html")},
+            **({"control": control_rec} if control_rec is not None else {}),
             "module_timings_s": res.timings_s,
             "timings_s": {**timer.as_dict(), **run_timings(args)},
             "provenance": provenance(seed=args.seed, inputs=inputs),
         }
+        if control_rec is not None:
+            summary["outputs"].update({n: str(out / n) for n in ("trajectory_crs.tum", "trajectory_crs.csv",
+                                                                 "stations_result.csv", "map_crs.ply",
+                                                                 "map_crs.ply.georef.json")})
         write_json_atomic(stage / "result.json", summary)
-        write_slam_report(stage / "report.html", summary, res)
+        write_slam_report(stage / "report.html", summary, res, control_plot)
     if not getattr(args, "quiet", False):
         s = summary["result"]
         print(f"{s['frames']} frames ({len(skipped)} skipped, {s['failed_frames']} not registered), {s['keyframes']} "

@@ -193,7 +193,7 @@ def plot_slam_png(map_points: np.ndarray, poses: np.ndarray, kf_poses: np.ndarra
     return _png(fig)
 
 
-def slam_report_html(summary: dict, png: bytes | None) -> str:
+def slam_report_html(summary: dict, png: bytes | None, extra: list | None = None) -> str:
     r = summary["result"]
     overview = kv_table([
         ("frames used / skipped / not registered", f"{r['frames']} / {len(r['skipped_frames'])} / {r['failed_frames']}"),
@@ -218,7 +218,7 @@ def slam_report_html(summary: dict, png: bytes | None) -> str:
     skipped = table(["frame", "reason"], [[s["frame"], s["reason"]] for s in r["skipped_frames"]]) \
         if r["skipped_frames"] else "<p>none</p>"
     sections = [("Result", overview), ("Map and trajectory", img_png(png, "plan view of the map and trajectory")),
-                ("Motion distortion and implausible motion", _motion_html(r)),
+                *(extra or []), ("Motion distortion and implausible motion", _motion_html(r)),
                 ("Time per module (cf. Ren et al. 2019, Table 2)", timing), ("Skipped frames", skipped),
                 ("Parameters", params_table(summary["parameters"])), ("Timings", timings_html(summary.get("timings_s")))]
     held = r.get("motion_prior_stretches") or []
@@ -253,6 +253,77 @@ def _motion_html(r: dict) -> str:
                     rows, numeric=(1, 3)))
 
 
-def write_slam_report(path, summary: dict, res) -> None:
+def plot_control_png(plot: dict, exaggeration: float | None = None) -> bytes | None:
+    """Plan view in the CRS (origin subtracted): trajectory, control (triangles) and check stations
+    (circles), residual vectors (estimated − surveyed) exaggerated so the largest is 10 % of the
+    extent, and the 95 % ellipses at the check stations at the same exaggeration."""
+    fig = _figure(size=(10, 7))
+    if fig is None:
+        return None
+    ax = fig.add_subplot(1, 1, 1)
+    o = np.asarray(plot["origin"], dtype=np.float64)
+    tr = np.asarray(plot["enh"]) - o
+    sv = np.asarray(plot["stations_enh"]) - o
+    es = np.asarray(plot["est_enh"]) - o
+    ctrl = np.asarray(plot["is_control"], dtype=bool)
+    d = es - sv
+    ext = max(float(np.ptp(np.r_[tr[:, :2], sv[:, :2]], axis=0).max()), 1.0)
+    big = max(float(np.hypot(d[:, 0], d[:, 1]).max()), 1e-6) if d.size else 1e-6
+    x = exaggeration or 0.1 * ext / big
+    ax.plot(tr[:, 0], tr[:, 1], "-", color="0.4", lw=1.0, label="trajectory")
+    ax.plot(sv[ctrl, 0], sv[ctrl, 1], "^", color="tab:blue", ms=8, label="control station")
+    ax.plot(sv[~ctrl, 0], sv[~ctrl, 1], "o", mfc="none", color="tab:red", ms=8, label="check station")
+    for i in range(sv.shape[0]):
+        ax.annotate("", xy=(sv[i, 0] + x * d[i, 0], sv[i, 1] + x * d[i, 1]), xytext=(sv[i, 0], sv[i, 1]),
+                    arrowprops={"arrowstyle": "->", "color": "tab:blue" if ctrl[i] else "tab:red"})
+        ax.annotate(plot["ids"][i], (sv[i, 0], sv[i, 1]), textcoords="offset points", xytext=(5, 5), fontsize=8)
+    u = np.linspace(0.0, 2.0 * np.pi, 73)
+    for i, el in plot["ellipses"].items():
+        az = el.azimuth_rad  # clockwise from north: major axis direction (sin az, cos az) in (E, N)
+        a, b = x * el.semi_major_m, x * el.semi_minor_m
+        ma, mi = np.array([np.sin(az), np.cos(az)]), np.array([np.cos(az), -np.sin(az)])
+        pts = sv[i, :2] + np.outer(a * np.cos(u), ma) + np.outer(b * np.sin(u), mi)
+        ax.plot(pts[:, 0], pts[:, 1], "-", color="tab:red", lw=0.8)
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"E − {o[0]:.0f} (m)")
+    ax.set_ylabel(f"N − {o[1]:.0f} (m)")
+    ax.set_title(f"Survey control: residual vectors and 95 % ellipses × {x:.0f}")
+    ax.legend(loc="best", fontsize=8)
+    return _png(fig)
+
+
+def control_html(rec: dict, png: bytes | None) -> str:
+    """The "Survey control" section: statistics table, check stations, plan view."""
+    chi = rec["chi2_test"]
+    chk = rec.get("check") or {}
+    ratios = [r for r in rec.get("misclosure_ratio", []) if np.isfinite(r)]
+    cls = rec.get("class_test")
+    kv = kv_table([
+        ("mode", rec["mode"]), ("status", f"{rec['status']} {rec['reason']}".strip()), ("CRS", rec["crs"]),
+        ("origin E N H (m)", " ".join(f"{v:.0f}" for v in rec["origin_enh"])),
+        ("station offset (sensor frame, m)", " ".join(f"{v:g}" for v in rec["station_offset_m"])),
+        ("σ0", "—" if rec["sigma0"] is None else f"{rec['sigma0']:.3f}"),
+        ("χ² test", f"{chi['verdict']}: {chi['statistic']:.3f}, dof {chi['dof']}, "
+                    f"[{chi['lower']:.3f}, {chi['upper']:.3f}]"),
+        ("flagged control stations (w-test)", ", ".join(f"{f['id']} {f['component']} w={f['w']:.2f}"
+                                                         for f in rec["flagged"]) or "none"),
+        ("check RMSE horizontal / vertical", "—" if not chk else
+         f"{chk['rmse_horizontal_m']:.4f} m / {chk['rmse_vertical_m']:.4f} m"),
+        ("class test", "—" if cls is None else f"{sum(cls['passed'])} of {len(cls['passed'])} check stations pass "
+                                               f"(c = {cls['c']:g} mm)"),
+        ("worst misclosure ratio", f"1:{min(ratios):,.0f}" if ratios else "—"),
+    ])
+    rows = [[s["id"], *(f"{v:.4f}" for v in s["delta_enh_m"]), f"{s['horizontal_m']:.4f}", f"{s['d3_m']:.4f}"]
+            for s in chk.get("stations", [])]
+    tab = table(["check station", "dE m", "dN m", "dH m", "horizontal m", "3D m"], rows, numeric=(1, 2, 3, 4, 5)) \
+        if rows else "<p>no check stations</p>"
+    return kv + tab + img_png(png, "plan view in the CRS: stations, residual vectors and ellipses")
+
+
+def write_slam_report(path, summary: dict, res, control_plot: dict | None = None) -> None:
     png = plot_slam_png(res.map_points, res.poses, res.keyframe_poses, res.loops)
-    atomic_write_text(path, slam_report_html(summary, png))
+    html = slam_report_html(summary, png)
+    if control_plot is not None and summary.get("control"):
+        sec = control_html(summary["control"], plot_control_png(control_plot))
+        html = slam_report_html(summary, png, extra=[("Survey control", sec)])
+    atomic_write_text(path, html)

@@ -395,15 +395,64 @@ class ControlResult:
         return interpolate_poses(graph_times_s, C, t) @ poses_map
 
 
-def graph_inputs(slam_result) -> tuple:
+def graph_inputs(slam_result, station_times_s=None) -> tuple:
     """``(times_s, poses, edges, Z, information)`` of a :class:`~minegeo.slam.pipeline.SlamResult`'s
     keyframe graph: keyframe times and ``T_map_sensor``, edges, measurements and the information in
-    the residual order (rotation first; the graph stores the g2o order (t, r))."""
+    the residual order (rotation first; the graph stores the g2o order (t, r)).
+
+    With ``station_times_s``, every station time not on a keyframe becomes a variable whose pose is
+    the run's frame trajectory at that time (:func:`interpolate_poses` on the frames, which are
+    still on a stop): the odometry edge ``(a, b)`` around it is split into ``Z_ak = T_a⁻¹ T_k`` and
+    ``Z_kb = Z_ak⁻¹ Z_ab`` (their product is ``Z_ab``; information ``Ω_ab / f`` and
+    ``Ω_ab / (1 − f)``, ``f`` the fraction of the edge's translation, clipped to [0.01, 0.99]).
+    A split by time fraction would place a stop-and-go station where a constant velocity between
+    the keyframes puts it, off by up to the keyframe distance.
+    """
     g = slam_result.graph
     p = [3, 4, 5, 0, 1, 2]
     info = np.ascontiguousarray(np.asarray(g.information)[:, p][:, :, p])
-    return (np.asarray(slam_result.times_s)[slam_result.keyframes], np.asarray(slam_result.keyframe_poses),
-            np.asarray(g.edges), np.asarray(g.measurements), info)
+    kt = np.asarray(slam_result.times_s)[slam_result.keyframes]
+    kP = np.asarray(slam_result.keyframe_poses)
+    edges, Z = np.asarray(g.edges), np.asarray(g.measurements)
+    if station_times_s is None:
+        return kt, kP, edges, Z, info
+    t_new = sorted({float(t) for t in np.atleast_1d(station_times_s)
+                    if kt[0] < t < kt[-1] and not np.any(np.abs(kt - t) <= SAME_TIME_S)})
+    if not t_new:
+        return kt, kP, edges, Z, info
+    T_new = interpolate_poses(np.asarray(slam_result.times_s), np.asarray(slam_result.poses), np.array(t_new))
+    all_t = np.r_[kt, t_new]
+    order = np.argsort(all_t, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    P_all = np.concatenate([kP, T_new])[order]
+    E, ZZ, OO = [], [], []
+    for e in range(edges.shape[0]):
+        a, b = int(edges[e, 0]), int(edges[e, 1])
+        inside = [kt.size + m for m, t in enumerate(t_new) if b == a + 1 and kt[a] < t < kt[b]]
+        if not inside:
+            E.append((rank[a], rank[b]))
+            ZZ.append(Z[e])
+            OO.append(info[e])
+            continue
+        L = max(float(np.linalg.norm(Z[e][:3, 3])), 1e-9)
+        Zrest, Ta, f_prev = Z[e], kP[a], 0.0
+        prev = a
+        for v in inside:
+            Tv = T_new[v - kt.size]
+            Zav = se3_inverse(Ta) @ Tv if prev == a else se3_inverse(T_new[prev - kt.size]) @ Tv
+            f = float(np.clip(np.linalg.norm((se3_inverse(Ta) @ Tv)[:3, 3]) / L, 0.01, 0.99))
+            df = max(f - f_prev, 0.01)
+            E.append((rank[prev], rank[v]))
+            ZZ.append(Zav)
+            OO.append(info[e] / df)
+            Zrest = se3_inverse(Zav) @ Zrest
+            prev, f_prev = v, f
+        E.append((rank[prev], rank[b]))
+        ZZ.append(Zrest)
+        OO.append(info[e] / max(1.0 - f_prev, 0.01))
+    return (all_t[order], np.ascontiguousarray(P_all), np.asarray(E, dtype=np.int64), np.stack(ZZ),
+            np.ascontiguousarray(np.stack(OO)))
 
 
 def _insert_stations(times_s, poses, edges, Z, info, t_st):
