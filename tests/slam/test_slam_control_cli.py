@@ -2,8 +2,8 @@
 errors in result.json recomputed independently from ``trajectory_crs.tum``, the offset and the true
 station points, and the bad combinations refused with one line before any work (issue 30).
 
-The frames are simulated VLP-16 sweeps along an 18 m drive (as in ``test_slam_run_cli.py``); the true
-station points are ``T_crs_world (p(t) + R(t) a)`` of the simulator's own pose at the station time.
+The frames are simulated VLP-16 sweeps along an 18 m drive (as in ``test_slam_run_cli.py``) that stops
+for 1 s (4 more frames of the same pose) on each of 5 stations; the true station points are ``T_crs_world (p(t) + R(t) a)`` of the simulator's own pose at the station time.
 """
 
 from __future__ import annotations
@@ -41,26 +41,39 @@ def scene(tmp_path_factory):
 
     world = build_world("small", 1)
     traj = make_trajectory(world, "drive", length_m=18.0, seed=5)
-    ts = np.arange(0.0, traj.times_s[-1], 0.25)
-    P = interpolate_poses(traj, ts)
+    t_drive = np.arange(0.0, traj.times_s[-1], 0.25)
+    P_drive = interpolate_poses(traj, t_drive)
+    # stop and go: at 5 frames the sensor stands still for STOP more frames (1 s), the clock runs on;
+    # control, check alternating (3 + 2)
+    kk = np.linspace(3, t_drive.size - 4, 5).round().astype(int)
+    stop = 4
+    idx, ts, t_span = [], [], []
+    for k in range(t_drive.size):
+        n = 1 + (stop if k in kk else 0)
+        t0 = t_drive[k] + 0.25 * len(idx) - 0.25 * k
+        if k in kk:
+            t_span.append((t0, t0 + 0.25 * stop))
+        idx += [k] * n
+        ts += [t0 + 0.25 * j for j in range(n)]
+    ts = np.array(ts)
     sensor = Velodyne16(azimuth_step_deg=0.4)
     d = tmp_path_factory.mktemp("ctl")
     fr = d / "frames"
     fr.mkdir()
-    for k, T in enumerate(P):
-        write_point_cloud(fr / f"{k:06d}.ply", PointCloud(points=simulate_scan(world, sensor, T, seed=k).points))
+    for m, k in enumerate(idx):
+        write_point_cloud(fr / f"{m:06d}.ply", PointCloud(points=simulate_scan(world, sensor, P_drive[k], seed=m).points))
     (fr / "times.txt").write_text("".join(f"{t:.6f}\n" for t in ts))
-    # stations at frame times (a stop is one frame time here): control, check alternating, 3 + 2
-    kk = np.linspace(3, ts.size - 4, 5).round().astype(int)
     roles = ["control", "check", "control", "check", "control"]
     Tcw = _T_crs_world()
-    truth = np.array([(Tcw @ np.r_[P[k][:3, :3] @ OFFSET + P[k][:3, 3], 1.0])[:3] for k in kk])
+    P = P_drive[kk]
+    truth = np.array([(Tcw @ np.r_[T[:3, :3] @ OFFSET + T[:3, 3], 1.0])[:3] for T in P])
     rows = [f"# crs: {CRS}", "id,t_start,t_end,E,N,H,sigma_h_m,sigma_v_m,role"]
-    for i, k in enumerate(kk):
-        rows.append(f"S{i + 1},{ts[k]:.6f},{ts[k]:.6f},{float(truth[i, 0])!r},{float(truth[i, 1])!r},{float(truth[i, 2])!r},0.005,0.008,"
-                    f"{roles[i]}")
+    for i, (a, b) in enumerate(t_span):
+        rows.append(f"S{i + 1},{a:.6f},{b:.6f},{float(truth[i, 0])!r},{float(truth[i, 1])!r},{float(truth[i, 2])!r},"
+                    f"0.005,0.008,{roles[i]}")
     (d / "stations.csv").write_text("\n".join(rows) + "\n")
-    return {"frames": fr, "stations": d / "stations.csv", "truth": truth, "t": ts[kk], "roles": roles}
+    t_mid = np.array([0.5 * (a + b) for a, b in t_span])
+    return {"frames": fr, "stations": d / "stations.csv", "truth": truth, "t": t_mid, "roles": roles}
 
 
 def _run(scene, out, mode):
@@ -83,7 +96,7 @@ def test_control_outputs_and_check_errors_recomputed_from_the_trajectory(scene, 
     chk = [i for i, r in enumerate(scene["roles"]) if r == "check"]
     est = []
     for i in chk:
-        k = int(np.flatnonzero(np.abs(tr.times_s - scene["t"][i]) < 1e-6)[0])
+        k = int(np.flatnonzero(np.abs(tr.times_s - scene["t"][i]) < 1e-6)[0])  # the middle frame of the stop
         est.append(tr.poses[k][:3, :3] @ OFFSET + tr.poses[k][:3, 3] + origin)
     delta = np.array(est) - scene["truth"][chk]
     got = np.array([s["delta_enh_m"] for s in rec["check"]["stations"]])
