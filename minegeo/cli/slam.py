@@ -434,5 +434,12 @@ def run(args) -> int:
             where = ", ".join(f"frames {h['first_frame']}-{h['last_frame']} ({h['first_time_s']:.2f}-"
                               f"{h['last_time_s']:.2f} s)" for h in held[:5]) + (" ..." if len(held) > 5 else "")
             print(f"held by the motion prior alone: {len(held)} stretch(es), {s['motion_prior_held_s']:.2f} s: {where}")
+        if control_rec is not None:
+            c = control_rec
+            chk = c["check"]
+            print(f"control ({c['mode']}, {c['crs']}): {c['status']}{': ' + c['reason'] if c['reason'] else ''}"
+                  + ("" if chk is None else f"; check RMSE h {chk['rmse_horizontal_m']:.3f} m, v "
+                                            f"{chk['rmse_vertical_m']:.3f} m"))
+            print(f"written: {out}/(trajectory_crs.tum, trajectory_crs.csv, stations_result.csv, map_crs.ply)")
         print(f"written: {out}/(trajectory.tum, keyframes.tum, graph.g2o, loops.csv, map.ply, result.json, report.html)")
     return 0
