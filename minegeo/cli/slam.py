@@ -236,7 +236,12 @@ def _read_control(args):
     if not crs:
         raise InputError(f"--control {args.control}: no CRS (give --crs EPSG:... or a '# crs:' line in the file)")
     offset = parse_station_offset(args.station_offset if args.station_offset is not None else (0.0, 0.0, 0.0))
-    return st, offset, crs, args.control_mode or "graph"
+    mode = args.control_mode or "graph"
+    n_ctrl = int(st.is_control.sum())
+    if n_ctrl < 3:
+        raise InputError(f"--control {args.control}: {n_ctrl} control station(s); the {mode} mode needs at least 3 "
+                         "not on one line (make more stations control, or add stations)")
+    return st, offset, crs, mode
 
 
 def _map_corrected(map_points, var_xyz_map, C):

@@ -126,5 +126,10 @@ def test_bad_control_combinations_are_one_line(scene, tmp_path, capsys):
     late.write_text("\n".join([*lines[:-1], ",".join(f)]) + "\n")
     assert_user_error("slam", base + ["--control", str(late)], inputs=[late], outputs=[out], capsys=capsys,
                       expect="station S5")
+    few = tmp_path / "few.csv"
+    few.write_text("\n".join(ln.replace("control", "check") if ln.startswith(("S3", "S5")) else ln
+                             for ln in lines) + "\n")
+    assert_user_error("slam", base + ["--control", str(few)], inputs=[few], outputs=[out], capsys=capsys,
+                      expect="1 control station(s)")
     assert_user_error("slam", base + ["--control", str(scene["stations"]), "--crs", "EPSG:32652"],
                       inputs=[scene["stations"]], outputs=[out], capsys=capsys, expect="contradicts")
