@@ -187,10 +187,11 @@ def _write(stage: Path, res, kb) -> list[str]:
 
 
 class _Collect(logging.Handler):
-    """Keeps the messages of WARNING and above (the odometry's held frames) for result.json."""
+    """Keeps the odometry's per-frame notes (INFO and above: frames held by the motion prior,
+    frames not registered) for result.json, whatever the run's verbosity."""
 
     def __init__(self):
-        super().__init__(logging.WARNING)
+        super().__init__(logging.INFO)
         self.messages: list[str] = []
 
     def emit(self, record) -> None:  # noqa: D102 - logging API
@@ -231,9 +232,10 @@ def run(args) -> int:
         reg_log.setLevel(logging.ERROR)
         # the odometry's per-frame notes (a frame held by the motion prior) go to result.json, not stderr
         odo_log, held = logging.getLogger("minegeo.slam.odometry"), _Collect()
-        odo_prop = odo_log.propagate
+        odo_prop, odo_level = odo_log.propagate, odo_log.level
         odo_log.addHandler(held)
         odo_log.propagate = False
+        odo_log.setLevel(logging.INFO)  # recorded also under -q (the notes never reach stderr)
         try:
             with bar, timer("track"):
                 res = track(_frames(files, skipped, bar, params.odometry.min_points), kb, params,
@@ -242,6 +244,7 @@ def run(args) -> int:
             reg_log.setLevel(level)
             odo_log.removeHandler(held)
             odo_log.propagate = odo_prop
+            odo_log.setLevel(odo_level)
         if res.times_s.size < 2:
             raise InputError(f"--frames {args.frames}: fewer than 2 readable frames")
         err = (_truth_errors(args.truth, res, kb.georef["origin_m"] if args.truth_frame == "crs" else None)
