@@ -312,9 +312,15 @@ def _control_outputs(stage: Path, res, ctrl_in, params) -> tuple[dict, dict]:
     ctrl = st.is_control
     pts_map = station_points(interpolate_poses(kt, kP, st.t_mid_s), offset)
     sig = np.c_[st.sigma_h_m, st.sigma_h_m, st.sigma_v_m][ctrl]
-    fit = georeference(ControlPoints(ids=[i for i, k in zip(st.ids, ctrl, strict=True) if k], local_xyz=pts_map[ctrl],
-                                     crs_enh=st.enh[ctrl], sigma_enh_m=sig, crs=crs),
-                       crs, GeorefParams(model="rigid", max_sigma0=1e12))
+    glog = logging.getLogger("minegeo.georef")
+    level = glog.level
+    glog.setLevel(logging.ERROR)  # the same fit apply_control ran and logged: not twice on the terminal
+    try:
+        fit = georeference(ControlPoints(ids=[i for i, k in zip(st.ids, ctrl, strict=True) if k], local_xyz=pts_map[ctrl],
+                                         crs_enh=st.enh[ctrl], sigma_enh_m=sig, crs=crs),
+                           crs, GeorefParams(model="rigid", max_sigma0=1e12))
+    finally:
+        glog.setLevel(level)
     geo = local + (o - np.asarray(fit.origin, dtype=np.float64))
     write_georeferenced_map(stage / "map_crs.ply", PointCloud(points=np.ascontiguousarray(geo), origin=fit.origin,
                                                               crs=crs, frame="geo"), fit,
