@@ -433,15 +433,10 @@ def heading_text(res) -> str:
 
 
 def position_line(res) -> str:
-    """Position of the scan origin with its 95 % radius: E N H in the CRS when the map is
-    georeferenced, else map x y z (metres)."""
-    if res.T_crs_scan is not None:
-        e, n, h = res.T_crs_scan[:3, 3]
-        where = f"{res.crs}: E {e:.3f}  N {n:.3f}  H {h:.3f} m"
-    else:
-        x, y, z = res.T_map_scan[:3, 3]
-        where = f"map frame (not georeferenced): x {x:.3f}  y {y:.3f}  z {z:.3f} m"
-    return f"position of the scan origin, {where}; 95 % radius {res.position_95_radius_m:.3f} m"
+    """Position of the scan origin with its 95 % radius (:func:`minegeo.report.localize_report.position_text`)."""
+    from minegeo.report.localize_report import position_text
+
+    return position_text(res)
 
 
 def fit_line(res) -> str:

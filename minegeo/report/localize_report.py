@@ -491,7 +491,21 @@ def localize_report_html(res, prepared, *, inputs=None, extra: dict | None = Non
                      + kv_table([(k, v) for k, v in vers.items()])))
     return page("minegeo localize — global localization report", sections,
                 subtitle=f"status {res.status}; CRS {res.crs or 'none'}; seed {res.seed}",
-                status=res.status, status_text=res.reason)
+                status=res.status,
+                status_text=(f"{position_text(res)} — {res.reason}" if ok and res.position_95_radius_m is not None
+                             else res.reason))
+
+
+def position_text(res) -> str:
+    """Position of the scan origin with its 95 % radius: E N H in the CRS when the map is
+    georeferenced, else map x y z (metres)."""
+    if res.T_crs_scan is not None:
+        e, n, h = res.T_crs_scan[:3, 3]
+        where = f"{res.crs}: E {e:.3f}  N {n:.3f}  H {h:.3f} m"
+    else:
+        x, y, z = res.T_map_scan[:3, 3]
+        where = f"map frame (not georeferenced): x {x:.3f}  y {y:.3f}  z {z:.3f} m"
+    return f"position of the scan origin, {where}; 95 % radius {res.position_95_radius_m:.3f} m"
 
 
 def write_localize_report(path, res, prepared, *, scan=None, inputs=None, extra: dict | None = None):

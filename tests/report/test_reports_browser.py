@@ -339,6 +339,8 @@ def test_report_in_browser(case, reports, browser, shots):
                         min_images=1 if case != "localize_batch_failed_scan" else 0)
     if case == "demo":
         assert len([h for h in info["links"] if not h.startswith("#")]) == 4
+    if case == "localize_ok":  # the status line says where the scan is, with its 95 % radius
+        assert "position of the scan origin" in info["firstLine"] and "95 % radius" in info["firstLine"]
 
 
 def test_check_catches_broken_reports(reports, browser, tmp_path):
