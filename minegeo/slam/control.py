@@ -404,7 +404,9 @@ def graph_inputs(slam_result, station_times_s=None) -> tuple:
     the run's frame trajectory at that time (:func:`interpolate_poses` on the frames, which are
     still on a stop): the odometry edge ``(a, b)`` around it is split into ``Z_ak = T_a⁻¹ T_k`` and
     ``Z_kb = Z_ak⁻¹ Z_ab`` (their product is ``Z_ab``; information ``Ω_ab / f`` and
-    ``Ω_ab / (1 − f)``, ``f`` the fraction of the edge's translation, clipped to [0.01, 0.99]).
+    ``Ω_ab / (1 − f)``, ``f`` the fraction of the edge's translation, clipped to [0.01, 0.99]); a
+    station before the first or after the last keyframe (within the frames) is chained to it by
+    ``T_u⁻¹ T_v`` with the end odometry edge's information over the ratio of translations.
     A split by time fraction would place a stop-and-go station where a constant velocity between
     the keyframes puts it, off by up to the keyframe distance.
     """
@@ -416,8 +418,9 @@ def graph_inputs(slam_result, station_times_s=None) -> tuple:
     edges, Z = np.asarray(g.edges), np.asarray(g.measurements)
     if station_times_s is None:
         return kt, kP, edges, Z, info
+    ft = np.asarray(slam_result.times_s)
     t_new = sorted({float(t) for t in np.atleast_1d(station_times_s)
-                    if kt[0] < t < kt[-1] and not np.any(np.abs(kt - t) <= SAME_TIME_S)})
+                    if ft[0] <= t <= ft[-1] and not np.any(np.abs(kt - t) <= SAME_TIME_S)})
     if not t_new:
         return kt, kP, edges, Z, info
     T_new = interpolate_poses(np.asarray(slam_result.times_s), np.asarray(slam_result.poses), np.array(t_new))
@@ -451,6 +454,27 @@ def graph_inputs(slam_result, station_times_s=None) -> tuple:
         E.append((rank[prev], rank[b]))
         ZZ.append(Zrest)
         OO.append(info[e] / max(1.0 - f_prev, 0.01))
+    # stations before the first or after the last keyframe (frames there, no keyframe yet): a chain
+    # of odometry edges Z = T_u⁻¹ T_v from the end keyframe, information that of the end odometry edge
+    # scaled by the ratio of translations (clipped to [0.01, 100])
+    odo = [e for e in range(edges.shape[0]) if int(edges[e, 1]) == int(edges[e, 0]) + 1]
+    for side in ("before", "after"):
+        out = [kt.size + m for m, t in enumerate(t_new) if (t < kt[0] if side == "before" else t > kt[-1])]
+        if not out:
+            continue
+        if not odo:
+            raise InputError(f"stations {side} the keyframes of a graph without odometry edges")
+        e_ref = odo[0] if side == "before" else odo[-1]
+        L = max(float(np.linalg.norm(Z[e_ref][:3, 3])), 1e-9)
+        chain = ([0] + out[::-1]) if side == "before" else ([kt.size - 1] + out)
+        for u, v in zip(chain[:-1], chain[1:], strict=True):
+            Tu = kP[u] if u < kt.size else T_new[u - kt.size]
+            Tv = T_new[v - kt.size]
+            a, b, Zuv = (v, u, se3_inverse(Tv) @ Tu) if side == "before" else (u, v, se3_inverse(Tu) @ Tv)
+            f = float(np.clip(np.linalg.norm(Zuv[:3, 3]) / L, 0.01, 100.0))
+            E.append((rank[a], rank[b]))
+            ZZ.append(Zuv)
+            OO.append(info[e_ref] / f)
     return (all_t[order], np.ascontiguousarray(P_all), np.asarray(E, dtype=np.int64), np.stack(ZZ),
             np.ascontiguousarray(np.stack(OO)))
 
@@ -560,7 +584,14 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
     if n_ctrl < 3:
         raise InputError(f"{n_ctrl} control station(s): the {p.mode} mode needs at least 3 not on one line "
                          "(make more stations control, or add stations)")
-    stations.check_time_span(times_s[0], times_s[-1], "the SLAM keyframes")
+    # the pose is taken at the middle time: it must lie on the graph (graph_inputs(res, t_mid) puts a
+    # variable there); the whole still span is checked against the frames by the caller
+    out_mid = np.flatnonzero((stations.t_mid_s < times_s[0]) | (stations.t_mid_s > times_s[-1]))
+    if out_mid.size:
+        i = int(out_mid[0])
+        raise InputError(f"{stations.source or 'stations'}: line {stations.lines[i]}: station {stations.ids[i]} at "
+                         f"{stations.t_mid_s[i]:.3f} s is outside the SLAM keyframes [{times_s[0]:.3f}, "
+                         f"{times_s[-1]:.3f}] s (another clock or another run?)")
     t_st = stations.t_mid_s
     ctrl, chk = stations.is_control, stations.is_check
     pts_map = station_points(interpolate_poses(times_s, poses, t_st), offset)
