@@ -331,6 +331,36 @@ def render_demo(results: Path) -> str:
     return "\n".join(lines)
 
 
+FRESH_INSTALL_FILES = ("fresh_install_2026-11-29_idle.json", "fresh_install_2026-11-29_one-core-busy.json")
+
+
+def render_fresh_install(results: Path) -> str:
+    """The README's first command on a fresh clone and a new venv (``benchmarks/bench_fresh_install.py``):
+    ``minegeo demo`` cold (empty Numba cache) on an idle machine and with one core kept busy, then warm."""
+    lines = ["| condition | results file | commit | load before / after | demo cold: wall s (of which compiling) "
+             "| demo warm: wall s | reports with figures |", "|---|---|---|---|---|---|---|"]
+    for name in FRESH_INSTALL_FILES:
+        if not (results / name).is_file():
+            continue
+        d = _load(name, results)
+        m, st = d["meta"], d["steps"]
+        cold, warm = st["demo cold"], st["demo warm"]
+        busy = m["busy_cores"]
+        cond = "idle" if not busy else f"{busy} of {m['cpus']} cores kept busy"
+        load = f"{_uptime_load(m.get('uptime_before'))} / {_uptime_load(m.get('uptime_after'))}"
+        figs = sum(1 for r in d["reports"] if r["figures"] >= 1 and r["figures_decoded"] == r["figures"])
+        lines.append(f"| {cond} | `benchmarks/results/{name}` | {m['commit']} | {load} | {cold['wall_s']:.0f} "
+                     f"({cold['compile_s']:.0f}) | {warm['wall_s']:.0f} | {figs} of {len(d['reports'])} |")
+    m0 = _load(FRESH_INSTALL_FILES[0], results)["meta"]
+    head = conditions(FRESH_INSTALL_FILES[0], date=m0.get("date"), commit=m0.get("commit"),
+                      threads=f"Numba threads {m0.get('NUMBA_NUM_THREADS')}",
+                      load=_fmt_load([_uptime_load(m0.get("uptime_before")), _uptime_load(m0.get("uptime_after"))]),
+                      extra="each other row from its own file (below); `python benchmarks/bench_fresh_install.py`: a "
+                            "clean clone, a new venv, `pip install .`, then `minegeo demo` on an empty Numba cache; "
+                            "compile seconds of the main process (the demo also compiles in a second process)")
+    return head + "\n\n" + "\n".join(lines)
+
+
 def _md_tables(text: str) -> list[list[str]]:
     """The Markdown tables of ``text``, each as its lines."""
     out, cur = [], []
@@ -403,6 +433,7 @@ RENDERERS = {
     "slam_ablation": render_slam_ablation,
     "mulran": render_mulran,
     "demo": render_demo,
+    "fresh_install": render_fresh_install,
     "localization_study": md_copy("study_2026-11-25", extra="`python benchmarks/bench_study.py --seed 31 --n 20`"),
     "like_for_like_same": md_copy("like_for_like_2026-11-25", [0]),
     "like_for_like_best": md_copy("like_for_like_2026-11-25", [1]),
