@@ -20,7 +20,7 @@ def deskew_points_kernel(points, offsets_s, twist):
     """``q_i = exp(τ_i ξ) p_i = R(φ_i) p_i + J_l(φ_i) τ_i v``, ``φ_i = τ_i ω`` for each point.
 
     With ``K = [φ]×``, ``θ = |φ|``: ``R = I + (sin θ/θ) K + ((1 − cos θ)/θ²) K²`` (Rodrigues) and
-    ``J_l = I + ((1 − cos θ)/θ²) K + ((θ − sin θ)/θ³) K²`` (Solà 2018, Eq. 145), applied as cross
+    ``J_l = I + ((1 − cos θ)/θ²) K + ((θ − sin θ)/θ³) K²`` [Sola2018 Eq. 145], applied as cross
     products (no 3×3 matrix per point); series below θ = 1e-4. Units: m, s, rad/s, m/s.
     """
     n = points.shape[0]

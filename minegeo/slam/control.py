@@ -542,6 +542,54 @@ def _rigid_fit(points_map, stations, crs, model):
     return T, res
 
 
+def _check_control_inputs(times_s, stations, crs, mode: str) -> None:
+    """The user's mistakes :func:`apply_control` refuses before any work (``InputError``)."""
+    if not crs:
+        raise InputError("the stations need a CRS (--crs or a '# crs:' line in the stations file)")
+    if times_s.size < 2 or np.any(np.diff(times_s) <= 0):
+        raise InputError("the keyframe times must be at least two, strictly increasing")
+    n_ctrl = int(stations.is_control.sum())
+    if n_ctrl < 3:
+        raise InputError(f"{n_ctrl} control station(s): the {mode} mode needs at least 3 not on one line "
+                         "(make more stations control, or add stations)")
+    # the pose is taken at the middle time: it must lie on the graph (graph_inputs(res, t_mid) puts a
+    # variable there); the whole still span is checked against the frames by the caller
+    out_mid = np.flatnonzero((stations.t_mid_s < times_s[0]) | (stations.t_mid_s > times_s[-1]))
+    if out_mid.size:
+        i = int(out_mid[0])
+        raise InputError(f"{stations.source or 'stations'}: line {stations.lines[i]}: station {stations.ids[i]} at "
+                         f"{stations.t_mid_s[i]:.3f} s is outside the SLAM keyframes [{times_s[0]:.3f}, "
+                         f"{times_s[-1]:.3f}] s (another clock or another run?)")
+
+
+def _check_station_statistics(stations, pts, v, st_cov, G_times, G_poses, class_c: float):
+    """``(check errors, class tests, misclosure ratios)`` of the check stations (None, None, empty
+    without check stations): errors of the estimated points ``pts`` against the surveyed ones, the
+    class test against the nearest control station (control residuals ``v``; relative covariance
+    from ``st_cov`` without the check-control cross covariance, which the selected inverse does
+    not hold), and the ratio 1:N with N the path length to the nearest control over the error."""
+    from minegeo.survey.control_stats import check_errors, class_test, misclosure_ratio
+
+    ctrl, chk = stations.is_control, stations.is_check
+    ids = np.array(stations.ids, dtype=object)
+    if not chk.any():
+        return None, None, np.zeros(0)
+    check = check_errors(pts[chk], stations.enh_local[chk], ids[chk])
+    rel = None
+    if st_cov is not None:
+        ci, kj = np.flatnonzero(chk), np.flatnonzero(ctrl)
+        d = np.hypot(*(stations.enh_local[ci, None, :2] - stations.enh_local[None, kj, :2]).transpose(2, 0, 1))
+        near = kj[np.argmin(d, axis=1)]
+        rel = st_cov[ci][:, :2, :2] + st_cov[near][:, :2, :2]
+    classes = class_test(stations.enh_local[chk], check.delta, stations.enh_local[ctrl], v,
+                         check_ids=ids[chk], control_ids=ids[ctrl], c=class_c, relative_cov_h=rel)
+    path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(G_poses[:, :3, 3], axis=0), axis=1))]
+    s_at = np.interp(stations.t_mid_s, G_times, path)
+    tc = np.flatnonzero(ctrl)
+    L = np.array([np.min(np.abs(s_at[i] - s_at[tc])) for i in np.flatnonzero(chk)])
+    return check, classes, misclosure_ratio(L, check.horizontal)
+
+
 def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=None,
                   params: ControlParams | None = None) -> ControlResult:
     """Put a SLAM keyframe graph into the CRS of its control stations (see the module docstring).
@@ -567,31 +615,17 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
         A station outside the keyframes' time span, fewer than 3 control stations, stations whose
         spans overlap, no CRS.
     """
-    from minegeo.survey.control_stats import check_errors, class_test, control_statistics, misclosure_ratio
+    from minegeo.survey.control_stats import control_statistics
     from minegeo.survey.ellipse import error_ellipse
     from minegeo.survey.lsq import chi2_global_test
 
     p = params or ControlParams()
     crs = crs or stations.crs
-    if not crs:
-        raise InputError("the stations need a CRS (--crs or a '# crs:' line in the stations file)")
     times_s = np.asarray(times_s, dtype=np.float64)
     poses = np.ascontiguousarray(poses, dtype=np.float64)
     offset = np.asarray(offset, dtype=np.float64).reshape(3)
-    if times_s.size < 2 or np.any(np.diff(times_s) <= 0):
-        raise InputError("the keyframe times must be at least two, strictly increasing")
+    _check_control_inputs(times_s, stations, crs, p.mode)
     n_ctrl = int(stations.is_control.sum())
-    if n_ctrl < 3:
-        raise InputError(f"{n_ctrl} control station(s): the {p.mode} mode needs at least 3 not on one line "
-                         "(make more stations control, or add stations)")
-    # the pose is taken at the middle time: it must lie on the graph (graph_inputs(res, t_mid) puts a
-    # variable there); the whole still span is checked against the frames by the caller
-    out_mid = np.flatnonzero((stations.t_mid_s < times_s[0]) | (stations.t_mid_s > times_s[-1]))
-    if out_mid.size:
-        i = int(out_mid[0])
-        raise InputError(f"{stations.source or 'stations'}: line {stations.lines[i]}: station {stations.ids[i]} at "
-                         f"{stations.t_mid_s[i]:.3f} s is outside the SLAM keyframes [{times_s[0]:.3f}, "
-                         f"{times_s[-1]:.3f}] s (another clock or another run?)")
     t_st = stations.t_mid_s
     ctrl, chk = stations.is_control, stations.is_check
     pts_map = station_points(interpolate_poses(times_s, poses, t_st), offset)
@@ -663,24 +697,7 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
         gchi = chi2_global_test(2.0 * problem.cost(problem.evaluate(Values(np.ascontiguousarray(G_poses), G_vec))),
                                 max(dof, 0))
         ellipses = [error_ellipse(st_cov[c][:2, :2], confidence=0.95) for c in np.flatnonzero(chk)]
-    check = classes = None
-    ratio = np.zeros(0)
-    if chk.any():
-        check = check_errors(pts[chk], stations.enh_local[chk], ids[chk])
-        rel = None
-        if st_cov is not None:
-            # relative covariance ignores the check-control cross covariance (not in the selected inverse)
-            ci, kj = np.flatnonzero(chk), np.flatnonzero(ctrl)
-            d = np.hypot(*(stations.enh_local[ci, None, :2] - stations.enh_local[None, kj, :2]).transpose(2, 0, 1))
-            near = kj[np.argmin(d, axis=1)]
-            rel = st_cov[ci][:, :2, :2] + st_cov[near][:, :2, :2]
-        classes = class_test(stations.enh_local[chk], check.delta, stations.enh_local[ctrl], v,
-                             check_ids=ids[chk], control_ids=ids[ctrl], c=p.class_c, relative_cov_h=rel)
-        path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(G_poses[:, :3, 3], axis=0), axis=1))]
-        s_at = np.interp(t_st, G_times, path)
-        tc = np.flatnonzero(ctrl)
-        L = np.array([np.min(np.abs(s_at[i] - s_at[tc])) for i in np.flatnonzero(chk)])
-        ratio = misclosure_ratio(L, check.horizontal)
+    check, classes, ratio = _check_station_statistics(stations, pts, v, st_cov, G_times, G_poses, p.class_c)
     if status == "ok" and (gchi.passed is False or stats.flagged):
         status = "warning"
         reason = "; ".join(x for x in (

@@ -544,18 +544,108 @@ def _checked(reg: Registration, pose, k: int, t: float, poses: list, times: list
     return reg
 
 
+def _refine_keyframe(cur, last_kf, kf_clouds, kf_poses, rel, T_kf, reg, pose, k: int, last_registered,
+                     v_prev_w, velocity_dt: float, params: OdometryParams):
+    """Keyframe-to-keyframe refinement of a new keyframe ``cur`` (relative pose ``rel`` to the last
+    keyframe at ``T_kf``): ``(rel, information, pose)``, the refined ones when the refinement
+    converged to a plausible motion since the last registered frame (``last_registered``: its pose
+    and the time since it), else the chained relative pose with the frame-to-frame information."""
+    target = last_kf if params.keyframe_submap_size <= 1 else _keyframe_submap(kf_clouds, kf_poses, params)
+    ref = register_frames(cur, target, rel, params, trusted_init=True)
+    why = ""
+    if ref.ok:
+        T_last, dt_last = last_registered
+        why = _implausible(ref, relative(T_last, compose(T_kf, project(ref.T))), dt_last, v_prev_w,
+                           velocity_dt, T_last[:3, :3], params)
+    if ref.ok and not why:
+        rel = project(ref.T)
+        return rel, ref.information, compose(T_kf, rel)
+    log.info("keyframe %d refinement failed (%s); chained odometry kept", k, why or ref.reason)
+    return rel, (reg.information if reg.ok else np.eye(6) * 1e-6), pose
+
+
+def _result(times, poses, rows, kf, extra, timings, params) -> OdometryResult:
+    """The :class:`OdometryResult` of :func:`run_odometry`'s per-frame ``rows`` (ok, reason,
+    fitness, weak, deskewed, twist, constraint ratio) and keyframe lists ``kf`` (indices, edges,
+    information, clouds, covariances)."""
+    ok, reasons, fitness, weak, deskewed, twists, cratio = (list(c) for c in zip(*rows, strict=True))
+    kf_idx, kf_edges, kf_info, kf_clouds, kf_covs = kf
+    return OdometryResult(
+        times_s=np.asarray(times), poses=np.stack(poses), frame_ok=np.asarray(ok, dtype=bool), frame_reason=reasons,
+        frame_weak=weak, fitness=np.asarray(fitness), keyframes=np.asarray(kf_idx, dtype=np.int64),
+        keyframe_edges=np.stack(kf_edges) if kf_edges else np.zeros((0, 4, 4)),
+        keyframe_information=np.stack(kf_info) if kf_info else np.zeros((0, 6, 6)),
+        keyframe_clouds=kf_clouds, keyframe_covariances=kf_covs, params=params, timings_s=timings,
+        keyframe_extra_edges=extra, deskewed=np.asarray(deskewed, dtype=bool),
+        deskew_twist=np.asarray(twists, dtype=np.float64).reshape(-1, 6), constraint_ratio=np.asarray(cratio, dtype=np.float64),
+    )
+
+
+def _register_step(cur, k: int, t: float, prev, prev_k: int, submap, T_sub, poses, times, velocity,
+                   velocity_dt: float, params: OdometryParams):
+    """One registration of frame ``k`` (time ``t``): ``(registration, pose or None when not
+    registered, registered to the previous frame instead of the local map)``."""
+    if params.frame_target == "submap":
+        # (t - times[-1] is 0 here: the time-scaled guess is not used with the local map)
+        return _register_to_submap(cur, prev, submap, T_sub, poses[-1], velocity,
+                                   _time_scaled_guess(velocity, t - times[-1], velocity_dt), params)
+    if prev_k == k - 1:
+        reg = _register_with_retries(cur, prev, velocity, params)  # [Ren2019 Eq. 7]: ΔT_{t-1,t}
+        scaled = _time_scaled_guess(velocity, t - prev.time_s, velocity_dt)
+        if scaled is not None:  # irregular frame times (keyframe logs, dropped frames): same speed, not same step
+            alt = _register_with_retries(cur, prev, scaled, params)
+            if alt.ok and (not reg.ok or alt.fitness > reg.fitness):
+                reg = alt
+    else:  # frames since `prev` were held by the prior: the constant-velocity motion since `prev`
+        reg = _register_with_retries(cur, prev, _scaled_motion(velocity, t - prev.time_s, velocity_dt), params)
+    return reg, (compose(poses[prev_k], reg.T) if reg.ok else None), False
+
+
+def _deskew_prepare(raw, twist, t: float, params: OdometryParams):
+    """``(frame, seconds)``: the raw points ``raw = (points, offsets)`` deskewed by the body twist
+    ``twist`` (rad/s, m/s) and prepared at frame time ``t``."""
+    t0 = time.perf_counter()
+    return prepare_frame(deskew_points(raw[0], raw[1], twist), t, params), time.perf_counter() - t0
+
+
+def _deskewed(raw, T_from, T_to, dt: float, t: float, params: OdometryParams):
+    """``(frame, twist, seconds)``: ``raw`` deskewed by the body twist of the motion ``T_from -> T_to``
+    over ``dt`` seconds (:func:`_deskew_prepare`)."""
+    twist = twist_from_motion(relative(T_from, T_to), dt)
+    frame, seconds = _deskew_prepare(raw, twist, t, params)
+    return frame, twist, seconds
+
+
+def _submap_keyframe_information(reg, via_prev: bool, sub_kf: int, n_kf: int, T_sub, pose):
+    """``(information, extra edge or None)`` of a keyframe registered to the local map: when the
+    keyframes since ``sub_kf`` were placed by the guess, the registration measures ``T_sub⁻¹ T``,
+    not the relative pose to the (guessed) last keyframe: an extra edge ``(sub_kf, n_kf, T_sub⁻¹ T,
+    information)`` carries it and the chain edge gets a negligible information."""
+    info = reg.information if reg.ok else np.eye(6) * 1e-6
+    if reg.ok and not via_prev and sub_kf != n_kf - 1:
+        return np.eye(6) * 1e-6, (sub_kf, n_kf, relative(T_sub, pose), info)
+    return info, None
+
+
+def _next_submap(sub_clouds, sub_poses, cur, pose, via_prev: bool, params: OdometryParams):
+    """The local map's keyframes with the registered keyframe ``cur`` added: ``(clouds, poses,
+    local map)``; one registered to the previous frame (the local map failed) starts a fresh local map."""
+    n = params.keyframe_submap_size
+    sub_clouds = ([] if via_prev else sub_clouds[-(n - 1):] if n > 1 else []) + [cur.points]
+    sub_poses = ([] if via_prev else sub_poses[-(n - 1):] if n > 1 else []) + [pose]
+    return sub_clouds, sub_poses, _keyframe_submap(sub_clouds, sub_poses, params)
+
+
 def run_odometry(frames: Iterable, params: OdometryParams | None = None, progress=None) -> OdometryResult:
     """GICP odometry over a sequence of frames, deskewed when their points carry times.
 
     Parameters
     ----------
     frames : iterable of (time_s, (m, 3) points) or (time_s, (m, 3) points, (m,) offsets_s)
-        Frames in time order, points in the sensor frame (m). With per-point offsets (seconds after
-        the frame time; None for a frame without) and ``params.deskew``, each frame is deskewed to
-        its frame time (:func:`minegeo.slam.deskew.deskew_points`) by the body twist of the last
-        registered motion, ``ξ = Log(T_a⁻¹ T_b) / (t_b − t_a)`` (zero before the first one), then,
-        with ``deskew_iterations = 1``, once more by the twist of its own registered motion and
-        registered again. The pose of every frame is the sensor pose at its frame time.
+        Frames in time order, points in the sensor frame (m), per-point offsets in seconds after the
+        frame time (or None). With offsets and ``params.deskew`` each frame is deskewed to its frame
+        time by the body twist ``ξ = Log(T_a⁻¹ T_b) / (t_b − t_a)`` of the last registered motion
+        (:func:`minegeo.slam.deskew.deskew_points`), then (``deskew_iterations = 1``) by its own.
     params : OdometryParams, optional
     progress : callable, optional
         Called with the frame index after each frame.
@@ -566,69 +656,39 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
 
     Notes
     -----
-    No silent runaway: a registration whose motion since the last registered frame is implausible
-    (:func:`_implausible`: speed, angular rate, acceleration, degenerate geometry) is rejected; the
-    frame is held by the constant-velocity prior (flagged with the reason, see
-    :meth:`OdometryResult.held_stretches`), is not the target of the next registration (that is the
-    last registered frame, from the constant-velocity guess scaled to the time between them), and
-    the run goes on.
+    No silent runaway (:func:`_checked`): an implausible registration is rejected, the frame held
+    by the constant-velocity prior, flagged (:meth:`OdometryResult.held_stretches`) and not used as
+    the next target; the run goes on.
     """
     params = params or OdometryParams()
     t_prep = t_f2f = t_kf = 0.0
-    times, poses, ok, reasons, fitness, weak = [], [], [], [], [], []
+    times, poses, rows = [], [], []  # rows: (ok, reason, fitness, weak, deskewed, twist, constraint ratio)
     kf_idx, kf_edges, kf_info, kf_clouds, kf_covs = [], [], [], [], []
-    deskewed, twists, cratio = [], [], []
     prev = last_kf = submap = None
     prev_k = last_ok = 0  # frame index of `prev` and of the last registered frame
     to_submap = params.frame_target == "submap"
     sub_clouds, sub_poses = [], []  # the keyframes the local map is made of (registered ones only)
     T_sub, sub_kf = np.eye(4), 0  # pose and keyframe number of the local map's frame (its last keyframe)
     extra = []  # keyframe edges (i, j, T_i⁻¹ T_j, information) measured against an older keyframe's local map
-    velocity, velocity_dt = np.eye(4), 0.0
-    v_prev_w = None  # world velocity (m/s) of the last registered motion
-    first_raw = None  # the first frame's raw points and times until the first motion is known
+    # the last registered motion, its world velocity (m/s), the first frame's raw points until a motion is known
+    velocity, velocity_dt, v_prev_w, first_raw = np.eye(4), 0.0, None, None
 
     def register(cur: PreparedFrame, k: int, t: float):
-        """(registration, pose or None when not registered, registered to the previous frame instead)."""
-        if to_submap:
-            # (t - times[-1] is 0 here: the time-scaled guess is not used with the local map)
-            return _register_to_submap(cur, prev, submap, T_sub, poses[-1], velocity,
-                                       _time_scaled_guess(velocity, t - times[-1], velocity_dt), params)
-        if prev_k == k - 1:
-            reg = _register_with_retries(cur, prev, velocity, params)  # [Ren2019 Eq. 7]: ΔT_{t-1,t}
-            scaled = _time_scaled_guess(velocity, t - prev.time_s, velocity_dt)
-            if scaled is not None:  # irregular frame times (keyframe logs, dropped frames): same speed, not same step
-                alt = _register_with_retries(cur, prev, scaled, params)
-                if alt.ok and (not reg.ok or alt.fitness > reg.fitness):
-                    reg = alt
-        else:  # frames since `prev` were held by the prior: the constant-velocity motion since `prev`
-            reg = _register_with_retries(cur, prev, _scaled_motion(velocity, t - prev.time_s, velocity_dt), params)
-        return reg, (compose(poses[prev_k], reg.T) if reg.ok else None), False
-
+        return _register_step(cur, k, t, prev, prev_k, submap, T_sub, poses, times, velocity, velocity_dt, params)
     for k, (t, cur, dt_prep, raw) in enumerate(_prepared_frames(frames, params)):
         t_prep += dt_prep
         _check_time(k, t, times)
-        twist = np.zeros(6)
+        twist = twist_from_motion(velocity, velocity_dt) if raw is not None and velocity_dt > 0 else np.zeros(6)
         if raw is not None:  # deskewed by the constant-velocity twist of the last registered motion
-            t0 = time.perf_counter()
-            if velocity_dt > 0:
-                twist = twist_from_motion(velocity, velocity_dt)
-            cur = prepare_frame(deskew_points(raw[0], raw[1], twist), t, params)
-            t_prep += time.perf_counter() - t0
+            cur, dt1 = _deskew_prepare(raw, twist, t, params)
+            t_prep += dt1
         times.append(float(t))
-        deskewed.append(raw is not None)
         if prev is None:
             first_raw = raw
             poses.append(np.eye(4))
-            ok.append(cur.index is not None)
-            reasons.append("" if cur.index is not None else "too few points")
-            fitness.append(1.0)
-            weak.append("")
-            twists.append(twist)
-            cratio.append(1.0)
-            kf_idx.append(0)
-            kf_clouds.append(cur.points)
-            kf_covs.append(cur.covariances)
+            rows.append([cur.index is not None, "" if cur.index is not None else "too few points", 1.0, "",
+                         raw is not None, twist, 1.0])
+            kf_idx, kf_clouds, kf_covs = [0], [cur.points], [cur.covariances]
             prev = last_kf = submap = cur
             sub_clouds, sub_poses = [cur.points], [np.eye(4)]
             continue
@@ -636,17 +696,15 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
         T_kf = poses[kf_idx[-1]]
         reg, pose, via_prev = register(cur, k, t)
         if first_raw is not None and reg.ok and pose is not None and prev_k == 0:
-            # the first frame was deskewed by no motion (none known yet): deskew it, and this frame,
-            # by the first registered motion, then register this frame again against it
-            t1 = time.perf_counter()
-            twist0 = twist_from_motion(relative(poses[0], pose), t - times[0])
-            first = prepare_frame(deskew_points(first_raw[0], first_raw[1], twist0), times[0], params)
+            # the first frame had no motion to deskew by: both by the first one, then register again
+            first, twist0, dt1 = _deskewed(first_raw, poses[0], pose, t - times[0], times[0], params)
             if raw is not None:
-                cur, twist = prepare_frame(deskew_points(raw[0], raw[1], twist0), t, params), twist0
-            t_prep += time.perf_counter() - t1
+                cur, twist, dt2 = _deskewed(raw, poses[0], pose, t - times[0], t, params)
+                dt1 += dt2
+            t_prep += dt1
             if first.index is not None:
                 prev = last_kf = first
-                kf_clouds[0], kf_covs[0], twists[0] = first.points, first.covariances, twist0
+                kf_clouds[0], kf_covs[0], rows[0][5] = first.points, first.covariances, twist0
                 if to_submap:
                     submap, sub_clouds = first, [first.points]
                 reg0, pose0, via0 = register(cur, k, t)
@@ -657,64 +715,36 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
         reg = _checked(reg, pose, *motion_args)  # an implausible first pass does not seed the second
         if raw is not None and params.deskew_iterations and reg.ok and pose is not None:
             # deskew again with this frame's own motion (from the last registered frame to it)
-            t1 = time.perf_counter()
-            twist2 = twist_from_motion(relative(poses[last_ok], pose), t - times[last_ok])
-            cur2 = prepare_frame(deskew_points(raw[0], raw[1], twist2), t, params)
-            t_prep += time.perf_counter() - t1
+            cur2, twist2, dt1 = _deskewed(raw, poses[last_ok], pose, t - times[last_ok], t, params)
+            t_prep += dt1
             reg2, pose2, via2 = register(cur2, k, t)
             if reg2.ok and pose2 is not None:
                 cur, reg, pose, via_prev, twist = cur2, _checked(reg2, pose2, *motion_args), pose2, via2, twist2
-        if not reg.ok:
-            via_prev = False
         t_f2f += time.perf_counter() - t0
         if not reg.ok:
+            via_prev = False
             log.info("frame %d (t = %.3f s) not registered: %s; placed by constant velocity", k, t, reg.reason)
             step = _time_scaled_guess(velocity, t - times[-2], velocity_dt)
             pose = compose(poses[-1], velocity if step is None else step)
-        ok.append(reg.ok)
-        reasons.append(reg.reason)
-        fitness.append(reg.fitness)
-        weak.append(reg.weak)
-        twists.append(twist)
-        cratio.append(reg.constraint_ratio if cur.index is not None and prev.index is not None else float("nan"))
+        rows.append([reg.ok, reg.reason, reg.fitness, reg.weak, raw is not None, twist,
+                     reg.constraint_ratio if cur.index is not None and prev.index is not None else float("nan")])
         rel = relative(T_kf, pose)
         if _keyframe_due(rel, t - times[kf_idx[-1]], params):
             t0 = time.perf_counter()
             if to_submap:  # the registration already was to the local map of the last keyframes
-                info = reg.information if reg.ok else np.eye(6) * 1e-6
-                if reg.ok and not via_prev and sub_kf != len(kf_idx) - 1:
-                    # the keyframes since sub_kf were placed by the guess: the registration measures
-                    # T_sub⁻¹ T, not the relative pose to the (guessed) last keyframe
-                    extra.append((sub_kf, len(kf_idx), relative(T_sub, pose), info))
-                    info = np.eye(6) * 1e-6
+                info, edge = _submap_keyframe_information(reg, via_prev, sub_kf, len(kf_idx), T_sub, pose)
+                extra += [edge] if edge is not None else []
             else:
-                target = last_kf if params.keyframe_submap_size <= 1 else _keyframe_submap(
-                    kf_clouds, [poses[i] for i in kf_idx], params)
-                ref = register_frames(cur, target, rel, params, trusted_init=True)  # keyframe-to-keyframe refinement
-                why = ""
-                if ref.ok:
-                    refined = compose(T_kf, project(ref.T))
-                    why = _implausible(ref, relative(poses[last_ok], refined), t - times[last_ok], v_prev_w,
-                                       velocity_dt, poses[last_ok][:3, :3], params)
-                if ref.ok and not why:
-                    rel, info = project(ref.T), ref.information
-                    pose = compose(T_kf, rel)
-                else:  # keep the chained relative pose with the frame-to-frame information
-                    info = reg.information if reg.ok else np.eye(6) * 1e-6
-                    log.info("keyframe %d refinement failed (%s); chained odometry kept", k, why or ref.reason)
-            kf_idx.append(k)
-            kf_edges.append(rel)
-            kf_info.append(info)
-            kf_clouds.append(cur.points)
-            kf_covs.append(cur.covariances)
+                rel, info, pose = _refine_keyframe(cur, last_kf, kf_clouds, [poses[i] for i in kf_idx], rel, T_kf,
+                                                   reg, pose, k, (poses[last_ok], t - times[last_ok]), v_prev_w,
+                                                   velocity_dt, params)
+            for lst, v in zip((kf_idx, kf_edges, kf_info, kf_clouds, kf_covs), (k, rel, info, cur.points,
+                                                                                cur.covariances), strict=True):
+                lst.append(v)
             last_kf = cur
             if to_submap and cur.index is not None and reg.ok:
-                # a keyframe placed by the guess stays out of the local map; one registered to the
-                # previous frame (the local map failed) starts a fresh local map
-                n = params.keyframe_submap_size
-                sub_clouds = ([] if via_prev else sub_clouds[-(n - 1):] if n > 1 else []) + [cur.points]
-                sub_poses = ([] if via_prev else sub_poses[-(n - 1):] if n > 1 else []) + [pose]
-                submap, T_sub, sub_kf = _keyframe_submap(sub_clouds, sub_poses, params), pose, len(kf_idx) - 1
+                sub_clouds, sub_poses, submap = _next_submap(sub_clouds, sub_poses, cur, pose, via_prev, params)
+                T_sub, sub_kf = pose, len(kf_idx) - 1
             t_kf += time.perf_counter() - t0
         poses.append(pose)
         if reg.ok:
@@ -729,13 +759,5 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
             progress(k)
     if not times:
         raise InputError("no frames: the sequence is empty")
-    return OdometryResult(
-        times_s=np.asarray(times), poses=np.stack(poses), frame_ok=np.asarray(ok, dtype=bool), frame_reason=reasons,
-        frame_weak=weak, fitness=np.asarray(fitness), keyframes=np.asarray(kf_idx, dtype=np.int64),
-        keyframe_edges=np.stack(kf_edges) if kf_edges else np.zeros((0, 4, 4)),
-        keyframe_information=np.stack(kf_info) if kf_info else np.zeros((0, 6, 6)),
-        keyframe_clouds=kf_clouds, keyframe_covariances=kf_covs, params=params,
-        timings_s={"prepare": t_prep, "frame_to_frame": t_f2f, "keyframe_refine": t_kf}, keyframe_extra_edges=extra,
-        deskewed=np.asarray(deskewed, dtype=bool), deskew_twist=np.asarray(twists, dtype=np.float64).reshape(-1, 6),
-        constraint_ratio=np.asarray(cratio, dtype=np.float64),
-    )
+    return _result(times, poses, rows, (kf_idx, kf_edges, kf_info, kf_clouds, kf_covs), extra,
+                   {"prepare": t_prep, "frame_to_frame": t_f2f, "keyframe_refine": t_kf}, params)
