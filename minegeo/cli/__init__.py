@@ -160,7 +160,10 @@ def main(argv: list[str] | None = None) -> int:
 
     args._clock = RunClock()  # wall time and Numba compile time of this run, reported apart
     shown_before = _common.time_line_shown(False)  # a nested run (demo's steps) keeps the outer's flag
-    notice = None if args.quiet else _common.FirstCompileNotice(args.verb, _cold_compile_estimate(args))
+    from minegeo._output import progress_enabled
+
+    notice = None if args.quiet else _common.FirstCompileNotice(args.verb, _cold_compile_estimate(args),
+                                                                live=progress_enabled(args))
     try:
         return int(args._run(args) or 0)
     except MinegeoError as exc:

@@ -60,13 +60,18 @@ class FirstCompileNotice:
     the first Numba compilation of a run starts (a kernel, or a signature of it, not in Numba's
     on-disk cache yet: loading from the cache is not compilation and says nothing).
 
+    ``live`` (stderr is a terminal, as for progress bars): printed at once. Otherwise (a script, a
+    log file) it is an INFO log record, held with the run's log like every other one, so that a run
+    ending in the user's mistake still prints exactly one line.
+
     Listens to Numba's ``numba:compile`` event from construction to :meth:`close`. ``estimate_s``
     is the verb's one-time compile time on an empty cache (``minegeo.cli.COLD_COMPILE_S``); a
     partly filled cache compiles less."""
 
-    def __init__(self, verb: str, estimate_s: float | None = None):
+    def __init__(self, verb: str, estimate_s: float | None = None, live: bool = True):
         self.verb = verb
         self.estimate_s = estimate_s
+        self.live = live
         self.shown = False
         self._listener = None
         try:
@@ -92,9 +97,13 @@ class FirstCompileNotice:
         self.shown = True
         about = (f"; about {self.estimate_s:.0f} s on an idle machine" if self.estimate_s and self.estimate_s >= 1
                  else "")
+        text = (f"minegeo {self.verb}: compiling numerical kernels for first use (once, cached for later "
+                f"runs{about}) ...")
+        if not self.live:  # a log record: held with the run's log, dropped when the run ends in a user error
+            logging.getLogger("minegeo.cli").info("%s", text)
+            return
         try:
-            print(f"minegeo {self.verb}: compiling numerical kernels for first use (once, cached for later "
-                  f"runs{about}) ...", file=sys.stderr, flush=True)
+            print(text, file=sys.stderr, flush=True)
         except (OSError, ValueError):
             pass
 
