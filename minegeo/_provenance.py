@@ -9,6 +9,7 @@ half-written result, and inputs are never opened for writing.
 
 from __future__ import annotations
 
+import contextvars
 import dataclasses
 import datetime as _dt
 import hashlib
@@ -150,15 +151,25 @@ def write_json_atomic(path: str | os.PathLike, obj: Any) -> Path:
     return atomic_write_text(path, text + "\n")
 
 
+#: the options of the ``minegeo`` command being run (option name -> value, the ``--config`` file form),
+#: set by :func:`minegeo.cli.main` for the run; recorded by :func:`provenance` as ``"arguments"``
+CLI_ARGUMENTS: contextvars.ContextVar[dict | None] = contextvars.ContextVar("minegeo_cli_arguments", default=None)
+
+
 def provenance(seed: int | None = None, origin: Any = None, inputs: list | None = None) -> dict[str, Any]:
-    """Standard provenance block: versions, seed, local origin, input hashes, UTC time."""
-    return {
+    """Standard provenance block: versions, seed, local origin, input hashes, UTC time, and within a
+    ``minegeo`` command its options (``"arguments"``, which ``--config result.json`` reads back)."""
+    rec = {
         "versions": versions(),
         "seed": seed,
         "origin": to_jsonable(origin),
         "inputs": [input_record(p) if not isinstance(p, dict) else p for p in (inputs or [])],
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     }
+    arguments = CLI_ARGUMENTS.get()
+    if arguments is not None:
+        rec["arguments"] = to_jsonable(arguments)
+    return rec
 
 
 class StageTimer:

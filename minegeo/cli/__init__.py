@@ -29,6 +29,7 @@ import logging
 import sys
 
 from minegeo import __version__
+from minegeo.cli import _config
 from minegeo.errors import InternalError, MinegeoError
 
 #: verb -> module implementing it. Modules are imported lazily so ``--help`` stays fast.
@@ -121,6 +122,7 @@ def build_parser(verbs: list[str] | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="show full tracebacks and debug logging")
     parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
     sub = parser.add_subparsers(dest="verb", metavar="VERB", parser_class=_Parser)
+    parser._verb_parsers = {}
     for verb in verbs if verbs is not None else VERBS:
         try:
             mod = _load(verb)
@@ -128,7 +130,9 @@ def build_parser(verbs: list[str] | None = None) -> argparse.ArgumentParser:
             continue  # verb not available in this build
         p = sub.add_parser(verb, help=getattr(mod, "HELP", ""), description=getattr(mod, "HELP", ""))
         mod.add_arguments(p)
+        _config.add_config_options(p)  # --config FILE / --dump-config on every verb (docs/config.md)
         p.set_defaults(_run=mod.run)
+        parser._verb_parsers[verb] = p
     return parser
 
 
@@ -138,7 +142,10 @@ def main(argv: list[str] | None = None) -> int:
     # unrelated verb cannot break this one).
     verb = next((a for a in argv if not a.startswith("-")), None)
     parser = build_parser([verb] if verb in VERBS else None)
-    args = parser.parse_args(argv)
+    args, dumped = _config.parse_with_config(parser, argv, verb)
+    if dumped is not None:
+        sys.stdout.write(dumped)
+        return 0
     if not getattr(args, "_run", None):
         parser.print_help()
         return 0 if args.verb is None else 2
@@ -164,6 +171,10 @@ def main(argv: list[str] | None = None) -> int:
 
     notice = None if args.quiet else _common.FirstCompileNotice(args.verb, _cold_compile_estimate(args),
                                                                 live=progress_enabled(args))
+    from minegeo._provenance import CLI_ARGUMENTS
+
+    # the run's options, recorded in result.json (provenance.arguments) so --config can repeat the run
+    arguments = CLI_ARGUMENTS.set(_config.arguments_record(parser._verb_parsers[args.verb], args))
     try:
         return int(args._run(args) or 0)
     except MinegeoError as exc:
@@ -209,6 +220,7 @@ def main(argv: list[str] | None = None) -> int:
             pass
         return 141
     finally:
+        CLI_ARGUMENTS.reset(arguments)
         args._clock.close()
         if notice is not None:
             notice.close()
