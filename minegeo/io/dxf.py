@@ -15,6 +15,9 @@ layer (default prefix)      entities                           what
 ``MINEGEO_ADJUSTED_POINTS`` POINT                              adjusted network points (``adjust``)
 ``MINEGEO_FIXED_POINTS``    POINT                              fixed (control) network points (``adjust``)
 ``MINEGEO_ELLIPSE95``       POLYLINE (3D), closed, 72 vertices 95 % error ellipses (``ELLIPSE99`` for 0.99...)
+``MINEGEO_CONTROL_STATIONS`` POINT                             control stations, surveyed E N H (``slam --control``)
+``MINEGEO_CHECK_STATIONS``  POINT                              check stations, surveyed E N H (``slam --control``)
+``MINEGEO_RESIDUALS``       POLYLINE (3D), 2 vertices          surveyed -> estimated, exaggerated (``slam --control``)
 ``MINEGEO_LABELS``          TEXT                               names, at the point they name
 ==========================  =================================  ===============================================
 
@@ -56,7 +59,7 @@ from minegeo.io._limits import MAX_TABLE_FILE_BYTES, read_file_text
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DxfDrawing", "write_localize_dxf", "ellipse_from_covariance", "ellipse_vertices",
+__all__ = ["DxfDrawing", "write_localize_dxf", "write_control_dxf", "nice_exaggeration", "ellipse_from_covariance", "ellipse_vertices",
            "read_trajectory_enh", "LAYERS", "ELLIPSE_VERTICES", "CHI2_2D_95_K"]
 
 #: layer keys -> suffix of the layer name (``<prefix>_<suffix>``) and AutoCAD colour index
@@ -69,6 +72,9 @@ LAYERS = {
     "fixed_points": ("FIXED_POINTS", 5),
     "ellipse": ("ELLIPSE95", 2),
     "labels": ("LABELS", 7),
+    "control_stations": ("CONTROL_STATIONS", 5),
+    "check_stations": ("CHECK_STATIONS", 1),
+    "residuals": ("RESIDUALS", 6),
 }
 #: vertices of an ellipse polyline (one every 5 degrees)
 ELLIPSE_VERTICES = 72
@@ -364,4 +370,115 @@ def write_localize_dxf(path, results: list, *, layer_prefix: str = "MINEGEO", tr
         dwg.property("MINEGEO_NOT_PLACED", "; ".join(f"{n['name']} ({n['status']}: no position)" for n in not_placed))
     out = dwg.save(path)
     out.update(placed=names, not_placed=not_placed, frame=frame, crs=crs)
+    return out
+
+
+def nice_exaggeration(extent_m: float, largest_m: float, fraction: float = 0.05) -> float:
+    """The exaggeration of residual vectors: the largest of 1, 2, 5 x 10^k (k >= 0) with
+    ``x · largest_m ≤ fraction · extent_m`` (so the longest vector is at most ``fraction`` of the
+    drawing's extent), at least 1."""
+    if not (largest_m > 0.0 and extent_m > 0.0 and math.isfinite(largest_m) and math.isfinite(extent_m)):
+        return 1.0
+    target = fraction * extent_m / largest_m
+    if target <= 1.0:
+        return 1.0
+    k = math.floor(math.log10(target))
+    best = 1.0
+    for e in (k - 1, k):
+        for m in (1.0, 2.0, 5.0):
+            x = m * 10.0**e
+            if best < x <= target * (1.0 + 1e-12):
+                best = x
+    return best
+
+
+def write_control_dxf(path, *, ids, is_control, surveyed_enh, estimated_enh, cov_enh=None, trajectory_enh=None,
+                      crs: str | None = None, exaggeration: float | None = None, flagged=(),
+                      layer_prefix: str = "MINEGEO", text_height_m: float = 0.5) -> dict:
+    """Draw control and check stations of ``minegeo slam --control`` into a DXF, in the CRS.
+
+    Entities (coordinates E, N, H in metres, float64):
+
+    * a POINT at the surveyed ``E N H`` of every station, control stations on
+      ``<prefix>_CONTROL_STATIONS``, check stations on ``<prefix>_CHECK_STATIONS``, and its id as TEXT
+      (``<prefix>_LABELS``; a control station flagged by its w-test is labelled ``"<id> (flagged)"``);
+    * the residual vector of every station on ``<prefix>_RESIDUALS``: a 2-vertex 3-D polyline from the
+      surveyed point ``s`` to ``s + x (e − s)``, ``e`` the estimated point, ``x`` the exaggeration;
+    * the 95 % horizontal error ellipse of every station whose covariance is given, centred at the
+      surveyed point at its height, semi-axes ``x k √λ`` (λ the eigenvalues of the E N block of
+      ``cov_enh``, ``k = √χ²(2, 0.95) = 2.4477``, :func:`ellipse_from_covariance`), on
+      ``<prefix>_ELLIPSE95``: with the same exaggeration as the vectors, a residual whose tip lies
+      outside its ellipse is outside the 95 % region;
+    * the trajectory as one 3-D polyline on ``<prefix>_TRAJECTORY``.
+
+    The exaggeration and what is drawn are stated in the custom properties
+    ``MINEGEO_EXAGGERATION``, ``MINEGEO_ELLIPSES`` and ``MINEGEO_FLAGGED``, and in a TEXT at the first
+    station.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.dxf`` written (atomically).
+    ids : sequence of str
+    is_control : (n,) bool
+    surveyed_enh, estimated_enh : (n, 3)
+        Surveyed and estimated points in the CRS (m).
+    cov_enh : (n, 3, 3), optional
+        Covariance of the estimated points (m²); rows that are not finite get no ellipse.
+    trajectory_enh : (m, 3), optional
+    crs : str, optional
+    exaggeration : float, optional
+        Default :func:`nice_exaggeration` of the drawing's horizontal extent and the longest
+        horizontal residual (the longest vector at most 5 % of the extent).
+    flagged : sequence of str
+        Ids of the control stations flagged by their w-test.
+
+    Returns
+    -------
+    dict
+        ``path``, ``layers`` (entity count per layer name), ``properties``, ``exaggeration``,
+        ``ellipses`` (number drawn).
+    """
+    ids = [str(i) for i in ids]
+    ctrl = np.asarray(is_control, dtype=bool).reshape(-1)
+    s = np.asarray(surveyed_enh, dtype=np.float64).reshape(-1, 3)
+    e = np.asarray(estimated_enh, dtype=np.float64).reshape(-1, 3)
+    n = len(ids)
+    if ctrl.shape != (n,) or s.shape != (n, 3) or e.shape != (n, 3):
+        raise InputError(f"write_control_dxf: {n} ids but is_control {ctrl.shape}, surveyed {s.shape}, "
+                         f"estimated {e.shape}")
+    traj = None if trajectory_enh is None else np.asarray(trajectory_enh, dtype=np.float64).reshape(-1, 3)
+    d = e - s
+    pts = s[:, :2] if traj is None else np.r_[s[:, :2], traj[:, :2]]
+    extent = float(np.ptp(pts, axis=0).max()) if pts.shape[0] else 0.0
+    largest = float(np.hypot(d[:, 0], d[:, 1]).max()) if n else 0.0
+    x = float(exaggeration) if exaggeration is not None else nice_exaggeration(max(extent, 1.0), largest)
+    if not (math.isfinite(x) and x > 0):
+        raise InputError(f"exaggeration must be a positive number, got {exaggeration!r}")
+    flagged = {str(f) for f in flagged}
+    dwg = DxfDrawing(layer_prefix=layer_prefix, crs=crs, frame=f"CRS {crs}" if crs else "CRS",
+                     text_height_m=text_height_m)
+    n_ell = 0
+    for i in range(n):
+        name = ids[i] + (" (flagged)" if ids[i] in flagged else "")
+        dwg.point("control_stations" if ctrl[i] else "check_stations", s[i], label=name)
+        dwg.polyline3d("residuals", np.stack([s[i], s[i] + x * d[i]]))
+        if cov_enh is not None:
+            C = np.asarray(cov_enh[i], dtype=np.float64)
+            if C.shape == (3, 3) and np.isfinite(C).all():
+                a, b, az = ellipse_from_covariance(C[:2, :2])
+                dwg.ellipse(s[i], x * a, x * b, az)
+                n_ell += 1
+    if traj is not None and traj.shape[0] >= 2:
+        dwg.polyline3d("trajectory", traj)
+    what = (f"residual vectors (surveyed -> estimated) and 95 % ellipses of the estimated points (k = "
+            f"{CHI2_2D_95_K:.4f}) exaggerated x{x:g}")
+    dwg.property("MINEGEO_EXAGGERATION", f"{x:g}")
+    dwg.property("MINEGEO_ELLIPSES", f"{n_ell} of {n} stations (95 %, E N, exaggerated x{x:g}, centred at the "
+                 "surveyed point)" if n_ell else "none (no covariances: rigid mode)")
+    dwg.property("MINEGEO_FLAGGED", ", ".join(sorted(flagged)) or "none")
+    if n:
+        dwg.label(what, s[0] + [0.0, -3.0 * dwg.text_height, 0.0])
+    out = dwg.save(path)
+    out.update(exaggeration=x, ellipses=n_ell)
     return out

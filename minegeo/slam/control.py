@@ -85,7 +85,7 @@ from minegeo.optim import (
     levenberg_marquardt,
 )
 
-__all__ = ["ControlParams", "ControlResult", "DriftBetweenFactors", "DriftWalkFactors", "PositionFactors", "apply_control", "graph_inputs", "interpolate_poses",
+__all__ = ["ControlParams", "ControlResult", "DriftBetweenFactors", "DriftWalkFactors", "PositionFactors", "apply_control", "check_station_frames", "graph_inputs", "interpolate_poses",
            "selected_inverse", "station_points"]
 
 log = logging.getLogger(__name__)
@@ -122,6 +122,49 @@ def interpolate_poses(times_s: np.ndarray, poses: np.ndarray, t: np.ndarray) -> 
         s = (tq - times_s[a]) / (times_s[a + 1] - times_s[a])
         out[q] = poses[a] @ se3_exp(s * se3_log(se3_inverse(poses[a]) @ poses[a + 1]))
     return out
+
+
+#: a station whose middle time lies between two frames further apart than this many times the
+#: median frame interval (and whose still span holds no frame) falls in a gap of the trajectory
+GAP_FACTOR = 3.0
+
+
+def check_station_frames(stations, frame_times_s, what: str = "the frames") -> None:
+    """Refuse a station the run's poses cannot place (``InputError``, naming the station and its line).
+
+    * its still span ``[t_start, t_end]`` must lie inside ``[t_0, t_last]`` of the frame times;
+    * **gap**: with ``t_a ≤ t_mid ≤ t_b`` the frames around the station's middle time, the station
+      falls in a gap of the trajectory when no frame time lies in its still span and
+      ``t_b − t_a > GAP_FACTOR · median(Δt)``: its pose (C1) would be interpolated across an
+      interval in which the scanner was not observed, not measured while it stood on the station.
+
+    Parameters
+    ----------
+    stations : minegeo.io.stations.Stations
+    frame_times_s : (f,) s, increasing
+        Times of the frames (listed, or used by the run).
+    what : str
+        How the frames are named in the message (``"the frames of --frames DIR"``).
+    """
+    ft = np.asarray(frame_times_s, dtype=np.float64).reshape(-1)
+    if ft.size == 0:
+        return
+    stations.check_time_span(float(ft[0]), float(ft[-1]), what)
+    if ft.size < 2:
+        return
+    dt = np.diff(ft)
+    gap = GAP_FACTOR * float(np.median(dt))
+    for i in np.argsort(stations.t_start_s, kind="stable"):
+        t0, t1, tm = stations.t_start_s[i], stations.t_end_s[i], stations.t_mid_s[i]
+        if np.any((ft >= t0) & (ft <= t1)):
+            continue
+        b = min(max(int(np.searchsorted(ft, tm, side="left")), 1), ft.size - 1)
+        if ft[b] - ft[b - 1] > gap:
+            raise InputError(
+                f"{stations.source or 'stations'}: line {stations.lines[i]}: station {stations.ids[i]} at "
+                f"{tm:.3f} s falls in a gap of the trajectory: no frame of {what} between {ft[b - 1]:.3f} and "
+                f"{ft[b]:.3f} s ({ft[b] - ft[b - 1]:.3f} s; the frames are {np.median(dt):.3f} s apart), so its "
+                "pose would be a guess across the gap (check the station times, or the frames missing there)")
 
 
 def station_points(poses: np.ndarray, offset: np.ndarray) -> np.ndarray:
