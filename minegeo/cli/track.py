@@ -34,7 +34,9 @@ HELP = "LiDAR tracking with intersection recognition against a knowledge base (L
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--frames", required=True, help="folder of frames, as for `minegeo slam`")
+    parser.add_argument("--frames", required=True, help="folder of frames or ROS bag, as for `minegeo slam`")
+    parser.add_argument("--lidar-topic", "--points-topic", dest="lidar_topic", default=None, metavar="TOPIC",
+                        help="the bag's sensor_msgs/PointCloud2 topic (default: the only one)")
     parser.add_argument("--db", required=True, help="knowledge base of `minegeo intersections build`")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--times", default=None, help="file of frame times (s) (default FRAMES/times.txt or names)")
@@ -224,7 +226,8 @@ def run(args) -> int:
             params = replace(params, T_world_start=_to_map(args, kb, params.T_world_start))
         # the keyframes' drift skeleton uses the base's own skeleton parameters (floor cell, wall band)
         params = replace(params, recognition=replace(params.recognition, skeleton=kb.params.skeleton))
-        files = list_frames(args.frames, times_file=args.times, pattern=args.pattern)
+        files = list_frames(args.frames, times_file=args.times, pattern=args.pattern,
+                            topic=getattr(args, "lidar_topic", None))
         skipped: list[dict] = []
         bar = tqdm(total=len(files), desc="track", unit="frame", file=sys.stderr, disable=not progress_enabled(args))
         reg_log = logging.getLogger("minegeo.registration")
@@ -261,7 +264,7 @@ def run(args) -> int:
             e = err[np.isfinite(err)]
             result["truth"] = {"rmse_m": float(np.sqrt(np.mean(e**2))), "max_m": float(e.max()),
                                "mean_m": float(e.mean()), "n": int(e.size)}
-        inputs = [{"path": str(f.path), "sha256": sha256_file(f.path)} for f in files]
+        inputs = files.inputs()
         inputs += [{"path": str(p), "sha256": sha256_file(p)} for p in (args.db, args.times, args.truth) if p]
         summary = {"command": "track", "status": res.status, "reason": res.reason, "parameters": params.as_dict(),
                    "inputs": {"frames": str(args.frames), "db": str(args.db)}, "result": result,

@@ -38,7 +38,8 @@ from minegeo.io.imu import ImuSamples, imu_samples
 from minegeo.io.times import TimedPoints, check_offsets, find_time_field, offsets_seconds, time_encoding
 
 __all__ = ["BagTopic", "BagFrame", "bag_kind", "list_topics", "iter_bag_frames", "read_bag_frames",
-           "read_bag_imu", "bag_sha256", "decode_pointcloud2", "POINTCLOUD2", "IMU"]
+           "bag_frame_stamps", "iter_bag_frame_records", "read_bag_imu", "bag_sha256", "decode_pointcloud2",
+           "POINTCLOUD2", "IMU"]
 
 log = logging.getLogger(__name__)
 
@@ -383,7 +384,9 @@ def list_topics(path) -> list[BagTopic]:
 
 def _choose_topic(bag: _Bag, topic: str | None, msgtype: str, option: str) -> str:
     topics = bag.topics()
-    listing = ", ".join(f"{n} ({topics[n].msgtype})" for n in sorted(topics)) or "none"
+    if not topics:
+        raise InputError(f"{bag.path}: the bag holds no topics and no messages (an empty bag)")
+    listing = ", ".join(f"{n} ({topics[n].msgtype})" for n in sorted(topics))
     if topic is None:
         cands = sorted(n for n in topics if topics[n].msgtype == msgtype)
         if len(cands) == 1:
@@ -393,8 +396,33 @@ def _choose_topic(bag: _Bag, topic: str | None, msgtype: str, option: str) -> st
     if topic not in topics:
         raise InputError(f"{bag.path}: no topic {topic!r} in the bag (topics: {listing})")
     if topics[topic].msgtype != msgtype:
-        raise InputError(f"{bag.path}: topic {topic!r} carries {topics[topic].msgtype}, not {msgtype}")
+        raise InputError(f"{bag.path}: topic {topic!r} carries {topics[topic].msgtype}, not {msgtype}, which is "
+                         f"the message type minegeo reads there (convert the topic, or name another with {option})")
     return topic
+
+
+def _frame_messages(bag: _Bag, name: str):
+    """``(index, stamp ns, where, message)`` of the PointCloud2 messages of topic ``name``, header
+    stamps checked to increase strictly (as integer nanoseconds and as float64 seconds, the frame
+    times the run writes)."""
+    prev = None
+    for k, _ts, raw, conn in bag.messages(bag.connections(name)):
+        msg = bag.deserialize(raw, conn.msgtype, f"topic {name} message {k}")
+        stamp = _stamp_ns(msg.header)
+        where = f"topic {name} message {k} (stamp {stamp / 1e9:.9f} s)"
+        if prev is not None and not (stamp > prev and stamp / 1e9 > prev / 1e9):
+            raise FileFormatError(bag.path, f"{where}: header stamp not after the previous message's "
+                                  f"{prev / 1e9:.9f} s: frame times must increase strictly")
+        prev = stamp
+        yield k, stamp, where, msg
+
+
+def _bag_frame(bag: _Bag, name: str, k: int, stamp: int, where: str, msg) -> BagFrame:
+    xyz, t_off, tf, enc, dropped = decode_pointcloud2(msg, bag.path, where)
+    if dropped:
+        log.debug("%s: %s: dropped %d point(s) with NaN/inf coordinates", bag.path, where, dropped)
+    tp = TimedPoints(xyz, t_off, None, tf, enc, f"{bag.path}!{name}#{k}")
+    return BagFrame(k, stamp, stamp / 1e9, tp, str(msg.header.frame_id), dropped)
 
 
 def iter_bag_frames(path, topic: str | None = None) -> Iterator[BagFrame]:
@@ -414,27 +442,59 @@ def iter_bag_frames(path, topic: str | None = None) -> Iterator[BagFrame]:
     Raises
     ------
     InputError
-        No such topic, a topic of another type, or no / several PointCloud2 topics when none is named.
+        An empty bag, no such topic, a topic of another type, or no / several PointCloud2 topics
+        when none is named.
     FileFormatError
         A message that cannot be decoded (:func:`decode_pointcloud2`), or header stamps that do not
         increase strictly from message to message (the message is named).
     """
     with _Bag(path) as bag:
         name = _choose_topic(bag, topic, POINTCLOUD2, "--lidar-topic")
-        prev = None
-        for k, _ts, raw, conn in bag.messages(bag.connections(name)):
-            msg = bag.deserialize(raw, conn.msgtype, f"topic {name} message {k}")
-            stamp = _stamp_ns(msg.header)
-            where = f"topic {name} message {k} (stamp {stamp / 1e9:.9f} s)"
-            if prev is not None and stamp <= prev:
-                raise FileFormatError(bag.path, f"{where}: header stamp not after the previous message's "
-                                      f"{prev / 1e9:.9f} s: frame times must increase strictly")
-            prev = stamp
-            xyz, t_off, tf, enc, dropped = decode_pointcloud2(msg, bag.path, where)
-            if dropped:
-                log.debug("%s: %s: dropped %d point(s) with NaN/inf coordinates", bag.path, where, dropped)
-            tp = TimedPoints(xyz, t_off, None, tf, enc, f"{bag.path}!{name}#{k}")
-            yield BagFrame(k, stamp, stamp / 1e9, tp, str(msg.header.frame_id), dropped)
+        for k, stamp, where, msg in _frame_messages(bag, name):
+            yield _bag_frame(bag, name, k, stamp, where, msg)
+
+
+def bag_frame_stamps(path, topic: str | None = None) -> tuple[str, list[tuple[int, int]]]:
+    """The frame times of a bag topic without decoding the points (the first pass of a run).
+
+    Returns
+    -------
+    (topic, [(index, stamp_ns), ...])
+        The chosen PointCloud2 topic and, for each of its messages in log-time order, its number
+        on the topic and its ``header.stamp`` (ns); at least one message.
+
+    Raises
+    ------
+    InputError
+        As :func:`iter_bag_frames` for the topic; a topic without messages.
+    FileFormatError
+        A damaged bag, a message whose header cannot be decoded, or header stamps that do not
+        increase strictly (the message is named).
+    """
+    with _Bag(path) as bag:
+        name = _choose_topic(bag, topic, POINTCLOUD2, "--lidar-topic")
+        out = [(k, stamp) for k, stamp, _where, _msg in _frame_messages(bag, name)]
+    if not out:
+        raise InputError(f"{Path(path)}: topic {name} holds no messages (no frames to run on)")
+    return name, out
+
+
+def iter_bag_frame_records(path, topic: str) -> Iterator[tuple[int, int, BagFrame | FileFormatError]]:
+    """``(index, stamp_ns, frame or error)`` of each message of the PointCloud2 ``topic``.
+
+    As :func:`iter_bag_frames`, but a message whose points cannot be decoded (no x field, a
+    truncated data array, offsets outside the sweep) is yielded as its :class:`FileFormatError`
+    (the frame is skipped by the caller, as an unreadable frame file is) instead of ending the
+    stream. A damaged bag or stamps out of order still raise.
+    """
+    with _Bag(path) as bag:
+        name = _choose_topic(bag, topic, POINTCLOUD2, "--lidar-topic")
+        for k, stamp, where, msg in _frame_messages(bag, name):
+            try:
+                rec = _bag_frame(bag, name, k, stamp, where, msg)
+            except FileFormatError as exc:
+                rec = exc
+            yield k, stamp, rec
 
 
 def read_bag_frames(path, topic: str | None = None) -> list[BagFrame]:

@@ -1,4 +1,4 @@
-"""A folder of LiDAR frames (``minegeo slam --frames DIR``), as fixed by the SLAM contract.
+"""LiDAR frames (``minegeo slam --frames DIR|BAG``): a folder of files or a ROS bag, as fixed by the SLAM contract.
 
 * One point cloud per frame, any format :func:`minegeo.io.read_point_cloud` reads (PLY, PCD,
   LAS/LAZ, XYZ/CSV, PTS, 3DTK) plus KITTI Velodyne ``.bin`` (float32 x, y, z, reflectance), in the
@@ -22,6 +22,14 @@
 * Times read from names that are consecutive integers from 0 or 1 (``000000.pcd``, ``000001.pcd``,
   ...) are most likely frame numbers, not seconds: :func:`list_frames` logs a warning and says so in
   :attr:`FrameList.times_source` (the run still takes them as seconds, as the contract says).
+* A ROS bag (a ROS 1 ``.bag`` file, a ROS 2 bag folder with ``metadata.yaml``, or one ROS 2
+  ``.mcap``/``.db3`` file; :func:`minegeo.io.bag.bag_kind` tells it from the content) in place of
+  the folder: the frames are the ``sensor_msgs/msg/PointCloud2`` messages of one topic (named, or
+  the only PointCloud2 topic of the bag), in log-time order; the frame time is the message's
+  ``header.stamp`` (``sec + nanosec * 1e-9``), strictly increasing; per-point times from the same
+  fields as in files (:mod:`minegeo.io.bag`). The bag is read twice, one message at a time: once
+  for the stamps (checked before any work), once for the points (:func:`iter_frames`), so a bag
+  never needs to fit in memory. ``--times`` and ``--pattern`` do not apply to a bag.
 """
 
 from __future__ import annotations
@@ -39,7 +47,7 @@ from minegeo.io._limits import read_file_bytes
 from minegeo.io.pointcloud import _SUFFIX
 from minegeo.io.trajectory import read_times, time_problem
 
-__all__ = ["FrameFile", "list_frames", "read_frame", "read_kitti_bin", "times_source"]
+__all__ = ["FrameFile", "FrameList", "list_frames", "iter_frames", "read_frame", "read_kitti_bin", "times_source"]
 
 log = logging.getLogger(__name__)
 
@@ -50,10 +58,64 @@ _NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
 
 @dataclass(frozen=True)
 class FrameFile:
-    """One frame of the folder: its file and its time (s)."""
+    """One frame: its file (or bag) and its time (s).
+
+    Attributes
+    ----------
+    path : Path
+        The frame file; for a bag frame, the bag.
+    time_s : float
+        The frame time (s).
+    message : int or None
+        Bag frames: the message's number on its topic (0-based, log-time order); None for files.
+    label : str or None
+        Bag frames: ``"TOPIC#K"``, how the frame is named in messages and ``result.json``.
+    """
 
     path: Path
     time_s: float
+    message: int | None = None
+    label: str | None = None
+
+    @property
+    def name(self) -> str:
+        """The frame's name in messages: the file name, or ``TOPIC#K`` for a bag message."""
+        return self.label if self.label is not None else self.path.name
+
+
+class FrameList(list):
+    """The frames of a run (a list of :class:`FrameFile` in time order) and where they come from.
+
+    Attributes
+    ----------
+    source : Path
+        The ``--frames`` folder or bag.
+    kind : str
+        ``"folder"`` or ``"bag"``.
+    times_source : str
+        ``"file"`` (times.txt or --times), ``"names"`` (numbers in the file names, possibly frame
+        numbers: a warning was logged) or ``"bag header stamps"``.
+    topic : str or None
+        The bag's PointCloud2 topic.
+    """
+
+    def __init__(self, frames, source, kind: str, times_source: str, topic: str | None = None):
+        super().__init__(frames)
+        self.source = Path(source)
+        self.kind = kind
+        self.times_source = times_source
+        self.topic = topic
+
+    def inputs(self) -> list[dict]:
+        """Provenance records ``{"path", "sha256"}``: each frame file, or the bag once (a ROS 2 folder
+        hashed over its files, :func:`minegeo.io.bag.bag_sha256`)."""
+        from minegeo._provenance import sha256_file
+
+        if self.kind == "bag":
+            from minegeo.io.bag import bag_sha256
+
+            return [{"path": str(self.source), "sha256": bag_sha256(self.source), "topic": self.topic}]
+        return [{"path": str(f.path), "sha256": sha256_file(f.path)} for f in self]
 
 
 def read_kitti_bin(path) -> np.ndarray:
@@ -149,7 +211,11 @@ def _times_from_names(paths: list[Path]) -> np.ndarray:
 
 
 def times_source(folder, times_file=None) -> str:
-    """Where :func:`list_frames` takes the times from: ``"file"`` or ``"names"``."""
+    """Where :func:`list_frames` takes the times from: ``"file"``, ``"names"`` or ``"bag header stamps"``."""
+    from minegeo.io.bag import bag_kind
+
+    if bag_kind(folder) is not None:
+        return "bag header stamps"
     return "file" if times_file is not None or (Path(folder) / "times.txt").is_file() else "names"
 
 
@@ -157,22 +223,39 @@ def _looks_like_frame_numbers(times: np.ndarray) -> bool:
     return times.size >= 3 and times[0] in (0.0, 1.0) and bool(np.all(np.diff(times) == 1.0))
 
 
-def list_frames(folder, times_file=None, pattern: str | None = None) -> list[FrameFile]:
-    """The frames of ``folder`` in name order with their times (see the module docstring).
+def _bag_frames(bag, times_file, pattern, topic: str | None) -> FrameList:
+    from minegeo.io.bag import bag_frame_stamps
+
+    for opt, v in (("--times", times_file), ("--pattern", pattern)):
+        if v is not None:
+            raise InputError(f"{opt} {v} applies to a folder of frame files; the frames of the bag {bag} are its "
+                             "PointCloud2 messages, timed by their header stamps: drop " + opt)
+    name, stamps = bag_frame_stamps(bag, topic)
+    frames = [FrameFile(bag, ns / 1e9, k, f"{name}#{k}") for k, ns in stamps]
+    bad = time_problem([f.time_s for f in frames], noun="frame")
+    if bad is not None:
+        raise FileFormatError(bag, f"topic {name} message {frames[bad[0]].message}: {bad[1]}")
+    return FrameList(frames, bag, "bag", "bag header stamps", name)
+
+
+def list_frames(folder, times_file=None, pattern: str | None = None, topic: str | None = None) -> FrameList:
+    """The frames of ``folder`` (or of a bag) in time order with their times (see the module docstring).
 
     Parameters
     ----------
     folder : path
-        The frames folder.
+        The frames folder, or a ROS bag (:func:`minegeo.io.bag.bag_kind`).
     times_file : path, optional
         One time (s) per frame in name order; default ``folder/times.txt`` when present, else the
-        numbers in the file names.
+        numbers in the file names. Not for a bag.
     pattern : str, optional
-        Shell pattern on the file names (``"*.pcd"``); default every point-cloud file.
+        Shell pattern on the file names (``"*.pcd"``); default every point-cloud file. Not for a bag.
+    topic : str, optional
+        The bag's PointCloud2 topic (``--lidar-topic``); default the only one. Only for a bag.
 
     Returns
     -------
-    list of FrameFile
+    FrameList
         At least one frame; times finite, within +-1e20 s and strictly increasing (the check of
         :func:`minegeo.io.trajectory.time_problem`), so a trajectory written from them reads back.
 
@@ -180,13 +263,23 @@ def list_frames(folder, times_file=None, pattern: str | None = None) -> list[Fra
     ------
     InputError
         Not a folder, no frames, no number in a frame name, or times from the names that fail the check
-        (the first offending frame is named).
+        (the first offending frame is named); a bag with ``times_file``/``pattern``, a folder with
+        ``topic``; an empty bag, a topic missing or of another type than PointCloud2, no or several
+        PointCloud2 topics when none is named, a topic without messages.
     FileFormatError
         A times file that is missing, not a regular file (a folder, FIFO or device, named as such and
         never opened), not one decimal number per line, holding another count of times than of
-        frames, or failing the check (its line and frame are named).
+        frames, or failing the check (its line and frame are named); a damaged bag, or header
+        stamps that do not increase strictly (the message is named).
     """
+    from minegeo.io.bag import bag_kind
+
     folder = Path(folder)
+    if bag_kind(folder) is not None or (folder.is_file() and folder.suffix.lower() in (".bag", ".mcap", ".db3")):
+        return _bag_frames(folder, times_file, pattern, topic)
+    if topic is not None:
+        raise InputError(f"--lidar-topic {topic} applies to a ROS bag; --frames {folder} is not one (a ROS 1 .bag "
+                         "file, a ROS 2 bag folder with metadata.yaml, or a .mcap/.db3 file)")
     paths = _frame_files(folder, pattern)
     if times_file is not None:
         times = _times_from_file(Path(times_file), paths)
@@ -200,4 +293,58 @@ def list_frames(folder, times_file=None, pattern: str | None = None) -> list[Fra
         if _looks_like_frame_numbers(times):
             log.warning("the frame names of %s are consecutive numbers from %g: they are taken as times in seconds; "
                         "if they are frame numbers, give the times with --times FILE or DIR/times.txt", folder, times[0])
-    return [FrameFile(p, float(t)) for p, t in zip(paths, times, strict=True)]
+    return FrameList([FrameFile(p, float(t)) for p, t in zip(paths, times, strict=True)], folder, "folder",
+                     times_source(folder, times_file))
+
+
+def iter_frames(frames: FrameList, with_times: bool = False):
+    """Read the frames of :func:`list_frames` one at a time, in order.
+
+    Yields
+    ------
+    (frame, xyz, t_offset_s, error)
+        ``frame`` the :class:`FrameFile`; ``xyz`` (n, 3) float64 in the sensor frame (m);
+        ``t_offset_s`` (n,) float64 seconds after the frame time, or None (``with_times`` false, or
+        no time field); ``error`` None, or the :class:`~minegeo.errors.MinegeoError`/``OSError`` of a
+        frame that cannot be read (``xyz`` then None): the caller skips it, as the contract says.
+
+    Raises
+    ------
+    FileFormatError
+        A bag that is damaged, or whose messages no longer match the listing (stamps out of order,
+        or the bag changed since :func:`list_frames`).
+    """
+    from minegeo.errors import MinegeoError
+
+    if frames.kind == "bag":
+        yield from _iter_bag(frames, with_times)
+        return
+    for f in frames:
+        try:
+            if with_times:
+                tp = read_frame(f.path, with_times=True, time_s=f.time_s)
+                xyz, tau = tp.xyz, tp.t_offset_s
+            else:
+                xyz, tau = read_frame(f.path), None
+        except (MinegeoError, OSError) as exc:
+            yield f, None, None, exc
+            continue
+        yield f, xyz, tau, None
+
+
+def _iter_bag(frames: FrameList, with_times: bool):
+    from minegeo.io.bag import iter_bag_frame_records
+
+    it = iter(frames)
+    for k, stamp, rec in iter_bag_frame_records(frames.source, frames.topic):
+        f = next(it, None)
+        if f is None or f.message != k or f.time_s != stamp / 1e9:
+            raise FileFormatError(frames.source, f"topic {frames.topic} message {k}: not the message listed before "
+                                  "the run (the bag changed while it was read)")
+        if isinstance(rec, Exception):
+            yield f, None, None, rec
+        else:
+            yield f, rec.points.xyz, rec.points.t_offset_s if with_times else None, None
+    if next(it, None) is not None:
+        raise FileFormatError(frames.source, f"topic {frames.topic}: fewer messages than listed before the run "
+                              "(the bag changed while it was read)")
