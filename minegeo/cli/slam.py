@@ -69,6 +69,12 @@ def add_arguments(parser) -> None:
                    help="surveyed point in the sensor frame (m, default 0 0 0)")
     g.add_argument("--control-mode", choices=("rigid", "graph"), default=None,
                    help="graph (default): position factors in the pose graph; rigid: one rigid fit after SLAM")
+    g.add_argument("--dxf", default=None, metavar="FILE.dxf",
+                   help="also draw the stations (control and check on separate layers), their residual vectors and "
+                   "95 %% ellipses (exaggerated) and the trajectory, in the CRS, into this DXF")
+    g.add_argument("--dxf-exaggeration", type=positive_float, default=None, metavar="X",
+                   help="exaggeration of the DXF's residual vectors and ellipses (default: 1, 2 or 5 x 10^k, the "
+                   "longest vector at most 5 %% of the drawing)")
 
 
 def _check_options(args) -> None:
@@ -83,9 +89,12 @@ def _check_options(args) -> None:
     from minegeo.errors import InputError
 
     if getattr(args, "control", None) is None:
-        for opt, name in (("control_mode", "--control-mode"), ("station_offset", "--station-offset"), ("crs", "--crs")):
+        for opt, name in (("control_mode", "--control-mode"), ("station_offset", "--station-offset"), ("crs", "--crs"),
+                          ("dxf", "--dxf"), ("dxf_exaggeration", "--dxf-exaggeration")):
             if getattr(args, opt, None) is not None:
                 raise InputError(f"{name} needs --control STATIONS.csv (the stations it applies to)")
+    if getattr(args, "dxf_exaggeration", None) is not None and getattr(args, "dxf", None) is None:
+        raise InputError("--dxf-exaggeration needs --dxf FILE.dxf (the drawing it applies to)")
     if getattr(args, "no_deskew", False) and getattr(args, "deskew_iterations", None) is not None:
         raise InputError(f"--deskew-iterations {args.deskew_iterations} contradicts --no-deskew (no deskewing, no "
                          "deskewing passes): give one of them")
@@ -235,6 +244,13 @@ def _read_control(args):
     crs = args.crs or st.crs
     if not crs:
         raise InputError(f"--control {args.control}: no CRS (give --crs EPSG:... or a '# crs:' line in the file)")
+    from minegeo.georef.crs import validate_crs
+
+    validate_crs(crs)  # a projected grid in metres (CRSError names a geographic or geocentric CRS)
+    if getattr(args, "dxf", None) is not None:
+        from minegeo.io.dxf import _ezdxf
+
+        _ezdxf()  # the dxf extra, before any work
     offset = parse_station_offset(args.station_offset if args.station_offset is not None else (0.0, 0.0, 0.0))
     mode = args.control_mode or "graph"
     n_ctrl = int(st.is_control.sum())
@@ -256,17 +272,89 @@ def _map_corrected(map_points, var_xyz_map, C):
     return np.einsum("nij,nj->ni", C[near, :3, :3], map_points) + C[near, :3, 3]
 
 
-def _control_outputs(stage: Path, res, ctrl_in, params) -> tuple[dict, dict]:
-    """Apply the control to the SLAM result and write the CRS deliverables; returns the ``control``
-    record of result.json and the plot data of the report."""
+#: LAS resolution of ``map_crs.las`` (m): 1 mm, below the survey's σ and the map voxel; with the
+#: offset at the map's whole-km origin the 32-bit integers hold ±2147 km
+MAP_LAS_SCALE_M = 0.001
+
+
+def _write_map_las(stage: Path, cloud, fit, extra: dict) -> dict:
+    """``map_crs.laz`` (``.las`` when laspy has no LAZ backend) beside ``map_crs.ply``: LAS 1.4, point
+    format 6, the CRS as an OGC WKT VLR, integer coordinates ``X = round((E − offset) / scale)`` with
+    ``scale`` :data:`MAP_LAS_SCALE_M` and ``offset`` the PLY's recorded origin (whole km), and its
+    georef sidecar. Without the ``las`` extra: no file, a one-line warning, ``written: False``."""
+    from minegeo.errors import OptionalDependencyError
+    from minegeo.georef.sidecar import write_georeferenced_map
+    from minegeo.io.types import PointCloud
+
+    try:
+        import laspy
+
+        name = "map_crs.laz" if laspy.LazBackend.detect_available() else "map_crs.las"
+    except ImportError:
+        log.warning("map_crs.las not written: laspy is not installed (pip install 'minegeo[las]'); the map in the "
+                    "CRS is map_crs.ply with its sidecar")
+        return {"written": False, "reason": "laspy is not installed (the 'las' extra)"}
+    las_cloud = PointCloud(points=cloud.points, origin=cloud.origin, crs=cloud.crs, frame=cloud.frame,
+                           metadata={"las_scale": MAP_LAS_SCALE_M})
+    try:
+        write_georeferenced_map(stage / name, las_cloud, fit, extra=extra)
+    except OptionalDependencyError as exc:
+        log.warning("%s not written: %s; the map in the CRS is map_crs.ply with its sidecar", name, exc)
+        return {"written": False, "reason": str(exc)}
+    return {"written": True, "file": name, "scale_m": [MAP_LAS_SCALE_M] * 3,
+            "offset_m": [float(v) for v in fit.origin], "crs_vlr": "OGC WKT (LAS 1.4, record 2112)",
+            "coordinates": "E N H = X * scale + offset (ASPRS LAS 1.4 R15 Sec. 2.4)"}
+
+
+def _write_map_crs(stage: Path, res, c, graph, st, offset, crs, mode) -> dict:
+    """The map in the CRS: ``map_crs.ply`` (geo = CRS − origin) with its sidecar (the rigid fit of the
+    control stations), and the same points as LAS/LAZ with the CRS's WKT (:func:`_write_map_las`);
+    returns the record of the LAS in result.json."""
+    import numpy as np
+
+    from minegeo.georef import GeorefParams, georeference
+    from minegeo.georef.sidecar import write_georeferenced_map
+    from minegeo.io import PointCloud
+    from minegeo.io.types import ControlPoints
+    from minegeo.slam.control import interpolate_poses, station_points
+
+    kt, kP, var_map = graph
+    o = c.origin_enh
+    C = c.poses @ np.linalg.inv(var_map)
+    local = _map_corrected(np.asarray(res.map_points, dtype=np.float64), var_map[:, :3, 3], C)
+    ctrl = st.is_control
+    pts_map = station_points(interpolate_poses(kt, kP, st.t_mid_s), offset)
+    sig = np.c_[st.sigma_h_m, st.sigma_h_m, st.sigma_v_m][ctrl]
+    glog = logging.getLogger("minegeo.georef")
+    level = glog.level
+    glog.setLevel(logging.ERROR)  # the same fit apply_control ran and logged: not twice on the terminal
+    try:
+        fit = georeference(ControlPoints(ids=[i for i, k in zip(st.ids, ctrl, strict=True) if k], local_xyz=pts_map[ctrl],
+                                         crs_enh=st.enh[ctrl], sigma_enh_m=sig, crs=crs),
+                           crs, GeorefParams(model="rigid", max_sigma0=1e12))
+    finally:
+        glog.setLevel(level)
+    geo = local + (o - np.asarray(fit.origin, dtype=np.float64))
+    write_georeferenced_map(stage / "map_crs.ply", PointCloud(points=np.ascontiguousarray(geo), origin=fit.origin,
+                                                              crs=crs, frame="geo"), fit,
+                            extra={"slam_control": {
+                                "mode": mode, "points": "each map point moved by the correction of the graph variable "
+                                "nearest to it (graph mode: non-rigid; T_crs_map is the rigid fit of the control "
+                                "stations, for reference)"}})
+    return _write_map_las(stage, PointCloud(points=np.ascontiguousarray(geo), origin=fit.origin, crs=crs,
+                                            frame="geo"), fit, extra={"slam_control": {"mode": mode, "points": "as map_crs.ply"}})
+
+
+def _control_outputs(stage: Path, res, ctrl_in, params, dxf_path: Path | None = None,
+                     dxf_exaggeration: float | None = None) -> tuple[dict, dict]:
+    """Apply the control to the SLAM result and write the CRS deliverables (and the DXF at ``dxf_path``);
+    returns the ``control`` record of result.json and the plot data of the report."""
     import numpy as np
 
     from minegeo._provenance import atomic_write_text
-    from minegeo.georef import GeorefParams, georeference
-    from minegeo.georef.sidecar import write_georeferenced_map
-    from minegeo.io import PointCloud, write_trajectory
-    from minegeo.io.types import ControlPoints, Trajectory
-    from minegeo.slam.control import apply_control, graph_inputs, interpolate_poses, station_points
+    from minegeo.io import write_trajectory
+    from minegeo.io.types import Trajectory
+    from minegeo.slam.control import apply_control, graph_inputs, interpolate_poses
 
     st, offset, crs, mode = ctrl_in
     kt, kP, edges, Z, info = graph_inputs(res, st.t_mid_s)
@@ -306,28 +394,30 @@ def _control_outputs(stage: Path, res, ctrl_in, params) -> tuple[dict, dict]:
                      f"{e_enh[2]:.4f},{d[0]:.4f},{d[1]:.4f},{d[2]:.4f},{np.hypot(d[0], d[1]):.4f},"
                      f"{np.linalg.norm(d):.4f},{'' if np.isnan(wm) else f'{wm:.3f}'},{int(sid in flagged)},{el_s}")
     atomic_write_text(stage / "stations_result.csv", "\n".join(lines) + "\n")
-    # map in the CRS: PLY (geo = CRS - origin) and its sidecar (the rigid fit of the control stations)
-    C = c.poses @ np.linalg.inv(var_map)
-    local = _map_corrected(np.asarray(res.map_points, dtype=np.float64), var_map[:, :3, 3], C)
-    ctrl = st.is_control
-    pts_map = station_points(interpolate_poses(kt, kP, st.t_mid_s), offset)
-    sig = np.c_[st.sigma_h_m, st.sigma_h_m, st.sigma_v_m][ctrl]
-    glog = logging.getLogger("minegeo.georef")
-    level = glog.level
-    glog.setLevel(logging.ERROR)  # the same fit apply_control ran and logged: not twice on the terminal
-    try:
-        fit = georeference(ControlPoints(ids=[i for i, k in zip(st.ids, ctrl, strict=True) if k], local_xyz=pts_map[ctrl],
-                                         crs_enh=st.enh[ctrl], sigma_enh_m=sig, crs=crs),
-                           crs, GeorefParams(model="rigid", max_sigma0=1e12))
-    finally:
-        glog.setLevel(level)
-    geo = local + (o - np.asarray(fit.origin, dtype=np.float64))
-    write_georeferenced_map(stage / "map_crs.ply", PointCloud(points=np.ascontiguousarray(geo), origin=fit.origin,
-                                                              crs=crs, frame="geo"), fit,
-                            extra={"slam_control": {
-                                "mode": mode, "points": "each map point moved by the correction of the graph variable "
-                                "nearest to it (graph mode: non-rigid; T_crs_map is the rigid fit of the control "
-                                "stations, for reference)"}})
+    map_rec = _write_map_crs(stage, res, c, (kt, kP, var_map), st, offset, crs, mode)
+    rec = control_record(c, st, offset, crs, mode)
+    rec["map_las"] = map_rec
+    if dxf_path is not None:
+        from minegeo.io.dxf import write_control_dxf
+
+        cov = c.station_cov_enh
+        d = write_control_dxf(dxf_path, ids=st.ids, is_control=st.is_control, surveyed_enh=st.enh,
+                              estimated_enh=c.station_enh_local + o, cov_enh=cov, trajectory_enh=enh, crs=crs,
+                              exaggeration=dxf_exaggeration, flagged=[f[0] for f in c.stats.flagged])
+        rec["dxf"] = {"layers": d["layers"], "exaggeration": d["exaggeration"], "ellipses": d["ellipses"]}
+    plot = {"enh": enh, "origin": o, "stations_enh": st.enh, "est_enh": c.station_enh_local + o,
+            "is_control": st.is_control, "ids": st.ids, "ellipses": ell}
+    return rec, plot
+
+
+def control_record(c, st, offset, crs, mode) -> dict:
+    """The ``control`` record of result.json (and of the report's "Survey control" section) of a
+    :class:`~minegeo.slam.control.ControlResult` ``c`` of the stations ``st``: mode, status and reason
+    (the flagged stations named), σ0, χ² test, w-test flags, control residuals, check errors and RMSE,
+    class test, misclosure ratios."""
+    import numpy as np
+
+    o = c.origin_enh
     chi = c.global_chi2
     rec = {
         "mode": mode, "status": c.status, "reason": c.reason, "crs": crs, "origin_enh": o.tolist(),
@@ -337,6 +427,7 @@ def _control_outputs(stage: Path, res, ctrl_in, params) -> tuple[dict, dict]:
                       "lower": float(chi.lower), "upper": float(chi.upper), "passed": chi.passed,
                       "verdict": chi.verdict},
         "flagged": [{"id": f[0], "component": f[1], "w": float(f[2])} for f in c.stats.flagged],
+        "suspected_blunders": list(c.blunders), "still_flagged_after_snooping": list(c.unresolved),
         "control_residuals": [{"id": sid, "v_enh_m": c.stats.v[k].tolist()} for k, sid in enumerate(c.stats.ids)],
         "check": None if c.check is None else {
             "rmse_horizontal_m": float(c.check.rmse_horizontal), "rmse_vertical_m": float(c.check.rmse_vertical),
@@ -351,10 +442,10 @@ def _control_outputs(stage: Path, res, ctrl_in, params) -> tuple[dict, dict]:
             "relative_error_mm": c.classes.relative_error_mm.tolist(),
             "passed": [bool(x) for x in c.classes.passed]},
         "misclosure_ratio": [float(x) for x in c.misclosure_ratio],
+        "station_covariance_enh_m2": None if c.station_cov_enh is None else {
+            sid: np.asarray(c.station_cov_enh[i]).tolist() for i, sid in enumerate(st.ids)},
     }
-    plot = {"enh": enh, "origin": o, "stations_enh": st.enh, "est_enh": c.station_enh_local + o, "is_control": ctrl,
-            "ids": st.ids, "ellipses": ell}
-    return rec, plot
+    return rec
 
 
 def run(args) -> int:
@@ -378,11 +469,14 @@ def run(args) -> int:
 
         ctrl_params = ControlParams(mode=ctrl_in[3])
         inputs_named["--control"] = args.control
-    with OutputTransaction("slam", inputs=inputs_named, folders={"--out": out}) as tx:
+    dxf_out = {"--dxf": args.dxf} if getattr(args, "dxf", None) else {}
+    with OutputTransaction("slam", inputs=inputs_named, folders={"--out": out}, files=dxf_out) as tx:
         files = list_frames(args.frames, times_file=args.times, pattern=args.pattern)
         _check_times(files)
         if ctrl_in is not None and files:
-            ctrl_in[0].check_time_span(files[0].time_s, files[-1].time_s, f"the frames of --frames {args.frames}")
+            from minegeo.slam.control import check_station_frames
+
+            check_station_frames(ctrl_in[0], [f.time_s for f in files], f"the frames of --frames {args.frames}")
         skipped: list[dict] = []
         bar = tqdm(total=len(files), desc="slam", unit="frame", file=sys.stderr, disable=not progress_enabled(args))
         # each registration's warnings (weak direction, 2-cycle) are recorded per frame in
@@ -412,8 +506,14 @@ def run(args) -> int:
         control_rec = control_plot = None
         if ctrl_in is not None:
             inputs.append({"path": str(args.control), "sha256": sha256_file(args.control)})
+            from minegeo.slam.control import check_station_frames
+
+            # the frames the run used (unreadable ones skipped): a station must not fall in a gap they leave
+            check_station_frames(ctrl_in[0], res.times_s, f"the frames of --frames {args.frames} the run could use")
             with timer("control"):
-                control_rec, control_plot = _control_outputs(stage, res, ctrl_in, ctrl_params)
+                control_rec, control_plot = _control_outputs(stage, res, ctrl_in, ctrl_params,
+                                                             tx.file("--dxf") if dxf_out else None,
+                                                             getattr(args, "dxf_exaggeration", None))
         summary = {
             "command": "slam", "status": "ok", "reason": "", "parameters": params.as_dict(),
             "result": {**res.summary(), "times_from": times_source(args.frames, args.times), "skipped_frames": skipped,
@@ -433,6 +533,11 @@ def run(args) -> int:
             summary["outputs"].update({n: str(out / n) for n in ("trajectory_crs.tum", "trajectory_crs.csv",
                                                                  "stations_result.csv", "map_crs.ply",
                                                                  "map_crs.ply.georef.json")})
+            if control_rec["map_las"]["written"]:
+                las = control_rec["map_las"]["file"]
+                summary["outputs"].update({las: str(out / las), f"{las}.georef.json": str(out / f"{las}.georef.json")})
+            if dxf_out:
+                summary["outputs"]["dxf"] = str(args.dxf)
         write_json_atomic(stage / "result.json", summary)
         write_slam_report(stage / "report.html", summary, res, control_plot)
     if not getattr(args, "quiet", False):
@@ -451,6 +556,11 @@ def run(args) -> int:
             print(f"control ({c['mode']}, {c['crs']}): {c['status']}{': ' + c['reason'] if c['reason'] else ''}"
                   + ("" if chk is None else f"; check RMSE h {chk['rmse_horizontal_m']:.3f} m, v "
                                             f"{chk['rmse_vertical_m']:.3f} m"))
-            print(f"written: {out}/(trajectory_crs.tum, trajectory_crs.csv, stations_result.csv, map_crs.ply)")
+            las = c["map_las"]
+            print(f"written: {out}/(trajectory_crs.tum, trajectory_crs.csv, stations_result.csv, map_crs.ply"
+                  + (f", {las['file']})" if las["written"] else ")")
+                  + (f"; {args.dxf} (residuals and ellipses x{c['dxf']['exaggeration']:g})" if dxf_out else ""))
+            if not las["written"]:
+                print(f"note: no map_crs.las: {las['reason']} (pip install 'minegeo[las]')")
         print(f"written: {out}/(trajectory.tum, keyframes.tum, graph.g2o, loops.csv, map.ply, result.json, report.html)")
     return 0

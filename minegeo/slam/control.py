@@ -359,6 +359,9 @@ class ControlParams:
         A-priori standard deviations of the drift states at the first variable (scale, rad/m, rad/m).
     drift_walk : tuple of 3 float
         Their random-walk standard deviations per second of time between variables.
+    snooping : bool
+        When a control station is flagged, name the suspected blunders by data snooping (the most
+        suspect withheld and the adjustment repeated, in turn, while more than 3 remain).
     """
 
     mode: str = "graph"
@@ -368,6 +371,7 @@ class ControlParams:
     drift_states: bool = False
     drift_prior: tuple = (0.02, 1e-4, 1e-4)
     drift_walk: tuple = (1e-4, 1e-6, 1e-6)
+    snooping: bool = True
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -406,6 +410,11 @@ class ControlResult:
         95 % horizontal ellipses at the check stations (graph mode).
     keyframe_note : str
         How the station poses entered the graph.
+    blunders : tuple of str
+        Suspected blunders by data snooping (withheld in this order until no control station was
+        flagged); the poses and statistics are those of the adjustment with every control station.
+    unresolved : tuple of str
+        Control stations still flagged when only 3 were left (snooping stopped).
     """
 
     mode: str
@@ -427,6 +436,8 @@ class ControlResult:
     ellipses_check: list
     keyframe_note: str
     optimisation: object = None
+    blunders: tuple = ()
+    unresolved: tuple = ()
 
     def transform(self, times_s: np.ndarray, poses_map: np.ndarray, graph_times_s: np.ndarray,
                   graph_poses_map: np.ndarray) -> np.ndarray:
@@ -741,15 +752,58 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
                                 max(dof, 0))
         ellipses = [error_ellipse(st_cov[c][:2, :2], confidence=0.95) for c in np.flatnonzero(chk)]
     check, classes, ratio = _check_station_statistics(stations, pts, v, st_cov, G_times, G_poses, p.class_c)
+    snoop = ((), ()) if not (stats.flagged and p.snooping) else _data_snooping(
+        (times_s, poses, edges, Z, information), stations, offset, crs, p, stats.flagged_ids)
     if status == "ok" and (gchi.passed is False or stats.flagged):
-        status = "warning"
-        reason = "; ".join(x for x in (
-            "" if gchi.passed is not False else f"the chi-square test of the adjustment failed (sigma0 {np.sqrt(gchi.statistic / max(gchi.dof, 1)):.2f})",
-            "" if not stats.flagged else "control station(s) flagged by the w-test: " + ", ".join(stats.flagged_ids),
-        ) if x)
+        status, reason = "warning", _warning_reason(gchi, stats, snoop)
     log.info("control (%s): %s %s", p.mode, status, reason)
     return ControlResult(mode=p.mode, status=status, reason=reason, origin_enh=stations.origin_enh.copy(),
                          times_s=G_times, poses=G_poses, station_var=var, station_enh_local=pts,
                          station_cov_enh=st_cov, covariances=covs, T_local_map=T_lm, stats=stats, check=check,
                          classes=classes, global_chi2=gchi, misclosure_ratio=ratio, ellipses_check=ellipses,
-                         keyframe_note=note, optimisation=opt)
+                         keyframe_note=note, optimisation=opt, blunders=snoop[0], unresolved=snoop[1])
+
+
+def _data_snooping(graph, stations, offset, crs, p: ControlParams, flagged_ids) -> tuple:
+    """Baarda's data snooping over the control stations (CS3): while a control station is flagged
+    and more than 3 remain, withhold the most suspect one (largest ``|w|``: made a check station)
+    and adjust again. A single blunder spreads into the residuals of the stations the graph ties to
+    it, so several can exceed the critical value in the one adjustment; the withheld ones are the
+    suspected blunders. Returns ``(suspects, still flagged when 3 controls remain)`` (ids)."""
+    from dataclasses import replace
+
+    from minegeo.io.stations import StationRole
+
+    suspects, st, flagged = [], stations, tuple(flagged_ids)
+    q = replace(p, snooping=False)
+    glog = logging.getLogger("minegeo.georef")
+    level = glog.level
+    glog.setLevel(logging.ERROR)  # each re-adjustment starts from a rigid fit: its warnings once, not per pass
+    try:
+        while flagged and int(st.is_control.sum()) > 3:
+            sid = flagged[0]
+            suspects.append(sid)
+            st = replace(st, roles=[StationRole.CHECK if i == sid else r for i, r in zip(st.ids, st.roles, strict=True)])
+            flagged = apply_control(*graph, st, offset, crs, q).stats.flagged_ids
+    finally:
+        glog.setLevel(level)
+    return tuple(suspects), tuple(flagged)
+
+
+def _warning_reason(gchi, stats, snoop) -> str:
+    """The ``reason`` of a "warning": the failed χ² test, the flagged control stations and, after data
+    snooping, the suspected blunders named."""
+    suspects, unresolved = snoop
+    parts = []
+    if gchi.passed is False:
+        parts.append(f"the chi-square test of the adjustment failed (sigma0 "
+                     f"{np.sqrt(gchi.statistic / max(gchi.dof, 1)):.2f})")
+    if stats.flagged:
+        parts.append("control station(s) flagged by the w-test: " + ", ".join(stats.flagged_ids))
+    if suspects:
+        parts.append("suspected blunder(s) by data snooping (the most suspect withheld and re-adjusted, in turn): "
+                     + ", ".join(suspects)
+                     + (f"; still flagged with 3 control stations left: {', '.join(unresolved)}" if unresolved else
+                        "; with them withheld no control station is flagged: check their coordinates and "
+                        "identification, or make them check stations and re-run"))
+    return "; ".join(parts)

@@ -76,15 +76,33 @@ def scene(tmp_path_factory):
     return {"frames": fr, "stations": d / "stations.csv", "truth": truth, "t": t_mid, "roles": roles}
 
 
-def _run(scene, out, mode):
+def _run(scene, out, mode, *extra):
     return main(["-q", "slam", "--frames", str(scene["frames"]), "--out", str(out), "--control", str(scene["stations"]),
-                 "--station-offset", *(repr(float(v)) for v in OFFSET), "--control-mode", mode])
+                 "--station-offset", *(repr(float(v)) for v in OFFSET), "--control-mode", mode, *extra])
+
+
+DXF_X = 200.0  # the stated exaggeration of the DXF's residual vectors and ellipses
+
+
+@pytest.fixture(scope="module")
+def runs(scene, tmp_path_factory):
+    """One run per mode, made when first needed (the graph run also draws the DXF): ``{mode: OUT}``."""
+    done = {}
+
+    def get(mode):
+        if mode not in done:
+            o = tmp_path_factory.mktemp(mode) / "o"
+            extra = ["--dxf", str(o.parent / "control.dxf"), "--dxf-exaggeration", repr(DXF_X)] if mode == "graph" else []
+            assert _run(scene, o, mode, *extra) == 0
+            done[mode] = o
+        return done[mode]
+
+    return get
 
 
 @pytest.mark.parametrize("mode", ["graph", "rigid"])
-def test_control_outputs_and_check_errors_recomputed_from_the_trajectory(scene, tmp_path, mode):
-    o = tmp_path / "o"
-    assert _run(scene, o, mode) == 0
+def test_control_outputs_and_check_errors_recomputed_from_the_trajectory(scene, runs, mode):
+    o = runs(mode)
     for name in ("trajectory_crs.tum", "trajectory_crs.csv", "stations_result.csv", "map_crs.ply",
                  "map_crs.ply.georef.json", "result.json", "report.html"):
         assert (o / name).is_file(), name
@@ -133,3 +151,76 @@ def test_bad_control_combinations_are_one_line(scene, tmp_path, capsys):
                       expect="1 control station(s)")
     assert_user_error("slam", base + ["--control", str(scene["stations"]), "--crs", "EPSG:32652"],
                       inputs=[scene["stations"]], outputs=[out], capsys=capsys, expect="contradicts")
+
+
+def test_map_crs_las_holds_the_epsg_as_wkt_and_the_ply_points_to_the_las_scale(runs):
+    """map_crs.laz (LAZ: lazrs is installed with the las extra) read back with laspy alone: its WKT VLR
+    parses to the EPSG given, and its points equal map_crs.ply's (origin + stored coordinates, float64)
+    within half the LAS scale recorded in result.json."""
+    import laspy
+    import pyproj
+
+    from minegeo.io import read_point_cloud
+
+    o = runs("graph")
+    rec = json.loads((o / "result.json").read_text())["control"]["map_las"]
+    assert rec["written"] and rec["file"] == "map_crs.laz"
+    las = laspy.read(o / "map_crs.laz")
+    assert las.header.version.minor == 4 and las.header.global_encoding.wkt
+    wkt = [v for v in las.header.vlrs if type(v).__name__ == "WktCoordinateSystemVlr"]
+    assert len(wkt) == 1
+    assert pyproj.CRS.from_wkt(wkt[0].string).to_epsg() == 5186
+    assert las.header.parse_crs().to_epsg() == 5186
+    scale = np.asarray(las.header.scales)
+    assert np.array_equal(scale, rec["scale_m"]) and np.array_equal(np.asarray(las.header.offsets), rec["offset_m"])
+    xyz = (np.c_[np.asarray(las.X), np.asarray(las.Y), np.asarray(las.Z)].astype(np.float64) * scale
+           + np.asarray(las.header.offsets))
+    ply = read_point_cloud(o / "map_crs.ply", origin="file")
+    ref = np.asarray(ply.points, dtype=np.float64) + np.asarray(ply.origin, dtype=np.float64)
+    assert xyz.shape == ref.shape and xyz.shape[0] > 1000
+    assert np.abs(xyz - ref).max() <= 0.5 * scale.max() + 1e-6
+
+
+def test_dxf_layers_counts_and_an_ellipse_against_its_covariance(runs, scene):
+    """The DXF of the graph run read back with ezdxf: control and check stations on their own layers,
+    one residual vector and one ellipse per station, one trajectory polyline, the exaggeration stated;
+    the ellipse of check station S2 has semi-axes x·sqrt(chi2_2(0.95))·sqrt(lambda) of the E N block of
+    that station's covariance in result.json (numpy eigvalsh here), its vertex 0 on the major and vertex
+    18 on the minor axis, centred at the surveyed point; a residual vector ends at s + x(e - s)."""
+    import ezdxf
+
+    o = runs("graph")
+    rec = json.loads((o / "result.json").read_text())["control"]
+    doc = ezdxf.readfile(o.parent / "control.dxf")
+    msp = doc.modelspace()
+    by_layer = {}
+    for e in msp:
+        by_layer.setdefault(e.dxf.layer, []).append(e)
+    n = len(scene["roles"])
+    n_ctrl = scene["roles"].count("control")
+    assert len(by_layer["MINEGEO_CONTROL_STATIONS"]) == n_ctrl
+    assert len(by_layer["MINEGEO_CHECK_STATIONS"]) == n - n_ctrl
+    assert all(e.dxftype() == "POINT" for e in by_layer["MINEGEO_CONTROL_STATIONS"] + by_layer["MINEGEO_CHECK_STATIONS"])
+    assert len(by_layer["MINEGEO_RESIDUALS"]) == n and len(by_layer["MINEGEO_ELLIPSE95"]) == n
+    assert len(by_layer["MINEGEO_TRAJECTORY"]) == 1
+    assert {"MINEGEO_CONTROL_STATIONS", "MINEGEO_CHECK_STATIONS"} <= {ly.dxf.name for ly in doc.layers}
+    props = dict(doc.header.custom_vars)
+    assert props["MINEGEO_EXAGGERATION"] == f"{DXF_X:g}" and props["MINEGEO_CRS"] == CRS
+    assert rec["dxf"]["exaggeration"] == DXF_X
+    # the station S2 (check): surveyed point from the stations file, covariance from result.json
+    rows = [ln.split(",") for ln in scene["stations"].read_text().splitlines()[2:]]
+    s2 = np.array([float(v) for v in rows[1][3:6]])
+    cov = np.array(rec["station_covariance_enh_m2"]["S2"])
+    lam = np.linalg.eigvalsh(cov[:2, :2])
+    k = np.sqrt(5.991464547107979)
+    ells = [np.array([tuple(v.dxf.location) for v in e.vertices]) for e in by_layer["MINEGEO_ELLIPSE95"]]
+    e2 = min(ells, key=lambda v: np.linalg.norm(v.mean(axis=0)[:2] - s2[:2]))
+    assert e2.shape == (72, 3)
+    assert np.allclose(e2.mean(axis=0), s2, atol=1e-6)
+    assert np.linalg.norm(e2[0, :2] - s2[:2]) == pytest.approx(DXF_X * k * np.sqrt(lam[1]), rel=1e-9)
+    assert np.linalg.norm(e2[18, :2] - s2[:2]) == pytest.approx(DXF_X * k * np.sqrt(lam[0]), rel=1e-9)
+    # the residual vector of S2 from result.json's check error
+    d2 = np.array(next(s["delta_enh_m"] for s in rec["check"]["stations"] if s["id"] == "S2"))
+    vecs = [np.array([tuple(v.dxf.location) for v in e.vertices]) for e in by_layer["MINEGEO_RESIDUALS"]]
+    v2 = min(vecs, key=lambda v: np.linalg.norm(v[0] - s2))
+    assert np.allclose(v2[0], s2, atol=1e-6) and np.allclose(v2[1], s2 + DXF_X * d2, atol=1e-6)
