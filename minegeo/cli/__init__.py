@@ -174,7 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     from minegeo._provenance import CLI_ARGUMENTS
 
     # the run's options, recorded in result.json (provenance.arguments) so --config can repeat the run
-    arguments = CLI_ARGUMENTS.set(_config.arguments_record(parser._verb_parsers[args.verb], args))
+    options = _config.options_parser(parser._verb_parsers[args.verb], args)
+    arguments = CLI_ARGUMENTS.set(_config.arguments_record(options, args))
     try:
         return int(args._run(args) or 0)
     except MinegeoError as exc:

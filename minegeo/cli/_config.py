@@ -49,8 +49,18 @@ class ConfigError(Exception):
     """A config file that cannot be used (the message names the file and the key)."""
 
 
+def _subcommands(parser: argparse.ArgumentParser) -> argparse._SubParsersAction | None:
+    return next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+
+
 def add_config_options(parser: argparse.ArgumentParser) -> None:
-    """Add ``--config FILE`` and ``--dump-config [toml|json]`` to one verb's parser."""
+    """Add ``--config FILE`` and ``--dump-config [toml|json]`` to one verb's parser (to each of its
+    subcommands' parsers when it has subcommands, e.g. ``minegeo intersections build``)."""
+    subs = _subcommands(parser)
+    if subs is not None:
+        for p in dict.fromkeys(subs.choices.values()):
+            add_config_options(p)
+        return
     g = parser.add_argument_group("configuration file (docs/config.md)")
     g.add_argument("--config", metavar="FILE", default=None,
                    help="read the options from a TOML or JSON file (keys: the long option names; the command line "
@@ -81,7 +91,7 @@ def _key_table(parser) -> dict[str, argparse.Action]:
         names = {key_of(a), a.dest.replace("_", "-")}
         names |= {s.lstrip("-") for s in a.option_strings if s.startswith("--")}
         for n in names:
-            table[n] = a
+            table[n.replace("_", "-")] = a
     return table
 
 
@@ -245,11 +255,11 @@ def load_config(path, parser: argparse.ArgumentParser, verb: str) -> dict[str, A
     values: dict[str, Any] = {}
     seen: dict[str, str] = {}
     for key, v in doc.items():
-        a = table.get(str(key))
+        a = table.get(str(key).replace("_", "-"))
         if a is None:
             near = sorted(k for k in {key_of(x) for x in verb_actions(parser)})
-            raise ConfigError(f"{where}: unknown key {key!r}: `minegeo {verb}` has no option --{key} "
-                              f"(its keys: {', '.join(near)}; see minegeo {verb} --dump-config)")
+            raise ConfigError(f"{where}: unknown key {key!r}: `{parser.prog}` has no option --{key} "
+                              f"(its keys: {', '.join(near)}; see {parser.prog} --dump-config)")
         if a.dest in seen:
             raise ConfigError(f"{where}: keys {seen[a.dest]!r} and {key!r} are the same option")
         seen[a.dest] = key
@@ -339,7 +349,7 @@ def dump_toml(parser: argparse.ArgumentParser, args: argparse.Namespace, verb: s
     """
     from minegeo import __version__
 
-    lines = [f"# minegeo {verb}: options (minegeo {__version__}); use with: minegeo {verb} --config FILE",
+    lines = [f"# {parser.prog}: options (minegeo {__version__}); use with: {parser.prog} --config FILE",
              "# keys are the long option names; the command line overrides the file", ""]
     for a in verb_actions(parser):
         v = file_value(a, getattr(args, a.dest, a.default))
@@ -358,6 +368,28 @@ def dump_toml(parser: argparse.ArgumentParser, args: argparse.Namespace, verb: s
 
 
 # ------------------------------------------------------------------ the CLI hook
+
+
+def options_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:
+    """The parser holding the options of the command ``args`` was parsed for: the verb's parser, or
+    that of its subcommand (``minegeo intersections build``)."""
+    subs = _subcommands(parser)
+    while subs is not None and getattr(args, subs.dest, None) in subs.choices:
+        parser = subs.choices[getattr(args, subs.dest)]
+        subs = _subcommands(parser)
+    return parser
+
+
+def _leaf(parser: argparse.ArgumentParser, rest: list[str]) -> tuple[argparse.ArgumentParser, list[str]]:
+    """The subcommand parser a command line selects (its first positional naming one) and its arguments."""
+    subs = _subcommands(parser)
+    while subs is not None:
+        i = next((i for i, t in enumerate(rest) if not t.startswith("-")), None)
+        if i is None or rest[i] not in subs.choices:
+            break
+        parser, rest = subs.choices[rest[i]], rest[i + 1:]
+        subs = _subcommands(parser)
+    return parser, rest
 
 
 def _verb_argv(argv: list[str], verb: str) -> list[str]:
@@ -382,8 +414,9 @@ def parse_with_config(parser: argparse.ArgumentParser, argv: list[str], verb: st
     """
     if verb is None or verb not in getattr(parser, "_verb_parsers", {}):
         return parser.parse_args(argv), None
-    sub = parser._verb_parsers[verb]
-    rest = _verb_argv(argv, verb)
+    sub, rest = _leaf(parser._verb_parsers[verb], _verb_argv(argv, verb))
+    if _subcommands(sub) is not None:  # no subcommand named: argparse says which are needed
+        return parser.parse_args(argv), None
     try:
         pre = _pre_parse(rest)
     except SystemExit:  # a malformed --dump-config value: the verb parser says it in full
