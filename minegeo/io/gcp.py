@@ -34,7 +34,8 @@ import numpy as np
 
 from minegeo._provenance import atomic_write_text
 from minegeo.errors import FileFormatError, InputError
-from minegeo.io._limits import MAX_ABS_COORDINATE, MAX_TABLE_FILE_BYTES, MIN_SIGMA_M, read_file_text
+from minegeo.io._limits import MAX_ABS_COORDINATE, MAX_TABLE_FILE_BYTES, read_file_text
+from minegeo.io._table import check_sigma, new_id, number, read_table
 from minegeo.io.types import ControlPoints
 
 log = logging.getLogger(__name__)
@@ -53,16 +54,6 @@ for _c in ("E", "N", "H", "x", "y", "z"):
     for _form in ("sigma_{}_m", "sigma_{}", "sd_{}", "s_{}", "std_{}", "std_{}_m"):
         _ALIASES[_form.format(_c.lower())] = f"sigma_{_c}_m"
 _REQUIRED = ("id", "x", "y", "z", "E", "N", "H")
-
-
-def _split(path, lineno: int, line: str, delim: str | None) -> list[str]:
-    if delim is None:
-        return line.split()
-    try:
-        row = next(csv.reader([line], delimiter=delim, skipinitialspace=True), [])
-    except csv.Error as exc:
-        raise FileFormatError(path, f"line {lineno}: unreadable CSV ({exc})") from None
-    return [t.strip() for t in row]
 
 
 def read_gcps(path, default_sigma_m: float = DEFAULT_GCP_SIGMA_M, crs: str | None = None) -> ControlPoints:
@@ -85,81 +76,40 @@ def read_gcps(path, default_sigma_m: float = DEFAULT_GCP_SIGMA_M, crs: str | Non
     p = Path(path)
     # strict UTF-8: a point id with a byte of another encoding would silently become "GCP?03"
     text = read_file_text(p, encoding="utf-8-sig", max_bytes=MAX_TABLE_FILE_BYTES, what="control-point file")
-    lines = text.splitlines()
-    file_crs = None
-    header = None
-    delim = None
+    def check_header(lineno: int, names: list[str], canon: list[str]) -> None:
+        missing = [c for c in _REQUIRED if c not in canon]
+        if missing:
+            raise FileFormatError(
+                p,
+                f"line {lineno}: header lacks column(s) {', '.join(missing)} "
+                f"(found: {', '.join(names)}; expected id,x,y,z,E,N,H[,sigma_E_m,sigma_N_m,sigma_H_m])",
+            )
+        if len(set(canon)) != len(canon):
+            raise FileFormatError(p, f"line {lineno}: repeated column names in header {','.join(names)!r}")
+
+    table = read_table(p, text, lambda n: _ALIASES.get(n.strip().lower(), n.strip()), check_header)
+    if table is None:
+        raise FileFormatError(p, "empty file (no header, no control points)")
+    header = table.columns
+    file_crs = table.crs
+    numeric = [c for c in header if c != "id" and (c in _REQUIRED or c.startswith("sigma_"))]
     ids: list[str] = []
     rows: list[list[float]] = []
     row_lines: list[int] = []
-    for lineno, raw in enumerate(lines, start=1):
-        line = raw.strip()
-        if not line:
-            continue
-        if line.startswith("#"):
-            body = line[1:].strip()
-            if body.lower().startswith("crs"):
-                value = body[3:].lstrip(" :=").strip()
-                if not value:
-                    raise FileFormatError(p, f"line {lineno}: '# crs:' line without a CRS")
-                file_crs = value
-            continue
-        if header is None:
-            delim = "," if "," in line else (";" if ";" in line else ("\t" if "\t" in line else None))
-            names = _split(p, lineno, line, delim)
-            canon = [_ALIASES.get(n.strip().lower(), n.strip()) for n in names]
-            missing = [c for c in _REQUIRED if c not in canon]
-            if missing:
-                raise FileFormatError(
-                    p,
-                    f"line {lineno}: header lacks column(s) {', '.join(missing)} "
-                    f"(found: {', '.join(names)}; expected id,x,y,z,E,N,H[,sigma_E_m,sigma_N_m,sigma_H_m])",
-                )
-            if len(set(canon)) != len(canon):
-                raise FileFormatError(p, f"line {lineno}: repeated column names in header {line!r}")
-            header = canon
-            continue
-        toks = _split(p, lineno, line, delim)
-        if len(toks) != len(header):
-            raise FileFormatError(p, f"line {lineno}: expected {len(header)} fields, found {len(toks)}")
-        rec = dict(zip(header, toks, strict=True))
+    for lineno, rec in table.rows:
         vals = []
-        for c in header:
-            if c == "id" or not (c in _REQUIRED or c.startswith("sigma_")):
-                continue
-            try:
-                v = float(rec[c])
-            except ValueError:
-                raise FileFormatError(p, f"line {lineno}: {c} = {rec[c]!r} is not a number") from None
-            if not math.isfinite(v):
-                raise FileFormatError(p, f"line {lineno}: {c} is {rec[c]} (NaN/inf not allowed)")
-            if c.startswith("sigma_") and v <= 0:
-                raise FileFormatError(p, f"line {lineno}: {c} = {v} must be > 0")
-            if c.startswith("sigma_") and v < MIN_SIGMA_M:
-                raise FileFormatError(
-                    p, f"line {lineno}: {c} = {v:g} m is below {MIN_SIGMA_M:g} m, finer than any survey (wrong units?)"
-                )
-            if abs(v) > MAX_ABS_COORDINATE:
-                raise FileFormatError(
-                    p, f"line {lineno}: {c} = {v:g} is beyond +-{MAX_ABS_COORDINATE:.0e}: not a survey coordinate "
-                    "(damaged file or wrong units?)"
-                )
+        for c in numeric:
+            v = number(p, lineno, c, rec[c], MAX_ABS_COORDINATE, ": not a survey coordinate")
+            if c.startswith("sigma_"):
+                check_sigma(p, lineno, c, rec[c], v)
             vals.append(v)
-        if not rec["id"]:
-            raise FileFormatError(p, f"line {lineno}: empty id")
-        if rec["id"] in ids:
-            first = row_lines[ids.index(rec["id"])]
-            raise FileFormatError(p, f"line {lineno}: duplicate id {rec['id']!r} (first on line {first})")
-        ids.append(rec["id"])
+        ids.append(new_id(p, lineno, rec["id"], ids, row_lines))
         rows.append(vals)
         row_lines.append(lineno)
-    if header is None:
-        raise FileFormatError(p, "empty file (no header, no control points)")
     if not ids:
         raise FileFormatError(p, "no control points after the header")
-    numeric = [c for c in header if c != "id" and (c in _REQUIRED or c.startswith("sigma_"))]
-    table = np.array(rows, dtype=np.float64)
-    col = {c: table[:, j] for j, c in enumerate(numeric)}
+    values = np.array(rows, dtype=np.float64)
+    col = {c: values[:, j] for j, c in enumerate(numeric)}
     sig_names = ("sigma_E_m", "sigma_N_m", "sigma_H_m")
     present = [c in col for c in sig_names]
     if any(present) and not all(present):

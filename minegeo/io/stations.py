@@ -28,7 +28,6 @@ Every problem is a :class:`~minegeo.errors.FileFormatError` naming the file and 
 
 from __future__ import annotations
 
-import math
 import re
 from dataclasses import dataclass
 from enum import StrEnum
@@ -41,9 +40,9 @@ from minegeo.io._limits import (
     MAX_ABS_COORDINATE,
     MAX_ABS_TIME,
     MAX_TABLE_FILE_BYTES,
-    MIN_SIGMA_M,
     read_file_text,
 )
+from minegeo.io._table import check_sigma, new_id, number, read_table
 
 __all__ = ["StationRole", "Stations", "STATIONS_HEADER", "read_stations", "write_stations", "is_stations_header",
            "parse_station_offset", "MAX_STATION_OFFSET_M"]
@@ -165,10 +164,6 @@ def is_stations_header(names) -> bool:
     return len(canon) == len(STATIONS_HEADER) and set(canon) == set(STATIONS_HEADER)
 
 
-def _delimiter(line: str) -> str | None:
-    return "," if "," in line else (";" if ";" in line else ("\t" if "\t" in line else None))
-
-
 def read_stations(path, crs: str | None = None) -> Stations:
     """Read a stations CSV (see the module docstring).
 
@@ -192,71 +187,35 @@ def read_stations(path, crs: str | None = None) -> Stations:
         spans, no control station, an empty file.
     """
     from minegeo.georef.crs import local_origin
-    from minegeo.io.gcp import _split
 
     p = Path(path)
     text = read_file_text(p, encoding="utf-8-sig", max_bytes=MAX_TABLE_FILE_BYTES, what="stations file")
-    header = None
-    delim = None
-    file_crs = None
+
+    def check_header(lineno: int, names: list[str], canon: list[str]) -> None:
+        missing = [c for c in STATIONS_HEADER if c not in canon]
+        extra = [n for n, c in zip(names, canon, strict=True) if c not in STATIONS_HEADER]
+        if missing or extra or len(set(canon)) != len(canon):
+            what = (f"lacks column(s) {', '.join(missing)}" if missing else
+                    f"has unknown column(s) {', '.join(extra)}" if extra else "repeats a column")
+            raise FileFormatError(p, f"line {lineno}: the stations header {what} "
+                                     f"(found: {', '.join(names)}; expected {','.join(STATIONS_HEADER)})")
+
+    table = read_table(p, text, _canon, check_header)
+    if table is None:
+        raise FileFormatError(p, "empty file (no header, no stations)")
+    file_crs = table.crs
     ids: list[str] = []
     rows: list[list[float]] = []
     roles: list[StationRole] = []
     lines: list[int] = []
-    for lineno, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line:
-            continue
-        if line.startswith("#"):
-            body = line[1:].strip()
-            if body.lower().startswith("crs"):
-                value = body[3:].lstrip(" :=").strip()
-                if not value:
-                    raise FileFormatError(p, f"line {lineno}: '# crs:' line without a CRS")
-                file_crs = value
-            continue
-        if header is None:
-            delim = _delimiter(line)
-            names = _split(p, lineno, line, delim)
-            canon = [_canon(n) for n in names]
-            missing = [c for c in STATIONS_HEADER if c not in canon]
-            extra = [n for n, c in zip(names, canon, strict=True) if c not in STATIONS_HEADER]
-            if missing or extra or len(set(canon)) != len(canon):
-                what = (f"lacks column(s) {', '.join(missing)}" if missing else
-                        f"has unknown column(s) {', '.join(extra)}" if extra else "repeats a column")
-                raise FileFormatError(p, f"line {lineno}: the stations header {what} "
-                                         f"(found: {', '.join(names)}; expected {','.join(STATIONS_HEADER)})")
-            header = canon
-            continue
-        toks = _split(p, lineno, line, delim)
-        if len(toks) != len(header):
-            raise FileFormatError(p, f"line {lineno}: expected {len(header)} fields, found {len(toks)}")
-        rec = dict(zip(header, toks, strict=True))
+    for lineno, rec in table.rows:
         vals = {}
         for c in STATIONS_HEADER[1:-1]:
-            try:
-                v = float(rec[c])
-            except ValueError:
-                raise FileFormatError(p, f"line {lineno}: {c} = {rec[c]!r} is not a number") from None
-            if not math.isfinite(v):
-                raise FileFormatError(p, f"line {lineno}: {c} is {rec[c]} (NaN/inf not allowed)")
             limit = MAX_ABS_TIME if c.startswith("t_") else MAX_ABS_COORDINATE
-            if abs(v) > limit:
-                raise FileFormatError(p, f"line {lineno}: {c} = {v:g} is beyond +-{limit:.0e} "
-                                         "(damaged file or wrong units?)")
+            vals[c] = v = number(p, lineno, c, rec[c], limit)
             if c.startswith("sigma_"):
-                if v <= 0:
-                    raise FileFormatError(p, f"line {lineno}: {c} = {v:g} must be > 0 (a station's a-priori "
-                                             "standard deviation in metres)")
-                if v < MIN_SIGMA_M:
-                    raise FileFormatError(p, f"line {lineno}: {c} = {v:g} m is below {MIN_SIGMA_M:g} m, finer "
-                                             "than any survey (wrong units?)")
-            vals[c] = v
-        sid = rec["id"]
-        if not sid:
-            raise FileFormatError(p, f"line {lineno}: empty id")
-        if sid in ids:
-            raise FileFormatError(p, f"line {lineno}: duplicate id {sid!r} (first on line {lines[ids.index(sid)]})")
+                check_sigma(p, lineno, c, rec[c], v, " (a station's a-priori standard deviation in metres)")
+        sid = new_id(p, lineno, rec["id"], ids, lines)
         if vals["t_end"] < vals["t_start"]:
             raise FileFormatError(p, f"line {lineno}: station {sid}: t_end {vals['t_end']:g} s is before t_start "
                                      f"{vals['t_start']:g} s")
@@ -268,8 +227,6 @@ def read_stations(path, crs: str | None = None) -> Stations:
         roles.append(StationRole(role))
         rows.append([vals[c] for c in STATIONS_HEADER[1:-1]])
         lines.append(lineno)
-    if header is None:
-        raise FileFormatError(p, "empty file (no header, no stations)")
     if not ids:
         raise FileFormatError(p, "no stations after the header")
     if crs is not None and file_crs is not None and crs != file_crs:

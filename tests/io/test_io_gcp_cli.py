@@ -68,7 +68,7 @@ def test_gcp_tolerant_reading(tmp_path, caplog):
         ("id,x,y,z,E,N,H\nA,1,2,3,4,5,six\n", "line 2: H = 'six' is not a number"),
         ("id,x,y,z,E,N,H\nA,1,2,3,4,5,6\n\nA,1,2,3,4,5,6\n", "line 4: duplicate id 'A' \\(first on line 2\\)"),
         ("id,x,y,z,E,N,H\nA,1,2,nan,4,5,6\n", "line 2: z is nan"),
-        ("id,x,y,z,E,N,H,sigma_E_m,sigma_N_m,sigma_H_m\nA,1,2,3,4,5,6,0.01,0,0.01\n", "line 2: sigma_N_m = 0.0 must be > 0"),
+        ("id,x,y,z,E,N,H,sigma_E_m,sigma_N_m,sigma_H_m\nA,1,2,3,4,5,6,0.01,0,0.01\n", "line 2: sigma_N_m = 0 must be > 0"),
         ("id,x,y,z,E,N,H,sigma_E_m\nA,1,2,3,4,5,6,0.01\n", "all three"),
     ],
 )
