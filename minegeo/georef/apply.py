@@ -164,7 +164,6 @@ def point_covariance_crs(points_map, result: GeorefResult) -> np.ndarray:
     return out
 
 
-
 #: Points of the map kept for the report's plan view (:func:`minegeo.report.georef_report.plot_georef_png`).
 REPORT_CLOUD_POINTS = 20000
 
@@ -174,6 +173,31 @@ def report_sample_rows(n: int, max_points: int = REPORT_CLOUD_POINTS, seed: int 
     if n <= max_points:
         return np.arange(n)
     return np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
+
+
+class _ChunkSample:
+    """The rows :func:`report_sample_rows` of a georeferenced map written chunk by chunk, and the
+    count of its points (checked against pass 1 at the end)."""
+
+    def __init__(self, n_points: int):
+        self.n_points = int(n_points)
+        self.rows = report_sample_rows(self.n_points)
+        self.points = np.empty((self.rows.size, 3))
+        self.done = 0
+
+    def add(self, g: np.ndarray, chunks, progress) -> None:
+        """Keep the sample rows of the next chunk ``g`` (CRS frame) and report progress."""
+        lo, hi = np.searchsorted(self.rows, [self.done, self.done + g.shape[0]])
+        self.points[lo:hi] = g[self.rows[lo:hi] - self.done]
+        self.done += g.shape[0]
+        if progress is not None:
+            progress(chunks.bytes_read, chunks.size_bytes)
+
+    def cloud(self, path, result: GeorefResult) -> PointCloud:
+        """The sample as a cloud in the CRS; the map must have had ``n_points`` points."""
+        if self.done != self.n_points:
+            raise FileFormatError(path, f"the map changed while it was read ({self.n_points} then {self.done} points)")
+        return PointCloud(points=self.points, origin=result.origin.copy(), crs=result.crs, frame="crs")
 
 
 def stream_georeferenced_map(path, chunks, result: GeorefResult, n_points: int, *, allow_failed: bool = False,
@@ -217,22 +241,14 @@ def stream_georeferenced_map(path, chunks, result: GeorefResult, n_points: int, 
     if head.count(old) != 1:  # pragma: no cover - the writer's header layout changed
         raise InputError("internal error: unexpected PLY header layout for the chunked georeferenced map")
     head = head.replace(old, f"element vertex {int(n_points)}\n".encode("ascii"))
-    rows = report_sample_rows(int(n_points))
-    sample = np.empty((rows.size, 3))
-    done = 0
+    sample = _ChunkSample(n_points)
     with open(p, "wb") as fh:
         fh.write(head)
         for c in chunks:
             g = map_to_crs(c, result, chunks.origin, allow_failed=allow_failed)
             fh.write(np.ascontiguousarray(g, dtype="<f8").tobytes())
-            lo, hi = np.searchsorted(rows, [done, done + g.shape[0]])
-            sample[lo:hi] = g[rows[lo:hi] - done]
-            done += g.shape[0]
-            if progress is not None:
-                progress(chunks.bytes_read, chunks.size_bytes)
-    if done != n_points:
-        raise FileFormatError(chunks.path, f"the map changed while it was read ({n_points} then {done} points)")
-    cloud = PointCloud(points=sample, origin=result.origin.copy(), crs=result.crs, frame="crs")
+            sample.add(g, chunks, progress)
+    cloud = sample.cloud(chunks.path, result)
     return p, _write_sidecar(p, result, extra), cloud
 
 
@@ -275,14 +291,11 @@ def stream_georeferenced_las(path, chunks, result: GeorefResult, n_points: int, 
     _check_usable(result, allow_failed)
     p = Path(path)
     src = Path(chunks.path)
-    rows = report_sample_rows(int(n_points))
-    sample = np.empty((rows.size, 3))
-    done = 0
+    sample = _ChunkSample(n_points)
     it = iter(chunks)  # the coordinates, with every check of the chunked reader
 
     def integers(n_records: int, scale: np.ndarray) -> np.ndarray:
         """``X = round(p_geo / scale)`` of the next chunk (offset = ``result.origin``); keeps the report rows."""
-        nonlocal done
         c = next(it)
         if c.shape[0] != n_records:  # pragma: no cover - both read the same file in the same chunks
             raise FileFormatError(src, "the map changed while it was read")
@@ -291,15 +304,9 @@ def stream_georeferenced_las(path, chunks, result: GeorefResult, n_points: int, 
         if Xf.size and (np.abs(Xf).max() > 2**31 - 1):
             raise InputError(f"the georeferenced coordinates do not fit LAS 32-bit integers at the map's "
                              f"scale {scale.tolist()} (the fit moves points by more than 2^31 units)")
-        lo, hi = np.searchsorted(rows, [done, done + g.shape[0]])
-        sample[lo:hi] = g[rows[lo:hi] - done]
-        done += g.shape[0]
-        if progress is not None:
-            progress(chunks.bytes_read, chunks.size_bytes)
+        sample.add(g, chunks, progress)
         return Xf
 
     rewrite_las_xyz(src, p, integers, offsets=result.origin, crs=result.crs, chunk_points=chunks.chunk_points)
-    if done != n_points:
-        raise FileFormatError(src, f"the map changed while it was read ({n_points} then {done} points)")
-    cloud = PointCloud(points=sample, origin=result.origin.copy(), crs=result.crs, frame="crs")
+    cloud = sample.cloud(src, result)
     return p, _write_sidecar(p, result, extra), cloud
