@@ -19,15 +19,22 @@ def bag_path(folder: Path, fmt: str, name: str = "rec") -> Path:
     return Path(folder) / (f"{name}.bag" if fmt == "ros1" else name)
 
 
+#: a message type of no ROS distribution (a vendor's own sweep message), registered by :func:`write_bag`
+CUSTOM_TYPE = "acme_lidar/msg/Sweep"
+CUSTOM_MSG = "std_msgs/Header header\nuint32 n\nuint8[] data\n"
+
+
 def write_bag(path, fmt: str, messages) -> Path:
-    """``messages``: ``(topic, msgtype, log time ns, builder(typestore, ros1) -> message)`` in log order."""
+    """``messages``: ``(topic, msgtype, log time ns, builder(typestore, ros1) -> message)`` in log order
+    (an empty list: a bag without topics)."""
     from rosbags.rosbag1 import Writer as Writer1
     from rosbags.rosbag2 import StoragePlugin
     from rosbags.rosbag2 import Writer as Writer2
-    from rosbags.typesys import Stores, get_typestore
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     ros1 = fmt == "ros1"
     ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    ts.register(get_types_from_msg(CUSTOM_MSG, CUSTOM_TYPE))
     if ros1:
         writer, ser = Writer1(path), ts.serialize_ros1
     else:
@@ -68,12 +75,24 @@ def pointcloud2(ts, ros1: bool, stamp_ns: int, xyz, t=None, frame: str = "lidar"
 
 def frame_messages(frames, topic: str = "/points"):
     """Messages of :func:`write_bag` for LiDAR ``frames``: ``(stamp_ns, xyz (n, 3), t (n,) or None)``,
-    logged 1 ms after their stamps."""
-    return [(topic, "sensor_msgs/msg/PointCloud2", ns + 1_000_000,
-             lambda ts, r1, ns=ns, xyz=xyz, t=t: pointcloud2(ts, r1, ns, xyz, t)) for ns, xyz, t in frames]
+    logged 1 ms after their stamps, and in the given order (a stamp that goes back is logged 1 ns
+    after the previous message, as a recorder logs a message when it arrives)."""
+    out, last = [], None
+    for ns, xyz, t in frames:
+        log_ns = ns + 1_000_000 if last is None else max(ns + 1_000_000, last + 1)
+        out.append((topic, "sensor_msgs/msg/PointCloud2", log_ns,
+                    lambda ts, r1, ns=ns, xyz=xyz, t=t: pointcloud2(ts, r1, ns, xyz, t)))
+        last = log_ns
+    return out
 
 
 def string_messages(topic: str, stamps_ns):
     """``std_msgs/msg/String`` messages (a topic of a type minegeo does not read as frames)."""
     return [(topic, "std_msgs/msg/String", ns, lambda ts, r1, ns=ns: ts.types["std_msgs/msg/String"](data=f"{ns}"))
             for ns in stamps_ns]
+
+
+def custom_messages(topic: str, stamps_ns):
+    """:data:`CUSTOM_TYPE` messages (a type unknown to minegeo and to every ROS distribution)."""
+    return [(topic, CUSTOM_TYPE, ns, lambda ts, r1, ns=ns: ts.types[CUSTOM_TYPE](
+        header=header(ts, r1, ns), n=3, data=np.arange(3, dtype=np.uint8))) for ns in stamps_ns]

@@ -23,7 +23,11 @@ log = logging.getLogger(__name__)
 
 def add_arguments(parser) -> None:
     parser.add_argument("--frames", required=True, help="folder of frames (PLY/PCD/LAS/XYZ or KITTI .bin), sensor frame; "
-                        "times from times.txt or the file names")
+                        "times from times.txt or the file names; or a ROS bag (.bag, ROS 2 folder, .mcap/.db3): its "
+                        "PointCloud2 messages, timed by their header stamps")
+    parser.add_argument("--lidar-topic", "--points-topic", dest="lidar_topic", default=None, metavar="TOPIC",
+                        help="the bag's sensor_msgs/PointCloud2 topic (default: the only one; `minegeo info BAG` "
+                        "lists them)")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--times", default=None, help="file of frame times (s), one per frame in name order "
                         "(default: FRAMES/times.txt, else the numbers in the file names)")
@@ -127,10 +131,10 @@ def _check_times(files) -> None:
     for k, f in enumerate(files):
         t = f.time_s
         if not abs(t) <= MAX_ABS_TIME:
-            raise InputError(f"frame {f.path.name}: time {t!r} s is beyond ±{MAX_ABS_TIME:.0e} s, the range a "
+            raise InputError(f"frame {f.name}: time {t!r} s is beyond ±{MAX_ABS_TIME:.0e} s, the range a "
                              "trajectory file holds (give times in seconds from a nearby epoch)")
         if k and not t > files[k - 1].time_s:
-            raise InputError(f"frame {f.path.name}: time {t!r} s is not after the previous frame's "
+            raise InputError(f"frame {f.name}: time {t!r} s is not after the previous frame's "
                              f"{files[k - 1].time_s!r} s")
 
 
@@ -156,26 +160,17 @@ def _frames(files, skipped: list, bar, min_points: int, with_times: bool = False
     """Yield (time, points) of the readable frames, or with ``with_times`` (time, points, per-point
     offsets in s after the frame time, or None when the file holds no times); unreadable ones and
     frames with fewer than ``min_points`` points are recorded and skipped (the contract)."""
-    from minegeo.errors import MinegeoError
-    from minegeo.io.frames import read_frame
+    from minegeo.io.frames import iter_frames
 
-    for f in files:
-        tau = None
-        try:
-            if with_times:
-                tp = read_frame(f.path, with_times=True, time_s=f.time_s)
-                pts, tau = tp.xyz, tp.t_offset_s
-            else:
-                pts = read_frame(f.path)
-        except (MinegeoError, OSError) as exc:
-            skipped.append({"frame": f.path.name, "reason": str(exc)})
-            log.warning("frame %s skipped: %s", f.path.name, exc)
-            bar.update(1)
-            continue
+    for f, pts, tau, exc in iter_frames(files, with_times):
         bar.update(1)
+        if exc is not None:
+            skipped.append({"frame": f.name, "reason": str(exc)})
+            log.warning("frame %s skipped: %s", f.name, exc)
+            continue
         if pts.shape[0] < min_points:
-            skipped.append({"frame": f.path.name, "reason": f"{pts.shape[0]} points, fewer than {min_points}"})
-            log.warning("frame %s skipped: %d points", f.path.name, pts.shape[0])
+            skipped.append({"frame": f.name, "reason": f"{pts.shape[0]} points, fewer than {min_points}"})
+            log.warning("frame %s skipped: %d points", f.name, pts.shape[0])
             continue
         yield (f.time_s, pts) if tau is None else (f.time_s, pts, tau)
 
@@ -471,7 +466,8 @@ def run(args) -> int:
         inputs_named["--control"] = args.control
     dxf_out = {"--dxf": args.dxf} if getattr(args, "dxf", None) else {}
     with OutputTransaction("slam", inputs=inputs_named, folders={"--out": out}, files=dxf_out) as tx:
-        files = list_frames(args.frames, times_file=args.times, pattern=args.pattern)
+        files = list_frames(args.frames, times_file=args.times, pattern=args.pattern,
+                            topic=getattr(args, "lidar_topic", None))
         _check_times(files)
         if ctrl_in is not None and files:
             from minegeo.slam.control import check_station_frames
@@ -494,10 +490,10 @@ def run(args) -> int:
             raise
         finally:
             reg_log.setLevel(level)
-        used = {f.path.name for f in files} - {s["frame"] for s in skipped}
+        used = {f.name for f in files} - {s["frame"] for s in skipped}
         if res.times_s.size < 2:
             raise InputError(f"--frames {args.frames}: fewer than 2 readable frames")
-        inputs = [{"path": str(f.path), "sha256": sha256_file(f.path)} for f in files]
+        inputs = files.inputs()
         if args.times:
             inputs.append({"path": str(args.times), "sha256": sha256_file(args.times)})
         stage = tx.folder("--out")

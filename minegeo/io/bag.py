@@ -245,6 +245,13 @@ def _stamp_ns(header) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
+def _stamp_text(ns: int) -> str:
+    """A stamp in seconds with its 9 decimals exactly as recorded (``ns / 1e9`` in float64 keeps only
+    ~7 decimals at UNIX times, so two stamps 100 ns apart would print alike)."""
+    sec, rem = divmod(abs(int(ns)), 1_000_000_000)
+    return f"{'-' if ns < 0 else ''}{sec}.{rem:09d}"
+
+
 def _field_dtype(path, where, fields, names: list[str], point_step: int, big: bool):
     """Structured dtype of the named fields at their offsets in a ``point_step``-byte record."""
     byname = {}
@@ -391,8 +398,9 @@ def _choose_topic(bag: _Bag, topic: str | None, msgtype: str, option: str) -> st
         cands = sorted(n for n in topics if topics[n].msgtype == msgtype)
         if len(cands) == 1:
             return cands[0]
-        what = "no" if not cands else f"{len(cands)}"
-        raise InputError(f"{bag.path}: {what} {msgtype} topics; name one with {option} (topics: {listing})")
+        if not cands:
+            raise InputError(f"{bag.path}: no {msgtype} topic in the bag (topics: {listing})")
+        raise InputError(f"{bag.path}: {len(cands)} {msgtype} topics; name one with {option} (topics: {listing})")
     if topic not in topics:
         raise InputError(f"{bag.path}: no topic {topic!r} in the bag (topics: {listing})")
     if topics[topic].msgtype != msgtype:
@@ -409,10 +417,14 @@ def _frame_messages(bag: _Bag, name: str):
     for k, _ts, raw, conn in bag.messages(bag.connections(name)):
         msg = bag.deserialize(raw, conn.msgtype, f"topic {name} message {k}")
         stamp = _stamp_ns(msg.header)
-        where = f"topic {name} message {k} (stamp {stamp / 1e9:.9f} s)"
-        if prev is not None and not (stamp > prev and stamp / 1e9 > prev / 1e9):
+        where = f"topic {name} message {k} (stamp {_stamp_text(stamp)} s)"
+        if prev is not None and not stamp > prev:
             raise FileFormatError(bag.path, f"{where}: header stamp not after the previous message's "
-                                  f"{prev / 1e9:.9f} s: frame times must increase strictly")
+                                  f"{_stamp_text(prev)} s: frame times must increase strictly")
+        if prev is not None and not stamp / 1e9 > prev / 1e9:
+            raise FileFormatError(bag.path, f"{where}: header stamp only {stamp - prev} ns after the previous "
+                                  f"message's {_stamp_text(prev)} s: the same frame time in float64 seconds (the "
+                                  "trajectory's times), so not two frames of one LiDAR")
         prev = stamp
         yield k, stamp, where, msg
 
@@ -529,7 +541,7 @@ def read_bag_imu(path, topic: str | None = None, *, max_gap_s: float | None = No
             w, f = msg.angular_velocity, msg.linear_acceleration
             g.append((w.x, w.y, w.z))
             a.append((f.x, f.y, f.z))
-            labels.append(f"topic {name} message {k} (stamp {stamp / 1e9:.9f} s)")
+            labels.append(f"topic {name} message {k} (stamp {_stamp_text(stamp)} s)")
         return imu_samples(np.asarray(t), np.asarray(g, dtype=np.float64).reshape(-1, 3),
                            np.asarray(a, dtype=np.float64).reshape(-1, 3), f"{bag.path}",
                            frame=frame_id or "imu", labels=labels, max_gap_s=max_gap_s)
