@@ -581,8 +581,11 @@ def _insert_stations(times_s, poses, edges, Z, info, t_st):
     return all_t[order], T_sorted, edges_new, np.stack(ZZ), np.stack(OO), rank[var_of], len(new_t)
 
 
-def _rigid_fit(points_map, stations, crs, model):
-    """``T_local_map`` (4x4) by :func:`minegeo.georef.georeference` on the control stations."""
+def _rigid_fit(points_map, stations, crs, model, start_only: bool = False):
+    """``T_local_map`` (4x4) by :func:`minegeo.georef.georeference` on the control stations.
+
+    ``start_only``: the fit is only the graph's starting point, so its statistics (χ², w-tests of a
+    rigid fit that drift fails) are not logged as warnings; the graph's own are the result."""
     from minegeo.georef import GeorefParams, georeference
     from minegeo.io.types import ControlPoints
 
@@ -590,7 +593,14 @@ def _rigid_fit(points_map, stations, crs, model):
     sig = np.c_[stations.sigma_h_m, stations.sigma_h_m, stations.sigma_v_m][c]
     gcps = ControlPoints(ids=[i for i, k in zip(stations.ids, c, strict=True) if k], local_xyz=points_map[c],
                          crs_enh=stations.enh[c], sigma_enh_m=sig, crs=crs)
-    res = georeference(gcps, crs, GeorefParams(model=model, max_sigma0=1e12))
+    glog = logging.getLogger("minegeo.georef")
+    level = glog.level
+    if start_only:
+        glog.setLevel(logging.ERROR)
+    try:
+        res = georeference(gcps, crs, GeorefParams(model=model, max_sigma0=1e12))
+    finally:
+        glog.setLevel(level)
     T = np.array(res.T_geo_map, dtype=np.float64)
     T[:3, 3] += np.asarray(res.origin, dtype=np.float64) - stations.origin_enh  # whole km: exact
     return T, res
@@ -683,7 +693,7 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
     t_st = stations.t_mid_s
     ctrl, chk = stations.is_control, stations.is_check
     pts_map = station_points(interpolate_poses(times_s, poses, t_st), offset)
-    T_lm, fit = _rigid_fit(pts_map, stations, crs, "rigid" if p.mode == "graph" else p.model)
+    T_lm, fit = _rigid_fit(pts_map, stations, crs, "rigid" if p.mode == "graph" else p.model, p.mode == "graph")
     cov_ll = stations.covariance()
     ids = np.array(stations.ids, dtype=object)
     status, reason, opt, covs, st_cov, ellipses = "ok", "", None, None, None, []

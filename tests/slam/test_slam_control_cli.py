@@ -224,3 +224,40 @@ def test_dxf_layers_counts_and_an_ellipse_against_its_covariance(runs, scene):
     vecs = [np.array([tuple(v.dxf.location) for v in e.vertices]) for e in by_layer["MINEGEO_RESIDUALS"]]
     v2 = min(vecs, key=lambda v: np.linalg.norm(v[0] - s2))
     assert np.allclose(v2[0], s2, atol=1e-6) and np.allclose(v2[1], s2 + DXF_X * d2, atol=1e-6)
+
+
+def test_without_laspy_no_las_a_one_line_note_and_with_it_the_laz(tmp_path, monkeypatch, caplog):
+    """The LAS writer of slam --control on its own (no SLAM run): without the las extra (laspy import
+    blocked) it writes nothing, says so in one warning line and returns written False; with laspy the
+    same call writes map_crs.laz and its sidecar, the CRS in the file."""
+    import logging
+
+    import laspy
+
+    from minegeo.cli.slam import _write_map_las
+    from minegeo.georef import GeorefParams, georeference
+    from minegeo.io.types import ControlPoints
+
+    local = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [10.0, 10.0, 1.0]])
+    enh = local + [219437.0, 612981.0, 214.0]
+    fit = georeference(ControlPoints(ids=["a", "b", "c", "d"], local_xyz=local, crs_enh=enh,
+                                     sigma_enh_m=np.full((4, 3), 0.005), crs=CRS), CRS, GeorefParams(model="rigid"))
+    geo = enh - np.asarray(fit.origin)
+    cloud = PointCloud(points=geo, origin=fit.origin, crs=CRS, frame="geo")
+    no = tmp_path / "no"
+    no.mkdir()
+    monkeypatch.setitem(sys.modules, "laspy", None)  # import laspy -> ImportError
+    with caplog.at_level(logging.WARNING, logger="minegeo.cli.slam"):
+        rec = _write_map_las(no, cloud, fit, {})
+    assert rec["written"] is False and "laspy is not installed" in rec["reason"]
+    assert list(no.iterdir()) == []
+    notes = [r.getMessage() for r in caplog.records if r.name == "minegeo.cli.slam"]
+    assert len(notes) == 1 and "\n" not in notes[0] and "map_crs.ply" in notes[0]
+    monkeypatch.setitem(sys.modules, "laspy", laspy)
+    yes = tmp_path / "yes"
+    yes.mkdir()
+    rec = _write_map_las(yes, cloud, fit, {})
+    assert rec["written"] and sorted(p.name for p in yes.iterdir()) == ["map_crs.laz", "map_crs.laz.georef.json"]
+    back = laspy.read(yes / "map_crs.laz")
+    assert back.header.parse_crs().to_epsg() == 5186
+    assert np.abs(np.c_[back.x, back.y, back.z] - enh).max() <= 0.0005 + 1e-9
