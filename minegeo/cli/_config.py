@@ -200,22 +200,34 @@ def _read_table(path: Path) -> dict:
     return doc
 
 
+def _recorded_command(doc: dict) -> str | None:
+    """The verb a result record names (``command``, ``verb`` or ``tool``: ``"intersections build"``,
+    ``"info"``, ``"minegeo adjust"``), or None."""
+    for field in ("command", "verb", "tool"):
+        v = doc.get(field)
+        if isinstance(v, str) and v.strip():
+            words = v.split()
+            return words[1] if words[0] == "minegeo" and len(words) > 1 else words[0]
+    return None
+
+
 def _from_result(doc: dict, verb: str, where: str) -> dict:
-    """The options recorded in a ``result.json`` of ``minegeo VERB``."""
-    command = str(doc.get("command", "")).split(" ")[0]
-    if command != verb:
-        raise ConfigError(f"{where} is the result.json of `minegeo {command}`, not of `minegeo {verb}`")
-    args = (doc.get("provenance") or {}).get("arguments") if isinstance(doc.get("provenance"), dict) else None
+    """The options recorded in a ``result.json`` of ``minegeo VERB`` (its ``provenance.arguments``)."""
+    command = _recorded_command(doc)
+    if command is not None and command != verb:
+        raise ConfigError(f"{where} is the result of `minegeo {command}`, not of `minegeo {verb}`")
+    args = doc["provenance"].get("arguments")
     if not isinstance(args, dict):
-        raise ConfigError(f"{where}: this result.json records no options (provenance.arguments): it was written "
+        raise ConfigError(f"{where}: this result records no options (provenance.arguments): it was written "
                           f"before minegeo recorded them, or `minegeo {verb}` does not record them yet "
                           "(docs/config.md lists the verbs that do)")
     return args
 
 
 def is_result_record(doc: dict) -> bool:
-    """Whether a parsed file is a minegeo ``result.json`` (a ``command`` and a ``provenance`` record)."""
-    return isinstance(doc.get("command"), str) and "provenance" in doc
+    """Whether a parsed file is a minegeo result record (it has a ``provenance`` table; an options
+    file never has: no verb has a ``--provenance`` option)."""
+    return isinstance(doc.get("provenance"), dict)
 
 
 def load_config(path, parser: argparse.ArgumentParser, verb: str) -> dict[str, Any]:

@@ -157,6 +157,8 @@ def test_a_result_json_of_another_verb_or_without_options_is_refused(tmp_path, c
     f = tmp_path / "result.json"
     f.write_text(json.dumps({"command": "posegraph", "provenance": {"arguments": {"graph": "g"}}}))
     assert_user_error("slam", ["--config", str(f)], capsys, inputs=[f], expect="not of `minegeo slam`")
+    f.write_text(json.dumps({"tool": "minegeo adjust", "provenance": {"arguments": {"network": "n"}}}))
+    assert_user_error("slam", ["--config", str(f)], capsys, inputs=[f], expect="result of `minegeo adjust`")
     f.write_text(json.dumps({"command": "slam", "provenance": {"seed": 0}}))
     assert_user_error("slam", ["--config", str(f)], capsys, inputs=[f], expect="records no options")
 
