@@ -70,12 +70,15 @@ class FrameFile:
         Bag frames: the message's number on its topic (0-based, log-time order); None for files.
     label : str or None
         Bag frames: ``"TOPIC#K"``, how the frame is named in messages and ``result.json``.
+    stamp_ns : int or None
+        Bag frames: ``header.stamp`` in nanoseconds, exact (``time_s`` is it in float64 seconds).
     """
 
     path: Path
     time_s: float
     message: int | None = None
     label: str | None = None
+    stamp_ns: int | None = None
 
     @property
     def name(self) -> str:
@@ -231,7 +234,7 @@ def _bag_frames(bag, times_file, pattern, topic: str | None) -> FrameList:
             raise InputError(f"{opt} {v} applies to a folder of frame files; the frames of the bag {bag} are its "
                              "PointCloud2 messages, timed by their header stamps: drop " + opt)
     name, stamps = bag_frame_stamps(bag, topic)
-    frames = [FrameFile(bag, ns / 1e9, k, f"{name}#{k}") for k, ns in stamps]
+    frames = [FrameFile(bag, ns / 1e9, k, f"{name}#{k}", ns) for k, ns in stamps]
     bad = time_problem([f.time_s for f in frames], noun="frame")
     if bad is not None:
         raise FileFormatError(bag, f"topic {name} message {frames[bad[0]].message}: {bad[1]}")
@@ -338,7 +341,7 @@ def _iter_bag(frames: FrameList, with_times: bool):
     it = iter(frames)
     for k, stamp, rec in iter_bag_frame_records(frames.source, frames.topic):
         f = next(it, None)
-        if f is None or f.message != k or f.time_s != stamp / 1e9:
+        if f is None or f.message != k or f.stamp_ns != stamp:
             raise FileFormatError(frames.source, f"topic {frames.topic} message {k}: not the message listed before "
                                   "the run (the bag changed while it was read)")
         if isinstance(rec, Exception):
