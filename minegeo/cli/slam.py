@@ -239,9 +239,14 @@ def _read_control(args):
     crs = args.crs or st.crs
     if not crs:
         raise InputError(f"--control {args.control}: no CRS (give --crs EPSG:... or a '# crs:' line in the file)")
+    from minegeo.errors import CRSError
     from minegeo.georef.crs import validate_crs
 
-    validate_crs(crs)  # a projected grid in metres (CRSError names a geographic or geocentric CRS)
+    try:
+        validate_crs(crs)  # a projected grid in metres (CRSError names a geographic or geocentric CRS)
+    except CRSError as exc:
+        where = f"--crs {args.crs}" if args.crs else f"the '# crs:' line of --control {args.control}"
+        raise CRSError(f"{where}: {exc}") from None
     if getattr(args, "dxf", None) is not None:
         from minegeo.io.dxf import _ezdxf
 
