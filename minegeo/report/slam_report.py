@@ -205,6 +205,7 @@ def slam_report_html(summary: dict, png: bytes | None, extra: list | None = None
         ("pose graph", "—" if r["pose_graph"] is None else
          f"{r['pose_graph']['status']}: cost {r['pose_graph']['cost_initial']:.6g} → {r['pose_graph']['cost_final']:.6g} "
          f"in {r['pose_graph']['iterations']} iterations"),
+        *([("IMU (LiDAR-inertial keyframe graph)", _inertial_text(r["inertial"]))] if r.get("inertial") else []),
     ])
     mt = summary.get("module_timings_s", {})
     n = max(r["frames"], 1)
@@ -226,6 +227,13 @@ def slam_report_html(summary: dict, png: bytes | None, extra: list | None = None
             f"{r.get('motion_prior_held_s', 0.0):.2f} s" if held else "")
     return page("minegeo slam", sections, status="ok",
                 status_text=f"{r['frames']} frames, {r['keyframes']} keyframes, {r['loops_accepted']} loop(s){note}")
+
+
+def _inertial_text(ine: dict) -> str:
+    """The IMU graph's status and the first and last keyframes' gyro bias (rad/s), the gravity in the map."""
+    bg = [k["bias_gyro_rad_s"] for k in ine["keyframes"]]
+    return (f"{ine['status']}: gyro bias {np.round(bg[0], 5).tolist()} → {np.round(bg[-1], 5).tolist()} rad/s, gravity "
+            f"in the map frame {np.round(ine['gravity_map_m_s2'], 3).tolist()} m/s² (per keyframe in result.json)")
 
 
 def _motion_html(r: dict) -> str:

@@ -601,19 +601,40 @@ def _register_step(cur, k: int, t: float, prev, prev_k: int, submap, T_sub, pose
     return reg, (compose(poses[prev_k], reg.T) if reg.ok else None), False
 
 
-def _deskew_prepare(raw, twist, t: float, params: OdometryParams):
-    """``(frame, seconds)``: the raw points ``raw = (points, offsets)`` deskewed by the body twist
-    ``twist`` (rad/s, m/s) and prepared at frame time ``t``."""
+def _deskew_prepare(raw, twist, t: float, params: OdometryParams, aid=None):
+    """``(frame, seconds, twist)``: the raw points ``raw = (points, offsets)`` deskewed by the body twist
+    ``twist`` (rad/s, m/s) and prepared at frame time ``t``. With an IMU (``aid``,
+    :class:`minegeo.slam.inertial.GyroAid`) each point is rotated by the gyro-integrated rotation at its
+    own time and moved by the twist's velocity; the twist returned then holds the mean gyro rate."""
     t0 = time.perf_counter()
-    return prepare_frame(deskew_points(raw[0], raw[1], twist), t, params), time.perf_counter() - t0
+    if aid is None:
+        return prepare_frame(deskew_points(raw[0], raw[1], twist), t, params), time.perf_counter() - t0, twist
+    tau = np.asarray(raw[1], dtype=np.float64)
+    used = np.r_[aid.mean_rate(t + float(tau.min()), t + float(tau.max())), twist[3:]] if tau.size else twist
+    frame = prepare_frame(aid.deskew(raw[0], tau, t, twist[3:]), t, params)
+    return frame, time.perf_counter() - t0, used
 
 
-def _deskewed(raw, T_from, T_to, dt: float, t: float, params: OdometryParams):
+def _deskewed(raw, T_from, T_to, dt: float, t: float, params: OdometryParams, aid=None):
     """``(frame, twist, seconds)``: ``raw`` deskewed by the body twist of the motion ``T_from -> T_to``
     over ``dt`` seconds (:func:`_deskew_prepare`)."""
-    twist = twist_from_motion(relative(T_from, T_to), dt)
-    frame, seconds = _deskew_prepare(raw, twist, t, params)
+    frame, seconds, twist = _deskew_prepare(raw, twist_from_motion(relative(T_from, T_to), dt), t, params, aid)
     return frame, twist, seconds
+
+
+def _held_step(aid, velocity: np.ndarray, velocity_dt: float, t_prev: float, t: float) -> np.ndarray:
+    """The motion of a frame not registered, from the previous frame at ``t_prev``: the constant
+    velocity (time-scaled when the step changed), its rotation from the gyro with an IMU."""
+    if aid is not None:
+        return _guess(aid, velocity, velocity_dt, t_prev, t)
+    step = _time_scaled_guess(velocity, t - t_prev, velocity_dt)
+    return velocity if step is None else step
+
+
+def _guess(aid, velocity: np.ndarray, velocity_dt: float, t_from: float, t: float) -> np.ndarray:
+    """The motion from ``t_from`` to ``t``: the constant velocity's (:func:`_scaled_motion`), its rotation
+    from the gyro with an IMU (:meth:`minegeo.slam.inertial.GyroAid.guess`)."""
+    return aid.guess(_scaled_motion(velocity, t - t_from, velocity_dt), t_from, t)
 
 
 def _submap_keyframe_information(reg, via_prev: bool, sub_kf: int, n_kf: int, T_sub, pose):
@@ -636,7 +657,7 @@ def _next_submap(sub_clouds, sub_poses, cur, pose, via_prev: bool, params: Odome
     return sub_clouds, sub_poses, _keyframe_submap(sub_clouds, sub_poses, params)
 
 
-def run_odometry(frames: Iterable, params: OdometryParams | None = None, progress=None) -> OdometryResult:
+def run_odometry(frames: Iterable, params: OdometryParams | None = None, progress=None, imu=None) -> OdometryResult:
     """GICP odometry over a sequence of frames, deskewed when their points carry times.
 
     Parameters
@@ -649,16 +670,12 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
     params : OdometryParams, optional
     progress : callable, optional
         Called with the frame index after each frame.
+    imu : GyroAid, optional
+        :class:`minegeo.slam.inertial.GyroAid`: rotation guesses and deskewing from the gyro.
 
     Returns
     -------
     OdometryResult
-
-    Notes
-    -----
-    No silent runaway (:func:`_checked`): an implausible registration is rejected, the frame held
-    by the constant-velocity prior, flagged (:meth:`OdometryResult.held_stretches`) and not used as
-    the next target; the run goes on.
     """
     params = params or OdometryParams()
     t_prep = t_f2f = t_kf = 0.0
@@ -674,13 +691,15 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
     velocity, velocity_dt, v_prev_w, first_raw = np.eye(4), 0.0, None, None
 
     def register(cur: PreparedFrame, k: int, t: float):
-        return _register_step(cur, k, t, prev, prev_k, submap, T_sub, poses, times, velocity, velocity_dt, params)
+        t_from = times[k - 1 if to_submap else prev_k]  # with an IMU: the gyro's rotation since the reference
+        m, m_dt = (velocity, velocity_dt) if imu is None else (_guess(imu, velocity, velocity_dt, t_from, t), t - t_from)
+        return _register_step(cur, k, t, prev, prev_k, submap, T_sub, poses, times, m, m_dt, params)
     for k, (t, cur, dt_prep, raw) in enumerate(_prepared_frames(frames, params)):
         t_prep += dt_prep
         _check_time(k, t, times)
         twist = twist_from_motion(velocity, velocity_dt) if raw is not None and velocity_dt > 0 else np.zeros(6)
         if raw is not None:  # deskewed by the constant-velocity twist of the last registered motion
-            cur, dt1 = _deskew_prepare(raw, twist, t, params)
+            cur, dt1, twist = _deskew_prepare(raw, twist, t, params, imu)
             t_prep += dt1
         times.append(float(t))
         if prev is None:
@@ -697,9 +716,9 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
         reg, pose, via_prev = register(cur, k, t)
         if first_raw is not None and reg.ok and pose is not None and prev_k == 0:
             # the first frame had no motion to deskew by: both by the first one, then register again
-            first, twist0, dt1 = _deskewed(first_raw, poses[0], pose, t - times[0], times[0], params)
+            first, twist0, dt1 = _deskewed(first_raw, poses[0], pose, t - times[0], times[0], params, imu)
             if raw is not None:
-                cur, twist, dt2 = _deskewed(raw, poses[0], pose, t - times[0], t, params)
+                cur, twist, dt2 = _deskewed(raw, poses[0], pose, t - times[0], t, params, imu)
                 dt1 += dt2
             t_prep += dt1
             if first.index is not None:
@@ -715,7 +734,7 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
         reg = _checked(reg, pose, *motion_args)  # an implausible first pass does not seed the second
         if raw is not None and params.deskew_iterations and reg.ok and pose is not None:
             # deskew again with this frame's own motion (from the last registered frame to it)
-            cur2, twist2, dt1 = _deskewed(raw, poses[last_ok], pose, t - times[last_ok], t, params)
+            cur2, twist2, dt1 = _deskewed(raw, poses[last_ok], pose, t - times[last_ok], t, params, imu)
             t_prep += dt1
             reg2, pose2, via2 = register(cur2, k, t)
             if reg2.ok and pose2 is not None:
@@ -724,8 +743,7 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
         if not reg.ok:
             via_prev = False
             log.info("frame %d (t = %.3f s) not registered: %s; placed by constant velocity", k, t, reg.reason)
-            step = _time_scaled_guess(velocity, t - times[-2], velocity_dt)
-            pose = compose(poses[-1], velocity if step is None else step)
+            pose = compose(poses[-1], _held_step(imu, velocity, velocity_dt, times[-2], t))
         rows.append([reg.ok, reg.reason, reg.fitness, reg.weak, raw is not None, twist,
                      reg.constraint_ratio if cur.index is not None and prev.index is not None else float("nan")])
         rel = relative(T_kf, pose)
@@ -750,6 +768,8 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
         if reg.ok:
             velocity, velocity_dt = relative(poses[last_ok], poses[-1]), t - times[last_ok]
             v_prev_w = (poses[-1][:3, 3] - poses[last_ok][:3, 3]) / velocity_dt
+            if imu is not None:  # the registered rotation measures the gyro bias
+                imu.update(times[last_ok], t, velocity[:3, :3])
             last_ok = k
         if to_submap:
             prev = cur if cur.index is not None else prev

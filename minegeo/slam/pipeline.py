@@ -10,7 +10,10 @@ the optimised pose graph, the loop list and the map cloud:
 3. the pose graph (keyframe poses, odometry and loop edges with their information matrices, and,
    with ``use_planes``, floor-plane landmarks with pose–plane edges [Ren2019 Eq. 11], Sec. 3.4.2)
    optimised by Levenberg–Marquardt (:mod:`minegeo.slam.posegraph`);
-4. the frames between keyframes placed by their odometry relative to the preceding keyframe (the
+4. with an IMU (``imu``, :mod:`minegeo.slam.inertial`): the gyro as each registration's rotation
+   guess and for deskewing, then the keyframe graph again with IMU preintegration factors
+   [Forster2017 Sec. VI-D], velocity and bias states per keyframe and gravity;
+5. the frames between keyframes placed by their odometry relative to the preceding keyframe (the
    contract's trajectory), the keyframe clouds moved into the world frame and voxel-compressed
    into the map (Sec. 3.5).
 """
@@ -29,6 +32,7 @@ from minegeo.geometry import voxel_downsample
 from minegeo.geometry.se3 import compose, relative
 from minegeo.io.g2o import PoseGraph
 from minegeo.registration import build_target_index
+from minegeo.slam.inertial import GyroAid, InertialParams, InertialResult, optimize_inertial_graph
 from minegeo.slam.loops import LoopCandidate, LoopParams, find_loop
 from minegeo.slam.mapping import NoiseRemovalResult, RoadwayNoiseParams, remove_roadway_noise
 from minegeo.slam.odometry import OdometryParams, OdometryResult, PreparedFrame, run_odometry
@@ -145,10 +149,11 @@ class SlamResult:
     planes: PlaneSet | None = None
     floor_status: list = field(default_factory=list)
     noise: NoiseRemovalResult | None = None
+    inertial: InertialResult | None = None
 
     def summary(self) -> dict:
         acc = [c for c in self.loops if c.accepted]
-        return {
+        out = {
             "frames": int(self.times_s.size), "keyframes": int(self.keyframes.size),
             "failed_frames": int((~self.odometry.frame_ok).sum()),
             "weak_frames": int(sum(bool(w) for w in self.odometry.frame_weak)),
@@ -166,6 +171,9 @@ class SlamResult:
                 k: v for k, v in self.noise.counts.items() if k not in ("track_points", "slices")}
             | {"slices": self.noise.counts["slices"]},
         }
+        if self.inertial is not None:  # LiDAR-inertial: velocities, biases, gravity (the LiDAR-only record is unchanged)
+            out["inertial"] = self.inertial.summary(self.times_s[self.keyframes])
+        return out
 
 
 def _graph(kf_poses, odo: OdometryResult, loops: list[LoopCandidate]) -> PoseGraph:
@@ -330,7 +338,11 @@ def _optimised_poses(opt: PoseGraphResult) -> np.ndarray:
     """The optimised keyframe poses, each checked as an internal invariant (a rigid transform: a
     solver that returned a non-rigid pose with a status other than "failed" is a bug) and
     re-projected onto SE(3)."""
-    return np.stack([internal_transform(T, f"optimised pose of keyframe {k}") for k, T in enumerate(opt.graph.poses)])
+    return _optimised_poses_of(opt.graph.poses)
+
+
+def _optimised_poses_of(poses: np.ndarray) -> np.ndarray:
+    return np.stack([internal_transform(T, f"optimised pose of keyframe {k}") for k, T in enumerate(poses)])
 
 
 class _LazyFrames:
@@ -358,10 +370,15 @@ def _all_poses(odo: OdometryResult, kf_poses: np.ndarray) -> np.ndarray:
     return out
 
 
-def run_slam(frames: Iterable[tuple[float, np.ndarray]], params: SlamParams | None = None, progress=None) -> SlamResult:
+def run_slam(frames: Iterable[tuple[float, np.ndarray]], params: SlamParams | None = None, progress=None,
+             imu=None, inertial: InertialParams | None = None) -> SlamResult:
     """Run the SLAM chain on frames ``(time_s, points in the sensor frame)`` in time order.
 
     The odometry (:func:`minegeo.slam.odometry.run_odometry`) then :func:`run_backend` on its result.
+    ``imu`` (:class:`minegeo.io.imu.ImuSamples`, from a CSV or a bag, checked against the frames'
+    time span by the caller, :func:`minegeo.slam.inertial.check_imu_for_frames`) makes it
+    LiDAR-inertial (:mod:`minegeo.slam.inertial`, parameters ``inertial``); without it the run is the
+    LiDAR-only one.
 
     Returns
     -------
@@ -370,13 +387,22 @@ def run_slam(frames: Iterable[tuple[float, np.ndarray]], params: SlamParams | No
         (odometry prepare / frame-to-frame / keyframe refinement, loops, graph, map).
     """
     params = params or SlamParams()
+    aid = None if imu is None else GyroAid(imu, inertial)
     t0 = time.perf_counter()
-    odo = run_odometry(frames, params.odometry, progress)
-    return run_backend(odo, params, odometry_s=time.perf_counter() - t0)
+    odo = run_odometry(frames, params.odometry, progress, imu=aid)
+    return run_backend(odo, params, odometry_s=time.perf_counter() - t0, imu=aid)
+
+
+def _inertial(odo: OdometryResult, kf_poses: np.ndarray, graph: PoseGraph, aid: GyroAid, params: SlamParams):
+    """The keyframe graph's LiDAR edges with the IMU (:func:`minegeo.slam.inertial.optimize_inertial_graph`)."""
+    p = [3, 4, 5, 0, 1, 2]  # the file's (t, r) information order → (ω, ρ)
+    info = np.asarray(graph.information)[:, p][:, :, p]
+    return optimize_inertial_graph(aid, odo.times_s[odo.keyframes], kf_poses, graph.edges, graph.measurements, info,
+                                   lm=params.posegraph)
 
 
 def run_backend(odo: OdometryResult, params: SlamParams | None = None, *, use_loops: bool = True,
-                odometry_s: float = 0.0) -> SlamResult:
+                odometry_s: float = 0.0, imu=None) -> SlamResult:
     """The back end on a finished odometry: floor planes, loop closure, pose graph, map.
 
     Lets the same odometry be run through several back ends (the ablation of Ren et al. 2019,
@@ -395,6 +421,9 @@ def run_backend(odo: OdometryResult, params: SlamParams | None = None, *, use_lo
         Search and verify loop closures (Sec. 3.4.1).
     odometry_s : float
         Time the odometry took (s), recorded in ``timings_s``.
+    imu : GyroAid or ImuSamples, optional
+        With it the keyframe graph is solved again with IMU preintegration factors
+        (:func:`minegeo.slam.inertial.optimize_inertial_graph`; ``SlamResult.inertial``).
 
     Returns
     -------
@@ -417,6 +446,12 @@ def run_backend(odo: OdometryResult, params: SlamParams | None = None, *, use_lo
     if opt is not None and opt.status != "failed":
         kf_poses = _optimised_poses(opt)
     graph = opt.graph if opt is not None else _graph(kf_poses, odo, loops)
+    inertial = None
+    if imu is not None and odo.keyframes.size > 1:
+        inertial = _inertial(odo, kf_poses, graph, imu if isinstance(imu, GyroAid) else GyroAid(imu), params)
+        if inertial.status != "failed":
+            kf_poses = _optimised_poses_of(inertial.keyframe_poses)
+            graph = graph.with_poses(kf_poses)
     t3 = time.perf_counter()
     poses = _all_poses(odo, kf_poses)
     world = [P @ T[:3, :3].T + T[:3, 3] for P, T in zip(odo.keyframe_clouds, kf_poses, strict=True)]
@@ -435,4 +470,4 @@ def run_backend(odo: OdometryResult, params: SlamParams | None = None, *, use_lo
                "map_noise": t_noise, "map": t4 - t3, "total": odometry_s + (t4 - t1)}
     planes = opt.planes if opt is not None else None
     return SlamResult(odo.times_s, poses, odo.keyframes, kf_poses, graph, loops, map_points, odo, opt, params, timings,
-                      planes, obs[3] if obs is not None else [], noise)
+                      planes, obs[3] if obs is not None else [], noise, inertial)

@@ -1,0 +1,129 @@
+"""LiDAR-inertial SLAM (``minegeo slam --imu``) on simulated sensor streams: ATE with and without the IMU.
+
+For each stream preset (vehicle, handheld, drone; ``minegeo synth OUT --stream P --duration-s D --seed S``,
+written once into the work folder and reused) ``minegeo slam`` runs three times on the same frames:
+
+* ``raw``: ``--no-deskew`` (the sweeps as recorded, smeared by the motion; no IMU);
+* ``deskew, no IMU``: the default (constant-velocity deskewing, 2 passes);
+* ``deskew + IMU``: ``--imu imu.csv`` (gyro rotation guesses and gyro deskewing in the odometry, IMU
+  preintegration factors in the keyframe graph).
+
+ATE RMSE against the stream's ``groundtruth.txt``: after SE(3) Umeyama alignment
+(:func:`minegeo.slam.evaluate.evaluate_trajectory`, evo's definition) and without alignment (the truth
+moved into the first sensor frame, the SLAM map frame), in m and % of the true path; the frames held
+by the motion prior; with the IMU the largest error of the estimated gyro bias at the keyframes
+against the simulator's record (``imu_truth.csv``); the wall time of each run.
+
+Usage::
+
+    NUMBA_NUM_THREADS=1 python benchmarks/bench_slam_imu.py --duration-s 20 --presets vehicle handheld \\
+        --work ~/.cache/minegeo_bench/slam_imu \\
+        --json benchmarks/results/slam_imu_<date>.json --md benchmarks/results/slam_imu_<date>.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+MODES = {"raw": ["--no-deskew"], "deskew, no IMU": [], "deskew + IMU": ["--imu", "IMU"]}
+
+
+def _cli(args: list[str]) -> float:
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "minegeo.cli", "--quiet", *args], check=True)
+    return time.perf_counter() - t0
+
+
+def _ate(run: Path, stream: Path) -> dict:
+    from minegeo.io.trajectory import read_trajectory
+    from minegeo.slam.evaluate import evaluate_trajectory
+
+    est = read_trajectory(run / "trajectory.tum")
+    gt = read_trajectory(stream / "groundtruth.txt")
+    aligned = float(evaluate_trajectory(est, gt).ate.rmse)
+    G = np.einsum("ij,njk->nik", np.linalg.inv(gt.poses[0]), gt.poses)
+    e = np.linalg.norm(est.poses[:, :3, 3] - G[:, :3, 3], axis=1)
+    path = float(np.linalg.norm(np.diff(gt.poses[:, :3, 3], axis=0), axis=1).sum())
+    res = json.loads((run / "result.json").read_text())["result"]
+    out = {"path_m": path, "ate_aligned_m": aligned, "ate_unaligned_m": float(np.sqrt(np.mean(e ** 2))),
+           "max_error_unaligned_m": float(e.max()), "frames": res["frames"], "keyframes": res["keyframes"],
+           "frames_held_by_prior": int(sum(h["frames"] for h in res["motion_prior_stretches"]))}
+    if "inertial" in res:
+        ine = res["inertial"]
+        truth = np.loadtxt(stream / "imu_truth.csv", delimiter=",", skiprows=1)
+        kt = np.array([k["time_s"] for k in ine["keyframes"]])
+        b_true = truth[np.searchsorted(truth[:, 0], kt), 7:10]
+        b_est = np.array([k["bias_gyro_rad_s"] for k in ine["keyframes"]])
+        out.update(inertial_status=ine["status"], gyro_bias_true_max_rad_s=float(np.abs(b_true).max()),
+                   gyro_bias_error_max_rad_s=float(np.abs(b_est - b_true).max()))
+    return out
+
+
+def _table(meta: dict, rows: list[dict]) -> list[str]:
+    lines = [f"*Results file `benchmarks/results/slam_imu_{meta['date']}.json`; measured {meta['date']}, commit "
+             f"{meta['commit']}, {meta['duration_s']:g} s streams at 10 Hz (seed {meta['seed']}), IMU 200 Hz "
+             f"(ADIS16448 noise), Numba threads {meta['numba_threads']}, 1-minute load {meta['load_1min_start']:.1f} → "
+             f"{meta['load_1min_end']:.1f} on {meta['cpus']} cores.*", "",
+             "| stream | mode | ATE RMSE, aligned | ATE RMSE, unaligned | max error | frames held by the prior "
+             "| gyro bias error (of) | wall |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        p = r["path_m"]
+        bias = (f"{1e3 * r['gyro_bias_error_max_rad_s']:.2f} mrad/s ({1e3 * r['gyro_bias_true_max_rad_s']:.1f})"
+                if "gyro_bias_error_max_rad_s" in r else "")
+        lines.append(f"| {r['preset']} {p:.1f} m | {r['mode']} | {r['ate_aligned_m']:.3f} m "
+                     f"({100 * r['ate_aligned_m'] / p:.3f} %) | {r['ate_unaligned_m']:.3f} m "
+                     f"({100 * r['ate_unaligned_m'] / p:.3f} %) | {r['max_error_unaligned_m']:.3f} m | "
+                     f"{r['frames_held_by_prior']} of {r['frames']} | {bias} | {r['wall_s']:.0f} s |")
+    return lines
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--duration-s", type=float, default=20.0)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--presets", nargs="+", default=["vehicle", "handheld", "drone"])
+    ap.add_argument("--work", type=Path, default=Path.home() / ".cache" / "minegeo_bench" / "slam_imu")
+    ap.add_argument("--json", type=Path, required=True)
+    ap.add_argument("--md", type=Path, required=True)
+    a = ap.parse_args(argv)
+    a.work.mkdir(parents=True, exist_ok=True)
+    load0 = os.getloadavg()[0]
+    rows = []
+    for preset in a.presets:
+        stream = a.work / f"{preset}_{a.duration_s:g}s_seed{a.seed}"
+        if not (stream / "groundtruth.txt").is_file():
+            _cli(["synth", str(stream), "--stream", preset, "--duration-s", f"{a.duration_s:g}", "--seed", str(a.seed),
+                  "--force"])
+        for mode, opts in MODES.items():
+            opts = [str(stream / "imu.csv") if o == "IMU" else o for o in opts]
+            run = a.work / f"{stream.name}_{mode.replace(',', '').replace('+', '').replace(' ', '_')}"
+            wall = _cli(["slam", "--frames", str(stream / "frames"), "--out", str(run), *opts])
+            rows.append({"preset": preset, "mode": mode, "options": opts, "wall_s": wall, **_ate(run, stream)})
+            print(rows[-1], flush=True)
+    here = Path(__file__).parent
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=here).stdout.strip()
+    if subprocess.run(["git", "status", "--porcelain", "--", "../minegeo"], capture_output=True, text=True,
+                      cwd=here).stdout.strip():
+        commit += "+dirty"
+    meta = {"date": dt.date.today().isoformat(), "commit": commit, "duration_s": a.duration_s, "seed": a.seed,
+            "numba_threads": os.environ.get("NUMBA_NUM_THREADS", "default"), "load_1min_start": load0,
+            "load_1min_end": os.getloadavg()[0], "cpus": os.cpu_count(),
+            "command": "python benchmarks/bench_slam_imu.py " + " ".join(argv if argv is not None else sys.argv[1:])}
+    a.json.parent.mkdir(parents=True, exist_ok=True)
+    a.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
+    a.md.write_text("\n".join(_table(meta, rows)) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

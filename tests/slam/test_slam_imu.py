@@ -1,0 +1,67 @@
+"""LiDAR-inertial SLAM (``run_slam(..., imu=...)``) on a short simulated handheld stream with a biased
+gyro (minegeo.synth): it beats the LiDAR-only run and recovers the gyro bias.
+
+References: the simulator's pose curve at the frame times and its own bias record
+(``ImuData.bias_gyro``, the values it added to the gyro), never the estimator's output.
+15 sweeps at 10 Hz (0.4° azimuth step) from t = 13.5 s of the handheld walk (seed 1), turning at
+12-20 °/s; the gyro biases drawn with σ 0.02 rad/s per axis are (−0.045, 0.021, −0.014) rad/s
+(2.6 °/s on x): uncorrected, they turn each sweep by 0.26° and each keyframe interval by degrees.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from minegeo.io.imu import ImuSamples
+from minegeo.slam.odometry import OdometryParams
+from minegeo.slam.pipeline import SlamParams, run_slam
+from minegeo.synth.flight import NetworkWorld
+from minegeo.synth.imu import ImuParams
+from minegeo.synth.stream import StreamParams, iter_sweeps, simulate_stream
+
+
+@pytest.fixture(scope="module")
+def stream():
+    st = simulate_stream(StreamParams(preset="handheld", duration_s=20.0, lidar_hz=10.0, azimuth_step_deg=0.4, seed=1,
+                                      imu=ImuParams(gyroscope_bias_init=0.02)))
+    ft = st.frame_times[130:145]
+    sweeps = [(t, P, tau) for t, P, tau, _ring in iter_sweeps(NetworkWorld(st.net), st.sensor, st.curve, ft,
+                                                               st.lidar_seed)]
+    return sweeps, st.curve.poses(ft), st.imu, ft
+
+
+def _ate_unaligned(poses, truth):
+    """RMSE of the positions (m), the truth moved into the first sensor frame (the SLAM map frame)."""
+    G = np.einsum("ij,njk->nik", np.linalg.inv(truth[0]), truth)
+    return float(np.sqrt(np.mean(np.sum((poses[:, :3, 3] - G[:, :3, 3]) ** 2, axis=1))))
+
+
+def test_imu_beats_lidar_only_and_recovers_the_gyro_bias(stream):
+    sweeps, truth, imu_true, ft = stream
+    assert np.abs(imu_true.bias_gyro).max() > 0.04  # a biased gyro (the simulator's record)
+    p = SlamParams(odometry=OdometryParams(keyframe_distance_m=0.3), remove_noise=False, use_planes=False)
+    lidar = run_slam(iter(sweeps), p)
+    imu = ImuSamples(imu_true.t, imu_true.gyro, imu_true.accel)
+    li = run_slam(iter(sweeps), p, imu=imu)
+    assert li.inertial is not None and li.inertial.status == "converged", li.inertial and li.inertial.reason
+    assert li.keyframes.size >= 3 and li.odometry.frame_ok.all()
+    e_lidar, e_imu = _ate_unaligned(lidar.poses, truth), _ate_unaligned(li.poses, truth)
+    # measured: 0.0164 m LiDAR only, 0.0099 m with the IMU (0.60); stated: below 0.8 of LiDAR only
+    assert e_imu < 0.8 * e_lidar, (e_imu, e_lidar)
+    # the gyro bias at each keyframe against the simulator's record (measured: within 2.2e-3 rad/s;
+    # the bias itself is up to 0.045 rad/s): stated tolerance 4e-3 rad/s per axis
+    b_true = imu_true.bias_gyro[np.searchsorted(imu_true.t, ft[li.keyframes])]
+    np.testing.assert_allclose(li.inertial.bias_gyro, b_true, rtol=0, atol=4e-3)
+    # the front end's running estimate too (measured within 8e-4 rad/s)
+    np.testing.assert_allclose(li.inertial.front_end_bias_gyro, b_true[-1], rtol=0, atol=4e-3)
+    # gravity in the map frame: the truth's, seen from the first sensor frame (roll and pitch observed)
+    g_true = truth[0][:3, :3].T @ np.array([0.0, 0.0, -9.80665])
+    cosang = float(li.inertial.gravity_map @ g_true) / 9.80665 ** 2
+    assert np.degrees(np.arccos(min(1.0, cosang))) < 1.0
+
+
+def test_without_imu_the_result_has_no_inertial_record(stream):
+    sweeps, *_ = stream
+    res = run_slam(iter(sweeps[:4]), SlamParams(remove_noise=False, use_planes=False))
+    assert res.inertial is None and "inertial" not in res.summary()
