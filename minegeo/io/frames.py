@@ -185,7 +185,10 @@ def read_frame(path, *, with_times: bool = False, time_s: float | None = None):
 
 def _frame_files(folder: Path, pattern: str | None = None) -> list[Path]:
     if not folder.is_dir():
-        raise InputError(f"--frames {folder}: not a folder")
+        if not folder.exists():
+            raise InputError(f"--frames {folder}: no such folder or file")
+        raise InputError(f"--frames {folder}: neither a folder of frames nor a ROS bag (a ROS 1 .bag file, a ROS 2 "
+                         "bag folder with metadata.yaml, or a .mcap/.db3 file)")
     names = sorted(p for p in folder.iterdir() if p.is_file() and (p.suffix.lower() in _SUFFIX or p.suffix.lower() == ".bin")
                    and p.name != "times.txt" and p.suffix.lower() != ".zip"
                    and (pattern is None or fnmatch.fnmatch(p.name, pattern)))

@@ -96,6 +96,8 @@ OPTION_CASES = {
     "topic_with_folder": (lambda t, bag: ["--frames", _ply_folder(t), "--lidar-topic", "/points"],
                           "--lidar-topic /points applies to a ROS bag"),
     "not_a_bag": (lambda t, bag: ["--frames", _fake_bag(t)], "not a ROS bag"),
+    "missing": (lambda t, bag: ["--frames", t / "nope.bag"], "nope.bag: no such folder or file"),
+    "a_text_file": (lambda t, bag: ["--frames", _text(t)], "neither a folder of frames nor a ROS bag"),
     "truncated_bag": (lambda t, bag: ["--frames", _truncated(t, bag)], "unreadable ROS bag"),
 }
 
@@ -113,6 +115,12 @@ def _ply_folder(t):
     for k, (_, xyz, _) in enumerate(_frames([T0 + k * DT for k in range(4)])):
         write_point_cloud(d / f"{k}.ply", PointCloud(points=xyz.astype(np.float64)))
     return d
+
+
+def _text(t):
+    p = t / "notes.txt"
+    p.write_text("frames are elsewhere\n")
+    return p
 
 
 def _fake_bag(t):
