@@ -1,0 +1,97 @@
+"""``minegeo slam --imu IMU.csv``: every mistake in the IMU is one line, exit 2, nothing written, the
+inputs and an earlier result folder untouched (issue 29, deliverable 4; the SLAM contract's
+"Sensor streams": header ``t,gx,gy,gz,ax,ay,az``, rows strictly increasing, covering the frames).
+
+The frames are 4 small box-room clouds at 0.0-0.3 s; every case fails before the odometry.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _contract import assert_user_error, copy_tree, run_cli
+
+N_FRAMES = 4
+
+
+@pytest.fixture(scope="module")
+def frames_src(tmp_path_factory):
+    from minegeo.io import PointCloud, write_point_cloud
+
+    d = tmp_path_factory.mktemp("imu_frames_src") / "frames"
+    d.mkdir()
+    rng = np.random.default_rng(29)
+    for k in range(N_FRAMES):
+        u = rng.uniform(-1.0, 1.0, (600, 3)) * [3.0, 2.0, 1.5]
+        face = rng.integers(0, 3, 600)
+        u[np.arange(600), face] = np.sign(u[np.arange(600), face]) * np.array([3.0, 2.0, 1.5])[face]
+        write_point_cloud(d / f"{k:06d}.ply", PointCloud(points=u + [0.1 * k, 0.0, 0.0]))
+    (d / "times.txt").write_text("".join(f"{0.1 * k:.6f}\n" for k in range(N_FRAMES)))
+    return d
+
+
+@pytest.fixture
+def frames(frames_src, tmp_path):
+    return copy_tree(frames_src, tmp_path / "frames")
+
+
+def _rows(t) -> list[str]:
+    return [f"{x:.6f},0.01,0.0,0.0,0.0,0.0,9.80665" for x in t]
+
+
+def _imu(tmp: Path, rows: list[str], header: str = "t,gx,gy,gz,ax,ay,az") -> Path:
+    p = tmp / "imu.csv"
+    p.write_text(header + "\n" + "\n".join(rows) + "\n")
+    return p
+
+
+GOOD_T = np.arange(-0.05, 0.40, 0.005)
+
+#: case -> (rows of the IMU CSV or a header, extra options, text the error line must hold)
+CASES = {
+    "starts after the first frame": (_rows(GOOD_T[GOOD_T > 0.05]), [], "do not cover the frames' time span"),
+    "ends before the last frame": (_rows(GOOD_T[GOOD_T < 0.2]), [], "do not cover the frames' time span"),
+    "rows out of order": (_rows(GOOD_T[[0, 1, 3, 2, *range(4, GOOD_T.size)]]), [], "line 5"),
+    "repeated time": (_rows(np.r_[GOOD_T[:10], GOOD_T[9:]]), [], "line 12"),
+    "gap over the limit": (_rows(GOOD_T[(GOOD_T < 0.1) | (GOOD_T > 0.2)]), [], "longer than the 0.05 s allowed"),
+    "gap over a set limit": (_rows(GOOD_T[(GOOD_T < 0.1) | (GOOD_T > 0.12)]), ["--imu-max-gap", "0.02"],
+                             "longer than the 0.02 s allowed"),
+    "wrong header": ("t,ax,ay,az,gx,gy,gz", [], "expected 't,gx,gy,gz,ax,ay,az'"),
+    "NaN gyro": ([*_rows(GOOD_T[:5]), "0.0,nan,0,0,0,0,9.8", *_rows(GOOD_T[6:])], [], "nan"),
+    "only one sample": (_rows([0.0]), [], "must cover the frames"),
+    "bad extrinsic": (_rows(GOOD_T), ["--imu-extrinsic", "1 2 3"], "extrinsic"),
+    "extrinsic not a rotation": (_rows(GOOD_T), ["--imu-extrinsic", "0 0 0 0 0 0 0"], "quaternion"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_bad_imu_is_one_line_exit_2(case, frames, tmp_path, capsys):
+    rows, extra, expect = CASES[case]
+    imu = _imu(tmp_path, [], header=rows) if isinstance(rows, str) else _imu(tmp_path, rows)
+    out = tmp_path / "out"
+    assert_user_error("slam", ["--frames", str(frames), "--imu", str(imu), *extra, "--out", str(out)], capsys,
+                      inputs=[frames, imu], outputs=[out], expect=expect)
+
+
+def test_imu_options_need_imu(frames, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert_user_error("slam", ["--frames", str(frames), "--imu-max-gap", "0.1", "--out", str(out)], capsys,
+                      inputs=[frames], outputs=[out], expect="--imu-max-gap needs --imu")
+    assert_user_error("slam", ["--frames", str(frames), "--imu-extrinsic", "0 0 0 0 0 0 1", "--out", str(out)],
+                      capsys, inputs=[frames], outputs=[out], expect="--imu-extrinsic needs --imu")
+    assert_user_error("slam", ["--frames", str(frames), "--imu", str(tmp_path), "--out", str(out)], capsys,
+                      inputs=[frames], outputs=[out], expect="is a folder")
+    assert_user_error("slam", ["--frames", str(frames), "--imu", str(tmp_path / "nope.csv"), "--out", str(out)],
+                      capsys, inputs=[frames], outputs=[out])
+
+
+def test_a_good_imu_runs(frames, tmp_path, capsys):
+    """The same frames with an IMU that covers them run (the cases above fail on the IMU alone)."""
+    imu = _imu(tmp_path, _rows(GOOD_T))
+    out = tmp_path / "out"
+    code, _, lines = run_cli("slam", ["--frames", str(frames), "--imu", str(imu), "--keyframe-distance", "0.15",
+                                      "--out", str(out), "--no-planes"], capsys)
+    assert code == 0, lines
+    assert (out / "trajectory.tum").is_file()
