@@ -81,3 +81,20 @@ def test_bag_changed_between_listing_and_reading(tmp_path):
     shutil.copyfile(b, a)
     with pytest.raises(FileFormatError, match="message 0: not the message listed before the run"):
         list(iter_frames(frames))
+
+
+def test_bag_frames_are_decoded_one_at_a_time(tmp_path, monkeypatch):
+    """Streaming: taking one frame from iter_frames decodes one message's points, not the bag's."""
+    import minegeo.io.bag as bagmod
+
+    path = write_bag(tmp_path / "s.bag", "ros1", frame_messages(_frames(5)))
+    frames = list_frames(path)
+    calls = []
+    real = bagmod.decode_pointcloud2
+    monkeypatch.setattr(bagmod, "decode_pointcloud2", lambda *a, **k: calls.append(1) or real(*a, **k))
+    it = iter_frames(frames, with_times=True)
+    next(it)
+    assert len(calls) == 1
+    next(it)
+    assert len(calls) == 2
+    it.close()

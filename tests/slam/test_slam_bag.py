@@ -80,7 +80,9 @@ def test_bag_gives_the_trajectory_of_the_files(recording, from_files, fmt, tmp_p
     # a real run on the files: every frame registered, the path within 10 % of the simulated 3.0 m
     assert res_files["result"]["failed_frames"] == 0
     assert abs(res_files["result"]["path_length_m"] - path_m) < 0.1 * path_m, (res_files["result"], path_m)
-    tum_bag, res_bag = _slam(bags[fmt], tmp_path / "out", *(["--lidar-topic", "/points"] if fmt == "mcap" else []))
+    # the only PointCloud2 topic is taken by default (ros1); named with either option name (ROS 2)
+    topic = {"ros1": [], "sqlite3": ["--points-topic", "/points"], "mcap": ["--lidar-topic", "/points"]}[fmt]
+    tum_bag, res_bag = _slam(bags[fmt], tmp_path / "out", *topic)
     # every sweep used and deskewed from its own per-point times (the bag kept them)
     assert res_bag["result"]["frames"] == N_FRAMES and not res_bag["result"]["skipped_frames"]
     assert res_bag["result"]["deskew"]["frames_deskewed"] == res_files["result"]["deskew"]["frames_deskewed"] > 0
