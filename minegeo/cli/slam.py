@@ -518,8 +518,7 @@ def run(args) -> int:
     imu = _read_imu(args)
     inputs_named.update({"--imu": args.imu} if imu is not None else {})
     with OutputTransaction("slam", inputs=inputs_named, folders={"--out": out}, files=dxf_out) as tx:
-        files = list_frames(args.frames, times_file=args.times, pattern=args.pattern,
-                            topic=getattr(args, "lidar_topic", None))
+        files = list_frames(args.frames, args.times, args.pattern, args.lidar_topic)
         _check_times(files)
         _check_imu(imu, files, args)
         if ctrl_in is not None and files:

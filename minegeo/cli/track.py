@@ -226,8 +226,7 @@ def run(args) -> int:
             params = replace(params, T_world_start=_to_map(args, kb, params.T_world_start))
         # the keyframes' drift skeleton uses the base's own skeleton parameters (floor cell, wall band)
         params = replace(params, recognition=replace(params.recognition, skeleton=kb.params.skeleton))
-        files = list_frames(args.frames, times_file=args.times, pattern=args.pattern,
-                            topic=getattr(args, "lidar_topic", None))
+        files = list_frames(args.frames, args.times, args.pattern, args.lidar_topic)
         skipped: list[dict] = []
         bar = tqdm(total=len(files), desc="track", unit="frame", file=sys.stderr, disable=not progress_enabled(args))
         reg_log = logging.getLogger("minegeo.registration")

@@ -38,7 +38,7 @@ from minegeo.io.imu import ImuSamples, imu_samples
 from minegeo.io.times import TimedPoints, check_offsets, find_time_field, offsets_seconds, time_encoding
 
 __all__ = ["BagTopic", "BagFrame", "bag_kind", "list_topics", "iter_bag_frames", "read_bag_frames",
-           "bag_frame_stamps", "iter_bag_frame_records", "write_frames_bag", "read_bag_imu", "bag_sha256", "decode_pointcloud2",
+           "bag_frame_stamps", "iter_bag_frame_records", "read_bag_imu", "bag_sha256", "decode_pointcloud2",
            "POINTCLOUD2", "IMU"]
 
 log = logging.getLogger(__name__)
@@ -512,77 +512,6 @@ def iter_bag_frame_records(path, topic: str) -> Iterator[tuple[int, int, BagFram
 def read_bag_frames(path, topic: str | None = None) -> list[BagFrame]:
     """All frames of :func:`iter_bag_frames` as a list."""
     return list(iter_bag_frames(path, topic))
-
-
-def write_frames_bag(frames, path, topic: str = "/points", frame_id: str = "lidar", storage: str | None = None):
-    """Write a frames folder (:func:`minegeo.io.frames.list_frames`) as a ROS bag of PointCloud2 messages.
-
-    Each frame becomes one message on ``topic``: float64 fields ``x y z`` (m, sensor frame) and,
-    when the frame's points carry times, a float64 ``time`` (seconds after the stamp), so the bag
-    holds exactly the values the files hold; ``header.stamp`` is the frame time rounded to whole
-    nanoseconds (``round(t * 1e9)``, exact for times written with at most 9 decimals, as
-    ``times.txt`` of ``minegeo synth`` is); the log time is the stamp. An example input for
-    ``minegeo slam --frames BAG``, written with ``rosbags``.
-
-    Parameters
-    ----------
-    frames : path
-        The frames folder (``times.txt`` or times in the names).
-    path : path
-        The bag: ``*.bag`` gives a ROS 1 bag, any other name a ROS 2 bag folder.
-    topic, frame_id : str
-        Topic and ``header.frame_id``.
-    storage : {"mcap", "sqlite3"}, optional
-        ROS 2 storage (default ``"mcap"``).
-
-    Returns
-    -------
-    int
-        Messages written.
-    """
-    from minegeo.io.frames import iter_frames, list_frames
-
-    _rosbags()
-    from rosbags.rosbag1 import Writer as Writer1
-    from rosbags.rosbag2 import StoragePlugin
-    from rosbags.rosbag2 import Writer as Writer2
-    from rosbags.typesys import Stores, get_typestore
-
-    path = Path(path)
-    ros1 = path.suffix == ".bag"
-    if storage not in (None, "mcap", "sqlite3") or (ros1 and storage is not None):
-        raise InputError(f"storage {storage!r}: 'mcap' or 'sqlite3', for a ROS 2 bag (not a .bag name)")
-    ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
-    T = ts.types
-    if ros1:
-        writer, ser = Writer1(path), ts.serialize_ros1
-    else:
-        plugin = StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP
-        writer, ser = Writer2(path, version=9, storage_plugin=plugin), ts.serialize_cdr
-    n = 0
-    with writer:
-        conn = writer.add_connection(topic, POINTCLOUD2, typestore=ts)
-        for f, xyz, tau, exc in iter_frames(list_frames(frames), with_times=True):
-            if exc is not None:
-                raise exc
-            names = ["x", "y", "z"] + (["time"] if tau is not None else [])
-            rec = np.zeros(xyz.shape[0], dtype=[(nm, "<f8") for nm in names])
-            for j, c in enumerate("xyz"):
-                rec[c] = xyz[:, j]
-            if tau is not None:
-                rec["time"] = tau
-            ns = int(round(f.time_s * 1e9))
-            sec, nsec = divmod(ns, 1_000_000_000)
-            hdr = T["std_msgs/msg/Header"](**({"seq": n} if ros1 else {}), frame_id=frame_id,
-                                           stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec))
-            msg = T[POINTCLOUD2](header=hdr, height=1, width=rec.size, is_bigendian=False, point_step=rec.itemsize,
-                                 row_step=rec.itemsize * rec.size, is_dense=True,
-                                 fields=[T["sensor_msgs/msg/PointField"](name=nm, offset=8 * j, datatype=8, count=1)
-                                         for j, nm in enumerate(names)],
-                                 data=np.frombuffer(rec.tobytes(), dtype=np.uint8))
-            writer.write(conn, ns, ser(msg, POINTCLOUD2))
-            n += 1
-    return n
 
 
 def read_bag_imu(path, topic: str | None = None, *, max_gap_s: float | None = None) -> ImuSamples:

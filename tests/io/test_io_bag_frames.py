@@ -1,4 +1,4 @@
-"""Frames from a ROS bag (minegeo.io.frames.list_frames / iter_frames on a bag, io.bag.write_frames_bag).
+"""Frames from a ROS bag (minegeo.io.frames.list_frames / iter_frames on a bag, io.frames.write_frames_bag).
 
 Expected values are the ones written: the frames folder's float64 coordinates, per-point times and
 ``times.txt`` times (9 decimals, so whole nanoseconds), and for the hand-made bags the stamps and
@@ -18,8 +18,7 @@ require_extra("rosbags")
 
 from minegeo.errors import FileFormatError  # noqa: E402
 from minegeo.io import PointCloud, write_point_cloud  # noqa: E402
-from minegeo.io.bag import write_frames_bag  # noqa: E402
-from minegeo.io.frames import iter_frames, list_frames  # noqa: E402
+from minegeo.io.frames import iter_frames, list_frames, write_frames_bag  # noqa: E402
 
 T0 = 1_700_000_000_000_000_000
 
