@@ -456,8 +456,8 @@ def parse_with_config(parser: argparse.ArgumentParser, argv: list[str], verb: st
             if not a.option_strings and a.nargs is None:
                 a.nargs = "?"
     args = parser.parse_args(argv)
-    if args.config != pre.config:
-        sub.error("write --config in full (not abbreviated)")
+    if args.config != pre.config or args.dump_config != pre.dump_config:
+        sub.error("write --config and --dump-config in full (not abbreviated)")
     for dest, v in values.items():
         if _is_append(actions[dest]) and getattr(args, dest) == original[dest]:
             setattr(args, dest, v)

@@ -9,13 +9,14 @@ from __future__ import annotations
 import json
 import math
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from badinput._contract import assert_user_error
 from helpers import shared_data
-from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import HealthCheck, Phase, assume, given, settings
 from hypothesis import strategies as st
 
 from minegeo.cli import VERBS, build_parser, main
@@ -85,7 +86,8 @@ _text = st.text(st.characters(codec="utf-8", exclude_categories=("Cs",)), max_si
 _pos = st.floats(min_value=1e-12, max_value=1e12, allow_nan=False, allow_infinity=False)
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture],
+          phases=(Phase.explicit, Phase.reuse, Phase.generate, Phase.shrink))  # no "explain": minutes on a failure
 @given(voxel=_pos, angle=st.floats(min_value=0.0, max_value=180.0), seed=st.integers(0, 10**9),
        offset=st.lists(st.floats(allow_nan=False, allow_infinity=False, width=64), min_size=3, max_size=3),
        pattern=_text, out=_text, no_planes=st.booleans(), control_mode=st.sampled_from([None, "rigid", "graph"]))
@@ -161,6 +163,27 @@ def test_a_result_json_of_another_verb_or_without_options_is_refused(tmp_path, c
     assert_user_error("slam", ["--config", str(f)], capsys, inputs=[f], expect="result of `minegeo adjust`")
     f.write_text(json.dumps({"command": "slam", "provenance": {"seed": 0}}))
     assert_user_error("slam", ["--config", str(f)], capsys, inputs=[f], expect="records no options")
+
+
+@pytest.mark.parametrize("option", ["--conf", "--dump"])
+def test_abbreviated_config_options_are_refused(option, tmp_path, capsys):
+    """argparse accepts abbreviations; the file (or the dump) must not be silently skipped by one."""
+    f = tmp_path / "c.toml"
+    f.write_text("voxel = 0.5\n")
+    argv = ["--frames", "f", "--out", str(tmp_path / "o"), option] + ([str(f)] if option == "--conf" else [])
+    assert_user_error("slam", argv, capsys, inputs=[f], outputs=[tmp_path / "o"], expect="in full")
+
+
+def test_toml_without_tomllib_says_to_use_json(tmp_path, capsys, monkeypatch):
+    """Python 3.10 (no tomllib): a TOML file is refused with one line; a JSON file works."""
+    monkeypatch.setitem(sys.modules, "tomllib", None)  # `import tomllib` raises ImportError
+    f = tmp_path / "c.toml"
+    f.write_text("voxel = 0.5\n")
+    assert_user_error("slam", ["--frames", "f", "--out", str(tmp_path / "o"), "--config", str(f)], capsys,
+                      inputs=[f], outputs=[tmp_path / "o"], expect="reading TOML needs Python 3.11")
+    j = tmp_path / "c.json"
+    j.write_text('{"voxel": 0.5, "frames": "f", "out": "o"}')
+    assert _parse(["slam", "--config", str(j)])[0].voxel == 0.5
 
 
 # ------------------------------------------------------------------ repeating a run from its result.json
