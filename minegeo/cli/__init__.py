@@ -2,7 +2,8 @@
 
 Each verb lives in its own module of this package (``minegeo.cli.<verb>``, listed in
 :data:`VERBS`; helpers they share in ``minegeo.cli._common``) exposing ``HELP`` (one line),
-``add_arguments(parser)`` and ``run(args) -> int``; this file only dispatches. User mistakes (any
+``add_arguments(parser)`` and ``run(args) -> int``; this file only dispatches. Every verb also takes
+``--config FILE`` and ``--dump-config`` (:mod:`minegeo.cli._config`, docs/config.md). User mistakes (any
 :class:`~minegeo.errors.MinegeoError`, a missing file) print one clear line to
 stderr and exit with status 2, without a traceback. ``--debug`` shows tracebacks.
 

@@ -367,7 +367,7 @@ def dump_toml(parser: argparse.ArgumentParser, args: argparse.Namespace, verb: s
         v = file_value(a, getattr(args, a.dest, a.default))
         req = " [required]" if a.dest in required or a.required else ""
         lines.append(f"# {_type_text(a)}{req}")
-        help_text = " ".join(str(a.help or "").split())
+        help_text = "" if a.help == argparse.SUPPRESS else " ".join(str(a.help or "").split())
         if help_text:
             lines.append(f"# {help_text}")
         key = key_of(a)
