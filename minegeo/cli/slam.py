@@ -596,6 +596,10 @@ def run(args) -> int:
               f"keyframes, {s['loops_accepted']} loop(s) of {s['loop_candidates']} candidates, path "
               f"{s['path_length_m']:.1f} m, map {s['map_points']:,} points")
         held = s["motion_prior_stretches"]
+        if "inertial" in s:
+            ine = s["inertial"]
+            print(f"IMU keyframe graph: {ine['status']}{': ' + ine['reason'] if ine['status'] == 'failed' else ''}; gyro "
+                  f"bias at the last keyframe {[round(x, 5) for x in ine['keyframes'][-1]['bias_gyro_rad_s']]} rad/s")
         if held:
             where = ", ".join(f"frames {h['first_frame']}-{h['last_frame']} ({h['first_time_s']:.2f}-"
                               f"{h['last_time_s']:.2f} s)" for h in held[:5]) + (" ..." if len(held) > 5 else "")

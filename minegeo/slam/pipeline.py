@@ -20,6 +20,7 @@ the optimised pose graph, the loop list and the map cloud:
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
@@ -45,6 +46,8 @@ from minegeo.slam.planes import (
 from minegeo.slam.posegraph import PlaneSet, PoseGraphParams, PoseGraphResult, optimize_pose_graph
 
 __all__ = ["SlamParams", "SlamResult", "run_backend", "run_slam"]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -398,7 +401,7 @@ def _inertial(odo: OdometryResult, kf_poses: np.ndarray, graph: PoseGraph, aid: 
     p = [3, 4, 5, 0, 1, 2]  # the file's (t, r) information order → (ω, ρ)
     info = np.asarray(graph.information)[:, p][:, :, p]
     return optimize_inertial_graph(aid, odo.times_s[odo.keyframes], kf_poses, graph.edges, graph.measurements, info,
-                                   lm=params.posegraph)
+                                   lm=params.posegraph, trajectory=(odo.times_s, _all_poses(odo, kf_poses)))
 
 
 def run_backend(odo: OdometryResult, params: SlamParams | None = None, *, use_loops: bool = True,
@@ -452,6 +455,8 @@ def run_backend(odo: OdometryResult, params: SlamParams | None = None, *, use_lo
         if inertial.status != "failed":
             kf_poses = _optimised_poses_of(inertial.keyframe_poses)
             graph = graph.with_poses(kf_poses)
+    elif imu is not None:
+        log.warning("one keyframe: no IMU keyframe graph (it needs two; the gyro served the odometry only)")
     t3 = time.perf_counter()
     poses = _all_poses(odo, kf_poses)
     world = [P @ T[:3, :3].T + T[:3, 3] for P, T in zip(odo.keyframe_clouds, kf_poses, strict=True)]

@@ -4,7 +4,8 @@ and white noise, LiDAR between edges (consecutive and one across) with noise, th
 prior (position and heading fixed, roll and pitch about the accelerometer's up axis), a bias prior,
 bias random walks and IMU factors (GTSAM 4.3 ``ImuFactor``, ``BetweenFactorConstantBias``,
 ``PriorFactorPose3``, ``PriorFactorConstantBias``, ``BetweenFactorPose3``; Levenberg–Marquardt).
-Both solve twice, the second time preintegrated at the first solution's biases.
+Both solve twice, the second time preintegrated at the first solution's biases; both take the
+samples by the midpoint rule (an interval between two sample times carries their mean).
 
 GTSAM's ``PreintegratedImuMeasurements`` is its tangent-space preintegration, which differs from
 Forster's manifold one by O(Δt²) per sample (tests/optim/test_optim_imu.py: 1e-7 m/s in Δv here);
@@ -70,8 +71,11 @@ def _gtsam_solve(gtsam, t, gm, am, kt, start, edges, Z, info, params):
     from scipy.spatial.transform import Rotation
 
     X, V, B = (lambda k: gtsam.symbol("x", k)), (lambda k: gtsam.symbol("v", k)), (lambda k: gtsam.symbol("b", k))
-    sel = (t >= kt[0]) & (t < kt[0] + params.gravity_window_s)
-    up = am[sel].mean(axis=0)
+    # the midpoint rule: the interval [t_k, t_k+1] carries the mean of samples k and k + 1
+    gm, am = 0.5 * (gm[:-1] + gm[1:]), 0.5 * (am[:-1] + am[1:])
+    up, R = np.zeros(3), Rotation.identity()  # each specific force rotated into the first keyframe's axes
+    for k in np.flatnonzero((t[:-1] >= kt[0] - 1e-12) & (t[:-1] < kt[0] + params.gravity_window_s - 1e-12)):
+        up, R = up + R.apply(am[k]), R * Rotation.from_rotvec(gm[k] * H)
     R_WL0 = Rotation.align_vectors([[0.0, 0.0, 1.0]], [up / np.linalg.norm(up)])[0].as_matrix()
     TW = np.stack([np.r_[np.c_[R_WL0, np.zeros(3)], [[0, 0, 0, 1]]] @ T for T in start])
     n = R_WL0.T @ [0.0, 0.0, 1.0]
@@ -93,7 +97,7 @@ def _gtsam_solve(gtsam, t, gm, am, kt, start, edges, Z, info, params):
             g.add(gtsam.BetweenFactorPose3(X(i), X(j), gtsam.Pose3(z), gtsam.noiseModel.Gaussian.Information(om)))
         for a in range(len(kt) - 1):
             pim = gtsam.PreintegratedImuMeasurements(P, gtsam.imuBias.ConstantBias(biases[a][:3], biases[a][3:]))
-            for k in np.flatnonzero((t >= kt[a] - 1e-12) & (t < kt[a + 1] - 1e-12)):
+            for k in np.flatnonzero((t[:-1] >= kt[a] - 1e-12) & (t[:-1] < kt[a + 1] - 1e-12)):
                 pim.integrateMeasurement(am[k], gm[k], H)
             g.add(gtsam.ImuFactor(X(a), V(a), X(a + 1), V(a + 1), B(a), pim))
             dt = kt[a + 1] - kt[a]
