@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from minegeo._jit import njit, njit_parallel, prange
+from minegeo._jit import njit
 from minegeo.kernels.lie import (
     se2_adjoint,
     se2_exp,
@@ -86,10 +86,10 @@ def _neg_product(A, B, out):
             out[a, c] = -s
 
 
-@njit_parallel
+@njit
 def se3_edge_terms(poses, edges, Z, r, Ji, Jj):
     """Fill ``r`` (m, 6), ``Ji``, ``Jj`` (m, 6, 6) for SE(3) between-edges (ω, ρ order)."""
-    for e in prange(edges.shape[0]):
+    for e in range(edges.shape[0]):
         E, Ainv = _rel(poses[edges[e, 0]], poses[edges[e, 1]], Z[e], 4)
         xi = se3_log(E)
         Jinv = se3_right_jacobian_inv(xi)
@@ -98,10 +98,10 @@ def se3_edge_terms(poses, edges, Z, r, Ji, Jj):
         _neg_product(Jinv, se3_adjoint(Ainv), Ji[e])
 
 
-@njit_parallel
+@njit
 def se2_edge_terms(poses, edges, Z, r, Ji, Jj):
     """Fill ``r`` (m, 3), ``Ji``, ``Jj`` (m, 3, 3) for SE(2) between-edges (θ, x, y order)."""
-    for e in prange(edges.shape[0]):
+    for e in range(edges.shape[0]):
         E, Ainv = _rel(poses[edges[e, 0]], poses[edges[e, 1]], Z[e], 3)
         xi = se2_log(E)
         Jinv = se2_right_jacobian_inv(xi)
@@ -110,17 +110,17 @@ def se2_edge_terms(poses, edges, Z, r, Ji, Jj):
         _neg_product(Jinv, se2_adjoint(Ainv), Ji[e])
 
 
-@njit_parallel
+@njit
 def se3_residuals(poses, edges, Z, r):
     """Residuals only (cost evaluation of a trial step)."""
-    for e in prange(edges.shape[0]):
+    for e in range(edges.shape[0]):
         E, _ = _rel(poses[edges[e, 0]], poses[edges[e, 1]], Z[e], 4)
         r[e] = se3_log(E)
 
 
-@njit_parallel
+@njit
 def se2_residuals(poses, edges, Z, r):
-    for e in prange(edges.shape[0]):
+    for e in range(edges.shape[0]):
         E, _ = _rel(poses[edges[e, 0]], poses[edges[e, 1]], Z[e], 3)
         r[e] = se2_log(E)
 
@@ -362,11 +362,11 @@ def block_cholesky_solve(Lp, Li, Lx, b):
     return x
 
 
-@njit_parallel
+@njit
 def se3_retract_all(poses, col, delta, out):
     """``out[v] = poses[v] · Exp(δ[col[v]:col[v]+6])`` for every pose with ``col[v] >= 0``, else a copy
     (the pose occupies the first 6 columns of its block)."""
-    for v in prange(poses.shape[0]):
+    for v in range(poses.shape[0]):
         c = col[v]
         if c < 0:
             out[v] = poses[v]
@@ -374,10 +374,10 @@ def se3_retract_all(poses, col, delta, out):
             out[v] = poses[v] @ se3_exp(np.ascontiguousarray(delta[c:c + 6]))
 
 
-@njit_parallel
+@njit
 def se2_retract_all(poses, col, delta, out):
     """``out[v] = poses[v] · Exp(δ[col[v]:col[v]+3])`` for every vertex with ``col[v] >= 0``, else a copy."""
-    for v in prange(poses.shape[0]):
+    for v in range(poses.shape[0]):
         c = col[v]
         if c < 0:
             out[v] = poses[v]
