@@ -29,11 +29,12 @@ and loop edges) with, per keyframe, a navigation state ``(T_world_imu, v, b_a, b
 consecutive keyframes an IMU factor [Forster2017 Sec. VI-D] and a bias random-walk factor, solved by
 the one optimiser (:func:`minegeo.optim.lm.levenberg_marquardt`). The world frame is the first
 keyframe's LiDAR frame turned so that gravity is ``(0, 0, −9.80665)``: the first keyframe's up axis
-from its mean specific force over ``gravity_window_s``, each sample rotated into its axes by the
-gyro (it should start at rest or in slow motion);
-a prior fixes its position and heading (yaw about the world z) and holds roll and pitch only to
-``roll_pitch_sigma_deg``, so the IMU factors (gravity in their velocity and position residuals) make
-the roll and pitch of every keyframe observable. The LiDAR edges ``Z`` of the LiDAR frame become
+from the specific force over ``gravity_window_s``, each sample rotated into its axes by the gyro,
+less the LiDAR trajectory's velocity change (:func:`_initial_states`); a prior fixes its position
+and heading (yaw about the world z) and holds its roll and pitch to ``roll_pitch_sigma_deg``. The
+roll and pitch of every later keyframe then follow from gravity in the IMU factors' velocity and
+position residuals (the first keyframe's own tilt is told from an accelerometer bias only by the
+yaw changes of the run, weakly: hence the prior). The LiDAR edges ``Z`` of the LiDAR frame become
 ``E⁻¹ Z E`` with information ``Ad(E)ᵀ Ω Ad(E)`` on the IMU poses. The result is returned in the
 first keyframe's LiDAR frame (the contract's map frame).
 """
@@ -60,6 +61,7 @@ from minegeo.optim import (
     levenberg_marquardt,
 )
 from minegeo.optim.imu import BiasRandomWalkFactors, ImuFactors, ImuNoise, preintegrate
+from minegeo.slam._kernels_inertial import gyro_deskew_kernel
 
 __all__ = ["GyroAid", "InertialParams", "InertialResult", "check_imu_for_frames", "optimize_inertial_graph"]
 
@@ -183,8 +185,9 @@ class GyroAid:
 
     def samples(self, t0: float, t1: float):
         """``(gyro, accel, Δt)`` over ``[t0, t1]`` (IMU axes; rad/s, m/s², s): the interval cut at the
-        sample times, each piece of length ``Δt_k > 0`` carrying the samples linearly interpolated at its
-        middle (the midpoint rule; held at the first and last sample outside the samples' span).
+        sample times, each piece of length ``Δt_k > 0`` carrying the mean of the two samples of the
+        sample interval it lies in (the midpoint rule; the first or last sample outside the samples'
+        span).
 
         The samples are the rates at their instants: holding each over the next interval (zero-order
         hold) lags the motion by half a sample, which on the simulated handheld walk (sway of 0.3 rad/s,
@@ -194,9 +197,10 @@ class GyroAid:
         knots = np.r_[t0, t[(t > t0) & (t < t1)], t1]
         h = np.diff(knots)
         keep = h > 0
-        mid = (0.5 * (knots[:-1] + knots[1:]))[keep]
-        g = np.column_stack([np.interp(mid, t, self.gyro[:, i]) for i in range(3)])
-        a = np.column_stack([np.interp(mid, t, self.imu.accel_m_s2[:, i]) for i in range(3)])
+        k = np.searchsorted(t, (0.5 * (knots[:-1] + knots[1:]))[keep], side="right") - 1
+        k0, k1 = np.clip(k, 0, t.size - 1), np.clip(k + 1, 0, t.size - 1)
+        g = 0.5 * (self.gyro[k0] + self.gyro[k1])
+        a = 0.5 * (self.imu.accel_m_s2[k0] + self.imu.accel_m_s2[k1])
         return g.reshape(-1, 3), a.reshape(-1, 3), h[keep]
 
     def _delta_R_imu(self, t0: float, t1: float, bias_g: np.ndarray) -> np.ndarray:
@@ -244,13 +248,12 @@ class GyroAid:
         for j in range(h.size):
             knots_R[j + 1] = knots_R[j] @ steps[j]
         knots_t = lo + np.r_[0.0, np.cumsum(h)]
-        s = t + tau
-        j = np.clip(np.searchsorted(knots_t, s, side="right") - 1, 0, h.size - 1)
-        R_pts = knots_R[j] @ _rodrigues(w[j] * (s - knots_t[j])[:, None])
         jf = min(max(int(np.searchsorted(knots_t, t, side="right")) - 1, 0), h.size - 1)
         R_t = knots_R[jf] @ _rodrigues((w[jf] * (t - knots_t[jf]))[None])[0]
-        R_rel = np.einsum("ji,njk->nik", R_t, R_pts)  # R(t)ᵀ R(s)
-        return np.einsum("nij,nj->ni", R_rel, P) + tau[:, None] * np.asarray(v, dtype=np.float64)[None, :]
+        M = np.ascontiguousarray(np.einsum("ji,njk->nik", R_t, knots_R[:-1]))  # R(t)ᵀ R(t_j)
+        P = np.ascontiguousarray(P) if P.flags.writeable else P.copy()  # the kernel takes writable arrays
+        return gyro_deskew_kernel(P, np.ascontiguousarray(t + tau), np.ascontiguousarray(knots_t),
+                                  M, np.ascontiguousarray(w), np.r_[np.asarray(v, dtype=np.float64), t])
 
     def update(self, t0: float, t1: float, R_reg: np.ndarray) -> None:
         """Add a registered LiDAR rotation ``R_reg = R_L(t0)ᵀ R_L(t1)`` to the gyro-bias estimate:
