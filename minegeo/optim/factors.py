@@ -24,6 +24,7 @@ the robust kernel of the parameters applied to each factor's whitened residual w
 
 from __future__ import annotations
 
+import abc
 from dataclasses import dataclass
 
 import numpy as np
@@ -82,7 +83,7 @@ class Values:
         return Values(out, vec)
 
 
-class FactorGroup:
+class FactorGroup(abc.ABC):
     """Factors of one type. Subclasses set :attr:`variables` (m, arity) and :attr:`information`
     (m, k, k) and define :meth:`residuals` and :meth:`linearize`."""
 
@@ -93,14 +94,14 @@ class FactorGroup:
     def arity(self) -> int:
         return int(self.variables.shape[1])
 
+    @abc.abstractmethod
     def residuals(self, values: Values) -> np.ndarray:
         """Residuals (m, k) at ``values``."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def linearize(self, values: Values) -> tuple:
         """``(r, (J_slot0, J_slot1, ...))``: residuals (m, k) and Jacobians (m, k, d_slot) with
         respect to the right-perturbation tangent vector of each slot's variable."""
-        raise NotImplementedError
 
 
 def between_terms(kind: str, poses, edges, Z):
