@@ -5,8 +5,10 @@ written once into the work folder and reused) ``minegeo slam`` runs three times 
 
 * ``raw``: ``--no-deskew`` (the sweeps as recorded, smeared by the motion; no IMU);
 * ``deskew, no IMU``: the default (constant-velocity deskewing, 2 passes);
-* ``deskew + IMU``: ``--imu imu.csv`` (gyro rotation guesses and gyro deskewing in the odometry, IMU
-  preintegration factors in the keyframe graph).
+* ``gyro front end only``: through the Python API, ``run_odometry(..., imu=GyroAid(imu))`` (gyro rotation
+  guesses and gyro deskewing) then ``run_backend`` without the IMU (the LiDAR keyframe graph as without
+  an IMU): what the odometry's use of the gyro does alone;
+* ``deskew + IMU``: ``--imu imu.csv`` (the above, then IMU preintegration factors in the keyframe graph).
 
 ATE RMSE against the stream's ``groundtruth.txt``: after SE(3) Umeyama alignment
 (:func:`minegeo.slam.evaluate.evaluate_trajectory`, evo's definition) and without alignment (the truth
@@ -34,12 +36,37 @@ from pathlib import Path
 
 import numpy as np
 
-MODES = {"raw": ["--no-deskew"], "deskew, no IMU": [], "deskew + IMU": ["--imu", "IMU"]}
+MODES = {"raw": ["--no-deskew"], "deskew, no IMU": [], "gyro front end only": None, "deskew + IMU": ["--imu", "IMU"]}
 
 
 def _cli(args: list[str]) -> float:
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-m", "minegeo.cli", "--quiet", *args], check=True)
+    return time.perf_counter() - t0
+
+
+def _front_end_only(stream: Path, run: Path) -> float:
+    """The gyro in the odometry only (Python API); writes ``trajectory.tum`` and the ``result.json`` fields
+    :func:`_ate` reads. Returns the wall time (s)."""
+    from minegeo.io import write_trajectory
+    from minegeo.io.frames import iter_frames, list_frames
+    from minegeo.io.imu import read_imu_csv
+    from minegeo.io.types import Trajectory
+    from minegeo.slam.inertial import GyroAid
+    from minegeo.slam.odometry import run_odometry
+    from minegeo.slam.pipeline import SlamParams, run_backend
+
+    t0 = time.perf_counter()
+    p = SlamParams()
+    files = list_frames(stream / "frames")
+    odo = run_odometry((((f.time_s, pts, tau) for f, pts, tau, _exc in iter_frames(files, True))), p.odometry,
+                       imu=GyroAid(read_imu_csv(stream / "imu.csv")))
+    res = run_backend(odo, p)
+    run.mkdir(parents=True, exist_ok=True)
+    write_trajectory(run / "trajectory.tum", Trajectory(res.times_s, res.poses, frame="map", body="sensor"))
+    (run / "result.json").write_text(json.dumps({"result": {"frames": int(res.times_s.size),
+                                                            "keyframes": int(res.keyframes.size),
+                                                            "motion_prior_stretches": odo.held_stretches()}}))
     return time.perf_counter() - t0
 
 
@@ -105,9 +132,12 @@ def main(argv=None) -> int:
             _cli(["synth", str(stream), "--stream", preset, "--duration-s", f"{a.duration_s:g}", "--seed", str(a.seed),
                   "--force"])
         for mode, opts in MODES.items():
-            opts = [str(stream / "imu.csv") if o == "IMU" else o for o in opts]
             run = a.work / f"{stream.name}_{mode.replace(',', '').replace('+', '').replace(' ', '_')}"
-            wall = _cli(["slam", "--frames", str(stream / "frames"), "--out", str(run), *opts])
+            if opts is None:
+                wall, opts = _front_end_only(stream, run), ["(Python API)"]
+            else:
+                opts = [str(stream / "imu.csv") if o == "IMU" else o for o in opts]
+                wall = _cli(["slam", "--frames", str(stream / "frames"), "--out", str(run), *opts])
             rows.append({"preset": preset, "mode": mode, "options": opts, "wall_s": wall, **_ate(run, stream)})
             print(rows[-1], flush=True)
     here = Path(__file__).parent
