@@ -72,6 +72,10 @@ def _commit() -> str:
         return "unknown"
 
 
+def _uptime() -> str:
+    return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+
+
 def _commands(w: Path) -> dict[str, list[str]]:
     """The documented small example of each verb, with paths in the work folder ``w``."""
     mine = w / "mine"
@@ -206,6 +210,7 @@ def run(args) -> Path:
     if "track" in verbs or "intersections build" in verbs:
         _make_track_inputs(w)
     threads = os.environ.get("NUMBA_NUM_THREADS")
+    args.uptime_before = _uptime()
     rows = []
     for verb in verbs:
         argv = _commands(w)[verb]
@@ -224,6 +229,7 @@ def _write(args, threads, w: Path, rows: list[dict]) -> Path:
     doc = {"label": args.label, "date": date, "commit": getattr(args, "commit", None) or _commit(), "numba_num_threads": threads or "default",
            "cpu_count": os.cpu_count(), "python": sys.version.split()[0],
            "numba": __import__("numba").__version__, "work": str(w), "rows": rows,
+           "uptime_before": getattr(args, "uptime_before", None), "uptime_last": _uptime(),
            "conditions": "each verb in its own process with an empty NUMBA_CACHE_DIR; cpu_s = child user+sys "
                          "CPU (load-insensitive proxy of compile work); load = 1-min load average"}
     out = Path(args.out_dir) / f"first_use_{date}_{args.label}"
