@@ -15,10 +15,14 @@ import sys
 from pathlib import Path
 
 from minegeo.cli._argtypes import finite_float, float_in_range, int_in_range, nonnegative_int, positive_float
+from minegeo.cli._imu import add_imu_arguments, check_imu, read_imu
 
 HELP = "LiDAR SLAM from a folder of frames: GICP odometry, loop closure, pose graph; trajectory + map (Ren et al. 2019)"
 
 log = logging.getLogger(__name__)
+
+#: what holds a flagged stretch (summary line): without and with --imu
+_HELD_BY = ("the motion prior alone", "the IMU (gyro rotation, constant-velocity translation)")
 
 
 def add_arguments(parser) -> None:
@@ -64,15 +68,8 @@ def add_arguments(parser) -> None:
                         "previous motion, beyond 0.1 m of registration scatter, is rejected (m/s^2, default 20)")
     parser.add_argument("--seed", type=nonnegative_int, default=0,
                         help="recorded seed (the run draws no random numbers)")
-    i = parser.add_argument_group("IMU (docs/slam.md, 'LiDAR-inertial SLAM')")
-    i.add_argument("--imu", default=None, metavar="IMU.csv",
-                   help="IMU CSV t,gx,gy,gz,ax,ay,az (s on the frames' clock, rad/s, m/s^2 specific force with "
-                   "gravity, LiDAR axes unless --imu-extrinsic): gyro rotation guesses and deskewing, IMU "
-                   "preintegration factors in the keyframe graph")
-    i.add_argument("--imu-extrinsic", default=None, metavar="T",
-                   help="T_lidar_imu: 16 numbers (4x4, row-major) or 'x y z qx qy qz qw', inline or in a file")
-    i.add_argument("--imu-max-gap", type=positive_float, default=None, metavar="S",
-                   help="longest time without an IMU sample within the frames' span (s, default 0.05)")
+    add_imu_arguments(parser, "gyro rotation guesses, deskewing and a gate on each registration, IMU preintegration "
+                      "factors in the keyframe graph")
     g = parser.add_argument_group("survey control (docs/survey.md, 'Control in the pose graph')")
     g.add_argument("--control", default=None, metavar="STATIONS.csv",
                    help="stations CSV (id,t_start,t_end,E,N,H,sigma_h_m,sigma_v_m,role): control stations put the "
@@ -128,42 +125,6 @@ def _check_options(args) -> None:
         if not stat.S_ISREG(mode):
             raise InputError(f"--times {args.times} is not a regular file (a FIFO, socket or device): name a file "
                              "of frame times")
-
-
-def _read_imu(args):
-    """The ``--imu`` samples (:class:`minegeo.io.imu.ImuSamples`), or None without ``--imu``; read and
-    checked before any work (rows in time order, finite; the extrinsic). A ROS bag's IMU topic gives
-    the same record (:func:`minegeo.io.bag.read_bag_imu`). The span and gaps against the frames:
-    :func:`minegeo.slam.inertial.check_imu_for_frames`."""
-    from dataclasses import replace
-
-    from minegeo.errors import InputError
-
-    if getattr(args, "imu", None) is None:
-        for opt, name in (("imu_extrinsic", "--imu-extrinsic"), ("imu_max_gap", "--imu-max-gap")):
-            if getattr(args, opt, None) is not None:
-                raise InputError(f"{name} needs --imu IMU.csv (the IMU it applies to)")
-        return None
-    from minegeo.io.bag import bag_kind, read_bag_imu
-    from minegeo.io.imu import parse_extrinsic, read_imu_csv
-
-    if Path(args.imu).is_dir() and bag_kind(args.imu) is None:
-        raise InputError(f"--imu {args.imu} is a folder: name the IMU CSV (t,gx,gy,gz,ax,ay,az) or a ROS bag")
-    if bag_kind(args.imu) is None:
-        return read_imu_csv(args.imu, extrinsic=args.imu_extrinsic)
-    imu = read_bag_imu(args.imu, getattr(args, "imu_topic", None))
-    if args.imu_extrinsic is None:
-        return imu
-    return replace(imu, T_lidar_imu=parse_extrinsic(args.imu_extrinsic), frame="imu")
-
-
-def _check_imu(imu, files, args) -> None:
-    """The IMU covers the frames' time span without a gap over ``--imu-max-gap`` (exit 2 otherwise)."""
-    from minegeo.slam.inertial import InertialParams, check_imu_for_frames
-
-    if imu is not None and files:
-        gap = args.imu_max_gap if args.imu_max_gap is not None else InertialParams().max_gap_s
-        check_imu_for_frames(imu, files[0].time_s, files[-1].time_s, gap, f"--imu {args.imu}")
 
 
 def _check_times(files) -> None:
@@ -515,12 +476,12 @@ def run(args) -> int:
         ctrl_params = ControlParams(mode=ctrl_in[3])
         inputs_named["--control"] = args.control
     dxf_out = {"--dxf": args.dxf} if getattr(args, "dxf", None) else {}
-    imu = _read_imu(args)
+    imu = read_imu(args)
     inputs_named.update({"--imu": args.imu} if imu is not None else {})
     with OutputTransaction("slam", inputs=inputs_named, folders={"--out": out}, files=dxf_out) as tx:
         files = list_frames(args.frames, args.times, args.pattern, args.lidar_topic)
         _check_times(files)
-        _check_imu(imu, files, args)
+        check_imu(imu, files, args)
         if ctrl_in is not None and files:
             from minegeo.slam.control import check_station_frames
 
@@ -603,7 +564,7 @@ def run(args) -> int:
         if held:
             where = ", ".join(f"frames {h['first_frame']}-{h['last_frame']} ({h['first_time_s']:.2f}-"
                               f"{h['last_time_s']:.2f} s)" for h in held[:5]) + (" ..." if len(held) > 5 else "")
-            print(f"held by the motion prior alone: {len(held)} stretch(es), {s['motion_prior_held_s']:.2f} s: {where}")
+            print(f"held by {_HELD_BY[imu is not None]}: {len(held)} stretch(es), {s['motion_prior_held_s']:.2f} s: {where}")
         if control_rec is not None:
             c = control_rec
             chk = c["check"]

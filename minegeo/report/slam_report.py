@@ -223,10 +223,16 @@ def slam_report_html(summary: dict, png: bytes | None, extra: list | None = None
                 ("Time per module (cf. Ren et al. 2019, Table 2)", timing), ("Skipped frames", skipped),
                 ("Parameters", params_table(summary["parameters"])), ("Timings", timings_html(summary.get("timings_s")))]
     held = r.get("motion_prior_stretches") or []
-    note = (f"; trajectory held by the motion prior alone in {len(held)} stretch(es), "
+    note = (f"; trajectory held by {_held_by(held)} in {len(held)} stretch(es), "
             f"{r.get('motion_prior_held_s', 0.0):.2f} s" if held else "")
     return page("minegeo slam", sections, status="ok",
                 status_text=f"{r['frames']} frames, {r['keyframes']} keyframes, {r['loops_accepted']} loop(s){note}")
+
+
+def _held_by(held: list) -> str:
+    """What held the flagged stretches: the IMU (``held_by == "imu"``, with --imu) or the motion prior alone."""
+    return ("the IMU (gyro rotation, constant-velocity translation)" if any(h.get("held_by") == "imu" for h in held)
+            else "the motion prior alone")
 
 
 def _inertial_text(ine: dict) -> str:
@@ -255,8 +261,11 @@ def _motion_html(r: dict) -> str:
         return text + "<p>Every frame after the first was registered: no stretch held by the motion prior alone.</p>"
     rows = [[f"{h['first_frame']}–{h['last_frame']}", h["frames"], f"{h['first_time_s']:.3f}–{h['last_time_s']:.3f}",
              f"{h['held_s']:.3f}", "; ".join(h["reasons"])] for h in held]
-    return (text + f"<p><b>Held by the constant-velocity motion prior alone</b> (registration failed or rejected as "
-            f"implausible): {len(held)} stretch(es), {r.get('motion_prior_held_s', 0.0):.3f} s in total.</p>"
+    imu = _held_by(held) != "the motion prior alone"
+    by, why = (_held_by(held), "implausible or against the IMU") if imu else ("the constant-velocity motion prior alone",
+                                                                            "implausible")
+    return (text + f"<p><b>Held by {by}</b> (registration failed or rejected as "
+            f"{why}): {len(held)} stretch(es), {r.get('motion_prior_held_s', 0.0):.3f} s in total.</p>"
             + table(["frames", "count", "times (s)", "held for (s, since the last registered frame)", "reason"],
                     rows, numeric=(1, 3)))
 
