@@ -196,6 +196,7 @@ class GyroAid:
         p = self.params
         self._A = np.eye(3) / p.gyro_bias_sigma ** 2  # normal equations of the bias (IMU axes)
         self._b = np.zeros(3)
+        self._A_gate = np.eye(3) / p.gyro_bias_sigma ** 2  # the same with the gate's tolerance (bias_sigma)
         self.bias_g = np.zeros(3)
         self.n_updates = 0
 
@@ -272,10 +273,13 @@ class GyroAid:
                                   M, np.ascontiguousarray(w), np.r_[np.asarray(v, dtype=np.float64), t])
 
     def bias_sigma(self) -> float:
-        """Standard deviation of the running gyro-bias estimate along its worst axis (rad/s):
-        ``√λ_max(A⁻¹)``, ``A`` the normal matrix of :meth:`update` (the prior ``σ_bg,prior`` before any
-        registered motion)."""
-        return math.sqrt(1.0 / float(np.linalg.eigvalsh(self._A)[0]))
+        """Standard deviation of the running gyro-bias estimate along its worst axis (rad/s), as the gate
+        sees it: ``√λ_max(A_g⁻¹)``, ``A_g = I/σ_bg,prior² + Σ J_gᵀ J_g / θ_tol²`` over the registered
+        motions, each registered rotation taken as good as the gate's tolerance ``θ_tol``
+        (``gate_tolerance_deg``), not ``rotation_sigma_deg``: on a simulated drone stream one
+        registration 0.9° off over 0.1 s moved the estimate by 0.16 rad/s where the estimate's own
+        normal matrix claimed 0.009 rad/s, and the gate then rejected every later registration."""
+        return math.sqrt(1.0 / float(np.linalg.eigvalsh(self._A_gate)[0]))
 
     def disagreement(self, t0: float, t1: float, R_reg: np.ndarray) -> tuple[float, float]:
         """``(θ, θ_max)`` (rad): how far a registered LiDAR rotation ``R_reg = R_L(t0)ᵀ R_L(t1)`` is from
@@ -311,6 +315,7 @@ class GyroAid:
         J = pim.jacobians[0]
         w = 1.0 / math.radians(self.params.rotation_sigma_deg) ** 2
         self._A += w * J.T @ J
+        self._A_gate += J.T @ J / math.radians(self.params.gate_tolerance_deg) ** 2
         self._b += w * J.T @ (e + J @ self.bias_g)
         self.bias_g = np.linalg.solve(self._A, self._b)
         self.n_updates += 1
