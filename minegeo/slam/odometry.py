@@ -51,8 +51,12 @@ a registration's initial guess is passed as the package's own transform (``trust
 non-rigid one is an :class:`~minegeo.errors.InternalError`, a bug, never "your input").
 
 Edge information: GICP's Gauss–Newton matrix ``H`` is for a left perturbation in the target frame,
-parameters (ω, t); the pose graph perturbs on the right, so the edge information is
-``Ad(Z)ᵀ H Ad(Z) / σ²`` with ``σ`` GICP's a-posteriori scale (floored at ``sigma_floor_m``).
+parameters (ω, t); the pose graph perturbs on the right, so GICP's information is
+``Ω_G = Ad(Z)ᵀ H Ad(Z) / σ²`` with ``σ`` GICP's a-posteriori scale (floored at ``sigma_floor_m``).
+It treats every point as an independent measurement and is over-confident (on synthetic streams the
+keyframe edges' normalised squared errors average several hundred instead of 6), so the edge carries
+``(Ω_G⁻¹ + F)⁻¹`` with the covariance floor ``F`` of :func:`edge_covariance_floor`, fitted by Monte
+Carlo against the simulator's truth.
 """
 
 from __future__ import annotations
@@ -77,9 +81,15 @@ from minegeo.registration.gicp import gicp_covariances_on_tree
 from minegeo.slam.deskew import deskew_points, twist_from_motion
 from minegeo.slam.observability import keep_prior_along, surface_translation_ratio, translation_observability
 
-__all__ = ["OdometryParams", "PreparedFrame", "OdometryResult", "prepare_frame", "register_frames", "run_odometry"]
+__all__ = ["OdometryParams", "PreparedFrame", "OdometryResult", "prepare_frame", "register_frames", "run_odometry",
+           "edge_covariance_floor", "floored_information", "EDGE_FLOOR_FIELDS"]
 
 log = logging.getLogger(__name__)
+
+
+#: the fields of :class:`OdometryParams` that make the edge covariance floor (:func:`edge_covariance_floor`)
+EDGE_FLOOR_FIELDS = ("edge_sigma_tilt_deg_per_sqrt_m", "edge_sigma_tilt_deg_per_deg", "edge_sigma_yaw_deg_per_sqrt_m",
+                     "edge_sigma_trans_xy_m_per_sqrt_m", "edge_sigma_trans_z_m_per_sqrt_m", "edge_sigma_trans_z_m_per_deg")
 
 
 @dataclass(frozen=True)
@@ -129,6 +139,22 @@ class OdometryParams:
     #: (:func:`minegeo.registration.constraint_analysis`, GICP's ``degeneracy_ratio``) has
     #: ``λ_min / λ_max`` below this is rejected (dimensionless; GICP flags below 1e-2 as weak)
     min_constraint_ratio: float = 1e-4
+    #: edge covariance floor (:func:`edge_covariance_floor`), added to the GICP covariance of every
+    #: registration: GICP's Hessian treats each point as an independent measurement while the errors
+    #: of neighbouring points are correlated (wall relief, the model error of the local planes, deskew
+    #: error, the sparse rings' under-read tilt change), so alone it is over-confident. In the sensor
+    #: frame: tilt (rotation about the sensor x and y axes) a random walk in deg per √m of the edge's
+    #: translation plus deg per deg of the edge's rotation; yaw (about the sensor z axis, the spin
+    #: axis) deg per √m; translation along the sensor x and y axes m per √m, along its z axis m per √m
+    #: plus m per deg of the edge's rotation (all 0: GICP's covariance alone). Fitted by maximum
+    #: likelihood on the 80 keyframe edges of 16 synthetic stop-and-go streams (vehicle and handheld,
+    #: seeds 1-8, 24 s at 5 Hz; ``benchmarks/bench_edge_covariance.py``)
+    edge_sigma_tilt_deg_per_sqrt_m: float = 0.11
+    edge_sigma_tilt_deg_per_deg: float = 0.31
+    edge_sigma_yaw_deg_per_sqrt_m: float = 0.034
+    edge_sigma_trans_xy_m_per_sqrt_m: float = 0.0051
+    edge_sigma_trans_z_m_per_sqrt_m: float = 0.037
+    edge_sigma_trans_z_m_per_deg: float = 0.0003
 
     def __post_init__(self):
         if self.frame_target not in ("frame", "submap"):
@@ -144,6 +170,10 @@ class OdometryParams:
             raise InputError(f"min_fitness must be in [0, 1], got {self.min_fitness!r}")
         if not 0 <= self.min_constraint_ratio < 1:
             raise InputError(f"min_constraint_ratio must be in [0, 1), got {self.min_constraint_ratio!r}")
+        for name in EDGE_FLOOR_FIELDS:
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+                raise InputError(f"{name} must be a finite number >= 0, got {v!r}")
         if self.deskew_iterations not in (0, 1):
             raise InputError(f"deskew_iterations must be 0 or 1, got {self.deskew_iterations!r}")
 
@@ -344,6 +374,42 @@ def _prepared_frames(frames: Iterable, params: OdometryParams):
             yield r
 
 
+def edge_covariance_floor(length_m: float, angle_deg: float, params: OdometryParams) -> np.ndarray:
+    """The covariance floor ``F`` (6x6, (ω, ρ) order, rad² and m², the edge's right perturbation: the
+    axes of the source sensor frame) added to a GICP edge's covariance.
+
+    ``F = diag(σ_t², σ_t², σ_z², σ_h², σ_h², σ_v²)`` with, for an edge of translation ``L = length_m``
+    (m) and rotation angle ``θ = angle_deg`` (deg)::
+
+        σ_t² = a_t² L + (b_t θ)²   tilt, about the sensor x and y axes (deg², converted to rad²)
+        σ_z² = a_z² L              yaw, about the sensor z (spin) axis (deg², converted to rad²)
+        σ_h² = a_h² L              translation along the sensor x and y axes (m²)
+        σ_v² = a_v² L + (b_v θ)²   translation along the sensor z axis (m²)
+
+    ``a_t = edge_sigma_tilt_deg_per_sqrt_m``, ``b_t = edge_sigma_tilt_deg_per_deg``,
+    ``a_z = edge_sigma_yaw_deg_per_sqrt_m``, ``a_h = edge_sigma_trans_xy_m_per_sqrt_m``,
+    ``a_v = edge_sigma_trans_z_m_per_sqrt_m``, ``b_v = edge_sigma_trans_z_m_per_deg``: a random walk
+    along the path (variance proportional to the distance, as the station split of
+    :func:`minegeo.slam.control.graph_inputs` assumes) and an error proportional to the rotation (GICP
+    under-reads tilt changes with sparse rings, which also moves the sensor's height). The constants
+    are fitted by Monte Carlo against the simulator's truth (``benchmarks/bench_edge_covariance.py``,
+    ``docs/slam.md`` "Edge covariance")
+    """
+    L, th = float(length_m), float(angle_deg)
+    d2r = math.radians(1.0) ** 2
+    s_t2 = d2r * (params.edge_sigma_tilt_deg_per_sqrt_m**2 * L + (params.edge_sigma_tilt_deg_per_deg * th) ** 2)
+    s_z2 = d2r * params.edge_sigma_yaw_deg_per_sqrt_m**2 * L
+    s_h2 = params.edge_sigma_trans_xy_m_per_sqrt_m**2 * L
+    s_v2 = params.edge_sigma_trans_z_m_per_sqrt_m**2 * L + (params.edge_sigma_trans_z_m_per_deg * th) ** 2
+    return np.diag([s_t2, s_t2, s_z2, s_h2, s_h2, s_v2])
+
+
+def floored_information(information: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """``(Ω⁻¹ + F)⁻¹`` computed as ``(I + Ω F)⁻¹ Ω`` (no inverse of a possibly singular ``Ω``), symmetrised."""
+    info = np.linalg.solve(np.eye(6) + information @ floor, information)
+    return 0.5 * (info + info.T)
+
+
 def register_frames(source: PreparedFrame, target: PreparedFrame, T_init: np.ndarray,
                     params: OdometryParams, *, trusted_init: bool = False) -> Registration:
     """GICP of ``source`` into ``target`` from ``T_init``; a verdict and the edge information.
@@ -375,6 +441,9 @@ def register_frames(source: PreparedFrame, target: PreparedFrame, T_init: np.nda
     sigma = max(float(res.sigma_m), params.sigma_floor_m)
     A = se3_adjoint(np.ascontiguousarray(T))
     info = A.T @ res.information_6x6 @ A / sigma**2
+    floor = edge_covariance_floor(float(np.linalg.norm(T[:3, 3])),
+                                  math.degrees(float(np.linalg.norm(se3_log(np.ascontiguousarray(T))[:3]))), params)
+    info = floored_information(0.5 * (info + info.T), floor)
     return Registration(T, not reason, reason, float(res.fitness), float(res.inlier_rmse_m),
                         0.5 * (info + info.T), weak, bool(res.converged), float(res.degeneracy_ratio))
 
