@@ -8,6 +8,8 @@ base records). Writes ``OUT/trajectory.tum`` (every frame, base
 frame), ``keyframes.tum``, ``trajectory_crs.tum`` (when the base is georeferenced: ``p + origin``),
 ``recognitions.csv`` (every keyframe that saw an intersection: time, status, id, scores), ``result.json``
 (provenance) and ``report.html`` (plan view / error map, recognitions, similarity matrix, timings).
+``--imu IMU.csv`` (read and checked as ``minegeo slam`` does, :mod:`minegeo.cli._imu`) puts the gyro in the
+odometry: rotation guesses, deskewing of frames with per-point times, the IMU gate on each registration.
 Exit status 0 when the run is ``ok`` (at least one intersection factor); 1 with one line on stderr
 for ``no_recognition``, ``no_intersections`` or ``unanchored`` (outputs written, odometry-only poses);
 2 for a user mistake (one line, no traceback).
@@ -29,6 +31,7 @@ from minegeo.cli._argtypes import (
     positive_float,
     positive_int,
 )
+from minegeo.cli._imu import add_imu_arguments, check_imu, read_imu
 
 HELP = "LiDAR tracking with intersection recognition against a knowledge base (Liang et al. 2024)"
 
@@ -74,6 +77,8 @@ def add_arguments(parser) -> None:
                         help="keyframe distance threshold (m)")
     parser.add_argument("--seed", type=int_in_range(0, 2**32 - 1), default=0,
                         help="recorded seed (the run draws no random numbers)")
+    add_imu_arguments(parser, "gyro rotation guesses, deskewing by the gyro (frames with per-point times) and a "
+                      "gate on each registration in the odometry; a keyframe held by the IMU gives no factor")
 
 
 def _check_combinations(args) -> None:
@@ -218,7 +223,8 @@ def run(args) -> int:
     params = _params(args)
     out = Path(args.out)
     named = {"--frames": args.frames, "--db": args.db, **({"--times": args.times} if args.times else {}),
-             **({"--truth": args.truth} if args.truth else {})}
+             **({"--truth": args.truth} if args.truth else {}), **({"--imu": args.imu} if args.imu else {})}
+    imu = read_imu(args)
     with OutputTransaction("track", inputs=named, folders={"--out": out}) as tx:
         kb = IntersectionKB.load(args.db)
         _check_frames(args, kb)
@@ -227,6 +233,7 @@ def run(args) -> int:
         # the keyframes' drift skeleton uses the base's own skeleton parameters (floor cell, wall band)
         params = replace(params, recognition=replace(params.recognition, skeleton=kb.params.skeleton))
         files = list_frames(args.frames, args.times, args.pattern, args.lidar_topic)
+        check_imu(imu, files, args)
         skipped: list[dict] = []
         bar = tqdm(total=len(files), desc="track", unit="frame", file=sys.stderr, disable=not progress_enabled(args))
         reg_log = logging.getLogger("minegeo.registration")
@@ -240,8 +247,9 @@ def run(args) -> int:
         odo_log.setLevel(logging.INFO)  # recorded also under -q (the notes never reach stderr)
         try:
             with bar, timer("track"):
-                res = track(_frames(files, skipped, bar, params.odometry.min_points), kb, params,
-                            use_map=not args.no_map)
+                # per-point times (the gyro deskew) only with --imu: without it the frames are as before
+                res = track(_frames(files, skipped, bar, params.odometry.min_points, imu is not None), kb, params,
+                            use_map=not args.no_map, imu=imu)
         finally:
             reg_log.setLevel(level)
             odo_log.removeHandler(held)
@@ -264,7 +272,8 @@ def run(args) -> int:
             result["truth"] = {"rmse_m": float(np.sqrt(np.mean(e**2))), "max_m": float(e.max()),
                                "mean_m": float(e.mean()), "n": int(e.size)}
         inputs = files.inputs()
-        inputs += [{"path": str(p), "sha256": sha256_file(p)} for p in (args.db, args.times, args.truth) if p]
+        inputs += [{"path": str(p), "sha256": sha256_file(p)} for p in (args.db, args.times, args.truth, args.imu)
+                   if p and Path(p).is_file()]
         summary = {"command": "track", "status": res.status, "reason": res.reason, "parameters": params.as_dict(),
                    "inputs": {"frames": str(args.frames), "db": str(args.db)}, "result": result,
                    "outputs": {n: str(out / n) for n in [*names, "result.json", "report.html"]},

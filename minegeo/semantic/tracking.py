@@ -17,6 +17,15 @@ there is no per-frame API), then replays its keyframes **in time order** as they
   from the PWCV completeness [Liang2024 Eq. 32]; residual [Liang2024 Eq. 22]) and the graph is re-optimised from the previous
   optimum (warm start). Only verified recognitions make factors; every other status is recorded.
 * frames between keyframes take the keyframes' correction interpolated in time (:func:`_frame_poses`).
+* **No factor from a held keyframe**: a keyframe whose frame was not registered (a stretch held by the
+  motion prior, or by the IMU when a registration disagreed with the gyro:
+  :meth:`~minegeo.slam.odometry.OdometryResult.held_stretches`) adds no intersection or loop factor;
+  a verified recognition there is recorded as ``rejected`` with the reason (:func:`_held_reason`).
+
+**With an IMU** (``imu``, :class:`~minegeo.io.imu.ImuSamples`): the odometry takes the gyro as each
+registration's rotation guess, deskews frames with per-point times by the gyro and rejects a
+registration whose rotation disagrees with the gyro's (:mod:`minegeo.slam.inertial`); the keyframe
+graph here has no IMU factors (the preintegration graph is :func:`minegeo.slam.pipeline.run_slam`'s).
 
 **Start pose.** ``TrackParams.T_world_start`` (the first frame in the knowledge-base frame) holds keyframe
 0 there. Without it the run is *unanchored*: the first verified recognition (ICP only, no gate) places
@@ -54,6 +63,7 @@ from minegeo.semantic.recognition import (
     _detect,
     recognise_keyframe,
 )
+from minegeo.slam.inertial import GyroAid
 from minegeo.slam.odometry import OdometryParams, run_odometry
 
 __all__ = ["TrackParams", "TrackRecognition", "TrackResult", "track", "odometry_edge_information"]
@@ -235,6 +245,9 @@ class TrackResult:
         Without the map: the online base's invariant points (world) and the keyframe that created each
         entry (the entry's id is its row).
     n_optimisations : int
+    imu : dict or None
+        With an IMU: the odometry's gyro bias at the end (rad/s, IMU axes) and the number of registered
+        rotations it was estimated from (``result.imu`` of ``result.json``); None without one.
     """
 
     status: str
@@ -251,6 +264,7 @@ class TrackResult:
     online_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     online_keyframes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     n_optimisations: int = 0
+    imu: dict | None = None
 
     def verified(self) -> list:
         """The recognitions that became factors."""
@@ -263,7 +277,9 @@ class TrackResult:
         return {"status": self.status, "reason": self.reason, "frames": int(self.times_s.size),
                 "keyframes": int(self.keyframes.size), "use_map": self.use_map, "status_counts": counts,
                 "factors": len(self.verified()), "optimisations": self.n_optimisations,
-                "recognised_ids": sorted({r.recognition.intersection_id for r in self.verified()})}
+                "recognised_ids": sorted({r.recognition.intersection_id for r in self.verified()}),
+                **({} if self.odometry is None else {"motion_prior_stretches": self.odometry.held_stretches()}),
+                **({} if self.imu is None else {"imu": self.imu})}
 
 
 class _OnlineKB:
@@ -336,8 +352,18 @@ def _conflicting(rec: Recognition, T_world_kf: np.ndarray, done: list, same_plac
     return ""
 
 
+def _held_reason(odo, frame: int) -> str:
+    """Why keyframe frame ``frame`` gives no factor ("" when it was registered): it lies in a stretch held
+    by the motion prior (or the IMU) alone, whose pose carries no registration."""
+    if odo.frame_ok[frame]:
+        return ""
+    by = "the IMU (gyro rotation, constant-velocity translation)" if odo.imu_aided else "the motion prior alone"
+    return (f"keyframe in a stretch held by {by} (frame {frame} not registered: {odo.frame_reason[frame]}): "
+            "no factor")
+
+
 def track(frames: Iterable[tuple[float, np.ndarray]], kb: IntersectionKB | None, params: TrackParams | None = None,
-          *, use_map: bool = True, progress=None, odometry=None) -> TrackResult:
+          *, use_map: bool = True, progress=None, odometry=None, imu=None) -> TrackResult:
     """Track a LiDAR sequence with intersection factors (Liang et al. 2024, Sec. 3).
 
     Parameters
@@ -356,6 +382,10 @@ def track(frames: Iterable[tuple[float, np.ndarray]], kb: IntersectionKB | None,
         The result of :func:`~minegeo.slam.odometry.run_odometry` on these ``frames`` with
         ``params.odometry``, when already computed (``frames`` is then not read): a benchmark runs
         the odometry once for several methods.
+    imu : ImuSamples or GyroAid, optional
+        The IMU (:mod:`minegeo.slam.inertial`): gyro rotation guesses, gyro deskew and the IMU gate in
+        the odometry. Its coverage of the frames is the caller's check
+        (:func:`minegeo.slam.inertial.check_imu_for_frames`).
 
     Returns
     -------
@@ -366,7 +396,8 @@ def track(frames: Iterable[tuple[float, np.ndarray]], kb: IntersectionKB | None,
     if use_map and kb is None:
         raise InputError("use_map=True needs a knowledge base (kb)")
     t0 = time.perf_counter()
-    odo = run_odometry(frames, params.odometry, progress) if odometry is None else odometry
+    aid = imu if imu is None or isinstance(imu, GyroAid) else GyroAid(imu)
+    odo = run_odometry(frames, params.odometry, progress, imu=aid) if odometry is None else odometry
     timings = {"odometry": time.perf_counter() - t0, **{f"odometry_{k}": v for k, v in odo.timings_s.items()}}
     T_start = None if params.T_world_start is None else np.asarray(params.T_world_start, np.float64)
     if not use_map and T_start is None:
@@ -395,11 +426,16 @@ def track(frames: Iterable[tuple[float, np.ndarray]], kb: IntersectionKB | None,
             why = _conflicting(rec, st.pose_for_conflict(k, rec), st.done, params.same_place_m)
             if why:
                 rec.status, rec.reason = "conflict", why
+            elif _held_reason(odo, int(f)):
+                rec.status, rec.reason = "rejected", _held_reason(odo, int(f))
             else:
                 entry.factor = st.add_factor(k, rec, kb, online, timings)
         st.online_poses.append(st.current(k))
         st.recognitions.append(entry)
-    return st.result(use_map, usable, kb, online, timings)
+    res = st.result(use_map, usable, kb, online, timings)
+    if aid is not None:
+        res.imu = {"front_end_bias_gyro_rad_s": [float(x) for x in aid.bias_g], "bias_updates": int(aid.n_updates)}
+    return res
 
 
 class _State:

@@ -35,7 +35,10 @@
   motion by more than ``max_acceleration_m_s2`` (with ``motion_noise_m`` of registration noise), or whose normalised constraint ratio is below
   ``min_constraint_ratio`` (degenerate geometry) is rejected: the frame is held by the
   constant-velocity prior, flagged (:meth:`OdometryResult.held_stretches`), and the next frame
-  registers to the last registered one.
+  registers to the last registered one. With an IMU, a registration whose rotation since the last
+  registered frame disagrees with the gyro's beyond ``θ_tol + n_σ √3 σ_θ``
+  (:meth:`minegeo.slam.inertial.GyroAid.disagreement`) is rejected too, and a rejected frame is held
+  by the gyro's rotation and the constant-velocity translation.
 * The sensor translation is checked on its own (:mod:`minegeo.slam.observability`): when the
   rotation-marginalised translation information has ``λ_min / λ_max`` below
   ``translation_observability_ratio`` and the surface patches of both frames (ring lines left out)
@@ -241,6 +244,9 @@ class OdometryResult:
     constraint_ratio : (n,) float64
         GICP's normalised constraint ratio of each frame's registration (1 for the first frame; NaN
         when no registration ran).
+    imu_aided : bool
+        True when the odometry ran with an IMU (gyro guesses, deskew and gate); held frames are then
+        held by the gyro's rotation (``held_by`` in :meth:`held_stretches`).
     keyframe_extra_edges : list of (i, j, (4, 4), (6, 6))
         Keyframe edges ``(i, j, T_i⁻¹ T_j, information)`` between non-consecutive keyframes (numbers
         into ``keyframes``): with ``frame_target="submap"``, a keyframe registered to the local map of
@@ -266,6 +272,7 @@ class OdometryResult:
     deskewed: np.ndarray | None = None
     deskew_twist: np.ndarray | None = None
     constraint_ratio: np.ndarray | None = None
+    imu_aided: bool = False
 
     def held_stretches(self) -> list[dict]:
         """The stretches of consecutive frames placed by the constant-velocity motion prior alone
@@ -276,6 +283,9 @@ class OdometryResult:
         times (s), ``from_time_s`` the time of the last registered frame before the stretch (the
         first frame when the stretch starts the run) and ``held_s = last_time_s − from_time_s``, how
         long the trajectory was carried by the motion prior alone; ``reasons`` the distinct reasons.
+        With an IMU (``imu_aided``) each also has ``"held_by": "imu"``: the frames' rotations are the
+        gyro's and their translations the constant velocity's (a registration the IMU disagrees with is
+        one of the reasons, :func:`_imu_disagreement`).
         """
         out = []
         ok = np.asarray(self.frame_ok, dtype=bool)
@@ -291,7 +301,8 @@ class OdometryResult:
             reasons = list(dict.fromkeys(self.frame_reason[i] for i in range(k, j + 1)))
             out.append({"first_frame": int(k), "last_frame": int(j), "frames": int(j - k + 1),
                         "first_time_s": float(t[k]), "last_time_s": float(t[j]), "from_time_s": float(t[k - 1]),
-                        "held_s": float(t[j] - t[k - 1]), "reasons": reasons})
+                        "held_s": float(t[j] - t[k - 1]), "reasons": reasons,
+                        **({"held_by": "imu"} if self.imu_aided else {})})
             k = j + 1
         return out
 
@@ -602,30 +613,48 @@ def _implausible(reg: Registration, motion: np.ndarray, dt: float, v_prev_w: np.
 
 
 def _checked(reg: Registration, pose, k: int, t: float, poses: list, times: list, last_ok: int, v_prev_w,
-             velocity_dt: float, params: OdometryParams) -> Registration:
+             velocity_dt: float, params: OdometryParams, aid=None) -> Registration:
     """``reg`` (frame ``k`` at ``t``, placed at ``pose``), rejected when :func:`_implausible` says its
-    motion since the last registered frame ``last_ok`` is implausible."""
-    why = _implausible(reg, relative(poses[last_ok], pose), t - times[last_ok], v_prev_w, velocity_dt,
-                       poses[last_ok][:3, :3], params) if reg.ok else ""
+    motion since the last registered frame ``last_ok`` is implausible or, with an IMU (``aid``),
+    :func:`_imu_disagreement` says its rotation disagrees with the gyro's."""
+    motion = relative(poses[last_ok], pose)
+    why = (_implausible(reg, motion, t - times[last_ok], v_prev_w, velocity_dt, poses[last_ok][:3, :3], params)
+           or _imu_disagreement(aid, motion, times[last_ok], t)) if reg.ok else ""
     if why:
-        log.info("frame %d (t = %.3f s) rejected: %s; held by the constant-velocity prior", k, t, why)
+        log.info("frame %d (t = %.3f s) rejected: %s; held by the %s", k, t, why,
+                 "gyro rotation and constant-velocity translation" if aid is not None else "constant-velocity prior")
         return replace(reg, ok=False, reason=why)
     return reg
 
 
+def _imu_disagreement(aid, motion: np.ndarray, t_from: float, t: float) -> str:
+    """Why a registered motion ``motion`` (``T(t_from)⁻¹ T(t)``) disagrees with the IMU ("" when it
+    agrees or without an IMU): its rotation is farther from the gyro's than the bound of
+    :meth:`minegeo.slam.inertial.GyroAid.disagreement`, ``θ_tol + n_σ √3 σ_θ``."""
+    if aid is None:
+        return ""
+    theta, bound = aid.disagreement(t_from, t, motion[:3, :3])
+    if theta <= bound:
+        return ""
+    return (f"IMU disagreement: registered rotation {math.degrees(theta):.2f} deg from the gyro's over "
+            f"{t - t_from:.3f} s (bound {math.degrees(bound):.2f} deg)")
+
+
 def _refine_keyframe(cur, last_kf, kf_clouds, kf_poses, rel, T_kf, reg, pose, k: int, last_registered,
-                     v_prev_w, velocity_dt: float, params: OdometryParams):
+                     v_prev_w, velocity_dt: float, params: OdometryParams, gate=(None, 0.0, 0.0)):
     """Keyframe-to-keyframe refinement of a new keyframe ``cur`` (relative pose ``rel`` to the last
     keyframe at ``T_kf``): ``(rel, information, pose)``, the refined ones when the refinement
     converged to a plausible motion since the last registered frame (``last_registered``: its pose
-    and the time since it), else the chained relative pose with the frame-to-frame information."""
+    and the time since it) that agrees with the IMU (``gate = (GyroAid or None, t_from, t)``,
+    :func:`_imu_disagreement`), else the chained relative pose with the frame-to-frame information."""
     target = last_kf if params.keyframe_submap_size <= 1 else _keyframe_submap(kf_clouds, kf_poses, params)
     ref = register_frames(cur, target, rel, params, trusted_init=True)
     why = ""
     if ref.ok:
         T_last, dt_last = last_registered
-        why = _implausible(ref, relative(T_last, compose(T_kf, project(ref.T))), dt_last, v_prev_w,
-                           velocity_dt, T_last[:3, :3], params)
+        motion = relative(T_last, compose(T_kf, project(ref.T)))
+        why = _implausible(ref, motion, dt_last, v_prev_w, velocity_dt, T_last[:3, :3], params) \
+            or _imu_disagreement(gate[0], motion, gate[1], gate[2])
     if ref.ok and not why:
         rel = project(ref.T)
         return rel, ref.information, compose(T_kf, rel)
@@ -633,7 +662,7 @@ def _refine_keyframe(cur, last_kf, kf_clouds, kf_poses, rel, T_kf, reg, pose, k:
     return rel, (reg.information if reg.ok else np.eye(6) * 1e-6), pose
 
 
-def _result(times, poses, rows, kf, extra, timings, params) -> OdometryResult:
+def _result(times, poses, rows, kf, extra, timings, params, imu_aided: bool = False) -> OdometryResult:
     """The :class:`OdometryResult` of :func:`run_odometry`'s per-frame ``rows`` (ok, reason,
     fitness, weak, deskewed, twist, constraint ratio) and keyframe lists ``kf`` (indices, edges,
     information, clouds, covariances)."""
@@ -647,6 +676,7 @@ def _result(times, poses, rows, kf, extra, timings, params) -> OdometryResult:
         keyframe_clouds=kf_clouds, keyframe_covariances=kf_covs, params=params, timings_s=timings,
         keyframe_extra_edges=extra, deskewed=np.asarray(deskewed, dtype=bool),
         deskew_twist=np.asarray(twists, dtype=np.float64).reshape(-1, 6), constraint_ratio=np.asarray(cratio, dtype=np.float64),
+        imu_aided=imu_aided,
     )
 
 
@@ -799,7 +829,7 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
                 if reg0.ok and pose0 is not None:
                     reg, pose, via_prev = reg0, pose0, via0
         first_raw = None
-        motion_args = (k, t, poses, times, last_ok, v_prev_w, velocity_dt, params)
+        motion_args = (k, t, poses, times, last_ok, v_prev_w, velocity_dt, params, imu)
         reg = _checked(reg, pose, *motion_args)  # an implausible first pass does not seed the second
         if raw is not None and params.deskew_iterations and reg.ok and pose is not None:
             # deskew again with this frame's own motion (from the last registered frame to it)
@@ -824,7 +854,7 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
             else:
                 rel, info, pose = _refine_keyframe(cur, last_kf, kf_clouds, [poses[i] for i in kf_idx], rel, T_kf,
                                                    reg, pose, k, (poses[last_ok], t - times[last_ok]), v_prev_w,
-                                                   velocity_dt, params)
+                                                   velocity_dt, params, (imu, times[last_ok], t))
             for lst, v in zip((kf_idx, kf_edges, kf_info, kf_clouds, kf_covs), (k, rel, info, cur.points,
                                                                                 cur.covariances), strict=True):
                 lst.append(v)
@@ -849,4 +879,4 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
     if not times:
         raise InputError("no frames: the sequence is empty")
     return _result(times, poses, rows, (kf_idx, kf_edges, kf_info, kf_clouds, kf_covs), extra,
-                   {"prepare": t_prep, "frame_to_frame": t_f2f, "keyframe_refine": t_kf}, params)
+                   {"prepare": t_prep, "frame_to_frame": t_f2f, "keyframe_refine": t_kf}, params, imu is not None)
