@@ -140,6 +140,13 @@ def write_track_report(path, summary: dict, res, kb, S: np.ndarray | None, err_m
                 ("Recognitions", table(["time (s)", "keyframe", "status", "id", "PWCV", "CWC", "ICP RMS (m)",
                                         "factor", "reason"], rows, numeric=(0, 1, 3, 4, 5, 6)) if rows
                  else "<p>No keyframe saw an intersection.</p>")]
+    held = r.get("motion_prior_stretches") or []
+    hrows = [[f"{h['first_frame']}–{h['last_frame']}", f"{h['first_time_s']:.3f}–{h['last_time_s']:.3f}",
+              f"{h['held_s']:.3f}", "IMU (gyro rotation)" if h.get("held_by") == "imu" else "motion prior",
+              "; ".join(h["reasons"])] for h in held]
+    sections.append(("Stretches held without registration (no factor from their keyframes)",
+                     table(["frames", "times (s)", "held for (s)", "held by", "reason"], hrows, numeric=(2,))
+                     if hrows else "<p>Every frame after the first was registered.</p>"))
     if S is not None and S.size:
         sections.append(("Knowledge-base similarity matrix (PWCV)", _matrix_table(S)))
     sections += [("Time per module", timings_html(summary["module_timings_s"])),
