@@ -126,6 +126,13 @@ def _written(before: dict, after: dict) -> list[Path]:
     return sorted(Path(p) for p, v in after.items() if before.get(p) != v)
 
 
+def _outermost(paths: list[str]) -> list[str]:
+    """The JSON files not inside the folder of another ``result.json`` among them (a demo's steps write
+    their own result.json in its folder; the demo's compile seconds already hold theirs)."""
+    runs = [Path(p).parent for p in paths if Path(p).name == "result.json"]
+    return [p for p in paths if not any(r != Path(p).parent and r in Path(p).parents for r in runs)]
+
+
 def _compile_of_json(files: list[Path]) -> dict[str, float]:
     out = {}
     for f in files:
@@ -169,7 +176,8 @@ def _run_block(cmd: str, cwd: Path, env: dict, timeout: float) -> dict:
     return {"exit": code, "wall_s": round(wall, 2),
             "cpu_s": round((r1.children_user - r0.children_user) + (r1.children_system - r0.children_system), 2),
             "compile_printed_s": round(sum(printed), 2) if printed else None,
-            "compile_result_json_s": round(sum(by_json.values()), 2) if by_json else None,
+            "compile_result_json_s": round(sum(by_json[k] for k in _outermost(list(by_json))), 2) if by_json
+            else None,
             "compile_by_json": {str(Path(k).relative_to(cwd)): v for k, v in by_json.items()},
             "reports": [str(p.relative_to(cwd)) for p in written if p.name == "report.html"],
             "output": out}
@@ -302,7 +310,19 @@ def main() -> int:
     ap.add_argument("--no-demo", action="store_true", help="skip the demo part of the README's first command")
     ap.add_argument("--label", default="", help="suffix of the results files")
     ap.add_argument("--out-dir", type=Path, default=RESULTS)
+    ap.add_argument("--markdown", type=Path, default=None, metavar="JSON",
+                    help="write the .md of this results file again (and its json compile sums) and exit")
     a = ap.parse_args()
+    if a.markdown:
+        doc = json.loads(a.markdown.read_text())
+        for r in doc["readme"] + doc["blocks"]:
+            by = r.get("compile_by_json") or {}
+            if by:
+                r["compile_result_json_s"] = round(sum(by[k] for k in _outermost(list(by))), 2)
+        a.markdown.write_text(json.dumps(doc, indent=1) + "\n")
+        a.markdown.with_suffix(".md").write_text(markdown(doc) + "\n")
+        print(markdown(doc))
+        return 0
 
     work = (a.keep or Path(tempfile.mkdtemp(prefix="minegeo-docs-fresh-"))).resolve()
     work.mkdir(parents=True, exist_ok=True)
