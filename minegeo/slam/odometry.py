@@ -617,9 +617,11 @@ def _checked(reg: Registration, pose, k: int, t: float, poses: list, times: list
     """``reg`` (frame ``k`` at ``t``, placed at ``pose``), rejected when :func:`_implausible` says its
     motion since the last registered frame ``last_ok`` is implausible or, with an IMU (``aid``),
     :func:`_imu_disagreement` says its rotation disagrees with the gyro's."""
+    if not reg.ok:  # nothing registered: nothing to check (and no pose to check it at)
+        return reg
     motion = relative(poses[last_ok], pose)
     why = (_implausible(reg, motion, t - times[last_ok], v_prev_w, velocity_dt, poses[last_ok][:3, :3], params)
-           or _imu_disagreement(aid, motion, times[last_ok], t)) if reg.ok else ""
+           or _imu_disagreement(aid, motion, times[last_ok], t))
     if why:
         log.info("frame %d (t = %.3f s) rejected: %s; held by the %s", k, t, why,
                  "gyro rotation and constant-velocity translation" if aid is not None else "constant-velocity prior")
