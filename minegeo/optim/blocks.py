@@ -112,7 +112,8 @@ class BlockSystem:
         order = elimination_order(nf, fe[both])
         rank = np.empty(nf, dtype=np.int64)
         rank[order] = np.arange(nf)
-        self.blk = np.where(fidx >= 0, rank[np.maximum(fidx, 0)], -1)  # block index of each variable, -1 held
+        # block index of each variable, -1 held (every variable held: no block at all)
+        self.blk = np.where(fidx >= 0, rank[np.maximum(fidx, 0)], -1) if nf else np.full(n, -1, dtype=np.int64)
         bcol = self.blk[pairs]
         self.Lp, self.Li = symbolic_cholesky(nf, np.c_[np.maximum(bcol[:, 0], bcol[:, 1]),
                                                        np.minimum(bcol[:, 0], bcol[:, 1])][both])

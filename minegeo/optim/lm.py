@@ -210,6 +210,9 @@ def levenberg_marquardt(problem, values, params: LMParams) -> LMOutcome:
                                 "factorised": False})
                 lam *= 10.0
                 continue
+            if delta.size == 0:  # every variable held: the start is the only point there is
+                factorised, status, reason = True, "converged", "every variable is held: nothing to optimise"
+                break
             trial = problem.retract(values, delta)
             if not factorised:
                 model = -0.5 * float(system.g @ delta) / max(cost, 1e-300)
@@ -226,6 +229,8 @@ def levenberg_marquardt(problem, values, params: LMParams) -> LMOutcome:
                 break
             history.append({"iteration": it, "cost": cost_trial, "lambda": lam, "accepted": False, "step": step})
             lam *= 10.0
+        if status == "converged":
+            break
         if not accepted and not factorised:
             return failed("the damped normal equations are not positive definite at any damping" + problem.hint,
                           it, history)
