@@ -92,6 +92,7 @@ def test_a_good_imu_runs(frames, tmp_path, capsys):
     imu = _imu(tmp_path, _rows(GOOD_T))
     out = tmp_path / "out"
     code, _, lines = run_cli("slam", ["--frames", str(frames), "--imu", str(imu), "--keyframe-distance", "0.15",
-                                      "--out", str(out), "--no-planes"], capsys)
+                                      "--out", str(out), "--no-planes"], capsys,
+                                 timeout_s=600)  # a whole run, compiling on a cold cache: a hang guard only
     assert code == 0, lines
     assert (out / "trajectory.tum").is_file()
