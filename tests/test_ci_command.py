@@ -19,6 +19,9 @@ def test_readme_test_command_installs_what_ci_installs():
     ci = (ROOT / ".ci" / "run").read_text(encoding="utf-8")
     assert _extras(readme) == _extras(ci)
     assert "python -m pytest" in readme and re.search(r"^python -m pytest", ci, re.M)
+    # the same worker processes (pytest-xdist, in the test extra): the README's run is the CI's
+    workers = re.compile(r"python -m pytest (-n \d+ --dist \w+)")
+    assert workers.search(readme) and workers.search(readme).group(1) == workers.search(ci).group(1)
 
 
 def test_every_extra_is_installed_by_the_test_command():
