@@ -207,6 +207,9 @@ def run(args) -> Path:
     w = Path(args.work).resolve() if args.work else Path(tempfile.mkdtemp(prefix="first_use_"))
     w.mkdir(parents=True, exist_ok=True)
     verbs = args.verbs or list(VERBS)
+    if {"adjust", "posegraph"} & set(verbs) and not _shared().is_dir():
+        raise SystemExit(f"bench_first_use: the shared data is not at {_shared()} (set MINEGEO_SHARED_DATA): "
+                         "adjust and posegraph read their inputs from it")
     if "track" in verbs or "intersections build" in verbs:
         _make_track_inputs(w)
     threads = os.environ.get("NUMBA_NUM_THREADS")
