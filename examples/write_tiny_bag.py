@@ -12,13 +12,20 @@ Usage: ``python examples/write_tiny_bag.py OUT [--storage mcap|sqlite3]`` writes
 """
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
-from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin
-from rosbags.rosbag2 import Writer as Writer2
-from rosbags.typesys import Stores, get_typestore
+
+try:
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as Writer2
+    from rosbags.typesys import Stores, get_typestore
+except ImportError:  # the optional 'bag' extra: say so in one line, as minegeo's verbs do
+    print("write_tiny_bag.py: error: this example needs the optional package rosbags: pip install 'minegeo[bag]'",
+          file=sys.stderr)
+    sys.exit(2)
 
 T0_NS = 1_700_000_000_000_000_000  # first frame stamp (ns since the UNIX epoch)
 SWEEP_NS = 100_000_000  # 10 Hz
