@@ -136,7 +136,7 @@ def main():
     ap.add_argument("--control-duration-s", type=float, default=60.0)
     a = ap.parse_args()
     os.makedirs(a.cache, exist_ok=True)
-    raw_params = replace(OdometryParams(), **dict.fromkeys(NAMES, 0.0))
+    raw_params = replace(OdometryParams(edge_covariance_floor=True), **dict.fromkeys(NAMES, 0.0))
     t0 = time.perf_counter()
     recs = {}
     for preset in a.presets:
@@ -152,8 +152,8 @@ def main():
             np.savez(f, **recs[preset, seed])
             print(f"{preset} seed {seed}: {len(recs[preset, seed]['err'])} edges", flush=True)
     fit_rec = concat([recs[p, s] for p in a.presets for s in a.fit_seeds])
-    fitted = fit(fit_rec, OdometryParams())
-    default = OdometryParams()
+    fitted = fit(fit_rec, OdometryParams(edge_covariance_floor=True))
+    default = OdometryParams(edge_covariance_floor=True)
     out = {"conditions": {"threads": os.environ.get("NUMBA_NUM_THREADS"), "duration_s": a.duration_s, "lidar_hz": 5.0,
                           "azimuth_step_deg": a.azimuth_deg, "station_spacing_m": 6.0, "fit_seeds": a.fit_seeds,
                           "check_seeds": a.check_seeds, "uptime": subprocess.run(["uptime"], capture_output=True,
@@ -164,7 +164,7 @@ def main():
            "fitted": {k: getattr(fitted, k) for k in NAMES}, "default": {k: getattr(default, k) for k in NAMES},
            "fitted_per_preset": {}, "streams": {}}
     for preset in a.presets:
-        f1 = fit(concat([recs[preset, s] for s in a.fit_seeds]), OdometryParams())
+        f1 = fit(concat([recs[preset, s] for s in a.fit_seeds]), OdometryParams(edge_covariance_floor=True))
         out["fitted_per_preset"][preset] = {k: getattr(f1, k) for k in NAMES}
     for (preset, seed), r in recs.items():
         role = "fit" if seed in a.fit_seeds else "check"
@@ -235,7 +235,7 @@ def control_run(seed: int, duration_s: float, configs: dict) -> dict:
     stations, truth = stream_stations(st)
     sweeps = [(t, P, tau) for t, P, tau, _r in iter_sweeps(NetworkWorld(st.net), st.sensor, st.curve, st.frame_times,
                                                             st.lidar_seed)]
-    odo = run_odometry(iter(sweeps), replace(OdometryParams(), **dict.fromkeys(NAMES, 0.0)))
+    odo = run_odometry(iter(sweeps), replace(OdometryParams(edge_covariance_floor=True), **dict.fromkeys(NAMES, 0.0)))
     out = {"stations": len(stations.ids), "control": int(stations.is_control.sum())}
     enh_true_local = truth["enh_true"] - stations.origin_enh
     for name, p in configs.items():

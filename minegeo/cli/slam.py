@@ -156,7 +156,8 @@ def _params(args):
                          else args.deskew_iterations,
                          max_speed_m_s=getattr(args, "max_speed", 30.0),
                          max_angular_rate_deg_s=getattr(args, "max_angular_rate", 180.0),
-                         max_acceleration_m_s2=getattr(args, "max_acceleration", 20.0))
+                         max_acceleration_m_s2=getattr(args, "max_acceleration", 20.0),
+                         edge_covariance_floor=getattr(args, "control", None) is not None)
     return SlamParams(odometry=odo, loops=LoopParams(min_path_gap_m=args.loop_gap, max_distance_m=args.loop_radius),
                       map_voxel_m=args.map_voxel, use_planes=not getattr(args, "no_planes", False),
                       remove_noise=not getattr(args, "no_noise_removal", False))

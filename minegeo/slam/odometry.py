@@ -152,6 +152,10 @@ class OdometryParams:
     #: plus m per deg of the edge's rotation (all 0: GICP's covariance alone). Fitted by maximum
     #: likelihood on the 80 keyframe edges of 16 synthetic stop-and-go streams (vehicle and handheld,
     #: seeds 1-8, 24 s at 5 Hz; ``benchmarks/bench_edge_covariance.py``)
+    #: apply the floor below to every edge (True: ``slam --control``, whose statistics need calibrated
+    #: edges; False by default: plain SLAM keeps GICP's information, because with the floor the plane
+    #: factors weigh more and cost ATE on some streams, see docs/slam.md "Edge covariance")
+    edge_covariance_floor: bool = False
     edge_sigma_tilt_deg_per_sqrt_m: float = 0.11
     edge_sigma_tilt_deg_per_deg: float = 0.31
     edge_sigma_yaw_deg_per_sqrt_m: float = 0.034
@@ -452,9 +456,11 @@ def register_frames(source: PreparedFrame, target: PreparedFrame, T_init: np.nda
     sigma = max(float(res.sigma_m), params.sigma_floor_m)
     A = se3_adjoint(np.ascontiguousarray(T))
     info = A.T @ res.information_6x6 @ A / sigma**2
-    floor = edge_covariance_floor(float(np.linalg.norm(T[:3, 3])),
-                                  math.degrees(float(np.linalg.norm(se3_log(np.ascontiguousarray(T))[:3]))), params)
-    info = floored_information(0.5 * (info + info.T), floor)
+    if params.edge_covariance_floor:
+        floor = edge_covariance_floor(float(np.linalg.norm(T[:3, 3])),
+                                      math.degrees(float(np.linalg.norm(se3_log(np.ascontiguousarray(T))[:3]))),
+                                      params)
+        info = floored_information(0.5 * (info + info.T), floor)
     return Registration(T, not reason, reason, float(res.fitness), float(res.inlier_rmse_m),
                         0.5 * (info + info.T), weak, bool(res.converged), float(res.degeneracy_ratio))
 

@@ -32,7 +32,7 @@ def _edges(preset: str, seed: int, first: int, n: int):
     sweeps = [(t, P, tau) for t, P, tau, _r in iter_sweeps(NetworkWorld(st.net), st.sensor, st.curve, ft,
                                                             st.lidar_seed)]
     truth = st.curve.poses(ft)
-    odo = run_odometry(iter(sweeps), OdometryParams())
+    odo = run_odometry(iter(sweeps), OdometryParams(edge_covariance_floor=True))
     out = []
     for a in range(len(odo.keyframes) - 1):
         i, j = odo.keyframes[a], odo.keyframes[a + 1]
