@@ -21,6 +21,13 @@ Three steps, each deterministic from a seed:
    the network's floor, walls and roofs, the same surfaces :func:`~minegeo.synth.network.network_cloud`
    samples). Frames are cached on disk in chunks of ``chunk`` frames, keyed by a hash of the network,
    the route and the parameters.
+4. :func:`flight_curve` / :func:`flight_imu` -- the IMU of the flight: the 10 Hz clock poses joined by
+   the uniform cubic B-spline that passes through every one of them (:func:`flight_curve`; the
+   frames are clock samples, so each frame sits exactly on the curve), read by
+   :func:`~minegeo.synth.imu.simulate_imu` (gyro and accelerometer at ``rate_hz``, white noise and
+   bias random walk; default the ADIS16448 of :class:`~minegeo.synth.imu.ImuParams`, as the
+   ``drone`` stream) and written as the contract's ``imu.csv`` next to the frames
+   (:func:`write_flight_imu`).
 
 Frames: poses are ``T_world_sensor`` (4x4, m), world = the network's map frame (z up, floor z = 0);
 sensor x forward, y left, z up. See ``docs/intersections.md`` ("Experiment: drone flight").
@@ -45,11 +52,15 @@ from minegeo.synth.network import surface_offset
 
 __all__ = ["NetworkWorld", "FlightParams", "Flight", "FlightFrames", "plan_route", "make_flight", "simulate_flight",
            "MINE_FLIGHT", "mine_flight",
-           "flight_clearance", "junction_passes"]
+           "flight_clearance", "junction_passes", "flight_curve", "flight_imu", "write_flight_imu",
+           "FLIGHT_IMU_MARGIN_S"]
 
 log = logging.getLogger(__name__)
 G_MPS2 = 9.81
 CLOCK_HZ = 10.0
+#: the flight's IMU runs this long before the first and after the last clock pose (s): the drone
+#: hovers there at its first / last pose
+FLIGHT_IMU_MARGIN_S = 0.5
 
 
 # ---------------------------------------------------------------------------------------- ray casting
@@ -590,6 +601,111 @@ def junction_passes(positions: np.ndarray, junction_xy: np.ndarray, pass_radius_
                 out.append({"junction": j, "first": int(a), "last": int(b - 1), "closest": int(k),
                             "min_dist_m": float(d[k]), "entry_bearing_deg": float(np.degrees(np.arctan2(v[1], v[0])))})
     return sorted(out, key=lambda r: r["first"])
+
+
+# ---------------------------------------------------------------------------------------- IMU
+def _euler_zyx(R: np.ndarray) -> np.ndarray:
+    """Yaw, pitch, roll (rad; yaw unwrapped along the sequence) of ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (k, 3, 3)."""
+    yaw = np.unwrap(np.arctan2(R[:, 1, 0], R[:, 0, 0]))
+    pitch = -np.arcsin(np.clip(R[:, 2, 0], -1.0, 1.0))
+    roll = np.arctan2(R[:, 2, 1], R[:, 2, 2])
+    return np.column_stack([yaw, pitch, roll])
+
+
+def flight_curve(flight: Flight, margin_s: float = FLIGHT_IMU_MARGIN_S):
+    """The continuous motion of a flight: a cubic B-spline through every pose of its 10 Hz clock.
+
+    The clock poses (``flight.clock``, ``T_world_sensor``; the frames are a subset of them) give
+    six channels ``s_k`` (x, y, z in m; yaw unwrapped, pitch, roll in rad of ``Rz Ry Rx``) at
+    ``t_k = t_0 + k h`` (``h = 1 / CLOCK_HZ``). The curve is the uniform cubic B-spline with knots
+    at the ``t_k`` (:class:`~minegeo.synth.motion.MotionCurve`) that **interpolates** them,
+    ``(c_{k-1} + 4 c_k + c_{k+1}) / 6 = s_k`` for every sample, so its pose at each clock time (and
+    so at each frame time) is the pose the frame was simulated at (to rounding), and between them it
+    is C2: position, velocity, acceleration and angular rate exist everywhere, as an IMU needs.
+    ``margin_s`` (rounded to whole samples) of hover at the first and the last pose is added on
+    both sides (the samples repeated); the end conditions are zero second difference of the
+    control points (a natural spline). The tridiagonal system is solved per channel
+    (:func:`scipy.linalg.solve_banded`).
+
+    Returns
+    -------
+    MotionCurve
+        Defined on ``[t_0 - margin, t_last + margin]`` (s).
+    """
+    from scipy.linalg import solve_banded
+
+    from minegeo.synth.motion import MotionCurve
+
+    t = flight.clock.times_s
+    h = 1.0 / CLOCK_HZ
+    if t.size < 2 or np.max(np.abs(np.diff(t) - h)) > 1e-6:
+        raise InputError(f"flight_curve: the clock must be uniform at {CLOCK_HZ:g} Hz")
+    P = flight.clock.poses
+    S = np.column_stack([P[:, :3, 3], _euler_zyx(P[:, :3, :3])])
+    m = int(round(margin_s / h))
+    S = np.concatenate([np.repeat(S[:1], m, 0), S, np.repeat(S[-1:], m, 0)])
+    n = len(S)
+    # unknowns c_0 .. c_{n+1}; rows k = 0..n-1: c_k + 4 c_{k+1} + c_{k+2} = 6 s_k; natural ends
+    # (c_0 - 2 c_1 + c_2 = 0, likewise at the end) give c_1 = s_0, c_n = s_{n-1}; the rest is
+    # tridiagonal in c_2 .. c_{n-1}
+    C = np.empty((n + 2, 6))
+    C[1], C[n] = S[0], S[-1]
+    if n > 2:
+        rhs = 6.0 * S[1:n - 1].copy()
+        rhs[0] -= C[1]
+        rhs[-1] -= C[n]
+        ab = np.zeros((3, n - 2))
+        ab[0, 1:], ab[1], ab[2, :-1] = 1.0, 4.0, 1.0
+        C[2:n] = solve_banded((1, 1), ab, rhs)
+    C[0] = 2.0 * C[1] - C[2]
+    C[n + 1] = 2.0 * C[n] - C[n - 1]
+    return MotionCurve(t0_s=float(t[0]) - m * h, dt_knot_s=h, ctrl=C)
+
+
+def flight_imu(flight: Flight, params=None, seed: int | None = None):
+    """The flight's IMU (gyro and accelerometer on the sensor axes) from :func:`flight_curve`.
+
+    :func:`~minegeo.synth.imu.simulate_imu` over the whole curve (from ``FLIGHT_IMU_MARGIN_S``
+    before the first clock pose to as long after the last), samples at ``t_start + k / rate_hz``.
+
+    Parameters
+    ----------
+    flight : Flight
+    params : ImuParams, optional
+        Default :class:`~minegeo.synth.imu.ImuParams` (200 Hz, ADIS16448 noise: the ``drone`` stream's).
+    seed : int, optional
+        Default ``flight.params.seed``; the white noise and the bias walk are the two children of
+        ``SeedSequence([seed, 4])``.
+
+    Returns
+    -------
+    ImuData
+    """
+    from minegeo.synth.imu import ImuParams, simulate_imu
+
+    params = params or ImuParams()
+    curve = flight_curve(flight)
+    ss_noise, ss_bias = np.random.SeedSequence([int(flight.params.seed if seed is None else seed), 4]).spawn(2)
+    return simulate_imu(curve, params, curve.t_start, curve.t_end, np.random.default_rng(ss_noise),
+                        np.random.default_rng(ss_bias))
+
+
+def write_flight_imu(folder, flight: Flight, params=None, seed: int | None = None) -> Path:
+    """Write :func:`flight_imu` into ``folder`` as ``imu.csv`` (the SLAM contract's
+    ``t,gx,gy,gz,ax,ay,az``: s on the frames' clock, rad/s, m/s² specific force with gravity, LiDAR
+    axes) and ``imu_truth.csv`` (noise- and bias-free readings, biases, velocity); written atomically
+    and kept when present. Returns the ``imu.csv`` path."""
+    from minegeo.synth.imu import imu_csv_text, imu_truth_csv_text
+
+    folder = Path(folder)
+    out = folder / "imu.csv"
+    if not out.exists():
+        imu = flight_imu(flight, params, seed)
+        for name, text in (("imu_truth.csv", imu_truth_csv_text(imu)), ("imu.csv", imu_csv_text(imu))):
+            tmp = folder / f"{name}.tmp"
+            tmp.write_text(text)
+            os.replace(tmp, folder / name)
+    return out
 
 
 # ---------------------------------------------------------------------------------------- frames
