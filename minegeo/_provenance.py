@@ -156,6 +156,14 @@ def write_json_atomic(path: str | os.PathLike, obj: Any) -> Path:
 CLI_ARGUMENTS: contextvars.ContextVar[dict | None] = contextvars.ContextVar("minegeo_cli_arguments", default=None)
 
 
+def arguments_provenance() -> dict[str, Any]:
+    """``{"arguments": options}`` of the ``minegeo`` command being run (``None`` outside one): the
+    ``provenance`` block of records that carry their versions, seed and inputs at the top level
+    (``localize``, ``localize-batch``, ``prepare-map``, ``demo``), read back by ``--config``."""
+    arguments = CLI_ARGUMENTS.get()
+    return {"arguments": None if arguments is None else to_jsonable(arguments)}
+
+
 def provenance(seed: int | None = None, origin: Any = None, inputs: list | None = None) -> dict[str, Any]:
     """Standard provenance block: versions, seed, local origin, input hashes, UTC time, and within a
     ``minegeo`` command its options (``"arguments"``, which ``--config result.json`` reads back)."""

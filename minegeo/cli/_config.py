@@ -217,6 +217,9 @@ def _from_result(doc: dict, verb: str, where: str) -> dict:
     if command is not None and command != verb:
         raise ConfigError(f"{where} is the result of `minegeo {command}`, not of `minegeo {verb}`")
     args = doc["provenance"].get("arguments")
+    if "batch" in doc and not isinstance(args, dict):
+        raise ConfigError(f"{where} is the record of one scan of `minegeo localize-batch`: repeat the batch from its "
+                          "batch_result.json, or give the scan to `minegeo localize` with the batch's options")
     if not isinstance(args, dict):
         raise ConfigError(f"{where}: this result records no options (provenance.arguments): it was written "
                           f"before minegeo recorded them, or `minegeo {verb}` does not record them yet "

@@ -382,7 +382,7 @@ def _finish(args, out: Path, rows, t_start: float, seq: dict, slam: dict | None,
             scans: list[dict], compile_rec: dict) -> int:
     """The demo's report.html, result.json and the printed table."""
     from minegeo._output import run_timings
-    from minegeo._provenance import versions, write_json_atomic
+    from minegeo._provenance import arguments_provenance, versions, write_json_atomic
     from minegeo.report.demo_report import plot_demo_png, write_demo_report
 
     plan_scans = geo.pop("_plan_scans", []) if geo is not None else []
@@ -413,7 +413,7 @@ def _finish(args, out: Path, rows, t_start: float, seq: dict, slam: dict | None,
         "command": "demo", "status": "ok" if all(r.get("status") == "ok" for r in rows) else "warnings",
         "seed": int(args.seed), "steps": list(rows), "parameters": params, "slam": slam_rec, "georef": geo,
         "timings_s": {"total": total, **run_timings(args)}, "versions": versions(),
-        "background_compilation": compile_rec,
+        "background_compilation": compile_rec, "provenance": arguments_provenance(),
     })
     w = max(len(r["step"]) for r in rows)
     print(f"\nminegeo demo (seed {args.seed}) - outputs in {out}/")

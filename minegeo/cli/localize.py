@@ -335,8 +335,10 @@ def read_scan_inputs(scan_path, trajectory_path, lp, *, drop_nonfinite: bool = F
 
 def result_base(pm, how: str, t_map: float, index_s: dict, *, profile: str, inputs: list, seed: int,
                 cache_file=None) -> dict:
-    """The run-level fields of ``result.json`` (profile, inputs, map preparation, versions, seed)."""
-    from minegeo._provenance import versions
+    """The run-level fields of ``result.json`` (profile, inputs, map preparation, versions, seed, and
+    the command's options as ``provenance.arguments``: ``None`` in a localize-batch worker, whose
+    batch records them in its ``batch_result.json``)."""
+    from minegeo._provenance import arguments_provenance, versions
 
     return {
         "profile": profile,
@@ -346,6 +348,7 @@ def result_base(pm, how: str, t_map: float, index_s: dict, *, profile: str, inpu
                             "cache_file": None if cache_file is None else str(cache_file)},
         "versions": versions(),
         "seed": int(seed),
+        "provenance": arguments_provenance(),
     }
 
 

@@ -282,7 +282,7 @@ def _write_batch_outputs(args, out: Path, res, pm, manifest: dict, map_input: di
                          to: dict) -> dict:
     """Write the batch's own files to the paths ``to`` (``{name in BATCH_FILES: staged path}``);
     ``out`` is the batch folder whose scan folders they describe."""
-    from minegeo._provenance import versions, write_json_atomic
+    from minegeo._provenance import arguments_provenance, versions, write_json_atomic
     from minegeo.cli._common import whole_run_timings
     from minegeo.localize import batch as B
     from minegeo.report.batch_report import batch_status, write_batch_report
@@ -303,7 +303,7 @@ def _write_batch_outputs(args, out: Path, res, pm, manifest: dict, map_input: di
         "params": {"localize": manifest["localize_params"], "map": json.loads(json.dumps(asdict(pm.params)))},
         "map_preparation": {"source": how, "params_hash": pm.params_hash, "n_points": len(pm)},
         "inputs": [map_input] + [{"path": r["scan"], "sha256": r["sha256"]} for r in res.rows],
-        "scans": rows, "versions": versions(), "timings_s": timings,
+        "scans": rows, "versions": versions(), "timings_s": timings, "provenance": arguments_provenance(),
     }
     if args.dxf:  # every placed scan in one drawing for mine-planning CAD (ok results only)
         from minegeo.cli._dxf import dxf_record

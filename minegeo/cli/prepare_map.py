@@ -41,7 +41,13 @@ def run(args) -> int:
     from dataclasses import replace
 
     from minegeo._output import OutputTransaction
-    from minegeo._provenance import input_record, sha256_file, versions, write_json_atomic
+    from minegeo._provenance import (
+        arguments_provenance,
+        input_record,
+        sha256_file,
+        versions,
+        write_json_atomic,
+    )
     from minegeo.cli._common import StepBar, summary_lines_quiet, time_line, whole_run_timings
     from minegeo.cli.localize import DEFAULT_PROFILE, params_from_args
     from minegeo.errors import InputError
@@ -89,14 +95,14 @@ def run(args) -> int:
         t0 = time.perf_counter()
         pm.save(tx.file("--out"))
         t_save = time.perf_counter() - t0
-        rec = {"status": "ok", "out": str(out), "profile": profile, "n_points": n_points, "n_down": len(pm),
+        rec = {"verb": "prepare-map", "status": "ok", "out": str(out), "profile": profile, "n_points": n_points, "n_down": len(pm),
                "n_icp_points": int(pm.icp_points.shape[0]), "params": prep, "params_hash": pm.params_hash,
                "crs": pm.crs, "georeferenced": g is not None, "work_origin": pm.work_origin,
                "streaming": pm.source["streaming"],
                "timings_s": {"read": t_read, "sha256": t_hash, **pm.timings_s, "search_structures": index_s,
                              "write": t_save, **whole_run_timings(args)},
                "inputs": [input_record(args.map)],
-               "versions": versions()}
+               "versions": versions(), "provenance": arguments_provenance()}
         write_json_atomic(tx.file("its record"), rec)
         from minegeo._provenance import to_jsonable
         from minegeo.report.prepare_report import write_prepare_report

@@ -66,10 +66,11 @@ __all__ = ["DaskUnavailableError", "VOLATILE_FIELDS", "SUMMARY_COLUMNS", "BatchJ
 
 #: ``result.json`` fields that may differ between a batch result and a one-by-one
 #: ``minegeo localize`` of the same scan (dotted paths; ``*.timings_s``: a ``timings_s`` object at
-#: any depth, e.g. ``correlative.timings_s``): the timings and the batch's own record (worker,
-#: host, map cache). Everything else, poses, covariances, status, reason, scores, parameters,
+#: any depth, e.g. ``correlative.timings_s``): the timings, the batch's own record (worker,
+#: host, map cache) and ``provenance`` (a ``localize`` run's command-line options; a batch records
+#: its options in ``batch_result.json``). Everything else, poses, covariances, status, reason, scores, parameters,
 #: inputs, is equal in its JSON text.
-VOLATILE_FIELDS = ("*.timings_s", "map_preparation.seconds", "batch")
+VOLATILE_FIELDS = ("*.timings_s", "map_preparation.seconds", "batch", "provenance")
 #: Columns of ``summary.csv`` for a georeferenced map (E, N, H: CRS coordinates of the scan origin;
 #: heading: azimuth of the scan's x axis, degrees clockwise from grid north; radius95_m: the 95 %
 #: position radius; time_s: the scan's own run). For a map without georeferencing the coordinate
@@ -111,6 +112,7 @@ def comparable_record(d: dict) -> dict:
 
     out = strip(json.loads(json.dumps(d)))
     out.pop("batch", None)
+    out.pop("provenance", None)
     if isinstance(out.get("map_preparation"), dict):
         out["map_preparation"].pop("seconds", None)
     return out

@@ -260,3 +260,40 @@ def test_slam_repeated_from_its_result_json(tmp_path, capsys):
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
     _same_result(a / "result.json", b / "result.json", {a: b})
     assert json.loads((b / "result.json").read_text())["parameters"]["odometry"]["voxel_size_m"] == 0.4
+
+
+def _same_folder(a: Path, b: Path) -> None:
+    """Every file of two output folders byte-identical, but result.json (equal but for timings and
+    the folder names) and report.html (it prints the timings)."""
+    names = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
+    assert names == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file())
+    for n in names:
+        if n.name not in ("result.json", "report.html"):
+            assert (a / n).read_bytes() == (b / n).read_bytes(), n
+    _same_result(a / "result.json", b / "result.json", {a: b})
+
+
+def test_adjust_repeated_from_its_result_json(tmp_path, capsys):
+    dat = shared_data("krumm_gama_adjustment_examples", "2D", "Ghilani15_5_Angle_fix.dat")
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(["-q", "adjust", str(dat), "--out", str(a), "--variance", "apriori", "--alpha", "0.01",
+                 "--confidence", "0.99"]) == 0
+    assert json.loads((a / "result.json").read_text())["provenance"]["arguments"]["alpha"] == 0.01
+    assert main(["-q", "adjust", "--config", str(a / "result.json"), "--out", str(b)]) == 0
+    _same_folder(a, b)
+
+
+def test_evaluate_repeated_from_its_result_json(tmp_path, capsys):
+    rng = np.random.default_rng(11)
+    t = np.arange(40) * 0.1
+    xyz = np.c_[np.cumsum(rng.normal(0.5, 0.1, 40)), rng.normal(0, 0.2, 40), np.zeros(40)]
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (40, 1))
+    gt, est = tmp_path / "gt.tum", tmp_path / "est.tum"
+    np.savetxt(gt, np.c_[t, xyz, q], fmt="%.6f")
+    np.savetxt(est, np.c_[t, xyz + rng.normal(0, 0.05, xyz.shape), q], fmt="%.6f")
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(["-q", "evaluate", "--est", str(est), "--gt", str(gt), "--out", str(a), "--delta", "5",
+                 "--no-align"]) == 0
+    assert json.loads((a / "result.json").read_text())["provenance"]["arguments"]["delta"] == 5
+    assert main(["-q", "evaluate", "--config", str(a / "result.json"), "--out", str(b)]) == 0
+    _same_folder(a, b)

@@ -112,6 +112,8 @@ def test_batch_equals_localize_one_by_one(world, batch_out, tmp_path):
         # everything but the timings and the batch's own record is the same JSON text
         assert json.dumps(comparable_record(a)) == json.dumps(comparable_record(b)), name
         assert set(a) - set(b) == {"batch"} and not set(b) - set(a)
+        # the batch records its options once, in batch_result.json; localize in each record
+        assert a["provenance"] == {"arguments": None} and b["provenance"]["arguments"]["scan"] == row["scan"]
         assert a["T_map_scan"] == b["T_map_scan"] and a["covariance_6x6"] == b["covariance_6x6"]
         assert row["status"] == a["status"]
         if a["status"] == "ok":

@@ -375,3 +375,54 @@ def test_rejected_candidates_plot_in_the_map_frame_as_their_table(mine, monkeypa
     assert labels and all(t == "x map (m)" for t in labels), labels
     html = localize_report_html(res, mine["pm"])
     assert "both in the map frame" in html and "below #0 by" in html
+
+
+def _without(d, keys=("timings_s", "provenance", "map_preparation")):
+    """A record without what legitimately differs between a run and its repetition (wall times, the
+    options record naming the other --out, the map's load seconds)."""
+    return {k: v for k, v in d.items() if k not in keys}
+
+
+def _same_prepared_map(a, b):
+    """Every array of two prepared maps byte-identical, and their metadata but for what a run
+    measures (seconds, the memory estimate from the process's RSS) and the integrity digests over those."""
+    import io
+    import zipfile
+
+    za, zb = zipfile.ZipFile(a), zipfile.ZipFile(b)
+    assert za.namelist() == zb.namelist()
+    volatile = {"timings_s", "build_s", "bounds_pass_s", "memory_estimate_peak_bytes", "integrity"}
+
+    def meta(z):
+        def strip(v):
+            if isinstance(v, dict):
+                return {k: strip(x) for k, x in v.items() if k not in volatile}
+            return [strip(x) for x in v] if isinstance(v, list) else v
+        return strip(json.loads(str(np.load(io.BytesIO(z.read("meta.npy")))[()])))
+
+    for name in za.namelist():
+        if name != "meta.npy":
+            assert za.read(name) == zb.read(name), name
+    assert meta(za) == meta(zb)
+
+
+def test_prepare_map_and_localize_repeated_from_their_records(mine, tmp_path, capsys):
+    """``--config RECORD`` repeats a run: same bytes of the prepared map and of the trajectory, the
+    same result record but for its timings (issue 31: a run repeated from its own result)."""
+    a, b = tmp_path / "a.npz", tmp_path / "b.npz"
+    assert main(["-q", "prepare-map", "--map", str(mine["dir"] / "map_geo.ply"), "--out", str(a), "--profile", "fast",
+                 "--icp-voxel", "0.3"]) == 0
+    rec = json.loads((tmp_path / "a.npz.json").read_text())
+    assert rec["provenance"]["arguments"]["icp-voxel"] == 0.3 and rec["verb"] == "prepare-map"
+    assert main(["-q", "prepare-map", "--config", str(tmp_path / "a.npz.json"), "--out", str(b)]) == 0
+    _same_prepared_map(a, b)
+    scan, traj = mine["paths"]["ok"]
+    one, two = tmp_path / "one", tmp_path / "two"
+    assert _localize(a, scan, traj, one, "--no-cache", "--hypotheses", "3") == 0
+    r1 = json.loads((one / "result.json").read_text())
+    assert r1["provenance"]["arguments"]["hypotheses"] == 3
+    assert main(["-q", "localize", "--config", str(one / "result.json"), "--out", str(two)]) == 0
+    r2 = json.loads((two / "result.json").read_text())
+    assert (one / "trajectory_global.csv").read_bytes() == (two / "trajectory_global.csv").read_bytes()
+    assert json.dumps(_without(r1)) == json.dumps(_without(r2))
+    assert r2["provenance"]["arguments"] == {**r1["provenance"]["arguments"], "out": str(two)}
