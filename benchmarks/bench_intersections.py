@@ -41,6 +41,16 @@ ids are the tracker's own online entries: an entry's junction is the true juncti
 position of the keyframe that created it, and a recognition is correct when its nearest true junction
 is its entry's junction.
 
+``--imu``: the flight's IMU (``minegeo.synth.flight.write_flight_imu``: the 10 Hz poses joined by the
+interpolating cubic B-spline, gyro + accelerometer at 200 Hz with the ADIS16448 noise and bias random walk
+of the ``drone`` stream, seed = the flight's) is written as ``imu.csv`` next to the cached frames, read back
+as ``minegeo track --imu`` reads it, and given to every method: the odometry takes the gyro as each
+registration's rotation guess and rejects a registration that disagrees with it (the stretch is then held
+by the IMU and flagged); (a) and (b) run the LiDAR-inertial back end (``run_backend(imu=...)``: IMU
+preintegration factors between keyframes), (c) and (d) the tracker on that odometry (no factor from a held
+keyframe). ``--no-imu`` is the same run without it, labelled ``_noimu``. Every run lists the odometry's
+flagged (held) stretches.
+
 ``--corridor``: the corridor experiment in the spirit of Sec. 4.2: a 160 m drift with a crossing at
 40 m, a T at 80 m and a crossing at 120 m (4 m wide; roofs 3.0 / 3.6 / 4.2 m), flown out and back with
 two side legs (400 m); 20 "surveyed tags" on the drift walls at 1.5 m height; the error of a tag seen
@@ -112,40 +122,57 @@ def setup(args):
 
 
 # ---------------------------------------------------------------------------------------- methods
-def _odometry(frames, folder: Path, params):
+def _odometry(frames, folder: Path, params, imu=None):
+    from minegeo.slam.inertial import GyroAid
     from minegeo.slam.odometry import run_odometry
 
-    f = folder / f"odometry.{hashlib.sha256(repr(params).encode()).hexdigest()[:10]}.pkl"
+    key = hashlib.sha256((repr(params) + ("" if imu is None else f"imu {imu.source} {len(imu)}")).encode())
+    f = folder / f"odometry.{key.hexdigest()[:10]}{'' if imu is None else '.imu'}.pkl"
     if f.exists():
         with open(f, "rb") as fh:
             return pickle.load(fh)
     t0 = time.perf_counter()
-    odo = run_odometry(iter(frames), params)
+    odo = run_odometry(iter(frames), params, imu=None if imu is None else GyroAid(imu))
     out = (odo, time.perf_counter() - t0)
     with open(f, "wb") as fh:
         pickle.dump(out, fh)
     return out
 
 
-def run_slam_methods(frames, T0: np.ndarray, odometry) -> dict:
-    """(a) odometry and (b) odometry + loops, poses in the map frame (anchored at the true first pose)."""
+def held_summary(odo) -> dict:
+    """The odometry's flagged stretches (frames held by the motion prior or the IMU): count, frames, seconds
+    and each stretch (first/last frame, start time, seconds held, held by, reasons)."""
+    held = odo.held_stretches()
+    return {"stretches": len(held), "frames": int(sum(h["last"] - h["first"] + 1 for h in held)),
+            "held_s_total": float(sum(h["held_s"] for h in held)), "list": held}
+
+
+def run_slam_methods(frames, T0: np.ndarray, odometry, imu=None) -> dict:
+    """(a) odometry and (b) odometry + loops, poses in the map frame (anchored at the true first pose);
+    with ``imu`` the odometry is gyro-aided and the back end LiDAR-inertial."""
     from minegeo.slam.pipeline import SlamParams, run_backend
 
     params = SlamParams(use_planes=False, remove_noise=False, odometry=odometry)
-    odo, t_odo = _odometry(frames, frames.folder, params.odometry)
+    odo, t_odo = _odometry(frames, frames.folder, params.odometry, imu)
     _log(f"odometry: {len(odo.times_s)} frames, {odo.keyframes.size} keyframes, "
          f"{int((~odo.frame_ok).sum())} failed, {t_odo:.0f} s")
-    out = {"_odometry": odo, "_odo_keep": odo, "_odo_time": t_odo}
+    out = {"_odometry": odo, "_odo_keep": odo, "_odo_time": t_odo, "_held": held_summary(odo)}
     for name, loops in (("odometry", False), ("odometry + loops", True)):
         t0 = time.perf_counter()
-        res = run_backend(odo, params, use_loops=loops)
+        try:
+            res = run_backend(odo, params, use_loops=loops, imu=imu)
+        except Exception as exc:  # noqa: BLE001  (reported in the table, the other methods still count)
+            out[name] = {"error": f"failed: {type(exc).__name__}: {exc}", "traceback": traceback.format_exc(limit=4)}
+            continue
         out[name] = {"poses": np.einsum("ij,njk->nik", T0, res.poses), "time_s": t_odo + time.perf_counter() - t0,
                      "anchored": "true first pose", "loops_accepted": sum(c.accepted for c in res.loops),
                      "loop_candidates": len(res.loops), "failed_frames": int((~odo.frame_ok).sum())}
+        if imu is not None:
+            out[name]["inertial"] = getattr(getattr(res, "inertial", None), "status", None)
     return out
 
 
-def run_track(frames, kb, T0: np.ndarray, use_map: bool, odometry, odo=None) -> dict:
+def run_track(frames, kb, T0: np.ndarray, use_map: bool, odometry, odo=None, imu=None) -> dict:
     """``minegeo.semantic.tracking.track`` from the true first pose (``TrackParams.T_world_start``), on the
     odometry already computed for (a) and (b) when its parameters are the tracker's (the same frames)."""
     from minegeo.semantic.recognition import RecognitionParams
@@ -158,12 +185,13 @@ def run_track(frames, kb, T0: np.ndarray, use_map: bool, odometry, odo=None) -> 
         odo = None
     t0 = time.perf_counter()
     try:
-        res = track(iter(frames), kb, params, use_map=use_map, odometry=odo)
+        res = track(iter(frames), kb, params, use_map=use_map, odometry=odo, imu=imu)
     except Exception as exc:  # noqa: BLE001  (reported in the table, the other methods still count)
         return {"error": f"failed: {type(exc).__name__}: {exc}", "traceback": traceback.format_exc(limit=4)}
     t = time.perf_counter() - t0
     return {"poses": np.asarray(res.poses, dtype=np.float64), "times_s": np.asarray(res.times_s, float),
             "time_s": t, "anchored": "true first pose (TrackParams.T_world_start)", "status": res.status,
+            "reason": res.reason, "failed_frames": int((~res.odometry.frame_ok).sum()),
             "summary": res.summary(), "recognitions": [e.summary() for e in res.recognitions],
             "timings_s": {k: float(v) for k, v in res.timings_s.items()}, "_result": res,
             "_online_frames": res.keyframes[res.online_keyframes].tolist()}
@@ -304,26 +332,41 @@ def _fmt(x, f="{:.2f}"):
 def markdown(meta: dict, results: dict, corridor: dict | None) -> str:
     L = [f"# Drone flight through a drift network, Table I form ({meta['date']})", "", meta["conditions"], "",
          "| Method | MAE (m) | RMSE (m) | max (m) | REP-1 (%) | REP-2 (%) | REP-3 (%) | REP-4 (%) | REP-5 (%) "
-         "| precision | recall | time (s) |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+         "| precision | recall | failed frames | status | time (s) |",
+         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for m in METHODS:
         r = results.get(m, {})
         if "metrics" not in r:
-            L.append(f"| {m} | not available: {r.get('error', '?')} |||||||||||")
+            L.append(f"| {m} | not available: {r.get('error', '?')} |||||||||||||")
             continue
         x, rec = r["metrics"], r.get("recognition") or {}
         L.append(f"| {m} | {x['mae_m']:.2f} | {x['rmse_m']:.2f} | {x['max_m']:.2f} | "
                  + " | ".join(f"{x[f'rep{q}_pct']:.2f}" for q in range(1, 6))
                  + f" | {_fmt(rec.get('precision'), '{:.1%}')} | {_fmt(rec.get('recall'), '{:.1%}')} "
-                 f"| {r['time_s']:.0f} |")
+                 f"| {r.get('failed_frames', '–')} | {r.get('status', r.get('inertial') or '–')} | {r['time_s']:.0f} |")
     fl = meta["flight"]
     L += ["", f"Flight: {fl['path_length_m']:.0f} m, {fl['frames']} frames, {fl['duration_s']:.0f} s; route of "
           f"{fl['route_nodes']} nodes; junction passes: {fl['passes_per_junction']}; entry directions per junction: "
           f"{fl['directions_per_junction']}. Knowledge base: {meta['kb']}.", "",
           "Target (ours with map): RMSE <= 0.5 m over >= 3 km; recognition precision 100 %, recall >= 90 %: "
           + meta.get("target", "not evaluated"), ""]
+    held = meta.get("held")
+    if held is not None:
+        L += [f"IMU: {meta.get('imu', 'none')}.", "",
+              f"Flagged (held) stretches of the odometry: {held['stretches']} ({held['frames']} frames, "
+              f"{held['held_s_total']:.1f} s held)" + (":" if held["list"] else "."), ""]
+        if held["list"]:
+            L += ["| first frame | last frame | from (s) | held (s) | held by | reasons |", "|---|---|---|---|---|---|"]
+            for h in held["list"][:60]:
+                L.append(f"| {h['first']} | {h['last']} | {h['from_time_s']:.1f} | {h['held_s']:.1f} | "
+                         f"{h.get('held_by', 'motion prior')} | {'; '.join(h['reasons'])[:160]} |")
+            if len(held["list"]) > 60:
+                L.append(f"| ... {len(held['list']) - 60} more in the JSON | | | | | |")
+            L.append("")
     for m in METHODS:
         r = results.get(m, {})
-        extra = {k: v for k, v in r.items() if k in ("anchored", "loops_accepted", "loop_candidates", "failed_frames")}
+        extra = {k: v for k, v in r.items() if k in ("anchored", "loops_accepted", "loop_candidates", "failed_frames",
+                                                     "reason", "inertial")}
         if r.get("recognition"):
             extra["recognition"] = {k: v for k, v in r["recognition"].items() if k != "confusion"}
         if extra:
@@ -380,6 +423,9 @@ def main() -> None:  # noqa: PLR0915
                     help="SkeletonParams.floor_cell_m of the knowledge base and the tracker (library default 2 m)")
     ap.add_argument("--odometry", choices=("submap", "frame"), default="submap",
                     help="frame target of the GICP odometry of every method (OdometryParams.frame_target)")
+    g = ap.add_mutually_exclusive_group()
+    g.add_argument("--imu", action="store_true", help="simulate the flight's IMU and give it to every method")
+    g.add_argument("--no-imu", action="store_true", help="without the IMU, results labelled _noimu")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     ap.add_argument("--img", type=Path, default=REPO / "docs" / "img")
     args = ap.parse_args()
@@ -419,12 +465,26 @@ def main() -> None:  # noqa: PLR0915
     truth = frames.truth
     T0 = truth.poses[0]
     passes = junction_passes(truth.poses[:, :3, 3], J, PASS_M, VISIT_M)
+    imu, imu_txt = None, "none"
+    if args.imu:
+        from minegeo.io.imu import read_imu_csv
+        from minegeo.slam.inertial import InertialParams, check_imu_for_frames
+        from minegeo.synth.flight import write_flight_imu
+
+        imu_path = write_flight_imu(frames.folder, flight)
+        imu = read_imu_csv(imu_path)
+        check_imu_for_frames(imu, truth.times_s[0], truth.times_s[-1], InertialParams().max_gap_s, str(imu_path))
+        imu_txt = (f"{imu_path} ({len(imu)} samples, {imu.rate_hz:.0f} Hz, ImuParams() defaults: ADIS16448 noise "
+                   f"and bias random walk; seed {args.seed})")
+        _log(f"IMU: {imu_txt}")
     _log(f"flight {flight.path_length_m:.0f} m, {len(truth)} frames, {len(passes)} junction passes ({frames.folder})")
-    results = run_slam_methods(frames, T0, odometry)
+    results = run_slam_methods(frames, T0, odometry, imu)
+    held = results.pop("_held")
+    _log(f"held stretches: {held['stretches']} ({held['frames']} frames, {held['held_s_total']:.1f} s)")
     for m, use_map in (("ours (no map)", False), ("ours (map)", True)):
         _log(f"{m} ...")
         results[m] = run_track(frames, kb, T0, use_map, odometry, results.pop("_odometry", None) if not use_map
-                               else results.get("_odo_keep"))
+                               else results.get("_odo_keep"), imu=imu)
         if "time_s" in results[m]:
             results[m]["time_s"] += results.get("_odo_time", 0.0)
     for k in ("_odometry", "_odo_keep", "_odo_time"):
@@ -444,7 +504,8 @@ def main() -> None:  # noqa: PLR0915
         else:
             _log(f"{m}: {r['error']}")
     tag = "corridor" if args.corridor else args.network
-    variant = ("" if args.roughness_m > 0 else "_flat") + ("" if args.odometry == "submap" else "_f2f")
+    variant = (("" if args.roughness_m > 0 else "_flat") + ("" if args.odometry == "submap" else "_f2f")
+               + ("_imu" if args.imu else "_noimu" if args.no_imu else ""))
     suffix = f"{tag}{variant}{'_quick' if args.quick else ''}"
     date = time.strftime("%Y-%m-%d")
     args.out.mkdir(parents=True, exist_ok=True)
@@ -473,7 +534,7 @@ def main() -> None:  # noqa: PLR0915
     meta = {"date": date, "conditions": __doc__.split("\n\n")[1].replace("\n", " "), "seed": args.seed,
             "network": tag, "quick": args.quick, "roughness_m": args.roughness_m, "odometry": args.odometry,
             "floor_cell_m": args.floor_cell_m, "kb": kb_txt, "flight": _flight_meta(net, flight, truth, J, passes),
-            "target": target, "git": _git(), "threads": args.threads, "wall_s": time.perf_counter() - wall0,
+            "target": target, "imu": imu_txt, "held": held, "git": _git(), "threads": args.threads, "wall_s": time.perf_counter() - wall0,
             "machine": f"{os.cpu_count()} cores; uptime at the start: {uptime_start}; at the end: {_uptime()}",
             "cache": str(frames.folder)}
     clean = {m: {k: v for k, v in r.items() if k not in ("poses", "times_s", "recognitions", "traceback")}
