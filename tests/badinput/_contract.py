@@ -46,6 +46,7 @@ from collections.abc import Iterable
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from minegeo.cli import main
@@ -400,3 +401,29 @@ def a_file(d: Path, name: str = "afile") -> Path:
     f = d / name
     f.write_text("keep", encoding="utf-8")
     return f
+
+
+#: times of an IMU that covers :func:`write_box_room_frames`' frames (0.0-0.3 s) at 200 Hz
+IMU_T = np.arange(-0.05, 0.40, 0.005)
+
+
+def write_box_room_frames(d, n: int = 4):
+    """``n`` small box-room frames (600 points on the faces of a 6 x 4 x 3 m box, moving 0.1 m along x
+    per frame) at 0.0, 0.1, ... s into the new folder ``d`` with their ``times.txt``; returns ``d``."""
+    from minegeo.io import PointCloud, write_point_cloud
+
+    d.mkdir()
+    rng = np.random.default_rng(29)
+    half = np.array([3.0, 2.0, 1.5])
+    for k in range(n):
+        u = rng.uniform(-1.0, 1.0, (600, 3)) * half
+        face = rng.integers(0, 3, 600)
+        u[np.arange(600), face] = np.sign(u[np.arange(600), face]) * half[face]
+        write_point_cloud(d / f"{k:06d}.ply", PointCloud(points=u + [0.1 * k, 0.0, 0.0]))
+    (d / "times.txt").write_text("".join(f"{0.1 * k:.6f}\n" for k in range(n)))
+    return d
+
+
+def imu_rows(t) -> list[str]:
+    """IMU CSV rows at times ``t``: a small constant x rate and gravity on z (the contract's units)."""
+    return [f"{x:.6f},0.01,0.0,0.0,0.0,0.0,9.80665" for x in t]

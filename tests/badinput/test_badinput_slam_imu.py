@@ -11,25 +11,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _contract import assert_user_error, copy_tree, run_cli
+from _contract import IMU_T, assert_user_error, copy_tree, imu_rows, run_cli, write_box_room_frames
 
 N_FRAMES = 4
 
 
 @pytest.fixture(scope="module")
 def frames_src(tmp_path_factory):
-    from minegeo.io import PointCloud, write_point_cloud
-
-    d = tmp_path_factory.mktemp("imu_frames_src") / "frames"
-    d.mkdir()
-    rng = np.random.default_rng(29)
-    for k in range(N_FRAMES):
-        u = rng.uniform(-1.0, 1.0, (600, 3)) * [3.0, 2.0, 1.5]
-        face = rng.integers(0, 3, 600)
-        u[np.arange(600), face] = np.sign(u[np.arange(600), face]) * np.array([3.0, 2.0, 1.5])[face]
-        write_point_cloud(d / f"{k:06d}.ply", PointCloud(points=u + [0.1 * k, 0.0, 0.0]))
-    (d / "times.txt").write_text("".join(f"{0.1 * k:.6f}\n" for k in range(N_FRAMES)))
-    return d
+    return write_box_room_frames(tmp_path_factory.mktemp("imu_frames_src") / "frames", N_FRAMES)
 
 
 @pytest.fixture
@@ -37,8 +26,7 @@ def frames(frames_src, tmp_path):
     return copy_tree(frames_src, tmp_path / "frames")
 
 
-def _rows(t) -> list[str]:
-    return [f"{x:.6f},0.01,0.0,0.0,0.0,0.0,9.80665" for x in t]
+_rows = imu_rows
 
 
 def _imu(tmp: Path, rows: list[str], header: str = "t,gx,gy,gz,ax,ay,az") -> Path:
@@ -47,7 +35,7 @@ def _imu(tmp: Path, rows: list[str], header: str = "t,gx,gy,gz,ax,ay,az") -> Pat
     return p
 
 
-GOOD_T = np.arange(-0.05, 0.40, 0.005)
+GOOD_T = IMU_T
 
 #: case -> (rows of the IMU CSV or a header, extra options, text the error line must hold)
 CASES = {

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _contract import assert_user_error, copy_tree, run_cli
+from _contract import IMU_T, assert_user_error, copy_tree, imu_rows, run_cli, write_box_room_frames
 
 N_FRAMES = 4
-GOOD_T = np.arange(-0.05, 0.40, 0.005)
+GOOD_T = IMU_T
 
 
 @pytest.fixture(scope="module")
@@ -29,15 +29,7 @@ def scene(tmp_path_factory):
     net = DriftNetwork(np.array([[-15.0, 0.0], [15.0, 0.0]]), np.array([[0, 1]]), np.array([4.5]), np.array([3.6, 3.6]))
     write_point_cloud(d / "map.ply", PointCloud(points=network_cloud(net, spacing_m=0.4, seed=2).points))
     assert main(["-q", "intersections", "build", "--map", str(d / "map.ply"), "--out", str(d / "kb.npz")]) == 1
-    f = d / "frames"
-    f.mkdir()
-    rng = np.random.default_rng(29)
-    for k in range(N_FRAMES):
-        u = rng.uniform(-1.0, 1.0, (600, 3)) * [3.0, 2.0, 1.5]
-        face = rng.integers(0, 3, 600)
-        u[np.arange(600), face] = np.sign(u[np.arange(600), face]) * np.array([3.0, 2.0, 1.5])[face]
-        write_point_cloud(f / f"{k:06d}.ply", PointCloud(points=u + [0.1 * k, 0.0, 0.0]))
-    (f / "times.txt").write_text("".join(f"{0.1 * k:.6f}\n" for k in range(N_FRAMES)))
+    write_box_room_frames(d / "frames", N_FRAMES)
     return d
 
 
@@ -48,7 +40,7 @@ def frames(scene, tmp_path):
 
 def _imu(tmp: Path, t) -> Path:
     p = tmp / "imu.csv"
-    p.write_text("t,gx,gy,gz,ax,ay,az\n" + "".join(f"{x:.6f},0.01,0.0,0.0,0.0,0.0,9.80665\n" for x in t))
+    p.write_text("t,gx,gy,gz,ax,ay,az\n" + "".join(r + "\n" for r in imu_rows(t)))
     return p
 
 
