@@ -1,10 +1,13 @@
 """The ``--imu`` options shared by ``minegeo slam`` and ``minegeo track``: their arguments, the IMU
 read and checked before any work, and its coverage of the frames (docs/slam.md, "LiDAR-inertial SLAM").
 
-* :func:`add_imu_arguments`: ``--imu IMU.csv``, ``--imu-extrinsic T``, ``--imu-max-gap S``.
+* :func:`add_imu_arguments`: ``--imu IMU.csv``, ``--imu-extrinsic T``, ``--imu-max-gap S``,
+  ``--imu-noise imu.yaml``.
 * :func:`read_imu`: the samples (:class:`minegeo.io.imu.ImuSamples`) of an IMU CSV or a ROS bag's
   ``sensor_msgs/Imu`` topic, or None without ``--imu`` (``--imu-extrinsic``/``--imu-max-gap`` without
   ``--imu`` are refused).
+* :func:`inertial_params`: the LiDAR-inertial parameters of the options (the IMU's noise from
+  ``--imu-noise``, Kalibr's ``imu.yaml``; :func:`minegeo.io.imu.read_imu_noise`), or None.
 * :func:`check_imu`: the samples cover the frames' time span without a gap over ``--imu-max-gap``
   (:func:`minegeo.slam.inertial.check_imu_for_frames`).
 
@@ -17,7 +20,7 @@ from pathlib import Path
 
 from minegeo.cli._argtypes import positive_float
 
-__all__ = ["add_imu_arguments", "read_imu", "check_imu"]
+__all__ = ["add_imu_arguments", "read_imu", "inertial_params", "check_imu"]
 
 
 def add_imu_arguments(parser, uses: str) -> None:
@@ -30,6 +33,10 @@ def add_imu_arguments(parser, uses: str) -> None:
                    help="T_lidar_imu: 16 numbers (4x4, row-major) or 'x y z qx qy qz qw', inline or in a file")
     i.add_argument("--imu-max-gap", type=positive_float, default=None, metavar="S",
                    help="longest time without an IMU sample within the frames' span (s, default 0.05)")
+    i.add_argument("--imu-noise", default=None, metavar="imu.yaml",
+                   help="the IMU's noise as Kalibr's imu.yaml gives it (gyroscope_noise_density rad/s/sqrt(Hz), "
+                        "gyroscope_random_walk, accelerometer_noise_density, accelerometer_random_walk); default: "
+                        "an ADIS16448-class MEMS IMU (minegeo.optim.imu.ImuNoise)")
 
 
 def read_imu(args):
@@ -42,7 +49,8 @@ def read_imu(args):
     from minegeo.errors import InputError
 
     if getattr(args, "imu", None) is None:
-        for opt, name in (("imu_extrinsic", "--imu-extrinsic"), ("imu_max_gap", "--imu-max-gap")):
+        for opt, name in (("imu_extrinsic", "--imu-extrinsic"), ("imu_max_gap", "--imu-max-gap"),
+                          ("imu_noise", "--imu-noise")):
             if getattr(args, opt, None) is not None:
                 raise InputError(f"{name} needs --imu IMU.csv (the IMU it applies to)")
         return None
@@ -57,6 +65,25 @@ def read_imu(args):
     if args.imu_extrinsic is None:
         return imu
     return replace(imu, T_lidar_imu=parse_extrinsic(args.imu_extrinsic), frame="imu")
+
+
+def inertial_params(args):
+    """:class:`~minegeo.slam.inertial.InertialParams` of the options (``--imu-noise``, ``--imu-max-gap``),
+    or None without ``--imu`` (read before any work: a bad noise file is one line, exit 2)."""
+    if getattr(args, "imu", None) is None:
+        return None
+    from dataclasses import replace
+
+    from minegeo.io.imu import read_imu_noise
+    from minegeo.optim.imu import ImuNoise
+    from minegeo.slam.inertial import InertialParams
+
+    p = InertialParams()
+    if getattr(args, "imu_noise", None) is not None:
+        p = replace(p, noise=ImuNoise(**read_imu_noise(args.imu_noise)))
+    if getattr(args, "imu_max_gap", None) is not None:
+        p = replace(p, max_gap_s=float(args.imu_max_gap))
+    return p
 
 
 def check_imu(imu, files, args) -> None:

@@ -12,10 +12,11 @@ from __future__ import annotations
 import logging
 import stat
 import sys
+from dataclasses import asdict
 from pathlib import Path
 
 from minegeo.cli._argtypes import finite_float, float_in_range, int_in_range, nonnegative_int, positive_float
-from minegeo.cli._imu import add_imu_arguments, check_imu, read_imu
+from minegeo.cli._imu import add_imu_arguments, check_imu, inertial_params, read_imu
 
 HELP = "LiDAR SLAM from a folder of frames: GICP odometry, loop closure, pose graph; trajectory + map (Ren et al. 2019)"
 
@@ -478,7 +479,9 @@ def run(args) -> int:
         inputs_named["--control"] = args.control
     dxf_out = {"--dxf": args.dxf} if getattr(args, "dxf", None) else {}
     imu = read_imu(args)
+    inertial = inertial_params(args)
     inputs_named.update({"--imu": args.imu} if imu is not None else {})
+    inputs_named.update({"--imu-noise": args.imu_noise} if getattr(args, "imu_noise", None) else {})
     with OutputTransaction("slam", inputs=inputs_named, folders={"--out": out}, files=dxf_out) as tx:
         files = list_frames(args.frames, args.times, args.pattern, args.lidar_topic)
         _check_times(files)
@@ -497,7 +500,7 @@ def run(args) -> int:
         try:
             with bar, timer("slam"):
                 res = run_slam(_frames(files, skipped, bar, params.odometry.min_points, params.odometry.deskew),
-                               params, imu=imu)
+                               params, imu=imu, inertial=inertial)
         except InputError:
             if files and len(skipped) == len(files):  # every frame skipped: say why, not "the sequence is empty"
                 raise InputError(_all_skipped(args.frames, skipped)) from None
@@ -512,6 +515,8 @@ def run(args) -> int:
             inputs.append({"path": str(args.times), "sha256": sha256_file(args.times)})
         if imu is not None:
             inputs.append({"path": str(args.imu), "sha256": sha256_file(args.imu) if Path(args.imu).is_file() else None})
+            if getattr(args, "imu_noise", None):
+                inputs.append({"path": str(args.imu_noise), "sha256": sha256_file(args.imu_noise)})
         stage = tx.folder("--out")
         with timer("write"):
             _write_outputs(stage, res, sorted(used))
@@ -537,6 +542,7 @@ def run(args) -> int:
             "outputs": {n: str(out / n) for n in ("trajectory.tum", "keyframes.tum", "graph.g2o", "loops.csv", "map.ply",
                                                   "result.json", "report.html")},
             **({"control": control_rec} if control_rec is not None else {}),
+            **({"imu_noise": asdict(inertial.noise)} if inertial is not None else {}),
             "module_timings_s": res.timings_s,
             "timings_s": {**timer.as_dict(), **run_timings(args)},
             "provenance": provenance(seed=args.seed, inputs=inputs),

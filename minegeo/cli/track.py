@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import sys
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 from minegeo.cli._argtypes import (
@@ -31,7 +31,7 @@ from minegeo.cli._argtypes import (
     positive_float,
     positive_int,
 )
-from minegeo.cli._imu import add_imu_arguments, check_imu, read_imu
+from minegeo.cli._imu import add_imu_arguments, check_imu, inertial_params, read_imu
 
 HELP = "LiDAR tracking with intersection recognition against a knowledge base (Liang et al. 2024)"
 
@@ -223,8 +223,12 @@ def run(args) -> int:
     params = _params(args)
     out = Path(args.out)
     named = {"--frames": args.frames, "--db": args.db, **({"--times": args.times} if args.times else {}),
-             **({"--truth": args.truth} if args.truth else {}), **({"--imu": args.imu} if args.imu else {})}
+             **({"--truth": args.truth} if args.truth else {}), **({"--imu": args.imu} if args.imu else {}),
+             **({"--imu-noise": args.imu_noise} if getattr(args, "imu_noise", None) else {})}
     imu = read_imu(args)
+    inertial = inertial_params(args)
+    from minegeo.slam.inertial import GyroAid
+
     with OutputTransaction("track", inputs=named, folders={"--out": out}) as tx:
         kb = IntersectionKB.load(args.db)
         _check_frames(args, kb)
@@ -249,7 +253,7 @@ def run(args) -> int:
             with bar, timer("track"):
                 # per-point times (the gyro deskew) only with --imu: without it the frames are as before
                 res = track(_frames(files, skipped, bar, params.odometry.min_points, imu is not None), kb, params,
-                            use_map=not args.no_map, imu=imu)
+                            use_map=not args.no_map, imu=None if imu is None else GyroAid(imu, inertial))
         finally:
             reg_log.setLevel(level)
             odo_log.removeHandler(held)
@@ -272,11 +276,13 @@ def run(args) -> int:
             result["truth"] = {"rmse_m": float(np.sqrt(np.mean(e**2))), "max_m": float(e.max()),
                                "mean_m": float(e.mean()), "n": int(e.size)}
         inputs = files.inputs()
-        inputs += [{"path": str(p), "sha256": sha256_file(p)} for p in (args.db, args.times, args.truth, args.imu)
+        inputs += [{"path": str(p), "sha256": sha256_file(p)}
+                   for p in (args.db, args.times, args.truth, args.imu, getattr(args, "imu_noise", None))
                    if p and Path(p).is_file()]
         summary = {"command": "track", "status": res.status, "reason": res.reason, "parameters": params.as_dict(),
                    "inputs": {"frames": str(args.frames), "db": str(args.db)}, "result": result,
                    "outputs": {n: str(out / n) for n in [*names, "result.json", "report.html"]},
+                   **({"imu_noise": asdict(inertial.noise)} if inertial is not None else {}),
                    "module_timings_s": res.timings_s, "timings_s": {**timer.as_dict(), **run_timings(args)},
                    "provenance": provenance(seed=args.seed, origin=kb.georef.get("origin_m"), inputs=inputs)}
         write_json_atomic(stage / "result.json", summary)

@@ -20,6 +20,7 @@ The conventions are those of the SLAM contract ("Sensor streams"):
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,7 +32,14 @@ from minegeo.io._quat import normalize_quat, quat_to_matrix, quaternion_problem,
 from minegeo.io._text import data_line_locator, parse_table
 from minegeo.io.trajectory import time_problem
 
-__all__ = ["ImuSamples", "IMU_CSV_HEADER", "read_imu_csv", "write_imu_csv", "parse_extrinsic", "imu_samples"]
+__all__ = ["ImuSamples", "IMU_CSV_HEADER", "IMU_NOISE_KEYS", "read_imu_csv", "read_imu_noise", "write_imu_csv",
+           "parse_extrinsic", "imu_samples"]
+
+#: the noise figures of Kalibr's ``imu.yaml`` (continuous-time: rad/s/√Hz, rad/s²/√Hz, m/s²/√Hz, m/s³/√Hz)
+IMU_NOISE_KEYS = ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
+                  "accelerometer_random_walk")
+#: largest IMU noise file read (a Kalibr imu.yaml is a few hundred bytes)
+MAX_IMU_NOISE_BYTES = 1 << 20
 
 log = logging.getLogger(__name__)
 
@@ -281,3 +289,49 @@ def parse_extrinsic(value) -> np.ndarray:
     if prob is not None:
         raise InputError(f"{where}: {prob[1]}")
     return T
+
+
+def read_imu_noise(path) -> dict[str, float]:
+    """The four noise figures of an IMU from a Kalibr ``imu.yaml``.
+
+    The file holds ``key: value`` lines (Kalibr's format; ``#`` starts a comment; other keys such as
+    ``rostopic`` and ``update_rate`` are ignored; a key may be indented under one IMU's name):
+
+    ``gyroscope_noise_density`` σ_g (rad/s/√Hz), ``gyroscope_random_walk`` σ_bg (rad/s²/√Hz),
+    ``accelerometer_noise_density`` σ_a (m/s²/√Hz), ``accelerometer_random_walk`` σ_ba (m/s³/√Hz),
+    the continuous-time densities of Allan-variance analysis (Kalibr's IMU noise model wiki;
+    Forster et al. 2017 Sec. IV).
+
+    Returns
+    -------
+    dict
+        ``{key: value}`` for the four :data:`IMU_NOISE_KEYS`, each finite and > 0.
+
+    Raises
+    ------
+    FileFormatError
+        A key missing or given twice (a file of several IMUs), a value that is not a positive finite
+        number; the line is named.
+    """
+    p = Path(path)
+    text = read_file_text(p, encoding="utf-8-sig", max_bytes=MAX_IMU_NOISE_BYTES, what="IMU noise file")
+    found: dict[str, tuple[float, int]] = {}
+    for k, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        key, sep, value = line.partition(":")
+        key = key.strip().strip("'\"")
+        if not sep or key not in IMU_NOISE_KEYS:
+            continue
+        if key in found:
+            raise FileFormatError(p, f"line {k}: {key} given again (line {found[key][1]}); give the noise of one IMU")
+        try:
+            v = float(value.strip().strip("'\""))
+        except ValueError:
+            v = float("nan")
+        if not (math.isfinite(v) and v > 0):
+            raise FileFormatError(p, f"line {k}: {key} must be a positive number, got {value.strip()[:40]!r}")
+        found[key] = (v, k)
+    missing = [key for key in IMU_NOISE_KEYS if key not in found]
+    if missing:
+        raise FileFormatError(p, f"IMU noise file (Kalibr imu.yaml) without {', '.join(missing)}")
+    return {key: found[key][0] for key in IMU_NOISE_KEYS}

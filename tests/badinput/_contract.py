@@ -427,3 +427,36 @@ def write_box_room_frames(d, n: int = 4):
 def imu_rows(t) -> list[str]:
     """IMU CSV rows at times ``t``: a small constant x rate and gravity on z (the contract's units)."""
     return [f"{x:.6f},0.01,0.0,0.0,0.0,0.0,9.80665" for x in t]
+
+
+#: a Kalibr imu.yaml (its own layout: topic, rate, the four densities) with figures unlike the defaults
+KALIBR_IMU_YAML = """#Accelerometers
+accelerometer_noise_density: 1.86e-03   #Noise density (continuous-time)
+accelerometer_random_walk:   4.33e-04   #Bias random walk
+
+#Gyroscopes
+gyroscope_noise_density:     1.87e-04   #Noise density (continuous-time)
+gyroscope_random_walk:       2.66e-05   #Bias random walk
+
+rostopic:                    /imu0      #the IMU ROS topic
+update_rate:                 200.0      #Hz (for discretization of the values above)
+"""
+#: the figures of :data:`KALIBR_IMU_YAML`, typed by hand
+KALIBR_IMU_NOISE = {"gyroscope_noise_density": 1.87e-04, "gyroscope_random_walk": 2.66e-05,
+                    "accelerometer_noise_density": 1.86e-03, "accelerometer_random_walk": 4.33e-04}
+
+
+def capture_gyro_aid_noise(monkeypatch) -> list:
+    """Record the IMU noise every :class:`minegeo.slam.inertial.GyroAid` is made with (the engine's view)."""
+    from dataclasses import asdict
+
+    from minegeo.slam import inertial
+
+    seen, init = [], inertial.GyroAid.__init__
+
+    def spy(self, imu, params=None):
+        init(self, imu, params)
+        seen.append(asdict(self.params.noise))
+
+    monkeypatch.setattr(inertial.GyroAid, "__init__", spy)
+    return seen

@@ -7,11 +7,22 @@ The frames are 4 small box-room clouds at 0.0-0.3 s; every case fails before the
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
-from _contract import IMU_T, assert_user_error, copy_tree, imu_rows, run_cli, write_box_room_frames
+from _contract import (
+    IMU_T,
+    KALIBR_IMU_NOISE,
+    KALIBR_IMU_YAML,
+    assert_user_error,
+    capture_gyro_aid_noise,
+    copy_tree,
+    imu_rows,
+    run_cli,
+    write_box_room_frames,
+)
 
 N_FRAMES = 4
 
@@ -75,12 +86,43 @@ def test_imu_options_need_imu(frames, tmp_path, capsys):
                       capsys, inputs=[frames], outputs=[out])
 
 
-def test_a_good_imu_runs(frames, tmp_path, capsys):
-    """The same frames with an IMU that covers them run (the cases above fail on the IMU alone)."""
+#: noise file text -> text the error line must hold
+BAD_NOISE = {
+    "a key missing": (KALIBR_IMU_YAML.replace("gyroscope_random_walk", "gyro_rw"), "without gyroscope_random_walk"),
+    "a negative density": (KALIBR_IMU_YAML.replace("1.86e-03", "-1.86e-03"), "line 2: accelerometer_noise_density"),
+    "not a number": (KALIBR_IMU_YAML.replace("2.66e-05", "small"), "line 7: gyroscope_random_walk must be"),
+    "two IMUs": ("imu0:\n" + KALIBR_IMU_YAML.replace("\n", "\n  ") + "imu1:\n  gyroscope_noise_density: 1e-4\n",
+                 "gyroscope_noise_density given again"),
+    "empty": ("", "without gyroscope_noise_density"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_NOISE))
+def test_bad_imu_noise_is_one_line_exit_2(case, frames, tmp_path, capsys):
+    text, expect = BAD_NOISE[case]
+    imu, noise, out = _imu(tmp_path, _rows(GOOD_T)), tmp_path / "imu.yaml", tmp_path / "out"
+    noise.write_text(text)
+    assert_user_error("slam", ["--frames", str(frames), "--imu", str(imu), "--imu-noise", str(noise), "--out", str(out)],
+                      capsys, inputs=[frames, imu, noise], outputs=[out], expect=expect)
+    assert_user_error("slam", ["--frames", str(frames), "--imu-noise", str(noise), "--out", str(out)], capsys,
+                      inputs=[frames, noise], outputs=[out], expect="--imu-noise needs --imu")
+
+
+def test_a_good_imu_runs(frames, tmp_path, capsys, monkeypatch):
+    """The same frames with an IMU that covers them run (the cases above fail on the IMU alone); the
+    IMU's noise from a Kalibr imu.yaml reaches the engine and the record."""
     imu = _imu(tmp_path, _rows(GOOD_T))
+    noise = tmp_path / "imu.yaml"
+    noise.write_text(KALIBR_IMU_YAML)
+    seen = capture_gyro_aid_noise(monkeypatch)
     out = tmp_path / "out"
     code, _, lines = run_cli("slam", ["--frames", str(frames), "--imu", str(imu), "--keyframe-distance", "0.15",
-                                      "--out", str(out), "--no-planes"], capsys,
+                                      "--out", str(out), "--no-planes", "--imu-noise", str(noise)], capsys,
                                  timeout_s=600)  # a whole run, compiling on a cold cache: a hang guard only
     assert code == 0, lines
     assert (out / "trajectory.tum").is_file()
+    want = {**KALIBR_IMU_NOISE, "integration_sigma": 0.0}
+    assert seen and all(s == want for s in seen)
+    rec = json.loads((out / "result.json").read_text())
+    assert rec["imu_noise"] == want
+    assert str(noise) in {i["path"] for i in rec["provenance"]["inputs"]}

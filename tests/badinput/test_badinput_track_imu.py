@@ -9,11 +9,22 @@ odometry, and the same frames with an IMU that covers them run (exit 1: no inter
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
-from _contract import IMU_T, assert_user_error, copy_tree, imu_rows, run_cli, write_box_room_frames
+from _contract import (
+    IMU_T,
+    KALIBR_IMU_NOISE,
+    KALIBR_IMU_YAML,
+    assert_user_error,
+    capture_gyro_aid_noise,
+    copy_tree,
+    imu_rows,
+    run_cli,
+    write_box_room_frames,
+)
 
 N_FRAMES = 4
 GOOD_T = IMU_T
@@ -76,10 +87,16 @@ def test_imu_a_folder_or_missing(scene, frames, tmp_path, capsys):
     assert_user_error("track", [*base, "--imu", str(tmp_path / "nope.csv")], capsys, inputs=[frames], outputs=[out])
 
 
-def test_a_good_imu_runs(scene, frames, tmp_path, capsys):
-    """The same frames with an IMU that covers them run (the cases above fail on the IMU alone)."""
-    out = tmp_path / "out"
+def test_a_good_imu_runs(scene, frames, tmp_path, capsys, monkeypatch):
+    """The same frames with an IMU that covers them run (the cases above fail on the IMU alone); the
+    IMU's noise from a Kalibr imu.yaml reaches the engine and the record."""
+    out, noise = tmp_path / "out", tmp_path / "imu.yaml"
+    noise.write_text(KALIBR_IMU_YAML)
+    seen = capture_gyro_aid_noise(monkeypatch)
     code, _, lines = run_cli("track", ["--frames", str(frames), "--db", str(scene / "kb.npz"), "--imu",
-                                       str(_imu(tmp_path, GOOD_T)), "--keyframe-distance", "0.15", "--out", str(out)],
-                             capsys)
+                                       str(_imu(tmp_path, GOOD_T)), "--keyframe-distance", "0.15", "--out", str(out),
+                                       "--imu-noise", str(noise)], capsys)
     assert code == 1 and (out / "trajectory.tum").is_file(), lines  # 1: the base holds no intersection
+    want = {**KALIBR_IMU_NOISE, "integration_sigma": 0.0}
+    assert seen and all(s == want for s in seen)
+    assert json.loads((out / "result.json").read_text())["imu_noise"] == want

@@ -136,3 +136,22 @@ def test_extrinsic_matrix_text_file_and_array(tmp_path):
 def test_bad_extrinsic(value, expect):
     with pytest.raises(InputError, match=expect):
         parse_extrinsic(value)
+
+
+def test_imu_noise_from_a_kalibr_yaml_flat_or_under_one_imu(tmp_path):
+    """Kalibr's imu.yaml (flat) and an imu-chain file of one IMU (keys indented under its name) give the
+    four figures typed here by hand; quotes, comments and the other keys do not matter."""
+    from minegeo.io.imu import read_imu_noise
+
+    want = {"gyroscope_noise_density": 1.6968e-04, "gyroscope_random_walk": 1.9393e-05,
+            "accelerometer_noise_density": 2.0e-3, "accelerometer_random_walk": 3.0e-3}
+    flat = tmp_path / "imu.yaml"
+    flat.write_text("rostopic: /imu0\nupdate_rate: 200.0  # Hz\n"
+                    "gyroscope_noise_density: 1.6968e-04\ngyroscope_random_walk: '1.9393e-05'\n"
+                    "accelerometer_noise_density: 2.0e-3 # white\naccelerometer_random_walk: \"3.0e-3\"\n")
+    chain = tmp_path / "imu_chain.yaml"
+    chain.write_text("imu0:\n  T_i_b:\n  - [1.0, 0.0, 0.0, 0.0]\n  accelerometer_noise_density: 2.0e-3\n"
+                     "  accelerometer_random_walk: 3.0e-3\n  gyroscope_noise_density: 1.6968e-04\n"
+                     "  gyroscope_random_walk: 1.9393e-05\n  model: calibrated\n")
+    assert read_imu_noise(flat) == want
+    assert read_imu_noise(chain) == want
