@@ -86,7 +86,7 @@ def cell_key(ix, iy, iz, nx, ny, morton):
     return ix + nx * (iy + ny * iz)
 
 
-@njit_parallel
+@njit
 def grid_cell_keys(points, origin, inv_cell, nx, ny, nz, morton, out_keys):
     """Cell key of ``i = floor((p - origin) * inv_cell)``, clamped into the grid (for queries
     outside it; indexed points are always inside)."""
@@ -494,7 +494,7 @@ def normals_from_neighborhoods(points, row0, idx, counts, mode_open3d, degenerat
                                    degenerate_ratio, A, V, w, tmp, out_n, out_eval, out_status)
 
 
-@njit_parallel
+@njit
 def orient_normals(points, normals, targets, target_index, skip):
     """Flip n_i when n_i . (s_k - p_i) < 0 with s_k = targets[target_index[i]]; skip[i] leaves it."""
     n = points.shape[0]
@@ -554,7 +554,7 @@ def bounds3(points):
     return lo, hi
 
 
-@njit_parallel
+@njit
 def voxel_linear_keys(points, origin, voxel, d1, d2, out_keys):
     """Linear voxel key ``(kx*d1 + ky)*d2 + kz`` with ``k = floor((p - origin) / voxel)``."""
     for i in prange(points.shape[0]):
@@ -583,7 +583,7 @@ def group_starts(keys, order):
     return starts
 
 
-@njit_parallel
+@njit
 def group_members(order, starts, out_group):
     """``out_group[order[j]] = g`` for every j in group g."""
     for g in prange(starts.shape[0] - 1):
@@ -591,7 +591,7 @@ def group_members(order, starts, out_group):
             out_group[order[j]] = g
 
 
-@njit_parallel
+@njit
 def voxel_reduce(points, normals, has_normals, order, starts, out_points, out_normals):
     """Per-voxel mean in input order; normals summed skipping NaN rows and divided by the count."""
     nv = starts.shape[0] - 1

@@ -323,7 +323,7 @@ def feature_mean_cov(X):
     return mu, C
 
 
-@njit_parallel
+@njit
 def feature_rotate(X, mu, V):
     """``(X - mu) V`` row by row (rows independent: the result does not depend on threads)."""
     n, dim = X.shape
@@ -457,9 +457,9 @@ def feature_tree_pack(B, P, perm, lstart):
     return lead, Bp, loT, hiT
 
 
-@njit_parallel
+@njit
 def feature_tree_nn(A, Q, perm, lstart, lead, Bp, loT, hiT, delta):
-    """Exact nearest row of ``B`` (stored in the tree) for every row of ``A``; parallel over rows.
+    """Exact nearest row of ``B`` (stored in the tree) for every row of ``A`` (rows independent).
 
     ``Q (na, nrot)`` are the rows of ``A`` in the tree's rotated coordinates. With
     ``best`` the smallest exact distance found so far, a rotated partial squared distance

@@ -198,7 +198,7 @@ def _noise(px, py, pz, waves, octaves, zones):
     return ob + tex
 
 
-@njit_parallel
+@njit
 def noise_parts_many(P, waves, octaves, zones, out_ob, out_tex):
     """Overbreak and texture parts of the roughness at every row of ``P``."""
     for i in prange(P.shape[0]):
@@ -273,7 +273,7 @@ def _sdf_point(px, py, pz, grid_f, grid_i, void_prims, void_type, v_start, v_ite
     return rock
 
 
-@njit_parallel
+@njit
 def sdf_many(P, grid_f, grid_i, void_prims, void_type, v_start, v_items,
              solid_prims, solid_type, s_start, s_items, waves, octaves, zones,
              veh_T_inv, veh_prims, veh_type, veh_sphere, with_noise, with_solids, out):
