@@ -147,7 +147,7 @@ def held_summary(odo) -> dict:
             "held_s_total": float(sum(h["held_s"] for h in held)), "list": held}
 
 
-def run_slam_methods(frames, T0: np.ndarray, odometry, imu=None) -> dict:
+def run_slam_methods(frames, T0: np.ndarray, odometry, imu=None, methods=METHODS) -> dict:
     """(a) odometry and (b) odometry + loops, poses in the map frame (anchored at the true first pose);
     with ``imu`` the odometry is gyro-aided and the back end LiDAR-inertial."""
     from minegeo.slam.pipeline import SlamParams, run_backend
@@ -158,6 +158,8 @@ def run_slam_methods(frames, T0: np.ndarray, odometry, imu=None) -> dict:
          f"{int((~odo.frame_ok).sum())} failed, {t_odo:.0f} s")
     out = {"_odometry": odo, "_odo_keep": odo, "_odo_time": t_odo, "_held": held_summary(odo)}
     for name, loops in (("odometry", False), ("odometry + loops", True)):
+        if name not in methods:
+            continue
         t0 = time.perf_counter()
         try:
             res = run_backend(odo, params, use_loops=loops, imu=imu)
@@ -337,7 +339,7 @@ def markdown(meta: dict, results: dict, corridor: dict | None) -> str:
     for m in METHODS:
         r = results.get(m, {})
         if "metrics" not in r:
-            L.append(f"| {m} | not available: {r.get('error', '?')} |||||||||||||")
+            L.append(f"| {m} | not available: {r.get('error', 'not run (--methods)')} |||||||||||||")
             continue
         x, rec = r["metrics"], r.get("recognition") or {}
         L.append(f"| {m} | {x['mae_m']:.2f} | {x['rmse_m']:.2f} | {x['max_m']:.2f} | "
@@ -426,6 +428,8 @@ def main() -> None:  # noqa: PLR0915
     g = ap.add_mutually_exclusive_group()
     g.add_argument("--imu", action="store_true", help="simulate the flight's IMU and give it to every method")
     g.add_argument("--no-imu", action="store_true", help="without the IMU, results labelled _noimu")
+    ap.add_argument("--methods", default=None,
+                    help="comma-separated subset of: " + ",".join(METHODS) + " (default all; the odometry always runs)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     ap.add_argument("--img", type=Path, default=REPO / "docs" / "img")
     args = ap.parse_args()
@@ -478,10 +482,13 @@ def main() -> None:  # noqa: PLR0915
                    f"and bias random walk; seed {args.seed})")
         _log(f"IMU: {imu_txt}")
     _log(f"flight {flight.path_length_m:.0f} m, {len(truth)} frames, {len(passes)} junction passes ({frames.folder})")
-    results = run_slam_methods(frames, T0, odometry, imu)
+    methods = METHODS if args.methods is None else tuple(m for m in METHODS if m in args.methods.split(","))
+    results = run_slam_methods(frames, T0, odometry, imu, methods)
     held = results.pop("_held")
     _log(f"held stretches: {held['stretches']} ({held['frames']} frames, {held['held_s_total']:.1f} s)")
     for m, use_map in (("ours (no map)", False), ("ours (map)", True)):
+        if m not in methods:
+            continue
         _log(f"{m} ...")
         results[m] = run_track(frames, kb, T0, use_map, odometry, results.pop("_odometry", None) if not use_map
                                else results.get("_odo_keep"), imu=imu)
