@@ -37,7 +37,13 @@ import numpy as np
 
 from minegeo.io.stations import Stations
 from minegeo.kernels.lie import se3_exp, se3_inverse
-from minegeo.slam.control import ControlParams, apply_control, interpolate_poses, station_points
+from minegeo.slam.control import (
+    ControlParams,
+    apply_control,
+    drift_states_needed,
+    interpolate_poses,
+    station_points,
+)
 from minegeo.synth.stream import StreamParams, simulate_stream, stream_stations
 
 CHI2_2_95 = 5.991464547107979
@@ -113,6 +119,7 @@ def run_once(t, T_true, stations: Stations, tr, rng, drift, offset, crs, modes=(
             out["graph_drift_cov"] = res.station_cov_enh[chk]
             out["graph_drift_sigma0"] = float(np.sqrt(res.global_chi2.statistic / max(res.global_chi2.dof, 1)))
         if mode == "graph":
+            out["graph_needs_drift"] = drift_states_needed(res.global_chi2)
             out["graph_status"] = res.status
             out["graph_cov"] = res.station_cov_enh[chk]
             out["sigma0"] = float(np.sqrt(res.global_chi2.statistic / max(res.global_chi2.dof, 1)))
@@ -120,6 +127,41 @@ def run_once(t, T_true, stations: Stations, tr, rng, drift, offset, crs, modes=(
             out["class_passed"] = int(res.classes.passed.sum())
             out["misclosure_N_min"] = float(np.min(res.misclosure_ratio))
             out["iterations"] = res.optimisation.iterations
+    if "graph" in modes and "graph_drift" in modes:
+        # ControlParams(drift_states="auto"): the drift states when the plain graph fails its chi-square test
+        pick = "graph_drift" if out["graph_needs_drift"] else "graph"
+        out["graph_auto"], out["graph_auto_outside"] = out[pick], out[pick + "_outside"]
+        out["graph_auto_cov"], out["graph_auto_drift"] = out[pick + "_cov"], pick == "graph_drift"
+    return out
+
+
+def noise_ate(sigma_rot, sigma_trans, sigma_along, runs=200) -> dict:
+    """What the odometry noise model means as the SLAM benchmarks state it: mean aligned ATE RMSE
+    (SE(3) Kabsch of the chained odometry onto the truth, every keyframe) of this noise over ``runs``
+    draws on (i) the 20 s vehicle stream of ``benchmarks/bench_deskew.py`` (seed 1, keyframes every
+    1 s; deskewed SLAM: 0.029 m = 0.071 % of 41.2 m, docs/slam.md) and (ii) a 506 m straight with a
+    frame every 1 m (the "straight" sequence of bench_slam.py; SLAM odometry: 0.122 m)."""
+    from minegeo.registration.estimation import kabsch
+
+    st = simulate_stream(StreamParams(preset="vehicle", duration_s=20.0, seed=1))
+    t = np.arange(st.frame_times[0], st.frame_times[-1] + 1e-9, 1.0)
+    R, p = st.curve.rotation_position(t)
+    Tv = np.tile(np.eye(4), (t.size, 1, 1))
+    Tv[:, :3, :3], Tv[:, :3, 3] = R, p
+    Ts = np.tile(np.eye(4), (507, 1, 1))
+    Ts[:, 0, 3] = np.arange(507.0)
+    out = {}
+    for name, T in (("vehicle_20s", Tv), ("straight_506m", Ts)):
+        length = float(np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1).sum())
+        ate = []
+        for r in range(runs):
+            _, Z, _ = odometry(T, np.random.default_rng(r), 0.0, 0.0, 0.0, sigma_rot, sigma_trans, sigma_along)
+            P = chain(Z, T[0])
+            A = kabsch(P[:, :3, 3], T[:, :3, 3], allow_degenerate=True)
+            q = P[:, :3, 3] @ A[:3, :3].T + A[:3, 3]
+            ate.append(float(np.sqrt(np.mean(np.sum((q - T[:, :3, 3]) ** 2, axis=1)))))
+        out[name] = {"path_m": length, "mean_aligned_ate_m": float(np.mean(ate)),
+                     "percent_of_path": 100.0 * float(np.mean(ate)) / length, "runs": runs}
     return out
 
 
@@ -138,19 +180,36 @@ def markdown(path) -> str:
              "|---|---|---|---|---|---|"]
     names = {"none": "no control (placed by the first control station, true heading)",
              "rigid": "rigid fit of the control stations", "graph": "control in the pose graph",
-             "graph_drift": "control in the pose graph + drift states (C4)"}
+             "graph_drift": "control in the pose graph + drift states (C4)",
+             "graph_auto": "automatic: drift states when the graph's χ² fails (C6)"}
     for cname, tab in d["table"].items():
         for m, r in tab.items():
             lines.append(f"| {cname.replace('_', ' ')} | {names[m]} | {r['rmse_h_m']:.3f} | {r['rmse_v_m']:.3f} | "
                          f"{r['max_h_m']:.3f} | {r['max_v_m']:.3f} |")
-    cal = d["calibration"]
     lines.append("")
     lines.append(f"Drive {c['path_length_m']:.0f} m, {c['keyframes']} keyframes, {c['control']} control and "
                  f"{c['check']} check stations ({d['graph']['bias']['n_check_between']} between two controls, "
-                 f"in the table), seed {c['seed']}. 95 % ellipse coverage at the check stations over "
-                 f"{cal['runs']} runs ({cal['check_points']} points, noise only): {100 * cal['coverage_95']:.1f} % "
-                 f"(binomial s.e. {100 * cal['binomial_se']:.1f} %); with the drift states "
-                 f"{100 * cal.get('coverage_95_drift_states', float('nan')):.1f} %.")
+                 f"in the table), seed {c['seed']}.")
+    if "calibration" in d:
+        cal = d["calibration"]
+        lines[-1] += (f" 95 % ellipse coverage at the check stations over {cal['runs']} runs "
+                      f"({cal['check_points']} points, noise only): {100 * cal['coverage_95']:.1f} % "
+                      f"(binomial s.e. {100 * cal['binomial_se']:.1f} %); with the drift states "
+                      f"{100 * cal.get('coverage_95_drift_states', float('nan')):.1f} %.")
+    if d.get("monte_carlo"):
+        lines += ["", "| Monte Carlo | mode | 95 % ellipse coverage | check RMSE h (m) | check RMSE v (m) |",
+                  "|---|---|---|---|---|"]
+        for cname, r in d["monte_carlo"].items():
+            for m in ("graph", "graph_drift", "graph_auto"):
+                lines.append(f"| {cname.replace('_', ' ')}, {r['runs']} runs ({r['check_points']} check points) | "
+                             f"{names[m]} | {100 * r[m]['coverage_95']:.1f} % | {r[m]['rmse_h_m']:.3f} | "
+                             f"{r[m]['rmse_v_m']:.3f} |")
+        lines.append("")
+        lines.append("Binomial s.e. of a coverage: " + ", ".join(
+            f"{cname.replace('_', ' ')} {100 * r['binomial_se']:.1f} %" for cname, r in d["monte_carlo"].items())
+            + "; the automatic choice took the drift states in " + ", ".join(
+            f"{r['auto_chose_drift_states']} of {r['runs']} runs ({cname.replace('_', ' ')})"
+            for cname, r in d["monte_carlo"].items()) + ".")
     return "\n".join(lines)
 
 
@@ -169,12 +228,24 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--mc", type=int, default=200)
     ap.add_argument("--mc-duration-s", type=float, default=1100.0)
+    ap.add_argument("--label", default="", help="recorded in the results file (what this run is)")
     ap.add_argument("--out", default=None)
     ap.add_argument("--markdown", default=None, help="print the docs table of this results file and exit")
+    ap.add_argument("--noise-ate", action="store_true",
+                    help="only the aligned ATE this odometry noise gives on the SLAM benchmarks' paths (to --out)")
     a = ap.parse_args(argv)
     if a.markdown:
         print(markdown(a.markdown))
         return None
+    if a.noise_ate:
+        res = {"label": a.label, "date": datetime.date.today().isoformat(), "sigma_rot_rad_per_sqrt_m": a.sigma_rot,
+               "sigma_trans_m_per_sqrt_m": a.sigma_trans, "sigma_along_m_per_sqrt_m": a.sigma_along,
+               "ate": noise_ate(a.sigma_rot, a.sigma_trans, a.sigma_along)}
+        print(json.dumps(res, indent=1))
+        if a.out:
+            with open(a.out, "w") as f:
+                json.dump(res, f, indent=1)
+        return res
     t0 = time.perf_counter()
     offset = np.zeros(3)
     t, T_true, stations, tr, length = truth(a.duration_s, a.spacing_m, a.control_every, a.seed, a.keyframe_s)
@@ -183,41 +254,54 @@ def main(argv=None):
     conds = {"bias": drift, "noise_only": (0.0, 0.0, 0.0) + drift[3:]}
     print(f"drive {length:.0f} m, {len(stations)} stations ({int(stations.is_control.sum())} control), "
           f"{t.size} keyframes", flush=True)
+    modes_tab = ("none", "rigid", "graph", "graph_drift", "graph_auto")
     for cname, dr in conds.items():
         one = run_once(t, T_true, stations, tr, np.random.default_rng(a.seed), dr, offset, tr["crs"])
         table = {}
-        for m in ("none", "rigid", "graph", "graph_drift"):
+        for m in modes_tab:
             h, v = rmse(one[m])
             table[m] = {"rmse_h_m": h, "rmse_v_m": v, "max_h_m": float(np.max(np.hypot(one[m][:, 0], one[m][:, 1]))),
                         "max_v_m": float(np.max(np.abs(one[m][:, 2])))}
             if m != "none" and one[m + "_outside"].shape[0]:
                 table[m]["rmse_h_outside_m"], table[m]["rmse_v_outside_m"] = rmse(one[m + "_outside"])
-            print(f"  {cname:10s} {m:6s} RMSE h {h:.4f} m  v {v:.4f} m", flush=True)
+            print(f"  {cname:10s} {m:11s} RMSE h {h:.4f} m  v {v:.4f} m", flush=True)
         tables[cname] = table
-        graph_info[cname] = {k: one[k] for k in ("graph_status", "sigma0", "flagged", "class_passed",
+        graph_info[cname] = {k: one[k] for k in ("graph_status", "sigma0", "graph_drift_sigma0", "graph_drift_status",
+                                                 "graph_auto_drift", "flagged", "class_passed",
                                                  "misclosure_N_min", "iterations", "n_check_between",
                                                  "n_check_outside")}
-    # calibration: noise only (no bias), the information is the true noise
-    inside, total, sig0, t_mc = {"graph": 0, "graph_drift": 0}, 0, [], time.perf_counter()
+    # Monte Carlo: new odometry draws (seeds [seed, 1000 + r]) under each condition; the information is
+    # the true noise (the bias, where drawn, is not in it)
+    t_mc = time.perf_counter()
     if a.mc:
         tm, Tm, sm, trm, len_mc = truth(a.mc_duration_s, a.spacing_m, a.control_every, a.seed, a.keyframe_s)
-    for r in range(a.mc):
-        o = run_once(tm, Tm, sm, trm, np.random.default_rng([a.seed, 1000 + r]),
-                     (0.0, 0.0, 0.0, a.sigma_rot, a.sigma_trans, a.sigma_along), offset, trm["crs"],
-                     modes=("graph", "graph_drift"))
-        for m in inside:
-            e = o[m][:, :2]
-            C = o[m + "_cov"][:, :2, :2]
-            inside[m] += int((np.einsum("ni,nij,nj->n", e, np.linalg.inv(C), e) <= CHI2_2_95).sum())
-        total += o["graph"].shape[0]
-        sig0.append(o["sigma0"])
-        if (r + 1) % 20 == 0:
-            print(f"  mc {r + 1}/{a.mc}: coverage {inside['graph'] / total:.4f} "
-                  f"(drift states {inside['graph_drift'] / total:.4f})", flush=True)
-    cov = inside["graph"] / total if total else float("nan")
-    cov_d = inside["graph_drift"] / total if total else float("nan")
-    se = np.sqrt(0.95 * 0.05 / total) if total else float("nan")
+    mc = {}
+    for cname, dr in conds.items():
+        m_modes = ("graph", "graph_drift", "graph_auto")
+        inside, sq, sqv, total, sig0, n_auto = dict.fromkeys(m_modes, 0), dict.fromkeys(m_modes, 0.0), \
+            dict.fromkeys(m_modes, 0.0), 0, [], 0
+        for r in range(a.mc):
+            o = run_once(tm, Tm, sm, trm, np.random.default_rng([a.seed, 1000 + r]), dr, offset, trm["crs"],
+                         modes=("graph", "graph_drift"))
+            for m in m_modes:
+                e = o[m][:, :2]
+                C = o[m + "_cov"][:, :2, :2]
+                inside[m] += int((np.einsum("ni,nij,nj->n", e, np.linalg.inv(C), e) <= CHI2_2_95).sum())
+                sq[m] += float(np.sum(e**2))
+                sqv[m] += float(np.sum(o[m][:, 2] ** 2))
+            total += o["graph"].shape[0]
+            n_auto += int(o["graph_auto_drift"])
+            sig0.append(o["sigma0"])
+            if (r + 1) % 20 == 0:
+                print(f"  mc {cname} {r + 1}/{a.mc}: coverage " + ", ".join(f"{m} {inside[m] / total:.4f}" for m in m_modes)
+                      + f"; auto chose drift states in {n_auto}", flush=True)
+        if total:
+            mc[cname] = {"runs": a.mc, "check_points": total, "binomial_se": float(np.sqrt(0.95 * 0.05 / total)),
+                         "auto_chose_drift_states": n_auto, "mean_sigma0_graph": float(np.mean(sig0)),
+                         **{m: {"coverage_95": inside[m] / total, "rmse_h_m": float(np.sqrt(sq[m] / total)),
+                                "rmse_v_m": float(np.sqrt(sqv[m] / total))} for m in m_modes}}
     res = {
+        "label": a.label,
         "date": datetime.date.today().isoformat(), "host": platform.node(), "python": sys.version.split()[0],
         "threads": os.environ.get("NUMBA_NUM_THREADS"), "load": os.getloadavg(),
         "conditions": {"duration_s": a.duration_s, "path_length_m": length, "stations": len(stations),
@@ -227,15 +311,16 @@ def main(argv=None):
                        "pitch_bias_rad_per_m": a.pitch_bias, "sigma_rot_rad_per_sqrt_m": a.sigma_rot,
                        "sigma_trans_m_per_sqrt_m": a.sigma_trans, "sigma_along_m_per_sqrt_m": a.sigma_along, "seed": a.seed,
                        "station_sigma_h_m": float(stations.sigma_h_m[0]),
-                       "station_sigma_v_m": float(stations.sigma_v_m[0]), "loop_closures": 0},
+                       "station_sigma_v_m": float(stations.sigma_v_m[0]), "loop_closures": 0,
+                       "drift_prior": list(ControlParams().drift_prior), "drift_walk_per_sqrt_s": list(ControlParams().drift_walk),
+                       "auto_rule": "drift states when the graph without them fails the upper tail of its 95 % two-tailed chi-square test (drift_states_needed)",
+                       "mc_duration_s": a.mc_duration_s},
         "table": tables,
         "graph": graph_info,
-        "calibration": {"runs": a.mc, "check_points": total, "coverage_95": cov, "coverage_95_drift_states": cov_d, "binomial_se": se,
-                        "duration_s": a.mc_duration_s, "mean_sigma0": float(np.mean(sig0)) if sig0 else None,
-                        "bias": "none (noise drawn from the graph's information)"},
+        "monte_carlo": mc,
         "seconds": time.perf_counter() - t0, "mc_seconds": time.perf_counter() - t_mc,
     }
-    print(json.dumps({k: res[k] for k in ("table", "calibration")}, indent=1))
+    print(json.dumps({k: res[k] for k in ("table", "monte_carlo")}, indent=1))
     if a.out:
         with open(a.out, "w") as f:
             json.dump(res, f, indent=1, default=float)

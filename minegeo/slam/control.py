@@ -38,9 +38,22 @@ the fit (moving one leaves the solution bit-identical).
 
 With ``ControlParams(drift_states=True)`` every variable also carries drift states
 ``β = (s, p, y)`` (odometry scale error, pitch and yaw rate per metre) taken out of each odometry
-measurement (:class:`DriftBetweenFactors`, C4), a random walk between consecutive variables and a
-prior at the first (:class:`DriftWalkFactors`): a systematic drift that between factors alone
-cannot represent.
+measurement (:class:`DriftBetweenFactors`, C4), a random walk between consecutive variables
+(``r = β_j − β_i``, information ``1/(σ_w² Δt)``, ``Δt`` the time between them) and a prior
+``N(0, σ_p²)`` spread over the ``n`` variables (``Ω_p / n`` on each; :class:`DriftWalkFactors`):
+a systematic drift that between factors alone cannot represent. Inside the optimiser the states are
+held in units of :data:`DRIFT_UNIT` (numerical conditioning of the 9 × 9 blocks); every output is
+in scale and rad/m. The walk σ_w (``ControlParams.drift_walk``) is sized so that what it lets the
+drift do between two control stations stays below the odometry noise itself: over ``D`` m driven at
+speed ``v`` (time ``τ = D/v``) a scale walk moves a point along the path by about
+``σ_w,s √τ D/2`` and a yaw-rate walk across it by about ``σ_w,y √τ D²/6``, against the odometry's
+``σ_along √D`` and ``σ_rot D^1.5/√3``.
+
+``ControlParams(drift_states="auto")`` chooses between the two models by a test of the data (C6):
+the graph without drift states is solved first; when it fails the upper tail of its global χ² test
+(:func:`drift_states_needed`: σ̂0 too large for the odometry's stated noise) the drift states are
+added and that solution returned, else the plain one; the choice and both σ̂0 are stated in
+``ControlResult.keyframe_note`` and ``ControlResult.drift_states``.
 
 Uncertainty
 -----------
@@ -59,7 +72,8 @@ Statistics (:mod:`minegeo.survey.control_stats`)
 Control residuals ``v_k = p_k − p̄_k`` (adjusted minus observed); their cofactors (graph)
 ``Qvv_k = Σll_k − J Σ_kk Jᵀ`` (exact per station, cross-station blocks not formed: the w-tests of
 a diagonal ``P`` need only the diagonal); redundancy ``r = 6·(edges) + 3·(controls) − 6·(variables)``
-(graph) or ``3·controls − 6`` (``−7`` similarity) (rigid). σ̂0² and the χ² test are those of the
+(graph; with drift states ``− 3 + Σ_i tr(Σ_βi Ω_p)/n`` and the prior's terms left out of ``vᵀPv``,
+C5, see :func:`_solve_graph`) or ``3·controls − 6`` (``−7`` similarity) (rigid). σ̂0² and the χ² test are those of the
 whole adjustment, ``vᵀPv = 2F`` (every factor of the graph; the control residuals only in rigid
 mode). Check stations: errors and RMSE (CS4), class test against the nearest control (CS5), with
 the 95 % relative ellipse when covariances are known, misclosure ratio ``1:N`` (CS6) with ``L`` the
@@ -69,7 +83,7 @@ path length from the nearest control station in time.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -85,12 +99,21 @@ from minegeo.optim import (
     levenberg_marquardt,
 )
 
-__all__ = ["ControlParams", "ControlResult", "DriftBetweenFactors", "DriftWalkFactors", "PositionFactors", "apply_control", "check_station_frames", "graph_inputs", "interpolate_poses",
-           "selected_inverse", "station_points"]
+__all__ = ["ControlParams", "ControlResult", "DriftBetweenFactors", "DriftWalkFactors", "PositionFactors", "apply_control", "check_station_frames", "drift_states_needed", "graph_inputs",
+           "interpolate_poses", "selected_inverse", "station_points"]
 
 log = logging.getLogger(__name__)
 
 MODES = ("rigid", "graph")
+#: units of the drift states inside the optimiser: 10⁻³ for the scale and 10⁻³ rad/m for the pitch
+#: and yaw rates (over 1 km of travel, one unit moves a point by 1 m or turns it by 1 rad: the
+#: poses' own units). The block Cholesky tests each 9 × 9 block's pivots against the block's
+#: largest diagonal entry (``SINGULAR_PIVOT`` = 10⁻¹²): in SI units the stiff random walk
+#: (information ``1/(σ_w² Δt)`` ~ 10¹⁴ for σ_w = 10⁻⁷ rad/m/√s) dwarfs the pose's translation
+#: (~10³ m⁻²), in 10⁻⁶ rad/m a weakly seen drift state's pivot fell below 10⁻¹² of the pose's
+#: rotation (~10⁸ rad⁻²): both made the undamped system "singular" in the middle of a long control
+#: gap (tests/slam/test_control_drift.py)
+DRIFT_UNIT = np.array([1e-3, 1e-3, 1e-3])
 #: a station time within this of a keyframe's time uses that keyframe (s)
 SAME_TIME_S = 1e-6
 
@@ -217,17 +240,22 @@ class DriftBetweenFactors(FactorGroup):
         ∂r/∂β_i ≈ J_l⁻¹(r) Ad(Exp ε) J_r(ε) ∂ε/∂β_i
 
     (pose Jacobians those of :class:`~minegeo.optim.BetweenFactors` with ``Z Exp(−ε)``).
+
+    ``unit`` (3,): the variables' vector part holds ``β / unit`` (default 1: ``β`` itself), so that
+    the states' information is of the order of the poses' in one 9 × 9 block (see
+    :data:`DRIFT_UNIT`); ``∂r/∂(β/unit) = ∂r/∂β · diag(unit)``.
     """
 
-    def __init__(self, edges, Z, information):
+    def __init__(self, edges, Z, information, unit=(1.0, 1.0, 1.0)):
         self.variables = np.ascontiguousarray(edges, dtype=np.int64).reshape(-1, 2)
         self.Z = np.ascontiguousarray(Z, dtype=np.float64)
         self.information = np.ascontiguousarray(information, dtype=np.float64)
         self.tz = self.Z[:, :3, 3].copy()
         self.d = np.linalg.norm(self.tz, axis=1)
+        self.unit = np.asarray(unit, dtype=np.float64).reshape(3)
 
     def _eps(self, values: Values) -> np.ndarray:
-        b = values.vectors[self.variables[:, 0]]
+        b = values.vectors[self.variables[:, 0]] * self.unit
         eps = np.zeros((self.variables.shape[0], 6))
         eps[:, 1] = b[:, 1] * self.d
         eps[:, 2] = b[:, 2] * self.d
@@ -254,9 +282,9 @@ class DriftBetweenFactors(FactorGroup):
         Jb = np.zeros((m, 6, 3))
         for e in range(m):
             A = se3_left_jacobian_inv(r[e]) @ se3_adjoint(se3_exp(eps[e])) @ se3_right_jacobian(eps[e])
-            Jb[e, :, 0] = A[:, 3:] @ self.tz[e]
-            Jb[e, :, 1] = A[:, 1] * self.d[e]
-            Jb[e, :, 2] = A[:, 2] * self.d[e]
+            Jb[e, :, 0] = A[:, 3:] @ self.tz[e] * self.unit[0]
+            Jb[e, :, 1] = A[:, 1] * self.d[e] * self.unit[1]
+            Jb[e, :, 2] = A[:, 2] * self.d[e] * self.unit[2]
         Ji9 = np.concatenate([Ji, Jb], axis=2)
         return r, (Ji9, Jj)
 
@@ -352,13 +380,19 @@ class ControlParams:
     class_c : float
         ICSM SP1 class constant (mm), 50 = Class D.
     lm : LMParams
-    drift_states : bool
+    drift_states : bool or "auto"
         Graph mode: estimate a systematic odometry drift (scale, pitch and yaw rate) per variable
-        as a random walk (C4) besides the poses.
+        as a random walk (C4) besides the poses; "auto": only when the graph without them fails the
+        upper tail of its χ² test (C6).
     drift_prior : tuple of 3 float
-        A-priori standard deviations of the drift states at the first variable (scale, rad/m, rad/m).
+        A-priori standard deviations of the drift states (scale, rad/m, rad/m): the datum of a
+        constant drift, spread over the variables.
     drift_walk : tuple of 3 float
-        Their random-walk standard deviations per second of time between variables.
+        Their random-walk standard deviations per √s of time between variables (scale/√s,
+        rad/m/√s). The default (2·10⁻⁵, 10⁻⁷, 10⁻⁷) keeps the walk's effect over a 500 m control
+        interval driven at 2 m/s at about half (0.35 along, 0.51 across) the odometry's own random walk of 0.01 m/√m along and
+        2·10⁻⁵ rad/√m (module docstring); a walk 10× looser follows the odometry's noise (check
+        errors 12-14 % larger without a bias, ellipses over-covering, tests/slam/test_control_drift.py).
     snooping : bool
         When a control station is flagged, name the suspected blunders by data snooping (the most
         suspect withheld and the adjustment repeated, in turn, while more than 3 remain).
@@ -368,14 +402,16 @@ class ControlParams:
     model: str = "rigid"
     class_c: float = 50.0
     lm: LMParams = field(default_factory=LMParams)
-    drift_states: bool = False
+    drift_states: bool | str = False
     drift_prior: tuple = (0.02, 1e-4, 1e-4)
-    drift_walk: tuple = (1e-4, 1e-6, 1e-6)
+    drift_walk: tuple = (2e-5, 1e-7, 1e-7)
     snooping: bool = True
 
     def __post_init__(self):
         if self.mode not in MODES:
             raise InputError(f"control mode must be 'rigid' or 'graph', got {self.mode!r}")
+        if self.drift_states not in (True, False, "auto"):
+            raise InputError(f"drift_states must be True, False or 'auto', got {self.drift_states!r}")
         if self.model not in ("rigid", "similarity"):
             raise InputError(f"control fit model must be 'rigid' or 'similarity', got {self.model!r}")
 
@@ -415,6 +451,10 @@ class ControlResult:
         flagged); the poses and statistics are those of the adjustment with every control station.
     unresolved : tuple of str
         Control stations still flagged when only 3 were left (snooping stopped).
+    drift_states : bool
+        Whether the solution carries the drift states (C4): ``ControlParams.drift_states`` True, or
+        "auto" and the graph without them failed its χ² test (C6; the choice and both σ̂0 are in
+        :attr:`keyframe_note`).
     """
 
     mode: str
@@ -438,6 +478,7 @@ class ControlResult:
     optimisation: object = None
     blunders: tuple = ()
     unresolved: tuple = ()
+    drift_states: bool = False
 
     def transform(self, times_s: np.ndarray, poses_map: np.ndarray, graph_times_s: np.ndarray,
                   graph_poses_map: np.ndarray) -> np.ndarray:
@@ -619,6 +660,93 @@ def _start_placement(points_map, stations) -> np.ndarray:
     return kabsch(points_map[c], stations.enh_local[c], weights=1.0 / np.asarray(stations.sigma_h_m)[c] ** 2)
 
 
+def _sigma0(chi2) -> float:
+    """``σ̂0 = √(vᵀPv / r)`` of a :class:`~minegeo.survey.lsq.Chi2Test`."""
+    return float(np.sqrt(chi2.statistic / max(chi2.dof, 1)))
+
+
+def drift_states_needed(chi2) -> bool:
+    """The test that chooses the drift states (C6, ``ControlParams(drift_states="auto")``): the
+    graph without them fails the upper tail of its global χ² test, ``vᵀPv > χ²_r(1 − α/2)``
+    (σ̂0 too large for the odometry's stated noise: a misfit the random walk does not explain). A
+    failure of the lower tail (σ̂0 too small) is no evidence of a systematic drift."""
+    return bool(chi2.dof > 0 and chi2.statistic > chi2.upper)
+
+
+def _solve_graph(graph, stations, offset, T_lm, p: ControlParams, drift: bool) -> dict:
+    """Solve the station graph with control position factors, with or without the drift states (C4).
+
+    Returns a dict: ``opt`` (the optimiser's result), ``poses`` (k, 4, 4), ``vectors`` (drift states
+    or None), ``covs`` (k, 6, 6) pose marginals, ``st_cov`` (n, 3, 3) station point covariances,
+    ``gchi`` (the global χ² test, C5), ``status``/``reason`` ("ok" or "failed").
+
+    Redundancy (C5): ``r = 6·edges + 3·controls − 6·variables`` without drift states. With them the
+    random-walk factors bring ``3·(variables − 1)`` residuals for ``3·variables`` unknowns, and the
+    prior ``Ω_prior`` (the datum of the drift states) is spread over the ``n`` variables as
+    ``Ω_prior / n`` on each (a constant drift gets exactly ``Ω_prior``, and every state an absolute
+    anchor of its own besides the stiff walk). The prior is not a
+    measurement (its residual is the estimate itself, ~0 against a loose σ), so its terms are left
+    out of ``vᵀPv`` and their redundancy numbers ``3n − Σ_i tr(Σ_βi Ω_prior)/n`` out of ``r``:
+    ``r = 6·edges + 3·controls − 6·variables − 3 + Σ_i tr(Σ_βi Ω_prior)/n`` (``Σ_βi`` the marginal
+    covariance of variable ``i``'s drift states).
+    """
+    from minegeo.survey.lsq import chi2_global_test
+
+    G_times, G_poses0, G_edges, G_Z, G_info, var, W = graph
+    ctrl = stations.is_control
+    nv = G_times.size
+    if drift:
+        start = Values(np.ascontiguousarray(T_lm @ G_poses0), np.zeros((nv, 3)))
+        dt = np.diff(G_times)
+        walk = np.zeros((nv - 1, 3, 3))
+        walk[:, [0, 1, 2], [0, 1, 2]] = DRIFT_UNIT**2 / (np.asarray(p.drift_walk)[None, :] ** 2 * dt[:, None])
+        prior = np.diag((np.asarray(p.drift_prior, dtype=np.float64) / DRIFT_UNIT) ** -2.0)  # states β / DRIFT_UNIT
+        groups = [DriftBetweenFactors(G_edges, G_Z, G_info, DRIFT_UNIT),
+                  PositionFactors(var[ctrl], stations.enh_local[ctrl], offset, W),
+                  DriftWalkFactors(np.c_[np.arange(nv - 1), np.arange(1, nv)], walk),
+                  DriftWalkFactors(np.arange(nv).reshape(-1, 1), np.tile(prior / nv, (nv, 1, 1)))]
+        dim = 9
+    else:
+        start = Values(np.ascontiguousarray(T_lm @ G_poses0))
+        groups = [BetweenFactors(G_edges, G_Z, G_info),
+                  PositionFactors(var[ctrl], stations.enh_local[ctrl], offset, W)]
+        dim = 6
+    problem = FactorProblem(nv, dim, groups, (), p.lm,
+                            labels=lambda v: (f"graph variable {v} (t = {G_times[v]:.3f} s)", int(v)),
+                            hint=": fewer than 3 control stations off one line leave the map free to turn")
+    opt = levenberg_marquardt(problem, start, p.lm)
+    out = {"opt": opt, "status": "ok", "reason": ""}
+    if opt.status != "converged":
+        out["status"], out["reason"] = "failed", f"the graph with control did not converge: {opt.reason}"
+        values = start
+    else:
+        values = opt.values
+    values = Values(np.ascontiguousarray(values.poses), values.vectors)
+    full = marginal_covariances(problem, values)
+    if drift:  # the drift states and their covariance back in their units (scale, rad/m)
+        full[:, 6:, 6:] *= np.outer(DRIFT_UNIT, DRIFT_UNIT)
+        full[:, :6, 6:] *= DRIFT_UNIT
+        full[:, 6:, :6] *= DRIFT_UNIT[:, None]
+        prior = np.diag(np.asarray(p.drift_prior, dtype=np.float64) ** -2.0)
+        opt = replace(opt, values=Values(opt.values.poses, opt.values.vectors * DRIFT_UNIT))
+        out["opt"] = opt
+    G_poses = values.poses
+    Pk = G_poses[var]
+    J = np.empty((len(stations), 3, 6))
+    J[:, :, :3] = -Pk[:, :3, :3] @ _hat(offset)
+    J[:, :, 3:] = Pk[:, :3, :3]
+    covs = full[:, :6, :6]
+    res = problem.evaluate(values)
+    vpv = 2.0 * problem.cost(res)
+    dof = 6 * G_edges.shape[0] + 3 * int(ctrl.sum()) - 6 * nv
+    if drift:
+        vpv -= float(np.einsum("ni,ij,nj->", res[3] * DRIFT_UNIT, prior, res[3] * DRIFT_UNIT)) / nv
+        dof = int(round(dof - 3 + float(np.einsum("nij,ji->", full[:, 6:, 6:], prior)) / nv))
+    out.update(poses=G_poses, vectors=opt.values.vectors if drift else None, covs=covs, st_cov=J @ covs[var] @ np.swapaxes(J, 1, 2),
+               gchi=chi2_global_test(vpv, max(dof, 0)))
+    return out
+
+
 def _check_control_inputs(times_s, stations, crs, mode: str) -> None:
     """The user's mistakes :func:`apply_control` refuses before any work (``InputError``)."""
     if not crs:
@@ -694,7 +822,6 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
     """
     from minegeo.survey.control_stats import control_statistics
     from minegeo.survey.ellipse import error_ellipse
-    from minegeo.survey.lsq import chi2_global_test
 
     p = params or ControlParams()
     crs = crs or stations.crs
@@ -713,6 +840,7 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
     cov_ll = stations.covariance()
     ids = np.array(stations.ids, dtype=object)
     status, reason, opt, covs, st_cov, ellipses = "ok", "", None, None, None, []
+    use_drift = False
     if p.mode == "rigid":
         s_fit = np.cbrt(np.linalg.det(T_lm[:3, :3]))
         Rt = T_lm.copy()
@@ -735,47 +863,28 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
         W = np.zeros((n_ctrl, 3, 3))
         W[:, 0, 0] = W[:, 1, 1] = stations.sigma_h_m[ctrl] ** -2
         W[:, 2, 2] = stations.sigma_v_m[ctrl] ** -2
-        nv = G_times.size
-        if p.drift_states:
-            start = Values(np.ascontiguousarray(T_lm @ G_poses0), np.zeros((nv, 3)))
-            dt = np.diff(G_times)
-            walk = np.zeros((nv - 1, 3, 3))
-            walk[:, [0, 1, 2], [0, 1, 2]] = 1.0 / (np.asarray(p.drift_walk)[None, :] ** 2 * dt[:, None])
-            groups = [DriftBetweenFactors(G_edges, G_Z, G_info),
-                      PositionFactors(var[ctrl], stations.enh_local[ctrl], offset, W),
-                      DriftWalkFactors(np.c_[np.arange(nv - 1), np.arange(1, nv)], walk),
-                      DriftWalkFactors(np.zeros((1, 1)), np.diag(np.asarray(p.drift_prior) ** -2.0)[None])]
-            dim, n_vec = 9, 3
-        else:
-            start = Values(np.ascontiguousarray(T_lm @ G_poses0))
-            groups = [BetweenFactors(G_edges, G_Z, G_info),
-                      PositionFactors(var[ctrl], stations.enh_local[ctrl], offset, W)]
-            dim, n_vec = 6, 0
-        problem = FactorProblem(nv, dim, groups, (), p.lm,
-                                labels=lambda v: (f"graph variable {v} (t = {G_times[v]:.3f} s)", int(v)),
-                                hint=": fewer than 3 control stations off one line leave the map free to turn")
-        opt = levenberg_marquardt(problem, start, p.lm)
-        if opt.status != "converged":
-            status, reason = "failed", f"the graph with control did not converge: {opt.reason}"
-            G_poses = start.poses
-        else:
-            G_poses = opt.values.poses
-        G_vec = (opt.values.vectors if opt.status == "converged" else start.vectors) if n_vec else None
-        covs = marginal_covariances(problem, Values(np.ascontiguousarray(G_poses), G_vec))[:, :6, :6]
-        Pk = G_poses[var]
-        J = np.empty((len(stations), 3, 6))
-        J[:, :, :3] = -Pk[:, :3, :3] @ _hat(offset)
-        J[:, :, 3:] = Pk[:, :3, :3]
-        st_cov = J @ covs[var] @ np.swapaxes(J, 1, 2)
-        pts = station_points(Pk, offset)
+        graph = (G_times, G_poses0, G_edges, G_Z, G_info, var, W)
+        use_drift = p.drift_states is True
+        g = _solve_graph(graph, stations, offset, T_lm, p, use_drift)
+        if p.drift_states == "auto":
+            if drift_states_needed(g["gchi"]):  # the plain graph's misfit: add the drift states
+                g_plain, g = g, _solve_graph(graph, stations, offset, T_lm, p, True)
+                use_drift = True
+                note += (f"; drift states (C4) added: the graph without them failed its chi-square test (upper tail) "
+                         f"(sigma0 {_sigma0(g_plain['gchi']):.2f} on {g_plain['gchi'].dof} degrees of freedom; "
+                         f"with them {_sigma0(g['gchi']):.2f} on {g['gchi'].dof})")
+            else:
+                note += (f"; no drift states: the graph passes its chi-square test "
+                         f"(sigma0 {_sigma0(g['gchi']):.2f} on {g['gchi'].dof} degrees of freedom)")
+        opt, G_poses, covs, st_cov, gchi = g["opt"], g["poses"], g["covs"], g["st_cov"], g["gchi"]
+        if g["status"] != "ok":
+            status, reason = g["status"], g["reason"]
+        pts = station_points(G_poses[var], offset)
         v = pts[ctrl] - stations.enh_local[ctrl]
         qvv = np.zeros((3 * n_ctrl, 3 * n_ctrl))
         for q, c in enumerate(np.flatnonzero(ctrl)):
             qvv[3 * q:3 * q + 3, 3 * q:3 * q + 3] = cov_ll[c] - st_cov[c]
-        dof = 6 * G_edges.shape[0] + 3 * n_ctrl - 6 * nv  # the drift states bring as many factors as unknowns
-        stats = control_statistics(v, cov_ll[ctrl], qvv=qvv, dof=max(dof, 0), ids=ids[ctrl])
-        gchi = chi2_global_test(2.0 * problem.cost(problem.evaluate(Values(np.ascontiguousarray(G_poses), G_vec))),
-                                max(dof, 0))
+        stats = control_statistics(v, cov_ll[ctrl], qvv=qvv, dof=gchi.dof, ids=ids[ctrl])
         ellipses = [error_ellipse(st_cov[c][:2, :2], confidence=0.95) for c in np.flatnonzero(chk)]
     check, classes, ratio = _check_station_statistics(stations, pts, v, st_cov, G_times, G_poses, p.class_c)
     snoop = ((), ()) if not (stats.flagged and p.snooping) else _data_snooping(
@@ -787,7 +896,8 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
                          times_s=G_times, poses=G_poses, station_var=var, station_enh_local=pts,
                          station_cov_enh=st_cov, covariances=covs, T_local_map=T_lm, stats=stats, check=check,
                          classes=classes, global_chi2=gchi, misclosure_ratio=ratio, ellipses_check=ellipses,
-                         keyframe_note=note, optimisation=opt, blunders=snoop[0], unresolved=snoop[1])
+                         keyframe_note=note, optimisation=opt, blunders=snoop[0], unresolved=snoop[1],
+                         drift_states=use_drift)
 
 
 def _data_snooping(graph, stations, offset, crs, p: ControlParams, flagged_ids) -> tuple:
