@@ -7,8 +7,19 @@ NaN handling) and error model are consistent across the package.
 
 from __future__ import annotations
 
-import numba
-from numba import prange
+import os
+
+# The OpenMP threads of Numba's "omp" threading layer (GNU libgomp) sleep when a parallel region ends
+# instead of spinning for the next one (libgomp's default spins ~300,000 iterations): on a machine
+# whose cores are shared, the spinning thread takes the core the other thread of the next region
+# needs. SLAM front end per 10 Hz sweep at 2 threads on the shared 2-core machine (load 12-18), median
+# CPU 73-94 ms spinning (benchmarks/results/realtime_2026-11-29_serial_t2.md), 21-22 ms passive
+# (realtime_2026-11-29.md); wall 286-587 ms -> 90-125 ms. Read by libgomp when it loads (the first
+# parallel kernel, or numba.set_num_threads); a user's own OMP_WAIT_POLICY wins. Scheduling only: same bits.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numba  # noqa: E402
+from numba import prange  # noqa: E402
 
 __all__ = ["njit", "njit_parallel", "prange", "NJIT_OPTIONS", "NJIT_PARALLEL_OPTIONS"]
 

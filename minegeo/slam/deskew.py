@@ -83,7 +83,4 @@ def deskew_points(points: np.ndarray, offsets_s: np.ndarray, twist: np.ndarray) 
         raise InputError(f"twist must be 6 finite numbers (rad/s, m/s), got {xi!r}")
     if not np.all(np.isfinite(tau)):
         raise InputError("offsets_s holds a NaN or infinite time")
-    # the kernel takes writable arrays (frames read from files are read-only)
-    P = P if P.flags.writeable else P.copy()
-    tau = tau if tau.flags.writeable else tau.copy()
-    return deskew_points_kernel(P, tau, xi)
+    return deskew_points_kernel(P, tau, xi)  # writable or read-only (frames read from files) arrays alike

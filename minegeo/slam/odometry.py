@@ -191,13 +191,26 @@ class OdometryParams:
 
 @dataclass
 class PreparedFrame:
-    """A frame ready for GICP: downsampled points (sensor frame), covariances, search index."""
+    """A frame ready for GICP: downsampled points (sensor frame), covariances, search index.
+
+    ``surface_ratio`` is :func:`minegeo.slam.observability.surface_translation_ratio` of the frame;
+    None until :meth:`surface` computes it from ``surface_inputs`` (the kNN PCA of the
+    covariances: normals, eigenvalues, status), which happens only for a registration whose
+    translation is weakly observed (most frames never need it)."""
 
     time_s: float
     points: np.ndarray
     covariances: np.ndarray
     index: object
-    surface_ratio: float = 1.0  # :func:`minegeo.slam.observability.surface_translation_ratio`
+    surface_ratio: float | None = 1.0
+    surface_inputs: tuple | None = field(default=None, repr=False)
+
+    def surface(self) -> float:
+        """The frame's :func:`~minegeo.slam.observability.surface_translation_ratio` (computed once)."""
+        if self.surface_ratio is None:
+            self.surface_ratio = surface_translation_ratio(self.points, *self.surface_inputs)
+            self.surface_inputs = None
+        return self.surface_ratio
 
 
 @dataclass
@@ -332,7 +345,7 @@ def prepare_frame(points: np.ndarray, time_s: float, params: OdometryParams) -> 
         return PreparedFrame(float(time_s), P, np.zeros((P.shape[0], 3, 3)), None)
     index = build_target_index(P)
     C, N, ev, status = gicp_covariances_on_tree(P, params.gicp(), index, with_surface=True)
-    return PreparedFrame(float(time_s), P, C, index, surface_translation_ratio(P, N, ev, status))
+    return PreparedFrame(float(time_s), P, C, index, None, (N, ev, status))
 
 
 def _frame_item(item) -> tuple[float, np.ndarray, np.ndarray | None]:
@@ -447,8 +460,8 @@ def register_frames(source: PreparedFrame, target: PreparedFrame, T_init: np.nda
     weak = res.degeneracy_reason if res.degenerate else ""
     T = res.T_target_source
     obs = translation_observability(res.information_6x6, params.translation_observability_ratio)
-    surface = min(source.surface_ratio, target.surface_ratio)
-    if obs.weak and surface < params.surface_observability_ratio and not reason:  # e.g. a straight featureless drift: keep the prior along the free axis
+    if obs.weak and not reason and min(source.surface(), target.surface()) < params.surface_observability_ratio:
+        # e.g. a straight featureless drift: keep the prior along the free axis
         T = keep_prior_along(T, T_init, obs.axis)
         weak = (weak + "; " if weak else "") + obs.describe()
     if not res.converged and not reason:  # still creeping (a weak direction): better than a guess, flagged

@@ -113,3 +113,25 @@ def test_twist_from_motion_inverts_the_exponential(xi, dt):
     assume(np.linalg.norm(xi[:3]) * dt < np.pi - 0.1)
     D = expm(dt * _twist_matrix(xi))
     assert np.abs(twist_from_motion(D, dt) - xi).max() < 1e-8 * (1 + np.abs(xi).max())
+
+
+_runs = st.lists(st.tuples(st.sampled_from([0.0, -0.0, 1e-5, 0.05, 0.0999, -0.005]), st.integers(1, 17)),
+                 min_size=1, max_size=12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(_twists, _runs, st.integers(0, 2**31 - 1), st.booleans())
+def test_points_fired_together_are_deskewed_as_each_alone(xi, runs, seed, read_only):
+    # a spinning LiDAR fires its rings together: runs of equal times (the kernel reuses a time's
+    # coefficients along a run, ±0 told apart); each point must get the bits it gets alone, from
+    # writable and read-only (file) arrays alike, and match the expm reference
+    tau = np.concatenate([np.full(n, t) for t, n in runs])
+    P = _points(tau.size, seed)
+    if read_only:
+        P.flags.writeable = tau.flags.writeable = False
+    Q = deskew_points(P, tau, xi)
+    alone = np.vstack([deskew_points(P[i:i + 1], tau[i:i + 1], xi) for i in range(tau.size)])
+    assert np.array_equal(Q, alone)
+    G = [expm(t * _twist_matrix(xi)) for t in tau]
+    ref = np.array([g[:3, :3] @ p + g[:3, 3] for g, p in zip(G, P, strict=True)])
+    assert np.abs(Q - ref).max() < 1e-9 * (1 + np.abs(P).max())
