@@ -448,6 +448,9 @@ RENDERERS = {
     "uncertainty_study": md_copy("uncertainty_study_2026-11-25", [0],
                                  extra="`python benchmarks/bench_uncertainty_study.py run --seeds 21,22 --n 6`"),
     "kernels_search": md_copy("kernels", [0], extra="`python benchmarks/bench_kernels.py`, median of 3, ms"),
+    "stream_ate": md_copy("stream_ate_2026-11-29", [0],
+                          extra="`python benchmarks/bench_stream_ate.py --duration-s 20`; "
+                                "HEAD at the end of the run, see the file's commit_note"),
     "mast_coverage": md_copy("mast/mast_benchmark", [2]),
     "mast_partial": md_copy("mast/mast_benchmark", [3]),
     "mast_beacon_survey": md_copy("mast/mast_benchmark", [4]),

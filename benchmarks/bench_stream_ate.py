@@ -1,0 +1,172 @@
+"""ATE of ``minegeo slam`` on motion-distorted 10 Hz streams against KISS-ICP on the same frames.
+
+Issue 29's acceptance table: per sequence, ``minegeo slam`` (the CLI, default parameters otherwise)
+
+* ``raw``: ``--no-deskew`` (the sweeps as recorded, smeared by the motion);
+* ``deskewed``: the default (constant-velocity deskewing, two passes; docs/slam.md "Deskewing");
+* ``deskewed + IMU``: ``--imu imu.csv`` (gyro-aided odometry, IMU gate, preintegration graph);
+
+and **KISS-ICP** (``KissICP.register_frame(points, times)``, its own deskewing from the same per-point
+times, configuration of ``benchmarks/bench_realtime.py``: ``kiss_config``), as it ships (voxel
+``max_range / 100`` = 1.0 m) and with a voxel of 0.25 m, the size a user would set for 3 m drifts. ATE RMSE unaligned (both
+trajectories and the truth in their first pose's frame) and SE(3)-aligned, in m and % of the path,
+with the functions of ``bench_realtime.py`` (minegeo's poses at the frame times; KISS-ICP's at the
+end of each sweep, where it deskews to, against the truth interpolated there).
+
+Sequences (``minegeo synth OUT --stream CARRIER --stream-network NET --duration-s D --seed S``): a vehicle
+on the loop network (3.2 m drifts) and on the junctions network (3.5 m), a drone in the NIOSH layout
+(2.9 m drifts, the shared data's edge list), a handheld walk on the loop. The paper world's ring,
+straight drift and ramp are scenes of one VLP-16 rotation per metre (``bench_slam.py``), not
+simulated as 10 Hz streams: the networks above stand for them.
+
+Usage::
+
+    NUMBA_NUM_THREADS=1 python benchmarks/bench_stream_ate.py --duration-s 20 \\
+        --json benchmarks/results/stream_ate_<date>.json --md benchmarks/results/stream_ate_<date>.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from bench_realtime import _ate, kiss_config, load_frames  # noqa: E402
+
+NIOSH = HERE.parent.parent / "shared" / "data" / "subt_tunnel_niosh_mine" / "ex_edgelist.csv"
+#: name -> (carrier preset, --stream-network)
+SEQUENCES = {"vehicle, loop 3.2 m": ("vehicle", "loop"), "vehicle, junctions 3.5 m": ("vehicle", "junctions"),
+             "drone, NIOSH 2.9 m": ("drone", "niosh"), "handheld, loop 3.2 m": ("handheld", "loop")}
+MODES = {"raw": ["--no-deskew"], "deskewed": [], "deskewed + IMU": ["--imu", "IMU"]}
+#: KISS-ICP runs: label -> voxel size (m); None = as it ships (max_range / 100 = 1.0 m at 100 m range)
+KISS_VOXELS = {"KISS-ICP (its deskewing), voxel 1.0 m as shipped": None,
+               "KISS-ICP (its deskewing), voxel 0.25 m for 3 m drifts": 0.25}
+
+
+def run_kiss(frames, threads: int, voxel_m: float | None):
+    """Poses (n, 4, 4) of KISS-ICP on ``frames`` (deskewed to the end of each sweep)."""
+    from kiss_icp.kiss_icp import KissICP
+
+    cfg = kiss_config(threads)
+    if voxel_m is not None:
+        cfg.mapping.voxel_size = float(voxel_m)
+    icp = KissICP(cfg)
+    poses = np.zeros((len(frames), 4, 4))
+    for k, (_, pts, tau) in enumerate(frames):
+        icp.register_frame(pts, tau)
+        poses[k] = icp.last_pose
+    return poses
+
+
+def _log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
+
+
+def _cli(args: list[str]) -> float:
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "minegeo.cli", "--quiet", *args], check=True)
+    return time.perf_counter() - t0
+
+
+def _stream(work: Path, carrier: str, network: str, duration_s: float, seed: int) -> Path:
+    d = work / f"{carrier}_{network}_{duration_s:g}s_seed{seed}"
+    if not (d / "groundtruth.txt").is_file():
+        _log(f"simulating {d.name} ...")
+        net = str(NIOSH) if network == "niosh" else network
+        _cli(["synth", str(d), "--stream", carrier, "--stream-network", net, "--duration-s", f"{duration_s:g}",
+              "--seed", str(seed), "--force"])
+    return d
+
+
+def _minegeo(stream: Path, run: Path, opts: list[str], times: np.ndarray, truth) -> dict:
+    from minegeo.io.trajectory import read_trajectory
+
+    opts = [str(stream / "imu.csv") if o == "IMU" else o for o in opts]
+    wall = _cli(["slam", "--frames", str(stream / "frames"), "--out", str(run), *opts])
+    est = read_trajectory(run / "trajectory.tum")
+    if est.times_s.size != times.size or np.abs(est.times_s - times).max() > 1e-6:
+        raise SystemExit(f"{run}: the trajectory's times are not the frames'")
+    res = json.loads((run / "result.json").read_text())["result"]
+    return {"options": opts, "wall_s": wall, **_ate(times, est.poses, truth),
+            "frames_held": int(sum(h["frames"] for h in res["motion_prior_stretches"]))}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--duration-s", type=float, default=20.0)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--sequences", nargs="+", default=list(SEQUENCES), choices=list(SEQUENCES))
+    ap.add_argument("--work", type=Path, default=Path.home() / ".cache" / "minegeo_bench" / "stream_ate")
+    ap.add_argument("--kiss-threads", type=int, default=1)
+    ap.add_argument("--json", type=Path, required=True)
+    ap.add_argument("--md", type=Path, required=True)
+    a = ap.parse_args(argv)
+    a.work.mkdir(parents=True, exist_ok=True)
+    up0 = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    commit0 = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                             cwd=HERE).stdout.strip()
+    rows = []
+    for name in a.sequences:
+        carrier, network = SEQUENCES[name]
+        stream = _stream(a.work, carrier, network, a.duration_s, a.seed)
+        frames, truth = load_frames(stream)
+        times = np.asarray([f[0] for f in frames])
+        for mode, opts in MODES.items():
+            run = a.work / f"{stream.name}_{mode.replace(' + ', '_').replace(' ', '_')}"
+            rows.append({"sequence": name, "mode": mode, **_minegeo(stream, run, opts, times, truth)})
+            _log(f"{name} / {mode}: {rows[-1]['ate_aligned_pct']:.3f} % aligned")
+        end = times + np.asarray([float(f[2].max()) for f in frames])
+        keep = end <= truth.times_s[-1]  # KISS-ICP's pose time (the sweep's end) inside the truth
+        for label, voxel in KISS_VOXELS.items():
+            t0 = time.perf_counter()
+            poses = run_kiss(frames, a.kiss_threads, voxel)
+            rows.append({"sequence": name, "mode": label, "wall_s": time.perf_counter() - t0,
+                         **_ate(end[keep], poses[keep], truth), "frames_held": None})
+            _log(f"{name} / {label}: {rows[-1]['ate_aligned_pct']:.3f} % aligned")
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=HERE).stdout.strip()
+    if subprocess.run(["git", "status", "--porcelain", "--", "../minegeo"], capture_output=True, text=True,
+                      cwd=HERE).stdout.strip():
+        commit += "+dirty"
+    from importlib.metadata import version
+
+    numba_threads = os.environ.get("NUMBA_NUM_THREADS", "default")
+    meta = {"date": dt.date.today().isoformat(), "commit": commit if commit.startswith(commit0) else f"{commit0}..{commit}",
+            "duration_s": a.duration_s, "seed": a.seed, "numba_threads": numba_threads, "kiss_threads": a.kiss_threads,
+            "threads": f"{numba_threads} for minegeo (Numba), {a.kiss_threads} for KISS-ICP",
+            "kiss_icp_version": version("kiss-icp"), "kiss_config": repr(kiss_config(a.kiss_threads)),
+            "uptime_before": up0, "uptime_after": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip(),
+            "cpus": os.cpu_count(),
+            "command": "python benchmarks/bench_stream_ate.py " + " ".join(argv if argv is not None else sys.argv[1:])}
+    a.json.parent.mkdir(parents=True, exist_ok=True)
+    a.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
+    a.md.write_text(markdown({"meta": meta, "rows": rows}))
+    return 0
+
+
+def markdown(d: dict) -> str:
+    m = d["meta"]
+    L = [f"*{m['date']}, commit {m['commit']}, {m['duration_s']:g} s streams at 10 Hz (seed {m['seed']}); minegeo "
+         f"Numba threads {m['numba_threads']}, KISS-ICP {m['kiss_icp_version']} max_num_threads {m['kiss_threads']}; "
+         f"load: `{m['uptime_before']}` → `{m['uptime_after']}`; {m['cpus']} cores.*", "",
+         "| sequence | path | mode | ATE RMSE, aligned | ATE RMSE, unaligned | max error (unaligned) | frames held |",
+         "|---|---|---|---|---|---|---|"]
+    for r in d["rows"]:
+        held = "" if r["frames_held"] is None else str(r["frames_held"])
+        L.append(f"| {r['sequence']} | {r['path_m']:.1f} m | {r['mode']} | {r['ate_aligned_m']:.3f} m "
+                 f"({r['ate_aligned_pct']:.3f} %) | {r['ate_unaligned_m']:.3f} m ({r['ate_unaligned_pct']:.3f} %) | "
+                 f"{r['ate_max_m']:.3f} m | {held} |")
+    return "\n".join(L) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
