@@ -45,11 +45,11 @@ import numpy as np
 from minegeo._provenance import atomic_write_bytes, sha256_file, to_jsonable
 from minegeo._validate import as_points, is_permutation
 from minegeo.errors import FileFormatError, InputError, TooFewPointsError
-from minegeo.io._json import load_json_text
-from minegeo.io._npz import array_digest as _array_digest
-from minegeo.io._npz import crc_failure, open_store
-from minegeo.io._npz import json_digest as _json_digest
-from minegeo.io._npz import member_header as _member_header
+from minegeo.io.jsonio import load_json_text
+from minegeo.io.npzstore import array_digest as _array_digest
+from minegeo.io.npzstore import crc_failure, open_store
+from minegeo.io.npzstore import json_digest as _json_digest
+from minegeo.io.npzstore import member_header as _member_header
 from minegeo.io.types import PointCloud
 from minegeo.localize._progress import FEATURE_STEPS, StepTimings, announce
 from minegeo.localize.params import FAST_FEATURES, FeatureParams, LocalizeParams, PrepareParams
