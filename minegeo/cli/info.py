@@ -270,12 +270,12 @@ def _posegraph_info(path: Path) -> dict:
 
 def _prepared_map_info(path: Path) -> dict:
     from minegeo._provenance import sha256_file
-    from minegeo.localize.prepared import PreparedMap, _profile_name
+    from minegeo.localize.prepared import PreparedMap, profile_name
 
     pm = PreparedMap.load(path)
     P = pm.points_map()
     return {"path": str(path), "kind": "prepared_map", "points": len(pm), "icp_points": int(pm.icp_points.shape[0]),
-            "profile": _profile_name(pm.params) or "values of no profile (e.g. --voxel)",
+            "profile": profile_name(pm.params) or "values of no profile (e.g. --voxel)",
             "voxel_size_m": pm.params.voxel_size_m, "crs": pm.crs, "work_origin": pm.work_origin.tolist(),
             "bounds_min_map": P.min(axis=0).tolist(), "bounds_max_map": P.max(axis=0).tolist(),
             "params_hash": pm.params_hash, "size_bytes": path.stat().st_size, "sha256": sha256_file(path)}
