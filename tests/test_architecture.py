@@ -8,6 +8,13 @@
   ``report`` never imports ``cli``.
 * **Readable functions**: no function outside an ``@njit`` kernel is longer than
   :data:`MAX_FUNCTION_LINES` lines (the issue's "about 120").
+* **No private seams between packages**: a module of top-level package ``A`` (``minegeo/A/``) never
+  imports, anywhere in its body, a module or a name whose dotted path has a ``_``-prefixed component
+  inside another top-level package ``B`` (``minegeo.B._m``, ``minegeo.B.m._name``); inside one
+  package private imports are free, and the root's private modules (``minegeo._jit``,
+  ``minegeo._output``, ...) are the shared base every package may import. No exception for kernels:
+  a ``_kernels*.py`` module calls another package's kernels only when they are public names of the
+  shared kernel package ``minegeo/kernels/``.
 """
 
 from __future__ import annotations
@@ -144,3 +151,63 @@ def test_long_function_finder_sees_a_long_function():
 def test_no_long_functions_outside_kernels():
     bad = long_functions()
     assert not bad, f"functions longer than {MAX_FUNCTION_LINES} lines:\n" + "\n".join(bad)
+
+
+def _is_private(component: str) -> bool:
+    return component.startswith("_") and not (component.startswith("__") and component.endswith("__"))
+
+
+def _top_package(name: str, path: Path) -> str | None:
+    """The top-level package of module ``name`` (``minegeo.io.las`` -> ``io``); None for a root module."""
+    parts = name.split(".")
+    return parts[1] if len(parts) > 2 or (len(parts) == 2 and path.name == "__init__.py") else None
+
+
+def private_imports(name: str, path: Path, source: str | None = None) -> list[str]:
+    """Imports in module ``name`` (every ``import``/``from ... import``, also inside functions; relative
+    ones resolved) of a ``_private`` module or name inside another top-level package than its own."""
+    tree = ast.parse(path.read_text() if source is None else source)
+    own = _top_package(name, path)
+    pkg = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = pkg.rsplit(".", node.level - 1)[0] if node.level > 1 else pkg
+                mod = f"{base}.{node.module}" if node.module else base
+            else:
+                mod = node.module or ""
+            targets = [f"{mod}.{a.name}" for a in node.names]
+        else:
+            continue
+        for t in targets:
+            parts = t.split(".")
+            if len(parts) > 2 and parts[0] == "minegeo" and parts[1] != own and (PKG / parts[1]).is_dir() \
+                    and any(_is_private(c) for c in parts[2:]):
+                out.append(f"{path.relative_to(PKG.parent)}:{node.lineno} imports {t}")
+    return out
+
+
+def test_private_import_finder_sees_a_violation():
+    fake = PKG / "cli" / "fake.py"
+    src = ("import minegeo.io._limits\nfrom minegeo.io import _json\nfrom minegeo.io.gcp import _ALIASES, read_gcp\n"
+           "from minegeo.cli._argtypes import positive_int\nfrom minegeo._jit import njit\n"
+           "from minegeo.io import __name__ as n\n"
+           "def f():\n    from ..localize.prepared import _profile_name\n    from ._common import x\n")
+    found = private_imports("minegeo.cli.fake", fake, src)
+    assert [f.split(" imports ")[1] for f in found] == [
+        "minegeo.io._limits", "minegeo.io._json", "minegeo.io.gcp._ALIASES", "minegeo.localize.prepared._profile_name"]
+    # a root module has no package of its own: every package's private parts are another's
+    assert private_imports("minegeo.fake", PKG / "fake.py", "from minegeo.io._limits import x\n")
+    assert not private_imports("minegeo.io.fake", PKG / "io" / "fake.py", "from minegeo.io._limits import x\n")
+    # no kernel exception: a kernel module takes another package's kernels only as public names of minegeo.kernels
+    kern = "from minegeo.kernels.kdtree import _sq_to, kd_build\nfrom minegeo.geometry._kernels import bounds3\n"
+    assert len(private_imports("minegeo.registration._kernels_x", PKG / "registration" / "_kernels_x.py", kern)) == 2
+
+
+def test_no_private_imports_across_packages():
+    bad = sorted(v for name, path in MODULES.items() for v in private_imports(name, path))
+    assert not bad, (f"{len(bad)} imports of another package's private module or name (make the helper "
+                     "public where it belongs, see docs/architecture.md):\n" + "\n".join(bad))

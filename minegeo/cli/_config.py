@@ -22,9 +22,9 @@ One place serves every verb, from the verb's own ``argparse`` parser (nothing is
   gives the same parsed options. ``--dump-config json`` prints the same as JSON.
 
 TOML is read with :mod:`tomllib` (Python 3.11 and later); on Python 3.10 a TOML file is refused with
-a line saying to use JSON. Files are read with the bounds of :func:`minegeo.io._limits.read_file_bytes`
+a line saying to use JSON. Files are read with the bounds of :func:`minegeo.io.limits.read_file_bytes`
 (regular files, at most :data:`MAX_CONFIG_BYTES`) and JSON with the strict loader of
-:mod:`minegeo.io._json`.
+:mod:`minegeo.io.jsonio`.
 """
 
 from __future__ import annotations
@@ -174,12 +174,12 @@ def convert(a: argparse.Action, v: Any, key: str, where: str) -> Any:
 
 def _read_table(path: Path) -> dict:
     """The top-level table of a TOML or JSON file (JSON when it is named ``.json`` or starts with ``{``)."""
-    from minegeo.io._limits import read_file_bytes
+    from minegeo.io.limits import read_file_bytes
 
     data = read_file_bytes(path, max_bytes=MAX_CONFIG_BYTES, what="config file (TOML or JSON)")
     is_json = path.suffix.lower() == ".json" or data.lstrip()[:1] == b"{"
     if is_json:
-        from minegeo.io._json import load_json_text
+        from minegeo.io.jsonio import load_json_text
 
         doc = load_json_text(data, path, max_bytes=MAX_CONFIG_BYTES, allow_nonfinite=True)
     else:

@@ -14,9 +14,9 @@ __all__ = ["require_dxf", "dxf_record", "write_localize_result_dxf"]
 
 def require_dxf() -> None:
     """Raise :class:`~minegeo.errors.OptionalDependencyError` now (before any work) when ezdxf is missing."""
-    from minegeo.io.dxf import _ezdxf
+    from minegeo.io.dxf import ezdxf_module
 
-    _ezdxf()
+    ezdxf_module()
 
 
 def dxf_record(path: Path, summary: dict) -> dict:

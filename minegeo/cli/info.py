@@ -193,14 +193,12 @@ def _text_kind(path: Path, head: bytes) -> tuple[str, str | None, str]:
     if _numbers(first) is None:  # a header line
         delim = "," if "," in first else (";" if ";" in first else ("\t" if "\t" in first else None))
         names = [t.strip().lower() for t in (first.split(delim) if delim else first.split())]
-        from minegeo.io.gcp import _ALIASES, _REQUIRED
-
-        canon = {_ALIASES.get(n, n) for n in names}
+        from minegeo.io.gcp import is_gcp_header
         from minegeo.io.stations import is_stations_header
 
         if is_stations_header(names) or {"t_start", "t_end"} <= set(names):
             return "stations", None, "a header naming id, t_start, t_end, E N H, sigmas and role"
-        if set(_REQUIRED) <= canon:
+        if is_gcp_header(names):
             return "gcp", None, "a header naming id, local x y z and E N H"
         if "qw" in names or "q0" in names:
             return "trajectory", None, "a header naming a quaternion"
@@ -272,12 +270,12 @@ def _posegraph_info(path: Path) -> dict:
 
 def _prepared_map_info(path: Path) -> dict:
     from minegeo._provenance import sha256_file
-    from minegeo.localize.prepared import PreparedMap, _profile_name
+    from minegeo.localize.prepared import PreparedMap, profile_name
 
     pm = PreparedMap.load(path)
     P = pm.points_map()
     return {"path": str(path), "kind": "prepared_map", "points": len(pm), "icp_points": int(pm.icp_points.shape[0]),
-            "profile": _profile_name(pm.params) or "values of no profile (e.g. --voxel)",
+            "profile": profile_name(pm.params) or "values of no profile (e.g. --voxel)",
             "voxel_size_m": pm.params.voxel_size_m, "crs": pm.crs, "work_origin": pm.work_origin.tolist(),
             "bounds_min_map": P.min(axis=0).tolist(), "bounds_max_map": P.max(axis=0).tolist(),
             "params_hash": pm.params_hash, "size_bytes": path.stat().st_size, "sha256": sha256_file(path)}
@@ -297,8 +295,8 @@ def _result_info(path: Path) -> dict:
     """A minegeo result record: its status and reason (never a position: see its report)."""
     from minegeo._provenance import sha256_file
     from minegeo.errors import FileFormatError
-    from minegeo.io._json import MAX_JSON_BYTES, load_json_text
-    from minegeo.io._limits import read_file_bytes
+    from minegeo.io.jsonio import MAX_JSON_BYTES, load_json_text
+    from minegeo.io.limits import read_file_bytes
 
     raw = read_file_bytes(path, max_bytes=MAX_JSON_BYTES, what="result.json")
     d = load_json_text(raw, path, allow_nonfinite=True)  # minegeo writes inf radii as Infinity
@@ -373,7 +371,7 @@ def _print_bag(info: dict) -> None:
 
 def _print_e57_scans(meta: dict) -> None:
     """The scans of an E57 file and their poses (scan frame -> file frame)."""
-    from minegeo.io._quat import matrix_to_quat
+    from minegeo.io import matrix_to_quat
 
     scans = meta["e57_scans"]
     extra = f"; {meta['e57_invalid_dropped']:,} invalid returns dropped" if meta.get("e57_invalid_dropped") else ""

@@ -211,7 +211,7 @@ def _write_trajectory_csv(path: Path, res) -> None:
     import numpy as np
 
     from minegeo._provenance import atomic_write_text
-    from minegeo.io._quat import matrix_to_quat
+    from minegeo.io import matrix_to_quat
 
     tm = res.trajectory_map
     tg = res.trajectory_geo

@@ -51,7 +51,7 @@ def run(args) -> int:
     from minegeo.cli._common import StepBar, summary_lines_quiet, time_line, whole_run_timings
     from minegeo.cli.localize import DEFAULT_PROFILE, params_from_args
     from minegeo.errors import InputError
-    from minegeo.localize.prepared import _is_georeferenced, prepare_map_file
+    from minegeo.localize.prepared import is_georeferenced, prepare_map_file
 
     out = Path(args.out)
     if not out.name.lower().endswith(".npz"):
@@ -78,7 +78,7 @@ def run(args) -> int:
             StepBar(args, "prepare-map", total=1 + 1 + 4 + 6 + 1) as bar, summary_lines_quiet():
         t0 = time.perf_counter()
         bar("SHA-256 of the map file")
-        source = {"path": str(args.map), "sha256": sha256_file(args.map), "georeferenced": _is_georeferenced(Path(args.map))}
+        source = {"path": str(args.map), "sha256": sha256_file(args.map), "georeferenced": is_georeferenced(Path(args.map))}
         t_hash = time.perf_counter() - t0
         with ByteBar(args) as bytes_bar:
             pm = prepare_map_file(args.map, prep, chunk_points=args.chunk_points, max_memory_gb=args.max_memory_gb,

@@ -133,7 +133,7 @@ def _check_times(files) -> None:
     adds the trajectory files' range, so that ``trajectory.tum`` can be read back): every time within
     ``±MAX_ABS_TIME`` s, hence every difference finite."""
     from minegeo.errors import InputError
-    from minegeo.io._limits import MAX_ABS_TIME
+    from minegeo.io.limits import MAX_ABS_TIME
 
     for k, f in enumerate(files):
         t = f.time_s
@@ -256,9 +256,9 @@ def _read_control(args):
         where = f"--crs {args.crs}" if args.crs else f"the '# crs:' line of --control {args.control}"
         raise CRSError(f"{where}: {exc}") from None
     if getattr(args, "dxf", None) is not None:
-        from minegeo.io.dxf import _ezdxf
+        from minegeo.io.dxf import ezdxf_module
 
-        _ezdxf()  # the dxf extra, before any work
+        ezdxf_module()  # the dxf extra, before any work
     offset = parse_station_offset(args.station_offset if args.station_offset is not None else (0.0, 0.0, 0.0))
     mode = args.control_mode or "graph"
     n_ctrl = int(st.is_control.sum())

@@ -97,10 +97,10 @@ def run(args) -> int:
         if args.gcps < 3:
             raise InputError(f"--gcps: need at least 3 control points, got {args.gcps}")
         from minegeo.georef import validate_crs
-        from minegeo.synth.dataset import _crs_origin
+        from minegeo.synth.dataset import crs_origin
 
         validate_crs(args.crs)  # a projected CRS in metres, as minegeo georef needs (not degrees)
-        _crs_origin(args.crs)  # raises CRSError for an unknown or unsuitable CRS
+        crs_origin(args.crs)  # raises CRSError for an unknown or unsuitable CRS
         if args.unmapped < 0:
             raise InputError(f"--unmapped must be >= 0, got {args.unmapped}")
         if args.roughness_m is not None and not args.roughness_m > 0:
@@ -223,10 +223,10 @@ def _stream_params(args):
     if spacing is not None:
         from minegeo.georef import validate_crs
         from minegeo.io.stations import parse_station_offset
-        from minegeo.synth.dataset import _crs_origin
+        from minegeo.synth.dataset import crs_origin
 
         validate_crs(args.crs)  # a projected CRS in metres
-        _crs_origin(args.crs)
+        crs_origin(args.crs)
         station = {"station_spacing_m": spacing, "control_every": getattr(args, "control_every", None) or 5,
                    "station_offset_m": tuple(parse_station_offset(getattr(args, "station_offset", None) or
                                                                   [0.0, 0.0, 0.0])), "crs": args.crs}

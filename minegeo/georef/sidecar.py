@@ -96,7 +96,7 @@ def _write_sidecar(p: Path, result: GeorefResult, extra: dict | None) -> Path:
 
 def read_georef(path) -> GeorefResult:
     """Read a :class:`GeorefResult` from a ``.georef.json`` sidecar or a ``georef`` ``result.json``."""
-    from minegeo.io._json import load_json_file
+    from minegeo.io.jsonio import load_json_file
 
     p = Path(path)
     d = load_json_file(p, what="georeferencing record")  # bounded, no duplicate keys, no NaN
@@ -115,7 +115,7 @@ def read_georef_sidecar(path, *, check_hash: bool = True) -> tuple:
     sidecar path, GeorefResult)`` (for chunked reading of large maps, see
     :func:`minegeo.localize.prepared.prepare_map_file`). Raises as :func:`load_georeferenced_map`."""
     from minegeo._provenance import sha256_file
-    from minegeo.io._json import load_json_file
+    from minegeo.io.jsonio import load_json_file
 
     p = Path(path)
     if p.name.endswith(".georef.json"):

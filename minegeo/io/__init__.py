@@ -4,6 +4,11 @@ Point clouds: PLY, PCD (incl. LZF ``binary_compressed``), LAS/LAZ (optional lasp
 XYZ/TXT/CSV, Leica PTS, 3DTK ``.3d``, E57 (optional pye57: scans merged by their poses);
 ``.zip`` holding one of them. DXF drawings for CAD: :mod:`minegeo.io.dxf` (optional ezdxf). Trajectories: TUM,
 KITTI, GeoSLAM-style text, CSV. Control points: CSV. See ``docs/io.md``.
+
+The reading helpers other packages share are public modules: :mod:`minegeo.io.limits` (bounded
+reads of regular files, coordinate and time ranges), :mod:`minegeo.io.jsonio` (the one JSON loader),
+:mod:`minegeo.io.npzstore` (minegeo's checked ``.npz`` stores), :mod:`minegeo.io.text` (numeric text
+tables) and :mod:`minegeo.io.angles` (angle tokens of survey files).
 """
 
 from minegeo.io._quat import matrix_to_quat, quat_to_matrix
@@ -36,7 +41,7 @@ __all__ = [
 def _warmup() -> None:
     """Compile the LZF kernels (PCD binary_compressed) and the text parser on tiny inputs."""
     from minegeo.io._lzf import lzf_compress, lzf_decompress
-    from minegeo.io._text import parse_table
+    from minegeo.io.text import parse_table
 
     data = bytes(range(64)) * 4
     lzf_decompress(lzf_compress(data), len(data))

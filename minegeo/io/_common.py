@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from minegeo.errors import FileFormatError, InputError
-from minegeo.io._limits import MAX_ABS_COORDINATE, check_coordinate_range
+from minegeo.io.limits import MAX_ABS_COORDINATE, check_coordinate_range
 from minegeo.io.types import PointCloud
 
 log = logging.getLogger(__name__)

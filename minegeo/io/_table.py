@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from minegeo.errors import FileFormatError
-from minegeo.io._limits import MIN_SIGMA_M
+from minegeo.io.limits import MIN_SIGMA_M
 
 __all__ = ["Table", "read_table", "number", "check_sigma", "new_id", "split_fields", "delimiter"]
 
@@ -122,7 +122,7 @@ def number(path, lineno: int, column: str, text: str, limit: float, what: str = 
 
 def check_sigma(path, lineno: int, column: str, text: str, v: float, meaning: str = "") -> float:
     """``v`` (a standard deviation in m read from field ``text``) checked: > 0 and not below
-    :data:`~minegeo.io._limits.MIN_SIGMA_M`; ``meaning`` is added to the message of a value <= 0."""
+    :data:`~minegeo.io.limits.MIN_SIGMA_M`; ``meaning`` is added to the message of a value <= 0."""
     if v <= 0:
         raise FileFormatError(path, f"line {lineno}: {column} = {text} must be > 0{meaning}")
     if v < MIN_SIGMA_M:

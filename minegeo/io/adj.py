@@ -6,7 +6,7 @@ benchmarks); nothing in the adjustment reads them.
 
 from __future__ import annotations
 
-from minegeo.io._limits import MAX_TABLE_FILE_BYTES, read_file_text
+from minegeo.io.limits import MAX_TABLE_FILE_BYTES, read_file_text
 
 __all__ = ["read_adj"]
 

@@ -12,7 +12,7 @@ the same float conversions are applied to each slice of the file (tests in
 format                      how it is chunked
 ==========================  =====================================================================
 PLY binary (both endians)   ``numpy.fromfile`` of ``chunk_points`` records at a time
-PLY ascii                   blocks of whole lines parsed by :func:`minegeo.io._text.parse_table`
+PLY ascii                   blocks of whole lines parsed by :func:`minegeo.io.text.parse_table`
                             (a vertex element preceded by other elements: read whole)
 PCD binary / ascii          as PLY
 PCD binary_compressed       read whole (one LZF stream cannot be split), then sliced
@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from minegeo.errors import FileFormatError, InputError
-from minegeo.io._limits import MAX_ABS_COORDINATE, MAX_HEADER_BYTES, check_coordinate_range, file_kind
+from minegeo.io.limits import MAX_ABS_COORDINATE, MAX_HEADER_BYTES, check_coordinate_range, file_kind
 
 log = logging.getLogger(__name__)
 
@@ -336,7 +336,7 @@ def _text_values(p: Path, body: int, first_line: int, ncols: int, n: int, tail_o
     ``convert(table) -> (k, 3) float64`` applies the whole-file reader's per-column dtype
     round trip. With ``tail_ok`` lines after the ``n``-th row are ignored (other elements),
     otherwise they are an error (header count too small), as in the whole-file readers."""
-    from minegeo.io._text import parse_table
+    from minegeo.io.text import parse_table
 
     def values(src: PointChunks):
         block = max(1 << 16, src.chunk_points * _TEXT_BYTES_PER_POINT)

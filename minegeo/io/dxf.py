@@ -55,11 +55,11 @@ from pathlib import Path
 import numpy as np
 
 from minegeo.errors import FileFormatError, InputError, OptionalDependencyError
-from minegeo.io._limits import MAX_TABLE_FILE_BYTES, read_file_text
+from minegeo.io.limits import MAX_TABLE_FILE_BYTES, read_file_text
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DxfDrawing", "write_localize_dxf", "write_control_dxf", "nice_exaggeration", "ellipse_from_covariance", "ellipse_vertices",
+__all__ = ["DxfDrawing", "ezdxf_module", "write_localize_dxf", "write_control_dxf", "nice_exaggeration", "ellipse_from_covariance", "ellipse_vertices",
            "read_trajectory_enh", "LAYERS", "ELLIPSE_VERTICES", "CHI2_2D_95_K"]
 
 #: layer keys -> suffix of the layer name (``<prefix>_<suffix>``) and AutoCAD colour index
@@ -82,7 +82,8 @@ ELLIPSE_VERTICES = 72
 CHI2_2D_95_K = math.sqrt(-2.0 * math.log(0.05))
 
 
-def _ezdxf():
+def ezdxf_module():
+    """The ``ezdxf`` module (:class:`~minegeo.errors.OptionalDependencyError` naming the ``dxf`` extra when missing)."""
     try:
         import ezdxf
     except ImportError:
@@ -155,7 +156,7 @@ class DxfDrawing:
 
     def __init__(self, *, layer_prefix: str = "MINEGEO", crs: str | None = None, frame: str = "CRS",
                  text_height_m: float = 0.5, ellipse_layer: str = "ELLIPSE95"):
-        ezdxf = _ezdxf()
+        ezdxf = ezdxf_module()
         if not layer_prefix or any(ch in layer_prefix for ch in '<>/\\":;?*|=`'):
             raise InputError(f"layer prefix {layer_prefix!r} is not a valid DXF layer name")
         self.doc = ezdxf.new("R2010", setup=False)

@@ -67,7 +67,7 @@ import numpy as np
 
 from minegeo.errors import FileFormatError, InputError, OptionalDependencyError
 from minegeo.io._common import RawCloud, assemble
-from minegeo.io._limits import file_kind
+from minegeo.io.limits import file_kind
 from minegeo.io.types import PointCloud
 
 log = logging.getLogger(__name__)

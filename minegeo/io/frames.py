@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from minegeo.errors import FileFormatError, InputError, OptionalDependencyError
-from minegeo.io._limits import read_file_bytes
+from minegeo.io.limits import read_file_bytes
 from minegeo.io.pointcloud import _SUFFIX
 from minegeo.io.trajectory import read_times, time_problem
 

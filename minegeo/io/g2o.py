@@ -36,8 +36,8 @@ import numpy as np
 
 from minegeo._provenance import atomic_write_text
 from minegeo.errors import FileFormatError, InputError
-from minegeo.io._limits import read_file_text
 from minegeo.io._quat import matrix_to_quat, quat_to_matrix
+from minegeo.io.limits import read_file_text
 
 __all__ = ["PoseGraph", "read_g2o", "write_g2o", "format_g2o", "non_psd_edges", "gtsam_information",
            "edge_label", "se2_matrix", "MAX_VERTEX_ID"]

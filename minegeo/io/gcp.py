@@ -17,9 +17,9 @@ separators ``,`` ``;`` tab or spaces; ``#`` comment lines; UTF-8 (a byte-order m
 skipped; other encodings are refused rather than turned into wrong ids). When the sigma columns are
 missing every CRS coordinate gets ``default_sigma_m`` (**0.01 m** unless given) and a
 warning is logged. Errors name the file, the line and the problem. Files larger than
-:data:`~minegeo.io._limits.MAX_TABLE_FILE_BYTES`, coordinates beyond
-:data:`~minegeo.io._limits.MAX_ABS_COORDINATE` and sigmas below
-:data:`~minegeo.io._limits.MIN_SIGMA_M` are refused.
+:data:`~minegeo.io.limits.MAX_TABLE_FILE_BYTES`, coordinates beyond
+:data:`~minegeo.io.limits.MAX_ABS_COORDINATE` and sigmas below
+:data:`~minegeo.io.limits.MIN_SIGMA_M` are refused.
 """
 
 from __future__ import annotations
@@ -34,13 +34,13 @@ import numpy as np
 
 from minegeo._provenance import atomic_write_text
 from minegeo.errors import FileFormatError, InputError
-from minegeo.io._limits import MAX_ABS_COORDINATE, MAX_TABLE_FILE_BYTES, read_file_text
 from minegeo.io._table import check_sigma, new_id, number, read_table
+from minegeo.io.limits import MAX_ABS_COORDINATE, MAX_TABLE_FILE_BYTES, read_file_text
 from minegeo.io.types import ControlPoints
 
 log = logging.getLogger(__name__)
 
-__all__ = ["read_gcps", "write_gcps", "DEFAULT_GCP_SIGMA_M"]
+__all__ = ["read_gcps", "write_gcps", "is_gcp_header", "DEFAULT_GCP_SIGMA_M"]
 
 #: a-priori sigma (m) of CRS coordinates when a GCP file has no sigma columns
 DEFAULT_GCP_SIGMA_M = 0.01
@@ -54,6 +54,11 @@ for _c in ("E", "N", "H", "x", "y", "z"):
     for _form in ("sigma_{}_m", "sigma_{}", "sd_{}", "s_{}", "std_{}", "std_{}_m"):
         _ALIASES[_form.format(_c.lower())] = f"sigma_{_c}_m"
 _REQUIRED = ("id", "x", "y", "z", "E", "N", "H")
+
+
+def is_gcp_header(names) -> bool:
+    """True when the header names (any case, aliases such as ``easting``) hold every column of a GCP file."""
+    return set(_REQUIRED) <= {_ALIASES.get(n.strip().lower(), n.strip()) for n in names}
 
 
 def read_gcps(path, default_sigma_m: float = DEFAULT_GCP_SIGMA_M, crs: str | None = None) -> ControlPoints:

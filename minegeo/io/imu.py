@@ -27,9 +27,9 @@ from pathlib import Path
 import numpy as np
 
 from minegeo.errors import FileFormatError, InputError
-from minegeo.io._limits import MAX_TABLE_FILE_BYTES, read_file_text
 from minegeo.io._quat import normalize_quat, quat_to_matrix, quaternion_problem, rotation_problem
-from minegeo.io._text import data_line_locator, parse_table
+from minegeo.io.limits import MAX_TABLE_FILE_BYTES, read_file_text
+from minegeo.io.text import data_line_locator, parse_table
 from minegeo.io.trajectory import time_problem
 
 __all__ = ["ImuSamples", "IMU_CSV_HEADER", "IMU_NOISE_KEYS", "read_imu_csv", "read_imu_noise", "write_imu_csv",
@@ -226,7 +226,7 @@ class _LazyLabels:
 def write_imu_csv(path, imu: ImuSamples) -> Path:
     """Write ``imu`` as an IMU CSV (17 significant digits: reads back to the same float64)."""
     from minegeo._provenance import atomic_write_bytes
-    from minegeo.io._text import format_table
+    from minegeo.io.text import format_table
 
     cols = [imu.t_s, *imu.gyro_rad_s.T, *imu.accel_m_s2.T]
     body = format_table(cols, ["%.17g"] * 7, delimiter=",")

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from minegeo.io._json import load_json_text
-from minegeo.io._limits import MAX_TABLE_FILE_BYTES, read_file_bytes
+from minegeo.io.jsonio import load_json_text
+from minegeo.io.limits import MAX_TABLE_FILE_BYTES, read_file_bytes
 from minegeo.io.network_json import network_from_dict
 from minegeo.io.network_krumm import parse_krumm
 from minegeo.io.network_types import Network
@@ -24,7 +24,7 @@ def read_network(path) -> Network:
     Parameters
     ----------
     path : str or Path
-        The file; at most :data:`~minegeo.io._limits.MAX_TABLE_FILE_BYTES` bytes.
+        The file; at most :data:`~minegeo.io.limits.MAX_TABLE_FILE_BYTES` bytes.
 
     Returns
     -------

@@ -14,8 +14,8 @@ import math
 import numpy as np
 
 from minegeo.errors import FileFormatError, InputError
-from minegeo.io._angles import parse_angle, wrap_2pi
-from minegeo.io._limits import MAX_ABS_COORDINATE
+from minegeo.io.angles import parse_angle, wrap_2pi
+from minegeo.io.limits import MAX_ABS_COORDINATE
 from minegeo.io.network_types import (
     ANGULAR,
     AXES,
@@ -135,7 +135,7 @@ def network_from_dict(d: dict, source: str = "<dict>") -> Network:
     FileFormatError
         A missing or mistyped member, naming where it is (``observation 3: missing 'to'``);
         non-finite numbers and coordinates beyond
-        :data:`~minegeo.io._limits.MAX_ABS_COORDINATE` are refused.
+        :data:`~minegeo.io.limits.MAX_ABS_COORDINATE` are refused.
     """
     try:
         return _network_from_dict(d, source)

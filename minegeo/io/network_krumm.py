@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from minegeo.errors import FileFormatError, InputError
-from minegeo.io._angles import RHO_ARCSEC, parse_angle, wrap_2pi
-from minegeo.io._limits import MAX_ABS_COORDINATE
+from minegeo.io.angles import RHO_ARCSEC, parse_angle, wrap_2pi
+from minegeo.io.limits import MAX_ABS_COORDINATE
 from minegeo.io.network_types import (
     ANGULAR,
     AXES,

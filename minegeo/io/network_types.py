@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from minegeo.errors import FileFormatError
-from minegeo.io._limits import MIN_SIGMA_M
+from minegeo.io.limits import MIN_SIGMA_M
 
 __all__ = ["KINDS", "ANGULAR", "DIM1", "DIM2", "DIM3", "AXES", "Observation", "Datum", "Network", "dimension",
            "coord_tokens", "check_precisions"]
@@ -179,7 +179,7 @@ def coord_tokens(tok: str, points: dict, dim: int, path, lineno) -> list[tuple[s
 def check_precisions(net: Network) -> Network:
     """Refuse a-priori precisions so small that their weights overflow float64.
 
-    A positive standard deviation below :data:`~minegeo.io._limits.MIN_SIGMA_M` (m or rad;
+    A positive standard deviation below :data:`~minegeo.io.limits.MIN_SIGMA_M` (m or rad;
     1e-9 rad is 0.0002") is a typing or unit mistake; zero and negative values are left to the
     adjustment, which names the observation.
     """

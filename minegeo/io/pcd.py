@@ -34,9 +34,9 @@ from minegeo.io._common import (
     writable_attributes,
     writer_values,
 )
-from minegeo.io._limits import MAX_COLUMNS, MAX_HEADER_BYTES
 from minegeo.io._lzf import lzf_compress, lzf_decompress
-from minegeo.io._text import data_line_locator, format_table, note_unterminated_last_line, parse_table
+from minegeo.io.limits import MAX_COLUMNS, MAX_HEADER_BYTES
+from minegeo.io.text import data_line_locator, format_table, note_unterminated_last_line, parse_table
 from minegeo.io.types import PointCloud
 
 __all__ = ["read_pcd_bytes", "write_pcd_bytes", "PCD_ENCODINGS"]

@@ -28,8 +28,8 @@ from minegeo.io._common import (
     writable_attributes,
     writer_values,
 )
-from minegeo.io._limits import MAX_HEADER_BYTES
-from minegeo.io._text import data_line_locator, format_table, note_unterminated_last_line, parse_table
+from minegeo.io.limits import MAX_HEADER_BYTES
+from minegeo.io.text import data_line_locator, format_table, note_unterminated_last_line, parse_table
 from minegeo.io.types import PointCloud
 
 __all__ = ["read_ply_bytes", "write_ply_bytes", "PLY_ENCODINGS"]

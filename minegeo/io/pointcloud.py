@@ -18,7 +18,7 @@ e57        .e57                       :mod:`minegeo.io.e57` (optional pye57; sca
 A ``.zip`` holding exactly one point-cloud file (e.g. ``scan.pcd.zip``) is read directly.
 Files are read whole into memory and parsed with vectorised NumPy (structured dtypes for
 binary data, NumPy's C tokenizer for text): no Python loop runs over points. Every read is
-bounded (:mod:`minegeo.io._limits`): only regular files, whose size is known before
+bounded (:mod:`minegeo.io.limits`): only regular files, whose size is known before
 allocating; header point counts checked against the bytes present; zip members checked
 against their declared size and compression ratio before inflating.
 """
@@ -36,7 +36,7 @@ import numpy as np
 from minegeo._provenance import atomic_write_bytes, sha256_file
 from minegeo.errors import FileFormatError, InputError
 from minegeo.io._common import assemble
-from minegeo.io._limits import _ZIP_RATIO_FREE_BYTES, MAX_ZIP_MEMBER_BYTES, MAX_ZIP_RATIO, read_file_bytes
+from minegeo.io.limits import _ZIP_RATIO_FREE_BYTES, MAX_ZIP_MEMBER_BYTES, MAX_ZIP_RATIO, read_file_bytes
 from minegeo.io.types import PointCloud
 
 log = logging.getLogger(__name__)
@@ -195,10 +195,10 @@ def read_point_cloud(
     FileFormatError
         Unknown extension, wrong or unknown header, truncated data, point count that differs
         from the header, non-numeric values, NaN coordinates, coordinates beyond
-        :data:`~minegeo.io._limits.MAX_ABS_COORDINATE`, empty file; not a regular file
+        :data:`~minegeo.io.limits.MAX_ABS_COORDINATE`, empty file; not a regular file
         (``/dev/zero``, a FIFO: refused without being opened), a header that does not end
-        within :data:`~minegeo.io._limits.MAX_HEADER_BYTES`, a zip member that would inflate
-        beyond :data:`~minegeo.io._limits.MAX_ZIP_RATIO` times its size, or not enough memory
+        within :data:`~minegeo.io.limits.MAX_HEADER_BYTES`, a zip member that would inflate
+        beyond :data:`~minegeo.io.limits.MAX_ZIP_RATIO` times its size, or not enough memory
         for the file; the message names the file and the problem (and the line for text data).
     OptionalDependencyError
         LAS/LAZ without laspy installed; E57 without pye57.

@@ -36,13 +36,13 @@ from pathlib import Path
 import numpy as np
 
 from minegeo.errors import FileFormatError, InputError
-from minegeo.io._limits import (
+from minegeo.io._table import check_sigma, new_id, number, read_table
+from minegeo.io.limits import (
     MAX_ABS_COORDINATE,
     MAX_ABS_TIME,
     MAX_TABLE_FILE_BYTES,
     read_file_text,
 )
-from minegeo.io._table import check_sigma, new_id, number, read_table
 
 __all__ = ["StationRole", "Stations", "STATIONS_HEADER", "read_stations", "write_stations", "is_stations_header",
            "parse_station_offset", "MAX_STATION_OFFSET_M"]
@@ -183,7 +183,7 @@ def read_stations(path, crs: str | None = None) -> Stations:
     FileFormatError
         Naming the file and the line: missing or unknown columns, a wrong number of fields, a value
         that is not a finite number, ``t_end < t_start``, a sigma <= 0 (or below
-        :data:`~minegeo.io._limits.MIN_SIGMA_M`), an unknown role, a duplicate id, overlapping
+        :data:`~minegeo.io.limits.MIN_SIGMA_M`), an unknown role, a duplicate id, overlapping
         spans, no control station, an empty file.
     """
     from minegeo.georef.crs import local_origin

@@ -21,7 +21,7 @@ Every reader here (and :mod:`minegeo.io.frames`, whose times files :func:`read_t
 applies ONE check of a trajectory, :func:`time_problem`, :func:`rotation_problem` and
 :func:`quaternion_problem`, and names the file and line of the first problem:
 
-* times finite, within +-:data:`~minegeo.io._limits.MAX_ABS_TIME` (1e20 s: UNIX seconds are
+* times finite, within +-:data:`~minegeo.io.limits.MAX_ABS_TIME` (1e20 s: UNIX seconds are
   ~1.7e9, ROS nanosecond stamps ~1.7e18), so every difference ``t_j - t_i`` and every sum is finite
   in float64, and strictly increasing (a duplicated or unsorted stamp is refused). Written with 17
   significant digits, such a time reads back as the same float64;
@@ -46,15 +46,6 @@ import numpy as np
 
 from minegeo._provenance import atomic_write_bytes
 from minegeo.errors import FileFormatError, InputError
-from minegeo.io._limits import (
-    MAX_ABS_COORDINATE,
-    MAX_ABS_TIME,
-    MAX_TABLE_FILE_BYTES,
-    check_coordinate_range,
-    file_kind,
-    read_file_bytes,
-    read_file_text,
-)
 from minegeo.io._quat import (
     QUATERNION_NORM_TOLERANCE,
     ROTATION_TOLERANCE,
@@ -63,7 +54,16 @@ from minegeo.io._quat import (
     quaternion_problem,
     rotation_problem,
 )
-from minegeo.io._text import data_line_locator, format_table, is_number, parse_table, unterminated_last_line
+from minegeo.io.limits import (
+    MAX_ABS_COORDINATE,
+    MAX_ABS_TIME,
+    MAX_TABLE_FILE_BYTES,
+    check_coordinate_range,
+    file_kind,
+    read_file_bytes,
+    read_file_text,
+)
+from minegeo.io.text import data_line_locator, format_table, is_number, parse_table, unterminated_last_line
 from minegeo.io.types import Trajectory
 
 log = logging.getLogger(__name__)
@@ -367,7 +367,7 @@ def read_trajectory(
         poses[:, :3, 3] -= o
     traj = Trajectory(times_s=t, poses=poses, frame=frame, body=body, origin=o, crs=crs)
     cut = unterminated_last_line(text)
-    if cut is not None:  # told once the whole file has been read (see minegeo.io._text)
+    if cut is not None:  # told once the whole file has been read (see minegeo.io.text)
         log.warning("%s: the last line (%d: %r) has no end-of-line: the file may have been cut short; "
                     "check that its values are complete", p, cut[0], cut[1][:60])
     return traj

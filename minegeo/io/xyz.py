@@ -29,8 +29,8 @@ short at a separator is an error naming its line). A last line without an end-of
 the usual mark of a file cut short inside a number, is read, logged as a warning and
 recorded in ``metadata["unterminated_last_line"]`` (its line number) and
 ``metadata["warnings"]``. Preamble lines longer than
-:data:`~minegeo.io._limits.MAX_HEADER_LINE_BYTES` (binary data) and coordinates beyond
-:data:`~minegeo.io._limits.MAX_ABS_COORDINATE` are errors.
+:data:`~minegeo.io.limits.MAX_HEADER_LINE_BYTES` (binary data) and coordinates beyond
+:data:`~minegeo.io.limits.MAX_ABS_COORDINATE` are errors.
 """
 
 from __future__ import annotations
@@ -52,8 +52,8 @@ from minegeo.io._common import (
     writable_attributes,
     writer_values,
 )
-from minegeo.io._limits import MAX_HEADER_LINE_BYTES
-from minegeo.io._text import (
+from minegeo.io.limits import MAX_HEADER_LINE_BYTES
+from minegeo.io.text import (
     data_line_locator,
     format_table,
     is_number,

@@ -25,7 +25,8 @@ from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, QUERY_TASK_ROWS, 
 
 __all__ = ["KD_LEAF", "kd_build", "kd_walk_to_leaf", "kd_nn_descend", "kd_nn2_descend", "kd_nn_rows", "kd_nn_serial",
            "kd_nn_parallel", "kd_nn_warm_rows", "kd_nn_warm_serial", "kd_nn_warm_parallel", "kd_knn_one",
-           "kd_knn", "kd_radius_one", "kd_radius_count", "kd_boxes", "kd_knn_leaf_batch", "GatedKDTree"]
+           "kd_knn", "kd_radius_one", "kd_radius_count", "kd_boxes", "kd_knn_leaf_batch", "sq_to_row",
+           "GatedKDTree"]
 
 #: Maximum number of points in a KD-tree leaf.
 KD_LEAF = 12
@@ -196,7 +197,7 @@ def kd_build(Q, leaf):
 
 
 @njit
-def _sq_to(px, py, pz, X, a):
+def sq_to_row(px, py, pz, X, a):
     """Squared distance of ``(px, py, pz)`` to row ``a`` of ``X``: ``dx*dx + dy*dy + dz*dz``."""
     dx = px - X[a, 0]
     dy = py - X[a, 1]
@@ -252,7 +253,7 @@ def kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, lef
             continue
         nd, sp = kd_walk_to_leaf(px, py, pz, nd, best, dim, split, left, right, st_node, st_lb, sp)
         for a in range(start[nd], end[nd]):
-            sq = _sq_to(px, py, pz, Qs, a)
+            sq = sq_to_row(px, py, pz, Qs, a)
             if sq < d2:
                 j = idx[a]
                 if sq < best or (sq == best and j < best_j):
@@ -281,7 +282,7 @@ def kd_nn2_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, le
             continue
         nd, sp = kd_walk_to_leaf(px, py, pz, nd, second, dim, split, left, right, st_node, st_lb, sp)
         for a in range(start[nd], end[nd]):
-            sq = _sq_to(px, py, pz, Qs, a)
+            sq = sq_to_row(px, py, pz, Qs, a)
             if sq < d2:
                 j = idx[a]
                 if j == best_j:
@@ -344,7 +345,7 @@ def kd_nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d
         best_j = m
         j0 = prev[i]
         if j0 < m:
-            sq0 = _sq_to(px, py, pz, Q, j0)
+            sq0 = sq_to_row(px, py, pz, Q, j0)
             if sq0 < d2:
                 best = sq0
                 best_j = j0
@@ -463,7 +464,7 @@ def kd_knn_one(px, py, pz, idx, Qs, start, end, dim, split, left, right, k, bi, 
             continue
         nd, sp = kd_walk_to_leaf(px, py, pz, nd, worst, dim, split, left, right, st_node, st_lb, sp)
         for a in range(start[nd], end[nd]):
-            sq = _sq_to(px, py, pz, Qs, a)
+            sq = sq_to_row(px, py, pz, Qs, a)
             if c == k and sq > worst:
                 continue
             j = idx[a]
@@ -541,7 +542,7 @@ def kd_radius_one(px, py, pz, r2, idx, Qs, start, end, dim, split, left, right, 
             continue
         nd, sp = kd_walk_to_leaf(px, py, pz, nd, r2, dim, split, left, right, st_node, st_lb, sp)
         for a in range(start[nd], end[nd]):
-            if _sq_to(px, py, pz, Qs, a) < r2:
+            if sq_to_row(px, py, pz, Qs, a) < r2:
                 if c < cap:
                     out[c] = idx[a]
                 c += 1
@@ -611,7 +612,7 @@ def kd_boxes(Qs, start, end, dim, left, right):
 
 @njit
 def _box_gap2(box, nd, l0, l1, l2, h0, h1, h2):
-    """Squared gap between node ``nd``'s box and the box ``(l, h)``, summed as ``_sq_to`` sums: a lower
+    """Squared gap between node ``nd``'s box and the box ``(l, h)``, summed as ``sq_to_row`` sums: a lower
     bound of the ``sq`` of any pair of points of the two boxes *in floating point* (each gap is a
     rounded difference no larger than the pair's, and sums and products of non-negative numbers are
     monotone), so pruning on it is exact."""

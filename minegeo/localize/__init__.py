@@ -46,9 +46,6 @@ def _warmup() -> None:
     _gravity_warmup()  # the up estimate of the gravity fallback
     # the serial RANSAC/grid drivers and the indexed point-to-plane sums a real scan reaches (so that a
     # warm-up of this package alone, e.g. the demo's second process, covers its localizations)
-    from minegeo.registration import _kernels as RK
-    from minegeo.registration.ransac import _warmup as _ransac_warmup
+    from minegeo.registration import warmup_scan_matching
 
-    _ransac_warmup()
-    idx = np.arange(4, dtype=np.int64)
-    RK.point_to_plane_system_idx(P[:4].copy(), P[:4].copy(), np.tile([0.0, 0.0, 1.0], (4, 1)), idx, idx)
+    warmup_scan_matching()

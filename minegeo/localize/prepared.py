@@ -45,11 +45,11 @@ import numpy as np
 from minegeo._provenance import atomic_write_bytes, sha256_file, to_jsonable
 from minegeo._validate import as_points, is_permutation
 from minegeo.errors import FileFormatError, InputError, TooFewPointsError
-from minegeo.io._json import load_json_text
-from minegeo.io._npz import array_digest as _array_digest
-from minegeo.io._npz import crc_failure, open_store
-from minegeo.io._npz import json_digest as _json_digest
-from minegeo.io._npz import member_header as _member_header
+from minegeo.io.jsonio import load_json_text
+from minegeo.io.npzstore import array_digest as _array_digest
+from minegeo.io.npzstore import crc_failure, open_store
+from minegeo.io.npzstore import json_digest as _json_digest
+from minegeo.io.npzstore import member_header as _member_header
 from minegeo.io.types import PointCloud
 from minegeo.localize._progress import FEATURE_STEPS, StepTimings, announce
 from minegeo.localize.params import FAST_FEATURES, FeatureParams, LocalizeParams, PrepareParams
@@ -68,6 +68,8 @@ __all__ = [
     "PREPARED_FORMAT",
     "PREPARED_VERSION",
     "FAST_FEATURES",
+    "profile_name",
+    "is_georeferenced",
 ]
 
 log = logging.getLogger(__name__)
@@ -443,7 +445,7 @@ class PreparedMap:
         if params != mine:
             a, b = to_jsonable(asdict(mine)), to_jsonable(asdict(params))
             diff = "; ".join(f"{k}: map {va!r}, this run {vb!r}" for k, va, vb in _diff(a, b))
-            have, want = _profile_name(mine), _profile_name(params)
+            have, want = profile_name(mine), profile_name(params)
             other = "values of no profile (e.g. --voxel or --octree-level)"
             have_t = f"the values of --profile {have}" if have else other
             want_t = f"the values of --profile {want}" if want else other
@@ -569,7 +571,7 @@ class PreparedMap:
         skipped with a warning and rebuilt when needed: the map itself is intact. Returns the
         kinds restored.
         """
-        from minegeo.registration.correspondences import FeatureIndex, _RowTree
+        from minegeo.registration.correspondences import FeatureIndex, RowTree, row_tree_is_brute
 
         skip = skip or {}
         restored: list[str] = []
@@ -601,9 +603,9 @@ class PreparedMap:
                     if not np.array_equal(_stored(a, "rows", np.int64, rows.shape), rows):
                         raise ValueError("descriptor rows are not the map's searchable rows")
                     B = np.ascontiguousarray(self.features[rows])
-                    if brute != _feature_tree_is_brute(B.shape[0]):
+                    if brute != row_tree_is_brute(B.shape[0]):
                         raise ValueError("descriptor tree kind does not match the number of rows")
-                    tree = _RowTree(B=B, brute=True) if brute else _restore_row_tree(B, a, e.get("rb"))
+                    tree = RowTree(B=B, brute=True) if brute else _restore_row_tree(B, a, e.get("rb"))
                     self._feature_index = FeatureIndex(features=self.features, drop_zero_features=dz, rows=rows,
                                                        tree=tree)
                 elif kind == "occupancy":
@@ -939,26 +941,18 @@ def _expected_feature_rows(F: np.ndarray, drop_zero_features: bool) -> np.ndarra
     return np.flatnonzero(np.any(F != 0.0, axis=1)) if drop_zero_features else np.arange(F.shape[0])
 
 
-def _feature_tree_is_brute(n: int) -> bool:
-    from minegeo.registration import _kernels_ransac as KR
-    from minegeo.registration.correspondences import _TREE_MIN_LEAVES
-
-    return n < _TREE_MIN_LEAVES * KR.FEATURE_LEAF
-
-
 def _restore_row_tree(B: np.ndarray, a: dict, rb):
     """The descriptor tree over ``B`` from its stored rotation and leaf partition (the leaf
     storage is packed again from ``B``, so it cannot disagree with the map's descriptors):
     rotation of the builder's shape and finite, order a permutation (range-checked first),
     exactly ``ceil(n / FEATURE_LEAF)`` leaves of at most ``FEATURE_LEAF`` rows, and the search
     radius bound ``rb`` the one of ``B`` and the stored mean."""
-    from minegeo.registration import _kernels_ransac as KR
-    from minegeo.registration.correspondences import _RowTree
+    from minegeo.registration.correspondences import FEATURE_LEAF, FEATURE_ROT, row_tree_from_partition
 
     n, dim = B.shape
-    L = KR.FEATURE_LEAF
+    L = FEATURE_LEAF
     mu = _stored(a, "mu", np.float64, (dim,))
-    V = _stored(a, "V", np.float64, (dim, min(dim, KR.FEATURE_ROT)))
+    V = _stored(a, "V", np.float64, (dim, min(dim, FEATURE_ROT)))
     perm = _stored(a, "perm", np.int64, (n,))
     lstart = _stored(a, "lstart", np.int64, ((n + L - 1) // L + 1,))
     if not (np.isfinite(mu).all() and np.isfinite(V).all()):
@@ -971,10 +965,7 @@ def _restore_row_tree(B: np.ndarray, a: dict, rb):
         raise ValueError("descriptor tree leaves out of range")
     if not _is_number(rb) or float(rb) != float(np.sqrt(np.max(np.einsum("ij,ij->i", B - mu, B - mu)))):
         raise ValueError("descriptor tree radius bound is not the one of the map's descriptors")
-    P = KR.feature_rotate(B, mu, V)
-    lead, Bp, loT, hiT = KR.feature_tree_pack(B, P, perm, lstart)
-    return _RowTree(B=B, brute=False, mu=mu, V=V, perm=perm, lstart=lstart, lead=lead, Bp=Bp, loT=loT, hiT=hiT,
-                    rb=float(rb))
+    return row_tree_from_partition(B, mu, V, perm, lstart, float(rb))
 
 
 def _table_log2(log2_start: int, n_blocks: int) -> int:
@@ -1076,7 +1067,7 @@ def _expand_occupancy(pk: dict):
                         dilation_cells=int(dil), build_s=pk["build_s"])
 
 
-def _profile_name(params: PrepareParams | FeatureParams) -> str | None:
+def profile_name(params: PrepareParams | FeatureParams) -> str | None:
     """The CLI ``--profile`` whose values ``params`` are exactly (``fast``, ``table3``), else None."""
     for name, ref in (("fast", PrepareParams.fast()), ("table3", PrepareParams())):
         if params == (ref.features if isinstance(params, FeatureParams) else ref):
@@ -1394,7 +1385,8 @@ def prepare_map_file(path, params: PrepareParams | None = None, *, chunk_points:
                    progress)
 
 
-def _is_georeferenced(p: Path) -> bool:
+def is_georeferenced(p: Path) -> bool:
+    """True when the map file ``p`` has a ``.georef.json`` sidecar or is itself one."""
     from minegeo.georef import sidecar_path
 
     return sidecar_path(p).exists() or p.name.endswith(".georef.json")
@@ -1430,7 +1422,7 @@ def load_or_prepare(path, params: PrepareParams, *, use_cache: bool = True, writ
                 return pm, "cache"
         except (FileFormatError, InputError) as exc:
             log.warning("ignoring prepared-map cache %s: %s", cp, exc)
-    georeferenced = _is_georeferenced(p)
+    georeferenced = is_georeferenced(p)
     pm = prepare_map_file(p, params, source={"path": str(p), "sha256": sha, "georeferenced": georeferenced})
     if write_cache:
         try:

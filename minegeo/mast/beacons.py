@@ -37,8 +37,8 @@ import numpy as np
 
 from minegeo._provenance import atomic_write_text
 from minegeo.errors import DegenerateGeometryError, FileFormatError, InputError
-from minegeo.io._limits import MAX_ABS_COORDINATE, MAX_TABLE_FILE_BYTES, read_file_text
-from minegeo.io._text import unterminated_last_line
+from minegeo.io.limits import MAX_ABS_COORDINATE, MAX_TABLE_FILE_BYTES, read_file_text
+from minegeo.io.text import unterminated_last_line
 
 __all__ = [
     "Beacon",
@@ -251,9 +251,9 @@ def read_beacons_csv(path) -> list[Beacon]:
     ------
     FileFormatError
         Missing columns, non-numeric values, a coordinate beyond
-        :data:`~minegeo.io._limits.MAX_ABS_COORDINATE`, a beacon without exactly vertices
+        :data:`~minegeo.io.limits.MAX_ABS_COORDINATE`, a beacon without exactly vertices
         0-3, a file that is not a regular UTF-8 file of at most
-        :data:`~minegeo.io._limits.MAX_TABLE_FILE_BYTES`. A last line without end-of-line
+        :data:`~minegeo.io.limits.MAX_TABLE_FILE_BYTES`. A last line without end-of-line
         (a file cut short?) is read and logged as a warning.
     """
     path = Path(path)

@@ -21,8 +21,8 @@ import numpy as np
 
 from minegeo._provenance import atomic_write_text
 from minegeo.errors import FileFormatError, InputError
-from minegeo.io._limits import MAX_ABS_COORDINATE, MAX_TABLE_FILE_BYTES, read_file_text
-from minegeo.io._text import unterminated_last_line
+from minegeo.io.limits import MAX_ABS_COORDINATE, MAX_TABLE_FILE_BYTES, read_file_text
+from minegeo.io.text import unterminated_last_line
 
 __all__ = ["Scan2D", "read_scan_csv", "write_scan_csv", "scan_to_xy", "MAX_ABS_BEARING_DEG"]
 
@@ -116,9 +116,9 @@ def read_scan_csv(path, counter_clockwise: bool = False) -> Scan2D:
         Missing header columns, a negative range, a row with more or fewer values than the header, a last
         row cut short (no end-of-line and no range), unreadable numbers, a bearing beyond
         :data:`MAX_ABS_BEARING_DEG` or a range beyond
-        :data:`~minegeo.io._limits.MAX_ABS_COORDINATE`, a negative or non-finite sigma comment, a
+        :data:`~minegeo.io.limits.MAX_ABS_COORDINATE`, a negative or non-finite sigma comment, a
         file that is not a regular UTF-8 file of at most
-        :data:`~minegeo.io._limits.MAX_TABLE_FILE_BYTES`. A last line without end-of-line
+        :data:`~minegeo.io.limits.MAX_TABLE_FILE_BYTES`. A last line without end-of-line
         (a file cut short?) is read and logged as a warning.
     """
     path = Path(path)

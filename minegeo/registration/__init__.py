@@ -10,6 +10,7 @@ ICPParams, register_icp    point-to-point / point-to-plane ICP with information 
 ICPResult, constraint_analysis
 GICPParams, register_gicp  Generalized-ICP (Segal 2009; [Ren2019 Eqs. 1-6]), Open3D-compatible mode
 GICPResult, estimate_gicp_covariances
+warmup_scan_matching       compile the kernels a scan's localization reaches (another package's warm-up)
 RansacParams, RansacResult, register_ransac
                            global registration by RANSAC on FPFH matches (Baek 2022 Sec. 2.3.2)
 feature_correspondences, FeatureMatches
@@ -52,7 +53,20 @@ __all__ = [
     "register_ransac",
     "feature_correspondences",
     "FeatureMatches",
+    "warmup_scan_matching",
 ]
+
+
+def warmup_scan_matching() -> None:
+    """Compile on tiny inputs the serial RANSAC/grid drivers and the indexed point-to-plane sums that a scan's
+    localization reaches (a caller's warm-up that does not need the whole of :func:`_warmup`)."""
+    from minegeo.registration import _kernels as K
+    from minegeo.registration.ransac import _warmup as _ransac_warmup
+
+    _ransac_warmup()
+    P = np.zeros((4, 3))
+    idx = np.arange(4, dtype=np.int64)
+    K.point_to_plane_system_idx(P.copy(), P.copy(), np.tile([0.0, 0.0, 1.0], (4, 1)), idx, idx)
 
 
 def _warmup() -> None:

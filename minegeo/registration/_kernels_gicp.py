@@ -28,7 +28,6 @@ from minegeo.kernels.eig3 import (
     pca_normal,
 )
 from minegeo.kernels.kdtree import (
-    _sq_to,
     kd_boxes,
     kd_build,
     kd_knn_leaf_batch,
@@ -36,6 +35,7 @@ from minegeo.kernels.kdtree import (
     kd_nn_descend,
     kd_nn_warm_parallel,
     kd_nn_warm_serial,
+    sq_to_row,
 )
 from minegeo.registration._kernels import (
     _add_partials,
@@ -675,7 +675,7 @@ def _list_nearest(px, py, pz, Q, nb, rk, j0, d2, tol):
     m = Q.shape[0]
     k = nb.shape[1]
     j = j0
-    sj = _sq_to(px, py, pz, Q, j)
+    sj = sq_to_row(px, py, pz, Q, j)
     for _hop in range(LIST_HOPS + 1):
         dj = np.sqrt(sj)
         if 2.0 * dj + tol < rk[j]:
@@ -684,7 +684,7 @@ def _list_nearest(px, py, pz, Q, nb, rk, j0, d2, tol):
             second = d2
             for a in range(k):
                 jj = nb[j, a]
-                s = _sq_to(px, py, pz, Q, jj)
+                s = sq_to_row(px, py, pz, Q, jj)
                 if s < d2:
                     if s < best or (s == best and jj < best_j):
                         if best < second:
@@ -699,7 +699,7 @@ def _list_nearest(px, py, pz, Q, nb, rk, j0, d2, tol):
         jn = j
         for a in range(k):
             jj = nb[j, a]
-            s = _sq_to(px, py, pz, Q, jj)
+            s = sq_to_row(px, py, pz, Q, jj)
             if s < sn or (s == sn and jj < jn):
                 sn = s
                 jn = jj
@@ -743,7 +743,7 @@ def _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, 
                 moved[i] += step
                 tol = 1e-9 * (1.0 + abs(px) + abs(py) + abs(pz))
                 if r2[i] - moved[i] > r1[i] + moved[i] + tol:
-                    sq0 = _sq_to(px, py, pz, Q, j0)
+                    sq0 = sq_to_row(px, py, pz, Q, j0)
                     if sq0 < d2:
                         last_j = j0
                         out_idx[i] = j0
@@ -773,7 +773,7 @@ def _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, 
             best = d2
             best_j = m
             if j0 < m:
-                sq0 = _sq_to(px, py, pz, Q, j0)
+                sq0 = sq_to_row(px, py, pz, Q, j0)
                 if sq0 < d2:
                     best = sq0
                     best_j = j0

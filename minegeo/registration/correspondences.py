@@ -16,7 +16,8 @@ from minegeo._validate import as_points
 from minegeo.errors import InputError, TooFewPointsError
 from minegeo.registration import _kernels_ransac as K
 
-__all__ = ["FeatureIndex", "FeatureMatches", "build_feature_index", "feature_correspondences", "nearest_rows"]
+__all__ = ["FeatureIndex", "FeatureMatches", "RowTree", "build_feature_index", "feature_correspondences", "nearest_rows",
+           "row_tree_from_partition", "row_tree_is_brute", "FEATURE_LEAF", "FEATURE_ROT"]
 
 log = logging.getLogger(__name__)
 
@@ -53,15 +54,19 @@ class FeatureMatches:
 
 #: Below this many rows of ``B`` (in leaves) the tree does not pay off: brute force.
 _TREE_MIN_LEAVES = 8
+#: Rows per leaf of the descriptor tree (:class:`RowTree`).
+FEATURE_LEAF = K.FEATURE_LEAF
+#: Most leading principal directions the descriptor tree rotates onto (:class:`RowTree` ``V`` columns).
+FEATURE_ROT = K.FEATURE_ROT
 
 
-def nearest_rows(A: np.ndarray, B: np.ndarray, tree: _RowTree | None = None) -> tuple[np.ndarray, np.ndarray]:
+def nearest_rows(A: np.ndarray, B: np.ndarray, tree: RowTree | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Exact Euclidean nearest row of ``B`` for every row of ``A`` (any dimension).
 
     Parameters
     ----------
     A, B : ndarray (na, dim), (nb, dim), float64, finite
-    tree : _RowTree, optional
+    tree : RowTree, optional
         The search structure of ``B`` from :func:`_row_tree` (``B`` must be the array it
         was built from), to search the same ``B`` many times without rebuilding it.
 
@@ -109,7 +114,7 @@ def nearest_rows(A: np.ndarray, B: np.ndarray, tree: _RowTree | None = None) -> 
 
 
 @dataclass(frozen=True, eq=False)
-class _RowTree:
+class RowTree:
     """Search structure over the rows of ``B`` used by :func:`nearest_rows` (see its Notes)."""
 
     B: np.ndarray
@@ -125,12 +130,26 @@ class _RowTree:
     rb: float = 0.0
 
 
-def _row_tree(B: np.ndarray) -> _RowTree:
+def row_tree_is_brute(n: int) -> bool:
+    """True when a descriptor set of ``n`` rows is searched by brute force, not by a :class:`RowTree` partition."""
+    return n < _TREE_MIN_LEAVES * K.FEATURE_LEAF
+
+
+def row_tree_from_partition(B: np.ndarray, mu: np.ndarray, V: np.ndarray, perm: np.ndarray, lstart: np.ndarray,
+                            rb: float) -> RowTree:
+    """The :class:`RowTree` over ``B`` from a stored rotation ``(mu, V)``, leaf order ``perm``, leaf starts
+    ``lstart`` and radius bound ``rb`` (the leaf storage packed again from ``B``); the caller has checked them."""
+    P = K.feature_rotate(B, mu, V)
+    lead, Bp, loT, hiT = K.feature_tree_pack(B, P, perm, lstart)
+    return RowTree(B=B, brute=False, mu=mu, V=V, perm=perm, lstart=lstart, lead=lead, Bp=Bp, loT=loT, hiT=hiT, rb=rb)
+
+
+def _row_tree(B: np.ndarray) -> RowTree:
     """Build the kd partition of :func:`nearest_rows` over ``B`` (brute force when small)."""
     B = np.ascontiguousarray(B, dtype=np.float64)
     nb, dim = B.shape
-    if nb < _TREE_MIN_LEAVES * K.FEATURE_LEAF:
-        return _RowTree(B=B, brute=True)
+    if row_tree_is_brute(nb):
+        return RowTree(B=B, brute=True)
     mu, C = K.feature_mean_cov(B)
     _, V = np.linalg.eigh(C)
     V = np.ascontiguousarray(V[:, ::-1][:, : min(dim, K.FEATURE_ROT)])  # largest variance first
@@ -138,7 +157,7 @@ def _row_tree(B: np.ndarray) -> _RowTree:
     perm, lstart = K.feature_tree_build(P)
     lead, Bp, loT, hiT = K.feature_tree_pack(B, P, perm, lstart)
     rb = float(np.sqrt(np.max(np.einsum("ij,ij->i", B - mu, B - mu))))
-    return _RowTree(B=B, brute=False, mu=mu, V=V, perm=perm, lstart=lstart, lead=lead, Bp=Bp, loT=loT, hiT=hiT, rb=rb)
+    return RowTree(B=B, brute=False, mu=mu, V=V, perm=perm, lstart=lstart, lead=lead, Bp=Bp, loT=loT, hiT=hiT, rb=rb)
 
 
 @dataclass(frozen=True, eq=False)
@@ -162,7 +181,7 @@ class FeatureIndex:
     features: np.ndarray
     drop_zero_features: bool
     rows: np.ndarray
-    tree: _RowTree
+    tree: RowTree
 
 
 def build_feature_index(target_features, drop_zero_features: bool = True) -> FeatureIndex:

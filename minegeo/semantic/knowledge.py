@@ -23,8 +23,8 @@ import numpy as np
 from minegeo._provenance import atomic_write_bytes, to_jsonable
 from minegeo._validate import as_points, check_positive
 from minegeo.errors import FileFormatError, InputError
-from minegeo.io._json import load_json_text
-from minegeo.io._npz import array_digest, crc_failure, json_digest, member_header, open_store
+from minegeo.io.jsonio import load_json_text
+from minegeo.io.npzstore import array_digest, crc_failure, json_digest, member_header, open_store
 from minegeo.semantic.descriptors import DescriptorParams, cwc, pwcv, similarity
 from minegeo.semantic.skeleton import SkeletonParams, drift_skeleton, mine_levels
 
@@ -125,7 +125,7 @@ class IntersectionKB:
         The archive holds the arrays of :data:`_ARRAYS` and a JSON ``meta`` string: ``format``,
         ``version``, ``status``, ``reason``, ``params``, ``provenance``, ``georef`` and ``integrity``.
         ``meta["integrity"]`` holds the SHA-256 of every array (of its dtype, shape and bytes,
-        :func:`minegeo.io._npz.array_digest`) and a ``manifest``: the SHA-256 of the canonical JSON of
+        :func:`minegeo.io.npzstore.array_digest`) and a ``manifest``: the SHA-256 of the canonical JSON of
         the rest of the meta together with the arrays' hashes, so that no stored record (array,
         parameter, provenance, georeferencing, status) can change without :meth:`load` noticing.
         """

@@ -77,7 +77,7 @@ import numpy as np
 from minegeo.errors import InputError
 from minegeo.geometry import voxel_downsample
 from minegeo.geometry.se3 import compose, project, relative
-from minegeo.io._limits import MAX_ABS_TIME
+from minegeo.io.limits import MAX_ABS_TIME
 from minegeo.kernels.lie import se3_adjoint, se3_exp, se3_log
 from minegeo.registration import GICPParams, build_target_index, register_gicp
 from minegeo.registration.gicp import gicp_covariances_on_tree

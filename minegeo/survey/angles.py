@@ -28,7 +28,7 @@ import numpy as np
 from minegeo.errors import InputError
 
 # parsing lives with the network readers (io may not import survey); re-exported here
-from minegeo.io._angles import RHO_ARCSEC, parse_angle, parse_dms, wrap_2pi
+from minegeo.io.angles import RHO_ARCSEC, parse_angle, parse_dms, wrap_2pi
 
 __all__ = [
     "RHO_ARCSEC",

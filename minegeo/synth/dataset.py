@@ -35,7 +35,7 @@ from minegeo.synth.trajectory import (
 from minegeo.synth.world import MineWorld, build_world
 
 __all__ = ["build_map", "build_survey_map", "local_scan", "make_gcps", "write_world", "survey_path", "ScanSpec",
-           "SCAN_PLANS", "MINE_LAT_DEG", "MINE_LON_DEG", "study_params", "params_dict"]
+           "SCAN_PLANS", "MINE_LAT_DEG", "MINE_LON_DEG", "crs_origin", "study_params", "params_dict"]
 
 log = logging.getLogger(__name__)
 
@@ -297,7 +297,8 @@ def _to_scan_frame(raw, traj, T_map_scan):
 
 
 # ---------------------------------------------------------------------- control points
-def _crs_origin(crs: str) -> tuple[float, float]:
+def crs_origin(crs: str) -> tuple[float, float]:
+    """Grid coordinates ``(E, N)`` (m) of the synthetic mine's location in ``crs`` (:class:`CRSError` when unusable)."""
     try:
         from pyproj import CRS, Transformer
 
@@ -334,7 +335,7 @@ def make_gcps(world: MineWorld, n: int = 10, seed: int = 0, crs: str = "EPSG:518
     if sigma_m < 0:
         raise InputError("sigma_m must be >= 0")
     rng = np.random.default_rng(seed)
-    E0, N0 = _crs_origin(crs)
+    E0, N0 = crs_origin(crs)
     H0 = float(rng.uniform(150.0, 250.0))
     theta = float(rng.uniform(0.0, 2 * np.pi))
     c, s = math.cos(theta), math.sin(theta)

@@ -479,7 +479,7 @@ def stream_stations(st: Stream):
 
     The drift network's world frame is placed in ``params.crs`` by a rigid ``T_crs_world``: a
     rotation about the vertical by a seeded angle and a translation to the Gwan-in mine location
-    (:func:`minegeo.synth.dataset._crs_origin`, rounded to mm) at a seeded height of 150-250 m.
+    (:func:`minegeo.synth.dataset.crs_origin`, rounded to mm) at a seeded height of 150-250 m.
     Station ``k`` (in path order) stands on ``station_spans[k]``; its true point is the sensor
     origin plus the offset, ``p_world = p(t) + R(t) station_offset_m`` (the pose is constant on the
     span), ``enh_true = T_crs_world p_world``; the surveyed coordinates add
@@ -494,13 +494,13 @@ def stream_stations(st: Stream):
         ``T_crs_world`` (4x4), ``enh_true`` (k, 3), ``p_world`` (k, 3), ``crs``.
     """
     from minegeo.io.stations import StationRole, Stations
-    from minegeo.synth.dataset import _crs_origin
+    from minegeo.synth.dataset import crs_origin
 
     p = st.params
     if st.station_seed is None:
         raise InputError("this stream has no stations (station_spacing_m is None)")
     rng = np.random.default_rng(st.station_seed)
-    E0, N0 = _crs_origin(p.crs)
+    E0, N0 = crs_origin(p.crs)
     H0 = float(rng.uniform(150.0, 250.0))
     theta = float(rng.uniform(0.0, 2 * np.pi))
     T = np.eye(4)

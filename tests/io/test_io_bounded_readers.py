@@ -38,7 +38,7 @@ from helpers import require_extra
 from minegeo.cli import main
 from minegeo.errors import FileFormatError
 from minegeo.io import ControlPoints, PointCloud, read_point_cloud, write_gcps, write_point_cloud
-from minegeo.io._limits import MAX_HEADER_BYTES, MAX_HEADER_LINE_BYTES
+from minegeo.io.limits import MAX_HEADER_BYTES, MAX_HEADER_LINE_BYTES
 from minegeo.mast.beacons import BeaconDesign, place_beacon, write_beacons_csv
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")

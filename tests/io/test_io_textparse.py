@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from minegeo.io._text import _fast_parse, parse_table
+from minegeo.io.text import _fast_parse, parse_table
 
 FMTS = ["%.3f", "%.6g", "%.9g", "%.15g", "%.17g", "%e", "%.2E", "%d", "%.0f", "%+.4f"]
 

@@ -1,6 +1,6 @@
 """``minegeo adjust`` on hostile or damaged network files keeps the CLI contract (issue 14).
 
-The JSON network goes through :func:`minegeo.io._json.load_json_text`: nesting deeper than
+The JSON network goes through :func:`minegeo.io.jsonio.load_json_text`: nesting deeper than
 ``MAX_JSON_DEPTH`` (thousands deep used to end in a RecursionError traceback), duplicate keys
 (a point typed twice used to keep its last value silently), ``NaN``/``Infinity``/``1e400``
 and mistyped members are each one line on stderr and exit status 2; the input is unchanged.
@@ -18,7 +18,7 @@ import pytest
 
 from minegeo.cli import main
 from minegeo.errors import FileFormatError
-from minegeo.io._json import MAX_JSON_DEPTH
+from minegeo.io.jsonio import MAX_JSON_DEPTH
 from minegeo.io.network import read_network
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")

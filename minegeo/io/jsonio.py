@@ -22,7 +22,7 @@ import math
 import numpy as np
 
 from minegeo.errors import FileFormatError
-from minegeo.io._limits import read_file_bytes
+from minegeo.io.limits import read_file_bytes
 
 __all__ = ["MAX_JSON_DEPTH", "MAX_JSON_BYTES", "load_json_text", "load_json_file", "json_depth"]
 
@@ -172,6 +172,6 @@ def load_json_text(
 
 def load_json_file(path, *, max_depth: int = MAX_JSON_DEPTH, max_bytes: int = MAX_JSON_BYTES,
                    allow_nonfinite: bool = False, what: str = "JSON file"):
-    """Read a regular file (:func:`~minegeo.io._limits.read_file_bytes`) and :func:`load_json_text` it."""
+    """Read a regular file (:func:`~minegeo.io.limits.read_file_bytes`) and :func:`load_json_text` it."""
     data = read_file_bytes(path, max_bytes=max_bytes, what=what)
     return load_json_text(data, path, max_depth=max_depth, max_bytes=max_bytes, allow_nonfinite=allow_nonfinite)

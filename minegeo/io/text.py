@@ -14,7 +14,7 @@ import io
 import numpy as np
 
 from minegeo.errors import FileFormatError
-from minegeo.io._limits import MAX_COLUMNS
+from minegeo.io.limits import MAX_COLUMNS
 
 __all__ = [
     "parse_table",
