@@ -456,6 +456,19 @@ def control_record(c, st, offset, crs, mode) -> dict:
     return rec
 
 
+def _side_inputs(args, imu) -> list[dict]:
+    """The input records (path, SHA-256) of the times file, the IMU (a bag's SHA-256 is its frames') and
+    its noise file."""
+    from minegeo._provenance import sha256_file
+
+    out = [{"path": str(args.times), "sha256": sha256_file(args.times)}] if args.times else []
+    if imu is not None:
+        out.append({"path": str(args.imu), "sha256": sha256_file(args.imu) if Path(args.imu).is_file() else None})
+        if getattr(args, "imu_noise", None):
+            out.append({"path": str(args.imu_noise), "sha256": sha256_file(args.imu_noise)})
+    return out
+
+
 def run(args) -> int:
     from tqdm import tqdm
 
@@ -510,13 +523,7 @@ def run(args) -> int:
         used = {f.name for f in files} - {s["frame"] for s in skipped}
         if res.times_s.size < 2:
             raise InputError(f"--frames {args.frames}: fewer than 2 readable frames")
-        inputs = files.inputs()
-        if args.times:
-            inputs.append({"path": str(args.times), "sha256": sha256_file(args.times)})
-        if imu is not None:
-            inputs.append({"path": str(args.imu), "sha256": sha256_file(args.imu) if Path(args.imu).is_file() else None})
-            if getattr(args, "imu_noise", None):
-                inputs.append({"path": str(args.imu_noise), "sha256": sha256_file(args.imu_noise)})
+        inputs = files.inputs() + _side_inputs(args, imu)
         stage = tx.folder("--out")
         with timer("write"):
             _write_outputs(stage, res, sorted(used))
