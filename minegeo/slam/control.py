@@ -393,7 +393,7 @@ class ControlParams:
         rad/m/√s). The default (2·10⁻⁵, 10⁻⁷, 10⁻⁷) keeps the walk's effect over a 500 m control
         interval driven at 2 m/s at about half (0.35 along, 0.51 across) the odometry's own random walk of 0.01 m/√m along and
         2·10⁻⁵ rad/√m (module docstring); a walk 10× looser follows the odometry's noise (check
-        errors 12-14 % larger without a bias, ellipses over-covering, tests/slam/test_control_drift.py).
+        errors 11-14 % larger without a bias, ellipses covering 100 %, tests/slam/test_control_drift.py).
     snooping : bool
         When a control station is flagged, name the suspected blunders by data snooping (the most
         suspect withheld and the adjustment repeated, in turn, while more than 3 remain).

@@ -161,7 +161,7 @@ def test_drift_state_ellipses_are_calibrated_and_cost_little_without_bias():
     information, no bias: the check stations' true horizontal errors fall inside their 95 % ellipses
     with the drift states in 95 % of 160 cases (binomial sd 1.7 %, accepted within 3 sd), and the
     drift states' check RMSE stays within 6 % of the plain graph's (measured 1.5 % over 30 runs;
-    12-14 % with a random walk of 10⁻⁶ rad/m/√s, whose ellipses covered 99-100 %)."""
+    11-14 % with the earlier walk of 10⁻⁴ /√s and 10⁻⁶ rad/m/√s, whose ellipses covered 100 %)."""
     t, T, times, roles, sr, stt = _long_chain()
     inside, total, sq = 0, 0, {False: 0.0, True: 0.0}
     for r in range(20):
