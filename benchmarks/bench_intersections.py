@@ -143,7 +143,7 @@ def held_summary(odo) -> dict:
     """The odometry's flagged stretches (frames held by the motion prior or the IMU): count, frames, seconds
     and each stretch (first/last frame, start time, seconds held, held by, reasons)."""
     held = odo.held_stretches()
-    return {"stretches": len(held), "frames": int(sum(h["last"] - h["first"] + 1 for h in held)),
+    return {"stretches": len(held), "frames": int(sum(h["frames"] for h in held)),
             "held_s_total": float(sum(h["held_s"] for h in held)), "list": held}
 
 
@@ -360,7 +360,7 @@ def markdown(meta: dict, results: dict, corridor: dict | None) -> str:
         if held["list"]:
             L += ["| first frame | last frame | from (s) | held (s) | held by | reasons |", "|---|---|---|---|---|---|"]
             for h in held["list"][:60]:
-                L.append(f"| {h['first']} | {h['last']} | {h['from_time_s']:.1f} | {h['held_s']:.1f} | "
+                L.append(f"| {h['first_frame']} | {h['last_frame']} | {h['from_time_s']:.1f} | {h['held_s']:.1f} | "
                          f"{h.get('held_by', 'motion prior')} | {'; '.join(h['reasons'])[:160]} |")
             if len(held["list"]) > 60:
                 L.append(f"| ... {len(held['list']) - 60} more in the JSON | | | | | |")
