@@ -292,7 +292,9 @@ def main(argv=None) -> int:
     meta = {"date": dt.date.today().isoformat(), "commit": commit, "duration_s": a.duration_s, "seed": a.seed,
             "repeats": a.repeats, "numba_threads": numba.get_num_threads(), "numba_threading_layer":
             numba.threading_layer(), "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "libgomp default (spin)"),
-            "kiss_threads": a.threads, "kiss_config": repr(kiss_config(a.threads)),
+            "kiss_threads": a.threads,
+            "threads": f"{numba.get_num_threads()} for minegeo (Numba), {a.threads} for KISS-ICP",
+            "kiss_config": repr(kiss_config(a.threads)),
             "kiss_icp_version": version("kiss-icp"), "cpus": os.cpu_count(), "uptime_before": up0,
             "uptime_after": _uptime(), "target_ms": {"median": TARGET_MEDIAN_MS, "p95": TARGET_P95_MS},
             "command": "python benchmarks/bench_realtime.py " + " ".join(argv if argv is not None else sys.argv[1:])}

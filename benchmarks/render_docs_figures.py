@@ -448,6 +448,13 @@ RENDERERS = {
     "uncertainty_study": md_copy("uncertainty_study_2026-11-25", [0],
                                  extra="`python benchmarks/bench_uncertainty_study.py run --seeds 21,22 --n 6`"),
     "kernels_search": md_copy("kernels", [0], extra="`python benchmarks/bench_kernels.py`, median of 3, ms"),
+    "realtime_idle": md_copy("realtime_2026-11-29_idle", [0, 1],
+                             extra="2 threads on both sides (minegeo: Numba omp layer, OMP_WAIT_POLICY PASSIVE; "
+                                   "KISS-ICP max_num_threads 2); per frame the minimum of 2 alternating runs; "
+                                   "`NUMBA_NUM_THREADS=2 python benchmarks/bench_realtime.py --threads 2 --repeats 2`"),
+    "realtime_loaded": md_copy("realtime_2026-11-29", [0, 1],
+                               extra="2 threads on both sides, as above, with other jobs on the 2 cores"),
+    "realtime_t1": md_copy("realtime_2026-11-29_t1", [0], extra="1 thread on both sides"),
     "stream_ate": md_copy("stream_ate_2026-11-29", [0],
                           extra="`python benchmarks/bench_stream_ate.py --duration-s 20`; "
                                 "HEAD at the end of the run, see the file's commit_note"),
