@@ -10,9 +10,12 @@ frame), ``keyframes.tum``, ``trajectory_crs.tum`` (when the base is georeference
 (provenance) and ``report.html`` (plan view / error map, recognitions, similarity matrix, timings).
 ``--imu IMU.csv`` (read and checked as ``minegeo slam`` does, :mod:`minegeo.cli._imu`) puts the gyro in the
 odometry: rotation guesses, deskewing of frames with per-point times, the IMU gate on each registration.
-Exit status 0 when the run is ``ok`` (at least one intersection factor); 1 with one line on stderr
-for ``no_recognition``, ``no_intersections`` or ``unanchored`` (outputs written, odometry-only poses);
-2 for a user mistake (one line, no traceback).
+Exit status 0 when the run is ``ok`` (intersection factors, each consistent with the odometry by its
+χ² test, and every keyframe within ``--unchecked-path`` metres of path of a verified intersection or
+the start pose); 1 with one line on stderr for ``partial`` (stretches placed by the odometry alone,
+listed in result.json and the report), ``inconsistent`` (a factor fails its χ² test: a wrong
+recognition or a runaway odometry), ``no_recognition``, ``no_intersections`` or ``unanchored``
+(outputs written, odometry-only poses); 2 for a user mistake (one line, no traceback).
 """
 
 from __future__ import annotations
@@ -72,6 +75,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--odometry", choices=("submap", "frame"), default="submap",
                         help="odometry target of each frame: the local map of the last 5 keyframes (default) or "
                         "the previous frame (Ren2019 Eq. 7)")
+    parser.add_argument("--unchecked-path", type=positive_float, default=200.0, metavar="M",
+                        help="a keyframe farther than M metres of path from every verified intersection (and the "
+                             "start pose) is odometry only: listed, and the status is 'partial' (default 200)")
     parser.add_argument("--voxel", type=positive_float, default=0.3, help="odometry voxel size (m)")
     parser.add_argument("--keyframe-distance", type=positive_float, default=2.0,
                         help="keyframe distance threshold (m)")
@@ -136,7 +142,7 @@ def _params(args):
                             **({} if args.icp_max_distance is None else {"icp_max_distance_m": args.icp_max_distance}))
     odo = OdometryParams(voxel_size_m=args.voxel, keyframe_distance_m=args.keyframe_distance,
                          frame_target=getattr(args, "odometry", "submap"))
-    return TrackParams(odo, rec, T_world_start=T,
+    return TrackParams(odo, rec, T_world_start=T, unchecked_path_m=getattr(args, "unchecked_path", 200.0),
                        **({} if args.gate_drift is None else {"gate_drift_fraction": args.gate_drift}))
 
 

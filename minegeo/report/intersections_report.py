@@ -147,6 +147,23 @@ def write_track_report(path, summary: dict, res, kb, S: np.ndarray | None, err_m
     sections.append(("Stretches held without registration (no factor from their keyframes)",
                      table(["frames", "times (s)", "held for (s)", "held by", "reason"], hrows, numeric=(2,))
                      if hrows else "<p>Every frame after the first was registered.</p>"))
+    un = r.get("unchecked_stretches") or []
+    urows = [[f"{u['first_keyframe']}–{u['last_keyframe']}", f"{u['first_frame']}–{u['last_frame']}",
+              f"{u['first_time_s']:.3f}–{u['last_time_s']:.3f}", f"{u['path_m']:.1f}", f"{u['max_path_from_check_m']:.1f}"]
+             for u in un]
+    limit = summary["parameters"].get("unchecked_path_m")
+    sections.append((f"Stretches placed by the odometry alone (more than {limit} m of path from every check)",
+                     table(["keyframes", "frames", "times (s)", "path (m)", "farthest from a check (m)"], urows,
+                           numeric=(3, 4)) if urows
+                     else "<p>Every keyframe lies within that path distance of a verified intersection"
+                          " (or the start pose).</p>"))
+    bad = r.get("inconsistent_factors") or []
+    if bad:
+        brows = [[b["keyframe"], b["frame"], b["intersection_id"], f"{b['chi2']:.1f}", f"{b['chi2_limit']:.1f}",
+                  f"{b['residual_m']:.2f}"] for b in bad]
+        sections.append(("Intersection factors failing the χ² test (positions not trusted)",
+                         table(["keyframe", "frame", "id", "eᵀΩe", "limit", "residual (m)"], brows,
+                               numeric=(0, 1, 2, 3, 4, 5))))
     if S is not None and S.size:
         sections.append(("Knowledge-base similarity matrix (PWCV)", _matrix_table(S)))
     sections += [("Time per module", timings_html(summary["module_timings_s"])),

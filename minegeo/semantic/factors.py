@@ -617,6 +617,19 @@ class FactorGraph:
                 total += quadratic_cost(g.residuals(V), g.information)
         return total
 
+    def whitened_squares(self, poses=None) -> dict:
+        """Every factor's squared Mahalanobis residual ``rᵀΩr`` at ``poses`` (default: the current
+        estimate), by kind: ``{"relative": (m,), "prior": (p,), "intersection": (q,)}`` in the order
+        added. At the optimum of a graph whose information matrices are right, each is a χ² variate
+        with the residual's dimension (6, 6, 3) less its share of the fitted parameters."""
+        P = self.poses if poses is None else np.asarray(poses, dtype=np.float64)
+        V = Values(np.ascontiguousarray(P))
+        out = {}
+        for name, g in zip(("relative", "prior", "intersection"), self._groups(), strict=True):
+            r = g.residuals(V) if g.variables.shape[0] else np.zeros((0, 3))
+            out[name] = np.einsum("ei,eij,ej->e", r, g.information, r) if r.shape[0] else np.zeros(0)
+        return out
+
     def _components(self) -> tuple[int, np.ndarray]:
         """Connected components of the keyframes under the relative factors (labels)."""
         import scipy.sparse as sp

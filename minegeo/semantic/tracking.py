@@ -156,6 +156,16 @@ class TrackParams:
         Model-noise floor added to every odometry edge's covariance (see :func:`odometry_edge_information`):
         translation σ as a fraction of the edge length, rotation σ in degrees per metre of edge, and
         a velocity uncertainty (m/s) times the time the edge spans.
+    unchecked_path_m : float
+        A keyframe farther than this along the path (m) from every verified intersection (and, with
+        ``T_world_start``, from the start) is placed by the odometry alone: such keyframes form the
+        ``unchecked_stretches`` of the result, and any makes the status ``partial``. At the odometry's
+        drift of about 1 % of the path the default (200 m) bounds such a position's error near 2 m.
+    factor_test_probability : float
+        After the last optimisation every intersection factor's ``eᵀΩe`` is tested against the χ²
+        quantile with 3 degrees of freedom at this probability (0.999: 16.3); a factor beyond it
+        disagrees with the odometry between its neighbours (a wrong recognition, or the odometry ran
+        away) and makes the status ``inconsistent``.
     """
 
     odometry: OdometryParams = field(default_factory=lambda: OdometryParams(frame_target="submap"))
@@ -175,6 +185,8 @@ class TrackParams:
     odometry_sigma_deg_per_m: float = 0.1
     odometry_sigma_mps: float = 0.1
     intersection_observation: str = "icp"
+    unchecked_path_m: float = 200.0
+    factor_test_probability: float = 0.999
 
     def __post_init__(self):
         if self.intersection_observation not in ("icp", "detected"):
@@ -186,6 +198,11 @@ class TrackParams:
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise InputError(f"{name} must be a finite number >= 0, got {v!r}")
+        if not (isinstance(self.unchecked_path_m, int | float) and self.unchecked_path_m > 0
+                and math.isfinite(self.unchecked_path_m)):
+            raise InputError(f"unchecked_path_m must be a finite number > 0, got {self.unchecked_path_m!r}")
+        if not (isinstance(self.factor_test_probability, float) and 0.0 < self.factor_test_probability < 1.0):
+            raise InputError(f"factor_test_probability must be in (0, 1), got {self.factor_test_probability!r}")
         if self.intersection_sigma_m <= 0:
             raise InputError(f"intersection_sigma_m must be > 0, got {self.intersection_sigma_m!r}")
         if self.completeness_scaling not in ("paper", "inverse"):
@@ -224,9 +241,12 @@ class TrackResult:
     Attributes
     ----------
     status : str
-        ``ok`` (at least one factor), ``no_recognition`` (none verified; odometry only),
-        ``unanchored`` (no start pose and nothing verified: poses in the first frame's frame) or
-        ``no_intersections`` (the knowledge base has none; odometry only).
+        ``ok`` (factors, every one consistent, and no keyframe farther than
+        ``TrackParams.unchecked_path_m`` of path from a verified intersection or the start pose);
+        ``partial`` (consistent factors, but ``unchecked_stretches`` placed by the odometry alone);
+        ``inconsistent`` (a factor fails the χ² test: ``inconsistent_factors``); ``no_recognition``
+        (none verified; odometry only), ``unanchored`` (no start pose and nothing verified: poses in
+        the first frame's frame) or ``no_intersections`` (the knowledge base has none; odometry only).
     reason : str
     times_s : ndarray (n,)
     poses : ndarray (n, 4, 4)
@@ -245,6 +265,13 @@ class TrackResult:
         Without the map: the online base's invariant points (world) and the keyframe that created each
         entry (the entry's id is its row).
     n_optimisations : int
+    unchecked_stretches : list of dict
+        Runs of keyframes farther than ``unchecked_path_m`` of path from every check (verified
+        intersection, loop, start pose): first/last keyframe, frame and time, the path they span (m)
+        and their largest path distance to a check (m).
+    inconsistent_factors : list of dict
+        Intersection factors beyond the χ² test after the last optimisation: keyframe, frame,
+        intersection id, ``eᵀΩe`` and the residual's length (m).
     imu : dict or None
         With an IMU: the odometry's gyro bias at the end (rad/s, IMU axes) and the number of registered
         rotations it was estimated from (``result.imu`` of ``result.json``); None without one.
@@ -265,6 +292,8 @@ class TrackResult:
     online_keyframes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     n_optimisations: int = 0
     imu: dict | None = None
+    unchecked_stretches: list = field(default_factory=list)
+    inconsistent_factors: list = field(default_factory=list)
 
     def verified(self) -> list:
         """The recognitions that became factors."""
@@ -278,6 +307,7 @@ class TrackResult:
                 "keyframes": int(self.keyframes.size), "use_map": self.use_map, "status_counts": counts,
                 "factors": len(self.verified()), "optimisations": self.n_optimisations,
                 "recognised_ids": sorted({r.recognition.intersection_id for r in self.verified()}),
+                "unchecked_stretches": self.unchecked_stretches, "inconsistent_factors": self.inconsistent_factors,
                 **({} if self.odometry is None else {"motion_prior_stretches": self.odometry.held_stretches()}),
                 **({} if self.imu is None else {"imu": self.imu})}
 
@@ -360,6 +390,53 @@ def _held_reason(odo, frame: int) -> str:
     by = "the IMU (gyro rotation, constant-velocity translation)" if odo.imu_aided else "the motion prior alone"
     return (f"keyframe in a stretch held by {by} (frame {frame} not registered: {odo.frame_reason[frame]}): "
             "no factor")
+
+
+def unchecked_stretches(path_m, checked, limit_m: float, keyframes, times_s) -> list:
+    """Runs of keyframes whose path distance to every checked keyframe exceeds ``limit_m``.
+
+    Keyframe ``k`` at path length ``s_k`` (m from the first keyframe) is unchecked when
+    ``min_c |s_k − s_c| > limit_m`` over the checked keyframes ``c`` (every keyframe when none is).
+
+    Parameters
+    ----------
+    path_m : ndarray (k,)
+        Path length of each keyframe (m, non-decreasing).
+    checked : sequence of int
+        Keyframes a check places (verified intersection, loop, start pose).
+    limit_m : float
+    keyframes : ndarray (k,) int
+        Frame index of each keyframe.
+    times_s : ndarray (n,)
+        Time of each frame (s).
+
+    Returns
+    -------
+    list of dict
+        ``first_keyframe``, ``last_keyframe``, ``first_frame``, ``last_frame``, ``first_time_s``,
+        ``last_time_s``, ``path_m`` (path the run spans) and ``max_path_from_check_m``.
+    """
+    path_m = np.asarray(path_m, np.float64)
+    n = path_m.size
+    if len(checked):
+        a = path_m[np.unique(np.asarray(checked, np.int64))]
+        d = np.min(np.abs(path_m[:, None] - a[None, :]), axis=1)
+    else:
+        d = np.full(n, np.inf)
+    out, k = [], 0
+    while k < n:
+        if d[k] <= limit_m:
+            k += 1
+            continue
+        j = k
+        while j + 1 < n and d[j + 1] > limit_m:
+            j += 1
+        fa, fb = int(keyframes[k]), int(keyframes[j])
+        out.append({"first_keyframe": k, "last_keyframe": j, "first_frame": fa, "last_frame": fb,
+                    "first_time_s": float(times_s[fa]), "last_time_s": float(times_s[fb]),
+                    "path_m": float(path_m[j] - path_m[k]), "max_path_from_check_m": float(np.max(d[k:j + 1]))})
+        k = j + 1
+    return out
 
 
 def track(frames: Iterable[tuple[float, np.ndarray]], kb: IntersectionKB | None, params: TrackParams | None = None,
@@ -451,6 +528,7 @@ class _State:
         self.recognitions: list = []
         self.online_poses: list = []
         self.n_opt = 0
+        self.checked: list = [0] if T_start is not None else []   # keyframes a check places (start, factors)
         if self.T_world_odom is not None:
             self._build(0)
 
@@ -525,6 +603,7 @@ class _State:
         res = self.g.optimize(warm_start=True)
         timings["optimisation"] = timings.get("optimisation", 0.0) + time.perf_counter() - t0
         self.n_opt += 1
+        self.checked += [k] if online is None else [k, online.kf[e]]
         self.last_anchor_path = self.path[k]
         self.done.append(((self.g.poses[k] @ np.r_[rec.z_keyframe, 1.0])[:3], rec.intersection_id))
         return res.status != "failed"
@@ -568,9 +647,52 @@ class _State:
         elif not self.n_opt:
             status, reason = "no_recognition", "no recognition was verified: odometry only"
         else:
-            status, reason = "ok", ""
+            status, reason = self._checked_status()
         pts = np.array(online.C).reshape(-1, 3) if online is not None else np.zeros((0, 3))
         okf = np.array(online.kf if online is not None else [], np.int64)
         return TrackResult(status, reason, odo.times_s, _frame_poses(odo, kf), odo.keyframes.copy(), kf,
                            np.stack(self.online_poses), self.recognitions, timings, use_map, odo, pts, okf,
-                           self.n_opt)
+                           self.n_opt, unchecked_stretches=self.unchecked_stretches(),
+                           inconsistent_factors=self.inconsistent_factors() if self.g is not None else [])
+
+    def unchecked_stretches(self) -> list:
+        """Runs of keyframes farther than ``unchecked_path_m`` of path from every check."""
+        return unchecked_stretches(self.path, self.checked, self.params.unchecked_path_m, self.odo.keyframes,
+                                   self.odo.times_s)
+
+    def inconsistent_factors(self) -> list:
+        """Intersection factors whose ``eᵀΩe`` exceeds the χ²(3) quantile at the current estimate."""
+        from scipy.stats import chi2
+
+        limit = float(chi2.ppf(self.params.factor_test_probability, 3))
+        q = self.g.whitened_squares()["intersection"]
+        facts = self.g.intersection_factors()
+        out = []
+        for (kf, z, C, _info, iid), x in zip(facts, q, strict=True):
+            if x > limit:
+                T = self.g.poses[kf]
+                e = float(np.linalg.norm(C - T[:3, :3] @ z - T[:3, 3]))
+                out.append({"keyframe": int(kf), "frame": int(self.odo.keyframes[kf]), "intersection_id": int(iid),
+                            "chi2": float(x), "chi2_limit": limit, "residual_m": e})
+        return out
+
+    def _checked_status(self) -> tuple[str, str]:
+        """``ok``, ``partial`` or ``inconsistent`` of a run with factors [see TrackParams]."""
+        bad = self.inconsistent_factors()
+        if bad:
+            worst = max(bad, key=lambda b: b["chi2"])
+            return "inconsistent", (
+                f"{len(bad)} intersection factor(s) disagree with the odometry between them beyond the χ² test "
+                f"(p {self.params.factor_test_probability:g}): worst keyframe {worst['keyframe']} "
+                f"(intersection {worst['intersection_id']}, residual {worst['residual_m']:.2f} m): a wrong "
+                "recognition or a runaway odometry; positions not trusted")
+        st = self.unchecked_stretches()
+        if st:
+            n = sum(s["last_keyframe"] - s["first_keyframe"] + 1 for s in st)
+            long = max(st, key=lambda s: s["path_m"])
+            return "partial", (
+                f"{n} of {self.odo.keyframes.size} keyframes in {len(st)} stretch(es) lie more than "
+                f"{self.params.unchecked_path_m:g} m of path from every verified intersection"
+                f"{' or the start pose' if self.params.T_world_start is not None else ''}: odometry only there, "
+                f"unchecked (longest {long['path_m']:.0f} m, {long['first_time_s']:.1f}-{long['last_time_s']:.1f} s)")
+        return "ok", ""

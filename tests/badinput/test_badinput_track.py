@@ -249,6 +249,8 @@ OPTION_CASES = {  # (options, words of the error line)
     "gate_negative": (["--gate", "-3"], "argument --gate"),
     "gate_drift_nan": (["--gate-drift", "nan"], "argument --gate-drift"),
     "gate_drift_negative": (["--gate-drift", "-0.1"], "argument --gate-drift"),
+    "unchecked_path_0": (["--unchecked-path", "0"], "argument --unchecked-path"),
+    "unchecked_path_nan": (["--unchecked-path", "nan"], "argument --unchecked-path"),
     "voxel_0": (["--voxel", "0"], "argument --voxel"),
     "voxel_inf": (["--voxel", "inf"], "argument --voxel"),
     "keyframe_distance_negative": (["--keyframe-distance", "-2"], "argument --keyframe-distance"),

@@ -90,6 +90,10 @@ def test_track_end_to_end(scene, db, tmp_path):
     x_id = int(np.argmin(np.linalg.norm(np.array(json.loads(db.with_name("kb.npz.json").read_text())
                                                  ["result"]["invariant_points_m"])[:, :2], axis=1)))
     assert rec["status"] == "ok" and r["recognised_ids"] == [x_id] and r["factors"] >= 1
+    # ok: every factor passed its χ² test and no keyframe is 200 m of path from a check (the flight is short)
+    assert r["inconsistent_factors"] == [] and r["unchecked_stretches"] == []
+    assert rec["parameters"]["unchecked_path_m"] == 200.0
+    assert "Stretches placed by the odometry alone" in (out / "report.html").read_text()
     assert all(e["status"] == "verified" for e in r["recognitions"] if e["factor"])
     assert {e["status"] for e in r["recognitions"]} <= {"verified", "candidate", "ambiguous", "no_walls"}
     names = {i["path"].rsplit("/", 1)[-1] for i in rec["provenance"]["inputs"]}
