@@ -4,8 +4,8 @@ least-squares twin, the automatic choice (C6), and their ellipses' calibration o
 from __future__ import annotations
 
 import numpy as np
+from _control_common import CHI2_2_95, CRS, OFFSET, stations, truth
 
-from minegeo.io.stations import Stations
 from minegeo.kernels.lie import se3_exp, se3_inverse
 from minegeo.optim import Values
 from minegeo.slam.control import (
@@ -15,27 +15,7 @@ from minegeo.slam.control import (
     PositionFactors,
     apply_control,
     drift_states_needed,
-    interpolate_poses,
-    station_points,
 )
-
-CRS = "EPSG:5186"
-ORIGIN = np.array([200000.0, 550000.0, 0.0])
-CHI2_2_95 = 5.991464547107979
-OFFSET = np.array([0.1, -0.05, -1.2])
-
-
-def _truth(n, step=2.0):
-    """Keyframes every 1 s on a winding, climbing path (local CRS frame, m): T_local_sensor."""
-    t = np.arange(n, dtype=np.float64)
-    s = step * t
-    yaw = 0.9 * np.sin(s / 60.0) + 0.004 * s
-    pos = np.c_[np.cumsum(step * np.cos(yaw)), np.cumsum(step * np.sin(yaw)), 0.01 * s + 0.5 * np.sin(s / 40.0)]
-    T = np.tile(np.eye(4), (n, 1, 1))
-    c, si = np.cos(yaw), np.sin(yaw)
-    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -si, si, c
-    T[:, :3, 3] = pos + [300.0, 400.0, 80.0]
-    return t, T
 
 
 def _odometry(T, rng, sigma_rot, sigma_trans, scale=0.0, yaw_rate=0.0):
@@ -53,15 +33,6 @@ def _odometry(T, rng, sigma_rot, sigma_trans, scale=0.0, yaw_rate=0.0):
     return np.c_[np.arange(k - 1), np.arange(1, k)], Z, np.tile(np.diag(sig**-2.0), (k - 1, 1, 1)), P
 
 
-def _stations(t, T, times, roles, rng, sh=0.005, sv=0.01):
-    true = station_points(interpolate_poses(t, T, times), OFFSET)
-    enh = true + rng.standard_normal(true.shape) * [sh, sh, sv]
-    n = len(times)
-    st = Stations(ids=[f"S{i:02d}" for i in range(n)], t_start_s=times, t_end_s=times, enh_local=enh,
-                  origin_enh=ORIGIN, sigma_h_m=np.full(n, sh), sigma_v_m=np.full(n, sv), roles=roles, crs=CRS)
-    return st, true
-
-
 def test_drift_state_chi2_and_redundancy_equal_a_dense_least_squares_twin():
     """Stations on keyframe times (no inserted variable), 16 variables of 9 unknowns: the twin stacks
     every whitened residual, differentiates it numerically (central differences on the manifold),
@@ -69,11 +40,11 @@ def test_drift_state_chi2_and_redundancy_equal_a_dense_least_squares_twin():
     ``rᵀr`` over every factor but the drift states' prior (the datum, ``Ω_prior / n`` on each
     variable): they must be the adjustment's
     χ² statistic and redundancy; the pose marginals must be the dense inverse's blocks."""
-    t, T = _truth(16)
+    t, T = truth(16)
     rng = np.random.default_rng(4)
     edges, Z, info, P = _odometry(T, rng, 2e-4, 0.01, scale=0.004, yaw_rate=2e-4)
     times = np.array([0.0, 4.0, 7.0, 10.0, 15.0])
-    st, _ = _stations(t, T, times, ["control", "check", "control", "check", "control"], rng)
+    st, _ = stations(t, T, times, ["control", "check", "control", "check", "control"], rng)
     p = ControlParams(drift_states=True)
     res = apply_control(t, P, edges, Z, info, st, OFFSET, CRS, p)
     assert res.optimisation.status == "converged" and res.drift_states
@@ -113,13 +84,13 @@ def test_auto_takes_drift_states_only_when_the_plain_graph_fails_its_chi2():
     """A 1 % scale and 1e-4 rad/m yaw bias: the plain graph's χ² fails (upper tail), "auto" returns
     the drift-state solution (bit-identical poses to drift_states=True); noise only: it passes,
     "auto" returns the plain solution."""
-    t, T = _truth(61)
+    t, T = truth(61)
     times = np.array([0.5, 8.5, 16.5, 30.5, 38.5, 46.5, 59.5])
     roles = ["control", "check", "check", "control", "check", "check", "control"]
     for bias, expect in (((0.01, 1e-4), True), ((0.0, 0.0), False)):
         rng = np.random.default_rng(12)
         edges, Z, info, P = _odometry(T, rng, 2e-5, 0.002, *bias)
-        st, _ = _stations(t, T, times, roles, rng)
+        st, _ = stations(t, T, times, roles, rng)
         out = {d: apply_control(t, P, edges, Z, info, st, OFFSET, CRS, ControlParams(drift_states=d))
                for d in (False, True, "auto")}
         g = out[False].global_chi2
@@ -132,7 +103,7 @@ def test_auto_takes_drift_states_only_when_the_plain_graph_fails_its_chi2():
 def _long_chain():
     """2 km winding chain, keyframes every 10 s (20 m), 5 control stations every 250 s (500 m) and
     8 check stations between; odometry noise per edge that of 2e-5 rad/√m and 0.005 m/√m."""
-    t, T = _truth(101, 20.0)
+    t, T = truth(101, 20.0)
     t = 10.0 * t
     ctrl = np.array([3.0, 253.0, 503.0, 753.0, 997.0])
     chk = np.sort(np.r_[ctrl[:-1] + 62.5, ctrl[:-1] + 125.0])
@@ -150,7 +121,7 @@ def test_a_stiff_drift_walk_stays_regular_over_a_long_control_gap():
     roles[2] = "check"
     rng = np.random.default_rng([21, 7])
     edges, Z, info, P = _odometry(T, rng, sr, stt)
-    st, _ = _stations(t, T, times, roles, rng)
+    st, _ = stations(t, T, times, roles, rng)
     res = apply_control(t, P, edges, Z, info, st, OFFSET, CRS, ControlParams(drift_states=True, snooping=False))
     assert res.optimisation.status == "converged", res.optimisation.reason
     assert np.all(np.linalg.eigvalsh(res.station_cov_enh) > 0)
@@ -167,7 +138,7 @@ def test_drift_state_ellipses_are_calibrated_and_cost_little_without_bias():
     for r in range(20):
         rng = np.random.default_rng([21, r])
         edges, Z, info, P = _odometry(T, rng, sr, stt)
-        st, true = _stations(t, T, times, roles, rng)
+        st, true = stations(t, T, times, roles, rng)
         for d in (False, True):
             res = apply_control(t, P, edges, Z, info, st, OFFSET, CRS, ControlParams(drift_states=d, snooping=False))
             e = (res.station_enh_local - true)[st.is_check][:, :2]

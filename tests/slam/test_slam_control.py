@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _control_common import CHI2_2_95, CRS, OFFSET, stations, truth
 
 from minegeo.io.stations import Stations
 from minegeo.kernels.lie import se3_exp, se3_inverse
@@ -13,26 +14,7 @@ from minegeo.slam.control import (
     ControlParams,
     PositionFactors,
     apply_control,
-    interpolate_poses,
-    station_points,
 )
-
-CRS = "EPSG:5186"
-ORIGIN = np.array([200000.0, 550000.0, 0.0])
-CHI2_2_95 = 5.991464547107979
-
-
-def _truth(n=121, step=2.0):
-    """Keyframes every 1 s on a path with three bends (local CRS frame, m): T_local_sensor."""
-    t = np.arange(n, dtype=np.float64)
-    s = step * t
-    yaw = 0.9 * np.sin(s / 60.0) + 0.004 * s
-    pos = np.c_[np.cumsum(step * np.cos(yaw)), np.cumsum(step * np.sin(yaw)), 0.01 * s + 0.5 * np.sin(s / 40.0)]
-    T = np.tile(np.eye(4), (n, 1, 1))
-    c, si = np.cos(yaw), np.sin(yaw)
-    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -si, si, c
-    T[:, :3, 3] = pos + [300.0, 400.0, 80.0]
-    return t, T
 
 
 def _odometry(T, rng, sigma_rot=2e-4, sigma_trans=0.01, yaw_bias=0.0):
@@ -53,18 +35,8 @@ def _chain(Z):
     return P
 
 
-def _stations(t, T, times, roles, rng, offset, sh=0.005, sv=0.01):
-    true = station_points(interpolate_poses(t, T, times), offset)
-    enh = true + rng.standard_normal(true.shape) * [sh, sh, sv]
-    n = len(times)
-    st = Stations(ids=[f"S{i:02d}" for i in range(n)], t_start_s=times, t_end_s=times, enh_local=enh,
-                  origin_enh=ORIGIN, sigma_h_m=np.full(n, sh), sigma_v_m=np.full(n, sv), roles=roles, crs=CRS)
-    return st, true
-
-
 ROLES = ["control", "check", "check", "control", "check", "check", "control", "check", "check", "control"]
 TIMES = np.array([0.5, 12.5, 24.5, 40.5, 52.5, 66.5, 80.5, 92.5, 104.5, 119.5])
-OFFSET = np.array([0.1, -0.05, -1.2])
 
 
 def test_position_factor_jacobian_matches_finite_differences():
@@ -87,11 +59,11 @@ def _run(mode, st, t, P, edges, Z, info):
 
 
 def test_graph_control_beats_rigid_fit_on_a_drifting_chain():
-    t, T = _truth()
+    t, T = truth()
     rng = np.random.default_rng(11)
     edges, Z, info = _odometry(T, rng, yaw_bias=2e-4)  # heading drift 0.1 rad/km, not in the information
     P = _chain(Z)
-    st, true = _stations(t, T, TIMES, ROLES, rng, OFFSET)
+    st, true = stations(t, T, TIMES, ROLES, rng, OFFSET)
     chk = st.is_check
     err = {}
     for mode in ("rigid", "graph"):
@@ -105,11 +77,11 @@ def test_graph_control_beats_rigid_fit_on_a_drifting_chain():
 
 
 def test_check_stations_never_influence_the_fit():
-    t, T = _truth()
+    t, T = truth()
     rng = np.random.default_rng(5)
     edges, Z, info = _odometry(T, rng)
     P = _chain(Z)
-    st, _ = _stations(t, T, TIMES, ROLES, rng, OFFSET)
+    st, _ = stations(t, T, TIMES, ROLES, rng, OFFSET)
     enh = st.enh_local.copy()
     enh[st.is_check] += [1.0, -2.0, 0.5]
     moved = Stations(ids=st.ids, t_start_s=st.t_start_s, t_end_s=st.t_end_s, enh_local=enh,
@@ -155,7 +127,7 @@ def _dense_covariance(res, edges_all, Z_all, info_all, var_ctrl, target, W):
 def test_marginal_covariances_equal_the_dense_inverse_on_a_small_graph():
     from minegeo.slam.control import _insert_stations
 
-    t, T = _truth(n=25)
+    t, T = truth(n=25)
     rng = np.random.default_rng(2)
     edges, Z, info = _odometry(T, rng)
     # a loop edge too, so the pattern is not a plain chain
@@ -164,7 +136,7 @@ def test_marginal_covariances_equal_the_dense_inverse_on_a_small_graph():
     info = np.r_[info, info[:1]]
     P = _chain(Z[:-1])
     times = np.array([0.5, 6.5, 12.5, 17.5, 23.5])
-    st, _ = _stations(t, T, times, ["control", "check", "control", "check", "control"], rng, OFFSET)
+    st, _ = stations(t, T, times, ["control", "check", "control", "check", "control"], rng, OFFSET)
     res = _run("graph", st, t, P, edges, Z, info)
     _, _, E2, Z2, O2, var, _ = _insert_stations(t, P, edges, Z, info, st.t_mid_s)
     ctrl = st.is_control
@@ -181,14 +153,14 @@ def test_95_percent_ellipses_at_check_stations_are_calibrated():
     """60 runs of a small chain (noise drawn from the graph's information, survey noise from the
     stations' sigmas): the true horizontal error of a check station lies inside its 95 % ellipse
     in 95 % of cases; 240 cases, binomial sd 1.4 %: accepted within 3.5 sd."""
-    t, T = _truth(n=61)
+    t, T = truth(n=61)
     times = np.array([0.5, 8.5, 16.5, 30.5, 38.5, 46.5, 59.5])
     roles = ["control", "check", "check", "control", "check", "check", "control"]
     inside, total = 0, 0
     for r in range(60):
         rng = np.random.default_rng([7, r])
         edges, Z, info = _odometry(T, rng, sigma_rot=5e-4, sigma_trans=0.02)
-        st, true = _stations(t, T, times, roles, rng, OFFSET)
+        st, true = stations(t, T, times, roles, rng, OFFSET)
         res = _run("graph", st, t, _chain(Z), edges, Z, info)
         chk = st.is_check
         e = (res.station_enh_local - true)[chk][:, :2]
@@ -203,10 +175,10 @@ def test_95_percent_ellipses_at_check_stations_are_calibrated():
 def test_too_few_control_stations_is_a_user_error():
     from minegeo.errors import InputError
 
-    t, T = _truth(n=30)
+    t, T = truth(n=30)
     rng = np.random.default_rng(1)
     edges, Z, info = _odometry(T, rng)
-    st, _ = _stations(t, T, np.array([2.5, 10.5, 20.5]), ["control", "check", "control"], rng, OFFSET)
+    st, _ = stations(t, T, np.array([2.5, 10.5, 20.5]), ["control", "check", "control"], rng, OFFSET)
     with pytest.raises(InputError, match="at least 3"):
         _run("graph", st, t, _chain(Z), edges, Z, info)
 
@@ -214,11 +186,11 @@ def test_too_few_control_stations_is_a_user_error():
 def test_a_blunder_in_one_control_station_is_flagged_and_named():
     """0.5 m added to the E of one control station (the issue's acceptance case, small chain): its
     w-test flags it by name; the others are not flagged; without the blunder nothing is flagged."""
-    t, T = _truth()
+    t, T = truth()
     rng = np.random.default_rng(11)
     edges, Z, info = _odometry(T, rng)
     P = _chain(Z)
-    st, _ = _stations(t, T, TIMES, ROLES, rng, OFFSET)
+    st, _ = stations(t, T, TIMES, ROLES, rng, OFFSET)
     clean = _run("graph", st, t, P, edges, Z, info)
     enh = st.enh_local.copy()
     enh[3, 0] += 0.5  # S03, a control station
@@ -235,12 +207,12 @@ def test_station_on_a_keyframe_time_uses_that_keyframe_and_frames_follow_the_gra
     map poses onto its CRS poses (the frames between follow the interpolated correction)."""
     from minegeo.slam.control import _insert_stations
 
-    t, T = _truth(n=40)
+    t, T = truth(n=40)
     rng = np.random.default_rng(4)
     edges, Z, info = _odometry(T, rng)
     P = _chain(Z)
     times = np.array([1.0, 10.5, 20.0, 30.5, 38.0])
-    st, _ = _stations(t, T, times, ["control", "check", "control", "check", "control"], rng, OFFSET)
+    st, _ = stations(t, T, times, ["control", "check", "control", "check", "control"], rng, OFFSET)
     res = _run("graph", st, t, P, edges, Z, info)
     assert res.times_s.size == t.size + 2 and "2 station variable(s) inserted" in res.keyframe_note
     assert np.array_equal(res.times_s[res.station_var[[0, 2, 4]]], times[[0, 2, 4]])
@@ -275,14 +247,14 @@ def test_drift_states_take_out_a_scale_and_heading_bias():
     """Odometry with 1 % scale and 1e-4 rad/m yaw bias (not in its information): control in the
     graph with drift states (C4) brings the check stations to the truth within 2 cm horizontally,
     the plain graph does not (measured RMSE h 1.1 cm vs 13.9 cm), and its states are the injected bias."""
-    t, T = _truth()
+    t, T = truth()
     rng = np.random.default_rng(11)
     edges, Z, info = _odometry(T, rng, sigma_rot=2e-5, sigma_trans=0.002)
     for e in range(Z.shape[0]):
         Zt = se3_inverse(T[e]) @ T[e + 1]
         Z[e] = Z[e] @ se3_exp(np.r_[0.0, 0.0, 1e-4 * np.linalg.norm(Zt[:3, 3]), 0.01 * Zt[:3, 3]])
     P = _chain(Z)
-    st, true = _stations(t, T, TIMES, ROLES, rng, OFFSET)
+    st, true = stations(t, T, TIMES, ROLES, rng, OFFSET)
     err = {}
     for name, cp in (("graph", ControlParams()), ("drift", ControlParams(drift_states=True))):
         res = apply_control(t, P, edges, Z, info, st, OFFSET, CRS, cp)

@@ -1,0 +1,42 @@
+"""Shared synthetic set-up of the control-station tests (tests/slam/test_slam_control.py,
+tests/slam/test_control_drift.py): the CRS and origin, the lever arm, a keyframe path whose truth is
+known and control/check stations observed on it."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from minegeo.io.stations import Stations
+from minegeo.slam.control import interpolate_poses, station_points
+
+CRS = "EPSG:5186"
+ORIGIN = np.array([200000.0, 550000.0, 0.0])
+#: χ²(2) 95 % quantile: a horizontal error inside its 95 % ellipse
+CHI2_2_95 = 5.991464547107979
+#: station offset (lever arm) in the sensor frame (m)
+OFFSET = np.array([0.1, -0.05, -1.2])
+
+
+def truth(n=121, step=2.0):
+    """Keyframes every 1 s on a winding, climbing path with three bends (local CRS frame, m):
+    times (n,) s and T_local_sensor (n, 4, 4); ``step`` metres between keyframes."""
+    t = np.arange(n, dtype=np.float64)
+    s = step * t
+    yaw = 0.9 * np.sin(s / 60.0) + 0.004 * s
+    pos = np.c_[np.cumsum(step * np.cos(yaw)), np.cumsum(step * np.sin(yaw)), 0.01 * s + 0.5 * np.sin(s / 40.0)]
+    T = np.tile(np.eye(4), (n, 1, 1))
+    c, si = np.cos(yaw), np.sin(yaw)
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -si, si, c
+    T[:, :3, 3] = pos + [300.0, 400.0, 80.0]
+    return t, T
+
+
+def stations(t, T, times, roles, rng, offset=OFFSET, sh=0.005, sv=0.01):
+    """Stations at ``times`` (s) on the true path, observed with N(0, sh) horizontal and N(0, sv)
+    vertical noise (m): (Stations, true station points (n, 3) in the local CRS frame)."""
+    true = station_points(interpolate_poses(t, T, times), offset)
+    enh = true + rng.standard_normal(true.shape) * [sh, sh, sv]
+    n = len(times)
+    st = Stations(ids=[f"S{i:02d}" for i in range(n)], t_start_s=times, t_end_s=times, enh_local=enh,
+                  origin_enh=ORIGIN, sigma_h_m=np.full(n, sh), sigma_v_m=np.full(n, sv), roles=roles, crs=CRS)
+    return st, true
