@@ -44,6 +44,14 @@ def _modules() -> dict[str, Path]:
 MODULES = _modules()
 
 
+def _resolve_from(pkg: str, node: ast.ImportFrom) -> str:
+    """The module a ``from ... import`` names, a relative one resolved against package ``pkg``."""
+    if not node.level:
+        return node.module or ""
+    base = pkg.rsplit(".", node.level - 1)[0] if node.level > 1 else pkg
+    return f"{base}.{node.module}" if node.module else base
+
+
 def _imports(name: str, path: Path) -> set[str]:
     """minegeo modules imported anywhere in the module ``name`` (resolved to module names)."""
     tree = ast.parse(path.read_text())
@@ -55,11 +63,7 @@ def _imports(name: str, path: Path) -> set[str]:
                 if a.name.startswith("minegeo"):
                     found.add(a.name)
         elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = pkg.rsplit(".", node.level - 1)[0] if node.level > 1 else pkg
-                mod = f"{base}.{node.module}" if node.module else base
-            else:
-                mod = node.module or ""
+            mod = _resolve_from(pkg, node)
             if not mod.startswith("minegeo"):
                 continue
             for a in node.names:
@@ -174,11 +178,7 @@ def private_imports(name: str, path: Path, source: str | None = None) -> list[st
         if isinstance(node, ast.Import):
             targets = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = pkg.rsplit(".", node.level - 1)[0] if node.level > 1 else pkg
-                mod = f"{base}.{node.module}" if node.module else base
-            else:
-                mod = node.module or ""
+            mod = _resolve_from(pkg, node)
             targets = [f"{mod}.{a.name}" for a in node.names]
         else:
             continue
