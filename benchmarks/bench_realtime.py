@@ -137,11 +137,15 @@ def kiss_config(threads: int):
     return cfg
 
 
-def run_kiss(frames, threads: int):
-    """``(per-frame ms (n, 3), poses (n, 4, 4))`` of KISS-ICP (deskewed to the end of each sweep)."""
+def run_kiss(frames, threads: int, voxel_m: float | None = None):
+    """``(per-frame ms (n, 3), poses (n, 4, 4))`` of KISS-ICP (deskewed to the end of each sweep);
+    ``voxel_m``: its map voxel size (m), None for its default rule (``max_range / 100``)."""
     from kiss_icp.kiss_icp import KissICP
 
-    icp = KissICP(kiss_config(threads))
+    cfg = kiss_config(threads)
+    if voxel_m is not None:
+        cfg.mapping.voxel_size = float(voxel_m)
+    icp = KissICP(cfg)
     ms, poses = np.zeros((len(frames), 3)), np.zeros((len(frames), 4, 4))
     for k, (_, pts, tau) in enumerate(frames):
         a = (time.perf_counter(), time.process_time(), time.thread_time())

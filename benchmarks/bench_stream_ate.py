@@ -40,7 +40,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from bench_realtime import _ate, kiss_config, load_frames  # noqa: E402
+from bench_realtime import _ate, kiss_config, load_frames, run_kiss  # noqa: E402
 
 NIOSH = HERE.parent.parent / "shared" / "data" / "subt_tunnel_niosh_mine" / "ex_edgelist.csv"
 #: name -> (carrier preset, --stream-network)
@@ -50,21 +50,6 @@ MODES = {"raw": ["--no-deskew"], "deskewed": [], "deskewed + IMU": ["--imu", "IM
 #: KISS-ICP runs: label -> voxel size (m); None = as it ships (max_range / 100 = 1.0 m at 100 m range)
 KISS_VOXELS = {"KISS-ICP (its deskewing), voxel 1.0 m as shipped": None,
                "KISS-ICP (its deskewing), voxel 0.25 m for 3 m drifts": 0.25}
-
-
-def run_kiss(frames, threads: int, voxel_m: float | None):
-    """Poses (n, 4, 4) of KISS-ICP on ``frames`` (deskewed to the end of each sweep)."""
-    from kiss_icp.kiss_icp import KissICP
-
-    cfg = kiss_config(threads)
-    if voxel_m is not None:
-        cfg.mapping.voxel_size = float(voxel_m)
-    icp = KissICP(cfg)
-    poses = np.zeros((len(frames), 4, 4))
-    for k, (_, pts, tau) in enumerate(frames):
-        icp.register_frame(pts, tau)
-        poses[k] = icp.last_pose
-    return poses
 
 
 def _log(msg: str) -> None:
@@ -128,7 +113,7 @@ def main(argv=None) -> int:
         keep = end <= truth.times_s[-1]  # KISS-ICP's pose time (the sweep's end) inside the truth
         for label, voxel in KISS_VOXELS.items():
             t0 = time.perf_counter()
-            poses = run_kiss(frames, a.kiss_threads, voxel)
+            _, poses = run_kiss(frames, a.kiss_threads, voxel)
             rows.append({"sequence": name, "mode": label, "wall_s": time.perf_counter() - t0,
                          **_ate(end[keep], poses[keep], truth), "frames_held": None})
             _log(f"{name} / {label}: {rows[-1]['ate_aligned_pct']:.3f} % aligned")
