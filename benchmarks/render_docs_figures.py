@@ -361,17 +361,16 @@ def render_fresh_install(results: Path) -> str:
     return head + "\n\n" + "\n".join(lines)
 
 
-def _md_tables(text: str) -> list[list[str]]:
-    """The Markdown tables of ``text``, each as its lines."""
+def _md_tables(text: str, cells: bool = False) -> list[list]:
+    """The Markdown tables of ``text``, each as its lines; with ``cells`` each line as its cells
+    (stripped texts between the ``|``)."""
     out, cur = [], []
-    for line in text.splitlines():
+    for line in [*text.splitlines(), ""]:
         if line.startswith("|"):
-            cur.append(line)
+            cur.append([c.strip() for c in line.strip().strip("|").split("|")] if cells else line)
         elif cur:
             out.append(cur)
             cur = []
-    if cur:
-        out.append(cur)
     return out
 
 
@@ -435,16 +434,10 @@ def md_columns(stem: str, columns: tuple[str, ...], table: int = 0):
     percentage written ``7.1%`` there is ``7.1 %`` here), under the conditions of its ``.json``."""
 
     def render(results: Path) -> str:
-        rows = _md_tables((results / (stem + ".md")).read_text(encoding="utf-8"))[table]
-
-        def cells(line: str) -> list[str]:
-            return [c.strip() for c in line.strip().strip("|").split("|")]
-
-        head = cells(rows[0])
-        idx = [head.index(c) for c in columns]
+        rows = _md_tables((results / (stem + ".md")).read_text(encoding="utf-8"), cells=True)[table]
+        idx = [rows[0].index(c) for c in columns]
         out = ["| " + " | ".join(columns) + " |", "|" + "|".join(["---"] * len(columns)) + "|"]
-        for r in rows[2:]:
-            c = cells(r)
+        for c in rows[2:]:
             out.append("| " + " | ".join(re.sub(r"(\d)%$", r"\1 %", c[j]) for j in idx) + " |")
         return _json_conditions(stem, results) + "\n\n" + "\n".join(out)
 
