@@ -50,6 +50,7 @@ import io
 import json
 import logging
 import math
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -137,6 +138,21 @@ def ellipse_vertices(center, a: float, b: float, azimuth_rad: float, n: int = EL
     return out
 
 
+
+@contextmanager
+def _fixed_metadata(ezdxf):
+    """ezdxf writes the clock time and random GUIDs into a drawing's header ($TDCREATE, $TDUPDATE,
+    $VERSIONGUID, $FINGERPRINTGUID and its own marker); inside this context it writes fixed values
+    (2000-01-01, constant GUIDs), so the same drawing gives the same bytes (the run's time is in
+    result.json)."""
+    old = ezdxf.options.write_fixed_meta_data_for_testing
+    ezdxf.options.write_fixed_meta_data_for_testing = True
+    try:
+        yield
+    finally:
+        ezdxf.options.write_fixed_meta_data_for_testing = old
+
+
 class DxfDrawing:
     """A DXF drawing on minegeo's named layers (see the module docstring).
 
@@ -159,7 +175,8 @@ class DxfDrawing:
         ezdxf = ezdxf_module()
         if not layer_prefix or any(ch in layer_prefix for ch in '<>/\\":;?*|=`'):
             raise InputError(f"layer prefix {layer_prefix!r} is not a valid DXF layer name")
-        self.doc = ezdxf.new("R2010", setup=False)
+        with _fixed_metadata(ezdxf):
+            self.doc = ezdxf.new("R2010", setup=False)
         self.doc.units = ezdxf.units.M
         self.doc.header["$INSUNITS"] = 6  # metres
         self.doc.header["$MEASUREMENT"] = 1  # metric
@@ -223,7 +240,8 @@ class DxfDrawing:
         for k, v in self.props.items():
             self.doc.header.custom_vars.append(k, v)
         buf = io.StringIO()
-        self.doc.write(buf)
+        with _fixed_metadata(ezdxf_module()):
+            self.doc.write(buf)
         self.doc.header.custom_vars.clear()
         return buf.getvalue().encode("utf-8")
 

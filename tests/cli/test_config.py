@@ -331,8 +331,9 @@ def test_mast_repeated_from_its_result_json(tmp_path, capsys):
     a, b = tmp_path / "a", tmp_path / "b"
     assert main(["-q", "mast", "--scan", str(sc["scan"]), "--beacons", str(sc["beacons"]), "--out", str(a),
                  "--sigma-panel-m", "0.002", "--sigma-beacon-m", "0.001", "--variance", "apriori",
-                 "--options", "1,2,3"]) == 0
+                 "--options", "1,2,3", "--dxf"]) == 0
     assert main(["-q", "mast", "--config", str(a / "result.json"), "--out", str(b)]) == 0
+    assert (b / "mast.dxf").is_file()
     _same_folder(a, b)
 
 

@@ -229,3 +229,29 @@ def test_adjust_dxf(tmp_path, capsys):
         ref = r["ellipses"]["points"][pid]["confidence_95"]
         d = np.linalg.norm(V[:, :2] - [r["points"][pid]["x"], r["points"][pid]["y"]], axis=1)
         assert d.max() == pytest.approx(ref["semi_major_m"], rel=1e-9)
+
+
+def test_the_same_drawing_gives_the_same_bytes(tmp_path, capsys):
+    """Same inputs, same DXF bytes: ezdxf's clock time and random GUIDs ($TDCREATE, $TDUPDATE,
+    $VERSIONGUID, $FINGERPRINTGUID, its marker) are written as fixed values; a drawing made a second
+    later is byte-identical, and ezdxf's global option is left as it was."""
+    import time
+
+    from minegeo.mast import write_mast_scenario
+
+    paths = write_mast_scenario(tmp_path / "sc", seed=3, position=2, beacon1_rotation_deg=10.0,
+                                mine_origin_m=(500000.0, 6000000.0))
+    blobs = []
+    for k in range(2):
+        out = tmp_path / f"out{k}"
+        assert main(["-q", "mast", "--scan", str(paths["scan"]), "--beacons", str(paths["beacons"]),
+                     "--out", str(out), "--dxf"]) == 0
+        blobs.append((out / "mast.dxf").read_bytes())
+        time.sleep(1.1)  # the header's dates have a resolution of a second or finer
+    assert blobs[0] == blobs[1]
+    assert not ezdxf.options.write_fixed_meta_data_for_testing
+    d = DxfDrawing(crs="EPSG:5186")
+    d.doc.modelspace().add_point((1.0, 2.0, 3.0))
+    a = d.to_bytes()
+    time.sleep(1.1)
+    assert a == d.to_bytes()
