@@ -19,7 +19,7 @@ because Open3D and small_gicp compute their covariances inside the call)
 * ``minegeo_cached``: default parameters with both clouds' covariances precomputed (what a
   prepared map and a cached previous frame give; registration only);
 * ``minegeo_cached_pyloop``: ``minegeo_cached`` through the Python loop
-  (``registration.loop.run_loop``, ``gicp.USE_LOOP_KERNEL = False``) instead of the one-kernel
+  (``registration.loop.run_loop``, ``register_gicp(..., engine="python")``) instead of the one-kernel
   default loop: what the loop kernel saves;
 * ``minegeo_sg_stop``: like for like with small_gicp's loop: its convergence test (step below
   0.1° **and** 1 mm) and its 20-iteration cap (``GICPParams(d, max_iterations=20,
@@ -145,13 +145,7 @@ def run_case(name, src, tgt, T_true, starts, d, threads, repeats, idle_s=0.05):
         return r.T_target_source, r.iterations, r.fitness
 
     def v_minegeo_cached_pyloop(T0):
-        from minegeo.registration import gicp as G
-
-        G.USE_LOOP_KERNEL = False
-        try:
-            r = register_gicp(src, tgt, T0, prm, source_covariances=covs[0], target_covariances=covs[1])
-        finally:
-            G.USE_LOOP_KERNEL = True
+        r = register_gicp(src, tgt, T0, prm, source_covariances=covs[0], target_covariances=covs[1], engine="python")
         return r.T_target_source, r.iterations, r.fitness
 
     def v_open3d(T0):

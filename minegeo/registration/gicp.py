@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numba
@@ -101,27 +100,19 @@ PARALLEL_SEARCH_ROWS = 1 << 16
 #: (benchmarks/results/gicp_2026-11-25_parallel.md). Speed only: the same bits either way.
 IDLE_PARALLEL_ROWS = 2048
 #: With two or more Numba threads, the source and target covariances of at least this many points
-#: each are estimated concurrently in two threads (the kernels release the GIL; one task per cloud,
-#: no barrier per iteration). The bits are those of the sequential estimate.
+#: each are estimated in one ``prange`` region over both clouds' tasks
+#: (:func:`~minegeo.registration._kernels_gicp.knn_normals_pair_tasks`; no barrier per iteration).
+#: The bits are those of the sequential estimate.
 CONCURRENT_MIN_POINTS = 1024
-#: True: that concurrent estimate is one ``prange`` region over both clouds' tasks
-#: (:func:`~minegeo.registration._kernels_gicp.knn_normals_pair_tasks`) instead of one Python
-#: thread per cloud, which competes with the OpenMP threads of the last ``prange`` region while they
-#: spin after it (measured on the small_gicp pair, 2 threads: covariances 12.6-14.4 ms with the
-#: Python thread, 8.5 ms with it and ``OMP_WAIT_POLICY=passive``, 9.4 ms in one region). Same bits.
-PAIR_IN_ONE_REGION = True
-#: The default loop (``convergence="step"``) runs as one kernel
-#: (:func:`~minegeo.registration._kernels_gicp.gicp_step_loop`) instead of
-#: :func:`~minegeo.registration.loop.run_loop` with a return to Python per iteration (measured on the
-#: small_gicp pair: 0.4-0.8 ms less per registration of 7-10 iterations). False runs the Python loop
-#: (the reference the kernel is tested against); ``convergence="open3d"`` always runs it.
-USE_LOOP_KERNEL = True
-#: When the target's covariances are estimated in the call, its kNN lists are kept and a source
-#: point whose previous partner ``j`` is nearer than half the distance of ``j``'s last neighbour
-#: takes its new partner from that list instead of the tree (the same answer, bit for bit:
-#: :func:`~minegeo.registration._kernels_gicp._list_nearest`). False searches the tree only.
-USE_NEIGHBOUR_LISTS = True
-
+#: The registration loops: ``"kernel"`` runs the default loop (``convergence="step"``) as one kernel
+#: (:func:`~minegeo.registration._kernels_gicp.gicp_step_loop`, no return to Python per iteration;
+#: on the small_gicp pair 0.4-0.8 ms less per registration of 7-10 iterations); ``"python"`` runs
+#: :func:`~minegeo.registration.loop.run_loop`, the reference the kernel is tested against, and the
+#: loop of ``convergence="open3d"``. When the target's covariances are estimated in the call, its
+#: kNN lists are kept and a source point whose previous partner ``j`` is nearer than half the
+#: distance of ``j``'s last neighbour takes its new partner from that list instead of the tree (the
+#: same answer, bit for bit: :func:`~minegeo.registration._kernels_gicp._list_nearest`).
+ENGINES = ("kernel", "python")
 
 def _is_number(v) -> bool:
     return isinstance(v, int | float | np.floating | np.integer) and not isinstance(v, bool)
@@ -470,7 +461,8 @@ def _as_covariances(C, n: int, name: str) -> np.ndarray:
 
 def register_gicp(source_points, target_points, T_init, params: GICPParams, source_covariances=None,
                   target_covariances=None, source_normals=None, target_normals=None,
-                  target_index=None, *, check_target: bool = True, trusted_init: bool = False) -> GICPResult:
+                  target_index=None, *, check_target: bool = True, trusted_init: bool = False,
+                  engine: str = "kernel") -> GICPResult:
     """Refine ``T_target_source`` by Generalized-ICP (Segal 2009; Ren 2019 Sec. 3.2, [Ren2019 Eqs. 1-6]).
 
     Parameters
@@ -502,6 +494,10 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
     trusted_init : bool
         False: ``T_init`` is user input (rigid within 1e-6, else InputError). True: the caller's own
         transform (``se3.compose``), checked within 1e-9 (else InternalError, a bug), re-projected.
+    engine : {"kernel", "python"}
+        The loop of ``convergence="step"`` (:data:`ENGINES`): one compiled kernel (default) or the
+        Python loop it is tested against (the same steps; the last bits of the solve may differ).
+        ``convergence="open3d"`` always runs the Python loop.
 
     Returns
     -------
@@ -558,6 +554,8 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
     covariance), the same criterion as :func:`minegeo.registration.register_icp`.
     """
     t_start = time.perf_counter()
+    if engine not in ENGINES:
+        raise InputError(f"engine must be one of {ENGINES}, got {engine!r}")
     timer = StageTimer()
     P0, Q, T, tree, Cs, Ct, Nt, src_from, tgt_from, lists = _gicp_inputs(
         source_points, target_points, T_init, params, source_covariances, target_covariances, source_normals,
@@ -565,7 +563,7 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
     d = float(params.max_correspondence_distance_m)
     factor = GICPFactor(Q, Cs, Ct, T)
     P = P0 if is_identity(T) else K.transform_points_kernel(P0, T)
-    out = _gicp_loop(P, T, tree, factor, d, params, timer, lists if USE_NEIGHBOUR_LISTS else None)
+    out = _gicp_loop(P, T, tree, factor, d, params, timer, lists, engine)
     cyc_m = cyc_rad = 0.0
     if out.reason == "cycle":
         cyc_m = float(np.linalg.norm(out.cycle_delta[:3, 3]))
@@ -596,10 +594,10 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
 
 
 def _gicp_loop(P: np.ndarray, T: np.ndarray, tree, factor: GICPFactor, d: float, params: GICPParams, timer,
-               lists) -> LoopOutcome:
-    """The registration loop: the one-kernel loop for ``convergence="step"`` (unless
-    :data:`USE_LOOP_KERNEL` is False), :func:`~minegeo.registration.loop.run_loop` otherwise."""
-    if params.convergence == "step" and USE_LOOP_KERNEL:
+               lists, engine: str = "kernel") -> LoopOutcome:
+    """The registration loop: the one-kernel loop for ``convergence="step"`` with ``engine="kernel"``,
+    :func:`~minegeo.registration.loop.run_loop` otherwise."""
+    if params.convergence == "step" and engine == "kernel":
         return _step_loop(P, T, tree, factor, d, params, timer, lists)
     search = GICPNearestInGate(factor.Q, d, tree, factor, parallel_rows=_parallel_rows(PARALLEL_SEARCH_ROWS),
                                lists=lists)
@@ -691,19 +689,17 @@ def _gicp_inputs(source_points, target_points, T_init, params, source_covariance
             tree = kd_build(Q, KD_LEAF)
     with timer("covariances"):
         Nt = None
-        pending = None
         lists = None  # the target's kNN lists, when its covariances are estimated here
         if source_covariances is not None:
             Cs = _as_covariances(source_covariances, P0.shape[0], "source_covariances")
             src_from = "given"
         elif (target_covariances is None and source_normals is None and target_normals is None
               and min(P0.shape[0], Q.shape[0]) >= CONCURRENT_MIN_POINTS and numba.get_num_threads() > 1):
-            if PAIR_IN_ONE_REGION:  # both clouds' kNN PCA in one prange region
-                kk = min(int(params.covariance_neighbours), Q.shape[0])
-                lists = (np.empty((Q.shape[0], kk), np.int64), np.empty(Q.shape[0]))
-                Cs, Ct, Nt = _covariances_of_pair(P0, Q, tree, params, lists)
-                return P0, Q, T, tree, Cs, Ct, Nt, "estimated", "estimated", lists
-            pending = _executor().submit(_covariances_and_normals, P0, params, None, "source", None, False)
+            # both clouds' kNN PCA in one prange region
+            kk = min(int(params.covariance_neighbours), Q.shape[0])
+            lists = (np.empty((Q.shape[0], kk), np.int64), np.empty(Q.shape[0]))
+            Cs, Ct, Nt = _covariances_of_pair(P0, Q, tree, params, lists)
+            return P0, Q, T, tree, Cs, Ct, Nt, "estimated", "estimated", lists
         else:
             Cs, _, src_from = _covariances_and_normals(P0, params, source_normals, "source")
         if target_covariances is not None and not check_target:
@@ -717,26 +713,13 @@ def _gicp_inputs(source_points, target_points, T_init, params, source_covariance
             Ct = _as_covariances(target_covariances, Q.shape[0], "target_covariances")
             tgt_from = "given"
         else:
-            # concurrently with the source's (one serial task per cloud) or alone (prange); the kNN
-            # lists are kept for the correspondence search (gicp_fused_search's shortcut)
+            # the kNN lists are kept for the correspondence search (gicp_fused_search's shortcut)
             if target_normals is None:
                 kk = min(int(params.covariance_neighbours), Q.shape[0])
                 lists = (np.empty((Q.shape[0], kk), np.int64), np.empty(Q.shape[0]))
             Ct, Nt, tgt_from = _covariances_and_normals(Q, params, target_normals, "target", tree=tree,
-                                                        parallel=pending is None, lists=lists)
-        if pending is not None:
-            Cs, _, src_from = pending.result()
+                                                        lists=lists)
     return P0, Q, T, tree, Cs, Ct, Nt, src_from, tgt_from, lists
-
-
-_EXECUTOR = []
-
-
-def _executor() -> ThreadPoolExecutor:
-    """One worker thread for the concurrent covariance estimate (created on first use)."""
-    if not _EXECUTOR:
-        _EXECUTOR.append(ThreadPoolExecutor(1, thread_name_prefix="minegeo-gicp"))
-    return _EXECUTOR[0]
 
 
 def _warmup() -> None:

@@ -747,11 +747,7 @@ def test_gicp_prange_and_concurrent_covariances_are_thread_independent(monkeypat
 
 def _python_loop(monkeypatch, *args, **kw):
     """``register_gicp`` through :func:`minegeo.registration.loop.run_loop` (the reference loop)."""
-    import minegeo.registration.gicp as G
-
-    with monkeypatch.context() as mp:
-        mp.setattr(G, "USE_LOOP_KERNEL", False)
-        return register_gicp(*args, **kw)
+    return register_gicp(*args, **kw, engine="python")
 
 
 def _same_run(a, b, tol_pose=1e-12, rel_info=1e-9):
@@ -939,10 +935,10 @@ def test_fused_search_lists_equal_tree_search(case, step_m, k):
             warm = fast[0]
 
 
-def test_pair_region_covariances_equal_one_cloud_at_a_time(monkeypatch):
+def test_pair_region_covariances_equal_one_cloud_at_a_time():
     """Both clouds' kNN PCA in one prange region (``knn_normals_pair_tasks``) = each cloud alone,
     bit for bit (normals, eigenvalues, status, the target's lists), and register_gicp gives the
-    same bits with it or with one Python thread per cloud, on 1 or 2 threads."""
+    same bits on 1 or 2 threads."""
     import minegeo.registration.gicp as G
     from minegeo.kernels.kdtree import KD_LEAF, kd_build
 
@@ -964,12 +960,30 @@ def test_pair_region_covariances_equal_one_cloud_at_a_time(monkeypatch):
     old = numba.get_num_threads()
     out = []
     try:
-        for nt, pair in ((1, True), (min(2, numba.config.NUMBA_NUM_THREADS), True), (2, False)):
-            numba.set_num_threads(min(nt, numba.config.NUMBA_NUM_THREADS))
-            monkeypatch.setattr(G, "PAIR_IN_ONE_REGION", pair)
+        for nt in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+            numba.set_num_threads(nt)
             out.append(register_gicp(src, tgt, T0, GICPParams(GATE_M)))
     finally:
         numba.set_num_threads(old)
     for a in out[1:]:
         assert np.array_equal(a.T_target_source, out[0].T_target_source)
         assert np.array_equal(a.information_6x6, out[0].information_6x6) and a.history == out[0].history
+
+
+def test_the_engine_is_a_parameter(monkeypatch):
+    """``engine="python"`` runs :func:`~minegeo.registration.loop.run_loop`, ``"kernel"`` (the default)
+    does not; any other engine is refused."""
+    import minegeo.registration.gicp as G
+    from minegeo.errors import InputError
+
+    src, tgt, T_gt = _pair()
+    calls = []
+    real = G.run_loop
+    monkeypatch.setattr(G, "run_loop", lambda *a, **k: calls.append(1) or real(*a, **k))
+    T0 = _perturbed_starts(T_gt, 1, seed=5)[0]
+    register_gicp(src, tgt, T0, GICPParams(GATE_M))
+    assert calls == []
+    register_gicp(src, tgt, T0, GICPParams(GATE_M), engine="python")
+    assert calls == [1]
+    with pytest.raises(InputError, match="engine"):
+        register_gicp(src, tgt, T0, GICPParams(GATE_M), engine="gpu")
