@@ -23,7 +23,7 @@ import numpy as np
 
 from minegeo._jit import njit
 
-__all__ = ["fast_eigen3x3", "jacobi_eigh3", "jacobi3_sweeps", "jacobi_min3", "jacobi_min3_x2", "pca_normal",
+__all__ = ["centred_covariance", "fast_eigen3x3", "jacobi_eigh3", "jacobi3_sweeps", "jacobi_min3", "jacobi_min3_x2", "pca_normal",
            "pca_normals_eigh_rows",
            "STATUS_OK", "STATUS_TOO_FEW", "STATUS_COLLINEAR", "STATUS_COINCIDENT"]
 
@@ -430,6 +430,47 @@ STATUS_COLLINEAR = 2
 STATUS_COINCIDENT = 3
 
 
+@njit(inline="always")
+def centred_covariance(points, nbr, cnt, qi):
+    """Covariance of the ``cnt >= 1`` neighbour rows ``nbr[:cnt]`` of ``points`` ([Baek2022 Eq. 2]):
+    two-pass, the differences taken from the query point ``points[qi]`` (no cancellation at large
+    coordinates), then centred on their mean ``m``; ``C = (1/cnt) sum_j (d_j - m)(d_j - m)^T`` with
+    ``d_j = p_j - q`` (m^2), returned as the scalars ``(c00, c01, c02, c11, c12, c22)``."""
+    q0 = points[qi, 0]
+    q1 = points[qi, 1]
+    q2 = points[qi, 2]
+    m0 = 0.0
+    m1 = 0.0
+    m2 = 0.0
+    for j in range(cnt):
+        p = nbr[j]
+        m0 += points[p, 0] - q0
+        m1 += points[p, 1] - q1
+        m2 += points[p, 2] - q2
+    fn = float(cnt)
+    m0 /= fn
+    m1 /= fn
+    m2 /= fn
+    c00 = 0.0
+    c01 = 0.0
+    c02 = 0.0
+    c11 = 0.0
+    c12 = 0.0
+    c22 = 0.0
+    for j in range(cnt):
+        p = nbr[j]
+        x = (points[p, 0] - q0) - m0
+        y = (points[p, 1] - q1) - m1
+        z = (points[p, 2] - q2) - m2
+        c00 += x * x
+        c01 += x * y
+        c02 += x * z
+        c11 += y * y
+        c12 += y * z
+        c22 += z * z
+    return c00 / fn, c01 / fn, c02 / fn, c11 / fn, c12 / fn, c22 / fn
+
+
 @njit
 def pca_normal(points, nbr, cnt, qi, oi, mode_open3d, degenerate_ratio, A, V, w, tmp,
                            out_n, out_eval, out_status):
@@ -499,47 +540,16 @@ def pca_normal(points, nbr, cnt, qi, oi, mode_open3d, degenerate_ratio, A, V, w,
         l1 = tmp[4]
         l2 = tmp[5]
     else:
-        q0 = points[qi, 0]
-        q1 = points[qi, 1]
-        q2 = points[qi, 2]
-        m0 = 0.0
-        m1 = 0.0
-        m2 = 0.0
-        for j in range(cnt):
-            p = nbr[j]
-            m0 += points[p, 0] - q0
-            m1 += points[p, 1] - q1
-            m2 += points[p, 2] - q2
-        fn = float(cnt)
-        m0 /= fn
-        m1 /= fn
-        m2 /= fn
-        c00 = 0.0
-        c01 = 0.0
-        c02 = 0.0
-        c11 = 0.0
-        c12 = 0.0
-        c22 = 0.0
-        for j in range(cnt):
-            p = nbr[j]
-            x = (points[p, 0] - q0) - m0
-            y = (points[p, 1] - q1) - m1
-            z = (points[p, 2] - q2) - m2
-            c00 += x * x
-            c01 += x * y
-            c02 += x * z
-            c11 += y * y
-            c12 += y * z
-            c22 += z * z
-        A[0, 0] = c00 / fn
-        A[0, 1] = c01 / fn
-        A[0, 2] = c02 / fn
-        A[1, 0] = A[0, 1]
-        A[1, 1] = c11 / fn
-        A[1, 2] = c12 / fn
-        A[2, 0] = A[0, 2]
-        A[2, 1] = A[1, 2]
-        A[2, 2] = c22 / fn
+        c00, c01, c02, c11, c12, c22 = centred_covariance(points, nbr, cnt, qi)
+        A[0, 0] = c00
+        A[0, 1] = c01
+        A[0, 2] = c02
+        A[1, 0] = c01
+        A[1, 1] = c11
+        A[1, 2] = c12
+        A[2, 0] = c02
+        A[2, 1] = c12
+        A[2, 2] = c22
         jacobi_eigh3(A, V, w)
         n0 = V[0, 0]
         n1 = V[1, 0]

@@ -22,6 +22,7 @@ from minegeo.kernels.eig3 import (
     STATUS_COLLINEAR,
     STATUS_OK,
     STATUS_TOO_FEW,
+    centred_covariance,
     fast_eigen3x3,
     jacobi_min3,
     jacobi_min3_x2,
@@ -153,46 +154,6 @@ KNN_BATCH = 16
 
 
 @njit(inline="always")
-def _centred_cov(points, nbr, cnt, qi):
-    """The neighbourhood covariance of :func:`minegeo.kernels.eig3.pca_normal` (mode "minegeo", ``cnt >= 3``):
-    two-pass, centred on the query point then on the mean, divided by ``cnt``; ``(c00, c01, c02, c11,
-    c12, c22)``, the same bits."""
-    q0 = points[qi, 0]
-    q1 = points[qi, 1]
-    q2 = points[qi, 2]
-    m0 = 0.0
-    m1 = 0.0
-    m2 = 0.0
-    for j in range(cnt):
-        p = nbr[j]
-        m0 += points[p, 0] - q0
-        m1 += points[p, 1] - q1
-        m2 += points[p, 2] - q2
-    fn = float(cnt)
-    m0 /= fn
-    m1 /= fn
-    m2 /= fn
-    c00 = 0.0
-    c01 = 0.0
-    c02 = 0.0
-    c11 = 0.0
-    c12 = 0.0
-    c22 = 0.0
-    for j in range(cnt):
-        p = nbr[j]
-        x = (points[p, 0] - q0) - m0
-        y = (points[p, 1] - q1) - m1
-        z = (points[p, 2] - q2) - m2
-        c00 += x * x
-        c01 += x * y
-        c02 += x * z
-        c11 += y * y
-        c12 += y * z
-        c22 += z * z
-    return c00 / fn, c01 / fn, c02 / fn, c11 / fn, c12 / fn, c22 / fn
-
-
-@njit(inline="always")
 def _normal_out(e, qi, ratio, out_n, out_eval, out_status):
     """Row ``qi`` of the outputs of :func:`minegeo.kernels.eig3.pca_normal` (mode "minegeo") from
     ``e`` = :func:`minegeo.kernels.eig3.jacobi_min3`'s answer: unit normal, eigenvalues, status."""
@@ -232,7 +193,7 @@ def _pca_normal_minegeo(points, nbr, cnt, qi, ratio, out_n, out_eval, out_status
         out_eval[qi, 2] = np.nan
         out_status[qi] = STATUS_TOO_FEW
         return
-    c = _centred_cov(points, nbr, cnt, qi)
+    c = centred_covariance(points, nbr, cnt, qi)
     _normal_out(jacobi_min3(c[0], c[1], c[2], c[3], c[4], c[5]), qi, ratio, out_n, out_eval, out_status)
 
 
@@ -244,7 +205,7 @@ def _pca_normal_minegeo_x2(points, nbr_a, cnt_a, qa, nbr_b, cnt_b, qb, ratio, ou
         _pca_normal_minegeo(points, nbr_a, cnt_a, qa, ratio, out_n, out_eval, out_status)
         _pca_normal_minegeo(points, nbr_b, cnt_b, qb, ratio, out_n, out_eval, out_status)
         return
-    ea, eb = jacobi_min3_x2(_centred_cov(points, nbr_a, cnt_a, qa), _centred_cov(points, nbr_b, cnt_b, qb))
+    ea, eb = jacobi_min3_x2(centred_covariance(points, nbr_a, cnt_a, qa), centred_covariance(points, nbr_b, cnt_b, qb))
     _normal_out(ea, qa, ratio, out_n, out_eval, out_status)
     _normal_out(eb, qb, ratio, out_n, out_eval, out_status)
 
