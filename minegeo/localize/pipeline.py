@@ -63,7 +63,6 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
 import time
 
 from minegeo.errors import InputError
@@ -134,9 +133,9 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     -----
     **Degeneracy is reported once, where it matters.** Every ICP of every candidate (screening,
     full resolution, rivals) analyses its own constraint matrix, and a weak direction of a
-    *rejected or rival* candidate says nothing about the answer; those per-candidate messages of
-    :func:`~minegeo.registration.register_icp` / ``register_gicp`` are logged at DEBUG level
-    only (the same thread, during this call). The chosen fit's weak direction is judged once,
+    *rejected or rival* candidate says nothing about the answer; :func:`~minegeo.registration.register_icp`
+    and ``register_gicp`` return the flag (``degenerate``, ``degeneracy_reason``) and log it at DEBUG
+    level only, the caller deciding what to tell. The chosen fit's weak direction is judged once,
     after the covariance: if its 95 % displacement over the scan exceeds
     ``max_weak_displacement_95_m`` the result is ``ambiguous`` and ``reason`` says so;
     otherwise it does not change the answer (the covariance, hence the 95 % radius, already
@@ -161,11 +160,10 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     if isinstance(seed, bool) or int(seed) != seed or seed < 0:
         raise InputError(f"seed must be an integer >= 0, got {seed!r}")
     seed = int(seed)
-    with _CandidateICPMessages():
-        res = _localize_scan(prepared_map, scan_cloud, trajectory, p, seed, progress)
-        if res.status in ("failed", "ambiguous") and p.gravity_fallback and p.ransac.model == "rigid":
-            res = gravity_fallback(prepared_map, scan_cloud, trajectory, p, seed, progress, res, _localize_scan)
-        return res
+    res = _localize_scan(prepared_map, scan_cloud, trajectory, p, seed, progress)
+    if res.status in ("failed", "ambiguous") and p.gravity_fallback and p.ransac.model == "rigid":
+        res = gravity_fallback(prepared_map, scan_cloud, trajectory, p, seed, progress, res, _localize_scan)
+    return res
 
 
 def _localize_scan(pm: PreparedMap, scan_cloud, trajectory, p: LocalizeParams, seed: int,
@@ -232,36 +230,3 @@ def _localize_scan(pm: PreparedMap, scan_cloud, trajectory, p: LocalizeParams, s
         correlative=None if corr is None else corr.record(p), polish=None if pol is None else pol.record,
         rival_search=rival_record,
     )
-
-
-class _CandidateICPMessages(logging.Filter):
-    """Context: the per-candidate ICP/GICP degeneracy warnings of this thread go to DEBUG.
-
-    See *Notes* of :func:`localize_scan`: the pipeline judges the chosen fit's degeneracy
-    itself, once. Messages of other threads pass unchanged.
-    """
-
-    LOGGERS = ("minegeo.registration.icp", "minegeo.registration.gicp")
-
-    def __init__(self):
-        super().__init__()
-        self._thread = threading.get_ident()
-        self.n = 0
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        if (threading.get_ident() == self._thread and record.levelno == logging.WARNING
-                and str(record.msg).startswith(("ICP result is degenerate", "GICP result is degenerate"))):
-            self.n += 1
-            log.debug("candidate fit: %s", record.getMessage())
-            return False
-        return True
-
-    def __enter__(self):
-        for name in self.LOGGERS:
-            logging.getLogger(name).addFilter(self)
-        return self
-
-    def __exit__(self, *exc):
-        for name in self.LOGGERS:
-            logging.getLogger(name).removeFilter(self)
-        return False

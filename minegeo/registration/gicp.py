@@ -577,8 +577,8 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
         k, MIN_POINTS, d, "GICP", out.singular_step,
         "an update step was rank deficient (the matched surfaces do not constrain all six "
         "pose directions): the motion along the free direction is arbitrary", reason, out.converged)
-    if degenerate:
-        log.warning("GICP result is degenerate: %s", "; ".join(reasons))
+    if degenerate:  # the result carries the flag and the reason; the caller decides what to tell
+        log.debug("GICP result is degenerate: %s", "; ".join(reasons))
     timings = timer.as_dict()
     timings["total"] = time.perf_counter() - t_start
     return GICPResult(

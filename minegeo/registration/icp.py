@@ -414,8 +414,8 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
         corr.shape[0], MIN_POINTS[params.method], float(params.max_correspondence_distance_m), params.method,
         out.singular_step, "an update step was rank deficient (collinear correspondences or a single plane): "
         "the motion along the free direction is arbitrary", reason, out.converged)
-    if degenerate:
-        log.warning("ICP result is degenerate: %s", "; ".join(reasons))
+    if degenerate:  # the result carries the flag and the reason; the caller decides what to tell
+        log.debug("ICP result is degenerate: %s", "; ".join(reasons))
     timings = timer.as_dict()
     timings["total"] = time.perf_counter() - t_start
     return ICPResult(
