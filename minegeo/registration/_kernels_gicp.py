@@ -299,76 +299,10 @@ def knn_normals_kernel(Q, tree, k, mode_open3d, ratio=DEGENERATE_RATIO):
 
 @njit
 def _gicp_chunk(P, Q, Cs, Ct, R, si, ti, part, c, start, end):
-    """Accumulate H (upper triangle), g and the Mahalanobis cost of pairs [start, end) into part[c]."""
-    A = np.empty((3, 3))
-    M = np.empty((3, 3))
-    B = np.empty((3, 3))
-    J = np.empty((3, 6))
-    BJ = np.empty((3, 6))
-    e = np.empty(3)
+    """Accumulate H (upper triangle), g and the Mahalanobis cost of pairs [start, end) into part[c]
+    (:func:`_gicp_pair_add` per pair, in pair order)."""
     for k in range(start, end):
-        a_ = si[k]
-        b_ = ti[k]
-        # A = R Cs R^T (source covariance carried into the target frame, [Ren2019 Eq. 5])
-        for r in range(3):
-            for cc in range(3):
-                s = 0.0
-                for u in range(3):
-                    s += R[r, u] * (Cs[a_, u, 0] * R[cc, 0] + Cs[a_, u, 1] * R[cc, 1]
-                                    + Cs[a_, u, 2] * R[cc, 2])
-                A[r, cc] = s
-        # M = Ct + R Cs R^T, symmetrised
-        for r in range(3):
-            for cc in range(3):
-                M[r, cc] = Ct[b_, r, cc] + 0.5 * (A[r, cc] + A[cc, r])
-        # B = M^-1 by the adjugate (M symmetric positive definite)
-        c00 = M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]
-        c01 = M[1, 2] * M[2, 0] - M[1, 0] * M[2, 2]
-        c02 = M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]
-        det = M[0, 0] * c00 + M[0, 1] * c01 + M[0, 2] * c02
-        if not det > 0.0:
-            continue
-        inv = 1.0 / det
-        B[0, 0] = c00 * inv
-        B[1, 0] = c01 * inv
-        B[2, 0] = c02 * inv
-        B[0, 1] = (M[0, 2] * M[2, 1] - M[0, 1] * M[2, 2]) * inv
-        B[1, 1] = (M[0, 0] * M[2, 2] - M[0, 2] * M[2, 0]) * inv
-        B[2, 1] = (M[0, 1] * M[2, 0] - M[0, 0] * M[2, 1]) * inv
-        B[0, 2] = (M[0, 1] * M[1, 2] - M[0, 2] * M[1, 1]) * inv
-        B[1, 2] = (M[0, 2] * M[1, 0] - M[0, 0] * M[1, 2]) * inv
-        B[2, 2] = (M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]) * inv
-        px = P[a_, 0]
-        py = P[a_, 1]
-        pz = P[a_, 2]
-        dx = px - Q[b_, 0]
-        dy = py - Q[b_, 1]
-        dz = pz - Q[b_, 2]
-        # J = [-[p]x, I3]  (left perturbation of T p, Open3D / Segal)
-        J[0, 0] = 0.0
-        J[0, 1] = pz
-        J[0, 2] = -py
-        J[1, 0] = -pz
-        J[1, 1] = 0.0
-        J[1, 2] = px
-        J[2, 0] = py
-        J[2, 1] = -px
-        J[2, 2] = 0.0
-        for r in range(3):
-            for cc in range(3):
-                J[r, 3 + cc] = 1.0 if r == cc else 0.0
-        for r in range(3):
-            e[r] = B[r, 0] * dx + B[r, 1] * dy + B[r, 2] * dz
-            for cc in range(6):
-                BJ[r, cc] = B[r, 0] * J[0, cc] + B[r, 1] * J[1, cc] + B[r, 2] * J[2, cc]
-        idx = 0
-        for a in range(6):
-            for b in range(a, 6):
-                part[c, idx] += J[0, a] * BJ[0, b] + J[1, a] * BJ[1, b] + J[2, a] * BJ[2, b]
-                idx += 1
-        for a in range(6):
-            part[c, 21 + a] += J[0, a] * e[0] + J[1, a] * e[1] + J[2, a] * e[2]
-        part[c, 27] += dx * e[0] + dy * e[1] + dz * e[2]
+        _gicp_pair_add(P, si[k], Q, ti[k], Cs, Ct, R, part, c)
 
 
 @njit
