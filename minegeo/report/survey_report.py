@@ -262,76 +262,34 @@ def _obs_rows(res):
     return out
 
 
+#: Per network dimension: the coordinate columns (attribute, header) and the axis letters of the
+#: shift ``d`` and standard deviation ``σ`` columns (attributes ``d<axis>_m`` and ``s<axis>_m``).
+_COORD_COLUMNS = {
+    1: ((("h", "H [m]"),), ("h",), ("H",)),
+    2: ((("x", "E/x [m]"), ("y", "N/y [m]")), ("x", "y"), ("E", "N")),
+    3: ((("x", "E/x [m]"), ("y", "N/y [m]"), ("h", "H/z [m]")), ("x", "y", "h"), ("E", "N", "H")),
+}
+
+
 def _coord_rows(res):
+    """Headers and rows of the adjusted-coordinates table: the coordinates (m), shifts ``d`` and
+    standard deviations ``σ`` (mm) per axis, in 2-D and 3-D the point error ``σP`` (mm;
+    ``hypot(σx, σy)``, resp. ``sqrt(σx² + σy² + σh²)``), and the datum."""
     dim = res.network.dim
+    coords, axes, names = _COORD_COLUMNS[min(dim, 3)]
     rows = []
     for pid, p in res.points.items():
         fx = "fixed: " + ",".join(p.fixed) if p.fixed else ""
-        if dim == 1:
-            rows.append([pid, f"{p.h:.4f}", _fmt(p.dh_m * 1000, ".2f"), _fmt(p.sh_m * 1000, ".2f"), fx])
-        elif dim == 2:
-            sp = math.hypot(p.sx_m, p.sy_m)
-            rows.append(
-                [
-                    pid,
-                    f"{p.x:.4f}",
-                    f"{p.y:.4f}",
-                    _fmt(p.dx_m * 1000, ".2f"),
-                    _fmt(p.dy_m * 1000, ".2f"),
-                    _fmt(p.sx_m * 1000, ".2f"),
-                    _fmt(p.sy_m * 1000, ".2f"),
-                    _fmt(sp * 1000, ".2f"),
-                    fx,
-                ]
-            )
-        else:
-            sp = math.sqrt(p.sx_m**2 + p.sy_m**2 + p.sh_m**2)
-            rows.append(
-                [
-                    pid,
-                    f"{p.x:.4f}",
-                    f"{p.y:.4f}",
-                    f"{p.h:.4f}",
-                    _fmt(p.dx_m * 1000, ".2f"),
-                    _fmt(p.dy_m * 1000, ".2f"),
-                    _fmt(p.dh_m * 1000, ".2f"),
-                    _fmt(p.sx_m * 1000, ".2f"),
-                    _fmt(p.sy_m * 1000, ".2f"),
-                    _fmt(p.sh_m * 1000, ".2f"),
-                    _fmt(sp * 1000, ".2f"),
-                    fx,
-                ]
-            )
-    if dim == 1:
-        headers = ["point", "H [m]", "dH [mm]", "σH [mm]", "datum"]
-    elif dim == 2:
-        headers = [
-            "point",
-            "E/x [m]",
-            "N/y [m]",
-            "dE [mm]",
-            "dN [mm]",
-            "σE [mm]",
-            "σN [mm]",
-            "σP [mm]",
-            "datum",
-        ]
-    else:
-        headers = [
-            "point",
-            "E/x [m]",
-            "N/y [m]",
-            "H/z [m]",
-            "dE [mm]",
-            "dN [mm]",
-            "dH [mm]",
-            "σE [mm]",
-            "σN [mm]",
-            "σH [mm]",
-            "σP [mm]",
-            "datum",
-        ]
-    return headers, rows
+        row = [pid] + [f"{getattr(p, c):.4f}" for c, _ in coords]
+        row += [_fmt(getattr(p, f"d{a}_m") * 1000, ".2f") for a in axes]
+        row += [_fmt(getattr(p, f"s{a}_m") * 1000, ".2f") for a in axes]
+        if dim == 2:
+            row.append(_fmt(math.hypot(p.sx_m, p.sy_m) * 1000, ".2f"))
+        elif dim != 1:
+            row.append(_fmt(math.sqrt(p.sx_m**2 + p.sy_m**2 + p.sh_m**2) * 1000, ".2f"))
+        rows.append(row + [fx])
+    headers = ["point"] + [h for _, h in coords] + [f"d{n} [mm]" for n in names] + [f"σ{n} [mm]" for n in names]
+    return headers + ([] if dim == 1 else ["σP [mm]"]) + ["datum"], rows
 
 
 def _confidence(res) -> float:
