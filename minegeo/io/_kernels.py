@@ -85,12 +85,16 @@ def lzf_compress_kernel(src, out):
     ip = 0
     op = 1  # out[0] is reserved for the length of the first literal run
     lit = 0
-    while ip + 2 < n:
-        v = (np.int64(src[ip]) << 16) | (np.int64(src[ip + 1]) << 8) | np.int64(src[ip + 2])
-        h = ((v * 2654435761) >> (24 - _HLOG + 8)) & ((1 << _HLOG) - 1)
-        ref = htab[h]
-        htab[h] = ip
-        off = ip - ref - 1
+    while ip < n:
+        # a back reference needs 3 bytes to hash and match; the last two bytes are literals
+        ref = -1
+        off = 0
+        if ip + 2 < n:
+            v = (np.int64(src[ip]) << 16) | (np.int64(src[ip + 1]) << 8) | np.int64(src[ip + 2])
+            h = ((v * 2654435761) >> (24 - _HLOG + 8)) & ((1 << _HLOG) - 1)
+            ref = htab[h]
+            htab[h] = ip
+            off = ip - ref - 1
         if (
             ref >= 0
             and off < _MAX_OFF
@@ -131,15 +135,6 @@ def lzf_compress_kernel(src, out):
                 out[op - lit - 1] = lit - 1
                 lit = 0
                 op += 1
-    while ip < n:
-        out[op] = src[ip]
-        op += 1
-        ip += 1
-        lit += 1
-        if lit == _MAX_LIT:
-            out[op - lit - 1] = lit - 1
-            lit = 0
-            op += 1
     if lit > 0:
         out[op - lit - 1] = lit - 1
     else:
