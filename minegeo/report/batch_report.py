@@ -54,12 +54,10 @@ def plot_batch_png(rows, prepared, max_map_points: int = 40000) -> bytes | None:
         from matplotlib.figure import Figure
     except ImportError:
         return None
-    from minegeo.report.localize_report import _frame_xy, label_offsets
+    from minegeo.report.localize_report import _frame_xy, label_offsets, map_plot_points
 
     g = prepared.georef_result
-    M = prepared.points_map()
-    if M.shape[0] > max_map_points:
-        M = M[np.sort(np.random.default_rng(0).choice(M.shape[0], max_map_points, replace=False))]
+    M = map_plot_points(prepared, max_map_points)
     Mx = _frame_xy(g, M)
     fig = Figure(figsize=(9, 6.5), dpi=100)
     FigureCanvasAgg(fig)

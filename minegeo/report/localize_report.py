@@ -23,7 +23,7 @@ import numpy as np
 from minegeo._provenance import atomic_write_text, to_jsonable
 from minegeo.report._html import badge, esc, kv_table, num, page, table
 
-__all__ = ["plot_localization_png", "localize_report_html", "write_localize_report"]
+__all__ = ["map_plot_points", "plot_localization_png", "localize_report_html", "write_localize_report"]
 
 _STATUS_TEXT = {
     "ok": "The scan was placed in the map; no competing placement fits nearly as well and the geometry "
@@ -46,6 +46,15 @@ def _frame_xy(g, pts_map: np.ndarray):
 
         return map_to_crs(pts_map, g, allow_failed=True)
     return pts_map
+
+
+def map_plot_points(prepared, max_map_points: int, seed: int = 0) -> np.ndarray:
+    """The map points (map frame, m) drawn under a plan view: all of them, or ``max_map_points``
+    rows chosen without replacement by a generator seeded ``seed`` (kept in file order)."""
+    M = prepared.points_map()
+    if M.shape[0] > max_map_points:
+        M = M[np.sort(np.random.default_rng(seed).choice(M.shape[0], max_map_points, replace=False))]
+    return M
 
 
 def label_offsets(xy, min_sep: float, step_pt: float = 10.0) -> list[tuple[float, float]]:
@@ -77,10 +86,7 @@ def plot_localization_png(res, prepared, max_map_points: int = 40000, seed: int 
     except ImportError:
         return None
     g = prepared.georef_result
-    M = prepared.points_map()
-    if M.shape[0] > max_map_points:
-        idx = np.sort(np.random.default_rng(seed).choice(M.shape[0], max_map_points, replace=False))
-        M = M[idx]
+    M = map_plot_points(prepared, max_map_points, seed)
     ok = res.status == "ok"
     if not ok:  # the rejected candidates are drawn in the map frame, as their table
         g = None
