@@ -51,7 +51,7 @@ from minegeo.registration import _kernels as K
 from minegeo.registration import _kernels_gicp as KG
 from minegeo.registration._kernels_loop import compact_matches
 from minegeo.registration.evaluation import is_identity
-from minegeo.registration.icp import ICPResult, constraint_analysis, final_diagnosis
+from minegeo.registration.icp import ICPResult, constraint_analysis, result_fields
 from minegeo.registration.loop import (
     GICPFactor,
     GICPNearestInGate,
@@ -569,27 +569,17 @@ def register_gicp(source_points, target_points, T_init, params: GICPParams, sour
         cyc_m = float(np.linalg.norm(out.cycle_delta[:3, 3]))
         cyc_rad = rotation_angle(out.cycle_delta[:3, :3])
         log.info("GICP stopped on a 2-cycle of correspondence sets (step %.2e m, %.2e rad)", cyc_m, cyc_rad)
-    corr = out.matches.corr
-    k = corr.shape[0]
+    k = out.matches.corr.shape[0]
     with timer("information"):
         info, info_ev, cost, c_ev, c_vec, ratio, reason = _gicp_information(factor, out, Nt, params)
-    reasons, degenerate, status = final_diagnosis(
-        k, MIN_POINTS, d, "GICP", out.singular_step,
-        "an update step was rank deficient (the matched surfaces do not constrain all six "
-        "pose directions): the motion along the free direction is arbitrary", reason, out.converged)
-    if degenerate:  # the result carries the flag and the reason; the caller decides what to tell
-        log.debug("GICP result is degenerate: %s", "; ".join(reasons))
-    timings = timer.as_dict()
-    timings["total"] = time.perf_counter() - t_start
     return GICPResult(
-        T_target_source=out.pose, fitness=float(out.matches.fitness), inlier_rmse_m=float(out.matches.rmse),
-        iterations=out.iterations, converged=out.converged, information_6x6=info, information_eigenvalues=info_ev,
-        degenerate=degenerate, degeneracy_reason="; ".join(reasons), params=params, timings_s=timings,
-        correspondences=corr, constraint_eigenvalues=c_ev, constraint_eigenvectors=c_vec,
-        degeneracy_ratio=float(ratio), history=tuple(out.history), status=status, mahalanobis_cost=float(cost),
-        sigma_m=float(np.sqrt(cost / (3 * k - 6))) if 3 * k > 6 else 0.0, source_covariances_from=src_from,
-        target_covariances_from=tgt_from, convergence_reason=out.reason, cycle_amplitude_m=cyc_m,
-        cycle_amplitude_rad=cyc_rad,
+        **result_fields(out, (info, info_ev, c_ev, c_vec, ratio, reason), MIN_POINTS, d, "GICP",
+                        "an update step was rank deficient (the matched surfaces do not constrain all six "
+                        "pose directions): the motion along the free direction is arbitrary", params, timer,
+                        t_start, "GICP", log),
+        mahalanobis_cost=float(cost), sigma_m=float(np.sqrt(cost / (3 * k - 6))) if 3 * k > 6 else 0.0,
+        source_covariances_from=src_from, target_covariances_from=tgt_from, convergence_reason=out.reason,
+        cycle_amplitude_m=cyc_m, cycle_amplitude_rad=cyc_rad,
     )
 
 

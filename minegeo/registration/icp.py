@@ -322,6 +322,34 @@ def final_diagnosis(k: int, need: int, gate_m: float, method: str, singular_step
     return reasons, degenerate, status
 
 
+def result_fields(out, analysis: tuple, need: int, gate_m: float, method: str, singular_text: str, params,
+                  timer: StageTimer, t_start: float, label: str, logger: logging.Logger) -> dict:
+    """The :class:`ICPResult` fields of a finished ICP/GICP run (shared by both).
+
+    ``out`` is the loop's :class:`~minegeo.registration.loop.LoopOutcome`, ``analysis`` the
+    ``(information, its eigenvalues, constraint eigenvalues, eigenvectors, degeneracy ratio,
+    constraint reason)`` at the solution; status and reasons by :func:`final_diagnosis` (a
+    degenerate result is logged at DEBUG on ``logger`` as ``"<label> result is degenerate: ..."``; the result
+    carries the flag and the reason, the caller decides what to tell); ``timings_s["total"]``
+    is the wall time since ``t_start`` (s).
+    """
+    info, info_ev, c_ev, c_vec, ratio, reason = analysis
+    corr = out.matches.corr
+    reasons, degenerate, status = final_diagnosis(corr.shape[0], need, gate_m, method, out.singular_step,
+                                                  singular_text, reason, out.converged)
+    if degenerate:
+        logger.debug("%s result is degenerate: %s", label, "; ".join(reasons))
+    timings = timer.as_dict()
+    timings["total"] = time.perf_counter() - t_start
+    return dict(
+        T_target_source=out.pose, fitness=float(out.matches.fitness), inlier_rmse_m=float(out.matches.rmse),
+        iterations=out.iterations, converged=out.converged, information_6x6=info, information_eigenvalues=info_ev,
+        degenerate=degenerate, degeneracy_reason="; ".join(reasons), params=params, timings_s=timings,
+        correspondences=corr, constraint_eigenvalues=c_ev, constraint_eigenvectors=c_vec,
+        degeneracy_ratio=float(ratio), history=tuple(out.history), status=status,
+    )
+
+
 def register_icp(source_points, target_points, T_init, params: ICPParams, target_normals=None,
                  target_index=None, *, check_target: bool = True, trusted_init: bool = False) -> ICPResult:
     """Refine ``T_target_source`` by ICP (Baek 2022 Sec. 2.4; Open3D ``registration_icp``).
@@ -407,24 +435,12 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
                        step_translation=params.step_translation_m, step_rotation=params.step_rotation_rad)
     P = P0 if is_identity(T) else K.transform_points_kernel(P0, T)
     out = run_loop(P, T, search, factor, stop, params.max_iterations, timer)
-    corr = out.matches.corr
     with timer("information"):
-        info, info_ev, c_ev, c_vec, ratio, reason = _icp_information(out.points, Q, Nt, corr, target_index, params)
-    reasons, degenerate, status = final_diagnosis(
-        corr.shape[0], MIN_POINTS[params.method], float(params.max_correspondence_distance_m), params.method,
-        out.singular_step, "an update step was rank deficient (collinear correspondences or a single plane): "
-        "the motion along the free direction is arbitrary", reason, out.converged)
-    if degenerate:  # the result carries the flag and the reason; the caller decides what to tell
-        log.debug("ICP result is degenerate: %s", "; ".join(reasons))
-    timings = timer.as_dict()
-    timings["total"] = time.perf_counter() - t_start
-    return ICPResult(
-        T_target_source=out.pose, fitness=float(out.matches.fitness), inlier_rmse_m=float(out.matches.rmse),
-        iterations=out.iterations, converged=out.converged, information_6x6=info, information_eigenvalues=info_ev,
-        degenerate=degenerate, degeneracy_reason="; ".join(reasons), params=params, timings_s=timings,
-        correspondences=corr, constraint_eigenvalues=c_ev, constraint_eigenvectors=c_vec,
-        degeneracy_ratio=float(ratio), history=tuple(out.history), status=status,
-    )
+        analysis = _icp_information(out.points, Q, Nt, out.matches.corr, target_index, params)
+    return ICPResult(**result_fields(
+        out, analysis, MIN_POINTS[params.method], float(params.max_correspondence_distance_m), params.method,
+        "an update step was rank deficient (collinear correspondences or a single plane): "
+        "the motion along the free direction is arbitrary", params, timer, t_start, "ICP", log))
 
 
 def _icp_inputs(source_points, target_points, T_init, params, target_normals, check_target: bool,
