@@ -24,7 +24,7 @@ import numpy as np
 from minegeo._jit import njit
 
 __all__ = ["centred_covariance", "fast_eigen3x3", "jacobi_eigh3", "jacobi3_sweeps", "jacobi_min3", "jacobi_min3_x2", "pca_normal",
-           "pca_normals_eigh_rows",
+           "pca_normals_eigh_rows", "store_normal", "store_too_few",
            "STATUS_OK", "STATUS_TOO_FEW", "STATUS_COLLINEAR", "STATUS_COINCIDENT"]
 
 
@@ -471,6 +471,43 @@ def centred_covariance(points, nbr, cnt, qi):
     return c00 / fn, c01 / fn, c02 / fn, c11 / fn, c12 / fn, c22 / fn
 
 
+@njit(inline="always")
+def store_too_few(oi, out_n, out_eval, out_status):
+    """Output row ``oi`` of a point with fewer than 3 neighbours: normal ``(0, 0, 1)``, NaN
+    eigenvalues, :data:`STATUS_TOO_FEW`."""
+    out_n[oi, 0] = 0.0
+    out_n[oi, 1] = 0.0
+    out_n[oi, 2] = 1.0
+    out_eval[oi, 0] = np.nan
+    out_eval[oi, 1] = np.nan
+    out_eval[oi, 2] = np.nan
+    out_status[oi] = STATUS_TOO_FEW
+
+
+@njit(inline="always")
+def store_normal(oi, n0, n1, n2, l0, l1, l2, degenerate_ratio, keep_coincident, out_n, out_eval, out_status):
+    """Output row ``oi`` of a neighbourhood PCA: normal ``n``, eigenvalues ``l0 <= l1 <= l2`` and the
+    status: :data:`STATUS_COINCIDENT` when ``l2 <= 0`` (the normal then ``(0, 0, 1)`` unless
+    ``keep_coincident``, Open3D's convention), :data:`STATUS_COLLINEAR` when
+    ``l1 <= degenerate_ratio * l2``, else :data:`STATUS_OK`."""
+    status = STATUS_OK
+    if l2 <= 0.0:
+        status = STATUS_COINCIDENT
+        if not keep_coincident:
+            n0 = 0.0
+            n1 = 0.0
+            n2 = 1.0
+    elif l1 <= degenerate_ratio * l2:
+        status = STATUS_COLLINEAR
+    out_n[oi, 0] = n0
+    out_n[oi, 1] = n1
+    out_n[oi, 2] = n2
+    out_eval[oi, 0] = l0
+    out_eval[oi, 1] = l1
+    out_eval[oi, 2] = l2
+    out_status[oi] = status
+
+
 @njit
 def pca_normal(points, nbr, cnt, qi, oi, mode_open3d, degenerate_ratio, A, V, w, tmp,
                            out_n, out_eval, out_status):
@@ -482,13 +519,7 @@ def pca_normal(points, nbr, cnt, qi, oi, mode_open3d, degenerate_ratio, A, V, w,
     (two-pass), eigen-decomposed with cyclic Jacobi.
     """
     if cnt < 3:
-        out_n[oi, 0] = 0.0
-        out_n[oi, 1] = 0.0
-        out_n[oi, 2] = 1.0
-        out_eval[oi, 0] = np.nan
-        out_eval[oi, 1] = np.nan
-        out_eval[oi, 2] = np.nan
-        out_status[oi] = STATUS_TOO_FEW
+        store_too_few(oi, out_n, out_eval, out_status)
         return
     if mode_open3d:
         s0 = 0.0
@@ -561,22 +592,7 @@ def pca_normal(points, nbr, cnt, qi, oi, mode_open3d, degenerate_ratio, A, V, w,
         l0 = w[0]
         l1 = w[1]
         l2 = w[2]
-    status = STATUS_OK
-    if l2 <= 0.0:
-        status = STATUS_COINCIDENT
-        if not mode_open3d:
-            n0 = 0.0
-            n1 = 0.0
-            n2 = 1.0
-    elif l1 <= degenerate_ratio * l2:
-        status = STATUS_COLLINEAR
-    out_n[oi, 0] = n0
-    out_n[oi, 1] = n1
-    out_n[oi, 2] = n2
-    out_eval[oi, 0] = l0
-    out_eval[oi, 1] = l1
-    out_eval[oi, 2] = l2
-    out_status[oi] = status
+    store_normal(oi, n0, n1, n2, l0, l1, l2, degenerate_ratio, mode_open3d, out_n, out_eval, out_status)
 
 
 @njit

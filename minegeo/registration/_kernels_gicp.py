@@ -18,15 +18,13 @@ import numpy as np
 from minegeo._jit import njit, njit_parallel, prange
 from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, n_chunks
 from minegeo.kernels.eig3 import (
-    STATUS_COINCIDENT,
-    STATUS_COLLINEAR,
-    STATUS_OK,
-    STATUS_TOO_FEW,
     centred_covariance,
     fast_eigen3x3,
     jacobi_min3,
     jacobi_min3_x2,
     pca_normal,
+    store_normal,
+    store_too_few,
 )
 from minegeo.kernels.kdtree import (
     kd_boxes,
@@ -162,21 +160,7 @@ def _normal_out(e, qi, ratio, out_n, out_eval, out_status):
     n0 /= nn
     n1 /= nn
     n2 /= nn
-    status = STATUS_OK
-    if l2 <= 0.0:
-        status = STATUS_COINCIDENT
-        n0 = 0.0
-        n1 = 0.0
-        n2 = 1.0
-    elif l1 <= ratio * l2:
-        status = STATUS_COLLINEAR
-    out_n[qi, 0] = n0
-    out_n[qi, 1] = n1
-    out_n[qi, 2] = n2
-    out_eval[qi, 0] = l0
-    out_eval[qi, 1] = l1
-    out_eval[qi, 2] = l2
-    out_status[qi] = status
+    store_normal(qi, n0, n1, n2, l0, l1, l2, ratio, False, out_n, out_eval, out_status)
 
 
 @njit
@@ -185,13 +169,7 @@ def _pca_normal_minegeo(points, nbr, cnt, qi, ratio, out_n, out_eval, out_status
     on the query point, cyclic Jacobi), bit for bit, with the eigen-solve on scalars
     (:func:`minegeo.kernels.eig3.jacobi_min3`) instead of 3x3 arrays; output row ``qi``."""
     if cnt < 3:
-        out_n[qi, 0] = 0.0
-        out_n[qi, 1] = 0.0
-        out_n[qi, 2] = 1.0
-        out_eval[qi, 0] = np.nan
-        out_eval[qi, 1] = np.nan
-        out_eval[qi, 2] = np.nan
-        out_status[qi] = STATUS_TOO_FEW
+        store_too_few(qi, out_n, out_eval, out_status)
         return
     c = centred_covariance(points, nbr, cnt, qi)
     _normal_out(jacobi_min3(c[0], c[1], c[2], c[3], c[4], c[5]), qi, ratio, out_n, out_eval, out_status)
