@@ -380,22 +380,11 @@ def _text_values(p: Path, body: int, first_line: int, ncols: int, n: int, tail_o
 
 # ----------------------------------------------------------------------------- PLY
 def _open_ply(p: Path, size: int) -> PointChunks | None:
-    from minegeo.io._common import find_xyz, minegeo_comments, recorded_origin
-    from minegeo.io.ply import _parse_header
+    from minegeo.io._common import minegeo_comments, recorded_origin
+    from minegeo.io.ply import _parse_header, _vertex_element
 
     fmt, elements, comments, body, header_lines = _parse_header(p, _head(p, size))
-    names = [e["name"] for e in elements]
-    if "vertex" not in names:
-        raise FileFormatError(p, "PLY header has no 'vertex' element")
-    vi = names.index("vertex")
-    vert = elements[vi]
-    if vert["has_list"]:
-        raise FileFormatError(p, "PLY vertex element has a list property (not a point cloud)")
-    pnames = [q[0] for q in vert["props"]]
-    if len(set(pnames)) != len(pnames):
-        raise FileFormatError(p, f"PLY vertex element repeats a property name: {' '.join(pnames)}")
-    ix, iy, iz = find_xyz(p, pnames)
-    n = vert["count"]
+    vi, vert, pnames, (ix, iy, iz), n = _vertex_element(p, elements)
     mg = minegeo_comments(comments)
     fo, crs = recorded_origin(p, mg, "comment"), mg.get("crs")
     last = vi == len(elements) - 1

@@ -98,9 +98,11 @@ def _parse_header(path, data: bytes):
     return fmt, elements, comments, body_start, len(header) + 1
 
 
-def read_ply_bytes(path, data: bytes) -> RawCloud:
-    """Parse PLY bytes (``path`` only names the file in errors); see the module docstring."""
-    fmt, elements, comments, body_start, header_lines = _parse_header(path, data)
+def _vertex_element(path, elements: list) -> tuple:
+    """The point cloud of a parsed PLY header (:func:`_parse_header`'s ``elements``):
+    ``(index of the vertex element, the element, its property names, the columns of x, y, z,
+    the vertex count)``; :class:`FileFormatError` when there is no vertex element, it has a list
+    property, a property name repeats, or x, y, z are missing."""
     names = [e["name"] for e in elements]
     if "vertex" not in names:
         raise FileFormatError(path, "PLY header has no 'vertex' element")
@@ -111,8 +113,13 @@ def read_ply_bytes(path, data: bytes) -> RawCloud:
     pnames = [p[0] for p in vert["props"]]
     if len(set(pnames)) != len(pnames):
         raise FileFormatError(path, f"PLY vertex element repeats a property name: {' '.join(pnames)}")
-    ix, iy, iz = find_xyz(path, pnames)
-    n = vert["count"]
+    return vi, vert, pnames, find_xyz(path, pnames), vert["count"]
+
+
+def read_ply_bytes(path, data: bytes) -> RawCloud:
+    """Parse PLY bytes (``path`` only names the file in errors); see the module docstring."""
+    fmt, elements, comments, body_start, header_lines = _parse_header(path, data)
+    vi, vert, pnames, (ix, iy, iz), n = _vertex_element(path, elements)
     meta = {"format": "ply", "encoding": fmt}
     if fmt == "ascii":
         text_lines = sum(e["count"] for e in elements[:vi])
