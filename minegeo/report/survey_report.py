@@ -462,36 +462,24 @@ def plot_network_png(res) -> bytes | None:
     return buf.getvalue()
 
 
+def _ellipse_cells(name: str, e1, e2) -> list:
+    """One row of an ellipse table: the standard ellipse's semi-axes (mm) and azimuth (DMS), the
+    confidence ellipse's semi-axes (mm) and its factor ``k``."""
+    return [
+        name,
+        f"{e1.semi_major_m * 1000:.2f}",
+        f"{e1.semi_minor_m * 1000:.2f}",
+        format_dms(e1.azimuth_rad, 0),
+        _fmt(e2.semi_major_m * 1000, ".2f"),
+        _fmt(e2.semi_minor_m * 1000, ".2f"),
+        _fmt(e2.k, ".4f"),
+    ]
+
+
 def _ellipse_rows(res):
-    rows = []
-    for pid, p in res.points.items():
-        e1, e2 = p.ellipse_standard, p.ellipse_95
-        if e1 is None:
-            continue
-        rows.append(
-            [
-                pid,
-                f"{e1.semi_major_m * 1000:.2f}",
-                f"{e1.semi_minor_m * 1000:.2f}",
-                format_dms(e1.azimuth_rad, 0),
-                _fmt(e2.semi_major_m * 1000, ".2f"),
-                _fmt(e2.semi_minor_m * 1000, ".2f"),
-                _fmt(e2.k, ".4f"),
-            ]
-        )
-    rel = []
-    for a, b, e1, e2 in res.relative_ellipses:
-        rel.append(
-            [
-                f"{a}-{b}",
-                f"{e1.semi_major_m * 1000:.2f}",
-                f"{e1.semi_minor_m * 1000:.2f}",
-                format_dms(e1.azimuth_rad, 0),
-                _fmt(e2.semi_major_m * 1000, ".2f"),
-                _fmt(e2.semi_minor_m * 1000, ".2f"),
-                _fmt(e2.k, ".4f"),
-            ]
-        )
+    rows = [_ellipse_cells(pid, p.ellipse_standard, p.ellipse_95) for pid, p in res.points.items()
+            if p.ellipse_standard is not None]
+    rel = [_ellipse_cells(f"{a}-{b}", e1, e2) for a, b, e1, e2 in res.relative_ellipses]
     c = f"{100 * _confidence(res):g}%"
     headers = ["point", "a std [mm]", "b std [mm]", "azimuth of a", f"a {c} [mm]", f"b {c} [mm]", "k"]
     return headers, rows, rel
