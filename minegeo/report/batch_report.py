@@ -54,7 +54,7 @@ def plot_batch_png(rows, prepared, max_map_points: int = 40000) -> bytes | None:
         from matplotlib.figure import Figure
     except ImportError:
         return None
-    from minegeo.report.localize_report import _frame_xy, label_offsets, map_plot_points
+    from minegeo.report.localize_report import _frame_xy, label_offsets, map_plot_points, plan_axis_labels
 
     g = prepared.georef_result
     M = map_plot_points(prepared, max_map_points)
@@ -77,12 +77,7 @@ def plot_batch_png(rows, prepared, max_map_points: int = 40000) -> bytes | None:
     ax.set_title(f"{len(placed)} of {len(rows)} scans placed (ok); line: scan x axis")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, color="0.92")
-    if g is not None:
-        ax.set_xlabel(f"E − {g.origin[0]:.0f} m")
-        ax.set_ylabel(f"N − {g.origin[1]:.0f} m")
-    else:
-        ax.set_xlabel("x map (m)")
-        ax.set_ylabel("y map (m)")
+    plan_axis_labels(ax, g)
     ax.legend(loc="best", fontsize=7)
     fig.tight_layout()
     buf = io.BytesIO()

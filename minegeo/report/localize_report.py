@@ -23,7 +23,7 @@ import numpy as np
 from minegeo._provenance import atomic_write_text, to_jsonable
 from minegeo.report._html import badge, esc, kv_table, num, page, table
 
-__all__ = ["map_plot_points", "plot_localization_png", "localize_report_html", "write_localize_report"]
+__all__ = ["map_plot_points", "plan_axis_labels", "plot_localization_png", "localize_report_html", "write_localize_report"]
 
 _STATUS_TEXT = {
     "ok": "The scan was placed in the map; no competing placement fits nearly as well and the geometry "
@@ -55,6 +55,17 @@ def map_plot_points(prepared, max_map_points: int, seed: int = 0) -> np.ndarray:
     if M.shape[0] > max_map_points:
         M = M[np.sort(np.random.default_rng(seed).choice(M.shape[0], max_map_points, replace=False))]
     return M
+
+
+def plan_axis_labels(ax, g) -> None:
+    """Axis labels of a plan view drawn by :func:`_frame_xy`: ``E − E0 m``, ``N − N0 m`` with the
+    georeference's origin when ``g`` is given, else the map frame's ``x``, ``y`` (m)."""
+    if g is not None:
+        ax.set_xlabel(f"E − {g.origin[0]:.0f} m")
+        ax.set_ylabel(f"N − {g.origin[1]:.0f} m")
+    else:
+        ax.set_xlabel("x map (m)")
+        ax.set_ylabel("y map (m)")
 
 
 def label_offsets(xy, min_sep: float, step_pt: float = 10.0) -> list[tuple[float, float]]:
@@ -133,12 +144,7 @@ def plot_localization_png(res, prepared, max_map_points: int = 40000, seed: int 
             ax.set_title("overview")
         ax.set_aspect("equal", adjustable="box" if k == 1 else "datalim")
         ax.grid(True, color="0.92")
-        if g is not None:
-            ax.set_xlabel(f"E − {g.origin[0]:.0f} m")
-            ax.set_ylabel(f"N − {g.origin[1]:.0f} m")
-        else:
-            ax.set_xlabel("x map (m)")
-            ax.set_ylabel("y map (m)")
+        plan_axis_labels(ax, g)
     axes[0].legend(loc="best", fontsize=7)
     fig.tight_layout()
     buf = io.BytesIO()
