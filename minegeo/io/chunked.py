@@ -381,7 +381,7 @@ def _text_values(p: Path, body: int, first_line: int, ncols: int, n: int, tail_o
 # ----------------------------------------------------------------------------- PLY
 def _open_ply(p: Path, size: int) -> PointChunks | None:
     from minegeo.io._common import minegeo_comments, recorded_origin
-    from minegeo.io.ply import _parse_header, _vertex_element
+    from minegeo.io.ply import _binary_vertices, _parse_header, _vertex_element
 
     fmt, elements, comments, body, header_lines = _parse_header(p, _head(p, size))
     vi, vert, pnames, (ix, iy, iz), n = _vertex_element(p, elements)
@@ -401,13 +401,7 @@ def _open_ply(p: Path, size: int) -> PointChunks | None:
 
         vals = _text_values(p, body, header_lines + 1, len(pnames), n, not last, None, convert)
         return _make(p, "ply", fmt, n, fo, crs, size, True, vals, {"xyz_only": len(pnames) == 3})
-    endian = "<" if fmt == "binary_little_endian" else ">"
-    offset = body
-    for e in elements[:vi]:
-        if e["has_list"]:
-            raise FileFormatError(p, f"binary PLY with list element {e['name']!r} before the vertices")
-        offset += e["count"] * sum(np.dtype(q[1]).itemsize for q in e["props"])
-    dt = np.dtype([(q[0], endian + q[1]) for q in vert["props"]])
+    offset, dt = _binary_vertices(p, fmt, elements, vi, body)
     _check_binary_size(p, size, offset, dt, n, last, "vertices")
     vals = _binary_values(p, offset, dt, (pnames[ix], pnames[iy], pnames[iz]), n)
     return _make(p, "ply", fmt, n, fo, crs, size, True, vals, {"xyz_only": len(pnames) == 3})

@@ -116,6 +116,19 @@ def _vertex_element(path, elements: list) -> tuple:
     return vi, vert, pnames, find_xyz(path, pnames), vert["count"]
 
 
+def _binary_vertices(path, fmt: str, elements: list, vi: int, body_start: int) -> tuple:
+    """``(byte offset of the first vertex, the vertex record dtype)`` of a binary PLY body starting
+    at ``body_start``: the fixed-size elements before the vertex element ``vi`` skipped;
+    :class:`FileFormatError` when one of them has a list property (its size is not known)."""
+    endian = "<" if fmt == "binary_little_endian" else ">"
+    offset = body_start
+    for e in elements[:vi]:
+        if e["has_list"]:
+            raise FileFormatError(path, f"binary PLY with list element {e['name']!r} before the vertices")
+        offset += e["count"] * sum(np.dtype(p[1]).itemsize for p in e["props"])
+    return offset, np.dtype([(p[0], endian + p[1]) for p in elements[vi]["props"]])
+
+
 def read_ply_bytes(path, data: bytes) -> RawCloud:
     """Parse PLY bytes (``path`` only names the file in errors); see the module docstring."""
     fmt, elements, comments, body_start, header_lines = _parse_header(path, data)
@@ -146,13 +159,7 @@ def read_ply_bytes(path, data: bytes) -> RawCloud:
         if not tail_elements:
             note_unterminated_last_line(path, data, meta)
     else:
-        endian = "<" if fmt == "binary_little_endian" else ">"
-        offset = body_start
-        for e in elements[:vi]:
-            if e["has_list"]:
-                raise FileFormatError(path, f"binary PLY with list element {e['name']!r} before the vertices")
-            offset += e["count"] * sum(np.dtype(p[1]).itemsize for p in e["props"])
-        dt = np.dtype([(p[0], endian + p[1]) for p in vert["props"]])
+        offset, dt = _binary_vertices(path, fmt, elements, vi, body_start)
         need = n * dt.itemsize
         have = len(data) - offset
         if have < need:
