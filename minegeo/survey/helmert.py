@@ -86,6 +86,24 @@ def _check_spread(src: np.ndarray, need_rank: int, what: str) -> None:
         )
 
 
+def _point_pairs(src_in, dst_in, names: tuple, dim: int, need: int, what: str, need_rank: int,
+                 spread_what: str) -> tuple:
+    """Validated point pairs of a transformation fit: ``(src, dst, src centroid, dst centroid)``.
+
+    ``src_in``, ``dst_in``: (n, ``dim``) coordinates (m), called ``names`` in messages. :class:`InputError` for different counts, :class:`TooFewPointsError` for fewer
+    than ``need`` pairs (``what`` names the transformation), :class:`DegenerateGeometryError` when
+    the source points span fewer than ``need_rank`` dimensions (:func:`_check_spread`)."""
+    src = as_points(src_in, names[0], dim=dim)
+    dst = as_points(dst_in, names[1], dim=dim)
+    if src.shape != dst.shape:
+        raise InputError(f"{names[0]} and {names[1]} must have the same number of points ({len(src)} vs {len(dst)})")
+    n = src.shape[0]
+    if n < need:
+        raise TooFewPointsError(f"{what} needs at least {need} point pairs, got {n}")
+    _check_spread(src, need_rank, spread_what)
+    return src, dst, src.mean(axis=0), dst.mean(axis=0)
+
+
 @dataclass(frozen=True)
 class Helmert2DResult:
     """4-parameter 2D conformal transformation ``E = a·x − b·y + Tx``, ``N = b·x + a·y + Ty``.
@@ -207,16 +225,9 @@ def helmert2d(src_xy, dst_en, sigma_dst=None, options: LSQOptions | None = None)
     coordinates; ``Tx = E0 + t'x − a·x0 + b·y0``, ``Ty = N0 + t'y − b·x0 − a·y0`` and the
     covariance is propagated with the exact Jacobian of that map.
     """
-    src = as_points(src_xy, "src_xy", dim=2)
-    dst = as_points(dst_en, "dst_en", dim=2)
-    if src.shape != dst.shape:
-        raise InputError(f"src_xy and dst_en must have the same number of points ({len(src)} vs {len(dst)})")
+    src, dst, s0, d0 = _point_pairs(src_xy, dst_en, ("src_xy", "dst_en"), 2, 2, "a 2D Helmert transformation", 1,
+                                    "2D Helmert")
     n = src.shape[0]
-    if n < 2:
-        raise TooFewPointsError(f"a 2D Helmert transformation needs at least 2 point pairs, got {n}")
-    _check_spread(src, 1, "2D Helmert")
-    s0 = src.mean(axis=0)
-    d0 = dst.mean(axis=0)
     xr = src - s0
     dr = dst - d0
     B = np.zeros((2 * n, 4))
@@ -318,15 +329,9 @@ def affine2d(src_xy, dst_en, sigma_dst=None, options: LSQOptions | None = None) 
 
     Needs at least 3 non-collinear point pairs; see :func:`helmert2d` for the arguments.
     """
-    src = as_points(src_xy, "src_xy", dim=2)
-    dst = as_points(dst_en, "dst_en", dim=2)
-    if src.shape != dst.shape:
-        raise InputError("src_xy and dst_en must have the same number of points")
+    src, dst, s0, d0 = _point_pairs(src_xy, dst_en, ("src_xy", "dst_en"), 2, 3, "a 2D affine transformation", 2,
+                                    "2D affine")
     n = src.shape[0]
-    if n < 3:
-        raise TooFewPointsError(f"a 2D affine transformation needs at least 3 point pairs, got {n}")
-    _check_spread(src, 2, "2D affine")
-    s0, d0 = src.mean(axis=0), dst.mean(axis=0)
     xr, dr = src - s0, dst - d0
     B = np.zeros((2 * n, 6))
     B[0::2, 0] = 1.0
@@ -539,19 +544,11 @@ def helmert3d(
     ``[I, −s[R̂X̃]×, R̂X̃]`` per point. ``T = X0_dst + t' − s·R·X0_src``, covariance propagated
     with its exact Jacobian ``[I, s[R·X0_src]×, −R·X0_src]``.
     """
-    src = as_points(src_xyz, "src_xyz", dim=3)
-    dst = as_points(dst_xyz, "dst_xyz", dim=3)
-    if src.shape != dst.shape:
-        raise InputError("src_xyz and dst_xyz must have the same number of points")
+    src, dst, s0, d0 = _point_pairs(src_xyz, dst_xyz, ("src_xyz", "dst_xyz"), 3, 3,
+                                    f"a 3D {'similarity' if estimate_scale else 'rigid'} transformation", 2,
+                                    "3D Helmert")
     n = src.shape[0]
-    need = 3
-    if n < need:
-        raise TooFewPointsError(
-            f"a 3D {'similarity' if estimate_scale else 'rigid'} transformation needs at least 3 point pairs, got {n}"
-        )
-    _check_spread(src, 2, "3D Helmert")
     conv = _convention(convention)
-    s0, d0 = src.mean(axis=0), dst.mean(axis=0)
     xs, xd = src - s0, dst - d0
     R0, sc0 = umeyama_centred(xs, xd, estimate_scale)
     if sigma_dst is None:
