@@ -583,6 +583,23 @@ def _list_nearest(px, py, pz, Q, nb, rk, j0, d2, tol):
     return 0.0, -1, 0.0
 
 
+@njit(inline="always")
+def _found(P, i, Q, j, sq, m, Cs, Ct, R, part, c, out_idx, out_sq, r1, moved, last_j):
+    """Record the answer ``(sq, j)`` of a full search for row ``i`` of :func:`_gicp_fused_rows`
+    (``j = m``: no partner within the gate) and add the pair's terms to ``part[c]``; returns the
+    chunk's last partner (``j`` when there is one, else ``last_j``)."""
+    moved[i] = 0.0
+    out_idx[i] = j
+    if j < m:
+        r1[i] = np.sqrt(sq)
+        out_sq[i] = sq
+        _gicp_pair_add(P, i, Q, j, Cs, Ct, R, part, c)
+        return j
+    r1[i] = np.inf
+    out_sq[i] = np.inf
+    return last_j
+
+
 @njit
 def _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
                      out_idx, out_sq, part, P_old, r1, r2, moved, c0, c1, nb, rk):
@@ -631,17 +648,9 @@ def _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, 
                 tol = 1e-9 * (1.0 + abs(px) + abs(py) + abs(pz))
                 lb, lj, lr2 = _list_nearest(px, py, pz, Q, nb, rk, js, d2, tol)
                 if lj >= 0:
-                    moved[i] = 0.0
-                    out_idx[i] = lj
                     if lj < m:
-                        last_j = lj
-                        r1[i] = np.sqrt(lb)
                         r2[i] = lr2
-                        out_sq[i] = lb
-                        _gicp_pair_add(P, i, Q, lj, Cs, Ct, R, part, c)
-                    else:
-                        r1[i] = np.inf
-                        out_sq[i] = np.inf
+                    last_j = _found(P, i, Q, lj, lb, m, Cs, Ct, R, part, c, out_idx, out_sq, r1, moved, last_j)
                     continue
             best = d2
             best_j = m
@@ -658,16 +667,7 @@ def _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, 
                 best, best_j = kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, left, right,
                                              d2, st_node, st_lb)
                 r2[i] = -1.0  # unknown: no skip next time
-            moved[i] = 0.0
-            out_idx[i] = best_j
-            if best_j < m:
-                last_j = best_j
-                r1[i] = np.sqrt(best)
-                out_sq[i] = best
-                _gicp_pair_add(P, i, Q, best_j, Cs, Ct, R, part, c)
-            else:
-                r1[i] = np.inf
-                out_sq[i] = np.inf
+            last_j = _found(P, i, Q, best_j, best, m, Cs, Ct, R, part, c, out_idx, out_sq, r1, moved, last_j)
 
 
 @njit
