@@ -24,7 +24,7 @@ from minegeo._validate import is_permutation
 from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, QUERY_TASK_ROWS, n_chunks
 
 __all__ = ["KD_LEAF", "kd_build", "kd_walk_to_leaf", "kd_nn_descend", "kd_nn2_descend", "kd_nn_rows", "kd_nn_serial",
-           "kd_nn_parallel", "kd_nn_warm_rows", "kd_nn_warm_serial", "kd_nn_warm_parallel", "kd_knn_one",
+           "kd_nn_parallel", "kd_nn_warm_rows", "kd_nn_warm_serial", "kd_nn_warm_parallel", "warm_bound", "kd_knn_one",
            "kd_knn", "kd_radius_one", "kd_radius_count", "kd_boxes", "kd_knn_leaf_batch", "sq_to_row",
            "GatedKDTree"]
 
@@ -324,6 +324,18 @@ def kd_nn_parallel(P, idx, Qs, start, end, dim, split, left, right, depth, d2, o
                    c * QUERY_TASK_ROWS, min(n, (c + 1) * QUERY_TASK_ROWS))
 
 
+@njit(inline="always")
+def warm_bound(px, py, pz, Q, j0, d2, m):
+    """The start bound ``(best, best_j)`` of a warm 1-NN search (:func:`kd_nn_descend`) of
+    ``(px, py, pz)`` from a known partner ``j0`` (row of ``Q``; ``m`` = none): ``(sq, j0)`` when its
+    squared distance ``sq < d2``, else the cold bound ``(d2, m)``."""
+    if j0 < m:
+        sq0 = sq_to_row(px, py, pz, Q, j0)
+        if sq0 < d2:
+            return sq0, j0
+    return d2, m
+
+
 @njit
 def kd_nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq,
                     r0, r1):
@@ -341,14 +353,7 @@ def kd_nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d
         px = P[i, 0]
         py = P[i, 1]
         pz = P[i, 2]
-        best = d2
-        best_j = m
-        j0 = prev[i]
-        if j0 < m:
-            sq0 = sq_to_row(px, py, pz, Q, j0)
-            if sq0 < d2:
-                best = sq0
-                best_j = j0
+        best, best_j = warm_bound(px, py, pz, Q, prev[i], d2, m)
         best, best_j = kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, left, right, d2,
                                      st_node, st_lb)
         out_idx[i] = best_j

@@ -35,6 +35,7 @@ from minegeo.kernels.kdtree import (
     kd_nn_warm_parallel,
     kd_nn_warm_serial,
     sq_to_row,
+    warm_bound,
 )
 from minegeo.registration._kernels import (
     _add_partials,
@@ -652,13 +653,7 @@ def _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, 
                         r2[i] = lr2
                     last_j = _found(P, i, Q, lj, lb, m, Cs, Ct, R, part, c, out_idx, out_sq, r1, moved, last_j)
                     continue
-            best = d2
-            best_j = m
-            if j0 < m:
-                sq0 = sq_to_row(px, py, pz, Q, j0)
-                if sq0 < d2:
-                    best = sq0
-                    best_j = j0
+            best, best_j = warm_bound(px, py, pz, Q, j0, d2, m)
             if want_second:
                 best, best_j, second = kd_nn2_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split,
                                                       left, right, d2, st_node, st_lb)
