@@ -41,6 +41,7 @@ from minegeo.slam.control import (
     ControlParams,
     apply_control,
     drift_states_needed,
+    drift_states_test,
     interpolate_poses,
     station_points,
 )
@@ -114,6 +115,7 @@ def run_once(t, T_true, stations: Stations, tr, rng, drift, offset, crs, modes=(
         res = apply_control(t, P, edges, Z, info, stations, offset, crs, cp)
         out[mode] = res.station_enh_local[chk] - true_local[chk]
         out[mode + "_outside"] = (res.station_enh_local - true_local)[stations.is_check & ~chk]
+        out[mode + "_objective"] = (float(res.objective), float(res.drift_parameters))
         if mode == "graph_drift":
             out["graph_drift_status"] = res.status
             out["graph_drift_cov"] = res.station_cov_enh[chk]
@@ -128,11 +130,22 @@ def run_once(t, T_true, stations: Stations, tr, rng, drift, offset, crs, modes=(
             out["misclosure_N_min"] = float(np.min(res.misclosure_ratio))
             out["iterations"] = res.optimisation.iterations
     if "graph" in modes and "graph_drift" in modes:
-        # ControlParams(drift_states="auto"): the drift states when the plain graph fails its chi-square test
-        pick = "graph_drift" if out["graph_needs_drift"] else "graph"
-        out["graph_auto"], out["graph_auto_outside"] = out[pick], out[pick + "_outside"]
-        out["graph_auto_cov"], out["graph_auto_drift"] = out[pick + "_cov"], pick == "graph_drift"
+        # ControlParams(drift_states="auto"): the likelihood-ratio test of C6 (drift_states_test) on the two
+        # solutions, as apply_control makes it (tests/slam/test_control_auto_lr.py checks the two agree);
+        # "graph_auto_chi2" is the earlier rule (the plain graph's own chi-square test, upper tail)
+        lr = drift_states_test(out["graph_objective"][0], *out["graph_drift_objective"], ControlParams().drift_alpha)
+        out["lr"] = lr
+        for name, take in (("graph_auto", lr["chosen"]), ("graph_auto_chi2", out["graph_needs_drift"])):
+            pick = "graph_drift" if take else "graph"
+            out[name], out[name + "_outside"] = out[pick], out[pick + "_outside"]
+            out[name + "_cov"], out[name + "_drift"] = out[pick + "_cov"], pick == "graph_drift"
     return out
+
+
+def _inside(e, C):
+    """Whether each horizontal error ``e[:, :2]`` lies in its 95 % ellipse of ``C[:, :2, :2]``."""
+    e = e[:, :2]
+    return np.einsum("ni,nij,nj->n", e, np.linalg.inv(C[:, :2, :2]), e) <= CHI2_2_95
 
 
 def noise_ate(sigma_rot, sigma_trans, sigma_along, runs=200) -> dict:
@@ -181,14 +194,17 @@ def markdown(path) -> str:
     names = {"none": "no control (placed by the first control station, true heading)",
              "rigid": "rigid fit of the control stations", "graph": "control in the pose graph",
              "graph_drift": "control in the pose graph + drift states (C4)",
-             "graph_auto": "automatic: drift states when the graph's χ² fails (C6)"}
+             "graph_auto": "automatic: drift states by the likelihood-ratio test (C6)",
+             "graph_auto_chi2": "earlier automatic rule: drift states when the plain graph's χ² fails"}
+    if not c.get("auto_rule", "").startswith("likelihood ratio"):  # a file of the earlier rule: its own name
+        names["graph_auto"] = "automatic: drift states when the graph's χ² fails (C6)"
     for cname, tab in d["table"].items():
         for m, r in tab.items():
             lines.append(f"| {cname.replace('_', ' ')} | {names[m]} | {r['rmse_h_m']:.3f} | {r['rmse_v_m']:.3f} | "
                          f"{r['max_h_m']:.3f} | {r['max_v_m']:.3f} |")
     lines.append("")
     lines.append(f"Drive {c['path_length_m']:.0f} m, {c['keyframes']} keyframes, {c['control']} control and "
-                 f"{c['check']} check stations ({d['graph']['bias']['n_check_between']} between two controls, "
+                 f"{c['check']} check stations ({next(iter(d['graph'].values()))['n_check_between']} between two controls, "
                  f"in the table), seed {c['seed']}.")
     if "calibration" in d:
         cal = d["calibration"]
@@ -200,7 +216,9 @@ def markdown(path) -> str:
         lines += ["", "| Monte Carlo | mode | 95 % ellipse coverage | check RMSE h (m) | check RMSE v (m) |",
                   "|---|---|---|---|---|"]
         for cname, r in d["monte_carlo"].items():
-            for m in ("graph", "graph_drift", "graph_auto"):
+            for m in ("graph", "graph_drift", "graph_auto", "graph_auto_chi2"):
+                if m not in r:
+                    continue
                 lines.append(f"| {cname.replace('_', ' ')}, {r['runs']} runs ({r['check_points']} check points) | "
                              f"{names[m]} | {100 * r[m]['coverage_95']:.1f} % | {r[m]['rmse_h_m']:.3f} | "
                              f"{r[m]['rmse_v_m']:.3f} |")
@@ -209,7 +227,9 @@ def markdown(path) -> str:
             f"{cname.replace('_', ' ')} {100 * r['binomial_se']:.1f} %" for cname, r in d["monte_carlo"].items())
             + "; the automatic choice took the drift states in " + ", ".join(
             f"{r['auto_chose_drift_states']} of {r['runs']} runs ({cname.replace('_', ' ')})"
-            for cname, r in d["monte_carlo"].items()) + ".")
+            for cname, r in d["monte_carlo"].items()) + "" + "".join(
+            f"; the earlier χ² rule in {r['auto_chi2_chose_drift_states']} ({cname.replace('_', ' ')})"
+            for cname, r in d["monte_carlo"].items() if "auto_chi2_chose_drift_states" in r) + ".")
     return "\n".join(lines)
 
 
@@ -228,6 +248,8 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--mc", type=int, default=200)
     ap.add_argument("--mc-duration-s", type=float, default=1100.0)
+    ap.add_argument("--conditions", nargs="+", choices=("bias", "noise_only"), default=["bias", "noise_only"],
+                    help="which odometry conditions to run (default both)")
     ap.add_argument("--label", default="", help="recorded in the results file (what this run is)")
     ap.add_argument("--out", default=None)
     ap.add_argument("--markdown", default=None, help="print the docs table of this results file and exit")
@@ -251,7 +273,7 @@ def main(argv=None):
     t, T_true, stations, tr, length = truth(a.duration_s, a.spacing_m, a.control_every, a.seed, a.keyframe_s)
     drift = (a.scale_bias, a.yaw_bias, a.pitch_bias, a.sigma_rot, a.sigma_trans, a.sigma_along)
     tables, graph_info = {}, {}
-    conds = {"bias": drift, "noise_only": (0.0, 0.0, 0.0) + drift[3:]}
+    conds = {k: v for k, v in {"bias": drift, "noise_only": (0.0, 0.0, 0.0) + drift[3:]}.items() if k in a.conditions}
     print(f"drive {length:.0f} m, {len(stations)} stations ({int(stations.is_control.sum())} control), "
           f"{t.size} keyframes", flush=True)
     modes_tab = ("none", "rigid", "graph", "graph_drift", "graph_auto")
@@ -267,7 +289,7 @@ def main(argv=None):
             print(f"  {cname:10s} {m:11s} RMSE h {h:.4f} m  v {v:.4f} m", flush=True)
         tables[cname] = table
         graph_info[cname] = {k: one[k] for k in ("graph_status", "sigma0", "graph_drift_sigma0", "graph_drift_status",
-                                                 "graph_auto_drift", "flagged", "class_passed",
+                                                 "graph_auto_drift", "graph_auto_chi2_drift", "lr", "flagged", "class_passed",
                                                  "misclosure_N_min", "iterations", "n_check_between",
                                                  "n_check_outside")}
     # Monte Carlo: new odometry draws (seeds [seed, 1000 + r]) under each condition; the information is
@@ -277,9 +299,10 @@ def main(argv=None):
         tm, Tm, sm, trm, len_mc = truth(a.mc_duration_s, a.spacing_m, a.control_every, a.seed, a.keyframe_s)
     mc = {}
     for cname, dr in conds.items():
-        m_modes = ("graph", "graph_drift", "graph_auto")
-        inside, sq, sqv, total, sig0, n_auto = dict.fromkeys(m_modes, 0), dict.fromkeys(m_modes, 0.0), \
-            dict.fromkeys(m_modes, 0.0), 0, [], 0
+        m_modes = ("graph", "graph_drift", "graph_auto", "graph_auto_chi2")
+        inside, sq, sqv, total, sig0, n_auto, n_auto_chi2 = dict.fromkeys(m_modes, 0), dict.fromkeys(m_modes, 0.0), \
+            dict.fromkeys(m_modes, 0.0), 0, [], 0, 0
+        lr_runs = []
         for r in range(a.mc):
             o = run_once(tm, Tm, sm, trm, np.random.default_rng([a.seed, 1000 + r]), dr, offset, trm["crs"],
                          modes=("graph", "graph_drift"))
@@ -291,13 +314,19 @@ def main(argv=None):
                 sqv[m] += float(np.sum(o[m][:, 2] ** 2))
             total += o["graph"].shape[0]
             n_auto += int(o["graph_auto_drift"])
+            n_auto_chi2 += int(o["graph_auto_chi2_drift"])
             sig0.append(o["sigma0"])
+            lr_runs.append({"statistic": o["lr"]["statistic"], "dof": o["lr"]["dof"], "chosen": o["lr"]["chosen"],
+                            "inside_plain": int(np.sum(_inside(o["graph"], o["graph_cov"]))),
+                            "inside_drift": int(np.sum(_inside(o["graph_drift"], o["graph_drift_cov"]))),
+                            "n": int(o["graph"].shape[0])})
             if (r + 1) % 20 == 0:
                 print(f"  mc {cname} {r + 1}/{a.mc}: coverage " + ", ".join(f"{m} {inside[m] / total:.4f}" for m in m_modes)
                       + f"; auto chose drift states in {n_auto}", flush=True)
         if total:
             mc[cname] = {"runs": a.mc, "check_points": total, "binomial_se": float(np.sqrt(0.95 * 0.05 / total)),
-                         "auto_chose_drift_states": n_auto, "mean_sigma0_graph": float(np.mean(sig0)),
+                         "auto_chose_drift_states": n_auto, "auto_chi2_chose_drift_states": n_auto_chi2,
+                         "mean_sigma0_graph": float(np.mean(sig0)), "lr_per_run": lr_runs,
                          **{m: {"coverage_95": inside[m] / total, "rmse_h_m": float(np.sqrt(sq[m] / total)),
                                 "rmse_v_m": float(np.sqrt(sqv[m] / total))} for m in m_modes}}
     res = {
@@ -313,7 +342,7 @@ def main(argv=None):
                        "station_sigma_h_m": float(stations.sigma_h_m[0]),
                        "station_sigma_v_m": float(stations.sigma_v_m[0]), "loop_closures": 0,
                        "drift_prior": list(ControlParams().drift_prior), "drift_walk_per_sqrt_s": list(ControlParams().drift_walk),
-                       "auto_rule": "drift states when the graph without them fails the upper tail of its 95 % two-tailed chi-square test (drift_states_needed)",
+                       "auto_rule": "likelihood ratio (drift_states_test, C6): vTPv (every factor) without minus with the drift states against chi2_f(0.95), f = 3n - tr(H^-1 H_walk) - tr(H^-1 H_prior) the drift parameters the data determine; graph_auto_chi2: the earlier rule, the plain graph failing the upper tail of its 95 % two-tailed chi-square test (drift_states_needed)",
                        "mc_duration_s": a.mc_duration_s},
         "table": tables,
         "graph": graph_info,

@@ -86,6 +86,19 @@ def add_arguments(parser) -> None:
     g.add_argument("--dxf-exaggeration", type=positive_float, default=None, metavar="X",
                    help="exaggeration of the DXF's residual vectors and ellipses (default: 1, 2 or 5 x 10^k, the "
                    "longest vector at most 5 %% of the drawing)")
+    g.add_argument("--drift-states", choices=("off", "on", "auto"), default=None,
+                   help="graph mode: estimate a systematic odometry drift (scale, pitch and yaw rate per metre) as a "
+                   "random walk on every graph variable; off (default), on, or auto: only when the data show a drift "
+                   "(likelihood-ratio test of the graph with against without them; its ellipses are not calibrated "
+                   "for a drift near the test's detection limit, docs/survey.md)")
+    g.add_argument("--drift-walk", nargs=3, type=positive_float, default=None, metavar=("SCALE", "PITCH", "YAW"),
+                   help="random-walk standard deviations of the drift states per sqrt(s) between graph variables "
+                   "(scale/sqrt(s), rad/m/sqrt(s), rad/m/sqrt(s); default 2e-5 1e-7 1e-7)")
+    g.add_argument("--drift-prior", nargs=3, type=positive_float, default=None, metavar=("SCALE", "PITCH", "YAW"),
+                   help="a-priori standard deviations of a constant drift (scale, rad/m, rad/m; default 0.02 1e-4 1e-4)")
+    g.add_argument("--class-constant", type=positive_float, default=None, metavar="C_MM",
+                   help="ICSM SP1 class constant c of the check stations' class test, r = c (d + 0.2) mm with d in "
+                   "km (mm, default 50: Class D underground; 30 C, 15 B, 7.5 A)")
 
 
 def _check_options(args) -> None:
@@ -101,9 +114,12 @@ def _check_options(args) -> None:
 
     if getattr(args, "control", None) is None:
         for opt, name in (("control_mode", "--control-mode"), ("station_offset", "--station-offset"), ("crs", "--crs"),
-                          ("dxf", "--dxf"), ("dxf_exaggeration", "--dxf-exaggeration")):
+                          ("dxf", "--dxf"), ("dxf_exaggeration", "--dxf-exaggeration"),
+                          ("drift_states", "--drift-states"), ("drift_walk", "--drift-walk"),
+                          ("drift_prior", "--drift-prior"), ("class_constant", "--class-constant")):
             if getattr(args, opt, None) is not None:
                 raise InputError(f"{name} needs --control STATIONS.csv (the stations it applies to)")
+    _check_drift_options(args)
     if getattr(args, "dxf_exaggeration", None) is not None and getattr(args, "dxf", None) is None:
         raise InputError("--dxf-exaggeration needs --dxf FILE.dxf (the drawing it applies to)")
     if getattr(args, "no_deskew", False) and getattr(args, "deskew_iterations", None) is not None:
@@ -126,6 +142,39 @@ def _check_options(args) -> None:
         if not stat.S_ISREG(mode):
             raise InputError(f"--times {args.times} is not a regular file (a FIFO, socket or device): name a file "
                              "of frame times")
+
+
+def _check_drift_options(args) -> None:
+    """The drift-state options' combinations (``InputError``): drift states are graph-mode variables, so
+    ``--drift-states on|auto`` contradicts ``--control-mode rigid``; ``--drift-walk``/``--drift-prior``
+    shape drift states, so they need ``--drift-states on`` or ``auto``."""
+    from minegeo.errors import InputError
+
+    ds = getattr(args, "drift_states", None)
+    if ds in ("on", "auto") and getattr(args, "control_mode", None) == "rigid":
+        raise InputError(f"--drift-states {ds} contradicts --control-mode rigid (drift states are variables of the "
+                         "pose graph; a rigid fit has none): use --control-mode graph, or leave --drift-states out")
+    for opt, name in (("drift_walk", "--drift-walk"), ("drift_prior", "--drift-prior")):
+        if getattr(args, opt, None) is not None and ds not in ("on", "auto"):
+            raise InputError(f"{name} needs --drift-states on or auto (it shapes the drift states"
+                             + (", which --drift-states off leaves out)" if ds == "off" else ", off by default)"))
+
+
+def control_params(args, mode: str):
+    """:class:`~minegeo.slam.control.ControlParams` of the survey-control options (``mode`` from
+    ``--control-mode``, default graph): drift states off/on/auto → False/True/"auto", their walk and
+    prior (library defaults when not given), the class constant c (mm, default 50 = Class D)."""
+    from minegeo.slam.control import ControlParams
+
+    ds = {None: False, "off": False, "on": True, "auto": "auto"}[getattr(args, "drift_states", None)]
+    kw = {"mode": mode, "drift_states": ds}
+    if getattr(args, "drift_walk", None) is not None:
+        kw["drift_walk"] = tuple(float(v) for v in args.drift_walk)
+    if getattr(args, "drift_prior", None) is not None:
+        kw["drift_prior"] = tuple(float(v) for v in args.drift_prior)
+    if getattr(args, "class_constant", None) is not None:
+        kw["class_c"] = float(args.class_constant)
+    return ControlParams(**kw)
 
 
 def _check_times(files) -> None:
@@ -418,6 +467,13 @@ def _control_outputs(stage: Path, res, ctrl_in, params, dxf_path: Path | None = 
     return rec, plot
 
 
+def _control_parameters(p) -> dict:
+    """``parameters.control`` of result.json: the :class:`~minegeo.slam.control.ControlParams` the run used."""
+    return {"mode": p.mode, "drift_states": {False: "off", True: "on", "auto": "auto"}[p.drift_states],
+            "drift_walk_per_sqrt_s": [float(v) for v in p.drift_walk], "drift_prior": [float(v) for v in p.drift_prior],
+            "class_constant_mm": float(p.class_c), "snooping": bool(p.snooping)}
+
+
 def control_record(c, st, offset, crs, mode) -> dict:
     """The ``control`` record of result.json (and of the report's "Survey control" section) of a
     :class:`~minegeo.slam.control.ControlResult` ``c`` of the stations ``st``: mode, status and reason
@@ -430,6 +486,8 @@ def control_record(c, st, offset, crs, mode) -> dict:
     rec = {
         "mode": mode, "status": c.status, "reason": c.reason, "crs": crs, "origin_enh": o.tolist(),
         "station_offset_m": offset.tolist(), "source": str(st.source), "note": c.keyframe_note,
+        "drift_states": bool(c.drift_states), "drift_states_choice": c.drift_choice,
+        "uncertainty_note": c.uncertainty_note,
         "sigma0": float(np.sqrt(chi.statistic / chi.dof)) if chi.dof else None,
         "chi2_test": {"statistic": float(chi.statistic), "dof": int(chi.dof), "alpha": float(chi.alpha),
                       "lower": float(chi.lower), "upper": float(chi.upper), "passed": chi.passed,
@@ -486,9 +544,7 @@ def run(args) -> int:
     _check_options(args)
     ctrl_in = _read_control(args)
     if ctrl_in is not None:
-        from minegeo.slam.control import ControlParams
-
-        ctrl_params = ControlParams(mode=ctrl_in[3])
+        ctrl_params = control_params(args, ctrl_in[3])
         inputs_named["--control"] = args.control
     dxf_out = {"--dxf": args.dxf} if getattr(args, "dxf", None) else {}
     imu = read_imu(args)
@@ -539,7 +595,9 @@ def run(args) -> int:
                                                              tx.file("--dxf") if dxf_out else None,
                                                              getattr(args, "dxf_exaggeration", None))
         summary = {
-            "command": "slam", "status": "ok", "reason": "", "parameters": params.as_dict(),
+            "command": "slam", "status": "ok", "reason": "",
+            "parameters": {**params.as_dict(), **({"control": _control_parameters(ctrl_params)} if ctrl_in is not None
+                                                  else {})},
             "result": {**res.summary(), "times_from": times_source(args.frames, args.times), "skipped_frames": skipped,
                        "frames_not_registered": [{"time_s": float(res.times_s[k]), "reason": r}
                                                  for k, r in enumerate(res.odometry.frame_reason) if r],
@@ -585,6 +643,11 @@ def run(args) -> int:
             print(f"control ({c['mode']}, {c['crs']}): {c['status']}{': ' + c['reason'] if c['reason'] else ''}"
                   + ("" if chk is None else f"; check RMSE h {chk['rmse_horizontal_m']:.3f} m, v "
                                             f"{chk['rmse_vertical_m']:.3f} m"))
+            if c["drift_states_choice"] is not None:
+                ch = c["drift_states_choice"]
+                print(f"drift states (auto): {'taken' if ch['chosen'] else 'not taken'} (likelihood ratio "
+                      f"{ch['statistic']:.2f}, critical {ch['critical']:.2f} on {ch['dof']:.2f} degrees of freedom); "
+                      f"note: {c['uncertainty_note']}")
             las = c["map_las"]
             print(f"written: {out}/(trajectory_crs.tum, trajectory_crs.csv, stations_result.csv, map_crs.ply"
                   + (f", {las['file']})" if las["written"] else ")")

@@ -329,6 +329,7 @@ def control_html(rec: dict, png: bytes | None) -> str:
         ("class test", "—" if cls is None else f"{sum(cls['passed'])} of {len(cls['passed'])} check stations pass "
                                                f"(c = {cls['c']:g} mm)"),
         ("worst misclosure ratio", f"1:{min(ratios):,.0f}" if ratios else "—"),
+        ("uncertainty", rec.get("uncertainty_note") or "—"),
     ])
     rows = [[s["id"], *(f"{v:.4f}" for v in s["delta_enh_m"]), f"{s['horizontal_m']:.4f}", f"{s['d3_m']:.4f}"]
             for s in chk.get("stations", [])]

@@ -1,7 +1,8 @@
 """``minegeo slam --control STATIONS.csv`` (issue 30, bad input of the acceptance): a station outside the
 run's time span, a station in a gap of the trajectory, fewer control stations than a mode needs,
 duplicated ids, a CRS that is not projected, ``--dxf`` without ``--control`` (and the other DXF option
-mistakes): each one error line, exit 2, nothing written, inputs unchanged (tests/badinput/_contract.py).
+mistakes), the drift-state and class-constant options out of range, contradicting ``--control-mode rigid``
+or without ``--control``: each one error line, exit 2, nothing written, inputs unchanged (tests/badinput/_contract.py).
 
 The frames are small (600 points on the walls of a room each) at 0.1 s, with a 1.7 s gap between
 0.3 and 2.0 s. Every case but the last is refused before the odometry; the last (frames skipped as
@@ -79,6 +80,27 @@ CASES = {
                                      "--dxf-exaggeration needs --dxf FILE.dxf"),
     "dxf_exaggeration_zero": (ROWS, "EPSG:5186", ["--dxf", "OUTDXF", "--dxf-exaggeration", "0"],
                               "--dxf-exaggeration"),
+    # drift states and the class constant (issue 30)
+    "drift_states_unknown": (ROWS, "EPSG:5186", ["--drift-states", "sometimes"],
+                             "argument --drift-states: invalid choice: 'sometimes' (choose from 'off', 'on', 'auto')"),
+    "drift_states_with_rigid": (ROWS, "EPSG:5186", ["--drift-states", "auto", "--control-mode", "rigid"],
+                                "--drift-states auto contradicts --control-mode rigid"),
+    "drift_walk_zero": (ROWS, "EPSG:5186", ["--drift-states", "on", "--drift-walk", "2e-5", "0", "1e-7"],
+                        "argument --drift-walk: '0' must be greater than 0"),
+    "drift_walk_two_values": (ROWS, "EPSG:5186", ["--drift-states", "on", "--drift-walk", "2e-5", "1e-7"],
+                              "argument --drift-walk: expected 3 arguments"),
+    "drift_walk_without_drift_states": (ROWS, "EPSG:5186", ["--drift-walk", "2e-5", "1e-7", "1e-7"],
+                                        "--drift-walk needs --drift-states on or auto"),
+    "drift_prior_with_drift_states_off": (ROWS, "EPSG:5186", ["--drift-states", "off", "--drift-prior", "0.01", "1e-4",
+                                                              "1e-4"], "--drift-prior needs --drift-states on or auto"),
+    "drift_prior_infinite": (ROWS, "EPSG:5186", ["--drift-states", "on", "--drift-prior", "inf", "1e-4", "1e-4"],
+                             "argument --drift-prior: 'inf' is not a finite number"),
+    "class_constant_zero": (ROWS, "EPSG:5186", ["--class-constant", "0"],
+                            "argument --class-constant: '0' must be greater than 0"),
+    "class_constant_negative": (ROWS, "EPSG:5186", ["--class-constant", "-50"],
+                                "argument --class-constant: '-50' must be greater than 0"),
+    "class_constant_not_a_number": (ROWS, "EPSG:5186", ["--class-constant", "D"],
+                                    "argument --class-constant: 'D' is not a number"),
 }
 
 
@@ -96,6 +118,14 @@ def test_dxf_without_control(frames, tmp_path, capsys):
     out, dxf = tmp_path / "out", tmp_path / "control.dxf"
     assert_user_error("slam", ["--frames", frames, "--out", out, "--dxf", dxf], capsys, inputs=[frames],
                       outputs=[out, dxf], expect="--dxf needs --control STATIONS.csv")
+
+
+@pytest.mark.parametrize("extra", [["--class-constant", "30"], ["--drift-states", "on"],
+                                   ["--drift-walk", "2e-5", "1e-7", "1e-7"], ["--drift-prior", "0.01", "1e-4", "1e-4"]])
+def test_control_options_without_control(extra, frames, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert_user_error("slam", ["--frames", frames, "--out", out, *extra], capsys, inputs=[frames], outputs=[out],
+                      expect=f"{extra[0]} needs --control STATIONS.csv")
 
 
 def test_dxf_is_a_folder(frames, tmp_path, capsys):
