@@ -15,6 +15,7 @@ uses :func:`number` and :func:`sigma` for the checks they share.
 from __future__ import annotations
 
 import csv
+import io
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,7 +24,7 @@ from pathlib import Path
 from minegeo.errors import FileFormatError
 from minegeo.io.limits import MIN_SIGMA_M
 
-__all__ = ["Table", "read_table", "number", "check_sigma", "new_id", "split_fields", "delimiter"]
+__all__ = ["Table", "read_table", "table_writer", "number", "check_sigma", "new_id", "split_fields", "delimiter"]
 
 
 def delimiter(line: str) -> str | None:
@@ -138,3 +139,13 @@ def new_id(path, lineno: int, text: str, ids: list[str], lines: list[int]) -> st
     if text in ids:
         raise FileFormatError(path, f"line {lineno}: duplicate id {text!r} (first on line {lines[ids.index(text)]})")
     return text
+
+
+def table_writer(crs) -> tuple:
+    """``(text buffer, csv.writer)`` of a table file as :func:`read_table` reads it: a
+    ``# crs: <crs>`` line first when ``crs`` is set (white space folded to single spaces), rows
+    comma-separated, LF line ends."""
+    buf = io.StringIO()
+    if crs:
+        buf.write(f"# crs: {' '.join(str(crs).split())}\n")
+    return buf, csv.writer(buf, lineterminator="\n")

@@ -24,8 +24,6 @@ warning is logged. Errors name the file, the line and the problem. Files larger 
 
 from __future__ import annotations
 
-import csv
-import io
 import logging
 import math
 from pathlib import Path
@@ -34,7 +32,7 @@ import numpy as np
 
 from minegeo._provenance import atomic_write_text
 from minegeo.errors import FileFormatError, InputError
-from minegeo.io._table import check_sigma, new_id, number, read_table
+from minegeo.io._table import check_sigma, new_id, number, read_table, table_writer
 from minegeo.io.limits import MAX_ABS_COORDINATE, MAX_TABLE_FILE_BYTES, read_file_text
 from minegeo.io.types import ControlPoints
 
@@ -161,10 +159,7 @@ def write_gcps(path, gcps: ControlPoints) -> Path:
     """
     if not isinstance(gcps, ControlPoints):
         raise InputError(f"gcps must be ControlPoints, got {type(gcps).__name__}")
-    buf = io.StringIO()
-    if gcps.crs:
-        buf.write(f"# crs: {' '.join(str(gcps.crs).split())}\n")
-    w = csv.writer(buf, lineterminator="\n")
+    buf, w = table_writer(gcps.crs)
     head = ["id", "x", "y", "z", "E", "N", "H", "sigma_E_m", "sigma_N_m", "sigma_H_m"]
     if gcps.sigma_local_m is not None:
         head += ["sigma_x_m", "sigma_y_m", "sigma_z_m"]

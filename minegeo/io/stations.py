@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from minegeo.errors import FileFormatError, InputError
-from minegeo.io._table import check_sigma, new_id, number, read_table
+from minegeo.io._table import check_sigma, new_id, number, read_table, table_writer
 from minegeo.io.limits import (
     MAX_ABS_COORDINATE,
     MAX_ABS_TIME,
@@ -253,17 +253,11 @@ def read_stations(path, crs: str | None = None) -> Stations:
 def write_stations(path, stations: Stations) -> Path:
     """Write ``stations`` as a stations CSV, atomically (``# crs:`` line when known, the header
     :data:`STATIONS_HEADER`, numbers in Python's shortest exact ``repr`` of ``E N H``)."""
-    import csv
-    import io
-
     from minegeo._provenance import atomic_write_text
 
     if not isinstance(stations, Stations):
         raise InputError(f"stations must be Stations, got {type(stations).__name__}")
-    buf = io.StringIO()
-    if stations.crs:
-        buf.write(f"# crs: {' '.join(str(stations.crs).split())}\n")
-    w = csv.writer(buf, lineterminator="\n")
+    buf, w = table_writer(stations.crs)
     w.writerow(STATIONS_HEADER)
     enh = stations.enh
     for i, sid in enumerate(stations.ids):
