@@ -98,6 +98,17 @@ def polar_min_range(dx, dy, band, n_bands, n_sectors, radius, r_min, footprint, 
     return out
 
 
+@njit(cache=True, inline="always")
+def _ruzicka_add(x, y, occluded, num, den):
+    """One cell of a Ruzicka similarity: ``(num + min(x, y), den + max(x, y))``, or ``(num, den)``
+    unchanged when ``occluded`` and the cell is ``x = 0 < y`` (reference wall not seen)."""
+    if occluded and x == 0.0 and y > 0.0:
+        return num, den
+    if x < y:
+        return num + x, den + y
+    return num + y, den + x
+
+
 @njit(cache=True)
 def shift_ruzicka(a, b, occluded, out):
     """Weighted Ruzicka similarity of ``a`` and ``b`` (n_bands, n) for every circular shift of ``b``.
@@ -116,15 +127,7 @@ def shift_ruzicka(a, b, occluded, out):
                 jj = j - k
                 if jj < 0:
                     jj += n
-                y = b[r, jj]
-                if occluded and x == 0.0 and y > 0.0:
-                    continue
-                if x < y:
-                    num += x
-                    den += y
-                else:
-                    num += y
-                    den += x
+                num, den = _ruzicka_add(x, b[r, jj], occluded, num, den)
         out[k] = num / den if den > 0.0 else 0.0
     return out
 
@@ -177,13 +180,5 @@ def ruzicka_frac(a, b, shift, occluded):
         i1 = (i0 + 1) % n
         for r in range(nb):
             y = (1.0 - f) * b[r, i0] + f * b[r, i1]
-            xa = a[r, j]
-            if occluded and xa == 0.0 and y > 0.0:
-                continue
-            if xa < y:
-                num += xa
-                den += y
-            else:
-                num += y
-                den += xa
+            num, den = _ruzicka_add(a[r, j], y, occluded, num, den)
     return num / den if den > 0.0 else 0.0
