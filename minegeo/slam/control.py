@@ -53,16 +53,20 @@ speed ``v`` (time ``τ = D/v``) a scale walk moves a point along the path by abo
 the data (C6, :func:`drift_states_test`): both graphs are solved, and the drift states are taken
 when they lower ``vᵀPv`` by more than chance would with no drift::
 
-    Δ = vᵀPv₀ − vᵀPv_β  >  χ²_f(1 − α),    f = r₀ − r_β                                   (C6)
+    Δ = vᵀPv₀ − vᵀPv_β  >  χ²_f(1 − α),    f = 3n − tr(H⁻¹ H_walk) − tr(H⁻¹ H_prior)     (C6)
 
-(``vᵀPv₀``, ``r₀`` the plain graph's, ``vᵀPv_β``, ``r_β`` the drift graph's, C5, ``r_β`` unrounded:
-``f`` is the number of drift parameters the data determine, about 2-3; α = 0.05). Under no drift
-``Δ`` is χ²(f) (Wilks; measured mean 1.96, variance 3.99 for f ≈ 2 over 200 runs,
-``benchmarks/bench_control.py``). It replaces the plain graph's own χ² test as the choice: that
-omnibus test spreads its ``r₀ = 3·controls − 6`` degrees of freedom over misfits the drift cannot
-make and missed the bias of the benchmark in 15 of 200 runs, whose plain ellipses covered about 20 %
-(auto 89.8 %). The choice, ``Δ``, ``f`` and both σ̂0 are in ``ControlResult.drift_choice``,
-``keyframe_note`` and ``drift_states``.
+(``vᵀPv₀`` the plain graph's, ``vᵀPv_β`` the drift graph's, every factor with the walk and prior;
+``f`` the number of drift parameters the data determine, ``H`` the drift graph's normal matrix, ``H⁻¹``
+from the selected inverse (C3), whose pattern holds the cross covariances of the walk's neighbouring
+variables; α = ``ControlParams.drift_alpha``, 0.05). With no drift both ``vᵀPv`` are quadratic forms
+of the noise and ``E[Δ] = f`` in the linearised model (measured: mean 1.93 for f = 2.02 over 200
+runs, Kolmogorov–Smirnov p = 0.88 against χ²(f), ``benchmarks/bench_control.py``). It replaces the
+plain graph's own χ² test as the choice: that omnibus test spreads its ``r₀ = 3·controls − 6`` degrees
+of freedom over misfits a drift cannot make and missed the benchmark's bias in 15 of 200 runs, whose
+plain ellipses covered about 20 % (auto 89.8 %; now 94.3 %). A model chosen by a test is not
+calibrated for a drift near the test's detection limit (76 % coverage at 0.4 × that bias):
+``ControlResult.uncertainty_note`` says so. The choice, ``Δ``, ``f`` and both σ̂0 are in
+``ControlResult.drift_choice``, ``keyframe_note`` and ``drift_states``.
 
 Uncertainty
 -----------
