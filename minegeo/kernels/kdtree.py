@@ -24,7 +24,7 @@ from minegeo._validate import is_permutation
 from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, QUERY_TASK_ROWS, n_chunks
 
 __all__ = ["KD_LEAF", "kd_build", "kd_walk_to_leaf", "kd_nn_descend", "kd_nn2_descend", "kd_nn_rows", "kd_nn_serial",
-           "kd_nn_parallel", "kd_nn_warm_rows", "kd_nn_warm_serial", "kd_nn_warm_parallel", "warm_bound", "kd_knn_one",
+           "kd_nn_parallel", "kd_nn_warm_rows", "kd_nn_warm_serial", "kd_nn_warm_parallel", "warm_bound", "take_nearest2", "kd_knn_one",
            "kd_knn", "kd_radius_one", "kd_radius_count", "kd_boxes", "kd_knn_leaf_batch", "sq_to_row",
            "GatedKDTree"]
 
@@ -262,6 +262,20 @@ def kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, lef
     return best, best_j
 
 
+@njit(inline="always")
+def take_nearest2(sq, j, best, best_j, second):
+    """Offer point ``j`` at squared distance ``sq`` to a nearest-and-second search: ``(best, best_j)``
+    stays the lexicographically smallest ``(sq, index)``, ``second`` the smallest squared distance
+    of the other points offered; returns the updated ``(best, best_j, second)``."""
+    if sq < best or (sq == best and j < best_j):
+        if best < second:
+            second = best
+        return sq, j, second
+    if sq < second:
+        second = sq
+    return best, best_j, second
+
+
 @njit
 def kd_nn2_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, left, right, d2, st_node, st_lb):
     """:func:`kd_nn_descend` that also returns the second distance: ``(best, best_j, second)``.
@@ -285,15 +299,8 @@ def kd_nn2_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, le
             sq = sq_to_row(px, py, pz, Qs, a)
             if sq < d2:
                 j = idx[a]
-                if j == best_j:
-                    continue
-                if sq < best or (sq == best and j < best_j):
-                    if best < second:
-                        second = best
-                    best = sq
-                    best_j = j
-                elif sq < second:
-                    second = sq
+                if j != best_j:
+                    best, best_j, second = take_nearest2(sq, j, best, best_j, second)
     return best, best_j, second
 
 

@@ -35,6 +35,7 @@ from minegeo.kernels.kdtree import (
     kd_nn_warm_parallel,
     kd_nn_warm_serial,
     sq_to_row,
+    take_nearest2,
     warm_bound,
 )
 from minegeo.registration._kernels import (
@@ -560,13 +561,7 @@ def _list_nearest(px, py, pz, Q, nb, rk, j0, d2, tol):
                 jj = nb[j, a]
                 s = sq_to_row(px, py, pz, Q, jj)
                 if s < d2:
-                    if s < best or (s == best and jj < best_j):
-                        if best < second:
-                            second = best
-                        best = s
-                        best_j = jj
-                    elif s < second:
-                        second = s
+                    best, best_j, second = take_nearest2(s, jj, best, best_j, second)
             return best, best_j, min(np.sqrt(second), rk[j] - dj)
         # not certain here: walk to the listed point nearest to p
         sn = sj
