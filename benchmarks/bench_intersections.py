@@ -174,7 +174,8 @@ def run_slam_methods(frames, T0: np.ndarray, odometry, imu=None, methods=METHODS
     return out
 
 
-def run_track(frames, kb, T0: np.ndarray, use_map: bool, odometry, odo=None, imu=None) -> dict:
+def run_track(frames, kb, T0: np.ndarray, use_map: bool, odometry, odo=None, imu=None,
+              gate_drift: float | None = None) -> dict:
     """``minegeo.semantic.tracking.track`` from the true first pose (``TrackParams.T_world_start``), on the
     odometry already computed for (a) and (b) when its parameters are the tracker's (the same frames)."""
     from minegeo.semantic.recognition import RecognitionParams
@@ -182,7 +183,7 @@ def run_track(frames, kb, T0: np.ndarray, use_map: bool, odometry, odo=None, imu
 
     # the online detection uses the skeleton parameters the base was built with (narrow NIOSH drifts)
     params = TrackParams(recognition=RecognitionParams(skeleton=kb.params.skeleton), T_world_start=T0,
-                         odometry=odometry)
+                         odometry=odometry, **({} if gate_drift is None else {"gate_drift_fraction": gate_drift}))
     if odo is not None and odo.params != params.odometry:
         odo = None
     t0 = time.perf_counter()
@@ -430,6 +431,8 @@ def main() -> None:  # noqa: PLR0915
     g.add_argument("--no-imu", action="store_true", help="without the IMU, results labelled _noimu")
     ap.add_argument("--methods", default=None,
                     help="comma-separated subset of: " + ",".join(METHODS) + " (default all; the odometry always runs)")
+    ap.add_argument("--gate-drift", type=float, default=None,
+                    help="TrackParams.gate_drift_fraction of ours (map) (library default 0.25); results labelled _gateX")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     ap.add_argument("--img", type=Path, default=REPO / "docs" / "img")
     args = ap.parse_args()
@@ -491,7 +494,7 @@ def main() -> None:  # noqa: PLR0915
             continue
         _log(f"{m} ...")
         results[m] = run_track(frames, kb, T0, use_map, odometry, results.pop("_odometry", None) if not use_map
-                               else results.get("_odo_keep"), imu=imu)
+                               else results.get("_odo_keep"), imu=imu, gate_drift=args.gate_drift if use_map else None)
         if "time_s" in results[m]:
             results[m]["time_s"] += results.get("_odo_time", 0.0)
     for k in ("_odometry", "_odo_keep", "_odo_time"):
@@ -512,7 +515,8 @@ def main() -> None:  # noqa: PLR0915
             _log(f"{m}: {r['error']}")
     tag = "corridor" if args.corridor else args.network
     variant = (("" if args.roughness_m > 0 else "_flat") + ("" if args.odometry == "submap" else "_f2f")
-               + ("_imu" if args.imu else "_noimu" if args.no_imu else ""))
+               + ("_imu" if args.imu else "_noimu" if args.no_imu else "")
+               + ("" if args.gate_drift is None else f"_gate{args.gate_drift:g}"))
     suffix = f"{tag}{variant}{'_quick' if args.quick else ''}"
     date = time.strftime("%Y-%m-%d")
     args.out.mkdir(parents=True, exist_ok=True)
@@ -541,7 +545,7 @@ def main() -> None:  # noqa: PLR0915
     meta = {"date": date, "conditions": __doc__.split("\n\n")[1].replace("\n", " "), "seed": args.seed,
             "network": tag, "quick": args.quick, "roughness_m": args.roughness_m, "odometry": args.odometry,
             "floor_cell_m": args.floor_cell_m, "kb": kb_txt, "flight": _flight_meta(net, flight, truth, J, passes),
-            "target": target, "imu": imu_txt, "held": held, "git": _git(), "threads": args.threads, "wall_s": time.perf_counter() - wall0,
+            "target": target, "imu": imu_txt, "held": held, "gate_drift_fraction": args.gate_drift, "git": _git(), "threads": args.threads, "wall_s": time.perf_counter() - wall0,
             "machine": f"{os.cpu_count()} cores; uptime at the start: {uptime_start}; at the end: {_uptime()}",
             "cache": str(frames.folder)}
     clean = {m: {k: v for k, v in r.items() if k not in ("poses", "times_s", "recognitions", "traceback")}
