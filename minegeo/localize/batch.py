@@ -441,7 +441,8 @@ def worker_map(cache_dir, lp=None):
     Returns ``(prepared map, seconds to open it, seconds per search structure built)``; both
     are zero-ish once the map is open in this process.
     """
-    from minegeo.localize.prepared import CORE_ARRAYS, PreparedMap, _params_from_dict
+    from minegeo.localize.prepared import CORE_ARRAYS, PreparedMap
+    from minegeo.localize.prepared.model import _params_from_dict
 
     d = Path(cache_dir)
     t0 = time.perf_counter()
