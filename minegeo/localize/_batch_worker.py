@@ -29,7 +29,7 @@ def dask_setup(worker) -> None:  # noqa: ARG001 - distributed's preload hook sig
 
 def quiet_std_streams() -> None:
     """Point file descriptors 1 and 2 of this process at ``/dev/null`` (a worker as it starts; the driver
-    around its cluster's start, :func:`minegeo.localize.batch._std_to_devnull`, which keeps copies to restore)."""
+    around its cluster's start, :func:`minegeo.localize.batch_cluster._std_to_devnull`, which keeps copies to restore)."""
     fd = os.open(os.devnull, os.O_WRONLY)
     try:
         os.dup2(fd, 1)

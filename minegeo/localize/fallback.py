@@ -22,7 +22,8 @@ import numpy as np
 from minegeo.errors import MinegeoError
 from minegeo.io.types import PointCloud, Trajectory
 from minegeo.localize._progress import ProgressFn, announce
-from minegeo.localize.gravity import _rotate, estimate_up, levelling_rotation
+from minegeo.localize.gravity import estimate_up, levelling_rotation
+from minegeo.localize.gravity_result import _rotate
 from minegeo.localize.params import LocalizeParams
 from minegeo.localize.prepared import PreparedMap
 from minegeo.localize.result import LocalizationResult

@@ -457,7 +457,7 @@ def study_params(preset: str, options: dict | None):
     InputError
         Unknown preset or option, or an invalid value.
     """
-    from minegeo.synth.world import NEW_OPTION_DEFAULTS, PRESETS, _check_params
+    from minegeo.synth.world_params import NEW_OPTION_DEFAULTS, PRESETS, _check_params
 
     if preset not in PRESETS:
         raise InputError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")

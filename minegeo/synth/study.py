@@ -35,7 +35,8 @@ from minegeo.io.types import PointCloud, Trajectory
 from minegeo.synth.dataset import _frame_stride, _section_path, _to_scan_frame, build_survey_map
 from minegeo.synth.sensors import ZebRevo, simulate_scan
 from minegeo.synth.trajectory import make_trajectory
-from minegeo.synth.world import PRESETS, MineWorld, _assemble, _cast_arrays, _smooth_field, build_world
+from minegeo.synth.world import PRESETS, MineWorld, build_world
+from minegeo.synth.world_primitives import _assemble, _cast_arrays, _smooth_field
 
 __all__ = ["StudyScan", "StudyWorld", "make_study_world", "sample_wall_points", "measure_wall_roughness",
            "TWIN_TOL_M", "HEADING_MIN_S_M", "SCAN_LABELS"]

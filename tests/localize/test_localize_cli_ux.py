@@ -273,8 +273,12 @@ def test_library_reports_steps_and_prints_nothing(mine, capsys):
     import minegeo.localize._progress as PR
     import minegeo.localize.pipeline as PL
     import minegeo.localize.prepared as PM
+    import minegeo.localize.prepared.build as PMB
+    import minegeo.localize.prepared.indexes as PMI
+    import minegeo.localize.prepared.model as PMM
+    import minegeo.localize.prepared.store as PMS
 
-    for mod in (PL, PM, PR):
+    for mod in (PL, PM, PMB, PMI, PMM, PMS, PR):
         src = inspect.getsource(mod)
         assert not re.search(r"^\s*(import tqdm|from tqdm)", src, re.M), mod.__name__
         assert not re.search(r"^\s*print\(", src, re.M), mod.__name__

@@ -80,7 +80,7 @@ def _read(path):
 
 def _write(path, arrays, meta, forged):
     """A prepared-map file; ``forged``: with the integrity record recomputed for the new content."""
-    from minegeo.localize.prepared import _integrity_record
+    from minegeo.localize.prepared.store import _integrity_record
 
     meta = json.loads(json.dumps(meta))
     if forged:
@@ -203,7 +203,7 @@ def _damaged_file(case: dict, arrays: dict, meta: dict, path: Path) -> None:
 def _rehash(keys: np.ndarray, rows: np.ndarray, log2: int):
     """The block keys (and their rows) re-inserted into a table of ``2^log2`` slots by the kernels'
     hashing and linear probing (:func:`minegeo.localize._kernels.block_slot`)."""
-    from minegeo.localize.prepared import _hash_home
+    from minegeo.localize.prepared.indexes import _hash_home
 
     mask = (1 << log2) - 1
     table = np.full(1 << log2, -1, dtype=np.int64)
@@ -219,7 +219,7 @@ def _rehash(keys: np.ndarray, rows: np.ndarray, log2: int):
 
 def _structure_digests(pm, lp) -> dict:
     """SHA-256 per search structure that ``lp`` uses (after ``build_indexes``), and of the map."""
-    from minegeo.localize.prepared import CORE_ARRAYS, _array_digest
+    from minegeo.localize.prepared.store import CORE_ARRAYS, _array_digest
 
     cp = lp.correlative_params
     v = cp.screen_voxel_size_m

@@ -19,10 +19,9 @@ from minegeo.synth.study import TWIN_TOL_M, make_study_world, measure_wall_rough
 from minegeo.synth.world import (
     HELIX_ACCESS_M,
     NEW_OPTION_DEFAULTS,
-    _assemble,
-    _smooth_field,
     roughness_amplitudes,
 )
+from minegeo.synth.world_primitives import _assemble, _smooth_field
 
 SPACING = 25.0
 BASE = replace(PRESETS["small"], level_spacing_m=SPACING)

@@ -1,0 +1,378 @@
+"""Settings of the localization's optional stages: the correlative search, the rival check, the up estimate, the uncertainty.
+
+These dataclasses are fields of :class:`~minegeo.localize.params.LocalizeParams` and are importable
+from :mod:`minegeo.localize.params`.
+
+Units: lengths in metres (``_m``), angles in degrees (``_deg``) unless named ``_rad``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from minegeo._validate import check_positive
+from minegeo.errors import InputError
+
+
+# ----------------------------------------------------------------------------- whole-map searches
+@dataclass(frozen=True)
+class CorrelativeParams:
+    """Settings of the correlative 4-DOF search (see the module docstring).
+
+    Attributes
+    ----------
+    cell_size_m : float
+        Occupancy cell edge ``c`` (m).
+    dilation_cells : int
+        Occupied cells are dilated by this many cells (tolerance of a hit ~ ``c (1 + d)``).
+    yaw_step_deg : float
+        Heading grid step (deg); its half times the scan's half-length must stay within the
+        hit tolerance (1.5 deg at 15 m: 0.39 m).
+    max_scan_points : int
+        Size of the scan sample scored per placement.
+    early_miss_slack : float
+        A placement is abandoned as soon as more than ``(1 - min_hit_fraction) i + slack`` of
+        its first ``i`` sample points missed.
+    max_refine_points : int
+        Scan points (within ``sample_radius_m``) used by the local refinement and its score.
+    sample_radius_m : float
+        The sample is drawn from scan points within this horizontal distance of the reference
+        point (a long-range sensor sees 100 m along a straight drift: far points would turn a
+        half heading step into metres).
+    n_coarse : int
+        Grid placements passed to the local refinement: the best-ranked one of each
+        (``distinct_m`` cell of the scan centre, ``distinct_deg`` heading bin), best first.
+    screen_points : int
+        Refinement cascade, first stage: every one of the ``n_coarse`` placements gets three
+        Gauss-Newton steps (gates 1.5, 1.0, 0.7 m) on this many scan points and is scored.
+    screen_voxel_size_m : float or None
+        The first stage searches the map's ICP cloud thinned to one point per voxel of this
+        edge (centroid and mean normal, :meth:`minegeo.localize.PreparedMap.screen_target`);
+        None: the full ICP cloud.
+    screen_grid : bool
+        The first stage's Gauss-Newton steps take each sample point's map neighbour from a
+        lookup grid of cells of edge ``screen_voxel_size_m`` that stores the thinned point
+        nearest to every cell's centre (:func:`_kernels.build_nearest_grid`, :func:`_kernels.steps_4dof_grid`, reaching
+        ``SCREEN_GATES_M[0]``), instead of a KD-tree search: an approximation within about a
+        cell, its steps ~5 times faster (the stage ~2 times: its score, which ranks the
+        placements, still uses the exact nearest neighbours). Needs ``screen_voxel_size_m``.
+    n_refine : int
+        Second stage: the best ``n_refine`` of them get ``refine_iterations`` more steps
+        (gates 1.0 m → 0.5 m, linearly) on ``max_refine_points`` points and the final score.
+    refine_iterations : int
+        Gauss-Newton iterations of the second stage.
+    refine_tolerance_m : float
+        After refinement, a placement's score is the fraction of the refinement points within
+        this distance of the map's tangent planes (and 0.5 m of a map point).
+    min_hit_fraction : float
+        Placements hitting fewer than this fraction of the sample are discarded (and their
+        count is abandoned early).
+    anchor_max_tilt_deg : float
+        A map point is an anchor (floor) when its normal is within this angle of +z; the same
+        test picks the scan's floor points.
+    n_candidates : int
+        Distinct placements returned.
+    distinct_m, distinct_deg : float
+        Two placements are distinct when the scan centre moves more than ``distinct_m`` or
+        the heading differs by more than ``distinct_deg``.
+    """
+
+    cell_size_m: float = 0.5
+    dilation_cells: int = 1
+    yaw_step_deg: float = 3.0
+    max_scan_points: int = 96
+    early_miss_slack: float = 4.0
+    max_refine_points: int = 200
+    min_hit_fraction: float = 0.6
+    anchor_max_tilt_deg: float = 25.0
+    sample_radius_m: float = 15.0
+    n_coarse: int = 8000
+    screen_points: int = 64
+    screen_voxel_size_m: float | None = 0.5
+    screen_grid: bool = True
+    n_refine: int = 300
+    refine_iterations: int = 4
+    refine_tolerance_m: float = 0.2
+    n_candidates: int = 24
+    distinct_m: float = 1.5
+    distinct_deg: float = 10.0
+
+    def __post_init__(self):
+        check_positive(self.cell_size_m, "CorrelativeParams.cell_size_m")
+        check_positive(self.yaw_step_deg, "CorrelativeParams.yaw_step_deg")
+        check_positive(self.distinct_m, "CorrelativeParams.distinct_m")
+        check_positive(self.distinct_deg, "CorrelativeParams.distinct_deg")
+        check_positive(self.sample_radius_m, "CorrelativeParams.sample_radius_m")
+        check_positive(self.early_miss_slack, "CorrelativeParams.early_miss_slack")
+        check_positive(self.refine_tolerance_m, "CorrelativeParams.refine_tolerance_m")
+        if self.screen_voxel_size_m is not None:
+            check_positive(self.screen_voxel_size_m, "CorrelativeParams.screen_voxel_size_m")
+        if not isinstance(self.screen_grid, (bool, np.bool_)):
+            raise InputError(f"CorrelativeParams.screen_grid must be True or False, got {self.screen_grid!r}")
+        for name in ("dilation_cells", "max_scan_points", "n_candidates", "n_coarse", "refine_iterations", "screen_points", "n_refine",
+                     "max_refine_points"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or int(v) != v or v < (0 if name == "dilation_cells" else 1):
+                raise InputError(f"CorrelativeParams.{name} must be a positive integer, got {v!r}")
+        if not 0.0 < float(self.min_hit_fraction) <= 1.0:
+            raise InputError(f"CorrelativeParams.min_hit_fraction must be in (0, 1], got {self.min_hit_fraction!r}")
+        if not 0.0 < float(self.anchor_max_tilt_deg) < 90.0:
+            raise InputError("CorrelativeParams.anchor_max_tilt_deg must be in (0, 90) deg")
+
+
+@dataclass(frozen=True)
+class RivalParams:
+    """Settings of :func:`search_rivals` (module docstring).
+
+    Attributes
+    ----------
+    search : CorrelativeParams
+        Grid and cascade of the whole-map search (default: the correlative search's own, 0.5 m
+        cells, 3° headings, 8000 bins screened, 300 refined, 24 candidates; the map structures
+        are shared with it when the cell settings agree).
+    precheck_ratio : float
+        A rival gets the full-resolution ICP when its plane fitness before ICP (feature-level
+        scan, at the search's refined placement) reaches this fraction of the chosen placement's
+        (at its converged pose; the pipeline's own measurement: every rival reaching 0.9 after ICP
+        had a pre-check ratio >= 0.84) ...
+    precheck_matched_ratio : float
+        ... or its support-matched ratio there reaches this (with ``min_common_fraction``).
+    max_fine_icp : int
+        Most rivals given the full-resolution ICP (closest to a test first); more is recorded
+        (``n_fine_cut``) and makes ``covered`` false.
+    cover_slack : float
+        Witness coverage: at each stage every placement within this fraction of the stage's
+        largest score below the chosen placement's own is kept ...
+    cover_max_factor : float
+        ... up to this factor times the stage's usual size (``n_coarse``, ``n_refine``,
+        ``n_candidates``).
+    translation_pivots : int
+        Further pivots for translated copies (module docstring).
+    translation_headings : int
+        Their headings: the chosen one ± this many grid steps.
+    matched_ratio : float
+        Support-matched ambiguity test (module docstring): ratio of the plane agreement on the
+        points the map covers at both placements.
+    min_common_fraction : float
+        ... applied when at least this fraction of the scan points is covered at both.
+    """
+
+    search: CorrelativeParams = field(default_factory=CorrelativeParams)
+    precheck_ratio: float = 0.8
+    precheck_matched_ratio: float = 0.9
+    max_fine_icp: int = 8
+    cover_slack: float = 0.15
+    cover_max_factor: float = 4.0
+    translation_pivots: int = 4
+    translation_headings: int = 1
+    matched_ratio: float = 0.95
+    min_common_fraction: float = 0.5
+
+    def __post_init__(self):
+        if not isinstance(self.search, CorrelativeParams):
+            raise InputError("RivalParams.search must be a CorrelativeParams")
+        for name in ("precheck_ratio", "precheck_matched_ratio", "cover_slack", "matched_ratio",
+                     "min_common_fraction"):
+            v = float(getattr(self, name))
+            if not 0.0 <= v <= 1.0:
+                raise InputError(f"RivalParams.{name} must be in [0, 1], got {v!r}")
+        if not (math.isfinite(float(self.cover_max_factor)) and float(self.cover_max_factor) >= 1.0):
+            raise InputError(f"RivalParams.cover_max_factor must be >= 1, got {self.cover_max_factor!r}")
+        for name in ("max_fine_icp", "translation_pivots", "translation_headings"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or int(v) != v or v < (1 if name == "max_fine_icp" else 0):
+                raise InputError(f"RivalParams.{name} must be a non-negative integer, got {v!r}")
+        check_positive(self.search.distinct_m, "RivalParams.search.distinct_m")
+
+
+# ----------------------------------------------------------------------------- gravity
+@dataclass(frozen=True)
+class GravityParams:
+    """Settings of :func:`estimate_up` (lengths in m, angles in degrees).
+
+    Attributes
+    ----------
+    max_points : int
+        Size of the area-uniform sample the estimate uses (all points when fewer).
+    min_points : int
+        Fewer input points raise :class:`~minegeo.errors.TooFewPointsError`.
+    density_radius_m : float
+        Radius of the neighbour count that sets each point's area weight.
+    normal_radius_m, normal_max_nn : float, int
+        PCA normals (hybrid search) when ``normals`` are not given.
+    n_directions : int
+        Axes of the normal-density grid (Fibonacci half-sphere; 2000 is ~3.2 deg apart).
+    plane_band_m : float
+        Slab thickness of the floor plane's support (``evidence.floor_fraction``).
+    min_drift_height_m : float
+        A column counts in the floor signature only when it spans at least this (a drift's height
+        or width is more).
+    floor_residual_scale_m : float
+        Largest Tukey scale of the floor's height residuals.
+    floor_max_tilt_deg : float
+        Tukey scale of a floor surfel's normal tilt from up.
+    wall_max_tilt_deg : float
+        Largest Tukey scale of a wall surfel's normal tilt from horizontal.
+    wall_min_height_m : float
+        Wall surfels must be at least this far above the floor plane's support.
+    min_wall_spread : float
+        The walls fix ``delta_along`` only when the smallest / largest eigenvalue of their
+        2x2 normal matrix reaches this (0.1: azimuths spread by ~+-20 deg, a curve or a junction).
+    max_slope_deg : float
+        Largest floor slope (ramp) the residual-tilt range must cover.
+    n_blocks : int
+        Jackknife blocks along the drift (>= 4).
+    min_floor_fraction : float
+        The floor slab must hold at least this fraction of the scan's area.
+    min_floor_score : float
+        Smallest floor signature (:func:`_column_score`) of a floor; below it: no floor.
+    mode_radius_deg : float
+        Cone radius of the normal-density modes (floor and wall directions) tried as up.
+    min_mode_ratio : float
+        A normal mode is an up candidate only when its own area (normals within
+        ``mode_radius_deg``) is at least this fraction of the largest mode's.
+    min_perp_ratio : float
+        A normal mode is an up candidate only when the area of surfels perpendicular to it
+        (within ``mode_radius_deg``) is at least this fraction of the largest such area among
+        the modes: floors and walls qualify, directions through the roof's flanks do not.
+    column_cell_m : float
+        Column size of the floor signature.
+    floor_flat_deg, roof_flank_max_deg : float
+        A surfel is flat within ``floor_flat_deg`` of the candidate up, inclined up to
+        ``roof_flank_max_deg`` (the roof's flanks).
+    min_void_fraction : float
+        At least this fraction must lie on the void side of the floor (else: a lone plane).
+    ambiguity_ratio : float
+        A distinct rival floor whose score reaches this fraction of the best makes the result
+        ``ambiguous``.
+    min_rival_angle_deg : float
+        Rival floors closer than this to the chosen up are the same hypothesis.
+    n_rivals : int
+        Normal modes refined and tried as up candidates.
+    seed : int
+        Seed of the area-uniform sample (used only when the cloud has more than
+        ``max_points`` points).
+    """
+
+    max_points: int = 20000
+    min_points: int = 200
+    density_radius_m: float = 0.5
+    normal_radius_m: float = 0.5
+    normal_max_nn: int = 64
+    n_directions: int = 2000
+    plane_band_m: float = 0.3
+    min_drift_height_m: float = 2.0
+    floor_residual_scale_m: float = 0.6
+    floor_max_tilt_deg: float = 45.0
+    wall_max_tilt_deg: float = 25.0
+    wall_min_height_m: float = 0.4
+    min_wall_spread: float = 0.1
+    max_slope_deg: float = 15.0
+    n_blocks: int = 8
+    min_floor_fraction: float = 0.04
+    min_floor_score: float = 0.04
+    mode_radius_deg: float = 15.0
+    min_mode_ratio: float = 0.5
+    min_perp_ratio: float = 0.5
+    column_cell_m: float = 1.0
+    floor_flat_deg: float = 25.0
+    roof_flank_max_deg: float = 70.0
+    min_void_fraction: float = 0.15
+    ambiguity_ratio: float = 0.8
+    min_rival_angle_deg: float = 30.0
+    n_rivals: int = 8
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("max_points", "min_points", "normal_max_nn", "n_directions", "n_blocks", "n_rivals", "seed"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+                raise InputError(f"GravityParams.{name} must be an integer >= 0, got {v!r}")
+        if self.min_points < 3 or self.max_points < max(self.min_points, 3):
+            raise InputError("GravityParams: need 3 <= min_points <= max_points")
+        if self.n_blocks < 4:
+            raise InputError(f"GravityParams.n_blocks must be >= 4, got {self.n_blocks}")
+        if self.n_directions < 100:
+            raise InputError(f"GravityParams.n_directions must be >= 100, got {self.n_directions}")
+        for name in ("density_radius_m", "normal_radius_m", "plane_band_m", "min_drift_height_m",
+                     "floor_residual_scale_m", "wall_min_height_m", "column_cell_m"):
+            check_positive(getattr(self, name), f"GravityParams.{name}")
+        for name in ("floor_max_tilt_deg", "wall_max_tilt_deg", "max_slope_deg", "min_rival_angle_deg",
+                     "floor_flat_deg", "roof_flank_max_deg", "mode_radius_deg"):
+            v = float(getattr(self, name))
+            if not 0.0 < v < 90.0:
+                raise InputError(f"GravityParams.{name} must be in (0, 90) degrees, got {v}")
+        for name in ("min_wall_spread", "min_floor_fraction", "min_void_fraction", "ambiguity_ratio",
+                     "min_floor_score", "min_perp_ratio", "min_mode_ratio"):
+            v = float(getattr(self, name))
+            if not 0.0 <= v <= 1.0:
+                raise InputError(f"GravityParams.{name} must be in [0, 1], got {v}")
+
+
+# ----------------------------------------------------------------------------- pose uncertainty
+#: Available estimators.
+UNCERTAINTY_METHODS = ("formal", "cluster", "jackknife")
+#: of the two-way calibration study (docs/uncertainty.md).
+REGISTRATION_SIGMA_M = 8e-4
+
+
+@dataclass(frozen=True)
+class UncertaintyParams:
+    """Parameters of :func:`pose_uncertainty`.
+
+    Attributes
+    ----------
+    method : {"formal", "cluster", "jackknife"}
+        ``formal``: ``σ² H⁻¹`` (independent residuals). ``cluster``: the CR1 cluster-robust
+        sandwich over spatial blocks. ``jackknife`` (default): the delete-one-block jackknife
+        (CR3). The last two are never below the formal one (module docstring).
+    cluster_size_m : float
+        Edge of the spatial blocks, m (default 4 m, about one drift width: chosen by the
+        calibration study in docs/uncertainty.md; the residuals of the synthetic mine stay
+        correlated over several metres of wall, and 2 m blocks under-covered).
+    min_clusters : int
+        Fewest blocks accepted; the edge is halved (at most 8 times) until reached.
+    map_sigma_m : float
+        Prior 1-σ local position error of the map itself, per axis, m, added to the translation
+        block as ``σ_map² I₃`` (model term ``map_floor``; default 0: the map is taken as the
+        reference).
+    registration_sigma_m : float
+        1-σ per axis (m) of the systematic scan-to-map registration error that the residuals do
+        not reveal, added to the translation block as ``σ_reg² I₃`` (model term
+        ``registration_floor``; default 0.8 mm, calibrated on the synthetic study,
+        docs/uncertainty.md). 0 gives the data-only estimator (plus the other model terms).
+    add_pending_step : bool
+        Add ``s sᵀ`` (the remaining Gauss-Newton step to the point-to-plane optimum).
+    degeneracy_ratio : float
+        The covariance is not reported (None, radii inf, ``degenerate`` True) when the
+        normalised constraint matrix (:func:`minegeo.registration.icp.constraint_analysis`) has
+        ``λ_min / λ_max`` below this: a direction the surfaces do not constrain (sliding along a
+        straight featureless drift, in-plane motion on one plane) gets no honest small number.
+        Default 0.01, the pipeline's ``LocalizeParams.degeneracy_ratio``.
+    """
+
+    method: str = "jackknife"
+    cluster_size_m: float = 4.0
+    min_clusters: int = 12
+    map_sigma_m: float = 0.0
+    registration_sigma_m: float = REGISTRATION_SIGMA_M
+    add_pending_step: bool = True
+    degeneracy_ratio: float = 1e-2
+
+    def __post_init__(self):
+        if self.method not in UNCERTAINTY_METHODS:
+            raise InputError(f"uncertainty method must be one of {UNCERTAINTY_METHODS}, got {self.method!r}")
+        check_positive(self.cluster_size_m, "cluster_size_m")
+        check_positive(self.map_sigma_m, "map_sigma_m", allow_zero=True)
+        check_positive(self.registration_sigma_m, "registration_sigma_m", allow_zero=True)
+        v = self.min_clusters
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
+            raise InputError(f"min_clusters must be an integer >= 2, got {v!r}")
+        r = float(self.degeneracy_ratio)
+        if not (np.isfinite(r) and 0.0 <= r < 1.0):
+            raise InputError(f"degeneracy_ratio must be in [0, 1), got {self.degeneracy_ratio!r}")
+        if not isinstance(self.add_pending_step, (bool, np.bool_)):
+            raise InputError(f"add_pending_step must be True or False, got {self.add_pending_step!r}")

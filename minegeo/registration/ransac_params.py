@@ -1,0 +1,322 @@
+"""Settings and result of feature-based RANSAC registration (:class:`RansacParams`, :class:`RansacResult`) and the iteration count it needs.
+
+Defaults follow Baek et al. 2022, Table 3; see :mod:`minegeo.registration.ransac` for the method.
+Lengths in metres, angles in radians unless named ``_deg``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from minegeo._validate import check_positive
+from minegeo.errors import InputError
+
+_MODES = ("minegeo", "open3d")
+_EDGE_PAIRS = ("all", "polygon")
+
+
+@dataclass(frozen=True)
+class RansacParams:
+    """Parameters of :func:`register_ransac` (defaults: Baek et al. 2022, Table 3).
+
+    Parameters
+    ----------
+    distance_threshold_m : float
+        epsilon_distance (m): a source point transformed by a hypothesis is an
+        inlier if its nearest target point is strictly closer than this; the
+        same value is used for the distance check on the sample (Table 3: 2.5 m
+        at a 0.5 m voxel; Open3D's tutorial uses 1.5 voxels).
+    ransac_n : int
+        Correspondences per sample, n in [Baek2022 Eq. 8] (Table 3: 4; Open3D default 3).
+    edge_length_similarity : float
+        Edge-length test of [Baek2022 Eq. 7]: an edge pair passes when
+        ``min(d_p, d_q) >= s * max(d_p, d_q)``, i.e. ``eta <= 1 - s`` (Table 3: 0.9).
+    edge_pairs : {"all", "polygon"}
+        Edges compared: the closed polygon 1-2, 2-3, ..., n-1 ([Baek2022 Eq. 7]) or all
+        pairs (Open3D). Identical for n = 3; "all" prunes more for n >= 4 and
+        never rejects an exact sample, so it is the default.
+    normal_angle_threshold_rad : float or None
+        Optional normal check: reject a sample if ``n_q . (R n_p) < cos(angle)``
+        for any pair (signed, as Open3D; needs consistently oriented normals).
+    max_iterations : int
+        Hard maximum of hypotheses drawn, N_max (Table 3: 4.0e8). With ``ransac_n=4`` and a
+        low putative inlier ratio w, [Baek2022 Eq. 8] asks for ~log(1000)/w^4 draws (millions; about
+        a microsecond each): use ``ransac_n=3`` or ``mutual_filter=True`` when speed matters.
+    max_validations : int or None
+        Stop after this many hypotheses passed the checks and were scored
+        (Table 3: 500, Open3D <= 0.11's "max_validation"); None disables.
+    confidence : float
+        p of [Baek2022 Eq. 8] (not given in the paper; Open3D's default 0.999).
+    mutual_filter : bool
+        Keep only mutual descriptor nearest neighbours (Open3D rule, 10 % fallback).
+    mode : {"minegeo", "open3d"}
+        "minegeo": samples that repeat a correspondence or are collinear are
+        rejected (they count as iterations), final least-squares refit on the
+        inliers (``refit_iterations``).
+        "open3d": samples drawn with replacement, no refit (the minimal-sample
+        estimate is returned), as Open3D 0.20.
+    refit_iterations : int
+        Least-squares refits ([Baek2022 Eqs. 10-13] on all inliers) of the best and of the
+        runner-up hypothesis; a refit is kept only if it scores better.
+    batch_size : int
+        Hypotheses drawn and scored per parallel batch. The result does not
+        depend on the thread count; it does depend on ``batch_size`` through the
+        order of random draws, so it is part of the recorded parameters.
+    distinct_distance_m : float or None
+        Two hypotheses are *distinct* if they place the source centroid more than
+        this far apart (default ``2 * distance_threshold_m``) ...
+    distinct_angle_deg : float
+        ... or their rotations differ by more than this angle (deg).
+    max_tilt_deg : float or None
+        Levelled-frames prior (minegeo addition, not in the paper): when source and target
+        frames both have z up (an IMU-levelled scan, a georeferenced map), reject every
+        hypothesis whose rotation moves the vertical by more than this angle,
+        ``arccos(e_z . R e_z) = arccos(R_33) > max_tilt_deg``. Such hypotheses count as
+        iterations but are never scored. None (default) disables the check.
+    min_iterations : int
+        Floor of [Baek2022 Eq. 8]'s stopping rule (minegeo addition): the search never stops on [Baek2022 Eq. 8]
+        before this many draws. [Baek2022 Eq. 8] takes ``w`` from the current best hypothesis; in a
+        mine drift a *wrong* placement often explains a few percent of the putative pairs,
+        which makes [Baek2022 Eq. 8] stop after ~10^4-10^5 draws, long before the right one (also at
+        w of a few percent, ~10^6 draws for n = 3) is drawn. ``min_iterations =
+        log(1 - p) / log(1 - w_min^n)`` encodes the smallest inlier ratio ``w_min`` the
+        search must be able to find. 0 (default) = [Baek2022 Eq. 8] alone.
+    model : {"rigid", "levelled"}
+        "rigid" (default, the paper): 6-DOF hypotheses by SVD, ``ransac_n >= 3``.
+        "levelled" (minegeo addition): both frames have z up (IMU-levelled scan,
+        georeferenced map), so each hypothesis is a yaw + translation (4 DOF, closed-form
+        2-D Procrustes, :func:`~minegeo.registration._kernels_ransac_levelled.yaw_fit`) and
+        ``ransac_n = 2`` suffices: [Baek2022 Eq. 8] then needs ``~1/w²`` instead of ``~1/w³`` draws,
+        which at the 0.3-2 % FPFH inlier ratios of a large mine map is the difference
+        between 10⁴-10⁵ and 10⁵-10⁷ draws. Samples whose source points are less than
+        ~1 m apart horizontally (spread < 0.5 m²) are degenerate. The normal check is not
+        available with this model. Hypotheses are exactly level; ICP then refines all six
+        degrees of freedom.
+    n_hypotheses : int
+        Distinct hypotheses returned in :attr:`RansacResult.alternatives` (best first;
+        greedy by inlier count, then SSE, each distinct from all earlier ones). 2 (default)
+        = best + runner-up; larger values switch off the runner-up bound pruning so every
+        scored hypothesis keeps its full count.
+    """
+
+    distance_threshold_m: float = 2.5
+    ransac_n: int = 4
+    edge_length_similarity: float = 0.9
+    edge_pairs: str = "all"
+    normal_angle_threshold_rad: float | None = None
+    max_iterations: int = 400_000_000
+    max_validations: int | None = 500
+    confidence: float = 0.999
+    mutual_filter: bool = False
+    mode: str = "minegeo"
+    refit_iterations: int = 3
+    batch_size: int = 4096
+    distinct_distance_m: float | None = None
+    distinct_angle_deg: float = 10.0
+    max_tilt_deg: float | None = None
+    min_iterations: int = 0
+    n_hypotheses: int = 2
+    model: str = "rigid"
+
+    def __post_init__(self):
+        if self.max_tilt_deg is not None and not 0.0 < float(self.max_tilt_deg) <= 180.0:
+            raise InputError(f"RansacParams.max_tilt_deg must be in (0, 180] degrees or None, got {self.max_tilt_deg!r}")
+        if isinstance(self.min_iterations, bool) or int(self.min_iterations) != self.min_iterations \
+                or self.min_iterations < 0:
+            raise InputError(f"RansacParams.min_iterations must be an integer >= 0, got {self.min_iterations!r}")
+        if isinstance(self.n_hypotheses, bool) or int(self.n_hypotheses) != self.n_hypotheses or self.n_hypotheses < 2:
+            raise InputError(f"RansacParams.n_hypotheses must be an integer >= 2, got {self.n_hypotheses!r}")
+        check_positive(self.distance_threshold_m, "RansacParams.distance_threshold_m")
+        if self.model not in ("rigid", "levelled"):
+            raise InputError(f"RansacParams.model must be 'rigid' or 'levelled', got {self.model!r}")
+        n_min = 2 if self.model == "levelled" else 3
+        if int(self.ransac_n) != self.ransac_n or self.ransac_n < n_min:
+            raise InputError(f"RansacParams.ransac_n must be an integer >= {n_min} for the {self.model} model, "
+                             f"got {self.ransac_n!r}")
+        if self.model == "levelled" and self.normal_angle_threshold_rad is not None:
+            raise InputError("RansacParams: the normal-angle check is not available with model='levelled'")
+        if not 0.0 <= float(self.edge_length_similarity) <= 1.0:
+            raise InputError(
+                f"RansacParams.edge_length_similarity must be in [0, 1], got {self.edge_length_similarity!r}"
+            )
+        if self.edge_pairs not in _EDGE_PAIRS:
+            raise InputError(f"RansacParams.edge_pairs must be one of {_EDGE_PAIRS}, got {self.edge_pairs!r}")
+        if self.normal_angle_threshold_rad is not None and not (
+            0.0 <= float(self.normal_angle_threshold_rad) <= math.pi
+        ):
+            raise InputError(
+                "RansacParams.normal_angle_threshold_rad must be in [0, pi] (radians) or None, "
+                f"got {self.normal_angle_threshold_rad!r}"
+            )
+        if int(self.max_iterations) != self.max_iterations or self.max_iterations < 1:
+            raise InputError(f"RansacParams.max_iterations must be an integer >= 1, got {self.max_iterations!r}")
+        if self.max_validations is not None and (
+            int(self.max_validations) != self.max_validations or self.max_validations < 1
+        ):
+            raise InputError(
+                f"RansacParams.max_validations must be an integer >= 1 or None, got {self.max_validations!r}"
+            )
+        if not 0.0 <= float(self.confidence) <= 1.0:
+            raise InputError(f"RansacParams.confidence must be in [0, 1], got {self.confidence!r}")
+        if self.mode not in _MODES:
+            raise InputError(f"RansacParams.mode must be one of {_MODES}, got {self.mode!r}")
+        if int(self.refit_iterations) != self.refit_iterations or self.refit_iterations < 0:
+            raise InputError(f"RansacParams.refit_iterations must be an integer >= 0, got {self.refit_iterations!r}")
+        if int(self.batch_size) != self.batch_size or self.batch_size < 1:
+            raise InputError(f"RansacParams.batch_size must be an integer >= 1, got {self.batch_size!r}")
+        if self.distinct_distance_m is not None:
+            check_positive(self.distinct_distance_m, "RansacParams.distinct_distance_m")
+        check_positive(self.distinct_angle_deg, "RansacParams.distinct_angle_deg")
+
+    @classmethod
+    def open3d_compatible(
+        cls,
+        distance_threshold_m: float,
+        ransac_n: int = 3,
+        max_iterations: int = 100_000,
+        confidence: float = 0.999,
+        mutual_filter: bool = False,
+        **kwargs,
+    ) -> RansacParams:
+        """Settings equivalent to Open3D's tutorial call (EdgeLength(0.9) + Distance(d) checkers)."""
+        return cls(
+            distance_threshold_m=distance_threshold_m,
+            ransac_n=ransac_n,
+            edge_length_similarity=kwargs.pop("edge_length_similarity", 0.9),
+            edge_pairs="all",
+            max_iterations=max_iterations,
+            max_validations=None,
+            confidence=confidence,
+            mutual_filter=mutual_filter,
+            mode="open3d",
+            refit_iterations=0,
+            **kwargs,
+        )
+
+    @property
+    def distinct_distance(self) -> float:
+        """Distinctness distance in metres (``distinct_distance_m`` or ``2 * distance_threshold_m``)."""
+        return float(self.distinct_distance_m if self.distinct_distance_m is not None else 2 * self.distance_threshold_m)
+
+
+@dataclass(frozen=True)
+class RansacResult:
+    """Outcome of :func:`register_ransac`.
+
+    Attributes
+    ----------
+    T_target_source : ndarray (4, 4)
+        Best rigid transform, ``p_target = R p_source + t`` ([Baek2022 Eq. 9]). Identity if
+        no hypothesis passed the checks (``status == "failed"``).
+    fitness : float
+        Inliers / source points (Open3D's fitness).
+    inlier_rmse_m : float
+        [Baek2022 Eq. 19] over the inlier pairs (m); 0 when there are none.
+    n_inliers : int
+        Source points with a target point strictly within ``distance_threshold_m``.
+    iterations : int
+        Hypotheses drawn (including those rejected by the checks).
+    n_validations : int
+        Hypotheses that passed the checks and were scored.
+    converged : bool
+        True if stopping came from [Baek2022 Eq. 8] (requested confidence reached).
+    status : str
+        ``"converged"``, ``"max_iterations"``, ``"max_validations"`` or ``"failed"``.
+    reason : str
+        Human-readable explanation of ``status``.
+    second_best_fitness, second_best_rmse_m : float
+        Score of the runner-up: the best hypothesis *distinct* from the best
+        (see :class:`RansacParams` ``distinct_*``), refitted like the best; NaN if
+        none was scored.
+    second_best_n_inliers : int
+        Its inlier count (-1 if none).
+    second_best_distance_m : float
+        Distance between where the best and the runner-up place the source
+        centroid (m); NaN if none.
+    second_best_rotation_deg : float
+        Rotation angle between the two hypotheses (deg); NaN if none.
+    second_best_T_target_source : ndarray (4, 4) or None
+        The runner-up transform.
+    ambiguity_ratio : float
+        ``second_best_n_inliers / n_inliers`` (0 if no runner-up); close to 1
+        means another, distinct placement explains the data almost as well
+        (e.g. a symmetric corridor) and the result should be flagged.
+    correspondences : ndarray (k, 2)
+        Putative (source, target) descriptor matches the samples were drawn from.
+    inlier_pairs : ndarray (n_inliers, 2)
+        (source, target) nearest-neighbour pairs of the final transform.
+    mutual_applied : bool
+        Whether the mutual filter was applied to ``correspondences``.
+    params : RansacParams
+    seed : int or None
+    timings_s : dict
+        Seconds per stage (``correspondences``, ``grid``, ``hypotheses``, ``refit``, ``total``).
+    alternatives : tuple of (T (4, 4), fitness, inlier_rmse_m)
+        Up to ``params.n_hypotheses`` mutually distinct hypotheses, best first (the first is
+        the best hypothesis, refitted); each refitted like the best.
+    n_tilt_rejected : int
+        Hypotheses rejected by the ``max_tilt_deg`` check.
+    """
+
+    T_target_source: np.ndarray
+    fitness: float
+    inlier_rmse_m: float
+    n_inliers: int
+    iterations: int
+    n_validations: int
+    converged: bool
+    status: str
+    reason: str
+    second_best_fitness: float
+    second_best_rmse_m: float
+    second_best_n_inliers: int
+    second_best_distance_m: float
+    second_best_rotation_deg: float
+    second_best_T_target_source: np.ndarray | None
+    ambiguity_ratio: float
+    correspondences: np.ndarray
+    inlier_pairs: np.ndarray
+    mutual_applied: bool
+    params: RansacParams
+    seed: int | None
+    timings_s: dict = field(default_factory=dict)
+    alternatives: tuple = ()
+    n_tilt_rejected: int = 0
+
+    @property
+    def second_best_score(self) -> float:
+        """Score of the runner-up in the units of ``fitness`` (same as ``second_best_fitness``)."""
+        return self.second_best_fitness
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def required_iterations(w: float, n: int, confidence: float) -> float:
+    """[Baek2022 Eq. 8]: ``N = log(1 - p) / log(1 - w^n)`` (may be inf; NaN-free).
+
+    Parameters
+    ----------
+    w : float
+        Inlier fraction of the putative correspondences under the current best.
+    n : int
+        Sample size.
+    confidence : float
+        Desired success probability p.
+
+    Returns
+    -------
+    float
+        ``inf`` when ``w = 0`` or ``p = 1`` (never stop early), 0 when ``w = 1``.
+    """
+    wn = float(w) ** int(n)
+    if wn <= 0.0 or confidence >= 1.0:
+        return math.inf
+    if wn >= 1.0:
+        return 0.0
+    if confidence <= 0.0:
+        return 0.0
+    return math.log(1.0 - confidence) / math.log(1.0 - wn)
