@@ -29,6 +29,19 @@ def _slot(key, keys, bits):
         h = (h + 1) & mask
 
 
+@njit(inline="always")
+def _claim(key, keys, bits, n_used, max_used):
+    """``(slot of key, n_used)``: its slot, claimed (``n_used + 1``) when the key is new; ``-1`` when it
+    is new and ``n_used`` has reached ``max_used`` (the caller grows the table)."""
+    h = _slot(key, keys, bits)
+    if keys[h] == -1:
+        if n_used >= max_used:
+            return -1, n_used
+        keys[h] = key
+        n_used += 1
+    return h, n_used
+
+
 @njit
 def voxel_accumulate(points, origin, voxel, d1, d2, keys, bits, sums, counts, n_used, max_used):
     """Add the points, in order, to their voxels' sums and counts.
@@ -47,12 +60,9 @@ def voxel_accumulate(points, origin, voxel, d1, d2, keys, bits, sums, counts, n_
         ky = np.int64(np.floor((points[i, 1] - origin[1]) / voxel))
         kz = np.int64(np.floor((points[i, 2] - origin[2]) / voxel))
         key = (kx * d1 + ky) * d2 + kz
-        h = _slot(key, keys, bits)
-        if keys[h] == -1:
-            if n_used >= max_used:
-                return n_used, i
-            keys[h] = key
-            n_used += 1
+        h, n_used = _claim(key, keys, bits, n_used, max_used)
+        if h < 0:
+            return n_used, i
         sums[h, 0] += points[i, 0]
         sums[h, 1] += points[i, 1]
         sums[h, 2] += points[i, 2]
@@ -106,12 +116,11 @@ def octree_accumulate(points, first_index, origin, size, depth, keys, bits, best
         d1 = y - c1
         d2 = z - c2
         sq = d0 * d0 + d1 * d1 + d2 * d2
-        h = _slot(code, keys, bits)
-        if keys[h] == -1:
-            if n_used >= max_used:
-                return n_used, i
-            keys[h] = code
-            n_used += 1
+        n_before = n_used
+        h, n_used = _claim(code, keys, bits, n_used, max_used)
+        if h < 0:
+            return n_used, i
+        if n_used != n_before:  # a new leaf
             best_sq[h] = np.inf
         counts[h] += 1
         if sq < best_sq[h]:
