@@ -624,35 +624,40 @@ def run(args) -> int:
         write_json_atomic(stage / "result.json", summary)
         write_slam_report(stage / "report.html", summary, res, control_plot)
     if not getattr(args, "quiet", False):
-        s = summary["result"]
-        print(f"{s['frames']} frames ({len(skipped)} skipped, {s['failed_frames']} not registered), {s['keyframes']} "
-              f"keyframes, {s['loops_accepted']} loop(s) of {s['loop_candidates']} candidates, path "
-              f"{s['path_length_m']:.1f} m, map {s['map_points']:,} points")
-        held = s["motion_prior_stretches"]
-        if "inertial" in s:
-            ine = s["inertial"]
-            print(f"IMU keyframe graph: {ine['status']}{': ' + ine['reason'] if ine['status'] == 'failed' else ''}; gyro "
-                  f"bias at the last keyframe {[round(x, 5) for x in ine['keyframes'][-1]['bias_gyro_rad_s']]} rad/s")
-        if held:
-            where = ", ".join(f"frames {h['first_frame']}-{h['last_frame']} ({h['first_time_s']:.2f}-"
-                              f"{h['last_time_s']:.2f} s)" for h in held[:5]) + (" ..." if len(held) > 5 else "")
-            print(f"held by {_HELD_BY[imu is not None]}: {len(held)} stretch(es), {s['motion_prior_held_s']:.2f} s: {where}")
-        if control_rec is not None:
-            c = control_rec
-            chk = c["check"]
-            print(f"control ({c['mode']}, {c['crs']}): {c['status']}{': ' + c['reason'] if c['reason'] else ''}"
-                  + ("" if chk is None else f"; check RMSE h {chk['rmse_horizontal_m']:.3f} m, v "
-                                            f"{chk['rmse_vertical_m']:.3f} m"))
-            if c["drift_states_choice"] is not None:
-                ch = c["drift_states_choice"]
-                print(f"drift states (auto): {'taken' if ch['chosen'] else 'not taken'} (likelihood ratio "
-                      f"{ch['statistic']:.2f}, critical {ch['critical']:.2f} on {ch['dof']:.2f} degrees of freedom); "
-                      f"note: {c['uncertainty_note']}")
-            las = c["map_las"]
-            print(f"written: {out}/(trajectory_crs.tum, trajectory_crs.csv, stations_result.csv, map_crs.ply"
-                  + (f", {las['file']})" if las["written"] else ")")
-                  + (f"; {args.dxf} (residuals and ellipses x{c['dxf']['exaggeration']:g})" if dxf_out else ""))
-            if not las["written"]:
-                print(f"note: no map_crs.las: {las['reason']} (pip install 'minegeo[las]')")
-        print(f"written: {out}/(trajectory.tum, keyframes.tum, graph.g2o, loops.csv, map.ply, result.json, report.html)")
+        _print_summary(summary, out, args, skipped, imu, control_rec, dxf_out)
     return 0
+
+
+def _print_summary(summary: dict, out: Path, args, skipped: list, imu, control_rec, dxf_out: dict) -> None:
+    """The run's lines on stdout (frames, IMU graph, held stretches, control, files written)."""
+    s = summary["result"]
+    print(f"{s['frames']} frames ({len(skipped)} skipped, {s['failed_frames']} not registered), {s['keyframes']} "
+          f"keyframes, {s['loops_accepted']} loop(s) of {s['loop_candidates']} candidates, path "
+          f"{s['path_length_m']:.1f} m, map {s['map_points']:,} points")
+    held = s["motion_prior_stretches"]
+    if "inertial" in s:
+        ine = s["inertial"]
+        print(f"IMU keyframe graph: {ine['status']}{': ' + ine['reason'] if ine['status'] == 'failed' else ''}; gyro "
+              f"bias at the last keyframe {[round(x, 5) for x in ine['keyframes'][-1]['bias_gyro_rad_s']]} rad/s")
+    if held:
+        where = ", ".join(f"frames {h['first_frame']}-{h['last_frame']} ({h['first_time_s']:.2f}-"
+                          f"{h['last_time_s']:.2f} s)" for h in held[:5]) + (" ..." if len(held) > 5 else "")
+        print(f"held by {_HELD_BY[imu is not None]}: {len(held)} stretch(es), {s['motion_prior_held_s']:.2f} s: {where}")
+    if control_rec is not None:
+        c = control_rec
+        chk = c["check"]
+        print(f"control ({c['mode']}, {c['crs']}): {c['status']}{': ' + c['reason'] if c['reason'] else ''}"
+              + ("" if chk is None else f"; check RMSE h {chk['rmse_horizontal_m']:.3f} m, v "
+                                        f"{chk['rmse_vertical_m']:.3f} m"))
+        if c["drift_states_choice"] is not None:
+            ch = c["drift_states_choice"]
+            print(f"drift states (auto): {'taken' if ch['chosen'] else 'not taken'} (likelihood ratio "
+                  f"{ch['statistic']:.2f}, critical {ch['critical']:.2f} on {ch['dof']:.2f} degrees of freedom); "
+                  f"note: {c['uncertainty_note']}")
+        las = c["map_las"]
+        print(f"written: {out}/(trajectory_crs.tum, trajectory_crs.csv, stations_result.csv, map_crs.ply"
+              + (f", {las['file']})" if las["written"] else ")")
+              + (f"; {args.dxf} (residuals and ellipses x{c['dxf']['exaggeration']:g})" if dxf_out else ""))
+        if not las["written"]:
+            print(f"note: no map_crs.las: {las['reason']} (pip install 'minegeo[las]')")
+    print(f"written: {out}/(trajectory.tum, keyframes.tum, graph.g2o, loops.csv, map.ply, result.json, report.html)")
