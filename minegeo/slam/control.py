@@ -101,19 +101,28 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from minegeo.errors import InputError
-from minegeo.kernels.lie import se3_exp, se3_inverse, se3_log
+from minegeo.kernels.lie import se3_inverse
 from minegeo.optim import (
-    SINGULAR_PIVOT,
     BetweenFactors,
-    FactorGroup,
     FactorProblem,
     LMParams,
     Values,
     levenberg_marquardt,
 )
+from minegeo.slam.control_factors import (  # the factors and covariances, re-exported
+    DriftBetweenFactors,
+    DriftWalkFactors,
+    PositionFactors,
+    _hat,
+    marginal_covariances,
+    selected_inverse,
+    station_points,
+)
+from minegeo.slam.control_graph import _insert_stations, graph_inputs, interpolate_poses
 
-__all__ = ["ControlParams", "ControlResult", "DriftBetweenFactors", "DriftWalkFactors", "PositionFactors", "apply_control", "check_station_frames", "drift_states_needed", "drift_states_test", "graph_inputs",
-           "interpolate_poses", "selected_inverse", "station_points"]
+__all__ = ["ControlParams", "ControlResult", "DriftBetweenFactors", "DriftWalkFactors", "PositionFactors",
+           "apply_control", "check_station_frames", "drift_states_needed", "drift_states_test", "graph_inputs",
+           "interpolate_poses", "marginal_covariances", "selected_inverse", "station_points"]
 
 log = logging.getLogger(__name__)
 
@@ -139,37 +148,6 @@ UNCERTAINTY_NOTES = {
             "detection limit (too small when a real drift is not detected); for ellipses and a class test that "
             "hold with or without a drift use drift states 'on'",
 }
-#: a station time within this of a keyframe's time uses that keyframe (s)
-SAME_TIME_S = 1e-6
-
-
-def _hat(a: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-
-
-def interpolate_poses(times_s: np.ndarray, poses: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Poses at times ``t`` (k,): ``T_0 Exp(s Log(T_0⁻¹ T_1))`` between the bracketing poses (C1).
-
-    Raises
-    ------
-    InputError
-        A time outside ``[times_s[0], times_s[-1]]``.
-    """
-    times_s = np.asarray(times_s, dtype=np.float64)
-    t = np.atleast_1d(np.asarray(t, dtype=np.float64))
-    if np.any(t < times_s[0]) or np.any(t > times_s[-1]):
-        raise InputError(f"station times [{t.min():.3f}, {t.max():.3f}] s outside the trajectory "
-                         f"[{times_s[0]:.3f}, {times_s[-1]:.3f}] s")
-    out = np.empty((t.size, 4, 4))
-    for q, tq in enumerate(t):
-        a = min(int(np.searchsorted(times_s, tq, side="right")) - 1, times_s.size - 2)
-        a = max(a, 0)
-        if times_s.size == 1 or tq == times_s[a]:
-            out[q] = poses[a]
-            continue
-        s = (tq - times_s[a]) / (times_s[a + 1] - times_s[a])
-        out[q] = poses[a] @ se3_exp(s * se3_log(se3_inverse(poses[a]) @ poses[a + 1]))
-    return out
 
 
 #: a station whose middle time lies between two frames further apart than this many times the
@@ -213,192 +191,6 @@ def check_station_frames(stations, frame_times_s, what: str = "the frames") -> N
                 f"{tm:.3f} s falls in a gap of the trajectory: no frame of {what} between {ft[b - 1]:.3f} and "
                 f"{ft[b]:.3f} s ({ft[b] - ft[b - 1]:.3f} s; the frames are {np.median(dt):.3f} s apart), so its "
                 "pose would be a guess across the gap (check the station times, or the frames missing there)")
-
-
-def station_points(poses: np.ndarray, offset: np.ndarray) -> np.ndarray:
-    """``R a + t`` (k, 3) of poses (k, 4, 4) and the offset ``a`` (3,) (C1)."""
-    return poses[:, :3, :3] @ np.asarray(offset, dtype=np.float64) + poses[:, :3, 3]
-
-
-class PositionFactors(FactorGroup):
-    """Unary position factors (C2): ``r = R a + t − p̄`` on poses ``index`` (m,).
-
-    Parameters
-    ----------
-    index : (m,) int
-        Pose variable of each factor.
-    target : (m, 3)
-        ``p̄`` (m, the frame of the poses).
-    offset : (3,)
-        ``a`` in the sensor frame (m).
-    information : (m, 3, 3)
-        ``Ω`` (m⁻²).
-    """
-
-    def __init__(self, index, target, offset, information):
-        self.variables = np.ascontiguousarray(index, dtype=np.int64).reshape(-1, 1)
-        self.target = np.ascontiguousarray(target, dtype=np.float64).reshape(-1, 3)
-        self.offset = np.asarray(offset, dtype=np.float64).reshape(3)
-        self.information = np.ascontiguousarray(information, dtype=np.float64).reshape(-1, 3, 3)
-
-    def residuals(self, values: Values) -> np.ndarray:
-        return station_points(values.poses[self.variables[:, 0]], self.offset) - self.target
-
-    def linearize(self, values: Values) -> tuple:
-        P = values.poses[self.variables[:, 0]]
-        R = P[:, :3, :3]
-        J = np.empty((P.shape[0], 3, 6))
-        J[:, :, :3] = -R @ _hat(self.offset)
-        J[:, :, 3:] = R
-        return self.residuals(values), (J,)
-
-
-class DriftBetweenFactors(FactorGroup):
-    """Between factors whose odometry carries a slowly varying systematic drift (C4).
-
-    Every variable has the vector part ``β_i = (s, p, y)``: scale error of the odometry's translation
-    (dimensionless), pitch and yaw rates (rad per metre travelled, about the sensor's y and z axes).
-    The measurement of edge ``(i, j)`` with translation ``t_Z`` (``d = |t_Z|``) is taken as
-    ``Z = Z_true Exp(ε)``, ``ε = (0, p d, y d, s t_Z)``, so the factor is::
-
-        r = Log(Exp(ε(β_i)) Z⁻¹ T_i⁻¹ T_j)                                                (C4)
-        ∂r/∂β_i ≈ J_l⁻¹(r) Ad(Exp ε) J_r(ε) ∂ε/∂β_i
-
-    (pose Jacobians those of :class:`~minegeo.optim.BetweenFactors` with ``Z Exp(−ε)``).
-
-    ``unit`` (3,): the variables' vector part holds ``β / unit`` (default 1: ``β`` itself), so that
-    the states' information is of the order of the poses' in one 9 × 9 block (see
-    :data:`DRIFT_UNIT`); ``∂r/∂(β/unit) = ∂r/∂β · diag(unit)``.
-    """
-
-    def __init__(self, edges, Z, information, unit=(1.0, 1.0, 1.0)):
-        self.variables = np.ascontiguousarray(edges, dtype=np.int64).reshape(-1, 2)
-        self.Z = np.ascontiguousarray(Z, dtype=np.float64)
-        self.information = np.ascontiguousarray(information, dtype=np.float64)
-        self.tz = self.Z[:, :3, 3].copy()
-        self.d = np.linalg.norm(self.tz, axis=1)
-        self.unit = np.asarray(unit, dtype=np.float64).reshape(3)
-
-    def _eps(self, values: Values) -> np.ndarray:
-        b = values.vectors[self.variables[:, 0]] * self.unit
-        eps = np.zeros((self.variables.shape[0], 6))
-        eps[:, 1] = b[:, 1] * self.d
-        eps[:, 2] = b[:, 2] * self.d
-        eps[:, 3:] = b[:, :1] * self.tz
-        return eps
-
-    def _corrected(self, values: Values):
-        eps = self._eps(values)
-        Zc = np.ascontiguousarray(np.stack([Z @ se3_exp(-e) for Z, e in zip(self.Z, eps, strict=True)]))
-        return eps, Zc
-
-    def residuals(self, values: Values) -> np.ndarray:
-        from minegeo.optim import between_residuals
-
-        return between_residuals("SE3", values.poses, self.variables, self._corrected(values)[1])
-
-    def linearize(self, values: Values) -> tuple:
-        from minegeo.kernels.lie import se3_adjoint, se3_left_jacobian_inv, se3_right_jacobian
-        from minegeo.optim import between_terms
-
-        eps, Zc = self._corrected(values)
-        r, Ji, Jj = between_terms("SE3", values.poses, self.variables, Zc)
-        m = r.shape[0]
-        Jb = np.zeros((m, 6, 3))
-        for e in range(m):
-            A = se3_left_jacobian_inv(r[e]) @ se3_adjoint(se3_exp(eps[e])) @ se3_right_jacobian(eps[e])
-            Jb[e, :, 0] = A[:, 3:] @ self.tz[e] * self.unit[0]
-            Jb[e, :, 1] = A[:, 1] * self.d[e] * self.unit[1]
-            Jb[e, :, 2] = A[:, 2] * self.d[e] * self.unit[2]
-        Ji9 = np.concatenate([Ji, Jb], axis=2)
-        return r, (Ji9, Jj)
-
-
-class DriftWalkFactors(FactorGroup):
-    """``r = β_j − β_i`` on consecutive variables (a random walk of the drift states, C4), or a prior
-    ``r = β_i`` (arity 1)."""
-
-    def __init__(self, variables, information):
-        self.variables = np.ascontiguousarray(variables, dtype=np.int64)
-        self.information = np.ascontiguousarray(information, dtype=np.float64)
-
-    def residuals(self, values: Values) -> np.ndarray:
-        b = values.vectors
-        if self.arity == 1:
-            return b[self.variables[:, 0]].copy()
-        return b[self.variables[:, 1]] - b[self.variables[:, 0]]
-
-    def linearize(self, values: Values) -> tuple:
-        m = self.variables.shape[0]
-        J = np.zeros((m, 3, 9))
-        J[:, :, 6:] = np.eye(3)
-        if self.arity == 1:
-            return self.residuals(values), (J,)
-        return self.residuals(values), (-J, J)
-
-
-def selected_inverse(Lp: np.ndarray, Li: np.ndarray, Lx: np.ndarray) -> np.ndarray:
-    """Blocks of ``H⁻¹`` in the pattern of its block Cholesky factor ``H = L Lᵀ`` (C3).
-
-    ``Lx[p]`` is the block ``L[Li[p], j]`` for ``Lp[j] ≤ p < Lp[j+1]``, the diagonal block first
-    (lower triangular). Returns ``S`` with ``S[p] = (H⁻¹)[Li[p], j]`` in the same slots: the
-    diagonal blocks are the marginal covariances. Cost: one pass over the columns from the last,
-    each touching only blocks of the factor's pattern (closed under the recursion: the rows of a
-    column form a clique of the filled graph).
-    """
-    nb = Lp.size - 1
-    d = Lx.shape[1]
-    slot = {}
-    for j in range(nb):
-        for p in range(Lp[j], Lp[j + 1]):
-            slot[(int(Li[p]), j)] = p
-    S = np.zeros_like(Lx)
-
-    def get(i, k):
-        return S[slot[(i, k)]] if i >= k else S[slot[(k, i)]].T
-
-    eye = np.eye(d)
-    for j in range(nb - 1, -1, -1):
-        p0, p1 = Lp[j], Lp[j + 1]
-        Ljj_inv = np.linalg.solve(Lx[p0], eye)
-        rows = [int(r) for r in Li[p0 + 1:p1]]
-        LS = [Lx[p] @ Ljj_inv for p in range(p0 + 1, p1)]  # L_sj L_jj⁻¹
-        for q, i in enumerate(rows):
-            acc = np.zeros((d, d))
-            for s, Ls in zip(rows, LS, strict=True):
-                acc -= get(i, s) @ Ls
-            S[p0 + 1 + q] = acc
-        acc = Ljj_inv.T @ Ljj_inv
-        for q, Ls in enumerate(LS):
-            acc -= S[p0 + 1 + q].T @ Ls
-        S[p0] = 0.5 * (acc + acc.T)
-    return S
-
-
-def marginal_covariances(problem: FactorProblem, values: Values, pairs=None):
-    """Marginal covariances (n, d, d) of every free variable at ``values`` (held ones: zero),
-    ``H⁻¹`` diagonal blocks by :func:`selected_inverse` on the optimiser's block Cholesky factor
-    (undamped, the fill-reducing order of :class:`minegeo.optim.BlockSystem`; tangent order
-    rotation first).
-
-    With ``pairs`` (m, 2) (pairs of free variables joined by a binary factor, so in the factor's
-    pattern) also their cross covariances ``Σ_ij`` (m, d, d): returns ``(marginals, cross)``."""
-    system = problem.linearize(values, problem.evaluate(values))
-    Lx = system.cholesky(0.0, False, SINGULAR_PIVOT)
-    if Lx is None:
-        raise ArithmeticError("the information matrix is singular at variable "
-                              f"{int(system.block_vertex[system.failed_block])}")
-    S = selected_inverse(system.Lp, system.Li, Lx)
-    n = system.blk.size
-    out = np.zeros((n, system.d, system.d))
-    free = system.blk >= 0
-    out[free] = S[system.Lp[system.blk[free]]]
-    if pairs is None:
-        return out
-    _, _, _, slot_ij, ij_lower = system.binary_slots(pairs)
-    # the slot holds H⁻¹[max block, min block]: Σ_ij when i's block is the larger, else its transpose
-    cross = np.where(ij_lower[:, None, None] == 1, S[slot_ij], np.swapaxes(S[slot_ij], 1, 2))
-    return out, cross
 
 
 @dataclass(frozen=True)
@@ -549,138 +341,6 @@ class ControlResult:
         C = self.poses @ np.stack([se3_inverse(T) for T in graph_poses_map])
         t = np.clip(np.asarray(times_s, dtype=np.float64), graph_times_s[0], graph_times_s[-1])
         return interpolate_poses(graph_times_s, C, t) @ poses_map
-
-
-def graph_inputs(slam_result, station_times_s=None) -> tuple:
-    """``(times_s, poses, edges, Z, information)`` of a :class:`~minegeo.slam.pipeline.SlamResult`'s
-    keyframe graph: keyframe times and ``T_map_sensor``, edges, measurements and the information in
-    the residual order (rotation first; the graph stores the g2o order (t, r)).
-
-    With ``station_times_s``, every station time not on a keyframe becomes a variable whose pose is
-    the run's frame trajectory at that time (:func:`interpolate_poses` on the frames, which are
-    still on a stop): the odometry edge ``(a, b)`` around it is split into ``Z_ak = T_a⁻¹ T_k`` and
-    ``Z_kb = Z_ak⁻¹ Z_ab`` (their product is ``Z_ab``; information ``Ω_ab / f`` and
-    ``Ω_ab / (1 − f)``, ``f`` the fraction of the edge's translation, clipped to [0.01, 0.99]); a
-    station before the first or after the last keyframe (within the frames) is chained to it by
-    ``T_u⁻¹ T_v`` with the end odometry edge's information over the ratio of translations.
-    A split by time fraction would place a stop-and-go station where a constant velocity between
-    the keyframes puts it, off by up to the keyframe distance.
-    """
-    g = slam_result.graph
-    p = [3, 4, 5, 0, 1, 2]
-    info = np.ascontiguousarray(np.asarray(g.information)[:, p][:, :, p])
-    kt = np.asarray(slam_result.times_s)[slam_result.keyframes]
-    kP = np.asarray(slam_result.keyframe_poses)
-    edges, Z = np.asarray(g.edges), np.asarray(g.measurements)
-    if station_times_s is None:
-        return kt, kP, edges, Z, info
-    ft = np.asarray(slam_result.times_s)
-    t_new = sorted({float(t) for t in np.atleast_1d(station_times_s)
-                    if ft[0] <= t <= ft[-1] and not np.any(np.abs(kt - t) <= SAME_TIME_S)})
-    if not t_new:
-        return kt, kP, edges, Z, info
-    T_new = interpolate_poses(np.asarray(slam_result.times_s), np.asarray(slam_result.poses), np.array(t_new))
-    all_t = np.r_[kt, t_new]
-    order = np.argsort(all_t, kind="stable")
-    rank = np.empty_like(order)
-    rank[order] = np.arange(order.size)
-    P_all = np.concatenate([kP, T_new])[order]
-    E, ZZ, OO = [], [], []
-    for e in range(edges.shape[0]):
-        a, b = int(edges[e, 0]), int(edges[e, 1])
-        inside = [kt.size + m for m, t in enumerate(t_new) if b == a + 1 and kt[a] < t < kt[b]]
-        if not inside:
-            E.append((rank[a], rank[b]))
-            ZZ.append(Z[e])
-            OO.append(info[e])
-            continue
-        L = max(float(np.linalg.norm(Z[e][:3, 3])), 1e-9)
-        Zrest, Ta, f_prev = Z[e], kP[a], 0.0
-        prev = a
-        for v in inside:
-            Tv = T_new[v - kt.size]
-            Zav = se3_inverse(Ta) @ Tv if prev == a else se3_inverse(T_new[prev - kt.size]) @ Tv
-            f = float(np.clip(np.linalg.norm((se3_inverse(Ta) @ Tv)[:3, 3]) / L, 0.01, 0.99))
-            df = max(f - f_prev, 0.01)
-            E.append((rank[prev], rank[v]))
-            ZZ.append(Zav)
-            OO.append(info[e] / df)
-            Zrest = se3_inverse(Zav) @ Zrest
-            prev, f_prev = v, f
-        E.append((rank[prev], rank[b]))
-        ZZ.append(Zrest)
-        OO.append(info[e] / max(1.0 - f_prev, 0.01))
-    # stations before the first or after the last keyframe (frames there, no keyframe yet): a chain
-    # of odometry edges Z = T_u⁻¹ T_v from the end keyframe, information that of the end odometry edge
-    # scaled by the ratio of translations (clipped to [0.01, 100])
-    odo = [e for e in range(edges.shape[0]) if int(edges[e, 1]) == int(edges[e, 0]) + 1]
-    for side in ("before", "after"):
-        out = [kt.size + m for m, t in enumerate(t_new) if (t < kt[0] if side == "before" else t > kt[-1])]
-        if not out:
-            continue
-        if not odo:
-            raise InputError(f"stations {side} the keyframes of a graph without odometry edges")
-        e_ref = odo[0] if side == "before" else odo[-1]
-        L = max(float(np.linalg.norm(Z[e_ref][:3, 3])), 1e-9)
-        chain = ([0] + out[::-1]) if side == "before" else ([kt.size - 1] + out)
-        for u, v in zip(chain[:-1], chain[1:], strict=True):
-            Tu = kP[u] if u < kt.size else T_new[u - kt.size]
-            Tv = T_new[v - kt.size]
-            a, b, Zuv = (v, u, se3_inverse(Tv) @ Tu) if side == "before" else (u, v, se3_inverse(Tu) @ Tv)
-            f = float(np.clip(np.linalg.norm(Zuv[:3, 3]) / L, 0.01, 100.0))
-            E.append((rank[a], rank[b]))
-            ZZ.append(Zuv)
-            OO.append(info[e_ref] / f)
-    return (all_t[order], np.ascontiguousarray(P_all), np.asarray(E, dtype=np.int64), np.stack(ZZ),
-            np.ascontiguousarray(np.stack(OO)))
-
-
-def _insert_stations(times_s, poses, edges, Z, info, t_st):
-    """Graph variables at the station times (see the module docstring): returns the new times,
-    poses, edges, measurements, information and the variable of each station."""
-    k = times_s.size
-    var_of = np.full(t_st.size, -1, dtype=np.int64)
-    new_t = []
-    for q, t in enumerate(t_st):
-        hit = np.flatnonzero(np.abs(times_s - t) <= SAME_TIME_S)
-        if hit.size:
-            var_of[q] = hit[0]
-        else:
-            new_t.append((t, q))
-    all_t = np.r_[times_s, [t for t, _ in new_t]]
-    order = np.argsort(all_t, kind="stable")
-    rank = np.empty_like(order)
-    rank[order] = np.arange(order.size)
-    T_new = np.empty((all_t.size, 4, 4))
-    T_new[:k] = poses
-    if new_t:
-        T_new[k:] = interpolate_poses(times_s, poses, np.array([t for t, _ in new_t]))
-    for m, (_, q) in enumerate(new_t):
-        var_of[q] = k + m
-    # split consecutive keyframe edges that contain inserted variables
-    E, ZZ, OO = [], [], []
-    inserted = np.arange(k, all_t.size)
-    ins_t = all_t[k:]
-    for e in range(edges.shape[0]):
-        a, b = int(edges[e, 0]), int(edges[e, 1])
-        inside = inserted[(ins_t > times_s[min(a, b)]) & (ins_t < times_s[max(a, b)])] if abs(b - a) == 1 else []
-        if len(inside) == 0 or b != a + 1:
-            E.append((a, b))
-            ZZ.append(Z[e])
-            OO.append(info[e])
-            continue
-        xi = se3_log(np.ascontiguousarray(Z[e]))
-        chain = [a] + sorted(inside.tolist(), key=lambda v: all_t[v]) + [b]
-        s = (all_t[chain] - times_s[a]) / (times_s[b] - times_s[a])
-        for u in range(len(chain) - 1):
-            f = s[u + 1] - s[u]
-            E.append((chain[u], chain[u + 1]))
-            ZZ.append(se3_exp(f * xi))
-            OO.append(info[e] / f)
-    edges_new = rank[np.asarray(E, dtype=np.int64)]
-    T_sorted = np.empty_like(T_new)
-    T_sorted[rank] = T_new
-    return all_t[order], T_sorted, edges_new, np.stack(ZZ), np.stack(OO), rank[var_of], len(new_t)
 
 
 def _rigid_fit(points_map, stations, crs, model, start_only: bool = False):
