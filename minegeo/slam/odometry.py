@@ -69,7 +69,7 @@ import math
 import time
 from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import replace
 
 import numba
 import numpy as np
@@ -79,260 +79,24 @@ from minegeo.geometry import voxel_downsample
 from minegeo.geometry.se3 import compose, project, relative
 from minegeo.io.limits import MAX_ABS_TIME
 from minegeo.kernels.lie import se3_adjoint, se3_exp, se3_log
-from minegeo.registration import GICPParams, build_target_index, register_gicp
+from minegeo.registration import build_target_index, register_gicp
 from minegeo.registration.gicp import gicp_covariances_on_tree
 from minegeo.slam.deskew import deskew_points, twist_from_motion
-from minegeo.slam.observability import keep_prior_along, surface_translation_ratio, translation_observability
+from minegeo.slam.observability import keep_prior_along, translation_observability
+from minegeo.slam.odometry_model import (  # the parameters, records and result, re-exported
+    EDGE_FLOOR_FIELDS,
+    OdometryParams,
+    OdometryResult,
+    PreparedFrame,
+    Registration,
+    edge_covariance_floor,
+    floored_information,
+)
 
 __all__ = ["OdometryParams", "PreparedFrame", "OdometryResult", "prepare_frame", "register_frames", "run_odometry",
            "edge_covariance_floor", "floored_information", "EDGE_FLOOR_FIELDS"]
 
 log = logging.getLogger(__name__)
-
-
-#: the fields of :class:`OdometryParams` that make the edge covariance floor (:func:`edge_covariance_floor`)
-EDGE_FLOOR_FIELDS = ("edge_sigma_tilt_deg_per_sqrt_m", "edge_sigma_tilt_deg_per_deg", "edge_sigma_yaw_deg_per_sqrt_m",
-                     "edge_sigma_trans_xy_m_per_sqrt_m", "edge_sigma_trans_z_m_per_sqrt_m", "edge_sigma_trans_z_m_per_deg")
-
-
-@dataclass(frozen=True)
-class OdometryParams:
-    """Parameters of the GICP odometry (distances in m, angles in deg, times in s)."""
-
-    voxel_size_m: float = 0.3
-    max_correspondence_distance_m: float = 1.0
-    gicp_max_iterations: int = 30
-    covariance_neighbours: int = 20
-    keyframe_distance_m: float = 2.0
-    keyframe_angle_deg: float = 10.0
-    keyframe_interval_s: float = 10.0
-    min_points: int = 200
-    min_fitness: float = 0.3
-    sigma_floor_m: float = 0.01
-    coarse_gate_factor: float = 3.0
-    translation_observability_ratio: float = 0.03
-    surface_observability_ratio: float = 0.004
-    keyframe_submap_size: int = 5
-    turn_retry_yaw_deg: tuple = (20.0, -20.0, 40.0, -40.0, 60.0, -60.0)
-    unconverged_retry_fitness: float = 0.6
-    #: what each frame registers to: ``"frame"`` the previous frame (Ren2019 Sec. 3.3, chained by
-    #: [Ren2019 Eq. 7]), ``"submap"`` the local map of the last ``keyframe_submap_size`` keyframes (frame to
-    #: local map: the laser rings of several keyframes interleave, so neither the partner search nor
-    #: the target's covariances follow the ring pattern, which biases frame-to-frame GICP towards no
-    #: motion and no tilt change with sparse rings)
-    frame_target: str = "frame"
-    #: deskew frames whose points carry per-point times (:mod:`minegeo.slam.deskew`), from the
-    #: constant-velocity twist of the odometry's last motion; frames without times are unaffected
-    deskew: bool = True
-    #: after a frame's registration, deskew it again with the twist of its own newly estimated motion
-    #: (from the previous registered frame to it) and register once more (0: no second pass)
-    deskew_iterations: int = 1
-    #: plausible-motion bounds (no silent runaway): a registration whose motion since the last
-    #: registered frame exceeds a speed (m/s) or an angular rate (deg/s), or whose velocity differs
-    #: from the previous motion's by more than an acceleration (m/s², between the middles of the two
-    #: intervals), is rejected and the frame held by the constant-velocity prior
-    max_speed_m_s: float = 30.0
-    max_angular_rate_deg_s: float = 180.0
-    max_acceleration_m_s2: float = 20.0
-    #: registration noise allowed in the acceleration test (m): two positions off by this much change
-    #: a velocity over ``dt`` by ``2·motion_noise_m/dt`` (in a smooth box drift at 1 m per 0.1 s frame,
-    #: frame-to-frame GICP scattered by up to 0.13 m: 25 m/s² of apparent acceleration)
-    motion_noise_m: float = 0.1
-    #: degenerate geometry: a registration whose normalised point-to-plane constraint matrix
-    #: (:func:`minegeo.registration.constraint_analysis`, GICP's ``degeneracy_ratio``) has
-    #: ``λ_min / λ_max`` below this is rejected (dimensionless; GICP flags below 1e-2 as weak)
-    min_constraint_ratio: float = 1e-4
-    #: edge covariance floor (:func:`edge_covariance_floor`), added to the GICP covariance of every
-    #: registration: GICP's Hessian treats each point as an independent measurement while the errors
-    #: of neighbouring points are correlated (wall relief, the model error of the local planes, deskew
-    #: error, the sparse rings' under-read tilt change), so alone it is over-confident. In the sensor
-    #: frame: tilt (rotation about the sensor x and y axes) a random walk in deg per √m of the edge's
-    #: translation plus deg per deg of the edge's rotation; yaw (about the sensor z axis, the spin
-    #: axis) deg per √m; translation along the sensor x and y axes m per √m, along its z axis m per √m
-    #: plus m per deg of the edge's rotation (all 0: GICP's covariance alone). Fitted by maximum
-    #: likelihood on the 80 keyframe edges of 16 synthetic stop-and-go streams (vehicle and handheld,
-    #: seeds 1-8, 24 s at 5 Hz; ``benchmarks/bench_edge_covariance.py``)
-    #: apply the floor below to every edge (True: ``slam --control``, whose statistics need calibrated
-    #: edges; False by default: plain SLAM keeps GICP's information, because with the floor the plane
-    #: factors weigh more and cost ATE on some streams, see docs/slam.md "Edge covariance")
-    edge_covariance_floor: bool = False
-    edge_sigma_tilt_deg_per_sqrt_m: float = 0.11
-    edge_sigma_tilt_deg_per_deg: float = 0.31
-    edge_sigma_yaw_deg_per_sqrt_m: float = 0.034
-    edge_sigma_trans_xy_m_per_sqrt_m: float = 0.0051
-    edge_sigma_trans_z_m_per_sqrt_m: float = 0.037
-    edge_sigma_trans_z_m_per_deg: float = 0.0003
-
-    def __post_init__(self):
-        if self.frame_target not in ("frame", "submap"):
-            raise InputError(f"frame_target must be 'frame' or 'submap', got {self.frame_target!r}")
-        for name in ("voxel_size_m", "max_correspondence_distance_m", "keyframe_distance_m", "keyframe_angle_deg",
-                     "keyframe_interval_s", "sigma_floor_m", "coarse_gate_factor", "translation_observability_ratio",
-                     "surface_observability_ratio", "max_speed_m_s", "max_angular_rate_deg_s",
-                     "max_acceleration_m_s2", "motion_noise_m"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-                raise InputError(f"{name} must be a finite number > 0, got {v!r}")
-        if not 0 <= self.min_fitness <= 1:
-            raise InputError(f"min_fitness must be in [0, 1], got {self.min_fitness!r}")
-        if not 0 <= self.min_constraint_ratio < 1:
-            raise InputError(f"min_constraint_ratio must be in [0, 1), got {self.min_constraint_ratio!r}")
-        for name in EDGE_FLOOR_FIELDS:
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
-                raise InputError(f"{name} must be a finite number >= 0, got {v!r}")
-        if self.deskew_iterations not in (0, 1):
-            raise InputError(f"deskew_iterations must be 0 or 1, got {self.deskew_iterations!r}")
-
-    def gicp(self) -> GICPParams:
-        return GICPParams(self.max_correspondence_distance_m, max_iterations=self.gicp_max_iterations,
-                          covariance_neighbours=self.covariance_neighbours)
-
-
-@dataclass
-class PreparedFrame:
-    """A frame ready for GICP: downsampled points (sensor frame), covariances, search index.
-
-    ``surface_ratio`` is :func:`minegeo.slam.observability.surface_translation_ratio` of the frame;
-    None until :meth:`surface` computes it from ``surface_inputs`` (the kNN PCA of the
-    covariances: normals, eigenvalues, status), which happens only for a registration whose
-    translation is weakly observed (most frames never need it)."""
-
-    time_s: float
-    points: np.ndarray
-    covariances: np.ndarray
-    index: object
-    surface_ratio: float | None = 1.0
-    surface_inputs: tuple | None = field(default=None, repr=False)
-
-    def surface(self) -> float:
-        """The frame's :func:`~minegeo.slam.observability.surface_translation_ratio` (computed once)."""
-        if self.surface_ratio is None:
-            self.surface_ratio = surface_translation_ratio(self.points, *self.surface_inputs)
-            self.surface_inputs = None
-        return self.surface_ratio
-
-
-@dataclass
-class Registration:
-    """One GICP registration ``T_target_source`` with its verdict and edge information (right, (ω, ρ))."""
-
-    T: np.ndarray
-    ok: bool
-    reason: str
-    fitness: float
-    rmse_m: float
-    information: np.ndarray
-    weak: str = ""  # a weakly observed pose direction (a straight smooth drift): kept, flagged
-    converged: bool = True
-    constraint_ratio: float = 1.0  # GICP's normalised constraint λ_min / λ_max (degenerate geometry near 0)
-
-
-@dataclass
-class OdometryResult:
-    """Poses of every frame and the keyframe chain.
-
-    Attributes
-    ----------
-    times_s : (n,) float64
-    poses : (n, 4, 4) float64
-        ``T_world_sensor`` of every frame (world = first frame).
-    frame_ok : (n,) bool
-        False for frames that failed to register (placed by the constant-velocity guess).
-    frame_reason : list of str
-        Why a frame failed ("" when it registered).
-    frame_weak : list of str
-        The weakly observed direction of a frame's registration ("" when well constrained).
-    fitness : (n,) float64
-        GICP overlap of each frame with its predecessor (1 for the first).
-    keyframes : (k,) int64
-        Frame indices of the keyframes.
-    keyframe_edges : (k-1, 4, 4) float64
-        Refined ``T_{k-1} ⁻¹ T_k`` between consecutive keyframes.
-    keyframe_information : (k-1, 6, 6) float64
-        Their information matrices, right perturbation, (ω, ρ) order.
-    keyframe_clouds : list of (m, 3) arrays
-        Downsampled keyframe points in the keyframe's sensor frame (for loops and the map).
-    deskewed : (n,) bool
-        True for the frames deskewed to their frame time (points with times, ``params.deskew``).
-    deskew_twist : (n, 6) float64
-        The body twist ``(ω, v)`` (rad/s, m/s, sensor frame) each deskewed frame was finally
-        deskewed with (:mod:`minegeo.slam.deskew`); zeros for frames not deskewed.
-    constraint_ratio : (n,) float64
-        GICP's normalised constraint ratio of each frame's registration (1 for the first frame; NaN
-        when no registration ran).
-    imu_aided : bool
-        True when the odometry ran with an IMU (gyro guesses, deskew and gate); held frames are then
-        held by the gyro's rotation (``held_by`` in :meth:`held_stretches`).
-    keyframe_extra_edges : list of (i, j, (4, 4), (6, 6))
-        Keyframe edges ``(i, j, T_i⁻¹ T_j, information)`` between non-consecutive keyframes (numbers
-        into ``keyframes``): with ``frame_target="submap"``, a keyframe registered to the local map of
-        keyframe ``i`` when the keyframes between them were placed by the guess (not registered). That
-        registration measures ``T_i⁻¹ T_j``; the consecutive edge into ``j`` then carries the guess's
-        weak information (1e-6), since it is relative to a guessed pose.
-    """
-
-    times_s: np.ndarray
-    poses: np.ndarray
-    frame_ok: np.ndarray
-    frame_reason: list
-    frame_weak: list
-    fitness: np.ndarray
-    keyframes: np.ndarray
-    keyframe_edges: np.ndarray
-    keyframe_information: np.ndarray
-    keyframe_clouds: list = field(repr=False, default_factory=list)
-    keyframe_covariances: list = field(repr=False, default_factory=list)
-    params: OdometryParams = field(default_factory=OdometryParams)
-    timings_s: dict = field(default_factory=dict)
-    keyframe_extra_edges: list = field(default_factory=list)
-    deskewed: np.ndarray | None = None
-    deskew_twist: np.ndarray | None = None
-    constraint_ratio: np.ndarray | None = None
-    imu_aided: bool = False
-
-    def held_stretches(self) -> list[dict]:
-        """The stretches of consecutive frames placed by the constant-velocity motion prior alone
-        (not registered: failed or rejected as implausible), in time order.
-
-        Each is ``{"first_frame", "last_frame", "frames", "first_time_s", "last_time_s",
-        "from_time_s", "held_s", "reasons"}``: frame indices (0-based, in the frames used), their
-        times (s), ``from_time_s`` the time of the last registered frame before the stretch (the
-        first frame when the stretch starts the run) and ``held_s = last_time_s − from_time_s``, how
-        long the trajectory was carried by the motion prior alone; ``reasons`` the distinct reasons.
-        With an IMU (``imu_aided``) each also has ``"held_by": "imu"``: the frames' rotations are the
-        gyro's and their translations the constant velocity's (a registration the IMU disagrees with is
-        one of the reasons, :func:`_imu_disagreement`).
-        """
-        out = []
-        ok = np.asarray(self.frame_ok, dtype=bool)
-        k, n = 1, ok.size  # frame 0 is the origin of the map frame, never held
-        while k < n:
-            if ok[k]:
-                k += 1
-                continue
-            j = k
-            while j + 1 < n and not ok[j + 1]:
-                j += 1
-            t = self.times_s
-            reasons = list(dict.fromkeys(self.frame_reason[i] for i in range(k, j + 1)))
-            out.append({"first_frame": int(k), "last_frame": int(j), "frames": int(j - k + 1),
-                        "first_time_s": float(t[k]), "last_time_s": float(t[j]), "from_time_s": float(t[k - 1]),
-                        "held_s": float(t[j] - t[k - 1]), "reasons": reasons,
-                        **({"held_by": "imu"} if self.imu_aided else {})})
-            k = j + 1
-        return out
-
-    def summary(self) -> dict:
-        cr = self.constraint_ratio
-        finite = cr[np.isfinite(cr)] if cr is not None else np.zeros(0)
-        held = self.held_stretches()
-        return {"frames": int(self.times_s.size), "failed_frames": int((~self.frame_ok).sum()),
-                "weak_frames": sum(bool(w) for w in self.frame_weak),
-                "keyframes": int(self.keyframes.size), "params": asdict(self.params),
-                "deskewed_frames": int(self.deskewed.sum()) if self.deskewed is not None else 0,
-                "held_stretches": held, "held_s_total": float(sum(h["held_s"] for h in held)),
-                "min_constraint_ratio": float(finite.min()) if finite.size else None}
 
 
 def prepare_frame(points: np.ndarray, time_s: float, params: OdometryParams) -> PreparedFrame:
@@ -400,42 +164,6 @@ def _prepared_frames(frames: Iterable, params: OdometryParams):
         while (r := fut.result()) is not None:
             fut = ex.submit(job_one_thread)
             yield r
-
-
-def edge_covariance_floor(length_m: float, angle_deg: float, params: OdometryParams) -> np.ndarray:
-    """The covariance floor ``F`` (6x6, (ω, ρ) order, rad² and m², the edge's right perturbation: the
-    axes of the source sensor frame) added to a GICP edge's covariance.
-
-    ``F = diag(σ_t², σ_t², σ_z², σ_h², σ_h², σ_v²)`` with, for an edge of translation ``L = length_m``
-    (m) and rotation angle ``θ = angle_deg`` (deg)::
-
-        σ_t² = a_t² L + (b_t θ)²   tilt, about the sensor x and y axes (deg², converted to rad²)
-        σ_z² = a_z² L              yaw, about the sensor z (spin) axis (deg², converted to rad²)
-        σ_h² = a_h² L              translation along the sensor x and y axes (m²)
-        σ_v² = a_v² L + (b_v θ)²   translation along the sensor z axis (m²)
-
-    ``a_t = edge_sigma_tilt_deg_per_sqrt_m``, ``b_t = edge_sigma_tilt_deg_per_deg``,
-    ``a_z = edge_sigma_yaw_deg_per_sqrt_m``, ``a_h = edge_sigma_trans_xy_m_per_sqrt_m``,
-    ``a_v = edge_sigma_trans_z_m_per_sqrt_m``, ``b_v = edge_sigma_trans_z_m_per_deg``: a random walk
-    along the path (variance proportional to the distance, as the station split of
-    :func:`minegeo.slam.control.graph_inputs` assumes) and an error proportional to the rotation (GICP
-    under-reads tilt changes with sparse rings, which also moves the sensor's height). The constants
-    are fitted by Monte Carlo against the simulator's truth (``benchmarks/bench_edge_covariance.py``,
-    ``docs/slam.md`` "Edge covariance")
-    """
-    L, th = float(length_m), float(angle_deg)
-    d2r = math.radians(1.0) ** 2
-    s_t2 = d2r * (params.edge_sigma_tilt_deg_per_sqrt_m**2 * L + (params.edge_sigma_tilt_deg_per_deg * th) ** 2)
-    s_z2 = d2r * params.edge_sigma_yaw_deg_per_sqrt_m**2 * L
-    s_h2 = params.edge_sigma_trans_xy_m_per_sqrt_m**2 * L
-    s_v2 = params.edge_sigma_trans_z_m_per_sqrt_m**2 * L + (params.edge_sigma_trans_z_m_per_deg * th) ** 2
-    return np.diag([s_t2, s_t2, s_z2, s_h2, s_h2, s_v2])
-
-
-def floored_information(information: np.ndarray, floor: np.ndarray) -> np.ndarray:
-    """``(Ω⁻¹ + F)⁻¹`` computed as ``(I + Ω F)⁻¹ Ω`` (no inverse of a possibly singular ``Ω``), symmetrised."""
-    info = np.linalg.solve(np.eye(6) + information @ floor, information)
-    return 0.5 * (info + info.T)
 
 
 def register_frames(source: PreparedFrame, target: PreparedFrame, T_init: np.ndarray,
