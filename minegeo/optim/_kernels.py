@@ -135,6 +135,37 @@ def se2_residuals(poses, edges, Z, r):
 # Systems", Sec. 4.8, by blocks), so one pattern serves every iteration and every damping trial.
 
 
+@njit(inline="always")
+def _jt_wo(J, WO, e, A):
+    """``A = J[e]ᵀ WO[e]`` (d, k) for factor ``e`` (``J`` (m, k, d), ``WO`` (m, k, k)), each entry summed
+    over the residual index in order."""
+    kr = WO.shape[1]
+    for a in range(J.shape[2]):
+        for c in range(kr):
+            s = 0.0
+            for k in range(kr):
+                s += J[e, k, a] * WO[e, k, c]
+            A[a, c] = s
+
+
+@njit(inline="always")
+def _add_diagonal(A, J, r, e, b, slot, Hx, g):
+    """Add factor ``e``'s diagonal block ``A J[e]`` (``A = J[e]ᵀWΩ``) to ``Hx[slot]`` and ``A r[e]`` to the
+    gradient rows of block ``b``."""
+    d = J.shape[2]
+    kr = r.shape[1]
+    for a in range(d):
+        ga = 0.0
+        for k in range(kr):
+            ga += A[a, k] * r[e, k]
+        g[b * d + a] += ga
+        for c in range(d):
+            h = 0.0
+            for k in range(kr):
+                h += A[a, k] * J[e, k, c]
+            Hx[slot, a, c] += h
+
+
 @njit
 def accumulate_normal_equations(r, Ji, Jj, WO, bcol, slot_ii, slot_jj, slot_ij, ij_lower, Hx, g):
     """Add every binary factor's ``JᵀWΩJ`` blocks to ``Hx`` and ``JᵀWΩr`` to ``g`` (serial: bit-reproducible).
@@ -152,40 +183,12 @@ def accumulate_normal_equations(r, Ji, Jj, WO, bcol, slot_ii, slot_jj, slot_ij, 
     B = np.empty((d, kr))
     for e in range(m):
         bi, bj = bcol[e, 0], bcol[e, 1]
-        # A = J_iᵀ WΩ, B = J_jᵀ WΩ
-        for a in range(d):
-            for c in range(kr):
-                sa = 0.0
-                sb = 0.0
-                for k in range(kr):
-                    sa += Ji[e, k, a] * WO[e, k, c]
-                    sb += Jj[e, k, a] * WO[e, k, c]
-                A[a, c] = sa
-                B[a, c] = sb
+        _jt_wo(Ji, WO, e, A)  # A = J_iᵀ WΩ
+        _jt_wo(Jj, WO, e, B)  # B = J_jᵀ WΩ
         if bi >= 0:
-            s = slot_ii[e]
-            for a in range(d):
-                ga = 0.0
-                for k in range(kr):
-                    ga += A[a, k] * r[e, k]
-                g[bi * d + a] += ga
-                for c in range(d):
-                    h = 0.0
-                    for k in range(kr):
-                        h += A[a, k] * Ji[e, k, c]
-                    Hx[s, a, c] += h
+            _add_diagonal(A, Ji, r, e, bi, slot_ii[e], Hx, g)
         if bj >= 0:
-            s = slot_jj[e]
-            for a in range(d):
-                ga = 0.0
-                for k in range(kr):
-                    ga += B[a, k] * r[e, k]
-                g[bj * d + a] += ga
-                for c in range(d):
-                    h = 0.0
-                    for k in range(kr):
-                        h += B[a, k] * Jj[e, k, c]
-                    Hx[s, a, c] += h
+            _add_diagonal(B, Jj, r, e, bj, slot_jj[e], Hx, g)
         if slot_ij[e] >= 0:  # both variables free and distinct
             s = slot_ij[e]
             for a in range(d):
@@ -215,23 +218,8 @@ def accumulate_unary(r, J, WO, bcol, Lp, Hx, g):
         b = bcol[e]
         if b < 0:
             continue
-        for a in range(d):
-            for c in range(k):
-                s = 0.0
-                for q in range(k):
-                    s += J[e, q, a] * WO[e, q, c]
-                A[a, c] = s
-        s0 = Lp[b]
-        for a in range(d):
-            ga = 0.0
-            for q in range(k):
-                ga += A[a, q] * r[e, q]
-            g[b * d + a] += ga
-            for c in range(d):
-                h = 0.0
-                for q in range(k):
-                    h += A[a, q] * J[e, q, c]
-                Hx[s0, a, c] += h
+        _jt_wo(J, WO, e, A)
+        _add_diagonal(A, J, r, e, b, Lp[b], Hx, g)
 
 
 @njit
