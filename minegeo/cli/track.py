@@ -146,15 +146,16 @@ def _params(args):
                        **({} if args.gate_drift is None else {"gate_drift_fraction": args.gate_drift}))
 
 
-def _truth_errors(truth_path, res, origin=None):
+def _truth_errors(truth_path, res, origin=None, tr=None):
     """Position error (m) of every frame against the truth at the same time (nearest within 0.05 s);
-    ``origin`` (3,): the truth is in the CRS and ``p_map = p_crs - origin``."""
+    ``origin`` (3,): the truth is in the CRS and ``p_map = p_crs - origin``. ``tr``: the truth already
+    read (:func:`minegeo.io.read_trajectory`, before the run, so a bad file stops it before any work)."""
     import numpy as np
 
     from minegeo.errors import InputError
     from minegeo.io import read_trajectory
 
-    tr = read_trajectory(truth_path)
+    tr = read_trajectory(truth_path) if tr is None else tr
     if origin is not None:
         P = tr.poses.copy()
         P[:, :3, 3] -= np.asarray(origin, float) - np.asarray(tr.origin if tr.origin is not None else np.zeros(3))
@@ -233,7 +234,10 @@ def run(args) -> int:
              **({"--imu-noise": args.imu_noise} if getattr(args, "imu_noise", None) else {})}
     imu = read_imu(args)
     inertial = inertial_params(args)
+    from minegeo.io import read_trajectory
     from minegeo.slam.inertial import GyroAid
+
+    truth = read_trajectory(args.truth) if args.truth else None  # a bad truth file: one line before any work
 
     with OutputTransaction("track", inputs=named, folders={"--out": out}) as tx:
         kb = IntersectionKB.load(args.db)
@@ -267,7 +271,7 @@ def run(args) -> int:
             odo_log.setLevel(odo_level)
         if res.times_s.size < 2:
             raise InputError(f"--frames {args.frames}: fewer than 2 readable frames")
-        err = (_truth_errors(args.truth, res, kb.georef["origin_m"] if args.truth_frame == "crs" else None)
+        err = (_truth_errors(args.truth, res, kb.georef["origin_m"] if args.truth_frame == "crs" else None, truth)
                if args.truth else None)
         stage = tx.folder("--out")
         with timer("write"):
