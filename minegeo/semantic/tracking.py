@@ -640,6 +640,8 @@ class _State:
     def result(self, use_map: bool, usable: bool, kb, online, timings: dict) -> TrackResult:
         odo = self.odo
         kf = np.stack([self.current(k) for k in range(odo.keyframes.size)])
+        unchecked = self.unchecked_stretches()
+        bad = self.inconsistent_factors() if self.g is not None else []
         if self.g is None:
             status, reason = "unanchored", "no start pose and no verified recognition: poses in the first frame's frame"
         elif not usable:
@@ -647,13 +649,12 @@ class _State:
         elif not self.n_opt:
             status, reason = "no_recognition", "no recognition was verified: odometry only"
         else:
-            status, reason = self._checked_status()
+            status, reason = self._checked_status(bad, unchecked)
         pts = np.array(online.C).reshape(-1, 3) if online is not None else np.zeros((0, 3))
         okf = np.array(online.kf if online is not None else [], np.int64)
         return TrackResult(status, reason, odo.times_s, _frame_poses(odo, kf), odo.keyframes.copy(), kf,
                            np.stack(self.online_poses), self.recognitions, timings, use_map, odo, pts, okf,
-                           self.n_opt, unchecked_stretches=self.unchecked_stretches(),
-                           inconsistent_factors=self.inconsistent_factors() if self.g is not None else [])
+                           self.n_opt, unchecked_stretches=unchecked, inconsistent_factors=bad)
 
     def unchecked_stretches(self) -> list:
         """Runs of keyframes farther than ``unchecked_path_m`` of path from every check."""
@@ -676,9 +677,9 @@ class _State:
                             "chi2": float(x), "chi2_limit": limit, "residual_m": e})
         return out
 
-    def _checked_status(self) -> tuple[str, str]:
-        """``ok``, ``partial`` or ``inconsistent`` of a run with factors [see TrackParams]."""
-        bad = self.inconsistent_factors()
+    def _checked_status(self, bad: list, st: list) -> tuple[str, str]:
+        """``ok``, ``partial`` or ``inconsistent`` of a run with factors, from its inconsistent factors
+        ``bad`` and unchecked stretches ``st`` [see TrackParams]."""
         if bad:
             worst = max(bad, key=lambda b: b["chi2"])
             return "inconsistent", (
@@ -686,7 +687,6 @@ class _State:
                 f"(p {self.params.factor_test_probability:g}): worst keyframe {worst['keyframe']} "
                 f"(intersection {worst['intersection_id']}, residual {worst['residual_m']:.2f} m): a wrong "
                 "recognition or a runaway odometry; positions not trusted")
-        st = self.unchecked_stretches()
         if st:
             n = sum(s["last_keyframe"] - s["first_keyframe"] + 1 for s in st)
             long = max(st, key=lambda s: s["path_m"])
