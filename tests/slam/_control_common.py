@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo.io.stations import Stations
+from minegeo.kernels.lie import se3_exp, se3_inverse
 from minegeo.slam.control import interpolate_poses, station_points
 
 CRS = "EPSG:5186"
@@ -40,3 +41,19 @@ def stations(t, T, times, roles, rng, offset=OFFSET, sh=0.005, sv=0.01):
     st = Stations(ids=[f"S{i:02d}" for i in range(n)], t_start_s=times, t_end_s=times, enh_local=enh,
                   origin_enh=ORIGIN, sigma_h_m=np.full(n, sh), sigma_v_m=np.full(n, sv), roles=roles, crs=CRS)
     return st, true
+
+
+def biased_odometry(T, rng, sigma_rot, sigma_trans, scale=0.0, yaw_rate=0.0):
+    """Chain edges of the poses ``T``: ``Z = Z_true Exp(bias + noise)``, the bias (scale, yaw rate per m) not
+    in the information; ``(edges, Z, information, P)`` with ``P`` the poses chained from the first."""
+    k = T.shape[0]
+    sig = np.r_[np.full(3, sigma_rot), np.full(3, sigma_trans)]
+    Z = np.empty((k - 1, 4, 4))
+    for e in range(k - 1):
+        Zt = se3_inverse(T[e]) @ T[e + 1]
+        d = np.linalg.norm(Zt[:3, 3])
+        Z[e] = Zt @ se3_exp(np.r_[0.0, 0.0, yaw_rate * d, scale * Zt[:3, 3]] + rng.standard_normal(6) * sig)
+    P = np.tile(np.eye(4), (k, 1, 1))
+    for e in range(k - 1):
+        P[e + 1] = P[e] @ Z[e]
+    return np.c_[np.arange(k - 1), np.arange(1, k)], Z, np.tile(np.diag(sig**-2.0), (k - 1, 1, 1)), P

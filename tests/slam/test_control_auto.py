@@ -8,10 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _control_common import CRS, OFFSET, stations, truth
+from _control_common import CRS, OFFSET, biased_odometry, stations, truth
 from scipy import stats
 
-from minegeo.kernels.lie import se3_exp, se3_inverse
 from minegeo.optim import Values
 from minegeo.slam.control import (
     DRIFT_UNIT,
@@ -31,18 +30,10 @@ def _drive(n, dt, rng, scale=0.0, yaw_rate=0.0, sigma_rot=2e-5, sigma_trans=0.00
     stations on keyframe times: ``(t, P, edges, Z, info, Stations)``."""
     t, T = truth(n, 20.0)
     t = t * dt
-    sig = np.r_[np.full(3, sigma_rot), np.full(3, sigma_trans)] * np.sqrt(20.0)
-    Z = np.empty((n - 1, 4, 4))
-    for e in range(n - 1):
-        Zt = se3_inverse(T[e]) @ T[e + 1]
-        d = np.linalg.norm(Zt[:3, 3])
-        Z[e] = Zt @ se3_exp(np.r_[0.0, 0.0, yaw_rate * d, scale * Zt[:3, 3]] + rng.standard_normal(6) * sig)
-    P = np.tile(np.eye(4), (n, 1, 1))
-    for e in range(n - 1):
-        P[e + 1] = P[e] @ Z[e]
+    edges, Z, info, P = biased_odometry(T, rng, sigma_rot * np.sqrt(20.0), sigma_trans * np.sqrt(20.0), scale, yaw_rate)
     times = t[np.linspace(0, n - 1, 7).round().astype(int)]
     st, _ = stations(t, T, times, ROLES, rng)
-    return t, P, np.c_[np.arange(n - 1), np.arange(1, n)], Z, np.tile(np.diag(sig**-2.0), (n - 1, 1, 1)), st
+    return t, P, edges, Z, info, st
 
 
 def _dense_H_and_objective(groups, values, n, d=9):

@@ -4,9 +4,8 @@ least-squares twin, the automatic choice (C6), and their ellipses' calibration o
 from __future__ import annotations
 
 import numpy as np
-from _control_common import CHI2_2_95, CRS, OFFSET, stations, truth
+from _control_common import CHI2_2_95, CRS, OFFSET, biased_odometry, stations, truth
 
-from minegeo.kernels.lie import se3_exp, se3_inverse
 from minegeo.optim import Values
 from minegeo.slam.control import (
     ControlParams,
@@ -17,20 +16,7 @@ from minegeo.slam.control import (
     drift_states_needed,
 )
 
-
-def _odometry(T, rng, sigma_rot, sigma_trans, scale=0.0, yaw_rate=0.0):
-    """Chain edges; ``Z = Z_true Exp(bias + noise)``, the bias (scale, yaw rate per m) not in the information."""
-    k = T.shape[0]
-    sig = np.r_[np.full(3, sigma_rot), np.full(3, sigma_trans)]
-    Z = np.empty((k - 1, 4, 4))
-    for e in range(k - 1):
-        Zt = se3_inverse(T[e]) @ T[e + 1]
-        d = np.linalg.norm(Zt[:3, 3])
-        Z[e] = Zt @ se3_exp(np.r_[0.0, 0.0, yaw_rate * d, scale * Zt[:3, 3]] + rng.standard_normal(6) * sig)
-    P = np.tile(np.eye(4), (k, 1, 1))
-    for e in range(k - 1):
-        P[e + 1] = P[e] @ Z[e]
-    return np.c_[np.arange(k - 1), np.arange(1, k)], Z, np.tile(np.diag(sig**-2.0), (k - 1, 1, 1)), P
+_odometry = biased_odometry
 
 
 def test_drift_state_chi2_and_redundancy_equal_a_dense_least_squares_twin():
