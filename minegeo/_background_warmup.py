@@ -15,6 +15,11 @@ function yet. A kernel loaded from the copied cache is the same machine code the
 compiled from the same source (Numba checks the source file's stamp and the CPU in the index);
 results are bit-identical to compiling here.
 
+The child is two processes in their own process group: a supervisor and the worker that
+compiles. When the process that started them dies without merging, the supervisor kills the
+worker, waits for it, and only then removes the folder (removing it while the worker still writes
+cache files would leave it behind); :meth:`BackgroundWarmup.cancel` kills the whole group.
+
 Speed only: when the child cannot start, fails, or is not finished in time, this process simply
 compiles what it needs itself.
 """
@@ -27,6 +32,7 @@ import logging
 import os
 import pickle
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -95,8 +101,7 @@ class BackgroundWarmup:
             rc = self.proc.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
             rc = None
-            self.proc.kill()
-            self.proc.wait()
+            self._stop()
         waited = time.perf_counter() - t0
         copied = 0
         status = "ok"
@@ -111,18 +116,25 @@ class BackgroundWarmup:
                 status = f"cache not merged ({e}): kernels compiled here"
         if status != "ok":
             log.warning("background compilation: %s", status)
-        shutil.rmtree(self.folder, ignore_errors=True)
+        _remove(self.folder)
         self.record = {"modules": list(self.modules), "status": status,
                        "seconds": time.perf_counter() - self.t_start, "waited_s": waited,
                        "functions_copied": copied}
         return self.record
 
+    def _stop(self) -> None:
+        """Kill the child's process group (its supervisor and the compiling worker, see :func:`_main`)."""
+        if self.proc.poll() is None:
+            try:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+            except (AttributeError, ProcessLookupError, PermissionError):  # no process groups here
+                self.proc.kill()
+            self.proc.wait()
+
     def cancel(self) -> None:
         """Stop the child (if running) and remove its folder, without merging."""
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
-        shutil.rmtree(self.folder, ignore_errors=True)
+        self._stop()
+        _remove(self.folder)
         if not self.record:
             self.record = {"modules": list(self.modules), "status": "cancelled",
                            "seconds": time.perf_counter() - self.t_start, "waited_s": 0.0, "functions_copied": 0}
@@ -172,7 +184,7 @@ def launch(modules) -> BackgroundWarmup | None:
     cmd = [sys.executable, "-m", "minegeo._background_warmup", str(folder), *modules]
     try:
         proc = subprocess.Popen(cmd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL)
+                                stderr=subprocess.DEVNULL, start_new_session=True)
     except OSError as e:
         log.info("background compilation not started: %s", e)
         shutil.rmtree(folder, ignore_errors=True)
@@ -228,30 +240,69 @@ def _merge_caches(folder: Path) -> int:
     return copied
 
 
-def _watch_parent(folder: Path, parent: int, poll_s: float = 0.5) -> None:
-    """Child: when the process that started this one is gone (nobody will merge), remove the folder
-    and exit at once."""
+def _remove(folder: Path) -> None:
+    """Remove ``folder`` (a process that was writing into it is already dead; retried once for a
+    file its last system call completed after the first pass)."""
+    shutil.rmtree(folder, ignore_errors=True)
+    if folder.exists():
+        time.sleep(0.2)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _exit_when_orphaned(parent: int, poll_s: float = 0.5) -> None:
+    """Worker thread: when the supervisor is gone, exit at once (whoever stopped it removes the folder)."""
     while True:
         time.sleep(poll_s)
         if os.getppid() != parent:
-            shutil.rmtree(folder, ignore_errors=True)
             os._exit(0)
 
 
-def _main(argv: list[str]) -> int:
-    """Child: ``python -m minegeo._background_warmup FOLDER MODULE...``."""
+def _work(folder: Path, modules: list[str]) -> int:
+    """Worker: compile ``modules`` into this process's cache, then write ``folder/manifest.json``."""
     import threading
 
-    folder = Path(argv[0])
-    threading.Thread(target=_watch_parent, args=(folder, os.getppid()), daemon=True).start()
+    threading.Thread(target=_exit_when_orphaned, args=(os.getppid(),), daemon=True).start()
     import minegeo
 
-    minegeo.warmup(modules=argv[1:])
+    minegeo.warmup(modules=modules)
     manifest = {name: cache_path_of(name) for name in _kernel_modules()}
     tmp = folder / f"{MANIFEST}.tmp"
     tmp.write_text(json.dumps(manifest, indent=1))
     os.replace(tmp, folder / MANIFEST)
     return 0
+
+
+def _supervise(folder: Path, modules: list[str], poll_s: float = 0.25, worker_argv=None) -> int:
+    """Supervisor: run the worker; when the process that started this one is gone (nobody will
+    merge), kill the worker, wait for it, *then* remove the folder.
+
+    The folder is removed only after the worker is dead: a worker still compiling would write new
+    cache files into it while it is being removed and leave it behind."""
+    parent = os.getppid()
+    if worker_argv is None:  # (a test passes another worker)
+        worker_argv = [sys.executable, "-m", "minegeo._background_warmup", "--work", str(folder), *modules]
+    worker = subprocess.Popen(worker_argv, stdin=subprocess.DEVNULL)
+    while True:
+        try:
+            rc = worker.wait(timeout=poll_s)
+        except subprocess.TimeoutExpired:
+            rc = None
+        if os.getppid() != parent:
+            if rc is None:
+                worker.kill()
+                worker.wait()
+            _remove(folder)
+            return 0
+        if rc is not None:
+            return rc
+
+
+def _main(argv: list[str]) -> int:
+    """``python -m minegeo._background_warmup FOLDER MODULE...`` (the supervisor) or
+    ``... --work FOLDER MODULE...`` (the worker it starts)."""
+    if argv[0] == "--work":
+        return _work(Path(argv[1]), argv[2:])
+    return _supervise(Path(argv[0]), argv[1:])
 
 
 if __name__ == "__main__":

@@ -126,16 +126,25 @@ def test_the_child_stops_and_cleans_up_when_its_parent_dies(tmp_path):
         env=env, stdout=subprocess.PIPE, text=True)
     folder, pid = parent.stdout.readline().split()
     assert os.path.isdir(folder)
-    time.sleep(2.0)  # the child is compiling (localize takes ~45 s)
+    worker = ""
+    for _ in range(200):  # the supervisor starts the compiling worker at once
+        worker = open(f"/proc/{pid}/task/{pid}/children").read().split()
+        if worker:
+            break
+        time.sleep(0.05)
+    assert len(worker) == 1
+    time.sleep(2.0)  # the worker is compiling (localize takes ~45 s)
     parent.send_signal(signal.SIGKILL)
     parent.wait()
-    for _ in range(480):  # up to 120 s, a hang guard: the child notices between two kernels (slow on a busy machine)
-        if not os.path.exists(f"/proc/{pid}") and not os.path.isdir(folder):
+
+    def state(p):  # a zombie is reaped by init; /proc/PID of a zombie still exists briefly
+        return open(f"/proc/{p}/stat").read().split()[2] if os.path.exists(f"/proc/{p}") else "gone"
+
+    for _ in range(480):  # up to 120 s, a hang guard (the supervisor polls every 0.25 s)
+        if state(pid) in ("gone", "Z") and state(worker[0]) in ("gone", "Z") and not os.path.isdir(folder):
             break
         time.sleep(0.25)
-    # a zombie child of the killed parent is reaped by init; /proc/PID of a zombie still exists briefly
-    state = open(f"/proc/{pid}/stat").read().split()[2] if os.path.exists(f"/proc/{pid}") else "gone"
-    assert state in ("gone", "Z") and not os.path.isdir(folder)
+    assert state(pid) in ("gone", "Z") and state(worker[0]) in ("gone", "Z") and not os.path.isdir(folder)
 
 
 def test_warmup_verb_takes_modules(capsys):
@@ -153,3 +162,51 @@ def test_nothing_starts_on_one_cpu_core(monkeypatch):
     assert "one CPU core" in BW.reason_not_to_start()
     assert BW.start(["minegeo.mast"]) is None
 
+
+
+WRITER = textwrap.dedent("""
+    import os, sys, time
+    cache = os.path.join(sys.argv[1], "cache")
+    i = 0
+    while True:  # like Numba: (re)creates its cache folder and writes files into it, without pause
+        try:
+            os.makedirs(cache, exist_ok=True)
+            with open(os.path.join(cache, f"f{i % 50}.nbc"), "wb") as f:
+                f.write(b"x" * 4096)
+        except OSError:
+            pass
+        i += 1
+""")
+
+
+def test_the_folder_is_removed_after_the_writing_worker_is_dead(tmp_path):
+    # the supervisor of a dead parent kills a worker that never stops writing into the folder, then removes it
+    import signal
+    import time
+
+    folder = tmp_path / "warm"
+    folder.mkdir()
+    sup = (f"import sys; from pathlib import Path; from minegeo._background_warmup import _supervise; "
+           f"_supervise(Path({str(folder)!r}), [], worker_argv=[sys.executable, '-c', {WRITER!r}, {str(folder)!r}])")
+    parent = subprocess.Popen(
+        [sys.executable, "-c", f"import subprocess, sys, time; p = subprocess.Popen([sys.executable, '-c', {sup!r}]); "
+         "print(p.pid, flush=True); time.sleep(120)"], stdout=subprocess.PIPE, text=True)
+    pid = parent.stdout.readline().strip()
+    for _ in range(400):
+        if (folder / "cache").is_dir() and len(list((folder / "cache").iterdir())) >= 10:
+            break
+        time.sleep(0.05)
+    worker = open(f"/proc/{pid}/task/{pid}/children").read().split()
+    assert len(worker) == 1
+    parent.send_signal(signal.SIGKILL)
+    parent.wait()
+
+    def state(p):
+        return open(f"/proc/{p}/stat").read().split()[2] if os.path.exists(f"/proc/{p}") else "gone"
+
+    for _ in range(240):  # up to 60 s, a hang guard
+        if state(pid) in ("gone", "Z") and state(worker[0]) in ("gone", "Z"):
+            break
+        time.sleep(0.25)
+    time.sleep(0.5)  # a writer left alive would have recreated the folder by now
+    assert state(pid) in ("gone", "Z") and state(worker[0]) in ("gone", "Z") and not folder.exists()
