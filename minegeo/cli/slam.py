@@ -78,8 +78,10 @@ def add_arguments(parser) -> None:
     g.add_argument("--crs", default=None, help="CRS of the stations, e.g. EPSG:5186 (default: the file's '# crs:' line)")
     g.add_argument("--station-offset", nargs=3, type=finite_float, default=None, metavar=("X", "Y", "Z"),
                    help="surveyed point in the sensor frame (m, default 0 0 0)")
-    g.add_argument("--control-mode", choices=("rigid", "graph"), default=None,
-                   help="graph (default): position factors in the pose graph; rigid: one rigid fit after SLAM")
+    g.add_argument("--control-mode", choices=("rigid", "similarity", "graph"), default=None,
+                   help="graph (default): position factors in the pose graph; rigid: one rigid fit (6 parameters) "
+                   "after SLAM; similarity: one 7-parameter fit after SLAM, the scale estimated with its sigma "
+                   "(needs 3 control stations not on one line; no drift states)")
     g.add_argument("--dxf", default=None, metavar="FILE.dxf",
                    help="also draw the stations (control and check on separate layers), their residual vectors and "
                    "95 %% ellipses (exaggerated) and the trajectory, in the CRS, into this DXF")
@@ -146,14 +148,14 @@ def _check_options(args) -> None:
 
 def _check_drift_options(args) -> None:
     """The drift-state options' combinations (``InputError``): drift states are graph-mode variables, so
-    ``--drift-states on|auto`` contradicts ``--control-mode rigid``; ``--drift-walk``/``--drift-prior``
+    ``--drift-states on|auto`` contradicts ``--control-mode rigid`` and ``similarity``; ``--drift-walk``/``--drift-prior``
     shape drift states, so they need ``--drift-states on`` or ``auto``."""
     from minegeo.errors import InputError
 
-    ds = getattr(args, "drift_states", None)
-    if ds in ("on", "auto") and getattr(args, "control_mode", None) == "rigid":
-        raise InputError(f"--drift-states {ds} contradicts --control-mode rigid (drift states are variables of the "
-                         "pose graph; a rigid fit has none): use --control-mode graph, or leave --drift-states out")
+    ds, mode = getattr(args, "drift_states", None), getattr(args, "control_mode", None)
+    if ds in ("on", "auto") and mode in ("rigid", "similarity"):
+        raise InputError(f"--drift-states {ds} contradicts --control-mode {mode} (drift states are variables of the "
+                         f"pose graph; a {mode} fit has none): use --control-mode graph, or leave --drift-states out")
     for opt, name in (("drift_walk", "--drift-walk"), ("drift_prior", "--drift-prior")):
         if getattr(args, opt, None) is not None and ds not in ("on", "auto"):
             raise InputError(f"{name} needs --drift-states on or auto (it shapes the drift states"
@@ -162,12 +164,13 @@ def _check_drift_options(args) -> None:
 
 def control_params(args, mode: str):
     """:class:`~minegeo.slam.control.ControlParams` of the survey-control options (``mode`` from
-    ``--control-mode``, default graph): drift states off/on/auto → False/True/"auto", their walk and
+    ``--control-mode``, default graph; ``similarity`` is rigid mode with the 7-parameter model): drift states off/on/auto → False/True/"auto", their walk and
     prior (library defaults when not given), the class constant c (mm, default 50 = Class D)."""
     from minegeo.slam.control import ControlParams
 
     ds = {None: False, "off": False, "on": True, "auto": "auto"}[getattr(args, "drift_states", None)]
-    kw = {"mode": mode, "drift_states": ds}
+    kw = {"mode": "rigid", "model": "similarity"} if mode == "similarity" else {"mode": mode}
+    kw["drift_states"] = ds
     if getattr(args, "drift_walk", None) is not None:
         kw["drift_walk"] = tuple(float(v) for v in args.drift_walk)
     if getattr(args, "drift_prior", None) is not None:
@@ -314,6 +317,9 @@ def _read_control(args):
     if n_ctrl < 3:
         raise InputError(f"--control {args.control}: {n_ctrl} control station(s); the {mode} mode needs at least 3 "
                          "not on one line (make more stations control, or add stations)")
+    from minegeo.slam.control import check_control_geometry
+
+    check_control_geometry(st, mode, f"--control {args.control}: ")
     return st, offset, crs, mode
 
 
@@ -377,8 +383,11 @@ def _write_map_crs(stage: Path, res, c, graph, st, offset, crs, mode) -> dict:
 
     kt, kP, var_map = graph
     o = c.origin_enh
-    C = c.poses @ np.linalg.inv(var_map)
-    local = _map_corrected(np.asarray(res.map_points, dtype=np.float64), var_map[:, :3, 3], C)
+    if c.similarity:  # one similarity for every point: s R p + T
+        local = np.asarray(res.map_points, dtype=np.float64) @ c.T_local_map[:3, :3].T + c.T_local_map[:3, 3]
+    else:
+        C = c.poses @ np.linalg.inv(var_map)
+        local = _map_corrected(np.asarray(res.map_points, dtype=np.float64), var_map[:, :3, 3], C)
     ctrl = st.is_control
     pts_map = station_points(interpolate_poses(kt, kP, st.t_mid_s), offset)
     sig = np.c_[st.sigma_h_m, st.sigma_h_m, st.sigma_v_m][ctrl]
@@ -388,16 +397,17 @@ def _write_map_crs(stage: Path, res, c, graph, st, offset, crs, mode) -> dict:
     try:
         fit = georeference(ControlPoints(ids=[i for i, k in zip(st.ids, ctrl, strict=True) if k], local_xyz=pts_map[ctrl],
                                          crs_enh=st.enh[ctrl], sigma_enh_m=sig, crs=crs),
-                           crs, GeorefParams(model="rigid", max_sigma0=1e12))
+                           crs, GeorefParams(model="similarity" if c.similarity else "rigid", max_sigma0=1e12))
     finally:
         glog.setLevel(level)
     geo = local + (o - np.asarray(fit.origin, dtype=np.float64))
     write_georeferenced_map(stage / "map_crs.ply", PointCloud(points=np.ascontiguousarray(geo), origin=fit.origin,
                                                               crs=crs, frame="geo"), fit,
                             extra={"slam_control": {
-                                "mode": mode, "points": "each map point moved by the correction of the graph variable "
-                                "nearest to it (graph mode: non-rigid; T_crs_map is the rigid fit of the control "
-                                "stations, for reference)"}})
+                                "mode": mode, "points": "p_crs = T_crs_map p_map (the similarity fit of the control "
+                                "stations)" if c.similarity else "each map point moved by the correction of the graph "
+                                "variable nearest to it (graph mode: non-rigid; T_crs_map is the rigid fit of the "
+                                "control stations, for reference)"}})
     return _write_map_las(stage, PointCloud(points=np.ascontiguousarray(geo), origin=fit.origin, crs=crs,
                                             frame="geo"), fit, extra={"slam_control": {"mode": mode, "points": "as map_crs.ply"}})
 
@@ -469,7 +479,7 @@ def _control_outputs(stage: Path, res, ctrl_in, params, dxf_path: Path | None = 
 
 def _control_parameters(p) -> dict:
     """``parameters.control`` of result.json: the :class:`~minegeo.slam.control.ControlParams` the run used."""
-    return {"mode": p.mode, "drift_states": {False: "off", True: "on", "auto": "auto"}[p.drift_states],
+    return {"mode": "similarity" if p.model == "similarity" else p.mode, "drift_states": {False: "off", True: "on", "auto": "auto"}[p.drift_states],
             "drift_walk_per_sqrt_s": [float(v) for v in p.drift_walk], "drift_prior": [float(v) for v in p.drift_prior],
             "class_constant_mm": float(p.class_c), "snooping": bool(p.snooping)}
 
@@ -511,6 +521,11 @@ def control_record(c, st, offset, crs, mode) -> dict:
         "station_covariance_enh_m2": None if c.station_cov_enh is None else {
             sid: np.asarray(c.station_cov_enh[i]).tolist() for i, sid in enumerate(st.ids)},
     }
+    if c.similarity:
+        rec["scale"] = {"scale": float(c.scale), "scale_ppm": float((c.scale - 1.0) * 1e6),
+                        "sigma_ppm": float(c.scale_std * 1e6), "sigma": "a posteriori (scaled by sigma0)",
+                        "dof": int(chi.dof), "T_local_map": np.asarray(c.T_local_map).tolist(),
+                        "definition": "p_local = T_local_map p_map = s R p_map + T; E N H = p_local + origin_enh"}
     return rec
 
 
@@ -648,7 +663,8 @@ def _print_summary(summary: dict, out: Path, args, skipped: list, imu, control_r
         chk = c["check"]
         print(f"control ({c['mode']}, {c['crs']}): {c['status']}{': ' + c['reason'] if c['reason'] else ''}"
               + ("" if chk is None else f"; check RMSE h {chk['rmse_horizontal_m']:.3f} m, v "
-                                        f"{chk['rmse_vertical_m']:.3f} m"))
+                                        f"{chk['rmse_vertical_m']:.3f} m")
+              + (f"; scale {c['scale']['scale_ppm']:+.1f} +- {c['scale']['sigma_ppm']:.1f} ppm" if "scale" in c else ""))
         if c["drift_states_choice"] is not None:
             ch = c["drift_states_choice"]
             print(f"drift states (auto): {'taken' if ch['chosen'] else 'not taken'} (likelihood ratio "

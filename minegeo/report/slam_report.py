@@ -319,6 +319,8 @@ def control_html(rec: dict, png: bytes | None) -> str:
         ("mode", rec["mode"]), ("status", f"{rec['status']} {rec['reason']}".strip()), ("CRS", rec["crs"]),
         ("origin E N H (m)", " ".join(f"{v:.0f}" for v in rec["origin_enh"])),
         ("station offset (sensor frame, m)", " ".join(f"{v:g}" for v in rec["station_offset_m"])),
+        *([("scale (similarity)", f"{rec['scale']['scale_ppm']:+.1f} ± {rec['scale']['sigma_ppm']:.1f} ppm "
+                                  f"(σ {rec['scale']['sigma']})")] if "scale" in rec else []),
         ("σ0", "—" if rec["sigma0"] is None else f"{rec['sigma0']:.3f}"),
         ("χ² test", f"{chi['verdict']}: {chi['statistic']:.3f}, dof {chi['dof']}, "
                     f"[{chi['lower']:.3f}, {chi['upper']:.3f}]"),

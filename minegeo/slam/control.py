@@ -16,8 +16,15 @@ bracketing poses ``T_0``, ``T_1`` (times ``t_0 ≤ t_k ≤ t_1``): ``T = T_0 Exp
 
 Modes
 -----
-``rigid``: :func:`minegeo.georef.georeference` fits ``T_local_map`` (rigid, or 7-parameter) to
-the control stations' points (C1) and their ``E N H``; every pose becomes ``T_local_map T``.
+``rigid``: :func:`minegeo.georef.georeference` fits ``T_local_map`` to the control stations' points
+(C1) and their ``E N H``, with ``ControlParams.model``:
+
+* ``"rigid"`` (6 parameters, ``s = 1``): every pose becomes ``T_local_map T``;
+* ``"similarity"`` (7 parameters, ``T_local_map = [[s R, T], [0, 1]]``, the scale ``s`` estimated
+  with its standard deviation, a posteriori: scaled by σ̂0): every point (pose position, station,
+  map point) becomes ``p_local = s R p_map + T`` and every pose's rotation ``R R_map``. The scale takes
+  out a constant odometry scale error and the grid's combined scale factor together (``s − 1`` in
+  ppm in the result); it cannot take out a drift that grows along the traverse.
 
 ``graph``: every station (control and check) gets a pose variable at its time ``t_k`` in the
 keyframe graph: the odometry edge ``(a, b)`` of the keyframes bracketing ``t_k`` (consecutive,
@@ -86,7 +93,8 @@ Control residuals ``v_k = p_k − p̄_k`` (adjusted minus observed); their cofac
 ``Qvv_k = Σll_k − J Σ_kk Jᵀ`` (exact per station, cross-station blocks not formed: the w-tests of
 a diagonal ``P`` need only the diagonal); redundancy ``r = 6·(edges) + 3·(controls) − 6·(variables)``
 (graph; with drift states ``− 3 + Σ_i tr(Σ_βi Ω_p)/n`` and the prior's terms left out of ``vᵀPv``,
-C5, see :func:`_solve_graph`) or ``3·controls − 6`` (``−7`` similarity) (rigid). σ̂0² and the χ² test are those of the
+C5, see :func:`_solve_graph`) or ``3·controls − 6`` (rigid model) and ``3·controls − 7``
+(similarity model) in rigid mode. σ̂0² and the χ² test are those of the
 whole adjustment, ``vᵀPv = 2F`` (every factor of the graph; the control residuals only in rigid
 mode). Check stations: errors and RMSE (CS4), class test against the nearest control (CS5), with
 the 95 % relative ellipse when covariances are known, misclosure ratio ``1:N`` (CS6) with ``L`` the
@@ -118,10 +126,16 @@ from minegeo.slam.control_factors import (  # the factors and covariances, re-ex
     selected_inverse,
     station_points,
 )
-from minegeo.slam.control_graph import _insert_stations, graph_inputs, interpolate_poses
+from minegeo.slam.control_graph import (
+    _insert_stations,
+    check_control_geometry,
+    graph_inputs,
+    interpolate_poses,
+)
 
 __all__ = ["ControlParams", "ControlResult", "DriftBetweenFactors", "DriftWalkFactors", "PositionFactors",
-           "apply_control", "check_station_frames", "drift_states_needed", "drift_states_test", "graph_inputs",
+           "apply_control", "check_control_geometry", "check_station_frames", "drift_states_needed",
+           "drift_states_test", "graph_inputs",
            "interpolate_poses", "marginal_covariances", "selected_inverse", "station_points"]
 
 log = logging.getLogger(__name__)
@@ -201,7 +215,8 @@ class ControlParams:
     ----------
     mode : {"rigid", "graph"}
     model : {"rigid", "similarity"}
-        The fit of ``rigid`` mode (``graph`` mode starts from a rigid fit).
+        The fit of ``rigid`` mode: 6 parameters, or 7 with the scale estimated (``graph`` mode
+        starts from a rigid placement; a similarity with drift states is refused).
     class_c : float
         ICSM SP1 class constant (mm), 50 = Class D.
     lm : LMParams
@@ -242,6 +257,11 @@ class ControlParams:
             raise InputError(f"drift_states must be True, False or 'auto', got {self.drift_states!r}")
         if self.model not in ("rigid", "similarity"):
             raise InputError(f"control fit model must be 'rigid' or 'similarity', got {self.model!r}")
+        if self.model == "similarity" and self.mode != "rigid":
+            raise InputError("the similarity model is a fit after SLAM (mode 'rigid'); the graph mode has no scale")
+        if self.mode == "rigid" and self.drift_states is not False:
+            raise InputError(f"drift_states {self.drift_states!r} needs the graph mode (drift states are variables of "
+                             f"the pose graph; a {self.model} fit has none)")
         if not (np.isfinite(self.class_c) and self.class_c > 0):
             raise InputError(f"the class constant must be a positive number of mm, got {self.class_c!r}")
         for name in ("drift_walk", "drift_prior"):
@@ -274,7 +294,8 @@ class ControlResult:
     covariances : (k, 6, 6) or None
         Marginal covariance of every variable (rotation first; rad², m²).
     T_local_map : (4, 4)
-        The rigid (or similarity) fit of the control stations.
+        The rigid (or similarity: top-left block ``s R``) fit of the control stations (graph mode:
+        the starting placement).
     stats, check, classes : ControlStatistics, CheckErrors or None, ClassTest or None
     global_chi2 : Chi2Test
     misclosure_ratio : (n_check,)
@@ -304,6 +325,11 @@ class ControlResult:
         "auto" only: the test of C6 (:func:`drift_states_test`): ``statistic`` Δ, ``dof`` f,
         ``critical`` χ²_f(1 − α), ``alpha``, ``p_value``, ``sigma0_without``/``sigma0_with`` and
         ``chosen``; also stated in :attr:`keyframe_note`.
+    model : {"rigid", "similarity"}
+        The fit of rigid mode (``ControlParams.model``; "rigid" in graph mode).
+    scale, scale_std : float
+        Similarity model: the estimated map-to-CRS scale ``s`` and its a-posteriori standard
+        deviation (σ̂0-scaled, :attr:`minegeo.georef.GeorefResult.scale_std`); 1 and 0 otherwise.
     """
 
     mode: str
@@ -332,15 +358,35 @@ class ControlResult:
     drift_parameters: float = float("nan")
     uncertainty_note: str = ""
     drift_choice: dict | None = None
+    model: str = "rigid"
+    scale: float = 1.0
+    scale_std: float = 0.0
+
+    @property
+    def similarity(self) -> bool:
+        """The result of a 7-parameter fit after SLAM (rigid mode, similarity model)."""
+        return self.mode == "rigid" and self.model == "similarity"
 
     def transform(self, times_s: np.ndarray, poses_map: np.ndarray, graph_times_s: np.ndarray,
                   graph_poses_map: np.ndarray) -> np.ndarray:
         """Frames (times, ``T_map_sensor``) into the local CRS frame: each frame's correction
         ``C = T_local_var T_map_var⁻¹`` interpolated on SE(3) between the two bracketing graph variables
-        (``graph_*`` the variables' map poses before the correction, in :attr:`times_s` order)."""
+        (``graph_*`` the variables' map poses before the correction, in :attr:`times_s` order). The
+        similarity (:attr:`similarity`) applies exactly: position ``s R t + T``, rotation ``R R_map``."""
+        if self.similarity:
+            return self.apply_similarity(poses_map)
         C = self.poses @ np.stack([se3_inverse(T) for T in graph_poses_map])
         t = np.clip(np.asarray(times_s, dtype=np.float64), graph_times_s[0], graph_times_s[-1])
         return interpolate_poses(graph_times_s, C, t) @ poses_map
+
+    def apply_similarity(self, poses_map: np.ndarray) -> np.ndarray:
+        """Poses ``T_map_sensor`` (k, 4, 4) into the local CRS frame by :attr:`T_local_map` ``= [[s R, T],
+        [0, 1]]``: position ``s R t + T`` (the scale on the points), rotation ``R R_map`` (a rotation)."""
+        P = np.array(poses_map, dtype=np.float64, copy=True)
+        sR = self.T_local_map[:3, :3]
+        P[:, :3, :3] = (sR / np.cbrt(np.linalg.det(sR))) @ P[:, :3, :3]
+        P[:, :3, 3] = P[:, :3, 3] @ sR.T + self.T_local_map[:3, 3]
+        return P
 
 
 def _rigid_fit(points_map, stations, crs, model, start_only: bool = False):
@@ -517,6 +563,7 @@ def _check_control_inputs(times_s, stations, crs, mode: str) -> None:
     if n_ctrl < 3:
         raise InputError(f"{n_ctrl} control station(s): the {mode} mode needs at least 3 not on one line "
                          "(make more stations control, or add stations)")
+    check_control_geometry(stations, mode)
     # the pose is taken at the middle time: it must lie on the graph (graph_inputs(res, t_mid) puts a
     # variable there); the whole still span is checked against the frames by the caller
     out_mid = np.flatnonzero((stations.t_mid_s < times_s[0]) | (stations.t_mid_s > times_s[-1]))
@@ -588,7 +635,7 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
     times_s = np.asarray(times_s, dtype=np.float64)
     poses = np.ascontiguousarray(poses, dtype=np.float64)
     offset = np.asarray(offset, dtype=np.float64).reshape(3)
-    _check_control_inputs(times_s, stations, crs, p.mode)
+    _check_control_inputs(times_s, stations, crs, "similarity" if p.model == "similarity" else p.mode)
     n_ctrl = int(stations.is_control.sum())
     t_st = stations.t_mid_s
     ctrl, chk = stations.is_control, stations.is_check
@@ -596,12 +643,17 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
     if p.mode == "graph":  # only the graph's starting point: closed form, it cannot fail to converge
         T_lm = _start_placement(pts_map, stations)
     else:
-        T_lm, _ = _rigid_fit(pts_map, stations, crs, p.model)
+        T_lm, fit = _rigid_fit(pts_map, stations, crs, p.model)
     cov_ll = stations.covariance()
     ids = np.array(stations.ids, dtype=object)
     status, reason, opt, covs, st_cov, ellipses = "ok", "", None, None, None, []
     use_drift, drift_choice, objective, drift_par = False, None, float("nan"), float("nan")
+    scale, scale_std = 1.0, 0.0
     if p.mode == "rigid":
+        if fit.status == "failed":  # unit mismatch, mirror image: the fit must not place the map
+            status, reason = "failed", f"the {p.model} fit of the control stations failed: {fit.reason}"
+        if p.model == "similarity":
+            scale, scale_std = float(fit.scale), float(fit.scale_std)
         s_fit = np.cbrt(np.linalg.det(T_lm[:3, :3]))
         Rt = T_lm.copy()
         Rt[:3, :3] /= s_fit  # poses keep a rotation; the points carry the scale
@@ -613,7 +665,8 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
         stats = control_statistics(v, cov_ll[ctrl], dof=dof, ids=ids[ctrl])
         gchi = stats.chi2
         var = np.full(len(stations), -1, dtype=np.int64)
-        note = "rigid fit: station poses interpolated on SE(3) between keyframes"
+        note = ("rigid fit" if p.model == "rigid" else "similarity fit (7 parameters, scale estimated)") + \
+            ": station poses interpolated on SE(3) between keyframes"
     else:
         G_times, G_poses0, G_edges, G_Z, G_info, var, n_new = _insert_stations(
             times_s, poses, np.asarray(edges, np.int64).reshape(-1, 2), np.asarray(Z, np.float64),
@@ -657,7 +710,7 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
         (times_s, poses, edges, Z, information), stations, offset, crs, p, stats.flagged_ids)
     if status == "ok" and (gchi.passed is False or stats.flagged):
         status, reason = "warning", _warning_reason(gchi, stats, snoop)
-    log.info("control (%s): %s %s", p.mode, status, reason)
+    log.info("control (%s): %s %s", p.mode if p.mode == "graph" else f"{p.model} fit", status, reason)
     return ControlResult(mode=p.mode, status=status, reason=reason, origin_enh=stations.origin_enh.copy(),
                          times_s=G_times, poses=G_poses, station_var=var, station_enh_local=pts,
                          station_cov_enh=st_cov, covariances=covs, T_local_map=T_lm, stats=stats, check=check,
@@ -665,7 +718,8 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
                          keyframe_note=note, optimisation=opt, blunders=snoop[0], unresolved=snoop[1],
                          drift_states=use_drift, objective=objective, drift_parameters=drift_par,
                          uncertainty_note="" if p.mode == "rigid" else UNCERTAINTY_NOTES[p.drift_states],
-                         drift_choice=drift_choice)
+                         drift_choice=drift_choice, model=p.model if p.mode == "rigid" else "rigid", scale=scale,
+                         scale_std=scale_std)
 
 
 def _data_snooping(graph, stations, offset, crs, p: ControlParams, flagged_ids) -> tuple:

@@ -1,5 +1,6 @@
 """The SLAM keyframe graph as the control adjustment's input (:mod:`minegeo.slam.control`): the keyframe
-poses, edges and information of a SLAM result, with a variable inserted at every station time."""
+poses, edges and information of a SLAM result, with a variable inserted at every station time; the
+control stations' geometry checked before any work."""
 
 from __future__ import annotations
 
@@ -35,6 +36,44 @@ def interpolate_poses(times_s: np.ndarray, poses: np.ndarray, t: np.ndarray) -> 
         s = (tq - times_s[a]) / (times_s[a + 1] - times_s[a])
         out[q] = poses[a] @ se3_exp(s * se3_log(se3_inverse(poses[a]) @ poses[a + 1]))
     return out
+
+
+#: control stations all within this many times their largest stated standard deviation of their
+#: best-fitting straight line lie "on one line": the rotation about the line is then determined to no
+#: better than σ/(3σ) ≈ 0.3 rad, no georeference (:func:`check_control_geometry`)
+LINE_SIGMAS = 3.0
+
+
+def check_control_geometry(stations, mode: str, where: str = "") -> None:
+    """Refuse control stations on one straight line (``InputError``; before any work).
+
+    With ``X_k`` the control stations' ``E N H`` (local, m) and ``u`` the direction of their best-fitting
+    line (first right singular vector of the centred ``X``), the distance of each from the line is
+    ``d_k = |(X_k − X̄) − ((X_k − X̄)·u) u|``; the stations lie on one line when
+    ``max_k d_k ≤ LINE_SIGMAS · max(σ_h, σ_v)``: a rotation of the map about that line moves no control
+    station by more than its own noise, so no mode (rigid, similarity or graph) determines it.
+
+    Parameters
+    ----------
+    stations : minegeo.io.stations.Stations
+        With at least one control station (the count is checked by the caller).
+    mode : str
+        The mode named in the message.
+    where : str
+        Prefix of the message (``"--control FILE: "``).
+    """
+    c = np.asarray(stations.is_control, dtype=bool)
+    X = np.asarray(stations.enh_local, dtype=np.float64)[c]
+    Xc = X - X.mean(axis=0)
+    u = np.linalg.svd(Xc, full_matrices=False)[2][0]
+    off = float(np.max(np.linalg.norm(Xc - np.outer(Xc @ u, u), axis=1)))
+    sig = float(max(np.max(np.asarray(stations.sigma_h_m)[c]), np.max(np.asarray(stations.sigma_v_m)[c])))
+    if off <= LINE_SIGMAS * sig:
+        ids = ", ".join(str(i) for i, k in zip(stations.ids, c, strict=True) if k)
+        raise InputError(f"{where}the {int(c.sum())} control stations ({ids}) lie on one straight line (at most "
+                         f"{off:.3f} m from it, within {LINE_SIGMAS:g} x their sigma {sig:.3f} m): the rotation about "
+                         f"that line is not determined; the {mode} mode needs at least 3 not on one line (make a "
+                         "station off the line control, or add one)")
 
 
 def graph_inputs(slam_result, station_times_s=None) -> tuple:

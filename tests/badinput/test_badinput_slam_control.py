@@ -1,8 +1,10 @@
 """``minegeo slam --control STATIONS.csv`` (issue 30, bad input of the acceptance): a station outside the
 run's time span, a station in a gap of the trajectory, fewer control stations than a mode needs,
-duplicated ids, a CRS that is not projected, ``--dxf`` without ``--control`` (and the other DXF option
-mistakes), the drift-state and class-constant options out of range, contradicting ``--control-mode rigid``
-or without ``--control``: each one error line, exit 2, nothing written, inputs unchanged (tests/badinput/_contract.py).
+control stations on one line, duplicated ids, a CRS that is not projected, ``--dxf`` without
+``--control`` (and the other DXF option mistakes), the drift-state and class-constant options out of
+range, contradicting ``--control-mode rigid`` or ``similarity`` (fits after SLAM, without drift states)
+or without ``--control``: each one error line, exit 2, nothing written, inputs unchanged
+(tests/badinput/_contract.py).
 
 The frames are small (600 points on the walls of a room each) at 0.1 s, with a 1.7 s gap between
 0.3 and 2.0 s. Every case but the last is refused before the odometry; the last (frames skipped as
@@ -70,6 +72,18 @@ CASES = {
                                "2 control station(s); the graph mode needs at least 3"),
     "too_few_controls_rigid": (_sub(2, ",control", ",check"), "EPSG:5186", ["--control-mode", "rigid"],
                                "2 control station(s); the rigid mode needs at least 3"),
+    "too_few_controls_similarity": (_sub(2, ",control", ",check"), "EPSG:5186", ["--control-mode", "similarity"],
+                                    "2 control station(s); the similarity mode needs at least 3"),
+    # S4 moved onto the line through S1 and S3 (S1 + 2 (S3 - S1)), 3 mm off it: within 3 sigma
+    "collinear_controls_similarity": (_sub(3, "201349.004,551205.771,86.100", "201350.899,551202.095,84.798"),
+                                      "EPSG:5186", ["--control-mode", "similarity"],
+                                      "the 3 control stations (S1, S3, S4) lie on one straight line (at most 0.00"),
+    "collinear_controls_graph": (_sub(3, "201349.004,551205.771,86.100", "201350.896,551202.095,84.798"),
+                                 "EPSG:5186", [], "lie on one straight line (at most 0.000 m from it, within 3 x their "
+                                 "sigma 0.010 m): the rotation about that line is not determined; the graph mode"),
+    "control_mode_unknown": (ROWS, "EPSG:5186", ["--control-mode", "helmert"],
+                             "argument --control-mode: invalid choice: 'helmert' (choose from 'rigid', 'similarity', "
+                             "'graph')"),
     "duplicated_id": (_sub(2, "S3,", "S1,"), "EPSG:5186", [], "line 5: duplicate id 'S1' (first on line 3)"),
     "geographic_crs_in_file": (ROWS, "EPSG:4326", [], "the '# crs:' line of --control "),
     "geographic_crs_option": (ROWS, None, ["--crs", "EPSG:4326"],
@@ -85,6 +99,11 @@ CASES = {
                              "argument --drift-states: invalid choice: 'sometimes' (choose from 'off', 'on', 'auto')"),
     "drift_states_with_rigid": (ROWS, "EPSG:5186", ["--drift-states", "auto", "--control-mode", "rigid"],
                                 "--drift-states auto contradicts --control-mode rigid"),
+    "drift_states_on_with_similarity": (ROWS, "EPSG:5186", ["--control-mode", "similarity", "--drift-states", "on"],
+                                        "--drift-states on contradicts --control-mode similarity (drift states are "
+                                        "variables of the pose graph; a similarity fit has none)"),
+    "drift_states_auto_with_similarity": (ROWS, "EPSG:5186", ["--drift-states", "auto", "--control-mode", "similarity"],
+                                          "--drift-states auto contradicts --control-mode similarity"),
     "drift_walk_zero": (ROWS, "EPSG:5186", ["--drift-states", "on", "--drift-walk", "2e-5", "0", "1e-7"],
                         "argument --drift-walk: '0' must be greater than 0"),
     "drift_walk_two_values": (ROWS, "EPSG:5186", ["--drift-states", "on", "--drift-walk", "2e-5", "1e-7"],
