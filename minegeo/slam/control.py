@@ -724,10 +724,11 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
 
 def _data_snooping(graph, stations, offset, crs, p: ControlParams, flagged_ids) -> tuple:
     """Baarda's data snooping over the control stations (CS3): while a control station is flagged
-    and more than 3 remain, withhold the most suspect one (largest ``|w|``: made a check station)
-    and adjust again. A single blunder spreads into the residuals of the stations the graph ties to
-    it, so several can exceed the critical value in the one adjustment; the withheld ones are the
-    suspected blunders. Returns ``(suspects, still flagged when 3 controls remain)`` (ids)."""
+    and more than 3 remain (and would stay off one line), withhold the most suspect one (largest
+    ``|w|``: made a check station) and adjust again. A single blunder spreads into the residuals of
+    the stations the graph ties to it, so several can exceed the critical value in the one
+    adjustment; the withheld ones are the suspected blunders. Returns ``(suspects, still flagged when
+    snooping stopped)`` (ids)."""
     from dataclasses import replace
 
     from minegeo.io.stations import StationRole
@@ -740,8 +741,13 @@ def _data_snooping(graph, stations, offset, crs, p: ControlParams, flagged_ids) 
     try:
         while flagged and int(st.is_control.sum()) > 3:
             sid = flagged[0]
+            nxt = replace(st, roles=[StationRole.CHECK if i == sid else r for i, r in zip(st.ids, st.roles, strict=True)])
+            try:  # the remaining control stations on one line: no adjustment to test; snooping stops
+                check_control_geometry(nxt, p.mode)
+            except InputError:
+                break
             suspects.append(sid)
-            st = replace(st, roles=[StationRole.CHECK if i == sid else r for i, r in zip(st.ids, st.roles, strict=True)])
+            st = nxt
             flagged = apply_control(*graph, st, offset, crs, q).stats.flagged_ids
     finally:
         glog.setLevel(level)

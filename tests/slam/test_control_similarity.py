@@ -89,20 +89,37 @@ def test_similarity_with_drift_states_or_in_graph_mode_is_refused():
         ControlParams(mode="graph", model="similarity")
 
 
-def test_control_stations_on_one_line_are_refused_by_the_library():
+def _largest_distance_from_line(X):
+    """Naive twin: largest distance of the points from their principal axis (eigenvector of the largest
+    eigenvalue of the scatter matrix, through the centroid)."""
+    Xc = X - X.mean(axis=0)
+    u = np.linalg.eigh(Xc.T @ Xc)[1][:, -1]
+    return max(float(np.linalg.norm(x - (x @ u) * u)) for x in Xc)
+
+
+@pytest.mark.parametrize(("off_m", "refused"), [(0.012, True), (0.06, False)])
+def test_control_stations_on_one_line_are_refused_by_the_library(off_m, refused):
+    """7 control stations on a line, one moved ``off_m`` across it: within 3 x their largest sigma (10 mm)
+    of the best-fitting line they are refused for every mode; further off they are a fit."""
+    from dataclasses import replace
+
     from minegeo.errors import InputError
 
     t, T, P, edges, Z, info = _scaled_map()
     st, _ = stations(t, T, TIMES, ROLES, np.random.default_rng(0), np.zeros(3))
     enh = st.enh_local.copy()
-    c = st.is_control
-    enh[c] = enh[c][0] + np.outer(np.linspace(0.0, 1.0, int(c.sum())), [100.0, 40.0, 2.0])  # exactly on a line
-    enh[np.flatnonzero(c)[2]] += [0.004, -0.004, 0.006]  # 9 mm off it: within 3 sigma (10 mm)
-    from dataclasses import replace
-
-    with pytest.raises(InputError, match="lie on one straight line"):
-        apply_control(t, P, edges, Z, info, replace(st, enh_local=enh), np.zeros(3), CRS,
-                      ControlParams(mode="rigid", model="similarity"))
+    c = np.flatnonzero(st.is_control)
+    d = np.array([100.0, 40.0, 2.0])
+    enh[c] = enh[c[0]] + np.outer(np.linspace(0.0, 1.0, c.size), d)
+    enh[c[2]] += off_m * np.array([-d[1], d[0], 0.0]) / np.hypot(d[0], d[1])
+    assert (_largest_distance_from_line(enh[c]) <= 0.03) is refused
+    st = replace(st, enh_local=enh)
+    for mode, model in (("rigid", "similarity"), ("rigid", "rigid"), ("graph", "rigid")):
+        if refused:
+            with pytest.raises(InputError, match=f"lie on one straight line .* the {'similarity' if model == 'similarity' else mode} mode"):
+                apply_control(t, P, edges, Z, info, st, np.zeros(3), CRS, ControlParams(mode=mode, model=model))
+        else:
+            apply_control(t, P, edges, Z, info, st, np.zeros(3), CRS, ControlParams(mode=mode, model=model))
 
 
 # ------------------------------------------------------------------ the CLI
