@@ -67,10 +67,10 @@ when they lower ``vᵀPv`` by more than chance would with no drift::
 from the selected inverse (C3), whose pattern holds the cross covariances of the walk's neighbouring
 variables; α = ``ControlParams.drift_alpha``, 0.05). With no drift both ``vᵀPv`` are quadratic forms
 of the noise and ``E[Δ] = f`` in the linearised model (measured: mean 1.93 for f = 2.02 over 200
-runs, Kolmogorov–Smirnov p = 0.88 against χ²(f), ``benchmarks/bench_control.py``). It replaces the
-plain graph's own χ² test as the choice: that omnibus test spreads its ``r₀ = 3·controls − 6`` degrees
-of freedom over misfits a drift cannot make and missed the benchmark's bias in 15 of 200 runs, whose
-plain ellipses covered about 20 % (auto 89.8 %; now 94.3 %). A model chosen by a test is not
+runs, Kolmogorov–Smirnov p = 0.88 against χ²(f), ``benchmarks/bench_control.py``). The plain
+graph's own χ² test (:func:`drift_states_needed`) is not the choice: that omnibus test spreads its
+degrees of freedom over misfits a drift cannot make and misses the benchmark's bias in 15 of 200 runs,
+whose plain ellipses cover about 20 % (choosing by it, auto covers 89.8 %; by C6, 94.3 %). A model chosen by a test is not
 calibrated for a drift near the test's detection limit (76 % coverage at 0.4 × that bias):
 ``ControlResult.uncertainty_note`` says so. The choice, ``Δ``, ``f`` and both σ̂0 are in
 ``ControlResult.drift_choice``, ``keyframe_note`` and ``drift_states``.

@@ -4,6 +4,7 @@ least-squares twin, the automatic choice (C6), and their ellipses' calibration o
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from _control_common import CHI2_2_95, CRS, OFFSET, biased_odometry, stations, truth
 
 from minegeo.optim import Values
@@ -66,24 +67,33 @@ def test_drift_state_chi2_and_redundancy_equal_a_dense_least_squares_twin():
         np.testing.assert_allclose(res.covariances[v], Sigma[9 * v:9 * v + 6, 9 * v:9 * v + 6], rtol=1e-5, atol=1e-14)
 
 
-def test_auto_takes_drift_states_only_when_the_plain_graph_fails_its_chi2():
-    """A 1 % scale and 1e-4 rad/m yaw bias: the plain graph's χ² fails (upper tail), "auto" returns
-    the drift-state solution (bit-identical poses to drift_states=True); noise only: it passes,
-    "auto" returns the plain solution."""
+@pytest.mark.parametrize(("bias", "seed", "expect"), [((0.01, 1e-4), 12, True), ((0.0, 0.0), 12, False),
+                                                     ((6e-4, 6e-6), 7, True)])
+def test_auto_takes_drift_states_when_they_lower_vtpv_by_more_than_chi2_f_95(bias, seed, expect):
+    """The "auto" rule (C6): the drift states are taken when they lower ``vᵀPv`` by more than the 95 %
+    quantile of χ² on ``f`` degrees of freedom, ``Δ = vᵀPv₀ − vᵀPv_β > χ²_f(0.95)`` (both graphs solved
+    apart here, the quantile from scipy); "auto" then returns the drift-state solution (bit-identical
+    poses to drift_states=True), else the plain one. Cases: a 1 % scale and 1e-4 rad/m yaw bias (taken),
+    noise only (not taken), and a 0.06 % scale and 6e-6 rad/m bias whose plain graph passes its own χ²
+    test (measured Δ 8.27 against 6.11 on f 2.06): taken, where the omnibus χ² rule would not."""
+    from scipy import stats
+
     t, T = truth(61)
     times = np.array([0.5, 8.5, 16.5, 30.5, 38.5, 46.5, 59.5])
     roles = ["control", "check", "check", "control", "check", "check", "control"]
-    for bias, expect in (((0.01, 1e-4), True), ((0.0, 0.0), False)):
-        rng = np.random.default_rng(12)
-        edges, Z, info, P = _odometry(T, rng, 2e-5, 0.002, *bias)
-        st, _ = stations(t, T, times, roles, rng)
-        out = {d: apply_control(t, P, edges, Z, info, st, OFFSET, CRS, ControlParams(drift_states=d))
-               for d in (False, True, "auto")}
-        g = out[False].global_chi2
-        assert drift_states_needed(g) is expect and (g.statistic > g.upper) is expect
-        assert out["auto"].drift_states is expect
-        np.testing.assert_array_equal(out["auto"].poses, out[expect].poses)
-        assert ("drift states (C4) added" in out["auto"].keyframe_note) is expect
+    rng = np.random.default_rng(seed)
+    edges, Z, info, P = _odometry(T, rng, 2e-5, 0.002, *bias)
+    st, _ = stations(t, T, times, roles, rng)
+    out = {d: apply_control(t, P, edges, Z, info, st, OFFSET, CRS, ControlParams(drift_states=d))
+           for d in (False, True, "auto")}
+    lr = out[False].objective - out[True].objective
+    crit = stats.chi2.ppf(0.95, out[True].drift_parameters)
+    assert bool(lr > crit) is expect
+    assert out["auto"].drift_states is expect
+    np.testing.assert_array_equal(out["auto"].poses, out[expect].poses)
+    assert ("drift states (C4) added" in out["auto"].keyframe_note) is expect
+    if bias[0] == 6e-4:  # the plain graph's omnibus χ² test passes: it is not the rule
+        assert drift_states_needed(out[False].global_chi2) is False
 
 
 def _long_chain():
