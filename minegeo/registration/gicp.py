@@ -297,7 +297,7 @@ def _knn_normals(points: np.ndarray, tree, k: int, mode_open3d: bool, parallel: 
     out_eval = np.empty((m, 3))
     out_status = np.empty(m, dtype=np.int8)
     kk = min(int(k), m)
-    args = (points, *tree, kk, bool(mode_open3d), float(KG.DEGENERATE_RATIO), out_n, out_eval,
+    args = (points, tree, kk, bool(mode_open3d), float(KG.DEGENERATE_RATIO), out_n, out_eval,
             out_status)
     if lists is None:
         lists = (np.empty((0, kk), np.int64), np.empty(0))
@@ -317,7 +317,7 @@ def _covariances_of_pair(P0: np.ndarray, Q: np.ndarray, tree_q, params: GICPPara
     tree_p = kd_build(P0, KD_LEAF)
     n, m = P0.shape[0], Q.shape[0]
     out = [(np.empty((c, 3)), np.empty((c, 3)), np.empty(c, dtype=np.int8)) for c in (n, m)]
-    KG.knn_normals_pair_tasks(P0, *tree_p, min(k, n), Q, *tree_q, min(k, m), o3d, float(KG.DEGENERATE_RATIO),
+    KG.knn_normals_pair_tasks(P0, tree_p, min(k, n), Q, tree_q, min(k, m), o3d, float(KG.DEGENERATE_RATIO),
                               *out[0], np.empty((0, min(k, n)), np.int64), np.empty(0), *out[1], *lists)
     Cs, Ct = (_plane_covariances(N, np.zeros(N.shape[0], dtype=np.bool_) if o3d else st != STATUS_OK, params)
               for N, _, st in out)
@@ -419,9 +419,9 @@ def gicp_covariances_on_tree(points: np.ndarray, params: GICPParams, index: Gate
     if not isinstance(index, GatedKDTree) or not (index.data is points or np.array_equal(index.data, points)):
         raise InputError("index must be the KD-tree of build_target_index over these points")
     if not with_surface:
-        return _covariances_and_normals(index.data, params, tree=index._tree)[0]
+        return _covariances_and_normals(index.data, params, tree=index.packed)[0]
     o3d = params.covariance_mode == "open3d"
-    N, status, ev = _knn_normals(index.data, index._tree, int(params.covariance_neighbours), o3d)
+    N, status, ev = _knn_normals(index.data, index.packed, int(params.covariance_neighbours), o3d)
     iso = np.zeros(N.shape[0], dtype=np.bool_) if o3d else status != STATUS_OK
     return _plane_covariances(N, iso, params), N, ev, status
 
@@ -604,7 +604,7 @@ def _step_loop(P: np.ndarray, T: np.ndarray, tree, factor: GICPFactor, d: float,
     hist = np.empty((int(params.max_iterations) + 2, 2))
     with timer("search"):
         T_out, P_out, idx, sq, H, g, cost, iters, code, singular, cyc, nh = KG.gicp_step_loop(
-            P, factor.Q, *tree, d * d, factor.Cs, factor.Ct, np.ascontiguousarray(T), int(params.max_iterations),
+            P, factor.Q, tree, d * d, factor.Cs, factor.Ct, np.ascontiguousarray(T), int(params.max_iterations),
             float(params.step_translation_m), float(params.step_rotation_rad), bool(params.stop_on_cycle),
             n >= _parallel_rows(PARALLEL_SEARCH_ROWS), n >= K.PARALLEL_MIN_ROWS, hist,
             *(KG.NO_LISTS if lists is None else lists))
@@ -674,7 +674,7 @@ def _gicp_inputs(source_points, target_points, T_init, params, source_covariance
             same = target_index.data is Q or (check_target and np.array_equal(target_index.data, Q))
             if target_index.m != Q.shape[0] or not same:
                 raise InputError("target_index was built on a different cloud than target_points")
-            tree = target_index._tree
+            tree = target_index.packed
         else:  # None or another kind of index: build the KD-tree this search needs
             tree = kd_build(Q, KD_LEAF)
     with timer("covariances"):
@@ -735,19 +735,19 @@ def _warmup() -> None:
     L._gicp_pairs_parallel(P, Q, C[:4], C, R, si, si, np.zeros((1, L.GICP_ACC)))
     hist = np.empty((4, 2))
     for parallel in (False, True):  # the loop kernel (one compilation; both drivers inside)
-        KG.gicp_step_loop(P, Q, *tree, 1.0, C[:4], C, np.eye(4), 2, 1e-5, 1e-6, True, parallel, parallel, hist,
+        KG.gicp_step_loop(P, Q, tree, 1.0, C[:4], C, np.eye(4), 2, 1e-5, 1e-6, True, parallel, parallel, hist,
                           *KG.NO_LISTS)
         lists = (np.empty((Q.shape[0], 3), np.int64), np.empty(Q.shape[0]))
         _knn_normals(Q, tree, 3, False, parallel, lists)
-        KG.gicp_step_loop(P, Q, *tree, 1.0, C[:4], C, np.eye(4), 2, 1e-5, 1e-6, True, parallel, parallel, hist,
+        KG.gicp_step_loop(P, Q, tree, 1.0, C[:4], C, np.eye(4), 2, 1e-5, 1e-6, True, parallel, parallel, hist,
                           *lists)
     m = Q.shape[0]
     for mode in (False, True):
-        KG.knn_normals_pair_tasks(P, *kd_build(P, 2), 3, Q, *tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((4, 3)),
+        KG.knn_normals_pair_tasks(P, kd_build(P, 2), 3, Q, tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((4, 3)),
                                   np.empty((4, 3)), np.empty(4, dtype=np.int8), np.empty((0, 3), np.int64), np.empty(0),
                                   np.empty((m, 3)), np.empty((m, 3)), np.empty(m, dtype=np.int8),
                                   np.empty((m, 3), np.int64), np.empty(m))
-        KG.knn_normals_tasks(Q, *tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((m, 3)), np.empty((m, 3)),
+        KG.knn_normals_tasks(Q, tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((m, 3)), np.empty((m, 3)),
                              np.empty(m, dtype=np.int8), np.empty((0, 3), np.int64), np.empty(0))
-        KG.knn_normals_lists_serial(Q, *tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((m, 3)), np.empty((m, 3)),
+        KG.knn_normals_lists_serial(Q, tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((m, 3)), np.empty((m, 3)),
                                     np.empty(m, dtype=np.int8), np.empty((0, 3), np.int64), np.empty(0))

@@ -209,8 +209,8 @@ class NearestInGate:
         Target points (target frame, m), C-contiguous float64.
     d : float
         Gate (m).
-    tree : tuple, optional
-        ``kd_build(Q, leaf)``.
+    tree : PackedKDTree, optional
+        ``kd_build(Q, leaf)`` (:class:`~minegeo.kernels.kdtree.PackedKDTree`).
     index : optional
         Another search structure over ``Q`` (used when ``tree`` is None).
     parallel_rows : int
@@ -230,7 +230,7 @@ class NearestInGate:
         idx = np.empty(n, dtype=np.int64)
         sq = np.empty(n)
         drive = kd_nn_warm_parallel if n >= self.parallel_rows else kd_nn_warm_serial
-        drive(P, self.Q, *self.tree, self.d * self.d, warm, idx, sq)
+        drive(P, self.Q, self.tree, self.d * self.d, warm, idx, sq)
         corr, total = compact_matches(idx, sq, m)
         k = corr.shape[0]
         if k == 0:
