@@ -22,8 +22,8 @@ Correspondences and loop are those of :func:`minegeo.registration.register_icp` 
 ``|Tp - q|² < d²``, one Gauss-Newton step per iteration. By default the loop stops when a step
 moves the source by less than 1e-5 m and 1e-6 rad, or on a 2-cycle of correspondence sets;
 :meth:`GICPParams.open3d` restores Open3D's test (fitness and Euclidean inlier-RMSE changes below
-1e-6) and covariances, and then reproduces Open3D's transform to ~1e-15. See
-``docs/registration_gicp.md``.
+1e-6) and covariances, and then reproduces Open3D's transform to ~1e-15; what differs in that mode is
+in :mod:`minegeo.registration.open3d_compat`. See ``docs/registration_gicp.md``.
 
 References
 ----------
@@ -62,6 +62,7 @@ from minegeo.registration.loop import (
     rotation_angle,
     run_loop,
 )
+from minegeo.registration.open3d_compat import GICP_OPEN3D_FIELDS, convergence_tests, covariance_convention
 
 __all__ = [
     "GICPParams",
@@ -200,8 +201,7 @@ class GICPParams:
         """Open3D 0.20 ``registration_generalized_icp`` semantics: ``covariance_mode="open3d"``,
         ``convergence="open3d"`` and no cycle stop (other fields as given, defaults = Open3D's
         ``ICPConvergenceCriteria(1e-6, 1e-6, 30)`` and ``epsilon=1e-3``)."""
-        kw = {"covariance_mode": "open3d", "convergence": "open3d", "stop_on_cycle": False}
-        kw.update(overrides)
+        kw = {**GICP_OPEN3D_FIELDS, **overrides}
         return cls(max_correspondence_distance_m, **kw)
 
     def __post_init__(self):
@@ -312,22 +312,22 @@ def _covariances_of_pair(P0: np.ndarray, Q: np.ndarray, tree_q, params: GICPPara
     """``(Cs, Ct, Nt)`` of :func:`_covariances_and_normals` for both clouds, their kNN PCA in one
     ``prange`` region (:func:`~minegeo.registration._kernels_gicp.knn_normals_pair_tasks`; the same
     bits); ``lists`` receives the target's kNN lists."""
-    o3d = params.covariance_mode == "open3d"
+    conv = covariance_convention(params)
     k = int(params.covariance_neighbours)
     tree_p = kd_build(P0, KD_LEAF)
     n, m = P0.shape[0], Q.shape[0]
     out = [(np.empty((c, 3)), np.empty((c, 3)), np.empty(c, dtype=np.int8)) for c in (n, m)]
-    KG.knn_normals_pair_tasks(P0, tree_p, min(k, n), Q, tree_q, min(k, m), o3d, float(KG.DEGENERATE_RATIO),
-                              *out[0], np.empty((0, min(k, n)), np.int64), np.empty(0), *out[1], *lists)
-    Cs, Ct = (_plane_covariances(N, np.zeros(N.shape[0], dtype=np.bool_) if o3d else st != STATUS_OK, params)
-              for N, _, st in out)
+    KG.knn_normals_pair_tasks(P0, tree_p, min(k, n), Q, tree_q, min(k, m), conv.pca_open3d,
+                              float(KG.DEGENERATE_RATIO), *out[0], np.empty((0, min(k, n)), np.int64), np.empty(0),
+                              *out[1], *lists)
+    Cs, Ct = (_plane_covariances(N, conv.isotropic(st != STATUS_OK), params) for N, _, st in out)
     return Cs, Ct, out[1][0]
 
 
 def _plane_covariances(normals: np.ndarray, isotropic: np.ndarray, params: GICPParams) -> np.ndarray:
     return KG.plane_covariances_kernel(
         np.ascontiguousarray(normals), np.ascontiguousarray(isotropic, dtype=np.bool_),
-        float(params.epsilon), params.covariance_mode == "open3d",
+        float(params.epsilon), covariance_convention(params).rodrigues,
     )
 
 
@@ -336,17 +336,15 @@ def _covariances_and_normals(points: np.ndarray, params: GICPParams, normals=Non
     """``(C (n,3,3), N (n,3), source)`` for validated ``points``; see :func:`estimate_gicp_covariances`.
     ``lists`` (see :func:`_knn_normals`) receives the kNN lists when the PCA runs."""
     n = points.shape[0]
-    o3d = params.covariance_mode == "open3d"
+    conv = covariance_convention(params)
     if normals is not None:
         N = as_points(normals, f"{name} normals")
         if N.shape[0] != n:
             raise InputError(f"{name} normals have {N.shape[0]} rows but there are {n} points")
-        iso = np.zeros(n, dtype=np.bool_) if o3d else ~(np.linalg.norm(N, axis=1) > 0)
-        return _plane_covariances(N, iso, params), N, "normals"
+        return _plane_covariances(N, conv.isotropic(~(np.linalg.norm(N, axis=1) > 0)), params), N, "normals"
     tree = kd_build(points, KD_LEAF) if tree is None else tree
-    N, status, _ = _knn_normals(points, tree, int(params.covariance_neighbours), o3d, parallel, lists)
-    iso = np.zeros(n, dtype=np.bool_) if o3d else status != STATUS_OK
-    return _plane_covariances(N, iso, params), N, "estimated"
+    N, status, _ = _knn_normals(points, tree, int(params.covariance_neighbours), conv.pca_open3d, parallel, lists)
+    return _plane_covariances(N, conv.isotropic(status != STATUS_OK), params), N, "estimated"
 
 
 def estimate_gicp_covariances(points, params: GICPParams | None = None, normals=None) -> np.ndarray:
@@ -420,10 +418,9 @@ def gicp_covariances_on_tree(points: np.ndarray, params: GICPParams, index: Gate
         raise InputError("index must be the KD-tree of build_target_index over these points")
     if not with_surface:
         return _covariances_and_normals(index.data, params, tree=index.packed)[0]
-    o3d = params.covariance_mode == "open3d"
-    N, status, ev = _knn_normals(index.data, index.packed, int(params.covariance_neighbours), o3d)
-    iso = np.zeros(N.shape[0], dtype=np.bool_) if o3d else status != STATUS_OK
-    return _plane_covariances(N, iso, params), N, ev, status
+    conv = covariance_convention(params)
+    N, status, ev = _knn_normals(index.data, index.packed, int(params.covariance_neighbours), conv.pca_open3d)
+    return _plane_covariances(N, conv.isotropic(status != STATUS_OK), params), N, ev, status
 
 
 def _as_covariances(C, n: int, name: str) -> np.ndarray:
@@ -623,13 +620,10 @@ def _step_loop(P: np.ndarray, T: np.ndarray, tree, factor: GICPFactor, d: float,
 
 
 def _termination(params: GICPParams) -> Termination:
-    """Open3D's fitness/RMSE test (``convergence="open3d"``) or the step test, and the 2-cycle test."""
-    o3d = params.convergence == "open3d"
-    return Termination(relative_fitness=params.relative_fitness if o3d else None,
-                       relative_rmse=params.relative_rmse if o3d else None,
-                       step_translation=None if o3d else params.step_translation_m,
-                       step_rotation=None if o3d else params.step_rotation_rad,
-                       stop_on_cycle=bool(params.stop_on_cycle), cycle_keeps_lower_cost=True)
+    """The convergence test of ``params`` (:func:`~minegeo.registration.open3d_compat.convergence_tests`)
+    and the 2-cycle test."""
+    return Termination(**convergence_tests(params), stop_on_cycle=bool(params.stop_on_cycle),
+                       cycle_keeps_lower_cost=True)
 
 
 def _gicp_information(factor: GICPFactor, out, Nt, params: GICPParams):
