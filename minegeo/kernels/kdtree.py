@@ -25,7 +25,7 @@ import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
 from minegeo._validate import is_permutation
-from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, QUERY_TASK_ROWS, n_chunks
+from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, QUERY_TASK_ROWS, by_size, n_chunks
 
 __all__ = ["KD_LEAF", "PackedKDTree", "kd_build", "kd_walk_to_leaf", "kd_nn_descend", "kd_nn2_descend", "kd_nn_rows", "kd_nn_serial",
            "kd_nn_parallel", "kd_nn_warm_rows", "kd_nn_warm_serial", "kd_nn_warm_parallel", "warm_bound", "take_nearest2", "kd_knn_one",
@@ -492,10 +492,7 @@ class GatedKDTree:
         n = P.shape[0]
         idx = np.empty(n, dtype=np.int64)
         sq = np.empty(n)
-        if n >= PARALLEL_QUERY_ROWS:
-            kd_nn_parallel(P, self._tree, float(d2), idx, sq)
-        else:
-            kd_nn_serial(P, self._tree, float(d2), idx, sq)
+        by_size(n, PARALLEL_QUERY_ROWS, kd_nn_serial, kd_nn_parallel)(P, self._tree, float(d2), idx, sq)
         return idx, sq
 
 

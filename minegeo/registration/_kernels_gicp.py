@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
-from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, n_chunks
+from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, by_size, n_chunks
 from minegeo.kernels.eig3 import (
     centred_covariance,
     fast_eigen3x3,
@@ -139,10 +139,7 @@ def plane_covariances_kernel(N, isotropic, eps, rodrigues):
     """
     n = N.shape[0]
     C = np.empty((n, 3, 3))
-    if n >= PARALLEL_MIN_POINTS:
-        _plane_cov_parallel(N, isotropic, float(eps), bool(rodrigues), C)
-    else:
-        _plane_cov_serial(N, isotropic, float(eps), bool(rodrigues), C)
+    by_size(n, PARALLEL_MIN_POINTS, _plane_cov_serial, _plane_cov_parallel)(N, isotropic, float(eps), bool(rodrigues), C)
     return C
 
 
@@ -266,10 +263,7 @@ def knn_normals_kernel(Q, tree, k, mode_open3d, ratio=DEGENERATE_RATIO):
     out_status = np.empty(m, dtype=np.int8)
     kk = min(int(k), m)
     args = (Q, tree, kk, bool(mode_open3d), float(ratio), out_n, out_eval, out_status)
-    if m >= PARALLEL_MIN_POINTS:
-        _knn_normals_parallel(*args)
-    else:
-        _knn_normals_serial(*args)
+    by_size(m, PARALLEL_MIN_POINTS, _knn_normals_serial, _knn_normals_parallel)(*args)
     return out_n, out_eval, out_status
 
 
@@ -309,10 +303,7 @@ def gicp_system_kernel(P, Q, Cs, Ct, R, si, ti):
     that the public function admits).
     """
     part = np.zeros((n_chunks(si.shape[0]), N_ACC))
-    if si.shape[0] >= PARALLEL_MIN_PAIRS:
-        _gicp_parallel(P, Q, Cs, Ct, R, si, ti, part)
-    else:
-        _gicp_serial(P, Q, Cs, Ct, R, si, ti, part)
+    by_size(si.shape[0], PARALLEL_MIN_PAIRS, _gicp_serial, _gicp_parallel)(P, Q, Cs, Ct, R, si, ti, part)
     tot = _add_partials(part) if part.shape[0] else np.zeros(N_ACC)
     H = np.zeros((6, 6))
     iu = np.triu_indices(6)
@@ -335,10 +326,7 @@ def nearest_warm_kernel(P, Q, tree, d2, prev):
     n = P.shape[0]
     out_idx = np.empty(n, dtype=np.int64)
     out_sq = np.empty(n)
-    if n >= PARALLEL_MIN_PAIRS:
-        kd_nn_warm_parallel(P, Q, tree, float(d2), prev, out_idx, out_sq)
-    else:
-        kd_nn_warm_serial(P, Q, tree, float(d2), prev, out_idx, out_sq)
+    by_size(n, PARALLEL_MIN_PAIRS, kd_nn_warm_serial, kd_nn_warm_parallel)(P, Q, tree, float(d2), prev, out_idx, out_sq)
     return out_idx, out_sq
 
 
@@ -371,10 +359,7 @@ def _min_eigvec_parallel(C, sel, out):
 def min_eigvec_kernel(C, sel):
     """Unit eigenvector of the smallest eigenvalue of ``C[sel[i]]`` (closed-form 3x3 solver)."""
     out = np.empty((sel.shape[0], 3))
-    if sel.shape[0] >= PARALLEL_MIN_POINTS:
-        _min_eigvec_parallel(C, sel, out)
-    else:
-        _min_eigvec_serial(C, sel, out)
+    by_size(sel.shape[0], PARALLEL_MIN_POINTS, _min_eigvec_serial, _min_eigvec_parallel)(C, sel, out)
     return out
 
 
