@@ -71,7 +71,7 @@ def _time_size(n: int, repeat: int, KDTree, KD) -> tuple[dict, int]:
     r = float(np.sqrt(30.0 / (np.pi * density)))
     t_py = KDTree(Q)
     t_mg = KD.GatedKDTree(Q)
-    tree = t_mg._tree
+    tree = t_mg.packed
     res = {
         "pykdtree": {
             "build": _median_time(lambda: KDTree(Q), repeat),

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from minegeo._jit import njit
 
-__all__ = ["CHUNK", "n_chunks", "PARALLEL_QUERY_ROWS", "QUERY_TASK_ROWS"]
+__all__ = ["CHUNK", "n_chunks", "by_size", "PARALLEL_QUERY_ROWS", "QUERY_TASK_ROWS"]
 
 #: Rows per reduction chunk (fixed so that summation order is thread-count independent).
 CHUNK = 1024
@@ -31,3 +31,13 @@ QUERY_TASK_ROWS = 128
 def n_chunks(m):
     """Number of ``CHUNK``-row chunks covering ``m`` rows (0 for m = 0)."""
     return (m + CHUNK - 1) // CHUNK
+
+
+def by_size(rows, threshold, serial, parallel):
+    """The driver of a kernel for ``rows`` rows: its ``prange`` form ``parallel`` from ``threshold``
+    rows on, else ``serial``.
+
+    Chosen from the problem size only, never from the machine's load. A kernel's two drivers run
+    the same row or chunk bodies in the same order (fixed chunks), so either gives the same bits.
+    """
+    return parallel if rows >= threshold else serial

@@ -2,8 +2,10 @@
 
 One tree serves every exact Euclidean search of minegeo in 3-D (ICP and GICP correspondences,
 GICP's kNN normals, the localisation's candidate refinement). Contiguous float64 arrays in, no
-checks. The tree is the tuple ``(idx, Qs, start, end, dim, split, left, right, depth)`` of
-:func:`kd_build`; every search is exact and breaks ties by the lower point index, so its
+checks. The tree is one :class:`PackedKDTree` (a ``NamedTuple`` of the arrays ``idx, Qs, start, end,
+dim, split, left, right`` and the int ``depth``) returned by :func:`kd_build`; kernels take it as one
+argument and read its fields (a named tuple is a Numba value type: the same machine code as the
+loose arrays, cacheable, usable in ``prange`` bodies); every search is exact and breaks ties by the lower point index, so its
 answers do not depend on the tree's shape nor on the thread count (queries are independent;
 the 1-NN drivers cut the rows into :data:`~minegeo.kernels.chunks.QUERY_TASK_ROWS`-row tasks,
 the kNN and radius drivers into :data:`~minegeo.kernels.chunks.CHUNK`-row chunks).
@@ -17,19 +19,53 @@ restored (:meth:`GatedKDTree.arrays`), and the kernels are callable from other n
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
 from minegeo._validate import is_permutation
-from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, QUERY_TASK_ROWS, n_chunks
+from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, QUERY_TASK_ROWS, by_size, n_chunks
 
-__all__ = ["KD_LEAF", "kd_build", "kd_walk_to_leaf", "kd_nn_descend", "kd_nn2_descend", "kd_nn_rows", "kd_nn_serial",
+__all__ = ["KD_LEAF", "PackedKDTree", "kd_build", "kd_walk_to_leaf", "kd_nn_descend", "kd_nn2_descend", "kd_nn_rows", "kd_nn_serial",
            "kd_nn_parallel", "kd_nn_warm_rows", "kd_nn_warm_serial", "kd_nn_warm_parallel", "warm_bound", "take_nearest2", "kd_knn_one",
            "kd_knn", "kd_radius_one", "kd_radius_count", "kd_boxes", "kd_knn_leaf_batch", "sq_to_row",
            "GatedKDTree"]
 
 #: Maximum number of points in a KD-tree leaf.
 KD_LEAF = 12
+
+
+class PackedKDTree(NamedTuple):
+    """A :func:`kd_build` tree over ``m`` points, in one value that Numba kernels take as one argument.
+
+    Attributes
+    ----------
+    idx : (m,) int64
+        Point order of the leaves: ``Qs = Q[idx]``.
+    Qs : (m, 3) float64
+        The points in leaf order (m).
+    start, end : (nodes,) int64
+        Per node the range ``[start, end)`` of its points in ``Qs``.
+    dim : (nodes,) int64
+        Split dimension (0, 1, 2), or -1 for a leaf.
+    split : (nodes,) float64
+        Split value (m) along ``dim``: points ``< split`` go left.
+    left, right : (nodes,) int64
+        Children (-1 for a leaf).
+    depth : int
+        The maximum node depth (the root is 0); search stacks hold ``depth + 2`` entries.
+    """
+
+    idx: np.ndarray
+    Qs: np.ndarray
+    start: np.ndarray
+    end: np.ndarray
+    dim: np.ndarray
+    split: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+    depth: int
 
 
 @njit
@@ -72,7 +108,7 @@ def _set_box(box, b, lo0, lo1, lo2, hi0, hi1, hi2):
 def kd_build(Q, leaf):
     """Sliding-midpoint KD-tree over ``Q`` (m, 3): split the widest bounding-box side at its middle.
 
-    Returns ``(idx, Qs, start, end, dim, split, left, right, depth)``: ``Qs = Q[idx]`` (points in
+    Returns the :class:`PackedKDTree` ``(idx, Qs, start, end, dim, split, left, right, depth)``: ``Qs = Q[idx]`` (points in
     leaf order), per node the ``[start, end)`` range into ``Qs``, the split dimension (-1 = leaf),
     the split value and the children; ``depth`` is the maximum node depth. Coincident points
     (zero spread) stay in one leaf.
@@ -192,8 +228,8 @@ def kd_build(Q, leaf):
         sp += 1
         stack[sp] = rc
         sp += 1
-    return (idx, Qs, start[:n_nodes].copy(), end[:n_nodes].copy(), dim[:n_nodes].copy(),
-            split[:n_nodes].copy(), left[:n_nodes].copy(), right[:n_nodes].copy(), depth)
+    return PackedKDTree(idx, Qs, start[:n_nodes].copy(), end[:n_nodes].copy(), dim[:n_nodes].copy(),
+                        split[:n_nodes].copy(), left[:n_nodes].copy(), right[:n_nodes].copy(), depth)
 
 
 @njit
@@ -206,10 +242,14 @@ def sq_to_row(px, py, pz, X, a):
 
 
 @njit
-def kd_walk_to_leaf(px, py, pz, nd, bound, dim, split, left, right, st_node, st_lb, sp):
+def kd_walk_to_leaf(px, py, pz, nd, bound, tree, st_node, st_lb, sp):
     """Descend a :func:`kd_build` tree from node ``nd`` to the leaf holding ``(px, py, pz)``,
     pushing every far child whose squared plane distance is ``<= bound`` (with that distance as
     its lower bound) onto the caller's stacks. Returns ``(leaf, stack size)``."""
+    dim = tree.dim
+    split = tree.split
+    left = tree.left
+    right = tree.right
     while dim[nd] >= 0:
         k = dim[nd]
         if k == 0:
@@ -234,7 +274,7 @@ def kd_walk_to_leaf(px, py, pz, nd, bound, dim, split, left, right, st_node, st_
 
 
 @njit
-def kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, left, right, d2, st_node, st_lb):
+def kd_nn_descend(px, py, pz, best, best_j, tree, d2, st_node, st_lb):
     """Gated nearest neighbour of ``(px, py, pz)`` on a :func:`kd_build` tree.
 
     ``(best, best_j)`` is the starting bound: ``(d2, m)`` for a cold search, or a known
@@ -243,6 +283,10 @@ def kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, lef
     (``sq = dx*dx + dy*dy + dz*dz``), or the start bound when none is closer. ``st_node`` /
     ``st_lb`` are caller-owned stacks of length ``depth + 2``.
     """
+    idx = tree.idx
+    Qs = tree.Qs
+    start = tree.start
+    end = tree.end
     st_node[0] = 0
     st_lb[0] = 0.0
     sp = 1
@@ -251,7 +295,7 @@ def kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, lef
         nd = st_node[sp]
         if st_lb[sp] > best:
             continue
-        nd, sp = kd_walk_to_leaf(px, py, pz, nd, best, dim, split, left, right, st_node, st_lb, sp)
+        nd, sp = kd_walk_to_leaf(px, py, pz, nd, best, tree, st_node, st_lb, sp)
         for a in range(start[nd], end[nd]):
             sq = sq_to_row(px, py, pz, Qs, a)
             if sq < d2:
@@ -277,7 +321,7 @@ def take_nearest2(sq, j, best, best_j, second):
 
 
 @njit
-def kd_nn2_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, left, right, d2, st_node, st_lb):
+def kd_nn2_descend(px, py, pz, best, best_j, tree, d2, st_node, st_lb):
     """:func:`kd_nn_descend` that also returns the second distance: ``(best, best_j, second)``.
 
     ``(best, best_j)`` is the answer of :func:`kd_nn_descend` from the same start; ``second``
@@ -285,6 +329,10 @@ def kd_nn2_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, le
     so every other point is at least ``sqrt(second)`` away. Nodes are pruned against ``second``
     (never below ``best``), hence exact for both.
     """
+    idx = tree.idx
+    Qs = tree.Qs
+    start = tree.start
+    end = tree.end
     second = d2
     st_node[0] = 0
     st_lb[0] = 0.0
@@ -294,7 +342,7 @@ def kd_nn2_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, le
         nd = st_node[sp]
         if st_lb[sp] > second:
             continue
-        nd, sp = kd_walk_to_leaf(px, py, pz, nd, second, dim, split, left, right, st_node, st_lb, sp)
+        nd, sp = kd_walk_to_leaf(px, py, pz, nd, second, tree, st_node, st_lb, sp)
         for a in range(start[nd], end[nd]):
             sq = sq_to_row(px, py, pz, Qs, a)
             if sq < d2:
@@ -305,30 +353,28 @@ def kd_nn2_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, le
 
 
 @njit
-def kd_nn_rows(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq, r0, r1):
-    m = idx.shape[0]
-    st_node = np.empty(depth + 2, np.int64)
-    st_lb = np.empty(depth + 2)
+def kd_nn_rows(P, tree, d2, out_idx, out_sq, r0, r1):
+    m = tree.idx.shape[0]
+    st_node = np.empty(tree.depth + 2, np.int64)
+    st_lb = np.empty(tree.depth + 2)
     for i in range(r0, r1):
-        best, best_j = kd_nn_descend(P[i, 0], P[i, 1], P[i, 2], d2, m, idx, Qs, start, end, dim, split, left,
-                                     right, d2, st_node, st_lb)
+        best, best_j = kd_nn_descend(P[i, 0], P[i, 1], P[i, 2], d2, m, tree, d2, st_node, st_lb)
         out_idx[i] = best_j
         out_sq[i] = best if best_j < m else np.inf
 
 
 @njit
-def kd_nn_serial(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq):
-    kd_nn_rows(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq, 0, P.shape[0])
+def kd_nn_serial(P, tree, d2, out_idx, out_sq):
+    kd_nn_rows(P, tree, d2, out_idx, out_sq, 0, P.shape[0])
 
 
 @njit_parallel
-def kd_nn_parallel(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq):
+def kd_nn_parallel(P, tree, d2, out_idx, out_sq):
     """:func:`kd_nn_serial` with ``prange`` over ``QUERY_TASK_ROWS``-row tasks (per-row results:
     any split gives the same bits)."""
     n = P.shape[0]
     for c in prange((n + QUERY_TASK_ROWS - 1) // QUERY_TASK_ROWS):
-        kd_nn_rows(P, idx, Qs, start, end, dim, split, left, right, depth, d2, out_idx, out_sq,
-                   c * QUERY_TASK_ROWS, min(n, (c + 1) * QUERY_TASK_ROWS))
+        kd_nn_rows(P, tree, d2, out_idx, out_sq, c * QUERY_TASK_ROWS, min(n, (c + 1) * QUERY_TASK_ROWS))
 
 
 @njit(inline="always")
@@ -344,8 +390,7 @@ def warm_bound(px, py, pz, Q, j0, d2, m):
 
 
 @njit
-def kd_nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq,
-                    r0, r1):
+def kd_nn_warm_rows(P, Q, tree, d2, prev, out_idx, out_sq, r0, r1):
     """:func:`kd_nn_rows` with the search bound of row ``i`` initialised by a known partner
     ``prev[i]`` (``m`` = none), typically the previous iteration's correspondence.
 
@@ -353,33 +398,30 @@ def kd_nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d
     visited; the answer is the cold search's: the lexicographically smallest ``(sq, index)``
     with ``sq < d2``, ``sq = dx*dx + dy*dy + dz*dz``.
     """
-    m = idx.shape[0]
-    st_node = np.empty(depth + 2, np.int64)
-    st_lb = np.empty(depth + 2)
+    m = tree.idx.shape[0]
+    st_node = np.empty(tree.depth + 2, np.int64)
+    st_lb = np.empty(tree.depth + 2)
     for i in range(r0, r1):
         px = P[i, 0]
         py = P[i, 1]
         pz = P[i, 2]
         best, best_j = warm_bound(px, py, pz, Q, prev[i], d2, m)
-        best, best_j = kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, left, right, d2,
-                                     st_node, st_lb)
+        best, best_j = kd_nn_descend(px, py, pz, best, best_j, tree, d2, st_node, st_lb)
         out_idx[i] = best_j
         out_sq[i] = best if best_j < m else np.inf
 
 
 @njit
-def kd_nn_warm_serial(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq):
-    kd_nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq,
-                    0, P.shape[0])
+def kd_nn_warm_serial(P, Q, tree, d2, prev, out_idx, out_sq):
+    kd_nn_warm_rows(P, Q, tree, d2, prev, out_idx, out_sq, 0, P.shape[0])
 
 
 @njit_parallel
-def kd_nn_warm_parallel(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq):
+def kd_nn_warm_parallel(P, Q, tree, d2, prev, out_idx, out_sq):
     """:func:`kd_nn_warm_serial` with ``prange`` over ``QUERY_TASK_ROWS``-row tasks."""
     n = P.shape[0]
     for c in prange((n + QUERY_TASK_ROWS - 1) // QUERY_TASK_ROWS):
-        kd_nn_warm_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, prev, out_idx, out_sq,
-                        c * QUERY_TASK_ROWS, min(n, (c + 1) * QUERY_TASK_ROWS))
+        kd_nn_warm_rows(P, Q, tree, d2, prev, out_idx, out_sq, c * QUERY_TASK_ROWS, min(n, (c + 1) * QUERY_TASK_ROWS))
 
 
 class GatedKDTree:
@@ -395,6 +437,11 @@ class GatedKDTree:
         self.m = Q.shape[0]
         self.data = Q
         self._tree = kd_build(Q, KD_LEAF)
+
+    @property
+    def packed(self) -> PackedKDTree:
+        """The tree as the one :class:`PackedKDTree` value that the search kernels take."""
+        return self._tree
 
     def arrays(self) -> dict:
         """The tree's own arrays (``Qs`` is not among them: it is ``data[idx]``), for storage."""
@@ -436,19 +483,16 @@ class GatedKDTree:
         self = cls.__new__(cls)
         self.m = m
         self.data = Q
-        self._tree = (idx, np.ascontiguousarray(Q[idx]), start.astype(np.int64), end.astype(np.int64),
-                      dim.astype(np.int64), split.astype(np.float64), left.astype(np.int64), right.astype(np.int64),
-                      depth)
+        self._tree = PackedKDTree(idx, np.ascontiguousarray(Q[idx]), start.astype(np.int64), end.astype(np.int64),
+                                  dim.astype(np.int64), split.astype(np.float64), left.astype(np.int64),
+                                  right.astype(np.int64), depth)
         return self
 
     def query(self, P, d2):
         n = P.shape[0]
         idx = np.empty(n, dtype=np.int64)
         sq = np.empty(n)
-        if n >= PARALLEL_QUERY_ROWS:
-            kd_nn_parallel(P, *self._tree, float(d2), idx, sq)
-        else:
-            kd_nn_serial(P, *self._tree, float(d2), idx, sq)
+        by_size(n, PARALLEL_QUERY_ROWS, kd_nn_serial, kd_nn_parallel)(P, self._tree, float(d2), idx, sq)
         return idx, sq
 
 
@@ -456,7 +500,7 @@ class GatedKDTree:
 
 
 @njit
-def kd_knn_one(px, py, pz, idx, Qs, start, end, dim, split, left, right, k, bi, bs, st_node, st_lb):
+def kd_knn_one(px, py, pz, tree, k, bi, bs, st_node, st_lb):
     """The ``k`` nearest points of ``(px, py, pz)`` on a ``kd_build`` tree, sorted by
     ``(squared distance, index)`` into ``bi``/``bs``; returns the count (``min(k, m)``).
 
@@ -464,6 +508,10 @@ def kd_knn_one(px, py, pz, idx, Qs, start, end, dim, split, left, right, k, bi, 
     point tied with the k-th one is still visited and the lower index wins (the convention of
     :meth:`minegeo.geometry.NeighborIndex.knn`).
     """
+    idx = tree.idx
+    Qs = tree.Qs
+    start = tree.start
+    end = tree.end
     c = 0
     worst = np.inf
     st_node[0] = 0
@@ -474,7 +522,7 @@ def kd_knn_one(px, py, pz, idx, Qs, start, end, dim, split, left, right, k, bi, 
         nd = st_node[sp]
         if st_lb[sp] > worst:
             continue
-        nd, sp = kd_walk_to_leaf(px, py, pz, nd, worst, dim, split, left, right, st_node, st_lb, sp)
+        nd, sp = kd_walk_to_leaf(px, py, pz, nd, worst, tree, st_node, st_lb, sp)
         for a in range(start[nd], end[nd]):
             sq = sq_to_row(px, py, pz, Qs, a)
             if c == k and sq > worst:
@@ -497,40 +545,38 @@ def kd_knn_one(px, py, pz, idx, Qs, start, end, dim, split, left, right, k, bi, 
 
 
 @njit
-def _kd_knn_rows(P, idx, Qs, start, end, dim, split, left, right, depth, k, out_idx, out_sq, r0, r1):
+def _kd_knn_rows(P, tree, k, out_idx, out_sq, r0, r1):
     bi = np.empty(k, np.int64)
     bs = np.empty(k)
-    st_node = np.empty(depth + 2, np.int64)
-    st_lb = np.empty(depth + 2)
+    st_node = np.empty(tree.depth + 2, np.int64)
+    st_lb = np.empty(tree.depth + 2)
     for i in range(r0, r1):
-        c = kd_knn_one(P[i, 0], P[i, 1], P[i, 2], idx, Qs, start, end, dim, split, left, right, k, bi, bs,
-                       st_node, st_lb)
+        c = kd_knn_one(P[i, 0], P[i, 1], P[i, 2], tree, k, bi, bs, st_node, st_lb)
         for a in range(c):
             out_idx[i, a] = bi[a]
             out_sq[i, a] = bs[a]
 
 
 @njit_parallel
-def _kd_knn_parallel(P, idx, Qs, start, end, dim, split, left, right, depth, k, out_idx, out_sq):
+def _kd_knn_parallel(P, tree, k, out_idx, out_sq):
     n = P.shape[0]
     for c in prange(n_chunks(n)):
-        _kd_knn_rows(P, idx, Qs, start, end, dim, split, left, right, depth, k, out_idx, out_sq,
-                     c * CHUNK, min(n, (c + 1) * CHUNK))
+        _kd_knn_rows(P, tree, k, out_idx, out_sq, c * CHUNK, min(n, (c + 1) * CHUNK))
 
 
 def kd_knn(P, tree, k):
     """The ``k`` nearest tree points of every row of ``P`` (n, 3), sorted by ``(sq, index)``.
 
     Returns ``(idx (n, k) int64, sq (n, k) float64)``; when the tree holds ``m < k`` points
-    the columns ``m..k-1`` are ``m`` / ``inf`` (pykdtree's convention). ``tree`` is the tuple of
-    :func:`kd_build`.
+    the columns ``m..k-1`` are ``m`` / ``inf`` (pykdtree's convention). ``tree`` is the
+    :class:`PackedKDTree` of :func:`kd_build`.
     """
     n = P.shape[0]
-    m = tree[0].shape[0]
+    m = tree.idx.shape[0]
     out_idx = np.full((n, k), m, dtype=np.int64)
     out_sq = np.full((n, k), np.inf)
     if n > 0 and k > 0:
-        _kd_knn_parallel(P, *tree, min(int(k), m), out_idx, out_sq)
+        _kd_knn_parallel(P, tree, min(int(k), m), out_idx, out_sq)
     return out_idx, out_sq
 
 
@@ -538,10 +584,14 @@ def kd_knn(P, tree, k):
 
 
 @njit
-def kd_radius_one(px, py, pz, r2, idx, Qs, start, end, dim, split, left, right, out, st_node, st_lb):
+def kd_radius_one(px, py, pz, r2, tree, out, st_node, st_lb):
     """Indices of every tree point with ``sq < r2`` around ``(px, py, pz)`` (strict, as Open3D's
     ``KDTreeSearchParamRadius``), written to ``out`` in leaf order; returns their number (it
     may exceed ``out.shape[0]``: only the first ``out.shape[0]`` are written)."""
+    idx = tree.idx
+    Qs = tree.Qs
+    start = tree.start
+    end = tree.end
     c = 0
     cap = out.shape[0]
     st_node[0] = 0
@@ -552,7 +602,7 @@ def kd_radius_one(px, py, pz, r2, idx, Qs, start, end, dim, split, left, right, 
         nd = st_node[sp]
         if st_lb[sp] >= r2:
             continue
-        nd, sp = kd_walk_to_leaf(px, py, pz, nd, r2, dim, split, left, right, st_node, st_lb, sp)
+        nd, sp = kd_walk_to_leaf(px, py, pz, nd, r2, tree, st_node, st_lb, sp)
         for a in range(start[nd], end[nd]):
             if sq_to_row(px, py, pz, Qs, a) < r2:
                 if c < cap:
@@ -562,22 +612,21 @@ def kd_radius_one(px, py, pz, r2, idx, Qs, start, end, dim, split, left, right, 
 
 
 @njit_parallel
-def _kd_radius_count_parallel(P, idx, Qs, start, end, dim, split, left, right, depth, r2, counts):
+def _kd_radius_count_parallel(P, tree, r2, counts):
     n = P.shape[0]
     for c in prange(n_chunks(n)):
-        st_node = np.empty(depth + 2, np.int64)
-        st_lb = np.empty(depth + 2)
+        st_node = np.empty(tree.depth + 2, np.int64)
+        st_lb = np.empty(tree.depth + 2)
         buf = np.empty(0, np.int64)
         for i in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
-            counts[i] = kd_radius_one(P[i, 0], P[i, 1], P[i, 2], r2, idx, Qs, start, end, dim, split, left, right,
-                                      buf, st_node, st_lb)
+            counts[i] = kd_radius_one(P[i, 0], P[i, 1], P[i, 2], r2, tree, buf, st_node, st_lb)
 
 
 def kd_radius_count(P, tree, radius):
     """Number of tree points strictly within ``radius`` (m) of every row of ``P`` (n, 3)."""
     counts = np.zeros(P.shape[0], dtype=np.int64)
     if P.shape[0] > 0:
-        _kd_radius_count_parallel(P, *tree, float(radius) ** 2, counts)
+        _kd_radius_count_parallel(P, tree, float(radius) ** 2, counts)
     return counts
 
 
@@ -585,10 +634,16 @@ def kd_radius_count(P, tree, radius):
 
 
 @njit
-def kd_boxes(Qs, start, end, dim, left, right):
+def kd_boxes(tree):
     """``(box (nodes, 6), leaf_at (m,))`` of a :func:`kd_build` tree: the exact
     bounding box (lo x, y, z, hi x, y, z) of every node's points, and the leaf holding each position
     of ``Qs`` (children are numbered after their parent, so one reverse pass gives every box)."""
+    Qs = tree.Qs
+    start = tree.start
+    end = tree.end
+    dim = tree.dim
+    left = tree.left
+    right = tree.right
     nn = start.shape[0]
     box = np.empty((nn, 6))
     leaf_at = np.empty(Qs.shape[0], np.int64)
@@ -653,7 +708,7 @@ def _box_gap2(box, nd, l0, l1, l2, h0, h1, h2):
 
 
 @njit
-def kd_knn_leaf_batch(Qs, idx, start, end, dim, left, right, k, box, L, a0, nq, bi, bs, cnt, wq, st_node, st_lb):
+def kd_knn_leaf_batch(tree, k, box, L, a0, nq, bi, bs, cnt, wq, st_node, st_lb):
     """The exact ``k`` nearest points (sorted by ``(sq, index)``, the answer of
     :func:`kd_knn_one`) of the ``nq`` points at positions ``a0 ..`` of leaf ``L``,
     with one traversal of the tree for all of them: a node is visited while its box is within the
@@ -662,6 +717,13 @@ def kd_knn_leaf_batch(Qs, idx, start, end, dim, left, right, k, box, L, a0, nq, 
     (``bi[q]``, ``bs[q]``; ``cnt[q]`` entries) as in ``kd_knn_one`` (ties: the lower index wins).
     Every bound is a floating-point lower bound of the pair distances, so the visiting order changes
     the work only, never the answer."""
+    Qs = tree.Qs
+    idx = tree.idx
+    start = tree.start
+    end = tree.end
+    dim = tree.dim
+    left = tree.left
+    right = tree.right
     l0 = box[L, 0]
     l1 = box[L, 1]
     l2 = box[L, 2]

@@ -300,8 +300,7 @@ def _apply(T, S, X):
 
 
 @njit_parallel
-def refine_placements_4dof(S, T0s, Q, Nq, idx, Qs, start, end, dim, split, left, right, depth, gates2, tol,
-                           final_gate2, out_T, out_count):
+def refine_placements_4dof(S, T0s, Q, Nq, tree, gates2, tol, final_gate2, out_T, out_count):
     """4-DOF point-to-plane Gauss-Newton of every candidate placement (``prange`` over candidates).
 
     For candidate ``c`` and each gate ``g`` in ``gates2`` (squared, m²): pair every sample point
@@ -314,7 +313,7 @@ def refine_placements_4dof(S, T0s, Q, Nq, idx, Qs, start, end, dim, split, left,
     """
     nc = T0s.shape[0]
     m = S.shape[0]
-    nq = idx.shape[0]
+    nq = tree.idx.shape[0]
     for c in prange(nc):
         T = T0s[c].copy()
         X = np.empty((m, 3))
@@ -324,10 +323,10 @@ def refine_placements_4dof(S, T0s, Q, Nq, idx, Qs, start, end, dim, split, left,
         b = np.empty(4)
         for it in range(gates2.shape[0]):
             _apply(T, S, X)
-            kd_nn_rows(X, idx, Qs, start, end, dim, split, left, right, depth, gates2[it], oi, osq, 0, m)
+            kd_nn_rows(X, tree, gates2[it], oi, osq, 0, m)
             _gn4_step(X, oi, nq, Q, Nq, T, A, b)
         _apply(T, S, X)
-        kd_nn_rows(X, idx, Qs, start, end, dim, split, left, right, depth, final_gate2, oi, osq, 0, m)
+        kd_nn_rows(X, tree, final_gate2, oi, osq, 0, m)
         out_count[c] = _plane_count(X, oi, nq, Q, Nq, tol)
         for p in range(4):
             for q in range(4):

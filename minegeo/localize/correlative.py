@@ -452,9 +452,9 @@ def _screen_stage(Sa: np.ndarray, T0s: np.ndarray, screen, screen_grid, params: 
         # Gauss-Newton steps on the lookup grid, then the exact score (no step, KD-tree)
         Tg = np.empty_like(T0s)
         K.steps_4dof_grid(Sa, T0s, Qs_, Ns_, *screen_grid, gates2, Tg)
-        K.refine_placements_4dof(Sa, Tg, Qs_, Ns_, *s_index._tree, np.zeros(0), tol, 0.25, Ta, ca)
+        K.refine_placements_4dof(Sa, Tg, Qs_, Ns_, s_index.packed, np.zeros(0), tol, 0.25, Ta, ca)
     else:
-        K.refine_placements_4dof(Sa, T0s, Qs_, Ns_, *s_index._tree, gates2, tol, 0.25, Ta, ca)
+        K.refine_placements_4dof(Sa, T0s, Qs_, Ns_, s_index.packed, gates2, tol, 0.25, Ta, ca)
     return Ta, ca
 
 
@@ -514,7 +514,7 @@ def _refine_cascade(T0s: np.ndarray, smp: _ScanSample, refine_target, screen_tar
     Tb = np.empty((top.size, 4, 4))
     cb = np.zeros(top.size, dtype=np.int64)
     gates2 = np.linspace(1.0, 0.5, int(params.refine_iterations)) ** 2
-    K.refine_placements_4dof(Sr, np.ascontiguousarray(Ta[top]), Q, Nq, *index._tree, gates2, tol, 0.25, Tb, cb)
+    K.refine_placements_4dof(Sr, np.ascontiguousarray(Ta[top]), Q, Nq, index.packed, gates2, tol, 0.25, Tb, cb)
     Ts = [Tb[k] for k in range(top.size)]
     fr = [int(cb[k]) / Sr.shape[0] for k in range(top.size)]
     sel = _distinct_refined(Ts, fr, smp, W, params, cov, cover_slack, cover_max_factor)

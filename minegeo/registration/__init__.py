@@ -106,8 +106,8 @@ def _warmup() -> None:
     K.weighted_moments_idx(P, Q, idx, idx)
     tree = KD.kd_build(np.vstack([P, Q, P + 2.0, Q + 3.0]), 2)
     i_out = np.empty(4, dtype=np.int64)
-    KD.kd_nn_serial(P, *tree, 1.0, i_out, sq)
-    KD.kd_nn_parallel(P, *tree, 1.0, i_out, sq)
+    KD.kd_nn_serial(P, tree, 1.0, i_out, sq)
+    KD.kd_nn_parallel(P, tree, 1.0, i_out, sq)
     from minegeo.registration import _kernels_gicp, _kernels_loop
 
     _kernels_gicp._warmup()

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
-from minegeo.kernels.chunks import CHUNK, n_chunks
+from minegeo.kernels.chunks import CHUNK, by_size, n_chunks
 from minegeo.kernels.eig3 import pca_normals_eigh_rows
 
 #: Upper (with diagonal) and strictly lower triangle indices of a 6x6 matrix (row-major order).
@@ -73,10 +73,7 @@ def _transform_parallel(P, T, out):
 def transform_points_kernel(P, T):
     """``out_i = R p_i + t`` for (n, 3) ``P`` and a 4x4 ``T`` (sum order x, y, z, t as Eigen)."""
     out = np.empty((P.shape[0], 3))
-    if P.shape[0] >= PARALLEL_MIN_ROWS:
-        _transform_parallel(P, T, out)
-    else:
-        _transform_serial(P, T, out)
+    by_size(P.shape[0], PARALLEL_MIN_ROWS, _transform_serial, _transform_parallel)(P, T, out)
     return out
 
 
@@ -127,10 +124,7 @@ def gate_nearest_kernel(P, Q, nn_idx, d2):
     n = P.shape[0]
     sq = np.empty(n)
     valid = np.empty(n, dtype=np.bool_)
-    if n >= PARALLEL_MIN_ROWS:
-        _gate_parallel(P, Q, nn_idx, float(d2), sq, valid)
-    else:
-        _gate_serial(P, Q, nn_idx, float(d2), sq, valid)
+    by_size(n, PARALLEL_MIN_ROWS, _gate_serial, _gate_parallel)(P, Q, nn_idx, float(d2), sq, valid)
     return sq, valid
 
 
@@ -170,10 +164,7 @@ def _add_partials(part):
 def sum_kernel(x):
     """Deterministic chunked sum of a 1-D array."""
     part = np.zeros((n_chunks(x.shape[0]),))
-    if x.shape[0] >= PARALLEL_MIN_ROWS:
-        _sum_parallel(x, part)
-    else:
-        _sum_serial(x, part)
+    by_size(x.shape[0], PARALLEL_MIN_ROWS, _sum_serial, _sum_parallel)(x, part)
     return float(_add_partials(part))
 
 
@@ -270,10 +261,7 @@ def weighted_moments_kernel(P, Q, w):
     nc = n_chunks(P.shape[0])
     part1 = np.zeros((nc, 7))
     part2 = np.zeros((nc, 10))
-    if P.shape[0] >= PARALLEL_MIN_ROWS:
-        mu_p, mu_q = _moments_parallel(P, Q, w, part1, part2)
-    else:
-        mu_p, mu_q = _moments_serial(P, Q, w, part1, part2)
+    mu_p, mu_q = by_size(P.shape[0], PARALLEL_MIN_ROWS, _moments_serial, _moments_parallel)(P, Q, w, part1, part2)
     sw = float(_add_partials(part1[:, :1])[0]) if nc else 0.0
     tot2 = _add_partials(part2) if nc else np.zeros(10)
     W = np.zeros((3, 3))
@@ -333,10 +321,7 @@ def point_to_plane_system_kernel(P, Q, N):
     Returns ``(H = sum J^T J (6x6), g = sum J^T r (6,), sum r^2)``.
     """
     part = np.zeros((n_chunks(P.shape[0]), 28))
-    if P.shape[0] >= PARALLEL_MIN_ROWS:
-        _p2l_parallel(P, Q, N, part)
-    else:
-        _p2l_serial(P, Q, N, part)
+    by_size(P.shape[0], PARALLEL_MIN_ROWS, _p2l_serial, _p2l_parallel)(P, Q, N, part)
     tot = _add_partials(part) if part.shape[0] else np.zeros(28)
     H = np.empty((6, 6))
     H[_IU6] = tot[:21]
@@ -419,10 +404,7 @@ def pca_normals_kernel(Q, nb):
     """Unit normal (eigenvector of the smallest eigenvalue of the neighbourhood covariance) per row
     of the (m, k) neighbour index array ``nb`` into ``Q``; sign as returned by LAPACK."""
     out = np.empty((nb.shape[0], 3))
-    if nb.shape[0] >= PARALLEL_MIN_ROWS // 4:
-        _pca_parallel(Q, nb, out)
-    else:
-        _pca_serial(Q, nb, out)
+    by_size(nb.shape[0], PARALLEL_MIN_ROWS // 4, _pca_serial, _pca_parallel)(Q, nb, out)
     return out
 
 

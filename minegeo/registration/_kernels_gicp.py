@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo._jit import njit, njit_parallel, prange
-from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, n_chunks
+from minegeo.kernels.chunks import CHUNK, PARALLEL_QUERY_ROWS, by_size, n_chunks
 from minegeo.kernels.eig3 import (
     centred_covariance,
     fast_eigen3x3,
@@ -139,10 +139,7 @@ def plane_covariances_kernel(N, isotropic, eps, rodrigues):
     """
     n = N.shape[0]
     C = np.empty((n, 3, 3))
-    if n >= PARALLEL_MIN_POINTS:
-        _plane_cov_parallel(N, isotropic, float(eps), bool(rodrigues), C)
-    else:
-        _plane_cov_serial(N, isotropic, float(eps), bool(rodrigues), C)
+    by_size(n, PARALLEL_MIN_POINTS, _plane_cov_serial, _plane_cov_parallel)(N, isotropic, float(eps), bool(rodrigues), C)
     return C
 
 
@@ -191,12 +188,15 @@ def _pca_normal_minegeo_x2(points, nbr_a, cnt_a, qa, nbr_b, cnt_b, qb, ratio, ou
 
 
 @njit
-def _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
-                      out_n, out_eval, out_status, t0, t1, out_nb, out_rk, box, leaf_at):
+def _knn_normals_rows(Q, tree, k, mode_open3d, ratio, out_n, out_eval, out_status, t0, t1, out_nb, out_rk, box,
+                      leaf_at):
     """kNN (:func:`minegeo.kernels.kdtree.kd_knn_leaf_batch`, up to :data:`KNN_BATCH` points of a leaf
     per traversal) and PCA normal (:func:`minegeo.kernels.eig3.pca_normal`'s numbers) of the points at
     tree positions ``t0 .. t1-1`` (leaf order: consecutive queries are neighbours); ``box, leaf_at`` =
-    :func:`minegeo.kernels.kdtree.kd_boxes`."""
+    :func:`minegeo.kernels.kdtree.kd_boxes`; ``tree`` the :class:`~minegeo.kernels.kdtree.PackedKDTree` of ``Q``."""
+    idx = tree.idx
+    end = tree.end
+    depth = tree.depth
     bi = np.empty((KNN_BATCH, k), np.int64)
     bs = np.empty((KNN_BATCH, k))
     cnt = np.empty(KNN_BATCH, np.int64)
@@ -212,7 +212,7 @@ def _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k,
     while a0 < t1:
         L = leaf_at[a0]
         nq = min(end[L], t1, a0 + KNN_BATCH) - a0
-        kd_knn_leaf_batch(Qs, idx, start, end, dim, left, right, k, box, L, a0, nq, bi, bs, cnt, wq, st_node, st_lb)
+        kd_knn_leaf_batch(tree, k, box, L, a0, nq, bi, bs, cnt, wq, st_node, st_lb)
         for q in range(nq):
             i = idx[a0 + q]
             c = cnt[q]
@@ -232,29 +232,25 @@ def _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k,
 
 
 @njit
-def _knn_normals_serial(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
-                        out_n, out_eval, out_status):
-    box, leaf_at = kd_boxes(Qs, start, end, dim, left, right)
-    _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
-                      out_n, out_eval, out_status, 0, Q.shape[0], np.empty((0, k), np.int64), np.empty(0), box,
-                      leaf_at)
+def _knn_normals_serial(Q, tree, k, mode_open3d, ratio, out_n, out_eval, out_status):
+    box, leaf_at = kd_boxes(tree)
+    _knn_normals_rows(Q, tree, k, mode_open3d, ratio, out_n, out_eval, out_status, 0, Q.shape[0],
+                      np.empty((0, k), np.int64), np.empty(0), box, leaf_at)
 
 
 @njit_parallel
-def _knn_normals_parallel(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
-                          out_n, out_eval, out_status):
+def _knn_normals_parallel(Q, tree, k, mode_open3d, ratio, out_n, out_eval, out_status):
     m = Q.shape[0]
-    box, leaf_at = kd_boxes(Qs, start, end, dim, left, right)
+    box, leaf_at = kd_boxes(tree)
     for c in prange(n_chunks(m)):
-        _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio,
-                          out_n, out_eval, out_status, c * CHUNK, min(m, (c + 1) * CHUNK), np.empty((0, k), np.int64),
-                          np.empty(0), box, leaf_at)
+        _knn_normals_rows(Q, tree, k, mode_open3d, ratio, out_n, out_eval, out_status, c * CHUNK,
+                          min(m, (c + 1) * CHUNK), np.empty((0, k), np.int64), np.empty(0), box, leaf_at)
 
 
 def knn_normals_kernel(Q, tree, k, mode_open3d, ratio=DEGENERATE_RATIO):
     """PCA normal of every point of ``Q`` from its ``k`` nearest points (itself included).
 
-    ``tree`` = :func:`minegeo.kernels.kdtree.kd_build` ``(Q, leaf)``. The PCA is
+    ``tree`` = :func:`minegeo.kernels.kdtree.kd_build` ``(Q, leaf)`` (a :class:`~minegeo.kernels.kdtree.PackedKDTree`). The PCA is
     :func:`minegeo.kernels.eig3.pca_normal` (as :mod:`minegeo.geometry`'s): mode "open3d" = raw moments + FastEigen3x3 (Open3D 0.20),
     otherwise two-pass centred covariance + Jacobi (for mode "minegeo" the same operations on scalars,
     two points at a time: :func:`_pca_normal_minegeo_x2`, the same bits). The kNN is exact and sorted
@@ -266,11 +262,8 @@ def knn_normals_kernel(Q, tree, k, mode_open3d, ratio=DEGENERATE_RATIO):
     out_eval = np.empty((m, 3))
     out_status = np.empty(m, dtype=np.int8)
     kk = min(int(k), m)
-    args = (Q, *tree, kk, bool(mode_open3d), float(ratio), out_n, out_eval, out_status)
-    if m >= PARALLEL_MIN_POINTS:
-        _knn_normals_parallel(*args)
-    else:
-        _knn_normals_serial(*args)
+    args = (Q, tree, kk, bool(mode_open3d), float(ratio), out_n, out_eval, out_status)
+    by_size(m, PARALLEL_MIN_POINTS, _knn_normals_serial, _knn_normals_parallel)(*args)
     return out_n, out_eval, out_status
 
 
@@ -310,10 +303,7 @@ def gicp_system_kernel(P, Q, Cs, Ct, R, si, ti):
     that the public function admits).
     """
     part = np.zeros((n_chunks(si.shape[0]), N_ACC))
-    if si.shape[0] >= PARALLEL_MIN_PAIRS:
-        _gicp_parallel(P, Q, Cs, Ct, R, si, ti, part)
-    else:
-        _gicp_serial(P, Q, Cs, Ct, R, si, ti, part)
+    by_size(si.shape[0], PARALLEL_MIN_PAIRS, _gicp_serial, _gicp_parallel)(P, Q, Cs, Ct, R, si, ti, part)
     tot = _add_partials(part) if part.shape[0] else np.zeros(N_ACC)
     H = np.zeros((6, 6))
     iu = np.triu_indices(6)
@@ -329,17 +319,14 @@ def gicp_system_kernel(P, Q, Cs, Ct, R, si, ti):
 def nearest_warm_kernel(P, Q, tree, d2, prev):
     """``(idx, sq)`` of the nearest ``Q`` point with ``sq < d2`` per row of ``P`` (``m``/inf if none).
 
-    ``tree`` is the tuple of :func:`minegeo.kernels.kdtree.kd_build` ``(Q, leaf)``; ``prev`` (n,)
+    ``tree`` is the :class:`~minegeo.kernels.kdtree.PackedKDTree` of ``Q``; ``prev`` (n,)
     int64 holds a candidate partner per row (``m`` = none), typically the previous iteration's
     correspondence.
     """
     n = P.shape[0]
     out_idx = np.empty(n, dtype=np.int64)
     out_sq = np.empty(n)
-    if n >= PARALLEL_MIN_PAIRS:
-        kd_nn_warm_parallel(P, Q, *tree, float(d2), prev, out_idx, out_sq)
-    else:
-        kd_nn_warm_serial(P, Q, *tree, float(d2), prev, out_idx, out_sq)
+    by_size(n, PARALLEL_MIN_PAIRS, kd_nn_warm_serial, kd_nn_warm_parallel)(P, Q, tree, float(d2), prev, out_idx, out_sq)
     return out_idx, out_sq
 
 
@@ -372,10 +359,7 @@ def _min_eigvec_parallel(C, sel, out):
 def min_eigvec_kernel(C, sel):
     """Unit eigenvector of the smallest eigenvalue of ``C[sel[i]]`` (closed-form 3x3 solver)."""
     out = np.empty((sel.shape[0], 3))
-    if sel.shape[0] >= PARALLEL_MIN_POINTS:
-        _min_eigvec_parallel(C, sel, out)
-    else:
-        _min_eigvec_serial(C, sel, out)
+    by_size(sel.shape[0], PARALLEL_MIN_POINTS, _min_eigvec_serial, _min_eigvec_parallel)(C, sel, out)
     return out
 
 
@@ -396,12 +380,12 @@ def _warmup() -> None:
     Q = np.vstack([P, P + 2.0, P + 4.0])
     out_i = np.empty(4, dtype=np.int64)
     out_s = np.empty(4)
-    kd_nn_warm_serial(P, Q, *tree, 1.0, idx, out_i, out_s)
-    kd_nn_warm_parallel(P, Q, *tree, 1.0, idx, out_i, out_s)
+    kd_nn_warm_serial(P, Q, tree, 1.0, idx, out_i, out_s)
+    kd_nn_warm_parallel(P, Q, tree, 1.0, idx, out_i, out_s)
     for mode in (False, True):
-        _knn_normals_serial(Q, *tree, 3, mode, DEGENERATE_RATIO, np.empty((12, 3)), np.empty((12, 3)),
+        _knn_normals_serial(Q, tree, 3, mode, DEGENERATE_RATIO, np.empty((12, 3)), np.empty((12, 3)),
                             np.empty(12, dtype=np.int8))
-        _knn_normals_parallel(Q, *tree, 3, mode, DEGENERATE_RATIO, np.empty((12, 3)), np.empty((12, 3)),
+        _knn_normals_parallel(Q, tree, 3, mode, DEGENERATE_RATIO, np.empty((12, 3)), np.empty((12, 3)),
                               np.empty(12, dtype=np.int8))
     out = np.empty((4, 3))
     _min_eigvec_serial(C, idx, out)
@@ -597,13 +581,12 @@ def _found(P, i, Q, j, sq, m, Cs, Ct, R, part, c, out_idx, out_sq, r1, moved, la
 
 
 @njit
-def _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
-                     out_idx, out_sq, part, P_old, r1, r2, moved, c0, c1, nb, rk):
+def _gicp_fused_rows(P, Q, tree, d2, warm, Cs, Ct, R, out_idx, out_sq, part, P_old, r1, r2, moved, c0, c1, nb, rk):
     """Chunks ``c0 .. c1-1`` (``GICP_ROWS`` rows each) of :func:`gicp_fused_search`."""
-    m = idx.shape[0]
+    m = tree.idx.shape[0]
     n = P.shape[0]
-    st_node = np.empty(depth + 2, np.int64)
-    st_lb = np.empty(depth + 2)
+    st_node = np.empty(tree.depth + 2, np.int64)
+    st_lb = np.empty(tree.depth + 2)
     keep = P_old.shape[0] == n
     for c in range(c0, c1):
         last_j = m  # the last partner found in this chunk: where a row without a partner starts its list walk
@@ -650,36 +633,31 @@ def _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, 
                     continue
             best, best_j = warm_bound(px, py, pz, Q, j0, d2, m)
             if want_second:
-                best, best_j, second = kd_nn2_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split,
-                                                      left, right, d2, st_node, st_lb)
+                best, best_j, second = kd_nn2_descend(px, py, pz, best, best_j, tree, d2, st_node, st_lb)
                 r2[i] = np.sqrt(second)
             else:
-                best, best_j = kd_nn_descend(px, py, pz, best, best_j, idx, Qs, start, end, dim, split, left, right,
-                                             d2, st_node, st_lb)
+                best, best_j = kd_nn_descend(px, py, pz, best, best_j, tree, d2, st_node, st_lb)
                 r2[i] = -1.0  # unknown: no skip next time
             last_j = _found(P, i, Q, best_j, best, m, Cs, Ct, R, part, c, out_idx, out_sq, r1, moved, last_j)
 
 
 @njit
-def _gicp_fused_serial(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
-                       out_idx, out_sq, part, P_old, r1, r2, moved, nb, rk):
-    _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
-                     out_idx, out_sq, part, P_old, r1, r2, moved, 0, part.shape[0], nb, rk)
+def _gicp_fused_serial(P, Q, tree, d2, warm, Cs, Ct, R, out_idx, out_sq, part, P_old, r1, r2, moved, nb, rk):
+    _gicp_fused_rows(P, Q, tree, d2, warm, Cs, Ct, R, out_idx, out_sq, part, P_old, r1, r2, moved, 0, part.shape[0],
+                     nb, rk)
 
 
 @njit_parallel
-def _gicp_fused_parallel(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
-                         out_idx, out_sq, part, P_old, r1, r2, moved, nb, rk):
+def _gicp_fused_parallel(P, Q, tree, d2, warm, Cs, Ct, R, out_idx, out_sq, part, P_old, r1, r2, moved, nb, rk):
     for c in prange(part.shape[0]):
-        _gicp_fused_rows(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
-                         out_idx, out_sq, part, P_old, r1, r2, moved, c, c + 1, nb, rk)
+        _gicp_fused_rows(P, Q, tree, d2, warm, Cs, Ct, R, out_idx, out_sq, part, P_old, r1, r2, moved, c, c + 1, nb, rk)
 
 
 def gicp_fused_search(P, Q, tree, d2, warm, Cs, Ct, R, parallel, state=None, lists=None):
     """Gated nearest neighbour of every row of ``P`` and the GICP system of the pairs, in one pass.
 
     ``P`` (n, 3) are the source points moved by the current pose (rotation ``R``), ``tree`` the
-    :func:`~minegeo.kernels.kdtree.kd_build` tuple of ``Q``, ``warm`` (n,) the previous partners
+    :class:`~minegeo.kernels.kdtree.PackedKDTree` of ``Q``, ``warm`` (n,) the previous partners
     (``m`` = none). Returns ``(idx, sq, H, g, cost)``: per row the partner (``m`` when none
     within ``sq < d2``) and its squared distance (``inf`` when none), as
     :func:`~minegeo.kernels.kdtree.kd_nn_warm_serial`; ``H = Σ Jᵀ M⁻¹ J``, ``g = Σ Jᵀ M⁻¹ d``,
@@ -707,7 +685,7 @@ def gicp_fused_search(P, Q, tree, d2, warm, Cs, Ct, R, parallel, state=None, lis
     if lists is None:
         lists = NO_LISTS
     drive = _gicp_fused_parallel if parallel else _gicp_fused_serial
-    drive(P, Q, *tree, float(d2), warm, Cs, Ct, R, out_idx, out_sq, part, *state, *lists)
+    drive(P, Q, tree, float(d2), warm, Cs, Ct, R, out_idx, out_sq, part, *state, *lists)
     H, g, cost = system_from_partials(part)
     return out_idx, out_sq, H, g, float(cost)
 
@@ -741,47 +719,44 @@ def gicp_pairs_system(P, Q, Cs, Ct, R, si, ti):
 
 
 @njit_parallel
-def knn_normals_tasks(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio, out_n, out_eval,
-                       out_status, out_nb, out_rk):
+def knn_normals_tasks(Q, tree, k, mode_open3d, ratio, out_n, out_eval, out_status, out_nb, out_rk):
     """``_knn_normals_rows`` in ``prange`` over ``GICP_ROWS``-point tasks (leaf order;
     one row per point, so any split gives the same bits); ``out_nb`` (m, k) / ``out_rk`` (m,)
     receive each point's neighbour list and the distance of its last neighbour (empty: not kept)."""
     m = Q.shape[0]
-    box, leaf_at = kd_boxes(Qs, start, end, dim, left, right)
+    box, leaf_at = kd_boxes(tree)
     for c in prange((m + GICP_ROWS - 1) // GICP_ROWS):
-        _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio, out_n,
-                          out_eval, out_status, c * GICP_ROWS, min(m, (c + 1) * GICP_ROWS), out_nb, out_rk, box, leaf_at)
+        _knn_normals_rows(Q, tree, k, mode_open3d, ratio, out_n, out_eval, out_status, c * GICP_ROWS,
+                          min(m, (c + 1) * GICP_ROWS), out_nb, out_rk, box, leaf_at)
 
 
 @njit_parallel
-def knn_normals_pair_tasks(QA, idxA, QsA, startA, endA, dimA, splitA, leftA, rightA, depthA, kA, QB, idxB, QsB,
-                           startB, endB, dimB, splitB, leftB, rightB, depthB, kB, mode_open3d, ratio, nA, eA, sA, nbA,
-                           rkA, nB, eB, sB, nbB, rkB):
+def knn_normals_pair_tasks(QA, treeA, kA, QB, treeB, kB, mode_open3d, ratio, nA, eA, sA, nbA, rkA, nB, eB, sB, nbB,
+                           rkB):
     """:func:`knn_normals_tasks` of two clouds in one ``prange`` region (the tasks of A, then those
     of B): both clouds' normals on the Numba threads at once, with no Python thread beside them
     (which would compete with the threads of the last ``prange`` region while they spin). Per-row
     outputs: the bits of one cloud at a time."""
     ta = (QA.shape[0] + GICP_ROWS - 1) // GICP_ROWS
     tb = (QB.shape[0] + GICP_ROWS - 1) // GICP_ROWS
-    boxA, leafA = kd_boxes(QsA, startA, endA, dimA, leftA, rightA)
-    boxB, leafB = kd_boxes(QsB, startB, endB, dimB, leftB, rightB)
+    boxA, leafA = kd_boxes(treeA)
+    boxB, leafB = kd_boxes(treeB)
     for c in prange(ta + tb):
         if c < ta:
-            _knn_normals_rows(QA, idxA, QsA, startA, endA, dimA, splitA, leftA, rightA, depthA, kA, mode_open3d, ratio,
-                              nA, eA, sA, c * GICP_ROWS, min(QA.shape[0], (c + 1) * GICP_ROWS), nbA, rkA, boxA, leafA)
+            _knn_normals_rows(QA, treeA, kA, mode_open3d, ratio, nA, eA, sA, c * GICP_ROWS,
+                              min(QA.shape[0], (c + 1) * GICP_ROWS), nbA, rkA, boxA, leafA)
         else:
             cb = c - ta
-            _knn_normals_rows(QB, idxB, QsB, startB, endB, dimB, splitB, leftB, rightB, depthB, kB, mode_open3d, ratio,
-                              nB, eB, sB, cb * GICP_ROWS, min(QB.shape[0], (cb + 1) * GICP_ROWS), nbB, rkB, boxB, leafB)
+            _knn_normals_rows(QB, treeB, kB, mode_open3d, ratio, nB, eB, sB, cb * GICP_ROWS,
+                              min(QB.shape[0], (cb + 1) * GICP_ROWS), nbB, rkB, boxB, leafB)
 
 
 @njit
-def knn_normals_lists_serial(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio, out_n,
-                             out_eval, out_status, out_nb, out_rk):
+def knn_normals_lists_serial(Q, tree, k, mode_open3d, ratio, out_n, out_eval, out_status, out_nb, out_rk):
     """:func:`knn_normals_tasks` without ``prange``."""
-    box, leaf_at = kd_boxes(Qs, start, end, dim, left, right)
-    _knn_normals_rows(Q, idx, Qs, start, end, dim, split, left, right, depth, k, mode_open3d, ratio, out_n, out_eval,
-                      out_status, 0, Q.shape[0], out_nb, out_rk, box, leaf_at)
+    box, leaf_at = kd_boxes(tree)
+    _knn_normals_rows(Q, tree, k, mode_open3d, ratio, out_n, out_eval, out_status, 0, Q.shape[0], out_nb, out_rk, box,
+                      leaf_at)
 
 
 # ----------------------------------------------------------------------------- checks of given covariances
@@ -925,8 +900,7 @@ def _step_below(D, step_t, step_r):
 
 
 @njit
-def _loop_search(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, T, parallel,
-                 P_old, r1, r2, moved, nb, rk):
+def _loop_search(P, Q, tree, d2, warm, Cs, Ct, T, parallel, P_old, r1, r2, moved, nb, rk):
     """One fused search + sums at the pose ``T`` (:func:`gicp_fused_search` inside a kernel)."""
     n = P.shape[0]
     out_idx = np.empty(n, dtype=np.int64)
@@ -934,11 +908,9 @@ def _loop_search(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, 
     part = np.zeros(((n + GICP_ROWS - 1) // GICP_ROWS, GICP_ACC))
     R = np.ascontiguousarray(T[:3, :3])
     if parallel:
-        _gicp_fused_parallel(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
-                             out_idx, out_sq, part, P_old, r1, r2, moved, nb, rk)
+        _gicp_fused_parallel(P, Q, tree, d2, warm, Cs, Ct, R, out_idx, out_sq, part, P_old, r1, r2, moved, nb, rk)
     else:
-        _gicp_fused_serial(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm, Cs, Ct, R,
-                           out_idx, out_sq, part, P_old, r1, r2, moved, nb, rk)
+        _gicp_fused_serial(P, Q, tree, d2, warm, Cs, Ct, R, out_idx, out_sq, part, P_old, r1, r2, moved, nb, rk)
     H, g, cost = system_from_partials(part)
     return out_idx, out_sq, H, g, cost
 
@@ -954,12 +926,12 @@ def _move(P, D, parallel):
 
 
 @njit
-def gicp_step_loop(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, Cs, Ct, T0, max_iterations,
-                   step_t, step_r, stop_on_cycle, parallel, parallel_move, hist, nb, rk):
+def gicp_step_loop(P, Q, tree, d2, Cs, Ct, T0, max_iterations, step_t, step_r, stop_on_cycle, parallel, parallel_move,
+                   hist, nb, rk):
     """The GICP registration loop with the step test (see the comment above this block).
 
     ``P`` (n, 3) are the source points moved by ``T0`` (the 4x4 initial ``T_target_source``),
-    ``(idx .. depth)`` the :func:`~minegeo.kernels.kdtree.kd_build` tree of ``Q``, ``d2`` the squared
+    ``tree`` the :class:`~minegeo.kernels.kdtree.PackedKDTree` of ``Q``, ``d2`` the squared
     gate, ``Cs``/``Ct`` the covariances in their own frames. Per iteration: the Gauss-Newton step of
     the current pairs ([Ren2019 Eq. 6], ``H x = -g`` by :func:`_solve6`; the identity without pairs),
     ``T ← ΔT T``, ``P ← ΔT P``, the fused search + sums at the new pose, then the step test (``|Δt|
@@ -979,8 +951,7 @@ def gicp_step_loop(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2
     r2 = np.empty(n)
     moved = np.zeros(n)
     warm = np.full(n, m, dtype=np.int64)
-    cur_i, cur_sq, H, g, cost = _loop_search(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2, warm,
-                                            Cs, Ct, T, parallel, P_old, r1, r2, moved, nb, rk)
+    cur_i, cur_sq, H, g, cost = _loop_search(P, Q, tree, d2, warm, Cs, Ct, T, parallel, P_old, r1, r2, moved, nb, rk)
     k, total = match_stats(cur_i, cur_sq, m)
     nh = 0
     hist[nh, 0] = k / n if k > 0 else 0.0
@@ -1017,8 +988,8 @@ def gicp_step_loop(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2
         prev2_i = prev_i
         prev_i, prev_sq, prev_H, prev_g, prev_cost, prev_k = cur_i, cur_sq, H, g, cost, k
         have_prev = True
-        cur_i, cur_sq, H, g, cost = _loop_search(P, Q, idx, Qs, start, end, dim, split, left, right, depth, d2,
-                                                prev_i, Cs, Ct, T, parallel, P_old, r1, r2, moved, nb, rk)
+        cur_i, cur_sq, H, g, cost = _loop_search(P, Q, tree, d2, prev_i, Cs, Ct, T, parallel, P_old, r1, r2, moved, nb,
+                                                rk)
         k, total = match_stats(cur_i, cur_sq, m)
         hist[nh, 0] = k / n if k > 0 else 0.0
         hist[nh, 1] = np.sqrt(total / k) if k > 0 else 0.0

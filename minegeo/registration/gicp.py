@@ -22,8 +22,8 @@ Correspondences and loop are those of :func:`minegeo.registration.register_icp` 
 ``|Tp - q|² < d²``, one Gauss-Newton step per iteration. By default the loop stops when a step
 moves the source by less than 1e-5 m and 1e-6 rad, or on a 2-cycle of correspondence sets;
 :meth:`GICPParams.open3d` restores Open3D's test (fitness and Euclidean inlier-RMSE changes below
-1e-6) and covariances, and then reproduces Open3D's transform to ~1e-15. See
-``docs/registration_gicp.md``.
+1e-6) and covariances, and then reproduces Open3D's transform to ~1e-15; what differs in that mode is
+in :mod:`minegeo.registration.open3d_compat`. See ``docs/registration_gicp.md``.
 
 References
 ----------
@@ -62,6 +62,7 @@ from minegeo.registration.loop import (
     rotation_angle,
     run_loop,
 )
+from minegeo.registration.open3d_compat import GICP_OPEN3D_FIELDS, convergence_tests, covariance_convention
 
 __all__ = [
     "GICPParams",
@@ -200,8 +201,7 @@ class GICPParams:
         """Open3D 0.20 ``registration_generalized_icp`` semantics: ``covariance_mode="open3d"``,
         ``convergence="open3d"`` and no cycle stop (other fields as given, defaults = Open3D's
         ``ICPConvergenceCriteria(1e-6, 1e-6, 30)`` and ``epsilon=1e-3``)."""
-        kw = {"covariance_mode": "open3d", "convergence": "open3d", "stop_on_cycle": False}
-        kw.update(overrides)
+        kw = {**GICP_OPEN3D_FIELDS, **overrides}
         return cls(max_correspondence_distance_m, **kw)
 
     def __post_init__(self):
@@ -297,7 +297,7 @@ def _knn_normals(points: np.ndarray, tree, k: int, mode_open3d: bool, parallel: 
     out_eval = np.empty((m, 3))
     out_status = np.empty(m, dtype=np.int8)
     kk = min(int(k), m)
-    args = (points, *tree, kk, bool(mode_open3d), float(KG.DEGENERATE_RATIO), out_n, out_eval,
+    args = (points, tree, kk, bool(mode_open3d), float(KG.DEGENERATE_RATIO), out_n, out_eval,
             out_status)
     if lists is None:
         lists = (np.empty((0, kk), np.int64), np.empty(0))
@@ -312,22 +312,22 @@ def _covariances_of_pair(P0: np.ndarray, Q: np.ndarray, tree_q, params: GICPPara
     """``(Cs, Ct, Nt)`` of :func:`_covariances_and_normals` for both clouds, their kNN PCA in one
     ``prange`` region (:func:`~minegeo.registration._kernels_gicp.knn_normals_pair_tasks`; the same
     bits); ``lists`` receives the target's kNN lists."""
-    o3d = params.covariance_mode == "open3d"
+    conv = covariance_convention(params)
     k = int(params.covariance_neighbours)
     tree_p = kd_build(P0, KD_LEAF)
     n, m = P0.shape[0], Q.shape[0]
     out = [(np.empty((c, 3)), np.empty((c, 3)), np.empty(c, dtype=np.int8)) for c in (n, m)]
-    KG.knn_normals_pair_tasks(P0, *tree_p, min(k, n), Q, *tree_q, min(k, m), o3d, float(KG.DEGENERATE_RATIO),
-                              *out[0], np.empty((0, min(k, n)), np.int64), np.empty(0), *out[1], *lists)
-    Cs, Ct = (_plane_covariances(N, np.zeros(N.shape[0], dtype=np.bool_) if o3d else st != STATUS_OK, params)
-              for N, _, st in out)
+    KG.knn_normals_pair_tasks(P0, tree_p, min(k, n), Q, tree_q, min(k, m), conv.pca_open3d,
+                              float(KG.DEGENERATE_RATIO), *out[0], np.empty((0, min(k, n)), np.int64), np.empty(0),
+                              *out[1], *lists)
+    Cs, Ct = (_plane_covariances(N, conv.isotropic(st != STATUS_OK), params) for N, _, st in out)
     return Cs, Ct, out[1][0]
 
 
 def _plane_covariances(normals: np.ndarray, isotropic: np.ndarray, params: GICPParams) -> np.ndarray:
     return KG.plane_covariances_kernel(
         np.ascontiguousarray(normals), np.ascontiguousarray(isotropic, dtype=np.bool_),
-        float(params.epsilon), params.covariance_mode == "open3d",
+        float(params.epsilon), covariance_convention(params).rodrigues,
     )
 
 
@@ -336,17 +336,15 @@ def _covariances_and_normals(points: np.ndarray, params: GICPParams, normals=Non
     """``(C (n,3,3), N (n,3), source)`` for validated ``points``; see :func:`estimate_gicp_covariances`.
     ``lists`` (see :func:`_knn_normals`) receives the kNN lists when the PCA runs."""
     n = points.shape[0]
-    o3d = params.covariance_mode == "open3d"
+    conv = covariance_convention(params)
     if normals is not None:
         N = as_points(normals, f"{name} normals")
         if N.shape[0] != n:
             raise InputError(f"{name} normals have {N.shape[0]} rows but there are {n} points")
-        iso = np.zeros(n, dtype=np.bool_) if o3d else ~(np.linalg.norm(N, axis=1) > 0)
-        return _plane_covariances(N, iso, params), N, "normals"
+        return _plane_covariances(N, conv.isotropic(~(np.linalg.norm(N, axis=1) > 0)), params), N, "normals"
     tree = kd_build(points, KD_LEAF) if tree is None else tree
-    N, status, _ = _knn_normals(points, tree, int(params.covariance_neighbours), o3d, parallel, lists)
-    iso = np.zeros(n, dtype=np.bool_) if o3d else status != STATUS_OK
-    return _plane_covariances(N, iso, params), N, "estimated"
+    N, status, _ = _knn_normals(points, tree, int(params.covariance_neighbours), conv.pca_open3d, parallel, lists)
+    return _plane_covariances(N, conv.isotropic(status != STATUS_OK), params), N, "estimated"
 
 
 def estimate_gicp_covariances(points, params: GICPParams | None = None, normals=None) -> np.ndarray:
@@ -419,11 +417,10 @@ def gicp_covariances_on_tree(points: np.ndarray, params: GICPParams, index: Gate
     if not isinstance(index, GatedKDTree) or not (index.data is points or np.array_equal(index.data, points)):
         raise InputError("index must be the KD-tree of build_target_index over these points")
     if not with_surface:
-        return _covariances_and_normals(index.data, params, tree=index._tree)[0]
-    o3d = params.covariance_mode == "open3d"
-    N, status, ev = _knn_normals(index.data, index._tree, int(params.covariance_neighbours), o3d)
-    iso = np.zeros(N.shape[0], dtype=np.bool_) if o3d else status != STATUS_OK
-    return _plane_covariances(N, iso, params), N, ev, status
+        return _covariances_and_normals(index.data, params, tree=index.packed)[0]
+    conv = covariance_convention(params)
+    N, status, ev = _knn_normals(index.data, index.packed, int(params.covariance_neighbours), conv.pca_open3d)
+    return _plane_covariances(N, conv.isotropic(status != STATUS_OK), params), N, ev, status
 
 
 def _as_covariances(C, n: int, name: str) -> np.ndarray:
@@ -604,7 +601,7 @@ def _step_loop(P: np.ndarray, T: np.ndarray, tree, factor: GICPFactor, d: float,
     hist = np.empty((int(params.max_iterations) + 2, 2))
     with timer("search"):
         T_out, P_out, idx, sq, H, g, cost, iters, code, singular, cyc, nh = KG.gicp_step_loop(
-            P, factor.Q, *tree, d * d, factor.Cs, factor.Ct, np.ascontiguousarray(T), int(params.max_iterations),
+            P, factor.Q, tree, d * d, factor.Cs, factor.Ct, np.ascontiguousarray(T), int(params.max_iterations),
             float(params.step_translation_m), float(params.step_rotation_rad), bool(params.stop_on_cycle),
             n >= _parallel_rows(PARALLEL_SEARCH_ROWS), n >= K.PARALLEL_MIN_ROWS, hist,
             *(KG.NO_LISTS if lists is None else lists))
@@ -623,13 +620,10 @@ def _step_loop(P: np.ndarray, T: np.ndarray, tree, factor: GICPFactor, d: float,
 
 
 def _termination(params: GICPParams) -> Termination:
-    """Open3D's fitness/RMSE test (``convergence="open3d"``) or the step test, and the 2-cycle test."""
-    o3d = params.convergence == "open3d"
-    return Termination(relative_fitness=params.relative_fitness if o3d else None,
-                       relative_rmse=params.relative_rmse if o3d else None,
-                       step_translation=None if o3d else params.step_translation_m,
-                       step_rotation=None if o3d else params.step_rotation_rad,
-                       stop_on_cycle=bool(params.stop_on_cycle), cycle_keeps_lower_cost=True)
+    """The convergence test of ``params`` (:func:`~minegeo.registration.open3d_compat.convergence_tests`)
+    and the 2-cycle test."""
+    return Termination(**convergence_tests(params), stop_on_cycle=bool(params.stop_on_cycle),
+                       cycle_keeps_lower_cost=True)
 
 
 def _gicp_information(factor: GICPFactor, out, Nt, params: GICPParams):
@@ -674,7 +668,7 @@ def _gicp_inputs(source_points, target_points, T_init, params, source_covariance
             same = target_index.data is Q or (check_target and np.array_equal(target_index.data, Q))
             if target_index.m != Q.shape[0] or not same:
                 raise InputError("target_index was built on a different cloud than target_points")
-            tree = target_index._tree
+            tree = target_index.packed
         else:  # None or another kind of index: build the KD-tree this search needs
             tree = kd_build(Q, KD_LEAF)
     with timer("covariances"):
@@ -735,19 +729,19 @@ def _warmup() -> None:
     L._gicp_pairs_parallel(P, Q, C[:4], C, R, si, si, np.zeros((1, L.GICP_ACC)))
     hist = np.empty((4, 2))
     for parallel in (False, True):  # the loop kernel (one compilation; both drivers inside)
-        KG.gicp_step_loop(P, Q, *tree, 1.0, C[:4], C, np.eye(4), 2, 1e-5, 1e-6, True, parallel, parallel, hist,
+        KG.gicp_step_loop(P, Q, tree, 1.0, C[:4], C, np.eye(4), 2, 1e-5, 1e-6, True, parallel, parallel, hist,
                           *KG.NO_LISTS)
         lists = (np.empty((Q.shape[0], 3), np.int64), np.empty(Q.shape[0]))
         _knn_normals(Q, tree, 3, False, parallel, lists)
-        KG.gicp_step_loop(P, Q, *tree, 1.0, C[:4], C, np.eye(4), 2, 1e-5, 1e-6, True, parallel, parallel, hist,
+        KG.gicp_step_loop(P, Q, tree, 1.0, C[:4], C, np.eye(4), 2, 1e-5, 1e-6, True, parallel, parallel, hist,
                           *lists)
     m = Q.shape[0]
     for mode in (False, True):
-        KG.knn_normals_pair_tasks(P, *kd_build(P, 2), 3, Q, *tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((4, 3)),
+        KG.knn_normals_pair_tasks(P, kd_build(P, 2), 3, Q, tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((4, 3)),
                                   np.empty((4, 3)), np.empty(4, dtype=np.int8), np.empty((0, 3), np.int64), np.empty(0),
                                   np.empty((m, 3)), np.empty((m, 3)), np.empty(m, dtype=np.int8),
                                   np.empty((m, 3), np.int64), np.empty(m))
-        KG.knn_normals_tasks(Q, *tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((m, 3)), np.empty((m, 3)),
+        KG.knn_normals_tasks(Q, tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((m, 3)), np.empty((m, 3)),
                              np.empty(m, dtype=np.int8), np.empty((0, 3), np.int64), np.empty(0))
-        KG.knn_normals_lists_serial(Q, *tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((m, 3)), np.empty((m, 3)),
+        KG.knn_normals_lists_serial(Q, tree, 3, mode, KG.DEGENERATE_RATIO, np.empty((m, 3)), np.empty((m, 3)),
                                     np.empty(m, dtype=np.int8), np.empty((0, 3), np.int64), np.empty(0))

@@ -428,7 +428,7 @@ def register_icp(source_points, target_points, T_init, params: ICPParams, target
         with timer("search"):
             tree = kd_build(Q, KD_LEAF)
     else:
-        tree = target_index._tree if isinstance(target_index, GatedKDTree) else None
+        tree = target_index.packed if isinstance(target_index, GatedKDTree) else None
     search = NearestInGate(Q, params.max_correspondence_distance_m, tree=tree, index=target_index)
     factor = PointToPointFactor(Q) if params.method == "point_to_point" else PointToPlaneFactor(Q, Nt)
     stop = Termination(relative_fitness=params.relative_fitness, relative_rmse=params.relative_rmse,

@@ -42,7 +42,7 @@ import numpy as np
 
 from minegeo.errors import DegenerateGeometryError, TooFewPointsError
 from minegeo.geometry.se3 import rotation_from_euler_xyz
-from minegeo.kernels.chunks import PARALLEL_QUERY_ROWS
+from minegeo.kernels.chunks import PARALLEL_QUERY_ROWS, by_size
 from minegeo.kernels.kdtree import (
     kd_nn_warm_parallel,
     kd_nn_warm_serial,
@@ -209,8 +209,8 @@ class NearestInGate:
         Target points (target frame, m), C-contiguous float64.
     d : float
         Gate (m).
-    tree : tuple, optional
-        ``kd_build(Q, leaf)``.
+    tree : PackedKDTree, optional
+        ``kd_build(Q, leaf)`` (:class:`~minegeo.kernels.kdtree.PackedKDTree`).
     index : optional
         Another search structure over ``Q`` (used when ``tree`` is None).
     parallel_rows : int
@@ -229,8 +229,8 @@ class NearestInGate:
         warm = prev.raw if prev is not None and prev.raw is not None else np.full(n, m, dtype=np.int64)
         idx = np.empty(n, dtype=np.int64)
         sq = np.empty(n)
-        drive = kd_nn_warm_parallel if n >= self.parallel_rows else kd_nn_warm_serial
-        drive(P, self.Q, *self.tree, self.d * self.d, warm, idx, sq)
+        by_size(n, self.parallel_rows, kd_nn_warm_serial, kd_nn_warm_parallel)(P, self.Q, self.tree, self.d * self.d,
+                                                                                warm, idx, sq)
         corr, total = compact_matches(idx, sq, m)
         k = corr.shape[0]
         if k == 0:

@@ -41,7 +41,7 @@ def _cloud(seed, n, dup=False):
 def test_kdtree_knn_gated_radius_match_brute_force(seed, n, dup, k):
     Q, P = _cloud(seed, n, dup)
     tree = KD.GatedKDTree(Q)
-    idx, sq = KD.kd_knn(P, tree._tree, k)
+    idx, sq = KD.kd_knn(P, tree.packed, k)
     ridx, rsq = naive_knn(Q, P, k)
     np.testing.assert_array_equal(idx, ridx)
     np.testing.assert_array_equal(sq, rsq)
@@ -51,7 +51,7 @@ def test_kdtree_knn_gated_radius_match_brute_force(seed, n, dup, k):
         np.testing.assert_array_equal(gi, ri)
         np.testing.assert_array_equal(gs, rs)
     for r in (0.0, 0.3, 1.5):
-        np.testing.assert_array_equal(KD.kd_radius_count(P, tree._tree, r), naive_radius_count(Q, P, r))
+        np.testing.assert_array_equal(KD.kd_radius_count(P, tree.packed, r), naive_radius_count(Q, P, r))
 
 
 def test_kdtree_answers_do_not_depend_on_point_order():

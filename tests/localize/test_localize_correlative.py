@@ -136,7 +136,7 @@ def test_refine_kernel_recovers_an_offset_placement():
     index = build_target_index(Q)
     out_T = np.empty((1, 4, 4))
     cnt = np.zeros(1, dtype=np.int64)
-    K.refine_placements_4dof(S, T0[None], Q, Nq, *index._tree, np.linspace(1.5, 0.5, 8) ** 2, 0.05, 0.25, out_T, cnt)
+    K.refine_placements_4dof(S, T0[None], Q, Nq, index.packed, np.linspace(1.5, 0.5, 8) ** 2, 0.05, 0.25, out_T, cnt)
     np.testing.assert_allclose(out_T[0], np.eye(4), atol=1e-6)
     assert cnt[0] == S.shape[0]
 
@@ -184,10 +184,10 @@ def test_grid_refine_kernel_brings_an_offset_placement_into_the_exact_basin():
     assert err1 < 0.5 * err0
     index = build_target_index(Q)
     same = np.empty((1, 4, 4))
-    K.refine_placements_4dof(S, Tg, Q, Nq, *index._tree, np.zeros(0), 0.05, 0.25, same, cnt)
+    K.refine_placements_4dof(S, Tg, Q, Nq, index.packed, np.zeros(0), 0.05, 0.25, same, cnt)
     np.testing.assert_array_equal(same, Tg)
     out_T = np.empty((1, 4, 4))
-    K.refine_placements_4dof(S, Tg, Q, Nq, *index._tree, np.linspace(1.0, 0.5, 4) ** 2, 0.05, 0.25, out_T, cnt)
+    K.refine_placements_4dof(S, Tg, Q, Nq, index.packed, np.linspace(1.0, 0.5, 4) ** 2, 0.05, 0.25, out_T, cnt)
     np.testing.assert_allclose(out_T[0], np.eye(4), atol=1e-6)
     assert cnt[0] == S.shape[0]
 
@@ -396,7 +396,7 @@ def test_screen_target_thins_the_icp_cloud(small_mine):
     v = voxel_downsample(pm.icp_points, 0.5, normals=pm.icp_normals)
     assert 0.5 * v.points.shape[0] < Qs.shape[0] <= v.points.shape[0] < pm.icp_points.shape[0]
     np.testing.assert_allclose(np.linalg.norm(Ns, axis=1), 1.0, atol=1e-12)
-    assert idx._tree[0].shape[0] == Qs.shape[0]
+    assert idx.packed.idx.shape[0] == Qs.shape[0]
     full = pm.screen_target(None)
     assert full[1] is pm.icp_points and full[2] is pm.icp_normals
     # a thin wall seen from both sides: its voxels' normals cancel and are left out; the floor stays

@@ -356,9 +356,9 @@ def test_knn_and_normals_equal_minegeo_geometry():
         tree = KD.kd_build(Q, KD.KD_LEAF)
         nb = NeighborIndex(Q).knn(Q, k)
         bi, bs = np.empty(k, np.int64), np.empty(k)
-        st_n, st_l = np.empty(tree[-1] + 2, np.int64), np.empty(tree[-1] + 2)
+        st_n, st_l = np.empty(tree.depth + 2, np.int64), np.empty(tree.depth + 2)
         for i in range(0, len(Q), 7):
-            c = KD.kd_knn_one(Q[i, 0], Q[i, 1], Q[i, 2], *tree[:-1], k, bi, bs, st_n, st_l)
+            c = KD.kd_knn_one(Q[i, 0], Q[i, 1], Q[i, 2], tree, k, bi, bs, st_n, st_l)
             assert c == k and np.array_equal(bi, nb.indices[i]) and np.array_equal(bs, nb.sq_distances[i])
         for mode in ("accurate", "open3d"):
             ref = estimate_normals(Q, NormalParams(max_nn=k, mode=mode), orient_towards="none")
@@ -703,11 +703,11 @@ def test_second_nearest_distance_is_exact():
     Q = np.round(rng.uniform(-1, 1, size=(400, 3)), 1)  # a lattice: many equal distances
     Q = np.ascontiguousarray(np.vstack([Q, Q[:20]]))  # and coincident points
     tree = kd_build(Q, KD_LEAF)
-    st_node, st_lb = np.empty(tree[-1] + 2, np.int64), np.empty(tree[-1] + 2)
+    st_node, st_lb = np.empty(tree.depth + 2, np.int64), np.empty(tree.depth + 2)
     for p in rng.uniform(-1.1, 1.1, size=(200, 3)):
         sq = (p[0] - Q[:, 0]) ** 2 + (p[1] - Q[:, 1]) ** 2 + (p[2] - Q[:, 2]) ** 2
         for d2 in (0.05, 0.3, 10.0):
-            b, bj, s2 = kd_nn2_descend(p[0], p[1], p[2], d2, Q.shape[0], *tree[:-1], d2, st_node, st_lb)
+            b, bj, s2 = kd_nn2_descend(p[0], p[1], p[2], d2, Q.shape[0], tree, d2, st_node, st_lb)
             inside = np.flatnonzero(sq < d2)
             if inside.size == 0:
                 assert bj == Q.shape[0] and s2 == d2
@@ -951,7 +951,7 @@ def test_pair_region_covariances_equal_one_cloud_at_a_time():
         ref_q = G._knn_normals(tgt, tq, 20, mode, False, lists_ref)
         outs = [(np.empty((c, 3)), np.empty((c, 3)), np.empty(c, dtype=np.int8)) for c in (src.shape[0], tgt.shape[0])]
         lists = (np.empty((tgt.shape[0], 20), np.int64), np.empty(tgt.shape[0]))
-        KG.knn_normals_pair_tasks(src, *tp, 20, tgt, *tq, 20, mode, KG.DEGENERATE_RATIO, *outs[0],
+        KG.knn_normals_pair_tasks(src, tp, 20, tgt, tq, 20, mode, KG.DEGENERATE_RATIO, *outs[0],
                                   np.empty((0, 20), np.int64), np.empty(0), *outs[1], *lists)
         for (n, e, s), (rn, rs, re) in zip(outs, (ref_p, ref_q), strict=True):
             assert np.array_equal(n, rn) and np.array_equal(s, rs) and np.array_equal(e, re, equal_nan=True)

@@ -56,11 +56,11 @@ def test_covariance_kernel_equals_knn_then_pca_normal(name, leaf, mode_open3d):
     outs = []
     for fn in (KG.knn_normals_lists_serial, KG.knn_normals_tasks):
         o = (np.empty((m, 3)), np.empty((m, 3)), np.empty(m, np.int8), np.empty((m, kk), np.int64), np.empty(m))
-        fn(Q, *tree, kk, mode_open3d, KG.DEGENERATE_RATIO, *o)
+        fn(Q, tree, kk, mode_open3d, KG.DEGENERATE_RATIO, *o)
         outs.append(o)
     for fn in (KG._knn_normals_serial, KG._knn_normals_parallel):
         o = (np.empty((m, 3)), np.empty((m, 3)), np.empty(m, np.int8))
-        fn(Q, *tree, kk, mode_open3d, KG.DEGENERATE_RATIO, *o)
+        fn(Q, tree, kk, mode_open3d, KG.DEGENERATE_RATIO, *o)
         outs.append(o)
     for o in outs:
         for a, b in zip(o, ref, strict=False):

@@ -19,7 +19,7 @@ def test_parallel_query_equals_serial_and_brute_force(rng):
     d2 = 0.4**2
     idx_s = np.empty(n, dtype=np.int64)
     sq_s = np.empty(n)
-    KD.kd_nn_serial(P, *tree._tree, d2, idx_s, sq_s)
+    KD.kd_nn_serial(P, tree.packed, d2, idx_s, sq_s)
     old = numba.get_num_threads()
     try:
         for threads in (1, old):
