@@ -167,7 +167,7 @@ def run_variant(name, frames, ref, params) -> dict:
     err = pair_errors(odo.poses, ref)
     n = len(frames)
     return {"name": name, "params": {k: getattr(params, k) for k in ("voxel_size_m", "max_correspondence_distance_m",
-                                                                   "gicp_max_iterations", "keyframe_interval_s")},
+                                                                   "gicp_max_iterations", "keyframe_interval_s", "frame_target")},
             "poses": odo.poses, "err": err, "distribution": distribution(err),
             "within_trust": int(((err["translation_m"] <= TRUST_T_M) & (err["rotation_deg"] <= TRUST_ROT_DEG)).sum()),
             "pairs": int(err["translation_m"].size), "keyframes": int(odo.keyframes.size),
