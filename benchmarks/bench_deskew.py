@@ -64,6 +64,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--presets", nargs="+", default=["vehicle", "handheld", "drone"])
     ap.add_argument("--work", type=Path, default=Path.home() / ".cache" / "minegeo_bench" / "deskew")
+    ap.add_argument("--odometry", choices=("auto", "submap", "frame"), default="auto",
+                    help="minegeo slam --odometry (auto, the CLI's default: the local map on these 10 Hz streams)")
     ap.add_argument("--json", type=Path, required=True)
     ap.add_argument("--md", type=Path, required=True)
     a = ap.parse_args(argv)
@@ -77,6 +79,7 @@ def main(argv=None) -> int:
                   "--force"])
         for mode, opts in MODES.items():
             run = a.work / f"{stream.name}_{'_'.join(mode.replace(',', '').split()[:3])}"
+            opts = [*opts, "--odometry", a.odometry]
             wall = _cli(["slam", "--frames", str(stream / "frames"),
                          "--out", str(run), *opts])
             rows.append({"preset": preset, "mode": mode, "options": opts, "wall_s": wall, **_ate(run, stream)})

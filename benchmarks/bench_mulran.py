@@ -167,7 +167,7 @@ def run_variant(name, frames, ref, params) -> dict:
     err = pair_errors(odo.poses, ref)
     n = len(frames)
     return {"name": name, "params": {k: getattr(params, k) for k in ("voxel_size_m", "max_correspondence_distance_m",
-                                                                   "gicp_max_iterations", "keyframe_interval_s")},
+                                                                   "gicp_max_iterations", "keyframe_interval_s", "frame_target")},
             "poses": odo.poses, "err": err, "distribution": distribution(err),
             "within_trust": int(((err["translation_m"] <= TRUST_T_M) & (err["rotation_deg"] <= TRUST_ROT_DEG)).sum()),
             "pairs": int(err["translation_m"].size), "keyframes": int(odo.keyframes.size),
@@ -235,6 +235,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", required=True)
     ap.add_argument("--md", required=True)
     ap.add_argument("--no-cli", action="store_true", help="skip the minegeo slam run")
+    ap.add_argument("--frame-target", choices=("frame", "submap"), default="frame",
+                    help="OdometryParams.frame_target of both variants (what each frame registers to; default frame)")
     a = ap.parse_args(argv)
 
     from minegeo._provenance import atomic_write_text, to_jsonable, versions, write_json_atomic
@@ -249,8 +251,10 @@ def main(argv=None) -> int:
     fastlio = read_kitti_poses(DATA / "odom_poses_fastlio2.txt")
     ref_path = path_length(ref)
 
-    variants = {"defaults": OdometryParams(keyframe_interval_s=0.1),
-                "wide_gate": OdometryParams(voxel_size_m=1.0, max_correspondence_distance_m=6.0, keyframe_interval_s=0.1)}
+    ft = a.frame_target
+    variants = {"defaults": OdometryParams(keyframe_interval_s=0.1, frame_target=ft),
+                "wide_gate": OdometryParams(voxel_size_m=1.0, max_correspondence_distance_m=6.0, keyframe_interval_s=0.1,
+                                            frame_target=ft)}
     runs = []
     for name, p in variants.items():
         print(f"running {name} ...", file=sys.stderr)
@@ -281,6 +285,7 @@ def main(argv=None) -> int:
         "variants": [{k: v for k, v in r.items() if k not in ("poses", "err")} for r in runs],
         "cli": None if cli is None else {k: v for k, v in cli.items() if k != "poses"},
         "git": git_state(), "versions": versions(), "load_average_1_5_15": list(os.getloadavg()),
+        "command": "python benchmarks/bench_mulran.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "cpu_count": os.cpu_count(),
     }
     write_json_atomic(a.json, to_jsonable(rec))
@@ -295,7 +300,8 @@ def main(argv=None) -> int:
           f"Trust bounds of the test: {TRUST_T_M} m, {TRUST_ROT_DEG} deg per pair.", ""]
     for r in runs:
         p = r["params"]
-        md += [f"## `{r['name']}`: voxel {p['voxel_size_m']} m, gate {p['max_correspondence_distance_m']} m", "",
+        md += [f"## `{r['name']}`: voxel {p['voxel_size_m']} m, gate {p['max_correspondence_distance_m']} m, "
+               f"each frame to the {'local map' if p['frame_target'] == 'submap' else 'previous frame'}", "",
                *fmt_table(r["distribution"]), "",
                f"- within trust: {r['within_trust']} of {r['pairs']} pairs; frames failed: {r['failed_frames']}; "
                f"flagged: {len(r['flagged_frames'])}",

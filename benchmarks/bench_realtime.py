@@ -111,14 +111,15 @@ class _Clocks:
         return 1e3 * np.diff(np.asarray(self.rows), axis=0)
 
 
-def run_minegeo(frames):
+def run_minegeo(frames, frame_target: str = "submap"):
     """``(per-frame ms (n-1, 3): wall, process CPU, thread CPU of frames 1..n-1 (row 0 holds frames 0+1),
-    OdometryResult)``."""
+    OdometryResult)``; ``frame_target`` as ``minegeo slam --odometry`` (``submap``: what it runs on a 10 Hz
+    stream)."""
     from minegeo.slam.odometry import OdometryParams, run_odometry
 
     clk = _Clocks()
     clk.stamp()
-    odo = run_odometry(frames, OdometryParams(), progress=clk.stamp)
+    odo = run_odometry(frames, OdometryParams(frame_target=frame_target), progress=clk.stamp)
     return clk.per_frame_ms(), odo
 
 
@@ -180,20 +181,20 @@ def _stats(ms: np.ndarray) -> dict:
 
 
 def bench_stream(stream: Path, a) -> dict:
-    from minegeo.slam.odometry import run_odometry
+    from minegeo.slam.odometry import OdometryParams, run_odometry
     from minegeo.slam.pipeline import SlamParams, run_backend
 
     frames, truth = load_frames(stream)
     n = len(frames)
     _log(f"{stream.name}: {n} frames, {np.mean([f[1].shape[0] for f in frames]):.0f} points each; warm-up")
-    run_odometry(frames[:3])  # untimed: Numba's cache loaded, every kernel of the path dispatched once
+    run_odometry(frames[:3], OdometryParams(frame_target=a.odometry))  # untimed: Numba's cache loaded, every kernel of the path dispatched once
     run_kiss(frames[:3], a.threads)
     mg_runs, ks_runs, run_medians = [], [], []
     odo = k_poses = None
     for r in range(a.repeats):
         for lib in (("minegeo", "kiss") if r % 2 == 0 else ("kiss", "minegeo")):
             if lib == "minegeo":
-                ms, odo = run_minegeo(frames)
+                ms, odo = run_minegeo(frames, a.odometry)
                 mg_runs.append(ms)
             else:
                 ms, k_poses = run_kiss(frames, a.threads)
@@ -203,7 +204,7 @@ def bench_stream(stream: Path, a) -> dict:
         _log(f"{stream.name}: repeat {r + 1}/{a.repeats}: {run_medians[-1]}")
     mg, ks = np.min(np.stack(mg_runs), axis=0), np.min(np.stack(ks_runs), axis=0)
     t0 = time.perf_counter()
-    slam = run_backend(odo, SlamParams(), odometry_s=0.0)
+    slam = run_backend(odo, SlamParams(odometry=OdometryParams(frame_target=a.odometry)), odometry_s=0.0)
     backend_s = time.perf_counter() - t0
     n_kf = int(odo.keyframes.size)
     times = np.asarray([f[0] for f in frames])
@@ -233,6 +234,7 @@ def markdown(out: dict) -> str:
     L = [f"*{m['date']}, commit {m['commit']}, {m['duration_s']:g} s streams at 10 Hz (seed {m['seed']}), "
          f"threads: minegeo Numba {m['numba_threads']} ({m['numba_threading_layer']} layer, OMP_WAIT_POLICY "
          f"{m.get('omp_wait_policy', '?')}), KISS-ICP max_num_threads {m['kiss_threads']}; "
+         f"minegeo odometry: each frame to the {'local map' if m.get('odometry', 'frame') == 'submap' else 'previous frame'}; "
          f"{m['repeats']} alternating runs, per frame the minimum over the runs; {m['cpus']} cores shared with "
          f"other jobs: uptime before `{m['uptime_before']}`, after `{m['uptime_after']}`.*", "",
          "| stream | per frame (ms) | minegeo wall: median / p95 / max | minegeo CPU (process) median / p95 "
@@ -269,6 +271,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--presets", nargs="+", default=["vehicle", "handheld", "drone"])
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--odometry", choices=("submap", "frame"), default="submap",
+                    help="what each frame registers to (minegeo slam --odometry; a 10 Hz stream: submap)")
     ap.add_argument("--work", type=Path, default=Path.home() / ".cache" / "minegeo_bench" / "realtime")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--md", type=Path, default=None)
@@ -296,7 +300,7 @@ def main(argv=None) -> int:
     meta = {"date": dt.date.today().isoformat(), "commit": commit, "duration_s": a.duration_s, "seed": a.seed,
             "repeats": a.repeats, "numba_threads": numba.get_num_threads(), "numba_threading_layer":
             numba.threading_layer(), "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "libgomp default (spin)"),
-            "kiss_threads": a.threads,
+            "kiss_threads": a.threads, "odometry": a.odometry,
             "threads": f"{numba.get_num_threads()} for minegeo (Numba), {a.threads} for KISS-ICP",
             "kiss_config": repr(kiss_config(a.threads)),
             "kiss_icp_version": version("kiss-icp"), "cpus": os.cpu_count(), "uptime_before": up0,

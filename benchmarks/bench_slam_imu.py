@@ -45,7 +45,7 @@ def _cli(args: list[str]) -> float:
     return time.perf_counter() - t0
 
 
-def _front_end_only(stream: Path, run: Path) -> float:
+def _front_end_only(stream: Path, run: Path, frame_target: str = "submap") -> float:
     """The gyro in the odometry only (Python API); writes ``trajectory.tum`` and the ``result.json`` fields
     :func:`_ate` reads. Returns the wall time (s)."""
     from minegeo.io import write_trajectory
@@ -53,11 +53,11 @@ def _front_end_only(stream: Path, run: Path) -> float:
     from minegeo.io.imu import read_imu_csv
     from minegeo.io.types import Trajectory
     from minegeo.slam.inertial import GyroAid
-    from minegeo.slam.odometry import run_odometry
+    from minegeo.slam.odometry import OdometryParams, run_odometry
     from minegeo.slam.pipeline import SlamParams, run_backend
 
     t0 = time.perf_counter()
-    p = SlamParams()
+    p = SlamParams(odometry=OdometryParams(frame_target=frame_target))
     files = list_frames(stream / "frames")
     odo = run_odometry((((f.time_s, pts, tau) for f, pts, tau, _exc in iter_frames(files, True))), p.odometry,
                        imu=GyroAid(read_imu_csv(stream / "imu.csv")))
@@ -120,6 +120,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--presets", nargs="+", default=["vehicle", "handheld", "drone"])
     ap.add_argument("--work", type=Path, default=Path.home() / ".cache" / "minegeo_bench" / "slam_imu")
+    ap.add_argument("--odometry", choices=("submap", "frame"), default="submap",
+                    help="minegeo slam --odometry, and the front-end-only run's frame_target (a 10 Hz stream: submap)")
     ap.add_argument("--json", type=Path, required=True)
     ap.add_argument("--md", type=Path, required=True)
     a = ap.parse_args(argv)
@@ -134,9 +136,10 @@ def main(argv=None) -> int:
         for mode, opts in MODES.items():
             run = a.work / f"{stream.name}_{mode.replace(',', '').replace('+', '').replace(' ', '_')}"
             if opts is None:
-                wall, opts = _front_end_only(stream, run), ["(Python API)"]
+                wall, opts = _front_end_only(stream, run, a.odometry), ["(Python API)"]
             else:
                 opts = [str(stream / "imu.csv") if o == "IMU" else o for o in opts]
+                opts = [*opts, "--odometry", a.odometry]
                 wall = _cli(["slam", "--frames", str(stream / "frames"), "--out", str(run), *opts])
             rows.append({"preset": preset, "mode": mode, "options": opts, "wall_s": wall, **_ate(run, stream)})
             print(rows[-1], flush=True)

@@ -94,7 +94,19 @@ def main(argv=None) -> int:
     ap.add_argument("--kiss-threads", type=int, default=1)
     ap.add_argument("--json", type=Path, required=True)
     ap.add_argument("--md", type=Path, required=True)
+    ap.add_argument("--odometry", choices=("auto", "submap", "frame"), default=None,
+                    help="minegeo slam --odometry (default: the CLI's default, auto)")
+    ap.add_argument("--kiss-from", type=Path, default=None, metavar="RESULTS.json",
+                    help="take the KISS-ICP rows from an earlier run of this script on the same streams (same "
+                         "duration and seed; KISS-ICP is not run again): minegeo's rows only are measured")
     a = ap.parse_args(argv)
+    kiss_old = None
+    if a.kiss_from is not None:
+        old = json.loads(a.kiss_from.read_text())
+        if (old["meta"]["duration_s"], old["meta"]["seed"]) != (a.duration_s, a.seed):
+            raise SystemExit(f"--kiss-from {a.kiss_from}: other streams (duration {old['meta']['duration_s']} s, "
+                             f"seed {old['meta']['seed']})")
+        kiss_old = old
     a.work.mkdir(parents=True, exist_ok=True)
     up0 = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     commit0 = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -107,11 +119,18 @@ def main(argv=None) -> int:
         times = np.asarray([f[0] for f in frames])
         for mode, opts in MODES.items():
             run = a.work / f"{stream.name}_{mode.replace(' + ', '_').replace(' ', '_')}"
-            rows.append({"sequence": name, "mode": mode, **_minegeo(stream, run, opts, times, truth)})
+            opts = opts + (["--odometry", a.odometry] if a.odometry else [])
+            rows.append({"sequence": name, "mode": mode, **_minegeo(stream, run, opts, times, truth),
+                         "odometry_target": json.loads((run / "result.json").read_text())["result"]
+                         ["odometry_target"]["frame_target"]})
             _log(f"{name} / {mode}: {rows[-1]['ate_aligned_pct']:.3f} % aligned")
         end = times + np.asarray([float(f[2].max()) for f in frames])
         keep = end <= truth.times_s[-1]  # KISS-ICP's pose time (the sweep's end) inside the truth
         for label, voxel in KISS_VOXELS.items():
+            if kiss_old is not None:
+                (r,) = [r for r in kiss_old["rows"] if r["sequence"] == name and r["mode"] == label]
+                rows.append({**r, "from": str(a.kiss_from)})
+                continue
             t0 = time.perf_counter()
             _, poses = run_kiss(frames, a.kiss_threads, voxel)
             rows.append({"sequence": name, "mode": label, "wall_s": time.perf_counter() - t0,
@@ -131,6 +150,8 @@ def main(argv=None) -> int:
             "kiss_icp_version": version("kiss-icp"), "kiss_config": repr(kiss_config(a.kiss_threads)),
             "uptime_before": up0, "uptime_after": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip(),
             "cpus": os.cpu_count(),
+            "kiss_rows_from": None if kiss_old is None else {"file": str(a.kiss_from), "commit": kiss_old["meta"]["commit"],
+                                                              "date": kiss_old["meta"]["date"]},
             "command": "python benchmarks/bench_stream_ate.py " + " ".join(argv if argv is not None else sys.argv[1:])}
     a.json.parent.mkdir(parents=True, exist_ok=True)
     a.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
@@ -142,12 +163,15 @@ def markdown(d: dict) -> str:
     m = d["meta"]
     L = [f"*{m['date']}, commit {m['commit']}, {m['duration_s']:g} s streams at 10 Hz (seed {m['seed']}); minegeo "
          f"Numba threads {m['numba_threads']}, KISS-ICP {m['kiss_icp_version']} max_num_threads {m['kiss_threads']}; "
-         f"load: `{m['uptime_before']}` → `{m['uptime_after']}`; {m['cpus']} cores.*", "",
-         "| sequence | path | mode | ATE RMSE, aligned | ATE RMSE, unaligned | max error (unaligned) | frames held |",
-         "|---|---|---|---|---|---|---|"]
+         f"load: `{m['uptime_before']}` → `{m['uptime_after']}`; {m['cpus']} cores"
+         + ("" if not m.get("kiss_rows_from") else f"; KISS-ICP rows from `{m['kiss_rows_from']['file']}` (same "
+            f"streams, commit {m['kiss_rows_from']['commit']}, {m['kiss_rows_from']['date']})") + ".*", "",
+         "| sequence | path | mode | odometry | ATE RMSE, aligned | ATE RMSE, unaligned | max error (unaligned) | frames held |",
+         "|---|---|---|---|---|---|---|---|"]
     for r in d["rows"]:
         held = "" if r["frames_held"] is None else str(r["frames_held"])
-        L.append(f"| {r['sequence']} | {r['path_m']:.1f} m | {r['mode']} | {r['ate_aligned_m']:.3f} m "
+        target = {"submap": "to the local map", "frame": "frame to frame"}.get(r.get("odometry_target"), "")
+        L.append(f"| {r['sequence']} | {r['path_m']:.1f} m | {r['mode']} | {target} | {r['ate_aligned_m']:.3f} m "
                  f"({r['ate_aligned_pct']:.3f} %) | {r['ate_unaligned_m']:.3f} m ({r['ate_unaligned_pct']:.3f} %) | "
                  f"{r['ate_max_m']:.3f} m | {held} |")
     return "\n".join(L) + "\n"

@@ -434,9 +434,9 @@ def _register_step(cur, k: int, t: float, prev, prev_k: int, submap, T_sub, pose
     """One registration of frame ``k`` (time ``t``): ``(registration, pose or None when not
     registered, registered to the previous frame instead of the local map)``."""
     if params.frame_target == "submap":
-        # (t - times[-1] is 0 here: the time-scaled guess is not used with the local map)
+        # `times` holds this frame's time already: the step from the previous frame (pose poses[-1]) is t - times[-2]
         return _register_to_submap(cur, prev, submap, T_sub, poses[-1], velocity,
-                                   _time_scaled_guess(velocity, t - times[-1], velocity_dt), params)
+                                   _time_scaled_guess(velocity, t - times[-2], velocity_dt), params)
     if prev_k == k - 1:
         reg = _register_with_retries(cur, prev, velocity, params)  # [Ren2019 Eq. 7]: ΔT_{t-1,t}
         scaled = _time_scaled_guess(velocity, t - prev.time_s, velocity_dt)
