@@ -112,7 +112,7 @@ def run(args) -> int:
         # measured after the commit, from the start of the process: the time the user waited
         rt = whole_run_timings(args)
         pt = rec["timings_s"]
-        steps = (f"read + downsample (2 chunked passes) {t_read:.1f} s, SHA-256 {t_hash:.1f} s, downsample + normals + FPFH + ICP target {pt.get('total', 0.0):.1f} s, "
+        steps = (f"read + downsample (2 chunked passes) {t_read:.1f} s, SHA-256 {t_hash:.1f} s, normals + FPFH + ICP target {pt.get('total', 0.0) - t_read:.1f} s, "
                  f"search structures {sum(index_s.values()):.1f} s, write {t_save:.1f} s")
         print(f"prepared {args.map} (profile {profile}): {n_points} -> {len(pm)} points ({prep.describe()}), "
               f"{pm.icp_points.shape[0]} ICP points; wrote {out}, {record.name}, {report.name}")
