@@ -49,6 +49,7 @@ import numpy as np
 
 from minegeo.errors import InputError
 from minegeo.io.types import Trajectory
+from minegeo.synth.motion import rot_zyx
 from minegeo.synth.network_world import NetworkWorld
 
 __all__ = ["NetworkWorld", "FlightParams", "Flight", "FlightFrames", "plan_route", "make_flight", "simulate_flight",
@@ -297,16 +298,6 @@ def _smooth(x: np.ndarray, n: int) -> np.ndarray:
     return np.convolve(np.pad(x, (n // 2, n - 1 - n // 2), mode="edge"), k, mode="valid")
 
 
-def _rot(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
-    """R = Rz(yaw) Ry(pitch) Rx(roll), (k, 3, 3)."""
-    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
-    R = np.empty((len(yaw), 3, 3))
-    R[:, 0] = np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], 1)
-    R[:, 1] = np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], 1)
-    R[:, 2] = np.stack([-sp, cp * sr, cp * cr], 1)
-    return R
-
-
 def make_flight(net, params: FlightParams | None = None, route=None) -> Flight:
     """Plan a 6-DoF drone flight over ``net`` (see the module docstring).
 
@@ -348,7 +339,7 @@ def make_flight(net, params: FlightParams | None = None, route=None) -> Flight:
     pitch = np.arctan(a_f / G_MPS2) + np.radians(_smooth_noise(rng, t, p.tilt_noise_deg, 0.05, 0.3))
     roll = -np.arctan(a_l / G_MPS2) + np.radians(_smooth_noise(rng, t, p.tilt_noise_deg, 0.05, 0.3))
     poses = np.tile(np.eye(4), (len(t), 1, 1))
-    poses[:, :3, :3] = _rot(yaw, pitch, roll)
+    poses[:, :3, :3] = rot_zyx(yaw, pitch, roll)
     poses[:, :3, 3] = np.column_stack([xy, np.minimum(z, _roof(net, xy) - 0.6)])
     idx, last = [0], 0
     step = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))]

@@ -98,7 +98,8 @@ def sway_network(width_m: float = 3.2, height_m: float = 3.0, roughness_m: float
 
 def _sway_clock(net, p: SwayWalkParams) -> Trajectory:
     """The walk's ``T_world_sensor`` on the :data:`CLOCK_HZ` clock, long enough for ``p.n_frames`` sweeps."""
-    from minegeo.synth.flight import FlightParams, _nominal, _rot, plan_route
+    from minegeo.synth.flight import FlightParams, _nominal, plan_route
+    from minegeo.synth.motion import rot_zyx
 
     duration = (p.n_frames + 1) / p.rate_hz
     fp = FlightParams(length_m=1.3 * duration * p.speed_mps + 50.0, speed_mps=p.speed_mps, accel_mps2=0.8,
@@ -122,7 +123,7 @@ def _sway_clock(net, p: SwayWalkParams) -> Trajectory:
     yaw = np.interp(t, t_n, yaw_n) + sway(p.yaw_sway_deg, 0.7, 0.7)
     z = 1.4 + 0.03 * np.sin(2 * np.pi * 1.8 * t)
     poses = np.tile(np.eye(4), (t.size, 1, 1))
-    poses[:, :3, :3] = _rot(yaw, pitch, roll)
+    poses[:, :3, :3] = rot_zyx(yaw, pitch, roll)
     poses[:, :3, 3] = np.column_stack([xy, z])
     return Trajectory(times_s=t, poses=poses, frame="world", body="sensor")
 
