@@ -91,7 +91,8 @@ Statistics (:mod:`minegeo.survey.control_stats`)
 ------------------------------------------------
 Control residuals ``v_k = p_k − p̄_k`` (adjusted minus observed); their cofactors (graph)
 ``Qvv_k = Σll_k − J Σ_kk Jᵀ`` (exact per station, cross-station blocks not formed: the w-tests of
-a diagonal ``P`` need only the diagonal); redundancy ``r = 6·(edges) + 3·(controls) − 6·(variables)``
+a diagonal ``P`` need only the diagonal); in rigid mode ``Qvv = Qll − A N⁻¹ Aᵀ`` of the rigid or
+similarity fit (CS7, :func:`minegeo.survey.control_stats.fit_residual_cofactors`); redundancy ``r = 6·(edges) + 3·(controls) − 6·(variables)``
 (graph; with drift states ``− 3 + Σ_i tr(Σ_βi Ω_p)/n`` and the prior's terms left out of ``vᵀPv``,
 C5, see :func:`_solve_graph`) or ``3·controls − 6`` (rigid model) and ``3·controls − 7``
 (similarity model) in rigid mode. σ̂0² and the χ² test are those of the
@@ -627,7 +628,7 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
         A station outside the keyframes' time span, fewer than 3 control stations, stations whose
         spans overlap, no CRS.
     """
-    from minegeo.survey.control_stats import control_statistics
+    from minegeo.survey.control_stats import control_statistics, fit_residual_cofactors
     from minegeo.survey.ellipse import error_ellipse
 
     p = params or ControlParams()
@@ -662,7 +663,8 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
         pts = pts_map @ T_lm[:3, :3].T + T_lm[:3, 3]
         dof = 3 * n_ctrl - (6 if p.model == "rigid" else 7)
         v = pts[ctrl] - stations.enh_local[ctrl]
-        stats = control_statistics(v, cov_ll[ctrl], dof=dof, ids=ids[ctrl])
+        qvv = fit_residual_cofactors(pts_map[ctrl] @ T_lm[:3, :3].T, cov_ll[ctrl], scale=p.model == "similarity")
+        stats = control_statistics(v, cov_ll[ctrl], qvv=qvv, dof=dof, ids=ids[ctrl])
         gchi = stats.chi2
         var = np.full(len(stations), -1, dtype=np.int64)
         note = ("rigid fit" if p.model == "rigid" else "similarity fit (7 parameters, scale estimated)") + \

@@ -49,6 +49,17 @@ Misclosure ratio -- (CS6)::
 ``L`` the traverse length (m, along the trajectory between the stations), ``m`` the misclosure
 (m, the horizontal error at its end); ``N = inf`` for a zero misclosure. Conventional figures:
 1:5000 for underground traverses of a mine plan.
+
+Residual cofactors of a rigid (6-parameter) or similarity (7-parameter) fit of control stations --
+(CS7)::
+
+    Qvv = Qll − A N⁻¹ Aᵀ,    N = Aᵀ P A,    P = Qll⁻¹
+    A_k = [ I₃   −[y_k]ₓ   (y_k / s) ]        (last column for the similarity only)
+
+for the model ``x_k = s R p_k + t`` linearised at the fit, ``y_k = s R p_k`` (the station's fitted
+point less the translation), the parameters ``(δt, δθ, δs)`` with ``R ← Exp(δθ) R``. ``tr(Qvv P) =
+3n − 6`` (rigid) or ``3n − 7`` (similarity): the redundancy numbers of the stations, which the w-test
+(CS3) divides by.
 """
 
 from __future__ import annotations
@@ -257,6 +268,39 @@ class CheckErrors:
     rmse_horizontal: float
     rmse_vertical: float
     rmse_3d: float
+
+
+def fit_residual_cofactors(y, cov, *, scale: bool) -> np.ndarray:
+    """Cofactors ``Qvv`` (3n, 3n; m² for σ0 = 1) of the residuals of a rigid or similarity fit of
+    ``n`` control stations (CS7).
+
+    Parameters
+    ----------
+    y : array_like (n, 3), m
+        ``s R p_k``: each station's fitted point less the fit's translation (E N H).
+    cov : array_like
+        A-priori covariance ``Qll`` of the stations (m²), as in :func:`control_statistics`.
+    scale : bool
+        True for the similarity (scale estimated), False for the rigid fit.
+
+    Returns
+    -------
+    numpy.ndarray (3n, 3n)
+        ``Qll − A (Aᵀ P A)⁻¹ Aᵀ``; its ``tr(Qvv P)`` is ``3n − 6`` or ``3n − 7``.
+    """
+    Y = np.asarray(y, dtype=np.float64)
+    n = Y.shape[0]
+    Q = _block_cov(cov, n)
+    A = np.zeros((3 * n, 7 if scale else 6))
+    for k, (a, b, c) in enumerate(Y):
+        A[3 * k:3 * k + 3, :3] = np.eye(3)
+        A[3 * k:3 * k + 3, 3:6] = -np.array([[0.0, -c, b], [c, 0.0, -a], [-b, a, 0.0]])
+    if scale:  # the column y_k / s scaled by s: A N⁻¹ Aᵀ depends only on the space A's columns span
+        A[:, 6] = Y.reshape(-1)
+    P = np.linalg.inv(Q)
+    N = A.T @ P @ A
+    Qvv = Q - A @ np.linalg.solve(N, A.T)
+    return 0.5 * (Qvv + Qvv.T)
 
 
 def check_errors(estimated_enh, surveyed_enh, ids=None) -> CheckErrors:

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 from scipy import stats
 
 from minegeo.survey.control_stats import (
@@ -122,3 +124,40 @@ def test_sp1_class_and_ratio_hand():
     assert t2.ellipse_semi_major_mm[0] == pytest.approx(10.0 * np.sqrt(stats.chi2.ppf(0.95, 2)), rel=1e-9)
     assert misclosure_ratio(1000.0, 0.2) == pytest.approx(5000.0)
     assert np.isinf(misclosure_ratio(100.0, 0.0))
+
+
+def _rzyx(yaw, pitch, roll):
+    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                     [-sp, cp * sr, cp * cr]])
+
+
+@given(st.integers(3, 7), st.integers(0, 2**31 - 1), st.booleans())
+@settings(max_examples=60, deadline=None)
+def test_fit_residual_cofactors_are_the_projection_of_a_finite_difference_jacobian(n, seed, scale):
+    """(CS7) against a naive twin: the model ``x = s Rz(ψ)Ry(θ)Rx(φ) p + t`` differentiated numerically in
+    its own parameters (Euler angles, not the rotation vector of the function): ``Qll − A (AᵀPA)⁻¹ Aᵀ``
+    depends only on the space A spans, so both give the same ``Qvv``; ``tr(Qvv P) = 3n − 6 (− 1)``."""
+    from minegeo.survey.control_stats import fit_residual_cofactors
+
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-300.0, 300.0, (n, 3)) * np.array([1.0, 1.0, 0.1])
+    assume(np.linalg.svd(p - p.mean(axis=0), compute_uv=False)[1] > 20.0)  # not on one line
+    ang, t, s = rng.uniform(-np.pi, np.pi, 3) * np.array([1.0, 0.1, 0.1]), rng.uniform(-1e3, 1e3, 3), 1.0 + 1e-4 * rng.normal()
+    sig = rng.uniform(0.003, 0.03, (n, 3))
+    Q = np.zeros((3 * n, 3 * n))
+    Q[np.diag_indices(3 * n)] = sig.reshape(-1) ** 2
+
+    def model(x):  # (t, ψ θ φ, s) -> stacked fitted points
+        return ((x[6] if scale else s) * (_rzyx(*x[3:6]) @ p.T).T + x[:3]).reshape(-1)
+
+    x0 = np.r_[t, ang, s] if scale else np.r_[t, ang]
+    h = 1e-6 * np.maximum(1.0, np.abs(x0))
+    A = np.column_stack([(model(x0 + h[j] * np.eye(x0.size)[j]) - model(x0 - h[j] * np.eye(x0.size)[j])) / (2 * h[j])
+                         for j in range(x0.size)])
+    P = np.linalg.inv(Q)
+    ref = Q - A @ np.linalg.solve(A.T @ P @ A, A.T)
+    got = fit_residual_cofactors(s * (_rzyx(*ang) @ p.T).T, sig, scale=scale)
+    assert np.allclose(got, ref, rtol=0, atol=1e-6 * sig.min() ** 2), np.abs(got - ref).max()
+    assert np.trace(got @ P) == pytest.approx(3 * n - (7 if scale else 6), abs=1e-6)
