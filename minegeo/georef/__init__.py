@@ -32,7 +32,7 @@ from minegeo.georef.crs import (
     validate_crs,
 )
 from minegeo.georef.fit import georeference, unit_diagnosis
-from minegeo.georef.result import GeorefParams, GeorefResult
+from minegeo.georef.result import GeorefParams, GeorefResult, GeorefStatus
 from minegeo.georef.sidecar import (
     SIDECAR_FORMAT,
     SIDECAR_VERSION,
@@ -53,6 +53,7 @@ __all__ = [
     "validate_crs",
     "GeorefParams",
     "GeorefResult",
+    "GeorefStatus",
     "georeference",
     "unit_diagnosis",
     "apply_georef",

@@ -83,7 +83,7 @@ from minegeo.georef.crs import (
     outside_area_of_use,
     same_crs,
 )
-from minegeo.georef.result import GeorefParams, GeorefResult
+from minegeo.georef.result import GeorefParams, GeorefResult, GeorefStatus
 from minegeo.io.types import ControlPoints
 from minegeo.survey.helmert import helmert3d
 from minegeo.survey.lsq import LSQOptions, LSQResult
@@ -486,15 +486,15 @@ def _crs_checks(info: CRSInfo, crs_enh: np.ndarray, sig_enh: np.ndarray, extent:
     return gf
 
 
-def _status(failed: list, warnings: list) -> tuple[str, str, list]:
+def _status(failed: list, warnings: list) -> tuple[GeorefStatus, str, list]:
     """``(status, reason, warnings)``: failed checks come first in the warning list."""
     if failed:
-        status, reason = "failed", "; ".join(failed)
+        status, reason = GeorefStatus.FAILED, "; ".join(failed)
         warnings = failed + warnings
     elif warnings:
-        status, reason = "warning", warnings[0]
+        status, reason = GeorefStatus.WARNING, warnings[0]
     else:
-        status, reason = "ok", ""
+        status, reason = GeorefStatus.OK, ""
     for msg in warnings:
         log.warning("georeference: %s", msg)
     return status, reason, warnings

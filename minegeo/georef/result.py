@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 
@@ -18,7 +19,7 @@ from minegeo.errors import InputError
 from minegeo.georef.crs import CRSInfo
 from minegeo.survey.angles import RHO_ARCSEC, format_dms
 
-__all__ = ["GeorefParams", "GeorefResult"]
+__all__ = ["GeorefParams", "GeorefResult", "GeorefStatus"]
 
 _MODELS = ("rigid", "similarity")
 _CONVENTIONS = {
@@ -116,6 +117,16 @@ class GeorefParams:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
 
 
+class GeorefStatus(StrEnum):
+    """Status of a georeferencing fit (:attr:`GeorefResult.status`); each member is its string value."""
+
+    OK = "ok"
+    #: the χ² test failed, a GCP was flagged or the geometry is weak: usable, with the warnings
+    WARNING = "warning"
+    #: the fit is refused (mismatched units or ids, a mirror image, an implausible residual)
+    FAILED = "failed"
+
+
 @dataclass(frozen=True)
 class GeorefResult:
     """Map-to-CRS transformation estimated from GCPs, with its statistics.
@@ -125,7 +136,8 @@ class GeorefResult:
 
     Attributes
     ----------
-    status : {"ok", "warning", "failed"}
+    status : GeorefStatus
+        ``ok``, ``warning`` or ``failed``.
     reason : str
         Why the status is not "ok" (empty when ok).
     warnings : list of str
@@ -193,7 +205,7 @@ class GeorefResult:
     timings_s : dict
     """
 
-    status: str
+    status: GeorefStatus
     reason: str
     warnings: list
     model: str
@@ -367,7 +379,7 @@ class GeorefResult:
                 ).reshape(len(g), 3)
 
             return cls(
-                status=str(d["status"]),
+                status=GeorefStatus(str(d["status"])),
                 reason=str(d.get("reason", "")),
                 warnings=list(d.get("warnings", [])),
                 model=str(d["model"]),

@@ -250,7 +250,7 @@ def worker_map(cache_dir, lp=None):
 
 
 # ------------------------------------------------------------------------------------ jobs
-@dataclass
+@dataclass(frozen=True)
 class BatchJob:
     """One scan of a batch: everything a worker needs (paths and small records only)."""
 
@@ -353,7 +353,7 @@ def write_summary_csv(path, rows, georeferenced: bool = True) -> Path:
 
 
 # ------------------------------------------------------------------------------------ driver
-@dataclass
+@dataclass(frozen=True)
 class BatchResult:
     """What :func:`run_batch` did: one row per scan (in the order of the scans) and counts."""
 

@@ -64,7 +64,7 @@ MAX_DENSE_BLOCKS = 1 << 24
 SCREEN_GATES_M = (1.5, 1.0, 0.7)
 
 
-@dataclass
+@dataclass(frozen=True)
 class MapOccupancy:
     """The map side of the search: blocked occupancy bitmap and floor anchors (work frame).
 
@@ -88,7 +88,7 @@ class MapOccupancy:
     build_s: float
 
 
-@dataclass
+@dataclass(frozen=True)
 class CorrelativeResult:
     """Outcome of :func:`correlative_candidates`.
 

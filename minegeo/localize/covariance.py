@@ -15,6 +15,7 @@ import numpy as np
 
 from minegeo.geometry.se3 import hat
 from minegeo.localize.params import LocalizeParams
+from minegeo.localize.result import LocalizeStatus
 from minegeo.localize.uncertainty import CHI2_3D_95, pose_uncertainty, radii_95
 from minegeo.localize.verification import VerifyContext
 
@@ -118,8 +119,8 @@ def pose_covariance(ctx: VerifyContext, ic_final, polish) -> PoseCovariance:
     return out
 
 
-def judge_fit(status: str, reason: str, weak: str, pc: PoseCovariance, p: LocalizeParams,
-              warnings: list) -> tuple[str, str]:
+def judge_fit(status: LocalizeStatus, reason: str, weak: str, pc: PoseCovariance, p: LocalizeParams,
+              warnings: list) -> tuple[LocalizeStatus, str]:
     """The covariance-based checks of an ``ok`` decision, in this order: a weak direction whose
     95 % displacement exceeds ``max_weak_displacement_95_m`` (or without covariance), an ICP
     that stopped more than ``max_pending_step_m`` from the surface fit, a singular information
@@ -128,7 +129,7 @@ def judge_fit(status: str, reason: str, weak: str, pc: PoseCovariance, p: Locali
     cov, disp95, pending = pc.cov, pc.disp95, pc.pending
     if weak and status == "ok":
         if cov is None or disp95 > p.max_weak_displacement_95_m:
-            status = "ambiguous"
+            status = LocalizeStatus.AMBIGUOUS
             reason = ("the fit is not constrained in every direction: " + weak
                       + (f"; the 95 % displacement over the scan reaches {disp95:.3f} m (> "
                          f"{p.max_weak_displacement_95_m:g} m)" if cov is not None else "")
@@ -139,11 +140,11 @@ def judge_fit(status: str, reason: str, weak: str, pc: PoseCovariance, p: Locali
                             f"scan is only {disp95:.3f} m (<= {p.max_weak_displacement_95_m:g} m) and the "
                             "95 % radius includes it")
     if pending > p.max_pending_step_m and status == "ok":  # NaN (no step) never is
-        status = "ambiguous"
+        status = LocalizeStatus.AMBIGUOUS
         reason = (f"ICP stopped {pending:.3f} m (largest displacement over the scan) away from the "
                   f"best surface fit (> {p.max_pending_step_m:g} m): the pose is not settled; try "
                   "--icp point_to_plane or more ICP iterations")
     if cov is None and status == "ok":
-        status = "ambiguous"
+        status = LocalizeStatus.AMBIGUOUS
         reason = "the fit leaves at least one pose direction unconstrained (singular information matrix)"
     return status, reason

@@ -11,7 +11,8 @@ RMSE ([Baek2022 Eq. 19]), a distinct rival at both tolerances). The whole-map ri
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from enum import StrEnum
 
 import numpy as np
 
@@ -29,17 +30,28 @@ from minegeo.localize.verification import (
 )
 from minegeo.registration.ransac import hypothesis_distance
 
-__all__ = ["Decision", "evaluate", "decide", "hypothesis_records", "verify_and_decide"]
+__all__ = ["Decision", "DecisionStatus", "evaluate", "decide", "hypothesis_records", "verify_and_decide"]
 
 
-@dataclass
+class DecisionStatus(StrEnum):
+    """Status of a :class:`Decision`: the three of :class:`~minegeo.localize.result.LocalizeStatus`
+    and ``deferred``; each member is its string value."""
+
+    OK = "ok"
+    AMBIGUOUS = "ambiguous"
+    FAILED = "failed"
+    #: the screening showed that this candidate list alone gives no ``ok``: the correlative fallback follows
+    DEFERRED = "deferred"
+
+
+@dataclass(frozen=True)
 class Decision:
     """Outcome of :func:`evaluate` on one candidate list.
 
     Attributes
     ----------
-    status : str
-        ``"ok"``, ``"ambiguous"``, ``"failed"`` or ``"deferred"`` (the screening showed that
+    status : DecisionStatus
+        ``ok``, ``ambiguous``, ``failed`` or ``deferred`` (the screening showed that
         this list alone gives no ``ok``: the correlative fallback follows).
     reason : str
     weak : str
@@ -56,7 +68,7 @@ class Decision:
         Seconds of the ICP stages and of the decision.
     """
 
-    status: str
+    status: DecisionStatus
     reason: str = ""
     weak: str = ""
     hyps: list = field(default_factory=list)
@@ -85,13 +97,12 @@ def evaluate(ctx: VerifyContext, uniq: list[Candidate], r0, work_origin: np.ndar
     uniq = coarse_pull_in(ctx, uniq)
     scr = screen(ctx, uniq, may_defer)
     if scr.deferred:
-        return Decision(status="deferred", t_icp=time.perf_counter() - t0)
+        return Decision(status=DecisionStatus.DEFERRED, t_icp=time.perf_counter() - t0)
     refined = refine_candidates(ctx, uniq, scr)
     t_icp = time.perf_counter() - t0
     t0 = time.perf_counter()
     dec = decide(ctx, refined, r0, work_origin)
-    dec.uniq, dec.t_icp, dec.t_decision = uniq, t_icp, time.perf_counter() - t0
-    return dec
+    return replace(dec, uniq=uniq, t_icp=t_icp, t_decision=time.perf_counter() - t0)
 
 
 def hypothesis_records(ctx: VerifyContext, refined: list[Refined], work_origin: np.ndarray):
@@ -148,7 +159,7 @@ def decide(ctx: VerifyContext, refined: list[Refined], r0, work_origin: np.ndarr
     hyps, best = hypothesis_records(ctx, refined, work_origin)
     warnings: list[str] = []
     if best is None:
-        return Decision(status="failed", reason=f"RANSAC found no placement of the scan in the map ({r0.reason})",
+        return Decision(status=DecisionStatus.FAILED, reason=f"RANSAC found no placement of the scan in the map ({r0.reason})",
                         hyps=hyps, refined=refined, warnings=warnings)
     ic_best = best.ic
     f, e = ic_best.fitness, ic_best.inlier_rmse_m
@@ -157,12 +168,12 @@ def decide(ctx: VerifyContext, refined: list[Refined], r0, work_origin: np.ndarr
     rivals = [h for h in hyps[1:] if "screened out" not in h["source"] and (
               h["distance_to_chosen_m"] > p.ambiguity_distance_m or h["rotation_to_chosen_deg"] > p.ambiguity_angle_deg)
               and h["plane_fitness"] >= amb_ratio * pf_best and h["fine_fitness"] >= fine_ratio * pff_best]
-    status, reason, weak = "ok", _failure(ctx, best), ""
+    status, reason, weak = DecisionStatus.OK, _failure(ctx, best), ""
     if reason:
-        status = "failed"
+        status = DecisionStatus.FAILED
     elif rivals:
         h = rivals[0]
-        status = "ambiguous"
+        status = DecisionStatus.AMBIGUOUS
         reason = (f"another placement {h['distance_to_chosen_m']:.1f} m / {h['rotation_to_chosen_deg']:.1f} deg "
                   f"away fits almost as well (plane fitness {h['plane_fitness']:.3f} vs {pf_best:.3f}, fine "
                   f"agreement {h['fine_fitness']:.3f} vs {pff_best:.3f}, ratios >= "
@@ -210,13 +221,13 @@ def verify_and_decide(ctx: VerifyContext, pm: PreparedMap, hy: Hypotheses, traje
     # a small scan's result is always confirmed against the whole map: no need to decide twice
     if not confirm:
         announce(progress, "ICP verification")
-    dec = Decision(status="deferred") if confirm else evaluate(ctx, uniq, hy.r0, pm.work_origin, may_defer=fallback)
+    dec = Decision(status=DecisionStatus.DEFERRED) if confirm else evaluate(ctx, uniq, hy.r0, pm.work_origin, may_defer=fallback)
     if fallback and (dec.status != "ok" or confirm):
         t_first = dec.t_icp + dec.t_decision
         corr = correlative_hypotheses(ctx, pm, uniq, trajectory, seed, progress, timings)
         announce(progress, "ICP verification")
         dec = evaluate(ctx, corr.candidates, hy.r0, pm.work_origin)
-        dec.t_icp += t_first
+        dec = replace(dec, t_icp=dec.t_icp + t_first)
     timings["icp"] = dec.t_icp
     timings["decision"] = dec.t_decision
     return dec, corr

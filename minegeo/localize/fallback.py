@@ -71,7 +71,7 @@ def _levelled_inputs(scan_cloud, P_raw: np.ndarray, org: np.ndarray, trajectory,
     return cloud_l, traj_l
 
 
-@dataclass
+@dataclass(frozen=True)
 class _Levelled:
     """The levelled attempts: the last result, its ``R4`` (``p_lev = R4 p``), per attempt its tilt,
     status and reason, and seconds."""
@@ -114,8 +114,7 @@ def _keep_6dof(res_6dof: LocalizationResult, rec: dict, lev: _Levelled, t0: floa
     res_6dof.timings_s["gravity"] = time.perf_counter() - t0
     res_6dof.timings_s.update({f"gravity_attempt_{k}": v for k, v in enumerate(lev.attempt_s)})
     res_6dof.warnings.append(warning)
-    res_6dof.gravity = rec
-    return res_6dof
+    return replace(res_6dof, gravity=rec)
 
 
 def gravity_fallback(pm: PreparedMap, scan_cloud, trajectory, p: LocalizeParams, seed: int,
@@ -173,8 +172,7 @@ def gravity_fallback(pm: PreparedMap, scan_cloud, trajectory, p: LocalizeParams,
                            f"by its own up direction (floor/roof/walls, 95 % cone {est.cone95_deg:.1f} deg) and "
                            f"searches heading and position (tilt tolerance {tilt:.1f} deg, residual tilt "
                            f"{lev.attempts[-1]['tilt_about_cross_axis_deg']:g} deg about the drift's cross axis)")
-    out.gravity = rec
-    return out
+    return replace(out, gravity=rec)
 
 
 def six_dof_rival(res_6dof, res_ok, p: LocalizeParams, centre: np.ndarray) -> str | None:

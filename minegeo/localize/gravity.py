@@ -98,12 +98,13 @@ from minegeo.localize.gravity_result import (
     UpCandidate,
     UpEstimate,
     UpEvidence,
+    UpStatus,
     hotelling_r2_95,
     levelling_rotation,
 )
 from minegeo.localize.params import GravityParams
 
-__all__ = ["GravityParams", "UpCandidate", "UpEvidence", "UpEstimate", "estimate_up", "levelling_rotation",
+__all__ = ["GravityParams", "UpCandidate", "UpEvidence", "UpEstimate", "UpStatus", "estimate_up", "levelling_rotation",
            "hotelling_r2_95", "STATUSES"]
 
 log = logging.getLogger(__name__)
@@ -158,7 +159,7 @@ def _prepare(points, normals, p: GravityParams):
 
 
 def _failed(reason: str, p: GravityParams, cands=(), timings=None) -> UpEstimate:
-    return UpEstimate(status="failed", reason=reason, up=None, tangent_basis=None, covariance_rad2=None,
+    return UpEstimate(status=UpStatus.FAILED, reason=reason, up=None, tangent_basis=None, covariance_rad2=None,
                       covariance_3d_rad2=None, sigma_deg=math.nan, cone95_deg=math.nan, r95_squared=math.nan,
                       tilt_axis=None, tilt_range_deg=(math.nan, math.nan), tilt_tolerance_deg=math.nan,
                       candidates=tuple(cands), evidence=None, params=p, timings_s=dict(timings or {}))
@@ -217,14 +218,14 @@ def _search_region(S: np.ndarray, g_eff: int, p: GravityParams) -> tuple:
     return sig, cone, r2, lo, hi, tol
 
 
-def _status(up: np.ndarray, rivals: list, ratio: float, fl: _Floor, sig: float, p: GravityParams) -> tuple[str, str]:
+def _status(up: np.ndarray, rivals: list, ratio: float, fl: _Floor, sig: float, p: GravityParams) -> tuple[UpStatus, str]:
     """``("ambiguous", why)`` when a distinct rival floor scores ``ambiguity_ratio`` of the floor's, else ``ok``."""
     if rivals and ratio >= p.ambiguity_ratio:
         r_ang = math.degrees(math.acos(min(1.0, float(rivals[0][1] @ up))))
-        status, reason = "ambiguous", (f"a second floor candidate {r_ang:.0f} deg away scores {ratio:.2f} of the "
+        status, reason = UpStatus.AMBIGUOUS, (f"a second floor candidate {r_ang:.0f} deg away scores {ratio:.2f} of the "
                                        f"floor's (need < {p.ambiguity_ratio:g}); both are in candidates")
     else:
-        status = "ok"
+        status = UpStatus.OK
         reason = (f"floor {fl.mass:.0%} of the scan, up 1-sigma {sig:.2f} deg if the floor is level; "
                   f"a ramp of up to {p.max_slope_deg:g} deg is within tilt_range_deg")
     return status, reason

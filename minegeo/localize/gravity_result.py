@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
+from enum import StrEnum
 
 import numpy as np
 
@@ -15,8 +16,19 @@ from minegeo._validate import check_positive
 from minegeo.errors import InputError
 from minegeo.localize.params import GravityParams
 
+
+class UpStatus(StrEnum):
+    """Status of an up-direction estimate (:attr:`UpEstimate.status`); each member is its string value."""
+
+    OK = "ok"
+    #: a distinct rival floor scores ``ambiguity_ratio`` of the floor's
+    AMBIGUOUS = "ambiguous"
+    #: the scan shows no floor: no estimate
+    FAILED = "failed"
+
+
 #: Possible values of :attr:`UpEstimate.status`.
-STATUSES = ("ok", "ambiguous", "failed")
+STATUSES = tuple(UpStatus)
 _EPS_VAR = 1e-24  # rad^2 added before inverting a jackknife covariance (noise-free inputs give 0)
 
 
@@ -113,7 +125,8 @@ class UpEstimate:
 
     Attributes
     ----------
-    status : {"ok", "ambiguous", "failed"}
+    status : UpStatus
+        ``ok``, ``ambiguous`` or ``failed``.
     reason : str
         One line a surveyor can act on.
     up : (3,) float64 or None
@@ -149,7 +162,7 @@ class UpEstimate:
     timings_s : dict
     """
 
-    status: str
+    status: UpStatus
     reason: str
     up: np.ndarray | None
     tangent_basis: np.ndarray | None

@@ -81,6 +81,7 @@ from minegeo.localize.result import (
     CHI2_3D_95,
     STATUSES,
     LocalizationResult,
+    LocalizeStatus,
     error_vs_truth,
     rejected_candidates,
 )
@@ -88,7 +89,7 @@ from minegeo.localize.rival_check import check_rivals
 from minegeo.localize.scan import scan_features, to_map
 from minegeo.localize.verification import polish, verify_context
 
-__all__ = ["LocalizeParams", "LocalizationResult", "localize_scan", "CHI2_3D_95", "CHI2_2D_95", "STATUSES",
+__all__ = ["LocalizeParams", "LocalizationResult", "LocalizeStatus", "localize_scan", "CHI2_3D_95", "CHI2_2D_95", "STATUSES",
            "ANSWER_FIELDS", "rejected_candidates", "error_vs_truth"]
 
 log = logging.getLogger(__name__)
@@ -198,7 +199,7 @@ def _localize_scan(pm: PreparedMap, scan_cloud, trajectory, p: LocalizeParams, s
     announce(progress, "uncertainty")
     t0 = time.perf_counter()
     pc = pose_covariance(ctx, ic_final, pol)
-    status, reason = dec.status, dec.reason
+    status, reason = LocalizeStatus(dec.status), dec.reason  # a decision is never "deferred" here
     if ic_final is not None:
         status, reason = judge_fit(status, reason, dec.weak, pc, p, warnings)
     timings["covariance"] = time.perf_counter() - t0

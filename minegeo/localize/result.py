@@ -8,6 +8,8 @@ Only an ``ok`` result carries an answer: for a ``failed`` or ``ambiguous`` one t
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from enum import StrEnum
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -17,21 +19,37 @@ from minegeo.io.types import Trajectory
 from minegeo.localize.params import LocalizeParams
 from minegeo.localize.uncertainty import CHI2_2D_95, CHI2_3D_95
 
-__all__ = ["LocalizationResult", "STATUSES", "ANSWER_FIELDS", "NOT_A_POSITION", "rejected_candidates",
+if TYPE_CHECKING:
+    from minegeo.localize.params import PrepareParams
+    from minegeo.registration.icp import ICPResult
+    from minegeo.registration.ransac_params import RansacResult
+
+__all__ = ["LocalizationResult", "LocalizeStatus", "STATUSES", "ANSWER_FIELDS", "NOT_A_POSITION", "rejected_candidates",
            "error_vs_truth", "CHI2_3D_95", "CHI2_2D_95"]
 
+class LocalizeStatus(StrEnum):
+    """Status of a localization (:attr:`LocalizationResult.status`); each member is its string value."""
+
+    #: one placement, verified, with its covariance: the answer
+    OK = "ok"
+    #: placements the checks cannot tell apart, or a fit not constrained in every direction: no answer
+    AMBIGUOUS = "ambiguous"
+    #: no placement passed the checks: no answer
+    FAILED = "failed"
+
+
 #: Possible values of ``LocalizationResult.status``.
-STATUSES = ("ok", "ambiguous", "failed")
+STATUSES = tuple(LocalizeStatus)
 
 
-@dataclass
+@dataclass(frozen=True)
 class LocalizationResult:
     """Outcome of :func:`localize_scan`.
 
     Attributes
     ----------
-    status : str
-        ``"ok"``, ``"ambiguous"`` or ``"failed"`` (module docstring).
+    status : LocalizeStatus
+        ``ok``, ``ambiguous`` or ``failed`` (module docstring).
     reason : str
         Why, in words a surveyor understands.
     T_map_scan : (4, 4) ndarray
@@ -127,15 +145,15 @@ class LocalizationResult:
     warnings : list of str
     """
 
-    status: str
+    status: LocalizeStatus
     reason: str
     T_map_scan: np.ndarray
     T_geo_scan: np.ndarray | None
     T_crs_scan: np.ndarray | None
     fitness: float
     inlier_rmse_m: float
-    ransac: object
-    icp: object
+    ransac: RansacResult
+    icp: ICPResult | None
     hypotheses: list
     covariance_6x6: np.ndarray | None
     sigma_m: float
@@ -157,7 +175,7 @@ class LocalizationResult:
     n_scan_down: int
     n_scan_icp: int
     params: LocalizeParams
-    map_params: object
+    map_params: PrepareParams
     seed: int
     timings_s: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)

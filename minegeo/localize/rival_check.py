@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from minegeo.localize._progress import ProgressFn, announce
-from minegeo.localize.decision import Decision, evaluate
+from minegeo.localize.decision import Decision, DecisionStatus, evaluate
 from minegeo.localize.hypotheses import reference_point
 from minegeo.localize.prepared import PreparedMap
 from minegeo.localize.rivals import RivalSearch, matched_support, rival_test, search_rivals
@@ -38,7 +38,7 @@ class RivalCheck:
     ``LocalizationResult.rival_search`` ``record`` (no times), the hypotheses with the search's
     verified rivals appended (``hyps``) and the warnings it raised."""
 
-    status: str
+    status: DecisionStatus
     reason: str
     record: dict
     hyps: list
@@ -207,7 +207,7 @@ def _coverage_warnings(rs: RivalSearch) -> list[str]:
     return []
 
 
-def _verdict(ctx: VerifyContext, best_r: dict | None, reason: str, pf_best: float, pff_best: float) -> tuple[str, str]:
+def _verdict(ctx: VerifyContext, best_r: dict | None, reason: str, pf_best: float, pff_best: float) -> tuple[DecisionStatus, str]:
     """``("ambiguous", why)`` when the best pooled rival passes a test, else ``("ok", reason + margin)``."""
     rp = ctx.p.rival_params
     amb_ratio, fine_ratio = ctx.amb_ratio, ctx.fine_ratio
@@ -222,13 +222,13 @@ def _verdict(ctx: VerifyContext, best_r: dict | None, reason: str, pf_best: floa
                "covers the two places differently")
         where = ("the whole-map rival search at the chosen attitude" if b["source"].startswith("rival")
                  else "the hypotheses")
-        return "ambiguous", (
+        return DecisionStatus.AMBIGUOUS, (
             f"another placement {b['distance_to_chosen_m']:.1f} m / {b['rotation_to_chosen_deg']:.1f} deg away, found "
             f"by {where}, fits almost as well ({how}): the scan cannot tell the two places apart (a repeated drift "
             "or level); extend the scan past a distinctive feature")
     if best_r is None:
-        return "ok", reason + "; whole-map rival search at its attitude: no other placement found"
-    return "ok", reason + (
+        return DecisionStatus.OK, reason + "; whole-map rival search at its attitude: no other placement found"
+    return DecisionStatus.OK, reason + (
         f"; best rival (whole-map search at its attitude and the hypotheses) "
         f"{best_r['distance_to_chosen_m']:.1f} m away, plane fitness {best_r['plane_fitness']:.3f} against "
         f"{best_r['chosen_plane_fitness']:.3f} ({best_r['score_level']} level; margin {best_r['margin']:.2f}, "

@@ -183,7 +183,7 @@ class RivalCandidate:
     stage: str = ""
 
 
-@dataclass
+@dataclass(frozen=True)
 class RivalSearch:
     """Outcome of :func:`search_rivals` (see the module docstring for what it covers).
 

@@ -150,7 +150,7 @@ MODEL_TERM_TEXT = {
 #: Default ``registration_sigma_m`` (m): maximum-likelihood isotropic floor over the tuning worlds
 
 
-@dataclass
+@dataclass(frozen=True)
 class PoseUncertainty:
     """Outcome of :func:`pose_uncertainty`. Parameters ``(ω, t)``: rotation (rad) about the scan
     origin then translation (m) of the scan origin, map (work) axes.

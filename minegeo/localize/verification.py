@@ -69,7 +69,7 @@ class Refined(NamedTuple):
     pff: float
 
 
-@dataclass
+@dataclass(frozen=True)
 class VerifyContext:
     """What every refinement and score of one localization shares (built by :func:`verify_context`).
 

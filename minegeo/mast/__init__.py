@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from minegeo.mast.beacons import Beacon, BeaconDesign, place_beacon, read_beacons_csv, write_beacons_csv
 from minegeo.mast.icp import IcpResult, icp_point_to_line
-from minegeo.mast.pipeline import MastParams, MastResult, locate_scanner
+from minegeo.mast.pipeline import MastParams, MastResult, MastStatus, locate_scanner
 from minegeo.mast.resection import ResectionObservations, condition_sigmas, resect_scanner_pose
 from minegeo.mast.scan import Scan2D, read_scan_csv, scan_to_xy, write_scan_csv
 from minegeo.mast.scenario import (
@@ -53,6 +53,7 @@ __all__ = [
     "icp_point_to_line",
     "MastParams",
     "MastResult",
+    "MastStatus",
     "locate_scanner",
     "ResectionObservations",
     "condition_sigmas",

@@ -33,6 +33,7 @@ import itertools
 import logging
 import math
 from dataclasses import dataclass, field, replace
+from enum import StrEnum
 
 import numpy as np
 from scipy import stats
@@ -60,7 +61,7 @@ from minegeo.mast.segmentation import (
 )
 from minegeo.survey import LSQOptions, error_ellipse, format_dms, helmert2d
 
-__all__ = ["MastParams", "MastResult", "locate_scanner"]
+__all__ = ["MastParams", "MastResult", "MastStatus", "locate_scanner"]
 
 log = logging.getLogger(__name__)
 
@@ -148,13 +149,22 @@ class MastParams:
             raise InputError(f"variance must be 'aposteriori' or 'apriori', got {self.variance!r}")
 
 
-@dataclass
+class MastStatus(StrEnum):
+    """Status of a MAST station location (:attr:`MastResult.status`); each member is its string value."""
+
+    OK = "ok"
+    #: no position (the ``reason`` says why)
+    FAILED = "failed"
+
+
+@dataclass(frozen=True)
 class MastResult:
     """Result of :func:`locate_scanner` (mine frame; ``None`` fields when ``status == "failed"``).
 
     Attributes
     ----------
-    status : {"ok", "failed"}
+    status : MastStatus
+        ``ok`` or ``failed``.
     reason : str
         Why it failed ("" when ok).
     x_m, y_m : float
@@ -182,7 +192,7 @@ class MastResult:
     params : MastParams
     """
 
-    status: str
+    status: MastStatus
     reason: str = ""
     x_m: float | None = None
     y_m: float | None = None
@@ -373,7 +383,7 @@ def _final_adjustment(pose0, bearing_rad, range_m, panels, beacon_of_panel, sig_
 def _fail(reason: str, params: MastParams, details: dict, arrays=None, option=None, iters=0) -> MastResult:
     log.info("MAST failed: %s", reason)
     return MastResult(
-        "failed", reason, params=params, details=details, arrays=arrays or {}, segmentation_option=option,
+        MastStatus.FAILED, reason, params=params, details=details, arrays=arrays or {}, segmentation_option=option,
         icp_iterations=iters,
     )
 
@@ -508,7 +518,7 @@ def _ok_result(pose, res, ok, best: dict, obs: dict, origin, p: MastParams, seg_
         timings_s=timer.as_dict(),
     )
     return MastResult(
-        "ok", "", float(x + origin[0]), float(y + origin[1]), az, format_dms(math.radians(az), 1, width_deg=3),
+        MastStatus.OK, "", float(x + origin[0]), float(y + origin[1]), az, format_dms(math.radians(az), 1, width_deg=3),
         cov, {"a_m": ell.semi_major_m, "b_m": ell.semi_minor_m, "orientation_deg": math.degrees(ell.azimuth_rad)},
         float(tq * math.sqrt(cov[2, 2])), float(res.sigma0), seg_option, icp.iterations, details, arrays, p,
     )

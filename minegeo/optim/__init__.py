@@ -27,6 +27,7 @@ from minegeo.optim.lm import (
     ROTATION_TOL,
     LMOutcome,
     LMParams,
+    LMStatus,
     accept_step,
     check_result,
     levenberg_marquardt,
@@ -36,7 +37,7 @@ from minegeo.optim.robust import ROBUST, quadratic_cost, robust_cost, robust_wei
 
 __all__ = [
     "ROBUST", "ROTATION_TOL", "SINGULAR_PIVOT", "BetweenFactors", "BlockSystem", "FactorGroup", "FactorProblem",
-    "LMOutcome", "LMParams", "PriorFactors", "SingularSystemError", "SparseSystem", "Values", "accept_step",
+    "LMOutcome", "LMParams", "LMStatus", "PriorFactors", "SingularSystemError", "SparseSystem", "Values", "accept_step",
     "between_residuals", "between_terms", "check_result", "levenberg_marquardt", "quadratic_cost",
     "remaining_decrease", "robust_cost", "robust_weights",
 ]

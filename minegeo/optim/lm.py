@@ -23,6 +23,7 @@ normal equations at the result are positive definite **and** the result passed :
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 
@@ -30,7 +31,7 @@ from minegeo.errors import InputError
 from minegeo.optim.blocks import SingularSystemError
 from minegeo.optim.robust import ROBUST
 
-__all__ = ["LMOutcome", "LMParams", "ROTATION_TOL", "accept_step", "check_result", "levenberg_marquardt",
+__all__ = ["LMOutcome", "LMParams", "LMStatus", "ROTATION_TOL", "accept_step", "check_result", "levenberg_marquardt",
            "remaining_decrease"]
 
 #: rotations of a result orthonormal to this (max |RRᵀ − I|, |det R − 1|)
@@ -86,13 +87,25 @@ class LMParams:
             raise InputError("lambda_init and robust_scale must be finite, the tolerances >= 0")
 
 
-@dataclass
+class LMStatus(StrEnum):
+    """Status of a Levenberg–Marquardt solve (:attr:`LMOutcome.status`); each member is its string value."""
+
+    #: the stopping test held, the undamped normal equations are positive definite and the result passed its check
+    CONVERGED = "converged"
+    #: ``max_iterations`` reached before the stopping test held (the result passed its check)
+    MAX_ITERATIONS = "max_iterations"
+    #: no result: a non-finite start, a singular system or a result that failed its check
+    FAILED = "failed"
+
+
+@dataclass(frozen=True)
 class LMOutcome:
     """What :func:`levenberg_marquardt` returns.
 
     Attributes
     ----------
-    status : {"converged", "max_iterations", "failed"}
+    status : LMStatus
+        ``converged``, ``max_iterations`` or ``failed``.
     reason : str
     cost_initial, cost_final : float
         The plain cost ``½ Σ rᵀΩr`` (no robust kernel) before and after (``cost_initial`` twice when failed).
@@ -107,7 +120,7 @@ class LMOutcome:
         when the normal equations are singular, ``singular_vertex``.
     """
 
-    status: str
+    status: LMStatus
     reason: str
     cost_initial: float
     cost_final: float
@@ -189,14 +202,14 @@ def levenberg_marquardt(problem, values, params: LMParams) -> LMOutcome:
     cost0 = problem.cost(res)
 
     def failed(reason, it, history, conv=None):
-        return LMOutcome("failed", reason, cost0, cost0, it, history, values0, conv or {})
+        return LMOutcome(LMStatus.FAILED, reason, cost0, cost0, it, history, values0, conv or {})
 
     if not np.isfinite(cost0):
         return failed("the initial cost is not finite", 0, [])
     cost = problem.robust_cost(res)
     lam, history, rel, rel_prev, rest = params.lambda_init, [], float("nan"), float("nan"), float("inf")
     model = float("inf")  # the Gauss-Newton model's relative decrease of the current iteration
-    status, reason, it, step = "max_iterations", "", 0, float("inf")
+    status, reason, it, step = LMStatus.MAX_ITERATIONS, "", 0, float("inf")
     for it in range(1, params.max_iterations + 1):
         system = problem.linearize(values, res)
         accepted, factorised = False, False
@@ -211,7 +224,7 @@ def levenberg_marquardt(problem, values, params: LMParams) -> LMOutcome:
                 lam *= 10.0
                 continue
             if delta.size == 0:  # every variable held: the start is the only point there is
-                factorised, status, reason = True, "converged", "every variable is held: nothing to optimise"
+                factorised, status, reason = True, LMStatus.CONVERGED, "every variable is held: nothing to optimise"
                 break
             trial = problem.retract(values, delta)
             if not factorised:
@@ -235,11 +248,11 @@ def levenberg_marquardt(problem, values, params: LMParams) -> LMOutcome:
             return failed("the damped normal equations are not positive definite at any damping" + problem.hint,
                           it, history)
         if not accepted:
-            status, reason = "converged", "no step lowers the cost (damping exhausted): at a minimum"
+            status, reason = LMStatus.CONVERGED, "no step lowers the cost (damping exhausted): at a minimum"
             break
         reason = _stop_reason(rel, rest, model, step, params)
         if reason:
-            status = "converged"
+            status = LMStatus.CONVERGED
             break
     cost_final = problem.cost(res)
     conv = {"relative_decrease": rel, "geometric_remaining_relative_decrease": rest,

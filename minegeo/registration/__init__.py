@@ -31,8 +31,8 @@ from minegeo.registration.correspondences import FeatureMatches, feature_corresp
 from minegeo.registration.estimation import kabsch, pose_covariance, umeyama
 from minegeo.registration.evaluation import build_target_index, evaluate_registration
 from minegeo.registration.gicp import GICPParams, GICPResult, estimate_gicp_covariances, register_gicp
-from minegeo.registration.icp import ICPParams, ICPResult, constraint_analysis, register_icp
-from minegeo.registration.ransac import RansacParams, RansacResult, register_ransac
+from minegeo.registration.icp import ICPParams, ICPResult, ICPStatus, constraint_analysis, register_icp
+from minegeo.registration.ransac import RansacParams, RansacResult, RansacStatus, register_ransac
 
 __all__ = [
     "umeyama",
@@ -42,6 +42,7 @@ __all__ = [
     "build_target_index",
     "ICPParams",
     "ICPResult",
+    "ICPStatus",
     "register_icp",
     "constraint_analysis",
     "GICPParams",
@@ -50,6 +51,7 @@ __all__ = [
     "estimate_gicp_covariances",
     "RansacParams",
     "RansacResult",
+    "RansacStatus",
     "register_ransac",
     "feature_correspondences",
     "FeatureMatches",

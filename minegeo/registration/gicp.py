@@ -236,7 +236,7 @@ class GICPParams:
             raise InputError(f"stop_on_cycle must be True or False, got {self.stop_on_cycle!r}")
 
 
-@dataclass
+@dataclass(frozen=True)
 class GICPResult(ICPResult):
     """Outcome of :func:`register_gicp`: every field of :class:`ICPResult`, plus the GICP cost.
 

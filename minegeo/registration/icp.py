@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numba
 import numpy as np
@@ -43,7 +44,7 @@ from minegeo.registration.loop import (
     run_loop,
 )
 
-__all__ = ["ICPParams", "ICPResult", "register_icp", "constraint_analysis", "METHODS"]
+__all__ = ["ICPParams", "ICPResult", "ICPStatus", "register_icp", "constraint_analysis", "METHODS"]
 
 log = logging.getLogger(__name__)
 
@@ -116,7 +117,20 @@ class ICPParams:
             raise InputError(f"degeneracy_ratio_threshold must be in (0, 1), got {r!r}")
 
 
-@dataclass
+class ICPStatus(StrEnum):
+    """Status of an ICP or GICP run (:attr:`ICPResult.status`); each member is its string value."""
+
+    #: the convergence test held before ``max_iterations`` and the result is not degenerate
+    CONVERGED = "converged"
+    #: ``max_iterations`` reached before the convergence test held (not degenerate)
+    MAX_ITERATIONS = "max_iterations"
+    #: no source point within the gate of the target at the final pose
+    NO_CORRESPONDENCES = "no_correspondences"
+    #: the matched geometry does not constrain all six pose directions (see ``degeneracy_reason``)
+    DEGENERATE = "degenerate"
+
+
+@dataclass(frozen=True)
 class ICPResult:
     """Outcome of :func:`register_icp`.
 
@@ -158,8 +172,8 @@ class ICPResult:
         ``constraint_eigenvalues[0] / constraint_eigenvalues[-1]``.
     history : tuple
         ``(fitness, inlier_rmse_m)`` after the initial evaluation and after each update.
-    status : str
-        ``"converged"``, ``"max_iterations"``, ``"no_correspondences"`` or ``"degenerate"``.
+    status : ICPStatus
+        ``converged``, ``max_iterations``, ``no_correspondences`` or ``degenerate``.
     """
 
     T_target_source: np.ndarray
@@ -178,7 +192,7 @@ class ICPResult:
     constraint_eigenvectors: np.ndarray = field(default_factory=lambda: np.eye(6))
     degeneracy_ratio: float = 0.0
     history: tuple = ()
-    status: str = ""
+    status: ICPStatus = field(kw_only=True)
 
 
 _AXIS_NAMES = ("rotation about x", "rotation about y", "rotation about z",
@@ -290,7 +304,7 @@ def _points(arr, name: str, min_points: int) -> tuple[np.ndarray, float]:
 
 
 def final_diagnosis(k: int, need: int, gate_m: float, method: str, singular_step: bool, singular_text: str,
-                    constraint_reason: str, converged: bool) -> tuple[list[str], bool, str]:
+                    constraint_reason: str, converged: bool) -> tuple[list[str], bool, ICPStatus]:
     """Degeneracy reasons and status of a finished ICP/GICP run (shared by both).
 
     Returns ``(reasons, degenerate, status)``: reasons for no or too few pairs at the solution
@@ -312,13 +326,13 @@ def final_diagnosis(k: int, need: int, gate_m: float, method: str, singular_step
         reasons.append(constraint_reason)
     degenerate = bool(reasons)
     if k == 0:
-        status = "no_correspondences"
+        status = ICPStatus.NO_CORRESPONDENCES
     elif degenerate:
-        status = "degenerate"
+        status = ICPStatus.DEGENERATE
     elif converged:
-        status = "converged"
+        status = ICPStatus.CONVERGED
     else:
-        status = "max_iterations"
+        status = ICPStatus.MAX_ITERATIONS
     return reasons, degenerate, status
 
 

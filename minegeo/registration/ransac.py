@@ -33,11 +33,12 @@ from minegeo.kernels import hashgrid as HG
 from minegeo.registration import _kernels_ransac as K
 from minegeo.registration import _kernels_ransac_levelled as KL
 from minegeo.registration.correspondences import feature_correspondences
-from minegeo.registration.ransac_params import RansacParams, RansacResult, required_iterations
+from minegeo.registration.ransac_params import RansacParams, RansacResult, RansacStatus, required_iterations
 
 __all__ = [
     "RansacParams",
     "RansacResult",
+    "RansacStatus",
     "register_ransac",
     "required_iterations",
     "hypothesis_distance",
@@ -382,7 +383,7 @@ class _Run:
     best_s: float = 0.0
     n_valid: int = 0
     iterations: int = 0
-    stop_reason: str = "max_iterations"
+    stop_reason: RansacStatus = RansacStatus.MAX_ITERATIONS
     store: _HypothesisStore = field(default_factory=lambda: _HypothesisStore())
     best_moved: bool = False
     prune: int = 0
@@ -455,11 +456,11 @@ def _score_group(p: RansacParams, run: _Run, grp, it0: int, Ts, src, csrc, ctgt,
                 new_stop = max(it + 1, int(math.ceil(k)), int(p.min_iterations))
                 if new_stop < run.stop_at:
                     run.stop_at = new_stop
-                    run.stop_reason = "converged"
+                    run.stop_reason = RansacStatus.CONVERGED
         if p.max_validations is not None and run.n_valid >= p.max_validations:
             if it + 1 < run.stop_at:
                 run.stop_at = it + 1
-                run.stop_reason = "max_validations"
+                run.stop_reason = RansacStatus.MAX_VALIDATIONS
             n_keep = q + 1
             break
     keep = np.flatnonzero(pruned[:n_keep] == 0)
@@ -488,7 +489,7 @@ def _final_answer(p: RansacParams, run: _Run, grid: _Grid, src, tgt, center) -> 
     allT, allc, alls = run.store.view(0)
     refits = int(p.refit_iterations) if p.mode == "minegeo" else 0
     if best_c == 0:
-        status_s = "failed"
+        status_s = RansacStatus.FAILED
         reason = (
             f"no hypothesis out of {run.iterations} passed the checks and explained any source point "
             f"({run.n_valid} scored); the clouds may not overlap or the descriptors do not match"

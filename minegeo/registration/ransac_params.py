@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 
@@ -202,6 +203,19 @@ class RansacParams:
         return float(self.distinct_distance_m if self.distinct_distance_m is not None else 2 * self.distance_threshold_m)
 
 
+class RansacStatus(StrEnum):
+    """Status of a RANSAC registration (:attr:`RansacResult.status`); each member is its string value."""
+
+    #: stopped by [Baek2022 Eq. 8]: the requested confidence was reached
+    CONVERGED = "converged"
+    #: stopped at ``max_iterations`` before Eq. 8 held
+    MAX_ITERATIONS = "max_iterations"
+    #: stopped after ``max_validations`` scored hypotheses
+    MAX_VALIDATIONS = "max_validations"
+    #: no hypothesis passed the checks and explained any source point
+    FAILED = "failed"
+
+
 @dataclass(frozen=True)
 class RansacResult:
     """Outcome of :func:`register_ransac`.
@@ -223,8 +237,8 @@ class RansacResult:
         Hypotheses that passed the checks and were scored.
     converged : bool
         True if stopping came from [Baek2022 Eq. 8] (requested confidence reached).
-    status : str
-        ``"converged"``, ``"max_iterations"``, ``"max_validations"`` or ``"failed"``.
+    status : RansacStatus
+        ``converged``, ``max_iterations``, ``max_validations`` or ``failed``.
     reason : str
         Human-readable explanation of ``status``.
     second_best_fitness, second_best_rmse_m : float
@@ -268,7 +282,7 @@ class RansacResult:
     iterations: int
     n_validations: int
     converged: bool
-    status: str
+    status: RansacStatus
     reason: str
     second_best_fitness: float
     second_best_rmse_m: float

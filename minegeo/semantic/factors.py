@@ -57,6 +57,7 @@ from minegeo.optim import (
     BetweenFactors,
     FactorGroup,
     FactorProblem,
+    LMStatus,
     PriorFactors,
     Values,
     between_terms,
@@ -381,7 +382,7 @@ def intersection_covariance(completeness: float, base_sigma_m: float, *, scaling
 # ------------------------------------------------------------------ the graph
 
 
-@dataclass
+@dataclass(frozen=True)
 class FactorGraphResult:
     """Outcome of :meth:`FactorGraph.optimize`.
 
@@ -389,7 +390,8 @@ class FactorGraphResult:
     ----------
     poses : ndarray (n, 4, 4)
         Optimised ``T_world_keyframe`` (the start poses when ``status == "failed"``).
-    status : {"converged", "max_iterations", "failed"}
+    status : LMStatus
+        ``converged``, ``max_iterations`` or ``failed`` (the optimiser's status).
     reason : str
     cost_initial, cost_final : float
         ``F = ½ Σ rᵀΩr + ½ Σ eᵀΩe`` (no robust kernel) before and after; GTSAM's ``graph.error``.
@@ -405,7 +407,7 @@ class FactorGraphResult:
     """
 
     poses: np.ndarray
-    status: str
+    status: LMStatus
     reason: str
     cost_initial: float
     cost_final: float

@@ -16,6 +16,7 @@ import json
 import math
 import zipfile
 from dataclasses import asdict, dataclass, field, fields
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +29,7 @@ from minegeo.io.npzstore import array_digest, crc_failure, json_digest, member_h
 from minegeo.semantic.descriptors import DescriptorParams, cwc, pwcv, similarity
 from minegeo.semantic.skeleton import SkeletonParams, drift_skeleton, mine_levels
 
-__all__ = ["KBParams", "IntersectionKB", "build_knowledge_base", "similarity_matrix", "KB_FORMAT", "KB_VERSION"]
+__all__ = ["KBParams", "IntersectionKB", "KBStatus", "build_knowledge_base", "similarity_matrix", "KB_FORMAT", "KB_VERSION"]
 
 KB_FORMAT = "minegeo-intersection-kb"
 #: format version of the file; 2: every stored record, meta included, under the integrity hash
@@ -65,14 +66,24 @@ class KBParams:
                              "against the dense cloud of what the descriptor saw")
 
 
+class KBStatus(StrEnum):
+    """Status of a knowledge base (:attr:`IntersectionKB.status`); each member is its string value."""
+
+    #: at least one intersection
+    OK = "ok"
+    #: the map's drift skeleton has no junction: an empty base
+    NO_INTERSECTIONS = "no_intersections"
+
+
 @dataclass(frozen=True, eq=False)
 class IntersectionKB:
     """Intersection semantic knowledge base (all coordinates in the map frame, m, z up).
 
     Attributes
     ----------
-    status : str
-        ``"ok"`` or ``"no_intersections"``.
+    status : KBStatus
+        ``ok`` or ``no_intersections`` (a string is stored as its member; another value is
+        refused with ``ValueError``).
     reason : str
         Why the status is not ``ok`` (empty for ``ok``).
     ids : ndarray (k,) int
@@ -98,7 +109,7 @@ class IntersectionKB:
         origin (a georeferenced map's points are relative to it), so ``p_crs = p + origin_m``.
     """
 
-    status: str
+    status: KBStatus
     reason: str
     ids: np.ndarray
     degree: np.ndarray
@@ -111,6 +122,9 @@ class IntersectionKB:
     params: KBParams
     provenance: dict
     georef: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        object.__setattr__(self, "status", KBStatus(self.status))
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
@@ -359,7 +373,7 @@ def _check_arrays(kb: IntersectionKB, p: Path) -> None:
     if not ok:
         raise FileFormatError(p, f"inconsistent array shapes in the {_WHAT}: {_REBUILD}")
     if (kb.status == "ok") != (k > 0):
-        raise FileFormatError(p, f"status {kb.status!r} with {k} intersection(s): {_REBUILD}")
+        raise FileFormatError(p, f"status {str(kb.status)!r} with {k} intersection(s): {_REBUILD}")
     problems = [
         ("ids", not np.array_equal(kb.ids, np.arange(k))),
         ("degree", bool(np.any(kb.degree < 3))),
@@ -432,9 +446,9 @@ def build_knowledge_base(map_cloud, params: KBParams | None = None) -> Intersect
     h = hashlib.sha256(P.tobytes()).hexdigest()
     prov = {"n_points": int(P.shape[0]), "points_sha256": h, "n_branches": int(n_branches),
             "format": KB_FORMAT, "version": KB_VERSION}
-    status, reason = "ok", ""
+    status, reason = KBStatus.OK, ""
     if k == 0:
-        status = "no_intersections"
+        status = KBStatus.NO_INTERSECTIONS
         reason = (f"the drift skeleton has {n_branches} branch(es) and no junction of degree >= 3 "
                   f"(merge radius {params.skeleton.merge_radius_m} m, spurs < {params.skeleton.min_branch_m} m "
                   "ignored)")

@@ -35,6 +35,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from enum import StrEnum
 
 import numpy as np
 
@@ -45,11 +46,32 @@ from minegeo.semantic.descriptors import completeness, cwc, pwcv, similarity, st
 from minegeo.semantic.knowledge import IntersectionKB
 from minegeo.semantic.skeleton import SkeletonParams, drift_skeleton
 
-__all__ = ["RecognitionParams", "RecognitionState", "Recognition", "recognise_keyframe", "level_and_carve",
-           "STATUSES"]
+__all__ = ["RecognitionParams", "RecognitionState", "Recognition", "RecognitionStatus", "recognise_keyframe",
+           "level_and_carve", "STATUSES"]
+
+
+class RecognitionStatus(StrEnum):
+    """Status of a keyframe recognition (:attr:`Recognition.status`); each member is its string value.
+    Only ``verified`` yields a factor."""
+
+    #: no intersection in view (or none in the knowledge base)
+    NONE = "none"
+    #: too few wall points, or no drift skeleton
+    NO_WALLS = "no_walls"
+    #: matched, waiting for ``consecutive_required`` keyframes in a row
+    CANDIDATE = "candidate"
+    #: the descriptors do not single out one intersection
+    AMBIGUOUS = "ambiguous"
+    #: matched and verified by ICP: a factor
+    VERIFIED = "verified"
+    #: the ICP verification failed
+    REJECTED = "rejected"
+    #: verified by ICP but contradicting the odometry prediction
+    CONFLICT = "conflict"
+
 
 #: every status of a :class:`Recognition`; only ``verified`` yields a factor
-STATUSES = ("none", "no_walls", "candidate", "ambiguous", "verified", "rejected", "conflict")
+STATUSES = tuple(RecognitionStatus)
 
 
 @dataclass(frozen=True)
@@ -146,11 +168,13 @@ class RecognitionState:
 
 @dataclass
 class Recognition:
-    """Outcome of :func:`recognise_keyframe` for one keyframe.
+    """Outcome of :func:`recognise_keyframe` for one keyframe (mutable: the tracker revises the
+    status of a recognition it holds; a status set as a string is stored as its
+    :class:`RecognitionStatus` member, an unknown one is refused with ``ValueError``).
 
     Attributes
     ----------
-    status : str
+    status : RecognitionStatus
         One of :data:`STATUSES`.
     reason : str
         Why (human-readable; empty for ``verified``).
@@ -180,7 +204,7 @@ class Recognition:
         Seconds per step (``preprocess``, ``detect``, ``descriptors``, ``verify``).
     """
 
-    status: str
+    status: RecognitionStatus
     reason: str = ""
     intersection_id: int = -1
     pwcv_scores: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -197,6 +221,9 @@ class Recognition:
     prediction_yaw_error_deg: float = float("nan")
     streak: int = 0
     timings_s: dict = field(default_factory=dict)
+
+    def __setattr__(self, name, value):
+        super().__setattr__(name, RecognitionStatus(value) if name == "status" else value)
 
     def summary(self) -> dict:
         """JSON-able summary (no arrays but the observed point)."""
@@ -344,49 +371,51 @@ def _verify(L: np.ndarray, c_L: np.ndarray, yaw: float, kb: IntersectionKB, i: i
 
 
 def _detect(clouds, T_his, params: RecognitionParams):
-    """Steps 1-2: (status, reason, levelled points, T_L_keyframe, c_L or None)."""
+    """Steps 1-2: (status, reason, levelled points, T_L_keyframe, c_L or None); status None when a junction
+    was detected (the matching decides)."""
     L, V, T_L_k, n_wall = level_and_carve(clouds, T_his, params)
     if n_wall < params.min_wall_points:
-        return "no_walls", (f"{n_wall} wall points between {params.skeleton.wall_band_m} m above the floor plane "
+        return RecognitionStatus.NO_WALLS, (f"{n_wall} wall points between {params.skeleton.wall_band_m} m above the floor plane "
                             f"(fewer than {params.min_wall_points})"), L, T_L_k, None
     try:
         # the keyframe's free space is carved along its rays (V), dense; the footprint closing is for a map's
         # unsampled floor and roof, and on a keyframe it would bridge the openings the rays did not reach
         sk = drift_skeleton(np.concatenate([L, V]), replace(params.skeleton, fill_radius_m=0.0), complete_walls=False)
     except MinegeoError as exc:
-        return "no_walls", f"no drift skeleton: {exc}", L, T_L_k, None
+        return RecognitionStatus.NO_WALLS, f"no drift skeleton: {exc}", L, T_L_k, None
     if sk.junction_xy.shape[0] == 0:
-        return "none", "no intersection in view (the drift skeleton has no junction)", L, T_L_k, None
+        return RecognitionStatus.NONE, "no intersection in view (the drift skeleton has no junction)", L, T_L_k, None
     dist = np.hypot(sk.junction_xy[:, 0], sk.junction_xy[:, 1])
     j = int(np.argmin(dist))
     if dist[j] > params.max_junction_range_m:
-        return "none", (f"nearest junction {dist[j]:.1f} m away (more than {params.max_junction_range_m} m)"), \
+        return RecognitionStatus.NONE, (f"nearest junction {dist[j]:.1f} m away (more than {params.max_junction_range_m} m)"), \
             L, T_L_k, None
     c = np.r_[sk.junction_xy[j], sk.floor.height(sk.junction_xy[j:j + 1])[0]]
-    return "", "", L, T_L_k, c
+    return None, "", L, T_L_k, c
 
 
 def _match(L, c_L, kb: IntersectionKB, params: RecognitionParams, yaw_pred_L):
-    """Steps 3-6: (status, reason, id, pwcv scores, candidates, cwc score, similarity of the match, V_curr)."""
+    """Steps 3-6: (status, reason, id, pwcv scores, candidates, cwc score, similarity of the match, V_curr);
+    status None when one intersection matched."""
     d = kb.params.descriptor
     V = pwcv(L, c_L, d)
     sims = [similarity(V, kb.pwcv[i]) for i in range(len(kb))]
     s = np.array([r.score for r in sims])
     cand = tuple(int(i) for i in np.flatnonzero(s >= params.pwcv_threshold))
     if not cand:
-        return "none", (f"best PWCV similarity {s.max():.3f} below {params.pwcv_threshold} (not an intersection "
+        return RecognitionStatus.NONE, (f"best PWCV similarity {s.max():.3f} below {params.pwcv_threshold} (not an intersection "
                         "of the knowledge base)"), -1, s, cand, float("nan"), None, V
     if len(cand) == 1:
-        return "", "", cand[0], s, cand, float("nan"), sims[cand[0]], V
+        return None, "", cand[0], s, cand, float("nan"), sims[cand[0]], V
     M = cwc(L, c_L, d)                                        # step 6 (on the stacked cloud, [Liang2024 Eq. 20])
     cs = {i: similarity(M, kb.cwc[i]) for i in cand}
     order = sorted(cand, key=lambda i: -cs[i].score)
     best, second = order[0], order[1]
     if cs[best].score - cs[second].score < params.cwc_margin:
-        return "ambiguous", (f"CWC similarity of ids {best} and {second}: {cs[best].score:.3f} and "
+        return RecognitionStatus.AMBIGUOUS, (f"CWC similarity of ids {best} and {second}: {cs[best].score:.3f} and "
                              f"{cs[second].score:.3f} (margin {params.cwc_margin})"), best, s, cand, \
             cs[best].score, sims[best], V
-    return "", "", best, s, cand, cs[best].score, sims[best], V
+    return None, "", best, s, cand, cs[best].score, sims[best], V
 
 
 def recognise_keyframe(points_kf, history, kb: IntersectionKB, params: RecognitionParams | None = None, *,
@@ -422,7 +451,7 @@ def recognise_keyframe(points_kf, history, kb: IntersectionKB, params: Recogniti
     hist = list(history)[-int(params.n_his):] if params.n_his else []
     T_pred = None if T_world_kf_pred is None else as_transform(T_world_kf_pred, "T_world_kf_pred")
     if kb.status != "ok" or len(kb) == 0:
-        return Recognition("none", f"the knowledge base holds no intersection ({kb.status})", timings_s=t)
+        return Recognition(RecognitionStatus.NONE, f"the knowledge base holds no intersection ({kb.status})", timings_s=t)
     status, reason, L, T_L_k, c_L = _detect([P] + [h[0] for h in hist], [h[1] for h in hist], params)
     t["detect"] = time.perf_counter() - t0
     if state is not None and status:
@@ -437,7 +466,7 @@ def recognise_keyframe(points_kf, history, kb: IntersectionKB, params: Recogniti
     t1 = time.perf_counter()
     status, reason, i, s, cand, cscore, sim, V = _match(L, c_L, kb, params, yaw_pred_L)
     t["descriptors"] = time.perf_counter() - t1
-    rec = Recognition(status or "candidate", reason, i, s, float(s[i]) if i >= 0 else float(np.max(s)), cscore, cand,
+    rec = Recognition(status or RecognitionStatus.CANDIDATE, reason, i, s, float(s[i]) if i >= 0 else float(np.max(s)), cscore, cand,
                       float("nan") if sim is None else sim.yaw_rad, z, timings_s=t)
     if i >= 0:
         rec.completeness = completeness(V, kb.pwcv[i])
@@ -484,7 +513,7 @@ def _verify_step(rec: Recognition, L, c_L, T_L_k, sim, kb, params, T_pred, yaw_p
         rivals = [int(c) for c in cand if c != rec.intersection_id
                   and np.linalg.norm(kb.invariant_points[c] - p) <= gate]
         if rivals:
-            rec.status = "ambiguous"
+            rec.status = RecognitionStatus.AMBIGUOUS
             rec.reason = (f"intersection {rec.intersection_id} matched, but the look-alike candidate(s) "
                           f"{', '.join(map(str, rivals))} also lie within the {gate:.1f} m gate of the prediction")
             return
@@ -493,7 +522,7 @@ def _verify_step(rec: Recognition, L, c_L, T_L_k, sim, kb, params, T_pred, yaw_p
     rec.yaw_rad = float(yaw)
     T_wL, res = _verify(L, c_L, yaw, kb, i, params)
     if res is None:
-        rec.status, rec.reason = "rejected", "too few points for the ICP verification"
+        rec.status, rec.reason = RecognitionStatus.REJECTED, "too few points for the ICP verification"
         return
     rec.icp_rms_m, rec.icp_fitness = float(res.inlier_rmse_m), float(res.fitness)
     T_wk = compose(T_wL, T_L_k)
@@ -502,14 +531,14 @@ def _verify_step(rec: Recognition, L, c_L, T_L_k, sim, kb, params, T_pred, yaw_p
         rec.prediction_error_m = float(np.linalg.norm(T_wk[:3, 3] - T_pred[:3, 3]))
         rec.prediction_yaw_error_deg = float(abs(math.degrees(_wrap(_yaw(T_wk[:3, :3]) - _yaw(T_pred[:3, :3])))))
     if not (rec.icp_rms_m <= params.icp_max_distance_m and rec.icp_fitness >= params.icp_min_fitness):
-        rec.status = "rejected"
+        rec.status = RecognitionStatus.REJECTED
         rec.reason = (f"ICP distance {rec.icp_rms_m:.3f} m (max {params.icp_max_distance_m}) and overlap "
                       f"{rec.icp_fitness:.2f} (min {params.icp_min_fitness}) against intersection {i}")
         return
     if T_pred is not None and (rec.prediction_error_m > gate or rec.prediction_yaw_error_deg > params.gate_yaw_deg):
-        rec.status = "conflict"
+        rec.status = RecognitionStatus.CONFLICT
         rec.reason = (f"intersection {i} verified by ICP puts the keyframe {rec.prediction_error_m:.1f} m / "
                       f"{rec.prediction_yaw_error_deg:.0f} deg from the odometry prediction (gate {gate:.1f} m / "
                       f"{params.gate_yaw_deg:.0f} deg): a nearly-alike intersection elsewhere")
         return
-    rec.status, rec.reason = "verified", ""
+    rec.status, rec.reason = RecognitionStatus.VERIFIED, ""

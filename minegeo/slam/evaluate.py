@@ -67,7 +67,7 @@ def error_stats(e: np.ndarray) -> ErrorStats:
                       float(np.std(e)), float(np.min(e)), float(np.max(e)), sse, int(e.size))
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrajectoryEvaluation:
     """ATE and RPE of an estimated trajectory against a reference.
 

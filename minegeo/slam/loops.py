@@ -28,7 +28,7 @@ Two additions to the paper's rules, for long loops (hundreds of metres, measured
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -71,7 +71,7 @@ class LoopParams:
             raise InputError("max_candidates >= 1 and min_fitness in [0, 1] are required")
 
 
-@dataclass
+@dataclass(frozen=True)
 class LoopCandidate:
     """One loop candidate tried: keyframes ``i`` (older) and ``j`` (newer), scores, verdict."""
 
@@ -134,21 +134,21 @@ def find_loop(k: int, poses: np.ndarray, path_m: np.ndarray, frames: list[Prepar
         tried.append(LoopCandidate(int(j), int(k), float(np.linalg.norm(poses[j, :3, 3] - poses[k, :3, 3])),
                                    reg.fitness, reg.rmse_m, False, reason, T_jk, reg.information))
         world.append(compose(poses[j], T_jk))  # where this registration puts keyframe k
-    _confirm(tried, world, params)
-    good = [c for c in tried if not c.reason]
-    if good:
-        best = max(good, key=lambda c: (c.fitness, -c.rmse_m))
-        best.accepted = True
-        for c in good:
-            if c is not best:
-                c.reason = f"lower score than the loop to keyframe {best.i}"
-    return tried
+    tried = _confirm(tried, world, params)
+    good = [a for a, c in enumerate(tried) if not c.reason]
+    if not good:
+        return tried
+    b = max(good, key=lambda a: (tried[a].fitness, -tried[a].rmse_m))  # the first of equal scores
+    why = f"lower score than the loop to keyframe {tried[b].i}"
+    return [replace(c, accepted=True) if a == b else replace(c, reason=why) if a in good else c
+            for a, c in enumerate(tried)]
 
 
-def _confirm(tried: list[LoopCandidate], world: list[np.ndarray], params: LoopParams) -> None:
-    """Reject the candidates with an inlier RMSE above ``max_rmse_m`` that no other passing candidate
-    confirms (the same world pose of the keyframe within ``consistency_m`` / ``consistency_deg``)."""
+def _confirm(tried: list[LoopCandidate], world: list[np.ndarray], params: LoopParams) -> list[LoopCandidate]:
+    """The candidates, those with an inlier RMSE above ``max_rmse_m`` that no other passing candidate
+    confirms (the same world pose of the keyframe within ``consistency_m`` / ``consistency_deg``) rejected."""
     ok = [not c.reason for c in tried]
+    out = list(tried)
     for a, c in enumerate(tried):
         if not ok[a] or c.rmse_m <= params.max_rmse_m:
             continue
@@ -156,5 +156,6 @@ def _confirm(tried: list[LoopCandidate], world: list[np.ndarray], params: LoopPa
                  and np.linalg.norm(world[a][:3, 3] - world[b][:3, 3]) <= params.consistency_m
                  and _angle_deg(world[a][:3, :3].T @ world[b][:3, :3]) <= params.consistency_deg]
         if not agree:
-            c.reason = (f"inlier RMSE {c.rmse_m:.3f} m above {params.max_rmse_m:.3f} m and no other candidate "
-                        "confirms the pose")
+            out[a] = replace(c, reason=(f"inlier RMSE {c.rmse_m:.3f} m above {params.max_rmse_m:.3f} m and no other "
+                                        "candidate confirms the pose"))
+    return out

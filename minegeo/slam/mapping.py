@@ -106,7 +106,7 @@ class RoadwayNoiseParams:
         return asdict(self)
 
 
-@dataclass
+@dataclass(frozen=True)
 class NoiseRemovalResult:
     """Outcome of :func:`remove_roadway_noise`.
 

@@ -39,6 +39,7 @@ from minegeo.slam.mapping import NoiseRemovalResult, RoadwayNoiseParams, remove_
 from minegeo.slam.odometry import OdometryParams, OdometryResult, PreparedFrame, run_odometry
 from minegeo.slam.planes import (
     FloorPlaneParams,
+    PlaneStatus,
     extract_floor_plane,
     plane_in_sensor_frame,
     plane_in_world_frame,
@@ -114,7 +115,7 @@ class SlamParams:
         return asdict(self)
 
 
-@dataclass
+@dataclass(frozen=True)
 class SlamResult:
     """Outcome of :func:`run_slam`.
 
@@ -135,7 +136,7 @@ class SlamResult:
     optimisation : PoseGraphResult or None
     planes : PlaneSet or None
         With ``use_planes``: the floor-plane nodes (optimised) and pose–plane edges (pose =
-        keyframe index); ``floor_status`` gives each keyframe's extraction status.
+        keyframe index); ``floor_status`` gives each keyframe's extraction status (:class:`PlaneStatus`).
     """
 
     times_s: np.ndarray
@@ -150,7 +151,7 @@ class SlamResult:
     params: SlamParams
     timings_s: dict = field(default_factory=dict)
     planes: PlaneSet | None = None
-    floor_status: list = field(default_factory=list)
+    floor_status: list[PlaneStatus] = field(default_factory=list)
     noise: NoiseRemovalResult | None = None
     inertial: InertialResult | None = None
 
@@ -223,7 +224,7 @@ def _floor_observations(odo: OdometryResult, kf_poses: np.ndarray, params: SlamP
         sub = np.concatenate([world[j] for j in near])
         res = extract_floor_plane(sub, T[:3, 3], fp, seed=k, up=T[:3, 2])
         status.append(res.status)
-        if res.status != "ok":
+        if res.status != PlaneStatus.OK:
             continue
         Q = sub[res.inliers]
         spread = np.sqrt(max(float(np.mean(np.sum((Q - Q.mean(axis=0)) ** 2, axis=1))) / 2.0, 1e-12))

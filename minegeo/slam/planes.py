@@ -20,6 +20,7 @@ sign the paper's [Ren2019 Eq. 10] ``d' = d − t_t·n'`` holds as printed (see
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from enum import StrEnum
 
 import numpy as np
 
@@ -28,7 +29,7 @@ from minegeo.errors import InputError
 from minegeo.kernels.eig3 import jacobi_eigh3
 from minegeo.slam import _kernels_planes as KP
 
-__all__ = ["FloorPlaneParams", "PlaneResult", "extract_floor_plane", "plane_in_sensor_frame",
+__all__ = ["FloorPlaneParams", "PlaneResult", "PlaneStatus", "extract_floor_plane", "plane_in_sensor_frame",
            "plane_in_world_frame", "plane_q_paper", "retract_plane", "pose_plane_residuals",
            "pose_plane_terms"]
 
@@ -80,7 +81,17 @@ class FloorPlaneParams:
                              "min_inliers >= 3, 0 <= min_inlier_fraction <= 1, 0 <= max_tilt_deg < 90")
 
 
-@dataclass
+class PlaneStatus(StrEnum):
+    """Status of a floor-plane extraction (:attr:`PlaneResult.status`); each member is its string value."""
+
+    OK = "ok"
+    #: fewer than ``min_inliers`` sub-map points below the sensor
+    TOO_FEW_POINTS = "too few points"
+    #: no valid hypothesis, or the refitted plane failed a check (tilt, height, inliers)
+    NO_PLANE = "no plane"
+
+
+@dataclass(frozen=True)
 class PlaneResult:
     """Outcome of :func:`extract_floor_plane`.
 
@@ -90,7 +101,8 @@ class PlaneResult:
         ``(n_a, n_b, n_c, d)`` in the frame of the input points, ``n·p + d = 0``, ``|n| = 1``,
         ``n`` oriented up (``n·up > 0``); NaN unless ``status == "ok"`` (the best RANSAC
         plane, if any, is still in ``ransac_plane``).
-    status : {"ok", "too few points", "no plane"}
+    status : PlaneStatus
+        ``ok``, ``too few points`` or ``no plane``.
     reason : str
     n_candidates : int
         Points of the sub-map (within the radius, in the height band below the sensor).
@@ -109,7 +121,7 @@ class PlaneResult:
     """
 
     plane: np.ndarray
-    status: str
+    status: PlaneStatus
     reason: str
     n_candidates: int = 0
     n_inliers: int = 0
@@ -194,7 +206,7 @@ def extract_floor_plane(points_world, center, params: FloorPlaneParams | None = 
     nc = int(cand.size)
     base = {"n_candidates": nc, "seed": seed, "params": params}
     if nc < params.min_inliers:
-        return PlaneResult(nan4, "too few points", f"{nc} sub-map point(s) below the sensor within "
+        return PlaneResult(nan4, PlaneStatus.TOO_FEW_POINTS, f"{nc} sub-map point(s) below the sensor within "
                            f"{params.radius_m} m; at least {params.min_inliers} are needed", **base)
     Pc = np.ascontiguousarray(P[cand])
     samples = np.ascontiguousarray(np.random.default_rng(seed).integers(0, nc, size=(params.iterations, 3)),
@@ -206,7 +218,7 @@ def extract_floor_plane(points_world, center, params: FloorPlaneParams | None = 
     best = int(np.argmax(counts))  # first of equal counts: deterministic
     if counts[best] < 0:
         why = "all samples degenerate" if np.all(counts == -1) else f"every plane steeper than {params.max_tilt_deg} deg"
-        return PlaneResult(nan4, "no plane", f"no valid 3-point hypothesis in {params.iterations} samples ({why})",
+        return PlaneResult(nan4, PlaneStatus.NO_PLANE, f"no valid 3-point hypothesis in {params.iterations} samples ({why})",
                            **base)
     ransac_plane = hyp[best].copy()
     # least-squares refit of the inliers, inliers re-selected and refitted once more (the first
@@ -228,13 +240,13 @@ def extract_floor_plane(points_world, center, params: FloorPlaneParams | None = 
     out = {**base, "n_inliers": int(inl.sum()), "rms_m": rms, "tilt_deg": tilt, "sensor_height_m": height,
            "inliers": cand[inl], "ransac_plane": ransac_plane}
     if tilt > params.max_tilt_deg:
-        return PlaneResult(nan4, "no plane", f"refitted plane tilted {tilt:.1f} deg > {params.max_tilt_deg} deg", **out)
+        return PlaneResult(nan4, PlaneStatus.NO_PLANE, f"refitted plane tilted {tilt:.1f} deg > {params.max_tilt_deg} deg", **out)
     if height <= 0:
-        return PlaneResult(nan4, "no plane", f"the sensor is not above the plane (height {height:.3f} m)", **out)
+        return PlaneResult(nan4, PlaneStatus.NO_PLANE, f"the sensor is not above the plane (height {height:.3f} m)", **out)
     if out["n_inliers"] < need:
-        return PlaneResult(nan4, "no plane", f"refitted plane has {out['n_inliers']} inliers of {nc}; {need} needed",
+        return PlaneResult(nan4, PlaneStatus.NO_PLANE, f"refitted plane has {out['n_inliers']} inliers of {nc}; {need} needed",
                            **out)
-    return PlaneResult(plane, "ok", f"{out['n_inliers']} inliers of {nc}, RMS {rms:.4f} m, tilt {tilt:.2f} deg",
+    return PlaneResult(plane, PlaneStatus.OK, f"{out['n_inliers']} inliers of {nc}, RMS {rms:.4f} m, tilt {tilt:.2f} deg",
                        **out)
 
 

@@ -45,6 +45,7 @@ from minegeo.optim import (
     BetweenFactors,
     FactorProblem,
     LMParams,
+    LMStatus,
     SparseSystem,
     Values,
     between_residuals,
@@ -166,7 +167,7 @@ class PlaneSet:
         return PlaneSet(planes, self.edges, self.measurements, self.information)
 
 
-@dataclass
+@dataclass(frozen=True)
 class PoseGraphResult:
     """Outcome of :func:`optimize_pose_graph`.
 
@@ -174,7 +175,9 @@ class PoseGraphResult:
     ----------
     graph : PoseGraph
         The input graph with the optimised poses (edges unchanged).
-    status : {"converged", "max_iterations", "failed"}
+    status : LMStatus
+        ``converged``, ``max_iterations`` or ``failed`` (the optimiser's status; ``failed`` also for a
+        graph that cannot be solved).
     reason : str
     cost_initial, cost_final : float
         ``F`` (contract cost, no robust kernel) before and after.
@@ -201,7 +204,7 @@ class PoseGraphResult:
     """
 
     graph: PoseGraph
-    status: str
+    status: LMStatus
     reason: str
     cost_initial: float
     cost_final: float
@@ -498,15 +501,15 @@ def optimize_pose_graph(graph: PoseGraph, params: PoseGraphParams | None = None,
     live = np.any(info_file != 0.0, axis=(1, 2))  # an all-zero information ties nothing
     unanchored = _unanchored(graph.n_vertices, graph.edges[live], fixed_idx)  # planes fix only z, roll, pitch
     if unanchored.size:
-        return result("failed", f"{unanchored.size} vertex(es) not constrained by any edge path (edges with non-zero "
+        return result(LMStatus.FAILED, f"{unanchored.size} vertex(es) not constrained by any edge path (edges with non-zero "
                       f"information) to a fixed vertex (first: id {int(graph.ids[unanchored[0]])}); disconnected "
                       "graph?", float("nan"), float("nan"), 0, [], user=True)
     if plane_problem:
-        return result("failed", plane_problem, float("nan"), float("nan"), 0, [], user=True)
+        return result(LMStatus.FAILED, plane_problem, float("nan"), float("nan"), 0, [], user=True)
     outcome = _solve(used, params, planes, fixed_idx, free_col, np.flatnonzero(free), n_pose_cols)
     status, reason, cost0, it, history, conv = (outcome.status, outcome.reason, outcome.cost_initial,
                                                 outcome.iterations, outcome.history, outcome.convergence)
-    if status == "failed":
+    if status == LMStatus.FAILED:
         return result(status, reason, cost0, cost0, it, history, conv=conv, user=conv.get("singular_vertex") is not None)
     v = outcome.values
     pl = planes.with_planes(v.planes) if planes is not None and hasattr(v, "planes") else None

@@ -112,7 +112,13 @@ from minegeo.survey.lsq import (
     weights_from_sigmas,
 )
 from minegeo.survey.network import Datum, Network, NetworkResult, Observation, adjust_network
-from minegeo.survey.resection import StationResult, intersection_2d, resection_2d, trilateration_2d
+from minegeo.survey.resection import (
+    StationResult,
+    StationStatus,
+    intersection_2d,
+    resection_2d,
+    trilateration_2d,
+)
 
 __all__ = [
     "azimuth",
@@ -159,6 +165,7 @@ __all__ = [
     "parse_krumm",
     "read_network",
     "StationResult",
+    "StationStatus",
     "intersection_2d",
     "resection_2d",
     "trilateration_2d",

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 
@@ -30,7 +31,15 @@ from minegeo.survey.ellipse import ErrorEllipse
 from minegeo.survey.lsq import LSQOptions
 from minegeo.survey.network import Datum, Network, NetworkResult, Observation, adjust_network
 
-__all__ = ["StationResult", "resection_2d", "intersection_2d", "trilateration_2d"]
+__all__ = ["StationResult", "StationStatus", "resection_2d", "intersection_2d", "trilateration_2d"]
+
+
+class StationStatus(StrEnum):
+    """Status of a station position (:attr:`StationResult.status`); each member is its string value."""
+
+    OK = "ok"
+    #: other positions fit equally well (see ``alternatives``)
+    AMBIGUOUS = "ambiguous"
 
 
 @dataclass(frozen=True)
@@ -49,8 +58,8 @@ class StationResult:
     orientation_rad, orientation_std_rad : float or None
         Orientation unknown of the direction set (resection with directions).
     ellipse_standard, ellipse_95 : ErrorEllipse
-    status : str
-        "ok" or "ambiguous".
+    status : StationStatus
+        ``ok`` or ``ambiguous``.
     reason : str
     alternatives : tuple of (E, N, vᵀWv)
         Other positions that fit (only when ambiguous).
@@ -68,7 +77,7 @@ class StationResult:
     orientation_std_rad: float | None
     ellipse_standard: ErrorEllipse
     ellipse_95: ErrorEllipse
-    status: str
+    status: StationStatus
     reason: str
     alternatives: tuple
     network: NetworkResult
@@ -170,7 +179,7 @@ def _solve(points, obs, unknown, approx, options, on_ambiguity, n_unknowns_hint)
         ):
             if not any(math.hypot(e - a[0], n - a[1]) <= tol for a in alts):
                 alts.append((e, n, vtwv))
-    status, reason = "ok", ""
+    status, reason = StationStatus.OK, ""
     if alts and approx is None:
         collinear = _collinear(ctrl)
         reason = (
@@ -185,7 +194,7 @@ def _solve(points, obs, unknown, approx, options, on_ambiguity, n_unknowns_hint)
         )
         if on_ambiguity == "raise":
             raise DegenerateGeometryError(reason)
-        status = "ambiguous"
+        status = StationStatus.AMBIGUOUS
     orient = None
     orient_sd = None
     if res.orientations:

@@ -4,6 +4,8 @@ is above ``max_rmse_m`` is accepted only when another candidate puts the keyfram
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -28,17 +30,16 @@ def test_a_loose_registration_needs_a_second_candidate_that_agrees():
     # keyframe 50 registered to 10, 11 (agree within 5 cm / 0.2°) and 12 (a look-alike 8 m along the drift)
     tried = [_cand(10, 0.40), _cand(11, 0.42), _cand(12, 0.39)]
     world = [_T([100.0, 0, 0]), _T([100.05, 0, 0], 0.003), _T([108.0, 0, 0])]
-    _confirm(tried, world, p)
+    tried = _confirm(tried, world, p)
     assert [bool(c.reason) for c in tried] == [False, False, True]
     assert "no other candidate confirms" in tried[2].reason
     # a tight registration (RMSE below max_rmse_m) needs no confirmation; a lone loose one is rejected
     tried = [_cand(10, 0.25), _cand(12, 0.40)]
-    _confirm(tried, [_T([100.0, 0, 0]), _T([108.0, 0, 0])], p)
+    tried = _confirm(tried, [_T([100.0, 0, 0]), _T([108.0, 0, 0])], p)
     assert [bool(c.reason) for c in tried] == [False, True]
     # a candidate already rejected (e.g. low overlap) confirms nothing
-    tried = [_cand(10, 0.40), _cand(11, 0.40)]
-    tried[1].reason = "overlap 0.20 below 0.50"
-    _confirm(tried, [_T([100.0, 0, 0]), _T([100.0, 0, 0])], p)
+    tried = [_cand(10, 0.40), replace(_cand(11, 0.40), reason="overlap 0.20 below 0.50")]
+    tried = _confirm(tried, [_T([100.0, 0, 0]), _T([100.0, 0, 0])], p)
     assert tried[0].reason
 
 
