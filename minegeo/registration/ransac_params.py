@@ -208,7 +208,7 @@ class RansacStatus(StrEnum):
 
     #: stopped by [Baek2022 Eq. 8]: the requested confidence was reached
     CONVERGED = "converged"
-    #: stopped at ``max_iterations`` before Eq. 8 held
+    #: stopped at ``max_iterations`` before [Baek2022 Eq. 8] held
     MAX_ITERATIONS = "max_iterations"
     #: stopped after ``max_validations`` scored hypotheses
     MAX_VALIDATIONS = "max_validations"
