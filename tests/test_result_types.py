@@ -44,6 +44,7 @@ from minegeo.registration.ransac_params import RansacResult, RansacStatus
 from minegeo.semantic.factors import FactorGraphResult
 from minegeo.semantic.knowledge import IntersectionKB, KBParams, KBStatus
 from minegeo.semantic.recognition import Recognition, RecognitionStatus
+from minegeo.semantic.tracking import TrackResult, TrackStatus
 from minegeo.slam.evaluate import TrajectoryEvaluation
 from minegeo.slam.loops import LoopCandidate
 from minegeo.slam.mapping import NoiseRemovalResult
@@ -61,7 +62,7 @@ FROZEN_RESULTS = (
     ICPResult, GICPResult, RansacResult, FactorGraphResult, IntersectionKB, LocalizationResult, Decision, RivalCheck,
     UpEstimate, RivalSearch, CorrelativeResult, PoseUncertainty, BatchResult, StationResult, GeorefResult,
     MastResult, IcpResult, VoxelResult, OctreeDownsampleResult, NormalsResult, FPFHResult, Helmert2DResult,
-    Affine2DResult, Helmert3DResult, LSQResult, NetworkResult, PointResult, ObservationResult,
+    Affine2DResult, Helmert3DResult, LSQResult, NetworkResult, PointResult, ObservationResult, TrackResult,
 )
 #: public result classes left mutable, by name: why
 MUTABLE_BY_DESIGN = {
@@ -71,8 +72,6 @@ MUTABLE_BY_DESIGN = {
     "InertialResult": "minegeo/slam/inertial.py: edited on main at the same time (issue 29)",
     "ControlResult": "minegeo/slam/control.py: edited on main at the same time (issue 30)",
     "OdometryResult": "minegeo/slam/odometry_model.py: edited on main at the same time (issue 29)",
-    "TrackResult": "minegeo/semantic/tracking.py: edited on main at the same time (issue 29); the tracker "
-                   "sets its imu record after building it",
 }
 #: result classes with a ``status`` field and the StrEnum it holds
 STATUS_ENUMS = {
@@ -80,6 +79,7 @@ STATUS_ENUMS = {
     ICPResult: ICPStatus, GICPResult: ICPStatus, RansacResult: RansacStatus, LocalizationResult: LocalizeStatus,
     Decision: DecisionStatus, RivalCheck: DecisionStatus, UpEstimate: UpStatus, StationResult: StationStatus,
     GeorefResult: GeorefStatus, MastResult: MastStatus, IntersectionKB: KBStatus, Recognition: RecognitionStatus,
+    TrackResult: TrackStatus,
 }
 RESULT_SUFFIXES = ("Result", "Outcome", "Estimate", "Evaluation")
 

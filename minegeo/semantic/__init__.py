@@ -63,7 +63,7 @@ from minegeo.semantic.recognition import (  # noqa: E402
     RecognitionState,
     recognise_keyframe,
 )
-from minegeo.semantic.tracking import TrackParams, TrackRecognition, TrackResult, track  # noqa: E402
+from minegeo.semantic.tracking import TrackParams, TrackRecognition, TrackResult, TrackStatus, track  # noqa: E402
 
 __all__ += ["Recognition", "RecognitionParams", "RecognitionState", "recognise_keyframe", "TrackParams",
-            "TrackRecognition", "TrackResult", "track"]
+            "TrackRecognition", "TrackResult", "TrackStatus", "track"]

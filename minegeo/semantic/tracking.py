@@ -47,6 +47,7 @@ import math
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
+from enum import StrEnum
 
 import numpy as np
 
@@ -66,7 +67,7 @@ from minegeo.semantic.recognition import (
 from minegeo.slam.inertial import GyroAid
 from minegeo.slam.odometry import OdometryParams, run_odometry
 
-__all__ = ["TrackParams", "TrackRecognition", "TrackResult", "track", "odometry_edge_information"]
+__all__ = ["TrackParams", "TrackRecognition", "TrackResult", "TrackStatus", "track", "odometry_edge_information"]
 
 
 def odometry_edge_information(information, Z, sigma_fraction: float, sigma_deg_per_m: float, dt_s: float = 0.0,
@@ -234,13 +235,24 @@ class TrackRecognition:
                 **self.recognition.summary()}
 
 
-@dataclass
+class TrackStatus(StrEnum):
+    """Status of a :class:`TrackResult` (each member is its string value; :attr:`TrackResult.status`)."""
+
+    OK = "ok"
+    PARTIAL = "partial"
+    INCONSISTENT = "inconsistent"
+    NO_RECOGNITION = "no_recognition"
+    UNANCHORED = "unanchored"
+    NO_INTERSECTIONS = "no_intersections"
+
+
+@dataclass(frozen=True)
 class TrackResult:
     """Outcome of :func:`track`.
 
     Attributes
     ----------
-    status : str
+    status : TrackStatus
         ``ok`` (factors, every one consistent, and no keyframe farther than
         ``TrackParams.unchecked_path_m`` of path from a verified intersection or the start pose);
         ``partial`` (consistent factors, but ``unchecked_stretches`` placed by the odometry alone);
@@ -277,7 +289,7 @@ class TrackResult:
         rotations it was estimated from (``result.imu`` of ``result.json``); None without one.
     """
 
-    status: str
+    status: TrackStatus
     reason: str
     times_s: np.ndarray
     poses: np.ndarray
@@ -511,7 +523,8 @@ def track(frames: Iterable[tuple[float, np.ndarray]], kb: IntersectionKB | None,
         st.recognitions.append(entry)
     res = st.result(use_map, usable, kb, online, timings)
     if aid is not None:
-        res.imu = {"front_end_bias_gyro_rad_s": [float(x) for x in aid.bias_g], "bias_updates": int(aid.n_updates)}
+        res = replace(res, imu={"front_end_bias_gyro_rad_s": [float(x) for x in aid.bias_g],
+                                "bias_updates": int(aid.n_updates)})
     return res
 
 
@@ -652,7 +665,7 @@ class _State:
             status, reason = self._checked_status(bad, unchecked)
         pts = np.array(online.C).reshape(-1, 3) if online is not None else np.zeros((0, 3))
         okf = np.array(online.kf if online is not None else [], np.int64)
-        return TrackResult(status, reason, odo.times_s, _frame_poses(odo, kf), odo.keyframes.copy(), kf,
+        return TrackResult(TrackStatus(status), reason, odo.times_s, _frame_poses(odo, kf), odo.keyframes.copy(), kf,
                            np.stack(self.online_poses), self.recognitions, timings, use_map, odo, pts, okf,
                            self.n_opt, unchecked_stretches=unchecked, inconsistent_factors=bad)
 

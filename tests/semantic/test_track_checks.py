@@ -106,6 +106,9 @@ def test_a_runaway_beyond_every_check_is_partial_not_ok(monkeypatch):
     assert (s["first_keyframe"], s["last_keyframe"]) == (111, 299)
     assert s["path_m"] == pytest.approx(598.0 - 222.0) and s["max_path_from_check_m"] == pytest.approx(578.0)
     assert res.status == "partial" and "189 of 300 keyframes" in res.reason
+    from minegeo.semantic.tracking import TrackStatus
+
+    assert type(res.status) is TrackStatus and f"{res.status}" == "partial"  # a member, printed as its value
     assert res.summary()["unchecked_stretches"] == [s]
 
 
