@@ -45,6 +45,7 @@ from minegeo.semantic.factors import FactorGraphResult
 from minegeo.semantic.knowledge import IntersectionKB, KBParams, KBStatus
 from minegeo.semantic.recognition import Recognition, RecognitionStatus
 from minegeo.semantic.tracking import TrackResult, TrackStatus
+from minegeo.slam.control import ControlResult, ControlStatus
 from minegeo.slam.evaluate import TrajectoryEvaluation
 from minegeo.slam.loops import LoopCandidate
 from minegeo.slam.mapping import NoiseRemovalResult
@@ -63,6 +64,7 @@ FROZEN_RESULTS = (
     UpEstimate, RivalSearch, CorrelativeResult, PoseUncertainty, BatchResult, StationResult, GeorefResult,
     MastResult, IcpResult, VoxelResult, OctreeDownsampleResult, NormalsResult, FPFHResult, Helmert2DResult,
     Affine2DResult, Helmert3DResult, LSQResult, NetworkResult, PointResult, ObservationResult, TrackResult,
+    ControlResult,
 )
 #: public result classes left mutable, by name: why
 MUTABLE_BY_DESIGN = {
@@ -70,7 +72,6 @@ MUTABLE_BY_DESIGN = {
                    "stored as its RecognitionStatus member)",
     "LoopOutcome": "the state of the registration loop, updated at every iteration (registration/loop.py)",
     "InertialResult": "minegeo/slam/inertial.py: edited on main at the same time (issue 29)",
-    "ControlResult": "minegeo/slam/control.py: edited on main at the same time (issue 30)",
     "OdometryResult": "minegeo/slam/odometry_model.py: edited on main at the same time (issue 29)",
 }
 #: result classes with a ``status`` field and the StrEnum it holds
@@ -79,7 +80,7 @@ STATUS_ENUMS = {
     ICPResult: ICPStatus, GICPResult: ICPStatus, RansacResult: RansacStatus, LocalizationResult: LocalizeStatus,
     Decision: DecisionStatus, RivalCheck: DecisionStatus, UpEstimate: UpStatus, StationResult: StationStatus,
     GeorefResult: GeorefStatus, MastResult: MastStatus, IntersectionKB: KBStatus, Recognition: RecognitionStatus,
-    TrackResult: TrackStatus,
+    TrackResult: TrackStatus, ControlResult: ControlStatus,
 }
 RESULT_SUFFIXES = ("Result", "Outcome", "Estimate", "Evaluation")
 

@@ -106,6 +106,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field, replace
+from enum import StrEnum
 
 import numpy as np
 
@@ -134,7 +135,7 @@ from minegeo.slam.control_graph import (
     interpolate_poses,
 )
 
-__all__ = ["ControlParams", "ControlResult", "DriftBetweenFactors", "DriftWalkFactors", "PositionFactors",
+__all__ = ["ControlParams", "ControlResult", "ControlStatus", "DriftBetweenFactors", "DriftWalkFactors", "PositionFactors",
            "apply_control", "check_control_geometry", "check_station_frames", "drift_states_needed",
            "drift_states_test", "graph_inputs",
            "interpolate_poses", "marginal_covariances", "selected_inverse", "station_points"]
@@ -273,13 +274,22 @@ class ControlParams:
             raise InputError(f"drift_alpha must be in (0, 1), got {self.drift_alpha!r}")
 
 
-@dataclass
+class ControlStatus(StrEnum):
+    """Status of a :class:`ControlResult` (each member is its string value)."""
+
+    OK = "ok"
+    WARNING = "warning"
+    FAILED = "failed"
+
+
+@dataclass(frozen=True)
 class ControlResult:
     """Outcome of :func:`apply_control`.
 
     Attributes
     ----------
-    mode, status, reason : str
+    mode, reason : str
+    status : ControlStatus
         ``status`` "ok", "warning" (χ² test failed or a control flagged) or "failed" (the graph did
         not converge: the poses are the rigid fit's).
     origin_enh : (3,)
@@ -334,7 +344,7 @@ class ControlResult:
     """
 
     mode: str
-    status: str
+    status: ControlStatus
     reason: str
     origin_enh: np.ndarray
     times_s: np.ndarray
@@ -713,7 +723,7 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
     if status == "ok" and (gchi.passed is False or stats.flagged):
         status, reason = "warning", _warning_reason(gchi, stats, snoop)
     log.info("control (%s): %s %s", p.mode if p.mode == "graph" else f"{p.model} fit", status, reason)
-    return ControlResult(mode=p.mode, status=status, reason=reason, origin_enh=stations.origin_enh.copy(),
+    return ControlResult(mode=p.mode, status=ControlStatus(status), reason=reason, origin_enh=stations.origin_enh.copy(),
                          times_s=G_times, poses=G_poses, station_var=var, station_enh_local=pts,
                          station_cov_enh=st_cov, covariances=covs, T_local_map=T_lm, stats=stats, check=check,
                          classes=classes, global_chi2=gchi, misclosure_ratio=ratio, ellipses_check=ellipses,

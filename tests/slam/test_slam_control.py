@@ -200,6 +200,9 @@ def test_a_blunder_in_one_control_station_is_flagged_and_named():
     assert clean.stats.flagged_ids == ()
     assert res.stats.flagged_ids[:1] == ("S03",)
     assert res.status == "warning" and "S03" in res.reason
+    from minegeo.slam.control import ControlStatus
+
+    assert type(res.status) is ControlStatus  # a member, printed and serialised as "warning"
 
 
 def test_station_on_a_keyframe_time_uses_that_keyframe_and_frames_follow_the_graph():
