@@ -47,6 +47,7 @@ from minegeo.semantic.recognition import Recognition, RecognitionStatus
 from minegeo.semantic.tracking import TrackResult, TrackStatus
 from minegeo.slam.control import ControlResult, ControlStatus
 from minegeo.slam.evaluate import TrajectoryEvaluation
+from minegeo.slam.inertial import InertialResult
 from minegeo.slam.loops import LoopCandidate
 from minegeo.slam.mapping import NoiseRemovalResult
 from minegeo.slam.pipeline import SlamResult
@@ -64,14 +65,13 @@ FROZEN_RESULTS = (
     UpEstimate, RivalSearch, CorrelativeResult, PoseUncertainty, BatchResult, StationResult, GeorefResult,
     MastResult, IcpResult, VoxelResult, OctreeDownsampleResult, NormalsResult, FPFHResult, Helmert2DResult,
     Affine2DResult, Helmert3DResult, LSQResult, NetworkResult, PointResult, ObservationResult, TrackResult,
-    ControlResult,
+    ControlResult, InertialResult,
 )
 #: public result classes left mutable, by name: why
 MUTABLE_BY_DESIGN = {
     "Recognition": "the tracker revises the status of a recognition it holds (a status set as a string is "
                    "stored as its RecognitionStatus member)",
     "LoopOutcome": "the state of the registration loop, updated at every iteration (registration/loop.py)",
-    "InertialResult": "minegeo/slam/inertial.py: edited on main at the same time (issue 29)",
     "OdometryResult": "minegeo/slam/odometry_model.py: edited on main at the same time (issue 29)",
 }
 #: result classes with a ``status`` field and the StrEnum it holds
@@ -80,7 +80,7 @@ STATUS_ENUMS = {
     ICPResult: ICPStatus, GICPResult: ICPStatus, RansacResult: RansacStatus, LocalizationResult: LocalizeStatus,
     Decision: DecisionStatus, RivalCheck: DecisionStatus, UpEstimate: UpStatus, StationResult: StationStatus,
     GeorefResult: GeorefStatus, MastResult: MastStatus, IntersectionKB: KBStatus, Recognition: RecognitionStatus,
-    TrackResult: TrackStatus, ControlResult: ControlStatus,
+    TrackResult: TrackStatus, ControlResult: ControlStatus, InertialResult: LMStatus,
 }
 RESULT_SUFFIXES = ("Result", "Outcome", "Estimate", "Evaluation")
 

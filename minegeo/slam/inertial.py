@@ -63,6 +63,7 @@ from minegeo.optim import (
     FactorGroup,
     FactorProblem,
     LMParams,
+    LMStatus,
     PriorFactors,
     Values,
     levenberg_marquardt,
@@ -338,7 +339,7 @@ class _BiasPrior(FactorGroup):
         return self.residuals(values), (J,)
 
 
-@dataclass
+@dataclass(frozen=True)
 class InertialResult:
     """Outcome of :func:`optimize_inertial_graph`.
 
@@ -364,7 +365,7 @@ class InertialResult:
     bias_accel: np.ndarray
     bias_gyro: np.ndarray
     gravity_map: np.ndarray
-    status: str
+    status: LMStatus
     reason: str
     iterations: int
     cost_initial: float
