@@ -72,7 +72,7 @@ MUTABLE_BY_DESIGN = {
     "Recognition": "the tracker revises the status of a recognition it holds (a status set as a string is "
                    "stored as its RecognitionStatus member)",
     "LoopOutcome": "the state of the registration loop, updated at every iteration (registration/loop.py)",
-    "OdometryResult": "minegeo/slam/odometry_model.py: edited on main at the same time (issue 29)",
+    "OdometryResult": "not yet frozen (issue 31): built once by run_odometry, but its users were not all checked",
 }
 #: result classes with a ``status`` field and the StrEnum it holds
 STATUS_ENUMS = {
