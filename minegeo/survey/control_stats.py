@@ -71,6 +71,7 @@ import numpy as np
 from scipy import stats
 
 from minegeo.errors import InputError
+from minegeo.geometry.se3 import hat
 from minegeo.survey.lsq import Chi2Test, chi2_global_test
 
 __all__ = ["ControlStatistics", "CheckErrors", "ClassTest", "control_statistics", "check_errors",
@@ -292,9 +293,9 @@ def fit_residual_cofactors(y, cov, *, scale: bool) -> np.ndarray:
     n = Y.shape[0]
     Q = _block_cov(cov, n)
     A = np.zeros((3 * n, 7 if scale else 6))
-    for k, (a, b, c) in enumerate(Y):
+    for k, y_k in enumerate(Y):
         A[3 * k:3 * k + 3, :3] = np.eye(3)
-        A[3 * k:3 * k + 3, 3:6] = -np.array([[0.0, -c, b], [c, 0.0, -a], [-b, a, 0.0]])
+        A[3 * k:3 * k + 3, 3:6] = -hat(y_k)
     if scale:  # the column y_k / s scaled by s: A N⁻¹ Aᵀ depends only on the space A's columns span
         A[:, 6] = Y.reshape(-1)
     P = np.linalg.inv(Q)
