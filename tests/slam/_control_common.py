@@ -57,3 +57,31 @@ def biased_odometry(T, rng, sigma_rot, sigma_trans, scale=0.0, yaw_rate=0.0):
     for e in range(k - 1):
         P[e + 1] = P[e] @ Z[e]
     return np.c_[np.arange(k - 1), np.arange(1, k)], Z, np.tile(np.diag(sig**-2.0), (k - 1, 1, 1)), P
+
+
+def write_box_drive(folder, seed: int, n_points: int, pos: np.ndarray, dt: float) -> None:
+    """Frames of a sensor moving through a 12 x 8 x 3 m box room (its walls sampled at ``n_points``
+    random points per frame, ``default_rng(seed)``), one ``NNNNNN.ply`` per row of ``pos`` (the sensor's
+    position, m; it turns 0.02 rad per frame about z), and ``times.txt`` (``dt`` s apart)."""
+    from minegeo.io import PointCloud, write_point_cloud
+
+    rng = np.random.default_rng(seed)
+    half, centre = np.array([6.0, 4.0, 1.5]), np.array([1.0, 0.3, 0.0])
+    for i in range(len(pos)):
+        u = rng.uniform(-1.0, 1.0, (n_points, 3)) * half
+        face = rng.integers(0, 3, n_points)
+        u[np.arange(n_points), face] = np.sign(u[np.arange(n_points), face]) * half[face]
+        c, s = np.cos(0.02 * i), np.sin(0.02 * i)
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        write_point_cloud(folder / f"{i:06d}.ply", PointCloud(points=(u + centre - pos[i]) @ R))
+    (folder / "times.txt").write_text("".join(f"{dt * i:.6f}\n" for i in range(len(pos))))
+
+
+def write_stations_csv(path, enh: np.ndarray, roles, dt: float, sigma_h_m: str, sigma_v_m: str) -> None:
+    """A stations file (``# crs:`` line, one row per ``(frame, role)`` of ``roles``: the station ``S<j>``
+    at that frame's time, its E N H from ``enh``, the sigmas as written)."""
+    rows = [f"# crs: {CRS}", "id,t_start,t_end,E,N,H,sigma_h_m,sigma_v_m,role"]
+    for j, (i, role) in enumerate(roles):
+        rows.append(f"S{j + 1},{dt * i:.6f},{dt * i:.6f},{enh[i, 0]:.4f},{enh[i, 1]:.4f},{enh[i, 2]:.4f},"
+                    f"{sigma_h_m},{sigma_v_m},{role}")
+    path.write_text("\n".join(rows) + "\n")

@@ -16,6 +16,7 @@ import json
 
 import numpy as np
 import pytest
+from _control_common import write_box_drive, write_stations_csv
 
 from minegeo.cli import main
 from minegeo.slam.control import ControlParams
@@ -27,31 +28,16 @@ STATIONS = ((1, "control"), (4, "check"), (7, "control"), (10, "check"), (14, "c
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    from minegeo.io import PointCloud, write_point_cloud
-
     d = tmp_path_factory.mktemp("ctl_opts")
     fr = d / "frames"
     fr.mkdir()
-    rng = np.random.default_rng(30)
-    half, centre = np.array([6.0, 4.0, 1.5]), np.array([1.0, 0.3, 0.0])
     k = np.arange(16)
     pos = np.c_[0.15 * k, 0.004 * k**2, np.zeros(16)]
-    for i in k:
-        u = rng.uniform(-1.0, 1.0, (1500, 3)) * half
-        face = rng.integers(0, 3, 1500)
-        u[np.arange(1500), face] = np.sign(u[np.arange(1500), face]) * half[face]
-        c, s = np.cos(0.02 * i), np.sin(0.02 * i)
-        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        write_point_cloud(fr / f"{i:06d}.ply", PointCloud(points=(u + centre - pos[i]) @ R))
-    (fr / "times.txt").write_text("".join(f"{DT * i:.6f}\n" for i in k))
+    write_box_drive(fr, 30, 1500, pos, DT)
     a = 0.7
     Rc = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
     enh = pos @ Rc.T + [219437.25, 612981.5, 214.75]
-    rows = [f"# crs: {CRS}", "id,t_start,t_end,E,N,H,sigma_h_m,sigma_v_m,role"]
-    for j, (i, role) in enumerate(STATIONS):
-        rows.append(f"S{j + 1},{DT * i:.6f},{DT * i:.6f},{enh[i, 0]:.4f},{enh[i, 1]:.4f},{enh[i, 2]:.4f},0.005,0.010,"
-                    f"{role}")
-    (d / "stations.csv").write_text("\n".join(rows) + "\n")
+    write_stations_csv(d / "stations.csv", enh, STATIONS, DT, "0.005", "0.010")
     return {"frames": fr, "stations": d / "stations.csv", "dir": d}
 
 
