@@ -50,6 +50,7 @@ from minegeo.slam.evaluate import TrajectoryEvaluation
 from minegeo.slam.inertial import InertialResult
 from minegeo.slam.loops import LoopCandidate
 from minegeo.slam.mapping import NoiseRemovalResult
+from minegeo.slam.odometry_model import OdometryResult
 from minegeo.slam.pipeline import SlamResult
 from minegeo.slam.planes import PlaneResult, PlaneStatus
 from minegeo.slam.posegraph import PoseGraphResult
@@ -65,14 +66,13 @@ FROZEN_RESULTS = (
     UpEstimate, RivalSearch, CorrelativeResult, PoseUncertainty, BatchResult, StationResult, GeorefResult,
     MastResult, IcpResult, VoxelResult, OctreeDownsampleResult, NormalsResult, FPFHResult, Helmert2DResult,
     Affine2DResult, Helmert3DResult, LSQResult, NetworkResult, PointResult, ObservationResult, TrackResult,
-    ControlResult, InertialResult,
+    ControlResult, InertialResult, OdometryResult,
 )
 #: public result classes left mutable, by name: why
 MUTABLE_BY_DESIGN = {
     "Recognition": "the tracker revises the status of a recognition it holds (a status set as a string is "
                    "stored as its RecognitionStatus member)",
     "LoopOutcome": "the state of the registration loop, updated at every iteration (registration/loop.py)",
-    "OdometryResult": "not yet frozen (issue 31): built once by run_odometry, but its users were not all checked",
 }
 #: result classes with a ``status`` field and the StrEnum it holds
 STATUS_ENUMS = {

@@ -151,7 +151,7 @@ class Registration:
     constraint_ratio: float = 1.0  # GICP's normalised constraint λ_min / λ_max (degenerate geometry near 0)
 
 
-@dataclass
+@dataclass(frozen=True)
 class OdometryResult:
     """Poses of every frame and the keyframe chain.
 
