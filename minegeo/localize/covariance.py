@@ -99,7 +99,7 @@ def pose_covariance(ctx: VerifyContext, ic_final, polish) -> PoseCovariance:
             d6 = np.asarray(polish.record["shift_6"], dtype=np.float64)
             unc = unc.with_model_term("weak_axis_polish", np.outer(d6, d6))
         out.cov, out.sigma, out.residuals, step = unc.covariance_6x6, unc.sigma_m, unc.residuals_m, unc.pending_step
-        # record: data term + named model terms (issue 15 item 6), without the top-level matrices
+        # record: data term + named model terms, without the top-level matrices
         out.unc_record = unc.to_dict()
         for k in ("covariance_6x6", "covariance_formal_6x6", "position_cov_3x3", "information_6x6"):
             out.unc_record.pop(k, None)

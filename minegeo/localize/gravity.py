@@ -1,4 +1,4 @@
-"""The up direction of an unlevelled scan from its own geometry (issue 15, a minegeo addition).
+"""The up direction of an unlevelled scan from its own geometry (a minegeo addition).
 
 Why
 ---

@@ -180,7 +180,7 @@ def _localize_scan(pm: PreparedMap, scan_cloud, trajectory, p: LocalizeParams, s
     warnings.extend(dec.warnings)
     rival_record = None
     if p.rival_search and dec.status == "ok" and dec.ic_best is not None:
-        # 4a. whole-map rival search at the chosen attitude (minegeo addition, issue 15): no `ok`
+        # 4a. whole-map rival search at the chosen attitude (minegeo addition): no `ok`
         #     before it is established that no other placement explains the scan nearly as well
         dec, rival_record = check_rivals(ctx, pm, dec, hy.r0, trajectory, seed, progress, warnings, timings)
     pol, ic_final = None, dec.ic_best  # pose and covariance; the reported ICP statistics stay the decision's

@@ -6,7 +6,7 @@ Mines repeat their level layouts: a drift copied onto the level below is, for a 
 it, *indistinguishable* from the original. The pipeline's ambiguity test (docs/localization.md,
 *Never a silent wrong pose*) compared only the placements that RANSAC and, when it runs, the
 correlative search had proposed; a copy that neither proposed was never compared, and the
-result came out ``ok`` on a coin flip (issue 15: an exact twin 25-40 m below, ``ok`` in 2 of 3
+result would come out ``ok`` on a coin flip (an exact twin 25-40 m below was ``ok`` in 2 of 3
 tries). Before a result is ``ok``, :func:`search_rivals` looks for such a placement over the
 *whole* map, explicitly, and the pipeline (:func:`minegeo.localize.localize_scan`) makes the
 result ``ambiguous`` when one explains the scan nearly as well.

@@ -105,9 +105,9 @@ point the covariance is taken about. ``position_95_radius_m`` is the radius of t
 the origin with probability 0.95 under ``e ~ N(0, Σ_tt)``, i.e. ``r² = `` the 0.95 quantile of
 ``Σ_j λ_j χ²₁`` (``λ_j`` the eigenvalues of ``Σ_tt``; :func:`ball_radius`), and
 ``horizontal_95_radius_m`` the same in plan with ``Σ_xy``. Between ``√(3.841 λ_max)`` (one dominant
-axis) and ``√(7.815 λ_max)`` (isotropic). Before issue 15 the radius was the ball over the largest
-axis of the 95 % ellipsoid, ``√(7.815 λ_max)``, which holds *more* than 95 % for an elongated
-ellipsoid (up to 99.5 % when one axis dominates): too wide by up to ``√(7.815/3.841) = 1.43``.
+axis) and ``√(7.815 λ_max)`` (isotropic). The ball over the largest axis of the 95 % ellipsoid,
+``√(7.815 λ_max)``, would hold *more* than 95 % for an elongated ellipsoid (up to 99.5 % when one
+axis dominates): too wide by up to ``√(7.815/3.841) = 1.43``.
 
 The calibration against ground truth on the synthetic mine is in ``docs/uncertainty.md``
 (``benchmarks/bench_uncertainty_study.py``; the earlier per-estimator study:

@@ -707,7 +707,7 @@ def _gicp_inputs(source_points, target_points, T_init, params, source_covariance
 
 
 def _warmup() -> None:
-    """Compile the GICP kernels of issue 17 (fused search + sums and pair sums of
+    """Compile the GICP kernels (fused search + sums and pair sums of
     :mod:`minegeo.registration._kernels_gicp`, serial and ``prange``, with and without neighbour
     lists; the loop kernel :func:`~minegeo.registration._kernels_gicp.gicp_step_loop`;
     :func:`~minegeo.registration._kernels_gicp.knn_normals_tasks`, ``knn_normals_pair_tasks``) on tiny

@@ -1,4 +1,4 @@
-"""minegeo.semantic: mine intersections as semantic landmarks (Liang et al. 2024; issue 18).
+"""minegeo.semantic: mine intersections as semantic landmarks (Liang et al. 2024).
 
 The knowledge base of a prior map (:func:`build_knowledge_base`): drift skeleton and junctions
 (:mod:`.skeleton`), geometric invariant points, dense intersection clouds, PWCV and CWC descriptors and

@@ -1,4 +1,4 @@
-"""Drift skeleton of a mine point cloud and its junctions (issue 18, knowledge base step 1).
+"""Drift skeleton of a mine point cloud and its junctions (knowledge base, step 1).
 
 Pipeline (every step is defined exactly in ``docs/intersections.md``, "Knowledge base"):
 

@@ -122,7 +122,7 @@ def _warmup() -> None:
                 a["void_type"], start, v_items, a["solid_prims"], a["solid_type"], s_start, s_items, a["waves"],
                 a["octaves"], a["zones"], *veh, True, -0.011, 0.8, out, np.empty(2, np.int64))
 
-from minegeo.synth.network import (  # noqa: E402  (issue 18: drift networks for intersection studies)
+from minegeo.synth.network import (  # noqa: E402  (drift networks for intersection studies)
     DriftNetwork,
     NetworkCloud,
     intersections_network,

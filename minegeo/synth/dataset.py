@@ -504,7 +504,7 @@ def write_world(outdir, preset: str = "small", seed: int = 0, *, force: bool = F
         Study options of :class:`~minegeo.synth.world.WorldParams` applied to the preset
         (``wall_roughness_m``, ``lining``, ``repeat_levels``, ``unmapped_headings``,
         ``heading_length_m``); they appear in ``truth.json`` (``world_params`` and the world summary).
-        None or empty: the preset as is (byte-identical to earlier versions).
+        None or empty: the preset as is.
 
     Raises
     ------

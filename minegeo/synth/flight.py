@@ -1,4 +1,4 @@
-"""Drone flights through a :class:`~minegeo.synth.network.DriftNetwork` with VLP-16-like frames (issue 18).
+"""Drone flights through a :class:`~minegeo.synth.network.DriftNetwork` with VLP-16-like frames.
 
 Three steps, each deterministic from a seed:
 

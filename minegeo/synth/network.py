@@ -8,7 +8,7 @@ The roof over a point is the height of the node nearest to it (a Voronoi partiti
 which lets nearly-alike junctions differ only in roof height.
 
 :func:`network_cloud` samples floor, walls and roof on that geometry with seeded noise;
-:func:`intersections_network` is the test network of issue 18 (three alike 4-way crossings, a T and a
+:func:`intersections_network` is the test network of the intersection studies (three alike 4-way crossings, a T and a
 Y); :func:`niosh_network` lays out the topology of a DARPA SubT NIOSH course from its edge list.
 See ``docs/intersections.md``.
 """

@@ -1,6 +1,6 @@
 """A handheld-like walk with fast roll/pitch sway through narrow drifts: motion-distorted 10 Hz sweeps.
 
-The stress sequence of issue 27 ("poses stay on the manifold"): thousands of frames whose relative
+A stress sequence for "poses stay on the manifold": thousands of frames whose relative
 rotations are large and change direction every half second, so the odometry chains, inverts and
 refines many relative poses. Deterministic from ``seed``.
 

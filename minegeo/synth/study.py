@@ -1,4 +1,4 @@
-"""Study worlds: synthetic mines for localization where drifts look alike (issue 15).
+"""Study worlds: synthetic mines for localization where drifts look alike.
 
 :func:`make_study_world` builds a world with the study options of
 :class:`~minegeo.synth.world.WorldParams` (wall roughness, repeated levels, unmapped headings),
@@ -329,7 +329,7 @@ def make_study_world(roughness_m: float | None = None, twins: str = "none", unma
     ----------
     roughness_m : float, optional
         ``WorldParams.wall_roughness_m``: std (m) of the wall-bump field (0.05 / 0.08 / 0.25 in
-        issue 15). None: the base preset's amplitudes (std 0.064 m) or the lining's default.
+        the localization studies). None: the base preset's amplitudes (std 0.064 m) or the lining's default.
     twins : {"none", "exact", "near"}
         ``WorldParams.repeat_levels``.
     unmapped : int
