@@ -16,9 +16,9 @@ from enum import StrEnum
 
 import numpy as np
 
-from minegeo.localize._progress import ProgressFn, announce
 from minegeo.localize.hypotheses import CorrelativeHypotheses, Hypotheses, correlative_hypotheses
 from minegeo.localize.prepared import PreparedMap
+from minegeo.localize.run_context import RunContext
 from minegeo.localize.scan import to_map
 from minegeo.localize.verification import (
     Candidate,
@@ -196,8 +196,8 @@ def decide(ctx: VerifyContext, refined: list[Refined], r0, work_origin: np.ndarr
                     warnings=warnings)
 
 
-def verify_and_decide(ctx: VerifyContext, pm: PreparedMap, hy: Hypotheses, trajectory, seed: int,
-                      progress: ProgressFn | None, timings: dict) -> tuple[Decision, CorrelativeHypotheses | None]:
+def verify_and_decide(ctx: VerifyContext, pm: PreparedMap, hy: Hypotheses, trajectory,
+                      run: RunContext) -> tuple[Decision, CorrelativeHypotheses | None]:
     """Stages 3-4 with the correlative search of a levelled scan (``LocalizeParams.correlative``).
 
     ``"always"``: its candidates join RANSAC's before the verification. ``"fallback"``: RANSAC's
@@ -205,7 +205,7 @@ def verify_and_decide(ctx: VerifyContext, pm: PreparedMap, hy: Hypotheses, traje
     ``ok``, or always for a small scan (whose result is always confirmed against the whole map);
     RANSAC's and the search's candidates are then verified together. Returns the decision and
     the search's outcome (None when it did not run); ``icp`` and ``decision`` seconds go to
-    ``timings``.
+    ``run.timings``.
     """
     p = ctx.p
     uniq = hy.candidates
@@ -214,20 +214,20 @@ def verify_and_decide(ctx: VerifyContext, pm: PreparedMap, hy: Hypotheses, traje
     use_corr = p.ransac.model == "levelled" and p.correlative != "off"
     corr = None
     if use_corr and p.correlative == "always":
-        corr = correlative_hypotheses(ctx, pm, uniq, trajectory, seed, progress, timings)
+        corr = correlative_hypotheses(ctx, pm, uniq, trajectory, run)
         uniq = corr.candidates
     fallback = use_corr and p.correlative == "fallback"
     confirm = fallback and ctx.scan.small_scan
     # a small scan's result is always confirmed against the whole map: no need to decide twice
     if not confirm:
-        announce(progress, "ICP verification")
+        run.announce("ICP verification")
     dec = Decision(status=DecisionStatus.DEFERRED) if confirm else evaluate(ctx, uniq, hy.r0, pm.work_origin, may_defer=fallback)
     if fallback and (dec.status != "ok" or confirm):
         t_first = dec.t_icp + dec.t_decision
-        corr = correlative_hypotheses(ctx, pm, uniq, trajectory, seed, progress, timings)
-        announce(progress, "ICP verification")
+        corr = correlative_hypotheses(ctx, pm, uniq, trajectory, run)
+        run.announce("ICP verification")
         dec = evaluate(ctx, corr.candidates, hy.r0, pm.work_origin)
         dec = replace(dec, t_icp=dec.t_icp + t_first)
-    timings["icp"] = dec.t_icp
-    timings["decision"] = dec.t_decision
+    run.timings["icp"] = dec.t_icp
+    run.timings["decision"] = dec.t_decision
     return dec, corr

@@ -19,10 +19,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from minegeo.io.types import Trajectory
-from minegeo.localize._progress import ProgressFn, announce
 from minegeo.localize.correlative import correlative_candidates
 from minegeo.localize.params import LocalizeParams
 from minegeo.localize.prepared import PreparedMap
+from minegeo.localize.run_context import RunContext
 from minegeo.localize.scan import ScanFeatures
 from minegeo.localize.verification import Candidate, VerifyContext, distinct, verify
 from minegeo.registration.ransac import register_ransac
@@ -61,19 +61,17 @@ class CorrelativeHypotheses:
                 "precheck_ratio": float(p.correlative_precheck_ratio)}
 
 
-def ransac_hypotheses(pm: PreparedMap, sf: ScanFeatures, p: LocalizeParams, seed: int,
-                      progress: ProgressFn | None, timings: dict) -> Hypotheses:
-    """``p.ransac_runs`` RANSAC runs (seeds derived from ``seed``) of the scan's features against
-    the map's, and their distinct hypotheses (``ambiguity_distance_m`` / ``ambiguity_angle_deg``
-    apart about the scan centroid). Adds ``ransac`` seconds to ``timings``."""
-    announce(progress, "RANSAC")
-    t0 = time.perf_counter()
-    rng = np.random.default_rng(seed)
-    run_seeds = [seed] + [int(s) for s in rng.integers(0, 2**31 - 1, size=p.ransac_runs - 1)]
-    f_index = pm.feature_index  # built once per map and process (timed in the first scan's RANSAC)
-    ransacs = [register_ransac(sf.D, pm.points, sf.F, pm.features, p.ransac, seed=s, target_feature_index=f_index,
-                               check_target=False) for s in run_seeds]
-    timings["ransac"] = time.perf_counter() - t0
+def ransac_hypotheses(pm: PreparedMap, sf: ScanFeatures, p: LocalizeParams, run: RunContext) -> Hypotheses:
+    """``p.ransac_runs`` RANSAC runs of the scan's features against the map's, and their distinct
+    hypotheses (``ambiguity_distance_m`` / ``ambiguity_angle_deg`` apart about the scan centroid).
+    The first run draws from ``run.seed``, the others from seeds drawn by
+    ``np.random.default_rng(run.seed)``. Records ``ransac`` seconds in ``run.timings``."""
+    with run.timed("ransac", "RANSAC"):
+        rng = np.random.default_rng(run.seed)
+        run_seeds = [run.seed] + [int(s) for s in rng.integers(0, 2**31 - 1, size=p.ransac_runs - 1)]
+        f_index = pm.feature_index  # built once per map and process (timed in the first scan's RANSAC)
+        ransacs = [register_ransac(sf.D, pm.points, sf.F, pm.features, p.ransac, seed=s,
+                                   target_feature_index=f_index, check_target=False) for s in run_seeds]
     cand: list[Candidate] = []
     for i, rr in enumerate(ransacs):
         if rr.n_inliers > 0:
@@ -101,14 +99,14 @@ def reference_point(trajectory, scan_origin: np.ndarray) -> np.ndarray | None:
     return None
 
 
-def correlative_hypotheses(ctx: VerifyContext, pm: PreparedMap, uniq: list[Candidate], trajectory, seed: int,
-                           progress: ProgressFn | None, timings: dict) -> CorrelativeHypotheses:
-    """The correlative 4-DOF search of the whole map (levelled scans): its candidates whose
-    plane fitness before ICP (feature-level scan at the refined 4-DOF placement) reaches
-    ``correlative_precheck_ratio`` of the best such score and that are distinct from the list so
-    far are appended to ``uniq``. Adds ``correlative`` seconds to ``timings``."""
+def correlative_hypotheses(ctx: VerifyContext, pm: PreparedMap, uniq: list[Candidate], trajectory,
+                           run: RunContext) -> CorrelativeHypotheses:
+    """The correlative 4-DOF search of the whole map (levelled scans; its draws from ``run.seed``):
+    its candidates whose plane fitness before ICP (feature-level scan at the refined 4-DOF placement)
+    reaches ``correlative_precheck_ratio`` of the best such score and that are distinct from the list
+    so far are appended to ``uniq``. Records ``correlative`` seconds in ``run.timings``."""
     p, sf = ctx.p, ctx.scan
-    announce(progress, "correlative search")
+    run.announce("correlative search")
     t0 = time.perf_counter()
     cp = p.correlative_params
     occ = pm.occupancy(cp)
@@ -116,7 +114,7 @@ def correlative_hypotheses(ctx: VerifyContext, pm: PreparedMap, uniq: list[Candi
     if trajectory is not None and isinstance(trajectory, Trajectory) and len(trajectory.poses):
         ref_xy = np.median(np.asarray(trajectory.poses)[:, :2, 3] + np.asarray(trajectory.origin)[:2]
                            - sf.scan_origin[:2], axis=0)
-    corr = correlative_candidates(occ, sf.D, sf.Nd, p.correlative_params, seed=seed, reference_xy=ref_xy,
+    corr = correlative_candidates(occ, sf.D, sf.Nd, p.correlative_params, seed=run.seed, reference_xy=ref_xy,
                                   refine_target=(pm.target_index(), ctx.Qf, ctx.Nf),
                                   screen_target=pm.screen_target(cp.screen_voxel_size_m),
                                   screen_grid=(pm.screen_grid(cp.screen_voxel_size_m)
@@ -128,5 +126,5 @@ def correlative_hypotheses(ctx: VerifyContext, pm: PreparedMap, uniq: list[Candi
     for k, (Tc, frac) in enumerate(corr.candidates):
         if pre[k] >= bar and all(distinct(Tc, u[1], sf.centre, p) for u in out):
             out.append(Candidate(f"correlative #{k + 1}", Tc, frac, math.nan))
-    timings["correlative"] = time.perf_counter() - t0
+    run.timings["correlative"] = time.perf_counter() - t0
     return CorrelativeHypotheses(candidates=out, result=corr, precheck=pre)

@@ -67,7 +67,7 @@ import time
 
 from minegeo.errors import InputError
 from minegeo.io.types import Trajectory
-from minegeo.localize._progress import ProgressFn, announce
+from minegeo.localize._progress import ProgressFn
 from minegeo.localize.covariance import judge_fit, pose_covariance
 from minegeo.localize.decision import verify_and_decide
 from minegeo.localize.fallback import gravity_fallback
@@ -86,6 +86,7 @@ from minegeo.localize.result import (
     rejected_candidates,
 )
 from minegeo.localize.rival_check import check_rivals
+from minegeo.localize.run_context import RunContext
 from minegeo.localize.scan import scan_features, to_map
 from minegeo.localize.verification import polish, verify_context
 
@@ -171,22 +172,22 @@ def _localize_scan(pm: PreparedMap, scan_cloud, trajectory, p: LocalizeParams, s
                    progress: ProgressFn | None) -> LocalizationResult:
     """One pass of the pipeline (arguments already checked): the stages of the module docstring."""
     t_all = time.perf_counter()
-    timings: dict[str, float] = {}
-    warnings: list[str] = []
-    sf = scan_features(scan_cloud, p, progress, timings)  # 1. downsample, normals, FPFH
-    hy = ransac_hypotheses(pm, sf, p, seed, progress, timings)  # 2. RANSAC
+    run = RunContext(seed=seed, progress=progress)
+    timings, warnings = run.timings, run.warnings
+    sf = scan_features(scan_cloud, p, run)  # 1. downsample, normals, FPFH
+    hy = ransac_hypotheses(pm, sf, p, run)  # 2. RANSAC
     ctx = verify_context(pm, sf, p)
-    dec, corr = verify_and_decide(ctx, pm, hy, trajectory, seed, progress, timings)  # 3-4. ICP, decision
+    dec, corr = verify_and_decide(ctx, pm, hy, trajectory, run)  # 3-4. ICP, decision
     warnings.extend(dec.warnings)
     rival_record = None
     if p.rival_search and dec.status == "ok" and dec.ic_best is not None:
         # 4a. whole-map rival search at the chosen attitude (minegeo addition): no `ok`
         #     before it is established that no other placement explains the scan nearly as well
-        dec, rival_record = check_rivals(ctx, pm, dec, hy.r0, trajectory, seed, progress, warnings, timings)
+        dec, rival_record = check_rivals(ctx, pm, dec, hy.r0, trajectory, run)
     pol, ic_final = None, dec.ic_best  # pose and covariance; the reported ICP statistics stay the decision's
     if p.icp_polish_correspondence_m is not None and dec.ic_best is not None:
         # 4b. polish (minegeo addition): point-to-plane with a tight gate from the chosen pose
-        announce(progress, "polish")
+        run.announce("polish")
         t0 = time.perf_counter()
         pol = polish(ctx, dec.ic_best)
         if pol.applied:
@@ -196,7 +197,7 @@ def _localize_scan(pm: PreparedMap, scan_cloud, trajectory, p: LocalizeParams, s
                             f"{p.max_pending_step_m:g} m) or left too few pairs: not applied")
         timings["polish"] = time.perf_counter() - t0
     # 5. covariance (about the scan origin, work frame) and the checks that use it
-    announce(progress, "uncertainty")
+    run.announce("uncertainty")
     t0 = time.perf_counter()
     pc = pose_covariance(ctx, ic_final, pol)
     status, reason = LocalizeStatus(dec.status), dec.reason  # a decision is never "deferred" here
@@ -205,7 +206,7 @@ def _localize_scan(pm: PreparedMap, scan_cloud, trajectory, p: LocalizeParams, s
     timings["covariance"] = time.perf_counter() - t0
     T_map_scan = to_map(pc.T_work_scan, sf.scan_origin, pm.work_origin)
     # 6. trajectory and CRS ([Baek2022 Eq. 18])
-    announce(progress, "trajectory")
+    run.announce("trajectory")
     t0 = time.perf_counter()
     pl = place(T_map_scan, pm, trajectory, pc.cov)
     warnings.extend(pl.warnings)

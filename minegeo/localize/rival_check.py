@@ -17,11 +17,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from minegeo.localize._progress import ProgressFn, announce
 from minegeo.localize.decision import Decision, DecisionStatus, evaluate
 from minegeo.localize.hypotheses import reference_point
 from minegeo.localize.prepared import PreparedMap
 from minegeo.localize.rivals import RivalSearch, matched_support, rival_test, search_rivals
+from minegeo.localize.run_context import RunContext
 from minegeo.localize.scan import from_map, to_map
 from minegeo.localize.verification import Candidate, VerifyContext, refine_and_verify
 
@@ -63,10 +63,11 @@ def _masks(ctx: VerifyContext, P: np.ndarray, Ts: list) -> list:
     return [(sup[k * n:(k + 1) * n], on[k * n:(k + 1) * n], on_f[k * n:(k + 1) * n]) for k in range(len(Ts))]
 
 
-def _search(ctx: VerifyContext, pm: PreparedMap, Tb: np.ndarray, trajectory, seed: int, fine_scale,
-            timings: dict) -> RivalSearch:
+def _search(ctx: VerifyContext, pm: PreparedMap, Tb: np.ndarray, trajectory, fine_scale, run: RunContext) -> RivalSearch:
     """:func:`~minegeo.localize.rivals.search_rivals` around ``Tb`` with the pipeline's ICP and
-    verification; its map structures and parts timed into ``timings`` (``rival_search_*``)."""
+    verification (its draws from ``run.seed``); its map structures and parts timed into
+    ``run.timings`` (``rival_search_*``)."""
+    timings = run.timings
     p, sf = ctx.p, ctx.scan
     rp = p.rival_params
     cp = rp.search
@@ -80,7 +81,7 @@ def _search(ctx: VerifyContext, pm: PreparedMap, Tb: np.ndarray, trajectory, see
     def _support(Ts, level):
         return _masks(ctx, sf.D if level == "feature" else sf.Dfine, Ts) if Ts else []
 
-    rs = search_rivals(occ, sf.D, sf.Nd, Tb, params=rp, seed=seed, centre=sf.centre,
+    rs = search_rivals(occ, sf.D, sf.Nd, Tb, params=rp, seed=run.seed, centre=sf.centre,
                        ambiguity_distance_m=float(p.ambiguity_distance_m),
                        ambiguity_angle_deg=float(p.ambiguity_angle_deg), support=_support,
                        fine=lambda T: refine_and_verify(ctx, sf.Dfine, T),
@@ -236,20 +237,19 @@ def _verdict(ctx: VerifyContext, best_r: dict | None, reason: str, pf_best: floa
         f"at >= {rp.matched_ratio:g})")
 
 
-def rival_check(ctx: VerifyContext, pm: PreparedMap, dec: Decision, trajectory, seed: int,
-                timings: dict) -> RivalCheck:
+def rival_check(ctx: VerifyContext, pm: PreparedMap, dec: Decision, trajectory, run: RunContext) -> RivalCheck:
     """The whole-map rival search around the ``ok`` decision ``dec``.
 
     ``ambiguous`` when a distinct, fully verified placement other than the chosen one (the
     search's or the pipeline's own hypotheses) passes :func:`~minegeo.localize.rivals.rival_test`;
     otherwise ``ok`` with the best rival and the margin added to the reason. The record holds no
-    times (equal inputs give an equal record); the times go to ``timings`` (``rival_search_*``).
+    times (equal inputs give an equal record); the times go to ``run.timings`` (``rival_search_*``).
     """
     sf = ctx.scan
     pf_best, pff_best = float(dec.best.pf), float(dec.best.pff)
     fine_scale = ctx.amb_ratio / ctx.fine_ratio if ctx.tol_fine is not None else None
     Tb = dec.ic_best.T_target_source
-    rs = _search(ctx, pm, Tb, trajectory, seed, fine_scale, timings)
+    rs = _search(ctx, pm, Tb, trajectory, fine_scale, run)
 
     def tm(T):
         return to_map(T, sf.scan_origin, pm.work_origin)
@@ -266,19 +266,20 @@ def rival_check(ctx: VerifyContext, pm: PreparedMap, dec: Decision, trajectory, 
     return RivalCheck(status=status, reason=reason, record=record, hyps=hyps, warnings=_coverage_warnings(rs))
 
 
-def check_rivals(ctx: VerifyContext, pm: PreparedMap, dec: Decision, r0, trajectory, seed: int,
-                 progress: ProgressFn | None, warnings: list, timings: dict) -> tuple[Decision, dict]:
+def check_rivals(ctx: VerifyContext, pm: PreparedMap, dec: Decision, r0, trajectory,
+                 run: RunContext) -> tuple[Decision, dict]:
     """Stage 4a: the rival check of an ``ok`` decision, and its one switch.
 
     When the search finds a placement that fits better than the first choice, by so much at the
     fine level that the first choice would not be *its* rival, it is verified with the pipeline's
     own candidates and, if it wins there, searched around in turn (once; it never switches back).
     Returns the decision (status and reason after the check) and the rival record; appends to
-    ``warnings`` and ``timings`` (``rival_search``, ``rival_switch``).
+    ``run.warnings`` and ``run.timings`` (``rival_search``, ``rival_switch``).
     """
-    announce(progress, "rival search")
+    warnings, timings = run.warnings, run.timings
+    run.announce("rival search")
     t0 = time.perf_counter()
-    rc = rival_check(ctx, pm, dec, trajectory, seed, timings)
+    rc = rival_check(ctx, pm, dec, trajectory, run)
     warnings.extend(rc.warnings)
     timings["rival_search"] = time.perf_counter() - t0
     out = replace(dec, status=rc.status, reason=rc.reason, hyps=rc.hyps)
@@ -296,7 +297,7 @@ def check_rivals(ctx: VerifyContext, pm: PreparedMap, dec: Decision, r0, traject
                                                         math.nan, math.nan)], r0, pm.work_origin)
         if ev2.status == "ok" and ev2.best[0].startswith("rival search"):
             warnings.extend(ev2.warnings)
-            rc2 = rival_check(ctx, pm, ev2, trajectory, seed, timings)
+            rc2 = rival_check(ctx, pm, ev2, trajectory, run)
             warnings.extend(rc2.warnings)
             out = replace(ev2, status=rc2.status, reason=rc2.reason, hyps=rc2.hyps)
             record = rc2.record

@@ -18,9 +18,10 @@ from minegeo._validate import as_points
 from minegeo.errors import InputError, TooFewPointsError
 from minegeo.geometry import voxel_downsample
 from minegeo.io.types import PointCloud
-from minegeo.localize._progress import FEATURE_STEPS, ProgressFn, StepTimings, announce
+from minegeo.localize._progress import FEATURE_STEPS, StepTimings
 from minegeo.localize.params import LocalizeParams
 from minegeo.localize.prepared import prepare_cloud_features
+from minegeo.localize.run_context import RunContext
 
 __all__ = ["ScanFeatures", "scan_features", "scan_points", "to_map", "from_map"]
 
@@ -72,10 +73,10 @@ def scan_points(scan) -> tuple[np.ndarray, np.ndarray]:
     return as_points(P, "scan points", min_points=1), org
 
 
-def scan_features(scan_cloud, p: LocalizeParams, progress: ProgressFn | None, timings: dict) -> ScanFeatures:
+def scan_features(scan_cloud, p: LocalizeParams, run: RunContext) -> ScanFeatures:
     """Downsample the scan, its normals and FPFH (the map's feature settings), and its ICP cloud.
 
-    Adds ``downsample``, ``normals`` and ``fpfh`` seconds to ``timings``.
+    Records ``downsample``, ``normals`` and ``fpfh`` seconds in ``run.timings``.
 
     Raises
     ------
@@ -83,9 +84,10 @@ def scan_features(scan_cloud, p: LocalizeParams, progress: ProgressFn | None, ti
         Fewer than ``p.min_scan_points`` points after downsampling, or no FPFH descriptor.
     """
     P_raw, scan_origin = scan_points(scan_cloud)
-    announce(progress, "downsample")
-    feat_t = StepTimings(progress, FEATURE_STEPS)
+    run.announce("downsample")
+    feat_t = StepTimings(run.progress, FEATURE_STEPS)
     D, Nd, F = prepare_cloud_features(P_raw, p.scan_voxel_size_m, p.scan_octree_level, p.features, feat_t)
+    timings = run.timings
     timings.update(feat_t)
     if D.shape[0] < p.min_scan_points:
         raise TooFewPointsError(
