@@ -255,8 +255,11 @@ def recognition_metrics(res: dict, truth, kb, J: np.ndarray, passes: list, use_m
     for p in passes:
         hit += bool(np.any(correct & (near == p["junction"]) & (k >= p["first"]) & (k <= p["last"])))
     conf = [[int(np.sum((near == a) & (assigned == b))) for b in range(len(J))] for a in range(len(J))]
+    wrong = [{"time_s": float(t[w]), "intersection_id": int(ids[w]), "assigned_junction": int(assigned[w]),
+              "nearest_true_junction": int(d[w].argmin()), "nearest_true_junction_m": float(d[w].min())}
+             for w in np.flatnonzero(~correct)]
     return {**out, "precision": float(correct.mean()), "recall": float(hit / max(len(passes), 1)),
-            "wrong": int((~correct).sum()), "confusion": conf}
+            "wrong": int((~correct).sum()), "wrong_list": wrong, "confusion": conf}
 
 
 def tag_errors(res: dict, truth, tags: np.ndarray) -> list:
@@ -432,7 +435,9 @@ def main() -> None:  # noqa: PLR0915
     ap.add_argument("--methods", default=None,
                     help="comma-separated subset of: " + ",".join(METHODS) + " (default all; the odometry always runs)")
     ap.add_argument("--gate-drift", type=float, default=None,
-                    help="TrackParams.gate_drift_fraction of ours (map) (library default 0.25); results labelled _gateX")
+                    help="TrackParams.gate_drift_fraction of ours (map): the path-fraction gate instead of the library "
+                    "default, the covariance (Mahalanobis) gate; results labelled _gateX")
+    ap.add_argument("--label", default="", help="appended to the results' file names (_LABEL)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     ap.add_argument("--img", type=Path, default=REPO / "docs" / "img")
     args = ap.parse_args()
@@ -554,7 +559,7 @@ def main() -> None:  # noqa: PLR0915
     for r in clean.values():
         r.pop("_result", None)
     stem = args.out / ("intersections_" + date + ("" if tag == "synthetic" else f"_{tag}") + variant
-                       + ("_quick" if args.quick else ""))
+                       + ("_quick" if args.quick else "") + (f"_{args.label}" if args.label else ""))
     Path(f"{stem}.json").write_text(json.dumps({"meta": meta, "results": clean, "corridor": corridor}, indent=1,
                                                default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
     Path(f"{stem}.md").write_text(markdown(meta, clean, corridor))
