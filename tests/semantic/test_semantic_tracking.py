@@ -174,3 +174,32 @@ def test_a_junction_along_the_drift_uncertainty_is_verified_one_across_is_not(x1
     pred[1, 3] += 6.0
     r = recognise_keyframe(P, hist, kb, T_world_kf_pred=pred, gate_m=3.0, gate_cov=S)
     assert r.status == "conflict" and "outside" in r.reason, (r.status, r.reason)
+
+
+def test_the_carried_prediction_covariance_is_the_graph_marginal():
+    """Between optimisations the tracker carries the newest keyframe's covariance along each odometry
+    edge (``Ad(Z⁻¹) Σ Ad(Z⁻¹)ᵀ + Ω⁻¹``); on a chain from the held start pose that is exactly the
+    graph's marginal (:meth:`FactorGraph.marginal_covariance`, itself checked against GTSAM), and it
+    grows along the path. With ``gate_drift_fraction`` set the tracker passes no covariance."""
+    from minegeo.semantic.tracking import _State
+
+    rng = np.random.default_rng(4)
+    poses = [np.eye(4)]
+    for _ in range(6):
+        poses.append(poses[-1] @ _T(2.0, 0.05 * rng.standard_normal(), yaw=0.1 * rng.standard_normal()))
+    poses = np.stack(poses)
+    A = rng.standard_normal((6, 6, 6))
+    odo = SimpleNamespace(times_s=np.arange(7.0) * 1.3, poses=poses, keyframes=np.arange(7),
+                          keyframe_edges=[np.linalg.solve(poses[k], poses[k + 1]) for k in range(6)],
+                          keyframe_information=[a @ a.T * 1e3 + np.eye(6) * 1e2 for a in A], keyframe_extra_edges=[])
+    st = _State(odo, TrackParams(T_world_start=_T(5.0, 1.0, 0.3)), np.asarray(_T(5.0, 1.0, 0.3)))
+    prev = 0.0
+    for k in range(1, 7):
+        st.add_keyframe(k)
+        S = st.gate_covariance(k)
+        assert np.allclose(S, st.g.marginal_covariance(k), rtol=1e-9, atol=1e-15), k
+        assert np.trace(S[3:, 3:]) > prev
+        prev = np.trace(S[3:, 3:])
+    st = _State(odo, TrackParams(T_world_start=np.eye(4), gate_drift_fraction=0.25), np.eye(4))
+    st.add_keyframe(1)
+    assert st.gate_covariance(1) is None and st.gate(1) == pytest.approx(3.0 + 0.25 * 2.0, rel=1e-2)
