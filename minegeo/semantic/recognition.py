@@ -245,7 +245,7 @@ class Recognition:
         super().__setattr__(name, RecognitionStatus(value) if name == "status" else value)
 
     def summary(self) -> dict:
-        """JSON-able summary (no arrays but the observed point)."""
+        """JSON-able summary (no arrays but the observed point and the ICP keyframe position, m, world)."""
         def f(v):
             return None if not np.isfinite(v) else float(v)
 
@@ -255,7 +255,9 @@ class Recognition:
                 "z_keyframe_m": [f(v) for v in self.z_keyframe], "completeness": f(self.completeness),
                 "icp_rms_m": f(self.icp_rms_m), "icp_fitness": f(self.icp_fitness),
                 "prediction_error_m": f(self.prediction_error_m),
-                "prediction_yaw_error_deg": f(self.prediction_yaw_error_deg), "streak": int(self.streak)}
+                "prediction_yaw_error_deg": f(self.prediction_yaw_error_deg), "streak": int(self.streak),
+                "icp_position_m": (None if self.T_world_keyframe_icp is None
+                                   else [float(v) for v in self.T_world_keyframe_icp[:3, 3]])}
 
 
 class PredictionGate:
