@@ -39,7 +39,11 @@ position at its time and that junction is within 15 m; precision = correct / ver
 recall = passes with a correct recognition of that junction during the visit / passes. Without the map
 ids are the tracker's own online entries: an entry's junction is the true junction nearest to the true
 position of the keyframe that created it, and a recognition is correct when its nearest true junction
-is its entry's junction.
+is its entry's junction. With the map, a check independent of the junction labels too:
+``precision_observed_point`` = the fraction of verified recognitions whose named knowledge-base point lies
+within 2 m of where the observed invariant point truly is (``T_true,k z``), and the largest ICP keyframe
+position error ``|t_ICP - t_true,k|`` (the pose the factor pulls toward); ``wrong_list`` lists every
+recognition that fails either check.
 
 ``--imu``: the flight's IMU (``minegeo.synth.flight.write_flight_imu``: the 10 Hz poses joined by the
 interpolating cubic B-spline, gyro + accelerometer at 200 Hz with the ADIS16448 noise and bias random walk
@@ -251,12 +255,32 @@ def recognition_metrics(res: dict, truth, kb, J: np.ndarray, passes: list, use_m
         ent = res.get("online_entry_junction", [])
         assigned = np.array([ent[i] if 0 <= i < len(ent) else -2 for i in ids])
     correct = (assigned == near) & (near >= 0)
+    # the geometric check, independent of the junction labels: where the observed invariant point truly is
+    # (the keyframe's true pose applied to z) against the named knowledge-base point, and the ICP keyframe
+    # position (the factor's pose) against the true one
+    zk = np.array([[np.nan] * 3 if r.get("z_keyframe_m") is None else [np.nan if v is None else v
+                                                                       for v in r["z_keyframe_m"]] for r in ver])
+    Tt = truth.poses[k]
+    obs = np.einsum("nij,nj->ni", Tt[:, :3, :3], zk) + Tt[:, :3, 3]
+    named = np.array([kb.invariant_points[i] if use_map and 0 <= i < len(kb) else [np.nan] * 3 for i in ids])
+    e_obs = np.linalg.norm(obs - named, axis=1)
+    icp = np.array([[np.nan] * 3 if r.get("icp_position_m") is None else r["icp_position_m"] for r in ver])
+    e_icp = np.linalg.norm(icp - Tt[:, :3, 3], axis=1)
+    geo = e_obs <= ID_MATCH_M
     hit = 0
     for p in passes:
         hit += bool(np.any(correct & (near == p["junction"]) & (k >= p["first"]) & (k <= p["last"])))
     conf = [[int(np.sum((near == a) & (assigned == b))) for b in range(len(J))] for a in range(len(J))]
+    wrong = [{"time_s": float(t[w]), "intersection_id": int(ids[w]), "assigned_junction": int(assigned[w]),
+              "nearest_true_junction": int(d[w].argmin()), "nearest_true_junction_m": float(d[w].min()),
+              "observed_point_to_named_m": float(e_obs[w]), "icp_position_error_m": float(e_icp[w])}
+             for w in np.flatnonzero(~correct | ~geo)]
     return {**out, "precision": float(correct.mean()), "recall": float(hit / max(len(passes), 1)),
-            "wrong": int((~correct).sum()), "confusion": conf}
+            "wrong": int((~correct).sum()), "wrong_list": wrong,
+            "precision_observed_point": float(geo.mean()) if use_map else None,
+            "observed_point_to_named_max_m": float(np.nanmax(e_obs)) if use_map else None,
+            "icp_position_error_max_m": float(np.nanmax(e_icp)) if np.isfinite(e_icp).any() else None,
+            "confusion": conf}
 
 
 def tag_errors(res: dict, truth, tags: np.ndarray) -> list:
@@ -432,7 +456,9 @@ def main() -> None:  # noqa: PLR0915
     ap.add_argument("--methods", default=None,
                     help="comma-separated subset of: " + ",".join(METHODS) + " (default all; the odometry always runs)")
     ap.add_argument("--gate-drift", type=float, default=None,
-                    help="TrackParams.gate_drift_fraction of ours (map) (library default 0.25); results labelled _gateX")
+                    help="TrackParams.gate_drift_fraction of ours (map): the path-fraction gate instead of the library "
+                    "default, the covariance (Mahalanobis) gate; results labelled _gateX")
+    ap.add_argument("--label", default="", help="appended to the results' file names (_LABEL)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     ap.add_argument("--img", type=Path, default=REPO / "docs" / "img")
     args = ap.parse_args()
@@ -554,7 +580,7 @@ def main() -> None:  # noqa: PLR0915
     for r in clean.values():
         r.pop("_result", None)
     stem = args.out / ("intersections_" + date + ("" if tag == "synthetic" else f"_{tag}") + variant
-                       + ("_quick" if args.quick else ""))
+                       + ("_quick" if args.quick else "") + (f"_{args.label}" if args.label else ""))
     Path(f"{stem}.json").write_text(json.dumps({"meta": meta, "results": clean, "corridor": corridor}, indent=1,
                                                default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
     Path(f"{stem}.md").write_text(markdown(meta, clean, corridor))

@@ -71,7 +71,8 @@ def add_arguments(parser) -> None:
                         "docs/intersections.md); not with --no-map")
     parser.add_argument("--gate", type=positive_float, default=3.0, help="odometry gate at an anchor (m)")
     parser.add_argument("--gate-drift", type=nonnegative_float, default=None, help="gate growth per metre of path "
-                        "since the last verified recognition against the base (default 0.25); not with --no-map")
+                        "since the last verified recognition against the base, instead of the default gate from the "
+                        "covariance of the prediction; not with --no-map")
     parser.add_argument("--odometry", choices=("submap", "frame"), default="submap",
                         help="odometry target of each frame: the local map of the last 5 keyframes (default) or "
                         "the previous frame (Ren2019 Eq. 7)")

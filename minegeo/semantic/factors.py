@@ -679,6 +679,47 @@ class FactorGraph:
             held.append(first)
         return tuple(sorted(set(held)))
 
+    def marginal_covariance(self, i: int, params: PoseGraphParams | None = None,
+                            gauge: str = "hold_first") -> np.ndarray:
+        """Marginal covariance (6×6, ``(φ, ρ)``, rad² / m², right perturbation ``T ← T Exp(δ)``) of
+        keyframe ``i`` at the current estimate: the ``i`` block of ``H⁻¹``, ``H = Σ Jᵀ w Ω J`` the
+        undamped Gauss–Newton information of every factor (robust weights ``w`` of ``params``) with the
+        held keyframes of :meth:`gauge` removed.
+
+        Computed by six solves with the optimiser's block Cholesky factor of ``H``
+        (:class:`minegeo.optim.BlockSystem`, fill-reducing order), ``H x = e_c`` for the unit vectors
+        of ``i``'s block; never a dense inverse. A held keyframe has covariance zero.
+
+        Raises
+        ------
+        DegenerateGeometryError
+            ``H`` is singular (a direction no factor constrains).
+        """
+        from minegeo.optim import SINGULAR_PIVOT
+        from minegeo.optim import _kernels as KO
+
+        params = params or PoseGraphParams()
+        i = self._index(i, "marginal_covariance")
+        if not (self._rel or self._int or self._prior):
+            raise InputError("the factor graph has no factors: no covariance")
+        problem = self._problem(self.gauge(gauge), params)
+        values = Values(np.ascontiguousarray(self.poses))
+        system = problem.linearize(values, problem.evaluate(values))
+        c = int(system.col[i])
+        if c < 0:
+            return np.zeros((6, 6))
+        Lx = system.cholesky(0.0, False, SINGULAR_PIVOT)
+        if Lx is None:
+            raise DegenerateGeometryError(
+                f"the information matrix of the factor graph is singular at keyframe "
+                f"{int(system.block_vertex[system.failed_block])}: no marginal covariance")
+        out = np.empty((6, 6))
+        for a in range(6):
+            b = np.zeros(system.n_cols)
+            b[c + a] = 1.0
+            out[:, a] = KO.block_cholesky_solve(system.Lp, system.Li, Lx, b)[c:c + 6]
+        return 0.5 * (out + out.T)
+
     # -- solving
     def optimize(self, params: PoseGraphParams | None = None, *, warm_start: bool = True,
                  gauge: str = "hold_first") -> FactorGraphResult:

@@ -24,9 +24,22 @@ and tracking"):
    cloud onto the intersection's dense cloud ``P^i`` from the pose implied by ``c -> C^i`` and the
    descriptor yaw (for a symmetric junction, the equally good shift nearest the predicted heading).
    ``rejected`` when the inlier RMS distance exceeds ``icp_max_distance_m`` or the overlap is below
-   ``icp_min_fitness``; ``conflict`` when the registered pose is farther than the gate from the
-   odometry prediction (a nearly-alike intersection elsewhere in the mine). Only ``verified``
-   recognitions may become factors.
+   ``icp_min_fitness``; ``conflict`` when the matched intersection or the registered pose lies outside
+   the gate of the odometry prediction (a nearly-alike intersection elsewhere in the mine). Only
+   ``verified`` recognitions may become factors.
+
+**The gate** (:class:`PredictionGate`) is a Mahalanobis gate around the predicted keyframe pose
+``T̂`` with covariance ``Σ`` (6×6, ``(φ, ρ)``, right perturbation ``T = T̂ Exp(δ)``; the tracker's
+factor-graph marginal). A world point ``x`` is within the gate of the point ``z`` of the keyframe when
+
+``(x − T̂ z)ᵀ (J Σ Jᵀ + (g² / q) I)⁻¹ (x − T̂ z) ≤ q``,  ``J = R̂ [−hat(z), I]``,
+
+``q`` the χ² quantile with 3 degrees of freedom at ``gate_probability`` (0.999: 16.27) and ``g`` the
+floor ``gate_m``: without a covariance the gate is the sphere of radius ``g``, and it never shrinks
+below that sphere (the floor stands for the error of the observed point itself). ``J`` is the first
+order change of ``T̂ z`` under ``δ``. The same gate decides which look-alike candidates are
+plausible (steps 6 and 9), refuses a match whose knowledge-base point lies outside it (even when it is
+the only candidate), and refuses an ICP pose whose sensor position (``z = 0``) lies outside it.
 """
 
 from __future__ import annotations
@@ -46,7 +59,8 @@ from minegeo.semantic.descriptors import completeness, cwc, pwcv, similarity, st
 from minegeo.semantic.knowledge import IntersectionKB
 from minegeo.semantic.skeleton import SkeletonParams, drift_skeleton
 
-__all__ = ["RecognitionParams", "RecognitionState", "Recognition", "RecognitionStatus", "recognise_keyframe",
+__all__ = ["PredictionGate", "RecognitionParams", "RecognitionState", "Recognition", "RecognitionStatus",
+           "recognise_keyframe",
            "level_and_carve", "STATUSES"]
 
 
@@ -102,8 +116,10 @@ class RecognitionParams:
     icp_gate_m : float
         ICP correspondence gate of the final stage (the first stage uses three times this).
     gate_m : float
-        Default translation gate between the ICP pose and the odometry prediction (the tracker
-        widens it with the distance travelled since the last anchor).
+        Floor of the gate around the odometry prediction (m): the gate's radius without a covariance
+        (see :class:`PredictionGate`).
+    gate_probability : float
+        Probability of the χ² (3 degrees of freedom) quantile of the Mahalanobis gate (0.999: 16.27).
     gate_yaw_deg : float
         Heading gate between the ICP pose and the prediction.
     crop_radius_m, max_junction_range_m : float
@@ -126,6 +142,7 @@ class RecognitionParams:
     icp_min_fitness: float = 0.6
     icp_gate_m: float = 0.5
     gate_m: float = 3.0
+    gate_probability: float = 0.999
     gate_yaw_deg: float = 15.0
     crop_radius_m: float = 20.0
     max_junction_range_m: float = 8.0
@@ -145,6 +162,8 @@ class RecognitionParams:
             check_positive(getattr(self, name), name)
         for name in ("cwc_margin", "carve_margin_m"):
             check_positive(getattr(self, name), name, allow_zero=True)
+        if not (isinstance(self.gate_probability, float) and 0.0 < self.gate_probability < 1.0):
+            raise InputError(f"gate_probability must be in (0, 1), got {self.gate_probability!r}")
         if not 0.0 <= float(self.icp_min_fitness) <= 1.0:
             raise InputError(f"icp_min_fitness must be in [0, 1], got {self.icp_min_fitness!r}")
         self.skeleton.check()
@@ -226,7 +245,7 @@ class Recognition:
         super().__setattr__(name, RecognitionStatus(value) if name == "status" else value)
 
     def summary(self) -> dict:
-        """JSON-able summary (no arrays but the observed point)."""
+        """JSON-able summary (no arrays but the observed point and the ICP keyframe position, m, world)."""
         def f(v):
             return None if not np.isfinite(v) else float(v)
 
@@ -236,7 +255,63 @@ class Recognition:
                 "z_keyframe_m": [f(v) for v in self.z_keyframe], "completeness": f(self.completeness),
                 "icp_rms_m": f(self.icp_rms_m), "icp_fitness": f(self.icp_fitness),
                 "prediction_error_m": f(self.prediction_error_m),
-                "prediction_yaw_error_deg": f(self.prediction_yaw_error_deg), "streak": int(self.streak)}
+                "prediction_yaw_error_deg": f(self.prediction_yaw_error_deg), "streak": int(self.streak),
+                "icp_position_m": (None if self.T_world_keyframe_icp is None
+                                   else [float(v) for v in self.T_world_keyframe_icp[:3, 3]])}
+
+
+class PredictionGate:
+    """Mahalanobis gate around a predicted keyframe pose (module docstring, "The gate").
+
+    Parameters
+    ----------
+    T_pred : array (4, 4)
+        Predicted ``T_world_keyframe``.
+    covariance : array (6, 6) or None
+        Covariance of ``δ`` in ``T = T_pred Exp(δ)``, ``(φ, ρ)`` order (rad², m²). None: the sphere
+        of radius ``floor_m``.
+    floor_m : float
+        Floor radius ``g`` (m).
+    probability : float
+        χ² (3 degrees of freedom) probability of the gate.
+    """
+
+    def __init__(self, T_pred, covariance, floor_m: float, probability: float = 0.999):
+        from scipy.stats import chi2
+
+        self.T = as_transform(T_pred, "T_world_kf_pred")
+        self.cov = None if covariance is None else np.asarray(covariance, np.float64)
+        if self.cov is not None and (self.cov.shape != (6, 6) or not np.all(np.isfinite(self.cov))):
+            raise InputError(f"the prediction covariance must be a finite 6x6 matrix, got shape {self.cov.shape}")
+        self.floor_m = check_positive(floor_m, "gate_m")
+        self.probability = float(probability)
+        self.limit = float(chi2.ppf(self.probability, 3))
+
+    def point_covariance(self, z) -> np.ndarray:
+        """Covariance (3×3, m², world) of ``T_pred z`` with the floor: ``J Σ Jᵀ + (g²/q) I``."""
+        S = np.eye(3) * (self.floor_m**2 / self.limit)
+        if self.cov is not None:
+            z = np.asarray(z, np.float64)
+            hz = np.array([[0.0, -z[2], z[1]], [z[2], 0.0, -z[0]], [-z[1], z[0], 0.0]])
+            J = self.T[:3, :3] @ np.c_[-hz, np.eye(3)]
+            S = S + J @ (0.5 * (self.cov + self.cov.T)) @ J.T
+        return S
+
+    def d2(self, z, x) -> float:
+        """Squared Mahalanobis distance of the world point ``x`` from ``T_pred z``."""
+        e = np.asarray(x, np.float64) - (self.T[:3, :3] @ np.asarray(z, np.float64) + self.T[:3, 3])
+        return float(e @ np.linalg.solve(self.point_covariance(z), e))
+
+    def inside(self, z, x) -> bool:
+        """``x`` within the gate of ``T_pred z``."""
+        return self.d2(z, x) <= self.limit
+
+    def describe(self, z=(0.0, 0.0, 0.0)) -> str:
+        """The gate in words: probability and the semi-axes (m) of its ellipsoid at ``T_pred z``."""
+        ax = np.sqrt(np.maximum(np.linalg.eigvalsh(self.point_covariance(z)), 0.0) * self.limit)
+        if self.cov is None:
+            return f"{self.floor_m:.1f} m gate"
+        return f"{100 * self.probability:g} % gate (semi-axes {ax[0]:.1f}, {ax[1]:.1f}, {ax[2]:.1f} m)"
 
 
 def _rz(yaw: float) -> np.ndarray:
@@ -419,7 +494,7 @@ def _match(L, c_L, kb: IntersectionKB, params: RecognitionParams, yaw_pred_L):
 
 
 def recognise_keyframe(points_kf, history, kb: IntersectionKB, params: RecognitionParams | None = None, *,
-                       T_world_kf_pred=None, gate_m: float | None = None,
+                       T_world_kf_pred=None, gate_m: float | None = None, gate_cov=None,
                        state: RecognitionState | None = None) -> Recognition:
     """Recognise the intersection seen by a keyframe and verify it (steps 1-9 of Liang2024 Sec. 3.2).
 
@@ -436,7 +511,10 @@ def recognise_keyframe(points_kf, history, kb: IntersectionKB, params: Recogniti
         Odometry prediction of the keyframe pose in the knowledge-base frame: resolves symmetric
         junctions' yaw and gates the verification (``conflict`` beyond the gate). None: no gate.
     gate_m : float, optional
-        Translation gate (m); default ``params.gate_m``.
+        Floor of the gate (m); default ``params.gate_m``.
+    gate_cov : array_like (6, 6), optional
+        Covariance of the prediction (``(φ, ρ)``, right perturbation): the Mahalanobis gate of
+        :class:`PredictionGate` at ``params.gate_probability``. None: the sphere of radius ``gate_m``.
     state : RecognitionState, optional
         Consecutive-recognition counter (updated in place). None: one keyframe is enough.
 
@@ -450,6 +528,8 @@ def recognise_keyframe(points_kf, history, kb: IntersectionKB, params: Recogniti
     P = as_points(points_kf, "points_kf", min_points=0)
     hist = list(history)[-int(params.n_his):] if params.n_his else []
     T_pred = None if T_world_kf_pred is None else as_transform(T_world_kf_pred, "T_world_kf_pred")
+    gate = None if T_pred is None else PredictionGate(T_pred, gate_cov, params.gate_m if gate_m is None else gate_m,
+                                                      params.gate_probability)
     if kb.status != "ok" or len(kb) == 0:
         return Recognition(RecognitionStatus.NONE, f"the knowledge base holds no intersection ({kb.status})", timings_s=t)
     status, reason, L, T_L_k, c_L = _detect([P] + [h[0] for h in hist], [h[1] for h in hist], params)
@@ -486,36 +566,42 @@ def recognise_keyframe(points_kf, history, kb: IntersectionKB, params: Recogniti
             rec.reason = f"{state.streak} of {params.consecutive_required} consecutive keyframes matched id {i}"
             return rec
     t2 = time.perf_counter()
-    _verify_step(rec, L, c_L, T_L_k, sim, kb, params, T_pred, yaw_pred_L, gate_m, cand)
+    _verify_step(rec, L, c_L, T_L_k, sim, kb, params, T_pred, yaw_pred_L, gate, cand)
     t["verify"] = time.perf_counter() - t2
     if state is not None and rec.status == "verified":
         state.streak = 0
     return rec
 
 
-def _verify_step(rec: Recognition, L, c_L, T_L_k, sim, kb, params, T_pred, yaw_pred_L, gate_m, cand) -> None:
+def _verify_step(rec: Recognition, L, c_L, T_L_k, sim, kb, params, T_pred, yaw_pred_L,
+                 gate: PredictionGate | None, cand) -> None:
     """Step 9 (and, with a prediction, the resolution of an ``ambiguous`` match): fills ``rec`` in place."""
-    gate = params.gate_m if gate_m is None else float(gate_m)
     ids = [rec.intersection_id]
-    if rec.status == "ambiguous":             # CWC did not decide: the odometry gate may (nearest candidate)
-        # 3-D distances, as the conflict gate below: a look-alike on another level is not within the gate
-        d = [np.linalg.norm(kb.invariant_points[c] - (T_pred @ np.r_[rec.z_keyframe, 1.0])[:3]) for c in cand]
-        inside = [c for c, dc in zip(cand, d, strict=True) if dc <= gate]
+    z = rec.z_keyframe
+    if rec.status == "ambiguous":             # CWC did not decide: the odometry gate may (the one candidate in it)
+        # 3-D gate: a look-alike on another level is not within it
+        inside = [c for c in cand if gate.inside(z, kb.invariant_points[c])]
         if len(inside) != 1:
-            rec.reason += f"; {len(inside)} of them within the {gate:.1f} m gate of the prediction"
+            rec.reason += f"; {len(inside)} of them within the {gate.describe(z)} of the prediction"
             return
         ids = inside
         rec.intersection_id = ids[0]
         sim = similarity(pwcv(L, c_L, kb.params.descriptor), kb.pwcv[ids[0]])
         rec.pwcv_score = float(sim.score)
-    elif T_pred is not None and len(cand) > 1:  # a factor only when the match is the one look-alike in the gate
-        p = (T_pred @ np.r_[rec.z_keyframe, 1.0])[:3]
-        rivals = [int(c) for c in cand if c != rec.intersection_id
-                  and np.linalg.norm(kb.invariant_points[c] - p) <= gate]
+    elif gate is not None:
+        if not gate.inside(z, kb.invariant_points[rec.intersection_id]):   # even when the only candidate
+            rec.status = RecognitionStatus.CONFLICT
+            rec.reason = (f"intersection {rec.intersection_id} matched, but it lies outside the {gate.describe(z)} "
+                          f"of the prediction (Mahalanobis distance "
+                          f"{math.sqrt(gate.d2(z, kb.invariant_points[rec.intersection_id])):.1f}, limit "
+                          f"{math.sqrt(gate.limit):.1f}): a nearly-alike intersection elsewhere")
+            return
+        # a factor only when the match is the one look-alike in the gate
+        rivals = [int(c) for c in cand if c != rec.intersection_id and gate.inside(z, kb.invariant_points[c])]
         if rivals:
             rec.status = RecognitionStatus.AMBIGUOUS
             rec.reason = (f"intersection {rec.intersection_id} matched, but the look-alike candidate(s) "
-                          f"{', '.join(map(str, rivals))} also lie within the {gate:.1f} m gate of the prediction")
+                          f"{', '.join(map(str, rivals))} also lie within the {gate.describe(z)} of the prediction")
             return
     i = ids[0]
     yaw = _pick_shift(sim, yaw_pred_L)
@@ -535,10 +621,11 @@ def _verify_step(rec: Recognition, L, c_L, T_L_k, sim, kb, params, T_pred, yaw_p
         rec.reason = (f"ICP distance {rec.icp_rms_m:.3f} m (max {params.icp_max_distance_m}) and overlap "
                       f"{rec.icp_fitness:.2f} (min {params.icp_min_fitness}) against intersection {i}")
         return
-    if T_pred is not None and (rec.prediction_error_m > gate or rec.prediction_yaw_error_deg > params.gate_yaw_deg):
+    if T_pred is not None and (not gate.inside(np.zeros(3), T_wk[:3, 3])
+                               or rec.prediction_yaw_error_deg > params.gate_yaw_deg):
         rec.status = RecognitionStatus.CONFLICT
         rec.reason = (f"intersection {i} verified by ICP puts the keyframe {rec.prediction_error_m:.1f} m / "
-                      f"{rec.prediction_yaw_error_deg:.0f} deg from the odometry prediction (gate {gate:.1f} m / "
+                      f"{rec.prediction_yaw_error_deg:.0f} deg from the odometry prediction ({gate.describe()} / "
                       f"{params.gate_yaw_deg:.0f} deg): a nearly-alike intersection elsewhere")
         return
     rec.status, rec.reason = RecognitionStatus.VERIFIED, ""

@@ -10,8 +10,18 @@ there is no per-frame API), then replays its keyframes **in time order** as they
   floor added to its covariance (:func:`odometry_edge_information`: GICP's own information claims
   millimetres where the odometry drifts by metres in a smooth drift);
 * :func:`~minegeo.semantic.recognition.recognise_keyframe` runs on it with its ``n_his`` predecessors
-  stacked [Liang2024 Eq. 20], the graph's current estimate as the prediction, and a gate
-  ``gate_m + gate_drift_fraction · (path since the last verified recognition)``;
+  stacked [Liang2024 Eq. 20], the graph's current estimate as the prediction, and, with the map, the
+  Mahalanobis gate of that prediction's covariance (:class:`~minegeo.semantic.recognition.PredictionGate`:
+  χ² 3 degrees of freedom at ``RecognitionParams.gate_probability``, floored by ``gate_m``). The
+  covariance is the graph's own: after each optimisation the marginal covariance of the newest keyframe
+  (:meth:`~minegeo.semantic.factors.FactorGraph.marginal_covariance`, the ``H⁻¹`` block from the
+  optimiser's Cholesky factor), then carried along each new odometry edge ``Z`` with its covariance
+  ``Σ_Z`` (the inverse of the edge information below), ``Σ_k = Ad(Z⁻¹) Σ_{k-1} Ad(Z⁻¹)ᵀ + Σ_Z`` (right
+  perturbation, first order): exactly the graph's marginal of the new keyframe when only the chain edge
+  joins it, an upper bound when the odometry adds edges across keyframes. A recognition whose
+  knowledge-base point or ICP pose lies outside the gate is a ``conflict``, and a look-alike inside it
+  makes the match ``ambiguous``. Without the map (or with ``TrackParams.gate_drift_fraction`` set) the
+  gate is the sphere ``gate_m + fraction · (path since the last verified recognition)``;
 * a ``verified`` recognition adds an intersection factor (``z`` = the observed invariant point, ``C`` = the
   knowledge-base point, covariance ``Λ_I`` of :func:`~minegeo.semantic.factors.intersection_covariance`
   from the PWCV completeness [Liang2024 Eq. 32]; residual [Liang2024 Eq. 22]) and the graph is re-optimised from the previous
@@ -43,6 +53,7 @@ information ``diag(1/σ_φ², 1/σ_t²)`` with ``σ_t = intersection_sigma_m``, 
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Iterable
@@ -52,8 +63,9 @@ from enum import StrEnum
 import numpy as np
 
 from minegeo._validate import as_transform, internal_transform
-from minegeo.errors import InputError
+from minegeo.errors import DegenerateGeometryError, InputError
 from minegeo.geometry.se3 import compose, invert, relative
+from minegeo.kernels.lie import se3_adjoint
 from minegeo.semantic.descriptors import cwc, pwcv
 from minegeo.semantic.factors import FactorGraph, intersection_covariance
 from minegeo.semantic.knowledge import IntersectionKB, KBParams
@@ -66,6 +78,8 @@ from minegeo.semantic.recognition import (
 )
 from minegeo.slam.inertial import GyroAid
 from minegeo.slam.odometry import OdometryParams, run_odometry
+
+log = logging.getLogger(__name__)
 
 __all__ = ["TrackParams", "TrackRecognition", "TrackResult", "TrackStatus", "track", "odometry_edge_information"]
 
@@ -128,11 +142,12 @@ class TrackParams:
     recognition : RecognitionParams
     T_world_start : array_like (4, 4), optional
         Pose of the first frame in the knowledge-base frame (None: unanchored until recognised).
-    gate_drift_fraction : float
-        Gate growth per metre of path since the last verified recognition, with the map. Wide (0.25) on
-        purpose: in a smooth drift the odometry can lose a fifth of the distance (a false stop); a wrong
-        look-alike is kept out by the uniqueness rule of the verification (no other PWCV candidate
-        within the gate), which needs the map's base to hold every look-alike.
+    gate_drift_fraction : float or None
+        With the map: None (default) gates each recognition by the covariance of its prediction (the
+        Mahalanobis gate of the module docstring); a number replaces that by the sphere
+        ``gate_m + gate_drift_fraction · (path since the last verified recognition)`` (m per m), which
+        does not know how uncertain the prediction is: too wide after a recent anchor (look-alikes
+        inside it leave the keyframe ``ambiguous``), too narrow after a long unanchored stretch.
     online_gate_drift_fraction : float
         The same without the map: the online base holds only the intersections seen so far, so an
         unseen look-alike cannot be ruled out and the gate stays narrow (0.05).
@@ -172,7 +187,7 @@ class TrackParams:
     odometry: OdometryParams = field(default_factory=lambda: OdometryParams(frame_target="submap"))
     recognition: RecognitionParams = field(default_factory=RecognitionParams)
     T_world_start: object = None
-    gate_drift_fraction: float = 0.25
+    gate_drift_fraction: float | None = None
     online_gate_drift_fraction: float = 0.05
     intersection_sigma_m: float = 0.2
     completeness_scaling: str = "paper"
@@ -192,7 +207,8 @@ class TrackParams:
     def __post_init__(self):
         if self.intersection_observation not in ("icp", "detected"):
             raise InputError(f"intersection_observation must be 'icp' or 'detected', got {self.intersection_observation!r}")
-        for name in ("gate_drift_fraction", "online_gate_drift_fraction", "intersection_sigma_m", "same_place_m", "online_add_range_m",
+        for name in (("gate_drift_fraction",) if self.gate_drift_fraction is not None else ()) + (
+                     "online_gate_drift_fraction", "intersection_sigma_m", "same_place_m", "online_add_range_m",
                      "online_merge_m", "revisit_min_path_m", "loop_sigma_deg", "online_icp_max_distance_m",
                      "odometry_sigma_fraction",
                      "odometry_sigma_deg_per_m", "odometry_sigma_mps"):
@@ -504,7 +520,7 @@ def track(frames: Iterable[tuple[float, np.ndarray]], kb: IntersectionKB | None,
             rec = Recognition("none", f"the knowledge base holds no intersection ({kb.status})")
         elif use_map:
             rec = recognise_keyframe(odo.keyframe_clouds[k], hist, kb, rp, T_world_kf_pred=st.prediction(k),
-                                     gate_m=st.gate(k), state=state)
+                                     gate_m=st.gate(k), gate_cov=st.gate_covariance(k), state=state)
         else:
             rec = st.online_step(k, hist, online, state)
         for name, v in rec.timings_s.items():
@@ -541,6 +557,8 @@ class _State:
         self.recognitions: list = []
         self.online_poses: list = []
         self.n_opt = 0
+        self.cov = None          # covariance (6×6, (φ, ρ)) of the graph's newest keyframe
+        self.cov_k = -1
         self.checked: list = [0] if T_start is not None else []   # keyframes a check places (start, factors)
         if self.T_world_odom is not None:
             self._build(0)
@@ -552,6 +570,7 @@ class _State:
         """Graph of keyframes 0..upto placed by ``T_world_odom``, keyframe 0 held."""
         g = FactorGraph()
         g.add_keyframe(compose(self.T_world_odom, self.T_odom(0)), fixed=True)
+        self.cov, self.cov_k = np.zeros((6, 6)), 0
         for k in range(1, upto + 1):
             self._append(g, k)
         self.g = g
@@ -564,6 +583,10 @@ class _State:
         info = odometry_edge_information(self.odo.keyframe_information[k - 1], Z, p.odometry_sigma_fraction,
                                          p.odometry_sigma_deg_per_m, t[k] - t[k - 1], p.odometry_sigma_mps)
         g.add_relative(k - 1, k, Z, info)
+        if self.cov_k == k - 1:    # carried along the edge: Σ_k = Ad(Z⁻¹) Σ_{k-1} Ad(Z⁻¹)ᵀ + Ω⁻¹
+            A = se3_adjoint(invert(Z))
+            S = A @ self.cov @ A.T + np.linalg.inv(info)
+            self.cov, self.cov_k = 0.5 * (S + S.T), k
         for i, j, Zij, I in self.odo.keyframe_extra_edges:  # across keyframes placed by the guess
             if j == k:
                 g.add_relative(i, k, Zij, odometry_edge_information(
@@ -583,9 +606,22 @@ class _State:
         return self.T_odom(k)
 
     def gate(self, k: int) -> float:
+        """Floor (covariance gate) or radius (path-fraction gate) of keyframe ``k``'s gate (m)."""
         p = self.params
-        frac = p.gate_drift_fraction if self.use_map else p.online_gate_drift_fraction
+        if self.gate_covariance(k) is not None:
+            return p.recognition.gate_m
+        frac = p.online_gate_drift_fraction if not self.use_map else (
+            p.gate_drift_fraction if p.gate_drift_fraction is not None else 0.0)
         return p.recognition.gate_m + frac * (self.path[k] - self.last_anchor_path)
+
+    def gate_covariance(self, k: int):
+        """The graph's covariance of keyframe ``k``'s prediction for the Mahalanobis gate (with the map
+        and ``gate_drift_fraction`` None), else None."""
+        if not self.use_map or self.params.gate_drift_fraction is not None or self.g is None:
+            return None
+        if self.cov_k != k:
+            raise AssertionError(f"internal error: prediction covariance of keyframe {self.cov_k}, not {k}")
+        return self.cov
 
     def pose_for_conflict(self, k: int, rec: Recognition) -> np.ndarray:
         return self.g.poses[k] if self.g is not None else rec.T_world_keyframe_icp
@@ -614,6 +650,12 @@ class _State:
             self.g.add_relative(online.kf[e], k, Z, np.diag([s_phi**-2] * 3 + [s_t**-2] * 3))
         t0 = time.perf_counter()
         res = self.g.optimize(warm_start=True)
+        if online is None and k == self.g.n_keyframes - 1:
+            try:
+                self.cov, self.cov_k = self.g.marginal_covariance(k), k
+            except DegenerateGeometryError as exc:   # adding a factor only shrinks it: keep the carried one
+                log.warning("keyframe %d: no marginal covariance after the optimisation (%s); the gate keeps the "
+                            "prediction's covariance", k, exc)
         timings["optimisation"] = timings.get("optimisation", 0.0) + time.perf_counter() - t0
         self.n_opt += 1
         self.checked += [k] if online is None else [k, online.kf[e]]

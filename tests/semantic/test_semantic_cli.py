@@ -191,7 +191,8 @@ def test_keyframes_without_walls(tmp_path, db, capsys):
 
 def test_look_alike_in_the_wrong_place_is_a_conflict(tmp_path, capsys):
     """The base holds only the twin of the crossing driven through (80 m away): the recognitions are
-    ``conflict`` (the ICP fits, the pose is 80 m from the odometry), no factor, status ``no_recognition``."""
+    ``conflict`` (the twin's point lies 80 m from the predicted one, outside the prediction's gate: refused
+    before any ICP), no factor, status ``no_recognition``."""
     net = _net(two_crossings=True)
     P = network_cloud(net, seed=1).points
     write_point_cloud(tmp_path / "map.ply", PointCloud(points=P[P[:, 0] > 40.0]))
@@ -206,7 +207,8 @@ def test_look_alike_in_the_wrong_place_is_a_conflict(tmp_path, capsys):
     st = [e["status"] for e in rec["result"]["recognitions"]]
     assert "conflict" in st and "verified" not in st and rec["result"]["factors"] == 0, st
     c = next(e for e in rec["result"]["recognitions"] if e["status"] == "conflict")
-    assert c["prediction_error_m"] > 60.0 and "odometry prediction" in c["reason"]
+    assert "lies outside the 99.9 % gate" in c["reason"] and "of the prediction" in c["reason"], c["reason"]
+    assert c["icp_rms_m"] is None
     assert rec["status"] == "no_recognition"
 
 

@@ -346,3 +346,34 @@ def test_same_optimum_as_gtsam(seed, n):
     assert g.cost(ref) == pytest.approx(graph.error(out), rel=1e-12)
     assert np.abs(res.poses - ref).max() < 1e-6
     assert res.cost_initial > 10 * res.cost_final  # the start drifts: a real optimisation
+
+
+@pytest.mark.oracle
+def test_marginal_covariance_equals_gtsam_marginals():
+    """The keyframes' marginal covariances (the tracker's recognition gate) equal GTSAM's
+    ``Marginals.marginalCovariance`` of the same factors at the same optimum (right perturbation,
+    (ω, v) order, as minegeo's (φ, ρ)), to 1e-6 relative; with keyframe 0 held instead of a prior its
+    covariance is zero and the chain's last keyframe equals GTSAM's with a near-rigid prior (1e12)."""
+    from helpers import require_oracle
+
+    gtsam = require_oracle("gtsam")
+    rng = np.random.default_rng(21)
+    g, truth = _drift_graph(rng, n=40, n_int=3)
+    g.add_prior(0, truth[0], np.eye(6) * 1e2)
+    assert g.optimize(PoseGraphParams(max_iterations=200)).status == "converged"
+    graph, values = gtsam_graph(gtsam, g, g.poses)
+    M = gtsam.Marginals(graph, values)
+    for k in (0, 17, 39):
+        ref = M.marginalCovariance(k)
+        assert np.allclose(g.marginal_covariance(k), ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max()), k
+    h = FactorGraph()                      # keyframe 0 held: a chain of four
+    h.add_keyframe(truth[0], fixed=True)
+    for k in range(1, 4):
+        Z = np.linalg.solve(truth[k - 1], truth[k])
+        h.add_keyframe(h.predict(k - 1, Z))
+        h.add_relative(k - 1, k, Z, np.diag([1e4] * 3 + [1e2] * 3))
+    assert np.all(h.marginal_covariance(0) == 0.0)
+    graph, values = gtsam_graph(gtsam, h, h.poses)
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(truth[0]), gtsam.noiseModel.Gaussian.Information(np.eye(6) * 1e12)))
+    ref = gtsam.Marginals(graph, values).marginalCovariance(3)
+    assert np.allclose(h.marginal_covariance(3), ref, rtol=1e-6, atol=1e-9)

@@ -124,3 +124,82 @@ def test_icp_observation_keeps_the_detected_floor_height_out_of_the_factors(tmp_
         assert sum(r.factor for r in res.recognitions) >= 4, mode
         dz[mode] = float(np.sqrt(np.mean((res.poses[:, 2, 3] - fr.truth.poses[:, 2, 3]) ** 2)))
     assert dz["icp"] < 0.15 and dz["icp"] < 0.5 * dz["detected"], dz
+
+
+# ------------------------------------------------------------------ the covariance gate (issue 29)
+#: χ² quantile, 3 degrees of freedom, p = 0.999 (statistical tables: 16.266)
+CHI2_3_999 = 16.266
+
+
+def test_the_gate_follows_the_prediction_covariance():
+    """Hand-computed Mahalanobis gate: a prediction whose covariance is elongated along the drift
+    (σ 2 m along, 0.2 m across) accepts a point 6 m along the drift and refuses one 6 m across it; the
+    floor (3 m) adds ``g²/q`` to each axis. The yaw turns the elongated axis into the world, and a
+    heading variance moves a point ``z`` in the keyframe by ``|z|·σ_ψ`` across."""
+    from minegeo.semantic.recognition import PredictionGate
+
+    S = np.diag([0.0, 0.0, 0.0, 4.0, 0.04, 0.04])
+    g = PredictionGate(_T(10.0, 5.0, yaw=math.pi / 2), S, floor_m=3.0, probability=0.999)
+    assert g.limit == pytest.approx(CHI2_3_999, abs=1e-3)
+    f = 9.0 / CHI2_3_999
+    along, across = np.array([10.0, 11.0, 0.0]), np.array([4.0, 5.0, 0.0])   # keyframe x is world y
+    assert g.d2(np.zeros(3), along) == pytest.approx(36.0 / (4.0 + f), rel=1e-4)        # 7.91
+    assert g.d2(np.zeros(3), across) == pytest.approx(36.0 / (0.04 + f), rel=1e-4)      # 60.7
+    assert g.inside(np.zeros(3), along) and not g.inside(np.zeros(3), across)
+    # without a covariance: the 3 m sphere; both 6 m points outside, a 2.9 m one inside
+    g0 = PredictionGate(_T(10.0, 5.0, yaw=math.pi / 2), None, floor_m=3.0)
+    assert not g0.inside(np.zeros(3), along) and g0.inside(np.zeros(3), [12.9, 5.0, 0.0])
+    # heading variance only: z = 10 m ahead (world +y) moves across (world x) by 10·σ_ψ
+    Sy = np.zeros((6, 6))
+    Sy[2, 2] = 0.1**2
+    gy = PredictionGate(_T(10.0, 5.0, yaw=math.pi / 2), Sy, floor_m=3.0)
+    P = gy.point_covariance([10.0, 0.0, 0.0])
+    assert np.allclose(P, np.diag([1.0 + f, f, f]), rtol=1e-4, atol=1e-12)
+
+
+def test_a_junction_along_the_drift_uncertainty_is_verified_one_across_is_not(x1_keyframe):
+    """The real keyframe before X1, the prediction 6 m off: along the drift (x), with the prediction's
+    covariance elongated along x (σ 2 m), X1 is verified; the same 6 m across the drift (y) with the same
+    covariance is a ``conflict`` (X1 outside the gate). A fixed 3 m + fraction gate treats both alike."""
+    P, hist, T, kb = x1_keyframe
+    x1 = int(np.argmin(np.linalg.norm(kb.invariant_points[:, :2], axis=1)))
+    S = np.diag([1e-6, 1e-6, 1e-6, 4.0, 0.04, 0.04])
+    R = T[:3, :3]
+    S[3:, 3:] = R.T @ np.diag([4.0, 0.04, 0.04]) @ R          # elongated along world x, in keyframe axes
+    pred = T.copy()
+    pred[0, 3] += 6.0
+    r = recognise_keyframe(P, hist, kb, T_world_kf_pred=pred, gate_m=3.0, gate_cov=S)
+    assert r.status == "verified" and r.intersection_id == x1, (r.status, r.reason)
+    pred = T.copy()
+    pred[1, 3] += 6.0
+    r = recognise_keyframe(P, hist, kb, T_world_kf_pred=pred, gate_m=3.0, gate_cov=S)
+    assert r.status == "conflict" and "outside" in r.reason, (r.status, r.reason)
+
+
+def test_the_carried_prediction_covariance_is_the_graph_marginal():
+    """Between optimisations the tracker carries the newest keyframe's covariance along each odometry
+    edge (``Ad(Z⁻¹) Σ Ad(Z⁻¹)ᵀ + Ω⁻¹``); on a chain from the held start pose that is exactly the
+    graph's marginal (:meth:`FactorGraph.marginal_covariance`, itself checked against GTSAM), and it
+    grows along the path. With ``gate_drift_fraction`` set the tracker passes no covariance."""
+    from minegeo.semantic.tracking import _State
+
+    rng = np.random.default_rng(4)
+    poses = [np.eye(4)]
+    for _ in range(6):
+        poses.append(poses[-1] @ _T(2.0, 0.05 * rng.standard_normal(), yaw=0.1 * rng.standard_normal()))
+    poses = np.stack(poses)
+    A = rng.standard_normal((6, 6, 6))
+    odo = SimpleNamespace(times_s=np.arange(7.0) * 1.3, poses=poses, keyframes=np.arange(7),
+                          keyframe_edges=[np.linalg.solve(poses[k], poses[k + 1]) for k in range(6)],
+                          keyframe_information=[a @ a.T * 1e3 + np.eye(6) * 1e2 for a in A], keyframe_extra_edges=[])
+    st = _State(odo, TrackParams(T_world_start=_T(5.0, 1.0, 0.3)), np.asarray(_T(5.0, 1.0, 0.3)))
+    prev = 0.0
+    for k in range(1, 7):
+        st.add_keyframe(k)
+        S = st.gate_covariance(k)
+        assert np.allclose(S, st.g.marginal_covariance(k), rtol=1e-9, atol=1e-15), k
+        assert np.trace(S[3:, 3:]) > prev
+        prev = np.trace(S[3:, 3:])
+    st = _State(odo, TrackParams(T_world_start=np.eye(4), gate_drift_fraction=0.25), np.eye(4))
+    st.add_keyframe(1)
+    assert st.gate_covariance(1) is None and st.gate(1) == pytest.approx(3.0 + 0.25 * 2.0, rel=1e-2)

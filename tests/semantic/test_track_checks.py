@@ -83,7 +83,7 @@ class _KB:
 def _stub(monkeypatch, at: dict):
     """Recognition verified at the keyframes ``at`` (keyframe → offset of the world pose it claims, m)."""
 
-    def recognise(cloud, hist, kb, rp, T_world_kf_pred=None, gate_m=None, state=None):
+    def recognise(cloud, hist, kb, rp, T_world_kf_pred=None, gate_m=None, gate_cov=None, state=None):
         k = len(recognise.calls)
         recognise.calls.append(k)
         if k not in at:

@@ -95,7 +95,7 @@ class _KB:
 def test_no_factor_from_a_keyframe_held_by_the_imu_or_the_prior(monkeypatch, imu_aided):
     odo = _odometry(held=(2, 3), imu_aided=imu_aided)
 
-    def verified(cloud, hist, kb, rp, T_world_kf_pred=None, gate_m=None, state=None):
+    def verified(cloud, hist, kb, rp, T_world_kf_pred=None, gate_m=None, gate_cov=None, state=None):
         T = T_world_kf_pred  # the recognition agrees with the prediction: a factor wherever it is allowed
         if not hist:  # keyframe 0 (held, the gauge): a graph with no free pose is not solved
             return Recognition("none", "first keyframe")
