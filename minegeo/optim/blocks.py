@@ -165,6 +165,11 @@ class BlockSystem:
         self.failed_block = int(K.block_cholesky(self.Lp, self.Li, self.Hx, lam, relative, Lx, tiny))
         return None if self.failed_block >= 0 else Lx
 
+    def solve_factored(self, Lx: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """``x`` with ``L Lᵀ x = b`` for a factor ``Lx`` of :meth:`cholesky` (``b`` and ``x`` in the
+        elimination order of the columns)."""
+        return K.block_cholesky_solve(self.Lp, self.Li, Lx, np.ascontiguousarray(b, dtype=np.float64))
+
     def solve(self, lam: float, relative: bool, tiny: float = 0.0):
         """``δ`` with ``(H + λ D) δ = -g`` (elimination order), or None if not positive definite
         (see :meth:`cholesky`)."""

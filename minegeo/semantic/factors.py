@@ -696,7 +696,6 @@ class FactorGraph:
             ``H`` is singular (a direction no factor constrains).
         """
         from minegeo.optim import SINGULAR_PIVOT
-        from minegeo.optim import _kernels as KO
 
         params = params or PoseGraphParams()
         i = self._index(i, "marginal_covariance")
@@ -717,7 +716,7 @@ class FactorGraph:
         for a in range(6):
             b = np.zeros(system.n_cols)
             b[c + a] = 1.0
-            out[:, a] = KO.block_cholesky_solve(system.Lp, system.Li, Lx, b)[c:c + 6]
+            out[:, a] = system.solve_factored(Lx, b)[c:c + 6]
         return 0.5 * (out + out.T)
 
     # -- solving
