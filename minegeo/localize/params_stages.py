@@ -1,6 +1,6 @@
 """Settings of the localization's optional stages: the correlative search, the rival check, the up estimate, the uncertainty.
 
-These dataclasses are fields of :class:`~minegeo.localize.params.LocalizeParams` and are importable
+These dataclasses are fields (or parts of fields) of :class:`~minegeo.localize.params.LocalizeParams` and are importable
 from :mod:`minegeo.localize.params`.
 
 Units: lengths in metres (``_m``), angles in degrees (``_deg``) unless named ``_rad``.
@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
+from minegeo._params import bounded, group, one_of, validate
 from minegeo._validate import check_positive
 from minegeo.errors import InputError
 
@@ -121,6 +123,40 @@ class CorrelativeParams:
             raise InputError(f"CorrelativeParams.min_hit_fraction must be in (0, 1], got {self.min_hit_fraction!r}")
         if not 0.0 < float(self.anchor_max_tilt_deg) < 90.0:
             raise InputError("CorrelativeParams.anchor_max_tilt_deg must be in (0, 90) deg")
+
+
+#: When the correlative search of a levelled scan runs (``CorrelativeStageParams.mode``).
+CorrelationMode = Literal["fallback", "always"]
+
+
+@dataclass(frozen=True)
+class CorrelativeStageParams:
+    """The correlative stage of a levelled localization (``LocalizeParams.correlative``; None there: off).
+
+    Attributes
+    ----------
+    mode : {"fallback", "always"}
+        ``"fallback"`` (default): the whole-map candidates are added only when the RANSAC
+        hypotheses do not give an ``ok`` result, or after an ``ok`` result of a small scan
+        (``AmbiguityParams.small_scan_below_points``); ``"always"``: on every levelled scan.
+    precheck_ratio : float
+        The whole-map candidates are first scored without ICP (plane fitness of the
+        feature-level scan at the refined 4-DOF placement, the same test as the
+        verification); only those reaching this fraction of the best such score get ICP and
+        the full verification (0 keeps all). The ambiguity test compares *refined* scores
+        with ``AmbiguityParams.ratio`` (0.9): a placement below 0.7 of the best before ICP would
+        have to gain ~30 % more than the best by ICP to become a rival (not seen in the
+        studies; measured in docs/localization.md). Their pre-check scores are recorded.
+    search : CorrelativeParams
+        Its grid and refinement settings.
+    """
+
+    mode: CorrelationMode = one_of("fallback", CorrelationMode)
+    precheck_ratio: float = bounded(0.7, ge=0.0, le=1.0)
+    search: CorrelativeParams = group(CorrelativeParams)
+
+    def __post_init__(self):
+        validate(self)
 
 
 @dataclass(frozen=True)
@@ -312,6 +348,32 @@ class GravityParams:
                 raise InputError(f"GravityParams.{name} must be in [0, 1], got {v}")
 
 
+def _fallback_gravity() -> GravityParams:
+    return GravityParams(max_points=5000)
+
+
+@dataclass(frozen=True)
+class GravityFallbackParams:
+    """The gravity fallback of a failed 6-DOF scan (``LocalizeParams.gravity_fallback``; None there: off).
+
+    Attributes
+    ----------
+    tilt_deg : float
+        Tilt tolerance of the levelled attempt (as ``--levelled``), deg, raised to the up
+        estimate's own 95 % cone when that is wider.
+    estimate : GravityParams
+        Settings of the up estimate (a 5 000-point area-uniform sample: 4x faster than the
+        estimator's default 20 000, the same accuracy on the study scans: 0.25-0.4 deg on level
+        drifts).
+    """
+
+    tilt_deg: float = bounded(3.0, gt=0.0, le=90.0)
+    estimate: GravityParams = group(GravityParams, _fallback_gravity)
+
+    def __post_init__(self):
+        validate(self)
+
+
 # ----------------------------------------------------------------------------- pose uncertainty
 #: Available estimators.
 UNCERTAINTY_METHODS = ("formal", "cluster", "jackknife")
@@ -351,7 +413,7 @@ class UncertaintyParams:
         normalised constraint matrix (:func:`minegeo.registration.icp.constraint_analysis`) has
         ``λ_min / λ_max`` below this: a direction the surfaces do not constrain (sliding along a
         straight featureless drift, in-plane motion on one plane) gets no honest small number.
-        Default 0.01, the pipeline's ``LocalizeParams.degeneracy_ratio``.
+        Default 0.01, the pipeline's ``VerifyParams.degeneracy_ratio``.
     """
 
     method: str = "jackknife"
