@@ -261,6 +261,7 @@ def arg_type(cls: type | str, name: str, *, off: float | None = None) -> _ArgTyp
     off : float, optional
         For an optional field: the option value that means ``None`` (e.g. 0 = off). The parsed value
         is returned as given (the caller maps it to ``None``); the message then reads
-        ``"... or 0 (off)"`` where the dataclass's reads ``"... or None"``.
+        ``"... or 0 (off)"`` where the dataclass's reads ``"... or None"``. Without ``off`` an
+        option cannot give ``None``, and its message leaves the ``"or None"`` out.
     """
     return _ArgType(cls, name, off)
