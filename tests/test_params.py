@@ -24,10 +24,15 @@ from minegeo._params import field_rule
 from minegeo.errors import InputError
 from minegeo.localize.params import (
     AmbiguityParams,
+    CorrelativeParams,
     CorrelativeStageParams,
+    FeatureParams,
     GravityFallbackParams,
+    GravityParams,
     IcpParams,
     LocalizeParams,
+    RivalParams,
+    UncertaintyParams,
     VerifyParams,
 )
 
@@ -64,7 +69,53 @@ BOUNDS = {
     (LocalizeParams, "scan_icp_voxel_size_m"): (">", 0.0, None, None, False),
     (LocalizeParams, "ransac_runs"): (">=", 1, None, None, True),
     (LocalizeParams, "min_scan_points"): (">=", 1, None, None, True),
+    (FeatureParams, "normal_radius_m"): (">", 0.0, None, None, False),
+    (FeatureParams, "normal_max_nn"): (">=", 3, None, None, True),
+    (FeatureParams, "fpfh_radius_m"): (">", 0.0, None, None, False),
+    (FeatureParams, "fpfh_max_nn"): (">=", 3, None, None, True),
+    (FeatureParams, "orientation_radius_m"): (">", 0.0, None, None, False),
+    (UncertaintyParams, "cluster_size_m"): (">", 0.0, None, None, False),
+    (UncertaintyParams, "min_clusters"): (">=", 2, None, None, True),
+    (UncertaintyParams, "map_sigma_m"): (">=", 0.0, None, None, False),
+    (UncertaintyParams, "registration_sigma_m"): (">=", 0.0, None, None, False),
+    (UncertaintyParams, "degeneracy_ratio"): (">=", 0.0, "<", 1.0, False),
+    (RivalParams, "precheck_ratio"): (">=", 0.0, "<=", 1.0, False),
+    (RivalParams, "precheck_matched_ratio"): (">=", 0.0, "<=", 1.0, False),
+    (RivalParams, "max_fine_icp"): (">=", 1, None, None, True),
+    (RivalParams, "cover_slack"): (">=", 0.0, "<=", 1.0, False),
+    (RivalParams, "cover_max_factor"): (">=", 1.0, None, None, False),
+    (RivalParams, "translation_pivots"): (">=", 0, None, None, True),
+    (RivalParams, "translation_headings"): (">=", 0, None, None, True),
+    (RivalParams, "matched_ratio"): (">=", 0.0, "<=", 1.0, False),
+    (RivalParams, "min_common_fraction"): (">=", 0.0, "<=", 1.0, False),
+    **{(CorrelativeParams, n): (">", 0.0, None, None, False)
+       for n in ("cell_size_m", "yaw_step_deg", "early_miss_slack", "sample_radius_m", "refine_tolerance_m",
+                 "screen_voxel_size_m", "distinct_m", "distinct_deg")},
+    **{(CorrelativeParams, n): (">=", 1, None, None, True)
+       for n in ("max_scan_points", "max_refine_points", "n_coarse", "screen_points", "n_refine", "refine_iterations",
+                 "n_candidates")},
+    (CorrelativeParams, "dilation_cells"): (">=", 0, None, None, True),
+    (CorrelativeParams, "min_hit_fraction"): (">", 0.0, "<=", 1.0, False),
+    (CorrelativeParams, "anchor_max_tilt_deg"): (">", 0.0, "<", 90.0, False),
+    **{(GravityParams, n): (">", 0.0, None, None, False)
+       for n in ("density_radius_m", "normal_radius_m", "plane_band_m", "min_drift_height_m", "floor_residual_scale_m",
+                 "wall_min_height_m", "column_cell_m")},
+    **{(GravityParams, n): (">", 0.0, "<", 90.0, False)
+       for n in ("floor_max_tilt_deg", "wall_max_tilt_deg", "max_slope_deg", "min_rival_angle_deg", "floor_flat_deg",
+                 "roof_flank_max_deg", "mode_radius_deg")},
+    **{(GravityParams, n): (">=", 0.0, "<=", 1.0, False)
+       for n in ("min_wall_spread", "min_floor_fraction", "min_void_fraction", "ambiguity_ratio", "min_floor_score",
+                 "min_perp_ratio", "min_mode_ratio")},
+    (GravityParams, "normal_max_nn"): (">=", 0, None, None, True),
+    (GravityParams, "n_directions"): (">=", 100, None, None, True),
+    (GravityParams, "n_blocks"): (">=", 4, None, None, True),
+    (GravityParams, "n_rivals"): (">=", 0, None, None, True),
+    (GravityParams, "seed"): (">=", 0, None, None, True),
 }
+#: fields whose rule is joined by a check across fields (GravityParams: 3 <= min_points <= max_points)
+CROSS_CHECKED = {(GravityParams, "min_points"), (GravityParams, "max_points")}
+GROUPS = (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, GravityFallbackParams, LocalizeParams,
+          FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams)
 KEYS = sorted(BOUNDS, key=lambda k: (k[0].__name__, k[1]))
 _OPS = {">": lambda v, b: v > b, ">=": lambda v, b: v >= b, "<": lambda v, b: v < b, "<=": lambda v, b: v <= b}
 
@@ -76,12 +127,15 @@ def _expected_ok(key, v) -> bool:
 
 def test_every_numeric_field_is_listed():
     """The table above covers every numeric field of the groups (a new field gets its rule checked)."""
-    listed = set(BOUNDS)
-    for cls in (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, GravityFallbackParams,
-                LocalizeParams):
+    listed = set(BOUNDS) | CROSS_CHECKED
+    for cls in GROUPS:
         for f in dataclasses.fields(cls):
             if field_rule(cls, f.name)["kind"] == "number":
                 assert (cls, f.name) in listed, (cls.__name__, f.name)
+    with pytest.raises(InputError, match="min_points <= max_points"):
+        GravityParams(min_points=2)
+    with pytest.raises(InputError, match="min_points <= max_points"):
+        GravityParams(max_points=199)
 
 
 @st.composite
@@ -138,7 +192,10 @@ def test_optional_fields_and_stages():
         LocalizeParams(scan_voxel_size_m=None)
     assert LocalizeParams(scan_voxel_size_m=None, scan_octree_level=8).scan_octree_level == 8
     for cls, name, good, bad in ((IcpParams, "method", "gicp", "generalised"),
-                                 (CorrelativeStageParams, "mode", "always", "off")):
+                                 (CorrelativeStageParams, "mode", "always", "off"),
+                                 (UncertaintyParams, "method", "formal", "bootstrap"),
+                                 (FeatureParams, "orientation", "centroid", "up"),
+                                 (FeatureParams, "fpfh_weight", "open3d", "inverse_square")):
         assert getattr(cls(**{name: good}), name) == good
         with pytest.raises(InputError, match=f"{cls.__name__}.{name} must be one of"):
             cls(**{name: bad})
@@ -267,14 +324,6 @@ def test_defaults_equal_the_flat_parameters(old):
 
 
 def test_default_objects_and_stages():
-    from minegeo.localize.params import (
-        CorrelativeParams,
-        FeatureParams,
-        GravityParams,
-        RivalParams,
-        UncertaintyParams,
-    )
-
     lp = LocalizeParams()
     assert lp.features == FeatureParams() and lp.uncertainty == UncertaintyParams()
     assert lp.correlative.search == CorrelativeParams() and lp.rival == RivalParams()  # rival_search=True before

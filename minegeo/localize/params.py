@@ -49,7 +49,10 @@ __all__ = ["FeatureParams", "FAST_FEATURES", "PrepareParams", "CorrelativeParams
            "IcpParams", "IcpMethod", "VerifyParams", "AmbiguityParams", "LocalizeParams", "UNCERTAINTY_METHODS",
            "REGISTRATION_SIGMA_M", "DEFAULT_RANSAC_MAX_ITERATIONS", "ICP_METHODS"]
 
-_ORIENTATIONS = ("void", "none", "centroid")
+#: Normal sign rules (``FeatureParams.orientation``).
+NormalOrientation = Literal["void", "none", "centroid"]
+#: FPFH neighbour weights (``FeatureParams.fpfh_weight``, :class:`minegeo.features.FPFHParams`).
+FpfhWeight = Literal["inverse_distance", "open3d"]
 
 @dataclass(frozen=True)
 class FeatureParams:
@@ -74,24 +77,16 @@ class FeatureParams:
         Half-edge of the cube whose centroid the "void" rule points to, m (about a drift width).
     """
 
-    normal_radius_m: float = 1.0
-    normal_max_nn: int = 1000
-    fpfh_radius_m: float = 2.5
-    fpfh_max_nn: int = 1000
-    fpfh_weight: str = "inverse_distance"
-    orientation: str = "void"
-    orientation_radius_m: float = 5.0
+    normal_radius_m: float = bounded(1.0, gt=0.0)
+    normal_max_nn: int = bounded(1000, ge=3, integer=True)
+    fpfh_radius_m: float = bounded(2.5, gt=0.0)
+    fpfh_max_nn: int = bounded(1000, ge=3, integer=True)
+    fpfh_weight: FpfhWeight = one_of("inverse_distance", FpfhWeight)
+    orientation: NormalOrientation = one_of("void", NormalOrientation)
+    orientation_radius_m: float = bounded(5.0, gt=0.0)
 
     def __post_init__(self):
-        check_positive(self.normal_radius_m, "FeatureParams.normal_radius_m")
-        check_positive(self.fpfh_radius_m, "FeatureParams.fpfh_radius_m")
-        check_positive(self.orientation_radius_m, "FeatureParams.orientation_radius_m")
-        for name in ("normal_max_nn", "fpfh_max_nn"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or int(v) != v or v < 3:
-                raise InputError(f"FeatureParams.{name} must be an integer >= 3, got {v!r}")
-        if self.orientation not in _ORIENTATIONS:
-            raise InputError(f"FeatureParams.orientation must be one of {_ORIENTATIONS}, got {self.orientation!r}")
+        validate(self)
 
 
 #: Feature settings of the fast profile (Table 3 ratios at a 1 m voxel).
