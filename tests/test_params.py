@@ -17,7 +17,7 @@ import math
 
 import pytest
 from badinput._contract import assert_user_error
-from hypothesis import assume, given
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from minegeo._params import field_rule
@@ -139,21 +139,21 @@ def test_every_numeric_field_is_listed():
 
 
 @st.composite
-def _near_a_bound(draw):
-    key = draw(st.sampled_from(KEYS))
+def _near_a_bound(draw, key):
     lo_op, lo, hi_op, hi, integer = BOUNDS[key]
     bound = draw(st.sampled_from([b for b in (lo, hi) if b is not None]))
     if integer:
-        v = bound + draw(st.integers(-3, 3))
-    else:
-        step = draw(st.sampled_from([0.0, 1e-12, 1e-6, 0.25, 3.0]))
-        v = float(bound) + draw(st.sampled_from([-1.0, 1.0])) * step
-    return key, v
+        return bound + draw(st.integers(-3, 3))
+    step = draw(st.sampled_from([0.0, 1e-12, 1e-6, 0.25, 3.0]))
+    return float(bound) + draw(st.sampled_from([-1.0, 1.0])) * step
 
 
-@given(_near_a_bound())
-def test_validator_refuses_the_wrong_side_of_each_bound(case):
-    (cls, name), v = case
+@pytest.mark.parametrize("key", KEYS, ids=[f"{c.__name__}.{n}" for c, n in KEYS])
+@settings(max_examples=30)
+@given(data=st.data())
+def test_validator_refuses_the_wrong_side_of_each_bound(key, data):
+    cls, name = key
+    v = data.draw(_near_a_bound(key))
     if _expected_ok((cls, name), v):
         obj = cls(**{name: v})
         assert getattr(obj, name) == v
