@@ -69,7 +69,7 @@ if str(HERE) not in sys.path:
 
 SUCCESS_M = 0.10
 NEAR_M = 1.0
-#: Open3D's optional decision gate (minegeo's LocalizeParams.min_fitness / max_inlier_rmse_m).
+#: Open3D's optional decision gate (minegeo's VerifyParams.min_fitness / max_inlier_rmse_m).
 GATE_FITNESS = 0.6
 GATE_RMSE_M = 0.35
 LOCALIZE_SEED = 0
@@ -128,10 +128,10 @@ def o3d_config_from_minegeo(prep, lp) -> dict:
             "mutual_filter": bool(r.mutual_filter), "distance_m": float(r.distance_threshold_m),
             "ransac_n": int(r.ransac_n), "edge_length": float(r.edge_length_similarity),
             "max_iteration": int(r.max_iterations), "confidence": float(r.confidence),
-            "icp": "point_to_point" if lp.icp_method == "point_to_point" else
-            ("point_to_plane" if lp.icp_method == "point_to_plane" else lp.icp_method),
-            "icp_gate_m": float(lp.icp_max_correspondence_m), "icp_iterations": int(lp.icp_max_iterations),
-            "icp_relative_fitness": float(lp.icp_relative_fitness), "icp_relative_rmse": float(lp.icp_relative_rmse),
+            "icp": "point_to_point" if lp.icp.method == "point_to_point" else
+            ("point_to_plane" if lp.icp.method == "point_to_plane" else lp.icp.method),
+            "icp_gate_m": float(lp.icp.max_correspondence_m), "icp_iterations": int(lp.icp.max_iterations),
+            "icp_relative_fitness": float(lp.icp.relative_fitness), "icp_relative_rmse": float(lp.icp.relative_rmse),
             "icp_coarse_gate_m": None,
             "icp_voxel_scan_m": None if lp.scan_icp_voxel_size_m is None else float(lp.scan_icp_voxel_size_m),
             "icp_voxel_map_m": None if prep.icp_voxel_size_m is None else float(prep.icp_voxel_size_m)}
@@ -836,10 +836,10 @@ def main(argv=None) -> int:
                 f"({lp.features.fpfh_weight}, normals {lp.features.orientation}), mutual {r.mutual_filter}, RANSAC "
                 f"distance {r.distance_threshold_m:g} m, n {r.ransac_n}, edge {r.edge_length_similarity:g}, max "
                 f"{r.max_iterations:.0e} draws (min {r.min_iterations:.0e}), confidence {r.confidence:g}, max "
-                f"validations {r.max_validations}, ICP {lp.icp_method} {lp.icp_max_correspondence_m:g} m / "
-                f"{lp.icp_max_iterations} it / {lp.icp_relative_fitness:g} / {lp.icp_relative_rmse:g}, ICP source "
+                f"validations {r.max_validations}, ICP {lp.icp.method} {lp.icp.max_correspondence_m:g} m / "
+                f"{lp.icp.max_iterations} it / {lp.icp.relative_fitness:g} / {lp.icp.relative_rmse:g}, ICP source "
                 f"{lp.scan_icp_voxel_size_m} m voxels, target {prep.icp_voxel_size_m} m voxels; gravity fallback "
-                f"{getattr(lp, 'gravity_fallback', 'n/a')} (CLI default)")
+                f"{lp.gravity_fallback is not None} (CLI default)")
 
     doc = {"date": time.strftime("%Y-%m-%d"), "machine": platform.platform(), "cpu_count": os.cpu_count(),
            "seeds": seeds, "tune_seeds": tune_seeds, "localize_seed": LOCALIZE_SEED,

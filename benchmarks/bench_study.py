@@ -89,9 +89,9 @@ def _prepare(sw, levelled: bool):
     t_prep = time.perf_counter() - t0
     t0 = time.perf_counter()
     pm.build_indexes(lp)
-    cp = lp.rival_params.search
+    cp = lp.rival.search
     pm.occupancy(cp)
-    pm.occupancy(lp.correlative_params)
+    pm.occupancy(lp.correlative.search)
     pm.screen_target(cp.screen_voxel_size_m)
     if cp.screen_grid and cp.screen_voxel_size_m is not None:
         pm.screen_grid(cp.screen_voxel_size_m)

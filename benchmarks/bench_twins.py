@@ -2,9 +2,9 @@
 
 Issue 15: a drift copied exactly onto another level cannot be told apart from the original by
 a scan taken in it, yet the pipeline said ``ok`` whenever RANSAC proposed only one of the two
-places. ``LocalizeParams.rival_search`` (:mod:`minegeo.localize.rivals`) searches the whole map
+places. ``LocalizeParams.rival`` (:mod:`minegeo.localize.rivals`) searches the whole map
 at the chosen attitude before an ``ok``. This script runs every scan twice, **before** (the
-search off, ``rival_search=False``: the previous behaviour) and **after** (on, the default),
+search off, ``rival=None``: the previous behaviour) and **after** (on, the default),
 on study worlds of :func:`minegeo.synth.study.make_study_world`:
 
 * an **exact-twin world** (``twins="exact"``: level 0 copied 25 m below, roughness and
@@ -108,19 +108,19 @@ def run(seed: int, n: int, log=print, rival_params=None, near: int = 0) -> list[
         for levelled in (True, False):
             prep, lp = _params(levelled)
             if rival_params is not None:
-                lp = dataclasses.replace(lp, rival_params=rival_params)
+                lp = dataclasses.replace(lp, rival=rival_params)
             t1 = time.perf_counter()
             pm = prepare_map(sw.map, prep)
             t_prep = time.perf_counter() - t1
             t1 = time.perf_counter()
             pm.build_indexes(lp)
-            cp = lp.rival_params.search
+            cp = lp.rival.search
             pm.occupancy(cp)
             pm.screen_target(cp.screen_voxel_size_m)
             if cp.screen_grid and cp.screen_voxel_size_m is not None:
                 pm.screen_grid(cp.screen_voxel_size_m)
             t_idx = time.perf_counter() - t1
-            configs = (("before", dataclasses.replace(lp, rival_search=False)), ("after", lp))
+            configs = (("before", dataclasses.replace(lp, rival=None)), ("after", lp))
             for label in classes:
                 for length in LENGTHS:
                     t1 = time.perf_counter()
@@ -211,7 +211,7 @@ def markdown(summary: dict, seed: int, n: int) -> str:
     lines = [f"Study worlds `make_study_world(twins=..., seed={seed})` (small layout, 2 levels 25 m apart, "
              "map one VLP-16 frame every 10 m); ZEB-REVO-like walks, 50 000 beams; "
              f"{n} scans per length x frame; `--profile fast` (+ `--levelled 3` for levelled scans), seed 0; "
-             "before = `rival_search=False`, after = the default. Success = `ok` within "
+             "before = `rival=None`, after = the default. Success = `ok` within "
              f"{SUCCESS_M:.2f} m of the truth (or of its twin); twin listed = `ambiguous` with the truth and "
              f"the twin each within {SUCCESS_M:.2f} m of a listed candidate. Times: `localize_scan` wall s, "
              "map and its search structures prepared beforehand; shared 2-core machine.", "",

@@ -77,7 +77,7 @@ def final_pairs(prepared, scan_points: np.ndarray, T_work_D: np.ndarray, lp, gat
     P = np.asarray(scan_points, dtype=np.float64)
     D = P if lp.scan_icp_voxel_size_m is None else voxel_downsample(P, float(lp.scan_icp_voxel_size_m)).points
     Pw = D @ T_work_D[:3, :3].T + T_work_D[:3, 3]
-    gate = float(lp.icp_max_correspondence_m if gate_m is None else gate_m)
+    gate = float(lp.icp.max_correspondence_m if gate_m is None else gate_m)
     dist, idx = prepared.kdtree.query(Pw, k=1, distance_upper_bound=gate)
     idx = np.asarray(idx, dtype=np.int64).reshape(-1)
     dist = np.asarray(dist, dtype=np.float64).reshape(-1)

@@ -273,7 +273,7 @@ def offline_scores(records: list[dict], cache: Path, params=None, weak_ratio: fl
         idx = np.arange(k)
         u = pose_uncertainty(z["P"], z["Q"], z["N"], np.column_stack([idx, idx]), z["o"], prm)
         if (u.covariance_6x6 is not None and weak_polish_term and rec["polish_shift_6"] is not None
-                and u.information_ratio < weak_ratio):  # as the pipeline (LocalizeParams.weak_axis_polish_term)
+                and u.information_ratio < weak_ratio):  # as the pipeline (IcpParams.weak_axis_polish_term)
             d6 = np.asarray(rec["polish_shift_6"])
             u = u.with_model_term("weak_axis_polish", np.outer(d6, d6))
         s = score_one(np.asarray(rec["e6"]), u.covariance_6x6)

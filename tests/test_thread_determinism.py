@@ -91,7 +91,7 @@ _CHILD = textwrap.dedent(
     L = L[np.hypot(L[:, 0] - 20.0, L[:, 1] - 2.0) < 12.0]  # around the junction
     Ls = (L - np.array([20.0, 2.0, 1.5])) @ np.array([[c, s_, 0.0], [-s_, c, 0.0], [0.0, 0.0, 1.0]])
     fast = LocalizeParams.fast()
-    lp = dataclasses.replace(fast, correlative="always", gravity_fallback=False,
+    lp = dataclasses.replace(fast, correlative=dataclasses.replace(fast.correlative, mode="always"), gravity_fallback=None,
                              ransac=dataclasses.replace(fast.ransac, model="levelled"))
     res = localize_scan(pm, PointCloud(np.ascontiguousarray(Ls)), None, lp, seed=0)
     put("localize_T", res.T_map_scan)

@@ -28,16 +28,21 @@ import math
 import time
 from pathlib import Path
 
+from minegeo._params import arg_type
 from minegeo.cli._argtypes import (
     MAX_COUNT,
     float_in_range,
     int_in_range,
-    nonnegative_float,
     nonnegative_int,
-    positive_float,
     positive_int,
 )
 from minegeo.cli._common import StepBar, summary_lines_quiet, time_line, whole_run_timings
+
+#: the parameter classes whose field rules the options use (imported when an option is parsed)
+_LP, _ICP, _VERIFY = ("minegeo.localize.params:" + c for c in ("LocalizeParams", "IcpParams", "VerifyParams"))
+#: ``IcpParams.method`` and ``CorrelativeStageParams.mode`` (tests check they equal the Literals)
+ICP_CHOICES = ("point_to_point", "point_to_plane", "gicp")
+CORRELATIVE_CHOICES = ("fallback", "always", "off")
 
 log = logging.getLogger(__name__)
 
@@ -65,12 +70,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--out", required=True, help="output directory (result.json, report.html, trajectory_global.csv)")
     parser.add_argument("--seed", type=int_in_range(0, 2**32 - 1), default=0, help="random seed (default 0)")
     add_profile_arguments(parser)
-    parser.add_argument("--icp", default=None, choices=("point_to_point", "point_to_plane", "gicp"),
+    parser.add_argument("--icp", default=None, choices=ICP_CHOICES,
                         help="ICP variant (table3 profile: point_to_point as the paper; fast: point_to_plane; "
                              "gicp: Generalized-ICP)")
     parser.add_argument("--ransac-max-iterations", type=positive_int, default=None,
                         help="RANSAC iteration cap (table3 profile: 4e6, the paper's Table 3 uses 4e8; fast: 1e6)")
-    parser.add_argument("--ransac-runs", type=positive_int, default=1,
+    parser.add_argument("--ransac-runs", type=arg_type(_LP, "ransac_runs"), default=1,
                         help="independent RANSAC runs whose hypotheses are all verified by ICP (default 1)")
     parser.add_argument("--no-mutual-filter", action="store_true",
                         help="use every FPFH nearest neighbour as a putative match (the paper) instead of mutual ones")
@@ -83,16 +88,18 @@ def add_arguments(parser) -> None:
                         help="the scan frame is levelled (z up, e.g. by the scanner's IMU) like the map: RANSAC "
                              "draws 2-point yaw+translation hypotheses and rejects placements tilting the "
                              "vertical by more than DEG degrees (e.g. 3); ICP still refines all 6 DOF")
-    parser.add_argument("--correlative", default=None, choices=("fallback", "always", "off"),
+    parser.add_argument("--correlative", default=None, choices=CORRELATIVE_CHOICES,
                         help="with --levelled: the exhaustive 4-DOF correlative search of the whole map adds its "
                              "best placements when the RANSAC hypotheses fail (fallback, default), always, or never")
     parser.add_argument("--no-gravity-fallback", action="store_true",
                         help="without --levelled: do not retry a failed 6-DOF scan levelled by its own up direction "
                              "(floor, roof, walls; residual tilts up to 15 deg searched for ramps)")
-    parser.add_argument("--fine-tolerance", type=nonnegative_float, default=None, metavar="M",
+    parser.add_argument("--fine-tolerance", type=arg_type(_VERIFY, "fine_tolerance_m", off=0.0), default=None,
+                        metavar="M",
                         help="plane tolerance (m) of the fine agreement that tells smooth drifts apart (default "
                              "0.04, widened to 2 x the scan's surface noise); 0 turns it off")
-    parser.add_argument("--polish", type=nonnegative_float, default=None, metavar="M",
+    parser.add_argument("--polish", type=arg_type(_ICP, "polish_correspondence_m", off=0.0), default=None,
+                        metavar="M",
                         help="gate (m) of the final tight point-to-plane polish of the chosen pose (default 0.25; "
                              "the gate used is max(M, 3 x the scan's surface noise)); 0 turns it off")
     parser.add_argument("--no-cache", action="store_true", help="do not read or write the prepared-map cache")
@@ -111,10 +118,10 @@ def add_profile_arguments(parser) -> None:
                              "Map and scan must use the same profile. Measured on the synthetic mine: fast 17/25 "
                              "scans ok and correct, table3 7/25 (docs/localization.md)")
     g = parser.add_mutually_exclusive_group()
-    g.add_argument("--voxel", type=positive_float, default=None, metavar="M",
+    g.add_argument("--voxel", type=arg_type(_LP, "scan_voxel_size_m"), default=None, metavar="M",
                    help="voxel size in m for map and scan (profile default: fast 1.0, table3 0.5); the normal and FPFH "
                         "radii scale with it (2x and 5x, the Table 3 ratios)")
-    g.add_argument("--octree-level", type=int_in_range(1, 21), default=None, metavar="L",
+    g.add_argument("--octree-level", type=arg_type(_LP, "scan_octree_level"), default=None, metavar="L",
                    help="octree subsampling level of the scan (Sec. 2.2, e.g. 6, 8, 10, 12) instead of a voxel "
                         "(localize) or of the map (prepare-map)")
 
@@ -142,7 +149,7 @@ def params_from_args(args):
     from dataclasses import replace
 
     from minegeo.errors import InputError
-    from minegeo.localize import FeatureParams, LocalizeParams, PrepareParams
+    from minegeo.localize.params import CorrelativeStageParams, FeatureParams, LocalizeParams, PrepareParams
 
     check_combinations(args)
 
@@ -151,10 +158,8 @@ def params_from_args(args):
         prep, lp = PrepareParams.fast(), LocalizeParams.fast()
     else:
         prep, lp = PrepareParams(), LocalizeParams()
-    voxel = getattr(args, "voxel", None)
+    voxel = getattr(args, "voxel", None)  # checked by its type (LocalizeParams.scan_voxel_size_m's rule)
     if voxel is not None:
-        if not voxel > 0:
-            raise InputError(f"--voxel must be > 0 m, got {voxel}")
         feats = FeatureParams(normal_radius_m=2.0 * voxel, fpfh_radius_m=5.0 * voxel)
         prep = replace(prep, voxel_size_m=float(voxel), features=feats)
         lp = replace(lp, scan_voxel_size_m=float(voxel), features=feats)
@@ -162,32 +167,35 @@ def params_from_args(args):
     runs = getattr(args, "ransac_runs", 1)
     if runs is None:
         runs = 1
-    if int(runs) < 1:
-        raise InputError(f"--ransac-runs must be >= 1, got {runs}")
     for opt in ("ransac_max_iterations", "ransac_min_iterations", "hypotheses"):
         v = getattr(args, opt, None)
         if v is not None and int(v) < (0 if opt == "ransac_min_iterations" else 1):
             raise InputError(f"--{opt.replace('_', '-')} must be >= {0 if opt == 'ransac_min_iterations' else 1}, "
                              f"got {v}")
+    # the values were checked by the options' types (the fields' own rules; 0 = off for the optional ones)
     kw = {"ransac_runs": int(runs)}
+    icp_kw, verify_kw = {}, {}
     if icp is not None:
-        kw["icp_method"] = icp
+        icp_kw["method"] = icp
     if getattr(args, "octree_level", None) is not None:
         kw["scan_octree_level"] = int(args.octree_level)
-    if getattr(args, "correlative", None) is not None:
-        kw["correlative"] = str(args.correlative)
+    corr = getattr(args, "correlative", None)
+    if corr == "off":
+        kw["correlative"] = None
+    elif corr is not None:
+        kw["correlative"] = replace(lp.correlative or CorrelativeStageParams(), mode=str(corr))
     polish = getattr(args, "polish", None)
     if polish is not None:
-        if not math.isfinite(float(polish)) or float(polish) < 0.0:
-            raise InputError(f"--polish must be a gate in metres >= 0 (0 = off), got {polish!r}")
-        kw["icp_polish_correspondence_m"] = float(polish) if float(polish) > 0.0 else None
+        icp_kw["polish_correspondence_m"] = float(polish) if float(polish) > 0.0 else None
     if getattr(args, "no_gravity_fallback", False):
-        kw["gravity_fallback"] = False
+        kw["gravity_fallback"] = None
     fine = getattr(args, "fine_tolerance", None)
     if fine is not None:
-        if not math.isfinite(float(fine)) or float(fine) < 0.0:
-            raise InputError(f"--fine-tolerance must be a tolerance in metres >= 0 (0 = off), got {fine!r}")
-        kw["verify_fine_tolerance_m"] = float(fine) if float(fine) > 0.0 else None
+        verify_kw["fine_tolerance_m"] = float(fine) if float(fine) > 0.0 else None
+    if icp_kw:
+        kw["icp"] = replace(lp.icp, **icp_kw)
+    if verify_kw:
+        kw["verify"] = replace(lp.verify, **verify_kw)
     lp = replace(lp, **kw)
     rk = {}
     if getattr(args, "ransac_max_iterations", None) is not None:
@@ -261,8 +269,8 @@ def run(args) -> int:
     # the result folder is staged and replaces an earlier one only when this run ends without an
     # error: a user mistake leaves the earlier folder as it was and writes nothing
     with OutputTransaction("localize", inputs=inputs, folders={"--out": out}) as tx:
-        n_idx = 3 + (3 if lp.ransac.model == "levelled" and lp.correlative != "off" else 0) \
-            + (1 if lp.icp_method == "gicp" else 0)
+        n_idx = 3 + (3 if lp.ransac.model == "levelled" and lp.correlative is not None else 0) \
+            + (1 if lp.icp.method == "gicp" else 0)
         with StepBar(args, "localize", total=2 + n_idx + 8 + 1) as bar:
             res, d, how = _run(args, prep, lp, tx.folder("--out"), out, bar)
     if not getattr(args, "quiet", False):

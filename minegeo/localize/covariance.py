@@ -76,7 +76,7 @@ def pose_covariance(ctx: VerifyContext, ic_final, polish) -> PoseCovariance:
     """Pose covariance of the final fit ``ic_final`` (None: no fit) about the scan origin.
 
     ``polish`` is the applied-or-not :class:`~minegeo.localize.verification.Polish` (or None):
-    with ``weak_axis_polish_term`` its shift is added as the ``weak_axis_polish`` model term
+    with ``icp.weak_axis_polish_term`` its shift is added as the ``weak_axis_polish`` model term
     when the final pairs constrain some direction weakly.
     """
     p: LocalizeParams = ctx.p
@@ -93,7 +93,7 @@ def pose_covariance(ctx: VerifyContext, ic_final, polish) -> PoseCovariance:
         unc = pose_uncertainty(Pw, ctx.Qf, ctx.Nf, ic_final.correspondences, o_work,
                                replace(p.uncertainty, degeneracy_ratio=0.0), check_target=False)
         # weak direction: add the polish's shift as a model-error term (see weak_axis_polish_term)
-        add_shift = (unc.covariance_6x6 is not None and p.weak_axis_polish_term and polish is not None
+        add_shift = (unc.covariance_6x6 is not None and p.icp.weak_axis_polish_term and polish is not None
                      and polish.record["applied"] and unc.information_ratio < p.uncertainty.degeneracy_ratio)
         if add_shift:
             d6 = np.asarray(polish.record["shift_6"], dtype=np.float64)
@@ -122,27 +122,27 @@ def pose_covariance(ctx: VerifyContext, ic_final, polish) -> PoseCovariance:
 def judge_fit(status: LocalizeStatus, reason: str, weak: str, pc: PoseCovariance, p: LocalizeParams,
               warnings: list) -> tuple[LocalizeStatus, str]:
     """The covariance-based checks of an ``ok`` decision, in this order: a weak direction whose
-    95 % displacement exceeds ``max_weak_displacement_95_m`` (or without covariance), an ICP
-    that stopped more than ``max_pending_step_m`` from the surface fit, a singular information
+    95 % displacement exceeds ``verify.max_weak_displacement_95_m`` (or without covariance), an ICP
+    that stopped more than ``verify.max_pending_step_m`` from the surface fit, a singular information
     matrix; each makes it ``ambiguous``. A harmless weak direction is a note in ``warnings``.
     Call only when there is a final fit. Returns ``(status, reason)``."""
     cov, disp95, pending = pc.cov, pc.disp95, pc.pending
     if weak and status == "ok":
-        if cov is None or disp95 > p.max_weak_displacement_95_m:
+        if cov is None or disp95 > p.verify.max_weak_displacement_95_m:
             status = LocalizeStatus.AMBIGUOUS
             reason = ("the fit is not constrained in every direction: " + weak
                       + (f"; the 95 % displacement over the scan reaches {disp95:.3f} m (> "
-                         f"{p.max_weak_displacement_95_m:g} m)" if cov is not None else "")
+                         f"{p.verify.max_weak_displacement_95_m:g} m)" if cov is not None else "")
                       + " (e.g. a straight featureless drift: the position along it is uncertain)")
         else:
             # does not change the answer: a note (result.json, report), not a logged warning
             warnings.append(f"note: weakly constrained direction ({weak}), but its 95 % displacement over the "
-                            f"scan is only {disp95:.3f} m (<= {p.max_weak_displacement_95_m:g} m) and the "
+                            f"scan is only {disp95:.3f} m (<= {p.verify.max_weak_displacement_95_m:g} m) and the "
                             "95 % radius includes it")
-    if pending > p.max_pending_step_m and status == "ok":  # NaN (no step) never is
+    if pending > p.verify.max_pending_step_m and status == "ok":  # NaN (no step) never is
         status = LocalizeStatus.AMBIGUOUS
         reason = (f"ICP stopped {pending:.3f} m (largest displacement over the scan) away from the "
-                  f"best surface fit (> {p.max_pending_step_m:g} m): the pose is not settled; try "
+                  f"best surface fit (> {p.verify.max_pending_step_m:g} m): the pose is not settled; try "
                   "--icp point_to_plane or more ICP iterations")
     if cov is None and status == "ok":
         status = LocalizeStatus.AMBIGUOUS

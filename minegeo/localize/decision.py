@@ -135,17 +135,17 @@ def _failure(ctx: VerifyContext, best: Refined) -> str:
     """Why the chosen hypothesis fails the absolute thresholds, or "" when it passes them."""
     p = ctx.p
     f, e, pf_best = best.ic.fitness, best.ic.inlier_rmse_m, best.pf
-    if pf_best < p.min_plane_fitness:
+    if pf_best < p.verify.min_plane_fitness:
         return (f"the first-ranked placement (#0) has only {100 * pf_best:.0f} % of the scan points within "
-                f"{ctx.tol:.3g} m of the map surface (need {100 * p.min_plane_fitness:.0f} %; "
+                f"{ctx.tol:.3g} m of the map surface (need {100 * p.verify.min_plane_fitness:.0f} %; "
                 f"ICP fitness {f:.3f}): no placement matches the drift's shape — the scan is probably not in "
                 "the mapped area, the map changed there, or the right place was not found")
-    if f < p.min_fitness:
+    if f < p.verify.min_fitness:
         return (f"the first-ranked placement (#0) explains only {100 * f:.0f} % of the scan points within "
-                f"{p.icp_max_correspondence_m:g} m of the map (need {100 * p.min_fitness:.0f} %): the scan is "
+                f"{p.icp.max_correspondence_m:g} m of the map (need {100 * p.verify.min_fitness:.0f} %): the scan is "
                 "probably not in the mapped area, or the map changed there")
-    if e > p.max_inlier_rmse_m:
-        return (f"the inlier RMSE {e:.3f} m exceeds {p.max_inlier_rmse_m:g} m: the scan does not fit the map "
+    if e > p.verify.max_inlier_rmse_m:
+        return (f"the inlier RMSE {e:.3f} m exceeds {p.verify.max_inlier_rmse_m:g} m: the scan does not fit the map "
                 "closely enough")
     return ""
 
@@ -166,7 +166,7 @@ def decide(ctx: VerifyContext, refined: list[Refined], r0, work_origin: np.ndarr
     pf_best, pff_best = best.pf, best.pff
     amb_ratio, fine_ratio = ctx.amb_ratio, ctx.fine_ratio
     rivals = [h for h in hyps[1:] if "screened out" not in h["source"] and (
-              h["distance_to_chosen_m"] > p.ambiguity_distance_m or h["rotation_to_chosen_deg"] > p.ambiguity_angle_deg)
+              h["distance_to_chosen_m"] > p.ambiguity.distance_m or h["rotation_to_chosen_deg"] > p.ambiguity.angle_deg)
               and h["plane_fitness"] >= amb_ratio * pf_best and h["fine_fitness"] >= fine_ratio * pff_best]
     status, reason, weak = DecisionStatus.OK, _failure(ctx, best), ""
     if reason:
@@ -180,16 +180,16 @@ def decide(ctx: VerifyContext, refined: list[Refined], r0, work_origin: np.ndarr
                   f"{amb_ratio:g} / {fine_ratio:.3g}{' for a small scan' if ctx.scan.small_scan else ''}): the drift "
                   "repeats itself; "
                   "extend the scan past a distinctive feature")
-    if status == "ok" and ic_best.degeneracy_ratio < p.degeneracy_ratio:
+    if status == "ok" and ic_best.degeneracy_ratio < p.verify.degeneracy_ratio:
         # decided after the covariance: a weak direction matters only if it leaves the pose uncertain
         weak = (ic_best.degeneracy_reason or
-                f"eigenvalue ratio {ic_best.degeneracy_ratio:.2e} < {p.degeneracy_ratio:g}")
+                f"eigenvalue ratio {ic_best.degeneracy_ratio:.2e} < {p.verify.degeneracy_ratio:g}")
     if status == "ok":
         reason = (f"ICP fitness {f:.3f}, inlier RMSE {e:.3f} m, plane fitness {pf_best:.3f}; "
                   + (f"{len(hyps) - 1} other hypothesis(es) verified, none of them elsewhere reaching "
                      f"{amb_ratio:g} x its plane fitness and {fine_ratio:.3g} x its fine agreement"
                      if len(hyps) > 1 else "no competing hypothesis found by RANSAC"))
-    if r0.ambiguity_ratio >= p.ambiguity_ratio and not (status == "ambiguous" and rivals):
+    if r0.ambiguity_ratio >= p.ambiguity.ratio and not (status == "ambiguous" and rivals):
         warnings.append(f"RANSAC's runner-up scored {r0.ambiguity_ratio:.2f} of the best; ICP verification "
                         "separated them")
     return Decision(status=status, reason=reason, weak=weak, hyps=hyps, best=best, refined=refined,
@@ -211,12 +211,12 @@ def verify_and_decide(ctx: VerifyContext, pm: PreparedMap, hy: Hypotheses, traje
     uniq = hy.candidates
     # correlative 4-DOF search (minegeo addition, levelled scans only): proposes places that
     # FPFH + RANSAC cannot (few or no correct descriptor matches); see correlative.py
-    use_corr = p.ransac.model == "levelled" and p.correlative != "off"
+    use_corr = p.ransac.model == "levelled" and p.correlative is not None
     corr = None
-    if use_corr and p.correlative == "always":
+    if use_corr and p.correlative.mode == "always":
         corr = correlative_hypotheses(ctx, pm, uniq, trajectory, run)
         uniq = corr.candidates
-    fallback = use_corr and p.correlative == "fallback"
+    fallback = use_corr and p.correlative.mode == "fallback"
     confirm = fallback and ctx.scan.small_scan
     # a small scan's result is always confirmed against the whole map: no need to decide twice
     if not confirm:

@@ -88,7 +88,7 @@ def _levelled_attempts(attempt: Attempt, pm: PreparedMap, scan_cloud, scan_xyz: 
     ``scan_xyz`` is :func:`~minegeo.localize.scan.scan_points` of ``scan_cloud``."""
     P_raw, org = scan_xyz
     p_l = replace(p, ransac=replace(p.ransac, model="levelled", ransac_n=2, max_tilt_deg=min(90.0, tilt),
-                                    normal_angle_threshold_rad=None), gravity_fallback=False)
+                                    normal_angle_threshold_rad=None), gravity_fallback=None)
     attempts: list[dict] = []
     attempt_s: list[float] = []  # seconds per levelled attempt -> timings_s["gravity_attempt_k"]
     res_l = R4 = None
@@ -128,7 +128,7 @@ def gravity_fallback(pm: PreparedMap, scan_cloud, trajectory, p: LocalizeParams,
     P_raw, org = scan_points(scan_cloud)
     announce(progress, "gravity")
     try:
-        est = estimate_up(P_raw + org, params=p.gravity_params)
+        est = estimate_up(P_raw + org, params=p.gravity_fallback.estimate)
     except MinegeoError as e:  # too few points for the estimate: keep the 6-DOF answer
         log.debug("gravity fallback: no up estimate (%s)", e)
         return res_6dof
@@ -139,8 +139,8 @@ def gravity_fallback(pm: PreparedMap, scan_cloud, trajectory, p: LocalizeParams,
         res_6dof.timings_s["gravity"] = t_est
         res_6dof.warnings.append(f"gravity fallback not tried: up estimate {est.status} ({est.reason})")
         return res_6dof
-    tilt = max(float(p.gravity_fallback_tilt_deg), float(est.cone95_deg)) if math.isfinite(est.cone95_deg) \
-        else float(p.gravity_fallback_tilt_deg)
+    tilt = max(float(p.gravity_fallback.tilt_deg), float(est.cone95_deg)) if math.isfinite(est.cone95_deg) \
+        else float(p.gravity_fallback.tilt_deg)
     thetas, lo, hi = tilt_schedule(est, tilt)
     lev = _levelled_attempts(attempt, pm, scan_cloud, (P_raw, org), trajectory, p, seed, progress, est, tilt,
                              thetas)
@@ -183,12 +183,12 @@ def six_dof_rival(res_6dof, res_ok, p: LocalizeParams, centre: np.ndarray) -> st
     if not hyps_ok:
         return "no verified placement"
     pf_a, pff_a = float(hyps_ok[0]["plane_fitness"]), float(hyps_ok[0].get("fine_fitness", hyps_ok[0]["plane_fitness"]))
-    amb, fine = p.ambiguity_ratios(res_ok.n_scan_down < int(p.correlative_confirm_below_points))
+    amb, fine = p.ambiguity.ratios(res_ok.n_scan_down < int(p.ambiguity.small_scan_below_points))
     for h in res_6dof.hypotheses or []:
         if "screened out" in h["source"]:
             continue
         dist, ang = hypothesis_distance(res_ok.T_map_scan, h["T_map_scan"], centre)
-        if dist <= p.ambiguity_distance_m and ang <= p.ambiguity_angle_deg:
+        if dist <= p.ambiguity.distance_m and ang <= p.ambiguity.angle_deg:
             continue
         pff = float(h.get("fine_fitness", h["plane_fitness"]))
         if float(h["plane_fitness"]) >= amb * pf_a and pff >= fine * pff_a:

@@ -58,12 +58,12 @@ class CorrelativeHypotheses:
     def record(self, p: LocalizeParams) -> dict:
         """``LocalizationResult.correlative``."""
         return {**self.result.to_dict(), "precheck_plane_fitness": list(self.precheck),
-                "precheck_ratio": float(p.correlative_precheck_ratio)}
+                "precheck_ratio": float(p.correlative.precheck_ratio)}
 
 
 def ransac_hypotheses(pm: PreparedMap, sf: ScanFeatures, p: LocalizeParams, run: RunContext) -> Hypotheses:
     """``p.ransac_runs`` RANSAC runs of the scan's features against the map's, and their distinct
-    hypotheses (``ambiguity_distance_m`` / ``ambiguity_angle_deg`` apart about the scan centroid).
+    hypotheses (``ambiguity.distance_m`` / ``ambiguity.angle_deg`` apart about the scan centroid).
     The first run draws from ``run.seed``, the others from seeds drawn by
     ``np.random.default_rng(run.seed)``. Records ``ransac`` seconds in ``run.timings``."""
     with run.timed("ransac", "RANSAC"):
@@ -103,25 +103,25 @@ def correlative_hypotheses(ctx: VerifyContext, pm: PreparedMap, uniq: list[Candi
                            run: RunContext) -> CorrelativeHypotheses:
     """The correlative 4-DOF search of the whole map (levelled scans; its draws from ``run.seed``):
     its candidates whose plane fitness before ICP (feature-level scan at the refined 4-DOF placement)
-    reaches ``correlative_precheck_ratio`` of the best such score and that are distinct from the list
+    reaches ``correlative.precheck_ratio`` of the best such score and that are distinct from the list
     so far are appended to ``uniq``. Records ``correlative`` seconds in ``run.timings``."""
     p, sf = ctx.p, ctx.scan
     run.announce("correlative search")
     t0 = time.perf_counter()
-    cp = p.correlative_params
+    cp = p.correlative.search
     occ = pm.occupancy(cp)
     ref_xy = None
     if trajectory is not None and isinstance(trajectory, Trajectory) and len(trajectory.poses):
         ref_xy = np.median(np.asarray(trajectory.poses)[:, :2, 3] + np.asarray(trajectory.origin)[:2]
                            - sf.scan_origin[:2], axis=0)
-    corr = correlative_candidates(occ, sf.D, sf.Nd, p.correlative_params, seed=run.seed, reference_xy=ref_xy,
+    corr = correlative_candidates(occ, sf.D, sf.Nd, p.correlative.search, seed=run.seed, reference_xy=ref_xy,
                                   refine_target=(pm.target_index(), ctx.Qf, ctx.Nf),
                                   screen_target=pm.screen_target(cp.screen_voxel_size_m),
                                   screen_grid=(pm.screen_grid(cp.screen_voxel_size_m)
                                                if cp.screen_grid and cp.screen_voxel_size_m is not None else None))
     # pre-check without ICP: plane fitness of the feature-level scan at each refined placement
     pre = [verify(sf.D, Tc, ctx.Qf, ctx.Nf, ctx.tree, ctx.gate, ctx.tol)[0] for Tc, _ in corr.candidates]
-    bar = float(p.correlative_precheck_ratio) * max(pre, default=0.0)
+    bar = float(p.correlative.precheck_ratio) * max(pre, default=0.0)
     out = list(uniq)
     for k, (Tc, frac) in enumerate(corr.candidates):
         if pre[k] >= bar and all(distinct(Tc, u[1], sf.centre, p) for u in out):

@@ -1,6 +1,6 @@
 """Settings of the localization's optional stages: the correlative search, the rival check, the up estimate, the uncertainty.
 
-These dataclasses are fields of :class:`~minegeo.localize.params.LocalizeParams` and are importable
+These dataclasses are fields (or parts of fields) of :class:`~minegeo.localize.params.LocalizeParams` and are importable
 from :mod:`minegeo.localize.params`.
 
 Units: lengths in metres (``_m``), angles in degrees (``_deg``) unless named ``_rad``.
@@ -8,12 +8,11 @@ Units: lengths in metres (``_m``), angles in degrees (``_deg``) unless named ``_
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
+import typing
+from dataclasses import dataclass
+from typing import Literal
 
-import numpy as np
-
-from minegeo._validate import check_positive
+from minegeo._params import bounded, flag, group, one_of, validate
 from minegeo.errors import InputError
 
 
@@ -80,47 +79,62 @@ class CorrelativeParams:
         the heading differs by more than ``distinct_deg``.
     """
 
-    cell_size_m: float = 0.5
-    dilation_cells: int = 1
-    yaw_step_deg: float = 3.0
-    max_scan_points: int = 96
-    early_miss_slack: float = 4.0
-    max_refine_points: int = 200
-    min_hit_fraction: float = 0.6
-    anchor_max_tilt_deg: float = 25.0
-    sample_radius_m: float = 15.0
-    n_coarse: int = 8000
-    screen_points: int = 64
-    screen_voxel_size_m: float | None = 0.5
-    screen_grid: bool = True
-    n_refine: int = 300
-    refine_iterations: int = 4
-    refine_tolerance_m: float = 0.2
-    n_candidates: int = 24
-    distinct_m: float = 1.5
-    distinct_deg: float = 10.0
+    cell_size_m: float = bounded(0.5, gt=0.0)
+    dilation_cells: int = bounded(1, ge=0, integer=True)
+    yaw_step_deg: float = bounded(3.0, gt=0.0)
+    max_scan_points: int = bounded(96, ge=1, integer=True)
+    early_miss_slack: float = bounded(4.0, gt=0.0)
+    max_refine_points: int = bounded(200, ge=1, integer=True)
+    min_hit_fraction: float = bounded(0.6, gt=0.0, le=1.0)
+    anchor_max_tilt_deg: float = bounded(25.0, gt=0.0, lt=90.0)
+    sample_radius_m: float = bounded(15.0, gt=0.0)
+    n_coarse: int = bounded(8000, ge=1, integer=True)
+    screen_points: int = bounded(64, ge=1, integer=True)
+    screen_voxel_size_m: float | None = bounded(0.5, gt=0.0, optional=True)
+    screen_grid: bool = flag(True)
+    n_refine: int = bounded(300, ge=1, integer=True)
+    refine_iterations: int = bounded(4, ge=1, integer=True)
+    refine_tolerance_m: float = bounded(0.2, gt=0.0)
+    n_candidates: int = bounded(24, ge=1, integer=True)
+    distinct_m: float = bounded(1.5, gt=0.0)
+    distinct_deg: float = bounded(10.0, gt=0.0)
 
     def __post_init__(self):
-        check_positive(self.cell_size_m, "CorrelativeParams.cell_size_m")
-        check_positive(self.yaw_step_deg, "CorrelativeParams.yaw_step_deg")
-        check_positive(self.distinct_m, "CorrelativeParams.distinct_m")
-        check_positive(self.distinct_deg, "CorrelativeParams.distinct_deg")
-        check_positive(self.sample_radius_m, "CorrelativeParams.sample_radius_m")
-        check_positive(self.early_miss_slack, "CorrelativeParams.early_miss_slack")
-        check_positive(self.refine_tolerance_m, "CorrelativeParams.refine_tolerance_m")
-        if self.screen_voxel_size_m is not None:
-            check_positive(self.screen_voxel_size_m, "CorrelativeParams.screen_voxel_size_m")
-        if not isinstance(self.screen_grid, (bool, np.bool_)):
-            raise InputError(f"CorrelativeParams.screen_grid must be True or False, got {self.screen_grid!r}")
-        for name in ("dilation_cells", "max_scan_points", "n_candidates", "n_coarse", "refine_iterations", "screen_points", "n_refine",
-                     "max_refine_points"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or int(v) != v or v < (0 if name == "dilation_cells" else 1):
-                raise InputError(f"CorrelativeParams.{name} must be a positive integer, got {v!r}")
-        if not 0.0 < float(self.min_hit_fraction) <= 1.0:
-            raise InputError(f"CorrelativeParams.min_hit_fraction must be in (0, 1], got {self.min_hit_fraction!r}")
-        if not 0.0 < float(self.anchor_max_tilt_deg) < 90.0:
-            raise InputError("CorrelativeParams.anchor_max_tilt_deg must be in (0, 90) deg")
+        validate(self)
+
+
+#: When the correlative search of a levelled scan runs (``CorrelativeStageParams.mode``).
+CorrelationMode = Literal["fallback", "always"]
+
+
+@dataclass(frozen=True)
+class CorrelativeStageParams:
+    """The correlative stage of a levelled localization (``LocalizeParams.correlative``; None there: off).
+
+    Attributes
+    ----------
+    mode : {"fallback", "always"}
+        ``"fallback"`` (default): the whole-map candidates are added only when the RANSAC
+        hypotheses do not give an ``ok`` result, or after an ``ok`` result of a small scan
+        (``AmbiguityParams.small_scan_below_points``); ``"always"``: on every levelled scan.
+    precheck_ratio : float
+        The whole-map candidates are first scored without ICP (plane fitness of the
+        feature-level scan at the refined 4-DOF placement, the same test as the
+        verification); only those reaching this fraction of the best such score get ICP and
+        the full verification (0 keeps all). The ambiguity test compares *refined* scores
+        with ``AmbiguityParams.ratio`` (0.9): a placement below 0.7 of the best before ICP would
+        have to gain ~30 % more than the best by ICP to become a rival (not seen in the
+        studies; measured in docs/localization.md). Their pre-check scores are recorded.
+    search : CorrelativeParams
+        Its grid and refinement settings.
+    """
+
+    mode: CorrelationMode = one_of("fallback", CorrelationMode)
+    precheck_ratio: float = bounded(0.7, ge=0.0, le=1.0)
+    search: CorrelativeParams = group(CorrelativeParams)
+
+    def __post_init__(self):
+        validate(self)
 
 
 @dataclass(frozen=True)
@@ -160,32 +174,19 @@ class RivalParams:
         ... applied when at least this fraction of the scan points is covered at both.
     """
 
-    search: CorrelativeParams = field(default_factory=CorrelativeParams)
-    precheck_ratio: float = 0.8
-    precheck_matched_ratio: float = 0.9
-    max_fine_icp: int = 8
-    cover_slack: float = 0.15
-    cover_max_factor: float = 4.0
-    translation_pivots: int = 4
-    translation_headings: int = 1
-    matched_ratio: float = 0.95
-    min_common_fraction: float = 0.5
+    search: CorrelativeParams = group(CorrelativeParams)
+    precheck_ratio: float = bounded(0.8, ge=0.0, le=1.0)
+    precheck_matched_ratio: float = bounded(0.9, ge=0.0, le=1.0)
+    max_fine_icp: int = bounded(8, ge=1, integer=True)
+    cover_slack: float = bounded(0.15, ge=0.0, le=1.0)
+    cover_max_factor: float = bounded(4.0, ge=1.0)
+    translation_pivots: int = bounded(4, ge=0, integer=True)
+    translation_headings: int = bounded(1, ge=0, integer=True)
+    matched_ratio: float = bounded(0.95, ge=0.0, le=1.0)
+    min_common_fraction: float = bounded(0.5, ge=0.0, le=1.0)
 
     def __post_init__(self):
-        if not isinstance(self.search, CorrelativeParams):
-            raise InputError("RivalParams.search must be a CorrelativeParams")
-        for name in ("precheck_ratio", "precheck_matched_ratio", "cover_slack", "matched_ratio",
-                     "min_common_fraction"):
-            v = float(getattr(self, name))
-            if not 0.0 <= v <= 1.0:
-                raise InputError(f"RivalParams.{name} must be in [0, 1], got {v!r}")
-        if not (math.isfinite(float(self.cover_max_factor)) and float(self.cover_max_factor) >= 1.0):
-            raise InputError(f"RivalParams.cover_max_factor must be >= 1, got {self.cover_max_factor!r}")
-        for name in ("max_fine_icp", "translation_pivots", "translation_headings"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or int(v) != v or v < (1 if name == "max_fine_icp" else 0):
-                raise InputError(f"RivalParams.{name} must be a non-negative integer, got {v!r}")
-        check_positive(self.search.distinct_m, "RivalParams.search.distinct_m")
+        validate(self)
 
 
 # ----------------------------------------------------------------------------- gravity
@@ -257,64 +258,72 @@ class GravityParams:
         ``max_points`` points).
     """
 
-    max_points: int = 20000
-    min_points: int = 200
-    density_radius_m: float = 0.5
-    normal_radius_m: float = 0.5
-    normal_max_nn: int = 64
-    n_directions: int = 2000
-    plane_band_m: float = 0.3
-    min_drift_height_m: float = 2.0
-    floor_residual_scale_m: float = 0.6
-    floor_max_tilt_deg: float = 45.0
-    wall_max_tilt_deg: float = 25.0
-    wall_min_height_m: float = 0.4
-    min_wall_spread: float = 0.1
-    max_slope_deg: float = 15.0
-    n_blocks: int = 8
-    min_floor_fraction: float = 0.04
-    min_floor_score: float = 0.04
-    mode_radius_deg: float = 15.0
-    min_mode_ratio: float = 0.5
-    min_perp_ratio: float = 0.5
-    column_cell_m: float = 1.0
-    floor_flat_deg: float = 25.0
-    roof_flank_max_deg: float = 70.0
-    min_void_fraction: float = 0.15
-    ambiguity_ratio: float = 0.8
-    min_rival_angle_deg: float = 30.0
-    n_rivals: int = 8
-    seed: int = 0
+    max_points: int = bounded(20000, ge=0, integer=True)
+    min_points: int = bounded(200, ge=0, integer=True)
+    density_radius_m: float = bounded(0.5, gt=0.0)
+    normal_radius_m: float = bounded(0.5, gt=0.0)
+    normal_max_nn: int = bounded(64, ge=0, integer=True)
+    n_directions: int = bounded(2000, ge=100, integer=True)
+    plane_band_m: float = bounded(0.3, gt=0.0)
+    min_drift_height_m: float = bounded(2.0, gt=0.0)
+    floor_residual_scale_m: float = bounded(0.6, gt=0.0)
+    floor_max_tilt_deg: float = bounded(45.0, gt=0.0, lt=90.0)
+    wall_max_tilt_deg: float = bounded(25.0, gt=0.0, lt=90.0)
+    wall_min_height_m: float = bounded(0.4, gt=0.0)
+    min_wall_spread: float = bounded(0.1, ge=0.0, le=1.0)
+    max_slope_deg: float = bounded(15.0, gt=0.0, lt=90.0)
+    n_blocks: int = bounded(8, ge=4, integer=True)
+    min_floor_fraction: float = bounded(0.04, ge=0.0, le=1.0)
+    min_floor_score: float = bounded(0.04, ge=0.0, le=1.0)
+    mode_radius_deg: float = bounded(15.0, gt=0.0, lt=90.0)
+    min_mode_ratio: float = bounded(0.5, ge=0.0, le=1.0)
+    min_perp_ratio: float = bounded(0.5, ge=0.0, le=1.0)
+    column_cell_m: float = bounded(1.0, gt=0.0)
+    floor_flat_deg: float = bounded(25.0, gt=0.0, lt=90.0)
+    roof_flank_max_deg: float = bounded(70.0, gt=0.0, lt=90.0)
+    min_void_fraction: float = bounded(0.15, ge=0.0, le=1.0)
+    ambiguity_ratio: float = bounded(0.8, ge=0.0, le=1.0)
+    min_rival_angle_deg: float = bounded(30.0, gt=0.0, lt=90.0)
+    n_rivals: int = bounded(8, ge=0, integer=True)
+    seed: int = bounded(0, ge=0, integer=True)
 
     def __post_init__(self):
-        for name in ("max_points", "min_points", "normal_max_nn", "n_directions", "n_blocks", "n_rivals", "seed"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
-                raise InputError(f"GravityParams.{name} must be an integer >= 0, got {v!r}")
+        validate(self)
         if self.min_points < 3 or self.max_points < max(self.min_points, 3):
             raise InputError("GravityParams: need 3 <= min_points <= max_points")
-        if self.n_blocks < 4:
-            raise InputError(f"GravityParams.n_blocks must be >= 4, got {self.n_blocks}")
-        if self.n_directions < 100:
-            raise InputError(f"GravityParams.n_directions must be >= 100, got {self.n_directions}")
-        for name in ("density_radius_m", "normal_radius_m", "plane_band_m", "min_drift_height_m",
-                     "floor_residual_scale_m", "wall_min_height_m", "column_cell_m"):
-            check_positive(getattr(self, name), f"GravityParams.{name}")
-        for name in ("floor_max_tilt_deg", "wall_max_tilt_deg", "max_slope_deg", "min_rival_angle_deg",
-                     "floor_flat_deg", "roof_flank_max_deg", "mode_radius_deg"):
-            v = float(getattr(self, name))
-            if not 0.0 < v < 90.0:
-                raise InputError(f"GravityParams.{name} must be in (0, 90) degrees, got {v}")
-        for name in ("min_wall_spread", "min_floor_fraction", "min_void_fraction", "ambiguity_ratio",
-                     "min_floor_score", "min_perp_ratio", "min_mode_ratio"):
-            v = float(getattr(self, name))
-            if not 0.0 <= v <= 1.0:
-                raise InputError(f"GravityParams.{name} must be in [0, 1], got {v}")
+
+
+def _fallback_gravity() -> GravityParams:
+    return GravityParams(max_points=5000)
+
+
+@dataclass(frozen=True)
+class GravityFallbackParams:
+    """The gravity fallback of a failed 6-DOF scan (``LocalizeParams.gravity_fallback``; None there: off).
+
+    Attributes
+    ----------
+    tilt_deg : float
+        Tilt tolerance of the levelled attempt (as ``--levelled``), deg, raised to the up
+        estimate's own 95 % cone when that is wider.
+    estimate : GravityParams
+        Settings of the up estimate (a 5 000-point area-uniform sample: 4x faster than the
+        estimator's default 20 000, the same accuracy on the study scans: 0.25-0.4 deg on level
+        drifts).
+    """
+
+    tilt_deg: float = bounded(3.0, gt=0.0, le=90.0)
+    estimate: GravityParams = group(GravityParams, _fallback_gravity)
+
+    def __post_init__(self):
+        validate(self)
 
 
 # ----------------------------------------------------------------------------- pose uncertainty
+#: Pose covariance estimators (``UncertaintyParams.method``).
+UncertaintyMethod = Literal["formal", "cluster", "jackknife"]
 #: Available estimators.
-UNCERTAINTY_METHODS = ("formal", "cluster", "jackknife")
+UNCERTAINTY_METHODS = typing.get_args(UncertaintyMethod)
 #: of the two-way calibration study (docs/uncertainty.md).
 REGISTRATION_SIGMA_M = 8e-4
 
@@ -351,28 +360,16 @@ class UncertaintyParams:
         normalised constraint matrix (:func:`minegeo.registration.icp.constraint_analysis`) has
         ``λ_min / λ_max`` below this: a direction the surfaces do not constrain (sliding along a
         straight featureless drift, in-plane motion on one plane) gets no honest small number.
-        Default 0.01, the pipeline's ``LocalizeParams.degeneracy_ratio``.
+        Default 0.01, the pipeline's ``VerifyParams.degeneracy_ratio``.
     """
 
-    method: str = "jackknife"
-    cluster_size_m: float = 4.0
-    min_clusters: int = 12
-    map_sigma_m: float = 0.0
-    registration_sigma_m: float = REGISTRATION_SIGMA_M
-    add_pending_step: bool = True
-    degeneracy_ratio: float = 1e-2
+    method: UncertaintyMethod = one_of("jackknife", UncertaintyMethod)
+    cluster_size_m: float = bounded(4.0, gt=0.0)
+    min_clusters: int = bounded(12, ge=2, integer=True)
+    map_sigma_m: float = bounded(0.0, ge=0.0)
+    registration_sigma_m: float = bounded(REGISTRATION_SIGMA_M, ge=0.0)
+    add_pending_step: bool = flag(True)
+    degeneracy_ratio: float = bounded(1e-2, ge=0.0, lt=1.0)
 
     def __post_init__(self):
-        if self.method not in UNCERTAINTY_METHODS:
-            raise InputError(f"uncertainty method must be one of {UNCERTAINTY_METHODS}, got {self.method!r}")
-        check_positive(self.cluster_size_m, "cluster_size_m")
-        check_positive(self.map_sigma_m, "map_sigma_m", allow_zero=True)
-        check_positive(self.registration_sigma_m, "registration_sigma_m", allow_zero=True)
-        v = self.min_clusters
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
-            raise InputError(f"min_clusters must be an integer >= 2, got {v!r}")
-        r = float(self.degeneracy_ratio)
-        if not (np.isfinite(r) and 0.0 <= r < 1.0):
-            raise InputError(f"degeneracy_ratio must be in [0, 1), got {self.degeneracy_ratio!r}")
-        if not isinstance(self.add_pending_step, (bool, np.bool_)):
-            raise InputError(f"add_pending_step must be True or False, got {self.add_pending_step!r}")
+        validate(self)

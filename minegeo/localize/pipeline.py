@@ -12,7 +12,7 @@ Pipeline (:func:`localize_scan`), each stage timed:
    hypothesis with the highest ICP fitness wins (multi-hypothesis verification: mine drifts
    repeat themselves, and a RANSAC score alone can prefer a look-alike drift);
 4. ``decision``: ``status`` = ``ok`` / ``ambiguous`` / ``failed`` with the reason (below); an
-   ``ok`` decision is first checked by the whole-map rival search (``rival_search``);
+   ``ok`` decision is first checked by the whole-map rival search (``LocalizeParams.rival``);
 5. ``covariance``: ``Σ = σ² (JᵀJ)⁻¹`` of the final fit and the 95 % position uncertainty of
    the scan origin;
 6. ``trajectory``: the sensor trajectory moved into the map and the CRS ([Baek2022 Eq. 18]):
@@ -43,19 +43,19 @@ frames), :mod:`~minegeo.localize.hypotheses` (2: RANSAC, correlative search),
 Decision rules (all thresholds in :class:`LocalizeParams`)
 ----------------------------------------------------------
 ``failed``     RANSAC found no hypothesis; or the chosen placement's verification score (fraction
-               of scan points within ``verify_plane_tolerance_m`` of the map's tangent planes)
-               is below ``min_plane_fitness``; or the best ICP fitness (fraction of scan points
-               with a map point within the ICP gate) is below ``min_fitness``; or its inlier
-               RMSE ([Baek2022 Eq. 19]) exceeds ``max_inlier_rmse_m``.
-``ambiguous``  another refined hypothesis placing the scan more than ``ambiguity_distance_m``
-               (or ``ambiguity_angle_deg``) away reaches ``ambiguity_ratio`` × the best ICP
+               of scan points within ``verify.plane_tolerance_m`` of the map's tangent planes)
+               is below ``verify.min_plane_fitness``; or the best ICP fitness (fraction of scan points
+               with a map point within the ICP gate) is below ``verify.min_fitness``; or its inlier
+               RMSE ([Baek2022 Eq. 19]) exceeds ``verify.max_inlier_rmse_m``.
+``ambiguous``  another refined hypothesis placing the scan more than ``ambiguity.distance_m``
+               (or ``ambiguity.angle_deg``) away reaches ``ambiguity.ratio`` × the best ICP
                fitness (a look-alike drift); or, before an ``ok``, the **whole-map rival
-               search** at the chosen attitude (``rival_search``, :mod:`minegeo.localize.rivals`)
+               search** at the chosen attitude (``LocalizeParams.rival``, :mod:`minegeo.localize.rivals`)
                finds a placement that reaches that ratio or, on the scan points the map covers
                at both places, fits as well (``RivalParams.matched_ratio``: an exact copy of the
                drift on another level); or the ICP constraint matrix is degenerate
                (smallest / largest eigenvalue of the normalised point-to-plane constraint
-               matrix < ``degeneracy_ratio``, e.g. sliding along a straight featureless drift).
+               matrix < ``verify.degeneracy_ratio``, e.g. sliding along a straight featureless drift).
 ``ok``         otherwise; ``rival_search`` then names the best rival and the margin.
 """
 
@@ -139,7 +139,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
     and ``register_gicp`` return the flag (``degenerate``, ``degeneracy_reason``) and log it at DEBUG
     level only, the caller deciding what to tell. The chosen fit's weak direction is judged once,
     after the covariance: if its 95 % displacement over the scan exceeds
-    ``max_weak_displacement_95_m`` the result is ``ambiguous`` and ``reason`` says so;
+    ``verify.max_weak_displacement_95_m`` the result is ``ambiguous`` and ``reason`` says so;
     otherwise it does not change the answer (the covariance, hence the 95 % radius, already
     contains it) and it is a note in ``warnings`` (result.json and the report), not a logged
     warning. The outcome itself is logged at DEBUG level: the caller reports ``status``.
@@ -163,7 +163,7 @@ def localize_scan(prepared_map: PreparedMap, scan_cloud, trajectory: Trajectory 
         raise InputError(f"seed must be an integer >= 0, got {seed!r}")
     seed = int(seed)
     res = _localize_scan(prepared_map, scan_cloud, trajectory, p, seed, progress)
-    if res.status in ("failed", "ambiguous") and p.gravity_fallback and p.ransac.model == "rigid":
+    if res.status in ("failed", "ambiguous") and p.gravity_fallback is not None and p.ransac.model == "rigid":
         res = gravity_fallback(prepared_map, scan_cloud, trajectory, p, seed, progress, res, _localize_scan)
     return res
 
@@ -180,12 +180,12 @@ def _localize_scan(pm: PreparedMap, scan_cloud, trajectory, p: LocalizeParams, s
     dec, corr = verify_and_decide(ctx, pm, hy, trajectory, run)  # 3-4. ICP, decision
     warnings.extend(dec.warnings)
     rival_record = None
-    if p.rival_search and dec.status == "ok" and dec.ic_best is not None:
+    if p.rival is not None and dec.status == "ok" and dec.ic_best is not None:
         # 4a. whole-map rival search at the chosen attitude (minegeo addition): no `ok`
         #     before it is established that no other placement explains the scan nearly as well
         dec, rival_record = check_rivals(ctx, pm, dec, hy.r0, trajectory, run)
     pol, ic_final = None, dec.ic_best  # pose and covariance; the reported ICP statistics stay the decision's
-    if p.icp_polish_correspondence_m is not None and dec.ic_best is not None:
+    if p.icp.polish_correspondence_m is not None and dec.ic_best is not None:
         # 4b. polish (minegeo addition): point-to-plane with a tight gate from the chosen pose
         run.announce("polish")
         t0 = time.perf_counter()
@@ -194,7 +194,7 @@ def _localize_scan(pm: PreparedMap, scan_cloud, trajectory, p: LocalizeParams, s
             ic_final = pol.ic
         else:
             warnings.append(f"the tight-gate polish would move the scan by {pol.record['largest_shift_m']:.3f} m (> "
-                            f"{p.max_pending_step_m:g} m) or left too few pairs: not applied")
+                            f"{p.verify.max_pending_step_m:g} m) or left too few pairs: not applied")
         timings["polish"] = time.perf_counter() - t0
     # 5. covariance (about the scan origin, work frame) and the checks that use it
     run.announce("uncertainty")

@@ -106,7 +106,7 @@ class LocalizationResult:
         weakest direction) and ``model_terms`` (each added term by name, e.g.
         ``registration_floor``, ``pending_step``, ``weak_axis_polish``; data + terms = ``covariance_6x6``).
     plane_tolerance_m : float
-        Plane-distance tolerance used by the verification (m; see ``verify_noise_factor``).
+        Plane-distance tolerance used by the verification (m; see ``verify.noise_factor``).
     scan_noise_m : float
         The scan's surface noise ``σ_surf`` (m; NaN when not measured).
     n_scan_points, n_scan_down, n_scan_icp : int
@@ -116,7 +116,7 @@ class LocalizationResult:
         ``precheck_plane_fitness`` of every candidate and the ``precheck_ratio`` that kept
         some of them), else None.
     polish : dict or None
-        Record of the tight-gate polish (``LocalizeParams.icp_polish_correspondence_m``):
+        Record of the tight-gate polish (``LocalizeParams.icp.polish_correspondence_m``):
         gate, whether it was applied, largest shift of a scan point (m), its ICP statistics.
         When applied, ``T_map_scan`` and the covariance come from it; ``fitness``,
         ``inlier_rmse_m`` and ``icp`` stay those of the decision's ICP.
@@ -124,14 +124,14 @@ class LocalizationResult:
         Record of ``LocalizeParams.gravity_fallback`` when it ran: the up estimate (status,
         ``up_scan``, 95 % cone), the levelled attempt's status and reason, ``R_levelled_scan``.
     rival_search : dict or None
-        Record of the whole-map rival search (``LocalizeParams.rival_search``) when it ran
+        Record of the whole-map rival search (``LocalizeParams.rival``) when it ran
         (the result would otherwise have been ``ok``): ``best_rival`` (the strongest distinct
         verified placement other than the chosen one, from this search or the pipeline's own
         hypotheses: ``T_map_scan`` and ``origin_map_m`` in the map frame, **not a position** —
         a rejected rival —, ``plane_fitness``, ``distance_to_chosen_m``,
         ``rotation_to_chosen_deg``, ``common_fraction``, ``matched_ratio``, ``test_passed``,
         ``source``), ``margin`` (chosen / best rival plane fitness; inf without a rival),
-        ``matched_ratio``, ``ambiguity_ratio``, ``self_rank`` / ``self_found``, ``covered``,
+        ``matched_ratio``, ``ambiguity.ratio``, ``self_rank`` / ``self_found``, ``covered``,
         ``guarantee`` and the search's ``candidates``
         (:meth:`~minegeo.localize.rivals.RivalSearch.to_dict`). No times (they are in
         ``timings_s``: ``rival_search`` and its parts ``rival_search_*``), so equal inputs give
@@ -221,7 +221,7 @@ class LocalizationResult:
                 "n_correspondences": int(r.correspondences.shape[0]), "T_map_scan": self.ransac_T_map_scan,
             },
             "icp": None if ic is None else {
-                "method": self.params.icp_method, "fitness": ic.fitness, "inlier_rmse_m": ic.inlier_rmse_m,
+                "method": self.params.icp.method, "fitness": ic.fitness, "inlier_rmse_m": ic.inlier_rmse_m,
                 "iterations": ic.iterations, "converged": ic.converged, "status": ic.status,
                 "degenerate": ic.degenerate, "degeneracy_ratio": ic.degeneracy_ratio,
                 "degeneracy_reason": ic.degeneracy_reason,

@@ -69,7 +69,7 @@ def _search(ctx: VerifyContext, pm: PreparedMap, Tb: np.ndarray, trajectory, fin
     ``run.timings`` (``rival_search_*``)."""
     timings = run.timings
     p, sf = ctx.p, ctx.scan
-    rp = p.rival_params
+    rp = p.rival
     cp = rp.search
     t0 = time.perf_counter()
     occ = pm.occupancy(cp)
@@ -82,8 +82,8 @@ def _search(ctx: VerifyContext, pm: PreparedMap, Tb: np.ndarray, trajectory, fin
         return _masks(ctx, sf.D if level == "feature" else sf.Dfine, Ts) if Ts else []
 
     rs = search_rivals(occ, sf.D, sf.Nd, Tb, params=rp, seed=run.seed, centre=sf.centre,
-                       ambiguity_distance_m=float(p.ambiguity_distance_m),
-                       ambiguity_angle_deg=float(p.ambiguity_angle_deg), support=_support,
+                       ambiguity_distance_m=float(p.ambiguity.distance_m),
+                       ambiguity_angle_deg=float(p.ambiguity.angle_deg), support=_support,
                        fine=lambda T: refine_and_verify(ctx, sf.Dfine, T),
                        reference_point=reference_point(trajectory, sf.scan_origin),
                        refine_target=(pm.target_index(), ctx.Qf, ctx.Nf), screen_target=screen_target,
@@ -135,7 +135,7 @@ def _pool(ctx: VerifyContext, rs: RivalSearch, own_hyps: list, Tb: np.ndarray, c
                          "matched_ratio": c.pre_matched_ratio, "distance_to_chosen_m": c.distance_m,
                          "rotation_to_chosen_deg": c.rotation_deg})
     own = [h for h in own_hyps[1:] if "screened out" not in h["source"]
-           and (h["distance_to_chosen_m"] > p.ambiguity_distance_m or h["rotation_to_chosen_deg"] > p.ambiguity_angle_deg)]
+           and (h["distance_to_chosen_m"] > p.ambiguity.distance_m or h["rotation_to_chosen_deg"] > p.ambiguity.angle_deg)]
     if own:
         m = _masks(ctx, ctx.scan.Dfine, [Tb] + [fm(h["T_map_scan"]) for h in own])
         for h, mk in zip(own, m[1:], strict=True):
@@ -153,7 +153,7 @@ def _pool(ctx: VerifyContext, rs: RivalSearch, own_hyps: list, Tb: np.ndarray, c
 def _rank_pool(ctx: VerifyContext, pool: list, pf_best: float, pff_best: float) -> None:
     """Score every pooled rival in place (``margin``, ``test_passed``, ``closeness``: how close to
     either test, 1 = on a threshold) and sort the pool, the rival closest to a test first."""
-    rp = ctx.p.rival_params
+    rp = ctx.p.rival
     amb_ratio, fine_ratio = ctx.amb_ratio, ctx.fine_ratio
     for b in pool:
         b["margin"] = (b["chosen_plane_fitness"] / b["plane_fitness"]) if b["plane_fitness"] > 0 else math.inf
@@ -173,7 +173,7 @@ def _rank_pool(ctx: VerifyContext, pool: list, pf_best: float, pff_best: float) 
 
 def _record(ctx: VerifyContext, rs: RivalSearch, best_r: dict | None, pf_best: float, pff_best: float, tm) -> dict:
     """``LocalizationResult.rival_search``: the search's record, the ratios and the best rival."""
-    rp = ctx.p.rival_params
+    rp = ctx.p.rival
     amb_ratio = ctx.amb_ratio
     record = {**rs.to_dict(tm), "ambiguity_ratio": amb_ratio, "chosen_plane_fitness": pf_best,
               "fine_ambiguity_ratio": ctx.fine_ratio, "chosen_fine_fitness": pff_best,
@@ -210,7 +210,7 @@ def _coverage_warnings(rs: RivalSearch) -> list[str]:
 
 def _verdict(ctx: VerifyContext, best_r: dict | None, reason: str, pf_best: float, pff_best: float) -> tuple[DecisionStatus, str]:
     """``("ambiguous", why)`` when the best pooled rival passes a test, else ``("ok", reason + margin)``."""
-    rp = ctx.p.rival_params
+    rp = ctx.p.rival
     amb_ratio, fine_ratio = ctx.amb_ratio, ctx.fine_ratio
     if best_r is not None and best_r["test_passed"]:
         b = best_r

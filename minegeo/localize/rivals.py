@@ -142,7 +142,7 @@ class RivalCandidate:
         After the full-resolution ICP (None when not given it).
     plane_fitness, plane_rmse_m, fine_fitness, icp_fitness, icp_inlier_rmse_m : float
         Verification of ``T_final`` (NaN without it); ``fine_fitness`` at the pipeline's fine
-        tolerance (``LocalizeParams.verify_fine_tolerance_m``; = ``plane_fitness`` when off).
+        tolerance (``LocalizeParams.verify.fine_tolerance_m``; = ``plane_fitness`` when off).
     icp_iterations : int
         Of the full-resolution ICP (0 without it).
     common_fraction, matched_ratio : float
@@ -278,7 +278,7 @@ def matched_support(best: tuple, other: tuple, fine_scale: float | None = None) 
         Per scan point: a map point within the ICP gate (``supported``) and, in addition,
         within the plane tolerance of that point's tangent plane (``on_plane``), as in the
         pipeline's plane fitness; ``on_fine``: within the fine tolerance
-        (``LocalizeParams.verify_fine_tolerance_m``).
+        (``LocalizeParams.verify.fine_tolerance_m``).
     fine_scale : float, optional
         Both placements are converged (after ICP): ``matched_ratio`` is the smaller of the
         ratio at the plane tolerance and ``fine_scale`` × the ratio at the fine tolerance (when
@@ -318,7 +318,7 @@ def rival_test(chosen_plane_fitness: float, plane_fitness: float, common_fractio
 
     With ``fine_fitness`` and ``chosen_fine_fitness`` (the agreement at the pipeline's fine
     tolerance), the plane-fitness test also needs ``fine_fitness >= fine_ratio ×
-    chosen_fine_fitness`` (``fine_ratio`` defaults to ``ambiguity_ratio``); ``matched_ratio``
+    chosen_fine_fitness`` (``fine_ratio`` defaults to ``ambiguity.ratio``); ``matched_ratio``
     should then be :func:`matched_support` with ``fine_scale = ambiguity_ratio / fine_ratio``.
     """
     fine_ok = True
@@ -454,7 +454,7 @@ def search_rivals(occupancy: MapOccupancy, D: np.ndarray, Nd: np.ndarray, T_best
         placements (the pipeline's ``centre``, the mean of ``D``).
     ambiguity_distance_m, ambiguity_angle_deg : float
         A rival must be farther than this distance (m) or angle (deg) from the chosen placement
-        (the pipeline's ``ambiguity_distance_m`` / ``ambiguity_angle_deg``).
+        (the pipeline's ``ambiguity.distance_m`` / ``ambiguity.angle_deg``).
     support : callable ``([T, ...], level) -> [(supported, on_plane), ...]``
         The pipeline's verification as per-point masks at each ``T`` (:func:`matched_support`),
         on the feature-level points (``level="feature"``; their mean of ``on_plane`` is the

@@ -45,7 +45,7 @@ class ScanFeatures:
         Centroid of ``D``: the point about which placements are compared
         (:func:`~minegeo.registration.ransac.hypothesis_distance`).
     small_scan : bool
-        Fewer feature-level points than ``LocalizeParams.correlative_confirm_below_points``
+        Fewer feature-level points than ``LocalizeParams.ambiguity.small_scan_below_points``
         (a small scan: narrower ambiguity margins, unscreened ICP).
     """
 
@@ -106,7 +106,7 @@ def scan_features(scan_cloud, p: LocalizeParams, run: RunContext) -> ScanFeature
         Dfine = np.ascontiguousarray(voxel_downsample(P_raw, float(p.scan_icp_voxel_size_m)).points)
     timings["downsample"] += time.perf_counter() - t0
     return ScanFeatures(P_raw=P_raw, scan_origin=scan_origin, D=D, Nd=Nd, F=F, Dfine=Dfine, centre=D.mean(axis=0),
-                        small_scan=D.shape[0] < int(p.correlative_confirm_below_points))
+                        small_scan=D.shape[0] < int(p.ambiguity.small_scan_below_points))
 
 
 def to_map(T_work_D: np.ndarray, scan_origin: np.ndarray, work_origin: np.ndarray) -> np.ndarray:

@@ -82,7 +82,7 @@ class VerifyContext:
     tree : KDTree
         Over ``Qf``.
     gate : float
-        ICP pair gate and verification gate, m (``icp_max_correspondence_m``).
+        ICP pair gate and verification gate, m (``icp.max_correspondence_m``).
     tol, tol_fine : float, float or None
         Plane and fine tolerances of :func:`verify`, m (widened by the scan's noise).
     scan_noise : float
@@ -90,11 +90,11 @@ class VerifyContext:
     amb_ratio, fine_ratio : float
         The ambiguity ratios at the two tolerances (the small scan's when ``scan.small_scan``).
     D_screen : (k, 3) ndarray
-        Feature-level points of the screening ICP (at most ``icp_screen_max_points``).
+        Feature-level points of the screening ICP (at most ``icp.screen_max_points``).
     icp_p, icp_screen : ICPParams or None
         Full-resolution and screening ICP settings (point-to-point / point-to-plane).
     gicp_p, gicp_cov, gicp_index : optional
-        GICP settings and the map's plane covariances and index (``icp_method == "gicp"``).
+        GICP settings and the map's plane covariances and index (``icp.method == "gicp"``).
     memo : dict
         ICP results already computed, by (stage, candidate name, initial pose bytes).
     """
@@ -120,18 +120,18 @@ class VerifyContext:
 
 
 def icp_params(p: LocalizeParams) -> ICPParams:
-    """The paper's ICP (Table 3 gate, iterations and convergence; ``p.icp_method``)."""
-    return ICPParams(max_correspondence_distance_m=float(p.icp_max_correspondence_m),
-                     max_iterations=int(p.icp_max_iterations), relative_fitness=float(p.icp_relative_fitness),
-                     relative_rmse=float(p.icp_relative_rmse), method=p.icp_method,
-                     degeneracy_ratio_threshold=float(p.degeneracy_ratio) if p.degeneracy_ratio > 0 else 1e-12)
+    """The paper's ICP (Table 3 gate, iterations and convergence; ``p.icp.method``)."""
+    return ICPParams(max_correspondence_distance_m=float(p.icp.max_correspondence_m),
+                     max_iterations=int(p.icp.max_iterations), relative_fitness=float(p.icp.relative_fitness),
+                     relative_rmse=float(p.icp.relative_rmse), method=p.icp.method,
+                     degeneracy_ratio_threshold=float(p.verify.degeneracy_ratio) if p.verify.degeneracy_ratio > 0 else 1e-12)
 
 
 def plane_icp_params(gate_m: float, p: LocalizeParams) -> ICPParams:
     """Point-to-plane ICP settings of minegeo's extra stages (coarse pull-in, polish): the given
     gate, the paper's iteration cap, 1e-6 convergence or a step below ``STAGE_STEP_M`` /
     ``STAGE_STEP_RAD``, no degeneracy verdict (the decision's)."""
-    return ICPParams(max_correspondence_distance_m=float(gate_m), max_iterations=int(p.icp_max_iterations),
+    return ICPParams(max_correspondence_distance_m=float(gate_m), max_iterations=int(p.icp.max_iterations),
                      relative_fitness=1e-6, relative_rmse=1e-6, method="point_to_plane",
                      degeneracy_ratio_threshold=1e-12, step_translation_m=STAGE_STEP_M,
                      step_rotation_rad=STAGE_STEP_RAD)
@@ -146,7 +146,7 @@ def verify(P: np.ndarray, T: np.ndarray, Q: np.ndarray, N: np.ndarray, tree, gat
     ``tol``; ``plane_rmse_m`` = RMS of those plane distances over the pairs within ``gate``.
     Unlike the point-to-point fitness it is not blurred by the map's point spacing.
     ``fine_fitness``: the same fraction with ``tol_fine`` (``plane_fitness`` when None;
-    ``LocalizeParams.verify_fine_tolerance_m``).
+    ``LocalizeParams.verify.fine_tolerance_m``).
     """
     X = P @ T[:3, :3].T + T[:3, 3]
     dist, idx = tree.query(X, k=1, distance_upper_bound=gate)
@@ -181,15 +181,15 @@ def surface_noise_m(P: np.ndarray, k: int = 16, max_points: int = 20000) -> floa
 
 def _tolerances(p: LocalizeParams, scan_noise: float) -> tuple[float, float | None]:
     """Plane and fine tolerances of the verification (m), widened by the scan's noise
-    (``verify_noise_factor``, ``verify_fine_noise_factor``)."""
-    tol = float(p.verify_plane_tolerance_m)
-    if p.verify_noise_factor > 0:
-        tol = max(tol, float(p.verify_noise_factor) * scan_noise)
+    (``verify.noise_factor``, ``verify.fine_noise_factor``)."""
+    tol = float(p.verify.plane_tolerance_m)
+    if p.verify.noise_factor > 0:
+        tol = max(tol, float(p.verify.noise_factor) * scan_noise)
     tol_fine = None
-    if p.verify_fine_tolerance_m is not None:
-        tol_fine = float(p.verify_fine_tolerance_m)
-        if p.verify_fine_noise_factor > 0 and math.isfinite(scan_noise):
-            tol_fine = max(tol_fine, float(p.verify_fine_noise_factor) * scan_noise)
+    if p.verify.fine_tolerance_m is not None:
+        tol_fine = float(p.verify.fine_tolerance_m)
+        if p.verify.fine_noise_factor > 0 and math.isfinite(scan_noise):
+            tol_fine = max(tol_fine, float(p.verify.fine_noise_factor) * scan_noise)
         tol_fine = min(tol_fine, tol)
     return tol, tol_fine
 
@@ -197,12 +197,12 @@ def _tolerances(p: LocalizeParams, scan_noise: float) -> tuple[float, float | No
 def verify_context(pm: PreparedMap, sf: ScanFeatures, p: LocalizeParams) -> VerifyContext:
     """The ICP settings, map target, tolerances and screening sample of one localization."""
     small_scan = sf.small_scan
-    amb_ratio, fine_ratio = p.ambiguity_ratios(small_scan)
+    amb_ratio, fine_ratio = p.ambiguity.ratios(small_scan)
     kw: dict = {}
-    if p.icp_method == "gicp":
-        gicp_p = GICPParams(max_correspondence_distance_m=float(p.icp_max_correspondence_m),
-                            max_iterations=int(p.icp_max_iterations),
-                            degeneracy_ratio_threshold=float(p.degeneracy_ratio) if p.degeneracy_ratio > 0 else 1e-12)
+    if p.icp.method == "gicp":
+        gicp_p = GICPParams(max_correspondence_distance_m=float(p.icp.max_correspondence_m),
+                            max_iterations=int(p.icp.max_iterations),
+                            degeneracy_ratio_threshold=float(p.verify.degeneracy_ratio) if p.verify.degeneracy_ratio > 0 else 1e-12)
         gicp_cov, gicp_index = pm.gicp_target(gicp_p)
         kw.update(gicp_p=gicp_p, gicp_cov=gicp_cov, gicp_index=gicp_index)
     else:
@@ -213,18 +213,18 @@ def verify_context(pm: PreparedMap, sf: ScanFeatures, p: LocalizeParams) -> Veri
         # keeps the paper's convergence test
         icp_screen = replace(icp_p, step_translation_m=STAGE_STEP_M, step_rotation_rad=STAGE_STEP_RAD,
                              max_iterations=icp_p.max_iterations if small_scan else
-                             min(icp_p.max_iterations, int(p.icp_screen_max_iterations)))
+                             min(icp_p.max_iterations, int(p.icp.screen_max_iterations)))
         kw.update(icp_p=icp_p, icp_screen=icp_screen)
-    scan_noise = surface_noise_m(sf.Dfine) if p.verify_noise_factor > 0 else math.nan
+    scan_noise = surface_noise_m(sf.Dfine) if p.verify.noise_factor > 0 else math.nan
     tol, tol_fine = _tolerances(p, scan_noise)
     # the screening ICP runs on at most icp_screen_max_points evenly spaced feature-level points
     # (a small scan: on all of them, as with the iteration cap)
     D = sf.D
-    n_scr = int(p.icp_screen_max_points)
+    n_scr = int(p.icp.screen_max_points)
     D_screen = D if small_scan or D.shape[0] <= n_scr else np.ascontiguousarray(
         D[np.unique(np.linspace(0, D.shape[0] - 1, n_scr).round().astype(np.int64))])
     return VerifyContext(p=p, scan=sf, Qf=pm.icp_points, Nf=pm.icp_normals, tree=pm.kdtree,
-                         gate=float(p.icp_max_correspondence_m), tol=tol, tol_fine=tol_fine, scan_noise=scan_noise,
+                         gate=float(p.icp.max_correspondence_m), tol=tol, tol_fine=tol_fine, scan_noise=scan_noise,
                          amb_ratio=amb_ratio, fine_ratio=fine_ratio, D_screen=D_screen, **kw)
 
 
@@ -260,20 +260,20 @@ def once(ctx: VerifyContext, stage: str, name: str, T: np.ndarray, fn: Callable)
 
 def distinct(Ta: np.ndarray, Tb: np.ndarray, centre: np.ndarray, p: LocalizeParams) -> bool:
     """Two placements are distinct hypotheses: the scan centroid moves more than
-    ``ambiguity_distance_m`` or the rotation differs by more than ``ambiguity_angle_deg``."""
+    ``ambiguity.distance_m`` or the rotation differs by more than ``ambiguity.angle_deg``."""
     dist, ang = hypothesis_distance(Ta, Tb, centre)
-    return max(dist / p.ambiguity_distance_m, ang / p.ambiguity_angle_deg) > 1.0
+    return max(dist / p.ambiguity.distance_m, ang / p.ambiguity.angle_deg) > 1.0
 
 
 def coarse_pull_in(ctx: VerifyContext, uniq: list) -> list[Candidate]:
     """Coarse pull-in (minegeo addition): RANSAC poses are often ~1 m off (4-DOF levelled
     hypotheses, 1 m voxels), beyond the 0.5 m ICP gate; a point-to-plane ICP of the feature-level
-    scan with the wider gate ``icp_coarse_correspondence_m`` brings them into the fine ICP's basin
+    scan with the wider gate ``icp.coarse_correspondence_m`` brings them into the fine ICP's basin
     first. Correlative candidates (already refined with gates down to 0.5 m) are kept as they are."""
     p, D = ctx.p, ctx.scan.D
-    if p.icp_coarse_correspondence_m is None or not uniq:
+    if p.icp.coarse_correspondence_m is None or not uniq:
         return uniq
-    coarse_p = plane_icp_params(p.icp_coarse_correspondence_m, p)
+    coarse_p = plane_icp_params(p.icp.coarse_correspondence_m, p)
     return [Candidate(name, T0 if name.startswith("correlative") else once(
                 ctx, "coarse", name, T0, lambda T0=T0: register_icp(D, ctx.Qf, T0, coarse_p, target_normals=ctx.Nf,
                                                                     target_index=ctx.tree,
@@ -311,7 +311,7 @@ def screen(ctx: VerifyContext, uniq: list[Candidate], may_defer: bool) -> Screen
 
     ``may_defer``: the correlative fallback will follow if this list gives no ``ok``; when the
     screening already shows that it cannot (best screened plane fitness below
-    ``min_plane_fitness``) or that only the full-resolution ICP could separate distinct rivals,
+    ``verify.min_plane_fitness``) or that only the full-resolution ICP could separate distinct rivals,
     the result is ``deferred``: the fallback's evaluation refines the same candidates (memoised)
     if they still lead."""
     p = ctx.p
@@ -320,7 +320,7 @@ def screen(ctx: VerifyContext, uniq: list[Candidate], may_defer: bool) -> Screen
     screened = [once(ctx, "screen", c[0], c[1], lambda T0=c[1]: refine_and_verify(ctx, ctx.D_screen, T0, True))
                 for c in uniq]
     scores = [x[1] for x in screened]
-    if may_defer and max(scores) < p.min_plane_fitness:
+    if may_defer and max(scores) < p.verify.min_plane_fitness:
         return Screening(screened=screened, fine_set=set(), same_place=set(), deferred=True)
     fine_set = {i for i, pf in enumerate(scores) if pf >= ctx.amb_ratio * max(scores)}
     fine_set.add(int(np.argmax(scores)))
@@ -376,9 +376,9 @@ def polish(ctx: VerifyContext, ic_best) -> Polish:
     """Point-to-plane ICP of the ICP-level scan from the chosen pose with the tight gate
     ``max(icp_polish_correspondence_m, 3 σ_surf)`` (minegeo addition, see ``LocalizeParams``);
     applied when it keeps at least 7 pairs and moves no scan point more than
-    ``max_pending_step_m``."""
+    ``verify.max_pending_step_m``."""
     p, Dfine, scan_origin = ctx.p, ctx.scan.Dfine, ctx.scan.scan_origin
-    pol_gate = float(p.icp_polish_correspondence_m)
+    pol_gate = float(p.icp.polish_correspondence_m)
     if math.isfinite(ctx.scan_noise):
         pol_gate = max(pol_gate, 3.0 * ctx.scan_noise)
     pol_p = plane_icp_params(pol_gate, p)
@@ -387,7 +387,7 @@ def polish(ctx: VerifyContext, ic_best) -> Polish:
     Ta, Tp = ic_best.T_target_source, ic_pol.T_target_source
     Pa = Dfine @ Ta[:3, :3].T + Ta[:3, 3]
     shift = float(np.sqrt(np.max(np.sum((Dfine @ Tp[:3, :3].T + Tp[:3, 3] - Pa) ** 2, axis=1))))
-    applied = ic_pol.correspondences.shape[0] >= 7 and shift <= p.max_pending_step_m
+    applied = ic_pol.correspondences.shape[0] >= 7 and shift <= p.verify.max_pending_step_m
     # the same shift as a pose increment (ω, t) about the placed scan origin, map axes
     dT = Tp @ invert(Ta)
     o_a = Ta[:3, :3] @ (-scan_origin) + Ta[:3, 3]

@@ -165,14 +165,29 @@ def describe_params(p, map_params) -> str:
               f"edge similarity {r.edge_length_similarity:g}, draws: Eq. 8 with floor {int(r.min_iterations):,} "
               f"and cap {int(r.max_iterations):,}, "
               f"{r.max_validations} validations, {r.n_hypotheses} hypotheses x {p.ransac_runs} run(s)")
-    icp = (f"ICP {p.icp_method}, gate {p.icp_max_correspondence_m:g} m, <= {p.icp_max_iterations} iterations, "
+    icp = (f"ICP {p.icp.method}, gate {p.icp.max_correspondence_m:g} m, <= {p.icp.max_iterations} iterations, "
            f"ICP clouds {num(p.scan_icp_voxel_size_m, 'g')} m (scan) / "
            f"{num(getattr(mp, 'icp_voxel_size_m', None), 'g')} m (map) voxels; polish "
-           + (f"{p.icp_polish_correspondence_m:g} m" if p.icp_polish_correspondence_m is not None else "off"))
-    corr = f"correlative search {p.correlative}" if r.model == "levelled" else "no correlative search (not levelled)"
+           + (f"{p.icp.polish_correspondence_m:g} m" if p.icp.polish_correspondence_m is not None else "off"))
+    corr = f"correlative search {'off' if p.correlative is None else p.correlative.mode}" if r.model == "levelled" else "no correlative search (not levelled)"
     return (f"scan {scan_ds}, map {map_ds}; normals r {f.normal_radius_m:g} m, FPFH r {f.fpfh_radius_m:g} m; "
-            f"{ransac}; {icp}; {corr}; ok needs plane fitness >= {p.min_plane_fitness:g}, "
-            f"ICP fitness >= {p.min_fitness:g}, no rival >= {p.ambiguity_ratio:g} x the best")
+            f"{ransac}; {icp}; {corr}; ok needs plane fitness >= {p.verify.min_plane_fitness:g}, "
+            f"ICP fitness >= {p.verify.min_fitness:g}, no rival >= {p.ambiguity.ratio:g} x the best")
+
+
+#: the LocalizeParams groups listed field by field (``icp.method``) in the report
+_FLAT_GROUPS = ("icp", "verify", "ambiguity")
+
+
+def _flat_params(p) -> dict:
+    """``asdict(p)`` with the groups of :data:`_FLAT_GROUPS` spread into ``group.field`` keys."""
+    out = {}
+    for k, v in asdict(p).items():
+        if k in _FLAT_GROUPS and isinstance(v, dict):
+            out.update({f"{k}.{kk}": vv for kk, vv in v.items()})
+        else:
+            out[k] = v
+    return out
 
 
 def profile_label(p, map_params, profile: str | None) -> str:
@@ -187,7 +202,7 @@ def profile_label(p, map_params, profile: str | None) -> str:
     if profile not in named:
         return "library parameters (no CLI profile)"
     lp0, mp0 = named[profile]
-    diff = [k for k, v in asdict(p).items() if asdict(lp0)[k] != v]
+    diff = [k for k, v in _flat_params(p).items() if _flat_params(lp0)[k] != v]
     if map_params is not None:
         diff += [f"map.{k}" for k, v in asdict(map_params).items() if asdict(mp0).get(k) != v]
     if not diff:
@@ -282,8 +297,8 @@ def _rejected_section(res) -> str:
     sec += table(["#", "candidate", "scan origin if this were right (map frame x y z, m)", "from #0 m",
                   "from #0 °", "fine agreement", "plane fitness", "ICP fitness", "ICP RMSE m", "below #0 by"], rows,
                  numeric=range(3, 9))
-    sec += (f"<p class='sub'>An ok result needs plane fitness >= {res.params.min_plane_fitness:g} and no distinct "
-            f"rival reaching {res.params.ambiguity_ratio:g} x #0's (plane tolerance "
+    sec += (f"<p class='sub'>An ok result needs plane fitness >= {res.params.verify.min_plane_fitness:g} and no distinct "
+            f"rival reaching {res.params.ambiguity.ratio:g} x #0's (plane tolerance "
             f"{num(res.plane_tolerance_m, '.3f')} m).</p>")
     return sec
 
@@ -417,9 +432,9 @@ def _hypotheses_section(res, ok: bool) -> str:
     if res.icp is not None:
         ic = res.icp
         sec += kv_table([
-            ("ICP method / iterations / converged", f"{res.params.icp_method} / {ic.iterations} / {ic.converged}"),
+            ("ICP method / iterations / converged", f"{res.params.icp.method} / {ic.iterations} / {ic.converged}"),
             ("constraint eigenvalue ratio (degenerate below "
-             f"{res.params.degeneracy_ratio:g})", num(ic.degeneracy_ratio, ".4f")),
+             f"{res.params.verify.degeneracy_ratio:g})", num(ic.degeneracy_ratio, ".4f")),
             ("degeneracy", ic.degeneracy_reason or "none"),
         ])
     return sec
@@ -433,7 +448,7 @@ def _residuals_section(res) -> str:
                 [[a.size, num(a.mean(), ".4f")] + [num(v, ".4f") for v in q] + [num(a.max(), ".4f")]],
                 numeric=range(0, 8))
     sec += "<p class='sub'>Point-to-plane residuals |(R p + t − q)·n| of the final ICP pairs (gate " \
-           f"{res.params.icp_max_correspondence_m:g} m).</p>"
+           f"{res.params.icp.max_correspondence_m:g} m).</p>"
     return sec
 
 
@@ -463,13 +478,13 @@ def _parameters_section(res, prepared, profile) -> tuple[str, str]:
     p = res.params
     label = profile_label(p, prepared.params, profile)
     prow = [("profile", label), ("effective values", describe_params(p, prepared.params))]
-    prow += [(k, v) for k, v in to_jsonable(asdict(p)).items() if k not in ("features", "ransac")]
+    prow += [(k, v) for k, v in to_jsonable(_flat_params(p)).items() if k not in ("features", "ransac")]
     prow += [(f"features.{k}", v) for k, v in to_jsonable(asdict(p.features)).items()]
     prow += [(f"ransac.{k}", v) for k, v in to_jsonable(asdict(p.ransac)).items()]
     prow += [(f"map.{k}", v) for k, v in to_jsonable(asdict(prepared.params)).items() if k != "features"]
     prow.append(("seed", res.seed))
     return (f"Parameters used ({label.split(':')[0].split(' (')[0]}; {p.describe_downsampling()}, "
-            f"FPFH r {p.features.fpfh_radius_m:g} m, {p.ransac.ransac_n}-point RANSAC, {p.icp_method} ICP)",
+            f"FPFH r {p.features.fpfh_radius_m:g} m, {p.ransac.ransac_n}-point RANSAC, {p.icp.method} ICP)",
             kv_table(prow))
 
 

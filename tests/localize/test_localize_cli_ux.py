@@ -361,7 +361,7 @@ def test_rejected_candidates_plot_in_the_map_frame_as_their_table(mine, monkeypa
     from minegeo.report.localize_report import localize_report_html, plot_localization_png
 
     c, tr, _ = mine["scans"]["elsewhere"]
-    res = localize_scan(mine["pm"], c, tr, LocalizeParams.fast(gravity_fallback=False), seed=0)
+    res = localize_scan(mine["pm"], c, tr, LocalizeParams.fast(gravity_fallback=None), seed=0)
     assert res.status == "failed" and rejected_candidates(res)
     drawn, labels = [], []
     real_plot, real_xl = Axes.plot, Axes.set_xlabel

@@ -17,6 +17,7 @@ from minegeo.localize.correlative import (
     map_occupancy,
     placement_grid,
 )
+from minegeo.localize.params import CorrelativeStageParams
 
 
 def _blocked(cells, radius, log2=10):
@@ -289,29 +290,29 @@ def test_localize_fallback_and_always(small_mine):
     base = LocalizeParams.fast()
     crippled = replace(base.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0, max_iterations=1,
                        min_iterations=0)
-    off = localize_scan(pm, X, None, replace(base, ransac=crippled, correlative="off"), seed=0)
+    off = localize_scan(pm, X, None, replace(base, ransac=crippled, correlative=None), seed=0)
     assert off.status != "ok" and off.correlative is None
-    fb = localize_scan(pm, X, None, replace(base, ransac=crippled, correlative="fallback"), seed=0)
+    fb = localize_scan(pm, X, None, replace(base, ransac=crippled, correlative=replace(base.correlative, mode="fallback")), seed=0)
     assert fb.status == "ok", fb.reason
     assert fb.correlative is not None and fb.correlative["n_candidates"] > 0
     assert fb.hypotheses[0]["source"].startswith("correlative")
     assert error_vs_truth(fb.T_map_scan, T_true, X)["max_point_error_m"] < 0.05
     # bit-identical on a second run (same inputs and seed), correlative path included
-    fb2 = localize_scan(pm, X, None, replace(base, ransac=crippled, correlative="fallback"), seed=0)
+    fb2 = localize_scan(pm, X, None, replace(base, ransac=crippled, correlative=replace(base.correlative, mode="fallback")), seed=0)
     np.testing.assert_array_equal(fb.T_map_scan, fb2.T_map_scan)
     np.testing.assert_array_equal(fb.covariance_6x6, fb2.covariance_6x6)
     assert [h["plane_fitness"] for h in fb.hypotheses] == [h["plane_fitness"] for h in fb2.hypotheses]
     assert fb.correlative["hit_fractions"] == fb2.correlative["hit_fractions"]
     al = localize_scan(pm, X, None, replace(base, ransac=replace(crippled, max_iterations=100_000),
-                                            correlative="always"), seed=0)
+                                            correlative=replace(base.correlative, mode="always")), seed=0)
     assert al.status == "ok" and al.correlative is not None
     assert error_vs_truth(al.T_map_scan, T_true, X)["max_point_error_m"] < 0.05
     # a small scan's `ok` is confirmed against the whole map (fallback mode), a large one's is not
     lev = replace(base.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0, max_iterations=100_000)
-    big = localize_scan(pm, X, None, replace(base, ransac=lev, correlative_confirm_below_points=0), seed=0)
+    big = localize_scan(pm, X, None, replace(base, ransac=lev, ambiguity=replace(base.ambiguity, small_scan_below_points=0)), seed=0)
     assert big.status == "ok" and big.correlative is None
-    small = localize_scan(pm, X, None, replace(base, ransac=lev, correlative_confirm_below_points=big.n_scan_down + 1),
-                          seed=0)
+    small = localize_scan(pm, X, None, replace(base, ransac=lev, ambiguity=replace(
+        base.ambiguity, small_scan_below_points=big.n_scan_down + 1)), seed=0)
     assert small.status == "ok" and small.correlative is not None
     np.testing.assert_allclose(small.T_map_scan, big.T_map_scan, atol=1e-6)
     # a 6-DOF (not levelled) search never runs the correlative search
@@ -332,8 +333,9 @@ def test_screening_caps_only_rank(small_mine):
                     np.array([512_030.0, 4_100_002.0, 351.0]))
     base = LocalizeParams.fast()
     lev = replace(base.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0, max_iterations=100_000)
-    runs = [localize_scan(pm, X, None, replace(base, ransac=lev, correlative="always", icp_screen_max_points=n,
-                                               icp_screen_max_iterations=it), seed=0)
+    runs = [localize_scan(pm, X, None, replace(base, ransac=lev, correlative=replace(base.correlative, mode="always"),
+                                               icp=replace(base.icp, screen_max_points=n, screen_max_iterations=it)),
+                          seed=0)
             for n, it in ((10**6, 30), (1000, 10), (120, 5))]
     assert runs[0].n_scan_down > 120  # the last run really screens on a subset
     for r in runs:
@@ -341,7 +343,7 @@ def test_screening_caps_only_rank(small_mine):
         assert r.hypotheses[0]["source"] == runs[0].hypotheses[0]["source"]
         np.testing.assert_array_equal(r.T_map_scan, runs[0].T_map_scan)
         assert r.hypotheses[0]["plane_fitness"] == runs[0].hypotheses[0]["plane_fitness"]
-        assert r.params.icp_screen_max_points in (10**6, 1000, 120)
+        assert r.params.icp.screen_max_points in (10**6, 1000, 120)
 
 
 def test_small_scans_keep_the_full_screening(small_mine, monkeypatch):
@@ -369,8 +371,9 @@ def test_small_scans_keep_the_full_screening(small_mine, monkeypatch):
     caps = {}
     for name, below in (("ordinary", 0), ("small", 10**6)):
         seen.clear()
-        r = localize_scan(pm, X, None, replace(base, ransac=lev, correlative="always", icp_screen_max_iterations=4,
-                                                icp_screen_max_points=60, correlative_confirm_below_points=below),
+        r = localize_scan(pm, X, None, replace(base, ransac=lev, correlative=replace(base.correlative, mode="always"),
+                                                icp=replace(base.icp, screen_max_iterations=4, screen_max_points=60),
+                                                ambiguity=replace(base.ambiguity, small_scan_below_points=below)),
                           seed=0)
         # screening calls: the decision's 0.5 m gate with the stage step test (the full-resolution
         # ICP has no step test, the coarse pull-in a 1.5 m gate)
@@ -379,9 +382,9 @@ def test_small_scans_keep_the_full_screening(small_mine, monkeypatch):
         caps[name] = set(screen)
     n = r.n_scan_down
     assert n > 60
-    # ordinary: capped iterations on at most icp_screen_max_points points; small: neither cap
+    # ordinary: capped iterations on at most icp.screen_max_points points; small: neither cap
     assert caps["ordinary"] == {(60, 4)}
-    assert caps["small"] == {(n, base.icp_max_iterations)}
+    assert caps["small"] == {(n, base.icp.max_iterations)}
 
 
 def test_screen_target_thins_the_icp_cloud(small_mine):
@@ -430,11 +433,11 @@ def test_build_indexes_builds_what_localization_uses(small_mine):
     t = pm.build_indexes(lev)
     assert set(t) == {"kdtree", "target_index", "feature_index", "occupancy", "screen_target", "screen_grid"}
     assert all(v >= 0.0 for v in t.values())
-    cp = lev.correlative_params
+    cp = lev.correlative.search
     occ = pm.occupancy(cp)
     assert pm.build_indexes(lev)["occupancy"] < t["occupancy"] + 1.0 and pm.occupancy(cp) is occ
     assert set(pm.build_indexes(base)) == {"kdtree", "target_index", "feature_index"}  # 6-DOF: no correlative
-    assert "gicp_target" in pm.build_indexes(replace(base, icp_method="gicp"))
+    assert "gicp_target" in pm.build_indexes(replace(base, icp=replace(base.icp, method="gicp")))
 
 
 def test_correlative_precheck_keeps_the_best_and_records_all(small_mine):
@@ -452,8 +455,8 @@ def test_correlative_precheck_keeps_the_best_and_records_all(small_mine):
     crippled = replace(base.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0, max_iterations=1, min_iterations=0)
     res = {}
     for ratio in (0.0, 1.0):
-        r = localize_scan(pm, X, None, replace(base, ransac=crippled, correlative="fallback",
-                                               correlative_precheck_ratio=ratio), seed=0)
+        r = localize_scan(pm, X, None, replace(base, ransac=crippled, correlative=replace(
+            base.correlative, mode="fallback", precheck_ratio=ratio)), seed=0)
         pre = r.correlative["precheck_plane_fitness"]
         assert len(pre) == r.correlative["n_candidates"] and r.correlative["precheck_ratio"] == ratio
         # "correlative #k (...)": the k-th candidate reached ICP; only those at or above the bar may
@@ -466,7 +469,7 @@ def test_correlative_precheck_keeps_the_best_and_records_all(small_mine):
     assert res[1.0][1] < res[0.0][1]  # the pre-check did drop candidates
     assert res[1.0][0].status == "ok"
     with pytest.raises(InputError):
-        LocalizeParams(correlative_precheck_ratio=1.5)
+        CorrelativeStageParams(precheck_ratio=1.5)
 
 
 @pytest.mark.parametrize("kw", [{"cell_size_m": 0.0}, {"yaw_step_deg": -1.0}, {"min_hit_fraction": 0.0},
@@ -480,15 +483,18 @@ def test_params_validation(kw):
 
 def test_localize_params_reject_unknown_mode():
     from minegeo.localize import LocalizeParams
+    from minegeo.localize.params import AmbiguityParams, IcpParams
 
     with pytest.raises(InputError):
-        LocalizeParams(correlative="sometimes")
+        CorrelativeStageParams(mode="sometimes")
     with pytest.raises(InputError):
-        LocalizeParams(correlative_confirm_below_points=-1)
-    for name in ("icp_screen_max_iterations", "icp_screen_max_points"):
+        LocalizeParams(correlative="fallback")
+    with pytest.raises(InputError):
+        AmbiguityParams(small_scan_below_points=-1)
+    for name in ("screen_max_iterations", "screen_max_points"):
         for bad in (0, -3, 2.5, True):
             with pytest.raises(InputError):
-                LocalizeParams(**{name: bad})
+                IcpParams(**{name: bad})
 
 
 def test_cli_correlative_option_reaches_the_params():
@@ -501,9 +507,11 @@ def test_cli_correlative_option_reaches_the_params():
     args = ap.parse_args(["--map", "m.ply", "--scan", "s.ply", "--out", "o", "--levelled", "3",
                           "--correlative", "always"])
     _, lp = C.params_from_args(args)
-    assert lp.correlative == "always" and lp.ransac.model == "levelled"
+    assert lp.correlative.mode == "always" and lp.ransac.model == "levelled"
     _, lp = C.params_from_args(ap.parse_args(["--map", "m.ply", "--scan", "s.ply", "--out", "o"]))
-    assert lp.correlative == "fallback" and lp.ransac.model != "levelled"
+    assert lp.correlative.mode == "fallback" and lp.ransac.model != "levelled"
+    args = ap.parse_args(["--map", "m.ply", "--scan", "s.ply", "--out", "o", "--levelled", "3", "--correlative", "off"])
+    assert C.params_from_args(args)[1].correlative is None
     with pytest.raises(SystemExit):
         ap.parse_args(["--map", "m.ply", "--scan", "s.ply", "--out", "o", "--correlative", "maybe"])
 
@@ -516,9 +524,9 @@ def test_cli_polish_option_reaches_the_params():
     ap = argparse.ArgumentParser()
     C.add_arguments(ap)
     base = ["--map", "m.ply", "--scan", "s.ply", "--out", "o"]
-    assert C.params_from_args(ap.parse_args(base))[1].icp_polish_correspondence_m == 0.25
-    assert C.params_from_args(ap.parse_args([*base, "--polish", "0.3"]))[1].icp_polish_correspondence_m == 0.3
-    assert C.params_from_args(ap.parse_args([*base, "--polish", "0"]))[1].icp_polish_correspondence_m is None
+    assert C.params_from_args(ap.parse_args(base))[1].icp.polish_correspondence_m == 0.25
+    assert C.params_from_args(ap.parse_args([*base, "--polish", "0.3"]))[1].icp.polish_correspondence_m == 0.3
+    assert C.params_from_args(ap.parse_args([*base, "--polish", "0"]))[1].icp.polish_correspondence_m is None
     with pytest.raises(SystemExit) as exc:  # refused by the option's type, before any work
         ap.parse_args([*base, "--polish", "-1"])
     assert exc.value.code == 2
@@ -536,7 +544,7 @@ def test_stored_search_structures_give_identical_results(small_mine, tmp_path, m
     P, pm = small_mine
     base = LocalizeParams.fast()
     lp = replace(base, ransac=replace(base.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0,
-                                      max_iterations=100_000), correlative="always")
+                                      max_iterations=100_000), correlative=replace(base.correlative, mode="always"))
     pm.build_indexes(lp)
     X, _ = _scan_of(P, np.array([512_038.0, 4_100_004.0]), 11.0, math.radians(-58.0),
                     np.array([512_030.0, 4_100_002.0, 351.0]))

@@ -12,6 +12,7 @@ import pytest
 from minegeo.errors import DegenerateGeometryError, FileFormatError, InputError, TooFewPointsError
 from minegeo.io.types import PointCloud, Trajectory
 from minegeo.localize import LocalizeParams, PreparedMap, PrepareParams, localize_scan, prepare_map
+from minegeo.localize.params import IcpParams, VerifyParams
 from minegeo.localize.pipeline import error_vs_truth
 
 # one small world, its map and a few scans for the whole module
@@ -121,7 +122,7 @@ def test_table3_defaults_never_ok_and_wrong(world_map):
     ok_and_right, seen = 0, {}
     for sec, (c, tr, T_true) in runs.items():
         r = localize_scan(pm3, c, tr, LocalizeParams(), seed=0)
-        assert r.params.icp_method == "point_to_point" and r.params.features.fpfh_radius_m == 2.5
+        assert r.params.icp.method == "point_to_point" and r.params.features.fpfh_radius_m == 2.5
         assert r.status in ("ok", "ambiguous", "failed") and r.reason
         e = error_vs_truth(r.T_map_scan, T_true, tr.poses[:, :3, 3])
         seen[sec] = (r.status, round(e["max_point_error_m"], 4), round(e["rotation_deg"], 3))
@@ -208,18 +209,18 @@ def test_localize_with_loaded_map_equals_in_memory(world_map, results, tmp_path)
 
 
 def test_params_validation():
-    assert LocalizeParams(icp_method="gicp").icp_method == "gicp"
-    with pytest.raises(InputError, match="icp_method"):
-        LocalizeParams(icp_method="generalised")
+    assert LocalizeParams(icp=IcpParams(method="gicp")).icp.method == "gicp"
+    with pytest.raises(InputError, match="IcpParams.method"):
+        IcpParams(method="generalised")
     with pytest.raises(InputError):
-        LocalizeParams(min_fitness=1.5)
+        VerifyParams(min_fitness=1.5)
     with pytest.raises(InputError):
         PrepareParams(voxel_size_m=-1)
     p = LocalizeParams.paper_table3()
     assert p.ransac.max_iterations == 400_000_000 and p.ransac.ransac_n == 4
     assert p.ransac.distance_threshold_m == 2.5 and p.ransac.edge_length_similarity == 0.9
     assert p.features.fpfh_radius_m == 2.5 and p.features.normal_radius_m == 1.0
-    assert p.icp_max_correspondence_m == 0.5 and p.icp_max_iterations == 30 and p.icp_method == "point_to_point"
+    assert p.icp.max_correspondence_m == 0.5 and p.icp.max_iterations == 30 and p.icp.method == "point_to_point"
 
 
 def test_point_cloud_with_origin_and_trajectory_origin(world_map, results):
@@ -371,7 +372,7 @@ def test_gicp_refinement_localizes_and_agrees(world_map, results):
     _, _, pm, scans = world_map
     sec = "intersection"
     cloud, traj, T_true = scans[sec]
-    lp = replace(LocalizeParams.fast(), icp_method="gicp")
+    lp = replace(LocalizeParams.fast(), icp=replace(LocalizeParams.fast().icp, method="gicp"))
     r = localize_scan(pm, cloud, traj, lp, seed=0)
     assert r.status == "ok", r.reason
     e = error_vs_truth(r.T_map_scan, T_true, traj.poses[:, :3, 3])
@@ -393,7 +394,7 @@ def test_polish_refines_the_pose_without_changing_the_decision(world_map, result
         assert r.polish is not None and r.polish["applied"], r.polish
         assert r.polish["gate_m"] >= 0.25 and 0.0 <= r.polish["largest_shift_m"] <= 0.1
         assert r.timings_s["polish"] >= 0.0 and r.to_dict()["polish"]["applied"] is True
-        r0 = localize_scan(pm, cloud, traj, replace(LocalizeParams.fast(), icp_polish_correspondence_m=None), seed=0)
+        r0 = localize_scan(pm, cloud, traj, replace(LocalizeParams.fast(), icp=replace(LocalizeParams.fast().icp, polish_correspondence_m=None)), seed=0)
         assert r0.polish is None and "polish" not in r0.timings_s
         assert r0.status == r.status and r0.reason == r.reason
         assert r0.fitness == r.fitness and r0.inlier_rmse_m == r.inlier_rmse_m
@@ -401,8 +402,8 @@ def test_polish_refines_the_pose_without_changing_the_decision(world_map, result
         e0 = error_vs_truth(r0.T_map_scan, T_true, pts)["max_point_error_m"]
         e1 = error_vs_truth(r.T_map_scan, T_true, pts)["max_point_error_m"]
         assert e1 < 0.05 and e1 <= e0 + 0.005, (e0, e1)
-    with pytest.raises(InputError, match="icp_polish_correspondence_m"):
-        LocalizeParams(icp_polish_correspondence_m=0.0)
+    with pytest.raises(InputError, match="IcpParams.polish_correspondence_m"):
+        IcpParams(polish_correspondence_m=0.0)
 
 
 def test_weak_axis_polish_term_adds_the_polish_shift_to_the_covariance(world_map, results):
@@ -422,7 +423,7 @@ def test_weak_axis_polish_term_adds_the_polish_shift_to_the_covariance(world_map
     base = LocalizeParams.fast()
     forced = replace(base, uncertainty=replace(base.uncertainty, degeneracy_ratio=0.999))
     rf = localize_scan(pm, cloud, traj, forced, seed=0)
-    r0 = localize_scan(pm, cloud, traj, replace(forced, weak_axis_polish_term=False), seed=0)
+    r0 = localize_scan(pm, cloud, traj, replace(forced, icp=replace(forced.icp, weak_axis_polish_term=False)), seed=0)
     assert rf.uncertainty["weak_axis_polish_term"] is True and r0.uncertainty["weak_axis_polish_term"] is False
     d6 = np.asarray(rf.polish["shift_6"])
     assert d6.shape == (6,) and np.all(np.isfinite(d6))
@@ -438,12 +439,12 @@ def test_weak_axis_polish_term_adds_the_polish_shift_to_the_covariance(world_map
     assert rf.uncertainty["position_95_radius_m"] == rf.position_95_radius_m >= r0.position_95_radius_m
     assert np.array_equal(rf.T_map_scan, r0.T_map_scan) and rf.status == r0.status
     # the shift is the polish's motion of the scan origin: compare with the unpolished pose
-    ru = localize_scan(pm, cloud, traj, replace(base, icp_polish_correspondence_m=None), seed=0)
+    ru = localize_scan(pm, cloud, traj, replace(base, icp=replace(base.icp, polish_correspondence_m=None)), seed=0)
     o = np.asarray(cloud.origin, dtype=np.float64)
     moved = (r.T_map_scan[:3, :3] @ o + r.T_map_scan[:3, 3]) - (ru.T_map_scan[:3, :3] @ o + ru.T_map_scan[:3, 3])
     np.testing.assert_allclose(d6[3:], moved, atol=1e-6)
     with pytest.raises(InputError, match="weak_axis_polish_term"):
-        LocalizeParams(weak_axis_polish_term="yes")
+        IcpParams(weak_axis_polish_term="yes")
 
 
 def test_straight_featureless_tube_is_never_ok():

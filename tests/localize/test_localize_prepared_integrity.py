@@ -68,7 +68,8 @@ def _levelled_params():
 
     base = LocalizeParams.fast()
     return replace(base, ransac=replace(base.ransac, model="levelled", ransac_n=2, max_tilt_deg=3.0,
-                                        max_iterations=100_000), correlative="always")
+                                        max_iterations=100_000),
+                   correlative=replace(base.correlative, mode="always"))
 
 
 def _read(path):
@@ -221,7 +222,7 @@ def _structure_digests(pm, lp) -> dict:
     """SHA-256 per search structure that ``lp`` uses (after ``build_indexes``), and of the map."""
     from minegeo.localize.prepared.store import CORE_ARRAYS, _array_digest
 
-    cp = lp.correlative_params
+    cp = lp.correlative.search
     v = cp.screen_voxel_size_m
     occ = pm.occupancy(cp)
     t = pm.feature_index.tree
@@ -543,7 +544,7 @@ def test_localization_with_every_structure_forged_is_bit_identical(prepared, tmp
     X = (P[sel] - t) @ R
     ref = localize_scan(PreparedMap.load(prepared["path"]), X, None, lp, seed=0)
     q = PreparedMap.load(f)
-    assert not q._packed.get(("screen_grid", lp.correlative_params.screen_voxel_size_m))
+    assert not q._packed.get(("screen_grid", lp.correlative.search.screen_voxel_size_m))
     got = localize_scan(q, X, None, lp, seed=0)
     assert got.status == ref.status
     np.testing.assert_array_equal(got.T_map_scan, ref.T_map_scan)

@@ -3,7 +3,7 @@
 One exact-twin study world (:func:`minegeo.synth.study.make_study_world`, seed 3: level 0
 copied 25 m below, map surveyed independently on both levels), the CLI's fast profile (with
 ``--levelled 3`` for levelled scans). The scans were chosen so that the old behaviour
-(``rival_search=False``) is ``ok`` on each twin: the tests fail when the search is skipped.
+(``rival=None``) is ``ok`` on each twin: the tests fail when the search is skipped.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def _run(study, name, on=True):
         sc = study["scans"][name]
         lp = study["6dof" if name == "twin_6dof" else "lev"]
         if not on:
-            lp = dataclasses.replace(lp, rival_search=False)
+            lp = dataclasses.replace(lp, rival=None)
         study["cache"][key] = localize_scan(study["pm"], sc.cloud, sc.trajectory, lp, seed=0)
     return study["cache"][key]
 
@@ -115,8 +115,8 @@ def test_ordinary_scan_stays_ok_and_names_its_best_rival(study):
     b = d["best_rival"]
     assert b is not None and "NOT a position" in b["note"]
     assert np.asarray(b["T_map_scan"]).shape == (4, 4)
-    assert b["distance_to_chosen_m"] > r.params.ambiguity_distance_m
-    assert math.isfinite(b["margin"]) and b["margin"] > 1.0 / r.params.ambiguity_ratio
+    assert b["distance_to_chosen_m"] > r.params.ambiguity.distance_m
+    assert math.isfinite(b["margin"]) and b["margin"] > 1.0 / r.params.ambiguity.ratio
     assert b["matched_ratio"] < d["params"]["matched_ratio"] and not b["test_passed"]
     assert d["margin"] == b["margin"] and d["self_found"] and "every floor anchor" in d["guarantee"]
     assert "best rival" in r.reason and "margin" in r.reason
@@ -144,12 +144,12 @@ def test_off_gives_the_previous_behaviour(study):
         assert not [k for k in r.timings_s if k.startswith("rival_search")]
         assert not [h for h in r.hypotheses if h["source"].startswith("rival search")]
         assert "best rival" not in r.reason
-    with pytest.raises(InputError, match="rival_search"):
-        LocalizeParams(rival_search=1)
+    with pytest.raises(InputError, match="LocalizeParams.rival"):
+        LocalizeParams(rival=1)
     with pytest.raises(InputError, match="matched_ratio"):
         RivalParams(matched_ratio=1.5)
-    with pytest.raises(InputError, match="rival_params"):
-        LocalizeParams(rival_params=CorrelativeParams())
+    with pytest.raises(InputError, match="LocalizeParams.rival"):
+        LocalizeParams(rival=CorrelativeParams())
 
 
 def test_printout_and_report_show_the_rival(study):

@@ -3,7 +3,7 @@ apart, and a failed 6-DOF scan is levelled by its own up direction and searched 
 
 One smooth-walled study world (:func:`minegeo.synth.study.make_study_world`, roughness 0.05 m,
 seed 7, a survey frame every 2.5 m), the CLI's fast profile. The scans were chosen so that the
-behaviour before (``verify_fine_tolerance_m=None`` / ``gravity_fallback=False``) is not ``ok``:
+behaviour before (``verify.fine_tolerance_m=None`` / ``gravity_fallback=None``) is not ``ok``:
 each test fails when its mechanism is switched off or broken.
 """
 
@@ -16,7 +16,8 @@ import pytest
 from helpers import cli_localize_params
 
 from minegeo.localize import localize_scan, prepare_map
-from minegeo.localize.pipeline import LocalizeParams, error_vs_truth
+from minegeo.localize.params import AmbiguityParams, VerifyParams
+from minegeo.localize.pipeline import error_vs_truth
 from minegeo.localize.rivals import RivalParams, matched_support, rival_test
 
 TOL_M = 0.10
@@ -48,7 +49,7 @@ def test_fine_agreement_tells_smooth_drifts_apart(smooth):
     sc = smooth["sw"].draw_scans(4, 20.0, "mapped", levelled=True, seed=7)[0]
     lp = smooth["lev"]
     before = localize_scan(smooth["pm"], sc.cloud, sc.trajectory,
-                           dataclasses.replace(lp, verify_fine_tolerance_m=None), seed=0)
+                           dataclasses.replace(lp, verify=dataclasses.replace(lp.verify, fine_tolerance_m=None)), seed=0)
     assert before.status == "ambiguous", before.reason
     r = localize_scan(smooth["pm"], sc.cloud, sc.trajectory, lp, seed=0)
     assert r.status == "ok", r.reason
@@ -69,7 +70,7 @@ def test_gravity_fallback_levels_a_failed_6dof_scan(smooth):
     sc = smooth["sw"].draw_scans(2, 10.0, "mapped", levelled=False, seed=7)[1]
     lp = smooth["6dof"]
     starved = dataclasses.replace(lp, ransac=dataclasses.replace(lp.ransac, max_iterations=1))
-    off = localize_scan(smooth["pm"], sc.cloud, sc.trajectory, dataclasses.replace(starved, gravity_fallback=False),
+    off = localize_scan(smooth["pm"], sc.cloud, sc.trajectory, dataclasses.replace(starved, gravity_fallback=None),
                         seed=0)
     assert off.status == "failed", off.reason
     assert off.gravity is None
@@ -127,8 +128,8 @@ def test_fine_parameters_validated():
     from minegeo.errors import InputError
 
     with pytest.raises(InputError):
-        LocalizeParams(verify_fine_tolerance_m=-0.1)
+        VerifyParams(fine_tolerance_m=-0.1)
     with pytest.raises(InputError):
-        LocalizeParams(fine_ambiguity_ratio=1.5)
+        AmbiguityParams(fine_ratio=1.5)
     with pytest.raises(InputError):
-        LocalizeParams(verify_fine_noise_factor=float("nan"))
+        VerifyParams(fine_noise_factor=float("nan"))

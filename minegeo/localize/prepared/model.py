@@ -187,17 +187,17 @@ class PreparedMap:
         _t("kdtree", lambda: self.kdtree)
         _t("target_index", self.target_index)
         _t("feature_index", lambda: self.feature_index)
-        if p.ransac.model == "levelled" and p.correlative != "off":
-            _t("occupancy", lambda: self.occupancy(p.correlative_params))
-            cp = p.correlative_params
+        if p.ransac.model == "levelled" and p.correlative is not None:
+            _t("occupancy", lambda: self.occupancy(p.correlative.search))
+            cp = p.correlative.search
             _t("screen_target", lambda: self.screen_target(cp.screen_voxel_size_m))
             if cp.screen_grid and cp.screen_voxel_size_m is not None:
                 _t("screen_grid", lambda: self.screen_grid(cp.screen_voxel_size_m))
-        if p.icp_method == "gicp":
+        if p.icp.method == "gicp":
             from minegeo.registration import GICPParams
 
-            gp = GICPParams(max_correspondence_distance_m=float(p.icp_max_correspondence_m),
-                            max_iterations=int(p.icp_max_iterations))
+            gp = GICPParams(max_correspondence_distance_m=float(p.icp.max_correspondence_m),
+                            max_iterations=int(p.icp.max_iterations))
             _t("gicp_target", lambda: self.gicp_target(gp))
         return out
 
