@@ -80,7 +80,7 @@ def pose_covariance(ctx: VerifyContext, ic_final, polish) -> PoseCovariance:
     when the final pairs constrain some direction weakly.
     """
     p: LocalizeParams = ctx.p
-    scan_origin, Dfine = ctx.scan.scan_origin, ctx.scan.Dfine
+    scan_origin, Dfine = ctx.scan.scan_origin, ctx.scan.icp_points
     if ic_final is None:
         return PoseCovariance()
     out = PoseCovariance(T_work_scan=ic_final.T_target_source)

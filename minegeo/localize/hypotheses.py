@@ -70,7 +70,7 @@ def ransac_hypotheses(pm: PreparedMap, sf: ScanFeatures, p: LocalizeParams, run:
         rng = np.random.default_rng(run.seed)
         run_seeds = [run.seed] + [int(s) for s in rng.integers(0, 2**31 - 1, size=p.ransac_runs - 1)]
         f_index = pm.feature_index  # built once per map and process (timed in the first scan's RANSAC)
-        ransacs = [register_ransac(sf.D, pm.points, sf.F, pm.features, p.ransac, seed=s,
+        ransacs = [register_ransac(sf.feature_points, pm.points, sf.fpfh, pm.features, p.ransac, seed=s,
                                    target_feature_index=f_index, check_target=False) for s in run_seeds]
     cand: list[Candidate] = []
     for i, rr in enumerate(ransacs):
@@ -114,13 +114,13 @@ def correlative_hypotheses(ctx: VerifyContext, pm: PreparedMap, uniq: list[Candi
     if trajectory is not None and isinstance(trajectory, Trajectory) and len(trajectory.poses):
         ref_xy = np.median(np.asarray(trajectory.poses)[:, :2, 3] + np.asarray(trajectory.origin)[:2]
                            - sf.scan_origin[:2], axis=0)
-    corr = correlative_candidates(occ, sf.D, sf.Nd, p.correlative.search, seed=run.seed, reference_xy=ref_xy,
+    corr = correlative_candidates(occ, sf.feature_points, sf.feature_normals, p.correlative.search, seed=run.seed, reference_xy=ref_xy,
                                   refine_target=(pm.target_index(), ctx.Qf, ctx.Nf),
                                   screen_target=pm.screen_target(cp.screen_voxel_size_m),
                                   screen_grid=(pm.screen_grid(cp.screen_voxel_size_m)
                                                if cp.screen_grid and cp.screen_voxel_size_m is not None else None))
     # pre-check without ICP: plane fitness of the feature-level scan at each refined placement
-    pre = [verify(sf.D, Tc, ctx.Qf, ctx.Nf, ctx.tree, ctx.gate, ctx.tol)[0] for Tc, _ in corr.candidates]
+    pre = [verify(sf.feature_points, Tc, ctx.Qf, ctx.Nf, ctx.tree, ctx.gate, ctx.tol)[0] for Tc, _ in corr.candidates]
     bar = float(p.correlative.precheck_ratio) * max(pre, default=0.0)
     out = list(uniq)
     for k, (Tc, frac) in enumerate(corr.candidates):

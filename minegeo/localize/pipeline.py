@@ -174,16 +174,16 @@ def _localize_scan(pm: PreparedMap, scan_cloud, trajectory, p: LocalizeParams, s
     t_all = time.perf_counter()
     run = RunContext(seed=seed, progress=progress)
     timings, warnings = run.timings, run.warnings
-    sf = scan_features(scan_cloud, p, run)  # 1. downsample, normals, FPFH
-    hy = ransac_hypotheses(pm, sf, p, run)  # 2. RANSAC
-    ctx = verify_context(pm, sf, p)
-    dec, corr = verify_and_decide(ctx, pm, hy, trajectory, run)  # 3-4. ICP, decision
+    features = scan_features(scan_cloud, p, run)  # 1. downsample, normals, FPFH
+    hypotheses = ransac_hypotheses(pm, features, p, run)  # 2. RANSAC
+    ctx = verify_context(pm, features, p)
+    dec, corr = verify_and_decide(ctx, pm, hypotheses, trajectory, run)  # 3-4. ICP, decision
     warnings.extend(dec.warnings)
     rival_record = None
     if p.rival is not None and dec.status == "ok" and dec.ic_best is not None:
         # 4a. whole-map rival search at the chosen attitude (minegeo addition): no `ok`
         #     before it is established that no other placement explains the scan nearly as well
-        dec, rival_record = check_rivals(ctx, pm, dec, hy.r0, trajectory, run)
+        dec, rival_record = check_rivals(ctx, pm, dec, hypotheses.r0, trajectory, run)
     pol, ic_final = None, dec.ic_best  # pose and covariance; the reported ICP statistics stay the decision's
     if p.icp.polish_correspondence_m is not None and dec.ic_best is not None:
         # 4b. polish (minegeo addition): point-to-plane with a tight gate from the chosen pose
@@ -199,36 +199,36 @@ def _localize_scan(pm: PreparedMap, scan_cloud, trajectory, p: LocalizeParams, s
     # 5. covariance (about the scan origin, work frame) and the checks that use it
     run.announce("uncertainty")
     t0 = time.perf_counter()
-    pc = pose_covariance(ctx, ic_final, pol)
+    pose_cov = pose_covariance(ctx, ic_final, pol)
     status, reason = LocalizeStatus(dec.status), dec.reason  # a decision is never "deferred" here
     if ic_final is not None:
-        status, reason = judge_fit(status, reason, dec.weak, pc, p, warnings)
+        status, reason = judge_fit(status, reason, dec.weak, pose_cov, p, warnings)
     timings["covariance"] = time.perf_counter() - t0
-    T_map_scan = to_map(pc.T_work_scan, sf.scan_origin, pm.work_origin)
+    T_map_scan = to_map(pose_cov.T_work_scan, features.scan_origin, pm.work_origin)
     # 6. trajectory and CRS ([Baek2022 Eq. 18])
     run.announce("trajectory")
     t0 = time.perf_counter()
-    pl = place(T_map_scan, pm, trajectory, pc.cov)
-    warnings.extend(pl.warnings)
+    placement = place(T_map_scan, pm, trajectory, pose_cov.cov)
+    warnings.extend(placement.warnings)
     timings["trajectory"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
     # the caller reports the outcome (the CLI prints it once); see Notes of localize_scan
     log.debug("localization %s: %s", status, reason)
-    ic_best, r0 = dec.ic_best, hy.r0
+    ic_best, r0 = dec.ic_best, hypotheses.r0
     return LocalizationResult(
-        status=status, reason=reason, T_map_scan=T_map_scan, T_geo_scan=pl.T_geo_scan, T_crs_scan=pl.T_crs_scan,
+        status=status, reason=reason, T_map_scan=T_map_scan, T_geo_scan=placement.T_geo_scan, T_crs_scan=placement.T_crs_scan,
         fitness=float(ic_best.fitness) if ic_best is not None else 0.0,
         inlier_rmse_m=float(ic_best.inlier_rmse_m) if ic_best is not None else math.nan,
-        ransac=r0, icp=ic_best, hypotheses=dec.hyps, covariance_6x6=pc.cov, sigma_m=pc.sigma,
-        position_cov_3x3=pc.pos_cov, position_sigma_m=pc.pos_sigma, position_95_radius_m=pc.r95,
-        horizontal_95_radius_m=pc.h95, pending_step_m=pc.pending, trajectory_map=pl.trajectory_map,
-        trajectory_geo=pl.trajectory_geo, trajectory_sigma_m=pl.trajectory_sigma_m, crs=pl.crs,
-        georef_origin=pl.georef_origin, displacement_95_m=pc.disp95, uncertainty=pc.unc_record,
-        plane_tolerance_m=ctx.tol, scan_noise_m=ctx.scan_noise, n_scan_points=int(sf.P_raw.shape[0]),
-        n_scan_down=int(sf.D.shape[0]), n_scan_icp=int(sf.Dfine.shape[0]), params=p, map_params=pm.params,
+        ransac=r0, icp=ic_best, hypotheses=dec.hyps, covariance_6x6=pose_cov.cov, sigma_m=pose_cov.sigma,
+        position_cov_3x3=pose_cov.pos_cov, position_sigma_m=pose_cov.pos_sigma, position_95_radius_m=pose_cov.r95,
+        horizontal_95_radius_m=pose_cov.h95, pending_step_m=pose_cov.pending, trajectory_map=placement.trajectory_map,
+        trajectory_geo=placement.trajectory_geo, trajectory_sigma_m=placement.trajectory_sigma_m, crs=placement.crs,
+        georef_origin=placement.georef_origin, displacement_95_m=pose_cov.disp95, uncertainty=pose_cov.unc_record,
+        plane_tolerance_m=ctx.tol, scan_noise_m=ctx.scan_noise, n_scan_points=int(features.points.shape[0]),
+        n_scan_down=int(features.feature_points.shape[0]), n_scan_icp=int(features.icp_points.shape[0]), params=p, map_params=pm.params,
         seed=seed, timings_s=timings, warnings=warnings,
-        ransac_T_map_scan=to_map(r0.T_target_source, sf.scan_origin, pm.work_origin),
-        scan_points_down=sf.D + sf.scan_origin, residuals_m=pc.residuals,
+        ransac_T_map_scan=to_map(r0.T_target_source, features.scan_origin, pm.work_origin),
+        scan_points_down=features.feature_points + features.scan_origin, residuals_m=pose_cov.residuals,
         correlative=None if corr is None else corr.record(p), polish=None if pol is None else pol.record,
         rival_search=rival_record,
     )

@@ -79,12 +79,12 @@ def _search(ctx: VerifyContext, pm: PreparedMap, Tb: np.ndarray, trajectory, fin
     timings["rival_search_map_structures"] = time.perf_counter() - t0
 
     def _support(Ts, level):
-        return _masks(ctx, sf.D if level == "feature" else sf.Dfine, Ts) if Ts else []
+        return _masks(ctx, sf.feature_points if level == "feature" else sf.icp_points, Ts) if Ts else []
 
-    rs = search_rivals(occ, sf.D, sf.Nd, Tb, params=rp, seed=run.seed, centre=sf.centre,
+    rs = search_rivals(occ, sf.feature_points, sf.feature_normals, Tb, params=rp, seed=run.seed, centre=sf.centre,
                        ambiguity_distance_m=float(p.ambiguity.distance_m),
                        ambiguity_angle_deg=float(p.ambiguity.angle_deg), support=_support,
-                       fine=lambda T: refine_and_verify(ctx, sf.Dfine, T),
+                       fine=lambda T: refine_and_verify(ctx, sf.icp_points, T),
                        reference_point=reference_point(trajectory, sf.scan_origin),
                        refine_target=(pm.target_index(), ctx.Qf, ctx.Nf), screen_target=screen_target,
                        screen_grid=screen_grid, fine_scale=fine_scale)
@@ -137,7 +137,7 @@ def _pool(ctx: VerifyContext, rs: RivalSearch, own_hyps: list, Tb: np.ndarray, c
     own = [h for h in own_hyps[1:] if "screened out" not in h["source"]
            and (h["distance_to_chosen_m"] > p.ambiguity.distance_m or h["rotation_to_chosen_deg"] > p.ambiguity.angle_deg)]
     if own:
-        m = _masks(ctx, ctx.scan.Dfine, [Tb] + [fm(h["T_map_scan"]) for h in own])
+        m = _masks(ctx, ctx.scan.icp_points, [Tb] + [fm(h["T_map_scan"]) for h in own])
         for h, mk in zip(own, m[1:], strict=True):
             frac, ratio = matched_support(m[0], mk, fine_scale=fine_scale)
             h["common_fraction"], h["matched_ratio"] = frac, ratio

@@ -32,29 +32,29 @@ class ScanFeatures:
 
     Attributes
     ----------
-    P_raw : (n, 3) ndarray
+    points : (n, 3) ndarray
         Every scan point read, ``p_scan − scan_origin``.
     scan_origin : (3,) ndarray
         Origin of the scan frame (``PointCloud.origin``; zeros for a bare array).
-    D, Nd, F : ndarray
+    feature_points, feature_normals, fpfh : ndarray
         Feature-level points (the scan downsampled by ``scan_voxel_size_m`` / ``scan_octree_level``),
         their normals ([Baek2022 Eq. 2]) and FPFH descriptors ([Baek2022 Eqs. 3-6]).
-    Dfine : (m, 3) ndarray
+    icp_points : (m, 3) ndarray
         ICP-level points (voxel centroids at ``scan_icp_voxel_size_m``, or every point).
     centre : (3,) ndarray
-        Centroid of ``D``: the point about which placements are compared
+        Centroid of ``feature_points``: the point about which placements are compared
         (:func:`~minegeo.registration.ransac.hypothesis_distance`).
     small_scan : bool
         Fewer feature-level points than ``LocalizeParams.ambiguity.small_scan_below_points``
         (a small scan: narrower ambiguity margins, unscreened ICP).
     """
 
-    P_raw: np.ndarray
+    points: np.ndarray
     scan_origin: np.ndarray
-    D: np.ndarray
-    Nd: np.ndarray
-    F: np.ndarray
-    Dfine: np.ndarray
+    feature_points: np.ndarray
+    feature_normals: np.ndarray
+    fpfh: np.ndarray
+    icp_points: np.ndarray
     centre: np.ndarray
     small_scan: bool
 
@@ -105,7 +105,8 @@ def scan_features(scan_cloud, p: LocalizeParams, run: RunContext) -> ScanFeature
     else:
         Dfine = np.ascontiguousarray(voxel_downsample(P_raw, float(p.scan_icp_voxel_size_m)).points)
     timings["downsample"] += time.perf_counter() - t0
-    return ScanFeatures(P_raw=P_raw, scan_origin=scan_origin, D=D, Nd=Nd, F=F, Dfine=Dfine, centre=D.mean(axis=0),
+    return ScanFeatures(points=P_raw, scan_origin=scan_origin, feature_points=D, feature_normals=Nd, fpfh=F,
+                        icp_points=Dfine, centre=D.mean(axis=0),
                         small_scan=D.shape[0] < int(p.ambiguity.small_scan_below_points))
 
 

@@ -215,11 +215,11 @@ def verify_context(pm: PreparedMap, sf: ScanFeatures, p: LocalizeParams) -> Veri
                              max_iterations=icp_p.max_iterations if small_scan else
                              min(icp_p.max_iterations, int(p.icp.screen_max_iterations)))
         kw.update(icp_p=icp_p, icp_screen=icp_screen)
-    scan_noise = surface_noise_m(sf.Dfine) if p.verify.noise_factor > 0 else math.nan
+    scan_noise = surface_noise_m(sf.icp_points) if p.verify.noise_factor > 0 else math.nan
     tol, tol_fine = _tolerances(p, scan_noise)
     # the screening ICP runs on at most icp_screen_max_points evenly spaced feature-level points
     # (a small scan: on all of them, as with the iteration cap)
-    D = sf.D
+    D = sf.feature_points
     n_scr = int(p.icp.screen_max_points)
     D_screen = D if small_scan or D.shape[0] <= n_scr else np.ascontiguousarray(
         D[np.unique(np.linspace(0, D.shape[0] - 1, n_scr).round().astype(np.int64))])
@@ -270,7 +270,7 @@ def coarse_pull_in(ctx: VerifyContext, uniq: list) -> list[Candidate]:
     hypotheses, 1 m voxels), beyond the 0.5 m ICP gate; a point-to-plane ICP of the feature-level
     scan with the wider gate ``icp.coarse_correspondence_m`` brings them into the fine ICP's basin
     first. Correlative candidates (already refined with gates down to 0.5 m) are kept as they are."""
-    p, D = ctx.p, ctx.scan.D
+    p, D = ctx.p, ctx.scan.feature_points
     if p.icp.coarse_correspondence_m is None or not uniq:
         return uniq
     coarse_p = plane_icp_params(p.icp.coarse_correspondence_m, p)
@@ -351,7 +351,7 @@ def refine_candidates(ctx: VerifyContext, uniq: list[Candidate], scr: Screening)
             # from the candidate's own pose, not the screened one: the feature-level ICP can
             # settle ~0.1 m off along a curved drift and the fine ICP then stays there
             # (curve flash scan, 12 m map: 0.117 m instead of 0.028 m)
-            ic, pf, prm, pff = once(ctx, "fine", name, T0, lambda T0=T0: refine_and_verify(ctx, ctx.scan.Dfine, T0))
+            ic, pf, prm, pff = once(ctx, "fine", name, T0, lambda T0=T0: refine_and_verify(ctx, ctx.scan.icp_points, T0))
             refined.append(Refined(name, T0, rf, rrmse, ic, pf, prm, pff))
         else:  # screened out: keep the coarse ICP's score for the record
             ic, pf, prm, pff = scr.screened[i]
@@ -377,7 +377,7 @@ def polish(ctx: VerifyContext, ic_best) -> Polish:
     ``max(icp_polish_correspondence_m, 3 σ_surf)`` (minegeo addition, see ``LocalizeParams``);
     applied when it keeps at least 7 pairs and moves no scan point more than
     ``verify.max_pending_step_m``."""
-    p, Dfine, scan_origin = ctx.p, ctx.scan.Dfine, ctx.scan.scan_origin
+    p, Dfine, scan_origin = ctx.p, ctx.scan.icp_points, ctx.scan.scan_origin
     pol_gate = float(p.icp.polish_correspondence_m)
     if math.isfinite(ctx.scan_noise):
         pol_gate = max(pol_gate, 3.0 * ctx.scan_noise)
