@@ -35,7 +35,7 @@ Metrics per method over all frames (position error ``e_k = |t_est,k - t_true,k|`
 ``verified``). The **true junctions** (``truth_junctions``) come from the drift geometry: every edge-list
 node of degree >= 3 (``junction_truth``) plus every geometric crossing, where two drifts that share no node
 come within their width of each other (the drifts overlap: the map and the frames show a junction there;
-the NIOSH embedding makes three such points, ``x1-45`` and twice ``x33-47``), placed at the local maxima of
+the NIOSH embedding makes three such points, ``x1-45``, ``x33-47a`` and ``x33-47b``), placed at the local maxima of
 the clearance to the noise-free walls. A **visit** of true junction j = a maximal run of frames within 15 m
 (horizontal) of its invariant point, a **pass** = a visit coming within 3 m. With the map a recognition is
 **correct** when the true junction the keyframe observes (the true junction within 2 m of the observed
@@ -162,7 +162,8 @@ def truth_junctions(net, step_m: float = 0.05) -> tuple[np.ndarray, list]:
     between the drifts), on a ``step_m`` grid, with ``c > w_min/2 + 0.1 m`` (wider than a drift: a straight
     drift, a bend or a dead end has ``c <= w/2``), each refined to 1 cm by the same largest-empty-circle
     search as (1); a shallow crossing has two (where the drifts merge and where they part), a touching dead
-    end one. Points within ``ID_MATCH_M`` of an earlier one are dropped. Named ``xA-B`` (A, B edge indices).
+    end one. Points within ``ID_MATCH_M`` of an earlier one are dropped. Named ``xA-B`` (A, B edge indices;
+    ``xA-Ba``, ``xA-Bb`` when a crossing has several).
     """
     from scipy import ndimage
     from scipy.spatial import cKDTree
@@ -198,6 +199,9 @@ def truth_junctions(net, step_m: float = 0.05) -> tuple[np.ndarray, list]:
                 if all(np.hypot(*(p - q)) > ID_MATCH_M for q in pts):
                     pts.append(tuple(p))
                     names.append(f"x{i}-{j}")
+    for nm in {n for n in names if names.count(n) > 1}:        # several points of one crossing: xA-Ba, xA-Bb, ..
+        for c, k in enumerate(k for k, n in enumerate(names) if n == nm):
+            names[k] = nm + "abcdefghij"[c % 10]
     return np.array(pts, dtype=np.float64).reshape(-1, 2), names
 
 

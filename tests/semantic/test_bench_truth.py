@@ -43,7 +43,7 @@ def test_shallow_crossing_gives_the_two_branch_points(bench):
     J, names = bench.truth_junctions(_cross(theta, 2 * r), step_m=0.1)
     sn = np.sin(np.deg2rad(0.5 * theta))
     s = r * (1 - sn) / (sn * (1 + sn))
-    assert names == ["x0-1", "x0-1"]
+    assert names == ["x0-1a", "x0-1b"]
     got = J[np.argsort(J[:, 0])]
     np.testing.assert_allclose(got, [[-s, 0.0], [s, 0.0]], atol=0.05)
 
