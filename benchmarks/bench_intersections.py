@@ -32,17 +32,22 @@ the world frame. Precision counts the recognitions that became factors.
 Metrics per method over all frames (position error ``e_k = |t_est,k - t_true,k|``, m): MAE (mean
 ``e_k``), RMSE, max (the paper's "MAE" is this maximum), REP-1..5 = ``e`` at the frame where 20, 40, ..,
 100 % of the path is flown, as % of the path flown so far. Recognition (``track`` only, status
-``verified``): a **visit** of junction j = a maximal run of frames within 15 m (horizontal) of its true
-invariant point (``junction_truth``), a **pass** = a visit coming within 3 m. With the map a recognition
-is **correct** when its knowledge-base id belongs (within 2 m) to the true junction nearest to the true
-position at its time and that junction is within 15 m; precision = correct / verified recognitions;
-recall = passes with a correct recognition of that junction during the visit / passes. Without the map
-ids are the tracker's own online entries: an entry's junction is the true junction nearest to the true
-position of the keyframe that created it, and a recognition is correct when its nearest true junction
-is its entry's junction. With the map, a check independent of the junction labels too:
+``verified``). The **true junctions** (``truth_junctions``) come from the drift geometry: every edge-list
+node of degree >= 3 (``junction_truth``) plus every geometric crossing, where two drifts that share no node
+come within their width of each other (the drifts overlap: the map and the frames show a junction there;
+the NIOSH embedding makes three such points, ``x1-45``, ``x33-47a`` and ``x33-47b``), placed at the local maxima of
+the clearance to the noise-free walls. A **visit** of true junction j = a maximal run of frames within 15 m
+(horizontal) of its invariant point, a **pass** = a visit coming within 3 m. With the map a recognition is
+**correct** when the true junction the keyframe observes (the true junction within 2 m of the observed
+invariant point placed by the true keyframe pose, ``T_true,k z``) is the one its knowledge-base id names
+(the base point within 2 m of it); precision = correct / verified recognitions; recall = passes with a
+correct recognition of that junction during the visit / passes. Without the map ids are the tracker's own
+online entries: an entry's junction is the true junction nearest to the true position of the keyframe that
+created it, and a recognition is correct when the true junction nearest the true position at its time
+(within 15 m) is its entry's junction. With the map, a check independent of the junction list too:
 ``precision_observed_point`` = the fraction of verified recognitions whose named knowledge-base point lies
-within 2 m of where the observed invariant point truly is (``T_true,k z``), and the largest ICP keyframe
-position error ``|t_ICP - t_true,k|`` (the pose the factor pulls toward); ``wrong_list`` lists every
+within 2 m of where the observed invariant point truly is, and the largest ICP keyframe position error
+``|t_ICP - t_true,k|`` (the pose the factor pulls toward); ``wrong_list`` lists every
 recognition that fails either check.
 
 ``--imu``: the flight's IMU (``minegeo.synth.flight.write_flight_imu``: the 10 Hz poses joined by the
@@ -123,6 +128,81 @@ def setup(args):
         return niosh_network(NIOSH_EX), KBParams(SkeletonParams(min_branch_m=2.5, merge_radius_m=2.0,
                                                                 refine_radius_m=2.0, floor_cell_m=fc)), None
     return intersections_network(), KBParams(SkeletonParams(floor_cell_m=fc)), None
+
+
+def _segment_gap(a, b, c, d) -> tuple[float, np.ndarray]:
+    """Smallest distance (m) between the 2-D segments ab and cd, and the midpoint of the closest pair."""
+    r, s = b - a, d - c
+    den = r[0] * s[1] - r[1] * s[0]
+    if abs(den) > 1e-12:
+        t = ((c - a)[0] * s[1] - (c - a)[1] * s[0]) / den
+        u = ((c - a)[0] * r[1] - (c - a)[1] * r[0]) / den
+        if 0.0 <= t <= 1.0 and 0.0 <= u <= 1.0:
+            return 0.0, a + t * r
+    best = (np.inf, a)
+    for p, q0, q1 in ((a, c, d), (b, c, d), (c, a, b), (d, a, b)):
+        v = q1 - q0
+        q = q0 + np.clip(np.dot(p - q0, v) / max(np.dot(v, v), 1e-24), 0.0, 1.0) * v
+        g = float(np.linalg.norm(p - q))
+        if g < best[0]:
+            best = (g, 0.5 * (p + q))
+    return best
+
+
+def truth_junctions(net, step_m: float = 0.05) -> tuple[np.ndarray, list]:
+    """The true junctions of the drift geometry: invariant points (k, 2) (map frame, m) and names.
+
+    (1) every edge-list node of degree >= 3 (``junction_truth``: the largest empty circle within 4 m of the
+    node), named by the node; (2) every **geometric crossing**: two drifts that share no node whose
+    centrelines come within the mean of their widths of each other (their drifts overlap, so the map and
+    the frames show a junction there; the 2-D embedding of an edge list creates these). A crossing's
+    invariant points are the strict local maxima of the clearance ``c(p)`` = distance from ``p`` to the
+    noise-free wall outline (2 cm samples) over the free space (union of capsules) within
+    ``w/sin(theta/2) + w`` of the centrelines' closest point (``w`` the wider width, ``theta`` the angle
+    between the drifts), on a ``step_m`` grid, with ``c > w_min/2 + 0.1 m`` (wider than a drift: a straight
+    drift, a bend or a dead end has ``c <= w/2``), each refined to 1 cm by the same largest-empty-circle
+    search as (1); a shallow crossing has two (where the drifts merge and where they part), a touching dead
+    end one. Points within ``ID_MATCH_M`` of an earlier one are dropped. Named ``xA-B`` (A, B edge indices;
+    ``xA-Ba``, ``xA-Bb`` when a crossing has several).
+    """
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    from minegeo.synth.network import _max_clearance, _seg_dist, _wall_outline, junction_truth
+
+    pts = [tuple(p) for p in junction_truth(net)]
+    names = [net.names[i] or str(int(i)) for i in net.junctions()]
+    W, _ = _wall_outline(net, 0.02, 1e-6)
+    tree = cKDTree(W)
+    N, E, w = net.nodes, net.edges, net.widths
+    A, B = N[E[:, 0]], N[E[:, 1]]
+    for i in range(len(E)):
+        for j in range(i + 1, len(E)):
+            if set(E[i].tolist()) & set(E[j].tolist()):
+                continue
+            gap, mid = _segment_gap(A[i], B[i], A[j], B[j])
+            if gap > 0.5 * (w[i] + w[j]):
+                continue
+            u, v = B[i] - A[i], B[j] - A[j]
+            cos = abs(u @ v) / max(np.linalg.norm(u) * np.linalg.norm(v), 1e-12)
+            half = min(max(w[i], w[j]) * (1.0 / max(np.sin(0.5 * np.arccos(min(cos, 1.0))), 0.05) + 1.0), 40.0)
+            g = np.arange(-half, half + 0.5 * step_m, step_m)
+            Q = mid + np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+            c, _ = tree.query(Q)
+            c = np.where((_seg_dist(Q, A, B) < 0.5 * w[None]).any(1), c, -1.0).reshape(len(g), len(g))
+            peak = (c == ndimage.maximum_filter(c, size=int(round(1.0 / step_m)) | 1)) & (c > 0.5 * w.min() + 0.1)
+            lab, n = ndimage.label(peak)
+            for m in range(1, n + 1):
+                cells = np.flatnonzero(lab.ravel() == m)
+                guess = Q[cells[int(np.argmax(c.ravel()[cells]))]]
+                p = _max_clearance(W, guess, 2.0 * step_m, net)
+                if all(np.hypot(*(p - q)) > ID_MATCH_M for q in pts):
+                    pts.append(tuple(p))
+                    names.append(f"x{i}-{j}")
+    for nm in {n for n in names if names.count(n) > 1}:        # several points of one crossing: xA-Ba, xA-Bb, ..
+        for c, k in enumerate(k for k, n in enumerate(names) if n == nm):
+            names[k] = nm + "abcdefghij"[c % 10]
+    return np.array(pts, dtype=np.float64).reshape(-1, 2), names
 
 
 # ---------------------------------------------------------------------------------------- methods
@@ -247,7 +327,16 @@ def recognition_metrics(res: dict, truth, kb, J: np.ndarray, passes: list, use_m
     k = np.clip(np.searchsorted(truth.times_s, t), 0, len(truth) - 1)
     d = np.linalg.norm(truth.poses[k, None, :2, 3] - J[None], axis=2)
     near = np.where(d.min(1) <= VISIT_M, d.argmin(1), -1)
+    # where the observed invariant point truly is: the keyframe's true pose applied to z
+    zk = np.array([[np.nan] * 3 if r.get("z_keyframe_m") is None else [np.nan if v is None else v
+                                                                       for v in r["z_keyframe_m"]] for r in ver])
+    Tt = truth.poses[k]
+    obs = np.einsum("nij,nj->ni", Tt[:, :3, :3], zk) + Tt[:, :3, 3]
     if use_map:
+        # the true junction the keyframe observes: nearest the observed point, within ID_MATCH_M (else none)
+        do = np.linalg.norm(obs[:, None, :2] - J[None], axis=2)
+        do = np.where(np.isfinite(do), do, np.inf)
+        near = np.where(do.min(1) <= ID_MATCH_M, do.argmin(1), -1)
         kbj = np.linalg.norm(kb.invariant_points[:, None, :2] - J[None], axis=2)
         id_to_j = np.where(kbj.min(1) <= ID_MATCH_M, kbj.argmin(1), -2)
         assigned = np.array([id_to_j[i] if 0 <= i < len(id_to_j) else -2 for i in ids])
@@ -255,13 +344,8 @@ def recognition_metrics(res: dict, truth, kb, J: np.ndarray, passes: list, use_m
         ent = res.get("online_entry_junction", [])
         assigned = np.array([ent[i] if 0 <= i < len(ent) else -2 for i in ids])
     correct = (assigned == near) & (near >= 0)
-    # the geometric check, independent of the junction labels: where the observed invariant point truly is
-    # (the keyframe's true pose applied to z) against the named knowledge-base point, and the ICP keyframe
+    # the label-free check: the observed point against the named knowledge-base point, and the ICP keyframe
     # position (the factor's pose) against the true one
-    zk = np.array([[np.nan] * 3 if r.get("z_keyframe_m") is None else [np.nan if v is None else v
-                                                                       for v in r["z_keyframe_m"]] for r in ver])
-    Tt = truth.poses[k]
-    obs = np.einsum("nij,nj->ni", Tt[:, :3, :3], zk) + Tt[:, :3, 3]
     named = np.array([kb.invariant_points[i] if use_map and 0 <= i < len(kb) else [np.nan] * 3 for i in ids])
     e_obs = np.linalg.norm(obs - named, axis=1)
     icp = np.array([[np.nan] * 3 if r.get("icp_position_m") is None else r["icp_position_m"] for r in ver])
@@ -272,6 +356,7 @@ def recognition_metrics(res: dict, truth, kb, J: np.ndarray, passes: list, use_m
         hit += bool(np.any(correct & (near == p["junction"]) & (k >= p["first"]) & (k <= p["last"])))
     conf = [[int(np.sum((near == a) & (assigned == b))) for b in range(len(J))] for a in range(len(J))]
     wrong = [{"time_s": float(t[w]), "intersection_id": int(ids[w]), "assigned_junction": int(assigned[w]),
+              "observed_junction": int(near[w]) if use_map else None,
               "nearest_true_junction": int(d[w].argmin()), "nearest_true_junction_m": float(d[w].min()),
               "observed_point_to_named_m": float(e_obs[w]), "icp_position_error_m": float(e_icp[w])}
              for w in np.flatnonzero(~correct | ~geo)]
@@ -424,16 +509,17 @@ def _git() -> str:
         return "unknown"
 
 
-def _flight_meta(net, flight, truth, J, passes) -> dict:
-    per = {net.names[i] or str(i): 0 for i in net.junctions()}
+def _flight_meta(flight, truth, J, J_names, passes) -> dict:
+    per = {nm: 0 for nm in J_names}
     dirs = {k: set() for k in per}
     for p in passes:
-        nm = net.names[net.junctions()[p["junction"]]] or str(net.junctions()[p["junction"]])
+        nm = J_names[p["junction"]]
         per[nm] += 1
         dirs[nm].add(int(round(p["entry_bearing_deg"] / 15.0)) * 15 % 360)
     return {"path_length_m": flight.path_length_m, "frames": len(truth), "duration_s": float(truth.times_s[-1]),
             "route_nodes": int(len(flight.route)), "route": flight.route.tolist(), "passes_per_junction": per,
-            "directions_per_junction": {k: len(v) for k, v in dirs.items()}}
+            "directions_per_junction": {k: len(v) for k, v in dirs.items()},
+            "true_junctions": {nm: [float(x), float(y)] for nm, (x, y) in zip(J_names, J, strict=True)}}
 
 
 def main() -> None:  # noqa: PLR0915
@@ -466,7 +552,7 @@ def main() -> None:  # noqa: PLR0915
 
     from minegeo.semantic import build_knowledge_base
     from minegeo.synth.flight import FlightParams, junction_passes, make_flight, simulate_flight
-    from minegeo.synth.network import junction_truth, network_cloud
+    from minegeo.synth.network import network_cloud
 
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
     wall0 = time.perf_counter()
@@ -490,7 +576,7 @@ def main() -> None:  # noqa: PLR0915
     length = 0.5 if args.quick else args.length_km
     cloud = network_cloud(net, 0.2, 0.02, seed=7)
     kb = build_knowledge_base(cloud.points, kbp)
-    J = junction_truth(net)
+    J, J_names = truth_junctions(net)
     kb_txt = f"{len(kb.ids)} junctions found of {len(J)} ({kb.status})"
     _log(f"network {net.info.get('kind')}: {len(net.nodes)} nodes, {len(net.edges)} drifts; KB {kb_txt}")
     flight = make_flight(net, FlightParams(length_m=1000 * length, seed=args.seed), route=route)
@@ -570,15 +656,17 @@ def main() -> None:  # noqa: PLR0915
         target = "met" if ok else "missed"
     meta = {"date": date, "conditions": __doc__.split("\n\n")[1].replace("\n", " "), "seed": args.seed,
             "network": tag, "quick": args.quick, "roughness_m": args.roughness_m, "odometry": args.odometry,
-            "floor_cell_m": args.floor_cell_m, "kb": kb_txt, "flight": _flight_meta(net, flight, truth, J, passes),
+            "floor_cell_m": args.floor_cell_m, "kb": kb_txt, "flight": _flight_meta(flight, truth, J, J_names, passes),
             "target": target, "imu": imu_txt, "held": held, "gate_drift_fraction": args.gate_drift, "git": _git(), "threads": args.threads, "wall_s": time.perf_counter() - wall0,
             "machine": f"{os.cpu_count()} cores; uptime at the start: {uptime_start}; at the end: {_uptime()}",
             "cache": str(frames.folder)}
     clean = {m: {k: v for k, v in r.items() if k not in ("poses", "times_s", "recognitions", "traceback")}
              | ({"metrics": {k: v for k, v in r["metrics"].items() if not k.startswith("_")}} if "metrics" in r else {})
              for m, r in results.items()}
-    for r in clean.values():
+    for m, r in clean.items():
         r.pop("_result", None)
+        if m.startswith("ours") and "recognitions" in results[m]:   # the factors, for recomputing the metrics
+            r["factor_recognitions"] = [x for x in results[m]["recognitions"] if x.get("factor")]
     stem = args.out / ("intersections_" + date + ("" if tag == "synthetic" else f"_{tag}") + variant
                        + ("_quick" if args.quick else "") + (f"_{args.label}" if args.label else ""))
     Path(f"{stem}.json").write_text(json.dumps({"meta": meta, "results": clean, "corridor": corridor}, indent=1,
