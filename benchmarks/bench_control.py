@@ -30,6 +30,7 @@ import datetime
 import json
 import os
 import platform
+import subprocess
 import sys
 import time
 
@@ -92,8 +93,11 @@ def chain(Z, T0):
     return P
 
 
-def run_once(t, T_true, stations: Stations, tr, rng, drift, offset, crs, modes=("rigid", "graph", "graph_drift")):
-    """The three modes on one odometry draw; returns errors at the check stations (truth)."""
+def run_once(t, T_true, stations: Stations, tr, rng, drift, offset, crs,
+             modes=("rigid", "similarity", "graph", "graph_drift")):
+    """The modes on one odometry draw; returns errors at the check stations (truth). ``similarity``
+    is the 7-parameter fit after SLAM (``minegeo slam --control-mode similarity``: rigid mode, the
+    similarity model)."""
     edges, Z, info = odometry(T_true, rng, *drift)
     P = chain(Z, np.eye(4))  # SLAM map frame = first keyframe
     T_cw = np.array(tr["T_crs_world"])
@@ -111,11 +115,14 @@ def run_once(t, T_true, stations: Stations, tr, rng, drift, offset, crs, modes=(
     pts = station_points(G @ interpolate_poses(t, P, stations.t_mid_s), offset) - stations.origin_enh
     out["none"] = pts[chk] - true_local[chk]
     for mode in modes:
-        cp = ControlParams(mode=mode[:5], drift_states=mode == "graph_drift")
+        cp = (ControlParams(mode="rigid", model="similarity") if mode == "similarity"
+              else ControlParams(mode=mode[:5], drift_states=mode == "graph_drift"))
         res = apply_control(t, P, edges, Z, info, stations, offset, crs, cp)
         out[mode] = res.station_enh_local[chk] - true_local[chk]
         out[mode + "_outside"] = (res.station_enh_local - true_local)[stations.is_check & ~chk]
         out[mode + "_objective"] = (float(res.objective), float(res.drift_parameters))
+        if mode == "similarity":
+            out["similarity_scale"] = (float(res.scale), float(res.scale_std))
         if mode == "graph_drift":
             out["graph_drift_status"] = res.status
             out["graph_drift_cov"] = res.station_cov_enh[chk]
@@ -192,7 +199,9 @@ def markdown(path) -> str:
              "| odometry drift | mode | check RMSE h (m) | check RMSE v (m) | max h (m) | max v (m) |",
              "|---|---|---|---|---|---|"]
     names = {"none": "no control (placed by the first control station, true heading)",
-             "rigid": "rigid fit of the control stations", "graph": "control in the pose graph",
+             "rigid": "rigid fit of the control stations",
+             "similarity": "similarity fit of the control stations (7 parameters, scale estimated)",
+             "graph": "control in the pose graph",
              "graph_drift": "control in the pose graph + drift states (C4)",
              "graph_auto": "automatic: drift states by the likelihood-ratio test (C6)",
              "graph_auto_chi2": "earlier automatic rule: drift states when the plain graph's χ² fails"}
@@ -276,7 +285,7 @@ def main(argv=None):
     conds = {k: v for k, v in {"bias": drift, "noise_only": (0.0, 0.0, 0.0) + drift[3:]}.items() if k in a.conditions}
     print(f"drive {length:.0f} m, {len(stations)} stations ({int(stations.is_control.sum())} control), "
           f"{t.size} keyframes", flush=True)
-    modes_tab = ("none", "rigid", "graph", "graph_drift", "graph_auto")
+    modes_tab = ("none", "rigid", "similarity", "graph", "graph_drift", "graph_auto")
     for cname, dr in conds.items():
         one = run_once(t, T_true, stations, tr, np.random.default_rng(a.seed), dr, offset, tr["crs"])
         table = {}
@@ -291,7 +300,7 @@ def main(argv=None):
         graph_info[cname] = {k: one[k] for k in ("graph_status", "sigma0", "graph_drift_sigma0", "graph_drift_status",
                                                  "graph_auto_drift", "graph_auto_chi2_drift", "lr", "flagged", "class_passed",
                                                  "misclosure_N_min", "iterations", "n_check_between",
-                                                 "n_check_outside")}
+                                                 "n_check_outside", "similarity_scale")}
     # Monte Carlo: new odometry draws (seeds [seed, 1000 + r]) under each condition; the information is
     # the true noise (the bias, where drawn, is not in it)
     t_mc = time.perf_counter()
@@ -331,6 +340,8 @@ def main(argv=None):
                                 "rmse_v_m": float(np.sqrt(sqv[m] / total))} for m in m_modes}}
     res = {
         "label": a.label,
+        "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                 cwd=os.path.dirname(os.path.abspath(__file__))).stdout.strip() or None,
         "date": datetime.date.today().isoformat(), "host": platform.node(), "python": sys.version.split()[0],
         "threads": os.environ.get("NUMBA_NUM_THREADS"), "load": os.getloadavg(),
         "conditions": {"duration_s": a.duration_s, "path_length_m": length, "stations": len(stations),
