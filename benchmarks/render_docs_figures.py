@@ -536,7 +536,6 @@ RENDERERS = {
     "control_driftauto_weakbias": control_table("control_2026-11-29_driftauto_lr_weakbias"),
     "control_driftauto_lownoise": control_table("control_2026-11-29_driftauto_lownoise"),
     "control_similarity": control_table("control_2026-11-30_similarity"),
-    "control_stream": md_copy("control_stream_2026-11-30"),
     "first_use_before_after": first_use_table("first_use_2026-11-29_before", "first_use_2026-11-29_after_head"),
     "first_use_after2": first_use_table("first_use_2026-11-29_after2_base", "first_use_2026-11-29_after2"),
     **{f"intersections_{k}": md_columns(f"intersections_{stem}", cols)
