@@ -122,7 +122,7 @@ def field_rule(cls: type, name: str) -> dict:
 
 
 def _num(x: float) -> str:
-    return f"{x:g}"
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:g}"  # 10**9, not 1e+09
 
 
 def rule_text(rule: dict, none_text: str = "None") -> str:
@@ -209,8 +209,8 @@ class _ArgType:
     """An argparse ``type=`` checking a value with a field's rule (:func:`arg_type`); the class is
     imported on first use, so that building a parser does not import the module defining it."""
 
-    def __init__(self, cls: type | str, name: str, off: float | None):
-        self._cls, self._name, self._off = cls, name, off
+    def __init__(self, cls: type | str, name: str, off: float | None, le: float | None = None):
+        self._cls, self._name, self._off, self._le = cls, name, off, le
 
     def _rule(self) -> tuple[dict, str, str]:
         cls = self._cls
@@ -223,10 +223,16 @@ class _ArgType:
         none_text = f"{_num(self._off)} (off)" if self._off is not None else "None"
         return rule, f"{cls.__name__}.{self._name}", none_text
 
+    def _option_rule(self, rule: dict) -> dict:
+        """The field's rule with the option's own upper bound ``le`` (where it is the tighter one)."""
+        if self._le is None or any(rule[k] is not None and rule[k] <= self._le for k in ("le", "lt")):
+            return rule
+        return {**rule, "le": self._le, "lt": None}
+
     @property
     def __name__(self) -> str:  # the type's description in --dump-config and argparse messages
         rule, _, none_text = self._rule()
-        return rule_text({**rule, "optional": self._off is not None}, none_text)
+        return rule_text({**self._option_rule(rule), "optional": self._off is not None}, none_text)
 
     def __call__(self, text: str):
         rule, where, none_text = self._rule()
@@ -237,13 +243,20 @@ class _ArgType:
                 f"{text!r} is not {'a whole number' if rule['integer'] else 'a number'}") from None
         if self._off is not None and value == self._off:
             return value
+        option_rule = {**self._option_rule(rule), "optional": False}
+        limit = "" if option_rule == {**rule, "optional": False} else \
+            f"; this option takes {rule_text(option_rule)}"
         if not _accepts({**rule, "optional": False}, value):
             raise argparse.ArgumentTypeError(
-                _message(where, {**rule, "optional": self._off is not None}, value, none_text))
+                _message(where, {**rule, "optional": self._off is not None}, value, none_text) + limit)
+        if not _accepts(option_rule, value):
+            raise argparse.ArgumentTypeError(
+                f"this option takes {rule_text(option_rule)}, got {value!r} ({where} itself takes "
+                f"{rule_text({**rule, 'optional': False})})")
         return value
 
 
-def arg_type(cls: type | str, name: str, *, off: float | None = None) -> _ArgType:
+def arg_type(cls: type | str, name: str, *, off: float | None = None, le: float | None = None) -> _ArgType:
     """The argparse ``type=`` of a command-line option that sets field ``name`` of ``cls``.
 
     The text is parsed as a whole number (an ``integer`` rule) or a float, then checked with the
@@ -263,5 +276,12 @@ def arg_type(cls: type | str, name: str, *, off: float | None = None) -> _ArgTyp
         is returned as given (the caller maps it to ``None``); the message then reads
         ``"... or 0 (off)"`` where the dataclass's reads ``"... or None"``. Without ``off`` an
         option cannot give ``None``, and its message leaves the ``"or None"`` out.
+    le : float, optional
+        The option's own inclusive upper bound, for an option that deliberately takes less than
+        the field (a count capped at :data:`minegeo.cli._argtypes.MAX_COUNT`, an angle that the
+        option's meaning limits): a value the field's rule refuses gets the field's message as
+        above followed by ``"; this option takes <its rule>"``; a value within the field's rule
+        but above ``le`` is refused with a message giving both rules. Ignored where the field's
+        own upper bound is already at most ``le``.
     """
-    return _ArgType(cls, name, off)
+    return _ArgType(cls, name, off, le)

@@ -29,17 +29,17 @@ import time
 from pathlib import Path
 
 from minegeo._params import arg_type
-from minegeo.cli._argtypes import (
-    MAX_COUNT,
-    float_in_range,
-    int_in_range,
-    nonnegative_int,
-    positive_int,
-)
+from minegeo.cli._argtypes import MAX_COUNT, int_in_range
 from minegeo.cli._common import StepBar, summary_lines_quiet, time_line, whole_run_timings
 
 #: the parameter classes whose field rules the options use (imported when an option is parsed)
 _LP, _ICP, _VERIFY = ("minegeo.localize.params:" + c for c in ("LocalizeParams", "IcpParams", "VerifyParams"))
+_RANSAC = "minegeo.registration.ransac_params:RansacParams"
+#: ``--levelled`` says the scan's z axis is up like the map's: a tilt allowance beyond 90 deg (an up
+#: axis below the horizon) contradicts that, so the option takes at most 90 deg, where the library's
+#: ``RansacParams.max_tilt_deg`` (a prior of any model) takes up to 180 deg
+LEVELLED_MAX_DEG = 90.0
+_MAX_TEXT = f"{MAX_COUNT:.0e}".replace("e+0", "e")  # the counts' cap in the help: "1e9"
 #: ``IcpParams.method`` and ``CorrelativeStageParams.mode`` (tests check they equal the Literals)
 ICP_CHOICES = ("point_to_point", "point_to_plane", "gicp")
 CORRELATIVE_CHOICES = ("fallback", "always", "off")
@@ -73,21 +73,27 @@ def add_arguments(parser) -> None:
     parser.add_argument("--icp", default=None, choices=ICP_CHOICES,
                         help="ICP variant (table3 profile: point_to_point as the paper; fast: point_to_plane; "
                              "gicp: Generalized-ICP)")
-    parser.add_argument("--ransac-max-iterations", type=positive_int, default=None,
-                        help="RANSAC iteration cap (table3 profile: 4e6, the paper's Table 3 uses 4e8; fast: 1e6)")
+    parser.add_argument("--ransac-max-iterations", type=arg_type(_RANSAC, "max_iterations", le=MAX_COUNT),
+                        default=None,
+                        help=f"RANSAC iteration cap, a whole number from 1 to {_MAX_TEXT} (table3 profile: 4e6, "
+                             "the paper's Table 3 uses 4e8; fast: 1e6)")
     parser.add_argument("--ransac-runs", type=arg_type(_LP, "ransac_runs"), default=1,
                         help="independent RANSAC runs whose hypotheses are all verified by ICP (default 1)")
     parser.add_argument("--no-mutual-filter", action="store_true",
                         help="use every FPFH nearest neighbour as a putative match (the paper) instead of mutual ones")
-    parser.add_argument("--ransac-min-iterations", type=nonnegative_int, default=None,
-                        help="RANSAC draws before Eq. 8 may stop the search (fast profile: 1e6; table3: 0 = Eq. 8 "
-                             "alone, as the paper)")
-    parser.add_argument("--hypotheses", type=int_in_range(2, MAX_COUNT), default=None, metavar="K",
-                        help="distinct RANSAC hypotheses verified by ICP per run (default 2: best and runner-up)")
-    parser.add_argument("--levelled", type=float_in_range(0.0, 90.0, lo_open=True), default=None, metavar="DEG",
+    parser.add_argument("--ransac-min-iterations", type=arg_type(_RANSAC, "min_iterations", le=MAX_COUNT),
+                        default=None,
+                        help=f"RANSAC draws before Eq. 8 may stop the search, a whole number from 0 to {_MAX_TEXT} "
+                             "(fast profile: 1e6; table3: 0 = Eq. 8 alone, as the paper)")
+    parser.add_argument("--hypotheses", type=arg_type(_RANSAC, "n_hypotheses", le=MAX_COUNT), default=None,
+                        metavar="K",
+                        help="distinct RANSAC hypotheses verified by ICP per run, a whole number from 2 "
+                             f"(default 2: best and runner-up) to {_MAX_TEXT}")
+    parser.add_argument("--levelled", type=arg_type(_RANSAC, "max_tilt_deg", le=LEVELLED_MAX_DEG), default=None,
+                        metavar="DEG",
                         help="the scan frame is levelled (z up, e.g. by the scanner's IMU) like the map: RANSAC "
                              "draws 2-point yaw+translation hypotheses and rejects placements tilting the "
-                             "vertical by more than DEG degrees (e.g. 3); ICP still refines all 6 DOF")
+                             "vertical by more than DEG degrees (e.g. 3; DEG in (0, 90]); ICP still refines all 6 DOF")
     parser.add_argument("--correlative", default=None, choices=CORRELATIVE_CHOICES,
                         help="with --levelled: the exhaustive 4-DOF correlative search of the whole map adds its "
                              "best placements when the RANSAC hypotheses fail (fallback, default), always, or never")
@@ -148,7 +154,6 @@ def params_from_args(args):
     """(PrepareParams, LocalizeParams) from the CLI options (also used by ``prepare-map``)."""
     from dataclasses import replace
 
-    from minegeo.errors import InputError
     from minegeo.localize.params import CorrelativeStageParams, FeatureParams, LocalizeParams, PrepareParams
 
     check_combinations(args)
@@ -167,12 +172,8 @@ def params_from_args(args):
     runs = getattr(args, "ransac_runs", 1)
     if runs is None:
         runs = 1
-    for opt in ("ransac_max_iterations", "ransac_min_iterations", "hypotheses"):
-        v = getattr(args, opt, None)
-        if v is not None and int(v) < (0 if opt == "ransac_min_iterations" else 1):
-            raise InputError(f"--{opt.replace('_', '-')} must be >= {0 if opt == 'ransac_min_iterations' else 1}, "
-                             f"got {v}")
-    # the values were checked by the options' types (the fields' own rules; 0 = off for the optional ones)
+    # the values were checked by the options' types (the fields' own rules, --levelled and the counts
+    # with the options' own upper bounds; 0 = off for the optional ones)
     kw = {"ransac_runs": int(runs)}
     icp_kw, verify_kw = {}, {}
     if icp is not None:
@@ -207,8 +208,6 @@ def params_from_args(args):
     if getattr(args, "hypotheses", None) is not None:
         rk["n_hypotheses"] = int(args.hypotheses)
     if getattr(args, "levelled", None) is not None:
-        if not 0.0 < float(args.levelled) <= 90.0:
-            raise InputError(f"--levelled must be an angle in (0, 90] degrees, got {args.levelled}")
         rk.update(model="levelled", ransac_n=2, max_tilt_deg=float(args.levelled))
     if rk:
         lp = replace(lp, ransac=replace(lp.ransac, **rk))

@@ -9,19 +9,30 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import Literal
 
 import numpy as np
 
-from minegeo._validate import check_positive
+from minegeo._params import bounded, flag, one_of, validate
 from minegeo.errors import InputError
 
-_MODES = ("minegeo", "open3d")
-_EDGE_PAIRS = ("all", "polygon")
+#: Sample modes (``RansacParams.mode``).
+RansacMode = Literal["minegeo", "open3d"]
+#: Edges compared by the edge-length check (``RansacParams.edge_pairs``).
+EdgePairs = Literal["all", "polygon"]
+#: Hypothesis models (``RansacParams.model``).
+RansacModel = Literal["rigid", "levelled"]
 
 
 @dataclass(frozen=True)
 class RansacParams:
     """Parameters of :func:`register_ransac` (defaults: Baek et al. 2022, Table 3).
+
+    Each field declares its bounds or choices in its metadata (:mod:`minegeo._params`): the same
+    rule checks the dataclass and the command-line options that set the field (``minegeo localize
+    --ransac-max-iterations``, ``--ransac-min-iterations``, ``--hypotheses``, ``--levelled``) and
+    their keys in a ``--config`` file. ``ransac_n`` is at least 2, and at least 3 for the rigid
+    model; the normal check needs the rigid model.
 
     Parameters
     ----------
@@ -103,74 +114,32 @@ class RansacParams:
         scored hypothesis keeps its full count.
     """
 
-    distance_threshold_m: float = 2.5
-    ransac_n: int = 4
-    edge_length_similarity: float = 0.9
-    edge_pairs: str = "all"
-    normal_angle_threshold_rad: float | None = None
-    max_iterations: int = 400_000_000
-    max_validations: int | None = 500
-    confidence: float = 0.999
-    mutual_filter: bool = False
-    mode: str = "minegeo"
-    refit_iterations: int = 3
-    batch_size: int = 4096
-    distinct_distance_m: float | None = None
-    distinct_angle_deg: float = 10.0
-    max_tilt_deg: float | None = None
-    min_iterations: int = 0
-    n_hypotheses: int = 2
-    model: str = "rigid"
+    distance_threshold_m: float = bounded(2.5, gt=0.0)
+    ransac_n: int = bounded(4, ge=2, integer=True)
+    edge_length_similarity: float = bounded(0.9, ge=0.0, le=1.0)
+    edge_pairs: EdgePairs = one_of("all", EdgePairs)
+    normal_angle_threshold_rad: float | None = bounded(None, ge=0.0, le=math.pi, optional=True)
+    max_iterations: int = bounded(400_000_000, ge=1, integer=True)
+    max_validations: int | None = bounded(500, ge=1, integer=True, optional=True)
+    confidence: float = bounded(0.999, ge=0.0, le=1.0)
+    mutual_filter: bool = flag(False)
+    mode: RansacMode = one_of("minegeo", RansacMode)
+    refit_iterations: int = bounded(3, ge=0, integer=True)
+    batch_size: int = bounded(4096, ge=1, integer=True)
+    distinct_distance_m: float | None = bounded(None, gt=0.0, optional=True)
+    distinct_angle_deg: float = bounded(10.0, gt=0.0)
+    max_tilt_deg: float | None = bounded(None, gt=0.0, le=180.0, optional=True)
+    min_iterations: int = bounded(0, ge=0, integer=True)
+    n_hypotheses: int = bounded(2, ge=2, integer=True)
+    model: RansacModel = one_of("rigid", RansacModel)
 
     def __post_init__(self):
-        if self.max_tilt_deg is not None and not 0.0 < float(self.max_tilt_deg) <= 180.0:
-            raise InputError(f"RansacParams.max_tilt_deg must be in (0, 180] degrees or None, got {self.max_tilt_deg!r}")
-        if isinstance(self.min_iterations, bool) or int(self.min_iterations) != self.min_iterations \
-                or self.min_iterations < 0:
-            raise InputError(f"RansacParams.min_iterations must be an integer >= 0, got {self.min_iterations!r}")
-        if isinstance(self.n_hypotheses, bool) or int(self.n_hypotheses) != self.n_hypotheses or self.n_hypotheses < 2:
-            raise InputError(f"RansacParams.n_hypotheses must be an integer >= 2, got {self.n_hypotheses!r}")
-        check_positive(self.distance_threshold_m, "RansacParams.distance_threshold_m")
-        if self.model not in ("rigid", "levelled"):
-            raise InputError(f"RansacParams.model must be 'rigid' or 'levelled', got {self.model!r}")
-        n_min = 2 if self.model == "levelled" else 3
-        if int(self.ransac_n) != self.ransac_n or self.ransac_n < n_min:
-            raise InputError(f"RansacParams.ransac_n must be an integer >= {n_min} for the {self.model} model, "
-                             f"got {self.ransac_n!r}")
+        validate(self)
+        # checks across fields (each field's own rule is in its metadata)
+        if self.model == "rigid" and self.ransac_n < 3:
+            raise InputError(f"RansacParams.ransac_n must be a whole number >= 3 for the rigid model, got {self.ransac_n!r}")
         if self.model == "levelled" and self.normal_angle_threshold_rad is not None:
             raise InputError("RansacParams: the normal-angle check is not available with model='levelled'")
-        if not 0.0 <= float(self.edge_length_similarity) <= 1.0:
-            raise InputError(
-                f"RansacParams.edge_length_similarity must be in [0, 1], got {self.edge_length_similarity!r}"
-            )
-        if self.edge_pairs not in _EDGE_PAIRS:
-            raise InputError(f"RansacParams.edge_pairs must be one of {_EDGE_PAIRS}, got {self.edge_pairs!r}")
-        if self.normal_angle_threshold_rad is not None and not (
-            0.0 <= float(self.normal_angle_threshold_rad) <= math.pi
-        ):
-            raise InputError(
-                "RansacParams.normal_angle_threshold_rad must be in [0, pi] (radians) or None, "
-                f"got {self.normal_angle_threshold_rad!r}"
-            )
-        if int(self.max_iterations) != self.max_iterations or self.max_iterations < 1:
-            raise InputError(f"RansacParams.max_iterations must be an integer >= 1, got {self.max_iterations!r}")
-        if self.max_validations is not None and (
-            int(self.max_validations) != self.max_validations or self.max_validations < 1
-        ):
-            raise InputError(
-                f"RansacParams.max_validations must be an integer >= 1 or None, got {self.max_validations!r}"
-            )
-        if not 0.0 <= float(self.confidence) <= 1.0:
-            raise InputError(f"RansacParams.confidence must be in [0, 1], got {self.confidence!r}")
-        if self.mode not in _MODES:
-            raise InputError(f"RansacParams.mode must be one of {_MODES}, got {self.mode!r}")
-        if int(self.refit_iterations) != self.refit_iterations or self.refit_iterations < 0:
-            raise InputError(f"RansacParams.refit_iterations must be an integer >= 0, got {self.refit_iterations!r}")
-        if int(self.batch_size) != self.batch_size or self.batch_size < 1:
-            raise InputError(f"RansacParams.batch_size must be an integer >= 1, got {self.batch_size!r}")
-        if self.distinct_distance_m is not None:
-            check_positive(self.distinct_distance_m, "RansacParams.distinct_distance_m")
-        check_positive(self.distinct_angle_deg, "RansacParams.distinct_angle_deg")
 
     @classmethod
     def open3d_compatible(
