@@ -16,8 +16,16 @@ import sys
 from dataclasses import asdict, replace
 from pathlib import Path
 
-from minegeo.cli._argtypes import finite_float, float_in_range, int_in_range, nonnegative_int, positive_float
+from minegeo._params import arg_type
+from minegeo.cli._argtypes import finite_float, nonnegative_int, positive_float
 from minegeo.cli._imu import add_imu_arguments, check_imu, inertial_params, read_imu
+
+#: the parameter class whose field rules the odometry options use (imported when an option is parsed)
+_ODO = "minegeo.slam.odometry_model:OdometryParams"
+#: ``--keyframe-angle``: the rotation between two poses is at most 180 deg, so a larger threshold
+#: would never act; the option takes (0, 180] where ``OdometryParams.keyframe_angle_deg`` takes any
+#: angle > 0 (every value from 180 up behaves the same there)
+KEYFRAME_ANGLE_MAX_DEG = 180.0
 
 HELP = "LiDAR SLAM from a folder of frames: GICP odometry, loop closure, pose graph; trajectory + map (Ren et al. 2019)"
 
@@ -39,13 +47,16 @@ def add_arguments(parser) -> None:
                         "(default: FRAMES/times.txt, else the numbers in the file names)")
     parser.add_argument("--pattern", default=None, help='frame file-name pattern, e.g. "*.pcd" (default: every '
                         "point-cloud file in the folder)")
-    parser.add_argument("--voxel", type=positive_float, default=0.3, help="odometry voxel size (m, default 0.3)")
-    parser.add_argument("--max-distance", type=positive_float, default=1.0,
-                        help="GICP correspondence gate (m, default 1.0)")
-    parser.add_argument("--keyframe-distance", type=positive_float, default=2.0, help="keyframe distance threshold (m)")
-    parser.add_argument("--keyframe-angle", type=float_in_range(0.0, 180.0, lo_open=True), default=10.0,
-                        help="keyframe rotation threshold (deg, in (0, 180])")
-    parser.add_argument("--keyframe-interval", type=positive_float, default=10.0, help="keyframe time threshold (s)")
+    parser.add_argument("--voxel", type=arg_type(_ODO, "voxel_size_m"), default=0.3,
+                        help="odometry voxel size (m, > 0, default 0.3)")
+    parser.add_argument("--max-distance", type=arg_type(_ODO, "max_correspondence_distance_m"), default=1.0,
+                        help="GICP correspondence gate (m, > 0, default 1.0)")
+    parser.add_argument("--keyframe-distance", type=arg_type(_ODO, "keyframe_distance_m"), default=2.0,
+                        help="keyframe distance threshold (m, > 0, default 2)")
+    parser.add_argument("--keyframe-angle", type=arg_type(_ODO, "keyframe_angle_deg", le=KEYFRAME_ANGLE_MAX_DEG),
+                        default=10.0, help="keyframe rotation threshold (deg, in (0, 180], default 10)")
+    parser.add_argument("--keyframe-interval", type=arg_type(_ODO, "keyframe_interval_s"), default=10.0,
+                        help="keyframe time threshold (s, > 0, default 10)")
     parser.add_argument("--loop-gap", type=positive_float, default=30.0, help="loop candidates: path gap above (m)")
     parser.add_argument("--loop-radius", type=positive_float, default=8.0,
                         help="loop candidates: distance below (m; less than --loop-gap)")
@@ -58,7 +69,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-deskew", action="store_true", help="do not deskew frames whose points carry times "
                         "(default: each such frame is moved to its frame time by the constant-velocity motion of the "
                         "odometry before registration; frames without times are never deskewed)")
-    parser.add_argument("--deskew-iterations", type=int_in_range(0, 1), default=None,
+    parser.add_argument("--deskew-iterations", type=arg_type(_ODO, "deskew_iterations"), default=None,
                         help="1 (default): after registering a frame, deskew it again with its own estimated motion "
                         "and register once more; 0: one pass")
     parser.add_argument("--odometry", choices=("auto", "submap", "frame"), default="auto",
@@ -66,13 +77,13 @@ def add_arguments(parser) -> None:
                         "the previous frame (Ren2019 Eq. 7; keyframes refined against the local map); 'auto' "
                         f"(default): submap for a sensor stream (median frame interval up to {STREAM_INTERVAL_S:g} s), "
                         "frame for a log of keyframes farther apart")
-    parser.add_argument("--max-speed", type=positive_float, default=30.0,
-                        help="plausible motion: a registration faster than this is rejected (m/s, default 30)")
-    parser.add_argument("--max-angular-rate", type=positive_float, default=180.0,
-                        help="plausible motion: a registration turning faster is rejected (deg/s, default 180)")
-    parser.add_argument("--max-acceleration", type=positive_float, default=20.0,
+    parser.add_argument("--max-speed", type=arg_type(_ODO, "max_speed_m_s"), default=30.0,
+                        help="plausible motion: a registration faster than this is rejected (m/s, > 0, default 30)")
+    parser.add_argument("--max-angular-rate", type=arg_type(_ODO, "max_angular_rate_deg_s"), default=180.0,
+                        help="plausible motion: a registration turning faster is rejected (deg/s, > 0, default 180)")
+    parser.add_argument("--max-acceleration", type=arg_type(_ODO, "max_acceleration_m_s2"), default=20.0,
                         help="plausible motion: a registration whose velocity changes faster than this against the "
-                        "previous motion, beyond 0.1 m of registration scatter, is rejected (m/s^2, default 20)")
+                        "previous motion, beyond 0.1 m of registration scatter, is rejected (m/s^2, > 0, default 20)")
     parser.add_argument("--seed", type=nonnegative_int, default=0,
                         help="recorded seed (the run draws no random numbers)")
     add_imu_arguments(parser, "gyro rotation guesses, deskewing and a gate on each registration, IMU preintegration "

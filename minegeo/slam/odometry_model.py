@@ -6,10 +6,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
+from typing import Literal
 
 import numpy as np
 
-from minegeo.errors import InputError
+from minegeo._params import bounded, flag, one_of, validate
 from minegeo.registration import GICPParams
 from minegeo.slam.observability import surface_translation_ratio
 
@@ -18,23 +19,35 @@ EDGE_FLOOR_FIELDS = ("edge_sigma_tilt_deg_per_sqrt_m", "edge_sigma_tilt_deg_per_
                      "edge_sigma_trans_xy_m_per_sqrt_m", "edge_sigma_trans_z_m_per_sqrt_m", "edge_sigma_trans_z_m_per_deg")
 
 
+#: What each frame registers to (``OdometryParams.frame_target``).
+FrameTarget = Literal["frame", "submap"]
+
+
 @dataclass(frozen=True)
 class OdometryParams:
-    """Parameters of the GICP odometry (distances in m, angles in deg, times in s)."""
+    """Parameters of the GICP odometry (distances in m, angles in deg, times in s).
 
-    voxel_size_m: float = 0.3
-    max_correspondence_distance_m: float = 1.0
-    gicp_max_iterations: int = 30
-    covariance_neighbours: int = 20
-    keyframe_distance_m: float = 2.0
-    keyframe_angle_deg: float = 10.0
-    keyframe_interval_s: float = 10.0
+    Each field with a bound or a fixed set of values declares it in its metadata
+    (:mod:`minegeo._params`): the same rule checks the dataclass, the ``minegeo slam`` option that
+    sets the field (``--voxel``, ``--max-distance``, ``--keyframe-distance``, ``--keyframe-angle``,
+    ``--keyframe-interval``, ``--deskew-iterations``, ``--max-speed``, ``--max-angular-rate``,
+    ``--max-acceleration``) and its key in a ``--config`` file. ``gicp_max_iterations`` and
+    ``covariance_neighbours`` take the bounds of :class:`~minegeo.registration.GICPParams`.
+    """
+
+    voxel_size_m: float = bounded(0.3, gt=0.0)
+    max_correspondence_distance_m: float = bounded(1.0, gt=0.0)
+    gicp_max_iterations: int = bounded(30, ge=0, integer=True)
+    covariance_neighbours: int = bounded(20, ge=3, integer=True)
+    keyframe_distance_m: float = bounded(2.0, gt=0.0)
+    keyframe_angle_deg: float = bounded(10.0, gt=0.0)
+    keyframe_interval_s: float = bounded(10.0, gt=0.0)
     min_points: int = 200
-    min_fitness: float = 0.3
-    sigma_floor_m: float = 0.01
-    coarse_gate_factor: float = 3.0
-    translation_observability_ratio: float = 0.03
-    surface_observability_ratio: float = 0.004
+    min_fitness: float = bounded(0.3, ge=0.0, le=1.0)
+    sigma_floor_m: float = bounded(0.01, gt=0.0)
+    coarse_gate_factor: float = bounded(3.0, gt=0.0)
+    translation_observability_ratio: float = bounded(0.03, gt=0.0)
+    surface_observability_ratio: float = bounded(0.004, gt=0.0)
     keyframe_submap_size: int = 5
     turn_retry_yaw_deg: tuple = (20.0, -20.0, 40.0, -40.0, 60.0, -60.0)
     unconverged_retry_fitness: float = 0.6
@@ -43,28 +56,28 @@ class OdometryParams:
     #: local map: the laser rings of several keyframes interleave, so neither the partner search nor
     #: the target's covariances follow the ring pattern, which biases frame-to-frame GICP towards no
     #: motion and no tilt change with sparse rings)
-    frame_target: str = "frame"
+    frame_target: FrameTarget = one_of("frame", FrameTarget)
     #: deskew frames whose points carry per-point times (:mod:`minegeo.slam.deskew`), from the
     #: constant-velocity twist of the odometry's last motion; frames without times are unaffected
-    deskew: bool = True
+    deskew: bool = flag(True)
     #: after a frame's registration, deskew it again with the twist of its own newly estimated motion
     #: (from the previous registered frame to it) and register once more (0: no second pass)
-    deskew_iterations: int = 1
+    deskew_iterations: int = bounded(1, ge=0, le=1, integer=True)
     #: plausible-motion bounds (no silent runaway): a registration whose motion since the last
     #: registered frame exceeds a speed (m/s) or an angular rate (deg/s), or whose velocity differs
     #: from the previous motion's by more than an acceleration (m/s², between the middles of the two
     #: intervals), is rejected and the frame held by the constant-velocity prior
-    max_speed_m_s: float = 30.0
-    max_angular_rate_deg_s: float = 180.0
-    max_acceleration_m_s2: float = 20.0
+    max_speed_m_s: float = bounded(30.0, gt=0.0)
+    max_angular_rate_deg_s: float = bounded(180.0, gt=0.0)
+    max_acceleration_m_s2: float = bounded(20.0, gt=0.0)
     #: registration noise allowed in the acceleration test (m): two positions off by this much change
     #: a velocity over ``dt`` by ``2·motion_noise_m/dt`` (in a smooth box drift at 1 m per 0.1 s frame,
     #: frame-to-frame GICP scattered by up to 0.13 m: 25 m/s² of apparent acceleration)
-    motion_noise_m: float = 0.1
+    motion_noise_m: float = bounded(0.1, gt=0.0)
     #: degenerate geometry: a registration whose normalised point-to-plane constraint matrix
     #: (:func:`minegeo.registration.constraint_analysis`, GICP's ``degeneracy_ratio``) has
     #: ``λ_min / λ_max`` below this is rejected (dimensionless; GICP flags below 1e-2 as weak)
-    min_constraint_ratio: float = 1e-4
+    min_constraint_ratio: float = bounded(1e-4, ge=0.0, lt=1.0)
     #: edge covariance floor (:func:`edge_covariance_floor`), added to the GICP covariance of every
     #: registration: GICP's Hessian treats each point as an independent measurement while the errors
     #: of neighbouring points are correlated (wall relief, the model error of the local planes, deskew
@@ -78,34 +91,16 @@ class OdometryParams:
     #: apply the floor below to every edge (True: ``slam --control``, whose statistics need calibrated
     #: edges; False by default: plain SLAM keeps GICP's information, because with the floor the plane
     #: factors weigh more and cost ATE on some streams, see docs/slam.md "Edge covariance")
-    edge_covariance_floor: bool = False
-    edge_sigma_tilt_deg_per_sqrt_m: float = 0.11
-    edge_sigma_tilt_deg_per_deg: float = 0.31
-    edge_sigma_yaw_deg_per_sqrt_m: float = 0.034
-    edge_sigma_trans_xy_m_per_sqrt_m: float = 0.0051
-    edge_sigma_trans_z_m_per_sqrt_m: float = 0.037
-    edge_sigma_trans_z_m_per_deg: float = 0.0003
+    edge_covariance_floor: bool = flag(False)
+    edge_sigma_tilt_deg_per_sqrt_m: float = bounded(0.11, ge=0.0)
+    edge_sigma_tilt_deg_per_deg: float = bounded(0.31, ge=0.0)
+    edge_sigma_yaw_deg_per_sqrt_m: float = bounded(0.034, ge=0.0)
+    edge_sigma_trans_xy_m_per_sqrt_m: float = bounded(0.0051, ge=0.0)
+    edge_sigma_trans_z_m_per_sqrt_m: float = bounded(0.037, ge=0.0)
+    edge_sigma_trans_z_m_per_deg: float = bounded(0.0003, ge=0.0)
 
     def __post_init__(self):
-        if self.frame_target not in ("frame", "submap"):
-            raise InputError(f"frame_target must be 'frame' or 'submap', got {self.frame_target!r}")
-        for name in ("voxel_size_m", "max_correspondence_distance_m", "keyframe_distance_m", "keyframe_angle_deg",
-                     "keyframe_interval_s", "sigma_floor_m", "coarse_gate_factor", "translation_observability_ratio",
-                     "surface_observability_ratio", "max_speed_m_s", "max_angular_rate_deg_s",
-                     "max_acceleration_m_s2", "motion_noise_m"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-                raise InputError(f"{name} must be a finite number > 0, got {v!r}")
-        if not 0 <= self.min_fitness <= 1:
-            raise InputError(f"min_fitness must be in [0, 1], got {self.min_fitness!r}")
-        if not 0 <= self.min_constraint_ratio < 1:
-            raise InputError(f"min_constraint_ratio must be in [0, 1), got {self.min_constraint_ratio!r}")
-        for name in EDGE_FLOOR_FIELDS:
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
-                raise InputError(f"{name} must be a finite number >= 0, got {v!r}")
-        if self.deskew_iterations not in (0, 1):
-            raise InputError(f"deskew_iterations must be 0 or 1, got {self.deskew_iterations!r}")
+        validate(self)
 
     def gicp(self) -> GICPParams:
         return GICPParams(self.max_correspondence_distance_m, max_iterations=self.gicp_max_iterations,

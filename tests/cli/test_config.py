@@ -131,7 +131,7 @@ def test_command_line_overrides_the_file_and_required_options_come_from_it(tmp_p
 _BAD = {  # file text -> what the one error line must say
     "voxl = 0.3\n": "unknown key 'voxl'",
     'voxel = "0.3"\n': "key 'voxel' must be a number",
-    "voxel = -1.0\n": "key 'voxel': '-1.0' must be greater than 0",
+    "voxel = -1.0\n": "key 'voxel': OdometryParams.voxel_size_m must be a finite number > 0, got -1.0",
     "voxel = true\n": "key 'voxel' takes one value",
     "seed = 1.5\n": "key 'seed'",
     "no-planes = 1\n": "key 'no-planes' is a flag",
