@@ -1,16 +1,20 @@
-"""Parameter groups with their rules in field metadata (minegeo/_params.py, minegeo/localize/params.py).
+"""Parameter groups with their rules in field metadata (minegeo/_params.py, minegeo/localize/params.py,
+minegeo/registration/ransac_params.py, minegeo/slam/odometry_model.py).
 
 * every numeric rule refuses the values on the wrong side of its bound and accepts the others
   (hypothesis: values drawn on both sides of each bound; the expected verdict comes from the bound
   as hand-listed here, not from the code's metadata);
 * the command line and a ``--config`` file refuse a value with the dataclass's own message
-  (exit status 2, one stderr line: the bad-input contract);
+  (exit status 2, one stderr line: the bad-input contract); every option typed by a field's rule
+  (``minegeo localize``, ``minegeo slam``) is listed, its type accepts exactly what the field accepts
+  (within the option's own cap, where it has one) and refuses the rest with the field's message;
 * ``LocalizeParams()`` holds the values of the flat parameter set it replaced, field by field
   (hand-listed from the former ``minegeo/localize/params.py``).
 """
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import math
@@ -35,6 +39,8 @@ from minegeo.localize.params import (
     UncertaintyParams,
     VerifyParams,
 )
+from minegeo.registration.ransac_params import RansacParams
+from minegeo.slam.odometry_model import EDGE_FLOOR_FIELDS, OdometryParams
 
 # (class, field) -> (lower op, lower bound, upper op, upper bound, integer): the documented rules
 BOUNDS = {
@@ -111,11 +117,43 @@ BOUNDS = {
     (GravityParams, "n_blocks"): (">=", 4, None, None, True),
     (GravityParams, "n_rivals"): (">=", 0, None, None, True),
     (GravityParams, "seed"): (">=", 0, None, None, True),
+    # RansacParams (its former __post_init__ checks, minegeo/registration/ransac_params.py at 7fb575f)
+    (RansacParams, "distance_threshold_m"): (">", 0.0, None, None, False),
+    (RansacParams, "edge_length_similarity"): (">=", 0.0, "<=", 1.0, False),
+    (RansacParams, "normal_angle_threshold_rad"): (">=", 0.0, "<=", math.pi, False),
+    (RansacParams, "max_iterations"): (">=", 1, None, None, True),
+    (RansacParams, "max_validations"): (">=", 1, None, None, True),
+    (RansacParams, "confidence"): (">=", 0.0, "<=", 1.0, False),
+    (RansacParams, "refit_iterations"): (">=", 0, None, None, True),
+    (RansacParams, "batch_size"): (">=", 1, None, None, True),
+    (RansacParams, "distinct_distance_m"): (">", 0.0, None, None, False),
+    (RansacParams, "distinct_angle_deg"): (">", 0.0, None, None, False),
+    (RansacParams, "max_tilt_deg"): (">", 0.0, "<=", 180.0, False),
+    (RansacParams, "min_iterations"): (">=", 0, None, None, True),
+    (RansacParams, "n_hypotheses"): (">=", 2, None, None, True),
+    # OdometryParams (its former __post_init__ checks, minegeo/slam/odometry_model.py at 7fb575f; the GICP
+    # iteration cap and neighbour count with GICPParams' checks)
+    **{(OdometryParams, n): (">", 0.0, None, None, False)
+       for n in ("voxel_size_m", "max_correspondence_distance_m", "keyframe_distance_m", "keyframe_angle_deg",
+                 "keyframe_interval_s", "sigma_floor_m", "coarse_gate_factor", "translation_observability_ratio",
+                 "surface_observability_ratio", "max_speed_m_s", "max_angular_rate_deg_s", "max_acceleration_m_s2",
+                 "motion_noise_m")},
+    **{(OdometryParams, n): (">=", 0.0, None, None, False) for n in EDGE_FLOOR_FIELDS},
+    (OdometryParams, "gicp_max_iterations"): (">=", 0, None, None, True),
+    (OdometryParams, "covariance_neighbours"): (">=", 3, None, None, True),
+    (OdometryParams, "min_fitness"): (">=", 0.0, "<=", 1.0, False),
+    (OdometryParams, "min_constraint_ratio"): (">=", 0.0, "<", 1.0, False),
+    (OdometryParams, "deskew_iterations"): (">=", 0, "<=", 1, True),
 }
-#: fields whose rule is joined by a check across fields (GravityParams: 3 <= min_points <= max_points)
-CROSS_CHECKED = {(GravityParams, "min_points"), (GravityParams, "max_points")}
+#: fields whose rule is joined by a check across fields (GravityParams: 3 <= min_points <= max_points;
+#: RansacParams: ransac_n >= 2, >= 3 for the rigid model)
+CROSS_CHECKED = {(GravityParams, "min_points"), (GravityParams, "max_points"), (RansacParams, "ransac_n")}
+#: fields that declare no rule (every value runs: a count or ratio compared with ``<``, a tuple of angles)
+UNRULED = {(OdometryParams, n) for n in ("min_points", "keyframe_submap_size", "unconverged_retry_fitness",
+                                         "turn_retry_yaw_deg")}
 GROUPS = (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, GravityFallbackParams, LocalizeParams,
-          FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams)
+          FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams, RansacParams,
+          OdometryParams)
 KEYS = sorted(BOUNDS, key=lambda k: (k[0].__name__, k[1]))
 _OPS = {">": lambda v, b: v > b, ">=": lambda v, b: v >= b, "<": lambda v, b: v < b, "<=": lambda v, b: v <= b}
 
@@ -130,7 +168,10 @@ def test_every_numeric_field_is_listed():
     listed = set(BOUNDS) | CROSS_CHECKED
     for cls in GROUPS:
         for f in dataclasses.fields(cls):
-            if field_rule(cls, f.name)["kind"] == "number":
+            if (cls, f.name) in UNRULED:
+                with pytest.raises(KeyError, match="declares no rule"):
+                    field_rule(cls, f.name)
+            elif field_rule(cls, f.name)["kind"] == "number":
                 assert (cls, f.name) in listed, (cls.__name__, f.name)
     with pytest.raises(InputError, match="min_points <= max_points"):
         GravityParams(min_points=2)
@@ -203,17 +244,91 @@ def test_optional_fields_and_stages():
         IcpParams(weak_axis_polish_term=1)
 
 
+def test_ransac_and_odometry_choices_flags_and_cross_checks():
+    """The fixed choices, the flags, None where optional, and the checks across fields (hand-listed
+    from the former __post_init__ checks)."""
+    for name in ("normal_angle_threshold_rad", "max_validations", "distinct_distance_m", "max_tilt_deg"):
+        assert getattr(RansacParams(**{name: None}), name) is None
+    for name in ("distance_threshold_m", "max_iterations", "confidence", "min_iterations", "n_hypotheses"):
+        with pytest.raises(InputError, match=f"RansacParams.{name} must be"):
+            RansacParams(**{name: None})
+    for cls, name, good, bad in ((RansacParams, "mode", "open3d", "opencv"),
+                                 (RansacParams, "edge_pairs", "polygon", "ring"),
+                                 (RansacParams, "model", "levelled", "yaw"),
+                                 (OdometryParams, "frame_target", "submap", "map")):
+        kw = {"ransac_n": 2} if good == "levelled" else {}
+        assert getattr(cls(**{name: good, **kw}), name) == good
+        with pytest.raises(InputError, match=f"{cls.__name__}.{name} must be one of"):
+            cls(**{name: bad})
+    for cls, name in ((RansacParams, "mutual_filter"), (OdometryParams, "deskew"),
+                      (OdometryParams, "edge_covariance_floor")):
+        assert getattr(cls(**{name: True}), name) is True and getattr(cls(**{name: False}), name) is False
+        with pytest.raises(InputError, match=f"{cls.__name__}.{name} must be True or False"):
+            cls(**{name: 1})
+    # ransac_n: >= 3 for the rigid model (a sample of 2 pairs does not fix a rotation), >= 2 for the levelled one
+    assert RansacParams(ransac_n=3).ransac_n == 3 and RansacParams(model="levelled", ransac_n=2).ransac_n == 2
+    with pytest.raises(InputError, match=r"RansacParams.ransac_n must be a whole number >= 3 for the rigid model, got 2"):
+        RansacParams(ransac_n=2)
+    for bad in (1, 0, 2.0, True):
+        with pytest.raises(InputError, match="RansacParams.ransac_n must be a whole number >= 2"):
+            RansacParams(model="levelled", ransac_n=bad)
+    with pytest.raises(InputError, match="normal-angle check is not available"):
+        RansacParams(model="levelled", ransac_n=2, normal_angle_threshold_rad=0.5)
+
+
 # ------------------------------------------------------------------ the CLI and a config file
 
-# option, value, (class, field, value given to the dataclass), what an off-able option says instead of None
+# verb, option, value, (class, field, value given to the dataclass), what an off-able option says instead of
+# None, the option's own rule where it takes less than the field (its message then adds "; this option takes ...")
 CLI_CASES = [
-    ("--ransac-runs", "0", (LocalizeParams, "ransac_runs", 0), None),
-    ("--voxel", "-0.5", (LocalizeParams, "scan_voxel_size_m", -0.5), None),
-    ("--octree-level", "22", (LocalizeParams, "scan_octree_level", 22), None),
-    ("--octree-level", "0", (LocalizeParams, "scan_octree_level", 0), None),
-    ("--polish", "-1.0", (IcpParams, "polish_correspondence_m", -1.0), "0 (off)"),
-    ("--fine-tolerance", "-0.01", (VerifyParams, "fine_tolerance_m", -0.01), "0 (off)"),
+    ("localize", "--ransac-runs", "0", (LocalizeParams, "ransac_runs", 0), None, None),
+    ("localize", "--voxel", "-0.5", (LocalizeParams, "scan_voxel_size_m", -0.5), None, None),
+    ("localize", "--octree-level", "22", (LocalizeParams, "scan_octree_level", 22), None, None),
+    ("localize", "--octree-level", "0", (LocalizeParams, "scan_octree_level", 0), None, None),
+    ("localize", "--polish", "-1.0", (IcpParams, "polish_correspondence_m", -1.0), "0 (off)", None),
+    ("localize", "--fine-tolerance", "-0.01", (VerifyParams, "fine_tolerance_m", -0.01), "0 (off)", None),
+    ("localize", "--ransac-max-iterations", "0", (RansacParams, "max_iterations", 0), None,
+     "a whole number in [1, 1000000000]"),
+    ("localize", "--ransac-min-iterations", "-1", (RansacParams, "min_iterations", -1), None,
+     "a whole number in [0, 1000000000]"),
+    ("localize", "--hypotheses", "1", (RansacParams, "n_hypotheses", 1), None, "a whole number in [2, 1000000000]"),
+    ("localize", "--levelled", "0", (RansacParams, "max_tilt_deg", 0.0), None, "a finite number in (0, 90]"),
+    ("localize", "--levelled", "180.5", (RansacParams, "max_tilt_deg", 180.5), None, "a finite number in (0, 90]"),
+    ("slam", "--voxel", "0", (OdometryParams, "voxel_size_m", 0.0), None, None),
+    ("slam", "--max-distance", "-1", (OdometryParams, "max_correspondence_distance_m", -1.0), None, None),
+    ("slam", "--keyframe-distance", "0", (OdometryParams, "keyframe_distance_m", 0.0), None, None),
+    ("slam", "--keyframe-angle", "-10", (OdometryParams, "keyframe_angle_deg", -10.0), None,
+     "a finite number in (0, 180]"),
+    ("slam", "--keyframe-interval", "-10", (OdometryParams, "keyframe_interval_s", -10.0), None, None),
+    ("slam", "--deskew-iterations", "2", (OdometryParams, "deskew_iterations", 2), None, None),
+    ("slam", "--deskew-iterations", "-1", (OdometryParams, "deskew_iterations", -1), None, None),
+    ("slam", "--max-speed", "0", (OdometryParams, "max_speed_m_s", 0.0), None, None),
+    ("slam", "--max-angular-rate", "-5", (OdometryParams, "max_angular_rate_deg_s", -5.0), None, None),
+    ("slam", "--max-acceleration", "-1", (OdometryParams, "max_acceleration_m_s2", -1.0), None, None),
 ]
+_CLI_IDS = [f"{c[0]}{c[1]}={c[2]}" for c in CLI_CASES]
+
+# values the field takes but the option does not (its own cap): verb, option, value, (class, field, value),
+# the option's rule, the field's rule
+LIMIT_CASES = [
+    ("localize", "--levelled", "91", (RansacParams, "max_tilt_deg", 91.0), "a finite number in (0, 90]",
+     "a finite number in (0, 180]"),
+    ("localize", "--hypotheses", "1000000001", (RansacParams, "n_hypotheses", 1_000_000_001),
+     "a whole number in [2, 1000000000]", "a whole number >= 2"),
+    ("localize", "--ransac-max-iterations", "1000000001", (RansacParams, "max_iterations", 1_000_000_001),
+     "a whole number in [1, 1000000000]", "a whole number >= 1"),
+    ("localize", "--ransac-min-iterations", "1000000001", (RansacParams, "min_iterations", 1_000_000_001),
+     "a whole number in [0, 1000000000]", "a whole number >= 0"),
+    ("slam", "--keyframe-angle", "180.5", (OdometryParams, "keyframe_angle_deg", 180.5), "a finite number in (0, 180]",
+     "a finite number > 0"),
+]
+_LIMIT_IDS = [f"{c[0]}{c[1]}={c[2]}" for c in LIMIT_CASES]
+
+
+def _base(verb, tmp_path) -> list:
+    if verb == "localize":
+        return ["--map", tmp_path / "no_map.ply", "--scan", tmp_path / "no_scan.ply", "--out", tmp_path / "out"]
+    return ["--frames", tmp_path / "no_frames", "--out", tmp_path / "out"]
 
 
 def _dataclass_message(cls, name, v, off_text) -> str:
@@ -224,24 +339,126 @@ def _dataclass_message(cls, name, v, off_text) -> str:
     return str(exc.value).replace(" or None,", "," if off_text is None else f" or {off_text},")
 
 
-@pytest.mark.parametrize("opt,text,target,off_text", CLI_CASES, ids=[f"{c[0]}={c[1]}" for c in CLI_CASES])
-def test_cli_option_refused_with_the_dataclass_message(opt, text, target, off_text, tmp_path, capsys):
-    base = ["--map", tmp_path / "no_map.ply", "--scan", tmp_path / "no_scan.ply", "--out", tmp_path / "out"]
-    want = _dataclass_message(*target, off_text)
-    line = assert_user_error("localize", [*base, opt, text], capsys, outputs=[tmp_path / "out"])
-    assert line.endswith(f"argument {opt}: {want} (see minegeo localize --help)"), (line, want)
+def _want(target, off_text, limit) -> str:
+    return _dataclass_message(*target, off_text) + ("" if limit is None else f"; this option takes {limit}")
 
 
-@pytest.mark.parametrize("opt,text,target,off_text", CLI_CASES, ids=[f"{c[0]}={c[1]}" for c in CLI_CASES])
-def test_config_file_value_refused_with_the_dataclass_message(opt, text, target, off_text, tmp_path, capsys):
+def _limit_want(target, option_rule, field_rule_text) -> str:
+    cls, name, v = target
+    assert getattr(cls(**{name: v}), name) == v  # the library takes it
+    return f"this option takes {option_rule}, got {v!r} ({cls.__name__}.{name} itself takes {field_rule_text})"
+
+
+@pytest.mark.parametrize("verb,opt,text,target,off_text,limit", CLI_CASES, ids=_CLI_IDS)
+def test_cli_option_refused_with_the_dataclass_message(verb, opt, text, target, off_text, limit, tmp_path, capsys):
+    want = _want(target, off_text, limit)
+    line = assert_user_error(verb, [*_base(verb, tmp_path), opt, text], capsys, outputs=[tmp_path / "out"])
+    assert line.endswith(f"argument {opt}: {want} (see minegeo {verb} --help)"), (line, want)
+
+
+@pytest.mark.parametrize("verb,opt,text,target,off_text,limit", CLI_CASES, ids=_CLI_IDS)
+def test_config_file_value_refused_with_the_dataclass_message(verb, opt, text, target, off_text, limit, tmp_path,
+                                                              capsys):
     cfg = tmp_path / "bad.json"
-    value = int(text) if target[0] is LocalizeParams and target[1] in ("ransac_runs", "scan_octree_level") \
-        else float(text)
-    cfg.write_text(json.dumps({opt.lstrip("-"): value}), encoding="utf-8")
-    base = ["--map", tmp_path / "no_map.ply", "--scan", tmp_path / "no_scan.ply", "--out", tmp_path / "out"]
-    want = _dataclass_message(*target, off_text)
-    line = assert_user_error("localize", [*base, "--config", cfg], capsys, inputs=[cfg], outputs=[tmp_path / "out"])
+    cfg.write_text(json.dumps({opt.lstrip("-"): target[2]}), encoding="utf-8")  # a whole number stays one
+    want = _want(target, off_text, limit)
+    line = assert_user_error(verb, [*_base(verb, tmp_path), "--config", cfg], capsys, inputs=[cfg],
+                             outputs=[tmp_path / "out"])
     assert f"key {opt.lstrip('-')!r}: {want}" in line, (line, want)
+
+
+@pytest.mark.parametrize("verb,opt,text,target,option_rule,field_rule_text", LIMIT_CASES, ids=_LIMIT_IDS)
+def test_option_cap_below_the_field_bound_is_kept(verb, opt, text, target, option_rule, field_rule_text, tmp_path,
+                                                  capsys):
+    """An option that deliberately takes less than its field (--levelled at most 90 deg, the counts at
+    most 1e9, --keyframe-angle at most 180 deg) refuses the rest, on the command line and in a file."""
+    want = _limit_want(target, option_rule, field_rule_text)
+    line = assert_user_error(verb, [*_base(verb, tmp_path), opt, text], capsys, outputs=[tmp_path / "out"])
+    assert line.endswith(f"argument {opt}: {want} (see minegeo {verb} --help)"), (line, want)
+    cfg = tmp_path / "bad.json"
+    cfg.write_text(json.dumps({opt.lstrip("-"): target[2]}), encoding="utf-8")
+    line = assert_user_error(verb, [*_base(verb, tmp_path), "--config", cfg], capsys, inputs=[cfg],
+                             outputs=[tmp_path / "out"])
+    assert f"key {opt.lstrip('-')!r}: {want}" in line, (line, want)
+
+
+# (verb, option) -> (class, field, the option's own upper bound or None, the value meaning "off" or None)
+OPTION_FIELDS = {
+    ("localize", "--ransac-runs"): (LocalizeParams, "ransac_runs", None, None),
+    ("localize", "--voxel"): (LocalizeParams, "scan_voxel_size_m", None, None),
+    ("localize", "--octree-level"): (LocalizeParams, "scan_octree_level", None, None),
+    ("localize", "--polish"): (IcpParams, "polish_correspondence_m", None, 0.0),
+    ("localize", "--fine-tolerance"): (VerifyParams, "fine_tolerance_m", None, 0.0),
+    ("localize", "--ransac-max-iterations"): (RansacParams, "max_iterations", 10**9, None),
+    ("localize", "--ransac-min-iterations"): (RansacParams, "min_iterations", 10**9, None),
+    ("localize", "--hypotheses"): (RansacParams, "n_hypotheses", 10**9, None),
+    ("localize", "--levelled"): (RansacParams, "max_tilt_deg", 90.0, None),
+    ("slam", "--voxel"): (OdometryParams, "voxel_size_m", None, None),
+    ("slam", "--max-distance"): (OdometryParams, "max_correspondence_distance_m", None, None),
+    ("slam", "--keyframe-distance"): (OdometryParams, "keyframe_distance_m", None, None),
+    ("slam", "--keyframe-angle"): (OdometryParams, "keyframe_angle_deg", 180.0, None),
+    ("slam", "--keyframe-interval"): (OdometryParams, "keyframe_interval_s", None, None),
+    ("slam", "--deskew-iterations"): (OdometryParams, "deskew_iterations", None, None),
+    ("slam", "--max-speed"): (OdometryParams, "max_speed_m_s", None, None),
+    ("slam", "--max-angular-rate"): (OdometryParams, "max_angular_rate_deg_s", None, None),
+    ("slam", "--max-acceleration"): (OdometryParams, "max_acceleration_m_s2", None, None),
+}
+OPTIONS = sorted(OPTION_FIELDS)
+
+
+def _verb_actions(verb) -> dict:
+    from minegeo.cli import build_parser
+
+    sub = next(a for a in build_parser([verb])._actions if isinstance(a, argparse._SubParsersAction))
+    return {s: a for a in sub.choices[verb]._actions for s in a.option_strings}
+
+
+def test_every_option_typed_by_a_field_rule_is_listed():
+    """Each option whose type is a field's rule (arg_type) is in OPTION_FIELDS and is exercised end to
+    end by CLI_CASES; the options the task names are such options."""
+    from minegeo._params import arg_type
+
+    rule_type = type(arg_type(RansacParams, "max_iterations"))
+    for verb in ("localize", "slam"):
+        typed = {o for o, a in _verb_actions(verb).items() if o.startswith("--") and isinstance(a.type, rule_type)}
+        assert typed == {o for v, o in OPTION_FIELDS if v == verb}, verb
+    assert {(c[0], c[1]) for c in CLI_CASES} == set(OPTION_FIELDS)
+
+
+@st.composite
+def _near_an_option_bound(draw, key):
+    cls, name, cap, off = OPTION_FIELDS[key]
+    lo_op, lo, hi_op, hi, integer = BOUNDS[(cls, name)]
+    bound = draw(st.sampled_from([b for b in (lo, hi, cap, off) if b is not None]))
+    if integer:
+        return int(bound) + draw(st.integers(-3, 3))
+    step = draw(st.sampled_from([0.0, 1e-12, 1e-6, 0.25, 3.0]))
+    return float(bound) + draw(st.sampled_from([-1.0, 1.0])) * step
+
+
+@pytest.mark.parametrize("key", OPTIONS, ids=[f"{v}{o}" for v, o in OPTIONS])
+@settings(max_examples=25, deadline=None)
+@given(data=st.data())
+def test_option_type_takes_what_the_field_takes(key, data):
+    """Near each bound of the field and of the option's own cap: the option's type accepts a value iff
+    the field does (and the cap allows it, or it is the option's "off" value); a refused value gets
+    the field's message (expected verdicts from the hand-listed BOUNDS)."""
+    cls, name, cap, off = OPTION_FIELDS[key]
+    v = data.draw(_near_an_option_bound(key))
+    parse = _verb_actions(key[0])[key[1]].type
+    field_ok = _expected_ok((cls, name), v)
+    text = str(v) if isinstance(v, int) else repr(v)
+    if (off is not None and v == off) or (field_ok and (cap is None or v <= cap)):
+        got = parse(text)
+        assert got == v and type(got) is type(v)
+    else:
+        with pytest.raises(argparse.ArgumentTypeError) as exc:
+            parse(text)
+        msg = str(exc.value)
+        if field_ok:
+            assert msg.startswith("this option takes ") and f"got {v!r} ({cls.__name__}.{name} itself" in msg, msg
+        else:
+            assert msg.startswith(_dataclass_message(cls, name, v, None if off is None else "0 (off)")), msg
 
 
 def test_cli_zero_means_off_and_values_reach_the_groups():
