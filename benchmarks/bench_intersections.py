@@ -168,11 +168,11 @@ def truth_junctions(net, step_m: float = 0.05) -> tuple[np.ndarray, list]:
     from scipy import ndimage
     from scipy.spatial import cKDTree
 
-    from minegeo.synth.network import _max_clearance, _seg_dist, _wall_outline, junction_truth
+    from minegeo.synth.network import junction_truth, max_clearance_point, segment_distances, wall_outline
 
     pts = [tuple(p) for p in junction_truth(net)]
     names = [net.names[i] or str(int(i)) for i in net.junctions()]
-    W, _ = _wall_outline(net, 0.02, 1e-6)
+    W, _ = wall_outline(net, 0.02, 1e-6)
     tree = cKDTree(W)
     N, E, w = net.nodes, net.edges, net.widths
     A, B = N[E[:, 0]], N[E[:, 1]]
@@ -189,13 +189,13 @@ def truth_junctions(net, step_m: float = 0.05) -> tuple[np.ndarray, list]:
             g = np.arange(-half, half + 0.5 * step_m, step_m)
             Q = mid + np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
             c, _ = tree.query(Q)
-            c = np.where((_seg_dist(Q, A, B) < 0.5 * w[None]).any(1), c, -1.0).reshape(len(g), len(g))
+            c = np.where((segment_distances(Q, A, B) < 0.5 * w[None]).any(1), c, -1.0).reshape(len(g), len(g))
             peak = (c == ndimage.maximum_filter(c, size=int(round(1.0 / step_m)) | 1)) & (c > 0.5 * w.min() + 0.1)
             lab, n = ndimage.label(peak)
             for m in range(1, n + 1):
                 cells = np.flatnonzero(lab.ravel() == m)
                 guess = Q[cells[int(np.argmax(c.ravel()[cells]))]]
-                p = _max_clearance(W, guess, 2.0 * step_m, net)
+                p = max_clearance_point(W, guess, 2.0 * step_m, net)
                 if all(np.hypot(*(p - q)) > ID_MATCH_M for q in pts):
                     pts.append(tuple(p))
                     names.append(f"x{i}-{j}")
@@ -504,7 +504,9 @@ def _git() -> str:
     try:
         head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
                               check=True).stdout.strip()
-        return head + "+dirty"
+        changed = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO,
+                                 capture_output=True, text=True, check=True).stdout.strip()
+        return head + ("+dirty" if changed else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 

@@ -24,8 +24,13 @@ and tracking"):
    cloud onto the intersection's dense cloud ``P^i`` from the pose implied by ``c -> C^i`` and the
    descriptor yaw (for a symmetric junction, the equally good shift nearest the predicted heading).
    ``rejected`` when the inlier RMS distance exceeds ``icp_max_distance_m`` or the overlap is below
-   ``icp_min_fitness``; ``conflict`` when the matched intersection or the registered pose lies outside
-   the gate of the odometry prediction (a nearly-alike intersection elsewhere in the mine). Only
+   ``icp_min_fitness``, and ``rejected`` when the **observed point check** fails: the observed invariant
+   point placed by the registered pose ``T_ICP`` (knowledge-base frame) must lie within the gate floor
+   ``gate_m`` (m) of the matched intersection's point, ``|T_ICP z − C^i| ≤ gate_m`` (the ICP registers
+   the whole stacked cloud and can fit the map around ``C^i`` from a junction detected metres away, a
+   bend or a widening taken for a junction; the observation of a factor must be the junction it names,
+   with or without a prediction); ``conflict`` when the matched intersection or the registered pose lies
+   outside the gate of the odometry prediction (a nearly-alike intersection elsewhere in the mine). Only
    ``verified`` recognitions may become factors.
 
 **The gate** (:class:`PredictionGate`) is a Mahalanobis gate around the predicted keyframe pose
@@ -39,7 +44,10 @@ floor ``gate_m``: without a covariance the gate is the sphere of radius ``g``, a
 below that sphere (the floor stands for the error of the observed point itself). ``J`` is the first
 order change of ``T̂ z`` under ``δ``. The same gate decides which look-alike candidates are
 plausible (steps 6 and 9), refuses a match whose knowledge-base point lies outside it (even when it is
-the only candidate), and refuses an ICP pose whose sensor position (``z = 0``) lies outside it.
+the only candidate), and refuses an ICP pose whose sensor position (``z = 0``) lies outside it. After
+the ICP the pose is taken as known and the gate collapses to its floor: the observed point check of
+step 9 (``|T_ICP z − C^i| ≤ RecognitionParams.gate_m``, always the parameter's floor, not a ``gate_m``
+argument grown by a path-fraction gate: the ICP has removed the drift).
 """
 
 from __future__ import annotations
@@ -117,7 +125,8 @@ class RecognitionParams:
         ICP correspondence gate of the final stage (the first stage uses three times this).
     gate_m : float
         Floor of the gate around the odometry prediction (m): the gate's radius without a covariance
-        (see :class:`PredictionGate`).
+        (see :class:`PredictionGate`); also the largest distance from the observed invariant point,
+        placed by the verification's ICP pose, to the matched intersection's point (step 9).
     gate_probability : float
         Probability of the χ² (3 degrees of freedom) quantile of the Mahalanobis gate (0.999: 16.27).
     gate_yaw_deg : float
@@ -217,6 +226,10 @@ class Recognition:
         Keyframe pose in the knowledge-base frame registered by the ICP.
     prediction_error_m, prediction_yaw_error_deg : float
         ICP pose minus the odometry prediction (NaN without a prediction).
+    observed_to_named_m : float
+        ``|T_ICP z − C^i|`` (m, knowledge-base frame): the observed invariant point placed by the ICP
+        pose, from the matched intersection's point (NaN when the ICP did not run). More than
+        ``RecognitionParams.gate_m``: ``rejected``.
     streak : int
         Consecutive keyframes matched to this id (step 7).
     timings_s : dict
@@ -238,6 +251,7 @@ class Recognition:
     T_world_keyframe_icp: np.ndarray | None = None
     prediction_error_m: float = float("nan")
     prediction_yaw_error_deg: float = float("nan")
+    observed_to_named_m: float = float("nan")
     streak: int = 0
     timings_s: dict = field(default_factory=dict)
 
@@ -255,7 +269,8 @@ class Recognition:
                 "z_keyframe_m": [f(v) for v in self.z_keyframe], "completeness": f(self.completeness),
                 "icp_rms_m": f(self.icp_rms_m), "icp_fitness": f(self.icp_fitness),
                 "prediction_error_m": f(self.prediction_error_m),
-                "prediction_yaw_error_deg": f(self.prediction_yaw_error_deg), "streak": int(self.streak),
+                "prediction_yaw_error_deg": f(self.prediction_yaw_error_deg),
+                "observed_to_named_m": f(self.observed_to_named_m), "streak": int(self.streak),
                 "icp_position_m": (None if self.T_world_keyframe_icp is None
                                    else [float(v) for v in self.T_world_keyframe_icp[:3, 3]])}
 
@@ -620,6 +635,16 @@ def _verify_step(rec: Recognition, L, c_L, T_L_k, sim, kb, params, T_pred, yaw_p
         rec.status = RecognitionStatus.REJECTED
         rec.reason = (f"ICP distance {rec.icp_rms_m:.3f} m (max {params.icp_max_distance_m}) and overlap "
                       f"{rec.icp_fitness:.2f} (min {params.icp_min_fitness}) against intersection {i}")
+        return
+    # the observed junction, placed by the ICP pose, must be the named one: the pose being known after the
+    # ICP, the gate collapses to its floor (the error of the observed point itself)
+    x_obs = T_wk[:3, :3] @ z + T_wk[:3, 3]
+    rec.observed_to_named_m = float(np.linalg.norm(x_obs - kb.invariant_points[i]))
+    if not rec.observed_to_named_m <= params.gate_m:
+        rec.status = RecognitionStatus.REJECTED
+        rec.reason = (f"the ICP fits intersection {i}, but it places the detected junction point "
+                      f"{rec.observed_to_named_m:.1f} m from that intersection's point (more than the gate floor "
+                      f"{params.gate_m:g} m): the detected junction is not intersection {i}")
         return
     if T_pred is not None and (not gate.inside(np.zeros(3), T_wk[:3, 3])
                                or rec.prediction_yaw_error_deg > params.gate_yaw_deg):

@@ -19,8 +19,10 @@ there is no per-frame API), then replays its keyframes **in time order** as they
   ``Σ_Z`` (the inverse of the edge information below), ``Σ_k = Ad(Z⁻¹) Σ_{k-1} Ad(Z⁻¹)ᵀ + Σ_Z`` (right
   perturbation, first order): exactly the graph's marginal of the new keyframe when only the chain edge
   joins it, an upper bound when the odometry adds edges across keyframes. A recognition whose
-  knowledge-base point or ICP pose lies outside the gate is a ``conflict``, and a look-alike inside it
-  makes the match ``ambiguous``. Without the map (or with ``TrackParams.gate_drift_fraction`` set) the
+  knowledge-base point or ICP pose lies outside the gate is a ``conflict``, a look-alike inside it
+  makes the match ``ambiguous``, and one whose ICP pose places the observed invariant point more than
+  ``RecognitionParams.gate_m`` (m) from the named point is ``rejected`` (the observed point check of
+  :mod:`~minegeo.semantic.recognition`, step 9). Without the map (or with ``TrackParams.gate_drift_fraction`` set) the
   gate is the sphere ``gate_m + fraction · (path since the last verified recognition)``;
 * a ``verified`` recognition adds an intersection factor (``z`` = the observed invariant point, ``C`` = the
   knowledge-base point, covariance ``Λ_I`` of :func:`~minegeo.semantic.factors.intersection_covariance`

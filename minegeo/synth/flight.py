@@ -72,11 +72,11 @@ def flight_clearance(net, xyz: np.ndarray) -> np.ndarray:
     ``min(max_e (w_e / 2 - d_e), z, roof - z)`` with ``d_e`` the horizontal distance to drift ``e``'s
     segment and ``roof`` the height of the nearest node.
     """
-    from minegeo.synth.network import _roof, _seg_dist
+    from minegeo.synth.network import _roof, segment_distances
 
     P = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     A, B = net.nodes[net.edges[:, 0]], net.nodes[net.edges[:, 1]]
-    horiz = (0.5 * net.widths[None] - _seg_dist(P[:, :2], A, B)).max(1)
+    horiz = (0.5 * net.widths[None] - segment_distances(P[:, :2], A, B)).max(1)
     return np.minimum(horiz, np.minimum(P[:, 2], _roof(net, P[:, :2]) - P[:, 2]))
 
 

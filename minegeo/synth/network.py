@@ -25,7 +25,8 @@ from minegeo._jit import njit
 from minegeo.errors import FileFormatError, InputError
 
 __all__ = ["DriftNetwork", "NetworkCloud", "network_cloud", "intersections_network", "niosh_network",
-           "junction_truth", "RoughnessField", "roughness_field", "with_roughness"]
+           "junction_truth", "RoughnessField", "roughness_field", "with_roughness", "segment_distances",
+           "wall_outline", "max_clearance_point"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,8 +156,22 @@ def with_roughness(net: DriftNetwork, rms_m: float, seed: int = 0) -> DriftNetwo
                    info={**net.info, "roughness_m": float(rms_m), "roughness_seed": int(seed)})
 
 
-def _seg_dist(P: np.ndarray, A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Horizontal distance (m) of points ``P`` (k, 2) to every segment ``A``-``B`` (m, 2): (k, m)."""
+def segment_distances(P: np.ndarray, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Distances from 2-D points to 2-D segments.
+
+    Parameters
+    ----------
+    P : ndarray (k, 2)
+        Points (m, map frame, horizontal).
+    A, B : ndarray (m, 2)
+        End points of the segments (m, same frame); a zero-length segment is its point.
+
+    Returns
+    -------
+    ndarray (k, m)
+        ``|P_i − Q_ij|`` (m), ``Q_ij = A_j + t (B_j − A_j)`` with ``t`` the projection of ``P_i``
+        clipped to [0, 1] (the nearest point of segment ``j``).
+    """
     d = B - A
     L2 = np.maximum((d * d).sum(1), 1e-12)
     t = np.clip(((P[:, None, :] - A[None]) * d[None]).sum(2) / L2[None], 0.0, 1.0)
@@ -169,7 +184,7 @@ def _inside_other(P: np.ndarray, own: np.ndarray, net: DriftNetwork, eps: float)
     A, B = net.nodes[net.edges[:, 0]], net.nodes[net.edges[:, 1]]
     out = np.zeros(len(P), bool)
     for s in range(0, len(P), 4096):
-        D = _seg_dist(P[s:s + 4096], A, B) - 0.5 * net.widths[None]
+        D = segment_distances(P[s:s + 4096], A, B) - 0.5 * net.widths[None]
         D[np.arange(D.shape[0]), own[s:s + 4096]] = np.inf
         out[s:s + 4096] = (D < -eps).any(1)
     return out
@@ -181,8 +196,26 @@ def _roof(net: DriftNetwork, xy: np.ndarray) -> np.ndarray:
     return net.node_heights[np.argmin(d2, axis=1)]
 
 
-def _wall_outline(net: DriftNetwork, step: float, eps: float) -> tuple[np.ndarray, np.ndarray]:
-    """2-D points (k, 2) on the boundary of the union of capsules, with their outward normals."""
+def wall_outline(net: DriftNetwork, step: float, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """The noise-free wall outline of a network in plan: the boundary of the union of its capsules.
+
+    Each drift is the capsule of radius ``width / 2`` around its centreline; its two sides and two
+    half-circle ends are sampled, and the samples strictly inside another capsule (by more than
+    ``eps``) are dropped, so the junctions are open.
+
+    Parameters
+    ----------
+    net : DriftNetwork
+    step : float
+        Sample spacing (m) along the sides and the end arcs.
+    eps : float
+        Tolerance (m) of "strictly inside another capsule".
+
+    Returns
+    -------
+    (ndarray (k, 2), ndarray (k, 2))
+        Boundary points (m, map frame, horizontal) and their unit outward normals.
+    """
     pts, nrm, own = [], [], []
     for e, (i, j) in enumerate(net.edges):
         a, b, r = net.nodes[i], net.nodes[j], 0.5 * net.widths[e]
@@ -217,11 +250,11 @@ def _floor_grid(net: DriftNetwork, step: float) -> np.ndarray:
         i1, j1 = np.ceil(hi[e] / step).astype(np.int64)
         G = np.stack(np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1 + 1), indexing="ij"), -1).reshape(-1, 2)
         X = G * step
-        keep = _seg_dist(X, A[e:e + 1], B[e:e + 1])[:, 0] < r[e]
+        keep = segment_distances(X, A[e:e + 1], B[e:e + 1])[:, 0] < r[e]
         earlier = np.flatnonzero(np.all(lo[:e] <= hi[e], axis=1) & np.all(hi[:e] >= lo[e], axis=1))
         if earlier.size:
             X2 = X[keep]
-            dup = (_seg_dist(X2, A[earlier], B[earlier]) < r[earlier][None]).any(1)
+            dup = (segment_distances(X2, A[earlier], B[earlier]) < r[earlier][None]).any(1)
             keep[np.flatnonzero(keep)[dup]] = False
         out.append(X[keep])
     return np.concatenate(out)
@@ -248,7 +281,7 @@ def network_cloud(net: DriftNetwork, spacing_m: float = 0.2, noise_m: float = 0.
     if not (np.isfinite(spacing_m) and spacing_m > 0.0 and np.isfinite(noise_m) and noise_m >= 0.0):
         raise InputError("spacing_m must be > 0 and noise_m >= 0")
     rng = np.random.default_rng(seed)
-    W, WN = _wall_outline(net, spacing_m, 0.02)
+    W, WN = wall_outline(net, spacing_m, 0.02)
     hw = _roof(net, W)
     nz = np.floor(hw / spacing_m).astype(np.int64) + 1
     wall_xy = np.repeat(W, nz, axis=0)
@@ -273,8 +306,28 @@ def network_cloud(net: DriftNetwork, spacing_m: float = 0.2, noise_m: float = 0.
     return NetworkCloud(np.ascontiguousarray(P, dtype=np.float64), labels)
 
 
-def _max_clearance(W: np.ndarray, guess: np.ndarray, radius: float, net: DriftNetwork) -> np.ndarray:
-    """Point of the free space within ``radius`` of ``guess`` farthest from every point of ``W`` (2-D)."""
+def max_clearance_point(W: np.ndarray, guess: np.ndarray, radius: float, net: DriftNetwork) -> np.ndarray:
+    """Centre of the largest empty circle near a point: the free-space point farthest from the walls.
+
+    Grid search over the square of half-size ``radius`` around ``guess`` (0.1 m steps), then twice
+    refined around the best point (0.01 m, then 0.001 m steps), restricted to the free space (the
+    union of the capsules) of ``net``.
+
+    Parameters
+    ----------
+    W : ndarray (k, 2)
+        Wall points (m, map frame, horizontal), e.g. :func:`wall_outline`.
+    guess : ndarray (2,)
+        Start of the search (m, same frame).
+    radius : float
+        Half-size (m) of the first search square.
+    net : DriftNetwork
+
+    Returns
+    -------
+    ndarray (2,)
+        The point (m) maximising the clearance ``min_i |p − W_i|``.
+    """
     from scipy.spatial import cKDTree
 
     A, B = net.nodes[net.edges[:, 0]], net.nodes[net.edges[:, 1]]
@@ -285,7 +338,7 @@ def _max_clearance(W: np.ndarray, guess: np.ndarray, radius: float, net: DriftNe
         g = np.arange(-half, half + 0.5 * step, step)
         Q = c + np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
         d, _ = tree.query(Q)
-        d = np.where((_seg_dist(Q, A, B) < 0.5 * net.widths[None]).any(1), d, -1.0)
+        d = np.where((segment_distances(Q, A, B) < 0.5 * net.widths[None]).any(1), d, -1.0)
         c = Q[int(np.argmax(d))]
         half, step = 2.0 * step, step / 10.0
     return c
@@ -298,8 +351,8 @@ def junction_truth(net: DriftNetwork, radius_m: float = 4.0) -> np.ndarray:
     computed on the noise-free wall outline sampled every 2 cm, searched over the free space (the
     union of capsules) within ``radius_m`` of the node (see ``docs/intersections.md``).
     """
-    W, _ = _wall_outline(net, 0.02, 1e-6)
-    return np.array([_max_clearance(W, net.nodes[i], radius_m, net) for i in net.junctions()]).reshape(-1, 2)
+    W, _ = wall_outline(net, 0.02, 1e-6)
+    return np.array([max_clearance_point(W, net.nodes[i], radius_m, net) for i in net.junctions()]).reshape(-1, 2)
 
 
 def intersections_network(width_m: float = 4.5, heights_m=(3.0, 3.6, 4.2), default_height_m: float = 3.6,
