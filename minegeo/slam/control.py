@@ -110,7 +110,7 @@ from enum import StrEnum
 
 import numpy as np
 
-from minegeo.errors import InputError
+from minegeo.errors import ConvergenceError, InputError
 from minegeo.kernels.lie import se3_inverse
 from minegeo.optim import (
     BetweenFactors,
@@ -131,12 +131,13 @@ from minegeo.slam.control_factors import (  # the factors and covariances, re-ex
 from minegeo.slam.control_graph import (
     _insert_stations,
     check_control_geometry,
+    check_map_geometry,
     graph_inputs,
     interpolate_poses,
 )
 
 __all__ = ["ControlParams", "ControlResult", "ControlStatus", "DriftBetweenFactors", "DriftWalkFactors", "PositionFactors",
-           "apply_control", "check_control_geometry", "check_station_frames", "drift_states_needed",
+           "apply_control", "check_control_geometry", "check_map_geometry", "check_station_frames", "drift_states_needed",
            "drift_states_test", "graph_inputs",
            "interpolate_poses", "marginal_covariances", "selected_inverse", "station_points"]
 
@@ -418,6 +419,15 @@ def _rigid_fit(points_map, stations, crs, model, start_only: bool = False):
         glog.setLevel(logging.ERROR)
     try:
         res = georeference(gcps, crs, GeorefParams(model=model, max_sigma0=1e12))
+    except ConvergenceError as exc:  # named in the stations' terms, with the closed-form fit's misfit
+        T0 = _start_placement(points_map, stations)
+        v = np.linalg.norm(points_map[c] @ T0[:3, :3].T + T0[:3, 3] - stations.enh_local[c], axis=1)
+        k = int(np.argmax(v))
+        raise ConvergenceError(
+            f"the {model} fit of the {int(c.sum())} control stations ({', '.join(gcps.ids)}) to the run's points "
+            f"at their times did not converge: {exc}; after the closed-form rigid fit station {gcps.ids[k]} is "
+            f"{v[k]:.3f} m from its surveyed point (sigma {stations.sigma_h_m[c][k]:.3f} m horizontal): check the "
+            "stations' coordinates, times and roles") from None
     finally:
         glog.setLevel(level)
     T = np.array(res.T_geo_map, dtype=np.float64)
@@ -646,11 +656,13 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
     times_s = np.asarray(times_s, dtype=np.float64)
     poses = np.ascontiguousarray(poses, dtype=np.float64)
     offset = np.asarray(offset, dtype=np.float64).reshape(3)
-    _check_control_inputs(times_s, stations, crs, "similarity" if p.model == "similarity" else p.mode)
+    mode_name = "similarity" if p.model == "similarity" else p.mode
+    _check_control_inputs(times_s, stations, crs, mode_name)
     n_ctrl = int(stations.is_control.sum())
     t_st = stations.t_mid_s
     ctrl, chk = stations.is_control, stations.is_check
     pts_map = station_points(interpolate_poses(times_s, poses, t_st), offset)
+    check_map_geometry(pts_map, stations, mode_name, f"{stations.source}: " if stations.source else "")
     if p.mode == "graph":  # only the graph's starting point: closed form, it cannot fail to converge
         T_lm = _start_placement(pts_map, stations)
     else:
@@ -746,6 +758,8 @@ def _data_snooping(graph, stations, offset, crs, p: ControlParams, flagged_ids) 
     from minegeo.io.stations import StationRole
 
     suspects, st, flagged = [], stations, tuple(flagged_ids)
+    pts_map = station_points(interpolate_poses(graph[0], np.asarray(graph[1], dtype=np.float64), stations.t_mid_s),
+                             offset)
     q = replace(p, snooping=False)
     glog = logging.getLogger("minegeo.georef")
     level = glog.level
@@ -756,6 +770,7 @@ def _data_snooping(graph, stations, offset, crs, p: ControlParams, flagged_ids) 
             nxt = replace(st, roles=[StationRole.CHECK if i == sid else r for i, r in zip(st.ids, st.roles, strict=True)])
             try:  # the remaining control stations on one line: no adjustment to test; snooping stops
                 check_control_geometry(nxt, p.mode)
+                check_map_geometry(pts_map, nxt, p.mode)
             except InputError:
                 break
             suspects.append(sid)

@@ -1,6 +1,7 @@
 """The SLAM keyframe graph as the control adjustment's input (:mod:`minegeo.slam.control`): the keyframe
 poses, edges and information of a SLAM result, with a variable inserted at every station time; the
-control stations' geometry checked before any work."""
+control stations' geometry checked (their surveyed coordinates before any work, their points in the map
+before any adjustment)."""
 
 from __future__ import annotations
 
@@ -38,20 +39,86 @@ def interpolate_poses(times_s: np.ndarray, poses: np.ndarray, t: np.ndarray) -> 
     return out
 
 
-#: control stations all within this many times their largest stated standard deviation of their
-#: best-fitting straight line lie "on one line": the rotation about the line is then determined to no
-#: better than σ/(3σ) ≈ 0.3 rad, no georeference (:func:`check_control_geometry`)
+#: the control stations determine the rotation about their best-fitting straight line when a turn of
+#: one radian about it moves them, jointly, by more than this many standard deviations:
+#: ``1/σ_θ > LINE_SIGMAS`` rad⁻¹, ``σ_θ`` the standard deviation of that rotation in the linearised
+#: rigid fit with the stations' stated σ (:func:`rotation_about_line`); else the rotation is not
+#: determined to better than ``1/LINE_SIGMAS`` rad ≈ 19 deg and no mode places the map. With one
+#: station off a line through the others it is about ``d/σ ≤ LINE_SIGMAS`` (``d`` its distance from
+#: the line, σ its standard deviation in the direction the turn moves it)
 LINE_SIGMAS = 3.0
 
 
-def check_control_geometry(stations, mode: str, where: str = "") -> None:
-    """Refuse control stations on one straight line (``InputError``; before any work).
+def rotation_about_line(points, sigma_h_m, sigma_v_m) -> dict:
+    """The weakest rotation of a rigid fit to the points: its axis, standard deviation and lever arms.
 
-    With ``X_k`` the control stations' ``E N H`` (local, m) and ``u`` the direction of their best-fitting
-    line (first right singular vector of the centred ``X``), the distance of each from the line is
-    ``d_k = |(X_k − X̄) − ((X_k − X̄)·u) u|``; the stations lie on one line when
-    ``max_k d_k ≤ LINE_SIGMAS · max(σ_h, σ_v)``: a rotation of the map about that line moves no control
-    station by more than its own noise, so no mode (rigid, similarity or graph) determines it.
+    The linearised rigid fit (6 parameters: translation ``t`` and small rotation ``φ`` about the
+    centroid ``x̄``) of points ``x_k`` observed with ``Σ_k = diag(σ_h², σ_h², σ_v²)`` has the design
+    ``B_k = [I, −[x_k − x̄]ₓ]`` and the normal matrix ``N = Σ_k B_kᵀ Σ_k⁻¹ B_k``. With the
+    translation eliminated (Schur complement ``S = N_φφ − N_φt N_tt⁻¹ N_tφ``), a rotation about the
+    unit axis ``a`` has the standard deviation ``σ = 1/√(aᵀ S a)`` (a priori, σ0 = 1); the weakest
+    axis is the eigenvector of the smallest eigenvalue ``λ_min`` of ``S``:
+    ``σ_θ = 1/√λ_min`` (rad; ``inf`` when ``λ_min ≤ 0``). For points near one line it is the line's
+    direction, and (equal σ, translation uncorrelated) ``1/σ_θ² = Σ_k d_k² / σ_k²``: a turn ``θ``
+    about the line moves point ``k`` by ``θ d_k`` (``d_k`` its distance from the line, ``σ_k`` its
+    standard deviation in the direction it moves).
+
+    Parameters
+    ----------
+    points : (n, 3) m
+        The stations' points (E N H, or the map's points at the station times).
+    sigma_h_m, sigma_v_m : (n,) m
+        Their horizontal and vertical standard deviations.
+
+    Returns
+    -------
+    dict
+        ``sigma_rad`` σ_θ (rad) and ``axis`` (3,) of the weakest rotation; ``line`` (3,) the direction
+        of the points' best-fitting line through ``x̄`` (first right singular vector of the centred
+        points), ``off_m`` (n,) their distances ``d_k`` from it and ``length_m`` their extent along it (m).
+    """
+    X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    sh, sv = np.asarray(sigma_h_m, np.float64), np.asarray(sigma_v_m, np.float64)
+    w = np.c_[sh**-2, sh**-2, sv**-2]
+    xc = X - X.mean(axis=0)
+    N = np.zeros((6, 6))
+    for x, wk in zip(xc, w, strict=True):
+        B = np.c_[np.eye(3), -np.array([[0.0, -x[2], x[1]], [x[2], 0.0, -x[0]], [-x[1], x[0], 0.0]])]
+        N += B.T @ (wk[:, None] * B)
+    S = N[3:, 3:] - N[3:, :3] @ np.linalg.solve(N[:3, :3], N[:3, 3:])
+    lam, V = np.linalg.eigh(0.5 * (S + S.T))
+    sigma = float(1.0 / np.sqrt(lam[0])) if lam[0] > 0.0 else float("inf")
+    u = np.linalg.svd(xc, full_matrices=False)[2][0]  # the best-fitting line (first right singular vector)
+    along = xc @ u
+    return {"sigma_rad": sigma, "axis": V[:, 0], "line": u, "off_m": np.linalg.norm(xc - np.outer(along, u), axis=1),
+            "length_m": float(along.max() - along.min())}
+
+
+def _weak_rotation(points, stations) -> tuple[bool, dict]:
+    """``(not determined, rotation_about_line(...))`` of the control stations' ``points`` with their σ."""
+    c = np.asarray(stations.is_control, dtype=bool)
+    g = rotation_about_line(np.asarray(points, dtype=np.float64)[c], np.asarray(stations.sigma_h_m)[c],
+                            np.asarray(stations.sigma_v_m)[c])
+    return not g["sigma_rad"] * LINE_SIGMAS < 1.0, g
+
+
+def _ids_and_rule(stations, g) -> tuple[str, str]:
+    c = np.asarray(stations.is_control, dtype=bool)
+    ids = ", ".join(str(i) for i, k in zip(stations.ids, c, strict=True) if k)
+    deg = np.degrees(g["sigma_rad"])
+    rule = (f"the rotation about that line is not determined (standard deviation "
+            f"{f'{deg:.1f} deg' if deg <= 180.0 else 'over 180 deg'} from the stations' sigma, more than "
+            f"{np.degrees(1.0 / LINE_SIGMAS):.1f} deg)")
+    return ids, rule
+
+
+def check_control_geometry(stations, mode: str, where: str = "") -> None:
+    """Refuse control stations whose surveyed ``E N H`` lie on one straight line (``InputError``; before any work).
+
+    The rule (:data:`LINE_SIGMAS`): the rotation about the stations' best-fitting line must be
+    determined, ``σ_θ < 1/LINE_SIGMAS`` rad with ``σ_θ`` from their stated σ
+    (:func:`rotation_about_line`); otherwise no mode (rigid, similarity or graph) places the map.
+    The same rule holds for the map's points at the station times (:func:`check_map_geometry`).
 
     Parameters
     ----------
@@ -62,18 +129,45 @@ def check_control_geometry(stations, mode: str, where: str = "") -> None:
     where : str
         Prefix of the message (``"--control FILE: "``).
     """
-    c = np.asarray(stations.is_control, dtype=bool)
-    X = np.asarray(stations.enh_local, dtype=np.float64)[c]
-    Xc = X - X.mean(axis=0)
-    u = np.linalg.svd(Xc, full_matrices=False)[2][0]
-    off = float(np.max(np.linalg.norm(Xc - np.outer(Xc @ u, u), axis=1)))
-    sig = float(max(np.max(np.asarray(stations.sigma_h_m)[c]), np.max(np.asarray(stations.sigma_v_m)[c])))
-    if off <= LINE_SIGMAS * sig:
-        ids = ", ".join(str(i) for i, k in zip(stations.ids, c, strict=True) if k)
+    weak, g = _weak_rotation(stations.enh_local, stations)
+    if weak:
+        ids, rule = _ids_and_rule(stations, g)
+        c = np.asarray(stations.is_control, dtype=bool)
         raise InputError(f"{where}the {int(c.sum())} control stations ({ids}) lie on one straight line (at most "
-                         f"{off:.3f} m from it, within {LINE_SIGMAS:g} x their sigma {sig:.3f} m): the rotation about "
-                         f"that line is not determined; the {mode} mode needs at least 3 not on one line (make a "
-                         "station off the line control, or add one)")
+                         f"{g['off_m'].max():.3f} m from it over {g['length_m']:.1f} m): {rule}; the {mode} mode "
+                         "needs at least 3 not on one line (make a station off the line control, or add one)")
+
+
+def check_map_geometry(points_map, stations, mode: str, where: str = "") -> None:
+    """Refuse control stations whose points in the SLAM map lie on one straight line (``InputError``).
+
+    The rigid (or similarity) fit and the graph turn the map: the rotation about a line through
+    the map's station points ``points_map`` (the run's poses at the station times, C1) is determined
+    by their distances from it, whatever the surveyed coordinates say. The rule of
+    :func:`check_control_geometry` on ``points_map`` with the stations' σ; checked before any
+    adjustment. Surveyed coordinates off the line while the map's points are on it is a station's
+    wrong coordinate, time or role (the run passed it on the line), or a straight drive.
+
+    Parameters
+    ----------
+    points_map : (n, 3) m
+        Every station's point in the map (control and check; the control ones are used).
+    stations : minegeo.io.stations.Stations
+    mode, where : str
+        As :func:`check_control_geometry`.
+    """
+    weak, g = _weak_rotation(points_map, stations)
+    if weak:
+        ids, rule = _ids_and_rule(stations, g)
+        c = np.asarray(stations.is_control, dtype=bool)
+        gs = rotation_about_line(np.asarray(stations.enh_local)[c], np.asarray(stations.sigma_h_m)[c],
+                                 np.asarray(stations.sigma_v_m)[c])
+        raise InputError(f"{where}the {int(c.sum())} control stations ({ids}) lie on one straight line in the SLAM "
+                         f"map (the run's points at their times at most {g['off_m'].max():.3f} m from it over "
+                         f"{g['length_m']:.1f} m), though their surveyed coordinates lie up to "
+                         f"{gs['off_m'].max():.3f} m off their line: {rule}; check the stations' coordinates, times "
+                         f"and roles; the {mode} mode needs at least 3 not on one line in the map (make a station "
+                         "off the line control, or add one)")
 
 
 def graph_inputs(slam_result, station_times_s=None) -> tuple:

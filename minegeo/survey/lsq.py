@@ -340,6 +340,83 @@ def _linearise(fun, x):
     return np.asarray(f, dtype=np.float64).ravel(), np.asarray(B, dtype=np.float64)
 
 
+def _iterate(fun, x, f, B, C, c, Wm, is_diag, opts, names, constraints, linear, damped: bool):
+    """The iterations of :func:`adjust` from ``x`` (``f``, ``B``, ``C``, ``c`` there): full Gauss–Newton
+    steps, or (``damped``) each step through :func:`_line_search`. Returns ``(x, f, B, C, c, Δ, Qxx,
+    iterations, converged, σ of the parameters, float64 floor)``."""
+    converged, it, delta, Qxx, sd, floor = False, 0, None, None, None, None
+    for it_ in range(1, opts.max_iterations + 1):
+        it = it_
+        WB, N = _normal_matrix(B, Wm, is_diag)
+        t = WB.T @ f
+        delta, Qxx = _solve_normal(N, t, C, c, names)
+        if linear:
+            x = x + delta
+            converged = True
+            break
+        sd = opts.sigma0_apriori * np.sqrt(np.clip(np.diag(Qxx), 0.0, None))
+        # negligible against the parameter's precision, or at the float64 resolution of x
+        floor = np.maximum(opts.tol_abs, 16.0 * np.spacing(np.abs(x + delta)))
+        small = np.all((np.abs(delta) <= opts.tol_rel * sd) | (np.abs(delta) <= floor))
+        if damped:
+            x, f, B = _line_search(fun, x, delta, f, t, Wm, is_diag)
+        else:
+            x = x + delta
+            f, B = _linearise(fun, x)
+        C, c = constraints(x)
+        if small:
+            converged = True
+            break
+    return x, f, B, C, c, delta, Qxx, it, converged, sd, floor
+
+
+def _cost(f, Wm, is_diag: bool) -> float:
+    """``vᵀ W v`` of the misclosures ``f``."""
+    return float(f @ (Wm * f)) if is_diag else float(f @ Wm @ f)
+
+
+#: the Gauss–Newton step is accepted when it lowers ``vᵀWv`` by at least this fraction of the decrease
+#: its linear model predicts (Armijo's condition; Nocedal & Wright 2006, Sec. 3.1)
+ARMIJO_C = 1e-4
+
+
+#: a change of ``vᵀWv`` within this fraction of it is taken for rounding by :func:`_line_search`
+COST_ROUNDING = 1e-12
+
+
+def _line_search(fun, x, delta, f, t, Wm, is_diag: bool):
+    """``(x + αΔ, f, B)``: the Gauss–Newton step ``Δ``, shortened when it does not lower ``φ(α) = vᵀWv``.
+
+    The full step ``α = 1`` is taken when ``φ(1) ≤ φ(0) + c α φ'(0) + ρ φ(0)`` (Armijo's condition,
+    ``c`` = :data:`ARMIJO_C`, with ``φ(0)``'s rounding ``ρ`` = :data:`COST_ROUNDING`), with
+    ``φ'(0) = −2 tᵀΔ < 0`` (``t = BᵀWf``: the Gauss–Newton step is a descent direction). Else ``α`` is
+    the minimum of the parabola through ``φ(0)``, ``φ'(0)`` and ``φ(α)``, kept in ``[0.1 α, 0.5 α]``
+    (Nocedal & Wright 2006, Sec. 3.5), until the condition holds or ``α < 1e-10`` (then the full step).
+
+    The fallback of :func:`adjust` when full steps do not converge: a large-residual problem, where
+    the misfit's curvature exceeds ``BᵀWB`` along a weakly determined parameter (e.g. the rotation
+    about the line of nearly collinear points with a gross error), makes Gauss–Newton oscillate about
+    the minimum with a growing amplitude; the shortened steps converge to it (linearly). The relative
+    rounding ``ρ φ(0)`` is what such a problem's ``vᵀWv`` (far from 0) is known to.
+    """
+    phi0 = _cost(f, Wm, is_diag)
+    slope = -2.0 * float(t @ delta)
+    alpha = 1.0
+    while True:
+        xa = x + alpha * delta
+        fa, Ba = _linearise(fun, xa)
+        phi = _cost(fa, Wm, is_diag)
+        if not slope < 0.0 or (np.isfinite(phi) and phi <= phi0 + ARMIJO_C * alpha * slope + COST_ROUNDING * phi0):
+            return xa, fa, Ba
+        curv = phi - phi0 - slope * alpha
+        nxt = -slope * alpha**2 / (2.0 * curv) if np.isfinite(phi) and curv > 0.0 else 0.5 * alpha
+        alpha = float(np.clip(nxt, 0.1 * alpha, 0.5 * alpha))
+        if alpha < 1e-10:
+            xa = x + delta
+            fa, Ba = _linearise(fun, xa)
+            return xa, fa, Ba
+
+
 def _normal_matrix(B, Wm, is_diag: bool):
     """``W·B`` and the normal matrix ``N = Bᵀ W B`` (``Wm`` diagonal as a vector when ``is_diag``)."""
     if is_diag:
@@ -441,7 +518,10 @@ def adjust(
     Simela et al. (MAST paper), Sec. "Scanner Horizontal Position": ``N = BᵀWB``,
     ``t = BᵀWf``, ``Δ = N⁻¹t``, ``v = f − BΔ``, ``Σ = σ0²N⁻¹``. The normal matrix is solved by
     Cholesky (``scipy.linalg.cho_solve``) after symmetric Jacobi scaling so that mixed units
-    (metres, radians) do not hurt the conditioning.
+    (metres, radians) do not hurt the conditioning. Converged when the full Gauss–Newton step ``Δ``
+    is negligible (``tol_rel``, ``tol_abs``). Without constraints, when full steps do not converge in
+    ``max_iterations``, the iteration restarts from ``x0`` with each step through a backtracking line
+    search on ``vᵀWv`` (:func:`_line_search`; the reported iterations count both runs).
     """
     opts = options or LSQOptions()
     x = np.array(x0, dtype=np.float64, copy=True).ravel()
@@ -456,31 +536,20 @@ def adjust(
     C, c = _constraints(x)
     dof = _redundancy(n, u, C)
 
-    converged = False
-    it = 0
-    Qxx = None
-    for it_ in range(1, opts.max_iterations + 1):
-        it = it_
-        WB, N = _normal_matrix(B, Wm, is_diag)
-        t = WB.T @ f
-        delta, Qxx = _solve_normal(N, t, C, c, names)
-        x = x + delta
-        if linear:
-            converged = True
-            break
-        sd = opts.sigma0_apriori * np.sqrt(np.clip(np.diag(Qxx), 0.0, None))
-        # negligible against the parameter's precision, or at the float64 resolution of x
-        floor = np.maximum(opts.tol_abs, 16.0 * np.spacing(np.abs(x)))
-        small = np.all((np.abs(delta) <= opts.tol_rel * sd) | (np.abs(delta) <= floor))
-        f, B = _linearise(fun, x)
-        C, c = _constraints(x)
-        if small:
-            converged = True
-            break
+    x0v, f0, B0 = x, f, B
+    x, f, B, C, c, delta, Qxx, it, converged, sd, floor = _iterate(fun, x, f, B, C, c, Wm, is_diag, opts, names,
+                                                                  _constraints, linear, damped=False)
+    if not converged and C is None:  # large residuals along a weak parameter: Gauss–Newton with a line search
+        x, f, B, C, c, delta, Qxx, it2, converged, sd, floor = _iterate(fun, x0v, f0, B0, C, c, Wm, is_diag, opts,
+                                                                       names, _constraints, linear, damped=True)
+        it += it2
     if not converged:
+        k = int(np.argmax(np.abs(delta) / np.maximum(sd, floor)))
         raise ConvergenceError(
-            f"least squares did not converge in {opts.max_iterations} iterations (last max |Δ| = "
-            f"{np.max(np.abs(delta)):.3e}); check approximate coordinates and observation units"
+            f"least squares did not converge in {opts.max_iterations} iterations"
+            f"{' (nor with a line search)' if C is None else ''}: the last correction to {names[k]} is {delta[k]:.3e} ({abs(delta[k]) / max(sd[k], 1e-300):.3g} times "
+            f"its standard deviation {sd[k]:.3e}): the observations barely determine it or contradict each "
+            "other (a gross error); check approximate coordinates, observation units and the geometry"
         )
     if linear:
         v = f - B @ delta

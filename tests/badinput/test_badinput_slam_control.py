@@ -79,8 +79,9 @@ CASES = {
                                       "EPSG:5186", ["--control-mode", "similarity"],
                                       "the 3 control stations (S1, S3, S4) lie on one straight line (at most 0.00"),
     "collinear_controls_graph": (_sub(3, "201349.004,551205.771,86.100", "201350.896,551202.095,84.798"),
-                                 "EPSG:5186", [], "lie on one straight line (at most 0.000 m from it, within 3 x their "
-                                 "sigma 0.010 m): the rotation about that line is not determined; the graph mode"),
+                                 "EPSG:5186", [], "lie on one straight line (at most 0.000 m from it over 6.5 m): the "
+                                 "rotation about that line is not determined (standard deviation over 180 deg from the "
+                                 "stations' sigma, more than 19.1 deg); the graph mode needs at least 3 not on one line"),
     "control_mode_unknown": (ROWS, "EPSG:5186", ["--control-mode", "helmert"],
                              "argument --control-mode: invalid choice: 'helmert' (choose from 'rigid', 'similarity', "
                              "'graph')"),
