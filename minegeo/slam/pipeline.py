@@ -34,7 +34,7 @@ from minegeo.geometry.se3 import compose, relative
 from minegeo.io.g2o import PoseGraph
 from minegeo.registration import build_target_index
 from minegeo.slam.inertial import GyroAid, InertialParams, InertialResult, optimize_inertial_graph
-from minegeo.slam.loops import LoopCandidate, LoopParams, find_loop
+from minegeo.slam.loops import LoopCandidate, LoopParams, find_loop, loop_correction
 from minegeo.slam.mapping import NoiseRemovalResult, RoadwayNoiseParams, remove_roadway_noise
 from minegeo.slam.odometry import OdometryParams, OdometryResult, PreparedFrame, run_odometry
 from minegeo.slam.planes import (
@@ -42,7 +42,6 @@ from minegeo.slam.planes import (
     PlaneStatus,
     extract_floor_plane,
     plane_in_sensor_frame,
-    plane_in_world_frame,
 )
 from minegeo.slam.posegraph import PlaneSet, PoseGraphParams, PoseGraphResult, optimize_pose_graph
 
@@ -263,9 +262,10 @@ def _associate_floors(kfs: np.ndarray, meas: np.ndarray, kf_poses: np.ndarray, p
     nodes = np.zeros(kfs.size, dtype=np.int64)
     world = np.zeros((kfs.size, 4))
     pos = kf_poses[kfs, :3, 3] if kfs.size else np.zeros((0, 3))
-    for e, k in enumerate(kfs):
-        pl = plane_in_world_frame(meas[e], kf_poses[k])
-        t = kf_poses[k, :3, 3]
+    floors = _floors_in_world(meas, kf_poses[kfs]) if kfs.size else world
+    for e, _ in enumerate(kfs):
+        pl = floors[e]
+        t = pos[e]
         world[e] = pl
         hit = [q for q in sorted(last, reverse=True)[:2] if _same_section(pl, last[q], t, cos_max, params)]
         if not hit and params.plane_revisit_distance_m > 0 and e:
@@ -302,8 +302,16 @@ def _plane_set(obs, kf_poses: np.ndarray, params: SlamParams) -> PlaneSet | None
     edges = np.column_stack([edges[:, 0], _associate_floors(edges[:, 0], meas, kf_poses, params)])
     n_nodes = int(edges[:, 1].max()) + 1
     first = [int(np.flatnonzero(edges[:, 1] == q)[0]) for q in range(n_nodes)]
-    planes = np.stack([plane_in_world_frame(meas[e], kf_poses[edges[e, 0]]) for e in first])
+    planes = _floors_in_world(meas[first], kf_poses[edges[first, 0]])
     return PlaneSet(planes, edges, meas, info)
+
+
+def _floors_in_world(meas: np.ndarray, T_world_kf: np.ndarray) -> np.ndarray:
+    """Planes ``meas`` (m, 4) measured in the sensor frames of the poses ``T_world_kf`` (m, 4, 4) in the
+    world frame, row by row the formula of :func:`minegeo.slam.planes.plane_in_world_frame`:
+    ``n = R n_s``, ``d = d_s − n·t`` [Ren2019 Eq. 10] (the poses are the pipeline's own, rigid)."""
+    n = np.einsum("eij,ej->ei", T_world_kf[:, :3, :3], meas[:, :3])
+    return np.column_stack([n, meas[:, 3] - np.einsum("ei,ei->e", n, T_world_kf[:, :3, 3])])
 
 
 def _optimise(kf_poses, odo, loops, obs, params: SlamParams) -> PoseGraphResult:
@@ -312,7 +320,10 @@ def _optimise(kf_poses, odo, loops, obs, params: SlamParams) -> PoseGraphResult:
 
 
 def _close_loops(odo: OdometryResult, params: SlamParams, obs=None):
-    """Loop closure keyframe by keyframe; re-optimise after each accepted loop."""
+    """Loop closure keyframe by keyframe; the keyframe graph re-optimised after an accepted loop that
+    corrects the current poses by more than ``params.loops.reoptimise_m`` / ``reoptimise_deg``
+    (:func:`minegeo.slam.loops.loop_correction`); the loops accepted since the last optimisation are
+    all in it."""
     kf_poses = odo.poses[odo.keyframes].copy()
     path = _path_lengths(kf_poses)  # distance along the trajectory does not depend on the drift much
     frames: dict[int, PreparedFrame] = {}
@@ -331,7 +342,9 @@ def _close_loops(odo: OdometryResult, params: SlamParams, obs=None):
     for k in range(1, kf_poses.shape[0]):
         tried = find_loop(k, kf_poses, path, frame_list, params.loops, params.odometry)
         loops.extend(tried)
-        if any(c.accepted for c in tried):
+        moved = [loop_correction(c, kf_poses) for c in tried if c.accepted]
+        if any(m > params.loops.reoptimise_m or a > params.loops.reoptimise_deg for m, a in moved) \
+                or (moved and params.loops.reoptimise_m == 0 and params.loops.reoptimise_deg == 0):
             opt = _optimise(kf_poses, odo, loops, obs, params)
             if opt.status != "failed":
                 kf_poses = _optimised_poses(opt)

@@ -70,3 +70,24 @@ def test_a_correction_beyond_the_limits_is_rejected_with_the_reason(place):
                       LoopParams(max_correction_m=1.0), odo)
     assert tried and not any(c.accepted for c in tried)
     assert any("beyond the limits" in c.reason for c in tried)
+
+
+def test_loop_correction_is_the_disagreement_with_the_current_poses():
+    """Hand calculation: keyframe j placed 10 m east of i, its loop measures it 0.3 m further east
+    and turned 2° about z: the correction is (T_i⁻¹ T_j)⁻¹ Z_ij = a 0.3 m shift and a 2° turn,
+    whatever the keyframes' common world pose."""
+    from minegeo.slam.loops import LoopCandidate, loop_correction
+
+    def pose(R, t):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, t
+        return T
+
+    W = pose(exp_so3(np.array([0.1, -0.2, 0.7])), [5.0, -3.0, 2.0])  # any common world placement
+    poses = np.stack([W @ pose(np.eye(3), [0, 0, 0]), W @ pose(np.eye(3), [10.0, 0, 0])])
+    Z = pose(exp_so3(np.radians([0.0, 0.0, 2.0])), [10.3, 0.0, 0.0])
+    c = LoopCandidate(0, 1, 10.0, 0.9, 0.05, True, "", Z, np.eye(6))
+    m, deg = loop_correction(c, poses)
+    assert m == pytest.approx(0.3, abs=1e-12) and deg == pytest.approx(2.0, abs=1e-9)
+    agree = LoopCandidate(0, 1, 10.0, 0.9, 0.05, True, "", np.linalg.solve(poses[0], poses[1]), np.eye(6))
+    assert loop_correction(agree, poses) == pytest.approx((0.0, 0.0), abs=1e-6)

@@ -114,3 +114,40 @@ def test_map_noise_removal_takes_out_a_walking_pedestrian(ring):
     # on a straight stretch: without removal the pedestrian leaves a trail in the map, with it
     # most of it goes (turns and junctions are left alone: skipped track points, undecided slices)
     assert kept[False] > 50 and kept[True] <= 0.4 * kept[False], kept
+
+
+def test_loops_judged_at_poses_reoptimised_only_on_a_large_correction(ring):
+    """The ring with 16° of heading drift by the return: the back end that re-optimises the keyframe
+    graph only after a loop that corrects the current poses by more than ``reoptimise_m`` /
+    ``reoptimise_deg`` (the default) accepts the same loops as the one re-optimising after every
+    accepted loop (``0, 0``, the reference), with fewer optimisations, and ends at the same
+    trajectory (the same graph, optimised to the same stopping test)."""
+    from dataclasses import replace
+
+    from minegeo.slam import pipeline
+    from minegeo.slam.odometry import run_odometry
+
+    frames, _ = ring
+    drifted = _with_heading_drift(run_odometry(frames, SlamParams().odometry), 0.1)
+    runs = {}
+    for name, (m, deg) in {"rule": (None, None), "every": (0.0, 0.0)}.items():
+        p = SlamParams()
+        if m is not None:
+            p = replace(p, loops=replace(p.loops, reoptimise_m=m, reoptimise_deg=deg))
+        calls = []
+        orig = pipeline._optimise
+
+        def counted(*a, _orig=orig, _calls=calls, **k):
+            _calls.append(1)
+            return _orig(*a, **k)
+
+        pipeline._optimise = counted
+        try:
+            runs[name] = (pipeline.run_backend(drifted, p), len(calls))
+        finally:
+            pipeline._optimise = orig
+    (rule, n_rule), (every, n_every) = runs["rule"], runs["every"]
+    pairs = [(c.i, c.j) for c in every.loops if c.accepted]
+    assert len(pairs) >= 3 and [(c.i, c.j) for c in rule.loops if c.accepted] == pairs
+    assert n_rule < n_every, (n_rule, n_every)
+    assert np.abs(rule.poses[:, :3, 3] - every.poses[:, :3, 3]).max() < 0.01
