@@ -43,8 +43,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from minegeo._jit import njit
 from minegeo.errors import InputError
+from minegeo.slam._kernels_mapping import slice_members
 
 __all__ = ["RoadwayNoiseParams", "NoiseRemovalResult", "remove_roadway_noise", "section_frames"]
 
@@ -176,36 +176,6 @@ def section_frames(track: np.ndarray, params: RoadwayNoiseParams):
     s = len(centres)
     return (np.asarray(centres).reshape(s, 3), np.asarray(normals).reshape(s, 3),
             np.asarray(index, dtype=np.int64), statuses)
-
-
-@njit
-def _slice_members(points, centres, normals, half_thickness, radius):
-    """CSR lists of the points of each slice: |n·(p − c)| ≤ δ/2 [Ren2019 Eq. 13], in-plane radius ≤ R."""
-    s = centres.shape[0]
-    n = points.shape[0]
-    r2 = radius * radius
-    counts = np.zeros(s + 1, dtype=np.int64)
-    members = np.empty(0, dtype=np.int64)
-    fill = np.zeros(s, dtype=np.int64)
-    for pass_ in range(2):
-        if pass_ == 1:
-            for k in range(s):
-                counts[k + 1] += counts[k]
-            members = np.empty(counts[s], dtype=np.int64)
-            fill = counts[:s].copy()
-        for k in range(s):
-            cx, cy, cz = centres[k, 0], centres[k, 1], centres[k, 2]
-            nx, ny, nz = normals[k, 0], normals[k, 1], normals[k, 2]
-            for i in range(n):
-                dx, dy, dz = points[i, 0] - cx, points[i, 1] - cy, points[i, 2] - cz
-                d = dx * nx + dy * ny + dz * nz
-                if abs(d) <= half_thickness and dx * dx + dy * dy + dz * dz - d * d <= r2:
-                    if pass_ == 0:
-                        counts[k + 1] += 1
-                    else:
-                        members[fill[k]] = i
-                        fill[k] += 1
-    return counts, members
 
 
 def _split_parts(uv: np.ndarray):
@@ -421,7 +391,7 @@ def remove_roadway_noise(points_world, trajectory_positions, params: RoadwayNois
     slices = []
     rng = np.random.default_rng(params.seed)
     if centres.shape[0] and n:
-        offsets, members = _slice_members(P, np.ascontiguousarray(centres), np.ascontiguousarray(normals),
+        offsets, members = slice_members(P, np.ascontiguousarray(centres), np.ascontiguousarray(normals),
                                           0.5 * params.slice_thickness_m, params.max_radius_m)
     for s in range(centres.shape[0]):
         idx = members[offsets[s]:offsets[s + 1]]
