@@ -40,6 +40,7 @@ from minegeo.localize.params import (
     VerifyParams,
 )
 from minegeo.registration.ransac_params import RansacParams
+from minegeo.slam.loops import LoopParams
 from minegeo.slam.odometry_model import EDGE_FLOOR_FIELDS, OdometryParams
 
 # (class, field) -> (lower op, lower bound, upper op, upper bound, integer): the documented rules
@@ -144,6 +145,15 @@ BOUNDS = {
     (OdometryParams, "min_fitness"): (">=", 0.0, "<=", 1.0, False),
     (OdometryParams, "min_constraint_ratio"): (">=", 0.0, "<", 1.0, False),
     (OdometryParams, "deskew_iterations"): (">=", 0, "<=", 1, True),
+    # LoopParams (its former __post_init__ checks, minegeo/slam/loops.py at 7fb575f: > 0, max_candidates >= 1,
+    # min_fitness in [0, 1]; the re-optimisation limits >= 0)
+    **{(LoopParams, n): (">", 0.0, None, None, False)
+       for n in ("min_path_gap_m", "max_distance_m", "max_rmse_m", "max_correction_m", "max_correction_deg",
+                 "max_correction_per_path", "confirmed_rmse_m", "consistency_m", "consistency_deg")},
+    (LoopParams, "max_candidates"): (">=", 1, None, None, True),
+    (LoopParams, "min_fitness"): (">=", 0.0, "<=", 1.0, False),
+    (LoopParams, "reoptimise_m"): (">=", 0.0, None, None, False),
+    (LoopParams, "reoptimise_deg"): (">=", 0.0, None, None, False),
 }
 #: fields whose rule is joined by a check across fields (GravityParams: 3 <= min_points <= max_points;
 #: RansacParams: ransac_n >= 2, >= 3 for the rigid model)
@@ -153,7 +163,7 @@ UNRULED = {(OdometryParams, n) for n in ("min_points", "keyframe_submap_size", "
                                          "turn_retry_yaw_deg")}
 GROUPS = (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, GravityFallbackParams, LocalizeParams,
           FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams, RansacParams,
-          OdometryParams)
+          OdometryParams, LoopParams)
 KEYS = sorted(BOUNDS, key=lambda k: (k[0].__name__, k[1]))
 _OPS = {">": lambda v, b: v > b, ">=": lambda v, b: v >= b, "<": lambda v, b: v < b, "<=": lambda v, b: v <= b}
 
@@ -305,6 +315,8 @@ CLI_CASES = [
     ("slam", "--max-speed", "0", (OdometryParams, "max_speed_m_s", 0.0), None, None),
     ("slam", "--max-angular-rate", "-5", (OdometryParams, "max_angular_rate_deg_s", -5.0), None, None),
     ("slam", "--max-acceleration", "-1", (OdometryParams, "max_acceleration_m_s2", -1.0), None, None),
+    ("slam", "--loop-gap", "0", (LoopParams, "min_path_gap_m", 0.0), None, None),
+    ("slam", "--loop-radius", "-2", (LoopParams, "max_distance_m", -2.0), None, None),
 ]
 _CLI_IDS = [f"{c[0]}{c[1]}={c[2]}" for c in CLI_CASES]
 
@@ -402,6 +414,8 @@ OPTION_FIELDS = {
     ("slam", "--max-speed"): (OdometryParams, "max_speed_m_s", None, None),
     ("slam", "--max-angular-rate"): (OdometryParams, "max_angular_rate_deg_s", None, None),
     ("slam", "--max-acceleration"): (OdometryParams, "max_acceleration_m_s2", None, None),
+    ("slam", "--loop-gap"): (LoopParams, "min_path_gap_m", None, None),
+    ("slam", "--loop-radius"): (LoopParams, "max_distance_m", None, None),
 }
 OPTIONS = sorted(OPTION_FIELDS)
 

@@ -22,6 +22,7 @@ from minegeo.cli._imu import add_imu_arguments, check_imu, inertial_params, read
 
 #: the parameter class whose field rules the odometry options use (imported when an option is parsed)
 _ODO = "minegeo.slam.odometry_model:OdometryParams"
+_LOOPS = "minegeo.slam.loops:LoopParams"
 #: ``--keyframe-angle``: the rotation between two poses is at most 180 deg, so a larger threshold
 #: would never act; the option takes (0, 180] where ``OdometryParams.keyframe_angle_deg`` takes any
 #: angle > 0 (every value from 180 up behaves the same there)
@@ -57,8 +58,9 @@ def add_arguments(parser) -> None:
                         default=10.0, help="keyframe rotation threshold (deg, in (0, 180], default 10)")
     parser.add_argument("--keyframe-interval", type=arg_type(_ODO, "keyframe_interval_s"), default=10.0,
                         help="keyframe time threshold (s, > 0, default 10)")
-    parser.add_argument("--loop-gap", type=positive_float, default=30.0, help="loop candidates: path gap above (m)")
-    parser.add_argument("--loop-radius", type=positive_float, default=8.0,
+    parser.add_argument("--loop-gap", type=arg_type(_LOOPS, "min_path_gap_m"), default=30.0,
+                        help="loop candidates: path gap above (m, > 0)")
+    parser.add_argument("--loop-radius", type=arg_type(_LOOPS, "max_distance_m"), default=8.0,
                         help="loop candidates: distance below (m; less than --loop-gap)")
     parser.add_argument("--no-planes", action="store_true", help="no floor-plane landmarks in the pose graph "
                         "(default: floor planes of the keyframe sub-maps as nodes, Ren et al. 2019 Sec. 3.4.2)")

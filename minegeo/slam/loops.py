@@ -45,7 +45,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from minegeo.errors import InputError
+from minegeo._params import bounded, validate
 from minegeo.geometry.se3 import compose, project, relative
 from minegeo.slam.odometry import OdometryParams, PreparedFrame, register_frames
 
@@ -65,32 +65,22 @@ class LoopParams:
     docstring).
     """
 
-    min_path_gap_m: float = 30.0
-    max_distance_m: float = 8.0
-    max_candidates: int = 3
-    min_fitness: float = 0.5
-    max_rmse_m: float = 0.3
-    max_correction_m: float = 5.0
-    max_correction_deg: float = 45.0
-    max_correction_per_path: float = 0.02
-    confirmed_rmse_m: float = 0.45
-    consistency_m: float = 0.3
-    consistency_deg: float = 1.0
-    reoptimise_m: float = 0.1
-    reoptimise_deg: float = 2.0
+    min_path_gap_m: float = bounded(30.0, gt=0.0)
+    max_distance_m: float = bounded(8.0, gt=0.0)
+    max_candidates: int = bounded(3, ge=1, integer=True)
+    min_fitness: float = bounded(0.5, ge=0.0, le=1.0)
+    max_rmse_m: float = bounded(0.3, gt=0.0)
+    max_correction_m: float = bounded(5.0, gt=0.0)
+    max_correction_deg: float = bounded(45.0, gt=0.0)
+    max_correction_per_path: float = bounded(0.02, gt=0.0)
+    confirmed_rmse_m: float = bounded(0.45, gt=0.0)
+    consistency_m: float = bounded(0.3, gt=0.0)
+    consistency_deg: float = bounded(1.0, gt=0.0)
+    reoptimise_m: float = bounded(0.1, ge=0.0)
+    reoptimise_deg: float = bounded(2.0, ge=0.0)
 
     def __post_init__(self):
-        for name in ("min_path_gap_m", "max_distance_m", "max_rmse_m", "max_correction_m", "max_correction_deg",
-                     "max_correction_per_path", "confirmed_rmse_m", "consistency_m", "consistency_deg"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-                raise InputError(f"{name} must be a finite number > 0, got {v!r}")
-        for name in ("reoptimise_m", "reoptimise_deg"):  # 0: re-optimise after every accepted loop
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
-                raise InputError(f"{name} must be a finite number >= 0, got {v!r}")
-        if self.max_candidates < 1 or not 0 <= self.min_fitness <= 1:
-            raise InputError("max_candidates >= 1 and min_fitness in [0, 1] are required")
+        validate(self)
 
 
 @dataclass(frozen=True)
