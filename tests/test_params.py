@@ -317,6 +317,11 @@ CLI_CASES = [
     ("slam", "--max-acceleration", "-1", (OdometryParams, "max_acceleration_m_s2", -1.0), None, None),
     ("slam", "--loop-gap", "0", (LoopParams, "min_path_gap_m", 0.0), None, None),
     ("slam", "--loop-radius", "-2", (LoopParams, "max_distance_m", -2.0), None, None),
+    ("localize-batch", "--levelled", "0", (RansacParams, "max_tilt_deg", 0.0), None, "a finite number in (0, 90]"),
+    ("localize-batch", "--voxel", "-0.5", (LocalizeParams, "scan_voxel_size_m", -0.5), None, None),
+    ("localize-batch", "--octree-level", "0", (LocalizeParams, "scan_octree_level", 0), None, None),
+    ("track", "--voxel", "0", (OdometryParams, "voxel_size_m", 0.0), None, None),
+    ("track", "--keyframe-distance", "-1", (OdometryParams, "keyframe_distance_m", -1.0), None, None),
 ]
 _CLI_IDS = [f"{c[0]}{c[1]}={c[2]}" for c in CLI_CASES]
 
@@ -340,6 +345,10 @@ _LIMIT_IDS = [f"{c[0]}{c[1]}={c[2]}" for c in LIMIT_CASES]
 def _base(verb, tmp_path) -> list:
     if verb == "localize":
         return ["--map", tmp_path / "no_map.ply", "--scan", tmp_path / "no_scan.ply", "--out", tmp_path / "out"]
+    if verb == "localize-batch":
+        return ["--map", tmp_path / "no_map.ply", "--scans", tmp_path / "no_scans", "--out", tmp_path / "out"]
+    if verb == "track":
+        return ["--frames", tmp_path / "no_frames", "--db", tmp_path / "no_kb.json", "--out", tmp_path / "out"]
     return ["--frames", tmp_path / "no_frames", "--out", tmp_path / "out"]
 
 
@@ -416,6 +425,11 @@ OPTION_FIELDS = {
     ("slam", "--max-acceleration"): (OdometryParams, "max_acceleration_m_s2", None, None),
     ("slam", "--loop-gap"): (LoopParams, "min_path_gap_m", None, None),
     ("slam", "--loop-radius"): (LoopParams, "max_distance_m", None, None),
+    ("localize-batch", "--levelled"): (RansacParams, "max_tilt_deg", 90.0, None),
+    ("localize-batch", "--voxel"): (LocalizeParams, "scan_voxel_size_m", None, None),
+    ("localize-batch", "--octree-level"): (LocalizeParams, "scan_octree_level", None, None),
+    ("track", "--voxel"): (OdometryParams, "voxel_size_m", None, None),
+    ("track", "--keyframe-distance"): (OdometryParams, "keyframe_distance_m", None, None),
 }
 OPTIONS = sorted(OPTION_FIELDS)
 
@@ -433,7 +447,7 @@ def test_every_option_typed_by_a_field_rule_is_listed():
     from minegeo._params import arg_type
 
     rule_type = type(arg_type(RansacParams, "max_iterations"))
-    for verb in ("localize", "slam"):
+    for verb in ("localize", "slam", "localize-batch", "track"):
         typed = {o for o, a in _verb_actions(verb).items() if o.startswith("--") and isinstance(a.type, rule_type)}
         assert typed == {o for v, o in OPTION_FIELDS if v == verb}, verb
     assert {(c[0], c[1]) for c in CLI_CASES} == set(OPTION_FIELDS)

@@ -48,8 +48,9 @@ HELP = "localize many scans in one prepared map in parallel (Dask): one result f
 
 
 def add_arguments(parser) -> None:
-    from minegeo.cli._argtypes import float_in_range, nonnegative_int, positive_float, positive_int
-    from minegeo.cli.localize import add_profile_arguments
+    from minegeo._params import arg_type
+    from minegeo.cli._argtypes import nonnegative_int, positive_float, positive_int
+    from minegeo.cli.localize import LEVELLED_MAX_DEG, add_profile_arguments
 
     parser.add_argument("--map", required=True, help="prepared map (.npz from minegeo prepare-map) or a map file")
     parser.add_argument("--scans", required=True, help="folder of scan files, or a glob pattern ('scans/*.ply')")
@@ -68,7 +69,8 @@ def add_arguments(parser) -> None:
     add_profile_arguments(parser)
     parser.add_argument("--icp", default=None, choices=("point_to_point", "point_to_plane", "gicp"),
                         help="ICP variant (as minegeo localize)")
-    parser.add_argument("--levelled", type=float_in_range(0.0, 90.0, lo_open=True), default=None, metavar="DEG",
+    parser.add_argument("--levelled", type=arg_type("minegeo.registration.ransac_params:RansacParams", "max_tilt_deg",
+                                                    le=LEVELLED_MAX_DEG), default=None, metavar="DEG",
                         help="the scans are levelled (as minegeo localize --levelled), a tilt in (0, 90] degrees")
     parser.add_argument("--no-cache", action="store_true",
                         help="a map file given as --map: do not read or write its prepared-map cache")

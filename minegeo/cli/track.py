@@ -25,6 +25,7 @@ import sys
 from dataclasses import asdict, replace
 from pathlib import Path
 
+from minegeo._params import arg_type
 from minegeo.cli._argtypes import (
     finite_float,
     float_in_range,
@@ -36,6 +37,8 @@ from minegeo.cli._argtypes import (
 )
 from minegeo.cli._imu import add_imu_arguments, check_imu, inertial_params, read_imu
 
+#: the parameter class whose field rules the odometry options use (imported when an option is parsed)
+_ODO = "minegeo.slam.odometry_model:OdometryParams"
 HELP = "LiDAR tracking with intersection recognition against a knowledge base (Liang et al. 2024)"
 
 
@@ -79,8 +82,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--unchecked-path", type=positive_float, default=200.0, metavar="M",
                         help="a keyframe farther than M metres of path from every verified intersection (and the "
                              "start pose) is odometry only: listed, and the status is 'partial' (default 200)")
-    parser.add_argument("--voxel", type=positive_float, default=0.3, help="odometry voxel size (m)")
-    parser.add_argument("--keyframe-distance", type=positive_float, default=2.0,
+    parser.add_argument("--voxel", type=arg_type(_ODO, "voxel_size_m"), default=0.3, help="odometry voxel size (m, > 0)")
+    parser.add_argument("--keyframe-distance", type=arg_type(_ODO, "keyframe_distance_m"), default=2.0,
                         help="keyframe distance threshold (m)")
     parser.add_argument("--seed", type=int_in_range(0, 2**32 - 1), default=0,
                         help="recorded seed (the run draws no random numbers)")
