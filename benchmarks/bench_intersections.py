@@ -22,7 +22,10 @@ Methods on the same frames:
 (b) ``odometry + loops``: ``run_backend(use_loops=True, use_planes=False)`` (generic geometric loop
     closure of ``minegeo.slam.loops``);
 (c) ``ours (no map)``: ``minegeo.semantic.tracking.track(frames, kb, use_map=False)``;
-(d) ``ours (map)``: ``track(..., use_map=True)``.
+(d) ``ours (map)``: ``track(..., use_map=True, map_points=<the prior map>)``: the intersection factors and
+    the map-registration factors (``minegeo.semantic.mapfactor``: keyframes more than 50 m of path from
+    the last verified intersection registered to the prior map every 10 m, information only in the
+    directions the registration constrains); ``--no-map-factors`` leaves the map points out.
 
 (a) and (b) start in the first frame's sensor frame; their poses are put into the map frame with the
 **true first pose** (a known take-off pose); (c) and (d) get the same pose as ``TrackParams.T_world_start``
@@ -259,7 +262,7 @@ def run_slam_methods(frames, T0: np.ndarray, odometry, imu=None, methods=METHODS
 
 
 def run_track(frames, kb, T0: np.ndarray, use_map: bool, odometry, odo=None, imu=None,
-              gate_drift: float | None = None) -> dict:
+              gate_drift: float | None = None, map_points=None) -> dict:
     """``minegeo.semantic.tracking.track`` from the true first pose (``TrackParams.T_world_start``), on the
     odometry already computed for (a) and (b) when its parameters are the tracker's (the same frames)."""
     from minegeo.semantic.recognition import RecognitionParams
@@ -272,7 +275,7 @@ def run_track(frames, kb, T0: np.ndarray, use_map: bool, odometry, odo=None, imu
         odo = None
     t0 = time.perf_counter()
     try:
-        res = track(iter(frames), kb, params, use_map=use_map, odometry=odo, imu=imu)
+        res = track(iter(frames), kb, params, use_map=use_map, odometry=odo, imu=imu, map_points=map_points)
     except Exception as exc:  # noqa: BLE001  (reported in the table, the other methods still count)
         return {"error": f"failed: {type(exc).__name__}: {exc}", "traceback": traceback.format_exc(limit=4)}
     t = time.perf_counter() - t0
@@ -481,6 +484,10 @@ def markdown(meta: dict, results: dict, corridor: dict | None) -> str:
                                                      "reason", "inertial")}
         if r.get("recognition"):
             extra["recognition"] = {k: v for k, v in r["recognition"].items() if k != "confusion"}
+        if isinstance(r.get("summary"), dict):      # the factors of each kind
+            extra["factors"] = {"intersection": r["summary"].get("factors"),
+                                "map": (r["summary"].get("map_registrations") or {}).get("factors", 0),
+                                "map_registrations": r["summary"].get("map_registrations")}
         if extra:
             L.append(f"* {m}: {json.dumps(extra, default=str)}")
     if corridor:
@@ -546,6 +553,8 @@ def main() -> None:  # noqa: PLR0915
     ap.add_argument("--gate-drift", type=float, default=None,
                     help="TrackParams.gate_drift_fraction of ours (map): the path-fraction gate instead of the library "
                     "default, the covariance (Mahalanobis) gate; results labelled _gateX")
+    ap.add_argument("--no-map-factors", action="store_true",
+                    help="ours (map) without the map-registration factors (the prior map's points not given to track)")
     ap.add_argument("--label", default="", help="appended to the results' file names (_LABEL)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     ap.add_argument("--img", type=Path, default=REPO / "docs" / "img")
@@ -608,7 +617,8 @@ def main() -> None:  # noqa: PLR0915
             continue
         _log(f"{m} ...")
         results[m] = run_track(frames, kb, T0, use_map, odometry, results.pop("_odometry", None) if not use_map
-                               else results.get("_odo_keep"), imu=imu, gate_drift=args.gate_drift if use_map else None)
+                               else results.get("_odo_keep"), imu=imu, gate_drift=args.gate_drift if use_map else None,
+                               map_points=cloud.points if use_map and not args.no_map_factors else None)
         if "time_s" in results[m]:
             results[m]["time_s"] += results.get("_odo_time", 0.0)
     for k in ("_odometry", "_odo_keep", "_odo_time"):
@@ -659,7 +669,7 @@ def main() -> None:  # noqa: PLR0915
     meta = {"date": date, "conditions": __doc__.split("\n\n")[1].replace("\n", " "), "seed": args.seed,
             "network": tag, "quick": args.quick, "roughness_m": args.roughness_m, "odometry": args.odometry,
             "floor_cell_m": args.floor_cell_m, "kb": kb_txt, "flight": _flight_meta(flight, truth, J, J_names, passes),
-            "target": target, "imu": imu_txt, "held": held, "gate_drift_fraction": args.gate_drift, "git": _git(), "threads": args.threads, "wall_s": time.perf_counter() - wall0,
+            "target": target, "map_factors": not args.no_map_factors, "imu": imu_txt, "held": held, "gate_drift_fraction": args.gate_drift, "git": _git(), "threads": args.threads, "wall_s": time.perf_counter() - wall0,
             "machine": f"{os.cpu_count()} cores; uptime at the start: {uptime_start}; at the end: {_uptime()}",
             "cache": str(frames.folder)}
     clean = {m: {k: v for k, v in r.items() if k not in ("poses", "times_s", "recognitions", "traceback")}

@@ -27,6 +27,9 @@ Factors
   Jacobian ``−R_i`` [Liang2024 Eq. 28] serves only to propagate its covariance.
 * Pose prior ``(i, T_prior)``: ``r = Log(T_prior⁻¹ T_i)`` (GTSAM's ``PriorFactorPose3``,
   :class:`minegeo.optim.factors.PriorFactors`).
+* Map registration ``(i, T_map)``: the same residual ``r = Log(T_map⁻¹ T_i)``, ``T_map`` the keyframe's
+  pose registered to the prior map (:mod:`minegeo.semantic.mapfactor`), with a positive
+  *semi*-definite information: zero along the pose directions the registration does not constrain.
 
 The graph is solved by the one optimiser, :func:`minegeo.optim.lm.levenberg_marquardt` (block normal
 equations, damping, stopping rule and result check shared with :mod:`minegeo.slam.posegraph`).
@@ -485,6 +488,7 @@ class FactorGraph:
         self._rel: list[tuple] = []
         self._prior: list[tuple] = []
         self._int: list[tuple] = []
+        self._map: list[tuple] = []
 
     # -- building
     @property
@@ -555,9 +559,42 @@ class FactorGraph:
         i = self._index(i, "a prior")
         self._prior.append((i, _pose(T_prior, "T_prior"), _information(information, 6, "prior information")))
 
+    def add_map_registration(self, i: int, T_map, information) -> None:
+        """Map-registration factor ``r = Log(T_map⁻¹ T_i)`` (a pose prior whose information may be singular).
+
+        Parameters
+        ----------
+        i : int
+            Keyframe index.
+        T_map : ndarray (4, 4)
+            ``T_world_keyframe`` registered to the prior map.
+        information : ndarray (6, 6)
+            Symmetric positive *semi*-definite, ``(φ, ρ)`` order (1/rad², 1/m², right perturbation at
+            ``T_map``), e.g. :func:`minegeo.semantic.mapfactor.map_registration_information`: a direction
+            the registration does not constrain carries zero information (the graph's other factors
+            must constrain it; the factor never anchors a component on its own).
+        """
+        i = self._index(i, "a map-registration factor")
+        W = np.asarray(information, dtype=np.float64)
+        if W.shape != (6, 6) or not np.all(np.isfinite(W)):
+            raise InputError(f"map-registration information must be a finite 6x6 matrix, got shape {W.shape}")
+        scale = max(float(np.abs(W).max()), 1e-300)
+        if not np.allclose(W, W.T, rtol=0.0, atol=1e-9 * scale):
+            raise InputError("map-registration information is not symmetric")
+        if np.linalg.eigvalsh(0.5 * (W + W.T))[0] < -1e-9 * scale:
+            raise InputError("map-registration information is not positive semi-definite")
+        self._map.append((i, _pose(T_map, "T_map"), np.ascontiguousarray(0.5 * (W + W.T))))
+
     @property
     def n_factors(self) -> dict:
-        return {"relative": len(self._rel), "intersection": len(self._int), "prior": len(self._prior)}
+        out = {"relative": len(self._rel), "intersection": len(self._int), "prior": len(self._prior)}
+        if self._map:
+            out["map"] = len(self._map)
+        return out
+
+    def map_factors(self) -> list[tuple]:
+        """Every map-registration factor as ``(i, T_map, information)`` (copies)."""
+        return [(i, T.copy(), W.copy()) for i, T, W in self._map]
 
     def relative_factors(self) -> list[tuple]:
         """Every relative factor as ``(i, j, Z_ij, information)`` (copies), in the order added."""
@@ -600,8 +637,12 @@ class FactorGraph:
     def _groups(self) -> list:
         """The factors as groups of :mod:`minegeo.optim` over the keyframe poses."""
         a = self._arrays()
+        m = len(self._map)
         return [BetweenFactors(a.edges, a.Z, a.info), PriorFactors(a.prior_kf, a.prior_T, a.prior_info),
-                IntersectionFactors(a.kf, a.z, a.C, a.info_int)]
+                IntersectionFactors(a.kf, a.z, a.C, a.info_int),
+                PriorFactors(np.array([f[0] for f in self._map], dtype=np.int64),
+                             np.asarray([f[1] for f in self._map], dtype=np.float64).reshape(m, 4, 4),
+                             np.asarray([f[2] for f in self._map], dtype=np.float64).reshape(m, 6, 6))]
 
     def _problem(self, held, params) -> FactorProblem:
         return FactorProblem(self.n_keyframes, 6, self._groups(), held, params,
@@ -621,13 +662,13 @@ class FactorGraph:
 
     def whitened_squares(self, poses=None) -> dict:
         """Every factor's squared Mahalanobis residual ``rᵀΩr`` at ``poses`` (default: the current
-        estimate), by kind: ``{"relative": (m,), "prior": (p,), "intersection": (q,)}`` in the order
-        added. At the optimum of a graph whose information matrices are right, each is a χ² variate
+        estimate), by kind: ``{"relative": (m,), "prior": (p,), "intersection": (q,), "map": (r,)}`` in
+        the order added (a map factor's ``rᵀΩr`` counts only its constrained directions). At the optimum of a graph whose information matrices are right, each is a χ² variate
         with the residual's dimension (6, 6, 3) less its share of the fitted parameters."""
         P = self.poses if poses is None else np.asarray(poses, dtype=np.float64)
         V = Values(np.ascontiguousarray(P))
         out = {}
-        for name, g in zip(("relative", "prior", "intersection"), self._groups(), strict=True):
+        for name, g in zip(("relative", "prior", "intersection", "map"), self._groups(), strict=True):
             r = g.residuals(V) if g.variables.shape[0] else np.zeros((0, 3))
             out[name] = np.einsum("ei,eij,ej->e", r, g.information, r) if r.shape[0] else np.zeros(0)
         return out
@@ -699,7 +740,7 @@ class FactorGraph:
 
         params = params or PoseGraphParams()
         i = self._index(i, "marginal_covariance")
-        if not (self._rel or self._int or self._prior):
+        if not (self._rel or self._int or self._prior or self._map):
             raise InputError("the factor graph has no factors: no covariance")
         problem = self._problem(self.gauge(gauge), params)
         values = Values(np.ascontiguousarray(self.poses))
@@ -742,7 +783,7 @@ class FactorGraph:
         """
         params = params or PoseGraphParams()
         t0 = time.perf_counter()
-        if self.n_keyframes == 0 or not (self._rel or self._int or self._prior):
+        if self.n_keyframes == 0 or not (self._rel or self._int or self._prior or self._map):
             raise InputError("the factor graph has no keyframes or no factors: nothing to optimise")
         held = self.gauge(gauge)
         start = np.ascontiguousarray(np.stack(self._estimate if warm_start else self._initial))

@@ -39,6 +39,16 @@ registration's rotation guess, deskews frames with per-point times by the gyro a
 registration whose rotation disagrees with the gyro's (:mod:`minegeo.slam.inertial`); the keyframe
 graph here has no IMU factors (the preintegration graph is :func:`minegeo.slam.pipeline.run_slam`'s).
 
+**Map-registration factors** (``map_points``, the dense prior map the knowledge base was built
+from; off without it): once the path since the last verified intersection (or the start) exceeds
+``TrackParams.map_factor_after_m``, every ``map_factor_spacing_m`` of path the keyframe's stacked
+cloud is registered to the map around its predicted pose (:mod:`~minegeo.semantic.mapfactor`: point-to-plane
+ICP, the recognition's ICP checks and prediction gate) and, if accepted, enters the graph as a pose
+factor whose information is zero along every direction the registration leaves free (the axis of a
+straight drift), then the graph is re-optimised. They do not count as checks for
+``unchecked_stretches`` (they may constrain only some directions); ``TrackResult.map_registrations``
+lists every attempt.
+
 **Start pose.** ``TrackParams.T_world_start`` (the first frame in the knowledge-base frame) holds keyframe
 0 there. Without it the run is *unanchored*: the first verified recognition (ICP only, no gate) places
 the keyframes so far by its registered pose, keyframe 0 is then held (gauge), and later recognitions are
@@ -179,6 +189,15 @@ class TrackParams:
         ``T_world_start``, from the start) is placed by the odometry alone: such keyframes form the
         ``unchecked_stretches`` of the result, and any makes the status ``partial``. At the odometry's
         drift of about 1 % of the path the default (200 m) bounds such a position's error near 2 m.
+    map_factor_after_m, map_factor_spacing_m : float
+        With ``map_points``: map registrations start once the path since the last verified
+        intersection (or the start) exceeds ``map_factor_after_m`` (m) and are ``map_factor_spacing_m``
+        (m of path) apart.
+    map_factor_sigma_m : float
+        ``σ_floor`` (m) of :func:`~minegeo.semantic.mapfactor.map_registration_information`.
+    map_factor_min_ratio : float
+        A pose direction is constrained by a map registration when its eigenvalue of the normalised
+        point-to-plane matrix is at least this fraction of the largest (else it gets no information).
     factor_test_probability : float
         After the last optimisation every intersection factor's ``eᵀΩe`` is tested against the χ²
         quantile with 3 degrees of freedom at this probability (0.999: 16.3); a factor beyond it
@@ -205,6 +224,10 @@ class TrackParams:
     intersection_observation: str = "icp"
     unchecked_path_m: float = 200.0
     factor_test_probability: float = 0.999
+    map_factor_after_m: float = 50.0
+    map_factor_spacing_m: float = 10.0
+    map_factor_sigma_m: float = 0.2
+    map_factor_min_ratio: float = 0.02
 
     def __post_init__(self):
         if self.intersection_observation not in ("icp", "detected"):
@@ -213,13 +236,19 @@ class TrackParams:
                      "online_gate_drift_fraction", "intersection_sigma_m", "same_place_m", "online_add_range_m",
                      "online_merge_m", "revisit_min_path_m", "loop_sigma_deg", "online_icp_max_distance_m",
                      "odometry_sigma_fraction",
-                     "odometry_sigma_deg_per_m", "odometry_sigma_mps"):
+                     "odometry_sigma_deg_per_m", "odometry_sigma_mps", "map_factor_after_m"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise InputError(f"{name} must be a finite number >= 0, got {v!r}")
         if not (isinstance(self.unchecked_path_m, int | float) and self.unchecked_path_m > 0
                 and math.isfinite(self.unchecked_path_m)):
             raise InputError(f"unchecked_path_m must be a finite number > 0, got {self.unchecked_path_m!r}")
+        for name in ("map_factor_spacing_m", "map_factor_sigma_m"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+                raise InputError(f"{name} must be a finite number > 0, got {v!r}")
+        if not (isinstance(self.map_factor_min_ratio, int | float) and 0.0 < self.map_factor_min_ratio < 1.0):
+            raise InputError(f"map_factor_min_ratio must be in (0, 1), got {self.map_factor_min_ratio!r}")
         if not (isinstance(self.factor_test_probability, float) and 0.0 < self.factor_test_probability < 1.0):
             raise InputError(f"factor_test_probability must be in (0, 1), got {self.factor_test_probability!r}")
         if self.intersection_sigma_m <= 0:
@@ -295,6 +324,9 @@ class TrackResult:
         Without the map: the online base's invariant points (world) and the keyframe that created each
         entry (the entry's id is its row).
     n_optimisations : int
+    map_registrations : list of MapRegistration
+        Every map registration tried (``map_points`` given): keyframe, status (``factor``, ``rejected``,
+        ``degenerate``), reason, constrained rank, ICP RMS and overlap.
     unchecked_stretches : list of dict
         Runs of keyframes farther than ``unchecked_path_m`` of path from every check (verified
         intersection, loop, start pose): first/last keyframe, frame and time, the path they span (m)
@@ -324,6 +356,7 @@ class TrackResult:
     imu: dict | None = None
     unchecked_stretches: list = field(default_factory=list)
     inconsistent_factors: list = field(default_factory=list)
+    map_registrations: list = field(default_factory=list)
 
     def verified(self) -> list:
         """The recognitions that became factors."""
@@ -338,6 +371,7 @@ class TrackResult:
                 "factors": len(self.verified()), "optimisations": self.n_optimisations,
                 "recognised_ids": sorted({r.recognition.intersection_id for r in self.verified()}),
                 "unchecked_stretches": self.unchecked_stretches, "inconsistent_factors": self.inconsistent_factors,
+                **({} if not self.map_registrations else {"map_registrations": _map_counts(self.map_registrations)}),
                 **({} if self.odometry is None else {"motion_prior_stretches": self.odometry.held_stretches()}),
                 **({} if self.imu is None else {"imu": self.imu})}
 
@@ -373,6 +407,17 @@ class _OnlineKB:
                             np.array([self.V[i] for i in idx]).reshape(k, d.n_sectors),
                             np.array([self.M[i] for i in idx]).reshape(k, d.n_bands, d.n_sectors), self.params, {})
         return kb, idx
+
+
+def _map_counts(regs: list) -> dict:
+    """Map registrations by status and the factors by constrained rank."""
+    out: dict = {"tried": len(regs), "factors": 0, "by_status": {}, "factor_rank": {}}
+    for r in regs:
+        out["by_status"][r.status] = out["by_status"].get(r.status, 0) + 1
+        if r.status == "factor":
+            out["factors"] += 1
+            out["factor_rank"][str(r.rank)] = out["factor_rank"].get(str(r.rank), 0) + 1
+    return out
 
 
 def _frame_poses(odo, kf_poses: np.ndarray) -> np.ndarray:
@@ -470,7 +515,7 @@ def unchecked_stretches(path_m, checked, limit_m: float, keyframes, times_s) -> 
 
 
 def track(frames: Iterable[tuple[float, np.ndarray]], kb: IntersectionKB | None, params: TrackParams | None = None,
-          *, use_map: bool = True, progress=None, odometry=None, imu=None) -> TrackResult:
+          *, use_map: bool = True, progress=None, odometry=None, imu=None, map_points=None) -> TrackResult:
     """Track a LiDAR sequence with intersection factors (Liang et al. 2024, Sec. 3).
 
     Parameters
@@ -493,6 +538,9 @@ def track(frames: Iterable[tuple[float, np.ndarray]], kb: IntersectionKB | None,
         The IMU (:mod:`minegeo.slam.inertial`): gyro rotation guesses, gyro deskew and the IMU gate in
         the odometry. Its coverage of the frames is the caller's check
         (:func:`minegeo.slam.inertial.check_imu_for_frames`).
+    map_points : array (N, 3), optional
+        The dense prior map (m, world = the knowledge base's frame) for the map-registration factors
+        (module docstring); None (default): none. Only with ``use_map=True``.
 
     Returns
     -------
@@ -502,6 +550,8 @@ def track(frames: Iterable[tuple[float, np.ndarray]], kb: IntersectionKB | None,
     rp = params.recognition
     if use_map and kb is None:
         raise InputError("use_map=True needs a knowledge base (kb)")
+    if map_points is not None and not use_map:
+        raise InputError("map_points (map-registration factors) need use_map=True")
     t0 = time.perf_counter()
     aid = imu if imu is None or isinstance(imu, GyroAid) else GyroAid(imu)
     odo = run_odometry(frames, params.odometry, progress, imu=aid) if odometry is None else odometry
@@ -510,6 +560,12 @@ def track(frames: Iterable[tuple[float, np.ndarray]], kb: IntersectionKB | None,
     if not use_map and T_start is None:
         T_start = np.eye(4)
     st = _State(odo, params, T_start, use_map)
+    if map_points is not None:
+        from minegeo.semantic.mapfactor import MapPrior
+
+        tm = time.perf_counter()
+        st.prior = MapPrior.from_points(map_points)
+        timings["map_prepare"] = time.perf_counter() - tm
     online = None if use_map else _OnlineKB(kb.params if kb is not None else KBParams())
     usable = (not use_map) or (kb.status == "ok" and len(kb) > 0)
     state = RecognitionState()
@@ -537,6 +593,8 @@ def track(frames: Iterable[tuple[float, np.ndarray]], kb: IntersectionKB | None,
                 rec.status, rec.reason = "rejected", _held_reason(odo, int(f))
             else:
                 entry.factor = st.add_factor(k, rec, kb, online, timings)
+        if st.prior is not None and not entry.factor:
+            st.map_step(k, hist, timings)
         st.online_poses.append(st.current(k))
         st.recognitions.append(entry)
     res = st.result(use_map, usable, kb, online, timings)
@@ -562,6 +620,9 @@ class _State:
         self.cov = None          # covariance (6×6, (φ, ρ)) of the graph's newest keyframe
         self.cov_k = -1
         self.checked: list = [0] if T_start is not None else []   # keyframes a check places (start, factors)
+        self.prior = None                  # MapPrior with map_points
+        self.map_regs: list = []
+        self.last_map_path = -np.inf
         if self.T_world_odom is not None:
             self._build(0)
 
@@ -650,9 +711,18 @@ class _State:
             Z = relative(online.T[e], rec.T_world_keyframe_icp)
             s_phi, s_t = math.radians(p.loop_sigma_deg), p.intersection_sigma_m
             self.g.add_relative(online.kf[e], k, Z, np.diag([s_phi**-2] * 3 + [s_t**-2] * 3))
+        res = self._optimise(k, online is None, timings)
+        self.checked += [k] if online is None else [k, online.kf[e]]
+        self.last_anchor_path = self.path[k]
+        self.done.append(((self.g.poses[k] @ np.r_[rec.z_keyframe, 1.0])[:3], rec.intersection_id))
+        return res.status != "failed"
+
+    def _optimise(self, k: int, covariance: bool, timings: dict):
+        """Re-optimise from the previous optimum; then (``covariance``) keyframe ``k``'s marginal
+        covariance for the next gate."""
         t0 = time.perf_counter()
         res = self.g.optimize(warm_start=True)
-        if online is None and k == self.g.n_keyframes - 1:
+        if covariance and k == self.g.n_keyframes - 1:
             try:
                 self.cov, self.cov_k = self.g.marginal_covariance(k), k
             except DegenerateGeometryError as exc:   # adding a factor only shrinks it: keep the carried one
@@ -660,10 +730,33 @@ class _State:
                             "prediction's covariance", k, exc)
         timings["optimisation"] = timings.get("optimisation", 0.0) + time.perf_counter() - t0
         self.n_opt += 1
-        self.checked += [k] if online is None else [k, online.kf[e]]
-        self.last_anchor_path = self.path[k]
-        self.done.append(((self.g.poses[k] @ np.r_[rec.z_keyframe, 1.0])[:3], rec.intersection_id))
-        return res.status != "failed"
+        return res
+
+    def map_step(self, k: int, hist, timings: dict) -> None:
+        """A map registration of keyframe ``k`` when it is due (module docstring), its factor if accepted."""
+        from minegeo.semantic.mapfactor import register_to_map
+        from minegeo.semantic.recognition import PredictionGate
+
+        p = self.params
+        if (self.g is None or self.path[k] - self.last_anchor_path < p.map_factor_after_m
+                or self.path[k] - self.last_map_path < p.map_factor_spacing_m
+                or _held_reason(self.odo, int(self.odo.keyframes[k]))):
+            return
+        self.last_map_path = self.path[k]
+        t0 = time.perf_counter()
+        pts = np.concatenate([self.odo.keyframe_clouds[k]] + [c @ T[:3, :3].T + T[:3, 3] for c, T in hist])
+        T_pred = self.prediction(k)
+        rp = p.recognition
+        cov = self.gate_covariance(k)
+        gate = PredictionGate(T_pred, cov, rp.gate_m if cov is not None else self.gate(k), rp.gate_probability)
+        reg = register_to_map(k, pts, T_pred, self.prior, rp, gate, p.map_factor_sigma_m, p.map_factor_min_ratio)
+        timings["map_registration"] = timings.get("map_registration", 0.0) + time.perf_counter() - t0
+        self.map_regs.append(reg)
+        if reg.status == "factor":
+            self.g.add_map_registration(k, reg.T_world_keyframe, reg.information)
+            res = self._optimise(k, True, timings)
+            if res.status == "failed":              # the factor stays in the graph; the estimate did not move
+                reg.reason = f"the optimisation after it failed ({res.reason}); the estimate kept the previous optimum"
 
     def online_step(self, k: int, hist, online: _OnlineKB, state: RecognitionState) -> Recognition:
         """``use_map=False``: recognise re-visits of the online base, else maybe add a new entry."""
@@ -711,7 +804,8 @@ class _State:
         okf = np.array(online.kf if online is not None else [], np.int64)
         return TrackResult(TrackStatus(status), reason, odo.times_s, _frame_poses(odo, kf), odo.keyframes.copy(), kf,
                            np.stack(self.online_poses), self.recognitions, timings, use_map, odo, pts, okf,
-                           self.n_opt, unchecked_stretches=unchecked, inconsistent_factors=bad)
+                           self.n_opt, unchecked_stretches=unchecked, inconsistent_factors=bad,
+                           map_registrations=self.map_regs)
 
     def unchecked_stretches(self) -> list:
         """Runs of keyframes farther than ``unchecked_path_m`` of path from every check."""
