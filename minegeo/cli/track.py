@@ -8,6 +8,11 @@ base records). Writes ``OUT/trajectory.tum`` (every frame, base
 frame), ``keyframes.tum``, ``trajectory_crs.tum`` (when the base is georeferenced: ``p + origin``),
 ``recognitions.csv`` (every keyframe that saw an intersection: time, status, id, scores), ``result.json``
 (provenance) and ``report.html`` (plan view / error map, recognitions, similarity matrix, timings).
+``--map MAP`` (the dense prior map, e.g. the cloud the base was built from, read as ``minegeo intersections
+build`` reads its map, georeferencing sidecar included) adds map-registration factors
+(:mod:`minegeo.semantic.mapfactor`): a keyframe far from every verified intersection is registered
+to the map by point-to-plane ICP, information only in the directions the registration constrains;
+their counts are in ``result.json`` (``result.map_registrations``) and the report.
 ``--imu IMU.csv`` (read and checked as ``minegeo slam`` does, :mod:`minegeo.cli._imu`) puts the gyro in the
 odometry: rotation guesses, deskewing of frames with per-point times, the IMU gate on each registration.
 Exit status 0 when the run is ``ok`` (intersection factors, each consistent with the odometry by its
@@ -61,6 +66,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--start-frame", choices=("map", "crs"), default=None,
                         help="frame of --start: map (default; the frame of the map the base was built from) or crs "
                         "(CRS grid E N H; a georeferenced base: p_map = p_crs - origin)")
+    parser.add_argument("--map", default=None, metavar="MAP",
+                        help="dense prior map (PLY/PCD/LAS/XYZ, m; the cloud the base was built from, in the same "
+                        "frame: a georeferenced map with its .georef.json sidecar, or coordinates in the base's map "
+                        "frame): adds map-registration factors, a keyframe more than 50 m of path from a verified "
+                        "intersection registered to the map by ICP (every 10 m of path), constraining only the "
+                        "directions the drift's walls fix; not with --no-map")
     parser.add_argument("--no-map", action="store_true", help="ignore the base's intersections: recognise "
                         "re-visits of an online base built from the run (the paper's 'no map')")
     parser.add_argument("--pwcv-threshold", type=float_in_range(0.0, 1.0, lo_open=True), default=0.8,
@@ -101,7 +112,8 @@ def _check_combinations(args) -> None:
                              f"{opt} or drop --{frame.replace('_', '-')}")
     if args.no_map:
         given = [name for name, v in (("--icp-max-distance", args.icp_max_distance),
-                                      ("--gate-drift", args.gate_drift)) if v is not None]
+                                      ("--gate-drift", args.gate_drift),
+                                      ("--map", getattr(args, "map", None))) if v is not None]
         if given:
             raise InputError(f"{given[0]} applies to recognitions against the base's intersections, which --no-map "
                              "ignores (the online base has its own limits): drop one of the two options")
@@ -117,6 +129,51 @@ def _check_frames(args, kb) -> None:
             raise InputError(f"{opt} is given in the CRS (--{opt[2:]}-frame crs) but the base {args.db} is not "
                              "georeferenced (it was built from a map without a CRS): give it in the map frame, or "
                              "build the base from the georeferenced map (`minegeo georef` output)")
+
+
+#: a junction of the base counts as inside the --map extent within this margin (m) of its bounding box
+_MAP_MARGIN_M = 5.0
+
+
+def _read_prior_map(path, kb, db):
+    """The points (n, 3) of ``--map`` in the base's map frame (m), checked before any tracking.
+
+    Read as ``minegeo intersections build`` reads its map (:func:`minegeo.cli.intersections._read_map`:
+    a georeferenced map relative to its origin, a file with large coordinates relative to an automatic
+    origin), then moved to the base's frame: ``p_base = p + origin_map - origin_base`` (a base
+    without origin: ``origin_base = 0``); a map that records no origin is taken as given in the base's
+    map frame. Refused (``InputError``):
+    fewer than 10 points, a CRS other than the base's, or an extent (bounding box grown by
+    :data:`_MAP_MARGIN_M`) that holds none of the base's junctions (a map in another frame).
+    """
+    import numpy as np
+
+    from minegeo.cli.intersections import _read_map
+    from minegeo.errors import InputError
+    from minegeo.georef.crs import same_crs
+
+    P, geo = _read_map(path)
+    P = np.asarray(P, np.float64)
+    if P.ndim != 2 or P.shape[0] < 10:
+        raise InputError(f"--map {path}: holds {P.shape[0] if P.ndim == 2 else 0} point(s); the map-registration "
+                         "factors need the dense prior map (at least 10 points)")
+    if not np.all(np.isfinite(P)):
+        raise InputError(f"--map {path}: has NaN or inf coordinates")
+    kgeo = kb.georef or {}
+    if geo.get("crs") and kgeo.get("crs") and not same_crs(str(geo["crs"]), str(kgeo["crs"])):
+        raise InputError(f"--map {path} is in CRS {geo['crs']} but the base {db} is in {kgeo['crs']}: give the map "
+                         "the base was built from")
+    if geo.get("origin_m") is not None:  # the map's coordinates are p + origin_map; the base's p + origin_base
+        P = P + (np.asarray(geo["origin_m"], float) - np.asarray(kgeo.get("origin_m") or np.zeros(3), float))
+    J = np.asarray(kb.invariant_points, float).reshape(-1, 3)
+    if J.shape[0]:
+        lo, hi = P.min(0) - _MAP_MARGIN_M, P.max(0) + _MAP_MARGIN_M
+        if not np.any(np.all((J >= lo) & (J <= hi), axis=1)):
+            raise InputError(f"--map {path}: its extent (x {lo[0]:.1f}..{hi[0]:.1f}, y {lo[1]:.1f}..{hi[1]:.1f}, "
+                             f"z {lo[2]:.1f}..{hi[2]:.1f} m in the base's frame, {_MAP_MARGIN_M:g} m margin) holds "
+                             f"none of the base's {J.shape[0]} junctions: it is not in the base's frame (give the map "
+                             "the base was built from)")
+    return P
 
 
 def _to_map(args, kb, T):
@@ -227,13 +284,14 @@ def run(args) -> int:
     from minegeo.io.frames import list_frames, times_source
     from minegeo.report.intersections_report import write_track_report
     from minegeo.semantic import IntersectionKB, similarity_matrix
-    from minegeo.semantic.tracking import track
+    from minegeo.semantic.tracking import _map_counts, track
 
     timer = StageTimer()
     _check_combinations(args)
     params = _params(args)
     out = Path(args.out)
-    named = {"--frames": args.frames, "--db": args.db, **({"--times": args.times} if args.times else {}),
+    named = {"--frames": args.frames, "--db": args.db, **({"--map": args.map} if args.map else {}),
+             **({"--times": args.times} if args.times else {}),
              **({"--truth": args.truth} if args.truth else {}), **({"--imu": args.imu} if args.imu else {}),
              **({"--imu-noise": args.imu_noise} if getattr(args, "imu_noise", None) else {})}
     imu = read_imu(args)
@@ -250,6 +308,8 @@ def run(args) -> int:
             params = replace(params, T_world_start=_to_map(args, kb, params.T_world_start))
         # the keyframes' drift skeleton uses the base's own skeleton parameters (floor cell, wall band)
         params = replace(params, recognition=replace(params.recognition, skeleton=kb.params.skeleton))
+        # the dense prior map (map-registration factors): read and checked before any frame is
+        prior = _read_prior_map(args.map, kb, args.db) if args.map else None
         files = list_frames(args.frames, args.times, args.pattern, args.lidar_topic)
         check_imu(imu, files, args)
         skipped: list[dict] = []
@@ -267,7 +327,8 @@ def run(args) -> int:
             with bar, timer("track"):
                 # per-point times (the gyro deskew) only with --imu: without it the frames are as before
                 res = track(_frames(files, skipped, bar, params.odometry.min_points, imu is not None), kb, params,
-                            use_map=not args.no_map, imu=None if imu is None else GyroAid(imu, inertial))
+                            use_map=not args.no_map, imu=None if imu is None else GyroAid(imu, inertial),
+                            map_points=prior)
         finally:
             reg_log.setLevel(level)
             odo_log.removeHandler(held)
@@ -283,6 +344,8 @@ def run(args) -> int:
         S = similarity_matrix(kb) if len(kb) else None
         result = {**res.summary(), "times_from": times_source(args.frames, args.times), "skipped_frames": skipped,
                   "odometry_notes": held.messages,
+                  # with --map: the map registrations by status and the factors by rank (zeros included)
+                  **({"map_registrations": _map_counts(res.map_registrations)} if prior is not None else {}),
                   "georef": kb.georef, "recognitions": [e.summary() for e in res.recognitions
                                                         if e.recognition.status != "none"]}
         if err is not None:
@@ -291,10 +354,11 @@ def run(args) -> int:
                                "mean_m": float(e.mean()), "n": int(e.size)}
         inputs = files.inputs()
         inputs += [{"path": str(p), "sha256": sha256_file(p)}
-                   for p in (args.db, args.times, args.truth, args.imu, getattr(args, "imu_noise", None))
+                   for p in (args.db, args.map, args.times, args.truth, args.imu, getattr(args, "imu_noise", None))
                    if p and Path(p).is_file()]
         summary = {"command": "track", "status": res.status, "reason": res.reason, "parameters": params.as_dict(),
-                   "inputs": {"frames": str(args.frames), "db": str(args.db)}, "result": result,
+                   "inputs": {"frames": str(args.frames), "db": str(args.db),
+                              **({"map": str(args.map)} if args.map else {})}, "result": result,
                    "outputs": {n: str(out / n) for n in [*names, "result.json", "report.html"]},
                    **({"imu_noise": asdict(inertial.noise)} if inertial is not None else {}),
                    "module_timings_s": res.timings_s, "timings_s": {**timer.as_dict(), **run_timings(args)},
@@ -304,7 +368,9 @@ def run(args) -> int:
     if not getattr(args, "quiet", False):
         s = summary["result"]
         print(f"{s['frames']} frames, {s['keyframes']} keyframes, status {res.status}; {s['factors']} intersection "
-              f"factor(s), ids {s['recognised_ids']}" + (f"; position error RMSE {result['truth']['rmse_m']:.2f} m"
+              f"factor(s), ids {s['recognised_ids']}"
+              + (f"; {s['map_registrations']['factors']} map factor(s) of {s['map_registrations']['tried']} "
+                 "map registration(s)" if "map_registrations" in s else "") + (f"; position error RMSE {result['truth']['rmse_m']:.2f} m"
                                                         if err is not None else ""))
         print(f"written: {out}/({', '.join([*names, 'result.json', 'report.html'])})")
     if res.status != "ok":

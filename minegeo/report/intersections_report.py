@@ -133,6 +133,12 @@ def write_track_report(path, summary: dict, res, kb, S: np.ndarray | None, err_m
              f"{r['frames']} / {r['keyframes']}"), ("mode", "with map" if r["use_map"] else "without map (online base)"),
              ("intersection factors", r["factors"]), ("recognised ids", ", ".join(map(str, r["recognised_ids"])) or "-"),
              ("statuses", ", ".join(f"{k}: {v}" for k, v in sorted(r["status_counts"].items())))]
+    if "map_registrations" in r:  # --map: registrations to the prior map and the factors they gave, by rank
+        m = r["map_registrations"]
+        items += [("map factors / registrations tried", f"{m['factors']} / {m['tried']}"
+                   + (" (" + ", ".join(f"{k}: {v}" for k, v in sorted(m["by_status"].items())) + "; factor rank "
+                      + (", ".join(f"{k}: {v}" for k, v in sorted(m["factor_rank"].items())) or "-") + ")"
+                      if m["tried"] else ""))]
     if "truth" in r:
         items += [("position error RMSE / max", f"{r['truth']['rmse_m']:.3f} / {r['truth']['max_m']:.3f} m")]
     sections = [("Result", kv_table(items)),
