@@ -152,6 +152,11 @@ def _read_prior_map(path, kb, db):
     from minegeo.errors import InputError
     from minegeo.georef.crs import same_crs
 
+    f = Path(path)
+    if f.is_dir():
+        raise InputError(f"--map {path} is a folder: name the map file (PLY/PCD/LAS/XYZ)")
+    if f.exists() and not f.is_file():
+        raise InputError(f"--map {path} is not a regular file (a device, pipe or socket): name the map file")
     P, geo = _read_map(path)
     P = np.asarray(P, np.float64)
     if P.ndim != 2 or P.shape[0] < 10:

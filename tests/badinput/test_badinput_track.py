@@ -302,6 +302,63 @@ def test_truth_in_crs_for_a_base_without_crs(scene, tmp_path, capsys):
                       inputs=[scene / "frames", scene / "kb.npz", truth], outputs=[out], expect="not georeferenced")
 
 
+# ------------------------------------------------------------------------------------ --map
+
+
+_PLY_HEAD = "ply\nformat ascii 1.0\nelement vertex {n}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+
+
+def _ply(t: Path, name: str, rows: list[str]) -> Path:
+    return _write(t, name, _PLY_HEAD.format(n=len(rows)) + "".join(r + "\n" for r in rows))
+
+
+def _shifted_map(t: Path, d: Path, shift) -> Path:
+    """The map the base was built from, moved by ``shift`` (m): a map in another frame."""
+    from minegeo.io import read_point_cloud
+
+    p = t / "shifted.ply"
+    write_point_cloud(p, PointCloud(points=read_point_cloud(d / "map.ply").points + np.asarray(shift, float)))
+    return p
+
+
+MAP_CASES = {  # (maker, words of the error line): --map is checked before any frame is tracked
+    "missing": (lambda t, d: t / "nope.ply", "No such file"),
+    "folder": (lambda t, d: a_folder(t), "is a folder"),
+    "stream": (lambda t, d: Path("/dev/zero"), "not a regular file"),
+    "zero_bytes": (lambda t, d: _write(t, "zero.ply", b""), "empty"),
+    "junk_text": (lambda t, d: _write(t, "junk.ply", "this is not a point cloud\n"), "junk.ply"),
+    "no_points": (lambda t, d: _ply(t, "none.ply", []), "holds 0 point(s)"),
+    "three_points": (lambda t, d: _ply(t, "three.ply", ["0 0 0", "1 0 0", "0 1 0"]), "holds 3 point(s)"),
+    "nan_point": (lambda t, d: _ply(t, "nan.ply", [f"{k} 0 0" for k in range(11)] + ["nan 1 1"]), "NaN or inf"),
+    "inf_point": (lambda t, d: _ply(t, "inf.ply", [f"{k} 0 0" for k in range(11)] + ["1 inf 1"]), "NaN or inf"),
+    # a map in another frame (500 m east of the base's): its extent holds none of the base's junctions
+    "other_frame": (lambda t, d: _shifted_map(t, d, (500.0, 0.0, 0.0)), "holds none of the base's 2 junctions"),
+    # ... or with projected coordinates (an automatic origin) while the base has none
+    "projected_coordinates": (lambda t, d: _shifted_map(t, d, (350000.0, 4100000.0, 0.0)),
+                              "holds none of the base's 2 junctions"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(MAP_CASES))
+def test_bad_map(case, scene, tmp_path, capsys):
+    make, words = MAP_CASES[case]
+    prior = make(tmp_path, scene)
+    out = tmp_path / "out"
+    assert_user_error("track", ["--frames", scene / "frames", "--db", scene / "kb.npz", "--out", out,
+                                "--map", prior], capsys,
+                      inputs=[prior, scene / "frames", scene / "kb.npz"], outputs=[out], expect=words)
+
+
+def test_map_with_no_map(scene, tmp_path, capsys):
+    """``--map`` adds factors against the base's map frame, which ``--no-map`` ignores: refused before
+    anything is read."""
+    out = tmp_path / "out"
+    assert_user_error("track", ["--frames", scene / "frames", "--db", scene / "kb.npz", "--out", out,
+                                "--map", scene / "map.ply", "--no-map"], capsys,
+                      inputs=[scene / "frames", scene / "kb.npz", scene / "map.ply"], outputs=[out],
+                      expect="--map applies")
+
+
 # ------------------------------------------------------------------------------------ outputs
 
 
