@@ -99,6 +99,7 @@ def test_track_end_to_end(scene, db, tmp_path):
     names = {i["path"].rsplit("/", 1)[-1] for i in rec["provenance"]["inputs"]}
     assert {"kb.npz", "000000.ply", f"{len(truth) - 1:06d}.ply"} <= names
     assert rec["parameters"]["T_world_start"] is not None
+    assert "map_registrations" not in r and "map" not in rec["inputs"]   # no --map: no map factors
     csv = (out / "recognitions.csv").read_text().splitlines()
     assert csv[0].startswith("time_s,keyframe,status,intersection_id") and any(",verified," in x for x in csv)
 
@@ -135,6 +136,72 @@ def test_start_and_truth_in_the_crs(scene, db, tmp_path):
     assert abs(ra["rmse_m"] - rb["rmse_m"]) < 1e-6 and ra["rmse_m"] < 0.5
     tc = read_trajectory(b / "trajectory_crs.tum")
     assert np.abs(tc.poses[:, :3, 3] + tc.origin - (tb.poses[:, :3, 3] + origin)).max() < 1e-6
+
+
+def test_track_with_the_prior_map(scene, db, tmp_path, monkeypatch):
+    """``--map``: the map's points reach :func:`~minegeo.semantic.tracking.track` as ``map_points`` (the
+    file's points, in the base's frame), and the map registrations it tried are counted in result.json
+    (by status, factors by rank: a count of the run's own list), named in the report, with the map's
+    path and SHA-256 in the inputs. The flight (24 m) is shorter than the 50 m after which the tracker
+    registers to the map, so the test's wrapper starts them at once, every 4 m of path."""
+    import hashlib
+    from dataclasses import replace
+
+    import minegeo.semantic.tracking as tracking
+    from minegeo.io import read_point_cloud
+
+    d, _, truth = scene
+    seen = {}
+    real = tracking.track
+
+    def spy(frames, kb, params=None, **kw):
+        seen["map_points"] = kw.get("map_points")
+        params = replace(params, map_factor_after_m=0.0, map_factor_spacing_m=4.0)
+        seen["res"] = res = real(frames, kb, params, **kw)
+        return res
+
+    monkeypatch.setattr(tracking, "track", spy)
+    out = tmp_path / "o"
+    assert main(["-q", "track", "--frames", str(d / "frames"), "--db", str(db), "--out", str(out),
+                 "--map", str(d / "map.ply"), *_start(truth)]) == 0
+    np.testing.assert_array_equal(seen["map_points"], read_point_cloud(d / "map.ply").points)
+    regs = seen["res"].map_registrations
+    assert len(regs) >= 2
+    rec = json.loads((out / "result.json").read_text())
+    m = rec["result"]["map_registrations"]
+    statuses = [g.status for g in regs]
+    assert m["tried"] == len(regs) and m["factors"] == statuses.count("factor")
+    assert m["by_status"] == {k: statuses.count(k) for k in set(statuses)}
+    assert sum(m["factor_rank"].values()) == m["factors"]
+    assert rec["inputs"]["map"] == str(d / "map.ply")
+    sha = hashlib.sha256((d / "map.ply").read_bytes()).hexdigest()
+    assert {"path": str(d / "map.ply"), "sha256": sha} in rec["provenance"]["inputs"]
+    html = (out / "report.html").read_text()
+    assert "map factors / registrations tried" in html and f"{m['factors']} / {m['tried']}" in html
+    est = read_trajectory(out / "trajectory.tum")
+    assert np.linalg.norm(est.poses[:, :3, 3] - truth[:, :3, 3], axis=1).max() < 0.5
+
+
+def test_prior_map_in_projected_coordinates_reaches_the_base_frame(scene, db, tmp_path):
+    """A georeferenced base (origin o) and its map written in projected coordinates (map + o, read with
+    an automatic origin): ``--map`` gives the points in the base's frame, ``p + origin_map - o``, i.e.
+    the map the base was built from (to the PLY's precision); the map without the origin is refused."""
+    from dataclasses import replace
+
+    from minegeo.cli.track import _read_prior_map
+    from minegeo.errors import InputError
+    from minegeo.io import read_point_cloud
+    from minegeo.semantic import IntersectionKB
+
+    d, _, _ = scene
+    origin = np.array([220000.0, 613000.0, 50.0])
+    kb = replace(IntersectionKB.load(db), georef={"crs": "EPSG:5186", "origin_m": origin.tolist()})
+    P = read_point_cloud(d / "map.ply").points
+    write_point_cloud(tmp_path / "map_crs.ply", PointCloud(points=P + origin))
+    got = _read_prior_map(tmp_path / "map_crs.ply", kb, db)
+    assert np.abs(got - P).max() < 1e-3
+    with pytest.raises(InputError, match="holds none of the base's 2 junctions"):
+        _read_prior_map(tmp_path / "map_crs.ply", replace(kb, georef={}), db)
 
 
 def test_track_is_deterministic(scene, db, tmp_path):
