@@ -110,10 +110,12 @@ def _check_combinations(args) -> None:
         if getattr(args, frame, None) is not None and value is None:
             raise InputError(f"--{frame.replace('_', '-')} gives the frame of {opt}, which is not given: give "
                              f"{opt} or drop --{frame.replace('_', '-')}")
+    if args.no_map and getattr(args, "map", None) is not None:
+        raise InputError("--map adds factors in the base's map frame, whose intersections --no-map ignores (an "
+                         "online base from the run): drop one of the two options")
     if args.no_map:
         given = [name for name, v in (("--icp-max-distance", args.icp_max_distance),
-                                      ("--gate-drift", args.gate_drift),
-                                      ("--map", getattr(args, "map", None))) if v is not None]
+                                      ("--gate-drift", args.gate_drift)) if v is not None]
         if given:
             raise InputError(f"{given[0]} applies to recognitions against the base's intersections, which --no-map "
                              "ignores (the online base has its own limits): drop one of the two options")
@@ -155,7 +157,9 @@ def _read_prior_map(path, kb, db):
     f = Path(path)
     if f.is_dir():
         raise InputError(f"--map {path} is a folder: name the map file (PLY/PCD/LAS/XYZ)")
-    if f.exists() and not f.is_file():
+    if not f.exists():
+        raise InputError(f"--map {path}: No such file (name the map the base was built from)")
+    if not f.is_file():
         raise InputError(f"--map {path} is not a regular file (a device, pipe or socket): name the map file")
     P, geo = _read_map(path)
     P = np.asarray(P, np.float64)

@@ -322,7 +322,7 @@ def _shifted_map(t: Path, d: Path, shift) -> Path:
 
 
 MAP_CASES = {  # (maker, words of the error line): --map is checked before any frame is tracked
-    "missing": (lambda t, d: t / "nope.ply", "No such file"),
+    "missing": (lambda t, d: t / "nope.ply", "No such file (name the map the base was built from)"),
     "folder": (lambda t, d: a_folder(t), "is a folder"),
     "stream": (lambda t, d: Path("/dev/zero"), "not a regular file"),
     "zero_bytes": (lambda t, d: _write(t, "zero.ply", b""), "empty"),
@@ -356,7 +356,7 @@ def test_map_with_no_map(scene, tmp_path, capsys):
     assert_user_error("track", ["--frames", scene / "frames", "--db", scene / "kb.npz", "--out", out,
                                 "--map", scene / "map.ply", "--no-map"], capsys,
                       inputs=[scene / "frames", scene / "kb.npz", scene / "map.ply"], outputs=[out],
-                      expect="--map applies")
+                      expect="--map adds factors in the base's map frame")
 
 
 # ------------------------------------------------------------------------------------ outputs
