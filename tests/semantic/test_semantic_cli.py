@@ -185,7 +185,8 @@ def test_track_with_the_prior_map(scene, db, tmp_path, monkeypatch):
 def test_prior_map_in_projected_coordinates_reaches_the_base_frame(scene, db, tmp_path):
     """A georeferenced base (origin o) and its map written in projected coordinates (map + o, read with
     an automatic origin): ``--map`` gives the points in the base's frame, ``p + origin_map - o``, i.e.
-    the map the base was built from (to the PLY's precision); the map without the origin is refused."""
+    the map the base was built from (to the PLY's precision); the map without the origin is refused, and
+    so is a map that records another CRS."""
     from dataclasses import replace
 
     from minegeo.cli.track import _read_prior_map
@@ -202,6 +203,10 @@ def test_prior_map_in_projected_coordinates_reaches_the_base_frame(scene, db, tm
     assert np.abs(got - P).max() < 1e-3
     with pytest.raises(InputError, match="holds none of the base's 2 junctions"):
         _read_prior_map(tmp_path / "map_crs.ply", replace(kb, georef={}), db)
+    # the same coordinates recorded in another CRS: refused before the extent is looked at
+    write_point_cloud(tmp_path / "map_utm.ply", PointCloud(points=P + origin, crs="EPSG:32633"))
+    with pytest.raises(InputError, match="is in CRS EPSG:32633 but the base"):
+        _read_prior_map(tmp_path / "map_utm.ply", kb, db)
 
 
 def test_track_is_deterministic(scene, db, tmp_path):
