@@ -269,3 +269,28 @@ def test_drift_states_take_out_a_scale_and_heading_bias():
     assert err["drift"] < 0.02 < err["graph"]
     # the drift states recover the injected bias (measured 0.00988, 3e-6, 9.94e-5)
     assert abs(beta[0] - 0.01) < 1e-3 and abs(beta[1]) < 1e-5 and abs(beta[2] - 1e-4) < 1e-5
+
+
+def test_redundant_odometry_edges_leave_the_station_tests_unchanged():
+    """A graph whose odometry carries redundancy of its own (each edge given twice, as loop closures
+    and extra edges add): the graph's redundancy exceeds the 3n of the control stations, and the
+    stations' w-tests, residuals and check errors equal those of the equivalent graph (each edge once
+    with twice the information), with a 0.5 m blunder flagged the same way."""
+    t, T = truth()
+    rng = np.random.default_rng(11)
+    edges, Z, info = _odometry(T, rng)
+    P = _chain(Z)
+    st, _ = stations(t, T, TIMES, ROLES, rng, OFFSET)
+    enh = st.enh_local.copy()
+    enh[3, 0] += 0.5
+    bad = Stations(ids=st.ids, t_start_s=st.t_start_s, t_end_s=st.t_end_s, enh_local=enh, origin_enh=st.origin_enh,
+                   sigma_h_m=st.sigma_h_m, sigma_v_m=st.sigma_v_m, roles=st.roles, crs=CRS)
+    for s in (st, bad):
+        twice = _run("graph", s, t, P, np.r_[edges, edges], np.r_[Z, Z], np.r_[info, info])
+        once = _run("graph", s, t, P, edges, Z, 2.0 * info)
+        assert twice.global_chi2.dof > 3 * 4  # the odometry's own redundancy (4 control stations)
+        assert twice.stats.flagged_ids == once.stats.flagged_ids
+        np.testing.assert_allclose(twice.stats.w, once.stats.w, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(twice.stats.v, once.stats.v, atol=1e-7)
+        np.testing.assert_allclose(twice.check.delta, once.check.delta, atol=1e-7)
+    assert twice.stats.flagged_ids[:1] == ("S03",)
