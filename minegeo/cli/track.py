@@ -293,7 +293,8 @@ def run(args) -> int:
     from minegeo.io.frames import list_frames, times_source
     from minegeo.report.intersections_report import write_track_report
     from minegeo.semantic import IntersectionKB, similarity_matrix
-    from minegeo.semantic.tracking import _map_counts, track
+    from minegeo.semantic.mapfactor import map_registration_counts
+    from minegeo.semantic.tracking import track
 
     timer = StageTimer()
     _check_combinations(args)
@@ -354,7 +355,7 @@ def run(args) -> int:
         result = {**res.summary(), "times_from": times_source(args.frames, args.times), "skipped_frames": skipped,
                   "odometry_notes": held.messages,
                   # with --map: the map registrations by status and the factors by rank (zeros included)
-                  **({"map_registrations": _map_counts(res.map_registrations)} if prior is not None else {}),
+                  **({"map_registrations": map_registration_counts(res.map_registrations)} if prior is not None else {}),
                   "georef": kb.georef, "recognitions": [e.summary() for e in res.recognitions
                                                         if e.recognition.status != "none"]}
         if err is not None:

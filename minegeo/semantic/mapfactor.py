@@ -45,7 +45,7 @@ import numpy as np
 
 from minegeo.errors import InputError
 
-__all__ = ["MapPrior", "MapRegistration", "map_registration_information", "register_to_map"]
+__all__ = ["MapPrior", "MapRegistration", "map_registration_counts", "map_registration_information", "register_to_map"]
 
 
 def map_registration_information(points_kf, normals_kf, sigma_rms_m: float, sigma_floor_m: float,
@@ -230,4 +230,16 @@ def register_to_map(keyframe: int, points_kf, T_pred, prior: MapPrior, rp, gate,
         out.status, out.reason = "degenerate", "the registration constrains no pose direction"
         return out
     out.status, out.information = "factor", W
+    return out
+
+
+def map_registration_counts(regs: list) -> dict:
+    """Map registrations (:class:`MapRegistration`) by status, and the factors by the rank of the directions
+    they constrain: ``{"tried", "factors", "by_status", "factor_rank"}``."""
+    out: dict = {"tried": len(regs), "factors": 0, "by_status": {}, "factor_rank": {}}
+    for r in regs:
+        out["by_status"][r.status] = out["by_status"].get(r.status, 0) + 1
+        if r.status == "factor":
+            out["factors"] += 1
+            out["factor_rank"][str(r.rank)] = out["factor_rank"].get(str(r.rank), 0) + 1
     return out

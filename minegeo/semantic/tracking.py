@@ -81,6 +81,7 @@ from minegeo.kernels.lie import se3_adjoint
 from minegeo.semantic.descriptors import cwc, pwcv
 from minegeo.semantic.factors import FactorGraph, intersection_covariance
 from minegeo.semantic.knowledge import IntersectionKB, KBParams
+from minegeo.semantic.mapfactor import map_registration_counts
 from minegeo.semantic.recognition import (
     Recognition,
     RecognitionParams,
@@ -88,57 +89,13 @@ from minegeo.semantic.recognition import (
     _detect,
     recognise_keyframe,
 )
+from minegeo.semantic.track_information import odometry_edge_information
 from minegeo.slam.inertial import GyroAid
 from minegeo.slam.odometry import OdometryParams, run_odometry
 
 log = logging.getLogger(__name__)
 
 __all__ = ["TrackParams", "TrackRecognition", "TrackResult", "TrackStatus", "track", "odometry_edge_information"]
-
-
-def odometry_edge_information(information, Z, sigma_fraction: float, sigma_deg_per_m: float, dt_s: float = 0.0,
-                              sigma_mps: float = 0.0) -> np.ndarray:
-    """Information (6×6, (φ, ρ)) of an odometry edge with a model-noise floor.
-
-    GICP's information (``OdometryResult.keyframe_information``, the sum of the matched points'
-    ``Hᵀ Λ⁻¹ H`` [Liang2024 Eqs. 15-18]) only holds the sensor noise of the matched points. It ignores
-    what dominates the drift in a smooth, self-similar drift: ring-to-ring matches, the
-    constant-velocity prior along an unobserved axis, and unmodelled geometry. It claims millimetres per
-    2 m edge where the odometry drifts by centimetres. Used as is, it leaves an intersection factor no
-    weight against the chain. The edge covariance is therefore
-
-    ``Σ = Ω_GICP⁻¹ + diag(σ_φ² I₃, σ_t² I₃)``,
-    ``σ_t² = (sigma_fraction · max(|t|, 0.1 m))² + (sigma_mps · Δt)²``,
-    ``σ_φ = sigma_deg_per_m · π/180 · max(|t|, 0.1 m)``,
-
-    and the information is ``Σ⁻¹`` (minegeo's model-noise floor; not in the paper). The time term is the
-    dead-reckoning part: along an axis the geometry does not observe, the odometry's motion is a
-    constant-velocity prior (or a false stop when GICP matches laser ring to laser ring), whose error
-    grows with the time the edge spans, not with the distance it claims. A non-positive-definite
-    ``Ω_GICP`` (a failed edge) counts as no information (only the floor remains).
-
-    Parameters
-    ----------
-    information : array (6, 6)
-        GICP information of the edge, (φ, ρ) order.
-    Z : array (4, 4)
-        The edge's relative pose (its translation length sets the floor).
-    sigma_fraction, sigma_deg_per_m : float
-        Floor parameters (all 0: the GICP information, symmetrised and floored at 1e-9).
-    dt_s, sigma_mps : float
-        Time spanned by the edge (s) and the velocity uncertainty (m/s) of the time term.
-    """
-    W = 0.5 * (np.asarray(information, np.float64) + np.asarray(information, np.float64).T)
-    lam, V = np.linalg.eigh(W)
-    lam = np.maximum(lam, 1e-9)
-    d = max(float(np.linalg.norm(np.asarray(Z, np.float64)[:3, 3])), 0.1)
-    s_t = math.hypot(sigma_fraction * d, sigma_mps * max(float(dt_s), 0.0))
-    s_phi = math.radians(sigma_deg_per_m) * d
-    if s_t <= 0 and s_phi <= 0:
-        return (V * lam) @ V.T
-    S = (V / lam) @ V.T + np.diag([s_phi**2] * 3 + [s_t**2] * 3)
-    out = np.linalg.inv(S)
-    return 0.5 * (out + out.T)
 
 
 @dataclass(frozen=True, eq=False)
@@ -371,7 +328,7 @@ class TrackResult:
                 "factors": len(self.verified()), "optimisations": self.n_optimisations,
                 "recognised_ids": sorted({r.recognition.intersection_id for r in self.verified()}),
                 "unchecked_stretches": self.unchecked_stretches, "inconsistent_factors": self.inconsistent_factors,
-                **({} if not self.map_registrations else {"map_registrations": _map_counts(self.map_registrations)}),
+                **({} if not self.map_registrations else {"map_registrations": map_registration_counts(self.map_registrations)}),
                 **({} if self.odometry is None else {"motion_prior_stretches": self.odometry.held_stretches()}),
                 **({} if self.imu is None else {"imu": self.imu})}
 
@@ -407,17 +364,6 @@ class _OnlineKB:
                             np.array([self.V[i] for i in idx]).reshape(k, d.n_sectors),
                             np.array([self.M[i] for i in idx]).reshape(k, d.n_bands, d.n_sectors), self.params, {})
         return kb, idx
-
-
-def _map_counts(regs: list) -> dict:
-    """Map registrations by status and the factors by constrained rank."""
-    out: dict = {"tried": len(regs), "factors": 0, "by_status": {}, "factor_rank": {}}
-    for r in regs:
-        out["by_status"][r.status] = out["by_status"].get(r.status, 0) + 1
-        if r.status == "factor":
-            out["factors"] += 1
-            out["factor_rank"][str(r.rank)] = out["factor_rank"].get(str(r.rank), 0) + 1
-    return out
 
 
 def _frame_poses(odo, kf_poses: np.ndarray) -> np.ndarray:

@@ -639,8 +639,7 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
     offset : (3,)
         Surveyed point in the sensor frame (m).
     crs : str, optional
-        Default ``stations.crs``.
-    params : ControlParams
+        Default ``stations.crs``. ``params``: :class:`ControlParams`.
 
     Raises
     ------
@@ -648,7 +647,7 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
         A station outside the keyframes' time span, fewer than 3 control stations, stations whose
         spans overlap, no CRS.
     """
-    from minegeo.survey.control_stats import control_statistics, fit_residual_cofactors
+    from minegeo.survey.control_stats import control_statistics, fit_residual_cofactors, redundancy_share
     from minegeo.survey.ellipse import error_ellipse
 
     p = params or ControlParams()
@@ -727,14 +726,8 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
         qvv = np.zeros((3 * n_ctrl, 3 * n_ctrl))
         for q, c in enumerate(np.flatnonzero(ctrl)):
             qvv[3 * q:3 * q + 3, 3 * q:3 * q + 3] = cov_ll[c] - st_cov[c]
-        # the graph's χ² test is gchi (every factor: control, odometry, loops); these statistics serve the
-        # stations' w-tests, their χ² taken on the control residuals' share of the redundancy,
-        # Σ r_i = tr(Qvv P) over the control rows (the whole redundancy when the odometry is a chain,
-        # a part of it when loops or extra edges are redundant too)
-        share = sum(float(np.trace(qvv[3 * q:3 * q + 3, 3 * q:3 * q + 3] @ np.linalg.inv(cov_ll[c])))
-                    for q, c in enumerate(np.flatnonzero(ctrl)))
-        stats = control_statistics(v, cov_ll[ctrl], qvv=qvv, dof=int(round(min(max(share, 0.0), 3.0 * n_ctrl))),
-                                   ids=ids[ctrl])
+        # the graph's χ² test is gchi (every factor); the stations' statistics take their share of the redundancy
+        stats = control_statistics(v, cov_ll[ctrl], qvv=qvv, dof=redundancy_share(qvv, cov_ll[ctrl]), ids=ids[ctrl])
         ellipses = [error_ellipse(st_cov[c][:2, :2], confidence=0.95) for c in np.flatnonzero(chk)]
     check, classes, ratio = _check_station_statistics(stations, pts, v, st_cov, G_times, G_poses, p.class_c)
     snoop = ((), ()) if not (stats.flagged and p.snooping) else _data_snooping(

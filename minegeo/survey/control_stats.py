@@ -75,7 +75,7 @@ from minegeo.geometry.se3 import hat
 from minegeo.survey.lsq import Chi2Test, chi2_global_test
 
 __all__ = ["ControlStatistics", "CheckErrors", "ClassTest", "control_statistics", "check_errors",
-           "sp1_allowed_mm", "class_test", "misclosure_ratio", "SP1_CLASS_CONSTANTS"]
+           "sp1_allowed_mm", "class_test", "misclosure_ratio", "redundancy_share", "SP1_CLASS_CONSTANTS"]
 
 #: ICSM SP1 class constants c (mm) of (CS5).
 SP1_CLASS_CONSTANTS = {"3A": 1.0, "2A": 3.0, "A": 7.5, "B": 15.0, "C": 30.0, "D": 50.0, "E": 100.0}
@@ -243,6 +243,28 @@ def control_statistics(v, cov, *, qvv=None, dof: int | None = None, ids=None, si
     return ControlStatistics(ids=ids, v=V, dof=dof, vtpv=vtpv, sigma0_apriori=float(sigma0_apriori),
                              sigma0_sq=sigma0_sq, chi2=chi2, w=w.reshape(n, 3), redundancy_numbers=red.reshape(n, 3),
                              w_critical=k, alpha0=float(alpha0), flagged=flagged, qvv_source=source)
+
+
+def redundancy_share(qvv, cov) -> int:
+    """The redundancy the residuals of ``n`` stations carry in a larger adjustment: the sum of their
+    redundancy numbers ``Σ r_i = tr(Qvv P)``, ``P = Σll⁻¹`` (σ0 = 1), rounded to a whole number in
+    ``[0, 3n]`` for :func:`control_statistics`.
+
+    In a pose graph whose odometry is a chain the stations carry the whole redundancy of the graph;
+    loop closures and extra odometry edges carry a part of it, which the graph's own χ² test counts
+    and the stations' does not.
+
+    Parameters
+    ----------
+    qvv : array_like (3n, 3n)
+        Cofactors of the residuals (m², σ0 = 1).
+    cov : array_like
+        A-priori covariance of the stations (m²), as in :func:`control_statistics`.
+    """
+    Q = np.asarray(qvv, dtype=np.float64)
+    S = _block_cov(cov, Q.shape[0] // 3)
+    share = float(np.trace(np.linalg.solve(S, Q.T).T))  # tr(Q S⁻¹)
+    return int(round(min(max(share, 0.0), float(Q.shape[0]))))
 
 
 @dataclass(frozen=True)
