@@ -29,7 +29,8 @@ graph, :func:`minegeo.slam.pipeline.run_backend`) after an accepted loop whose c
 current poses exceeds ``reoptimise_m`` or ``reoptimise_deg``: the first loop of a return carries
 the whole drift and moves every later keyframe with it, and the loops that follow along the same
 return then correct the current poses by centimetres, far below the registration's reach, so
-re-optimising after each of them (hundreds along a long revisit) would change no later decision.
+re-optimising after each of them (hundreds along a long revisit) moves the later keyframes' guesses
+by no more than that.
 The loops accepted in between are all in the next optimisation and in the final one. The default
 limits, 0.1 m and 2°, lie above what loop registrations along a 3.2 m drift disagree with the just
 optimised poses by (1-5 cm and 0.2-2.3° on the 2040 m stop-and-go stream of
