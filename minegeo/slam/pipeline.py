@@ -342,9 +342,10 @@ def _close_loops(odo: OdometryResult, params: SlamParams, obs=None):
     for k in range(1, kf_poses.shape[0]):
         tried = find_loop(k, kf_poses, path, frame_list, params.loops, params.odometry)
         loops.extend(tried)
+        lp = params.loops
+        every = lp.reoptimise_m == 0 and lp.reoptimise_deg == 0
         moved = [loop_correction(c, kf_poses) for c in tried if c.accepted]
-        if any(m > params.loops.reoptimise_m or a > params.loops.reoptimise_deg for m, a in moved) \
-                or (moved and params.loops.reoptimise_m == 0 and params.loops.reoptimise_deg == 0):
+        if any(every or m > lp.reoptimise_m or a > lp.reoptimise_deg for m, a in moved):
             opt = _optimise(kf_poses, odo, loops, obs, params)
             if opt.status != "failed":
                 kf_poses = _optimised_poses(opt)
