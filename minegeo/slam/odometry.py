@@ -57,9 +57,10 @@ Edge information: GICP's Gauss–Newton matrix ``H`` is for a left perturbation 
 parameters (ω, t); the pose graph perturbs on the right, so GICP's information is
 ``Ω_G = Ad(Z)ᵀ H Ad(Z) / σ²`` with ``σ`` GICP's a-posteriori scale (floored at ``sigma_floor_m``).
 It treats every point as an independent measurement and is over-confident (on synthetic streams the
-keyframe edges' normalised squared errors average several hundred instead of 6), so the edge carries
-``(Ω_G⁻¹ + F)⁻¹`` with the covariance floor ``F`` of :func:`edge_covariance_floor`, fitted by Monte
-Carlo against the simulator's truth.
+keyframe edges' normalised squared errors average several hundred instead of 6). ``OdometryResult``
+keeps ``Ω_G``; with ``edge_covariance_floor`` the back end's pose graph
+(:func:`minegeo.slam.pipeline.keyframe_graph`) gives each edge ``(Ω_G⁻¹ + F)⁻¹`` with the covariance
+floor ``F`` of :func:`edge_covariance_floor`, fitted against the simulator's truth.
 """
 
 from __future__ import annotations
@@ -91,10 +92,11 @@ from minegeo.slam.odometry_model import (  # the parameters, records and result,
     Registration,
     edge_covariance_floor,
     floored_information,
+    keyframe_rates_deg_s,
 )
 
 __all__ = ["OdometryParams", "PreparedFrame", "OdometryResult", "prepare_frame", "register_frames", "run_odometry",
-           "edge_covariance_floor", "floored_information", "EDGE_FLOOR_FIELDS"]
+           "edge_covariance_floor", "floored_information", "keyframe_rates_deg_s", "EDGE_FLOOR_FIELDS"]
 
 log = logging.getLogger(__name__)
 
@@ -197,11 +199,6 @@ def register_frames(source: PreparedFrame, target: PreparedFrame, T_init: np.nda
     sigma = max(float(res.sigma_m), params.sigma_floor_m)
     A = se3_adjoint(np.ascontiguousarray(T))
     info = A.T @ res.information_6x6 @ A / sigma**2
-    if params.edge_covariance_floor:
-        floor = edge_covariance_floor(float(np.linalg.norm(T[:3, 3])),
-                                      math.degrees(float(np.linalg.norm(se3_log(np.ascontiguousarray(T))[:3]))),
-                                      params)
-        info = floored_information(0.5 * (info + info.T), floor)
     return Registration(T, not reason, reason, float(res.fitness), float(res.inlier_rmse_m),
                         0.5 * (info + info.T), weak, bool(res.converged), float(res.degeneracy_ratio))
 

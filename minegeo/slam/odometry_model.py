@@ -11,12 +11,16 @@ from typing import Literal
 import numpy as np
 
 from minegeo._params import bounded, flag, one_of, validate
+from minegeo.kernels.lie import so3_log
 from minegeo.registration import GICPParams
 from minegeo.slam.observability import surface_translation_ratio
 
 #: the fields of :class:`OdometryParams` that make the edge covariance floor (:func:`edge_covariance_floor`)
 EDGE_FLOOR_FIELDS = ("edge_sigma_tilt_deg_per_sqrt_m", "edge_sigma_tilt_deg_per_deg", "edge_sigma_yaw_deg_per_sqrt_m",
-                     "edge_sigma_trans_xy_m_per_sqrt_m", "edge_sigma_trans_z_m_per_sqrt_m", "edge_sigma_trans_z_m_per_deg")
+                     "edge_sigma_trans_xy_m_per_sqrt_m", "edge_sigma_trans_z_m_per_sqrt_m", "edge_sigma_trans_z_m_per_deg",
+                     "edge_sigma_tilt_deg_per_deg_s", "edge_sigma_yaw_deg_per_deg_s", "edge_sigma_trans_xy_m_per_deg_s",
+                     "edge_sigma_trans_z_m_per_deg_s", "loop_sigma_tilt_deg", "loop_sigma_yaw_deg", "loop_sigma_trans_xy_m",
+                     "loop_sigma_trans_z_m")
 
 
 #: What each frame registers to (``OdometryParams.frame_target``).
@@ -78,26 +82,38 @@ class OdometryParams:
     #: (:func:`minegeo.registration.constraint_analysis`, GICP's ``degeneracy_ratio``) has
     #: ``λ_min / λ_max`` below this is rejected (dimensionless; GICP flags below 1e-2 as weak)
     min_constraint_ratio: float = bounded(1e-4, ge=0.0, lt=1.0)
-    #: edge covariance floor (:func:`edge_covariance_floor`), added to the GICP covariance of every
-    #: registration: GICP's Hessian treats each point as an independent measurement while the errors
-    #: of neighbouring points are correlated (wall relief, the model error of the local planes, deskew
-    #: error, the sparse rings' under-read tilt change), so alone it is over-confident. In the sensor
-    #: frame: tilt (rotation about the sensor x and y axes) a random walk in deg per √m of the edge's
-    #: translation plus deg per deg of the edge's rotation; yaw (about the sensor z axis, the spin
-    #: axis) deg per √m; translation along the sensor x and y axes m per √m, along its z axis m per √m
-    #: plus m per deg of the edge's rotation (all 0: GICP's covariance alone). Fitted by maximum
-    #: likelihood on the 80 keyframe edges of 16 synthetic stop-and-go streams (vehicle and handheld,
-    #: seeds 1-8, 24 s at 5 Hz; ``benchmarks/bench_edge_covariance.py``)
-    #: apply the floor below to every edge (True: ``slam --control``, whose statistics need calibrated
-    #: edges; False by default: plain SLAM keeps GICP's information, because with the floor the plane
-    #: factors weigh more and cost ATE on some streams, see docs/slam.md "Edge covariance")
+    #: edge covariance floor (:func:`edge_covariance_floor`), added by the back end to the GICP
+    #: covariance of every keyframe edge and loop edge of the pose graph: GICP's Hessian treats each
+    #: point as an independent measurement while the errors of neighbouring points are correlated
+    #: (wall relief, the model error of the local planes, deskew error, the sparse rings' under-read
+    #: rotation), so alone it is over-confident. Odometry edges, in the sensor frame: tilt (rotation
+    #: about the sensor x and y axes) a random walk in deg per √m of the edge's translation plus deg per
+    #: deg of its rotation; yaw (about the sensor z axis, the spin axis) deg per √m; translation along
+    #: the sensor x and y axes m per √m, along its z axis m per √m plus m per deg of the edge's
+    #: rotation. Loop edges (two keyframes registered directly, at any relative heading): a constant
+    #: per block (``loop_sigma_*``). Both: a turn term per block, deg or m per deg/s of the angular
+    #: rate of the sensor at each of the edge's two keyframes (a sweep taken in a turn is deskewed and
+    #: registered less well). All 0: GICP's covariance alone. Fitted by maximum likelihood on the
+    #: odometry and loop edges of simulated 10 Hz stop-and-go streams against their truth
+    #: (``benchmarks/bench_edge_covariance.py``, docs/slam.md "Edge covariance")
+    #: apply the floor (True: ``slam --control``, whose statistics need calibrated edges; False by
+    #: default: plain SLAM keeps GICP's information, because with the floor the plane factors weigh
+    #: more and cost ATE on some streams, see docs/slam.md "Edge covariance")
     edge_covariance_floor: bool = flag(False)
-    edge_sigma_tilt_deg_per_sqrt_m: float = bounded(0.11, ge=0.0)
-    edge_sigma_tilt_deg_per_deg: float = bounded(0.31, ge=0.0)
-    edge_sigma_yaw_deg_per_sqrt_m: float = bounded(0.034, ge=0.0)
-    edge_sigma_trans_xy_m_per_sqrt_m: float = bounded(0.0051, ge=0.0)
-    edge_sigma_trans_z_m_per_sqrt_m: float = bounded(0.037, ge=0.0)
-    edge_sigma_trans_z_m_per_deg: float = bounded(0.0003, ge=0.0)
+    edge_sigma_tilt_deg_per_sqrt_m: float = bounded(0.065, ge=0.0)
+    edge_sigma_tilt_deg_per_deg: float = bounded(0.027, ge=0.0)
+    edge_sigma_yaw_deg_per_sqrt_m: float = bounded(0.0, ge=0.0)
+    edge_sigma_trans_xy_m_per_sqrt_m: float = bounded(0.0017, ge=0.0)
+    edge_sigma_trans_z_m_per_sqrt_m: float = bounded(0.0058, ge=0.0)
+    edge_sigma_trans_z_m_per_deg: float = bounded(0.0025, ge=0.0)
+    edge_sigma_tilt_deg_per_deg_s: float = bounded(0.014, ge=0.0)
+    edge_sigma_yaw_deg_per_deg_s: float = bounded(0.008, ge=0.0)
+    edge_sigma_trans_xy_m_per_deg_s: float = bounded(0.00079, ge=0.0)
+    edge_sigma_trans_z_m_per_deg_s: float = bounded(0.00096, ge=0.0)
+    loop_sigma_tilt_deg: float = bounded(0.12, ge=0.0)
+    loop_sigma_yaw_deg: float = bounded(0.0, ge=0.0)
+    loop_sigma_trans_xy_m: float = bounded(0.0048, ge=0.0)
+    loop_sigma_trans_z_m: float = bounded(0.01, ge=0.0)
 
     def __post_init__(self):
         validate(self)
@@ -253,34 +269,66 @@ class OdometryResult:
                 "min_constraint_ratio": float(finite.min()) if finite.size else None}
 
 
-def edge_covariance_floor(length_m: float, angle_deg: float, params: OdometryParams) -> np.ndarray:
+def edge_covariance_floor(length_m: float, angle_deg: float, params: OdometryParams, *,
+                          rates_deg_s: tuple[float, float] = (0.0, 0.0), loop: bool = False) -> np.ndarray:
     """The covariance floor ``F`` (6x6, (ω, ρ) order, rad² and m², the edge's right perturbation: the
     axes of the source sensor frame) added to a GICP edge's covariance.
 
-    ``F = diag(σ_t², σ_t², σ_z², σ_h², σ_h², σ_v²)`` with, for an edge of translation ``L = length_m``
-    (m) and rotation angle ``θ = angle_deg`` (deg)::
+    ``F = diag(σ_t², σ_t², σ_z², σ_h², σ_h², σ_v²)``. For an odometry edge of translation
+    ``L = length_m`` (m) and rotation angle ``θ = angle_deg`` (deg)::
 
-        σ_t² = a_t² L + (b_t θ)²   tilt, about the sensor x and y axes (deg², converted to rad²)
-        σ_z² = a_z² L              yaw, about the sensor z (spin) axis (deg², converted to rad²)
-        σ_h² = a_h² L              translation along the sensor x and y axes (m²)
-        σ_v² = a_v² L + (b_v θ)²   translation along the sensor z axis (m²)
+        σ_t² = a_t² L + (b_t θ)² + c_t² W   tilt, about the sensor x and y axes (deg², converted to rad²)
+        σ_z² = a_z² L + c_z² W              yaw, about the sensor z (spin) axis (deg², converted to rad²)
+        σ_h² = a_h² L + c_h² W              translation along the sensor x and y axes (m²)
+        σ_v² = a_v² L + (b_v θ)² + c_v² W   translation along the sensor z axis (m²)
 
-    ``a_t = edge_sigma_tilt_deg_per_sqrt_m``, ``b_t = edge_sigma_tilt_deg_per_deg``,
-    ``a_z = edge_sigma_yaw_deg_per_sqrt_m``, ``a_h = edge_sigma_trans_xy_m_per_sqrt_m``,
-    ``a_v = edge_sigma_trans_z_m_per_sqrt_m``, ``b_v = edge_sigma_trans_z_m_per_deg``: a random walk
-    along the path (variance proportional to the distance, as the station split of
-    :func:`minegeo.slam.control.graph_inputs` assumes) and an error proportional to the rotation (GICP
-    under-reads tilt changes with sparse rings, which also moves the sensor's height). The constants
-    are fitted by Monte Carlo against the simulator's truth (``benchmarks/bench_edge_covariance.py``,
-    ``docs/slam.md`` "Edge covariance")
+    and for a loop edge (``loop``: two keyframes registered directly, whatever their relative heading;
+    ``L`` and ``θ`` play no part)::
+
+        σ_t² = l_t² + c_t² W,  σ_z² = l_z² + c_z² W,  σ_h² = l_h² + c_h² W,  σ_v² = l_v² + c_v² W
+
+    with ``W = ω_i² + ω_j²`` the squared angular rates (deg/s) of the sensor at the edge's two keyframes
+    (``rates_deg_s``, :func:`keyframe_rates_deg_s`): a sweep taken in a turn is deskewed and registered
+    less well, whichever edge it is on. ``a_t = edge_sigma_tilt_deg_per_sqrt_m``,
+    ``b_t = edge_sigma_tilt_deg_per_deg``, ``a_z = edge_sigma_yaw_deg_per_sqrt_m``,
+    ``a_h = edge_sigma_trans_xy_m_per_sqrt_m``, ``a_v = edge_sigma_trans_z_m_per_sqrt_m``,
+    ``b_v = edge_sigma_trans_z_m_per_deg``, ``c_* = edge_sigma_*_per_deg_s``, ``l_* = loop_sigma_*``:
+    along the path a random walk (variance proportional to the distance, as the station split of
+    :func:`minegeo.slam.control.graph_inputs` assumes). The constants are fitted by maximum likelihood
+    against the simulator's truth (``benchmarks/bench_edge_covariance.py``, ``docs/slam.md`` "Edge
+    covariance").
     """
     L, th = float(length_m), float(angle_deg)
+    W = float(rates_deg_s[0]) ** 2 + float(rates_deg_s[1]) ** 2
     d2r = math.radians(1.0) ** 2
-    s_t2 = d2r * (params.edge_sigma_tilt_deg_per_sqrt_m**2 * L + (params.edge_sigma_tilt_deg_per_deg * th) ** 2)
-    s_z2 = d2r * params.edge_sigma_yaw_deg_per_sqrt_m**2 * L
-    s_h2 = params.edge_sigma_trans_xy_m_per_sqrt_m**2 * L
-    s_v2 = params.edge_sigma_trans_z_m_per_sqrt_m**2 * L + (params.edge_sigma_trans_z_m_per_deg * th) ** 2
+    p = params
+    if loop:
+        t2, z2, h2, v2 = (p.loop_sigma_tilt_deg**2, p.loop_sigma_yaw_deg**2, p.loop_sigma_trans_xy_m**2,
+                          p.loop_sigma_trans_z_m**2)
+    else:
+        t2 = p.edge_sigma_tilt_deg_per_sqrt_m**2 * L + (p.edge_sigma_tilt_deg_per_deg * th) ** 2
+        z2 = p.edge_sigma_yaw_deg_per_sqrt_m**2 * L
+        h2 = p.edge_sigma_trans_xy_m_per_sqrt_m**2 * L
+        v2 = p.edge_sigma_trans_z_m_per_sqrt_m**2 * L + (p.edge_sigma_trans_z_m_per_deg * th) ** 2
+    s_t2 = d2r * (t2 + p.edge_sigma_tilt_deg_per_deg_s**2 * W)
+    s_z2 = d2r * (z2 + p.edge_sigma_yaw_deg_per_deg_s**2 * W)
+    s_h2 = h2 + p.edge_sigma_trans_xy_m_per_deg_s**2 * W
+    s_v2 = v2 + p.edge_sigma_trans_z_m_per_deg_s**2 * W
     return np.diag([s_t2, s_t2, s_z2, s_h2, s_h2, s_v2])
+
+
+def keyframe_rates_deg_s(times_s: np.ndarray, poses: np.ndarray, keyframes: np.ndarray) -> np.ndarray:
+    """The sensor's angular rate (deg/s) at each keyframe: the rotation angle of ``T_{f−1}⁻¹ T_{f+1}``
+    over ``t_{f+1} − t_{f−1}`` for the keyframe's frame ``f`` (the frames on either side, one side at
+    the ends; 0 for a run of one frame). ``poses`` are the odometry's ``T_world_sensor``."""
+    n = len(times_s)
+    out = np.zeros(len(keyframes))
+    for a, f in enumerate(np.asarray(keyframes, dtype=np.int64)):
+        f0, f1 = max(int(f) - 1, 0), min(int(f) + 1, n - 1)
+        if f1 > f0 and times_s[f1] > times_s[f0]:
+            R = poses[f0, :3, :3].T @ poses[f1, :3, :3]
+            out[a] = math.degrees(float(np.linalg.norm(so3_log(np.ascontiguousarray(R))))) / float(times_s[f1] - times_s[f0])
+    return out
 
 
 def floored_information(information: np.ndarray, floor: np.ndarray) -> np.ndarray:

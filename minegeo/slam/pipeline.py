@@ -21,6 +21,7 @@ the optimised pose graph, the loop list and the map cloud:
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
@@ -32,11 +33,20 @@ from minegeo.errors import InputError
 from minegeo.geometry import voxel_downsample
 from minegeo.geometry.se3 import compose, relative
 from minegeo.io.g2o import PoseGraph
+from minegeo.kernels.lie import se3_log
 from minegeo.registration import build_target_index
 from minegeo.slam.inertial import GyroAid, InertialParams, InertialResult, optimize_inertial_graph
 from minegeo.slam.loops import LoopCandidate, LoopParams, find_loop, loop_correction
 from minegeo.slam.mapping import NoiseRemovalResult, RoadwayNoiseParams, remove_roadway_noise
-from minegeo.slam.odometry import OdometryParams, OdometryResult, PreparedFrame, run_odometry
+from minegeo.slam.odometry import (
+    OdometryParams,
+    OdometryResult,
+    PreparedFrame,
+    edge_covariance_floor,
+    floored_information,
+    keyframe_rates_deg_s,
+    run_odometry,
+)
 from minegeo.slam.planes import (
     FloorPlaneParams,
     PlaneStatus,
@@ -45,7 +55,7 @@ from minegeo.slam.planes import (
 )
 from minegeo.slam.posegraph import PlaneSet, PoseGraphParams, PoseGraphResult, optimize_pose_graph
 
-__all__ = ["SlamParams", "SlamResult", "run_backend", "run_slam"]
+__all__ = ["SlamParams", "SlamResult", "keyframe_graph", "run_backend", "run_slam"]
 
 log = logging.getLogger(__name__)
 
@@ -179,22 +189,57 @@ class SlamResult:
         return out
 
 
-def _graph(kf_poses, odo: OdometryResult, loops: list[LoopCandidate]) -> PoseGraph:
-    """Keyframe graph: odometry edges (k-1, k), the odometry's edges across keyframes placed by the guess
-    (``OdometryResult.keyframe_extra_edges``), then the accepted loops; information in g2o order (t, r)."""
+def keyframe_graph(kf_poses: np.ndarray, odo: OdometryResult, loops: list[LoopCandidate],
+                   params: OdometryParams | None = None) -> PoseGraph:
+    """The keyframe pose graph: odometry edges ``(k−1, k)``, the odometry's edges across keyframes
+    placed by the guess (``OdometryResult.keyframe_extra_edges``), then the accepted loops;
+    information in g2o order (t, r).
+
+    Each edge carries GICP's information ``Ω_G``; with ``params.edge_covariance_floor`` (``params``
+    defaults to ``odo.params``) it carries ``(Ω_G⁻¹ + F)⁻¹`` (:func:`~minegeo.slam.odometry.floored_information`)
+    with ``F`` of :func:`~minegeo.slam.odometry.edge_covariance_floor`: for an odometry edge by its
+    measured translation and rotation, for a loop edge the loop floor, both with the angular rates of
+    the sensor at the edge's keyframes (:func:`~minegeo.slam.odometry.keyframe_rates_deg_s`). An edge
+    of negligible information (trace below 1e-3: a chain edge relative to a guessed pose) is kept as
+    it is.
+
+    Parameters
+    ----------
+    kf_poses : (K, 4, 4)
+        Keyframe poses ``T_world_keyframe`` (the graph's initial values).
+    odo : OdometryResult
+    loops : list of LoopCandidate
+        The accepted ones become loop edges.
+    params : OdometryParams, optional
+    """
+    params = params or odo.params
     k = kf_poses.shape[0]
     extra = odo.keyframe_extra_edges
-    edges = ([(a, a + 1) for a in range(k - 1)] + [(i, j) for i, j, _, _ in extra]
-             + [(c.i, c.j) for c in loops if c.accepted])
-    Z = list(odo.keyframe_edges) + [Z for _, _, Z, _ in extra] + [c.T_i_j for c in loops if c.accepted]
-    info_rt = (list(odo.keyframe_information) + [I for _, _, _, I in extra]
-               + [c.information for c in loops if c.accepted])
+    acc = [c for c in loops if c.accepted]
+    edges = [(a, a + 1) for a in range(k - 1)] + [(i, j) for i, j, _, _ in extra] + [(c.i, c.j) for c in acc]
+    Z = list(odo.keyframe_edges) + [Z for _, _, Z, _ in extra] + [c.T_i_j for c in acc]
+    info_wr = list(odo.keyframe_information) + [I for _, _, _, I in extra] + [c.information for c in acc]
+    if params.edge_covariance_floor and edges:
+        rates = keyframe_rates_deg_s(odo.times_s, odo.poses, odo.keyframes)
+        n_odo = len(edges) - len(acc)
+        info_wr = [_floored(I, Zm, (rates[i], rates[j]), params, loop=m >= n_odo)
+                   for m, ((i, j), Zm, I) in enumerate(zip(edges, Z, info_wr, strict=True))]
     p = [3, 4, 5, 0, 1, 2]  # (ω, ρ) → the file's (t, r) order; the solver permutes back
-    info = [np.asarray(I)[p][:, p] for I in info_rt]
+    info = [np.asarray(I)[p][:, p] for I in info_wr]
     m = len(edges)
     return PoseGraph("SE3", np.arange(k, dtype=np.int64), np.ascontiguousarray(kf_poses),
                      np.asarray(edges, dtype=np.int64).reshape(m, 2),
                      np.stack(Z) if m else np.zeros((0, 4, 4)), np.stack(info) if m else np.zeros((0, 6, 6)))
+
+
+def _floored(info: np.ndarray, Z: np.ndarray, rates: tuple, params: OdometryParams, *, loop: bool) -> np.ndarray:
+    """``info`` (ω, ρ) with the covariance floor of the edge ``Z`` (:func:`keyframe_graph`)."""
+    info = np.asarray(info, dtype=np.float64)
+    if np.trace(info) < 1e-3:
+        return info
+    angle = math.degrees(float(np.linalg.norm(se3_log(np.ascontiguousarray(Z))[:3])))
+    F = edge_covariance_floor(float(np.linalg.norm(Z[:3, 3])), angle, params, rates_deg_s=rates, loop=loop)
+    return floored_information(0.5 * (info + info.T), F)
 
 
 def _path_lengths(poses: np.ndarray) -> np.ndarray:
@@ -315,7 +360,7 @@ def _floors_in_world(meas: np.ndarray, T_world_kf: np.ndarray) -> np.ndarray:
 
 
 def _optimise(kf_poses, odo, loops, obs, params: SlamParams) -> PoseGraphResult:
-    return optimize_pose_graph(_graph(kf_poses, odo, loops), params.posegraph,
+    return optimize_pose_graph(keyframe_graph(kf_poses, odo, loops, params.odometry), params.posegraph,
                                _plane_set(obs, kf_poses, params) if obs is not None else None)
 
 
@@ -463,7 +508,7 @@ def run_backend(odo: OdometryResult, params: SlamParams | None = None, *, use_lo
         opt = _optimise(kf_poses, odo, loops, obs, params)
     if opt is not None and opt.status != "failed":
         kf_poses = _optimised_poses(opt)
-    graph = opt.graph if opt is not None else _graph(kf_poses, odo, loops)
+    graph = opt.graph if opt is not None else keyframe_graph(kf_poses, odo, loops, params.odometry)
     inertial = None
     if imu is not None and odo.keyframes.size > 1:
         inertial = _inertial(odo, kf_poses, graph, imu if isinstance(imu, GyroAid) else GyroAid(imu), params)

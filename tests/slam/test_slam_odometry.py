@@ -132,7 +132,7 @@ def test_a_keyframe_registered_across_guessed_keyframes_gets_an_edge_to_the_loca
     an extra keyframe edge (9 → 12) with the registration's information, close to the truth, and the
     consecutive edge into 12 (relative to a guessed pose) carries only the guess's 1e-6. The SLAM pose
     graph takes the extra edge."""
-    from minegeo.slam.pipeline import _graph
+    from minegeo.slam.pipeline import keyframe_graph
 
     frames, truth = drive
     rng = np.random.default_rng(5)
@@ -151,7 +151,7 @@ def test_a_keyframe_registered_across_guessed_keyframes_gets_an_edge_to_the_loca
     assert np.array_equal(res.keyframe_information[j - 1], np.eye(6) * 1e-6)
     Zt = np.linalg.solve(truth.poses[9], truth.poses[12])
     assert np.linalg.norm(Z[:3, 3] - Zt[:3, 3]) < 0.05
-    g = _graph(res.poses[res.keyframes], res, [])
+    g = keyframe_graph(res.poses[res.keyframes], res, [])
     assert [i, j] in g.edges.tolist() and len(g.edges) == len(kf)  # k-1 consecutive + the extra one
 
 
