@@ -787,8 +787,12 @@ def _warning_reason(gchi, stats, snoop) -> str:
     suspects, unresolved = snoop
     parts = []
     if gchi.passed is False:
-        parts.append(f"the chi-square test of the adjustment failed (sigma0 "
-                     f"{np.sqrt(gchi.statistic / max(gchi.dof, 1)):.2f})")
+        dof = max(gchi.dof, 1)
+        s0, lo, hi = (float(np.sqrt(x / dof)) for x in (gchi.statistic, gchi.lower, gchi.upper))
+        side, why = (("below", "the factors agree better than their stated uncertainty") if s0 < lo else
+                     ("above", "the factors disagree more than their stated uncertainty allows"))
+        parts.append(f"the chi-square test of the adjustment failed (sigma0 {s0:.2f}, {side} its 95 % interval "
+                     f"{lo:.2f}-{hi:.2f}: {why})")
     if stats.flagged:
         parts.append("control station(s) flagged by the w-test: " + ", ".join(stats.flagged_ids))
     if suspects:

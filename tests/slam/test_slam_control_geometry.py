@@ -191,3 +191,25 @@ def test_a_rigid_fit_that_does_not_converge_names_the_stations(monkeypatch):
                                                r"station ST002 is 0\.3\d\d m from its surveyed point"):
         apply_control(t, P, edges, Z, info, _moved(st, 1, [0.0, 0.0, 0.5]), np.zeros(3), CRS,
                       ControlParams(mode="rigid"))
+
+
+@pytest.mark.parametrize(("sigma0", "side"), [(0.37, "below"), (2.32, "above")])
+def test_warning_reason_says_on_which_side_the_global_test_failed(sigma0, side):
+    """A σ̂0 below the χ² interval (the factors agree better than stated) and above it (a model error or
+    a blunder) call for different checks: the reason names the side and the interval in σ̂0 units,
+    ``sqrt(χ²_{α/2, r} / r)`` and ``sqrt(χ²_{1−α/2, r} / r)`` (reference: scipy.stats.chi2)."""
+    from types import SimpleNamespace
+
+    from scipy import stats as sst
+
+    from minegeo.slam.control import _warning_reason
+    from minegeo.survey.lsq import chi2_global_test
+
+    r = 6978
+    g = chi2_global_test(sigma0**2 * r, r)
+    assert g.passed is False
+    reason = _warning_reason(g, SimpleNamespace(flagged=()), ((), ()))
+    lo, hi = (np.sqrt(sst.chi2.ppf(q, r) / r) for q in (0.025, 0.975))
+    assert reason == (f"the chi-square test of the adjustment failed (sigma0 {sigma0:.2f}, {side} its 95 % interval "
+                      f"{lo:.2f}-{hi:.2f}: " + ("the factors agree better than their stated uncertainty" if side == "below"
+                                               else "the factors disagree more than their stated uncertainty allows") + ")")
