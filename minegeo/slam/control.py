@@ -787,12 +787,7 @@ def _warning_reason(gchi, stats, snoop) -> str:
     suspects, unresolved = snoop
     parts = []
     if gchi.passed is False:
-        dof = max(gchi.dof, 1)
-        s0, lo, hi = (float(np.sqrt(x / dof)) for x in (gchi.statistic, gchi.lower, gchi.upper))
-        side, why = (("below", "the factors agree better than their stated uncertainty") if s0 < lo else
-                     ("above", "the factors disagree more than their stated uncertainty allows"))
-        parts.append(f"the chi-square test of the adjustment failed (sigma0 {s0:.2f}, {side} its 95 % interval "
-                     f"{lo:.2f}-{hi:.2f}: {why})")
+        parts.append(f"the chi-square test of the adjustment failed ({gchi.sigma0_text()})")
     if stats.flagged:
         parts.append("control station(s) flagged by the w-test: " + ", ".join(stats.flagged_ids))
     if suspects:

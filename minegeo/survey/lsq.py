@@ -136,6 +136,17 @@ class Chi2Test:
             return "NOT TESTABLE (no redundancy)"
         return "PASSED" if self.passed else "FAILED"
 
+    def sigma0_text(self) -> str:
+        """``σ̂0 = sqrt(statistic / dof)`` and, when the test failed, on which side of its 95 % interval
+        ``sqrt(lower / dof)``-``sqrt(upper / dof)`` it lies and what that side means."""
+        dof = max(self.dof, 1)
+        s0, lo, hi = (float(np.sqrt(x / dof)) for x in (self.statistic, self.lower, self.upper))
+        if self.passed is not False:
+            return f"sigma0 {s0:.2f}"
+        side, why = (("below", "the factors agree better than their stated uncertainty") if s0 < lo else
+                     ("above", "the factors disagree more than their stated uncertainty allows"))
+        return f"sigma0 {s0:.2f}, {side} its {100 * (1 - self.alpha):g} % interval {lo:.2f}-{hi:.2f}: {why}"
+
 
 @dataclass(frozen=True)
 class LSQResult:
