@@ -40,6 +40,8 @@ from minegeo.localize.params import (
     VerifyParams,
 )
 from minegeo.registration.ransac_params import RansacParams
+from minegeo.semantic.recognition import RecognitionParams
+from minegeo.semantic.tracking import TrackParams
 from minegeo.slam.loops import LoopParams
 from minegeo.slam.odometry_model import EDGE_FLOOR_FIELDS, OdometryParams
 
@@ -154,16 +156,39 @@ BOUNDS = {
     (LoopParams, "min_fitness"): (">=", 0.0, "<=", 1.0, False),
     (LoopParams, "reoptimise_m"): (">=", 0.0, None, None, False),
     (LoopParams, "reoptimise_deg"): (">=", 0.0, None, None, False),
+    # RecognitionParams (its former __post_init__ checks, minegeo/semantic/recognition.py at 1763486)
+    (RecognitionParams, "pwcv_threshold"): (">", 0.0, "<=", 1.0, False),
+    (RecognitionParams, "n_his"): (">=", 0, None, None, True),
+    (RecognitionParams, "consecutive_required"): (">=", 1, None, None, True),
+    (RecognitionParams, "min_wall_points"): (">=", 3, None, None, True),
+    **{(RecognitionParams, n): (">", 0.0, None, None, False)
+       for n in ("icp_max_distance_m", "icp_gate_m", "gate_m", "gate_yaw_deg", "crop_radius_m", "max_junction_range_m",
+                 "carve_step_m", "icp_voxel_m")},
+    (RecognitionParams, "cwc_margin"): (">=", 0.0, None, None, False),
+    (RecognitionParams, "carve_margin_m"): (">=", 0.0, None, None, False),
+    (RecognitionParams, "gate_probability"): (">", 0.0, "<", 1.0, False),
+    (RecognitionParams, "icp_min_fitness"): (">=", 0.0, "<=", 1.0, False),
+    # TrackParams (its former __post_init__ checks, minegeo/semantic/tracking.py at 1763486)
+    **{(TrackParams, n): (">=", 0.0, None, None, False)
+       for n in ("gate_drift_fraction", "online_gate_drift_fraction", "same_place_m", "online_add_range_m",
+                 "online_merge_m", "revisit_min_path_m", "loop_sigma_deg", "online_icp_max_distance_m",
+                 "odometry_sigma_fraction", "odometry_sigma_deg_per_m", "odometry_sigma_mps", "map_factor_after_m")},
+    **{(TrackParams, n): (">", 0.0, None, None, False)
+       for n in ("intersection_sigma_m", "unchecked_path_m", "map_factor_spacing_m", "map_factor_sigma_m")},
+    (TrackParams, "factor_test_probability"): (">", 0.0, "<", 1.0, False),
+    (TrackParams, "map_factor_min_ratio"): (">", 0.0, "<", 1.0, False),
 }
 #: fields whose rule is joined by a check across fields (GravityParams: 3 <= min_points <= max_points;
 #: RansacParams: ransac_n >= 2, >= 3 for the rigid model)
 CROSS_CHECKED = {(GravityParams, "min_points"), (GravityParams, "max_points"), (RansacParams, "ransac_n")}
 #: fields that declare no rule (every value runs: a count or ratio compared with ``<``, a tuple of angles)
 UNRULED = {(OdometryParams, n) for n in ("min_points", "keyframe_submap_size", "unconverged_retry_fitness",
-                                         "turn_retry_yaw_deg")}
+                                         "turn_retry_yaw_deg")} | {
+    (RecognitionParams, "skeleton"),  # SkeletonParams.check()
+    *((TrackParams, n) for n in ("odometry", "recognition", "T_world_start"))}  # groups that check themselves; a pose
 GROUPS = (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, GravityFallbackParams, LocalizeParams,
           FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams, RansacParams,
-          OdometryParams, LoopParams)
+          OdometryParams, LoopParams, RecognitionParams, TrackParams)
 KEYS = sorted(BOUNDS, key=lambda k: (k[0].__name__, k[1]))
 _OPS = {">": lambda v, b: v > b, ">=": lambda v, b: v >= b, "<": lambda v, b: v < b, "<=": lambda v, b: v <= b}
 
@@ -322,6 +347,14 @@ CLI_CASES = [
     ("localize-batch", "--octree-level", "0", (LocalizeParams, "scan_octree_level", 0), None, None),
     ("track", "--voxel", "0", (OdometryParams, "voxel_size_m", 0.0), None, None),
     ("track", "--keyframe-distance", "-1", (OdometryParams, "keyframe_distance_m", -1.0), None, None),
+    ("track", "--pwcv-threshold", "0", (RecognitionParams, "pwcv_threshold", 0.0), None, None),
+    ("track", "--pwcv-threshold", "1.5", (RecognitionParams, "pwcv_threshold", 1.5), None, None),
+    ("track", "--n-his", "-1", (RecognitionParams, "n_his", -1), None, None),
+    ("track", "--consecutive", "0", (RecognitionParams, "consecutive_required", 0), None, None),
+    ("track", "--icp-max-distance", "0", (RecognitionParams, "icp_max_distance_m", 0.0), None, None),
+    ("track", "--gate", "-3", (RecognitionParams, "gate_m", -3.0), None, None),
+    ("track", "--gate-drift", "-0.1", (TrackParams, "gate_drift_fraction", -0.1), None, None),
+    ("track", "--unchecked-path", "0", (TrackParams, "unchecked_path_m", 0.0), None, None),
 ]
 _CLI_IDS = [f"{c[0]}{c[1]}={c[2]}" for c in CLI_CASES]
 
@@ -430,6 +463,13 @@ OPTION_FIELDS = {
     ("localize-batch", "--octree-level"): (LocalizeParams, "scan_octree_level", None, None),
     ("track", "--voxel"): (OdometryParams, "voxel_size_m", None, None),
     ("track", "--keyframe-distance"): (OdometryParams, "keyframe_distance_m", None, None),
+    ("track", "--pwcv-threshold"): (RecognitionParams, "pwcv_threshold", None, None),
+    ("track", "--n-his"): (RecognitionParams, "n_his", None, None),
+    ("track", "--consecutive"): (RecognitionParams, "consecutive_required", None, None),
+    ("track", "--icp-max-distance"): (RecognitionParams, "icp_max_distance_m", None, None),
+    ("track", "--gate"): (RecognitionParams, "gate_m", None, None),
+    ("track", "--gate-drift"): (TrackParams, "gate_drift_fraction", None, None),
+    ("track", "--unchecked-path"): (TrackParams, "unchecked_path_m", None, None),
 }
 OPTIONS = sorted(OPTION_FIELDS)
 

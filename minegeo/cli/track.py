@@ -33,17 +33,14 @@ from pathlib import Path
 from minegeo._params import arg_type
 from minegeo.cli._argtypes import (
     finite_float,
-    float_in_range,
     int_in_range,
-    nonnegative_float,
-    nonnegative_int,
-    positive_float,
-    positive_int,
 )
 from minegeo.cli._imu import add_imu_arguments, check_imu, inertial_params, read_imu
 
 #: the parameter class whose field rules the odometry options use (imported when an option is parsed)
 _ODO = "minegeo.slam.odometry_model:OdometryParams"
+_REC = "minegeo.semantic.recognition:RecognitionParams"
+_TRACK = "minegeo.semantic.tracking:TrackParams"
 HELP = "LiDAR tracking with intersection recognition against a knowledge base (Liang et al. 2024)"
 
 
@@ -74,23 +71,23 @@ def add_arguments(parser) -> None:
                         "directions the drift's walls fix; not with --no-map")
     parser.add_argument("--no-map", action="store_true", help="ignore the base's intersections: recognise "
                         "re-visits of an online base built from the run (the paper's 'no map')")
-    parser.add_argument("--pwcv-threshold", type=float_in_range(0.0, 1.0, lo_open=True), default=0.8,
+    parser.add_argument("--pwcv-threshold", type=arg_type(_REC, "pwcv_threshold"), default=0.8,
                         help="PWCV similarity threshold, in (0, 1] (default 0.8)")
-    parser.add_argument("--n-his", type=nonnegative_int, default=5,
+    parser.add_argument("--n-his", type=arg_type(_REC, "n_his"), default=5,
                         help="previous keyframes stacked with the current one (Eq. 20; 0 = the current one alone)")
-    parser.add_argument("--consecutive", type=positive_int, default=2,
+    parser.add_argument("--consecutive", type=arg_type(_REC, "consecutive_required"), default=2,
                         help="consecutive keyframes matching the same id")
-    parser.add_argument("--icp-max-distance", type=positive_float, default=None, help="ICP verification RMS limit "
+    parser.add_argument("--icp-max-distance", type=arg_type(_REC, "icp_max_distance_m"), default=None, help="ICP verification RMS limit "
                         "against the base (m; default 0.135 for a map sampled every 0.2 m, see "
                         "docs/intersections.md); not with --no-map")
-    parser.add_argument("--gate", type=positive_float, default=3.0, help="odometry gate at an anchor (m)")
-    parser.add_argument("--gate-drift", type=nonnegative_float, default=None, help="gate growth per metre of path "
+    parser.add_argument("--gate", type=arg_type(_REC, "gate_m"), default=3.0, help="odometry gate at an anchor (m)")
+    parser.add_argument("--gate-drift", type=arg_type(_TRACK, "gate_drift_fraction"), default=None, help="gate growth per metre of path "
                         "since the last verified recognition against the base, instead of the default gate from the "
                         "covariance of the prediction; not with --no-map")
     parser.add_argument("--odometry", choices=("submap", "frame"), default="submap",
                         help="odometry target of each frame: the local map of the last 5 keyframes (default) or "
                         "the previous frame (Ren2019 Eq. 7)")
-    parser.add_argument("--unchecked-path", type=positive_float, default=200.0, metavar="M",
+    parser.add_argument("--unchecked-path", type=arg_type(_TRACK, "unchecked_path_m"), default=200.0, metavar="M",
                         help="a keyframe farther than M metres of path from every verified intersection (and the "
                              "start pose) is odometry only: listed, and the status is 'partial' (default 200)")
     parser.add_argument("--voxel", type=arg_type(_ODO, "voxel_size_m"), default=0.3, help="odometry voxel size (m, > 0)")

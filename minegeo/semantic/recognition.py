@@ -60,6 +60,7 @@ from enum import StrEnum
 
 import numpy as np
 
+from minegeo._params import bounded, validate
 from minegeo._validate import as_points, as_transform, check_positive
 from minegeo.errors import InputError, MinegeoError
 from minegeo.geometry.se3 import compose, invert
@@ -99,6 +100,11 @@ STATUSES = tuple(RecognitionStatus)
 @dataclass(frozen=True)
 class RecognitionParams:
     """Parameters of :func:`recognise_keyframe` (lengths in m, angles in deg).
+
+    Each numeric field declares its bounds in its metadata (:mod:`minegeo._params`): the same rule
+    checks the dataclass, the ``minegeo track`` option that sets it (``--pwcv-threshold``,
+    ``--n-his``, ``--consecutive``, ``--icp-max-distance``, ``--gate``) and its key in a ``--config``
+    file; ``skeleton`` checks itself (:meth:`SkeletonParams.check`).
 
     Attributes
     ----------
@@ -143,38 +149,26 @@ class RecognitionParams:
         Detection parameters (as for the knowledge base).
     """
 
-    pwcv_threshold: float = 0.8
-    n_his: int = 5
-    consecutive_required: int = 2
-    cwc_margin: float = 0.02
-    icp_max_distance_m: float = 0.135
-    icp_min_fitness: float = 0.6
-    icp_gate_m: float = 0.5
-    gate_m: float = 3.0
-    gate_probability: float = 0.999
-    gate_yaw_deg: float = 15.0
-    crop_radius_m: float = 20.0
-    max_junction_range_m: float = 8.0
-    min_wall_points: int = 200
-    carve_margin_m: float = 0.5
-    carve_step_m: float = 0.2
-    icp_voxel_m: float = 0.2
+    pwcv_threshold: float = bounded(0.8, gt=0.0, le=1.0)
+    n_his: int = bounded(5, ge=0, integer=True)
+    consecutive_required: int = bounded(2, ge=1, integer=True)
+    cwc_margin: float = bounded(0.02, ge=0.0)
+    icp_max_distance_m: float = bounded(0.135, gt=0.0)
+    icp_min_fitness: float = bounded(0.6, ge=0.0, le=1.0)
+    icp_gate_m: float = bounded(0.5, gt=0.0)
+    gate_m: float = bounded(3.0, gt=0.0)
+    gate_probability: float = bounded(0.999, gt=0.0, lt=1.0)
+    gate_yaw_deg: float = bounded(15.0, gt=0.0)
+    crop_radius_m: float = bounded(20.0, gt=0.0)
+    max_junction_range_m: float = bounded(8.0, gt=0.0)
+    min_wall_points: int = bounded(200, ge=3, integer=True)
+    carve_margin_m: float = bounded(0.5, ge=0.0)
+    carve_step_m: float = bounded(0.2, gt=0.0)
+    icp_voxel_m: float = bounded(0.2, gt=0.0)
     skeleton: SkeletonParams = field(default_factory=SkeletonParams)
 
     def __post_init__(self):
-        if not 0.0 < float(self.pwcv_threshold) <= 1.0:
-            raise InputError(f"pwcv_threshold must be in (0, 1], got {self.pwcv_threshold!r}")
-        if int(self.n_his) < 0 or int(self.consecutive_required) < 1 or int(self.min_wall_points) < 3:
-            raise InputError("n_his must be >= 0, consecutive_required >= 1 and min_wall_points >= 3")
-        for name in ("icp_max_distance_m", "icp_gate_m", "gate_m", "gate_yaw_deg", "crop_radius_m",
-                     "max_junction_range_m", "carve_step_m", "icp_voxel_m"):
-            check_positive(getattr(self, name), name)
-        for name in ("cwc_margin", "carve_margin_m"):
-            check_positive(getattr(self, name), name, allow_zero=True)
-        if not (isinstance(self.gate_probability, float) and 0.0 < self.gate_probability < 1.0):
-            raise InputError(f"gate_probability must be in (0, 1), got {self.gate_probability!r}")
-        if not 0.0 <= float(self.icp_min_fitness) <= 1.0:
-            raise InputError(f"icp_min_fitness must be in [0, 1], got {self.icp_min_fitness!r}")
+        validate(self)
         self.skeleton.check()
 
 

@@ -74,6 +74,7 @@ from enum import StrEnum
 
 import numpy as np
 
+from minegeo._params import bounded, one_of, validate
 from minegeo._validate import as_transform, internal_transform
 from minegeo.errors import DegenerateGeometryError, InputError
 from minegeo.geometry.se3 import compose, invert, relative
@@ -101,6 +102,11 @@ __all__ = ["TrackParams", "TrackRecognition", "TrackResult", "TrackStatus", "tra
 @dataclass(frozen=True, eq=False)
 class TrackParams:
     """Parameters of :func:`track` (lengths in m).
+
+    Each numeric and choice field declares its rule in its metadata (:mod:`minegeo._params`): the same
+    rule checks the dataclass, the ``minegeo track`` option that sets it (``--gate-drift``,
+    ``--unchecked-path``) and its key in a ``--config`` file; ``odometry`` and ``recognition`` check
+    themselves, ``T_world_start`` is checked as a rigid transform.
 
     Attributes
     ----------
@@ -165,53 +171,29 @@ class TrackParams:
     odometry: OdometryParams = field(default_factory=lambda: OdometryParams(frame_target="submap"))
     recognition: RecognitionParams = field(default_factory=RecognitionParams)
     T_world_start: object = None
-    gate_drift_fraction: float | None = None
-    online_gate_drift_fraction: float = 0.05
-    intersection_sigma_m: float = 0.2
-    completeness_scaling: str = "paper"
-    same_place_m: float = 5.0
-    online_add_range_m: float = 3.0
-    online_merge_m: float = 10.0
-    revisit_min_path_m: float = 30.0
-    loop_sigma_deg: float = 1.0
-    online_icp_max_distance_m: float = 0.2
-    odometry_sigma_fraction: float = 0.05
-    odometry_sigma_deg_per_m: float = 0.1
-    odometry_sigma_mps: float = 0.1
-    intersection_observation: str = "icp"
-    unchecked_path_m: float = 200.0
-    factor_test_probability: float = 0.999
-    map_factor_after_m: float = 50.0
-    map_factor_spacing_m: float = 10.0
-    map_factor_sigma_m: float = 0.2
-    map_factor_min_ratio: float = 0.02
+    gate_drift_fraction: float | None = bounded(None, ge=0.0, optional=True)
+    online_gate_drift_fraction: float = bounded(0.05, ge=0.0)
+    intersection_sigma_m: float = bounded(0.2, gt=0.0)
+    completeness_scaling: str = one_of("paper", ("paper", "inverse"))
+    same_place_m: float = bounded(5.0, ge=0.0)
+    online_add_range_m: float = bounded(3.0, ge=0.0)
+    online_merge_m: float = bounded(10.0, ge=0.0)
+    revisit_min_path_m: float = bounded(30.0, ge=0.0)
+    loop_sigma_deg: float = bounded(1.0, ge=0.0)
+    online_icp_max_distance_m: float = bounded(0.2, ge=0.0)
+    odometry_sigma_fraction: float = bounded(0.05, ge=0.0)
+    odometry_sigma_deg_per_m: float = bounded(0.1, ge=0.0)
+    odometry_sigma_mps: float = bounded(0.1, ge=0.0)
+    intersection_observation: str = one_of("icp", ("icp", "detected"))
+    unchecked_path_m: float = bounded(200.0, gt=0.0)
+    factor_test_probability: float = bounded(0.999, gt=0.0, lt=1.0)
+    map_factor_after_m: float = bounded(50.0, ge=0.0)
+    map_factor_spacing_m: float = bounded(10.0, gt=0.0)
+    map_factor_sigma_m: float = bounded(0.2, gt=0.0)
+    map_factor_min_ratio: float = bounded(0.02, gt=0.0, lt=1.0)
 
     def __post_init__(self):
-        if self.intersection_observation not in ("icp", "detected"):
-            raise InputError(f"intersection_observation must be 'icp' or 'detected', got {self.intersection_observation!r}")
-        for name in (("gate_drift_fraction",) if self.gate_drift_fraction is not None else ()) + (
-                     "online_gate_drift_fraction", "intersection_sigma_m", "same_place_m", "online_add_range_m",
-                     "online_merge_m", "revisit_min_path_m", "loop_sigma_deg", "online_icp_max_distance_m",
-                     "odometry_sigma_fraction",
-                     "odometry_sigma_deg_per_m", "odometry_sigma_mps", "map_factor_after_m"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
-                raise InputError(f"{name} must be a finite number >= 0, got {v!r}")
-        if not (isinstance(self.unchecked_path_m, int | float) and self.unchecked_path_m > 0
-                and math.isfinite(self.unchecked_path_m)):
-            raise InputError(f"unchecked_path_m must be a finite number > 0, got {self.unchecked_path_m!r}")
-        for name in ("map_factor_spacing_m", "map_factor_sigma_m"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-                raise InputError(f"{name} must be a finite number > 0, got {v!r}")
-        if not (isinstance(self.map_factor_min_ratio, int | float) and 0.0 < self.map_factor_min_ratio < 1.0):
-            raise InputError(f"map_factor_min_ratio must be in (0, 1), got {self.map_factor_min_ratio!r}")
-        if not (isinstance(self.factor_test_probability, float) and 0.0 < self.factor_test_probability < 1.0):
-            raise InputError(f"factor_test_probability must be in (0, 1), got {self.factor_test_probability!r}")
-        if self.intersection_sigma_m <= 0:
-            raise InputError(f"intersection_sigma_m must be > 0, got {self.intersection_sigma_m!r}")
-        if self.completeness_scaling not in ("paper", "inverse"):
-            raise InputError(f"completeness_scaling must be 'paper' or 'inverse', got {self.completeness_scaling!r}")
+        validate(self)
         if self.T_world_start is not None:
             as_transform(self.T_world_start, "T_world_start")
 
