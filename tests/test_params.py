@@ -39,6 +39,8 @@ from minegeo.localize.params import (
     UncertaintyParams,
     VerifyParams,
 )
+from minegeo.mast.pipeline import MastParams
+from minegeo.mast.segmentation import SegmentationParams
 from minegeo.registration.ransac_params import RansacParams
 from minegeo.semantic.recognition import RecognitionParams
 from minegeo.semantic.tracking import TrackParams
@@ -177,6 +179,27 @@ BOUNDS = {
        for n in ("intersection_sigma_m", "unchecked_path_m", "map_factor_spacing_m", "map_factor_sigma_m")},
     (TrackParams, "factor_test_probability"): (">", 0.0, "<", 1.0, False),
     (TrackParams, "map_factor_min_ratio"): (">", 0.0, "<", 1.0, False),
+    # MastParams and SegmentationParams (their former __post_init__ checks, minegeo/mast/pipeline.py and
+    # segmentation.py at 1763486; the fields those left unchecked: counts >= 1, fractions in [0, 1], the
+    # Helmert scale tolerance and the split gain > 0)
+    **{(MastParams, n): (">=", 0.0, None, None, False)
+       for n in ("sigma_range_m", "sigma_bearing_deg", "sigma_panel_m", "sigma_beacon_m", "edge_margin_m")},
+    (MastParams, "residual_gate_sigmas"): (">", 0.0, None, None, False),
+    (MastParams, "helmert_scale_tolerance"): (">", 0.0, None, None, False),
+    (MastParams, "min_fit_fraction"): (">=", 0.0, "<=", 1.0, False),
+    (MastParams, "ambiguity_ratio"): (">=", 0.0, "<=", 1.0, False),
+    (MastParams, "confidence"): (">", 0.0, "<", 1.0, False),
+    **{(MastParams, n): (">=", 1, None, None, True)
+       for n in ("icp_max_iterations", "min_beacons", "min_returns_per_beacon", "max_hypotheses")},
+    **{(SegmentationParams, n): (">", 0.0, None, None, False)
+       for n in ("line_tolerance_sigmas", "gap_factor", "split_gain", "deflection_tolerance_deg",
+                 "centroid_tolerance_fraction")},
+    **{(SegmentationParams, n): (">=", 0.0, None, None, False)
+       for n in ("line_tolerance_floor_m", "gap_floor_m", "length_short_fraction", "length_long_fraction",
+                 "length_abs_tolerance_m")},
+    (SegmentationParams, "min_points"): (">=", 3, None, None, True),
+    (SegmentationParams, "n_confirm"): (">=", 1, None, None, True),
+    (SegmentationParams, "refine_window"): (">=", 1, None, None, True),
 }
 #: fields whose rule is joined by a check across fields (GravityParams: 3 <= min_points <= max_points;
 #: RansacParams: ransac_n >= 2, >= 3 for the rigid model)
@@ -185,10 +208,11 @@ CROSS_CHECKED = {(GravityParams, "min_points"), (GravityParams, "max_points"), (
 UNRULED = {(OdometryParams, n) for n in ("min_points", "keyframe_submap_size", "unconverged_retry_fitness",
                                          "turn_retry_yaw_deg")} | {
     (RecognitionParams, "skeleton"),  # SkeletonParams.check()
-    *((TrackParams, n) for n in ("odometry", "recognition", "T_world_start"))}  # groups that check themselves; a pose
+    *((TrackParams, n) for n in ("odometry", "recognition", "T_world_start")),  # groups that check themselves; a pose
+    (MastParams, "segmentation"), (MastParams, "icp_gates_m"), (SegmentationParams, "options")}  # checked by the class
 GROUPS = (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, GravityFallbackParams, LocalizeParams,
           FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams, RansacParams,
-          OdometryParams, LoopParams, RecognitionParams, TrackParams)
+          OdometryParams, LoopParams, RecognitionParams, TrackParams, MastParams, SegmentationParams)
 KEYS = sorted(BOUNDS, key=lambda k: (k[0].__name__, k[1]))
 _OPS = {">": lambda v, b: v > b, ">=": lambda v, b: v >= b, "<": lambda v, b: v < b, "<=": lambda v, b: v <= b}
 
@@ -355,6 +379,11 @@ CLI_CASES = [
     ("track", "--gate", "-3", (RecognitionParams, "gate_m", -3.0), None, None),
     ("track", "--gate-drift", "-0.1", (TrackParams, "gate_drift_fraction", -0.1), None, None),
     ("track", "--unchecked-path", "0", (TrackParams, "unchecked_path_m", 0.0), None, None),
+    ("mast", "--sigma-range-m", "-0.001", (MastParams, "sigma_range_m", -0.001), None, None),
+    ("mast", "--sigma-bearing-deg", "-1", (MastParams, "sigma_bearing_deg", -1.0), None, None),
+    ("mast", "--sigma-panel-m", "-0.5", (MastParams, "sigma_panel_m", -0.5), None, None),
+    ("mast", "--sigma-beacon-m", "-0.01", (MastParams, "sigma_beacon_m", -0.01), None, None),
+    ("mast", "--min-beacons", "0", (MastParams, "min_beacons", 0), None, None),
 ]
 _CLI_IDS = [f"{c[0]}{c[1]}={c[2]}" for c in CLI_CASES]
 
@@ -380,6 +409,8 @@ def _base(verb, tmp_path) -> list:
         return ["--map", tmp_path / "no_map.ply", "--scan", tmp_path / "no_scan.ply", "--out", tmp_path / "out"]
     if verb == "localize-batch":
         return ["--map", tmp_path / "no_map.ply", "--scans", tmp_path / "no_scans", "--out", tmp_path / "out"]
+    if verb == "mast":
+        return ["--scan", tmp_path / "no_scan.csv", "--beacons", tmp_path / "no_beacons.csv", "--out", tmp_path / "out"]
     if verb == "track":
         return ["--frames", tmp_path / "no_frames", "--db", tmp_path / "no_kb.json", "--out", tmp_path / "out"]
     return ["--frames", tmp_path / "no_frames", "--out", tmp_path / "out"]
@@ -470,6 +501,11 @@ OPTION_FIELDS = {
     ("track", "--gate"): (RecognitionParams, "gate_m", None, None),
     ("track", "--gate-drift"): (TrackParams, "gate_drift_fraction", None, None),
     ("track", "--unchecked-path"): (TrackParams, "unchecked_path_m", None, None),
+    ("mast", "--sigma-range-m"): (MastParams, "sigma_range_m", None, None),
+    ("mast", "--sigma-bearing-deg"): (MastParams, "sigma_bearing_deg", None, None),
+    ("mast", "--sigma-panel-m"): (MastParams, "sigma_panel_m", None, None),
+    ("mast", "--sigma-beacon-m"): (MastParams, "sigma_beacon_m", None, None),
+    ("mast", "--min-beacons"): (MastParams, "min_beacons", None, None),
 }
 OPTIONS = sorted(OPTION_FIELDS)
 
@@ -487,7 +523,7 @@ def test_every_option_typed_by_a_field_rule_is_listed():
     from minegeo._params import arg_type
 
     rule_type = type(arg_type(RansacParams, "max_iterations"))
-    for verb in ("localize", "slam", "localize-batch", "track"):
+    for verb in ("localize", "slam", "localize-batch", "track", "mast"):
         typed = {o for o, a in _verb_actions(verb).items() if o.startswith("--") and isinstance(a.type, rule_type)}
         assert typed == {o for v, o in OPTION_FIELDS if v == verb}, verb
     assert {(c[0], c[1]) for c in CLI_CASES} == set(OPTION_FIELDS)

@@ -5,7 +5,10 @@ from __future__ import annotations
 from dataclasses import asdict
 from pathlib import Path
 
-from minegeo.cli._argtypes import nonnegative_float, positive_int
+from minegeo._params import arg_type
+
+#: the parameter class whose field rules the options use (imported when an option is parsed)
+_MAST = "minegeo.mast.pipeline:MastParams"
 
 HELP = "position and azimuth of a 2D scanner from two wall beacons (MAST, Simela et al.)"
 
@@ -14,17 +17,17 @@ def add_arguments(parser) -> None:
     parser.add_argument("--scan", required=True, help="2D scan CSV with header bearing_deg,range_m (bearing clockwise)")
     parser.add_argument("--beacons", required=True, help="beacons CSV with header beacon_id,vertex,x_m,y_m")
     parser.add_argument("--out", required=True, help="output directory (result.json, report.html)")
-    parser.add_argument("--sigma-range-m", type=nonnegative_float, default=None,
+    parser.add_argument("--sigma-range-m", type=arg_type(_MAST, "sigma_range_m"), default=None,
                         help="range noise of the scanner (m); default: '# sigma_range_m' line of the scan file")
-    parser.add_argument("--sigma-bearing-deg", type=nonnegative_float, default=None,
+    parser.add_argument("--sigma-bearing-deg", type=arg_type(_MAST, "sigma_bearing_deg"), default=None,
                         help="bearing noise (deg); default: from the scan file, else 0")
-    parser.add_argument("--sigma-panel-m", type=nonnegative_float, default=0.0,
+    parser.add_argument("--sigma-panel-m", type=arg_type(_MAST, "sigma_panel_m"), default=0.0,
                         help="extra per-return panel-line uncertainty (panel flatness), m")
-    parser.add_argument("--sigma-beacon-m", type=nonnegative_float, default=0.0,
+    parser.add_argument("--sigma-beacon-m", type=arg_type(_MAST, "sigma_beacon_m"), default=0.0,
                         help="standard deviation of each surveyed beacon vertex coordinate (m); "
                              "propagated with full correlation")
     parser.add_argument("--ccw", action="store_true", help="bearings in the file are counter-clockwise")
-    parser.add_argument("--min-beacons", type=positive_int, default=2, help="beacons that must be seen (default 2)")
+    parser.add_argument("--min-beacons", type=arg_type(_MAST, "min_beacons"), default=2, help="beacons that must be seen (default 2)")
     parser.add_argument("--options", default="1,2,3,4,5,6",
                         help="segmentation options of the paper's Table 1 allowed (default 1,2,3,4,5,6)")
     parser.add_argument("--variance", choices=("aposteriori", "apriori"), default="aposteriori",

@@ -38,8 +38,8 @@ from enum import StrEnum
 import numpy as np
 from scipy import stats
 
+from minegeo._params import bounded, one_of, validate
 from minegeo._provenance import StageTimer
-from minegeo._validate import check_positive
 from minegeo.errors import (
     ConvergenceError,
     DegenerateGeometryError,
@@ -69,6 +69,11 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class MastParams:
     """Parameters of :func:`locate_scanner` (lengths in m, angles in deg).
+
+    Each numeric and choice field declares its rule in its metadata (:mod:`minegeo._params`): the same
+    rule checks the dataclass, the ``minegeo mast`` option that sets it (``--sigma-range-m``,
+    ``--sigma-bearing-deg``, ``--sigma-panel-m``, ``--sigma-beacon-m``, ``--min-beacons``) and its key in
+    a ``--config`` file; ``icp_gates_m`` (positive distances) is checked by the class.
 
     Attributes
     ----------
@@ -112,41 +117,28 @@ class MastParams:
         Level of the error ellipse and of the azimuth interval.
     """
 
-    sigma_range_m: float | None = None
-    sigma_bearing_deg: float | None = None
-    sigma_panel_m: float = 0.0
-    sigma_beacon_m: float = 0.0
+    sigma_range_m: float | None = bounded(None, ge=0.0, optional=True)
+    sigma_bearing_deg: float | None = bounded(None, ge=0.0, optional=True)
+    sigma_panel_m: float = bounded(0.0, ge=0.0)
+    sigma_beacon_m: float = bounded(0.0, ge=0.0)
     segmentation: SegmentationParams = field(default_factory=SegmentationParams)
     icp_gates_m: tuple = (0.20, 0.10, 0.05)
-    icp_max_iterations: int = 100
-    edge_margin_m: float = 0.005
-    residual_gate_sigmas: float = 5.0
-    min_fit_fraction: float = 0.5
-    min_beacons: int = 2
-    min_returns_per_beacon: int = 3
-    helmert_scale_tolerance: float = 0.25
-    max_hypotheses: int = 16
-    ambiguity_ratio: float = 0.8
-    variance: str = "aposteriori"
-    confidence: float = 0.95
+    icp_max_iterations: int = bounded(100, ge=1, integer=True)
+    edge_margin_m: float = bounded(0.005, ge=0.0)
+    residual_gate_sigmas: float = bounded(5.0, gt=0.0)
+    min_fit_fraction: float = bounded(0.5, ge=0.0, le=1.0)
+    min_beacons: int = bounded(2, ge=1, integer=True)
+    min_returns_per_beacon: int = bounded(3, ge=1, integer=True)
+    helmert_scale_tolerance: float = bounded(0.25, gt=0.0)
+    max_hypotheses: int = bounded(16, ge=1, integer=True)
+    ambiguity_ratio: float = bounded(0.8, ge=0.0, le=1.0)
+    variance: str = one_of("aposteriori", ("aposteriori", "apriori"))
+    confidence: float = bounded(0.95, gt=0.0, lt=1.0)
 
     def __post_init__(self) -> None:
-        if self.sigma_range_m is not None:
-            check_positive(self.sigma_range_m, "sigma_range_m", allow_zero=True)
-        if self.sigma_bearing_deg is not None:
-            check_positive(self.sigma_bearing_deg, "sigma_bearing_deg", allow_zero=True)
-        check_positive(self.sigma_panel_m, "sigma_panel_m", allow_zero=True)
-        check_positive(self.sigma_beacon_m, "sigma_beacon_m", allow_zero=True)
-        check_positive(self.edge_margin_m, "edge_margin_m", allow_zero=True)
-        check_positive(self.residual_gate_sigmas, "residual_gate_sigmas")
-        if int(self.min_beacons) < 1:
-            raise InputError(f"min_beacons must be >= 1, got {self.min_beacons}")
+        validate(self)
         if not self.icp_gates_m or any(g <= 0 for g in self.icp_gates_m):
             raise InputError("icp_gates_m must be positive distances")
-        if not 0 < self.confidence < 1:
-            raise InputError(f"confidence must be in (0, 1), got {self.confidence}")
-        if self.variance not in ("aposteriori", "apriori"):
-            raise InputError(f"variance must be 'aposteriori' or 'apriori', got {self.variance!r}")
 
 
 class MastStatus(StrEnum):

@@ -35,7 +35,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from minegeo._validate import as_points, check_positive
+from minegeo._params import bounded, validate
+from minegeo._validate import as_points
 from minegeo.errors import InputError
 from minegeo.mast._kernels import _grow_segments, _split_segments
 from minegeo.mast.beacons import Beacon
@@ -67,6 +68,9 @@ OPTION_IDENTIFIES: dict[int, tuple[bool, bool]] = {
 @dataclass(frozen=True)
 class SegmentationParams:
     """Thresholds of the sequential line fit and of Table 1 (lengths in m, angles in deg).
+
+    Each numeric field declares its bounds in its metadata (:mod:`minegeo._params`): one rule for the
+    dataclass and a ``--config`` value; ``options`` (a non-empty subset of 1..6) is checked by the class.
 
     Attributes
     ----------
@@ -101,31 +105,23 @@ class SegmentationParams:
         Table 1 options allowed (default all, tried in order 1..6).
     """
 
-    line_tolerance_sigmas: float = 4.0
-    line_tolerance_floor_m: float = 0.002
-    gap_factor: float = 4.0
-    gap_floor_m: float = 0.02
-    min_points: int = 3
-    n_confirm: int = 3
-    refine_window: int = 24
-    split_gain: float = 20.0
-    length_short_fraction: float = 0.25
-    length_long_fraction: float = 0.10
-    length_abs_tolerance_m: float = 0.01
-    deflection_tolerance_deg: float = 10.0
-    centroid_tolerance_fraction: float = 0.25
+    line_tolerance_sigmas: float = bounded(4.0, gt=0.0)
+    line_tolerance_floor_m: float = bounded(0.002, ge=0.0)
+    gap_factor: float = bounded(4.0, gt=0.0)
+    gap_floor_m: float = bounded(0.02, ge=0.0)
+    min_points: int = bounded(3, ge=3, integer=True)
+    n_confirm: int = bounded(3, ge=1, integer=True)
+    refine_window: int = bounded(24, ge=1, integer=True)
+    split_gain: float = bounded(20.0, gt=0.0)
+    length_short_fraction: float = bounded(0.25, ge=0.0)
+    length_long_fraction: float = bounded(0.10, ge=0.0)
+    length_abs_tolerance_m: float = bounded(0.01, ge=0.0)
+    deflection_tolerance_deg: float = bounded(10.0, gt=0.0)
+    centroid_tolerance_fraction: float = bounded(0.25, gt=0.0)
     options: tuple = (1, 2, 3, 4, 5, 6)
 
     def __post_init__(self) -> None:
-        if int(self.min_points) < 3:
-            raise InputError(f"min_points must be >= 3, got {self.min_points}")
-        if int(self.n_confirm) < 1 or int(self.refine_window) < 1:
-            raise InputError("n_confirm and refine_window must be >= 1")
-        for name in ("line_tolerance_sigmas", "gap_factor", "deflection_tolerance_deg", "centroid_tolerance_fraction"):
-            check_positive(getattr(self, name), name)
-        for name in ("line_tolerance_floor_m", "gap_floor_m", "length_short_fraction", "length_long_fraction",
-                     "length_abs_tolerance_m"):
-            check_positive(getattr(self, name), name, allow_zero=True)
+        validate(self)
         bad = [o for o in self.options if o not in TABLE1_OPTIONS]
         if bad or not self.options:
             raise InputError(f"options must be a non-empty subset of 1..6, got {self.options}")
