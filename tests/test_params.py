@@ -26,6 +26,7 @@ from hypothesis import strategies as st
 
 from minegeo._params import field_rule
 from minegeo.errors import InputError
+from minegeo.georef.result import GeorefParams
 from minegeo.localize.params import (
     AmbiguityParams,
     CorrelativeParams,
@@ -200,6 +201,14 @@ BOUNDS = {
     (SegmentationParams, "min_points"): (">=", 3, None, None, True),
     (SegmentationParams, "n_confirm"): (">=", 1, None, None, True),
     (SegmentationParams, "refine_window"): (">=", 1, None, None, True),
+    # GeorefParams (its former __post_init__ checks, minegeo/georef/result.py at 1763486)
+    (GeorefParams, "blunder_alpha"): (">", 0.0, "<", 1.0, False),
+    (GeorefParams, "chi2_alpha"): (">", 0.0, "<", 1.0, False),
+    (GeorefParams, "sigma_local_m"): (">=", 0.0, None, None, False),
+    (GeorefParams, "max_scale_deviation"): (">", 0.0, "<", 1.0, False),
+    (GeorefParams, "origin_step_m"): (">", 0.0, None, None, False),
+    (GeorefParams, "min_geometry_ratio"): (">=", 0.0, "<", 1.0, False),
+    (GeorefParams, "max_sigma0"): (">", 1.0, None, None, False),
 }
 #: fields whose rule is joined by a check across fields (GravityParams: 3 <= min_points <= max_points;
 #: RansacParams: ransac_n >= 2, >= 3 for the rigid model)
@@ -209,10 +218,12 @@ UNRULED = {(OdometryParams, n) for n in ("min_points", "keyframe_submap_size", "
                                          "turn_retry_yaw_deg")} | {
     (RecognitionParams, "skeleton"),  # SkeletonParams.check()
     *((TrackParams, n) for n in ("odometry", "recognition", "T_world_start")),  # groups that check themselves; a pose
-    (MastParams, "segmentation"), (MastParams, "icp_gates_m"), (SegmentationParams, "options")}  # checked by the class
+    (MastParams, "segmentation"), (MastParams, "icp_gates_m"), (SegmentationParams, "options"),
+    (GeorefParams, "convention")}  # checked by the class
 GROUPS = (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, GravityFallbackParams, LocalizeParams,
           FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams, RansacParams,
-          OdometryParams, LoopParams, RecognitionParams, TrackParams, MastParams, SegmentationParams)
+          OdometryParams, LoopParams, RecognitionParams, TrackParams, MastParams, SegmentationParams,
+          GeorefParams)
 KEYS = sorted(BOUNDS, key=lambda k: (k[0].__name__, k[1]))
 _OPS = {">": lambda v, b: v > b, ">=": lambda v, b: v >= b, "<": lambda v, b: v < b, "<=": lambda v, b: v <= b}
 
@@ -384,6 +395,10 @@ CLI_CASES = [
     ("mast", "--sigma-panel-m", "-0.5", (MastParams, "sigma_panel_m", -0.5), None, None),
     ("mast", "--sigma-beacon-m", "-0.01", (MastParams, "sigma_beacon_m", -0.01), None, None),
     ("mast", "--min-beacons", "0", (MastParams, "min_beacons", 0), None, None),
+    ("georef", "--sigma-local-m", "-0.01", (GeorefParams, "sigma_local_m", -0.01), None, None),
+    ("georef", "--blunder-alpha", "1", (GeorefParams, "blunder_alpha", 1.0), None, None),
+    ("georef", "--max-scale-deviation", "0", (GeorefParams, "max_scale_deviation", 0.0), None, None),
+    ("georef", "--max-sigma0", "1", (GeorefParams, "max_sigma0", 1.0), None, "a finite number in (1, 1000000000000]"),
 ]
 _CLI_IDS = [f"{c[0]}{c[1]}={c[2]}" for c in CLI_CASES]
 
@@ -400,6 +415,8 @@ LIMIT_CASES = [
      "a whole number in [0, 1000000000]", "a whole number >= 0"),
     ("slam", "--keyframe-angle", "180.5", (OdometryParams, "keyframe_angle_deg", 180.5), "a finite number in (0, 180]",
      "a finite number > 0"),
+    ("georef", "--max-sigma0", "1e13", (GeorefParams, "max_sigma0", 1e13), "a finite number in (1, 1000000000000]",
+     "a finite number > 1"),
 ]
 _LIMIT_IDS = [f"{c[0]}{c[1]}={c[2]}" for c in LIMIT_CASES]
 
@@ -409,6 +426,9 @@ def _base(verb, tmp_path) -> list:
         return ["--map", tmp_path / "no_map.ply", "--scan", tmp_path / "no_scan.ply", "--out", tmp_path / "out"]
     if verb == "localize-batch":
         return ["--map", tmp_path / "no_map.ply", "--scans", tmp_path / "no_scans", "--out", tmp_path / "out"]
+    if verb == "georef":
+        return ["--map", tmp_path / "no_map.ply", "--gcps", tmp_path / "no_gcps.csv", "--out", tmp_path / "geo.ply",
+                "--report", tmp_path / "out"]
     if verb == "mast":
         return ["--scan", tmp_path / "no_scan.csv", "--beacons", tmp_path / "no_beacons.csv", "--out", tmp_path / "out"]
     if verb == "track":
@@ -506,6 +526,10 @@ OPTION_FIELDS = {
     ("mast", "--sigma-panel-m"): (MastParams, "sigma_panel_m", None, None),
     ("mast", "--sigma-beacon-m"): (MastParams, "sigma_beacon_m", None, None),
     ("mast", "--min-beacons"): (MastParams, "min_beacons", None, None),
+    ("georef", "--sigma-local-m"): (GeorefParams, "sigma_local_m", None, None),
+    ("georef", "--blunder-alpha"): (GeorefParams, "blunder_alpha", None, None),
+    ("georef", "--max-scale-deviation"): (GeorefParams, "max_scale_deviation", None, None),
+    ("georef", "--max-sigma0"): (GeorefParams, "max_sigma0", 1e12, None),
 }
 OPTIONS = sorted(OPTION_FIELDS)
 
@@ -523,7 +547,7 @@ def test_every_option_typed_by_a_field_rule_is_listed():
     from minegeo._params import arg_type
 
     rule_type = type(arg_type(RansacParams, "max_iterations"))
-    for verb in ("localize", "slam", "localize-batch", "track", "mast"):
+    for verb in ("localize", "slam", "localize-batch", "track", "mast", "georef"):
         typed = {o for o, a in _verb_actions(verb).items() if o.startswith("--") and isinstance(a.type, rule_type)}
         assert typed == {o for v, o in OPTION_FIELDS if v == verb}, verb
     assert {(c[0], c[1]) for c in CLI_CASES} == set(OPTION_FIELDS)

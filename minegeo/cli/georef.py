@@ -11,9 +11,14 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from minegeo.cli._argtypes import float_in_range, nonnegative_float, open_unit_interval, positive_float
+from minegeo._params import arg_type
+from minegeo.cli._argtypes import positive_float
 
 HELP = "georeference a map into a projected CRS from ground control points (Helmert 7/6-parameter LSQ)"
+
+
+#: the parameter class whose field rules the options use (imported when an option is parsed)
+_GEO = "minegeo.georef.result:GeorefParams"
 
 
 def add_arguments(parser) -> None:
@@ -26,17 +31,17 @@ def add_arguments(parser) -> None:
                         help="similarity: 7 parameters with scale (default); rigid: 6 parameters, scale 1")
     parser.add_argument("--convention", choices=("position_vector", "coordinate_frame"), default="position_vector",
                         help="rotation sign convention reported: EPSG 9606 position vector (default) or 9607")
-    parser.add_argument("--sigma-local-m", type=nonnegative_float, default=0.0,
+    parser.add_argument("--sigma-local-m", type=arg_type(_GEO, "sigma_local_m"), default=0.0,
                         help="std. dev. of the GCP map coordinates (target picking), m (default 0)")
     parser.add_argument("--default-sigma-m", type=positive_float, default=0.01,
                         help="std. dev. of E,N,H when the GCP file has no sigma columns (default 0.01 m)")
-    parser.add_argument("--blunder-alpha", type=open_unit_interval, default=0.001,
+    parser.add_argument("--blunder-alpha", type=arg_type(_GEO, "blunder_alpha"), default=0.001,
                         help="significance level of the per-coordinate w-test (default 0.001 -> 3.29)")
     parser.add_argument("--variance", choices=("aposteriori", "apriori"), default="aposteriori",
                         help="sigma0 scaling the parameter covariance (default aposteriori)")
-    parser.add_argument("--max-scale-deviation", type=open_unit_interval, default=0.01,
+    parser.add_argument("--max-scale-deviation", type=arg_type(_GEO, "max_scale_deviation"), default=0.01,
                         help="unit rule: fail when the GCP distance ratio differs from 1 by more (default 0.01)")
-    parser.add_argument("--max-sigma0", type=float_in_range(1.0, 1e12, lo_open=True), default=10.0,
+    parser.add_argument("--max-sigma0", type=arg_type(_GEO, "max_sigma0", le=1e12), default=10.0,
                         help="fail when sigma0 exceeds this (residuals >> stated GCP sigmas; default 10)")
     parser.add_argument("--force", action="store_true",
                         help="write MAP_GEO even when the fit failed (never for production use)")

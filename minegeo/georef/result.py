@@ -9,12 +9,12 @@ statistics are described in :mod:`minegeo.georef.fit`.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from enum import StrEnum
 
 import numpy as np
 
+from minegeo._params import bounded, flag, one_of, validate
 from minegeo.errors import InputError
 from minegeo.georef.crs import CRSInfo
 from minegeo.survey.angles import RHO_ARCSEC, format_dms
@@ -39,6 +39,11 @@ _CONVENTIONS = {
 @dataclass(frozen=True)
 class GeorefParams:
     """Parameters of :func:`georeference`.
+
+    Each field but ``convention`` declares its rule in its metadata (:mod:`minegeo._params`): the same
+    rule checks the dataclass, the ``minegeo georef`` option that sets it (``--sigma-local-m``,
+    ``--blunder-alpha``, ``--max-scale-deviation``, ``--max-sigma0``) and its key in a ``--config``
+    file; ``convention`` takes its spellings (``coordinate-frame``, any case) and is normalised here.
 
     Attributes
     ----------
@@ -74,21 +79,20 @@ class GeorefParams:
         such a fit must not georeference a map.
     """
 
-    model: str = "similarity"
+    model: str = one_of("similarity", _MODELS)
     convention: str = "position_vector"
-    blunder_alpha: float = 0.001
-    chi2_alpha: float = 0.05
-    sigma_local_m: float = 0.0
-    variance: str = "aposteriori"
-    max_scale_deviation: float = 0.01
-    origin_step_m: float = 1000.0
-    allow_geocentric: bool = False
-    min_geometry_ratio: float = 0.05
-    max_sigma0: float = 10.0
+    blunder_alpha: float = bounded(0.001, gt=0.0, lt=1.0)
+    chi2_alpha: float = bounded(0.05, gt=0.0, lt=1.0)
+    sigma_local_m: float = bounded(0.0, ge=0.0)
+    variance: str = one_of("aposteriori", ("aposteriori", "apriori"))
+    max_scale_deviation: float = bounded(0.01, gt=0.0, lt=1.0)
+    origin_step_m: float = bounded(1000.0, gt=0.0)
+    allow_geocentric: bool = flag(False)
+    min_geometry_ratio: float = bounded(0.05, ge=0.0, lt=1.0)
+    max_sigma0: float = bounded(10.0, gt=1.0)
 
     def __post_init__(self):
-        if self.model not in _MODELS:
-            raise InputError(f"model must be 'rigid' or 'similarity', got {self.model!r}")
+        validate(self)
         conv = str(self.convention).lower().replace("-", "_").replace(" ", "_")
         if conv not in _CONVENTIONS:
             raise InputError(
@@ -96,22 +100,6 @@ class GeorefParams:
                 "or 'coordinate_frame' (EPSG 9607)"
             )
         object.__setattr__(self, "convention", _CONVENTIONS[conv])
-        for name in ("blunder_alpha", "chi2_alpha"):
-            v = getattr(self, name)
-            if not (0.0 < v < 1.0):
-                raise InputError(f"{name} must be between 0 and 1, got {v!r}")
-        if not (math.isfinite(self.sigma_local_m) and self.sigma_local_m >= 0):
-            raise InputError(f"sigma_local_m must be >= 0 (m), got {self.sigma_local_m!r}")
-        if self.variance not in ("aposteriori", "apriori"):
-            raise InputError(f"variance must be 'aposteriori' or 'apriori', got {self.variance!r}")
-        if not (math.isfinite(self.max_scale_deviation) and 0 < self.max_scale_deviation < 1):
-            raise InputError(f"max_scale_deviation must be in (0, 1), got {self.max_scale_deviation!r}")
-        if not (math.isfinite(self.origin_step_m) and self.origin_step_m > 0):
-            raise InputError(f"origin_step_m must be > 0, got {self.origin_step_m!r}")
-        if not (0 <= self.min_geometry_ratio < 1):
-            raise InputError(f"min_geometry_ratio must be in [0, 1), got {self.min_geometry_ratio!r}")
-        if not (self.max_sigma0 > 1):
-            raise InputError(f"max_sigma0 must be > 1, got {self.max_sigma0!r}")
 
     def as_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
