@@ -190,7 +190,7 @@ class SlamResult:
 
 
 def keyframe_graph(kf_poses: np.ndarray, odo: OdometryResult, loops: list[LoopCandidate],
-                   params: OdometryParams | None = None) -> PoseGraph:
+                   params: OdometryParams | None = None, rates_deg_s: np.ndarray | None = None) -> PoseGraph:
     """The keyframe pose graph: odometry edges ``(k−1, k)``, the odometry's edges across keyframes
     placed by the guess (``OdometryResult.keyframe_extra_edges``), then the accepted loops;
     information in g2o order (t, r).
@@ -211,6 +211,9 @@ def keyframe_graph(kf_poses: np.ndarray, odo: OdometryResult, loops: list[LoopCa
     loops : list of LoopCandidate
         The accepted ones become loop edges.
     params : OdometryParams, optional
+    rates_deg_s : (K,) array, optional
+        :func:`~minegeo.slam.odometry.keyframe_rates_deg_s` of ``odo`` when the caller already has them
+        (the back end computes them once per run, not once per optimisation).
     """
     params = params or odo.params
     k = kf_poses.shape[0]
@@ -220,7 +223,7 @@ def keyframe_graph(kf_poses: np.ndarray, odo: OdometryResult, loops: list[LoopCa
     Z = list(odo.keyframe_edges) + [Z for _, _, Z, _ in extra] + [c.T_i_j for c in acc]
     info_wr = list(odo.keyframe_information) + [I for _, _, _, I in extra] + [c.information for c in acc]
     if params.edge_covariance_floor and edges:
-        rates = keyframe_rates_deg_s(odo.times_s, odo.poses, odo.keyframes)
+        rates = rates_deg_s if rates_deg_s is not None else keyframe_rates_deg_s(odo.times_s, odo.poses, odo.keyframes)
         n_odo = len(edges) - len(acc)
         info_wr = [_floored(I, Zm, (rates[i], rates[j]), params, loop=m >= n_odo)
                    for m, ((i, j), Zm, I) in enumerate(zip(edges, Z, info_wr, strict=True))]
@@ -359,12 +362,12 @@ def _floors_in_world(meas: np.ndarray, T_world_kf: np.ndarray) -> np.ndarray:
     return np.column_stack([n, meas[:, 3] - np.einsum("ei,ei->e", n, T_world_kf[:, :3, 3])])
 
 
-def _optimise(kf_poses, odo, loops, obs, params: SlamParams) -> PoseGraphResult:
-    return optimize_pose_graph(keyframe_graph(kf_poses, odo, loops, params.odometry), params.posegraph,
+def _optimise(kf_poses, odo, loops, obs, params: SlamParams, rates=None) -> PoseGraphResult:
+    return optimize_pose_graph(keyframe_graph(kf_poses, odo, loops, params.odometry, rates), params.posegraph,
                                _plane_set(obs, kf_poses, params) if obs is not None else None)
 
 
-def _close_loops(odo: OdometryResult, params: SlamParams, obs=None):
+def _close_loops(odo: OdometryResult, params: SlamParams, obs=None, rates=None):
     """Loop closure keyframe by keyframe; the keyframe graph re-optimised after an accepted loop that
     corrects the current poses by more than ``params.loops.reoptimise_m`` / ``reoptimise_deg``
     (:func:`minegeo.slam.loops.loop_correction`); the loops accepted since the last optimisation are
@@ -391,7 +394,7 @@ def _close_loops(odo: OdometryResult, params: SlamParams, obs=None):
         every = lp.reoptimise_m == 0 and lp.reoptimise_deg == 0
         moved = [loop_correction(c, kf_poses) for c in tried if c.accepted]
         if any(every or m > lp.reoptimise_m or a > lp.reoptimise_deg for m, a in moved):
-            opt = _optimise(kf_poses, odo, loops, obs, params)
+            opt = _optimise(kf_poses, odo, loops, obs, params, rates)
             if opt.status != "failed":
                 kf_poses = _optimised_poses(opt)
     return kf_poses, loops
@@ -498,17 +501,19 @@ def run_backend(odo: OdometryResult, params: SlamParams | None = None, *, use_lo
     if params.use_planes and odo.keyframes.size > 1:
         obs = _floor_observations(odo, odo.poses[odo.keyframes], params)
     t_planes = time.perf_counter()
+    rates = (keyframe_rates_deg_s(odo.times_s, odo.poses, odo.keyframes) if params.odometry.edge_covariance_floor
+             else None)  # the edge floor's keyframe rates, once for every optimisation of the run
     if use_loops:
-        kf_poses, loops = _close_loops(odo, params, obs)
+        kf_poses, loops = _close_loops(odo, params, obs, rates)
     else:
         kf_poses, loops = odo.poses[odo.keyframes].copy(), []
     t2 = time.perf_counter()
     opt = None
     if odo.keyframes.size > 1 and (use_loops or obs is not None):
-        opt = _optimise(kf_poses, odo, loops, obs, params)
+        opt = _optimise(kf_poses, odo, loops, obs, params, rates)
     if opt is not None and opt.status != "failed":
         kf_poses = _optimised_poses(opt)
-    graph = opt.graph if opt is not None else keyframe_graph(kf_poses, odo, loops, params.odometry)
+    graph = opt.graph if opt is not None else keyframe_graph(kf_poses, odo, loops, params.odometry, rates)
     inertial = None
     if imu is not None and odo.keyframes.size > 1:
         inertial = _inertial(odo, kf_poses, graph, imu if isinstance(imu, GyroAid) else GyroAid(imu), params)
