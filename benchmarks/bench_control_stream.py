@@ -119,7 +119,16 @@ def load_slam(out: Path):
         raise RuntimeError(f"{out}: keyframe times not among the frame times")
     if not np.allclose(g.poses, kf.poses, atol=1e-9):
         raise RuntimeError(f"{out}: graph.g2o vertices differ from keyframes.tum")
-    return SimpleNamespace(times_s=tr.times_s, poses=tr.poses, keyframes=idx, keyframe_poses=kf.poses, graph=g)
+    from dataclasses import fields
+
+    from minegeo.slam.odometry import OdometryParams
+    from minegeo.slam.pipeline import SlamParams
+
+    rec = json.loads((out / "result.json").read_text())["parameters"]["odometry"]  # the keyframe noise of the run
+    known = {f.name for f in fields(OdometryParams)}
+    odo = OdometryParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in rec.items() if k in known})
+    return SimpleNamespace(times_s=tr.times_s, poses=tr.poses, keyframes=idx, keyframe_poses=kf.poses, graph=g,
+                           params=SlamParams(odometry=odo))
 
 
 def read_truth(stream: Path):
@@ -140,7 +149,7 @@ def _err_stats(e: np.ndarray) -> dict:
             "max_h_m": float(h.max()), "max_v_m": float(np.abs(e[:, 2]).max()), "n": int(e.shape[0])}
 
 
-def blunder_case(st, graph, offset, true_local, between) -> dict:
+def blunder_case(st, graph, offset, true_local, between, pose_noise=None) -> dict:
     """The acceptance's blunder on this SLAM run: 0.5 m added to the E of the second control station,
     control in the graph (drift states auto): flagged by its w-test and named? Then the same station
     removed from the file: the check errors (the stations between two control stations, against the
@@ -154,14 +163,14 @@ def blunder_case(st, graph, offset, true_local, between) -> dict:
     enh[c, 0] += 0.5
     bad = dc_replace(st, enh_local=enh)
     p = ControlParams(mode="graph", drift_states="auto")
-    r = apply_control(*graph, bad, offset, st.crs, p)
+    r = apply_control(*graph, bad, offset, st.crs, p, pose_noise)
     e = r.station_enh_local - true_local
     keep = np.arange(len(st.ids)) != c
     sub = dc_replace(st, ids=tuple(np.asarray(st.ids)[keep]), t_start_s=st.t_start_s[keep], t_end_s=st.t_end_s[keep],
                      enh_local=st.enh_local[keep], sigma_h_m=st.sigma_h_m[keep], sigma_v_m=st.sigma_v_m[keep],
                      roles=tuple(np.asarray(st.roles, dtype=object)[keep]),
                      **({"lines": tuple(np.asarray(st.lines)[keep])} if getattr(st, "lines", None) else {}))
-    r2 = apply_control(*graph, sub, offset, st.crs, p)
+    r2 = apply_control(*graph, sub, offset, st.crs, p, pose_noise)
     e2 = r2.station_enh_local - true_local[keep]
     w = {f"{i} {comp}": float(v) for i, comp, v in r.stats.flagged}
     return {"station": st.ids[c], "added_enh_m": [0.5, 0.0, 0.0], "status": str(r.status), "reason": r.reason,
@@ -181,6 +190,7 @@ def evaluate(out: Path, stream: Path) -> dict:
         apply_control,
         graph_inputs,
         interpolate_poses,
+        slam_pose_noise,
         station_points,
     )
 
@@ -195,6 +205,7 @@ def evaluate(out: Path, stream: Path) -> dict:
     T_cl[:3, 3] -= o  # world -> local CRS frame
     res = load_slam(out)
     kt, kP, edges, Z, info = graph_inputs(res, st.t_mid_s)
+    pose_noise = slam_pose_noise(res, kt)
     tc = st.t_mid_s[st.is_control]
     between = st.is_check & (st.t_mid_s > tc.min()) & (st.t_mid_s < tc.max())
     rec = {"frames": int(res.times_s.size), "keyframes": int(res.keyframes.size), "graph_variables": int(kt.size),
@@ -211,7 +222,7 @@ def evaluate(out: Path, stream: Path) -> dict:
                             "errors_enh_m": {i: e[k].tolist() for k, i in enumerate(st.ids) if st.is_check[k]}}
     for name, (kw, label) in MODES.items():
         t0 = time.perf_counter()
-        c = apply_control(kt, kP, edges, Z, info, st, offset, st.crs, ControlParams(**kw))
+        c = apply_control(kt, kP, edges, Z, info, st, offset, st.crs, ControlParams(**kw), pose_noise)
         e = c.station_enh_local - true_local
         m = {"label": label, "seconds": time.perf_counter() - t0, "status": str(c.status), "reason": c.reason,
              "check_between": _err_stats(e[between]), "check_all": _err_stats(e[st.is_check]),
@@ -238,7 +249,7 @@ def evaluate(out: Path, stream: Path) -> dict:
             m["path_error"] = _err_stats(ev)
             m["station_pose_error"] = _err_stats(c.poses[c.station_var, :3, 3] - Tt[c.station_var, :3, 3])
         rec["modes"][name] = m
-    rec["blunder"] = blunder_case(st, (kt, kP, edges, Z, info), offset, true_local, between)
+    rec["blunder"] = blunder_case(st, (kt, kP, edges, Z, info), offset, true_local, between, pose_noise)
     # the run's own result.json (same function, same inputs): its check RMSE must equal the auto row
     if (out / "result.json").is_file():
         rj = json.loads((out / "result.json").read_text())

@@ -66,7 +66,7 @@ def edge_records(res, truth: np.ndarray) -> dict:
     edges = [(a, a + 1, odo.keyframe_edges[a], odo.keyframe_information[a], 0) for a in range(len(kf) - 1)]
     edges += [(i, j, Z, Om, 1) for i, j, Z, Om in odo.keyframe_extra_edges]
     edges += [(c.i, c.j, c.T_i_j, c.information, 2) for c in res.loops if c.accepted]
-    rec = {k: [] for k in ("err", "cov", "length_m", "angle_deg", "rate_i", "rate_j", "kind")}
+    rec = {k: [] for k in ("err", "cov", "length_m", "angle_deg", "rate_i", "rate_j", "kind", "i", "j", "z_true")}
     for i, j, Z, Om, kind in edges:
         if np.trace(Om) < 1e-3:  # the negligible information of a guessed chain edge: no measurement
             continue
@@ -78,6 +78,9 @@ def edge_records(res, truth: np.ndarray) -> dict:
         rec["rate_i"].append(rates[i])
         rec["rate_j"].append(rates[j])
         rec["kind"].append(kind)
+        rec["i"].append(i)
+        rec["j"].append(j)
+        rec["z_true"].append(Zt)
     return {k: np.asarray(v) for k, v in rec.items()}
 
 

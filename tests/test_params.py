@@ -46,7 +46,7 @@ from minegeo.registration.ransac_params import RansacParams
 from minegeo.semantic.recognition import RecognitionParams
 from minegeo.semantic.tracking import TrackParams
 from minegeo.slam.loops import LoopParams
-from minegeo.slam.odometry_model import EDGE_FLOOR_FIELDS, OdometryParams
+from minegeo.slam.odometry_model import EDGE_FLOOR_FIELDS, KEYFRAME_NOISE_FIELDS, OdometryParams
 
 # (class, field) -> (lower op, lower bound, upper op, upper bound, integer): the documented rules
 BOUNDS = {
@@ -144,7 +144,7 @@ BOUNDS = {
                  "keyframe_interval_s", "sigma_floor_m", "coarse_gate_factor", "translation_observability_ratio",
                  "surface_observability_ratio", "max_speed_m_s", "max_angular_rate_deg_s", "max_acceleration_m_s2",
                  "motion_noise_m")},
-    **{(OdometryParams, n): (">=", 0.0, None, None, False) for n in EDGE_FLOOR_FIELDS},
+    **{(OdometryParams, n): (">=", 0.0, None, None, False) for n in EDGE_FLOOR_FIELDS + KEYFRAME_NOISE_FIELDS},
     (OdometryParams, "gicp_max_iterations"): (">=", 0, None, None, True),
     (OdometryParams, "covariance_neighbours"): (">=", 3, None, None, True),
     (OdometryParams, "min_fitness"): (">=", 0.0, "<=", 1.0, False),

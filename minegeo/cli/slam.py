@@ -462,11 +462,11 @@ def _control_outputs(stage: Path, res, ctrl_in, params, dxf_path: Path | None = 
     from minegeo._provenance import atomic_write_text
     from minegeo.io import write_trajectory
     from minegeo.io.types import Trajectory
-    from minegeo.slam.control import apply_control, graph_inputs, interpolate_poses
+    from minegeo.slam.control import apply_control, graph_inputs, interpolate_poses, slam_pose_noise
 
     st, offset, crs, mode = ctrl_in
     kt, kP, edges, Z, info = graph_inputs(res, st.t_mid_s)
-    c = apply_control(kt, kP, edges, Z, info, st, offset, crs, params)
+    c = apply_control(kt, kP, edges, Z, info, st, offset, crs, params, slam_pose_noise(res, kt))
     var_map = interpolate_poses(kt, kP, c.times_s)  # the variables' map poses before the correction
     P_local = c.transform(res.times_s, res.poses, c.times_s, var_map)
     o = c.origin_enh

@@ -132,13 +132,18 @@ from minegeo.slam.control_graph import (
     _insert_stations,
     check_control_geometry,
     check_map_geometry,
+    check_station_statistics,
     graph_inputs,
+    graph_pose_noise,
     interpolate_poses,
+    slam_pose_noise,
+    station_point_noise,
+    variable_rates_deg_s,
 )
 
 __all__ = ["ControlParams", "ControlResult", "ControlStatus", "DriftBetweenFactors", "DriftWalkFactors", "PositionFactors",
            "apply_control", "check_control_geometry", "check_map_geometry", "check_station_frames", "drift_states_needed",
-           "drift_states_test", "graph_inputs",
+           "drift_states_test", "graph_inputs", "graph_pose_noise", "slam_pose_noise", "station_point_noise", "variable_rates_deg_s",
            "interpolate_poses", "marginal_covariances", "selected_inverse", "station_points"]
 
 log = logging.getLogger(__name__)
@@ -595,36 +600,8 @@ def _check_control_inputs(times_s, stations, crs, mode: str) -> None:
                          f"{times_s[-1]:.3f}] s (another clock or another run?)")
 
 
-def _check_station_statistics(stations, pts, v, st_cov, G_times, G_poses, class_c: float):
-    """``(check errors, class tests, misclosure ratios)`` of the check stations (None, None, empty
-    without check stations): errors of the estimated points ``pts`` against the surveyed ones, the
-    class test against the nearest control station (control residuals ``v``; relative covariance
-    from ``st_cov`` without the check-control cross covariance, which the selected inverse does
-    not hold), and the ratio 1:N with N the path length to the nearest control over the error."""
-    from minegeo.survey.control_stats import check_errors, class_test, misclosure_ratio
-
-    ctrl, chk = stations.is_control, stations.is_check
-    ids = np.array(stations.ids, dtype=object)
-    if not chk.any():
-        return None, None, np.zeros(0)
-    check = check_errors(pts[chk], stations.enh_local[chk], ids[chk])
-    rel = None
-    if st_cov is not None:
-        ci, kj = np.flatnonzero(chk), np.flatnonzero(ctrl)
-        d = np.hypot(*(stations.enh_local[ci, None, :2] - stations.enh_local[None, kj, :2]).transpose(2, 0, 1))
-        near = kj[np.argmin(d, axis=1)]
-        rel = st_cov[ci][:, :2, :2] + st_cov[near][:, :2, :2]
-    classes = class_test(stations.enh_local[chk], check.delta, stations.enh_local[ctrl], v,
-                         check_ids=ids[chk], control_ids=ids[ctrl], c=class_c, relative_cov_h=rel)
-    path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(G_poses[:, :3, 3], axis=0), axis=1))]
-    s_at = np.interp(stations.t_mid_s, G_times, path)
-    tc = np.flatnonzero(ctrl)
-    L = np.array([np.min(np.abs(s_at[i] - s_at[tc])) for i in np.flatnonzero(chk)])
-    return check, classes, misclosure_ratio(L, check.horizontal)
-
-
 def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=None,
-                  params: ControlParams | None = None) -> ControlResult:
+                  params: ControlParams | None = None, pose_noise=None) -> ControlResult:
     """Put a SLAM keyframe graph into the CRS of its control stations (see the module docstring).
 
     Parameters
@@ -640,12 +617,15 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
         Surveyed point in the sensor frame (m).
     crs : str, optional
         Default ``stations.crs``. ``params``: :class:`ControlParams`.
+    pose_noise : (k, 6, 6), optional
+        Each keyframe's own pose noise ``Q`` (:func:`minegeo.slam.odometry.keyframe_pose_noise`). Graph
+        mode: ``J Q Jᵀ`` (:func:`station_point_noise`) added to a control factor's ``Σ`` and to every
+        station's covariance, ``Q`` to every pose's (between keyframes :func:`graph_pose_noise`).
 
     Raises
     ------
     InputError
-        A station outside the keyframes' time span, fewer than 3 control stations, stations whose
-        spans overlap, no CRS.
+        A station outside the keyframes' time span, fewer than 3 control stations, overlapping spans, no CRS.
     """
     from minegeo.survey.control_stats import control_statistics, fit_residual_cofactors, redundancy_share
     from minegeo.survey.ellipse import error_ellipse
@@ -696,10 +676,9 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
             np.asarray(information, np.float64), t_st)
         note = (f"{n_new} station variable(s) inserted at the station times (odometry edge split by time "
                 f"fraction), {len(stations) - n_new} on keyframes at the same time")
-        W = np.zeros((n_ctrl, 3, 3))
-        W[:, 0, 0] = W[:, 1, 1] = stations.sigma_h_m[ctrl] ** -2
-        W[:, 2, 2] = stations.sigma_v_m[ctrl] ** -2
-        graph = (G_times, G_poses0, G_edges, G_Z, G_info, var, W)
+        Qg = graph_pose_noise(times_s, pose_noise, G_times)
+        cov_obs = cov_ll + station_point_noise(T_lm @ G_poses0[var], offset, Qg[var])  # Σ + J Q Jᵀ
+        graph = (G_times, G_poses0, G_edges, G_Z, G_info, var, np.linalg.inv(cov_obs[ctrl]))
         use_drift = p.drift_states is True
         g = _solve_graph(graph, stations, offset, T_lm, p, use_drift)
         if p.drift_states == "auto":  # C6: both models, the drift states when they lower vᵀPv significantly
@@ -725,13 +704,14 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
         v = pts[ctrl] - stations.enh_local[ctrl]
         qvv = np.zeros((3 * n_ctrl, 3 * n_ctrl))
         for q, c in enumerate(np.flatnonzero(ctrl)):
-            qvv[3 * q:3 * q + 3, 3 * q:3 * q + 3] = cov_ll[c] - st_cov[c]
+            qvv[3 * q:3 * q + 3, 3 * q:3 * q + 3] = cov_obs[c] - st_cov[c]
         # the graph's χ² test is gchi (every factor); the stations' statistics take their share of the redundancy
-        stats = control_statistics(v, cov_ll[ctrl], qvv=qvv, dof=redundancy_share(qvv, cov_ll[ctrl]), ids=ids[ctrl])
+        stats = control_statistics(v, cov_obs[ctrl], qvv=qvv, dof=redundancy_share(qvv, cov_obs[ctrl]), ids=ids[ctrl])
+        covs, st_cov = covs + Qg, st_cov + station_point_noise(G_poses[var], offset, Qg[var])  # the poses' own noise
         ellipses = [error_ellipse(st_cov[c][:2, :2], confidence=0.95) for c in np.flatnonzero(chk)]
-    check, classes, ratio = _check_station_statistics(stations, pts, v, st_cov, G_times, G_poses, p.class_c)
+    check, classes, ratio = check_station_statistics(stations, pts, v, st_cov, G_times, G_poses, p.class_c)
     snoop = ((), ()) if not (stats.flagged and p.snooping) else _data_snooping(
-        (times_s, poses, edges, Z, information), stations, offset, crs, p, stats.flagged_ids)
+        (times_s, poses, edges, Z, information), stations, offset, crs, p, stats.flagged_ids, pose_noise)
     if status == "ok" and (gchi.passed is False or stats.flagged):
         status, reason = "warning", _warning_reason(gchi, stats, snoop)
     log.info("control (%s): %s %s", p.mode if p.mode == "graph" else f"{p.model} fit", status, reason)
@@ -746,7 +726,7 @@ def apply_control(times_s, poses, edges, Z, information, stations, offset, crs=N
                          scale_std=scale_std)
 
 
-def _data_snooping(graph, stations, offset, crs, p: ControlParams, flagged_ids) -> tuple:
+def _data_snooping(graph, stations, offset, crs, p: ControlParams, flagged_ids, pose_noise=None) -> tuple:
     """Baarda's data snooping over the control stations (CS3): while a control station is flagged
     and more than 3 remain (and would stay off one line), withhold the most suspect one (largest
     ``|w|``: made a check station) and adjust again. A single blunder spreads into the residuals of
@@ -775,7 +755,7 @@ def _data_snooping(graph, stations, offset, crs, p: ControlParams, flagged_ids) 
                 break
             suspects.append(sid)
             st = nxt
-            flagged = apply_control(*graph, st, offset, crs, q).stats.flagged_ids
+            flagged = apply_control(*graph, st, offset, crs, q, pose_noise).stats.flagged_ids
     finally:
         glog.setLevel(level)
     return tuple(suspects), tuple(flagged)

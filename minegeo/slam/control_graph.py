@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo.errors import InputError
-from minegeo.kernels.lie import se3_exp, se3_inverse, se3_log
+from minegeo.kernels.lie import hat, se3_exp, se3_inverse, se3_log
 
 #: a station time within this of a keyframe's time uses that keyframe (s)
 SAME_TIME_S = 1e-6
@@ -300,3 +300,90 @@ def _insert_stations(times_s, poses, edges, Z, info, t_st):
     T_sorted = np.empty_like(T_new)
     T_sorted[rank] = T_new
     return all_t[order], T_sorted, edges_new, np.stack(ZZ), np.stack(OO), rank[var_of], len(new_t)
+
+
+def variable_rates_deg_s(slam_result, times_s) -> np.ndarray:
+    """The sensor's angular rate (deg/s) at each of ``times_s`` (the graph's variables: keyframes and
+    stations), from the run's frame trajectory at the frame nearest each time
+    (:func:`minegeo.slam.odometry.keyframe_rates_deg_s`: the frames on either side). A station is a
+    stop: its rate is about 0."""
+    from minegeo.slam.odometry import keyframe_rates_deg_s
+
+    ft = np.asarray(slam_result.times_s, dtype=np.float64)
+    t = np.asarray(times_s, dtype=np.float64).reshape(-1)
+    k = np.clip(np.searchsorted(ft, t), 1, ft.size - 1) if ft.size > 1 else np.zeros(t.size, dtype=np.int64)
+    if ft.size > 1:
+        k = np.where(np.abs(ft[k - 1] - t) <= np.abs(ft[k] - t), k - 1, k)
+    return keyframe_rates_deg_s(ft, np.asarray(slam_result.poses, dtype=np.float64), k)
+
+
+def slam_pose_noise(slam_result, times_s):
+    """The keyframe pose noise (k, 6, 6) at ``times_s`` of a SLAM run (:func:`apply_control`'s
+    ``pose_noise``): :func:`minegeo.slam.odometry.keyframe_pose_noise` of the run's odometry parameters
+    at :func:`variable_rates_deg_s`; None when the run's edges carry no floor
+    (``OdometryParams.edge_covariance_floor`` off: GICP's information, no calibrated noise model)."""
+    from minegeo.slam.odometry import keyframe_pose_noise
+
+    p = slam_result.params.odometry
+    if not p.edge_covariance_floor:
+        return None
+    return keyframe_pose_noise(variable_rates_deg_s(slam_result, times_s), p)
+
+
+def graph_pose_noise(times_s, pose_noise, graph_times_s) -> np.ndarray:
+    """Each graph variable's own pose noise (nv, 6, 6) from that of the keyframes (``pose_noise``
+    (k, 6, 6) at ``times_s``, :func:`minegeo.slam.odometry.keyframe_pose_noise`): a variable on a
+    keyframe takes the keyframe's; one inserted between keyframes (a station) the larger of its two
+    neighbours', entry by entry (the noise matrices are diagonal). ``pose_noise`` None: zeros."""
+    times_s = np.asarray(times_s, dtype=np.float64)
+    g = np.asarray(graph_times_s, dtype=np.float64)
+    if pose_noise is None:
+        return np.zeros((g.size, 6, 6))
+    pose_noise = np.asarray(pose_noise, dtype=np.float64)
+    k = np.clip(np.searchsorted(times_s, g), 1, max(times_s.size - 1, 1))
+    lo, hi = np.asarray(pose_noise)[k - 1], np.asarray(pose_noise)[np.minimum(k, times_s.size - 1)]
+    out = np.maximum(lo, hi)
+    same = np.abs(times_s[np.minimum(k, times_s.size - 1)] - g) <= SAME_TIME_S
+    out[same] = np.asarray(pose_noise)[np.minimum(k, times_s.size - 1)][same]
+    same = np.abs(times_s[k - 1] - g) <= SAME_TIME_S
+    out[same] = np.asarray(pose_noise)[k - 1][same]
+    return out
+
+
+def station_point_noise(poses, offset, pose_noise) -> np.ndarray:
+    """``J Q Jᵀ`` (n, 3, 3): a pose's own noise ``Q`` (n, 6, 6, right perturbation, (ω, ρ)) carried to
+    the surveyed point ``p = R·offset + t`` of a station on it, ``J = [−R·hat(offset), R]``."""
+    R = np.asarray(poses, dtype=np.float64)[:, :3, :3]
+    J = np.empty((R.shape[0], 3, 6))
+    J[:, :, :3] = -R @ hat(np.ascontiguousarray(np.asarray(offset, dtype=np.float64).reshape(3)))
+    J[:, :, 3:] = R
+    C = J @ np.asarray(pose_noise) @ np.swapaxes(J, 1, 2)
+    return 0.5 * (C + np.swapaxes(C, 1, 2))
+
+
+def check_station_statistics(stations, pts, v, st_cov, G_times, G_poses, class_c: float):
+    """``(check errors, class tests, misclosure ratios)`` of the check stations (None, None, empty
+    without check stations): errors of the estimated points ``pts`` against the surveyed ones, the
+    class test against the nearest control station (control residuals ``v``; relative covariance
+    from ``st_cov`` without the check-control cross covariance, which the selected inverse does
+    not hold), and the ratio 1:N with N the path length to the nearest control over the error."""
+    from minegeo.survey.control_stats import check_errors, class_test, misclosure_ratio
+
+    ctrl, chk = stations.is_control, stations.is_check
+    ids = np.array(stations.ids, dtype=object)
+    if not chk.any():
+        return None, None, np.zeros(0)
+    check = check_errors(pts[chk], stations.enh_local[chk], ids[chk])
+    rel = None
+    if st_cov is not None:
+        ci, kj = np.flatnonzero(chk), np.flatnonzero(ctrl)
+        d = np.hypot(*(stations.enh_local[ci, None, :2] - stations.enh_local[None, kj, :2]).transpose(2, 0, 1))
+        near = kj[np.argmin(d, axis=1)]
+        rel = st_cov[ci][:, :2, :2] + st_cov[near][:, :2, :2]
+    classes = class_test(stations.enh_local[chk], check.delta, stations.enh_local[ctrl], v,
+                         check_ids=ids[chk], control_ids=ids[ctrl], c=class_c, relative_cov_h=rel)
+    path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(G_poses[:, :3, 3], axis=0), axis=1))]
+    s_at = np.interp(stations.t_mid_s, G_times, path)
+    tc = np.flatnonzero(ctrl)
+    L = np.array([np.min(np.abs(s_at[i] - s_at[tc])) for i in np.flatnonzero(chk)])
+    return check, classes, misclosure_ratio(L, check.horizontal)

@@ -86,17 +86,20 @@ from minegeo.slam.deskew import deskew_points, twist_from_motion
 from minegeo.slam.observability import keep_prior_along, translation_observability
 from minegeo.slam.odometry_model import (  # the parameters, records and result, re-exported
     EDGE_FLOOR_FIELDS,
+    KEYFRAME_NOISE_FIELDS,
     OdometryParams,
     OdometryResult,
     PreparedFrame,
     Registration,
     edge_covariance_floor,
     floored_information,
+    keyframe_pose_noise,
     keyframe_rates_deg_s,
 )
 
 __all__ = ["OdometryParams", "PreparedFrame", "OdometryResult", "prepare_frame", "register_frames", "run_odometry",
-           "edge_covariance_floor", "floored_information", "keyframe_rates_deg_s", "EDGE_FLOOR_FIELDS"]
+           "edge_covariance_floor", "floored_information", "keyframe_rates_deg_s", "EDGE_FLOOR_FIELDS",
+           "KEYFRAME_NOISE_FIELDS", "keyframe_pose_noise"]
 
 log = logging.getLogger(__name__)
 

@@ -21,6 +21,10 @@ EDGE_FLOOR_FIELDS = ("edge_sigma_tilt_deg_per_sqrt_m", "edge_sigma_tilt_deg_per_
                      "edge_sigma_tilt_deg_per_deg_s", "edge_sigma_yaw_deg_per_deg_s", "edge_sigma_trans_xy_m_per_deg_s",
                      "edge_sigma_trans_z_m_per_deg_s", "loop_sigma_tilt_deg", "loop_sigma_yaw_deg", "loop_sigma_trans_xy_m",
                      "loop_sigma_trans_z_m")
+#: the fields of :class:`OdometryParams` that make a keyframe's own pose noise (:func:`keyframe_pose_noise`)
+KEYFRAME_NOISE_FIELDS = ("keyframe_sigma_tilt_deg", "keyframe_sigma_yaw_deg", "keyframe_sigma_trans_xy_m",
+                         "keyframe_sigma_trans_z_m", "keyframe_sigma_tilt_deg_per_deg_s", "keyframe_sigma_yaw_deg_per_deg_s",
+                         "keyframe_sigma_trans_xy_m_per_deg_s", "keyframe_sigma_trans_z_m_per_deg_s")
 
 
 #: What each frame registers to (``OdometryParams.frame_target``).
@@ -114,6 +118,22 @@ class OdometryParams:
     loop_sigma_yaw_deg: float = bounded(0.0, ge=0.0)
     loop_sigma_trans_xy_m: float = bounded(0.0048, ge=0.0)
     loop_sigma_trans_z_m: float = bounded(0.01, ge=0.0)
+    #: a keyframe's own pose noise (:func:`keyframe_pose_noise`): the error of a keyframe's
+    #: registration that belongs to its sweep (deskew error, the sweep's sampling of the walls), shared
+    #: by every edge at that keyframe with opposite signs on its two sides, so it cancels along a chain
+    #: and around a loop and is not in the edges' floor; it is in a pose's own error, so in the control
+    #: factor of a station on that pose and in the reported covariance of every pose. Per block as the
+    #: floor (tilt, yaw in deg; translation along the sensor x, y and z axes in m), a constant plus a
+    #: term per deg/s of the sensor's angular rate at the keyframe; fitted jointly with the floor
+    #: (``benchmarks/bench_edge_covariance.py``)
+    keyframe_sigma_tilt_deg: float = bounded(0.0, ge=0.0)
+    keyframe_sigma_yaw_deg: float = bounded(0.0, ge=0.0)
+    keyframe_sigma_trans_xy_m: float = bounded(0.0, ge=0.0)
+    keyframe_sigma_trans_z_m: float = bounded(0.0, ge=0.0)
+    keyframe_sigma_tilt_deg_per_deg_s: float = bounded(0.0, ge=0.0)
+    keyframe_sigma_yaw_deg_per_deg_s: float = bounded(0.0, ge=0.0)
+    keyframe_sigma_trans_xy_m_per_deg_s: float = bounded(0.0, ge=0.0)
+    keyframe_sigma_trans_z_m_per_deg_s: float = bounded(0.0, ge=0.0)
 
     def __post_init__(self):
         validate(self)
@@ -329,6 +349,32 @@ def keyframe_rates_deg_s(times_s: np.ndarray, poses: np.ndarray, keyframes: np.n
             R = poses[f0, :3, :3].T @ poses[f1, :3, :3]
             out[a] = math.degrees(float(np.linalg.norm(so3_log(np.ascontiguousarray(R))))) / float(times_s[f1] - times_s[f0])
     return out
+
+
+def keyframe_pose_noise(rates_deg_s, params: OdometryParams) -> np.ndarray:
+    """A keyframe's own pose noise ``Q`` (n, 6, 6), (ω, ρ) order, rad² and m², the pose's right
+    perturbation (the axes of its sensor frame), for the sensor's angular rates ``ω`` (deg/s, (n,),
+    :func:`keyframe_rates_deg_s`)::
+
+        Q = diag(σ_t², σ_t², σ_z², σ_h², σ_h², σ_v²),   σ_b² = k_b² + (m_b ω)²   for each block b
+
+    with ``k_b = keyframe_sigma_*`` and ``m_b = keyframe_sigma_*_per_deg_s`` (tilt and yaw in deg,
+    converted to rad). The model of the graph's errors is ``x_k = y_k Exp(n_k)``, ``n_k ~ N(0, Q_k)``:
+    the keyframe's estimated pose ``x_k`` (its sweep's registration) is the true pose ``y_k`` with an
+    error of its own, besides the error accumulated along the edges (:func:`edge_covariance_floor`).
+    An edge ``Z = x_i⁻¹ x_j`` then errs by ``w + n_j − Ad(Z⁻¹) n_i``: the ``n`` cancel along a chain
+    and around a loop, so they are not in the edges; a station on pose ``k`` (a control factor, a check
+    station's estimate, a pose's reported covariance) carries ``Q_k`` (:func:`minegeo.slam.control.apply_control`).
+    """
+    w2 = np.asarray(rates_deg_s, dtype=np.float64).reshape(-1) ** 2
+    d2r = math.radians(1.0) ** 2
+    p = params
+    Q = np.zeros((w2.size, 6, 6))
+    Q[:, 0, 0] = Q[:, 1, 1] = d2r * (p.keyframe_sigma_tilt_deg**2 + p.keyframe_sigma_tilt_deg_per_deg_s**2 * w2)
+    Q[:, 2, 2] = d2r * (p.keyframe_sigma_yaw_deg**2 + p.keyframe_sigma_yaw_deg_per_deg_s**2 * w2)
+    Q[:, 3, 3] = Q[:, 4, 4] = p.keyframe_sigma_trans_xy_m**2 + p.keyframe_sigma_trans_xy_m_per_deg_s**2 * w2
+    Q[:, 5, 5] = p.keyframe_sigma_trans_z_m**2 + p.keyframe_sigma_trans_z_m_per_deg_s**2 * w2
+    return Q
 
 
 def floored_information(information: np.ndarray, floor: np.ndarray) -> np.ndarray:
