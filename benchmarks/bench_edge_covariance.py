@@ -1,4 +1,4 @@
-"""Calibration of the pose graph's edge covariance (odometry and loop edges) on simulated 10 Hz streams.
+"""Calibration of the pose graph's edge covariance and of the keyframes' own pose noise on simulated 10 Hz streams.
 
 For each simulated stop-and-go stream (``minegeo.synth.stream``: 10 Hz VLP-16 sweeps smeared by the
 motion, 0.2° azimuth step, vehicle and handheld presets, several seeds) the SLAM runs as
@@ -6,17 +6,26 @@ motion, 0.2° azimuth step, vehicle and handheld presets, several seeds) the SLA
 floor constants at 0, so every edge carries GICP's own information ``Ω_G``. Each keyframe edge and
 each accepted loop edge ``Z = T_i⁻¹ T_j`` is compared with the simulator's truth
 ``Z* = T*_i⁻¹ T*_j`` at the keyframes' frame times: ``e = Log(Z*⁻¹ Z)`` in (ω, ρ) order (the pose
-graph's right perturbation), and its normalised squared error (NEES) ``eᵀ Σ⁻¹ e`` with
-``Σ = Ω_G⁻¹ + F``, ``F`` the floor of :func:`minegeo.slam.odometry.edge_covariance_floor`; calibrated,
-the NEES averages 6 (χ²(6)), the rotation block's and the translation block's 3 each.
+graph's right perturbation).
 
-The 14 floor constants (``EDGE_FLOOR_FIELDS``: path, turn and loop terms) are fitted jointly by
-maximum likelihood on the ``fit`` seeds and checked on the ``check`` seeds (never the same streams).
+The model (:func:`minegeo.slam.odometry.edge_covariance_floor`, :func:`~minegeo.slam.odometry.keyframe_pose_noise`):
+each keyframe's estimated pose is ``x_k = y_k Exp(n_k)`` (``y`` the truth, ``n_k ~ N(0, Q_k)`` its own
+error), so ``e = w + n_j − Ad(Z*⁻¹) n_i`` with ``w ~ N(0, Ω_G⁻¹ + F)`` the edge's accumulating error.
+The errors of all the edges of a stream are jointly Gaussian, ``E ~ N(0, W + A Q Aᵀ)`` (``A`` the
+``+I``/``−Ad`` blocks); the 22 constants (``EDGE_FLOOR_FIELDS`` and ``KEYFRAME_NOISE_FIELDS``) are
+fitted jointly by maximum likelihood of that distribution (:func:`joint_neg_loglik`: matrix
+determinant lemma and Woodbury identity, a sparse LU of ``I + S AᵀW⁻¹A S``, ``S = Q^½``) on the
+``fit`` seeds and checked on the ``check`` seeds (never the same streams). Reported: the NEES
+``eᵀ Σ⁻¹ e`` of single edges (their marginal ``Σ = Ω_G⁻¹ + F + Q_j + Ad Q_i Adᵀ``) and of windows
+of ``m`` consecutive odometry edges composed (the drift a chain of ``m`` edges accumulates, what
+the control adjustment weighs between two stations); calibrated, it averages 6 (χ²(6)), the rotation
+block's and the translation block's 3 each, at every ``m``.
+
 ``--control-seeds`` also runs the control adjustment (``slam --control``, graph mode) on 60 s vehicle
-streams with stations 6 m apart, with GICP's information alone and with the floor: its global test and
-the check stations' NEES against the truth.
+streams with stations 6 m apart, with GICP's information alone and with the model: its global test
+and the check stations' NEES against the truth.
 
-Usage (1 thread; about 4 min of CPU per 200 s stream)::
+Usage (1 thread; about 4 min of CPU per 200 s stream, the fit a few minutes)::
 
     NUMBA_NUM_THREADS=1 python benchmarks/bench_edge_covariance.py --out benchmarks/results/edge_covariance.json
 """
@@ -35,15 +44,32 @@ from pathlib import Path
 
 import numpy as np
 
-from minegeo.kernels.lie import se3_log
-from minegeo.slam.odometry import EDGE_FLOOR_FIELDS, OdometryParams, keyframe_rates_deg_s, run_odometry
+from minegeo.kernels.lie import se3_adjoint, se3_exp, se3_log
+from minegeo.slam.odometry import (
+    EDGE_FLOOR_FIELDS,
+    KEYFRAME_NOISE_FIELDS,
+    OdometryParams,
+    keyframe_pose_noise,
+    keyframe_rates_deg_s,
+    run_odometry,
+)
 from minegeo.slam.pipeline import SlamParams, run_backend
 from minegeo.synth.flight import NetworkWorld
 from minegeo.synth.stream import StreamParams, iter_sweeps, simulate_stream
 
-NAMES = EDGE_FLOOR_FIELDS
+NAMES = EDGE_FLOOR_FIELDS + KEYFRAME_NOISE_FIELDS
 #: the odometry as ``minegeo slam --control`` runs a 10 Hz stream, with GICP's information alone
 RAW = replace(OdometryParams(edge_covariance_floor=True, frame_target="submap"), **dict.fromkeys(NAMES, 0.0))
+#: the constants of the edge-only model (fitted 2026-11-30, edge_covariance_2026-11-30.json): no keyframe noise
+EDGE_ONLY = {"edge_sigma_tilt_deg_per_sqrt_m": 0.065, "edge_sigma_tilt_deg_per_deg": 0.027,
+             "edge_sigma_yaw_deg_per_sqrt_m": 0.0, "edge_sigma_trans_xy_m_per_sqrt_m": 0.0017,
+             "edge_sigma_trans_z_m_per_sqrt_m": 0.0058, "edge_sigma_trans_z_m_per_deg": 0.0025,
+             "edge_sigma_tilt_deg_per_deg_s": 0.014, "edge_sigma_yaw_deg_per_deg_s": 0.008,
+             "edge_sigma_trans_xy_m_per_deg_s": 0.00079, "edge_sigma_trans_z_m_per_deg_s": 0.00096,
+             "loop_sigma_tilt_deg": 0.12, "loop_sigma_yaw_deg": 0.0, "loop_sigma_trans_xy_m": 0.0048,
+             "loop_sigma_trans_z_m": 0.01, **dict.fromkeys(KEYFRAME_NOISE_FIELDS, 0.0)}
+#: the window lengths (consecutive odometry edges) of the chain NEES
+WINDOWS = (1, 3, 10, 30, 60)
 
 
 def simulate(preset: str, seed: int, duration_s: float, spacing_m: float | None = 100.0, control_every: int = 5,
@@ -126,48 +152,136 @@ def summary(n: dict) -> dict:
     return out
 
 
-def neg_loglik(rec: dict, x: dict) -> float:
+def keyframe_noise(rates: np.ndarray, x: dict) -> np.ndarray:
+    """The diagonal (k, 6) of each keyframe's own noise ``Q`` for the constants ``x``, vectorised; the
+    same formula as :func:`minegeo.slam.odometry.keyframe_pose_noise` (checked in :func:`main`)."""
+    g = x.get
+    d2r, w2 = math.radians(1.0) ** 2, rates**2
+    t = d2r * (g("keyframe_sigma_tilt_deg") ** 2 + g("keyframe_sigma_tilt_deg_per_deg_s") ** 2 * w2)
+    z = d2r * (g("keyframe_sigma_yaw_deg") ** 2 + g("keyframe_sigma_yaw_deg_per_deg_s") ** 2 * w2)
+    h = g("keyframe_sigma_trans_xy_m") ** 2 + g("keyframe_sigma_trans_xy_m_per_deg_s") ** 2 * w2
+    v = g("keyframe_sigma_trans_z_m") ** 2 + g("keyframe_sigma_trans_z_m_per_deg_s") ** 2 * w2
+    return np.stack([t, t, z, h, h, v], 1)
+
+
+def prepare(rec: dict) -> dict:
+    """A stream's records with the keyframes' rates (k,) and each edge's ``Ad(Z*⁻¹)``."""
+    k = int(max(rec["i"].max(), rec["j"].max())) + 1
+    rates = np.zeros(k)
+    rates[rec["i"]], rates[rec["j"]] = rec["rate_i"], rec["rate_j"]
+    ad = np.stack([se3_adjoint(np.ascontiguousarray(np.linalg.inv(Z))) for Z in rec["z_true"]])
+    return {"rec": rec, "k": k, "rates": rates, "ad": ad}
+
+
+def joint_neg_loglik(s: dict, x: dict) -> float:
+    """``−log p(E)`` (without the constant) of a stream's edge errors ``E ~ N(0, W + A Q Aᵀ)``:
+    ``log det(W + AQAᵀ) = log det W + log det M`` and ``Eᵀ(W + AQAᵀ)⁻¹E = EᵀW⁻¹E − bᵀ M⁻¹ b`` with
+    ``M = I + S H S``, ``H = AᵀW⁻¹A``, ``b = S AᵀW⁻¹E``, ``S = Q^½`` (``Q`` may be singular)."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    rec, k, i, j, ad = s["rec"], s["k"], s["rec"]["i"], s["rec"]["j"], s["ad"]
     C = rec["cov"] + floors(rec, x)
+    Ci = np.linalg.inv(C)
     _, logdet = np.linalg.slogdet(C)
-    return float(0.5 * np.sum(logdet) + 0.5 * np.einsum("ni,ni->", rec["err"],
-                                                        np.linalg.solve(C, rec["err"][..., None])[..., 0]))
+    Cie = np.einsum("nab,nb->na", Ci, rec["err"])
+    adT_ci = np.einsum("nba,nbc->nac", ad, Ci)
+    blocks = [(j, j, Ci), (i, i, adT_ci @ ad), (i, j, -adT_ci), (j, i, -Ci @ ad)]
+    r6 = np.arange(6)
+    rows = np.concatenate([(6 * a[:, None, None] + r6[None, :, None]).repeat(6, 2).reshape(-1) for a, _, _ in blocks])
+    cols = np.concatenate([(6 * c[:, None, None] + r6[None, None, :]).repeat(6, 1).reshape(-1) for _, c, _ in blocks])
+    S = np.sqrt(keyframe_noise(s["rates"], x)).reshape(-1)
+    vals = np.concatenate([B.reshape(-1) for _, _, B in blocks]) * S[rows] * S[cols]
+    M = sp.coo_matrix((vals, (rows, cols)), shape=(6 * k, 6 * k)).tocsc() + sp.identity(6 * k, format="csc")
+    b = np.zeros((k, 6))
+    np.add.at(b, j, Cie)
+    np.add.at(b, i, -np.einsum("nba,nb->na", ad, Cie))
+    b = S * b.reshape(-1)
+    lu = spla.splu(M, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    return 0.5 * (float(logdet.sum()) + float(np.log(np.abs(lu.U.diagonal())).sum())
+                  + float(np.einsum("na,na->", rec["err"], Cie)) - float(b @ lu.solve(b)))
 
 
-START = {"edge_sigma_tilt_deg_per_sqrt_m": 0.1, "edge_sigma_tilt_deg_per_deg": 0.05, "edge_sigma_yaw_deg_per_sqrt_m": 0.03,
-         "edge_sigma_trans_xy_m_per_sqrt_m": 0.005, "edge_sigma_trans_z_m_per_sqrt_m": 0.01,
-         "edge_sigma_trans_z_m_per_deg": 0.001, "edge_sigma_tilt_deg_per_deg_s": 0.01, "edge_sigma_yaw_deg_per_deg_s": 0.01,
-         "edge_sigma_trans_xy_m_per_deg_s": 0.001, "edge_sigma_trans_z_m_per_deg_s": 0.001, "loop_sigma_tilt_deg": 0.1,
-         "loop_sigma_yaw_deg": 0.03, "loop_sigma_trans_xy_m": 0.005, "loop_sigma_trans_z_m": 0.01}
+#: the start of the fit: the edge-only constants (``EDGE_ONLY``), a keyframe noise of 0.03° tilt, 0.01° yaw,
+#: 3 mm, 0.01°, 0.001° and 3 mm per deg/s (a constant at 0 starts at 1e-5: the fit runs on logarithms)
+START = {**{k: max(v, 1e-5) for k, v in EDGE_ONLY.items()}, **dict.fromkeys(KEYFRAME_NOISE_FIELDS, 0.003),
+         "keyframe_sigma_tilt_deg": 0.03, "keyframe_sigma_yaw_deg": 0.01, "keyframe_sigma_tilt_deg_per_deg_s": 0.01,
+         "keyframe_sigma_yaw_deg_per_deg_s": 0.001}
 
 
-def fit(rec: dict) -> dict:
-    """Maximum-likelihood floor constants: Powell then Nelder-Mead on their logarithms, from a fixed start."""
+def fit(streams: list) -> dict:
+    """Maximum-likelihood constants (:func:`joint_neg_loglik` summed over the streams): L-BFGS-B then
+    Powell on their logarithms (bounded to [e⁻¹⁴, e²]), from a fixed start (the constants of the
+    edge-only fit, a small keyframe noise)."""
     from scipy.optimize import minimize
 
     def f(y):
-        return neg_loglik(rec, dict(zip(NAMES, np.exp(np.clip(y, -25, 5)), strict=True)))
+        x = dict(zip(NAMES, np.exp(y), strict=True))
+        return sum(joint_neg_loglik(s, x) for s in streams)
 
-    y = np.log([START[k] for k in NAMES])
-    y = minimize(f, y, method="Powell", options={"xtol": 1e-3, "ftol": 1e-7, "maxiter": 20000}).x
-    y = minimize(f, y, method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-6, "maxiter": 20000,
-                                                      "adaptive": True}).x
-    # two significant digits; a constant the fit drives below 1e-6 (its lower clip is e⁻²⁵) is 0
-    return {k: 0.0 if v < 1e-6 else float(f"{v:.2g}") for k, v in zip(NAMES, np.exp(np.clip(y, -25, 5)), strict=True)}
+    bounds = [(-14.0, 2.0)] * len(NAMES)
+    y = minimize(f, np.log([START[k] for k in NAMES]), method="L-BFGS-B", bounds=bounds,
+                 options={"maxiter": 300, "eps": 1e-4}).x
+    y = minimize(f, y, method="Powell", bounds=bounds, options={"xtol": 1e-3, "ftol": 1e-8, "maxiter": 20000}).x
+    # two significant digits; a constant the fit drives below 1e-5 is 0
+    return {k: 0.0 if v < 1e-5 else float(f"{v:.2g}") for k, v in zip(NAMES, np.exp(y), strict=True)}
 
 
 def concat(recs: list) -> dict:
     return {k: np.concatenate([r[k] for r in recs]) for k in recs[0]}
 
 
-def by_kind(rec: dict, x: dict | None) -> dict:
-    """NEES summaries of the odometry edges and the loop edges under the constants ``x`` (None: GICP alone)."""
+def by_kind(streams: list, x: dict | None) -> dict:
+    """NEES summaries of the single odometry edges and loop edges (their marginal covariance, the
+    keyframes' noise included) under the constants ``x`` (None: GICP alone)."""
     out = {}
-    for name, sel in (("odometry", rec["kind"] < 2), ("loops", rec["kind"] == 2)):
-        if not sel.any():
-            continue
-        cov = rec["cov"][sel] + (floors({k: v[sel] for k, v in rec.items()}, x) if x is not None else 0.0)
-        out[name] = summary(nees(rec["err"][sel], cov))
+    for name, kind in (("odometry", lambda k: k < 2), ("loops", lambda k: k == 2)):
+        err, cov = [], []
+        for s in streams:
+            rec = s["rec"]
+            sel = kind(rec["kind"])
+            c = rec["cov"][sel]
+            if x is not None:
+                q = keyframe_noise(s["rates"], x)
+                ad = s["ad"][sel]
+                c = (c + floors({k: v[sel] for k, v in rec.items()}, x) + np.apply_along_axis(np.diag, 1, q[rec["j"][sel]])
+                     + ad @ np.apply_along_axis(np.diag, 1, q[rec["i"][sel]]) @ np.swapaxes(ad, 1, 2))
+            err.append(rec["err"][sel])
+            cov.append(c)
+        if sum(len(e) for e in err):
+            out[name] = summary(nees(np.concatenate(err), np.concatenate(cov)))
     return out
+
+
+def window_nees(streams: list, x: dict | None, m: int) -> dict:
+    """NEES of ``m`` consecutive odometry edges composed: ``e = Log(Z*_w⁻¹ Z_w)`` of ``Z_w = Z_1 ⋯ Z_m``
+    against ``Σ_w = Σ_e Ad(R_e⁻¹)(Ω_G⁻¹ + F)_e Ad(R_e⁻¹)ᵀ + Q_end + Ad(Z*_w⁻¹) Q_start Ad(Z*_w⁻¹)ᵀ``
+    (``R_e`` the true motion after edge ``e``; the keyframes inside the window cancel)."""
+    err, cov = [], []
+    for s in streams:
+        rec = s["rec"]
+        ch = np.flatnonzero(rec["kind"] == 0)
+        ch = ch[np.argsort(rec["i"][ch], kind="stable")]
+        i = rec["i"][ch]
+        F = rec["cov"][ch] + (floors({k: v[ch] for k, v in rec.items()}, x) if x is not None else 0.0)
+        q = keyframe_noise(s["rates"], x) if x is not None else np.zeros((s["k"], 6))
+        Zt = rec["z_true"][ch]
+        Z = np.stack([Zt[n] @ se3_exp(np.ascontiguousarray(rec["err"][ch][n])) for n in range(ch.size)])
+        for a in range(ch.size - m + 1):
+            if not np.array_equal(i[a:a + m], np.arange(i[a], i[a] + m)):
+                continue
+            Zw, Ztw, R = np.eye(4), np.eye(4), np.eye(4)
+            S = np.diag(q[i[a] + m])
+            for n in range(a + m - 1, a - 1, -1):
+                A = se3_adjoint(np.ascontiguousarray(np.linalg.inv(R)))
+                S = S + A @ F[n] @ A.T
+                R = Zt[n] @ R
+            for n in range(a, a + m):
+                Zw, Ztw = Zw @ Z[n], Ztw @ Zt[n]
+            A = se3_adjoint(np.ascontiguousarray(np.linalg.inv(R)))
+            err.append(se3_log(np.ascontiguousarray(np.linalg.inv(Ztw) @ Zw)))
+            cov.append(S + A @ np.diag(q[i[a]]) @ A.T)
+    return summary(nees(np.asarray(err), np.asarray(cov))) if err else {"edges": 0}
 
 
 def control_run(seed: int, duration_s: float, configs: dict) -> dict:
@@ -176,7 +290,7 @@ def control_run(seed: int, duration_s: float, configs: dict) -> dict:
     global test statistic ``vᵀPv`` and its redundancy, and the check stations' 3D NEES ``dᵀ Σ⁻¹ d`` (d
     the error against the simulator's true station, Σ the adjustment's covariance)."""
     from minegeo.errors import MinegeoError
-    from minegeo.slam.control import ControlParams, apply_control, graph_inputs
+    from minegeo.slam.control import ControlParams, apply_control, graph_inputs, slam_pose_noise
     from minegeo.synth.stream import stream_stations
 
     off = (0.0, 0.0, -0.6)
@@ -190,7 +304,7 @@ def control_run(seed: int, duration_s: float, configs: dict) -> dict:
         kt, kP, edges, Z, info = graph_inputs(res, stations.t_mid_s)
         try:
             c = apply_control(kt, kP, edges, Z, info, stations, np.array(off), stations.crs,
-                              ControlParams(mode="graph"))
+                              ControlParams(mode="graph"), slam_pose_noise(res, kt))
         except MinegeoError as exc:  # recorded, not hidden (e.g. the initial rigid fit of collinear stations)
             out[name] = {"error": f"{type(exc).__name__}: {exc}"}
             continue
@@ -206,16 +320,21 @@ def control_run(seed: int, duration_s: float, configs: dict) -> dict:
     return out
 
 
-def _check_formula(rec: dict, x: dict) -> None:
-    """The vectorised :func:`floors` equals the library's :func:`edge_covariance_floor` edge by edge."""
+def _check_formula(streams: list, x: dict) -> None:
+    """The vectorised :func:`floors` and :func:`keyframe_noise` equal the library's
+    :func:`edge_covariance_floor` and :func:`keyframe_pose_noise`, edge by edge and keyframe by keyframe."""
     from minegeo.slam.odometry import edge_covariance_floor
 
     p = replace(OdometryParams(), **x)
-    F = floors(rec, x)
-    for n in range(0, len(F), max(1, len(F) // 50)):
-        G = edge_covariance_floor(rec["length_m"][n], rec["angle_deg"][n], p,
-                                  rates_deg_s=(rec["rate_i"][n], rec["rate_j"][n]), loop=bool(rec["kind"][n] == 2))
-        assert np.allclose(F[n], G, rtol=1e-12, atol=0.0), n
+    for s in streams:
+        rec = s["rec"]
+        F = floors(rec, x)
+        for n in range(0, len(F), max(1, len(F) // 50)):
+            G = edge_covariance_floor(rec["length_m"][n], rec["angle_deg"][n], p,
+                                      rates_deg_s=(rec["rate_i"][n], rec["rate_j"][n]), loop=bool(rec["kind"][n] == 2))
+            assert np.allclose(F[n], G, rtol=1e-12, atol=0.0), n
+        Q = keyframe_pose_noise(s["rates"], p)
+        assert np.allclose(np.diagonal(Q, axis1=1, axis2=2), keyframe_noise(s["rates"], x), rtol=1e-12, atol=0.0)
 
 
 def main():
@@ -236,36 +355,48 @@ def main():
     for preset in a.presets:
         for seed in a.fit_seeds + a.check_seeds:
             f = Path(a.cache) / f"{preset}_{seed}_{a.duration_s:g}_10hz.npz"
-            if not f.exists():
+            if not f.exists() or "z_true" not in np.load(f).files:  # records of an older format: again
                 st, sweeps = simulate(preset, seed, a.duration_s)
                 res = run_backend(run_odometry(sweeps, RAW), SlamParams(odometry=RAW))
                 np.savez(f, **edge_records(res, st.curve.poses(st.frame_times)))
             recs[preset, seed] = dict(np.load(f))
             print(f"{preset} seed {seed}: {np.bincount(recs[preset, seed]['kind'], minlength=3)} edges "
                   "(chain, extra, loop)", flush=True)
-    fit_rec = concat([recs[p, s] for p in a.presets for s in a.fit_seeds])
-    fitted = fit(fit_rec)
-    _check_formula(fit_rec, fitted)
+    prepared = {key: prepare(r) for key, r in recs.items()}
+    fit_streams = [prepared[p, s] for p in a.presets for s in a.fit_seeds]
+    t_fit = time.perf_counter()
+    fitted = fit(fit_streams)
+    t_fit = time.perf_counter() - t_fit
+    _check_formula(fit_streams, fitted)
     default = {k: getattr(OdometryParams(), k) for k in NAMES}
     out = {"conditions": {"threads": os.environ.get("NUMBA_NUM_THREADS"), "duration_s": a.duration_s, "lidar_hz": 10.0,
                           "azimuth_step_deg": 0.2, "station_spacing_m": 100.0, "odometry": "submap (local map)",
                           "fit_seeds": a.fit_seeds, "check_seeds": a.check_seeds, "presets": a.presets,
+                          "model": "edges: GICP + floor (accumulating); keyframes: own pose noise Q (joint ML)",
                           "uptime": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip(),
-                          "machine": platform.machine(),
+                          "machine": platform.machine(), "fit_seconds": round(t_fit, 1),
                           "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                                                    text=True).stdout.strip()},
-           "fitted": fitted, "default": default, "streams": {}}
-    for (preset, seed), r in recs.items():
-        out["streams"][f"{preset}_seed{seed}"] = {
-            "role": "fit" if seed in a.fit_seeds else "check", "uncalibrated": by_kind(r, None),
-            "calibrated_default": by_kind(r, default), "calibrated_fitted": by_kind(r, fitted)}
+           "fitted": fitted, "default": default, "edge_floor_only_2026_11_30": EDGE_ONLY,
+           "neg_loglik_fit": {"fitted": round(sum(joint_neg_loglik(s, fitted) for s in fit_streams), 1),
+                              "edge_floor_only": round(sum(joint_neg_loglik(s, EDGE_ONLY) for s in fit_streams), 1)},
+           "streams": {}}
+    models = {"uncalibrated": None, "edge_floor_only": EDGE_ONLY, "calibrated_default": default,
+              "calibrated_fitted": fitted}
+    for (preset, seed), s in prepared.items():
+        out["streams"][f"{preset}_seed{seed}"] = {"role": "fit" if seed in a.fit_seeds else "check",
+                                                  **{name: by_kind([s], x) for name, x in models.items()}}
     for role, seeds in (("fit", a.fit_seeds), ("check", a.check_seeds)):
         for preset in a.presets:
-            r = concat([recs[preset, s] for s in seeds])
-            out[f"{role}_{preset}"] = {"uncalibrated": by_kind(r, None), "calibrated_default": by_kind(r, default),
-                                       "calibrated_fitted": by_kind(r, fitted)}
+            ss = [prepared[preset, s] for s in seeds]
+            out[f"{role}_{preset}"] = {name: by_kind(ss, x) for name, x in models.items()}
+            out[f"{role}_{preset}"]["windows"] = {
+                name: {str(m): window_nees(ss, x, m) for m in WINDOWS} for name, x in models.items() if x is not None}
+            print(role, preset, {name: {m: w["full"]["mean"] for m, w in v.items()}
+                                 for name, v in out[f"{role}_{preset}"]["windows"].items()}, flush=True)
     if a.control_seeds:
-        configs = {"uncalibrated": RAW, "calibrated_default": replace(RAW, **default)}
+        configs = {"uncalibrated": RAW, "edge_floor_only": replace(RAW, **EDGE_ONLY),
+                   "calibrated_default": replace(RAW, **default)}
         runs = {}
         for seed in a.control_seeds:
             f = Path(a.cache) / f"control_{seed}_{a.control_duration_s:g}_10hz.json"
