@@ -59,8 +59,8 @@ def test_graph_pose_noise_on_keyframes_and_between():
 def test_slam_pose_noise_only_with_the_floor():
     times = np.arange(5) * 0.1
     poses = np.stack([se3_exp(np.array([0.0, 0.0, 0.1 * k, k, 0.0, 0.0])) for k in range(5)])
-    on = replace(OdometryParams(edge_covariance_floor=True), **dict.fromkeys(KEYFRAME_NOISE_FIELDS, 0.0),
-                 keyframe_sigma_trans_xy_m=0.004, keyframe_sigma_yaw_deg_per_deg_s=0.01)
+    on = replace(OdometryParams(edge_covariance_floor=True), **{**dict.fromkeys(KEYFRAME_NOISE_FIELDS, 0.0),
+                 "keyframe_sigma_trans_xy_m": 0.004, "keyframe_sigma_yaw_deg_per_deg_s": 0.01})
     res = SimpleNamespace(times_s=times, poses=poses, params=SlamParams(odometry=on))
     Q = slam_pose_noise(res, np.array([0.2]))
     rate = math.degrees(0.2) / 0.2  # 0.1 rad per frame, frames on either side
