@@ -339,14 +339,13 @@ def graph_pose_noise(times_s, pose_noise, graph_times_s) -> np.ndarray:
     g = np.asarray(graph_times_s, dtype=np.float64)
     if pose_noise is None:
         return np.zeros((g.size, 6, 6))
-    pose_noise = np.asarray(pose_noise, dtype=np.float64)
-    k = np.clip(np.searchsorted(times_s, g), 1, max(times_s.size - 1, 1))
-    lo, hi = np.asarray(pose_noise)[k - 1], np.asarray(pose_noise)[np.minimum(k, times_s.size - 1)]
-    out = np.maximum(lo, hi)
-    same = np.abs(times_s[np.minimum(k, times_s.size - 1)] - g) <= SAME_TIME_S
-    out[same] = np.asarray(pose_noise)[np.minimum(k, times_s.size - 1)][same]
-    same = np.abs(times_s[k - 1] - g) <= SAME_TIME_S
-    out[same] = np.asarray(pose_noise)[k - 1][same]
+    Q = np.asarray(pose_noise, dtype=np.float64)
+    lo = np.clip(np.searchsorted(times_s, g), 1, max(times_s.size - 1, 1)) - 1  # the keyframes either side
+    hi = np.minimum(lo + 1, times_s.size - 1)
+    out = np.maximum(Q[lo], Q[hi])
+    on_hi, on_lo = np.abs(times_s[hi] - g) <= SAME_TIME_S, np.abs(times_s[lo] - g) <= SAME_TIME_S
+    out[on_hi] = Q[hi][on_hi]
+    out[on_lo] = Q[lo][on_lo]
     return out
 
 

@@ -97,9 +97,10 @@ class OdometryParams:
     #: rotation. Loop edges (two keyframes registered directly, at any relative heading): a constant
     #: per block (``loop_sigma_*``). Both: a turn term per block, deg or m per deg/s of the angular
     #: rate of the sensor at each of the edge's two keyframes (a sweep taken in a turn is deskewed and
-    #: registered less well). All 0: GICP's covariance alone. Fitted by maximum likelihood on the
-    #: odometry and loop edges of simulated 10 Hz stop-and-go streams against their truth
-    #: (``benchmarks/bench_edge_covariance.py``, docs/slam.md "Edge covariance")
+    #: registered less well). All 0: GICP's covariance alone. Fitted by maximum likelihood, jointly
+    #: with the keyframes' own pose noise (``keyframe_sigma_*``), on the odometry and loop edges of
+    #: simulated 10 Hz stop-and-go streams against their truth (``benchmarks/bench_edge_covariance.py``,
+    #: docs/slam.md "Edge covariance")
     #: apply the floor (True: ``slam --control``, whose statistics need calibrated edges; False by
     #: default: plain SLAM keeps GICP's information, because with the floor the plane factors weigh
     #: more and cost ATE on some streams, see docs/slam.md "Edge covariance")
@@ -315,8 +316,8 @@ def edge_covariance_floor(length_m: float, angle_deg: float, params: OdometryPar
     ``b_v = edge_sigma_trans_z_m_per_deg``, ``c_* = edge_sigma_*_per_deg_s``, ``l_* = loop_sigma_*``:
     along the path a random walk (variance proportional to the distance, as the station split of
     :func:`minegeo.slam.control.graph_inputs` assumes). The constants are fitted by maximum likelihood
-    against the simulator's truth (``benchmarks/bench_edge_covariance.py``, ``docs/slam.md`` "Edge
-    covariance").
+    against the simulator's truth, jointly with :func:`keyframe_pose_noise`, whose share of an edge's
+    error is not in ``F`` (``benchmarks/bench_edge_covariance.py``, ``docs/slam.md`` "Edge covariance").
     """
     L, th = float(length_m), float(angle_deg)
     W = float(rates_deg_s[0]) ** 2 + float(rates_deg_s[1]) ** 2
