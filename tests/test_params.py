@@ -18,13 +18,14 @@ import argparse
 import dataclasses
 import json
 import math
+import re
 
 import pytest
 from badinput._contract import assert_user_error
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from minegeo._params import field_rule
+from minegeo._params import check_field, field_rule
 from minegeo.errors import InputError
 from minegeo.georef.result import GeorefParams
 from minegeo.localize.params import (
@@ -47,6 +48,7 @@ from minegeo.semantic.recognition import RecognitionParams
 from minegeo.semantic.tracking import TrackParams
 from minegeo.slam.loops import LoopParams
 from minegeo.slam.odometry_model import EDGE_FLOOR_FIELDS, KEYFRAME_NOISE_FIELDS, OdometryParams
+from minegeo.slam.planes import FloorPlaneParams
 
 # (class, field) -> (lower op, lower bound, upper op, upper bound, integer): the documented rules
 BOUNDS = {
@@ -209,10 +211,21 @@ BOUNDS = {
     (GeorefParams, "origin_step_m"): (">", 0.0, None, None, False),
     (GeorefParams, "min_geometry_ratio"): (">=", 0.0, "<", 1.0, False),
     (GeorefParams, "max_sigma0"): (">", 1.0, None, None, False),
+    # FloorPlaneParams (its former __post_init__ check, minegeo/slam/planes.py at f50f0e4; max_below_sensor_m
+    # > min_below_sensor_m is the check across fields)
+    (FloorPlaneParams, "radius_m"): (">", 0.0, None, None, False),
+    (FloorPlaneParams, "min_below_sensor_m"): (">=", 0.0, None, None, False),
+    (FloorPlaneParams, "distance_threshold_m"): (">", 0.0, None, None, False),
+    (FloorPlaneParams, "iterations"): (">=", 1, None, None, True),
+    (FloorPlaneParams, "min_inliers"): (">=", 3, None, None, True),
+    (FloorPlaneParams, "min_inlier_fraction"): (">=", 0.0, "<=", 1.0, False),
+    (FloorPlaneParams, "max_tilt_deg"): (">=", 0.0, "<", 90.0, False),
 }
 #: fields whose rule is joined by a check across fields (GravityParams: 3 <= min_points <= max_points;
-#: RansacParams: ransac_n >= 2, >= 3 for the rigid model)
-CROSS_CHECKED = {(GravityParams, "min_points"), (GravityParams, "max_points"), (RansacParams, "ransac_n")}
+#: RansacParams: ransac_n >= 2, >= 3 for the rigid model; FloorPlaneParams: max_below_sensor_m >
+#: min_below_sensor_m)
+CROSS_CHECKED = {(GravityParams, "min_points"), (GravityParams, "max_points"), (RansacParams, "ransac_n"),
+                 (FloorPlaneParams, "max_below_sensor_m")}
 #: fields that declare no rule (every value runs: a count or ratio compared with ``<``, a tuple of angles)
 UNRULED = {(OdometryParams, n) for n in ("min_points", "keyframe_submap_size", "unconverged_retry_fitness",
                                          "turn_retry_yaw_deg")} | {
@@ -223,7 +236,7 @@ UNRULED = {(OdometryParams, n) for n in ("min_points", "keyframe_submap_size", "
 GROUPS = (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, GravityFallbackParams, LocalizeParams,
           FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams, RansacParams,
           OdometryParams, LoopParams, RecognitionParams, TrackParams, MastParams, SegmentationParams,
-          GeorefParams)
+          GeorefParams, FloorPlaneParams)
 KEYS = sorted(BOUNDS, key=lambda k: (k[0].__name__, k[1]))
 _OPS = {">": lambda v, b: v > b, ">=": lambda v, b: v >= b, "<": lambda v, b: v < b, "<=": lambda v, b: v <= b}
 
@@ -247,6 +260,22 @@ def test_every_numeric_field_is_listed():
         GravityParams(min_points=2)
     with pytest.raises(InputError, match="min_points <= max_points"):
         GravityParams(max_points=199)
+
+
+#: the checks across fields kept as code after ``validate`` (class, keywords, words of the message); each
+#: field alone is within its rule
+CROSS_CASES = [
+    (FloorPlaneParams, {"max_below_sensor_m": 0.3}, "max_below_sensor_m (0.3) must be greater than min_below_sensor_m"),
+    (FloorPlaneParams, {"min_below_sensor_m": 6.0}, "max_below_sensor_m (5.0) must be greater than min_below_sensor_m"),
+]
+
+
+@pytest.mark.parametrize("cls,kw,words", CROSS_CASES, ids=[f"{c[0].__name__}-{sorted(c[1])[0]}" for c in CROSS_CASES])
+def test_checks_across_fields_are_kept(cls, kw, words):
+    for name, v in kw.items():
+        check_field(cls, name, v)  # within the field's own rule: the check across fields refuses it
+    with pytest.raises(InputError, match=re.escape(words)):
+        cls(**kw)
 
 
 @st.composite
