@@ -47,6 +47,7 @@ from minegeo.registration.ransac_params import RansacParams
 from minegeo.semantic.recognition import RecognitionParams
 from minegeo.semantic.tracking import TrackParams
 from minegeo.slam.loops import LoopParams
+from minegeo.slam.mapping import RoadwayNoiseParams
 from minegeo.slam.odometry_model import EDGE_FLOOR_FIELDS, KEYFRAME_NOISE_FIELDS, OdometryParams
 from minegeo.slam.planes import FloorPlaneParams
 
@@ -220,6 +221,19 @@ BOUNDS = {
     (FloorPlaneParams, "min_inliers"): (">=", 3, None, None, True),
     (FloorPlaneParams, "min_inlier_fraction"): (">=", 0.0, "<=", 1.0, False),
     (FloorPlaneParams, "max_tilt_deg"): (">=", 0.0, "<", 90.0, False),
+    # RoadwayNoiseParams (its former __post_init__ checks, minegeo/slam/mapping.py at f50f0e4, plus the angles
+    # left open: a heading change > 0, a grade and a surface tilt in (0, 90]; the RNG seed >= 0)
+    **{(RoadwayNoiseParams, n): (">", 0.0, None, None, False)
+       for n in ("slice_thickness_m", "track_step_m", "max_radius_m", "max_step_m", "max_heading_change_deg",
+                 "max_curvature_rad_per_m", "ransac_threshold_m", "noise_threshold_m", "static_radius_m")},
+    (RoadwayNoiseParams, "max_grade_deg"): (">", 0.0, "<=", 90.0, False),
+    (RoadwayNoiseParams, "max_surface_tilt_deg"): (">", 0.0, "<=", 90.0, False),
+    (RoadwayNoiseParams, "ransac_iterations"): (">=", 1, None, None, True),
+    (RoadwayNoiseParams, "min_part_points"): (">=", 3, None, None, True),
+    (RoadwayNoiseParams, "min_inlier_fraction"): (">=", 0.0, "<=", 1.0, False),
+    (RoadwayNoiseParams, "vote_fraction"): (">", 0.0, "<=", 1.0, False),
+    (RoadwayNoiseParams, "static_min_keyframes"): (">=", 0, None, None, True),
+    (RoadwayNoiseParams, "seed"): (">=", 0, None, None, True),
 }
 #: fields whose rule is joined by a check across fields (GravityParams: 3 <= min_points <= max_points;
 #: RansacParams: ransac_n >= 2, >= 3 for the rigid model; FloorPlaneParams: max_below_sensor_m >
@@ -236,7 +250,7 @@ UNRULED = {(OdometryParams, n) for n in ("min_points", "keyframe_submap_size", "
 GROUPS = (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, GravityFallbackParams, LocalizeParams,
           FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams, RansacParams,
           OdometryParams, LoopParams, RecognitionParams, TrackParams, MastParams, SegmentationParams,
-          GeorefParams, FloorPlaneParams)
+          GeorefParams, FloorPlaneParams, RoadwayNoiseParams)
 KEYS = sorted(BOUNDS, key=lambda k: (k[0].__name__, k[1]))
 _OPS = {">": lambda v, b: v > b, ">=": lambda v, b: v >= b, "<": lambda v, b: v < b, "<=": lambda v, b: v <= b}
 
@@ -316,9 +330,11 @@ def test_validator_refuses_non_numbers_and_wrong_kinds(key, v):
 def test_optional_fields_and_stages():
     """None means off where the field says so, and only there."""
     for cls, name in ((IcpParams, "coarse_correspondence_m"), (IcpParams, "polish_correspondence_m"),
-                      (VerifyParams, "fine_tolerance_m"), (LocalizeParams, "scan_icp_voxel_size_m")):
+                      (VerifyParams, "fine_tolerance_m"), (LocalizeParams, "scan_icp_voxel_size_m"),
+                      (RoadwayNoiseParams, "track_step_m")):
         assert getattr(cls(**{name: None}), name) is None
-    for cls, name in ((IcpParams, "max_correspondence_m"), (VerifyParams, "min_fitness"), (AmbiguityParams, "ratio")):
+    for cls, name in ((IcpParams, "max_correspondence_m"), (VerifyParams, "min_fitness"), (AmbiguityParams, "ratio"),
+                      (RoadwayNoiseParams, "slice_thickness_m")):
         with pytest.raises(InputError, match=f"{cls.__name__}.{name}"):
             cls(**{name: None})
     lp = LocalizeParams(correlative=None, rival=None, gravity_fallback=None)
