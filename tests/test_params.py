@@ -46,6 +46,7 @@ from minegeo.mast.segmentation import SegmentationParams
 from minegeo.registration.ransac_params import RansacParams
 from minegeo.semantic.recognition import RecognitionParams
 from minegeo.semantic.tracking import TrackParams
+from minegeo.slam.inertial import InertialParams
 from minegeo.slam.loops import LoopParams
 from minegeo.slam.mapping import RoadwayNoiseParams
 from minegeo.slam.odometry_model import EDGE_FLOOR_FIELDS, KEYFRAME_NOISE_FIELDS, OdometryParams
@@ -234,6 +235,10 @@ BOUNDS = {
     (RoadwayNoiseParams, "vote_fraction"): (">", 0.0, "<=", 1.0, False),
     (RoadwayNoiseParams, "static_min_keyframes"): (">=", 0, None, None, True),
     (RoadwayNoiseParams, "seed"): (">=", 0, None, None, True),
+    # InertialParams (its former __post_init__ check, minegeo/slam/inertial.py at f50f0e4: each a finite number > 0)
+    **{(InertialParams, n): (">", 0.0, None, None, False)
+       for n in ("max_gap_s", "gravity_window_s", "roll_pitch_sigma_deg", "gyro_bias_sigma", "accel_bias_sigma",
+                 "rotation_sigma_deg", "edge_sigma_deg", "edge_sigma_m", "gate_tolerance_deg", "gate_sigmas")},
 }
 #: fields whose rule is joined by a check across fields (GravityParams: 3 <= min_points <= max_points;
 #: RansacParams: ransac_n >= 2, >= 3 for the rigid model; FloorPlaneParams: max_below_sensor_m >
@@ -250,7 +255,7 @@ UNRULED = {(OdometryParams, n) for n in ("min_points", "keyframe_submap_size", "
 GROUPS = (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, GravityFallbackParams, LocalizeParams,
           FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams, RansacParams,
           OdometryParams, LoopParams, RecognitionParams, TrackParams, MastParams, SegmentationParams,
-          GeorefParams, FloorPlaneParams, RoadwayNoiseParams)
+          GeorefParams, FloorPlaneParams, RoadwayNoiseParams, InertialParams)
 KEYS = sorted(BOUNDS, key=lambda k: (k[0].__name__, k[1]))
 _OPS = {">": lambda v, b: v > b, ">=": lambda v, b: v >= b, "<": lambda v, b: v < b, "<=": lambda v, b: v <= b}
 
@@ -344,6 +349,8 @@ def test_optional_fields_and_stages():
             LocalizeParams(**{name: None})
     with pytest.raises(InputError, match="LocalizeParams.rival"):
         LocalizeParams(rival=IcpParams())
+    with pytest.raises(InputError, match="InertialParams.noise must be a ImuNoise, got None"):
+        InertialParams(noise=None)
     with pytest.raises(InputError, match="scan_voxel_size_m or"):
         LocalizeParams(scan_voxel_size_m=None)
     assert LocalizeParams(scan_voxel_size_m=None, scan_octree_level=8).scan_octree_level == 8
@@ -422,6 +429,7 @@ CLI_CASES = [
     ("slam", "--max-acceleration", "-1", (OdometryParams, "max_acceleration_m_s2", -1.0), None, None),
     ("slam", "--loop-gap", "0", (LoopParams, "min_path_gap_m", 0.0), None, None),
     ("slam", "--loop-radius", "-2", (LoopParams, "max_distance_m", -2.0), None, None),
+    ("slam", "--imu-max-gap", "0", (InertialParams, "max_gap_s", 0.0), None, None),
     ("localize-batch", "--levelled", "0", (RansacParams, "max_tilt_deg", 0.0), None, "a finite number in (0, 90]"),
     ("localize-batch", "--voxel", "-0.5", (LocalizeParams, "scan_voxel_size_m", -0.5), None, None),
     ("localize-batch", "--octree-level", "0", (LocalizeParams, "scan_octree_level", 0), None, None),
@@ -435,6 +443,7 @@ CLI_CASES = [
     ("track", "--gate", "-3", (RecognitionParams, "gate_m", -3.0), None, None),
     ("track", "--gate-drift", "-0.1", (TrackParams, "gate_drift_fraction", -0.1), None, None),
     ("track", "--unchecked-path", "0", (TrackParams, "unchecked_path_m", 0.0), None, None),
+    ("track", "--imu-max-gap", "-0.05", (InertialParams, "max_gap_s", -0.05), None, None),
     ("mast", "--sigma-range-m", "-0.001", (MastParams, "sigma_range_m", -0.001), None, None),
     ("mast", "--sigma-bearing-deg", "-1", (MastParams, "sigma_bearing_deg", -1.0), None, None),
     ("mast", "--sigma-panel-m", "-0.5", (MastParams, "sigma_panel_m", -0.5), None, None),
@@ -554,6 +563,7 @@ OPTION_FIELDS = {
     ("slam", "--max-acceleration"): (OdometryParams, "max_acceleration_m_s2", None, None),
     ("slam", "--loop-gap"): (LoopParams, "min_path_gap_m", None, None),
     ("slam", "--loop-radius"): (LoopParams, "max_distance_m", None, None),
+    ("slam", "--imu-max-gap"): (InertialParams, "max_gap_s", None, None),
     ("localize-batch", "--levelled"): (RansacParams, "max_tilt_deg", 90.0, None),
     ("localize-batch", "--voxel"): (LocalizeParams, "scan_voxel_size_m", None, None),
     ("localize-batch", "--octree-level"): (LocalizeParams, "scan_octree_level", None, None),
@@ -566,6 +576,7 @@ OPTION_FIELDS = {
     ("track", "--gate"): (RecognitionParams, "gate_m", None, None),
     ("track", "--gate-drift"): (TrackParams, "gate_drift_fraction", None, None),
     ("track", "--unchecked-path"): (TrackParams, "unchecked_path_m", None, None),
+    ("track", "--imu-max-gap"): (InertialParams, "max_gap_s", None, None),
     ("mast", "--sigma-range-m"): (MastParams, "sigma_range_m", None, None),
     ("mast", "--sigma-bearing-deg"): (MastParams, "sigma_bearing_deg", None, None),
     ("mast", "--sigma-panel-m"): (MastParams, "sigma_panel_m", None, None),
