@@ -43,6 +43,7 @@ from minegeo.localize.params import (
 )
 from minegeo.mast.pipeline import MastParams
 from minegeo.mast.segmentation import SegmentationParams
+from minegeo.optim import LMParams
 from minegeo.registration.ransac_params import RansacParams
 from minegeo.semantic.recognition import RecognitionParams
 from minegeo.semantic.tracking import TrackParams
@@ -51,6 +52,7 @@ from minegeo.slam.loops import LoopParams
 from minegeo.slam.mapping import RoadwayNoiseParams
 from minegeo.slam.odometry_model import EDGE_FLOOR_FIELDS, KEYFRAME_NOISE_FIELDS, OdometryParams
 from minegeo.slam.planes import FloorPlaneParams
+from minegeo.slam.posegraph import PoseGraphParams
 
 # (class, field) -> (lower op, lower bound, upper op, upper bound, integer): the documented rules
 BOUNDS = {
@@ -239,6 +241,13 @@ BOUNDS = {
     **{(InertialParams, n): (">", 0.0, None, None, False)
        for n in ("max_gap_s", "gravity_window_s", "roll_pitch_sigma_deg", "gyro_bias_sigma", "accel_bias_sigma",
                  "rotation_sigma_deg", "edge_sigma_deg", "edge_sigma_m", "gate_tolerance_deg", "gate_sigmas")},
+    # LMParams and its subclass PoseGraphParams (LMParams' former __post_init__ checks, minegeo/optim/lm.py at
+    # f50f0e4: max_iterations >= 1, lambda_init and robust_scale > 0 and finite, the tolerances >= 0)
+    **{(cls, n): b for cls in (LMParams, PoseGraphParams) for n, b in (
+        ("max_iterations", (">=", 1, None, None, True)), ("lambda_init", (">", 0.0, None, None, False)),
+        ("relative_cost_tolerance", (">=", 0.0, None, None, False)),
+        ("remaining_cost_tolerance", (">=", 0.0, None, None, False)),
+        ("step_tolerance", (">=", 0.0, None, None, False)), ("robust_scale", (">", 0.0, None, None, False)))},
 }
 #: fields whose rule is joined by a check across fields (GravityParams: 3 <= min_points <= max_points;
 #: RansacParams: ransac_n >= 2, >= 3 for the rigid model; FloorPlaneParams: max_below_sensor_m >
@@ -255,7 +264,7 @@ UNRULED = {(OdometryParams, n) for n in ("min_points", "keyframe_submap_size", "
 GROUPS = (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, GravityFallbackParams, LocalizeParams,
           FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams, RansacParams,
           OdometryParams, LoopParams, RecognitionParams, TrackParams, MastParams, SegmentationParams,
-          GeorefParams, FloorPlaneParams, RoadwayNoiseParams, InertialParams)
+          GeorefParams, FloorPlaneParams, RoadwayNoiseParams, InertialParams, LMParams, PoseGraphParams)
 KEYS = sorted(BOUNDS, key=lambda k: (k[0].__name__, k[1]))
 _OPS = {">": lambda v, b: v > b, ">=": lambda v, b: v >= b, "<": lambda v, b: v < b, "<=": lambda v, b: v <= b}
 
@@ -377,7 +386,10 @@ def test_ransac_and_odometry_choices_flags_and_cross_checks():
     for cls, name, good, bad in ((RansacParams, "mode", "open3d", "opencv"),
                                  (RansacParams, "edge_pairs", "polygon", "ring"),
                                  (RansacParams, "model", "levelled", "yaw"),
-                                 (OdometryParams, "frame_target", "submap", "map")):
+                                 (OdometryParams, "frame_target", "submap", "map"),
+                                 (LMParams, "robust", "cauchy", "l2"), (LMParams, "damping", "diagonal", "levenberg"),
+                                 (PoseGraphParams, "robust", "huber", "tukey"),
+                                 (PoseGraphParams, "indefinite_information", "refuse", "clip")):
         kw = {"ransac_n": 2} if good == "levelled" else {}
         assert getattr(cls(**{name: good, **kw}), name) == good
         with pytest.raises(InputError, match=f"{cls.__name__}.{name} must be one of"):
