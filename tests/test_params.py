@@ -47,6 +47,7 @@ from minegeo.optim import LMParams
 from minegeo.registration.ransac_params import RansacParams
 from minegeo.semantic.recognition import RecognitionParams
 from minegeo.semantic.tracking import TrackParams
+from minegeo.slam.control import ControlParams
 from minegeo.slam.inertial import InertialParams
 from minegeo.slam.loops import LoopParams
 from minegeo.slam.mapping import RoadwayNoiseParams
@@ -248,6 +249,9 @@ BOUNDS = {
         ("relative_cost_tolerance", (">=", 0.0, None, None, False)),
         ("remaining_cost_tolerance", (">=", 0.0, None, None, False)),
         ("step_tolerance", (">=", 0.0, None, None, False)), ("robust_scale", (">", 0.0, None, None, False)))},
+    # ControlParams (its former __post_init__ checks, minegeo/slam/control.py at f50f0e4)
+    (ControlParams, "class_c"): (">", 0.0, None, None, False),
+    (ControlParams, "drift_alpha"): (">", 0.0, "<", 1.0, False),
 }
 #: fields whose rule is joined by a check across fields (GravityParams: 3 <= min_points <= max_points;
 #: RansacParams: ransac_n >= 2, >= 3 for the rigid model; FloorPlaneParams: max_below_sensor_m >
@@ -260,11 +264,13 @@ UNRULED = {(OdometryParams, n) for n in ("min_points", "keyframe_submap_size", "
     (RecognitionParams, "skeleton"),  # SkeletonParams.check()
     *((TrackParams, n) for n in ("odometry", "recognition", "T_world_start")),  # groups that check themselves; a pose
     (MastParams, "segmentation"), (MastParams, "icp_gates_m"), (SegmentationParams, "options"),
-    (GeorefParams, "convention")}  # checked by the class
+    (GeorefParams, "convention"),
+    *((ControlParams, n) for n in ("drift_states", "drift_prior", "drift_walk"))}  # checked by the class
 GROUPS = (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, GravityFallbackParams, LocalizeParams,
           FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams, RansacParams,
           OdometryParams, LoopParams, RecognitionParams, TrackParams, MastParams, SegmentationParams,
-          GeorefParams, FloorPlaneParams, RoadwayNoiseParams, InertialParams, LMParams, PoseGraphParams)
+          GeorefParams, FloorPlaneParams, RoadwayNoiseParams, InertialParams, LMParams, PoseGraphParams,
+          ControlParams)
 KEYS = sorted(BOUNDS, key=lambda k: (k[0].__name__, k[1]))
 _OPS = {">": lambda v, b: v > b, ">=": lambda v, b: v >= b, "<": lambda v, b: v < b, "<=": lambda v, b: v <= b}
 
@@ -295,13 +301,16 @@ def test_every_numeric_field_is_listed():
 CROSS_CASES = [
     (FloorPlaneParams, {"max_below_sensor_m": 0.3}, "max_below_sensor_m (0.3) must be greater than min_below_sensor_m"),
     (FloorPlaneParams, {"min_below_sensor_m": 6.0}, "max_below_sensor_m (5.0) must be greater than min_below_sensor_m"),
+    (ControlParams, {"model": "similarity"}, "the similarity model is a fit after SLAM (mode 'rigid')"),
+    (ControlParams, {"mode": "rigid", "drift_states": "auto"}, "drift_states 'auto' needs the graph mode"),
 ]
 
 
 @pytest.mark.parametrize("cls,kw,words", CROSS_CASES, ids=[f"{c[0].__name__}-{sorted(c[1])[0]}" for c in CROSS_CASES])
 def test_checks_across_fields_are_kept(cls, kw, words):
     for name, v in kw.items():
-        check_field(cls, name, v)  # within the field's own rule: the check across fields refuses it
+        if (cls, name) not in UNRULED:
+            check_field(cls, name, v)  # within the field's own rule: the check across fields refuses it
     with pytest.raises(InputError, match=re.escape(words)):
         cls(**kw)
 
@@ -360,6 +369,16 @@ def test_optional_fields_and_stages():
         LocalizeParams(rival=IcpParams())
     with pytest.raises(InputError, match="InertialParams.noise must be a ImuNoise, got None"):
         InertialParams(noise=None)
+    with pytest.raises(InputError, match="ControlParams.lm must be a LMParams, got None"):
+        ControlParams(lm=None)
+    assert ControlParams(lm=PoseGraphParams()).lm == PoseGraphParams()  # a subclass is an LMParams
+    for bad in ("sometimes", None):
+        with pytest.raises(InputError, match="drift_states must be True, False or 'auto'"):
+            ControlParams(drift_states=bad)
+    for name in ("drift_prior", "drift_walk"):
+        for bad in ((1.0, 0.0, 1.0), (1.0, 1.0), (1.0, math.inf, 1.0)):
+            with pytest.raises(InputError, match=f"{name} must be 3 positive numbers"):
+                ControlParams(**{name: bad})
     with pytest.raises(InputError, match="scan_voxel_size_m or"):
         LocalizeParams(scan_voxel_size_m=None)
     assert LocalizeParams(scan_voxel_size_m=None, scan_octree_level=8).scan_octree_level == 8
@@ -389,13 +408,15 @@ def test_ransac_and_odometry_choices_flags_and_cross_checks():
                                  (OdometryParams, "frame_target", "submap", "map"),
                                  (LMParams, "robust", "cauchy", "l2"), (LMParams, "damping", "diagonal", "levenberg"),
                                  (PoseGraphParams, "robust", "huber", "tukey"),
-                                 (PoseGraphParams, "indefinite_information", "refuse", "clip")):
-        kw = {"ransac_n": 2} if good == "levelled" else {}
+                                 (PoseGraphParams, "indefinite_information", "refuse", "clip"),
+                                 (ControlParams, "mode", "rigid", "similarity"),
+                                 (ControlParams, "model", "similarity", "affine")):
+        kw = {"ransac_n": 2} if good == "levelled" else {"mode": "rigid"} if good == "similarity" else {}
         assert getattr(cls(**{name: good, **kw}), name) == good
         with pytest.raises(InputError, match=f"{cls.__name__}.{name} must be one of"):
             cls(**{name: bad})
     for cls, name in ((RansacParams, "mutual_filter"), (OdometryParams, "deskew"),
-                      (OdometryParams, "edge_covariance_floor")):
+                      (OdometryParams, "edge_covariance_floor"), (ControlParams, "snooping")):
         assert getattr(cls(**{name: True}), name) is True and getattr(cls(**{name: False}), name) is False
         with pytest.raises(InputError, match=f"{cls.__name__}.{name} must be True or False"):
             cls(**{name: 1})
@@ -442,6 +463,7 @@ CLI_CASES = [
     ("slam", "--loop-gap", "0", (LoopParams, "min_path_gap_m", 0.0), None, None),
     ("slam", "--loop-radius", "-2", (LoopParams, "max_distance_m", -2.0), None, None),
     ("slam", "--imu-max-gap", "0", (InertialParams, "max_gap_s", 0.0), None, None),
+    ("slam", "--class-constant", "0", (ControlParams, "class_c", 0.0), None, None),
     ("localize-batch", "--levelled", "0", (RansacParams, "max_tilt_deg", 0.0), None, "a finite number in (0, 90]"),
     ("localize-batch", "--voxel", "-0.5", (LocalizeParams, "scan_voxel_size_m", -0.5), None, None),
     ("localize-batch", "--octree-level", "0", (LocalizeParams, "scan_octree_level", 0), None, None),
@@ -576,6 +598,7 @@ OPTION_FIELDS = {
     ("slam", "--loop-gap"): (LoopParams, "min_path_gap_m", None, None),
     ("slam", "--loop-radius"): (LoopParams, "max_distance_m", None, None),
     ("slam", "--imu-max-gap"): (InertialParams, "max_gap_s", None, None),
+    ("slam", "--class-constant"): (ControlParams, "class_c", None, None),
     ("localize-batch", "--levelled"): (RansacParams, "max_tilt_deg", 90.0, None),
     ("localize-batch", "--voxel"): (LocalizeParams, "scan_voxel_size_m", None, None),
     ("localize-batch", "--octree-level"): (LocalizeParams, "scan_octree_level", None, None),
