@@ -45,7 +45,10 @@ from minegeo.mast.pipeline import MastParams
 from minegeo.mast.segmentation import SegmentationParams
 from minegeo.optim import LMParams
 from minegeo.registration.ransac_params import RansacParams
+from minegeo.semantic.descriptors import DescriptorParams
+from minegeo.semantic.knowledge import KBParams
 from minegeo.semantic.recognition import RecognitionParams
+from minegeo.semantic.skeleton import SkeletonParams
 from minegeo.semantic.tracking import TrackParams
 from minegeo.slam.control import ControlParams
 from minegeo.slam.inertial import InertialParams
@@ -252,37 +255,54 @@ BOUNDS = {
     # ControlParams (its former __post_init__ checks, minegeo/slam/control.py at f50f0e4)
     (ControlParams, "class_c"): (">", 0.0, None, None, False),
     (ControlParams, "drift_alpha"): (">", 0.0, "<", 1.0, False),
+    # SkeletonParams and DescriptorParams (their former check() methods, minegeo/semantic/skeleton.py and
+    # descriptors.py at f50f0e4)
+    **{(SkeletonParams, n): (">", 0.0, None, None, False)
+       for n in ("cell_m", "floor_cell_m", "min_branch_m", "merge_radius_m", "refine_radius_m", "level_gap_m")},
+    **{(SkeletonParams, n): (">=", 0.0, None, None, False) for n in ("max_hole_m2", "min_component_m2", "fill_radius_m")},
+    (SkeletonParams, "floor_quantile"): (">=", 0.0, "<", 1.0, False),
+    (DescriptorParams, "radius_m"): (">", 0.0, None, None, False),
+    (DescriptorParams, "band_m"): (">", 0.0, None, None, False),
+    (DescriptorParams, "min_range_m"): (">=", 0.0, None, None, False),
+    (DescriptorParams, "footprint_m"): (">=", 0.0, None, None, False),
+    (DescriptorParams, "n_sectors"): (">=", 8, None, None, True),
+    (DescriptorParams, "n_bands"): (">=", 1, None, None, True),
+    (DescriptorParams, "max_gap_sectors"): (">=", 0, None, None, True),
 }
+#: numeric fields whose rule is "a finite number" (any height above the floor)
+FINITE = {(DescriptorParams, "band_start_m")}
 #: fields whose rule is joined by a check across fields (GravityParams: 3 <= min_points <= max_points;
 #: RansacParams: ransac_n >= 2, >= 3 for the rigid model; FloorPlaneParams: max_below_sensor_m >
 #: min_below_sensor_m)
 CROSS_CHECKED = {(GravityParams, "min_points"), (GravityParams, "max_points"), (RansacParams, "ransac_n"),
-                 (FloorPlaneParams, "max_below_sensor_m")}
+                 (FloorPlaneParams, "max_below_sensor_m"), (KBParams, "cloud_radius_m")}
+#: the own rule of a cross-checked field that an option sets (the option's type checks that rule alone)
+CROSS_RULES = {(KBParams, "cloud_radius_m"): (">", 0.0, None, None, False)}
 #: fields that declare no rule (every value runs: a count or ratio compared with ``<``, a tuple of angles)
 UNRULED = {(OdometryParams, n) for n in ("min_points", "keyframe_submap_size", "unconverged_retry_fitness",
                                          "turn_retry_yaw_deg")} | {
-    (RecognitionParams, "skeleton"),  # SkeletonParams.check()
     *((TrackParams, n) for n in ("odometry", "recognition", "T_world_start")),  # groups that check themselves; a pose
     (MastParams, "segmentation"), (MastParams, "icp_gates_m"), (SegmentationParams, "options"),
     (GeorefParams, "convention"),
-    *((ControlParams, n) for n in ("drift_states", "drift_prior", "drift_walk"))}  # checked by the class
+    *((ControlParams, n) for n in ("drift_states", "drift_prior", "drift_walk")),
+    (SkeletonParams, "wall_band_m"), (DescriptorParams, "wall_band_m")}  # checked by the class
 GROUPS = (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, GravityFallbackParams, LocalizeParams,
           FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams, RansacParams,
           OdometryParams, LoopParams, RecognitionParams, TrackParams, MastParams, SegmentationParams,
           GeorefParams, FloorPlaneParams, RoadwayNoiseParams, InertialParams, LMParams, PoseGraphParams,
-          ControlParams)
+          ControlParams, SkeletonParams, DescriptorParams, KBParams)
 KEYS = sorted(BOUNDS, key=lambda k: (k[0].__name__, k[1]))
 _OPS = {">": lambda v, b: v > b, ">=": lambda v, b: v >= b, "<": lambda v, b: v < b, "<=": lambda v, b: v <= b}
 
 
 def _expected_ok(key, v) -> bool:
-    lo_op, lo, hi_op, hi, _ = BOUNDS[key]
+    lo_op, lo, hi_op, hi, _ = BOUNDS[key] if key in BOUNDS else CROSS_RULES[key]
     return (lo_op is None or _OPS[lo_op](v, lo)) and (hi_op is None or _OPS[hi_op](v, hi))
 
 
 def test_every_numeric_field_is_listed():
     """The table above covers every numeric field of the groups (a new field gets its rule checked)."""
-    listed = set(BOUNDS) | CROSS_CHECKED
+    listed = set(BOUNDS) | CROSS_CHECKED | FINITE
     for cls in GROUPS:
         for f in dataclasses.fields(cls):
             if (cls, f.name) in UNRULED:
@@ -303,6 +323,12 @@ CROSS_CASES = [
     (FloorPlaneParams, {"min_below_sensor_m": 6.0}, "max_below_sensor_m (5.0) must be greater than min_below_sensor_m"),
     (ControlParams, {"model": "similarity"}, "the similarity model is a fit after SLAM (mode 'rigid')"),
     (ControlParams, {"mode": "rigid", "drift_states": "auto"}, "drift_states 'auto' needs the graph mode"),
+    (KBParams, {"cloud_radius_m": 11.5}, "KBParams.cloud_radius_m (11.5 m) must be at least the descriptor radius (12 m)"),
+    (SkeletonParams, {"wall_band_m": (2.2, 0.4)}, "SkeletonParams.wall_band_m must be an increasing (lo, hi) pair"),
+    (SkeletonParams, {"wall_band_m": (0.4, math.nan)}, "SkeletonParams.wall_band_m must be an increasing (lo, hi) pair"),
+    (DescriptorParams, {"wall_band_m": (1.0, 1.0)}, "DescriptorParams.wall_band_m must be an increasing (lo, hi) pair"),
+    (DescriptorParams, {"wall_band_m": (0.4, 1.0, 2.2)}, "DescriptorParams.wall_band_m must be an increasing"),
+    (DescriptorParams, {"wall_band_m": ("low", "high")}, "DescriptorParams.wall_band_m must be an increasing"),
 ]
 
 
@@ -341,6 +367,17 @@ def test_validator_refuses_the_wrong_side_of_each_bound(key, data):
         assert msg.startswith(f"{cls.__name__}.{name} must be ") and msg.endswith(f"got {v!r}"), msg
 
 
+@pytest.mark.parametrize("key", sorted(FINITE, key=lambda k: (k[0].__name__, k[1])))
+@given(v=st.floats(allow_nan=True, allow_infinity=True) | st.sampled_from([True, "0.2", None]))
+def test_finite_fields_take_any_finite_number(key, v):
+    cls, name = key
+    if isinstance(v, float) and math.isfinite(v):
+        assert getattr(cls(**{name: v}), name) == v
+    else:
+        with pytest.raises(InputError, match=f"{cls.__name__}.{name} must be a finite number, got"):
+            cls(**{name: v})
+
+
 @given(st.sampled_from(KEYS), st.sampled_from([math.nan, math.inf, -math.inf, True, "1", 2.5]))
 def test_validator_refuses_non_numbers_and_wrong_kinds(key, v):
     cls, name = key
@@ -369,6 +406,12 @@ def test_optional_fields_and_stages():
         LocalizeParams(rival=IcpParams())
     with pytest.raises(InputError, match="InertialParams.noise must be a ImuNoise, got None"):
         InertialParams(noise=None)
+    for cls, name in ((KBParams, "skeleton"), (KBParams, "descriptor"), (RecognitionParams, "skeleton")):
+        with pytest.raises(InputError, match=f"{cls.__name__}.{name} must be a "):
+            cls(**{name: None})
+    with pytest.raises(InputError, match="RecognitionParams.skeleton must be a SkeletonParams"):
+        RecognitionParams(skeleton=DescriptorParams())
+    assert KBParams(descriptor=DescriptorParams(radius_m=20.0), cloud_radius_m=20.0).cloud_radius_m == 20.0
     with pytest.raises(InputError, match="ControlParams.lm must be a LMParams, got None"):
         ControlParams(lm=None)
     assert ControlParams(lm=PoseGraphParams()).lm == PoseGraphParams()  # a subclass is an LMParams
@@ -487,6 +530,8 @@ CLI_CASES = [
     ("georef", "--blunder-alpha", "1", (GeorefParams, "blunder_alpha", 1.0), None, None),
     ("georef", "--max-scale-deviation", "0", (GeorefParams, "max_scale_deviation", 0.0), None, None),
     ("georef", "--max-sigma0", "1", (GeorefParams, "max_sigma0", 1.0), None, "a finite number in (1, 1000000000000]"),
+    ("intersections build", "--cloud-radius", "0", (KBParams, "cloud_radius_m", 0.0), None, None),
+    ("intersections build", "--floor-cell", "-1", (SkeletonParams, "floor_cell_m", -1.0), None, None),
 ]
 _CLI_IDS = [f"{c[0]}{c[1]}={c[2]}" for c in CLI_CASES]
 
@@ -510,6 +555,9 @@ _LIMIT_IDS = [f"{c[0]}{c[1]}={c[2]}" for c in LIMIT_CASES]
 
 
 def _base(verb, tmp_path) -> list:
+    """The arguments after the verb's first word (a subcommand's name first: ``intersections build``)."""
+    if verb == "intersections build":
+        return ["build", "--map", tmp_path / "no_map.ply", "--out", tmp_path / "out"]
     if verb == "localize":
         return ["--map", tmp_path / "no_map.ply", "--scan", tmp_path / "no_scan.ply", "--out", tmp_path / "out"]
     if verb == "localize-batch":
@@ -545,7 +593,7 @@ def _limit_want(target, option_rule, field_rule_text) -> str:
 @pytest.mark.parametrize("verb,opt,text,target,off_text,limit", CLI_CASES, ids=_CLI_IDS)
 def test_cli_option_refused_with_the_dataclass_message(verb, opt, text, target, off_text, limit, tmp_path, capsys):
     want = _want(target, off_text, limit)
-    line = assert_user_error(verb, [*_base(verb, tmp_path), opt, text], capsys, outputs=[tmp_path / "out"])
+    line = assert_user_error(verb.split()[0], [*_base(verb, tmp_path), opt, text], capsys, outputs=[tmp_path / "out"])
     assert line.endswith(f"argument {opt}: {want} (see minegeo {verb} --help)"), (line, want)
 
 
@@ -555,7 +603,7 @@ def test_config_file_value_refused_with_the_dataclass_message(verb, opt, text, t
     cfg = tmp_path / "bad.json"
     cfg.write_text(json.dumps({opt.lstrip("-"): target[2]}), encoding="utf-8")  # a whole number stays one
     want = _want(target, off_text, limit)
-    line = assert_user_error(verb, [*_base(verb, tmp_path), "--config", cfg], capsys, inputs=[cfg],
+    line = assert_user_error(verb.split()[0], [*_base(verb, tmp_path), "--config", cfg], capsys, inputs=[cfg],
                              outputs=[tmp_path / "out"])
     assert f"key {opt.lstrip('-')!r}: {want}" in line, (line, want)
 
@@ -566,11 +614,11 @@ def test_option_cap_below_the_field_bound_is_kept(verb, opt, text, target, optio
     """An option that deliberately takes less than its field (--levelled at most 90 deg, the counts at
     most 1e9, --keyframe-angle at most 180 deg) refuses the rest, on the command line and in a file."""
     want = _limit_want(target, option_rule, field_rule_text)
-    line = assert_user_error(verb, [*_base(verb, tmp_path), opt, text], capsys, outputs=[tmp_path / "out"])
+    line = assert_user_error(verb.split()[0], [*_base(verb, tmp_path), opt, text], capsys, outputs=[tmp_path / "out"])
     assert line.endswith(f"argument {opt}: {want} (see minegeo {verb} --help)"), (line, want)
     cfg = tmp_path / "bad.json"
     cfg.write_text(json.dumps({opt.lstrip("-"): target[2]}), encoding="utf-8")
-    line = assert_user_error(verb, [*_base(verb, tmp_path), "--config", cfg], capsys, inputs=[cfg],
+    line = assert_user_error(verb.split()[0], [*_base(verb, tmp_path), "--config", cfg], capsys, inputs=[cfg],
                              outputs=[tmp_path / "out"])
     assert f"key {opt.lstrip('-')!r}: {want}" in line, (line, want)
 
@@ -621,6 +669,8 @@ OPTION_FIELDS = {
     ("georef", "--blunder-alpha"): (GeorefParams, "blunder_alpha", None, None),
     ("georef", "--max-scale-deviation"): (GeorefParams, "max_scale_deviation", None, None),
     ("georef", "--max-sigma0"): (GeorefParams, "max_sigma0", 1e12, None),
+    ("intersections build", "--cloud-radius"): (KBParams, "cloud_radius_m", None, None),
+    ("intersections build", "--floor-cell"): (SkeletonParams, "floor_cell_m", None, None),
 }
 OPTIONS = sorted(OPTION_FIELDS)
 
@@ -628,8 +678,12 @@ OPTIONS = sorted(OPTION_FIELDS)
 def _verb_actions(verb) -> dict:
     from minegeo.cli import build_parser
 
-    sub = next(a for a in build_parser([verb])._actions if isinstance(a, argparse._SubParsersAction))
-    return {s: a for a in sub.choices[verb]._actions for s in a.option_strings}
+    *names, = verb.split()  # "intersections build": the subcommand's parser
+    parser = build_parser(names[:1])
+    for name in names:
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        parser = sub.choices[name]
+    return {s: a for a in parser._actions for s in a.option_strings}
 
 
 def test_every_option_typed_by_a_field_rule_is_listed():
@@ -638,7 +692,7 @@ def test_every_option_typed_by_a_field_rule_is_listed():
     from minegeo._params import arg_type
 
     rule_type = type(arg_type(RansacParams, "max_iterations"))
-    for verb in ("localize", "slam", "localize-batch", "track", "mast", "georef"):
+    for verb in ("localize", "slam", "localize-batch", "track", "mast", "georef", "intersections build"):
         typed = {o for o, a in _verb_actions(verb).items() if o.startswith("--") and isinstance(a.type, rule_type)}
         assert typed == {o for v, o in OPTION_FIELDS if v == verb}, verb
     assert {(c[0], c[1]) for c in CLI_CASES} == set(OPTION_FIELDS)
@@ -647,7 +701,7 @@ def test_every_option_typed_by_a_field_rule_is_listed():
 @st.composite
 def _near_an_option_bound(draw, key):
     cls, name, cap, off = OPTION_FIELDS[key]
-    lo_op, lo, hi_op, hi, integer = BOUNDS[(cls, name)]
+    lo_op, lo, hi_op, hi, integer = BOUNDS.get((cls, name)) or CROSS_RULES[(cls, name)]
     bound = draw(st.sampled_from([b for b in (lo, hi, cap, off) if b is not None]))
     if integer:
         return int(bound) + draw(st.integers(-3, 3))
