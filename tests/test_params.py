@@ -1,15 +1,18 @@
 """Parameter groups with their rules in field metadata (minegeo/_params.py, minegeo/localize/params.py,
-minegeo/registration/ransac_params.py, minegeo/slam/odometry_model.py).
+minegeo/registration/ransac_params.py, the SLAM groups of minegeo/slam and minegeo/optim/lm.py, the
+``minegeo intersections build`` groups of minegeo/semantic, the mast and georef groups).
 
 * every numeric rule refuses the values on the wrong side of its bound and accepts the others
   (hypothesis: values drawn on both sides of each bound; the expected verdict comes from the bound
-  as hand-listed here, not from the code's metadata);
+  as hand-listed here, not from the code's metadata); the checks across fields kept as code refuse
+  what they refused before;
 * the command line and a ``--config`` file refuse a value with the dataclass's own message
   (exit status 2, one stderr line: the bad-input contract); every option typed by a field's rule
-  (``minegeo localize``, ``minegeo slam``) is listed, its type accepts exactly what the field accepts
-  (within the option's own cap, where it has one) and refuses the rest with the field's message;
-* ``LocalizeParams()`` holds the values of the flat parameter set it replaced, field by field
-  (hand-listed from the former ``minegeo/localize/params.py``).
+  (``minegeo localize``, ``slam``, ``localize-batch``, ``track``, ``mast``, ``georef``,
+  ``intersections build``) is listed, its type accepts exactly what the field accepts (within the
+  option's own cap, where it has one) and refuses the rest with the field's message.
+
+The defaults (unchanged by the rules) are tested in tests/test_params_defaults.py.
 """
 
 from __future__ import annotations
@@ -752,73 +755,3 @@ def test_cli_zero_means_off_and_values_reach_the_groups():
     # the CLI's fixed choices are the dataclass Literals (plus "off" = None)
     assert C.ICP_CHOICES == tuple(field_rule(IcpParams, "method")["choices"])
     assert C.CORRELATIVE_CHOICES == (*field_rule(CorrelativeStageParams, "mode")["choices"], "off")
-
-
-# ------------------------------------------------------------------ the defaults
-
-#: the flat LocalizeParams defaults before the groups (minegeo/localize/params.py at d1cd455),
-#: old name -> (path in the grouped LocalizeParams, value)
-OLD_DEFAULTS = {
-    "scan_voxel_size_m": ("scan_voxel_size_m", 0.5),
-    "scan_octree_level": ("scan_octree_level", None),
-    "scan_icp_voxel_size_m": ("scan_icp_voxel_size_m", 0.1),
-    "ransac_runs": ("ransac_runs", 1),
-    "icp_method": ("icp.method", "point_to_point"),
-    "icp_max_correspondence_m": ("icp.max_correspondence_m", 0.5),
-    "icp_max_iterations": ("icp.max_iterations", 30),
-    "icp_relative_rmse": ("icp.relative_rmse", 1e-6),
-    "icp_relative_fitness": ("icp.relative_fitness", 1e-6),
-    "min_scan_points": ("min_scan_points", 30),
-    "min_fitness": ("verify.min_fitness", 0.6),
-    "max_inlier_rmse_m": ("verify.max_inlier_rmse_m", 0.35),
-    "verify_plane_tolerance_m": ("verify.plane_tolerance_m", 0.1),
-    "verify_noise_factor": ("verify.noise_factor", 4.0),
-    "verify_fine_tolerance_m": ("verify.fine_tolerance_m", 0.04),
-    "verify_fine_noise_factor": ("verify.fine_noise_factor", 2.0),
-    "fine_ambiguity_ratio": ("ambiguity.fine_ratio", 0.8),
-    "min_plane_fitness": ("verify.min_plane_fitness", 0.75),
-    "ambiguity_ratio": ("ambiguity.ratio", 0.9),
-    "ambiguity_distance_m": ("ambiguity.distance_m", 0.5),
-    "ambiguity_angle_deg": ("ambiguity.angle_deg", 5.0),
-    "degeneracy_ratio": ("verify.degeneracy_ratio", 0.01),
-    "max_pending_step_m": ("verify.max_pending_step_m", 0.1),
-    "icp_coarse_correspondence_m": ("icp.coarse_correspondence_m", 1.5),
-    "icp_screen_max_iterations": ("icp.screen_max_iterations", 10),
-    "icp_screen_max_points": ("icp.screen_max_points", 1000),
-    "max_weak_displacement_95_m": ("verify.max_weak_displacement_95_m", 0.15),
-    "correlative": ("correlative.mode", "fallback"),
-    "correlative_confirm_below_points": ("ambiguity.small_scan_below_points", 400),
-    "correlative_precheck_ratio": ("correlative.precheck_ratio", 0.7),
-    "small_scan_ambiguity_ratio": ("ambiguity.small_scan_ratio", 0.8),
-    "icp_polish_correspondence_m": ("icp.polish_correspondence_m", 0.25),
-    "weak_axis_polish_term": ("icp.weak_axis_polish_term", True),
-    "gravity_fallback_tilt_deg": ("gravity_fallback.tilt_deg", 3.0),
-    # nested objects: their own defaults, with the two overrides the flat class had
-    "ransac.max_iterations": ("ransac.max_iterations", 4_000_000),
-    "ransac.mutual_filter": ("ransac.mutual_filter", True),
-    "gravity_params.max_points": ("gravity_fallback.estimate.max_points", 5000),
-}
-
-
-def _get(obj, path: str):
-    for part in path.split("."):
-        obj = getattr(obj, part)
-    return obj
-
-
-@pytest.mark.parametrize("old", sorted(OLD_DEFAULTS))
-def test_defaults_equal_the_flat_parameters(old):
-    path, value = OLD_DEFAULTS[old]
-    got = _get(LocalizeParams(), path)
-    assert got == value and type(got) is type(value), (old, path, got)
-
-
-def test_default_objects_and_stages():
-    lp = LocalizeParams()
-    assert lp.features == FeatureParams() and lp.uncertainty == UncertaintyParams()
-    assert lp.correlative.search == CorrelativeParams() and lp.rival == RivalParams()  # rival_search=True before
-    assert lp.gravity_fallback.estimate == GravityParams(max_points=5000)  # gravity_fallback=True before
-    fast = LocalizeParams.fast()
-    assert fast.icp.method == "point_to_plane" and fast.scan_voxel_size_m == 1.0
-    assert dataclasses.replace(fast, icp=lp.icp, scan_voxel_size_m=0.5, features=lp.features, ransac=lp.ransac) == lp
-    assert LocalizeParams.paper_table3().ransac.max_iterations == 400_000_000
