@@ -535,6 +535,9 @@ CLI_CASES = [
     ("georef", "--max-sigma0", "1", (GeorefParams, "max_sigma0", 1.0), None, "a finite number in (1, 1000000000000]"),
     ("intersections build", "--cloud-radius", "0", (KBParams, "cloud_radius_m", 0.0), None, None),
     ("intersections build", "--floor-cell", "-1", (SkeletonParams, "floor_cell_m", -1.0), None, None),
+    ("posegraph", "--max-iterations", "0", (PoseGraphParams, "max_iterations", 0), None,
+     "a whole number in [1, 100000]"),
+    ("posegraph", "--robust-scale", "-1", (PoseGraphParams, "robust_scale", -1.0), None, None),
 ]
 _CLI_IDS = [f"{c[0]}{c[1]}={c[2]}" for c in CLI_CASES]
 
@@ -553,12 +556,16 @@ LIMIT_CASES = [
      "a finite number > 0"),
     ("georef", "--max-sigma0", "1e13", (GeorefParams, "max_sigma0", 1e13), "a finite number in (1, 1000000000000]",
      "a finite number > 1"),
+    ("posegraph", "--max-iterations", "100001", (PoseGraphParams, "max_iterations", 100001),
+     "a whole number in [1, 100000]", "a whole number >= 1"),
 ]
 _LIMIT_IDS = [f"{c[0]}{c[1]}={c[2]}" for c in LIMIT_CASES]
 
 
 def _base(verb, tmp_path) -> list:
     """The arguments after the verb's first word (a subcommand's name first: ``intersections build``)."""
+    if verb == "posegraph":
+        return [tmp_path / "no_graph.g2o", "--out", tmp_path / "out"]
     if verb == "intersections build":
         return ["build", "--map", tmp_path / "no_map.ply", "--out", tmp_path / "out"]
     if verb == "localize":
@@ -674,6 +681,8 @@ OPTION_FIELDS = {
     ("georef", "--max-sigma0"): (GeorefParams, "max_sigma0", 1e12, None),
     ("intersections build", "--cloud-radius"): (KBParams, "cloud_radius_m", None, None),
     ("intersections build", "--floor-cell"): (SkeletonParams, "floor_cell_m", None, None),
+    ("posegraph", "--max-iterations"): (PoseGraphParams, "max_iterations", 100000, None),
+    ("posegraph", "--robust-scale"): (PoseGraphParams, "robust_scale", None, None),
 }
 OPTIONS = sorted(OPTION_FIELDS)
 
@@ -695,7 +704,8 @@ def test_every_option_typed_by_a_field_rule_is_listed():
     from minegeo._params import arg_type
 
     rule_type = type(arg_type(RansacParams, "max_iterations"))
-    for verb in ("localize", "slam", "localize-batch", "track", "mast", "georef", "intersections build"):
+    for verb in ("localize", "slam", "localize-batch", "track", "mast", "georef", "intersections build",
+                 "posegraph"):
         typed = {o for o, a in _verb_actions(verb).items() if o.startswith("--") and isinstance(a.type, rule_type)}
         assert typed == {o for v, o in OPTION_FIELDS if v == verb}, verb
     assert {(c[0], c[1]) for c in CLI_CASES} == set(OPTION_FIELDS)
