@@ -1,15 +1,18 @@
 """Parameter groups with their rules in field metadata (minegeo/_params.py, minegeo/localize/params.py,
-minegeo/registration/ransac_params.py, minegeo/slam/odometry_model.py).
+minegeo/registration/ransac_params.py, the SLAM groups of minegeo/slam and minegeo/optim/lm.py, the
+``minegeo intersections build`` groups of minegeo/semantic, the mast and georef groups).
 
 * every numeric rule refuses the values on the wrong side of its bound and accepts the others
   (hypothesis: values drawn on both sides of each bound; the expected verdict comes from the bound
-  as hand-listed here, not from the code's metadata);
+  as hand-listed here, not from the code's metadata); the checks across fields kept as code refuse
+  what they refused before;
 * the command line and a ``--config`` file refuse a value with the dataclass's own message
   (exit status 2, one stderr line: the bad-input contract); every option typed by a field's rule
-  (``minegeo localize``, ``minegeo slam``) is listed, its type accepts exactly what the field accepts
-  (within the option's own cap, where it has one) and refuses the rest with the field's message;
-* ``LocalizeParams()`` holds the values of the flat parameter set it replaced, field by field
-  (hand-listed from the former ``minegeo/localize/params.py``).
+  (``minegeo localize``, ``slam``, ``localize-batch``, ``track``, ``mast``, ``georef``,
+  ``intersections build``) is listed, its type accepts exactly what the field accepts (within the
+  option's own cap, where it has one) and refuses the rest with the field's message.
+
+The defaults (unchanged by the rules) are tested in tests/test_params_defaults.py.
 """
 
 from __future__ import annotations
@@ -18,13 +21,14 @@ import argparse
 import dataclasses
 import json
 import math
+import re
 
 import pytest
 from badinput._contract import assert_user_error
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from minegeo._params import field_rule
+from minegeo._params import check_field, field_rule
 from minegeo.errors import InputError
 from minegeo.georef.result import GeorefParams
 from minegeo.localize.params import (
@@ -42,11 +46,20 @@ from minegeo.localize.params import (
 )
 from minegeo.mast.pipeline import MastParams
 from minegeo.mast.segmentation import SegmentationParams
+from minegeo.optim import LMParams
 from minegeo.registration.ransac_params import RansacParams
+from minegeo.semantic.descriptors import DescriptorParams
+from minegeo.semantic.knowledge import KBParams
 from minegeo.semantic.recognition import RecognitionParams
+from minegeo.semantic.skeleton import SkeletonParams
 from minegeo.semantic.tracking import TrackParams
+from minegeo.slam.control import ControlParams
+from minegeo.slam.inertial import InertialParams
 from minegeo.slam.loops import LoopParams
+from minegeo.slam.mapping import RoadwayNoiseParams
 from minegeo.slam.odometry_model import EDGE_FLOOR_FIELDS, KEYFRAME_NOISE_FIELDS, OdometryParams
+from minegeo.slam.planes import FloorPlaneParams
+from minegeo.slam.posegraph import PoseGraphParams
 
 # (class, field) -> (lower op, lower bound, upper op, upper bound, integer): the documented rules
 BOUNDS = {
@@ -209,33 +222,90 @@ BOUNDS = {
     (GeorefParams, "origin_step_m"): (">", 0.0, None, None, False),
     (GeorefParams, "min_geometry_ratio"): (">=", 0.0, "<", 1.0, False),
     (GeorefParams, "max_sigma0"): (">", 1.0, None, None, False),
+    # FloorPlaneParams (its former __post_init__ check, minegeo/slam/planes.py at f50f0e4; max_below_sensor_m
+    # > min_below_sensor_m is the check across fields)
+    (FloorPlaneParams, "radius_m"): (">", 0.0, None, None, False),
+    (FloorPlaneParams, "min_below_sensor_m"): (">=", 0.0, None, None, False),
+    (FloorPlaneParams, "distance_threshold_m"): (">", 0.0, None, None, False),
+    (FloorPlaneParams, "iterations"): (">=", 1, None, None, True),
+    (FloorPlaneParams, "min_inliers"): (">=", 3, None, None, True),
+    (FloorPlaneParams, "min_inlier_fraction"): (">=", 0.0, "<=", 1.0, False),
+    (FloorPlaneParams, "max_tilt_deg"): (">=", 0.0, "<", 90.0, False),
+    # RoadwayNoiseParams (its former __post_init__ checks, minegeo/slam/mapping.py at f50f0e4, plus the angles
+    # left open: a heading change > 0, a grade and a surface tilt in (0, 90]; the RNG seed >= 0)
+    **{(RoadwayNoiseParams, n): (">", 0.0, None, None, False)
+       for n in ("slice_thickness_m", "track_step_m", "max_radius_m", "max_step_m", "max_heading_change_deg",
+                 "max_curvature_rad_per_m", "ransac_threshold_m", "noise_threshold_m", "static_radius_m")},
+    (RoadwayNoiseParams, "max_grade_deg"): (">", 0.0, "<=", 90.0, False),
+    (RoadwayNoiseParams, "max_surface_tilt_deg"): (">", 0.0, "<=", 90.0, False),
+    (RoadwayNoiseParams, "ransac_iterations"): (">=", 1, None, None, True),
+    (RoadwayNoiseParams, "min_part_points"): (">=", 3, None, None, True),
+    (RoadwayNoiseParams, "min_inlier_fraction"): (">=", 0.0, "<=", 1.0, False),
+    (RoadwayNoiseParams, "vote_fraction"): (">", 0.0, "<=", 1.0, False),
+    (RoadwayNoiseParams, "static_min_keyframes"): (">=", 0, None, None, True),
+    (RoadwayNoiseParams, "seed"): (">=", 0, None, None, True),
+    # InertialParams (its former __post_init__ check, minegeo/slam/inertial.py at f50f0e4: each a finite number > 0)
+    **{(InertialParams, n): (">", 0.0, None, None, False)
+       for n in ("max_gap_s", "gravity_window_s", "roll_pitch_sigma_deg", "gyro_bias_sigma", "accel_bias_sigma",
+                 "rotation_sigma_deg", "edge_sigma_deg", "edge_sigma_m", "gate_tolerance_deg", "gate_sigmas")},
+    # LMParams and its subclass PoseGraphParams (LMParams' former __post_init__ checks, minegeo/optim/lm.py at
+    # f50f0e4: max_iterations >= 1, lambda_init and robust_scale > 0 and finite, the tolerances >= 0)
+    **{(cls, n): b for cls in (LMParams, PoseGraphParams) for n, b in (
+        ("max_iterations", (">=", 1, None, None, True)), ("lambda_init", (">", 0.0, None, None, False)),
+        ("relative_cost_tolerance", (">=", 0.0, None, None, False)),
+        ("remaining_cost_tolerance", (">=", 0.0, None, None, False)),
+        ("step_tolerance", (">=", 0.0, None, None, False)), ("robust_scale", (">", 0.0, None, None, False)))},
+    # ControlParams (its former __post_init__ checks, minegeo/slam/control.py at f50f0e4)
+    (ControlParams, "class_c"): (">", 0.0, None, None, False),
+    (ControlParams, "drift_alpha"): (">", 0.0, "<", 1.0, False),
+    # SkeletonParams and DescriptorParams (their former check() methods, minegeo/semantic/skeleton.py and
+    # descriptors.py at f50f0e4)
+    **{(SkeletonParams, n): (">", 0.0, None, None, False)
+       for n in ("cell_m", "floor_cell_m", "min_branch_m", "merge_radius_m", "refine_radius_m", "level_gap_m")},
+    **{(SkeletonParams, n): (">=", 0.0, None, None, False) for n in ("max_hole_m2", "min_component_m2", "fill_radius_m")},
+    (SkeletonParams, "floor_quantile"): (">=", 0.0, "<", 1.0, False),
+    (DescriptorParams, "radius_m"): (">", 0.0, None, None, False),
+    (DescriptorParams, "band_m"): (">", 0.0, None, None, False),
+    (DescriptorParams, "min_range_m"): (">=", 0.0, None, None, False),
+    (DescriptorParams, "footprint_m"): (">=", 0.0, None, None, False),
+    (DescriptorParams, "n_sectors"): (">=", 8, None, None, True),
+    (DescriptorParams, "n_bands"): (">=", 1, None, None, True),
+    (DescriptorParams, "max_gap_sectors"): (">=", 0, None, None, True),
 }
+#: numeric fields whose rule is "a finite number" (any height above the floor)
+FINITE = {(DescriptorParams, "band_start_m")}
 #: fields whose rule is joined by a check across fields (GravityParams: 3 <= min_points <= max_points;
-#: RansacParams: ransac_n >= 2, >= 3 for the rigid model)
-CROSS_CHECKED = {(GravityParams, "min_points"), (GravityParams, "max_points"), (RansacParams, "ransac_n")}
+#: RansacParams: ransac_n >= 2, >= 3 for the rigid model; FloorPlaneParams: max_below_sensor_m >
+#: min_below_sensor_m)
+CROSS_CHECKED = {(GravityParams, "min_points"), (GravityParams, "max_points"), (RansacParams, "ransac_n"),
+                 (FloorPlaneParams, "max_below_sensor_m"), (KBParams, "cloud_radius_m")}
+#: the own rule of a cross-checked field that an option sets (the option's type checks that rule alone)
+CROSS_RULES = {(KBParams, "cloud_radius_m"): (">", 0.0, None, None, False)}
 #: fields that declare no rule (every value runs: a count or ratio compared with ``<``, a tuple of angles)
 UNRULED = {(OdometryParams, n) for n in ("min_points", "keyframe_submap_size", "unconverged_retry_fitness",
                                          "turn_retry_yaw_deg")} | {
-    (RecognitionParams, "skeleton"),  # SkeletonParams.check()
     *((TrackParams, n) for n in ("odometry", "recognition", "T_world_start")),  # groups that check themselves; a pose
     (MastParams, "segmentation"), (MastParams, "icp_gates_m"), (SegmentationParams, "options"),
-    (GeorefParams, "convention")}  # checked by the class
+    (GeorefParams, "convention"),
+    *((ControlParams, n) for n in ("drift_states", "drift_prior", "drift_walk")),
+    (SkeletonParams, "wall_band_m"), (DescriptorParams, "wall_band_m")}  # checked by the class
 GROUPS = (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, GravityFallbackParams, LocalizeParams,
           FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams, RansacParams,
           OdometryParams, LoopParams, RecognitionParams, TrackParams, MastParams, SegmentationParams,
-          GeorefParams)
+          GeorefParams, FloorPlaneParams, RoadwayNoiseParams, InertialParams, LMParams, PoseGraphParams,
+          ControlParams, SkeletonParams, DescriptorParams, KBParams)
 KEYS = sorted(BOUNDS, key=lambda k: (k[0].__name__, k[1]))
 _OPS = {">": lambda v, b: v > b, ">=": lambda v, b: v >= b, "<": lambda v, b: v < b, "<=": lambda v, b: v <= b}
 
 
 def _expected_ok(key, v) -> bool:
-    lo_op, lo, hi_op, hi, _ = BOUNDS[key]
+    lo_op, lo, hi_op, hi, _ = BOUNDS[key] if key in BOUNDS else CROSS_RULES[key]
     return (lo_op is None or _OPS[lo_op](v, lo)) and (hi_op is None or _OPS[hi_op](v, hi))
 
 
 def test_every_numeric_field_is_listed():
     """The table above covers every numeric field of the groups (a new field gets its rule checked)."""
-    listed = set(BOUNDS) | CROSS_CHECKED
+    listed = set(BOUNDS) | CROSS_CHECKED | FINITE
     for cls in GROUPS:
         for f in dataclasses.fields(cls):
             if (cls, f.name) in UNRULED:
@@ -247,6 +317,31 @@ def test_every_numeric_field_is_listed():
         GravityParams(min_points=2)
     with pytest.raises(InputError, match="min_points <= max_points"):
         GravityParams(max_points=199)
+
+
+#: the checks across fields kept as code after ``validate`` (class, keywords, words of the message); each
+#: field alone is within its rule
+CROSS_CASES = [
+    (FloorPlaneParams, {"max_below_sensor_m": 0.3}, "max_below_sensor_m (0.3) must be greater than min_below_sensor_m"),
+    (FloorPlaneParams, {"min_below_sensor_m": 6.0}, "max_below_sensor_m (5.0) must be greater than min_below_sensor_m"),
+    (ControlParams, {"model": "similarity"}, "the similarity model is a fit after SLAM (mode 'rigid')"),
+    (ControlParams, {"mode": "rigid", "drift_states": "auto"}, "drift_states 'auto' needs the graph mode"),
+    (KBParams, {"cloud_radius_m": 11.5}, "KBParams.cloud_radius_m (11.5 m) must be at least the descriptor radius (12 m)"),
+    (SkeletonParams, {"wall_band_m": (2.2, 0.4)}, "SkeletonParams.wall_band_m must be an increasing (lo, hi) pair"),
+    (SkeletonParams, {"wall_band_m": (0.4, math.nan)}, "SkeletonParams.wall_band_m must be an increasing (lo, hi) pair"),
+    (DescriptorParams, {"wall_band_m": (1.0, 1.0)}, "DescriptorParams.wall_band_m must be an increasing (lo, hi) pair"),
+    (DescriptorParams, {"wall_band_m": (0.4, 1.0, 2.2)}, "DescriptorParams.wall_band_m must be an increasing"),
+    (DescriptorParams, {"wall_band_m": ("low", "high")}, "DescriptorParams.wall_band_m must be an increasing"),
+]
+
+
+@pytest.mark.parametrize("cls,kw,words", CROSS_CASES, ids=[f"{c[0].__name__}-{sorted(c[1])[0]}" for c in CROSS_CASES])
+def test_checks_across_fields_are_kept(cls, kw, words):
+    for name, v in kw.items():
+        if (cls, name) not in UNRULED:
+            check_field(cls, name, v)  # within the field's own rule: the check across fields refuses it
+    with pytest.raises(InputError, match=re.escape(words)):
+        cls(**kw)
 
 
 @st.composite
@@ -275,6 +370,17 @@ def test_validator_refuses_the_wrong_side_of_each_bound(key, data):
         assert msg.startswith(f"{cls.__name__}.{name} must be ") and msg.endswith(f"got {v!r}"), msg
 
 
+@pytest.mark.parametrize("key", sorted(FINITE, key=lambda k: (k[0].__name__, k[1])))
+@given(v=st.floats(allow_nan=True, allow_infinity=True) | st.sampled_from([True, "0.2", None]))
+def test_finite_fields_take_any_finite_number(key, v):
+    cls, name = key
+    if isinstance(v, float) and math.isfinite(v):
+        assert getattr(cls(**{name: v}), name) == v
+    else:
+        with pytest.raises(InputError, match=f"{cls.__name__}.{name} must be a finite number, got"):
+            cls(**{name: v})
+
+
 @given(st.sampled_from(KEYS), st.sampled_from([math.nan, math.inf, -math.inf, True, "1", 2.5]))
 def test_validator_refuses_non_numbers_and_wrong_kinds(key, v):
     cls, name = key
@@ -287,9 +393,11 @@ def test_validator_refuses_non_numbers_and_wrong_kinds(key, v):
 def test_optional_fields_and_stages():
     """None means off where the field says so, and only there."""
     for cls, name in ((IcpParams, "coarse_correspondence_m"), (IcpParams, "polish_correspondence_m"),
-                      (VerifyParams, "fine_tolerance_m"), (LocalizeParams, "scan_icp_voxel_size_m")):
+                      (VerifyParams, "fine_tolerance_m"), (LocalizeParams, "scan_icp_voxel_size_m"),
+                      (RoadwayNoiseParams, "track_step_m")):
         assert getattr(cls(**{name: None}), name) is None
-    for cls, name in ((IcpParams, "max_correspondence_m"), (VerifyParams, "min_fitness"), (AmbiguityParams, "ratio")):
+    for cls, name in ((IcpParams, "max_correspondence_m"), (VerifyParams, "min_fitness"), (AmbiguityParams, "ratio"),
+                      (RoadwayNoiseParams, "slice_thickness_m")):
         with pytest.raises(InputError, match=f"{cls.__name__}.{name}"):
             cls(**{name: None})
     lp = LocalizeParams(correlative=None, rival=None, gravity_fallback=None)
@@ -299,6 +407,24 @@ def test_optional_fields_and_stages():
             LocalizeParams(**{name: None})
     with pytest.raises(InputError, match="LocalizeParams.rival"):
         LocalizeParams(rival=IcpParams())
+    with pytest.raises(InputError, match="InertialParams.noise must be a ImuNoise, got None"):
+        InertialParams(noise=None)
+    for cls, name in ((KBParams, "skeleton"), (KBParams, "descriptor"), (RecognitionParams, "skeleton")):
+        with pytest.raises(InputError, match=f"{cls.__name__}.{name} must be a "):
+            cls(**{name: None})
+    with pytest.raises(InputError, match="RecognitionParams.skeleton must be a SkeletonParams"):
+        RecognitionParams(skeleton=DescriptorParams())
+    assert KBParams(descriptor=DescriptorParams(radius_m=20.0), cloud_radius_m=20.0).cloud_radius_m == 20.0
+    with pytest.raises(InputError, match="ControlParams.lm must be a LMParams, got None"):
+        ControlParams(lm=None)
+    assert ControlParams(lm=PoseGraphParams()).lm == PoseGraphParams()  # a subclass is an LMParams
+    for bad in ("sometimes", None):
+        with pytest.raises(InputError, match="drift_states must be True, False or 'auto'"):
+            ControlParams(drift_states=bad)
+    for name in ("drift_prior", "drift_walk"):
+        for bad in ((1.0, 0.0, 1.0), (1.0, 1.0), (1.0, math.inf, 1.0)):
+            with pytest.raises(InputError, match=f"{name} must be 3 positive numbers"):
+                ControlParams(**{name: bad})
     with pytest.raises(InputError, match="scan_voxel_size_m or"):
         LocalizeParams(scan_voxel_size_m=None)
     assert LocalizeParams(scan_voxel_size_m=None, scan_octree_level=8).scan_octree_level == 8
@@ -325,13 +451,18 @@ def test_ransac_and_odometry_choices_flags_and_cross_checks():
     for cls, name, good, bad in ((RansacParams, "mode", "open3d", "opencv"),
                                  (RansacParams, "edge_pairs", "polygon", "ring"),
                                  (RansacParams, "model", "levelled", "yaw"),
-                                 (OdometryParams, "frame_target", "submap", "map")):
-        kw = {"ransac_n": 2} if good == "levelled" else {}
+                                 (OdometryParams, "frame_target", "submap", "map"),
+                                 (LMParams, "robust", "cauchy", "l2"), (LMParams, "damping", "diagonal", "levenberg"),
+                                 (PoseGraphParams, "robust", "huber", "tukey"),
+                                 (PoseGraphParams, "indefinite_information", "refuse", "clip"),
+                                 (ControlParams, "mode", "rigid", "similarity"),
+                                 (ControlParams, "model", "similarity", "affine")):
+        kw = {"ransac_n": 2} if good == "levelled" else {"mode": "rigid"} if good == "similarity" else {}
         assert getattr(cls(**{name: good, **kw}), name) == good
         with pytest.raises(InputError, match=f"{cls.__name__}.{name} must be one of"):
             cls(**{name: bad})
     for cls, name in ((RansacParams, "mutual_filter"), (OdometryParams, "deskew"),
-                      (OdometryParams, "edge_covariance_floor")):
+                      (OdometryParams, "edge_covariance_floor"), (ControlParams, "snooping")):
         assert getattr(cls(**{name: True}), name) is True and getattr(cls(**{name: False}), name) is False
         with pytest.raises(InputError, match=f"{cls.__name__}.{name} must be True or False"):
             cls(**{name: 1})
@@ -377,6 +508,8 @@ CLI_CASES = [
     ("slam", "--max-acceleration", "-1", (OdometryParams, "max_acceleration_m_s2", -1.0), None, None),
     ("slam", "--loop-gap", "0", (LoopParams, "min_path_gap_m", 0.0), None, None),
     ("slam", "--loop-radius", "-2", (LoopParams, "max_distance_m", -2.0), None, None),
+    ("slam", "--imu-max-gap", "0", (InertialParams, "max_gap_s", 0.0), None, None),
+    ("slam", "--class-constant", "0", (ControlParams, "class_c", 0.0), None, None),
     ("localize-batch", "--levelled", "0", (RansacParams, "max_tilt_deg", 0.0), None, "a finite number in (0, 90]"),
     ("localize-batch", "--voxel", "-0.5", (LocalizeParams, "scan_voxel_size_m", -0.5), None, None),
     ("localize-batch", "--octree-level", "0", (LocalizeParams, "scan_octree_level", 0), None, None),
@@ -390,6 +523,7 @@ CLI_CASES = [
     ("track", "--gate", "-3", (RecognitionParams, "gate_m", -3.0), None, None),
     ("track", "--gate-drift", "-0.1", (TrackParams, "gate_drift_fraction", -0.1), None, None),
     ("track", "--unchecked-path", "0", (TrackParams, "unchecked_path_m", 0.0), None, None),
+    ("track", "--imu-max-gap", "-0.05", (InertialParams, "max_gap_s", -0.05), None, None),
     ("mast", "--sigma-range-m", "-0.001", (MastParams, "sigma_range_m", -0.001), None, None),
     ("mast", "--sigma-bearing-deg", "-1", (MastParams, "sigma_bearing_deg", -1.0), None, None),
     ("mast", "--sigma-panel-m", "-0.5", (MastParams, "sigma_panel_m", -0.5), None, None),
@@ -399,6 +533,11 @@ CLI_CASES = [
     ("georef", "--blunder-alpha", "1", (GeorefParams, "blunder_alpha", 1.0), None, None),
     ("georef", "--max-scale-deviation", "0", (GeorefParams, "max_scale_deviation", 0.0), None, None),
     ("georef", "--max-sigma0", "1", (GeorefParams, "max_sigma0", 1.0), None, "a finite number in (1, 1000000000000]"),
+    ("intersections build", "--cloud-radius", "0", (KBParams, "cloud_radius_m", 0.0), None, None),
+    ("intersections build", "--floor-cell", "-1", (SkeletonParams, "floor_cell_m", -1.0), None, None),
+    ("posegraph", "--max-iterations", "0", (PoseGraphParams, "max_iterations", 0), None,
+     "a whole number in [1, 100000]"),
+    ("posegraph", "--robust-scale", "-1", (PoseGraphParams, "robust_scale", -1.0), None, None),
 ]
 _CLI_IDS = [f"{c[0]}{c[1]}={c[2]}" for c in CLI_CASES]
 
@@ -417,11 +556,18 @@ LIMIT_CASES = [
      "a finite number > 0"),
     ("georef", "--max-sigma0", "1e13", (GeorefParams, "max_sigma0", 1e13), "a finite number in (1, 1000000000000]",
      "a finite number > 1"),
+    ("posegraph", "--max-iterations", "100001", (PoseGraphParams, "max_iterations", 100001),
+     "a whole number in [1, 100000]", "a whole number >= 1"),
 ]
 _LIMIT_IDS = [f"{c[0]}{c[1]}={c[2]}" for c in LIMIT_CASES]
 
 
 def _base(verb, tmp_path) -> list:
+    """The arguments after the verb's first word (a subcommand's name first: ``intersections build``)."""
+    if verb == "posegraph":
+        return [tmp_path / "no_graph.g2o", "--out", tmp_path / "out"]
+    if verb == "intersections build":
+        return ["build", "--map", tmp_path / "no_map.ply", "--out", tmp_path / "out"]
     if verb == "localize":
         return ["--map", tmp_path / "no_map.ply", "--scan", tmp_path / "no_scan.ply", "--out", tmp_path / "out"]
     if verb == "localize-batch":
@@ -457,7 +603,7 @@ def _limit_want(target, option_rule, field_rule_text) -> str:
 @pytest.mark.parametrize("verb,opt,text,target,off_text,limit", CLI_CASES, ids=_CLI_IDS)
 def test_cli_option_refused_with_the_dataclass_message(verb, opt, text, target, off_text, limit, tmp_path, capsys):
     want = _want(target, off_text, limit)
-    line = assert_user_error(verb, [*_base(verb, tmp_path), opt, text], capsys, outputs=[tmp_path / "out"])
+    line = assert_user_error(verb.split()[0], [*_base(verb, tmp_path), opt, text], capsys, outputs=[tmp_path / "out"])
     assert line.endswith(f"argument {opt}: {want} (see minegeo {verb} --help)"), (line, want)
 
 
@@ -467,7 +613,7 @@ def test_config_file_value_refused_with_the_dataclass_message(verb, opt, text, t
     cfg = tmp_path / "bad.json"
     cfg.write_text(json.dumps({opt.lstrip("-"): target[2]}), encoding="utf-8")  # a whole number stays one
     want = _want(target, off_text, limit)
-    line = assert_user_error(verb, [*_base(verb, tmp_path), "--config", cfg], capsys, inputs=[cfg],
+    line = assert_user_error(verb.split()[0], [*_base(verb, tmp_path), "--config", cfg], capsys, inputs=[cfg],
                              outputs=[tmp_path / "out"])
     assert f"key {opt.lstrip('-')!r}: {want}" in line, (line, want)
 
@@ -478,11 +624,11 @@ def test_option_cap_below_the_field_bound_is_kept(verb, opt, text, target, optio
     """An option that deliberately takes less than its field (--levelled at most 90 deg, the counts at
     most 1e9, --keyframe-angle at most 180 deg) refuses the rest, on the command line and in a file."""
     want = _limit_want(target, option_rule, field_rule_text)
-    line = assert_user_error(verb, [*_base(verb, tmp_path), opt, text], capsys, outputs=[tmp_path / "out"])
+    line = assert_user_error(verb.split()[0], [*_base(verb, tmp_path), opt, text], capsys, outputs=[tmp_path / "out"])
     assert line.endswith(f"argument {opt}: {want} (see minegeo {verb} --help)"), (line, want)
     cfg = tmp_path / "bad.json"
     cfg.write_text(json.dumps({opt.lstrip("-"): target[2]}), encoding="utf-8")
-    line = assert_user_error(verb, [*_base(verb, tmp_path), "--config", cfg], capsys, inputs=[cfg],
+    line = assert_user_error(verb.split()[0], [*_base(verb, tmp_path), "--config", cfg], capsys, inputs=[cfg],
                              outputs=[tmp_path / "out"])
     assert f"key {opt.lstrip('-')!r}: {want}" in line, (line, want)
 
@@ -509,6 +655,8 @@ OPTION_FIELDS = {
     ("slam", "--max-acceleration"): (OdometryParams, "max_acceleration_m_s2", None, None),
     ("slam", "--loop-gap"): (LoopParams, "min_path_gap_m", None, None),
     ("slam", "--loop-radius"): (LoopParams, "max_distance_m", None, None),
+    ("slam", "--imu-max-gap"): (InertialParams, "max_gap_s", None, None),
+    ("slam", "--class-constant"): (ControlParams, "class_c", None, None),
     ("localize-batch", "--levelled"): (RansacParams, "max_tilt_deg", 90.0, None),
     ("localize-batch", "--voxel"): (LocalizeParams, "scan_voxel_size_m", None, None),
     ("localize-batch", "--octree-level"): (LocalizeParams, "scan_octree_level", None, None),
@@ -521,6 +669,7 @@ OPTION_FIELDS = {
     ("track", "--gate"): (RecognitionParams, "gate_m", None, None),
     ("track", "--gate-drift"): (TrackParams, "gate_drift_fraction", None, None),
     ("track", "--unchecked-path"): (TrackParams, "unchecked_path_m", None, None),
+    ("track", "--imu-max-gap"): (InertialParams, "max_gap_s", None, None),
     ("mast", "--sigma-range-m"): (MastParams, "sigma_range_m", None, None),
     ("mast", "--sigma-bearing-deg"): (MastParams, "sigma_bearing_deg", None, None),
     ("mast", "--sigma-panel-m"): (MastParams, "sigma_panel_m", None, None),
@@ -530,6 +679,10 @@ OPTION_FIELDS = {
     ("georef", "--blunder-alpha"): (GeorefParams, "blunder_alpha", None, None),
     ("georef", "--max-scale-deviation"): (GeorefParams, "max_scale_deviation", None, None),
     ("georef", "--max-sigma0"): (GeorefParams, "max_sigma0", 1e12, None),
+    ("intersections build", "--cloud-radius"): (KBParams, "cloud_radius_m", None, None),
+    ("intersections build", "--floor-cell"): (SkeletonParams, "floor_cell_m", None, None),
+    ("posegraph", "--max-iterations"): (PoseGraphParams, "max_iterations", 100000, None),
+    ("posegraph", "--robust-scale"): (PoseGraphParams, "robust_scale", None, None),
 }
 OPTIONS = sorted(OPTION_FIELDS)
 
@@ -537,8 +690,12 @@ OPTIONS = sorted(OPTION_FIELDS)
 def _verb_actions(verb) -> dict:
     from minegeo.cli import build_parser
 
-    sub = next(a for a in build_parser([verb])._actions if isinstance(a, argparse._SubParsersAction))
-    return {s: a for a in sub.choices[verb]._actions for s in a.option_strings}
+    *names, = verb.split()  # "intersections build": the subcommand's parser
+    parser = build_parser(names[:1])
+    for name in names:
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        parser = sub.choices[name]
+    return {s: a for a in parser._actions for s in a.option_strings}
 
 
 def test_every_option_typed_by_a_field_rule_is_listed():
@@ -547,7 +704,8 @@ def test_every_option_typed_by_a_field_rule_is_listed():
     from minegeo._params import arg_type
 
     rule_type = type(arg_type(RansacParams, "max_iterations"))
-    for verb in ("localize", "slam", "localize-batch", "track", "mast", "georef"):
+    for verb in ("localize", "slam", "localize-batch", "track", "mast", "georef", "intersections build",
+                 "posegraph"):
         typed = {o for o, a in _verb_actions(verb).items() if o.startswith("--") and isinstance(a.type, rule_type)}
         assert typed == {o for v, o in OPTION_FIELDS if v == verb}, verb
     assert {(c[0], c[1]) for c in CLI_CASES} == set(OPTION_FIELDS)
@@ -556,7 +714,7 @@ def test_every_option_typed_by_a_field_rule_is_listed():
 @st.composite
 def _near_an_option_bound(draw, key):
     cls, name, cap, off = OPTION_FIELDS[key]
-    lo_op, lo, hi_op, hi, integer = BOUNDS[(cls, name)]
+    lo_op, lo, hi_op, hi, integer = BOUNDS.get((cls, name)) or CROSS_RULES[(cls, name)]
     bound = draw(st.sampled_from([b for b in (lo, hi, cap, off) if b is not None]))
     if integer:
         return int(bound) + draw(st.integers(-3, 3))
@@ -607,73 +765,3 @@ def test_cli_zero_means_off_and_values_reach_the_groups():
     # the CLI's fixed choices are the dataclass Literals (plus "off" = None)
     assert C.ICP_CHOICES == tuple(field_rule(IcpParams, "method")["choices"])
     assert C.CORRELATIVE_CHOICES == (*field_rule(CorrelativeStageParams, "mode")["choices"], "off")
-
-
-# ------------------------------------------------------------------ the defaults
-
-#: the flat LocalizeParams defaults before the groups (minegeo/localize/params.py at d1cd455),
-#: old name -> (path in the grouped LocalizeParams, value)
-OLD_DEFAULTS = {
-    "scan_voxel_size_m": ("scan_voxel_size_m", 0.5),
-    "scan_octree_level": ("scan_octree_level", None),
-    "scan_icp_voxel_size_m": ("scan_icp_voxel_size_m", 0.1),
-    "ransac_runs": ("ransac_runs", 1),
-    "icp_method": ("icp.method", "point_to_point"),
-    "icp_max_correspondence_m": ("icp.max_correspondence_m", 0.5),
-    "icp_max_iterations": ("icp.max_iterations", 30),
-    "icp_relative_rmse": ("icp.relative_rmse", 1e-6),
-    "icp_relative_fitness": ("icp.relative_fitness", 1e-6),
-    "min_scan_points": ("min_scan_points", 30),
-    "min_fitness": ("verify.min_fitness", 0.6),
-    "max_inlier_rmse_m": ("verify.max_inlier_rmse_m", 0.35),
-    "verify_plane_tolerance_m": ("verify.plane_tolerance_m", 0.1),
-    "verify_noise_factor": ("verify.noise_factor", 4.0),
-    "verify_fine_tolerance_m": ("verify.fine_tolerance_m", 0.04),
-    "verify_fine_noise_factor": ("verify.fine_noise_factor", 2.0),
-    "fine_ambiguity_ratio": ("ambiguity.fine_ratio", 0.8),
-    "min_plane_fitness": ("verify.min_plane_fitness", 0.75),
-    "ambiguity_ratio": ("ambiguity.ratio", 0.9),
-    "ambiguity_distance_m": ("ambiguity.distance_m", 0.5),
-    "ambiguity_angle_deg": ("ambiguity.angle_deg", 5.0),
-    "degeneracy_ratio": ("verify.degeneracy_ratio", 0.01),
-    "max_pending_step_m": ("verify.max_pending_step_m", 0.1),
-    "icp_coarse_correspondence_m": ("icp.coarse_correspondence_m", 1.5),
-    "icp_screen_max_iterations": ("icp.screen_max_iterations", 10),
-    "icp_screen_max_points": ("icp.screen_max_points", 1000),
-    "max_weak_displacement_95_m": ("verify.max_weak_displacement_95_m", 0.15),
-    "correlative": ("correlative.mode", "fallback"),
-    "correlative_confirm_below_points": ("ambiguity.small_scan_below_points", 400),
-    "correlative_precheck_ratio": ("correlative.precheck_ratio", 0.7),
-    "small_scan_ambiguity_ratio": ("ambiguity.small_scan_ratio", 0.8),
-    "icp_polish_correspondence_m": ("icp.polish_correspondence_m", 0.25),
-    "weak_axis_polish_term": ("icp.weak_axis_polish_term", True),
-    "gravity_fallback_tilt_deg": ("gravity_fallback.tilt_deg", 3.0),
-    # nested objects: their own defaults, with the two overrides the flat class had
-    "ransac.max_iterations": ("ransac.max_iterations", 4_000_000),
-    "ransac.mutual_filter": ("ransac.mutual_filter", True),
-    "gravity_params.max_points": ("gravity_fallback.estimate.max_points", 5000),
-}
-
-
-def _get(obj, path: str):
-    for part in path.split("."):
-        obj = getattr(obj, part)
-    return obj
-
-
-@pytest.mark.parametrize("old", sorted(OLD_DEFAULTS))
-def test_defaults_equal_the_flat_parameters(old):
-    path, value = OLD_DEFAULTS[old]
-    got = _get(LocalizeParams(), path)
-    assert got == value and type(got) is type(value), (old, path, got)
-
-
-def test_default_objects_and_stages():
-    lp = LocalizeParams()
-    assert lp.features == FeatureParams() and lp.uncertainty == UncertaintyParams()
-    assert lp.correlative.search == CorrelativeParams() and lp.rival == RivalParams()  # rival_search=True before
-    assert lp.gravity_fallback.estimate == GravityParams(max_points=5000)  # gravity_fallback=True before
-    fast = LocalizeParams.fast()
-    assert fast.icp.method == "point_to_plane" and fast.scan_voxel_size_m == 1.0
-    assert dataclasses.replace(fast, icp=lp.icp, scan_voxel_size_m=0.5, features=lp.features, ransac=lp.ransac) == lp
-    assert LocalizeParams.paper_table3().ransac.max_iterations == 400_000_000

@@ -18,9 +18,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from minegeo.cli._argtypes import positive_float
+from minegeo._params import arg_type
 
 __all__ = ["add_imu_arguments", "read_imu", "inertial_params", "check_imu"]
+
+#: the parameter class whose field rule ``--imu-max-gap`` uses (imported when the option is parsed)
+_INERTIAL = "minegeo.slam.inertial:InertialParams"
 
 
 def add_imu_arguments(parser, uses: str) -> None:
@@ -31,7 +34,7 @@ def add_imu_arguments(parser, uses: str) -> None:
                    f"gravity, LiDAR axes unless --imu-extrinsic): {uses}")
     i.add_argument("--imu-extrinsic", default=None, metavar="T",
                    help="T_lidar_imu: 16 numbers (4x4, row-major) or 'x y z qx qy qz qw', inline or in a file")
-    i.add_argument("--imu-max-gap", type=positive_float, default=None, metavar="S",
+    i.add_argument("--imu-max-gap", type=arg_type(_INERTIAL, "max_gap_s"), default=None, metavar="S",
                    help="longest time without an IMU sample within the frames' span (s, default 0.05)")
     i.add_argument("--imu-noise", default=None, metavar="imu.yaml",
                    help="the IMU's noise as Kalibr's imu.yaml gives it (gyroscope_noise_density rad/s/sqrt(Hz), "

@@ -12,7 +12,12 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from minegeo.cli._argtypes import int_in_range, positive_float
+from minegeo._params import arg_type
+from minegeo.cli._argtypes import int_in_range
+
+#: the parameter classes whose field rules the options use (imported when an option is parsed)
+_KB = "minegeo.semantic.knowledge:KBParams"
+_SKELETON = "minegeo.semantic.skeleton:SkeletonParams"
 
 HELP = "intersection knowledge base of a prior map (subcommand: build), for `minegeo track` (Liang et al. 2024)"
 
@@ -35,9 +40,9 @@ def add_arguments(parser) -> None:
     b.add_argument("--out", required=True, help="knowledge base file (.npz)")
     b.add_argument("--report", default=None, help="report file (default: OUT.html)")
     b.add_argument("--json", default=None, help="result file (default: OUT.json)")
-    b.add_argument("--cloud-radius", type=positive_float, default=15.0, help="dense cloud radius per intersection "
+    b.add_argument("--cloud-radius", type=arg_type(_KB, "cloud_radius_m"), default=15.0, help="dense cloud radius per intersection "
                    "(m; default 15, at least the 12 m descriptor radius)")
-    b.add_argument("--floor-cell", type=positive_float, default=2.0, help="floor-height cell of the drift skeleton (m; "
+    b.add_argument("--floor-cell", type=arg_type(_SKELETON, "floor_cell_m"), default=2.0, help="floor-height cell of the drift skeleton (m; "
                    "default 2); 1 for rough floors (bumps of 0.1 m RMS or more), see docs/intersections.md")
     b.add_argument("--seed", type=int_in_range(0, 2**32 - 1), default=0, help="recorded seed (the build draws no random numbers)")
 
@@ -65,18 +70,24 @@ def run(args) -> int:
     from minegeo._provenance import StageTimer, provenance, sha256_file, to_jsonable, write_json_atomic
     from minegeo.errors import InputError
     from minegeo.report.intersections_report import write_kb_report
-    from minegeo.semantic import KBParams, SkeletonParams, build_knowledge_base, similarity_matrix
+    from minegeo.semantic import (
+        DescriptorParams,
+        KBParams,
+        SkeletonParams,
+        build_knowledge_base,
+        similarity_matrix,
+    )
 
     timer = StageTimer()
     out = Path(args.out)
     report = Path(args.report) if args.report else out.with_name(out.name + ".html")
     js = Path(args.json) if args.json else out.with_name(out.name + ".json")
-    params = KBParams(SkeletonParams(floor_cell_m=args.floor_cell), cloud_radius_m=args.cloud_radius)
-    if params.cloud_radius_m < params.descriptor.radius_m:
+    descriptor = DescriptorParams()
+    if args.cloud_radius < descriptor.radius_m:
         raise InputError(f"--cloud-radius {args.cloud_radius:g} m is less than the descriptor radius "
-                         f"({params.descriptor.radius_m:g} m): the dense cloud of an intersection must hold what its "
+                         f"({descriptor.radius_m:g} m): the dense cloud of an intersection must hold what its "
                          "descriptor saw, for the ICP verification of `minegeo track`")
-    params.check()
+    params = KBParams(SkeletonParams(floor_cell_m=args.floor_cell), descriptor, cloud_radius_m=args.cloud_radius)
     with OutputTransaction("intersections", inputs={"--map": args.map},
                            files={"--out": out, "--report": report, "--json": js}) as tx:
         with timer("read"):

@@ -18,6 +18,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from minegeo._params import arg_type
+
+#: the parameter class whose field rules the options use
+_PG = "minegeo.slam.posegraph:PoseGraphParams"
+#: ``--max-iterations`` takes at most this many (the field takes any whole number >= 1)
+MAX_ITERATIONS = 100000
+
 HELP = "optimise a pose graph (g2o SE3/SE2) by Levenberg-Marquardt; report the cost before/after and iterations"
 
 
@@ -25,14 +32,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("graph", help="pose graph in g2o format (VERTEX_SE3:QUAT/EDGE_SE3:QUAT or VERTEX_SE2/EDGE_SE2)")
     parser.add_argument("--out", required=True, help="optimised graph to write (g2o)")
     parser.add_argument("--report", default=None, help="folder for result.json and report.html (default OUT.report)")
-    from minegeo.cli._argtypes import int_in_range, positive_float
-
-    # defaults None: PoseGraphParams' own (not imported here: the parser is built for every verb)
-    parser.add_argument("--max-iterations", type=int_in_range(1, 100000), default=None,
+    # defaults None: PoseGraphParams' own (not imported here: the parser is built for every verb; the
+    # options' types check PoseGraphParams' field rules, importing it when an option is parsed)
+    parser.add_argument("--max-iterations", type=arg_type(_PG, "max_iterations", le=MAX_ITERATIONS), default=None,
                         help="largest number of LM iterations (default: PoseGraphParams.max_iterations)")
     parser.add_argument("--robust", choices=("none", "huber", "cauchy"), default="none",
                         help="robust kernel on the whitened edge residual (default none: the contract cost)")
-    parser.add_argument("--robust-scale", type=positive_float, default=1.0,
+    parser.add_argument("--robust-scale", type=arg_type(_PG, "robust_scale"), default=1.0,
                         help="kernel width in standard deviations")
     parser.add_argument("--indefinite-information", choices=("gtsam", "refuse"), default="gtsam",
                         help="an edge information matrix that is not positive semi-definite: 'gtsam' (default) uses "

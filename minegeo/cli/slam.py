@@ -23,6 +23,7 @@ from minegeo.cli._imu import add_imu_arguments, check_imu, inertial_params, read
 #: the parameter class whose field rules the odometry options use (imported when an option is parsed)
 _ODO = "minegeo.slam.odometry_model:OdometryParams"
 _LOOPS = "minegeo.slam.loops:LoopParams"
+_CONTROL = "minegeo.slam.control:ControlParams"
 #: ``--keyframe-angle``: the rotation between two poses is at most 180 deg, so a larger threshold
 #: would never act; the option takes (0, 180] where ``OdometryParams.keyframe_angle_deg`` takes any
 #: angle > 0 (every value from 180 up behaves the same there)
@@ -117,7 +118,7 @@ def add_arguments(parser) -> None:
                    "(scale/sqrt(s), rad/m/sqrt(s), rad/m/sqrt(s); default 2e-5 1e-7 1e-7)")
     g.add_argument("--drift-prior", nargs=3, type=positive_float, default=None, metavar=("SCALE", "PITCH", "YAW"),
                    help="a-priori standard deviations of a constant drift (scale, rad/m, rad/m; default 0.02 1e-4 1e-4)")
-    g.add_argument("--class-constant", type=positive_float, default=None, metavar="C_MM",
+    g.add_argument("--class-constant", type=arg_type(_CONTROL, "class_c"), default=None, metavar="C_MM",
                    help="ICSM SP1 class constant c of the check stations' class test, r = c (d + 0.2) mm with d in "
                    "km (mm, default 50: Class D underground; 30 C, 15 B, 7.5 A)")
 

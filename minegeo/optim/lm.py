@@ -27,7 +27,7 @@ from enum import StrEnum
 
 import numpy as np
 
-from minegeo.errors import InputError
+from minegeo._params import bounded, one_of, validate
 from minegeo.optim.blocks import SingularSystemError
 from minegeo.optim.robust import ROBUST
 
@@ -63,28 +63,22 @@ class LMParams:
         Kernel width ``k`` in whitened units (1 = one standard deviation).
     damping : {"diagonal", "identity"}
         Damping matrix ``D``: ``diag(H)`` (Marquardt, unit-free) or ``I`` (GTSAM's default).
+
+    Each field declares its rule in its metadata (:mod:`minegeo._params`); a subclass's fields
+    (:class:`minegeo.slam.posegraph.PoseGraphParams`) are checked by the same ``validate``.
     """
 
-    max_iterations: int = 500
-    lambda_init: float = 1e-5
-    relative_cost_tolerance: float = 1e-10
-    remaining_cost_tolerance: float = 1e-8
-    step_tolerance: float = 1e-10
-    robust: str = "none"
-    robust_scale: float = 1.0
-    damping: str = "identity"
+    max_iterations: int = bounded(500, ge=1, integer=True)
+    lambda_init: float = bounded(1e-5, gt=0.0)
+    relative_cost_tolerance: float = bounded(1e-10, ge=0.0)
+    remaining_cost_tolerance: float = bounded(1e-8, ge=0.0)
+    step_tolerance: float = bounded(1e-10, ge=0.0)
+    robust: str = one_of("none", ROBUST)
+    robust_scale: float = bounded(1.0, gt=0.0)
+    damping: str = one_of("identity", ("diagonal", "identity"))
 
     def __post_init__(self):
-        if self.damping not in ("diagonal", "identity"):
-            raise InputError(f"damping must be 'diagonal' or 'identity', got {self.damping!r}")
-        if self.robust not in ROBUST:
-            raise InputError(f"robust must be one of {ROBUST}, got {self.robust!r}")
-        if not (self.max_iterations >= 1 and self.lambda_init > 0 and self.robust_scale > 0):
-            raise InputError("max_iterations >= 1, lambda_init > 0 and robust_scale > 0 are required")
-        if not (np.isfinite(self.lambda_init) and np.isfinite(self.robust_scale)
-                and self.relative_cost_tolerance >= 0 and self.step_tolerance >= 0
-                and self.remaining_cost_tolerance >= 0):
-            raise InputError("lambda_init and robust_scale must be finite, the tolerances >= 0")
+        validate(self)  # every field with a rule, a subclass's too (PoseGraphParams)
 
 
 class LMStatus(StrEnum):

@@ -28,9 +28,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from minegeo._validate import as_points, as_transform, check_positive
+from minegeo._params import bounded, validate
+from minegeo._validate import as_points, as_transform
 from minegeo.errors import InputError
 from minegeo.semantic import _kernels_skeleton as K
+from minegeo.semantic.skeleton import check_height_band
 
 __all__ = ["DescriptorParams", "Similarity", "pwcv", "cwc", "similarity", "completeness", "stack_keyframes"]
 
@@ -51,29 +53,25 @@ class DescriptorParams:
         CWC bands ``[band_start_m + b band_m, band_start_m + (b + 1) band_m)``, ``b < n_bands``.
     min_range_m : float
         ``r_min``: points closer than this to the invariant point are ignored (the vehicle, noise).
+
+    Each numeric field declares its rule in its metadata (:mod:`minegeo._params`; ``band_start_m``, a
+    height above the floor, any finite number); ``wall_band_m`` (an increasing pair of heights) is
+    checked here.
     """
 
-    radius_m: float = 12.0
-    n_sectors: int = 360
+    radius_m: float = bounded(12.0, gt=0.0)
+    n_sectors: int = bounded(360, ge=8, integer=True)
     wall_band_m: tuple = (0.4, 2.2)
-    band_start_m: float = 0.2
-    band_m: float = 0.4
-    n_bands: int = 12
-    min_range_m: float = 1.0
-    max_gap_sectors: int = 3
-    footprint_m: float = 0.15
+    band_start_m: float = bounded(0.2)
+    band_m: float = bounded(0.4, gt=0.0)
+    n_bands: int = bounded(12, ge=1, integer=True)
+    min_range_m: float = bounded(1.0, ge=0.0)
+    max_gap_sectors: int = bounded(3, ge=0, integer=True)
+    footprint_m: float = bounded(0.15, ge=0.0)
 
-    def check(self) -> None:
-        """Raise :class:`InputError` for a value out of range."""
-        for name in ("radius_m", "band_m"):
-            check_positive(getattr(self, name), name)
-        check_positive(self.min_range_m, "min_range_m", allow_zero=True)
-        check_positive(self.footprint_m, "footprint_m", allow_zero=True)
-        if int(self.n_sectors) < 8 or int(self.n_bands) < 1 or int(self.max_gap_sectors) < 0:
-            raise InputError("n_sectors must be >= 8, n_bands >= 1 and max_gap_sectors >= 0")
-        lo, hi = (float(v) for v in self.wall_band_m)
-        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-            raise InputError("wall_band_m must be an increasing (lo, hi) pair of finite heights")
+    def __post_init__(self):
+        validate(self)
+        check_height_band(self.wall_band_m, "DescriptorParams.wall_band_m")
 
 
 @dataclass(frozen=True)
@@ -101,7 +99,6 @@ class Similarity:
 
 
 def _offsets(points, centre, params: DescriptorParams):
-    params.check()
     P = as_points(points, "points", min_points=0)
     c = np.asarray(centre, np.float64).reshape(-1)
     if c.shape != (3,) or not np.all(np.isfinite(c)):

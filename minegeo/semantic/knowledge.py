@@ -21,8 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+from minegeo._params import bounded, group, validate
 from minegeo._provenance import atomic_write_bytes, to_jsonable
-from minegeo._validate import as_points, check_positive
+from minegeo._validate import as_points
 from minegeo.errors import FileFormatError, InputError
 from minegeo.io.jsonio import load_json_text
 from minegeo.io.npzstore import array_digest, crc_failure, json_digest, member_header, open_store
@@ -47,22 +48,23 @@ class KBParams:
     descriptor : DescriptorParams
     cloud_radius_m : float
         Horizontal radius (m) of the dense intersection cloud kept per junction, at least the descriptor
-        radius ``descriptor.radius_m`` (:meth:`check` refuses less) so the online side can verify by ICP
-        against it.
+        radius ``descriptor.radius_m`` (a check across the fields refuses less) so the online side can
+        verify by ICP against it.
+
+    Each field declares its rule in its metadata (:mod:`minegeo._params`): the same rule checks the
+    dataclass, ``minegeo intersections build --cloud-radius`` and its ``--config`` key; the nested
+    groups check themselves.
     """
 
-    skeleton: SkeletonParams = field(default_factory=SkeletonParams)
-    descriptor: DescriptorParams = field(default_factory=DescriptorParams)
-    cloud_radius_m: float = 15.0
+    skeleton: SkeletonParams = group(SkeletonParams)
+    descriptor: DescriptorParams = group(DescriptorParams)
+    cloud_radius_m: float = bounded(15.0, gt=0.0)
 
-    def check(self) -> None:
-        """Raise :class:`InputError` for a value out of range."""
-        self.skeleton.check()
-        self.descriptor.check()
-        check_positive(self.cloud_radius_m, "cloud_radius_m")
+    def __post_init__(self):
+        validate(self)
         if self.cloud_radius_m < self.descriptor.radius_m:
-            raise InputError(f"cloud_radius_m ({self.cloud_radius_m:g} m) must be at least the descriptor radius "
-                             f"({self.descriptor.radius_m:g} m): the online side verifies a recognition by ICP "
+            raise InputError(f"KBParams.cloud_radius_m ({self.cloud_radius_m:g} m) must be at least the descriptor "
+                             f"radius ({self.descriptor.radius_m:g} m): the online side verifies a recognition by ICP "
                              "against the dense cloud of what the descriptor saw")
 
 
@@ -161,7 +163,7 @@ class IntersectionKB:
         :meth:`save` writes, each holding the bytes its header announces; its ``meta`` is JSON of
         this format and version; every array and the meta match the integrity record (a mismatch
         means the file was changed after it was written); the stored values are valid: the
-        parameters within the bounds :meth:`KBParams.check` sets (the field is named), the status,
+        parameters within the rules of :class:`KBParams` and its groups (the field is named), the status,
         reason, provenance and georeferencing of the right types, the arrays of the right dtypes,
         finite, of consistent shapes. The arrays are returned as stored (bit for bit).
 
@@ -311,7 +313,7 @@ def _dataclass_from(cls, d, where: str):
             out[n] = tuple(_number(x, w, False) for x in v)
         else:
             out[n] = _number(v, w, isinstance(ref, int))
-    return cls(**out)
+    return _checked(where, lambda: cls(**out))
 
 
 def _params_from_meta(d, p: Path) -> KBParams:
@@ -321,18 +323,17 @@ def _params_from_meta(d, p: Path) -> KBParams:
             raise _Bad("params must be an object with the fields cloud_radius_m, descriptor, skeleton")
         sk = _dataclass_from(SkeletonParams, d["skeleton"], "params.skeleton")
         de = _dataclass_from(DescriptorParams, d["descriptor"], "params.descriptor")
-        params = KBParams(sk, de, float(_number(d["cloud_radius_m"], "params.cloud_radius_m", False)))
-        _checked("params.skeleton", sk.check)
-        _checked("params.descriptor", de.check)
-        _checked("params", params.check)
+        radius = float(_number(d["cloud_radius_m"], "params.cloud_radius_m", False))
+        params = _checked("params", lambda: KBParams(sk, de, radius))
     except _Bad as exc:
         raise FileFormatError(p, f"stored value out of range: {exc}; {_REBUILD}") from None
     return params
 
 
-def _checked(where: str, check) -> None:
+def _checked(where: str, build):
+    """``build()`` (a parameter group, checked as it is made), its refusal a :class:`_Bad` naming ``where``."""
     try:
-        check()
+        return build()
     except (InputError, TypeError, ValueError) as exc:
         raise _Bad(f"{where}: {exc}") from None
 
@@ -416,7 +417,6 @@ def build_knowledge_base(map_cloud, params: KBParams | None = None) -> Intersect
         Empty map, wrong shape, NaN/inf coordinates, no wall points (see :func:`drift_skeleton`).
     """
     params = params or KBParams()
-    params.check()
     P = _points_of(map_cloud)
     from scipy.spatial import cKDTree
 

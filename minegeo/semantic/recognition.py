@@ -60,7 +60,7 @@ from enum import StrEnum
 
 import numpy as np
 
-from minegeo._params import bounded, validate
+from minegeo._params import bounded, group, validate
 from minegeo._validate import as_points, as_transform, check_positive
 from minegeo.errors import InputError, MinegeoError
 from minegeo.geometry.se3 import compose, invert
@@ -104,7 +104,7 @@ class RecognitionParams:
     Each numeric field declares its bounds in its metadata (:mod:`minegeo._params`): the same rule
     checks the dataclass, the ``minegeo track`` option that sets it (``--pwcv-threshold``,
     ``--n-his``, ``--consecutive``, ``--icp-max-distance``, ``--gate``) and its key in a ``--config``
-    file; ``skeleton`` checks itself (:meth:`SkeletonParams.check`).
+    file; ``skeleton`` is a :class:`SkeletonParams` group (which checks itself).
 
     Attributes
     ----------
@@ -165,11 +165,10 @@ class RecognitionParams:
     carve_margin_m: float = bounded(0.5, ge=0.0)
     carve_step_m: float = bounded(0.2, gt=0.0)
     icp_voxel_m: float = bounded(0.2, gt=0.0)
-    skeleton: SkeletonParams = field(default_factory=SkeletonParams)
+    skeleton: SkeletonParams = group(SkeletonParams)
 
     def __post_init__(self):
         validate(self)
-        self.skeleton.check()
 
 
 @dataclass

@@ -27,12 +27,14 @@ Frames: every coordinate is the input's (m, z up), the map frame for a map.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
-from minegeo._validate import as_points, check_positive
+from minegeo._params import bounded, validate
+from minegeo._validate import as_points
 from minegeo.errors import InputError
 from minegeo.semantic import _kernels_skeleton as K
 
@@ -44,29 +46,38 @@ _EIGHT = np.ones((3, 3), bool)
 
 @dataclass(frozen=True)
 class SkeletonParams:
-    """Parameters of :func:`drift_skeleton` (lengths in m, areas in m^2)."""
+    """Parameters of :func:`drift_skeleton` (lengths in m, areas in m^2).
 
-    cell_m: float = 0.25
-    floor_cell_m: float = 2.0
-    floor_quantile: float = 0.02
+    Each numeric field declares its bounds in its metadata (:mod:`minegeo._params`): the same rule
+    checks the dataclass, ``minegeo intersections build --floor-cell`` and its ``--config`` key;
+    ``wall_band_m`` (an increasing pair of heights above the floor) is checked here.
+    """
+
+    cell_m: float = bounded(0.25, gt=0.0)
+    floor_cell_m: float = bounded(2.0, gt=0.0)
+    floor_quantile: float = bounded(0.02, ge=0.0, lt=1.0)
     wall_band_m: tuple = (0.4, 2.2)
-    max_hole_m2: float = 4.0
-    min_component_m2: float = 20.0
-    min_branch_m: float = 4.0
-    merge_radius_m: float = 3.0
-    refine_radius_m: float = 3.0
-    fill_radius_m: float = 1.5
-    level_gap_m: float = 6.0
+    max_hole_m2: float = bounded(4.0, ge=0.0)
+    min_component_m2: float = bounded(20.0, ge=0.0)
+    min_branch_m: float = bounded(4.0, gt=0.0)
+    merge_radius_m: float = bounded(3.0, gt=0.0)
+    refine_radius_m: float = bounded(3.0, gt=0.0)
+    fill_radius_m: float = bounded(1.5, ge=0.0)
+    level_gap_m: float = bounded(6.0, gt=0.0)
 
-    def check(self) -> None:
-        """Raise :class:`InputError` for a value out of range."""
-        for name in ("cell_m", "floor_cell_m", "min_branch_m", "merge_radius_m", "refine_radius_m", "level_gap_m"):
-            check_positive(getattr(self, name), name)
-        for name in ("max_hole_m2", "min_component_m2", "fill_radius_m"):
-            check_positive(getattr(self, name), name, allow_zero=True)
-        lo, hi = (float(v) for v in self.wall_band_m)
-        if not (0.0 <= self.floor_quantile < 1.0 and np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-            raise InputError("floor_quantile must be in [0, 1) and wall_band_m an increasing (lo, hi) pair")
+    def __post_init__(self):
+        validate(self)
+        check_height_band(self.wall_band_m, "SkeletonParams.wall_band_m")
+
+
+def check_height_band(band, where: str) -> None:
+    """``band`` must be an increasing ``(lo, hi)`` pair of finite heights (m); else :class:`InputError`."""
+    try:
+        lo, hi = (float(v) for v in band)
+    except (TypeError, ValueError):
+        lo = hi = math.nan
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise InputError(f"{where} must be an increasing (lo, hi) pair of finite heights, got {band!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -352,7 +363,6 @@ def drift_skeleton(points, params: SkeletonParams | None = None, *, complete_wal
         than 10^8 cells.
     """
     params = params or SkeletonParams()
-    params.check()
     P = as_points(points, "points", min_points=100)
     floor = floor_map(P, params.floor_cell_m, params.floor_quantile)
     is_wall = wall_mask(P, floor, params.wall_band_m)

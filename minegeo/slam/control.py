@@ -105,11 +105,12 @@ path length from the nearest control station in time.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from enum import StrEnum
 
 import numpy as np
 
+from minegeo._params import bounded, flag, group, one_of, validate
 from minegeo.errors import ConvergenceError, InputError
 from minegeo.kernels.lie import se3_inverse
 from minegeo.optim import (
@@ -246,38 +247,34 @@ class ControlParams:
     snooping : bool
         When a control station is flagged, name the suspected blunders by data snooping (the most
         suspect withheld and the adjustment repeated, in turn, while more than 3 remain).
+
+    Each field but ``drift_states``, ``drift_prior`` and ``drift_walk`` (checked here) declares its
+    rule in its metadata (:mod:`minegeo._params`; ``class_c``: ``minegeo slam --class-constant``).
     """
 
-    mode: str = "graph"
-    model: str = "rigid"
-    class_c: float = 50.0
-    lm: LMParams = field(default_factory=LMParams)
+    mode: str = one_of("graph", MODES)
+    model: str = one_of("rigid", ("rigid", "similarity"))
+    class_c: float = bounded(50.0, gt=0.0)
+    lm: LMParams = group(LMParams)
     drift_states: bool | str = False
     drift_prior: tuple = (0.02, 1e-4, 1e-4)
     drift_walk: tuple = (2e-5, 1e-7, 1e-7)
-    drift_alpha: float = 0.05
-    snooping: bool = True
+    drift_alpha: float = bounded(0.05, gt=0.0, lt=1.0)
+    snooping: bool = flag(True)
 
     def __post_init__(self):
-        if self.mode not in MODES:
-            raise InputError(f"control mode must be 'rigid' or 'graph', got {self.mode!r}")
+        validate(self)
         if self.drift_states not in (True, False, "auto"):
             raise InputError(f"drift_states must be True, False or 'auto', got {self.drift_states!r}")
-        if self.model not in ("rigid", "similarity"):
-            raise InputError(f"control fit model must be 'rigid' or 'similarity', got {self.model!r}")
         if self.model == "similarity" and self.mode != "rigid":
             raise InputError("the similarity model is a fit after SLAM (mode 'rigid'); the graph mode has no scale")
         if self.mode == "rigid" and self.drift_states is not False:
             raise InputError(f"drift_states {self.drift_states!r} needs the graph mode (drift states are variables of "
                              f"the pose graph; a {self.model} fit has none)")
-        if not (np.isfinite(self.class_c) and self.class_c > 0):
-            raise InputError(f"the class constant must be a positive number of mm, got {self.class_c!r}")
         for name in ("drift_walk", "drift_prior"):
             v = np.asarray(getattr(self, name), dtype=np.float64)
             if v.shape != (3,) or not np.all(np.isfinite(v) & (v > 0)):
                 raise InputError(f"{name} must be 3 positive numbers (scale, pitch, yaw), got {getattr(self, name)!r}")
-        if not 0.0 < self.drift_alpha < 1.0:
-            raise InputError(f"drift_alpha must be in (0, 1), got {self.drift_alpha!r}")
 
 
 class ControlStatus(StrEnum):

@@ -50,10 +50,11 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from minegeo._params import bounded, group, validate
 from minegeo.errors import InputError
 from minegeo.geometry.se3 import compose, invert, project
 from minegeo.io.imu import ImuSamples
@@ -113,26 +114,26 @@ class InertialParams:
         the simulated 10 Hz streams (3 s from t = 13 s, seed 1) GICP's registered rotations were within
         0.25° (handheld), 0.45° (vehicle) and 1.4° (drone, fast turns, sparse rings) of the truth; ``σ_θ``
         the gyro's (white noise, bias estimate, bias random walk over the interval).
+
+    Each field declares its rule in its metadata (:mod:`minegeo._params`): the same rule checks the
+    dataclass, the ``--imu-max-gap`` option of ``minegeo slam`` and ``minegeo track`` and its key in a
+    ``--config`` file; ``noise`` is an :class:`~minegeo.optim.imu.ImuNoise` (which checks itself).
     """
 
-    noise: ImuNoise = field(default_factory=ImuNoise)
-    max_gap_s: float = 0.05
-    gravity_window_s: float = 1.0
-    roll_pitch_sigma_deg: float = 0.3
-    gyro_bias_sigma: float = 0.05
-    accel_bias_sigma: float = 0.5
-    rotation_sigma_deg: float = 0.05
-    edge_sigma_deg: float = 0.2
-    edge_sigma_m: float = 0.02
-    gate_tolerance_deg: float = 2.0
-    gate_sigmas: float = 4.0
+    noise: ImuNoise = group(ImuNoise)
+    max_gap_s: float = bounded(0.05, gt=0.0)
+    gravity_window_s: float = bounded(1.0, gt=0.0)
+    roll_pitch_sigma_deg: float = bounded(0.3, gt=0.0)
+    gyro_bias_sigma: float = bounded(0.05, gt=0.0)
+    accel_bias_sigma: float = bounded(0.5, gt=0.0)
+    rotation_sigma_deg: float = bounded(0.05, gt=0.0)
+    edge_sigma_deg: float = bounded(0.2, gt=0.0)
+    edge_sigma_m: float = bounded(0.02, gt=0.0)
+    gate_tolerance_deg: float = bounded(2.0, gt=0.0)
+    gate_sigmas: float = bounded(4.0, gt=0.0)
 
     def __post_init__(self):
-        for name in ("max_gap_s", "gravity_window_s", "roll_pitch_sigma_deg", "gyro_bias_sigma", "accel_bias_sigma",
-                     "rotation_sigma_deg", "edge_sigma_deg", "edge_sigma_m", "gate_tolerance_deg", "gate_sigmas"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-                raise InputError(f"{name} must be a finite number > 0, got {v!r}")
+        validate(self)
 
 
 def check_imu_for_frames(imu: ImuSamples, t_first: float, t_last: float, max_gap_s: float, what: str) -> None:

@@ -43,6 +43,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from minegeo._params import bounded, validate
 from minegeo.errors import InputError
 from minegeo.slam._kernels_mapping import slice_members
 
@@ -68,39 +69,32 @@ class RoadwayNoiseParams:
     static_min_keyframes, static_radius_m : with ``source``, outliers confirmed by this many
         keyframes within this radius are kept as static structure (0: off, the paper).
     seed : RNG seed of the RANSAC draws.
+
+    Each field declares its bounds in its metadata (:mod:`minegeo._params`): the former checks, plus
+    the angles the tests compare with (a heading change > 0; a grade and a surface tilt in (0, 90]),
+    the seed >= 0 (``np.random.default_rng``).
     """
 
-    slice_thickness_m: float = 0.5
-    track_step_m: float | None = 0.5
-    max_radius_m: float = 8.0
-    max_step_m: float = 5.0
-    max_heading_change_deg: float = 20.0
-    max_curvature_rad_per_m: float = 0.3
-    max_grade_deg: float = 45.0
-    ransac_threshold_m: float = 0.08
-    ransac_iterations: int = 100
-    noise_threshold_m: float = 0.2
-    min_part_points: int = 8
-    min_inlier_fraction: float = 0.3
-    max_surface_tilt_deg: float = 30.0
-    vote_fraction: float = 1.0
-    static_min_keyframes: int = 3
-    static_radius_m: float = 0.2
-    seed: int = 0
+    slice_thickness_m: float = bounded(0.5, gt=0.0)
+    track_step_m: float | None = bounded(0.5, gt=0.0, optional=True)
+    max_radius_m: float = bounded(8.0, gt=0.0)
+    max_step_m: float = bounded(5.0, gt=0.0)
+    max_heading_change_deg: float = bounded(20.0, gt=0.0)
+    max_curvature_rad_per_m: float = bounded(0.3, gt=0.0)
+    max_grade_deg: float = bounded(45.0, gt=0.0, le=90.0)
+    ransac_threshold_m: float = bounded(0.08, gt=0.0)
+    ransac_iterations: int = bounded(100, ge=1, integer=True)
+    noise_threshold_m: float = bounded(0.2, gt=0.0)
+    min_part_points: int = bounded(8, ge=3, integer=True)
+    min_inlier_fraction: float = bounded(0.3, ge=0.0, le=1.0)
+    max_surface_tilt_deg: float = bounded(30.0, gt=0.0, le=90.0)
+    vote_fraction: float = bounded(1.0, gt=0.0, le=1.0)
+    static_min_keyframes: int = bounded(3, ge=0, integer=True)
+    static_radius_m: float = bounded(0.2, gt=0.0)
+    seed: int = bounded(0, ge=0, integer=True)
 
     def __post_init__(self):
-        pos = (self.slice_thickness_m, self.max_radius_m, self.max_step_m, self.ransac_threshold_m,
-               self.noise_threshold_m, self.max_curvature_rad_per_m)
-        if not all(np.isfinite(v) and v > 0 for v in pos):
-            raise InputError(f"roadway noise distances must be finite and > 0, got {pos}")
-        if self.track_step_m is not None and not (np.isfinite(self.track_step_m) and self.track_step_m > 0):
-            raise InputError(f"track_step_m must be > 0 or None, got {self.track_step_m}")
-        if not 0.0 < self.vote_fraction <= 1.0 or not 0.0 <= self.min_inlier_fraction <= 1.0:
-            raise InputError("vote_fraction must be in (0, 1] and min_inlier_fraction in [0, 1]")
-        if self.ransac_iterations < 1 or self.min_part_points < 3 or self.static_min_keyframes < 0:
-            raise InputError("ransac_iterations must be >= 1, min_part_points >= 3, static_min_keyframes >= 0")
-        if not (np.isfinite(self.static_radius_m) and self.static_radius_m > 0):
-            raise InputError(f"static_radius_m must be > 0, got {self.static_radius_m}")
+        validate(self)
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -24,6 +24,7 @@ from enum import StrEnum
 
 import numpy as np
 
+from minegeo._params import bounded, validate
 from minegeo._validate import as_matrix, as_points, as_transform
 from minegeo.errors import InputError
 from minegeo.kernels.eig3 import jacobi_eigh3
@@ -58,27 +59,26 @@ class FloorPlaneParams:
     max_tilt_deg : float
         Largest angle between the floor normal and ``up``: steeper hypotheses (walls, ramps
         beyond the design grade) are rejected.
+
+    Each numeric field declares its bounds in its metadata (:mod:`minegeo._params`); the height band
+    is checked across its two fields (``max_below_sensor_m > min_below_sensor_m``).
     """
 
-    radius_m: float = 10.0
-    max_below_sensor_m: float = 5.0
-    min_below_sensor_m: float = 0.3
-    distance_threshold_m: float = 0.05
-    iterations: int = 200
-    min_inliers: int = 50
-    min_inlier_fraction: float = 0.1
-    max_tilt_deg: float = 20.0
+    radius_m: float = bounded(10.0, gt=0.0)
+    max_below_sensor_m: float = bounded(5.0, gt=0.0)
+    min_below_sensor_m: float = bounded(0.3, ge=0.0)
+    distance_threshold_m: float = bounded(0.05, gt=0.0)
+    iterations: int = bounded(200, ge=1, integer=True)
+    min_inliers: int = bounded(50, ge=3, integer=True)
+    min_inlier_fraction: float = bounded(0.1, ge=0.0, le=1.0)
+    max_tilt_deg: float = bounded(20.0, ge=0.0, lt=90.0)
 
     def __post_init__(self):
-        ok = (self.radius_m > 0 and self.max_below_sensor_m > self.min_below_sensor_m >= 0
-              and self.distance_threshold_m > 0 and self.iterations >= 1 and self.min_inliers >= 3
-              and 0 <= self.min_inlier_fraction <= 1 and 0 <= self.max_tilt_deg < 90)
-        vals = [self.radius_m, self.max_below_sensor_m, self.min_below_sensor_m, self.distance_threshold_m,
-                self.min_inlier_fraction, self.max_tilt_deg]
-        if not ok or not np.all(np.isfinite(vals)):
-            raise InputError(f"invalid FloorPlaneParams: {self}: need radius_m > 0, max_below_sensor_m > "
-                             "min_below_sensor_m >= 0, distance_threshold_m > 0, iterations >= 1, "
-                             "min_inliers >= 3, 0 <= min_inlier_fraction <= 1, 0 <= max_tilt_deg < 90")
+        validate(self)
+        if not self.max_below_sensor_m > self.min_below_sensor_m:
+            raise InputError(f"FloorPlaneParams.max_below_sensor_m ({self.max_below_sensor_m!r}) must be greater "
+                             f"than min_below_sensor_m ({self.min_below_sensor_m!r}): the candidates' height band "
+                             "below the sensor would be empty")
 
 
 class PlaneStatus(StrEnum):

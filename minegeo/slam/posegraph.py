@@ -38,6 +38,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from minegeo._params import one_of
 from minegeo.errors import InputError
 from minegeo.io.g2o import PoseGraph, edge_label, gtsam_information, non_psd_edges
 from minegeo.kernels.lie import se2_exp, se3_exp
@@ -103,14 +104,15 @@ class PoseGraphParams(LMParams):
         matrix makes the cost unbounded below): ``"gtsam"`` replaces it by the matrix GTSAM's
         ``readG2o`` uses, ``RᵀR`` (:func:`minegeo.io.g2o.gtsam_information`), and reports how many
         were replaced; ``"refuse"`` raises :class:`~minegeo.errors.InputError` naming the first one.
+
+    Each field declares its rule in its metadata (:mod:`minegeo._params`; the LM fields' in
+    :class:`~minegeo.optim.LMParams`), checked by :func:`~minegeo._params.validate` from
+    ``LMParams.__post_init__``.
     """
 
-    indefinite_information: str = "gtsam"
+    indefinite_information: str = one_of("gtsam", INDEFINITE)
 
-    def __post_init__(self):
-        super().__post_init__()
-        if self.indefinite_information not in INDEFINITE:
-            raise InputError(f"indefinite_information must be one of {INDEFINITE}, got {self.indefinite_information!r}")
+    # __post_init__: LMParams' validate(self) checks every field's rule, this class's as well
 
 
 @dataclass(frozen=True)

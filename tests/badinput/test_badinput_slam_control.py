@@ -116,9 +116,10 @@ CASES = {
     "drift_prior_infinite": (ROWS, "EPSG:5186", ["--drift-states", "on", "--drift-prior", "inf", "1e-4", "1e-4"],
                              "argument --drift-prior: 'inf' is not a finite number"),
     "class_constant_zero": (ROWS, "EPSG:5186", ["--class-constant", "0"],
-                            "argument --class-constant: '0' must be greater than 0"),
+                            "argument --class-constant: ControlParams.class_c must be a finite number > 0, got 0.0"),
     "class_constant_negative": (ROWS, "EPSG:5186", ["--class-constant", "-50"],
-                                "argument --class-constant: '-50' must be greater than 0"),
+                                "argument --class-constant: ControlParams.class_c must be a finite number > 0, "
+                                "got -50.0"),
     "class_constant_not_a_number": (ROWS, "EPSG:5186", ["--class-constant", "D"],
                                     "argument --class-constant: 'D' is not a number"),
 }

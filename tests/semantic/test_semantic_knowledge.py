@@ -154,14 +154,14 @@ def _edit(meta, dotted, value):
 
 
 META_EDITS = {  # (field, value, words of the error)
-    "negative_cloud_radius": ("params.cloud_radius_m", -5, "cloud_radius_m must be > 0"),
+    "negative_cloud_radius": ("params.cloud_radius_m", -5, "params: KBParams.cloud_radius_m must be a finite number > 0"),
     "nan_cloud_radius": ("params.cloud_radius_m", "NaN", "params.cloud_radius_m must be a number"),
     "cloud_radius_below_descriptor": ("params.cloud_radius_m", 5.0, "at least the descriptor radius"),
-    "zero_cell": ("params.skeleton.cell_m", 0.0, "params.skeleton: cell_m must be > 0"),
+    "zero_cell": ("params.skeleton.cell_m", 0.0, "params.skeleton: SkeletonParams.cell_m must be a finite number > 0"),
     "float_sectors": ("params.descriptor.n_sectors", 360.5, "params.descriptor.n_sectors must be a whole number"),
-    "few_sectors": ("params.descriptor.n_sectors", 4, "params.descriptor: n_sectors must be >= 8"),
+    "few_sectors": ("params.descriptor.n_sectors", 4, "params.descriptor: DescriptorParams.n_sectors must be a whole number >= 8"),
     "bool_radius": ("params.descriptor.radius_m", True, "params.descriptor.radius_m must be a number"),
-    "band_reversed": ("params.skeleton.wall_band_m", [2.2, 0.4], "params.skeleton: floor_quantile"),
+    "band_reversed": ("params.skeleton.wall_band_m", [2.2, 0.4], "params.skeleton: SkeletonParams.wall_band_m must be an increasing"),
     "unknown_param": ("params.skeleton.extra_m", 1.0, "unknown field params.skeleton.extra_m"),
     "status": ("status", "great", "status must be"),
     "georef_origin": ("georef", {"crs": "EPSG:5186", "origin_m": [1.0, 2.0]}, "georef.origin_m"),
