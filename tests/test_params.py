@@ -4,7 +4,7 @@ minegeo/registration/ransac_params.py, the SLAM groups of minegeo/slam and mineg
 
 * every numeric rule refuses the values on the wrong side of its bound and accepts the others
   (hypothesis: values drawn on both sides of each bound; the expected verdict comes from the bound
-  as hand-listed here, not from the code's metadata); the checks across fields kept as code refuse
+  as hand-listed here and in tests/params_slam.py, not from the code's metadata); the checks across fields kept as code refuse
   what they refused before;
 * the command line and a ``--config`` file refuse a value with the dataclass's own message
   (exit status 2, one stderr line: the bad-input contract); every option typed by a field's rule
@@ -27,6 +27,7 @@ import pytest
 from badinput._contract import assert_user_error
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
+from params_slam import SLAM_BOUNDS
 
 from minegeo._params import check_field, field_rule
 from minegeo.errors import InputError
@@ -58,6 +59,7 @@ from minegeo.slam.inertial import InertialParams
 from minegeo.slam.loops import LoopParams
 from minegeo.slam.mapping import RoadwayNoiseParams
 from minegeo.slam.odometry_model import EDGE_FLOOR_FIELDS, KEYFRAME_NOISE_FIELDS, OdometryParams
+from minegeo.slam.pipeline import SlamParams
 from minegeo.slam.planes import FloorPlaneParams
 from minegeo.slam.posegraph import PoseGraphParams
 
@@ -222,42 +224,7 @@ BOUNDS = {
     (GeorefParams, "origin_step_m"): (">", 0.0, None, None, False),
     (GeorefParams, "min_geometry_ratio"): (">=", 0.0, "<", 1.0, False),
     (GeorefParams, "max_sigma0"): (">", 1.0, None, None, False),
-    # FloorPlaneParams (its former __post_init__ check, minegeo/slam/planes.py at f50f0e4; max_below_sensor_m
-    # > min_below_sensor_m is the check across fields)
-    (FloorPlaneParams, "radius_m"): (">", 0.0, None, None, False),
-    (FloorPlaneParams, "min_below_sensor_m"): (">=", 0.0, None, None, False),
-    (FloorPlaneParams, "distance_threshold_m"): (">", 0.0, None, None, False),
-    (FloorPlaneParams, "iterations"): (">=", 1, None, None, True),
-    (FloorPlaneParams, "min_inliers"): (">=", 3, None, None, True),
-    (FloorPlaneParams, "min_inlier_fraction"): (">=", 0.0, "<=", 1.0, False),
-    (FloorPlaneParams, "max_tilt_deg"): (">=", 0.0, "<", 90.0, False),
-    # RoadwayNoiseParams (its former __post_init__ checks, minegeo/slam/mapping.py at f50f0e4, plus the angles
-    # left open: a heading change > 0, a grade and a surface tilt in (0, 90]; the RNG seed >= 0)
-    **{(RoadwayNoiseParams, n): (">", 0.0, None, None, False)
-       for n in ("slice_thickness_m", "track_step_m", "max_radius_m", "max_step_m", "max_heading_change_deg",
-                 "max_curvature_rad_per_m", "ransac_threshold_m", "noise_threshold_m", "static_radius_m")},
-    (RoadwayNoiseParams, "max_grade_deg"): (">", 0.0, "<=", 90.0, False),
-    (RoadwayNoiseParams, "max_surface_tilt_deg"): (">", 0.0, "<=", 90.0, False),
-    (RoadwayNoiseParams, "ransac_iterations"): (">=", 1, None, None, True),
-    (RoadwayNoiseParams, "min_part_points"): (">=", 3, None, None, True),
-    (RoadwayNoiseParams, "min_inlier_fraction"): (">=", 0.0, "<=", 1.0, False),
-    (RoadwayNoiseParams, "vote_fraction"): (">", 0.0, "<=", 1.0, False),
-    (RoadwayNoiseParams, "static_min_keyframes"): (">=", 0, None, None, True),
-    (RoadwayNoiseParams, "seed"): (">=", 0, None, None, True),
-    # InertialParams (its former __post_init__ check, minegeo/slam/inertial.py at f50f0e4: each a finite number > 0)
-    **{(InertialParams, n): (">", 0.0, None, None, False)
-       for n in ("max_gap_s", "gravity_window_s", "roll_pitch_sigma_deg", "gyro_bias_sigma", "accel_bias_sigma",
-                 "rotation_sigma_deg", "edge_sigma_deg", "edge_sigma_m", "gate_tolerance_deg", "gate_sigmas")},
-    # LMParams and its subclass PoseGraphParams (LMParams' former __post_init__ checks, minegeo/optim/lm.py at
-    # f50f0e4: max_iterations >= 1, lambda_init and robust_scale > 0 and finite, the tolerances >= 0)
-    **{(cls, n): b for cls in (LMParams, PoseGraphParams) for n, b in (
-        ("max_iterations", (">=", 1, None, None, True)), ("lambda_init", (">", 0.0, None, None, False)),
-        ("relative_cost_tolerance", (">=", 0.0, None, None, False)),
-        ("remaining_cost_tolerance", (">=", 0.0, None, None, False)),
-        ("step_tolerance", (">=", 0.0, None, None, False)), ("robust_scale", (">", 0.0, None, None, False)))},
-    # ControlParams (its former __post_init__ checks, minegeo/slam/control.py at f50f0e4)
-    (ControlParams, "class_c"): (">", 0.0, None, None, False),
-    (ControlParams, "drift_alpha"): (">", 0.0, "<", 1.0, False),
+    **SLAM_BOUNDS,  # the SLAM groups (tests/params_slam.py)
     # SkeletonParams and DescriptorParams (their former check() methods, minegeo/semantic/skeleton.py and
     # descriptors.py at f50f0e4)
     **{(SkeletonParams, n): (">", 0.0, None, None, False)
@@ -293,7 +260,7 @@ GROUPS = (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, Grav
           FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams, RansacParams,
           OdometryParams, LoopParams, RecognitionParams, TrackParams, MastParams, SegmentationParams,
           GeorefParams, FloorPlaneParams, RoadwayNoiseParams, InertialParams, LMParams, PoseGraphParams,
-          ControlParams, SkeletonParams, DescriptorParams, KBParams)
+          ControlParams, SkeletonParams, DescriptorParams, KBParams, SlamParams)
 KEYS = sorted(BOUNDS, key=lambda k: (k[0].__name__, k[1]))
 _OPS = {">": lambda v, b: v > b, ">=": lambda v, b: v >= b, "<": lambda v, b: v < b, "<=": lambda v, b: v <= b}
 
@@ -415,6 +382,11 @@ def test_optional_fields_and_stages():
     with pytest.raises(InputError, match="RecognitionParams.skeleton must be a SkeletonParams"):
         RecognitionParams(skeleton=DescriptorParams())
     assert KBParams(descriptor=DescriptorParams(radius_m=20.0), cloud_radius_m=20.0).cloud_radius_m == 20.0
+    for name, other in (("odometry", LoopParams()), ("loops", None), ("posegraph", LMParams()),
+                        ("floor", RoadwayNoiseParams()), ("noise", None)):  # SlamParams' stages: their classes
+        want = type(getattr(SlamParams(), name)).__name__
+        with pytest.raises(InputError, match=f"SlamParams.{name} must be a {want}, got"):
+            SlamParams(**{name: other})
     with pytest.raises(InputError, match="ControlParams.lm must be a LMParams, got None"):
         ControlParams(lm=None)
     assert ControlParams(lm=PoseGraphParams()).lm == PoseGraphParams()  # a subclass is an LMParams
@@ -462,7 +434,8 @@ def test_ransac_and_odometry_choices_flags_and_cross_checks():
         with pytest.raises(InputError, match=f"{cls.__name__}.{name} must be one of"):
             cls(**{name: bad})
     for cls, name in ((RansacParams, "mutual_filter"), (OdometryParams, "deskew"),
-                      (OdometryParams, "edge_covariance_floor"), (ControlParams, "snooping")):
+                      (OdometryParams, "edge_covariance_floor"), (ControlParams, "snooping"),
+                      (SlamParams, "use_planes"), (SlamParams, "remove_noise")):
         assert getattr(cls(**{name: True}), name) is True and getattr(cls(**{name: False}), name) is False
         with pytest.raises(InputError, match=f"{cls.__name__}.{name} must be True or False"):
             cls(**{name: 1})
@@ -510,6 +483,7 @@ CLI_CASES = [
     ("slam", "--loop-radius", "-2", (LoopParams, "max_distance_m", -2.0), None, None),
     ("slam", "--imu-max-gap", "0", (InertialParams, "max_gap_s", 0.0), None, None),
     ("slam", "--class-constant", "0", (ControlParams, "class_c", 0.0), None, None),
+    ("slam", "--map-voxel", "0", (SlamParams, "map_voxel_m", 0.0), None, None),
     ("localize-batch", "--levelled", "0", (RansacParams, "max_tilt_deg", 0.0), None, "a finite number in (0, 90]"),
     ("localize-batch", "--voxel", "-0.5", (LocalizeParams, "scan_voxel_size_m", -0.5), None, None),
     ("localize-batch", "--octree-level", "0", (LocalizeParams, "scan_octree_level", 0), None, None),
@@ -657,6 +631,7 @@ OPTION_FIELDS = {
     ("slam", "--loop-radius"): (LoopParams, "max_distance_m", None, None),
     ("slam", "--imu-max-gap"): (InertialParams, "max_gap_s", None, None),
     ("slam", "--class-constant"): (ControlParams, "class_c", None, None),
+    ("slam", "--map-voxel"): (SlamParams, "map_voxel_m", None, None),
     ("localize-batch", "--levelled"): (RansacParams, "max_tilt_deg", 90.0, None),
     ("localize-batch", "--voxel"): (LocalizeParams, "scan_voxel_size_m", None, None),
     ("localize-batch", "--octree-level"): (LocalizeParams, "scan_octree_level", None, None),

@@ -6,7 +6,8 @@ default would fail here, at import, or both).
   former ``minegeo/localize/params.py``);
 * the SLAM groups (floor planes, roadway noise, LiDAR-inertial, Levenberg-Marquardt, pose graph,
   survey control) and the ``minegeo intersections build`` groups (skeleton, descriptor, knowledge
-  base) hold the defaults of their sources at f50f0e4.
+  base) hold the defaults of their sources at f50f0e4; the SLAM run's own parameters
+  (``SlamParams``) those at 7be99ff.
 """
 
 from __future__ import annotations
@@ -30,7 +31,10 @@ from minegeo.semantic.knowledge import KBParams
 from minegeo.semantic.skeleton import SkeletonParams
 from minegeo.slam.control import ControlParams
 from minegeo.slam.inertial import InertialParams
+from minegeo.slam.loops import LoopParams
 from minegeo.slam.mapping import RoadwayNoiseParams
+from minegeo.slam.odometry_model import OdometryParams
+from minegeo.slam.pipeline import SlamParams
 from minegeo.slam.planes import FloorPlaneParams
 from minegeo.slam.posegraph import PoseGraphParams
 
@@ -130,6 +134,12 @@ FORMER_DEFAULTS = {
     DescriptorParams: {"radius_m": 12.0, "n_sectors": 360, "wall_band_m": _WALL_BAND, "band_start_m": 0.2,
                        "band_m": 0.4, "n_bands": 12, "min_range_m": 1.0, "max_gap_sectors": 3, "footprint_m": 0.15},
     KBParams: {"skeleton": SkeletonParams(), "descriptor": DescriptorParams(), "cloud_radius_m": 15.0},
+    # minegeo/slam/pipeline.py at 7be99ff
+    SlamParams: {"odometry": OdometryParams(), "loops": LoopParams(), "posegraph": PoseGraphParams(), "map_voxel_m": 0.1,
+                 "use_planes": True, "floor": FloorPlaneParams(min_below_sensor_m=1.0, max_below_sensor_m=3.5),
+                 "plane_max_angle_deg": 3.0, "plane_max_offset_m": 0.3, "plane_sigma_angle_deg": 0.5,
+                 "plane_sigma_offset_m": 0.05, "plane_revisit_distance_m": 4.0, "plane_smoothing": 0.2,
+                 "remove_noise": True, "noise": RoadwayNoiseParams()},
 }
 
 

@@ -24,6 +24,7 @@ from minegeo.cli._imu import add_imu_arguments, check_imu, inertial_params, read
 _ODO = "minegeo.slam.odometry_model:OdometryParams"
 _LOOPS = "minegeo.slam.loops:LoopParams"
 _CONTROL = "minegeo.slam.control:ControlParams"
+_SLAM = "minegeo.slam.pipeline:SlamParams"
 #: ``--keyframe-angle``: the rotation between two poses is at most 180 deg, so a larger threshold
 #: would never act; the option takes (0, 180] where ``OdometryParams.keyframe_angle_deg`` takes any
 #: angle > 0 (every value from 180 up behaves the same there)
@@ -68,7 +69,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-noise-removal", action="store_true", help="keep the roadway noise in the map "
                         "(default: points inside the roadway away from the fitted floor, walls and roof, e.g. "
                         "pedestrians, are removed section by section along the keyframe track, Ren et al. 2019 Sec. 3.5)")
-    parser.add_argument("--map-voxel", type=positive_float, default=0.1, help="map voxel (m, default 0.1)")
+    parser.add_argument("--map-voxel", type=arg_type(_SLAM, "map_voxel_m"), default=0.1,
+                        help="map voxel (m, > 0, default 0.1)")
     parser.add_argument("--no-deskew", action="store_true", help="do not deskew frames whose points carry times "
                         "(default: each such frame is moved to its frame time by the constant-velocity motion of the "
                         "odometry before registration; frames without times are never deskewed)")

@@ -28,8 +28,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from minegeo._params import bounded, flag, group, validate
 from minegeo._validate import internal_transform
-from minegeo.errors import InputError
 from minegeo.geometry import voxel_downsample
 from minegeo.geometry.se3 import compose, relative
 from minegeo.io.g2o import PoseGraph
@@ -92,33 +92,32 @@ class SlamParams:
     remove_noise : bool
         Remove the roadway noise (moving objects, points between sensor and walls) from the
         world-frame keyframe cloud before the voxel compression (Sec. 3.5); ``noise`` its parameters.
+    map_voxel_m : float
+        Voxel of the map's compression (m, > 0).
+
+    Each field declares its rule in its metadata (:mod:`minegeo._params`): the stages' groups are
+    instances of their classes (which check themselves); the same rules check ``minegeo slam
+    --map-voxel`` and its ``--config`` key.
     """
 
-    odometry: OdometryParams = field(default_factory=OdometryParams)
-    loops: LoopParams = field(default_factory=LoopParams)
-    posegraph: PoseGraphParams = field(default_factory=PoseGraphParams)
-    map_voxel_m: float = 0.1
-    use_planes: bool = True
-    floor: FloorPlaneParams = field(default_factory=lambda: FloorPlaneParams(min_below_sensor_m=1.0,
-                                                                             max_below_sensor_m=3.5))
-    plane_max_angle_deg: float = 3.0
-    plane_max_offset_m: float = 0.3
-    plane_sigma_angle_deg: float = 0.5
-    plane_sigma_offset_m: float = 0.05
-    plane_revisit_distance_m: float = 4.0
-    plane_smoothing: float = 0.2
-    remove_noise: bool = True
-    noise: RoadwayNoiseParams = field(default_factory=RoadwayNoiseParams)
+    odometry: OdometryParams = group(OdometryParams)
+    loops: LoopParams = group(LoopParams)
+    posegraph: PoseGraphParams = group(PoseGraphParams)
+    map_voxel_m: float = bounded(0.1, gt=0.0)
+    use_planes: bool = flag(True)
+    floor: FloorPlaneParams = group(FloorPlaneParams, lambda: FloorPlaneParams(min_below_sensor_m=1.0,
+                                                                               max_below_sensor_m=3.5))
+    plane_max_angle_deg: float = bounded(3.0, gt=0.0)
+    plane_max_offset_m: float = bounded(0.3, gt=0.0)
+    plane_sigma_angle_deg: float = bounded(0.5, gt=0.0)
+    plane_sigma_offset_m: float = bounded(0.05, gt=0.0)
+    plane_revisit_distance_m: float = bounded(4.0, ge=0.0)
+    plane_smoothing: float = bounded(0.2, gt=0.0, le=1.0)
+    remove_noise: bool = flag(True)
+    noise: RoadwayNoiseParams = group(RoadwayNoiseParams)
 
     def __post_init__(self):
-        vals = (self.plane_max_angle_deg, self.plane_max_offset_m, self.plane_sigma_angle_deg,
-                self.plane_sigma_offset_m)
-        if not all(np.isfinite(v) and v > 0 for v in vals):
-            raise InputError(f"plane association and sigma parameters must be finite and > 0, got {vals}")
-        if not 0 < self.plane_smoothing <= 1:
-            raise InputError(f"plane_smoothing must be in (0, 1], got {self.plane_smoothing}")
-        if not (np.isfinite(self.plane_revisit_distance_m) and self.plane_revisit_distance_m >= 0):
-            raise InputError(f"plane_revisit_distance_m must be finite and >= 0, got {self.plane_revisit_distance_m}")
+        validate(self)
 
     def as_dict(self) -> dict:
         return asdict(self)
