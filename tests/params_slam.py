@@ -5,6 +5,7 @@ integer), each from the class's former checks (the commit named with it)."""
 from __future__ import annotations
 
 from minegeo.optim import LMParams
+from minegeo.optim.imu import ImuNoise
 from minegeo.slam.control import ControlParams
 from minegeo.slam.inertial import InertialParams
 from minegeo.slam.mapping import RoadwayNoiseParams
@@ -57,4 +58,10 @@ SLAM_BOUNDS = {
                  "plane_sigma_offset_m")},
     (SlamParams, "plane_revisit_distance_m"): (">=", 0.0, None, None, False),
     (SlamParams, "plane_smoothing"): (">", 0.0, "<=", 1.0, False),
+    # ImuNoise (its former __post_init__ check, minegeo/optim/imu.py at 7be99ff: the densities and random walks
+    # finite and > 0, integration_sigma finite and >= 0; the first four are also the keys of a Kalibr imu.yaml)
+    **{(ImuNoise, n): (">", 0.0, None, None, False)
+       for n in ("gyroscope_noise_density", "accelerometer_noise_density", "gyroscope_random_walk",
+                 "accelerometer_random_walk")},
+    (ImuNoise, "integration_sigma"): (">=", 0.0, None, None, False),
 }

@@ -48,6 +48,7 @@ from minegeo.localize.params import (
 from minegeo.mast.pipeline import MastParams
 from minegeo.mast.segmentation import SegmentationParams
 from minegeo.optim import LMParams
+from minegeo.optim.imu import ImuNoise
 from minegeo.registration.ransac_params import RansacParams
 from minegeo.semantic.descriptors import DescriptorParams
 from minegeo.semantic.knowledge import KBParams
@@ -260,7 +261,7 @@ GROUPS = (IcpParams, VerifyParams, AmbiguityParams, CorrelativeStageParams, Grav
           FeatureParams, UncertaintyParams, RivalParams, CorrelativeParams, GravityParams, RansacParams,
           OdometryParams, LoopParams, RecognitionParams, TrackParams, MastParams, SegmentationParams,
           GeorefParams, FloorPlaneParams, RoadwayNoiseParams, InertialParams, LMParams, PoseGraphParams,
-          ControlParams, SkeletonParams, DescriptorParams, KBParams, SlamParams)
+          ControlParams, SkeletonParams, DescriptorParams, KBParams, SlamParams, ImuNoise)
 KEYS = sorted(BOUNDS, key=lambda k: (k[0].__name__, k[1]))
 _OPS = {">": lambda v, b: v > b, ">=": lambda v, b: v >= b, "<": lambda v, b: v < b, "<=": lambda v, b: v <= b}
 

@@ -7,7 +7,7 @@ default would fail here, at import, or both).
 * the SLAM groups (floor planes, roadway noise, LiDAR-inertial, Levenberg-Marquardt, pose graph,
   survey control) and the ``minegeo intersections build`` groups (skeleton, descriptor, knowledge
   base) hold the defaults of their sources at f50f0e4; the SLAM run's own parameters
-  (``SlamParams``) those at 7be99ff.
+  (``SlamParams``) and the IMU noise (``ImuNoise``) those at 7be99ff.
 """
 
 from __future__ import annotations
@@ -140,6 +140,9 @@ FORMER_DEFAULTS = {
                  "plane_max_angle_deg": 3.0, "plane_max_offset_m": 0.3, "plane_sigma_angle_deg": 0.5,
                  "plane_sigma_offset_m": 0.05, "plane_revisit_distance_m": 4.0, "plane_smoothing": 0.2,
                  "remove_noise": True, "noise": RoadwayNoiseParams()},
+    # minegeo/optim/imu.py at 7be99ff
+    ImuNoise: {"gyroscope_noise_density": 1.7e-4, "accelerometer_noise_density": 2.0e-3, "gyroscope_random_walk": 1.9e-5,
+               "accelerometer_random_walk": 3.0e-3, "integration_sigma": 0.0},
 }
 
 

@@ -20,7 +20,6 @@ The conventions are those of the SLAM contract ("Sensor streams"):
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -305,14 +304,19 @@ def read_imu_noise(path) -> dict[str, float]:
     Returns
     -------
     dict
-        ``{key: value}`` for the four :data:`IMU_NOISE_KEYS`, each finite and > 0.
+        ``{key: value}`` for the four :data:`IMU_NOISE_KEYS`, each within the rule of the
+        :class:`~minegeo.optim.imu.ImuNoise` field of that name (finite and > 0).
 
     Raises
     ------
     FileFormatError
-        A key missing or given twice (a file of several IMUs), a value that is not a positive finite
-        number; the line is named.
+        A key missing or given twice (a file of several IMUs), a value its field's rule refuses
+        (``"line 2: accelerometer_noise_density must be a finite number > 0, got '-1e-3'"``); the
+        file and line are named.
     """
+    from minegeo._params import check_field, field_rule, rule_text
+    from minegeo.optim.imu import ImuNoise
+
     p = Path(path)
     text = read_file_text(p, encoding="utf-8-sig", max_bytes=MAX_IMU_NOISE_BYTES, what="IMU noise file")
     found: dict[str, tuple[float, int]] = {}
@@ -328,8 +332,11 @@ def read_imu_noise(path) -> dict[str, float]:
             v = float(value.strip().strip("'\""))
         except ValueError:
             v = float("nan")
-        if not (math.isfinite(v) and v > 0):
-            raise FileFormatError(p, f"line {k}: {key} must be a positive number, got {value.strip()[:40]!r}")
+        try:
+            check_field(ImuNoise, key, v)  # the field's own rule (minegeo._params)
+        except InputError:
+            raise FileFormatError(p, f"line {k}: {key} must be {rule_text(field_rule(ImuNoise, key))}, "
+                                     f"got {value.strip()[:40]!r}") from None
         found[key] = (v, k)
     missing = [key for key in IMU_NOISE_KEYS if key not in found]
     if missing:

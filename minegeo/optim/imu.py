@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from minegeo._params import bounded, validate
 from minegeo.errors import InputError
 from minegeo.kernels.lie import so3_exp
 from minegeo.optim import _kernels_imu as KI
@@ -73,21 +74,20 @@ class ImuNoise:
     integration_sigma : float
         σ_int, m/√s: a white position noise that models the error of the zero-order hold
         (GTSAM's ``integrationCovariance`` = σ_int² I); 0 by default.
+
+    Each field declares its rule in its metadata (:mod:`minegeo._params`): the four densities and
+    random walks finite and > 0, ``integration_sigma`` finite and >= 0; the same rules check the
+    values of a Kalibr ``imu.yaml`` (:func:`minegeo.io.imu.read_imu_noise`, ``--imu-noise``).
     """
 
-    gyroscope_noise_density: float = 1.7e-4
-    accelerometer_noise_density: float = 2.0e-3
-    gyroscope_random_walk: float = 1.9e-5
-    accelerometer_random_walk: float = 3.0e-3
-    integration_sigma: float = 0.0
+    gyroscope_noise_density: float = bounded(1.7e-4, gt=0.0)
+    accelerometer_noise_density: float = bounded(2.0e-3, gt=0.0)
+    gyroscope_random_walk: float = bounded(1.9e-5, gt=0.0)
+    accelerometer_random_walk: float = bounded(3.0e-3, gt=0.0)
+    integration_sigma: float = bounded(0.0, ge=0.0)
 
     def __post_init__(self):
-        vals = (self.gyroscope_noise_density, self.accelerometer_noise_density, self.gyroscope_random_walk,
-                self.accelerometer_random_walk)
-        if not all(np.isfinite(v) and v > 0 for v in vals) or not (np.isfinite(self.integration_sigma)
-                                                                  and self.integration_sigma >= 0):
-            raise InputError("IMU noise densities and random walks must be positive and finite "
-                             "(integration_sigma >= 0)")
+        validate(self)
 
 
 @dataclass(frozen=True)

@@ -89,8 +89,11 @@ def test_imu_options_need_imu(frames, tmp_path, capsys):
 #: noise file text -> text the error line must hold
 BAD_NOISE = {
     "a key missing": (KALIBR_IMU_YAML.replace("gyroscope_random_walk", "gyro_rw"), "without gyroscope_random_walk"),
-    "a negative density": (KALIBR_IMU_YAML.replace("1.86e-03", "-1.86e-03"), "line 2: accelerometer_noise_density"),
-    "not a number": (KALIBR_IMU_YAML.replace("2.66e-05", "small"), "line 7: gyroscope_random_walk must be"),
+    "a negative density": (KALIBR_IMU_YAML.replace("1.86e-03", "-1.86e-03"),
+                           "line 2: accelerometer_noise_density must be a finite number > 0, got '-1.86e-03'"),
+    "not a number": (KALIBR_IMU_YAML.replace("2.66e-05", "small"),
+                     "line 7: gyroscope_random_walk must be a finite number > 0, got 'small'"),
+    "infinite": (KALIBR_IMU_YAML.replace("2.66e-05", "inf"), "line 7: gyroscope_random_walk must be a finite number"),
     "two IMUs": ("imu0:\n" + KALIBR_IMU_YAML.replace("\n", "\n  ") + "imu1:\n  gyroscope_noise_density: 1e-4\n",
                  "gyroscope_noise_density given again"),
     "empty": ("", "without gyroscope_noise_density"),

@@ -155,3 +155,24 @@ def test_imu_noise_from_a_kalibr_yaml_flat_or_under_one_imu(tmp_path):
                      "  gyroscope_random_walk: 1.9393e-05\n  model: calibrated\n")
     assert read_imu_noise(flat) == want
     assert read_imu_noise(chain) == want
+
+
+@pytest.mark.parametrize("text,ok", [("1e-300", True), ("2.5", True), ("1e300", True), ("0", False), ("-0.0", False),
+                                     ("-1e-3", False), ("inf", False), ("nan", False), ("0.1.2", False), ("", False)])
+@pytest.mark.parametrize("key", ["gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
+                                 "accelerometer_random_walk"])
+def test_imu_noise_value_takes_what_its_field_takes(key, text, ok, tmp_path):
+    """Each figure of the file takes what the ImuNoise field of its name takes (a finite number > 0,
+    hand-listed here); a refused one names the file, the line and the key with the field's rule."""
+    from minegeo.io.imu import IMU_NOISE_KEYS, read_imu_noise
+
+    f = tmp_path / "imu.yaml"
+    f.write_text("".join(f"{k}: {text if k == key else '1e-3'}\n" for k in IMU_NOISE_KEYS))
+    line = IMU_NOISE_KEYS.index(key) + 1
+    if ok:
+        assert read_imu_noise(f)[key] == float(text)
+    else:
+        with pytest.raises(FileFormatError) as exc:
+            read_imu_noise(f)
+        msg = str(exc.value)
+        assert str(f) in msg and f"line {line}: {key} must be a finite number > 0, got {text!r}" in msg, msg
