@@ -43,8 +43,8 @@ from minegeo.synth.stream import StreamParams, iter_sweeps, simulate_stream
 #: the accepted interval of the mean NEES (χ²(6) has mean 6): a factor 3 either side, for ~15 edges
 #: with heavy-tailed errors from two short pieces of stream (GICP's information alone gives > 100).
 #: Measured with the defaults: odometry edges 2.2 (vehicle 2.6, handheld 1.2), loop-like edges 4.5;
-#: the constants are fitted jointly on 200 s streams, where single edges give 4.1 (vehicle) and
-#: 5.5-12.7 (handheld) and chains of 10-60 edges 5-7 (vehicle): these short straight pieces err less
+#: the constants are fitted jointly on 200 s streams, where single edges give 4.1-5.0 (vehicle) and
+#: 6.3-11.8 (handheld) and chains of 10-60 edges 5-7 (vehicle): these short straight pieces err less
 #: than the streams' turns and stops (benchmarks/results/edge_covariance_2026-11-30b.json)
 NEES_INTERVAL = (6.0 / 3.0, 6.0 * 3.0)
 P = [3, 4, 5, 0, 1, 2]  # the graph's (t, r) information order → (ω, ρ)
