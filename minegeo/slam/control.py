@@ -124,9 +124,9 @@ from minegeo.slam.control_factors import (  # the factors and covariances, re-ex
     DriftBetweenFactors,
     DriftWalkFactors,
     PositionFactors,
-    _hat,
     marginal_covariances,
     selected_inverse,
+    station_jacobian,
     station_points,
 )
 from minegeo.slam.control_graph import (
@@ -145,7 +145,7 @@ from minegeo.slam.control_graph import (
 __all__ = ["ControlParams", "ControlResult", "ControlStatus", "DriftBetweenFactors", "DriftWalkFactors", "PositionFactors",
            "apply_control", "check_control_geometry", "check_map_geometry", "check_station_frames", "drift_states_needed",
            "drift_states_test", "graph_inputs", "graph_pose_noise", "slam_pose_noise", "station_point_noise", "variable_rates_deg_s",
-           "interpolate_poses", "marginal_covariances", "selected_inverse", "station_points"]
+           "interpolate_poses", "marginal_covariances", "selected_inverse", "station_jacobian", "station_points"]
 
 log = logging.getLogger(__name__)
 
@@ -559,10 +559,7 @@ def _solve_graph(graph, stations, offset, T_lm, p: ControlParams, drift: bool) -
         opt = replace(opt, values=Values(opt.values.poses, opt.values.vectors * DRIFT_UNIT))
         out["opt"] = opt
     G_poses = values.poses
-    Pk = G_poses[var]
-    J = np.empty((len(stations), 3, 6))
-    J[:, :, :3] = -Pk[:, :3, :3] @ _hat(offset)
-    J[:, :, 3:] = Pk[:, :3, :3]
+    J = station_jacobian(G_poses[var], offset)
     covs = full[:, :6, :6]
     res = problem.evaluate(values)
     vpv = 2.0 * problem.cost(res)

@@ -25,6 +25,16 @@ def station_points(poses: np.ndarray, offset: np.ndarray) -> np.ndarray:
     return poses[:, :3, :3] @ np.asarray(offset, dtype=np.float64) + poses[:, :3, 3]
 
 
+def station_jacobian(poses: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """``∂p/∂ξ = [−R·hat(a), R]`` (k, 3, 6) of the station point ``p = R a + t`` under the pose's right
+    perturbation ``T Exp(ξ)``, ``ξ = (ω, ρ)`` (C2)."""
+    R = np.asarray(poses, dtype=np.float64)[:, :3, :3]
+    J = np.empty((R.shape[0], 3, 6))
+    J[:, :, :3] = -R @ _hat(np.asarray(offset, dtype=np.float64).reshape(3))
+    J[:, :, 3:] = R
+    return J
+
+
 class PositionFactors(FactorGroup):
     """Unary position factors (C2): ``r = R a + t − p̄`` on poses ``index`` (m,).
 
@@ -50,12 +60,7 @@ class PositionFactors(FactorGroup):
         return station_points(values.poses[self.variables[:, 0]], self.offset) - self.target
 
     def linearize(self, values: Values) -> tuple:
-        P = values.poses[self.variables[:, 0]]
-        R = P[:, :3, :3]
-        J = np.empty((P.shape[0], 3, 6))
-        J[:, :, :3] = -R @ _hat(self.offset)
-        J[:, :, 3:] = R
-        return self.residuals(values), (J,)
+        return self.residuals(values), (station_jacobian(values.poses[self.variables[:, 0]], self.offset),)
 
 
 class DriftBetweenFactors(FactorGroup):

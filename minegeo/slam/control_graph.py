@@ -8,7 +8,8 @@ from __future__ import annotations
 import numpy as np
 
 from minegeo.errors import InputError
-from minegeo.kernels.lie import hat, se3_exp, se3_inverse, se3_log
+from minegeo.kernels.lie import se3_exp, se3_inverse, se3_log
+from minegeo.slam.control_factors import station_jacobian
 
 #: a station time within this of a keyframe's time uses that keyframe (s)
 SAME_TIME_S = 1e-6
@@ -352,10 +353,7 @@ def graph_pose_noise(times_s, pose_noise, graph_times_s) -> np.ndarray:
 def station_point_noise(poses, offset, pose_noise) -> np.ndarray:
     """``J Q Jᵀ`` (n, 3, 3): a pose's own noise ``Q`` (n, 6, 6, right perturbation, (ω, ρ)) carried to
     the surveyed point ``p = R·offset + t`` of a station on it, ``J = [−R·hat(offset), R]``."""
-    R = np.asarray(poses, dtype=np.float64)[:, :3, :3]
-    J = np.empty((R.shape[0], 3, 6))
-    J[:, :, :3] = -R @ hat(np.ascontiguousarray(np.asarray(offset, dtype=np.float64).reshape(3)))
-    J[:, :, 3:] = R
+    J = station_jacobian(poses, offset)
     C = J @ np.asarray(pose_noise) @ np.swapaxes(J, 1, 2)
     return 0.5 * (C + np.swapaxes(C, 1, 2))
 
