@@ -244,8 +244,8 @@ def by_kind(streams: list, x: dict | None) -> dict:
             if x is not None:
                 q = keyframe_noise(s["rates"], x)
                 ad = s["ad"][sel]
-                c = (c + floors({k: v[sel] for k, v in rec.items()}, x) + np.apply_along_axis(np.diag, 1, q[rec["j"][sel]])
-                     + ad @ np.apply_along_axis(np.diag, 1, q[rec["i"][sel]]) @ np.swapaxes(ad, 1, 2))
+                Qi, Qj = (np.einsum("na,ab->nab", q[rec[end][sel]], np.eye(6)) for end in ("i", "j"))
+                c = c + floors({k: v[sel] for k, v in rec.items()}, x) + Qj + ad @ Qi @ np.swapaxes(ad, 1, 2)
             err.append(rec["err"][sel])
             cov.append(c)
         if sum(len(e) for e in err):
