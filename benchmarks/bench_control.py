@@ -18,7 +18,19 @@ Measured: check-station errors (truth, not the surveyed coordinates) for (i) no 
 SLAM map placed in the CRS by the true pose at the first control station (one set-up with a perfect
 backsight: the best a single station gives); (ii) the rigid fit of all control stations; (iii) control
 in the graph. Calibration: ``--mc`` runs with noise only (no bias), new seeds: fraction of check
-stations whose true horizontal error lies inside the 95 % ellipse (``eᵀ C⁻¹ e ≤ χ²₂(0.95)``).
+stations whose true horizontal error lies inside the 95 % ellipse (``eᵀ C⁻¹ e ≤ χ²₂(0.95)``), and
+(``coverage_95_v``) whose vertical error lies inside ``±1.96 σ_v``; with ``--resurvey`` each run draws
+the stations' survey noise again (else the stream's one survey serves every run).
+
+``--odometry slam-model``: the errors of minegeo's own SLAM noise model instead (what ``minegeo slam
+--control`` assumes; its constants fitted on real SLAM runs of the simulator by
+``benchmarks/bench_edge_covariance.py``): keyframes every ``--keyframe-s`` s, an edge errs by its floor
+``w ~ N(0, F)`` (:func:`minegeo.slam.odometry.edge_covariance_floor` at the edge's true length, angle and
+the keyframes' true angular rates, plus 1e-6 rad and 1e-5 m standing for GICP's own covariance) accumulated along the chain, ``y_{k+1} = y_k Z*_k Exp(w_k)``, and
+each keyframe by its own pose noise, ``x_k = y_k Exp(n_k)``, ``n_k ~ N(0, Q_k)``
+(:func:`minegeo.slam.odometry.keyframe_pose_noise`); the edges are ``x_k⁻¹ x_{k+1}`` with information
+``F⁻¹`` and :func:`apply_control` gets ``pose_noise = Q`` as from a SLAM run. The bias, where drawn, is
+added to ``w`` (scale, yaw and pitch rates as above).
 
 Run: ``NUMBA_NUM_THREADS=1 python benchmarks/bench_control.py --out benchmarks/results/control_<date>.json``.
 """
@@ -37,7 +49,7 @@ import time
 import numpy as np
 
 from minegeo.io.stations import Stations
-from minegeo.kernels.lie import se3_exp, se3_inverse
+from minegeo.kernels.lie import se3_exp, se3_inverse, so3_log
 from minegeo.slam.control import (
     ControlParams,
     apply_control,
@@ -46,22 +58,102 @@ from minegeo.slam.control import (
     interpolate_poses,
     station_points,
 )
+from minegeo.slam.odometry import OdometryParams, edge_covariance_floor, keyframe_pose_noise
 from minegeo.synth.stream import StreamParams, simulate_stream, stream_stations
 
 CHI2_2_95 = 5.991464547107979
+CHI2_1_95 = 3.841458820694124
 
 
-def truth(duration_s: float, spacing_m: float, control_every: int, seed: int, keyframe_s: float):
-    """True keyframe times/poses (``T_world_sensor``), stations, ``T_crs_world`` and path length."""
+def truth(duration_s: float, spacing_m: float, control_every: int, seed: int, keyframe_s: float,
+          station_keyframes: bool = False):
+    """True keyframe times/poses (``T_world_sensor``), stations, ``T_crs_world`` (with ``rates_deg_s``,
+    the true angular rate at each keyframe over ±0.05 s, and ``loops``, :func:`loop_pairs`) and path
+    length. ``station_keyframes``: a keyframe at each station's middle time too (``--odometry
+    slam-model``: in a SLAM run the station's variable is its stop frame's pose, with a registration
+    error of its own; one interpolated between keyframes would carry a mix of theirs)."""
     st = simulate_stream(StreamParams(preset="vehicle", duration_s=duration_s, station_spacing_m=spacing_m,
                                       control_every=control_every, seed=seed))
     stations, tr = stream_stations(st)
     t = np.arange(st.frame_times[0], st.frame_times[-1] + 1e-9, keyframe_s)
+    if station_keyframes:  # a keyframe at each station's middle time (its own pose noise, as a SLAM run's stop frame)
+        t = np.union1d(t[np.min(np.abs(t[:, None] - stations.t_mid_s[None, :]), axis=1) > 0.05], stations.t_mid_s)
     R, p = st.curve.rotation_position(t)
     T = np.tile(np.eye(4), (t.size, 1, 1))
     T[:, :3, :3], T[:, :3, 3] = R, p
     length = float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+    Ra, _ = st.curve.rotation_position(t - 0.05)
+    Rb, _ = st.curve.rotation_position(t + 0.05)
+    tr = dict(tr, rates_deg_s=np.degrees([np.linalg.norm(so3_log(np.ascontiguousarray(a.T @ b))) for a, b in zip(Ra, Rb, strict=True)]) / 0.1,
+              loops=loop_pairs(T, t))
     return t, T, stations, tr, length
+
+
+# the median GICP covariance of the simulator's vehicle SLAM edges (benchmarks/bench_edge_covariance.py's
+# edge records, seeds 1-4: chain and loop edges alike), σ per axis (ω, ρ; rad, m); part of every edge's error
+GICP_SIGMA = np.array([4.3e-4, 1.15e-4, 3.7e-5, 8.4e-4, 3.0e-4, 1.0e-3])
+
+
+def loop_pairs(T_true, times_s, radius_m: float = 1.0, min_gap_s: float = 60.0) -> np.ndarray:
+    """Loop edges ``(i, j)``, ``i < j``: for each keyframe ``j`` the nearest earlier keyframe within
+    ``radius_m`` (true positions) at least ``min_gap_s`` before it (the 2 km SLAM run accepted a loop on
+    1162 of its 1292 keyframes, median distance 0.13 m, gaps from 68 s)."""
+    from scipy.spatial import cKDTree
+
+    p = T_true[:, :3, 3]
+    tree = cKDTree(p)
+    out = []
+    for j, near in enumerate(tree.query_ball_point(p, radius_m)):
+        near = [i for i in near if times_s[j] - times_s[i] >= min_gap_s]
+        if near:
+            out.append((min(near, key=lambda i: float(np.sum((p[i] - p[j]) ** 2))), j))
+    return np.asarray(out, dtype=np.int64).reshape(-1, 2)
+
+
+def slam_model_odometry(T_true, times_s, rates_deg_s, rng, scale_bias, yaw_bias, pitch_bias, params: OdometryParams,
+                        loops: np.ndarray):
+    """Chain and loop edges with the errors of minegeo's SLAM noise model (module docstring, ``--odometry
+    slam-model``): edges, measurements, information ``(G + F)⁻¹`` (``G`` = :data:`GICP_SIGMA`²) and the
+    keyframes' pose noise ``Q``. A loop edge measures the true relative pose of its keyframes with its own
+    error ``w ~ N(0, G + F_loop)`` and theirs: ``Exp(−n_i) T*_i⁻¹ T*_j Exp(n_j) Exp(w)``."""
+    k = T_true.shape[0]
+    G = GICP_SIGMA**2
+    Q = keyframe_pose_noise(rates_deg_s, params)
+    n = np.sqrt(np.einsum("kii->ki", Q)) * rng.standard_normal((k, 6))  # Q diagonal
+    En = [se3_exp(n[i]) for i in range(k)]
+    Y = np.empty((k, 4, 4))
+    Y[0] = T_true[0]
+    Z, info = [], []
+    for e in range(k - 1):
+        Zt = se3_inverse(T_true[e]) @ T_true[e + 1]
+        d = float(np.linalg.norm(Zt[:3, 3]))
+        ang = float(np.degrees(np.linalg.norm(so3_log(np.ascontiguousarray(Zt[:3, :3])))))
+        var = np.diag(edge_covariance_floor(d, ang, params, rates_deg_s=(rates_deg_s[e], rates_deg_s[e + 1]))) + G
+        w = np.r_[0.0, pitch_bias * d, yaw_bias * d, scale_bias * Zt[:3, 3]] + np.sqrt(var) * rng.standard_normal(6)
+        Y[e + 1] = Y[e] @ Zt @ se3_exp(w)
+        Z.append(se3_inverse(Y[e] @ En[e]) @ Y[e + 1] @ En[e + 1])
+        info.append(np.diag(1.0 / var))
+    for i, j in loops:
+        Zt = se3_inverse(T_true[i]) @ T_true[j]
+        var = np.diag(edge_covariance_floor(0.0, 0.0, params, rates_deg_s=(rates_deg_s[i], rates_deg_s[j]), loop=True)) + G
+        Z.append(se3_inverse(En[i]) @ Zt @ En[j] @ se3_exp(np.sqrt(var) * rng.standard_normal(6)))
+        info.append(np.diag(1.0 / var))
+    edges = np.r_[np.c_[np.arange(k - 1), np.arange(1, k)], loops].astype(np.int64)
+    return edges, np.stack(Z), np.stack(info), Q
+
+
+def slam_map(edges, Z, info) -> np.ndarray:
+    """The SLAM map of the graph: :func:`minegeo.slam.posegraph.optimize_pose_graph` from the chained
+    odometry, the first keyframe fixed at the identity (as ``minegeo slam``'s back end)."""
+    from minegeo.io.g2o import PoseGraph
+    from minegeo.slam.posegraph import optimize_pose_graph
+
+    k = int(edges.max()) + 1
+    chain_edges = edges[:, 1] == edges[:, 0] + 1
+    P0 = chain(Z[chain_edges][:k - 1], np.eye(4))
+    p = [3, 4, 5, 0, 1, 2]
+    g = PoseGraph("SE3", np.arange(k, dtype=np.int64), P0, edges, Z, info[:, p][:, :, p], fixed=(0,))
+    return optimize_pose_graph(g).graph.poses
 
 
 def odometry(T_true, rng, scale_bias, yaw_bias, pitch_bias, sigma_rot, sigma_trans, sigma_along):
@@ -93,13 +185,33 @@ def chain(Z, T0):
     return P
 
 
+def resurveyed(stations: Stations, tr, rng) -> Stations:
+    """The stations surveyed again: the truth plus a new draw of their survey noise (σ_h, σ_v of each
+    station), so that a Monte Carlo run draws every random input, not the odometry alone (with one fixed
+    survey, the runs' check errors share its datum error and the coverage is conditional on it)."""
+    from dataclasses import replace
+
+    sig = np.c_[stations.sigma_h_m, stations.sigma_h_m, stations.sigma_v_m]
+    enh = tr["enh_true"] - stations.origin_enh + sig * rng.standard_normal(sig.shape)
+    return replace(stations, enh_local=enh)
+
+
 def run_once(t, T_true, stations: Stations, tr, rng, drift, offset, crs,
-             modes=("rigid", "similarity", "graph", "graph_drift")):
+             modes=("rigid", "similarity", "graph", "graph_drift"), slam_model: OdometryParams | None = None,
+             resurvey: bool = False):
     """The modes on one odometry draw; returns errors at the check stations (truth). ``similarity``
     is the 7-parameter fit after SLAM (``minegeo slam --control-mode similarity``: rigid mode, the
-    similarity model)."""
-    edges, Z, info = odometry(T_true, rng, *drift)
-    P = chain(Z, np.eye(4))  # SLAM map frame = first keyframe
+    similarity model). ``slam_model``: the odometry of :func:`slam_model_odometry` with these
+    constants (``drift[:3]`` its bias), its pose noise passed to :func:`apply_control`. ``resurvey``:
+    the stations' surveyed coordinates drawn again from ``rng`` (:func:`resurveyed`)."""
+    if resurvey:
+        stations = resurveyed(stations, tr, rng)
+    if slam_model is None:
+        edges, Z, info = odometry(T_true, rng, *drift)
+        Q = None
+    else:
+        edges, Z, info, Q = slam_model_odometry(T_true, t, tr["rates_deg_s"], rng, *drift[:3], slam_model, tr["loops"])
+    P = chain(Z, np.eye(4)) if slam_model is None else slam_map(edges, Z, info)  # SLAM map frame = first keyframe
     T_cw = np.array(tr["T_crs_world"])
     true_local = tr["enh_true"] - stations.origin_enh
     # check stations between two control stations in time (the acceptance's); the others extrapolate
@@ -117,7 +229,7 @@ def run_once(t, T_true, stations: Stations, tr, rng, drift, offset, crs,
     for mode in modes:
         cp = (ControlParams(mode="rigid", model="similarity") if mode == "similarity"
               else ControlParams(mode=mode[:5], drift_states=mode == "graph_drift"))
-        res = apply_control(t, P, edges, Z, info, stations, offset, crs, cp)
+        res = apply_control(t, P, edges, Z, info, stations, offset, crs, cp, pose_noise=Q)
         out[mode] = res.station_enh_local[chk] - true_local[chk]
         out[mode + "_outside"] = (res.station_enh_local - true_local)[stations.is_check & ~chk]
         out[mode + "_objective"] = (float(res.objective), float(res.drift_parameters))
@@ -222,15 +334,17 @@ def markdown(path) -> str:
                       f"(binomial s.e. {100 * cal['binomial_se']:.1f} %); with the drift states "
                       f"{100 * cal.get('coverage_95_drift_states', float('nan')):.1f} %.")
     if d.get("monte_carlo"):
-        lines += ["", "| Monte Carlo | mode | 95 % ellipse coverage | check RMSE h (m) | check RMSE v (m) |",
-                  "|---|---|---|---|---|"]
+        vert = "coverage_95_v" in next(iter(d["monte_carlo"].values()))["graph"]
+        lines += ["", "| Monte Carlo | mode | 95 % ellipse coverage |" + (" 95 % vertical coverage |" if vert else "")
+                  + " check RMSE h (m) | check RMSE v (m) |", "|---|---|---|---|---|" + ("---|" if vert else "")]
         for cname, r in d["monte_carlo"].items():
             for m in ("graph", "graph_drift", "graph_auto", "graph_auto_chi2"):
                 if m not in r:
                     continue
                 lines.append(f"| {cname.replace('_', ' ')}, {r['runs']} runs ({r['check_points']} check points) | "
-                             f"{names[m]} | {100 * r[m]['coverage_95']:.1f} % | {r[m]['rmse_h_m']:.3f} | "
-                             f"{r[m]['rmse_v_m']:.3f} |")
+                             f"{names[m]} | {100 * r[m]['coverage_95']:.1f} % | "
+                             + (f"{100 * r[m]['coverage_95_v']:.1f} % | " if vert else "")
+                             + f"{r[m]['rmse_h_m']:.3f} | {r[m]['rmse_v_m']:.3f} |")
         lines.append("")
         lines.append("Binomial s.e. of a coverage: " + ", ".join(
             f"{cname.replace('_', ' ')} {100 * r['binomial_se']:.1f} %" for cname, r in d["monte_carlo"].items())
@@ -259,6 +373,11 @@ def main(argv=None):
     ap.add_argument("--mc-duration-s", type=float, default=1100.0)
     ap.add_argument("--conditions", nargs="+", choices=("bias", "noise_only"), default=["bias", "noise_only"],
                     help="which odometry conditions to run (default both)")
+    ap.add_argument("--odometry", choices=("random-walk", "slam-model"), default="random-walk",
+                    help="the odometry errors: the random walk of --sigma-* (default) or minegeo's SLAM noise model "
+                         "(edge floor + keyframe pose noise, OdometryParams() defaults; the --sigma-* unused)")
+    ap.add_argument("--resurvey", action="store_true",
+                    help="Monte Carlo: draw the stations' survey noise again in every run (else one fixed survey)")
     ap.add_argument("--label", default="", help="recorded in the results file (what this run is)")
     ap.add_argument("--out", default=None)
     ap.add_argument("--markdown", default=None, help="print the docs table of this results file and exit")
@@ -278,8 +397,10 @@ def main(argv=None):
                 json.dump(res, f, indent=1)
         return res
     t0 = time.perf_counter()
+    slam_model = OdometryParams() if a.odometry == "slam-model" else None
     offset = np.zeros(3)
-    t, T_true, stations, tr, length = truth(a.duration_s, a.spacing_m, a.control_every, a.seed, a.keyframe_s)
+    t, T_true, stations, tr, length = truth(a.duration_s, a.spacing_m, a.control_every, a.seed, a.keyframe_s,
+                                            slam_model is not None)
     drift = (a.scale_bias, a.yaw_bias, a.pitch_bias, a.sigma_rot, a.sigma_trans, a.sigma_along)
     tables, graph_info = {}, {}
     conds = {k: v for k, v in {"bias": drift, "noise_only": (0.0, 0.0, 0.0) + drift[3:]}.items() if k in a.conditions}
@@ -287,7 +408,8 @@ def main(argv=None):
           f"{t.size} keyframes", flush=True)
     modes_tab = ("none", "rigid", "similarity", "graph", "graph_drift", "graph_auto")
     for cname, dr in conds.items():
-        one = run_once(t, T_true, stations, tr, np.random.default_rng(a.seed), dr, offset, tr["crs"])
+        one = run_once(t, T_true, stations, tr, np.random.default_rng(a.seed), dr, offset, tr["crs"],
+                       slam_model=slam_model)
         table = {}
         for m in modes_tab:
             h, v = rmse(one[m])
@@ -305,20 +427,23 @@ def main(argv=None):
     # the true noise (the bias, where drawn, is not in it)
     t_mc = time.perf_counter()
     if a.mc:
-        tm, Tm, sm, trm, len_mc = truth(a.mc_duration_s, a.spacing_m, a.control_every, a.seed, a.keyframe_s)
+        tm, Tm, sm, trm, len_mc = truth(a.mc_duration_s, a.spacing_m, a.control_every, a.seed, a.keyframe_s,
+                                        slam_model is not None)
     mc = {}
     for cname, dr in conds.items():
         m_modes = ("graph", "graph_drift", "graph_auto", "graph_auto_chi2")
         inside, sq, sqv, total, sig0, n_auto, n_auto_chi2 = dict.fromkeys(m_modes, 0), dict.fromkeys(m_modes, 0.0), \
             dict.fromkeys(m_modes, 0.0), 0, [], 0, 0
+        inside_v = dict.fromkeys(m_modes, 0)
         lr_runs = []
         for r in range(a.mc):
             o = run_once(tm, Tm, sm, trm, np.random.default_rng([a.seed, 1000 + r]), dr, offset, trm["crs"],
-                         modes=("graph", "graph_drift"))
+                         modes=("graph", "graph_drift"), slam_model=slam_model, resurvey=a.resurvey)
             for m in m_modes:
                 e = o[m][:, :2]
                 C = o[m + "_cov"][:, :2, :2]
                 inside[m] += int((np.einsum("ni,nij,nj->n", e, np.linalg.inv(C), e) <= CHI2_2_95).sum())
+                inside_v[m] += int((o[m][:, 2] ** 2 <= CHI2_1_95 * o[m + "_cov"][:, 2, 2]).sum())
                 sq[m] += float(np.sum(e**2))
                 sqv[m] += float(np.sum(o[m][:, 2] ** 2))
             total += o["graph"].shape[0]
@@ -336,7 +461,7 @@ def main(argv=None):
             mc[cname] = {"runs": a.mc, "check_points": total, "binomial_se": float(np.sqrt(0.95 * 0.05 / total)),
                          "auto_chose_drift_states": n_auto, "auto_chi2_chose_drift_states": n_auto_chi2,
                          "mean_sigma0_graph": float(np.mean(sig0)), "lr_per_run": lr_runs,
-                         **{m: {"coverage_95": inside[m] / total, "rmse_h_m": float(np.sqrt(sq[m] / total)),
+                         **{m: {"coverage_95": inside[m] / total, "coverage_95_v": inside_v[m] / total, "rmse_h_m": float(np.sqrt(sq[m] / total)),
                                 "rmse_v_m": float(np.sqrt(sqv[m] / total))} for m in m_modes}}
     res = {
         "label": a.label,
@@ -354,7 +479,10 @@ def main(argv=None):
                        "station_sigma_v_m": float(stations.sigma_v_m[0]), "loop_closures": 0,
                        "drift_prior": list(ControlParams().drift_prior), "drift_walk_per_sqrt_s": list(ControlParams().drift_walk),
                        "auto_rule": "likelihood ratio (drift_states_test, C6): vTPv (every factor) without minus with the drift states against chi2_f(0.95), f = 3n - tr(H^-1 H_walk) - tr(H^-1 H_prior) the drift parameters the data determine; graph_auto_chi2: the earlier rule, the plain graph failing the upper tail of its 95 % two-tailed chi-square test (drift_states_needed)",
-                       "mc_duration_s": a.mc_duration_s},
+                       "mc_duration_s": a.mc_duration_s, "odometry": a.odometry, "resurvey": a.resurvey,
+                       "odometry_constants": ({f: getattr(slam_model, f) for f in OdometryParams.__dataclass_fields__
+                                               if f.startswith(("edge_sigma", "keyframe_sigma"))}
+                                              if slam_model is not None else None)},
         "table": tables,
         "graph": graph_info,
         "monte_carlo": mc,
