@@ -143,25 +143,13 @@ def net_in_folder(network, tmp_path):
     return p
 
 
-def _symlink(p: Path) -> Path:
-    return symlink_beside(p)
-
-
-def _hardlink(p: Path) -> Path:
-    return hardlink_beside(p)
-
-
-def _a_file(p: Path) -> Path:
-    return a_file(p.parent.parent)
-
-
 OUT_CASES = {
     "out_is_the_input": lambda p: p,
-    "out_symlink_to_input": _symlink,
-    "out_hardlink_to_input": _hardlink,
+    "out_symlink_to_input": symlink_beside,
+    "out_hardlink_to_input": hardlink_beside,
     "out_contains_the_input": lambda p: p.parent,
-    "out_is_an_existing_file": _a_file,
-    "out_through_a_file": lambda p: _a_file(p) / "sub",
+    "out_is_an_existing_file": lambda p: a_file(p.parent.parent),
+    "out_through_a_file": lambda p: a_file(p.parent.parent) / "sub",
     "out_not_empty_no_result": lambda p: a_folder(p.parent.parent, "busy"),
 }
 

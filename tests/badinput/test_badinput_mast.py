@@ -153,26 +153,14 @@ def scene_in_folder(mast_scene, tmp_path):
     return d / "scan.csv", d / "beacons.csv"
 
 
-def _symlink(p: Path) -> Path:
-    return symlink_beside(p)
-
-
-def _hardlink(p: Path) -> Path:
-    return hardlink_beside(p)
-
-
-def _a_file(p: Path) -> Path:
-    return a_file(p.parent.parent)
-
-
 OUT_CASES = {
     "out_is_the_scan": lambda s, b: s,
     "out_is_the_beacons": lambda s, b: b,
-    "out_symlink_to_scan": lambda s, b: _symlink(s),
-    "out_hardlink_to_beacons": lambda s, b: _hardlink(b),
+    "out_symlink_to_scan": lambda s, b: symlink_beside(s),
+    "out_hardlink_to_beacons": lambda s, b: hardlink_beside(b),
     "out_contains_the_inputs": lambda s, b: s.parent,
-    "out_is_an_existing_file": lambda s, b: _a_file(s),
-    "out_through_a_file": lambda s, b: _a_file(s) / "sub",
+    "out_is_an_existing_file": lambda s, b: a_file(s.parent.parent),
+    "out_through_a_file": lambda s, b: a_file(s.parent.parent) / "sub",
     "out_not_empty_no_result": lambda s, b: a_folder(s.parent.parent, "busy"),
 }
 
