@@ -35,13 +35,27 @@ import numpy as np
 MODES = {"raw": ["--no-deskew"], "deskew, 1 pass": ["--deskew-iterations", "0"], "deskew, 2 passes (default)": []}
 
 
-def _cli(args: list[str]) -> float:
+def run_cli(args: list[str]) -> float:
+    """Wall time (s) of ``python -m minegeo.cli --quiet ARGS`` (a failed run raises)."""
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-m", "minegeo.cli", "--quiet", *args], check=True)
     return time.perf_counter() - t0
 
 
-def _ate(run: Path, stream: Path) -> dict:
+def synth_stream(work: Path, preset: str, duration_s: float, seed: int) -> Path:
+    """The folder of ``minegeo synth --stream PRESET --duration-s D --seed S`` in ``work``, written once
+    (reused when its ``groundtruth.txt`` is there)."""
+    stream = work / f"{preset}_{duration_s:g}s_seed{seed}"
+    if not (stream / "groundtruth.txt").is_file():
+        run_cli(["synth", str(stream), "--stream", preset, "--duration-s", f"{duration_s:g}", "--seed", str(seed),
+                 "--force"])
+    return stream
+
+
+def stream_ate(run: Path, stream: Path) -> tuple[dict, dict]:
+    """ATE of ``run/trajectory.tum`` against ``stream/groundtruth.txt``: ``path_m``, ``ate_aligned_m``
+    (SE(3) Umeyama, evo's definition), ``ate_unaligned_m`` and ``max_error_unaligned_m`` (the truth moved
+    into the first sensor frame), ``frames``; and the ``result`` of ``run/result.json``."""
     from minegeo.io.trajectory import read_trajectory
     from minegeo.slam.evaluate import evaluate_trajectory
 
@@ -53,8 +67,26 @@ def _ate(run: Path, stream: Path) -> dict:
     path = float(np.linalg.norm(np.diff(gt.poses[:, :3, 3], axis=0), axis=1).sum())
     res = json.loads((run / "result.json").read_text())["result"]
     return {"path_m": path, "ate_aligned_m": aligned, "ate_unaligned_m": float(np.sqrt(np.mean(e ** 2))),
-            "max_error_unaligned_m": float(e.max()), "frames": res["frames"],
-            "frames_held_by_prior": int(sum(h["frames"] for h in res["motion_prior_stretches"])),
+            "max_error_unaligned_m": float(e.max()), "frames": res["frames"]}, res
+
+
+def run_meta(script: str, argv, load0: float, duration_s: float, seed: int) -> dict:
+    """The results file's ``meta``: date, commit (``+dirty`` when minegeo/ has changes), stream length and
+    seed, Numba threads, 1-minute load at the start and now, cores, the command line of ``script``."""
+    here = Path(__file__).parent
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=here).stdout.strip()
+    if subprocess.run(["git", "status", "--porcelain", "--", "../minegeo"], capture_output=True, text=True,
+                      cwd=here).stdout.strip():
+        commit += "+dirty"
+    return {"date": dt.date.today().isoformat(), "commit": commit, "duration_s": duration_s, "seed": seed,
+            "numba_threads": os.environ.get("NUMBA_NUM_THREADS", "default"), "load_1min_start": load0,
+            "load_1min_end": os.getloadavg()[0], "cpus": os.cpu_count(),
+            "command": f"python benchmarks/{script} " + " ".join(argv if argv is not None else sys.argv[1:])}
+
+
+def _ate(run: Path, stream: Path) -> dict:
+    base, res = stream_ate(run, stream)
+    return {**base, "frames_held_by_prior": int(sum(h["frames"] for h in res["motion_prior_stretches"])),
             "frames_deskewed": res["deskew"]["frames_deskewed"]}
 
 
@@ -73,26 +105,16 @@ def main(argv=None) -> int:
     load0 = os.getloadavg()[0]
     rows = []
     for preset in a.presets:
-        stream = a.work / f"{preset}_{a.duration_s:g}s_seed{a.seed}"
-        if not (stream / "groundtruth.txt").is_file():
-            _cli(["synth", str(stream), "--stream", preset, "--duration-s", f"{a.duration_s:g}", "--seed", str(a.seed),
-                  "--force"])
+        stream = synth_stream(a.work, preset, a.duration_s, a.seed)
         for mode, opts in MODES.items():
             run = a.work / f"{stream.name}_{'_'.join(mode.replace(',', '').split()[:3])}"
             opts = [*opts, "--odometry", a.odometry]
-            wall = _cli(["slam", "--frames", str(stream / "frames"),
+            wall = run_cli(["slam", "--frames", str(stream / "frames"),
                          "--out", str(run), *opts])
             rows.append({"preset": preset, "mode": mode, "options": opts, "wall_s": wall, **_ate(run, stream)})
             print(rows[-1], flush=True)
-    here = Path(__file__).parent
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=here).stdout.strip()
-    if subprocess.run(["git", "status", "--porcelain", "--", "../minegeo"], capture_output=True, text=True,
-                      cwd=here).stdout.strip():
-        commit += "+dirty"
-    meta = {"date": dt.date.today().isoformat(), "commit": commit, "duration_s": a.duration_s, "seed": a.seed,
-            "numba_threads": os.environ.get("NUMBA_NUM_THREADS", "default"), "load_1min_start": load0,
-            "load_1min_end": os.getloadavg()[0], "cpus": os.cpu_count(),
-            "command": "python benchmarks/bench_deskew.py " + " ".join(argv if argv is not None else sys.argv[1:])}
+    meta = run_meta("bench_deskew.py", argv, load0, a.duration_s, a.seed)
+    commit = meta["commit"]
     a.json.parent.mkdir(parents=True, exist_ok=True)
     a.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
     lines = [f"*{meta['date']}, commit {commit}, {a.duration_s:g} s streams at 10 Hz (seed {a.seed}), Numba threads "

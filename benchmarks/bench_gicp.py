@@ -56,7 +56,10 @@ import numba
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
 sys.path.insert(0, str(REPO))  # this checkout's minegeo, not whatever copy is installed
+from bench_registration import write_results  # noqa: E402
+
 SHARED = REPO.parent / "shared" / "data"
 
 VARIANTS = ("minegeo", "minegeo_sg_stop", "minegeo_open3d", "minegeo_cached", "minegeo_cached_pyloop", "open3d",
@@ -264,7 +267,7 @@ def main(argv=None) -> int:
 
     import open3d as o3d
 
-    from minegeo._provenance import atomic_write_text, to_jsonable, versions, write_json_atomic
+    from minegeo._provenance import versions
 
     uptime_before = os.popen("uptime").read().strip()
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
@@ -310,14 +313,7 @@ def main(argv=None) -> int:
         meta["versions"]["small_gicp"] = version("small_gicp")
     except Exception:  # noqa: BLE001 - version lookup only
         pass
-    results["meta"] = meta
-    md = markdown(results, meta)
-    print(md)
-    if a.json:
-        write_json_atomic(a.json, to_jsonable(results))
-    if a.md:
-        atomic_write_text(a.md, md + "\n")
-    _log(f"total {meta['total_s']:.1f} s")
+    write_results(results, meta, markdown, a.json, a.md)
     return 0
 
 

@@ -84,6 +84,21 @@ def _log(msg: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
 
 
+def write_results(results: dict, meta: dict, markdown, json_path, md_path) -> None:
+    """``results["meta"] = meta``; print ``markdown(results, meta)``, write ``results`` to ``json_path`` and
+    the Markdown to ``md_path`` (each atomically, when given), and log the total time."""
+    from minegeo._provenance import atomic_write_text, to_jsonable, write_json_atomic
+
+    results["meta"] = meta
+    md = markdown(results, meta)
+    print(md)
+    if json_path:
+        write_json_atomic(json_path, to_jsonable(results))
+    if md_path:
+        atomic_write_text(md_path, md + "\n")
+    _log(f"total {meta['total_s']:.1f} s")
+
+
 def _skip(reason: str) -> dict:
     return {"minegeo_s": None, "open3d_s": None, "ratio": None, "agreement": None, "skipped": reason}
 
@@ -379,7 +394,7 @@ def main(argv=None) -> int:
                     help="RANSAC seeds per section (default 10 quick, 6 full light, 10 full paper)")
     a = ap.parse_args(argv)
 
-    from minegeo._provenance import to_jsonable, versions, write_json_atomic
+    from minegeo._provenance import versions
 
     only = {x.strip() for x in a.only.split(",") if x.strip()}
     if only - set(STAGES):
@@ -417,16 +432,7 @@ def main(argv=None) -> int:
         meta["versions"]["open3d"] = open3d.__version__
     except ImportError:
         pass
-    results["meta"] = meta
-    md = markdown(results, meta)
-    print(md)
-    if a.json:
-        write_json_atomic(a.json, to_jsonable(results))
-    if a.md:
-        from minegeo._provenance import atomic_write_text
-
-        atomic_write_text(a.md, md + "\n")
-    _log(f"total {meta['total_s']:.1f} s")
+    write_results(results, meta, markdown, a.json, a.md)
     return 0
 
 

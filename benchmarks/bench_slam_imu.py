@@ -26,23 +26,19 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from bench_deskew import run_cli, run_meta, stream_ate, synth_stream  # noqa: E402
+
 MODES = {"raw": ["--no-deskew"], "deskew, no IMU": [], "gyro front end only": None, "deskew + IMU": ["--imu", "IMU"]}
-
-
-def _cli(args: list[str]) -> float:
-    t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "minegeo.cli", "--quiet", *args], check=True)
-    return time.perf_counter() - t0
 
 
 def _front_end_only(stream: Path, run: Path, frame_target: str = "submap") -> float:
@@ -71,18 +67,8 @@ def _front_end_only(stream: Path, run: Path, frame_target: str = "submap") -> fl
 
 
 def _ate(run: Path, stream: Path) -> dict:
-    from minegeo.io.trajectory import read_trajectory
-    from minegeo.slam.evaluate import evaluate_trajectory
-
-    est = read_trajectory(run / "trajectory.tum")
-    gt = read_trajectory(stream / "groundtruth.txt")
-    aligned = float(evaluate_trajectory(est, gt).ate.rmse)
-    G = np.einsum("ij,njk->nik", np.linalg.inv(gt.poses[0]), gt.poses)
-    e = np.linalg.norm(est.poses[:, :3, 3] - G[:, :3, 3], axis=1)
-    path = float(np.linalg.norm(np.diff(gt.poses[:, :3, 3], axis=0), axis=1).sum())
-    res = json.loads((run / "result.json").read_text())["result"]
-    out = {"path_m": path, "ate_aligned_m": aligned, "ate_unaligned_m": float(np.sqrt(np.mean(e ** 2))),
-           "max_error_unaligned_m": float(e.max()), "frames": res["frames"], "keyframes": res["keyframes"],
+    base, res = stream_ate(run, stream)
+    out = {**base, "keyframes": res["keyframes"],
            "frames_held_by_prior": int(sum(h["frames"] for h in res["motion_prior_stretches"]))}
     if "inertial" in res:
         ine = res["inertial"]
@@ -129,10 +115,7 @@ def main(argv=None) -> int:
     load0 = os.getloadavg()[0]
     rows = []
     for preset in a.presets:
-        stream = a.work / f"{preset}_{a.duration_s:g}s_seed{a.seed}"
-        if not (stream / "groundtruth.txt").is_file():
-            _cli(["synth", str(stream), "--stream", preset, "--duration-s", f"{a.duration_s:g}", "--seed", str(a.seed),
-                  "--force"])
+        stream = synth_stream(a.work, preset, a.duration_s, a.seed)
         for mode, opts in MODES.items():
             run = a.work / f"{stream.name}_{mode.replace(',', '').replace('+', '').replace(' ', '_')}"
             if opts is None:
@@ -140,18 +123,10 @@ def main(argv=None) -> int:
             else:
                 opts = [str(stream / "imu.csv") if o == "IMU" else o for o in opts]
                 opts = [*opts, "--odometry", a.odometry]
-                wall = _cli(["slam", "--frames", str(stream / "frames"), "--out", str(run), *opts])
+                wall = run_cli(["slam", "--frames", str(stream / "frames"), "--out", str(run), *opts])
             rows.append({"preset": preset, "mode": mode, "options": opts, "wall_s": wall, **_ate(run, stream)})
             print(rows[-1], flush=True)
-    here = Path(__file__).parent
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=here).stdout.strip()
-    if subprocess.run(["git", "status", "--porcelain", "--", "../minegeo"], capture_output=True, text=True,
-                      cwd=here).stdout.strip():
-        commit += "+dirty"
-    meta = {"date": dt.date.today().isoformat(), "commit": commit, "duration_s": a.duration_s, "seed": a.seed,
-            "numba_threads": os.environ.get("NUMBA_NUM_THREADS", "default"), "load_1min_start": load0,
-            "load_1min_end": os.getloadavg()[0], "cpus": os.cpu_count(),
-            "command": "python benchmarks/bench_slam_imu.py " + " ".join(argv if argv is not None else sys.argv[1:])}
+    meta = run_meta("bench_slam_imu.py", argv, load0, a.duration_s, a.seed)
     a.json.parent.mkdir(parents=True, exist_ok=True)
     a.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
     a.md.write_text("\n".join(_table(meta, rows)) + "\n")

@@ -245,21 +245,36 @@ def _cut_corners(P: np.ndarray, corner_m: float, step_m: float = 0.05) -> np.nda
     return np.concatenate(parts)
 
 
-def _speed_profile(C: np.ndarray, p: FlightParams) -> np.ndarray:
-    """Times (s) at the vertices of a dense 2-D path: curvature- and acceleration-limited speed, 0 at the ends."""
+def _path_curvature(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Segment lengths ``ds`` (k-1,) and heading change per metre ``kappa`` (k,; 0 at both ends) of a
+    dense 2-D path ``C`` (k, 2): the turn at each inner vertex over the mean of its two segments."""
     ds = np.linalg.norm(np.diff(C, axis=0), axis=1)
     h = np.unwrap(np.arctan2(*np.diff(C, axis=0).T[::-1]))
     kappa = np.zeros(len(C))
     kappa[1:-1] = np.abs(np.diff(h)) / np.maximum(0.5 * (ds[1:] + ds[:-1]), 1e-9)
-    kappa = np.convolve(kappa, np.ones(9) / 9.0, mode="same")
-    v = np.minimum(p.speed_mps, np.sqrt(p.lat_accel_mps2 / np.maximum(kappa, 1e-9)))
+    return ds, kappa
+
+
+def _vertex_times(v_cap: np.ndarray, ds: np.ndarray, accel_mps2: float, min_speed_mps: float) -> np.ndarray:
+    """Times (s, 0 at the first vertex) at the vertices of a path with segment lengths ``ds``: the speed
+    at each vertex at most ``v_cap``, 0 at both ends, reached within ``accel_mps2`` (a forward and a
+    backward pass); each segment is run at the mean of its end speeds, at least ``min_speed_mps``."""
+    v = np.array(v_cap, dtype=np.float64)
     v[0] = v[-1] = 0.0
     for i in range(1, len(v)):
-        v[i] = min(v[i], np.sqrt(v[i - 1] ** 2 + 2 * p.accel_mps2 * ds[i - 1]))
+        v[i] = min(v[i], np.sqrt(v[i - 1] ** 2 + 2 * accel_mps2 * ds[i - 1]))
     for i in range(len(v) - 2, -1, -1):
-        v[i] = min(v[i], np.sqrt(v[i + 1] ** 2 + 2 * p.accel_mps2 * ds[i]))
-    vm = np.maximum(0.5 * (v[1:] + v[:-1]), 0.05)
+        v[i] = min(v[i], np.sqrt(v[i + 1] ** 2 + 2 * accel_mps2 * ds[i]))
+    vm = np.maximum(0.5 * (v[1:] + v[:-1]), min_speed_mps)
     return np.concatenate([[0.0], np.cumsum(ds / vm)])
+
+
+def _speed_profile(C: np.ndarray, p: FlightParams) -> np.ndarray:
+    """Times (s) at the vertices of a dense 2-D path: curvature- and acceleration-limited speed, 0 at the ends."""
+    ds, kappa = _path_curvature(C)
+    kappa = np.convolve(kappa, np.ones(9) / 9.0, mode="same")
+    v = np.minimum(p.speed_mps, np.sqrt(p.lat_accel_mps2 / np.maximum(kappa, 1e-9)))
+    return _vertex_times(v, ds, p.accel_mps2, 0.05)
 
 
 def _nominal(net, route: np.ndarray, p: FlightParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

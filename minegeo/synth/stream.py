@@ -221,21 +221,14 @@ def _speed_profile(C: np.ndarray, pre: StreamPreset) -> np.ndarray:
     entered slowly."""
     from scipy.ndimage import maximum_filter1d
 
-    ds = np.linalg.norm(np.diff(C, axis=0), axis=1)
-    h = np.unwrap(np.arctan2(*np.diff(C, axis=0).T[::-1]))
-    kappa = np.zeros(len(C))
-    kappa[1:-1] = np.abs(np.diff(h)) / np.maximum(0.5 * (ds[1:] + ds[:-1]), 1e-9)
+    from minegeo.synth.flight import _path_curvature, _vertex_times
+
+    ds, kappa = _path_curvature(C)
     step = max(float(np.median(ds)) if len(ds) else 0.05, 1e-3)
     kappa = maximum_filter1d(kappa, size=2 * int(np.ceil(0.5 / step)) + 1)
     k = np.maximum(kappa, 1e-9)
     v = np.minimum(pre.speed_mps, np.minimum(np.sqrt(pre.lat_accel_mps2 / k), np.radians(pre.yaw_rate_dps) / k))
-    v[0] = v[-1] = 0.0
-    for i in range(1, len(v)):
-        v[i] = min(v[i], np.sqrt(v[i - 1] ** 2 + 2 * pre.accel_mps2 * ds[i - 1]))
-    for i in range(len(v) - 2, -1, -1):
-        v[i] = min(v[i], np.sqrt(v[i + 1] ** 2 + 2 * pre.accel_mps2 * ds[i]))
-    vm = np.maximum(0.5 * (v[1:] + v[:-1]), 1e-3)
-    return np.concatenate([[0.0], np.cumsum(ds / vm)])
+    return _vertex_times(v, ds, pre.accel_mps2, 1e-3)
 
 
 def _route_samples(net, pre: StreamPreset, length_m: float, seed: int, t: np.ndarray, stops=None):

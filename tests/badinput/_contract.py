@@ -403,6 +403,13 @@ def a_file(d: Path, name: str = "afile") -> Path:
     return f
 
 
+def write_file(tmp: Path, name: str, data) -> Path:
+    """``tmp/name`` holding ``data`` (bytes as they are, text as UTF-8): a bad input file."""
+    p = tmp / name
+    p.write_bytes(data if isinstance(data, bytes) else data.encode("utf-8"))
+    return p
+
+
 #: times of an IMU that covers :func:`write_box_room_frames`' frames (0.0-0.3 s) at 200 Hz
 IMU_T = np.arange(-0.05, 0.40, 0.005)
 

@@ -28,6 +28,7 @@ from _contract import (
     symlink_beside,
     tree_snapshot,
     truncated_copy,
+    write_file,
     write_lock,
 )
 
@@ -50,16 +51,10 @@ GHILANI_JSON = {
 }
 
 
-def _write(tmp: Path, name: str, data) -> Path:
-    p = tmp / name
-    p.write_bytes(data if isinstance(data, bytes) else data.encode("utf-8"))
-    return p
-
-
 def _edit(net: Path, tmp: Path, old: str, new: str, name: str = "net.dat") -> Path:
     text = net.read_text(encoding="utf-8")
     assert old in text
-    return _write(tmp, name, text.replace(old, new))
+    return write_file(tmp, name, text.replace(old, new))
 
 
 def _json_variant(tmp: Path, text_edit=None, obj_edit=None) -> Path:
@@ -69,7 +64,7 @@ def _json_variant(tmp: Path, text_edit=None, obj_edit=None) -> Path:
     text = json.dumps(d)
     if text_edit:
         text = text_edit(text)
-    return _write(tmp, "net.json", text)
+    return write_file(tmp, "net.json", text)
 
 
 ANGLE1 = "U P Q 33.8805555555556 0.00154320987654321"
@@ -77,7 +72,7 @@ ANGLE1 = "U P Q 33.8805555555556 0.00154320987654321"
 NETWORK_CASES = {
     "missing": lambda t, n: t / "nope.dat",
     "folder": lambda t, n: a_folder(t),
-    "empty": lambda t, n: _write(t, "empty.dat", b""),
+    "empty": lambda t, n: write_file(t, "empty.dat", b""),
     "truncated": lambda t, n: truncated_copy(n, t / "half.dat"),
     "nan_observation": lambda t, n: _edit(n, t, ANGLE1, "U P Q nan 0.00154320987654321"),
     "inf_observation": lambda t, n: _edit(n, t, ANGLE1, "U P Q inf 0.00154320987654321"),
@@ -85,19 +80,19 @@ NETWORK_CASES = {
     "inf_coordinate": lambda t, n: _edit(n, t, "S 1506.262 785.061", "S 1506.262 inf"),
     "too_few_columns": lambda t, n: _edit(n, t, ANGLE1, "U P 33.8805555555556"),
     "too_many_columns": lambda t, n: _edit(n, t, ANGLE1, ANGLE1 + " 7 8 9"),
-    "garbage_bytes": lambda t, n: _write(t, "garbage.dat", b"\x00\x01\x02 not a network\n"),
+    "garbage_bytes": lambda t, n: write_file(t, "garbage.dat", b"\x00\x01\x02 not a network\n"),
     "stream": lambda t, n: Path("/dev/zero"),
     "unknown_point": lambda t, n: _edit(n, t, ANGLE1, "U P X 33.8805555555556 0.00154320987654321"),
-    "too_few_observations": lambda t, n: _write(t, "one_angle.dat", n.read_text(encoding="utf-8").split("\nU Q R")[0] + "\n"),
-    "collinear_bearings": lambda t, n: _write(
+    "too_few_observations": lambda t, n: write_file(t, "one_angle.dat", n.read_text(encoding="utf-8").split("\nU Q R")[0] + "\n"),
+    "collinear_bearings": lambda t, n: write_file(
         t, "collinear.dat", "[Coordinates]\nA 0 0\nB 100 100\nU 200 200\n[Datum]\nfix A B\n[GridBearings,dms,s]\n"
         "A U 45°00'00\" 1\nB U 45°00'00\" 1\n"),
-    "json_truncated": lambda t, n: _write(t, "net.json", json.dumps(GHILANI_JSON)[: len(json.dumps(GHILANI_JSON)) // 2]),
+    "json_truncated": lambda t, n: write_file(t, "net.json", json.dumps(GHILANI_JSON)[: len(json.dumps(GHILANI_JSON)) // 2]),
     "json_nan": lambda t, n: _json_variant(t, text_edit=lambda s: s.replace("33.8805555555556", "NaN")),
     "json_inf": lambda t, n: _json_variant(t, text_edit=lambda s: s.replace("33.8805555555556", "1e999")),
     "json_wrong_type": lambda t, n: _json_variant(t, obj_edit=lambda d: d["observations"][0].update(value_gon="abc")),
-    "json_not_an_object": lambda t, n: _write(t, "net.json", "[1, 2, 3]"),
-    "json_non_utf8": lambda t, n: _write(t, "net.json", json.dumps(GHILANI_JSON).encode().replace(b'"U"', b'"\xdc"')),
+    "json_not_an_object": lambda t, n: write_file(t, "net.json", "[1, 2, 3]"),
+    "json_non_utf8": lambda t, n: write_file(t, "net.json", json.dumps(GHILANI_JSON).encode().replace(b'"U"', b'"\xdc"')),
 }
 
 
@@ -148,25 +143,13 @@ def net_in_folder(network, tmp_path):
     return p
 
 
-def _symlink(p: Path) -> Path:
-    return symlink_beside(p)
-
-
-def _hardlink(p: Path) -> Path:
-    return hardlink_beside(p)
-
-
-def _a_file(p: Path) -> Path:
-    return a_file(p.parent.parent)
-
-
 OUT_CASES = {
     "out_is_the_input": lambda p: p,
-    "out_symlink_to_input": _symlink,
-    "out_hardlink_to_input": _hardlink,
+    "out_symlink_to_input": symlink_beside,
+    "out_hardlink_to_input": hardlink_beside,
     "out_contains_the_input": lambda p: p.parent,
-    "out_is_an_existing_file": _a_file,
-    "out_through_a_file": lambda p: _a_file(p) / "sub",
+    "out_is_an_existing_file": lambda p: a_file(p.parent.parent),
+    "out_through_a_file": lambda p: a_file(p.parent.parent) / "sub",
     "out_not_empty_no_result": lambda p: a_folder(p.parent.parent, "busy"),
 }
 

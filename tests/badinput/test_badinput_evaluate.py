@@ -23,16 +23,11 @@ from _contract import (
     symlink_beside,
     tree_snapshot,
     truncated_copy,
+    write_file,
     write_lock,
 )
 
 N = 50
-
-
-def _write(tmp: Path, name: str, data) -> Path:
-    p = tmp / name
-    p.write_bytes(data if isinstance(data, bytes) else data.encode("utf-8"))
-    return p
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +65,7 @@ def _tum_edit(t: Path, d: Path, name: str, row: int, value: str) -> Path:
     """A copy of est.tum whose data row ``row`` is replaced by ``value``."""
     lines = (d / "est.tum").read_text().splitlines()
     lines[1 + row] = value
-    return _write(t, name, "\n".join(lines) + "\n")
+    return write_file(t, name, "\n".join(lines) + "\n")
 
 
 def _kitti_reflection(t: Path, d: Path) -> Path:
@@ -78,7 +73,7 @@ def _kitti_reflection(t: Path, d: Path) -> Path:
     v = lines[5].split()
     v[0:3], v[4:7], v[8:11] = ["1", "0", "0"], ["0", "1", "0"], ["0", "0", "-1"]  # diag(1, 1, -1)
     lines[5] = " ".join(v)
-    return _write(t, "refl.kitti", "\n".join(lines) + "\n")
+    return write_file(t, "refl.kitti", "\n".join(lines) + "\n")
 
 
 def _fifo(t: Path) -> Path:
@@ -90,15 +85,15 @@ def _fifo(t: Path) -> Path:
 EST_CASES = {
     "missing": lambda t, d: t / "nope.tum",
     "folder": lambda t, d: a_folder(t),
-    "empty": lambda t, d: _write(t, "empty.tum", b""),
-    "comments_only": lambda t, d: _write(t, "c.tum", "# timestamp x y z qx qy qz qw\n"),
+    "empty": lambda t, d: write_file(t, "empty.tum", b""),
+    "comments_only": lambda t, d: write_file(t, "c.tum", "# timestamp x y z qx qy qz qw\n"),
     "truncated": lambda t, d: truncated_copy(d / "est.tum", t / "half.tum"),
     "nan_row": lambda t, d: _tum_edit(t, d, "nan.tum", 3, "100.3 nan 0 0 0 0 0 1"),
     "inf_position": lambda t, d: _tum_edit(t, d, "inf.tum", 3, "100.3 inf 0 0 0 0 0 1"),
     "nan_time": lambda t, d: _tum_edit(t, d, "nant.tum", 3, "nan 0 0 0 0 0 0 1"),
     "duplicated_time": lambda t, d: _tum_edit(t, d, "dup.tum", 3, "100.2 0 0 0 0 0 0 1"),
     "decreasing_time": lambda t, d: _tum_edit(t, d, "dec.tum", 3, "99 0 0 0 0 0 0 1"),
-    "huge_times": lambda t, d: _write(t, "huge.tum", "".join(f"{v} 0 0 0 0 0 0 1\n" for v in
+    "huge_times": lambda t, d: write_file(t, "huge.tum", "".join(f"{v} 0 0 0 0 0 0 1\n" for v in
                                                            ("-1.7e308", "0", "1.7e308", "1.71e308"))),
     "time_1e400": lambda t, d: _tum_edit(t, d, "t400.tum", 3, "1e400 0 0 0 0 0 0 1"),
     "zero_quaternion": lambda t, d: _tum_edit(t, d, "q0.tum", 3, "100.3 0 0 0 0 0 0 0"),
@@ -107,10 +102,10 @@ EST_CASES = {
     "huge_position": lambda t, d: _tum_edit(t, d, "xbig.tum", 3, "100.3 1e300 0 0 0 0 0 1"),
     "wrong_columns": lambda t, d: _tum_edit(t, d, "cols.tum", 3, "100.3 0 0 0 0 0 1"),
     "reflection_kitti": lambda t, d: _kitti_reflection(t, d),
-    "not_a_rotation_kitti": lambda t, d: _write(t, "scaled.kitti", "2 0 0 0 0 2 0 0 0 0 2 0\n" * 3),
-    "binary_junk": lambda t, d: _write(t, "junk.tum", np.random.default_rng(5).integers(0, 256, 4096, np.uint8)
+    "not_a_rotation_kitti": lambda t, d: write_file(t, "scaled.kitti", "2 0 0 0 0 2 0 0 0 0 2 0\n" * 3),
+    "binary_junk": lambda t, d: write_file(t, "junk.tum", np.random.default_rng(5).integers(0, 256, 4096, np.uint8)
                                        .tobytes()),
-    "non_utf8": lambda t, d: _write(t, "latin1.tum", b"# \xe9\xff\n0 0 0 0 0 0 0 1\n1 \xe9 0 0 0 0 0 1\n"),
+    "non_utf8": lambda t, d: write_file(t, "latin1.tum", b"# \xe9\xff\n0 0 0 0 0 0 0 1\n1 \xe9 0 0 0 0 0 1\n"),
     "stream": lambda t, d: Path("/dev/zero"),
     "stream_behind_tum_name": lambda t, d: stream_link(t, "zero.tum"),
     "fifo": lambda t, d: _fifo(t),
@@ -178,7 +173,7 @@ def test_bad_option(case, trajs, tmp_path, capsys):
 
 
 def _times(t: Path, name: str, values) -> Path:
-    return _write(t, name, "".join(f"{v}\n" for v in values))
+    return write_file(t, name, "".join(f"{v}\n" for v in values))
 
 
 #: (argv after --out, expected text): how poses are matched
@@ -209,7 +204,7 @@ MATCH_CASES = {
     "times_nan": (lambda t, d: ["--est", d / "est10.kitti", "--est-times", _times(t, "nan.txt", [0, "nan", *range(2, 10)]),
                                 "--gt", d / "gt.tum"], "line 2: 'nan'"),
     "times_junk": (lambda t, d: ["--est", d / "est10.kitti", "--est-times",
-                                 _write(t, "junk.txt", np.random.default_rng(6).integers(0, 256, 512, np.uint8).tobytes()),
+                                 write_file(t, "junk.txt", np.random.default_rng(6).integers(0, 256, 512, np.uint8).tobytes()),
                                  "--gt", d / "gt.tum"], "junk.txt"),
     "max_diff_for_kitti": (lambda t, d: ["--est", d / "est.kitti", "--gt", d / "gt.kitti", "--max-diff", "0.5"],
                            "--max-diff matches poses by time"),

@@ -23,19 +23,14 @@ from _contract import (
     symlink_beside,
     tree_snapshot,
     truncated_copy,
+    write_file,
     write_lock,
 )
 
 
-def _write(tmp: Path, name: str, data) -> Path:
-    p = tmp / name
-    p.write_bytes(data if isinstance(data, bytes) else data.encode("utf-8"))
-    return p
-
-
 def _gcps(mine: Path, tmp: Path, edit, name: str = "gcps_bad.csv") -> Path:
     lines = (mine / "gcps.csv").read_text(encoding="utf-8").splitlines()
-    return _write(tmp, name, "\n".join(edit(lines)) + "\n")
+    return write_file(tmp, name, "\n".join(edit(lines)) + "\n")
 
 
 def _field(ls, row, col, value):
@@ -66,18 +61,18 @@ XYZ = "0 0 0\n10 0 0\n10 10 0\n0 10 3\n5 5 1\n"
 MAP_CASES = {
     "missing": lambda t, m: t / "nope.ply",
     "folder": lambda t, m: a_folder(t),
-    "empty": lambda t, m: _write(t, "empty.ply", b""),
+    "empty": lambda t, m: write_file(t, "empty.ply", b""),
     "truncated": lambda t, m: truncated_copy(m / "map.ply", t / "half.ply"),
-    "nan_row": lambda t, m: _write(t, "nan.xyz", "0 0 0\n10 0 0\nnan 10 0\n0 10 3\n"),
-    "inf_row": lambda t, m: _write(t, "inf.xyz", "0 0 0\n10 0 0\n10 -inf 0\n0 10 3\n"),
-    "two_columns": lambda t, m: _write(t, "two.xyz", "0 0\n10 0\n10 10\n0 10\n"),
-    "non_utf8": lambda t, m: _write(t, "latin1.xyz", b"0 0 0\n10 0 0\n10 10 \xe9\xff\n0 10 3\n"),
+    "nan_row": lambda t, m: write_file(t, "nan.xyz", "0 0 0\n10 0 0\nnan 10 0\n0 10 3\n"),
+    "inf_row": lambda t, m: write_file(t, "inf.xyz", "0 0 0\n10 0 0\n10 -inf 0\n0 10 3\n"),
+    "two_columns": lambda t, m: write_file(t, "two.xyz", "0 0\n10 0\n10 10\n0 10\n"),
+    "non_utf8": lambda t, m: write_file(t, "latin1.xyz", b"0 0 0\n10 0 0\n10 10 \xe9\xff\n0 10 3\n"),
     "stream": lambda t, m: Path("/dev/zero"),
     "stream_behind_ply_name": lambda t, m: stream_link(t, "zero.ply"),
     "folder_named_ply": lambda t, m: a_folder(t, "folder.ply"),
-    "no_points": lambda t, m: _write(t, "nopoints.ply", b"ply\nformat ascii 1.0\nelement vertex 0\n"
+    "no_points": lambda t, m: write_file(t, "nopoints.ply", b"ply\nformat ascii 1.0\nelement vertex 0\n"
                                      b"property double x\nproperty double y\nproperty double z\nend_header\n"),
-    "unknown_extension": lambda t, m: _write(t, "map.dat", XYZ),
+    "unknown_extension": lambda t, m: write_file(t, "map.dat", XYZ),
 }
 
 
@@ -93,12 +88,12 @@ def test_bad_map(case, mine, tmp_path, capsys):
 GCP_CASES = {
     "missing": (lambda t, m: t / "nope.csv", []),
     "folder": (lambda t, m: a_folder(t), []),
-    "empty": (lambda t, m: _write(t, "empty.csv", b""), []),
+    "empty": (lambda t, m: write_file(t, "empty.csv", b""), []),
     "truncated": (lambda t, m: truncated_copy(m / "gcps.csv", t / "half.csv"), []),
     "nan_row": (lambda t, m: _gcps(m, t, lambda ls: _field(ls, 3, 4, "nan")), []),
     "inf_row": (lambda t, m: _gcps(m, t, lambda ls: _field(ls, 4, 2, "inf")), []),
     "wrong_columns": (lambda t, m: _gcps(m, t, lambda ls: ls[:3] + [ls[3].rsplit(",", 2)[0]] + ls[4:]), []),
-    "non_utf8": (lambda t, m: _write(t, "latin1.csv", (m / "gcps.csv").read_bytes().replace(b"GCP03", b"GCP\xe903")),
+    "non_utf8": (lambda t, m: write_file(t, "latin1.csv", (m / "gcps.csv").read_bytes().replace(b"GCP03", b"GCP\xe903")),
                  []),
     "stream": (lambda t, m: Path("/dev/zero"), ["--crs", "EPSG:5186"]),
     "header_only": (lambda t, m: _gcps(m, t, lambda ls: ls[:2]), []),

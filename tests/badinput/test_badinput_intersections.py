@@ -26,6 +26,7 @@ from _contract import (
     stream_link,
     tree_snapshot,
     truncated_copy,
+    write_file,
     write_lock,
 )
 
@@ -44,12 +45,6 @@ def netmap(tmp_path_factory):
     return d / "map.ply"
 
 
-def _write(tmp: Path, name: str, data) -> Path:
-    p = tmp / name
-    p.write_bytes(data if isinstance(data, bytes) else data.encode("utf-8"))
-    return p
-
-
 def _outputs(out: Path) -> list[Path]:
     return [out, out.with_name(out.name + ".json"), out.with_name(out.name + ".html")]
 
@@ -57,21 +52,21 @@ def _outputs(out: Path) -> list[Path]:
 MAP_CASES = {
     "missing": lambda t, m, g: t / "nope.ply",
     "folder": lambda t, m, g: a_folder(t),
-    "empty": lambda t, m, g: _write(t, "empty.ply", b""),
+    "empty": lambda t, m, g: write_file(t, "empty.ply", b""),
     "truncated": lambda t, m, g: truncated_copy(m, t / "half.ply"),
-    "junk_ply": lambda t, m, g: _write(t, "junk.ply", "ply\nthis is not a point cloud\n"),
-    "nan_row": lambda t, m, g: _write(t, "nan.xyz", "0 0 0\n10 0 0\nnan 10 0\n0 10 3\n"),
-    "inf_row": lambda t, m, g: _write(t, "inf.xyz", "0 0 0\n10 0 0\n10 inf 0\n0 10 3\n"),
-    "two_columns": lambda t, m, g: _write(t, "two.xyz", "0 0\n10 0\n10 10\n0 10\n"),
+    "junk_ply": lambda t, m, g: write_file(t, "junk.ply", "ply\nthis is not a point cloud\n"),
+    "nan_row": lambda t, m, g: write_file(t, "nan.xyz", "0 0 0\n10 0 0\nnan 10 0\n0 10 3\n"),
+    "inf_row": lambda t, m, g: write_file(t, "inf.xyz", "0 0 0\n10 0 0\n10 inf 0\n0 10 3\n"),
+    "two_columns": lambda t, m, g: write_file(t, "two.xyz", "0 0\n10 0\n10 10\n0 10\n"),
     "stream": lambda t, m, g: Path("/dev/zero"),
     "stream_behind_ply_name": lambda t, m, g: stream_link(t, "zero.ply"),
-    "no_points": lambda t, m, g: _write(t, "nopoints.ply", b"ply\nformat ascii 1.0\nelement vertex 0\n"
+    "no_points": lambda t, m, g: write_file(t, "nopoints.ply", b"ply\nformat ascii 1.0\nelement vertex 0\n"
                                         b"property double x\nproperty double y\nproperty double z\nend_header\n"),
-    "three_points": lambda t, m, g: _write(t, "three.xyz", "0 0 0\n10 0 0\n10 10 0\n"),
-    "one_point_repeated": lambda t, m, g: _write(t, "same.xyz", "1.5 2.5 3.5\n" * 500),
+    "three_points": lambda t, m, g: write_file(t, "three.xyz", "0 0 0\n10 0 0\n10 10 0\n"),
+    "one_point_repeated": lambda t, m, g: write_file(t, "same.xyz", "1.5 2.5 3.5\n" * 500),
     "flat_floor_no_walls": lambda t, m, g: _floor(t),
-    "unknown_extension": lambda t, m, g: _write(t, "map.dat", "0 0 0\n10 0 0\n10 10 0\n0 10 3\n"),
-    "a_base_as_map": lambda t, m, g: _write(t, "kb.npz", b"PK\x03\x04" + bytes(100)),
+    "unknown_extension": lambda t, m, g: write_file(t, "map.dat", "0 0 0\n10 0 0\n10 10 0\n0 10 3\n"),
+    "a_base_as_map": lambda t, m, g: write_file(t, "kb.npz", b"PK\x03\x04" + bytes(100)),
     "sidecar_truncated": lambda t, m, g: georef_variant(g, t / "geo", "sidecar_truncated"),
     "sidecar_unknown_epsg": lambda t, m, g: georef_variant(g, t / "geo", "sidecar_unknown_epsg"),
     "sidecar_stale": lambda t, m, g: georef_variant(g, t / "geo", "sidecar_stale"),

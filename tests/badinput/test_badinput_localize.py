@@ -27,20 +27,15 @@ from _contract import (
     stream_link,
     tree_snapshot,
     truncated_copy,
+    write_file,
     write_lock,
 )
 
 FAST = ["--profile", "fast"]
 
 
-def _write(tmp: Path, name: str, data) -> Path:
-    p = tmp / name
-    p.write_bytes(data if isinstance(data, bytes) else data.encode("utf-8"))
-    return p
-
-
 def _xyz(tmp: Path, name: str, pts) -> Path:
-    return _write(tmp, name, "".join(f"{x:.4f} {y:.4f} {z:.4f}\n" for x, y, z in pts))
+    return write_file(tmp, name, "".join(f"{x:.4f} {y:.4f} {z:.4f}\n" for x, y, z in pts))
 
 
 def _planar(tmp: Path) -> Path:
@@ -68,20 +63,20 @@ def prep(mine, tmp_path_factory):
 SCAN_CASES = {
     "missing": lambda t, m: t / "nope.ply",
     "folder": lambda t, m: a_folder(t),
-    "empty": lambda t, m: _write(t, "empty.ply", b""),
+    "empty": lambda t, m: write_file(t, "empty.ply", b""),
     "truncated": lambda t, m: truncated_copy(m / "scans" / "scan_04.ply", t / "half.ply"),
-    "nan_row": lambda t, m: _write(t, "nan.xyz", "0 0 0\n1 0 0\nnan 1 0\n0 1 1\n" * 20),
-    "inf_row": lambda t, m: _write(t, "inf.xyz", "0 0 0\n1 0 0\n1 inf 0\n0 1 1\n" * 20),
-    "two_columns": lambda t, m: _write(t, "two.xyz", "0 0\n1 0\n1 1\n0 1\n" * 20),
-    "non_utf8": lambda t, m: _write(t, "latin1.xyz", b"0 0 0\n1 0 0\n1 1 \xe9\xff\n0 1 1\n" * 20),
+    "nan_row": lambda t, m: write_file(t, "nan.xyz", "0 0 0\n1 0 0\nnan 1 0\n0 1 1\n" * 20),
+    "inf_row": lambda t, m: write_file(t, "inf.xyz", "0 0 0\n1 0 0\n1 inf 0\n0 1 1\n" * 20),
+    "two_columns": lambda t, m: write_file(t, "two.xyz", "0 0\n1 0\n1 1\n0 1\n" * 20),
+    "non_utf8": lambda t, m: write_file(t, "latin1.xyz", b"0 0 0\n1 0 0\n1 1 \xe9\xff\n0 1 1\n" * 20),
     "stream": lambda t, m: Path("/dev/zero"),
     "stream_behind_ply_name": lambda t, m: stream_link(t, "zero.ply"),
     "folder_named_ply": lambda t, m: a_folder(t, "folder.ply"),
-    "unknown_extension": lambda t, m: _write(t, "scan.dat", "0 0 0\n1 0 0\n1 1 0\n0 1 1\n"),
+    "unknown_extension": lambda t, m: write_file(t, "scan.dat", "0 0 0\n1 0 0\n1 1 0\n0 1 1\n"),
     "ten_points": lambda t, m: _xyz(t, "ten.xyz", np.random.default_rng(1).uniform(0, 20, (10, 3))),
     "planar_only": lambda t, m: _planar(t),
     "collinear": lambda t, m: _line(t),
-    "one_point_repeated": lambda t, m: _write(t, "same.xyz", "12.25 -3.5 1.75\n" * 500),
+    "one_point_repeated": lambda t, m: write_file(t, "same.xyz", "12.25 -3.5 1.75\n" * 500),
 }
 
 
@@ -96,23 +91,23 @@ def test_bad_scan(case, mine, prep, tmp_path, capsys):
 MAP_CASES = {
     "missing": lambda t, m, g, p: t / "nope.ply",
     "folder": lambda t, m, g, p: a_folder(t),
-    "empty": lambda t, m, g, p: _write(t, "empty.ply", b""),
+    "empty": lambda t, m, g, p: write_file(t, "empty.ply", b""),
     "truncated": lambda t, m, g, p: truncated_copy(m / "map.ply", t / "half.ply"),
-    "nan_row": lambda t, m, g, p: _write(t, "nan.xyz", "0 0 0\n10 0 0\nnan 10 0\n0 10 3\n" * 50),
-    "non_utf8": lambda t, m, g, p: _write(t, "latin1.xyz", b"0 0 0\n10 0 0\n10 10 \xe9\xff\n0 10 3\n" * 50),
+    "nan_row": lambda t, m, g, p: write_file(t, "nan.xyz", "0 0 0\n10 0 0\nnan 10 0\n0 10 3\n" * 50),
+    "non_utf8": lambda t, m, g, p: write_file(t, "latin1.xyz", b"0 0 0\n10 0 0\n10 10 \xe9\xff\n0 10 3\n" * 50),
     "stream": lambda t, m, g, p: Path("/dev/zero"),
     "stream_behind_ply_name": lambda t, m, g, p: stream_link(t, "zero.ply"),
     "stream_behind_npz_name": lambda t, m, g, p: stream_link(t, "zero.npz"),
     "folder_named_npz": lambda t, m, g, p: a_folder(t, "folder.npz"),
-    "three_points": lambda t, m, g, p: _write(t, "three.xyz", "0 0 0\n10 0 0\n10 10 0\n"),
+    "three_points": lambda t, m, g, p: write_file(t, "three.xyz", "0 0 0\n10 0 0\n10 10 0\n"),
     "sidecar_truncated": lambda t, m, g, p: georef_variant(g, t / "geo", "sidecar_truncated"),
     "sidecar_non_utf8": lambda t, m, g, p: georef_variant(g, t / "geo", "sidecar_non_utf8"),
     "sidecar_unknown_epsg": lambda t, m, g, p: georef_variant(g, t / "geo", "sidecar_unknown_epsg"),
     "sidecar_stale": lambda t, m, g, p: georef_variant(g, t / "geo", "sidecar_stale"),
     "sidecar_folder": lambda t, m, g, p: georef_variant(g, t / "geo", "sidecar_folder"),
     "prepared_truncated": lambda t, m, g, p: truncated_copy(p, t / "half.npz"),
-    "prepared_not_a_zip": lambda t, m, g, p: _write(t, "text.npz", "0 0 0\n1 1 1\n"),
-    "prepared_empty": lambda t, m, g, p: _write(t, "empty.npz", b""),
+    "prepared_not_a_zip": lambda t, m, g, p: write_file(t, "text.npz", "0 0 0\n1 1 1\n"),
+    "prepared_empty": lambda t, m, g, p: write_file(t, "empty.npz", b""),
 }
 
 
@@ -135,13 +130,13 @@ def test_prepared_map_with_other_parameters(mine, prep, tmp_path, capsys):
 TRAJ_CASES = {
     "missing": lambda t, m: t / "nope.tum",
     "folder": lambda t, m: a_folder(t),
-    "empty": lambda t, m: _write(t, "empty.tum", b""),
+    "empty": lambda t, m: write_file(t, "empty.tum", b""),
     "truncated": lambda t, m: truncated_copy(m / "trajectories" / "scan_00.txt", t / "half.txt"),
-    "nan_row": lambda t, m: _write(t, "nan.tum", "0 0 0 0 0 0 0 1\n1 nan 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n"),
-    "inf_row": lambda t, m: _write(t, "inf.tum", "0 0 0 0 0 0 0 1\n1 inf 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n"),
-    "wrong_columns": lambda t, m: _write(t, "cols.tum", "0 0 0 0 0 0 0 1\n1 1 0 0 0 0 1\n2 0 0 0 0 0 0 1\n"),
-    "zero_quaternion": lambda t, m: _write(t, "q0.tum", "0 0 0 0 0 0 0 1\n1 1 0 0 0 0 0 0\n2 0 0 0 0 0 0 1\n"),
-    "non_utf8": lambda t, m: _write(t, "latin1.tum", b"# \xe9\xff\n0 0 0 0 0 0 0 1\n1 \xe9 0 0 0 0 0 1\n"),
+    "nan_row": lambda t, m: write_file(t, "nan.tum", "0 0 0 0 0 0 0 1\n1 nan 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n"),
+    "inf_row": lambda t, m: write_file(t, "inf.tum", "0 0 0 0 0 0 0 1\n1 inf 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n"),
+    "wrong_columns": lambda t, m: write_file(t, "cols.tum", "0 0 0 0 0 0 0 1\n1 1 0 0 0 0 1\n2 0 0 0 0 0 0 1\n"),
+    "zero_quaternion": lambda t, m: write_file(t, "q0.tum", "0 0 0 0 0 0 0 1\n1 1 0 0 0 0 0 0\n2 0 0 0 0 0 0 1\n"),
+    "non_utf8": lambda t, m: write_file(t, "latin1.tum", b"# \xe9\xff\n0 0 0 0 0 0 0 1\n1 \xe9 0 0 0 0 0 1\n"),
     "stream": lambda t, m: Path("/dev/zero"),
 }
 

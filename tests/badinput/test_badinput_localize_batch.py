@@ -21,7 +21,16 @@ import shutil
 from pathlib import Path
 
 import pytest
-from _contract import a_file, a_folder, assert_user_error, dead_pid, tree_snapshot, truncated_copy, write_lock
+from _contract import (
+    a_file,
+    a_folder,
+    assert_user_error,
+    dead_pid,
+    tree_snapshot,
+    truncated_copy,
+    write_file,
+    write_lock,
+)
 from helpers import require_extra
 
 FAST = ["--profile", "fast"]
@@ -43,12 +52,6 @@ def scans(mine, tmp_path):
     for i in (0, 1):
         shutil.copy2(mine / "scans" / f"scan_{i:02d}.ply", d / f"scan_{i:02d}.ply")
     return d
-
-
-def _write(tmp: Path, name: str, data) -> Path:
-    p = tmp / name
-    p.write_bytes(data if isinstance(data, bytes) else data.encode("utf-8"))
-    return p
 
 
 OPTION_CASES = {
@@ -92,11 +95,11 @@ def test_bad_option(case, prep, scans, tmp_path, capsys):
 MAP_CASES = {
     "missing": lambda t, m, p: t / "nope.npz",
     "folder_named_npz": lambda t, m, p: a_folder(t, "folder.npz"),
-    "prepared_empty": lambda t, m, p: _write(t, "empty.npz", b""),
+    "prepared_empty": lambda t, m, p: write_file(t, "empty.npz", b""),
     "prepared_truncated": lambda t, m, p: truncated_copy(p, t / "half.npz"),
-    "prepared_not_a_zip": lambda t, m, p: _write(t, "text.npz", "0 0 0\n1 1 1\n"),
-    "map_file_empty": lambda t, m, p: _write(t, "empty.ply", b""),
-    "map_file_three_points": lambda t, m, p: _write(t, "three.xyz", "0 0 0\n10 0 0\n10 10 0\n"),
+    "prepared_not_a_zip": lambda t, m, p: write_file(t, "text.npz", "0 0 0\n1 1 1\n"),
+    "map_file_empty": lambda t, m, p: write_file(t, "empty.ply", b""),
+    "map_file_three_points": lambda t, m, p: write_file(t, "three.xyz", "0 0 0\n10 0 0\n10 10 0\n"),
 }
 
 
@@ -161,7 +164,7 @@ OUT_CASES = {
     "another_seed": (lambda o, p: _manifest(o, p, seed=5), "another seed"),
     "another_profile": (lambda o, p: _manifest(o, p, profile="table3"), "another profile"),
     "not_a_batch_folder": (lambda o, p: a_folder(o.parent, o.name), "holds no localize-batch results"),
-    "manifest_garbage": (lambda o, p: (o.mkdir(), _write(o, "batch_manifest.json", b"\xff\x00 not json"))
+    "manifest_garbage": (lambda o, p: (o.mkdir(), write_file(o, "batch_manifest.json", b"\xff\x00 not json"))
                          and o, "unreadable"),
     "an_existing_file": (lambda o, p: a_file(o.parent, o.name), "not a folder"),
 }

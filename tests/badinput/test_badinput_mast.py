@@ -24,14 +24,9 @@ from _contract import (
     symlink_beside,
     tree_snapshot,
     truncated_copy,
+    write_file,
     write_lock,
 )
-
-
-def _write(tmp: Path, name: str, data) -> Path:
-    p = tmp / name
-    p.write_bytes(data if isinstance(data, bytes) else data.encode("utf-8"))
-    return p
 
 
 def _lines(p) -> list[str]:
@@ -44,11 +39,11 @@ def _rows(scan_lines):
 
 
 def _scan(tmp: Path, scene, edit) -> Path:
-    return _write(tmp, "scan_bad.csv", "\n".join(edit(_lines(scene["scan"]))) + "\n")
+    return write_file(tmp, "scan_bad.csv", "\n".join(edit(_lines(scene["scan"]))) + "\n")
 
 
 def _beacons(tmp: Path, scene, edit) -> Path:
-    return _write(tmp, "beacons_bad.csv", "\n".join(edit(_lines(scene["beacons"]))) + "\n")
+    return write_file(tmp, "beacons_bad.csv", "\n".join(edit(_lines(scene["beacons"]))) + "\n")
 
 
 def _insert(ls, row):
@@ -70,14 +65,14 @@ def _set_field(ls, row, col, value):
 SCAN_CASES = {
     "missing": lambda t, s: t / "nope.csv",
     "folder": lambda t, s: a_folder(t),
-    "empty": lambda t, s: _write(t, "empty.csv", b""),
+    "empty": lambda t, s: write_file(t, "empty.csv", b""),
     "truncated": lambda t, s: truncated_copy(s["scan"], t / "half.csv"),
     "nan_bearing": lambda t, s: _scan(t, s, lambda ls: _insert(ls, "nan,5.0")),
     "inf_bearing": lambda t, s: _scan(t, s, lambda ls: _insert(ls, "inf,5.0")),
     "one_column_row": lambda t, s: _scan(t, s, lambda ls: _insert(ls, "12.5")),
     "three_column_row": lambda t, s: _scan(t, s, lambda ls: _insert(ls, "12.5,5.0,7.0")),
     "no_header": lambda t, s: _scan(t, s, lambda ls: [ln for ln in ls if not ln.startswith("bearing_deg")]),
-    "non_utf8": lambda t, s: _write(t, "latin1.csv", b"# site: Schacht S\xfcd\n" + Path(s["scan"]).read_bytes()),
+    "non_utf8": lambda t, s: write_file(t, "latin1.csv", b"# site: Schacht S\xfcd\n" + Path(s["scan"]).read_bytes()),
     "stream": lambda t, s: Path("/dev/zero"),
     "header_only": lambda t, s: _scan(t, s, lambda ls: ls[: _rows(ls)]),
     "two_returns": lambda t, s: _scan(t, s, lambda ls: ls[: _rows(ls) + 2]),  # MAST needs >= 3
@@ -97,12 +92,12 @@ def test_bad_scan(case, mast_scene, tmp_path, capsys):
 BEACON_CASES = {
     "missing": lambda t, s: t / "nope.csv",
     "folder": lambda t, s: a_folder(t),
-    "empty": lambda t, s: _write(t, "empty.csv", b""),
+    "empty": lambda t, s: write_file(t, "empty.csv", b""),
     "truncated": lambda t, s: truncated_copy(s["beacons"], t / "half.csv"),
     "nan_coordinate": lambda t, s: _beacons(t, s, lambda ls: _set_field(ls, 2, 2, "nan")),
     "inf_coordinate": lambda t, s: _beacons(t, s, lambda ls: _set_field(ls, 3, 3, "inf")),
     "three_column_row": lambda t, s: _beacons(t, s, lambda ls: ls[:2] + [ls[2].rsplit(",", 1)[0]] + ls[3:]),
-    "non_utf8": lambda t, s: _write(t, "latin1.csv", Path(s["beacons"]).read_bytes().replace(b"B1,", b"B\xfc1,")),
+    "non_utf8": lambda t, s: write_file(t, "latin1.csv", Path(s["beacons"]).read_bytes().replace(b"B1,", b"B\xfc1,")),
     "stream": lambda t, s: Path("/dev/zero"),
     "one_beacon": lambda t, s: _beacons(t, s, lambda ls: [ln for ln in ls if not ln.startswith("B2,")]),
     "three_vertices": lambda t, s: _beacons(t, s, lambda ls: [ln for ln in ls if not ln.startswith("B2,3,")]),
@@ -158,26 +153,14 @@ def scene_in_folder(mast_scene, tmp_path):
     return d / "scan.csv", d / "beacons.csv"
 
 
-def _symlink(p: Path) -> Path:
-    return symlink_beside(p)
-
-
-def _hardlink(p: Path) -> Path:
-    return hardlink_beside(p)
-
-
-def _a_file(p: Path) -> Path:
-    return a_file(p.parent.parent)
-
-
 OUT_CASES = {
     "out_is_the_scan": lambda s, b: s,
     "out_is_the_beacons": lambda s, b: b,
-    "out_symlink_to_scan": lambda s, b: _symlink(s),
-    "out_hardlink_to_beacons": lambda s, b: _hardlink(b),
+    "out_symlink_to_scan": lambda s, b: symlink_beside(s),
+    "out_hardlink_to_beacons": lambda s, b: hardlink_beside(b),
     "out_contains_the_inputs": lambda s, b: s.parent,
-    "out_is_an_existing_file": lambda s, b: _a_file(s),
-    "out_through_a_file": lambda s, b: _a_file(s) / "sub",
+    "out_is_an_existing_file": lambda s, b: a_file(s.parent.parent),
+    "out_through_a_file": lambda s, b: a_file(s.parent.parent) / "sub",
     "out_not_empty_no_result": lambda s, b: a_folder(s.parent.parent, "busy"),
 }
 

@@ -20,6 +20,7 @@ from _contract import (
     symlink_beside,
     tree_snapshot,
     truncated_copy,
+    write_file,
 )
 
 INFO = "10 0 0 10 0 100"
@@ -28,43 +29,37 @@ GOOD = ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0.1\nVERTEX_SE2 2 2 0.1 0.2\nVERTE
         f"EDGE_SE2 0 3 2 1 1.6 {INFO}\n")
 
 
-def _write(tmp: Path, name: str, data) -> Path:
-    p = tmp / name
-    p.write_bytes(data if isinstance(data, bytes) else data.encode("utf-8"))
-    return p
-
-
 @pytest.fixture
 def good(tmp_path) -> Path:
-    return _write(tmp_path, "good.g2o", GOOD)
+    return write_file(tmp_path, "good.g2o", GOOD)
 
 
 GRAPH_CASES = {
     "missing": (lambda t: t / "nope.g2o", None),
     "folder": (lambda t: a_folder(t), None),
-    "empty": (lambda t: _write(t, "empty.g2o", b""), "no VERTEX or EDGE"),
-    "truncated": (lambda t: truncated_copy(_write(t, "g.g2o", GOOD), t / "half.g2o"), "line"),
+    "empty": (lambda t: write_file(t, "empty.g2o", b""), "no VERTEX or EDGE"),
+    "truncated": (lambda t: truncated_copy(write_file(t, "g.g2o", GOOD), t / "half.g2o"), "line"),
     "stream": (lambda t: Path("/dev/zero"), None),
-    "non_utf8": (lambda t: _write(t, "latin1.g2o", b"# Schacht S\xfcd\n" + GOOD.encode()), None),
-    "unknown_record": (lambda t: _write(t, "u.g2o", GOOD + "EDGE_XYZ 0 1\n"), "line 9: unknown record"),
-    "nan_value": (lambda t: _write(t, "n.g2o", GOOD.replace("VERTEX_SE2 1 1 0", "VERTEX_SE2 1 nan 0")), "NaN"),
+    "non_utf8": (lambda t: write_file(t, "latin1.g2o", b"# Schacht S\xfcd\n" + GOOD.encode()), None),
+    "unknown_record": (lambda t: write_file(t, "u.g2o", GOOD + "EDGE_XYZ 0 1\n"), "line 9: unknown record"),
+    "nan_value": (lambda t: write_file(t, "n.g2o", GOOD.replace("VERTEX_SE2 1 1 0", "VERTEX_SE2 1 nan 0")), "NaN"),
     # case 5: vertex ids outside int64 / huge
-    "vertex_id_1e20": (lambda t: _write(t, "id.g2o", GOOD + "VERTEX_SE2 1e20 0 0 0\n"), "line 9: vertex id 1e20"),
-    "vertex_id_minus_9_3e18": (lambda t: _write(t, "id.g2o", GOOD + f"EDGE_SE2 3 -9.3e18 1 0 0 {INFO}\n"),
+    "vertex_id_1e20": (lambda t: write_file(t, "id.g2o", GOOD + "VERTEX_SE2 1e20 0 0 0\n"), "line 9: vertex id 1e20"),
+    "vertex_id_minus_9_3e18": (lambda t: write_file(t, "id.g2o", GOOD + f"EDGE_SE2 3 -9.3e18 1 0 0 {INFO}\n"),
                                "line 9: vertex id -9.3e18"),
-    "vertex_id_fraction": (lambda t: _write(t, "id.g2o", GOOD + "FIX 0.5\n"), "line 9: vertex id 0.5"),
+    "vertex_id_fraction": (lambda t: write_file(t, "id.g2o", GOOD + "FIX 0.5\n"), "line 9: vertex id 0.5"),
     # case 6: every vertex fixed
-    "every_vertex_fixed": (lambda t: _write(t, "fix.g2o", GOOD + "FIX 0\nFIX 1\nFIX 2\nFIX 3\n"),
+    "every_vertex_fixed": (lambda t: write_file(t, "fix.g2o", GOOD + "FIX 0\nFIX 1\nFIX 2\nFIX 3\n"),
                            "every vertex (4) is held fixed"),
     # case 12: zero information, self-loop
-    "zero_information_vertex": (lambda t: _write(t, "z.g2o", GOOD + "VERTEX_SE2 4 3 1 0\n"
+    "zero_information_vertex": (lambda t: write_file(t, "z.g2o", GOOD + "VERTEX_SE2 4 3 1 0\n"
                                                  "EDGE_SE2 3 4 1 0 0 0 0 0 0 0 0\n"), "id 4"),
-    "zero_information_everywhere": (lambda t: _write(t, "z.g2o", GOOD.replace(INFO, "0 0 0 0 0 0")), "id 1"),
-    "heading_left_free": (lambda t: _write(t, "h.g2o", GOOD + "VERTEX_SE2 4 3 1 0\n"
+    "zero_information_everywhere": (lambda t: write_file(t, "z.g2o", GOOD.replace(INFO, "0 0 0 0 0 0")), "id 1"),
+    "heading_left_free": (lambda t: write_file(t, "h.g2o", GOOD + "VERTEX_SE2 4 3 1 0\n"
                                            "EDGE_SE2 3 4 1 0 0 1 0 0 1 0 0\n"), "vertex id 4"),
-    "self_loop": (lambda t: _write(t, "loop.g2o", GOOD + f"EDGE_SE2 2 2 0 0 0 {INFO}\n"),
+    "self_loop": (lambda t: write_file(t, "loop.g2o", GOOD + f"EDGE_SE2 2 2 0 0 0 {INFO}\n"),
                   "line 9: edge from vertex 2 to itself"),
-    "disconnected": (lambda t: _write(t, "d.g2o", GOOD + "VERTEX_SE2 10 0 0 0\nVERTEX_SE2 11 1 0 0\n"
+    "disconnected": (lambda t: write_file(t, "d.g2o", GOOD + "VERTEX_SE2 10 0 0 0\nVERTEX_SE2 11 1 0 0\n"
                                       f"EDGE_SE2 10 11 1 0 0 {INFO}\n"), "id 10"),
 }
 
@@ -79,7 +74,7 @@ def test_bad_graph(case, tmp_path, capsys):
 
 
 def test_indefinite_information_refused_on_request(tmp_path, capsys):
-    graph = _write(tmp_path, "ind.g2o", GOOD + "EDGE_SE2 1 3 1 1 1.5 1 0 0 1 0 -5\n")
+    graph = write_file(tmp_path, "ind.g2o", GOOD + "EDGE_SE2 1 3 1 1 1.5 1 0 0 1 0 -5\n")
     out = tmp_path / "res" / "out.g2o"
     assert_user_error("posegraph", [graph, "--out", out, "--indefinite-information", "refuse"], capsys,
                       inputs=[graph], outputs=[out],

@@ -21,16 +21,11 @@ from _contract import (
     stream_link,
     tree_snapshot,
     truncated_copy,
+    write_file,
     write_lock,
 )
 
 FAST = ["--profile", "fast"]
-
-
-def _write(tmp: Path, name: str, data) -> Path:
-    p = tmp / name
-    p.write_bytes(data if isinstance(data, bytes) else data.encode("utf-8"))
-    return p
 
 
 def _record(out: Path) -> Path:
@@ -40,20 +35,20 @@ def _record(out: Path) -> Path:
 MAP_CASES = {
     "missing": lambda t, m, g: t / "nope.ply",
     "folder": lambda t, m, g: a_folder(t),
-    "empty": lambda t, m, g: _write(t, "empty.ply", b""),
+    "empty": lambda t, m, g: write_file(t, "empty.ply", b""),
     "truncated": lambda t, m, g: truncated_copy(m / "map.ply", t / "half.ply"),
-    "nan_row": lambda t, m, g: _write(t, "nan.xyz", "0 0 0\n10 0 0\nnan 10 0\n0 10 3\n"),
-    "inf_row": lambda t, m, g: _write(t, "inf.xyz", "0 0 0\n10 0 0\n10 inf 0\n0 10 3\n"),
-    "two_columns": lambda t, m, g: _write(t, "two.xyz", "0 0\n10 0\n10 10\n0 10\n"),
-    "non_utf8": lambda t, m, g: _write(t, "latin1.xyz", b"0 0 0\n10 0 0\n10 10 \xe9\xff\n0 10 3\n"),
+    "nan_row": lambda t, m, g: write_file(t, "nan.xyz", "0 0 0\n10 0 0\nnan 10 0\n0 10 3\n"),
+    "inf_row": lambda t, m, g: write_file(t, "inf.xyz", "0 0 0\n10 0 0\n10 inf 0\n0 10 3\n"),
+    "two_columns": lambda t, m, g: write_file(t, "two.xyz", "0 0\n10 0\n10 10\n0 10\n"),
+    "non_utf8": lambda t, m, g: write_file(t, "latin1.xyz", b"0 0 0\n10 0 0\n10 10 \xe9\xff\n0 10 3\n"),
     "stream": lambda t, m, g: Path("/dev/zero"),
     "stream_behind_ply_name": lambda t, m, g: stream_link(t, "zero.ply"),
     "folder_named_ply": lambda t, m, g: a_folder(t, "folder.ply"),
-    "no_points": lambda t, m, g: _write(t, "nopoints.ply", b"ply\nformat ascii 1.0\nelement vertex 0\n"
+    "no_points": lambda t, m, g: write_file(t, "nopoints.ply", b"ply\nformat ascii 1.0\nelement vertex 0\n"
                                         b"property double x\nproperty double y\nproperty double z\nend_header\n"),
-    "three_points": lambda t, m, g: _write(t, "three.xyz", "0 0 0\n10 0 0\n10 10 0\n"),
-    "one_point_repeated": lambda t, m, g: _write(t, "same.xyz", "1.5 2.5 3.5\n" * 500),
-    "unknown_extension": lambda t, m, g: _write(t, "map.dat", "0 0 0\n10 0 0\n10 10 0\n0 10 3\n"),
+    "three_points": lambda t, m, g: write_file(t, "three.xyz", "0 0 0\n10 0 0\n10 10 0\n"),
+    "one_point_repeated": lambda t, m, g: write_file(t, "same.xyz", "1.5 2.5 3.5\n" * 500),
+    "unknown_extension": lambda t, m, g: write_file(t, "map.dat", "0 0 0\n10 0 0\n10 10 0\n0 10 3\n"),
     "sidecar_truncated": lambda t, m, g: georef_variant(g, t / "geo", "sidecar_truncated"),
     "sidecar_non_utf8": lambda t, m, g: georef_variant(g, t / "geo", "sidecar_non_utf8"),
     "sidecar_unknown_epsg": lambda t, m, g: georef_variant(g, t / "geo", "sidecar_unknown_epsg"),

@@ -32,6 +32,7 @@ from _contract import (
     stream_link,
     tree_snapshot,
     truncated_copy,
+    write_file,
     write_lock,
 )
 
@@ -70,12 +71,6 @@ def scene(tmp_path_factory):
     _write_frames(d / "frames", frames)
     assert main(["-q", "intersections", "build", "--map", str(d / "map.ply"), "--out", str(d / "kb.npz")]) == 0
     return d
-
-
-def _write(tmp: Path, name: str, data) -> Path:
-    p = tmp / name
-    p.write_bytes(data if isinstance(data, bytes) else data.encode("utf-8"))
-    return p
 
 
 def _arrays_meta(db: Path):
@@ -125,10 +120,10 @@ def _version_1(tmp: Path, db: Path) -> Path:
 DB_CASES = {  # (maker, words of the error line)
     "missing": (lambda t, d: t / "nope.npz", "No such file"),
     "folder": (lambda t, d: a_folder(t), "is a folder"),
-    "empty": (lambda t, d: _write(t, "empty.npz", b""), "empty file"),
-    "random_bytes": (lambda t, d: _write(t, "rnd.npz", np.random.default_rng(27).bytes(5000)),
+    "empty": (lambda t, d: write_file(t, "empty.npz", b""), "empty file"),
+    "random_bytes": (lambda t, d: write_file(t, "rnd.npz", np.random.default_rng(27).bytes(5000)),
                      "not a minegeo intersection base (not a NumPy .npz archive)"),
-    "text": (lambda t, d: _write(t, "kb.npz", "this is not a knowledge base\n"), "not a NumPy .npz archive"),
+    "text": (lambda t, d: write_file(t, "kb.npz", "this is not a knowledge base\n"), "not a NumPy .npz archive"),
     "stream": (lambda t, d: Path("/dev/zero"), "not a regular file"),
     "stream_behind_npz_name": (lambda t, d: stream_link(t, "zero.npz"), "not a regular file"),
     "truncated": (lambda t, d: truncated_copy(d / "kb.npz", t / "half.npz"), "not a minegeo intersection base"),
@@ -279,9 +274,9 @@ def test_bad_option(case, scene, tmp_path, capsys):
 
 TRUTH_CASES = {
     "missing": lambda t: t / "nope.tum",
-    "empty": lambda t: _write(t, "empty.tum", b""),
-    "junk": lambda t: _write(t, "junk.tum", "this is not a trajectory\n"),
-    "nan_pose": lambda t: _write(t, "nan.tum", "0.0 nan 0 1.5 0 0 0 1\n0.5 0 0 1.5 0 0 0 1\n"),
+    "empty": lambda t: write_file(t, "empty.tum", b""),
+    "junk": lambda t: write_file(t, "junk.tum", "this is not a trajectory\n"),
+    "nan_pose": lambda t: write_file(t, "nan.tum", "0.0 nan 0 1.5 0 0 0 1\n0.5 0 0 1.5 0 0 0 1\n"),
 }
 
 
@@ -297,7 +292,7 @@ def test_bad_truth(case, scene, tmp_path, capsys):
 def test_truth_in_crs_for_a_base_without_crs(scene, tmp_path, capsys):
     """``--truth-frame crs`` needs a georeferenced base (its origin converts the truth): refused before
     any frame is tracked."""
-    truth = _write(tmp_path, "truth.tum", "0.0 -14 0 1.5 0 0 0 1\n0.5 -13 0 1.5 0 0 0 1\n")
+    truth = write_file(tmp_path, "truth.tum", "0.0 -14 0 1.5 0 0 0 1\n0.5 -13 0 1.5 0 0 0 1\n")
     out = tmp_path / "out"
     assert_user_error("track", ["--frames", scene / "frames", "--db", scene / "kb.npz", "--out", out,
                                 "--truth", truth, "--truth-frame", "crs"], capsys,
@@ -311,7 +306,7 @@ _PLY_HEAD = "ply\nformat ascii 1.0\nelement vertex {n}\nproperty float x\nproper
 
 
 def _ply(t: Path, name: str, rows: list[str]) -> Path:
-    return _write(t, name, _PLY_HEAD.format(n=len(rows)) + "".join(r + "\n" for r in rows))
+    return write_file(t, name, _PLY_HEAD.format(n=len(rows)) + "".join(r + "\n" for r in rows))
 
 
 def _shifted_map(t: Path, d: Path, shift) -> Path:
@@ -327,8 +322,8 @@ MAP_CASES = {  # (maker, words of the error line): --map is checked before any f
     "missing": (lambda t, d: t / "nope.ply", "No such file (name the map the base was built from)"),
     "folder": (lambda t, d: a_folder(t), "is a folder"),
     "stream": (lambda t, d: Path("/dev/zero"), "not a regular file"),
-    "zero_bytes": (lambda t, d: _write(t, "zero.ply", b""), "empty"),
-    "junk_text": (lambda t, d: _write(t, "junk.ply", "this is not a point cloud\n"), "junk.ply"),
+    "zero_bytes": (lambda t, d: write_file(t, "zero.ply", b""), "empty"),
+    "junk_text": (lambda t, d: write_file(t, "junk.ply", "this is not a point cloud\n"), "junk.ply"),
     "no_points": (lambda t, d: _ply(t, "none.ply", []), "holds 0 point(s)"),
     "three_points": (lambda t, d: _ply(t, "three.ply", ["0 0 0", "1 0 0", "0 1 0"]), "holds 3 point(s)"),
     "nan_point": (lambda t, d: _ply(t, "nan.ply", [f"{k} 0 0" for k in range(11)] + ["nan 1 1"]), "NaN or inf"),
