@@ -224,6 +224,9 @@ def main(argv=None):
                     help="a bench_edge_covariance.py results file: its fitted constants instead of OdometryParams()'s")
     ap.add_argument("--loop-inflation", type=float, default=1.0,
                     help="a diagnostic: every loop edge's covariance times this (1: as minegeo slam builds it)")
+    ap.add_argument("--extra-sigma-xy-m", type=float, default=0.0,
+                    help="a diagnostic: added (in quadrature) to every keyframe's pose noise along its sensor x and y "
+                         "(the control factors and the stations carry it, the edges do not)")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--out", default=None)
     ap.add_argument("--markdown", default=None, help="print the docs table of this results file and exit")
@@ -253,6 +256,9 @@ def main(argv=None):
             res = run_backend(run_odometry(sweeps, bec.RAW), SlamParams(odometry=bec.RAW))
             np.savez(f, **bec.edge_records(res, st.curve.poses(st.frame_times)))
         truth, edges, Z, info, Q, rates = stream_graph(dict(np.load(f)), params, a.loop_inflation)
+        Q = Q.copy()
+        Q[:, 3, 3] += a.extra_sigma_xy_m**2  # a candidate term: station noise beyond the keyframe's own
+        Q[:, 4, 4] += a.extra_sigma_xy_m**2
         P = slam_map(truth, edges, Z, info)
         for start in a.starts:
             ctrl, chk = layout(truth, start, a.control_spacing_m, a.check_spacing_m, rates, a.max_rate_deg_s)
@@ -309,7 +315,8 @@ def main(argv=None):
            "threads": os.environ.get("NUMBA_NUM_THREADS"), "load": os.getloadavg(),
            "conditions": {"streams": a.streams, "duration_s": a.duration_s, "control_spacing_m": a.control_spacing_m,
                           "check_spacing_m": a.check_spacing_m, "max_rate_deg_s": a.max_rate_deg_s,
-                          "drift_states": a.drift_states, "loop_inflation": a.loop_inflation, "constants": a.constants or "OdometryParams() defaults",
+                          "drift_states": a.drift_states, "loop_inflation": a.loop_inflation,
+                          "extra_sigma_xy_m": a.extra_sigma_xy_m, "constants": a.constants or "OdometryParams() defaults",
                           "starts_m": a.starts, "seed": a.seed,
                           "station_sigma_h_m": 0.005, "station_sigma_v_m": 0.010},
            "summary": summary, "rows": rows, "seconds": time.perf_counter() - t0}
