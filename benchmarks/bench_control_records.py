@@ -16,20 +16,25 @@ For each stream:
 * station layouts on keyframes by distance along the true path: a control station every
   ``--control-spacing-m`` from ``--first-m`` (surveyed with σ_h 5 mm, σ_v 10 mm, seeded noise), a check
   station every ``--check-spacing-m`` between the first and the last control (not on a control), each on
-  the nearest keyframe turning at most ``--max-rate-deg-s`` (a station is a stop, not a turn); one
-  layout per start in ``--starts-m`` (they share the stream's errors: not independent);
+  the nearest keyframe turning at most ``--max-rate-deg-s`` (a station is a stop, not a turn; here it
+  is a moving keyframe, a harder case than a stop frame); one layout per start in ``--first-m`` (they
+  share the stream's errors: not independent); the survey noise drawn per layout;
 * :func:`minegeo.slam.control.apply_control` (graph mode, defaults) with the pose noise; at each check
   station the error against the truth, inside the 95 % horizontal ellipse (``eᵀC⁻¹e ≤ χ²₂``) and the
   95 % vertical interval (``e_v² ≤ χ²₁ σ_v²``).
 
 The keyframe index stands for its time (the records keep no times; a station on a keyframe needs none,
-and the drift states are off). The streams' own stops at their stations play no part.
+and the drift states are off by default). The streams' own stops at their stations play no part.
+Diagnostics: ``--drift-states``, ``--loop-inflation`` (every loop's covariance times a factor),
+``--extra-sigma-xy-m`` (a station noise beyond the keyframe's own, carried by the control factors and
+the stations, not the edges), ``--constants`` (another fit's constants).
 
 Records missing from ``--cache`` are made as ``bench_edge_covariance.py`` makes them (about 4 min of
 CPU per stream). Usage (1 thread; seconds per stream once the records exist)::
 
     NUMBA_NUM_THREADS=1 python benchmarks/bench_control_records.py --cache /tmp/edge_cov_cache \\
-        --streams vehicle:1-12 handheld:1-5 --out benchmarks/results/control_records.json
+        --streams vehicle:3-12 --control-spacing-m 120 --check-spacing-m 20 --first-m 0 10 20 30 40 50 \\
+        --out benchmarks/results/control_records_vehicle.json
 """
 
 from __future__ import annotations
