@@ -612,6 +612,8 @@ def run(args) -> int:
     inputs_named.update({"--imu-noise": args.imu_noise} if getattr(args, "imu_noise", None) else {})
     with OutputTransaction("slam", inputs=inputs_named, folders={"--out": out}, files=dxf_out) as tx:
         files = list_frames(args.frames, args.times, args.pattern, args.lidar_topic)
+        if len(files) < 2:  # before any compiled work (a first run compiles for a minute before its first frame)
+            raise InputError(f"--frames {args.frames}: fewer than 2 readable frames")
         _check_times(files)
         check_imu(imu, files, args)
         target, target_why = odometry_target(getattr(args, "odometry", "auto"), [f.time_s for f in files])

@@ -318,6 +318,8 @@ def run(args) -> int:
         # the dense prior map (map-registration factors): read and checked before any frame is
         prior = _read_prior_map(args.map, kb, args.db) if args.map else None
         files = list_frames(args.frames, args.times, args.pattern, args.lidar_topic)
+        if len(files) < 2:  # before any compiled work (a first run compiles for a minute before its first frame)
+            raise InputError(f"--frames {args.frames}: fewer than 2 readable frames")
         check_imu(imu, files, args)
         skipped: list[dict] = []
         bar = tqdm(total=len(files), desc="track", unit="frame", file=sys.stderr, disable=not progress_enabled(args))
