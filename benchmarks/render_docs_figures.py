@@ -560,15 +560,15 @@ RENDERERS = {
                              ("niosh_08_noimu", "2026-11-29_niosh_0.8km_noimu", INTERSECTION_SHORT),
                              ("niosh_before", "2026-11-28_niosh", INTERSECTION_FULL),
                              ("corridor", "2026-11-28_corridor", INTERSECTION_FULL))},
-    "stream_ate_local_map": md_copy("stream_ate_2026-11-29_local_map", [0],
+    "stream_ate_local_map": md_copy("stream_ate_2026-11-30_local_map", [0],
                                     extra="`python benchmarks/bench_stream_ate.py --duration-s 20 --kiss-from "
                                           "benchmarks/results/stream_ate_2026-11-29.json`"),
-    "stream_ate_drone60": md_copy("stream_ate_2026-11-29_drone60", [0],
+    "stream_ate_drone60": md_copy("stream_ate_2026-11-30_drone60", [0],
                                   extra="`python benchmarks/bench_stream_ate.py --duration-s 60 --sequences "
-                                        "\"drone, NIOSH 2.9 m\"`"),
-    "stream_ate": md_copy("stream_ate_2026-11-29", [0],
-                          extra="`python benchmarks/bench_stream_ate.py --duration-s 20`; "
-                                "HEAD at the end of the run, see the file's commit_note"),
+                                        "\"drone, NIOSH 2.9 m\" --kiss-from benchmarks/results/stream_ate_2026-11-29_drone60.json`"),
+    "stream_ate": md_copy("stream_ate_2026-11-30", [0],
+                          extra="`python benchmarks/bench_stream_ate.py --duration-s 20 --odometry frame --kiss-from "
+                                "benchmarks/results/stream_ate_2026-11-29.json`"),
     "mast_coverage": md_copy("mast/mast_benchmark", [2]),
     "mast_partial": md_copy("mast/mast_benchmark", [3]),
     "mast_beacon_survey": md_copy("mast/mast_benchmark", [4]),
