@@ -380,8 +380,9 @@ def simulate_stream(params: StreamParams, net=None) -> Stream:
     Parameters
     ----------
     params : StreamParams
-    net : DriftNetwork, optional
-        Default :func:`stream_network` of ``params.network``.
+    net : DriftNetwork or PaperNet, optional
+        Default :func:`stream_network` of ``params.network`` (a ``paper-...`` network: the paper world
+        and its path, :mod:`minegeo.synth.stream_paper`).
     """
     from minegeo.synth.sensors import Velodyne16
     from minegeo.synth.stream_paper import is_paper_network, paper_motion

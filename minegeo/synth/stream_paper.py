@@ -8,12 +8,12 @@ Paths (:data:`PAPER_NETWORKS`, 3-D floor centrelines in the world frame, smoothe
 
 * ``paper-ring``: the ring roadway at the end of the L0 main drift (``ring_L0_049`` then
   ``ring_L0_050`` backwards, a 100 m circle of 16 m radius) once round from its junction with the
-  main drift and 15 m on past the start, so the loop can close (115 m);
-* ``paper-straight``: the L1 main drift end to end (``main_L1_052`` .. ``main_L1_071``, 506 m,
+  main drift and 15 m on past the start, so the loop can close (114 m);
+* ``paper-straight``: the L1 main drift end to end (``main_L1_052`` .. ``main_L1_071``, 505 m,
   level, a slight seeded wiggle);
 * ``paper-ramp``: the last 20 m of the ring roadway (``ring_L0_049``), the 204 m ramp
   (``ramp_L0_051``, 25 m down, about 7 degrees) and the first 30 m of the L1 main drift, the corners
-  cut by :func:`~minegeo.synth.sequence.route_path` (3 m).
+  cut by :func:`~minegeo.synth.sequence.route_path` (3 m); 251 m.
 
 Motion (:func:`paper_motion`): the preset's speed profile along the path (cruise speed, lateral
 acceleration and yaw-rate limits, from rest at ``STILL_S`` to rest at the path's end, where it stays);
@@ -38,7 +38,8 @@ from minegeo.synth.imu import GRAVITY_MPS2
 from minegeo.synth.motion import MotionCurve, curve_from_samples, gaussian_smooth
 from minegeo.synth.stream_presets import KNOT_DT_S, PRESETS, STILL_S, StreamPreset, _speed_profile
 
-__all__ = ["PAPER_NETWORKS", "PAPER_WORLD_SEED", "PaperNet", "paper_network", "paper_motion", "is_paper_network"]
+__all__ = ["PAPER_NETWORKS", "PAPER_WORLD_SEED", "PaperNet", "paper_network", "paper_motion", "is_paper_network",
+           "path_duration_s"]
 
 #: the paper-world stream networks
 PAPER_NETWORKS = ("paper-ring", "paper-straight", "paper-ramp")
