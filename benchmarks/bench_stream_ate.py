@@ -15,9 +15,13 @@ end of each sweep, where it deskews to, against the truth interpolated there).
 
 Sequences (``minegeo synth OUT --stream CARRIER --stream-network NET --duration-s D --seed S``): a vehicle
 on the loop network (3.2 m drifts) and on the junctions network (3.5 m), a drone in the NIOSH layout
-(2.9 m drifts, the shared data's edge list), a handheld walk on the loop. The paper world's ring,
-straight drift and ramp are scenes of one VLP-16 rotation per metre (``bench_slam.py``), not
-simulated as 10 Hz streams: the networks above stand for them.
+(2.9 m drifts, the shared data's edge list), a handheld walk on the loop, and a vehicle on the three
+paths of the paper world (``build_world("paper", 1)``, 4.5 m drifts; docs/synth.md "Paper-world
+streams"): ``paper-ring`` (the 100 m ring roadway once round and 15 m on, 114 m), ``paper-straight``
+(the L1 main drift, 505 m) and ``paper-ramp`` (251 m, 25 m down the 7 degree ramp). The vehicle starts
+from rest at 1 s, so ``--duration-s`` D covers about 3 (D - 3) m; the paths last 41.8, 172.1 and
+88.7 s (a longer D is refused). A paper-world sweep costs about 0.7 s to cast (about 7 s per second
+of stream on one core).
 
 Usage::
 
@@ -45,7 +49,9 @@ from bench_realtime import _ate, kiss_config, load_frames, run_kiss  # noqa: E40
 NIOSH = HERE.parent.parent / "shared" / "data" / "subt_tunnel_niosh_mine" / "ex_edgelist.csv"
 #: name -> (carrier preset, --stream-network)
 SEQUENCES = {"vehicle, loop 3.2 m": ("vehicle", "loop"), "vehicle, junctions 3.5 m": ("vehicle", "junctions"),
-             "drone, NIOSH 2.9 m": ("drone", "niosh"), "handheld, loop 3.2 m": ("handheld", "loop")}
+             "drone, NIOSH 2.9 m": ("drone", "niosh"), "handheld, loop 3.2 m": ("handheld", "loop"),
+             "vehicle, paper ring": ("vehicle", "paper-ring"), "vehicle, paper straight": ("vehicle", "paper-straight"),
+             "vehicle, paper ramp": ("vehicle", "paper-ramp")}
 MODES = {"raw": ["--no-deskew"], "deskewed": [], "deskewed + IMU": ["--imu", "IMU"]}
 #: KISS-ICP runs: label -> voxel size (m); None = as it ships (max_range / 100 = 1.0 m at 100 m range)
 KISS_VOXELS = {"KISS-ICP (its deskewing), voxel 1.0 m as shipped": None,

@@ -58,7 +58,9 @@ def add_arguments(parser) -> None:
     s.add_argument("--imu-hz", type=float_in_range(50.0, 1000.0), default=None, metavar="HZ",
                    help="IMU rate (default 200)")
     s.add_argument("--stream-network", default=None, metavar="NET",
-                   help="loop (3.2 m drifts, default), junctions (3.5 m) or an edge list CSV (NIOSH layout, 2.9 m)")
+                   help="loop (3.2 m drifts, default), junctions (3.5 m), an edge list CSV (NIOSH layout, 2.9 m) or "
+                        "a path of the paper world (build_world('paper', 1), 4.5 m drifts): paper-ring (114 m), "
+                        "paper-straight (505 m), paper-ramp (251 m, 25 m down)")
     s.add_argument("--drift-width-m", type=float_in_range(2.0, 10.0), default=None, metavar="M",
                    help="drift width of the stream network (default: the network's own)")
     s.add_argument("--station-spacing-m", type=float_in_range(6.0, 100_000.0), default=None, metavar="M",
@@ -217,8 +219,11 @@ def _stream_params(args):
     from minegeo.synth.stream import StreamParams
 
     net = args.stream_network or "loop"
-    if net not in ("loop", "junctions") and not Path(net).is_file():
-        raise InputError(f"--stream-network: {net} is neither loop, junctions nor an edge list file")
+    from minegeo.synth.stream_paper import PAPER_NETWORKS
+
+    if net not in ("loop", "junctions", *PAPER_NETWORKS) and not Path(net).is_file():
+        raise InputError(f"--stream-network: {net} is neither loop, junctions, {', '.join(PAPER_NETWORKS)} nor an "
+                         "edge list file")
     station = {}
     if spacing is not None:
         from minegeo.georef import validate_crs

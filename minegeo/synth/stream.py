@@ -17,7 +17,9 @@ attitude: pitch and roll of a multirotor from its acceleration, ``atan(a_fwd / g
 ``-atan(a_left / g)``, plus seeded tilt noise; hover turns at dead ends). Networks
 (:func:`stream_network`): ``loop`` (3.2 m wide, 3.0 m high), ``junctions`` (the issue-18 network at
 3.5 m) or an edge list CSV (the NIOSH layout, :func:`~minegeo.synth.network.niosh_network`, 2.9 m x
-2.6 m unless a width is given); rough rock of 5 cm RMS.
+2.6 m unless a width is given); rough rock of 5 cm RMS. ``paper-ring``, ``paper-straight`` and
+``paper-ramp`` drive a fixed path of the paper world (``build_world("paper", 1)``; its rock and
+structures; :mod:`minegeo.synth.stream_paper`).
 
 Survey stations (``StreamParams.station_spacing_m``; ``minegeo synth --station-spacing-m``): every
 ``station_spacing_m`` of path the carrier decelerates to rest within its preset's limits, stands
@@ -48,6 +50,7 @@ import numpy as np
 from minegeo.errors import InputError, InternalError
 from minegeo.synth.imu import GRAVITY_MPS2, ImuParams, imu_csv_text, imu_truth_csv_text, simulate_imu
 from minegeo.synth.motion import MotionCurve, curve_from_samples, gaussian_smooth
+from minegeo.synth.stream_presets import KNOT_DT_S, LEAD_S, PRESETS, STILL_S, StreamPreset, _speed_profile
 
 __all__ = ["StreamPreset", "PRESETS", "StreamParams", "Stream", "stream_network", "stream_motion",
            "simulate_stream", "iter_sweeps", "write_stream", "STILL_S", "LEAD_S", "stream_motion_stops",
@@ -55,72 +58,11 @@ __all__ = ["StreamPreset", "PRESETS", "StreamParams", "Stream", "stream_network"
 
 log = logging.getLogger(__name__)
 
-#: the carrier stands still for this long at the start (s)
-STILL_S = 1.0
-#: the first sweep starts this long after the IMU's first sample; the IMU runs this long past the last sweep (s)
-LEAD_S = 0.5
-#: spacing of the curve's control points (s)
-KNOT_DT_S = 0.01
 #: a station stop closer than this to a dead end (where the carrier turns) is skipped (m)
 _STOP_END_GAP_M = 3.0
 #: a-priori standard deviations (m) of the surveyed stations: E and N each, and H
 STATION_SIGMA_H_M = 0.005
 STATION_SIGMA_V_M = 0.008
-
-
-@dataclass(frozen=True)
-class StreamPreset:
-    """How a carrier moves (m, s, deg, Hz).
-
-    Attributes
-    ----------
-    speed_mps, accel_mps2, lat_accel_mps2 : float
-        Cruise speed, along-path and lateral acceleration limits of the path's speed profile.
-    height_m : float or None
-        Sensor height above the floor (None: half the lowest roof).
-    corner_m : float
-        Corner cut at junctions (capped at half the narrowest drift width).
-    path_smooth_s : float
-        Gaussian smoothing (s) of the planned path and heading.
-    bob_m, bob_hz : float
-        Vertical step bounce (amplitude, frequency; a sinusoid while moving).
-    lateral_m : float
-        Lateral sway amplitude at half the bob frequency (walking), or seeded smooth drift.
-    yaw_sway_deg, tilt_deg : float
-        Peak seeded yaw sway and roll / pitch sway.
-    tilt_hz : tuple of float
-        Frequency range (Hz) of the roll / pitch sway.
-    tilt_from_accel : bool
-        Multirotor attitude: pitch and roll from the horizontal acceleration.
-    vertical_m : float
-        Peak seeded smooth height oscillation.
-    yaw_rate_dps : float
-        Turn rate of the 180-degree turn at dead ends.
-    """
-
-    speed_mps: float
-    accel_mps2: float
-    lat_accel_mps2: float
-    height_m: float | None
-    corner_m: float
-    path_smooth_s: float
-    bob_m: float
-    bob_hz: float
-    lateral_m: float
-    yaw_sway_deg: float
-    tilt_deg: float
-    tilt_hz: tuple
-    tilt_from_accel: bool
-    vertical_m: float
-    yaw_rate_dps: float
-
-
-PRESETS: dict[str, StreamPreset] = {
-    "vehicle": StreamPreset(3.0, 0.8, 1.0, 1.8, 1.6, 0.3, 0.01, 2.5, 0.0, 0.5, 0.5, (0.5, 2.0), False, 0.0, 30.0),
-    "handheld": StreamPreset(1.2, 0.6, 0.8, 1.4, 1.5, 0.2, 0.03, 1.8, 0.03, 5.0, 4.0, (0.4, 1.2), False, 0.0,
-                             60.0),
-    "drone": StreamPreset(4.0, 2.0, 2.0, None, 1.5, 0.2, 0.0, 0.0, 0.1, 5.0, 2.0, (0.2, 0.8), True, 0.15, 60.0),
-}
 
 
 @dataclass(frozen=True)
@@ -141,7 +83,9 @@ class StreamParams:
         Range noise sigma (m).
     imu : ImuParams
     network : str
-        ``loop``, ``junctions`` or the path of an edge list CSV (NIOSH layout).
+        ``loop``, ``junctions``, the path of an edge list CSV (NIOSH layout) or a paper-world path
+        ``paper-ring``, ``paper-straight``, ``paper-ramp`` (:mod:`minegeo.synth.stream_paper`; no
+        stations, no ``width_m``, ``roughness_m`` unused).
     width_m : float or None
         Drift width (None: the network's own).
     roughness_m : float
@@ -197,10 +141,25 @@ class StreamParams:
         if off.shape != (3,) or not np.all(np.isfinite(off)):
             raise InputError(f"station_offset_m must be three finite numbers, got {self.station_offset_m!r}")
         object.__setattr__(self, "station_offset_m", tuple(float(v) for v in off))
+        if str(self.network).startswith("paper-"):             # minegeo.synth.stream_paper
+            from minegeo.synth.stream_paper import PAPER_NETWORKS
+
+            if self.network not in PAPER_NETWORKS:
+                raise InputError(f"unknown paper-world stream network {self.network!r}; one of "
+                                 f"{', '.join(PAPER_NETWORKS)}")
+            if self.station_spacing_m is not None or self.width_m is not None:
+                raise InputError(f"{self.network}: survey stations and another drift width are not simulated in "
+                                 "the paper world (drop --station-spacing-m / --drift-width-m)")
 
 
 def stream_network(name: str, width_m: float | None = None, roughness_m: float = 0.05, seed: int = 0):
-    """The drift network of a stream: ``loop``, ``junctions`` or an edge list CSV (NIOSH layout)."""
+    """The drift network of a stream: ``loop``, ``junctions`` or an edge list CSV (NIOSH layout); a
+    ``paper-...`` name gives the paper world and its path (:func:`~minegeo.synth.stream_paper.paper_network`;
+    ``width_m`` and ``roughness_m`` unused)."""
+    from minegeo.synth.stream_paper import is_paper_network, paper_network
+
+    if is_paper_network(name):
+        return paper_network(name)
     from minegeo.synth.network import intersections_network, niosh_network, with_roughness
     from minegeo.synth.sequence_sway import sway_network
 
@@ -211,24 +170,6 @@ def stream_network(name: str, width_m: float | None = None, roughness_m: float =
     else:
         net = niosh_network(name, width_m=width_m or 2.9)
     return with_roughness(net, roughness_m, seed) if roughness_m > 0 else net
-
-
-def _speed_profile(C: np.ndarray, pre: StreamPreset) -> np.ndarray:
-    """Times (s) at the vertices of a dense 2-D path: 0 at both ends, the speed limited by the cruise
-    speed, the lateral acceleration (``v <= sqrt(a_lat / kappa)``) and the turn rate
-    (``v <= yaw_rate / kappa``), reached within ``accel_mps2`` (forward and backward passes).
-    ``kappa`` is the heading change per metre, its peak spread over +-0.5 m so a sharp corner is
-    entered slowly."""
-    from scipy.ndimage import maximum_filter1d
-
-    from minegeo.synth.flight import _path_curvature, _vertex_times
-
-    ds, kappa = _path_curvature(C)
-    step = max(float(np.median(ds)) if len(ds) else 0.05, 1e-3)
-    kappa = maximum_filter1d(kappa, size=2 * int(np.ceil(0.5 / step)) + 1)
-    k = np.maximum(kappa, 1e-9)
-    v = np.minimum(pre.speed_mps, np.minimum(np.sqrt(pre.lat_accel_mps2 / k), np.radians(pre.yaw_rate_dps) / k))
-    return _vertex_times(v, ds, pre.accel_mps2, 1e-3)
 
 
 def _route_samples(net, pre: StreamPreset, length_m: float, seed: int, t: np.ndarray, stops=None):
@@ -405,7 +346,9 @@ class Stream:
     Attributes
     ----------
     params : StreamParams
-    net : DriftNetwork
+    net : DriftNetwork or PaperNet
+        The drift network, or the paper world and the carrier's path
+        (:class:`~minegeo.synth.stream_paper.PaperNet`).
     curve : MotionCurve
         The truth: ``T_world_sensor(t)``.
     frame_times : (n,) s
@@ -437,10 +380,12 @@ def simulate_stream(params: StreamParams, net=None) -> Stream:
     Parameters
     ----------
     params : StreamParams
-    net : DriftNetwork, optional
-        Default :func:`stream_network` of ``params.network``.
+    net : DriftNetwork or PaperNet, optional
+        Default :func:`stream_network` of ``params.network`` (a ``paper-...`` network: the paper world
+        and its path, :mod:`minegeo.synth.stream_paper`).
     """
     from minegeo.synth.sensors import Velodyne16
+    from minegeo.synth.stream_paper import is_paper_network, paper_motion
 
     # a fifth child for the stations leaves the first four (and so a stream without stations) unchanged
     ss_motion, ss_lidar, ss_noise, ss_bias, ss_station = np.random.SeedSequence(int(params.seed)).spawn(5)
@@ -453,7 +398,10 @@ def simulate_stream(params: StreamParams, net=None) -> Stream:
     frame_times = LEAD_S + np.arange(n) * period
     t_imu_end = frame_times[-1] + period + LEAD_S
     stops = None if params.station_spacing_m is None else (params.station_spacing_m, params.station_still_s)
-    curve, spans = stream_motion_stops(net, params.preset, t_imu_end, np.random.default_rng(ss_motion), stops)
+    if is_paper_network(getattr(net, "name", None)):               # the paper world: no stations
+        curve, spans = paper_motion(net, params.preset, t_imu_end, np.random.default_rng(ss_motion)), np.zeros((0, 2))
+    else:
+        curve, spans = stream_motion_stops(net, params.preset, t_imu_end, np.random.default_rng(ss_motion), stops)
     spans = spans[(spans[:, 0] >= frame_times[0]) & (spans[:, 1] <= frame_times[-1] + period)]
     if stops is not None and len(spans) == 0:
         raise InputError(f"no station stop falls inside the {params.duration_s:g} s run (one every "
@@ -558,7 +506,7 @@ def write_stream(folder, params: StreamParams, net=None, progress=None) -> dict:
     out = Path(folder)
     (out / "frames").mkdir(parents=True, exist_ok=True)
     st = simulate_stream(params, net)
-    world = NetworkWorld(st.net)
+    world = st.net.world if hasattr(st.net, "world") else NetworkWorld(st.net)   # the paper world: a MineWorld
     n_pts = []
     for i, (_tf, P, tt, ring) in enumerate(iter_sweeps(world, st.sensor, st.curve, st.frame_times, st.lidar_seed)):
         cloud = PointCloud(points=np.ascontiguousarray(P), attributes={"time": np.ascontiguousarray(tt),
