@@ -566,6 +566,14 @@ RENDERERS = {
     "stream_ate_drone60": md_copy("stream_ate_2026-11-30_drone60", [0],
                                   extra="`python benchmarks/bench_stream_ate.py --duration-s 60 --sequences "
                                         "\"drone, NIOSH 2.9 m\" --kiss-from benchmarks/results/stream_ate_2026-11-29_drone60.json`"),
+    **{f"stream_ate_drone60_seed{k}": md_copy(f"stream_ate_2026-11-30_drone60_seed{k}", [0],
+                                              extra=f"`python benchmarks/bench_stream_ate.py --duration-s 60 --seed {k} "
+                                                    "--sequences \"drone, NIOSH 2.9 m\"`")
+       for k in (2, 3)},
+    **{f"stream_ate_paper_{n}": md_copy(f"stream_ate_2026-11-30_paper_{n}", [0],
+                                        extra=f"`python benchmarks/bench_stream_ate.py --duration-s {d} --sequences "
+                                              f"\"vehicle, paper {n}\"`")
+       for n, d in (("ring", "41.8"), ("straight", "172"), ("ramp", "88.7"))},
     "stream_ate": md_copy("stream_ate_2026-11-30", [0],
                           extra="`python benchmarks/bench_stream_ate.py --duration-s 20 --odometry frame --kiss-from "
                                 "benchmarks/results/stream_ate_2026-11-29.json`"),
