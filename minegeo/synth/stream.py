@@ -50,7 +50,15 @@ import numpy as np
 from minegeo.errors import InputError, InternalError
 from minegeo.synth.imu import GRAVITY_MPS2, ImuParams, imu_csv_text, imu_truth_csv_text, simulate_imu
 from minegeo.synth.motion import MotionCurve, curve_from_samples, gaussian_smooth
-from minegeo.synth.stream_presets import KNOT_DT_S, LEAD_S, PRESETS, STILL_S, StreamPreset, _speed_profile
+from minegeo.synth.stream_presets import (
+    KNOT_DT_S,
+    LEAD_S,
+    PRESETS,
+    STILL_S,
+    StreamPreset,
+    _speed_profile,
+    carrier_sway,
+)
 
 __all__ = ["StreamPreset", "PRESETS", "StreamParams", "Stream", "stream_network", "stream_motion",
            "simulate_stream", "iter_sweeps", "write_stream", "STILL_S", "LEAD_S", "stream_motion_stops",
@@ -280,7 +288,6 @@ def stream_motion_stops(net, preset: str | StreamPreset, duration_s: float, rng:
     """
     from minegeo.synth.flight import flight_clearance
     from minegeo.synth.network import _roof
-    from minegeo.synth.trajectory import _smooth_noise
 
     pre = PRESETS[preset] if isinstance(preset, str) else preset
     dt = KNOT_DT_S
@@ -292,26 +299,10 @@ def stream_motion_stops(net, preset: str | StreamPreset, duration_s: float, rng:
     xy, yaw, speed, planned = _route_samples(net, pre, 1.3 * duration_s * pre.speed_mps + 50.0, route_seed, t, plan)
     moving = np.clip(speed / max(pre.speed_mps, 1e-9), 0.0, 1.0)      # gait and sway scale with speed
     env = _still_envelope(t, planned)                                  # 0 while stopped, 1 away from stops
-    ph = rng.uniform(0, 2 * np.pi, 3)
-    bob = env * pre.bob_m * moving * np.sin(2 * np.pi * pre.bob_hz * t + ph[0])
-    lat_amp = min(pre.lateral_m, 0.05 * float(net.widths.min()))
-    if pre.bob_hz > 0:
-        lat = lat_amp * moving * np.sin(np.pi * pre.bob_hz * t + ph[1])
-    else:
-        lat = _smooth_noise(rng, t, lat_amp, 0.02, 0.1)
-    lat = env * lat
-    yaw = yaw + np.radians(env * _smooth_noise(rng, t, pre.yaw_sway_deg, 0.05, 0.3))
-    xy = xy + lat[:, None] * np.column_stack([-np.sin(yaw), np.cos(yaw)])
-    pitch = np.radians(env * _smooth_noise(rng, t, pre.tilt_deg, *pre.tilt_hz))
-    roll = np.radians(env * _smooth_noise(rng, t, pre.tilt_deg, *pre.tilt_hz))
-    if pre.tilt_from_accel:
-        acc = gaussian_smooth(np.gradient(np.gradient(xy, dt, axis=0), dt, axis=0), 0.25 / dt)
-        a_f = acc[:, 0] * np.cos(yaw) + acc[:, 1] * np.sin(yaw)
-        a_l = -acc[:, 0] * np.sin(yaw) + acc[:, 1] * np.cos(yaw)
-        pitch = pitch + np.arctan(a_f / GRAVITY_MPS2)
-        roll = roll - np.arctan(a_l / GRAVITY_MPS2)
+    xy, yaw, pitch, roll, bob, vertical = carrier_sway(pre, t, xy, yaw, moving, 0.05 * float(net.widths.min()),
+                                                       rng, env)
     h0 = 0.5 * float(net.node_heights.min()) if pre.height_m is None else float(pre.height_m)
-    z = h0 + bob + env * _smooth_noise(rng, t, pre.vertical_m, 0.02, 0.1)
+    z = h0 + bob + vertical
     z = np.minimum(z, _roof(net, xy) - 0.5)
     z = gaussian_smooth(z, 0.05 / dt)
     curve = curve_from_samples(t[0], dt, np.column_stack([xy, z]), np.column_stack([yaw, pitch, roll]))

@@ -34,9 +34,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from minegeo.errors import InputError
-from minegeo.synth.imu import GRAVITY_MPS2
 from minegeo.synth.motion import MotionCurve, curve_from_samples, gaussian_smooth
-from minegeo.synth.stream_presets import KNOT_DT_S, PRESETS, STILL_S, StreamPreset, _speed_profile
+from minegeo.synth.stream_presets import (
+    KNOT_DT_S,
+    PRESETS,
+    STILL_S,
+    StreamPreset,
+    _speed_profile,
+    carrier_sway,
+)
 
 __all__ = ["PAPER_NETWORKS", "PAPER_WORLD_SEED", "PaperNet", "paper_network", "paper_motion", "is_paper_network",
            "path_duration_s"]
@@ -152,7 +158,6 @@ def paper_motion(net: PaperNet, preset: str | StreamPreset, duration_s: float,
         ``duration_s`` past the carrier's arrival at the path's end, or a motion within 0.2 m of the
         rock.
     """
-    from minegeo.synth.trajectory import _smooth_noise
 
     pre = PRESETS[preset] if isinstance(preset, str) else preset
     name = preset if isinstance(preset, str) else "given"
@@ -172,26 +177,11 @@ def paper_motion(net: PaperNet, preset: str | StreamPreset, duration_s: float,
     xy, floor, yaw, grade_pitch = base[:, :2], base[:, 2], base[:, 3], base[:, 4]
     speed = np.linalg.norm(np.gradient(xy, dt, axis=0), axis=1)
     moving = np.clip(speed / max(pre.speed_mps, 1e-9), 0.0, 1.0)      # gait and sway scale with speed
-    ph = rng.uniform(0, 2 * np.pi, 3)
-    bob = pre.bob_m * moving * np.sin(2 * np.pi * pre.bob_hz * t + ph[0])
-    lat_amp = min(pre.lateral_m, 0.05 * float(net.widths.min()))
-    if pre.bob_hz > 0:
-        lat = lat_amp * moving * np.sin(np.pi * pre.bob_hz * t + ph[1])
-    else:
-        lat = _smooth_noise(rng, t, lat_amp, 0.02, 0.1)
-    yaw = yaw + np.radians(_smooth_noise(rng, t, pre.yaw_sway_deg, 0.05, 0.3))
-    xy = xy + lat[:, None] * np.column_stack([-np.sin(yaw), np.cos(yaw)])
-    pitch = grade_pitch + np.radians(_smooth_noise(rng, t, pre.tilt_deg, *pre.tilt_hz))
-    roll = np.radians(_smooth_noise(rng, t, pre.tilt_deg, *pre.tilt_hz))
-    if pre.tilt_from_accel:
-        acc = gaussian_smooth(np.gradient(np.gradient(xy, dt, axis=0), dt, axis=0), 0.25 / dt)
-        a_f = acc[:, 0] * np.cos(yaw) + acc[:, 1] * np.sin(yaw)
-        a_l = -acc[:, 0] * np.sin(yaw) + acc[:, 1] * np.cos(yaw)
-        pitch = pitch + np.arctan(a_f / GRAVITY_MPS2)
-        roll = roll - np.arctan(a_l / GRAVITY_MPS2)
+    xy, yaw, pitch, roll, bob, vertical = carrier_sway(pre, t, xy, yaw, moving, 0.05 * float(net.widths.min()),
+                                                       rng, pitch0=grade_pitch)
     p = net.world.params
     h0 = 0.5 * (p.wall_height_m + 0.5 * p.width_m) if pre.height_m is None else float(pre.height_m)
-    z = floor + h0 + bob + _smooth_noise(rng, t, pre.vertical_m, 0.02, 0.1)
+    z = floor + h0 + bob + vertical
     z = gaussian_smooth(z, 0.05 / dt)
     curve = curve_from_samples(t[0], dt, np.column_stack([xy, z]), np.column_stack([yaw, pitch, roll]))
     tc = np.arange(curve.t_start, curve.t_end, 0.05)

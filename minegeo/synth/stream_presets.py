@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["StreamPreset", "PRESETS", "STILL_S", "LEAD_S", "KNOT_DT_S"]
+__all__ = ["StreamPreset", "PRESETS", "STILL_S", "LEAD_S", "KNOT_DT_S", "carrier_sway"]
 
 #: the carrier stands still for this long at the start (s)
 STILL_S = 1.0
@@ -90,3 +90,43 @@ def _speed_profile(C: np.ndarray, pre: StreamPreset) -> np.ndarray:
     v = np.minimum(pre.speed_mps, np.minimum(np.sqrt(pre.lat_accel_mps2 / k), np.radians(pre.yaw_rate_dps) / k))
     return _vertex_times(v, ds, pre.accel_mps2, 1e-3)
 
+
+
+def carrier_sway(pre: StreamPreset, t: np.ndarray, xy: np.ndarray, yaw: np.ndarray, moving: np.ndarray,
+                 lateral_cap_m: float, rng: np.random.Generator, env=1.0, pitch0=None):
+    """The preset's own motion about its path: ``(xy, yaw, pitch, roll, bob, vertical)``.
+
+    ``xy`` moved sideways by the lateral sway (amplitude ``min(lateral_m, lateral_cap_m)``), ``yaw``
+    plus the yaw sway; ``pitch`` the tilt draw plus ``pitch0`` when given (the path's own pitch, e.g. a
+    ramp's grade), ``roll`` the tilt draw; with ``tilt_from_accel`` (a multirotor) both tilted by
+    the path's horizontal acceleration, ``atan(a / g)``; ``bob`` the gait's vertical bounce and
+    ``vertical`` the height noise (m). Gait and sway scale with ``moving`` (speed / cruise speed, 0-1);
+    every draw is multiplied by ``env`` (1 away from a station stop, 0 on it). Draws from ``rng`` in
+    a fixed order: phases, lateral sway, yaw sway, pitch, roll, height.
+    """
+    from minegeo.synth.imu import GRAVITY_MPS2
+    from minegeo.synth.motion import gaussian_smooth
+    from minegeo.synth.trajectory import _smooth_noise
+
+    dt = KNOT_DT_S  # t is the curve's knot grid
+    ph = rng.uniform(0, 2 * np.pi, 3)
+    bob = env * pre.bob_m * moving * np.sin(2 * np.pi * pre.bob_hz * t + ph[0])
+    lat_amp = min(pre.lateral_m, lateral_cap_m)
+    if pre.bob_hz > 0:
+        lat = lat_amp * moving * np.sin(np.pi * pre.bob_hz * t + ph[1])
+    else:
+        lat = _smooth_noise(rng, t, lat_amp, 0.02, 0.1)
+    lat = env * lat
+    yaw = yaw + np.radians(env * _smooth_noise(rng, t, pre.yaw_sway_deg, 0.05, 0.3))
+    xy = xy + lat[:, None] * np.column_stack([-np.sin(yaw), np.cos(yaw)])
+    pitch = np.radians(env * _smooth_noise(rng, t, pre.tilt_deg, *pre.tilt_hz))
+    pitch = pitch if pitch0 is None else pitch0 + pitch
+    roll = np.radians(env * _smooth_noise(rng, t, pre.tilt_deg, *pre.tilt_hz))
+    if pre.tilt_from_accel:
+        acc = gaussian_smooth(np.gradient(np.gradient(xy, dt, axis=0), dt, axis=0), 0.25 / dt)
+        a_f = acc[:, 0] * np.cos(yaw) + acc[:, 1] * np.sin(yaw)
+        a_l = -acc[:, 0] * np.sin(yaw) + acc[:, 1] * np.cos(yaw)
+        pitch = pitch + np.arctan(a_f / GRAVITY_MPS2)
+        roll = roll - np.arctan(a_l / GRAVITY_MPS2)
+    vertical = env * _smooth_noise(rng, t, pre.vertical_m, 0.02, 0.1)
+    return xy, yaw, pitch, roll, bob, vertical
