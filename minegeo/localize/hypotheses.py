@@ -64,11 +64,12 @@ class CorrelativeHypotheses:
 def ransac_hypotheses(pm: PreparedMap, sf: ScanFeatures, p: LocalizeParams, run: RunContext) -> Hypotheses:
     """``p.ransac_runs`` RANSAC runs of the scan's features against the map's, and their distinct
     hypotheses (``ambiguity.distance_m`` / ``ambiguity.angle_deg`` apart about the scan centroid).
-    The first run draws from ``run.seed``, the others from seeds drawn by
-    ``np.random.default_rng(run.seed)``. Records ``ransac`` seconds in ``run.timings``."""
+    With ``seed = run.stage_seed("ransac")``, the first run draws from ``seed``, the others from seeds
+    drawn by ``np.random.default_rng(seed)``. Records ``ransac`` seconds in ``run.timings``."""
     with run.timed("ransac", "RANSAC"):
-        rng = np.random.default_rng(run.seed)
-        run_seeds = [run.seed] + [int(s) for s in rng.integers(0, 2**31 - 1, size=p.ransac_runs - 1)]
+        seed = run.stage_seed("ransac")
+        rng = np.random.default_rng(seed)
+        run_seeds = [seed] + [int(s) for s in rng.integers(0, 2**31 - 1, size=p.ransac_runs - 1)]
         f_index = pm.feature_index  # built once per map and process (timed in the first scan's RANSAC)
         ransacs = [register_ransac(sf.feature_points, pm.points, sf.fpfh, pm.features, p.ransac, seed=s,
                                    target_feature_index=f_index, check_target=False) for s in run_seeds]
@@ -101,7 +102,7 @@ def reference_point(trajectory, scan_origin: np.ndarray) -> np.ndarray | None:
 
 def correlative_hypotheses(ctx: VerifyContext, pm: PreparedMap, uniq: list[Candidate], trajectory,
                            run: RunContext) -> CorrelativeHypotheses:
-    """The correlative 4-DOF search of the whole map (levelled scans; its draws from ``run.seed``):
+    """The correlative 4-DOF search of the whole map (levelled scans; its draws from ``run.stage_seed("correlative")``):
     its candidates whose plane fitness before ICP (feature-level scan at the refined 4-DOF placement)
     reaches ``correlative.precheck_ratio`` of the best such score and that are distinct from the list
     so far are appended to ``uniq``. Records ``correlative`` seconds in ``run.timings``."""
@@ -114,7 +115,8 @@ def correlative_hypotheses(ctx: VerifyContext, pm: PreparedMap, uniq: list[Candi
     if trajectory is not None and isinstance(trajectory, Trajectory) and len(trajectory.poses):
         ref_xy = np.median(np.asarray(trajectory.poses)[:, :2, 3] + np.asarray(trajectory.origin)[:2]
                            - sf.scan_origin[:2], axis=0)
-    corr = correlative_candidates(occ, sf.feature_points, sf.feature_normals, p.correlative.search, seed=run.seed, reference_xy=ref_xy,
+    corr = correlative_candidates(occ, sf.feature_points, sf.feature_normals, p.correlative.search, seed=run.stage_seed("correlative"),
+                                  reference_xy=ref_xy,
                                   refine_target=(pm.target_index(), ctx.Qf, ctx.Nf),
                                   screen_target=pm.screen_target(cp.screen_voxel_size_m),
                                   screen_grid=(pm.screen_grid(cp.screen_voxel_size_m)

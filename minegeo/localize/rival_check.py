@@ -65,7 +65,7 @@ def _masks(ctx: VerifyContext, P: np.ndarray, Ts: list) -> list:
 
 def _search(ctx: VerifyContext, pm: PreparedMap, Tb: np.ndarray, trajectory, fine_scale, run: RunContext) -> RivalSearch:
     """:func:`~minegeo.localize.rivals.search_rivals` around ``Tb`` with the pipeline's ICP and
-    verification (its draws from ``run.seed``); its map structures and parts timed into
+    verification (its draws from ``run.stage_seed("rivals")``); its map structures and parts timed into
     ``run.timings`` (``rival_search_*``)."""
     timings = run.timings
     p, sf = ctx.p, ctx.scan
@@ -81,7 +81,7 @@ def _search(ctx: VerifyContext, pm: PreparedMap, Tb: np.ndarray, trajectory, fin
     def _support(Ts, level):
         return _masks(ctx, sf.feature_points if level == "feature" else sf.icp_points, Ts) if Ts else []
 
-    rs = search_rivals(occ, sf.feature_points, sf.feature_normals, Tb, params=rp, seed=run.seed, centre=sf.centre,
+    rs = search_rivals(occ, sf.feature_points, sf.feature_normals, Tb, params=rp, seed=run.stage_seed("rivals"), centre=sf.centre,
                        ambiguity_distance_m=float(p.ambiguity.distance_m),
                        ambiguity_angle_deg=float(p.ambiguity.angle_deg), support=_support,
                        fine=lambda T: refine_and_verify(ctx, sf.icp_points, T),

@@ -30,3 +30,25 @@ def test_each_run_has_its_own_timings_and_warnings():
     a.timings["x"] = 1.0
     a.warnings.append("w")
     assert b.timings == {} and b.warnings == []
+
+
+def test_stage_seed_is_the_pass_seed_plus_the_declared_offset_and_refuses_undeclared_stages():
+    from minegeo.localize.run_context import STAGE_SEEDS
+
+    run = RunContext(seed=41)
+    assert {s: run.stage_seed(s) for s in STAGE_SEEDS} == {s: 41 + k for s, k in STAGE_SEEDS.items()}
+    with pytest.raises(KeyError):
+        run.stage_seed("not a stage")
+
+
+def test_every_stage_of_the_pass_takes_its_seed_through_stage_seed():
+    """No stage module reads ``run.seed`` directly: the derivation lives in one table (STAGE_SEEDS)."""
+    from pathlib import Path
+
+    import minegeo.localize as loc
+
+    here = Path(loc.__file__).parent
+    direct = [f.name for f in sorted(here.glob("*.py")) if f.name != "run_context.py" and "run.seed" in f.read_text()]
+    assert direct == []
+    users = {f.name for f in here.glob("*.py") if "stage_seed(" in f.read_text()}
+    assert {"hypotheses.py", "rival_check.py"} <= users
