@@ -63,9 +63,9 @@ def _load(verb: str):
 #: ``first_use_2026-11-29_after2.json`` to ``..._after2_base.json``), rounded up to 5 s (0: nothing compiled); ``localize-batch`` and ``demo``
 #: compile in two processes at once (half their CPU seconds). Only for the "about N s" of the first-use notice.
 COLD_COMPILE_S: dict[str, float] = {
-    "synth": 25, "info": 0, "adjust": 0, "mast": 10, "georef": 5, "prepare-map": 55, "localize": 65,
-    "localize-batch": 95, "posegraph": 30, "demo": 105, "slam": 85, "evaluate": 10,
-    "intersections": 10, "track": 80, "warmup": 215,
+    "synth": 25, "info": 0, "adjust": 0, "mast": 10, "georef": 5, "prepare-map": 55, "localize": 70,
+    "localize-batch": 100, "posegraph": 30, "demo": 110, "slam": 85, "evaluate": 10,
+    "intersections": 10, "track": 80, "warmup": 220,
 }
 
 

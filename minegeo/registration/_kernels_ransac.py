@@ -457,7 +457,7 @@ def feature_tree_pack(B, P, perm, lstart):
     return lead, Bp, loT, hiT
 
 
-@njit
+@njit_parallel
 def feature_tree_nn(A, Q, perm, lstart, lead, Bp, loT, hiT, delta):
     """Exact nearest row of ``B`` (stored in the tree) for every row of ``A`` (rows independent).
 
