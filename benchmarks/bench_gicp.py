@@ -231,7 +231,7 @@ def markdown(results: dict, meta: dict) -> str:
         lines += [f"**{case}**: source {s['n_source']} pts, target {s['n_target']} pts, gate {s['gate_m']} m, "
                   f"{s['starts']} starts; minegeo ran its kernels in prange from "
                   f"{'/'.join(str(r) for r in s['minegeo_prange_from_rows_start_end'])} rows (start/end of the case; "
-                  "2048 when the load average <= CPU count)", "",
+                  "from the thread count: 2048 with two or more Numba threads)", "",
                   "| variant | median time per registration (ms) | min (ms) | / Open3D | / small_gicp | "
                   "max rot. error to truth (°) | max transl. error to truth (m) | iterations per start |",
                   "|---|---:|---:|---:|---:|---:|---:|---|"]

@@ -14,8 +14,11 @@ import os
 # whose cores are shared, the spinning thread takes the core the other thread of the next region
 # needs. SLAM front end per 10 Hz sweep at 2 threads on the shared 2-core machine (load 12-18), median
 # CPU 73-94 ms spinning (benchmarks/results/realtime_2026-11-29_serial_t2.md), 21-22 ms passive
-# (realtime_2026-11-29.md); wall 286-587 ms -> 90-125 ms. Read by libgomp when it loads (the first
-# parallel kernel, or numba.set_num_threads); a user's own OMP_WAIT_POLICY wins. Scheduling only: same bits.
+# (realtime_2026-11-29.md); wall 286-587 ms -> 90-125 ms. The price, on an idle machine: a single GICP
+# registration 22-24 ms instead of 15-17 ms (a wake-up per parallel region), SLAM's wall time per sweep
+# unchanged (benchmarks/results/omp_wait_2026-11-30/README.md, with spin counts in between). Read by
+# libgomp when it loads (the first parallel kernel, or numba.set_num_threads); a user's own
+# OMP_WAIT_POLICY or GOMP_SPINCOUNT wins (GOMP_SPINCOUNT=300000: libgomp's spinning). Same bits either way.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numba  # noqa: E402
