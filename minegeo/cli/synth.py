@@ -119,16 +119,41 @@ def run(args) -> int:
         return _write(args, tx.folder("OUTDIR"), out)
 
 
+def _record_run(stage: Path, seed: int, kind: str, record: str) -> None:
+    """The run's record ``result.json`` (kind, the data record it wrote, provenance with the options,
+    so that ``minegeo synth OUTDIR --config result.json`` repeats the run); for a stream, whose
+    ``result.json`` is its data record, the provenance is added to it. The data files stay byte-identical
+    for the same options and seed; only this record carries the run's time."""
+    import json
+
+    from minegeo._provenance import provenance, write_json_atomic
+
+    rec_path = stage / "result.json"
+    rec = json.loads(rec_path.read_text()) if record == "result.json" else {
+        "verb": "synth", "status": "ok", "kind": kind, "seed": int(seed), "record": record}
+    rec["provenance"] = provenance(seed=int(seed))
+    write_json_atomic(rec_path, rec)
+
+
 def _write(args, stage, out) -> int:
+    if args.mast_only:
+        rc = _write_mast(stage, args.seed, out)
+        _record_run(stage, args.seed, "MAST scenario", "truth.json")
+    elif getattr(args, "stream", None):
+        rc = _write_stream(args, stage, out)
+        _record_run(stage, args.seed, "sensor stream", "result.json")
+    else:
+        rc = _write_mine(args, stage, out)
+        _record_run(stage, args.seed, "mine", "truth.json")
+    return rc
+
+
+def _write_mine(args, stage, out) -> int:
     from tqdm import tqdm
 
     from minegeo._output import progress_enabled
     from minegeo.synth.dataset import SCAN_PLANS, write_world
 
-    if args.mast_only:
-        return _write_mast(stage, args.seed, out)
-    if getattr(args, "stream", None):
-        return _write_stream(args, stage, out)
     steps = 4 + len(SCAN_PLANS[args.preset])
     with tqdm(total=steps, desc=f"synth {args.preset}", unit="step", file=sys.stderr,
               disable=not progress_enabled(args)) as bar:

@@ -381,3 +381,29 @@ def test_track_repeated_from_its_result_json(drifts, tmp_path, capsys):
     assert json.loads((a / "result.json").read_text())["result"]["factors"] >= 1
     assert main(["-q", "track", "--config", str(a / "result.json"), "--out", str(b)]) == 0
     _same_folder(a, b)
+
+
+def test_synth_stream_repeated_from_its_result_json(tmp_path, capsys):
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(["-q", "synth", str(a), "--stream", "handheld", "--duration-s", "0.6", "--seed", "4",
+                 "--imu-hz", "150", "--lidar-hz", "12"]) == 0
+    args = json.loads((a / "result.json").read_text())["provenance"]["arguments"]
+    assert (args["seed"], args["imu-hz"], args["lidar-hz"]) == (4, 150.0, 12.0)
+    assert main(["-q", "synth", str(b), "--config", str(a / "result.json")]) == 0
+    _same_folder(a, b)
+
+
+def test_synth_mast_only_repeated_from_its_result_json(tmp_path, capsys):
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(["-q", "synth", str(a), "--mast-only", "--seed", "7"]) == 0
+    assert main(["-q", "synth", str(b), "--config", str(a / "result.json")]) == 0
+    _same_folder(a, b)
+
+
+def test_synth_mine_repeated_from_its_result_json(tmp_path, capsys):
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(["-q", "synth", str(a), "--seed", "2", "--gcps", "5"]) == 0
+    assert json.loads((a / "result.json").read_text())["record"] == "truth.json"
+    assert main(["-q", "synth", str(b), "--config", str(a / "result.json")]) == 0
+    assert json.loads((b / "truth.json").read_text())["gcps"]["n"] == 5
+    _same_folder(a, b)

@@ -519,3 +519,23 @@ def test_ctrl_c_before_the_commit_leaves_an_earlier_batch(two, batch_out, tmp_pa
     code, err = _interrupt_at("commit", two, out, tmp_path, "--workers", 1, "--seed", 3)
     assert code == 130 and err == ["minegeo localize-batch: interrupted"], err
     assert _assert_rule(out, before) == ["scan_01"]
+
+
+def test_batch_repeated_from_its_batch_result_json(world, batch_out, tmp_path):
+    """``--config batch_result.json`` runs the same batch again: every scan's record the same JSON text
+    but for timings, the summary the same but for its time column."""
+    rec = batch_out / "batch_result.json"
+    assert _json(rec)["provenance"]["arguments"]["seed"] == 3
+    again = tmp_path / "again"
+    assert main(["-q", "localize-batch", "--config", str(rec), "--out", str(again)]) in (0, 1)
+    names = sorted(p.name for p in batch_out.iterdir() if (p / "result.json").is_file())
+    assert len(names) == 5 and names == sorted(p.name for p in again.iterdir() if (p / "result.json").is_file())
+    for n in names:
+        a, b = _json(batch_out / n / "result.json"), _json(again / n / "result.json")
+        assert json.dumps(comparable_record(a)) == json.dumps(comparable_record(b)), n
+
+    def rows(d):
+        r = list(csv.reader((d / "summary.csv").read_text(encoding="utf-8").splitlines()))
+        t = r[0].index("time_s")
+        return [x[:t] + x[t + 1:] for x in r]
+    assert rows(batch_out) == rows(again)

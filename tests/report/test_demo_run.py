@@ -83,3 +83,26 @@ def test_demo_report_and_the_slam_report_in_the_browser(demo, browser):  # noqa:
     links = [h for h in info["links"] if not h.startswith("#")]
     assert "slam/report.html" in links and len(links) == sum(1 for r in rec["steps"] if r["report"])
     check_report(browser, out / "slam" / "report.html", "OK")
+
+
+def test_demo_repeated_from_its_result_json(demo, tmp_path):
+    """``minegeo demo --config OUT/result.json`` runs the demo again: every data file (frames, map,
+    trajectories, graph, loops, control points, MAST scenario, localized trajectories) byte-identical,
+    and the same localized poses; the JSON records and HTML reports differ in times and folder names."""
+    out, rec = demo
+    assert rec["provenance"]["arguments"]["seed"] == 1
+    again = tmp_path / "again"
+    assert main(["-q", "demo", "--config", str(out / "result.json"), "--out", str(again)]) == 0
+
+    def data_files(d):
+        return sorted(str(p.relative_to(d)) for p in d.rglob("*") if p.is_file()
+                      and p.suffix not in (".json", ".html", ".npz") and p.name != "report.txt")
+    names = data_files(out)
+    assert len(names) > 100 and names == data_files(again)
+    assert any(n.startswith("slam/") for n in names) and any(n.startswith("localize/") for n in names)
+    for n in names:
+        assert (out / n).read_bytes() == (again / n).read_bytes(), n
+    for name in rec["parameters"]["localized_scans"]:
+        a, b = (json.loads((d / "localize" / name / "result.json").read_text()) for d in (out, again))
+        assert a["status"] == b["status"] and a["T_crs_scan"] == b["T_crs_scan"], name
+
