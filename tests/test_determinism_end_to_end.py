@@ -85,6 +85,8 @@ def test_synth_twice_byte_identical(mine, tmp_path):
     assert main(["-q", "synth", str(tmp_path / "again"), "--seed", "11"]) == 0
     a, b = tree_bytes(mine), tree_bytes(tmp_path / "again")
     report = b.pop("report.html")  # the CLI adds its report to what ``write_world`` writes
+    record = json.loads(b.pop("result.json"))  # and its run record (its time: never byte-identical)
+    assert record["record"] == "truth.json" and record["provenance"]["arguments"]["seed"] == 11
     assert sorted(a) == sorted(b)
     different = [name for name in a if a[name] != b[name]]
     assert not different
