@@ -83,6 +83,7 @@ from minegeo.kernels.lie import se3_adjoint, se3_exp, se3_log
 from minegeo.registration import build_target_index, register_gicp
 from minegeo.registration.gicp import gicp_covariances_on_tree
 from minegeo.slam.deskew import deskew_points, twist_from_motion
+from minegeo.slam.frame_covariances import covariances_with_history
 from minegeo.slam.observability import keep_prior_along, translation_observability
 from minegeo.slam.odometry_model import (  # the parameters, records and result, re-exported
     EDGE_FLOOR_FIELDS,
@@ -463,11 +464,52 @@ def _deskew_prepare(raw, twist, t: float, params: OdometryParams, aid=None):
     return frame, time.perf_counter() - t0, used
 
 
-def _deskewed(raw, T_from, T_to, dt: float, t: float, params: OdometryParams, aid=None):
+def _deskewed(raw, T_from, T_to, dt: float, t: float, params: OdometryParams, aid=None, covs=None):
     """``(frame, twist, seconds)``: ``raw`` deskewed by the body twist of the motion ``T_from -> T_to``
-    over ``dt`` seconds (:func:`_deskew_prepare`)."""
-    frame, seconds, twist = _deskew_prepare(raw, twist_from_motion(relative(T_from, T_to), dt), t, params, aid)
-    return frame, twist, seconds
+    over ``dt`` seconds (:func:`_deskew_prepare`); with ``covs`` (:class:`_CovarianceHistory`) its
+    covariances among the last frames' points, at ``T_to``."""
+    t0 = time.perf_counter()
+    frame, _, twist = _deskew_prepare(raw, twist_from_motion(relative(T_from, T_to), dt), t, params, aid)
+    return (frame if covs is None else covs.at(frame, T_to)), twist, time.perf_counter() - t0
+
+
+def _first_pass(cur, raw, twist, t: float, params: OdometryParams, aid, covs, T_guess):
+    """``(frame, seconds, twist)``: the frame for its first registration: ``raw`` deskewed by the
+    constant-velocity twist ``twist`` of the last registered motion (:func:`_deskew_prepare`), else the
+    prepared ``cur``; its covariances among the last frames' points at its guessed pose ``T_guess``
+    (:class:`_CovarianceHistory`; None for the first frame)."""
+    t0 = time.perf_counter()
+    if raw is not None:
+        cur, _, twist = _deskew_prepare(raw, twist, t, params, aid)
+    return covs.at(cur, T_guess), time.perf_counter() - t0, twist
+
+
+class _CovarianceHistory:
+    """The points and poses of the last ``covariance_frames - 1`` registered frames, and the GICP
+    covariances of a new frame among them (:func:`minegeo.slam.frame_covariances.covariances_with_history`).
+    """
+
+    def __init__(self, params: OdometryParams):
+        self.params, self.frames = params, []
+
+    def at(self, cur: PreparedFrame, T_cur: np.ndarray | None) -> PreparedFrame:
+        """``cur`` (taken at the pose ``T_cur``, ``T_world_sensor``) with its covariances from the
+        kNN of its points among its own and the history's (moved into its frame); ``cur`` itself
+        without a history, a pose or a search index (too few points)."""
+        if T_cur is None or not self.frames or cur.index is None:
+            return cur
+        parts = []
+        for P, T in self.frames:
+            A = relative(T_cur, T)
+            parts.append(P @ A[:3, :3].T + A[:3, 3])
+        C = covariances_with_history(cur.points, np.concatenate(parts), self.params.gicp(), self.params.voxel_size_m)
+        return replace(cur, covariances=C)
+
+    def push(self, cur: PreparedFrame, pose: np.ndarray) -> None:
+        """Keep the registered frame ``cur`` at ``pose`` (the oldest leaves)."""
+        n = self.params.covariance_frames - 1
+        if n > 0 and cur.index is not None:
+            self.frames = (self.frames + [(cur.points, pose)])[-n:]
 
 
 def _held_step(aid, velocity: np.ndarray, velocity_dt: float, t_prev: float, t: float) -> np.ndarray:
@@ -534,7 +576,7 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
     to_submap = params.frame_target == "submap"
     sub_clouds, sub_poses = [], []  # the keyframes the local map is made of (registered ones only)
     T_sub, sub_kf = np.eye(4), 0  # pose and keyframe number of the local map's frame (its last keyframe)
-    extra = []  # keyframe edges (i, j, T_i⁻¹ T_j, information) measured against an older keyframe's local map
+    extra, covs = [], _CovarianceHistory(params)  # keyframe edges (i, j, T_i⁻¹ T_j, Ω) to an older keyframe's local map
     # the last registered motion, its world velocity (m/s), the first frame's raw points until a motion is known
     velocity, velocity_dt, v_prev_w, first_raw = np.eye(4), 0.0, None, None
 
@@ -546,9 +588,9 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
         t_prep += dt_prep
         _check_time(k, t, times)
         twist = twist_from_motion(velocity, velocity_dt) if raw is not None and velocity_dt > 0 else np.zeros(6)
-        if raw is not None:  # deskewed by the constant-velocity twist of the last registered motion
-            cur, dt1, twist = _deskew_prepare(raw, twist, t, params, imu)
-            t_prep += dt1
+        T_guess = compose(poses[-1], _scaled_motion(velocity, t - times[-1], velocity_dt)) if poses else None
+        cur, dt1, twist = _first_pass(cur, raw, twist, t, params, imu, covs, T_guess)
+        t_prep += dt1
         times.append(float(t))
         if prev is None:
             first_raw = raw
@@ -582,7 +624,7 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
         reg = _checked(reg, pose, *motion_args)  # an implausible first pass does not seed the second
         if raw is not None and params.deskew_iterations and reg.ok and pose is not None:
             # deskew again with this frame's own motion (from the last registered frame to it)
-            cur2, twist2, dt1 = _deskewed(raw, poses[last_ok], pose, t - times[last_ok], t, params, imu)
+            cur2, twist2, dt1 = _deskewed(raw, poses[last_ok], pose, t - times[last_ok], t, params, imu, covs)
             t_prep += dt1
             reg2, pose2, via2 = register(cur2, k, t)
             if reg2.ok and pose2 is not None:
@@ -614,6 +656,7 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
             t_kf += time.perf_counter() - t0
         poses.append(pose)
         if reg.ok:
+            covs.push(cur, pose)
             velocity, velocity_dt = relative(poses[last_ok], poses[-1]), t - times[last_ok]
             v_prev_w = (poses[-1][:3, 3] - poses[last_ok][:3, 3]) / velocity_dt
             if imu is not None:  # the registered rotation measures the gyro bias

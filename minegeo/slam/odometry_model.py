@@ -57,6 +57,12 @@ class OdometryParams:
     translation_observability_ratio: float = bounded(0.03, gt=0.0)
     surface_observability_ratio: float = bounded(0.004, gt=0.0)
     keyframe_submap_size: int = 5
+    #: the GICP covariances of a frame's points from the kNN among its own points and those of the
+    #: ``covariance_frames - 1`` registered frames before it, moved into its frame by the odometry's
+    #: poses and voxelised together (:mod:`minegeo.slam.frame_covariances`: one sweep's neighbourhoods
+    #: follow its laser rings on the floor and the roof, which biased the tilt of a turn on a grade,
+    #: issue 29); 1: its own points only (before 2026-11-30)
+    covariance_frames: int = bounded(9, ge=1, integer=True)
     turn_retry_yaw_deg: tuple = (20.0, -20.0, 40.0, -40.0, 60.0, -60.0)
     unconverged_retry_fitness: float = 0.6
     #: what each frame registers to: ``"frame"`` the previous frame (Ren2019 Sec. 3.3, chained by
