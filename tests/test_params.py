@@ -163,6 +163,8 @@ BOUNDS = {
     **{(OdometryParams, n): (">=", 0.0, None, None, False) for n in EDGE_FLOOR_FIELDS + KEYFRAME_NOISE_FIELDS},
     (OdometryParams, "gicp_max_iterations"): (">=", 0, None, None, True),
     (OdometryParams, "covariance_neighbours"): (">=", 3, None, None, True),
+    (OdometryParams, "covariance_frames"): (">=", 1, None, None, True),
+    (OdometryParams, "local_map_keyframes"): (">=", 1, None, None, True),
     (OdometryParams, "min_fitness"): (">=", 0.0, "<=", 1.0, False),
     (OdometryParams, "min_constraint_ratio"): (">=", 0.0, "<", 1.0, False),
     (OdometryParams, "deskew_iterations"): (">=", 0, "<=", 1, True),

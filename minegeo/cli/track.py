@@ -196,7 +196,7 @@ def _params(args):
     import numpy as np
 
     from minegeo.semantic.recognition import RecognitionParams
-    from minegeo.semantic.tracking import TrackParams
+    from minegeo.semantic.tracking import TRACK_ODOMETRY, TrackParams
     from minegeo.slam.odometry import OdometryParams
 
     T = None
@@ -208,7 +208,7 @@ def _params(args):
                             consecutive_required=args.consecutive, gate_m=args.gate,
                             **({} if args.icp_max_distance is None else {"icp_max_distance_m": args.icp_max_distance}))
     odo = OdometryParams(voxel_size_m=args.voxel, keyframe_distance_m=args.keyframe_distance,
-                         frame_target=getattr(args, "odometry", "submap"))
+                         frame_target=getattr(args, "odometry", "submap"), **TRACK_ODOMETRY)
     return TrackParams(odo, rec, T_world_start=T, unchecked_path_m=getattr(args, "unchecked_path", 200.0),
                        **({} if args.gate_drift is None else {"gate_drift_fraction": args.gate_drift}))
 

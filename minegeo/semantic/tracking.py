@@ -96,7 +96,12 @@ from minegeo.slam.odometry import OdometryParams, run_odometry
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TrackParams", "TrackRecognition", "TrackResult", "TrackStatus", "track", "odometry_edge_information"]
+__all__ = ["TRACK_ODOMETRY", "TrackParams", "TrackRecognition", "TrackResult", "TrackStatus", "track", "odometry_edge_information"]
+
+#: the odometry settings of ``track`` that differ from ``OdometryParams()``'s (and ``minegeo slam``'s):
+#: each frame's own GICP covariances and a 5-keyframe local map, as the flights of docs/intersections.md
+#: were measured (see :class:`TrackParams` ``odometry``)
+TRACK_ODOMETRY = {"covariance_frames": 1, "local_map_keyframes": 5}
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,7 +173,7 @@ class TrackParams:
         away) and makes the status ``inconsistent``.
     """
 
-    odometry: OdometryParams = field(default_factory=lambda: OdometryParams(frame_target="submap"))
+    odometry: OdometryParams = field(default_factory=lambda: OdometryParams(frame_target="submap", **TRACK_ODOMETRY))
     recognition: RecognitionParams = field(default_factory=RecognitionParams)
     T_world_start: object = None
     gate_drift_fraction: float | None = bounded(None, ge=0.0, optional=True)
