@@ -277,7 +277,9 @@ def render_slam_ablation(results: Path) -> str:
     return "\n".join(lines)
 
 
-MULRAN_FILE = "mulran_2026-11-25.json"
+MULRAN_FILE = "mulran_2026-11-30b.json"
+#: the 20 s tables' sequences (the network streams; the paper world's have their own tables)
+NETWORK_SEQUENCES = '"vehicle, loop 3.2 m" "vehicle, junctions 3.5 m" "drone, NIOSH 2.9 m" "handheld, loop 3.2 m"'
 
 
 def render_mulran(results: Path) -> str:
@@ -540,8 +542,8 @@ RENDERERS = {
     "realtime_loaded": md_copy("realtime_2026-11-29", [0, 1],
                                extra="2 threads on both sides, as above, with other jobs on the 2 cores"),
     "realtime_t1": md_copy("realtime_2026-11-29_t1", [0], extra="1 thread on both sides"),
-    "slam_deskew": md_copy("deskew_2026-11-29", [0], extra="`python benchmarks/bench_deskew.py --duration-s 20`"),
-    "slam_imu": md_copy("slam_imu_2026-11-29", [0], extra="`python benchmarks/bench_slam_imu.py --duration-s 20`"),
+    "slam_deskew": md_copy("deskew_2026-11-30b", [0], extra="`python benchmarks/bench_deskew.py --duration-s 20`"),
+    "slam_imu": md_copy("slam_imu_2026-11-30b", [0], extra="`python benchmarks/bench_slam_imu.py --duration-s 20`"),
     "control_driftauto": control_table("control_2026-11-29_driftauto_lr"),
     "control_driftauto_weakbias": control_table("control_2026-11-29_driftauto_lr_weakbias"),
     "control_driftauto_lownoise": control_table("control_2026-11-29_driftauto_lownoise"),
@@ -560,23 +562,23 @@ RENDERERS = {
                              ("niosh_08_noimu", "2026-11-29_niosh_0.8km_noimu", INTERSECTION_SHORT),
                              ("niosh_before", "2026-11-28_niosh", INTERSECTION_FULL),
                              ("corridor", "2026-11-28_corridor", INTERSECTION_FULL))},
-    "stream_ate_local_map": md_copy("stream_ate_2026-11-30_local_map", [0],
-                                    extra="`python benchmarks/bench_stream_ate.py --duration-s 20 --kiss-from "
-                                          "benchmarks/results/stream_ate_2026-11-29.json`"),
-    "stream_ate_drone60": md_copy("stream_ate_2026-11-30_drone60", [0],
+    "stream_ate_local_map": md_copy("stream_ate_2026-11-30b_local_map", [0],
+                                    extra="`python benchmarks/bench_stream_ate.py --duration-s 20 --sequences "
+                                          f"{NETWORK_SEQUENCES} --kiss-from benchmarks/results/stream_ate_2026-11-29.json`"),
+    "stream_ate_drone60": md_copy("stream_ate_2026-11-30b_drone60", [0],
                                   extra="`python benchmarks/bench_stream_ate.py --duration-s 60 --sequences "
                                         "\"drone, NIOSH 2.9 m\" --kiss-from benchmarks/results/stream_ate_2026-11-29_drone60.json`"),
-    **{f"stream_ate_drone60_seed{k}": md_copy(f"stream_ate_2026-11-30_drone60_seed{k}", [0],
+    **{f"stream_ate_drone60_seed{k}": md_copy(f"stream_ate_2026-11-30b_drone60_seed{k}", [0],
                                               extra=f"`python benchmarks/bench_stream_ate.py --duration-s 60 --seed {k} "
                                                     "--sequences \"drone, NIOSH 2.9 m\"`")
        for k in (2, 3)},
-    **{f"stream_ate_paper_{n}": md_copy(f"stream_ate_2026-11-30_paper_{n}", [0],
+    **{f"stream_ate_paper_{n}": md_copy(f"stream_ate_2026-11-30b_paper_{n}", [0],
                                         extra=f"`python benchmarks/bench_stream_ate.py --duration-s {d} --sequences "
                                               f"\"vehicle, paper {n}\"`")
        for n, d in (("ring", "41.8"), ("straight", "172"), ("ramp", "88.7"))},
-    "stream_ate": md_copy("stream_ate_2026-11-30", [0],
-                          extra="`python benchmarks/bench_stream_ate.py --duration-s 20 --odometry frame --kiss-from "
-                                "benchmarks/results/stream_ate_2026-11-29.json`"),
+    "stream_ate": md_copy("stream_ate_2026-11-30b", [0],
+                          extra=f"`python benchmarks/bench_stream_ate.py --duration-s 20 --sequences {NETWORK_SEQUENCES} "
+                                "--odometry frame --kiss-from benchmarks/results/stream_ate_2026-11-29.json`"),
     "mast_coverage": md_copy("mast/mast_benchmark", [2]),
     "mast_partial": md_copy("mast/mast_benchmark", [3]),
     "mast_beacon_survey": md_copy("mast/mast_benchmark", [4]),
