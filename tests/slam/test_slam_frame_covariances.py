@@ -57,3 +57,29 @@ def test_covariance_frames_is_validated():
     assert OdometryParams().covariance_frames == 9
     with pytest.raises(InputError):
         OdometryParams(covariance_frames=0)
+
+
+@pytest.mark.parametrize("n", [1, 3, 8])
+def test_the_local_map_holds_the_last_local_map_keyframes(n):
+    """Frame to local map: after 10 keyframes the local map is made of the last ``local_map_keyframes``
+    keyframe clouds (``keyframe_submap_size``, the frame-to-frame refinement's sub-map, plays no part),
+    each moved into the last keyframe's frame. Expected: the union, computed here by NumPy, of the last
+    ``n`` clouds at their poses relative to the last one, voxelised as the odometry does."""
+    from minegeo.geometry import voxel_downsample
+    from minegeo.slam.odometry import _next_submap, prepare_frame
+
+    rng = np.random.default_rng(5)
+    params = OdometryParams(frame_target="submap", local_map_keyframes=n, keyframe_submap_size=2)
+    clouds, poses, submap, mine = [], [], None, []
+    for k in range(10):
+        P = np.c_[rng.uniform(-6, 6, 600), rng.uniform(-2, 2, 600), rng.uniform(-0.1, 0.1, 600)] + [0, 0, 0.3 * k]
+        T = np.eye(4)
+        T[0, 3] = 1.5 * k
+        cur = prepare_frame(P, float(k), params)
+        mine.append((cur.points.copy(), T[:3, 3].copy()))
+        clouds, poses, submap = _next_submap(clouds, poses, cur, T, False, params)
+        assert len(clouds) == min(k + 1, n) and len(poses) == len(clouds)
+    parts = [C + (t - mine[-1][1]) for C, t in mine[-n:]]
+    expected = voxel_downsample(np.concatenate(parts), params.voxel_size_m).points
+    assert submap.points.shape == expected.shape
+    np.testing.assert_allclose(np.sort(submap.points, axis=0), np.sort(expected, axis=0), atol=1e-9)
