@@ -66,7 +66,7 @@ class OdometryParams:
     #: ``covariance_frames - 1`` registered frames before it, moved into its frame by the odometry's
     #: poses and voxelised together (:mod:`minegeo.slam.frame_covariances`: one sweep's neighbourhoods
     #: follow its laser rings on the floor and the roof, which biased the tilt of a turn on a grade,
-    #: issue 29); 1: its own points only (before 2026-11-30)
+    #: issue 29); 1: its own points only (the intersection tracker's, ``TRACK_ODOMETRY``)
     covariance_frames: int = bounded(9, ge=1, integer=True)
     turn_retry_yaw_deg: tuple = (20.0, -20.0, 40.0, -40.0, 60.0, -60.0)
     unconverged_retry_fitness: float = 0.6
