@@ -474,7 +474,7 @@ def _deskewed(raw, T_from, T_to, dt: float, t: float, params: OdometryParams, ai
 
 
 def _first_pass(cur, raw, twist, t: float, params: OdometryParams, aid, covs, T_guess):
-    """``(frame, seconds, twist)``: the frame for its first registration: ``raw`` deskewed by the
+    """``(frame, frame with its own covariances, seconds, twist)``: the frame for its first registration: ``raw`` deskewed by the
     constant-velocity twist ``twist`` of the last registered motion (:func:`_deskew_prepare`), else the
     prepared ``cur``; its covariances among the last frames' points at its guessed pose ``T_guess``
     (:class:`_CovarianceHistory`; None for the first frame). The first pass needs them as much as the
@@ -483,13 +483,37 @@ def _first_pass(cur, raw, twist, t: float, params: OdometryParams, aid, covs, T_
     t0 = time.perf_counter()
     if raw is not None:
         cur, _, twist = _deskew_prepare(raw, twist, t, params, aid)
-    return covs.at(cur, T_guess), time.perf_counter() - t0, twist
+    return covs.at(cur, T_guess), cur, time.perf_counter() - t0, twist
+
+
+def _retaken(own, cur, reg, pose, via, covs, register, kt, motion_args):
+    """``(frame, registration, pose, via_prev)``: of the registration ``reg`` (at ``pose``, of ``cur``
+    whose covariances were taken at a guess far from ``pose``, or rejected) and the registration of the frame on its
+    own covariances ``own`` followed by one on the history's covariances taken at that pose, the one
+    with the higher overlap (fitness). At a sharp turn of frames 1 m apart (bench_slam's ramp, a 44°
+    step guessed as 30°) the covariances at the guess put the history 14° off and the registration
+    settled 7° and 1.7 m wrong at overlap 0.69; on its own covariances it found the turn (0.99)."""
+    reg_o, pose_o, via_o = register(own, *kt)
+    if not (reg_o.ok and pose_o is not None):
+        return cur, reg, pose, via
+    best = (own, _checked(reg_o, pose_o, *motion_args), pose_o, via_o)
+    cur3 = covs.at(own, pose_o)
+    reg3, pose3, via3 = register(cur3, *kt)
+    if reg3.ok and pose3 is not None:
+        r3 = _checked(reg3, pose3, *motion_args)
+        if r3.ok and r3.fitness >= best[1].fitness:
+            best = (cur3, r3, pose3, via3)
+    return best if best[1].ok and (not reg.ok or pose is None or best[1].fitness > reg.fitness) else (cur, reg, pose, via)
 
 
 class _CovarianceHistory:
     """The points and poses of the last ``covariance_frames - 1`` registered frames, and the GICP
     covariances of a new frame among them (:func:`minegeo.slam.frame_covariances.covariances_with_history`).
     """
+
+    #: rotation (deg) and translation (m) between a frame's guess and its registration above which the
+    #: frame is registered again from its own covariances (:func:`_retaken`)
+    RETAKE_DEG, RETAKE_M = 0.5, 0.1
 
     def __init__(self, params: OdometryParams):
         self.params, self.frames = params, []
@@ -506,6 +530,18 @@ class _CovarianceHistory:
             parts.append(P @ A[:3, :3].T + A[:3, 3])
         C = covariances_with_history(cur.points, np.concatenate(parts), self.params.gicp(), self.params.voxel_size_m)
         return replace(cur, covariances=C)
+
+    def moved(self, T_guess: np.ndarray | None, T_reg: np.ndarray) -> bool:
+        """Whether a frame registered at ``T_reg`` lies so far from the guess ``T_guess`` its covariances
+        were taken at that they are in doubt (:func:`_retaken`): more than :attr:`RETAKE_DEG` of rotation
+        or :attr:`RETAKE_M` of translation apart (with a history to take them from). At 10 m range 0.5°
+        is 9 cm, a third of the default voxel: the history's points then no longer lie on the frame's
+        surfaces."""
+        if T_guess is None or not self.frames:
+            return False
+        D = relative(T_guess, T_reg)
+        ang = math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(D[:3, :3])) - 1.0) / 2.0))))
+        return ang > self.RETAKE_DEG or float(np.linalg.norm(D[:3, 3])) > self.RETAKE_M
 
     def push(self, cur: PreparedFrame, pose: np.ndarray) -> None:
         """Keep the registered frame ``cur`` at ``pose`` (the oldest leaves)."""
@@ -591,7 +627,7 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
         _check_time(k, t, times)
         twist = twist_from_motion(velocity, velocity_dt) if raw is not None and velocity_dt > 0 else np.zeros(6)
         T_guess = compose(poses[-1], _scaled_motion(velocity, t - times[-1], velocity_dt)) if poses else None
-        cur, dt1, twist = _first_pass(cur, raw, twist, t, params, imu, covs, T_guess)
+        cur, own, dt1, twist = _first_pass(cur, raw, twist, t, params, imu, covs, T_guess)
         t_prep += dt1
         times.append(float(t))
         if prev is None:
@@ -624,6 +660,11 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
         first_raw = None
         motion_args = (k, t, poses, times, last_ok, v_prev_w, velocity_dt, params, imu)
         reg = _checked(reg, pose, *motion_args)  # an implausible first pass does not seed the second
+        if own is not cur and (not reg.ok or pose is None or covs.moved(T_guess, pose)):
+            # the covariances were taken at a guess far from where the frame registered (or it did not): register the frame
+            # on its own covariances (which no guess enters), take the history's at that pose, register
+            # again, and keep the registration with the higher overlap
+            cur, reg, pose, via_prev = _retaken(own, cur, reg, pose, via_prev, covs, register, (k, t), motion_args)
         if raw is not None and params.deskew_iterations and reg.ok and pose is not None:
             # deskew again with this frame's own motion (from the last registered frame to it)
             cur2, twist2, dt1 = _deskewed(raw, poses[last_ok], pose, t - times[last_ok], t, params, imu, covs)
