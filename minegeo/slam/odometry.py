@@ -473,6 +473,14 @@ def _deskewed(raw, T_from, T_to, dt: float, t: float, params: OdometryParams, ai
     return (frame if covs is None else covs.at(frame, T_to)), twist, time.perf_counter() - t0
 
 
+def _guesses(raw, velocity: np.ndarray, velocity_dt: float, poses: list, times: list, t: float):
+    """``(twist, T_guess)`` of the frame at time ``t``: the body twist of the last registered motion
+    ``velocity`` over ``velocity_dt`` (zero without point times or a motion) to deskew it by, and its
+    pose guessed by that motion scaled to the time since the last frame (None for the first frame)."""
+    twist = twist_from_motion(velocity, velocity_dt) if raw is not None and velocity_dt > 0 else np.zeros(6)
+    return twist, (compose(poses[-1], _scaled_motion(velocity, t - times[-1], velocity_dt)) if poses else None)
+
+
 def _first_pass(cur, raw, twist, t: float, params: OdometryParams, aid, covs, T_guess):
     """``(frame, frame with its own covariances, seconds, twist)``: the frame for its first registration: ``raw`` deskewed by the
     constant-velocity twist ``twist`` of the last registered motion (:func:`_deskew_prepare`), else the
@@ -492,7 +500,10 @@ def _retaken(own, cur, reg, pose, via, covs, register, kt, motion_args):
     own covariances ``own`` followed by one on the history's covariances taken at that pose, the one
     with the higher overlap (fitness). At a sharp turn of frames 1 m apart (bench_slam's ramp, a 44°
     step guessed as 30°) the covariances at the guess put the history 14° off and the registration
-    settled 7° and 1.7 m wrong at overlap 0.69; on its own covariances it found the turn (0.99)."""
+    settled 7° and 1.7 m wrong at overlap 0.69; on its own covariances it found the turn (0.99). An
+    accepted ``reg`` is replaced only by an overlap higher by :attr:`_CovarianceHistory.RETAKE_OVERLAP`:
+    along a road (MulRan's keyframes, speed changing between them) minima metres apart overlap alike,
+    and the higher of two such was 3.3 m wrong at keyframe 33."""
     reg_o, pose_o, via_o = register(own, *kt)
     if not (reg_o.ok and pose_o is not None):
         return cur, reg, pose, via
@@ -503,7 +514,8 @@ def _retaken(own, cur, reg, pose, via, covs, register, kt, motion_args):
         r3 = _checked(reg3, pose3, *motion_args)
         if r3.ok and r3.fitness >= best[1].fitness:
             best = (cur3, r3, pose3, via3)
-    return best if best[1].ok and (not reg.ok or pose is None or best[1].fitness > reg.fitness) else (cur, reg, pose, via)
+    better = not reg.ok or pose is None or best[1].fitness > reg.fitness + covs.RETAKE_OVERLAP
+    return best if best[1].ok and better else (cur, reg, pose, via)
 
 
 class _CovarianceHistory:
@@ -514,6 +526,9 @@ class _CovarianceHistory:
     #: rotation (deg) and translation (m) between a frame's guess and its registration above which the
     #: frame is registered again from its own covariances (:func:`_retaken`)
     RETAKE_DEG, RETAKE_M = 0.5, 0.1
+    #: the overlap (fraction of the frame's points) by which a registration taken again must exceed an
+    #: accepted one to replace it
+    RETAKE_OVERLAP = 0.1
 
     def __init__(self, params: OdometryParams):
         self.params, self.frames = params, []
@@ -623,12 +638,10 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
         m, m_dt = (velocity, velocity_dt) if imu is None else (_guess(imu, velocity, velocity_dt, t_from, t), t - t_from)
         return _register_step(cur, k, t, prev, prev_k, submap, T_sub, poses, times, m, m_dt, params)
     for k, (t, cur, dt_prep, raw) in enumerate(_prepared_frames(frames, params)):
-        t_prep += dt_prep
         _check_time(k, t, times)
-        twist = twist_from_motion(velocity, velocity_dt) if raw is not None and velocity_dt > 0 else np.zeros(6)
-        T_guess = compose(poses[-1], _scaled_motion(velocity, t - times[-1], velocity_dt)) if poses else None
+        twist, T_guess = _guesses(raw, velocity, velocity_dt, poses, times, t)
         cur, own, dt1, twist = _first_pass(cur, raw, twist, t, params, imu, covs, T_guess)
-        t_prep += dt1
+        t_prep += dt_prep + dt1
         times.append(float(t))
         if prev is None:
             first_raw = raw
@@ -660,10 +673,7 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
         first_raw = None
         motion_args = (k, t, poses, times, last_ok, v_prev_w, velocity_dt, params, imu)
         reg = _checked(reg, pose, *motion_args)  # an implausible first pass does not seed the second
-        if own is not cur and (not reg.ok or pose is None or covs.moved(T_guess, pose)):
-            # the covariances were taken at a guess far from where the frame registered (or it did not): register the frame
-            # on its own covariances (which no guess enters), take the history's at that pose, register
-            # again, and keep the registration with the higher overlap
+        if own is not cur and (not reg.ok or pose is None or covs.moved(T_guess, pose)):  # covariances in doubt
             cur, reg, pose, via_prev = _retaken(own, cur, reg, pose, via_prev, covs, register, (k, t), motion_args)
         if raw is not None and params.deskew_iterations and reg.ok and pose is not None:
             # deskew again with this frame's own motion (from the last registered frame to it)
