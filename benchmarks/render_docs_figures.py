@@ -244,7 +244,7 @@ def render_georef_scaling_las(results: Path) -> str:
     return _render_georef(GEOREF_LAS_FILE, results)
 
 
-SLAM_FILE = "slam_2026-11-25.json"
+SLAM_FILE = "slam_2026-11-30b.json"
 
 
 def render_slam_ablation(results: Path) -> str:
@@ -531,14 +531,15 @@ RENDERERS = {
     "uncertainty_study": md_copy("uncertainty_study_2026-11-25", [0],
                                  extra="`python benchmarks/bench_uncertainty_study.py run --seeds 21,22 --n 6`"),
     "kernels_search": md_copy("kernels", [0], extra="`python benchmarks/bench_kernels.py`, median of 3, ms"),
-    "realtime_local_map": md_copy("realtime_2026-11-29_local_map", [0, 1],
+    "realtime_local_map": md_copy("realtime_2026-11-30b_local_map", [0, 1],
                                   extra="2 threads on both sides; per frame the minimum of 2 alternating runs; "
                                         "`NUMBA_NUM_THREADS=2 python benchmarks/bench_realtime.py --threads 2 "
                                         "--duration-s 20 --repeats 2 --odometry submap`"),
-    "realtime_idle": md_copy("realtime_2026-11-29_idle", [0, 1],
+    "realtime_idle": md_copy("realtime_2026-11-30b_idle", [0, 1],
                              extra="2 threads on both sides (minegeo: Numba omp layer, OMP_WAIT_POLICY PASSIVE; "
                                    "KISS-ICP max_num_threads 2); per frame the minimum of 2 alternating runs; "
-                                   "`NUMBA_NUM_THREADS=2 python benchmarks/bench_realtime.py --threads 2 --repeats 2`"),
+                                   "`NUMBA_NUM_THREADS=2 python benchmarks/bench_realtime.py --threads 2 --repeats 2 "
+                                   "--odometry frame`"),
     "realtime_loaded": md_copy("realtime_2026-11-29", [0, 1],
                                extra="2 threads on both sides, as above, with other jobs on the 2 cores"),
     "realtime_t1": md_copy("realtime_2026-11-29_t1", [0], extra="1 thread on both sides"),
