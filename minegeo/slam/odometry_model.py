@@ -60,7 +60,8 @@ class OdometryParams:
     #: ``frame_target="submap"``: the local map each frame registers to is made of the last this many
     #: keyframes (2 m apart by default). Eight rather than five: on the paper world's ramp (a half turn on
     #: a 7° grade) 0.30 → 0.23 % of the path unaligned, on the 60 s drone flight (seed 1) 0.27 → 0.14 %,
-    #: the other streams within ±0.01 % (issue 29, with ``covariance_frames = 9``)
+    #: the drone's 20 s 0.70 → 0.65 %, the other streams by at most 0.012 % either way (issue 29, with
+    #: ``covariance_frames = 9``; docs/slam.md)
     local_map_keyframes: int = bounded(8, ge=1, integer=True)
     #: the GICP covariances of a frame's points from the kNN among its own points and those of the
     #: ``covariance_frames - 1`` registered frames before it, moved into its frame by the odometry's
