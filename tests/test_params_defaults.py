@@ -134,8 +134,10 @@ FORMER_DEFAULTS = {
     DescriptorParams: {"radius_m": 12.0, "n_sectors": 360, "wall_band_m": _WALL_BAND, "band_start_m": 0.2,
                        "band_m": 0.4, "n_bands": 12, "min_range_m": 1.0, "max_gap_sectors": 3, "footprint_m": 0.15},
     KBParams: {"skeleton": SkeletonParams(), "descriptor": DescriptorParams(), "cloud_radius_m": 15.0},
-    # minegeo/slam/pipeline.py at 7be99ff
-    SlamParams: {"odometry": OdometryParams(), "loops": LoopParams(), "posegraph": PoseGraphParams(), "map_voxel_m": 0.1,
+    # minegeo/slam/pipeline.py at 7be99ff, but the pose graph's damping: lambda diag(H) since issue 29 (with
+    # lambda I the drifted ring of tests/slam/test_slam_ring.py crawled 500 iterations unconverged)
+    SlamParams: {"odometry": OdometryParams(), "loops": LoopParams(), "posegraph": PoseGraphParams(damping="diagonal"),
+                 "map_voxel_m": 0.1,
                  "use_planes": True, "floor": FloorPlaneParams(min_below_sensor_m=1.0, max_below_sensor_m=3.5),
                  "plane_max_angle_deg": 3.0, "plane_max_offset_m": 0.3, "plane_sigma_angle_deg": 0.5,
                  "plane_sigma_offset_m": 0.05, "plane_revisit_distance_m": 4.0, "plane_smoothing": 0.2,

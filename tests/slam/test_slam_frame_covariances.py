@@ -35,7 +35,7 @@ def test_history_gives_the_surface_that_one_sweep_cannot():
     assert np.allclose(estimate_gicp_covariances(cur, params), np.eye(3))  # the frame's own: isotropic
     C = covariances_with_history(cur, history, params, voxel_m=0.3)
     assert np.all(_normal_angle_deg(C, np.array([-0.1, -0.2, 1.0])) < 0.5)
-    # the plane model of Ren2019 Eq. 3: eigenvalues (eps, 1, 1)
+    # the plane model [Ren2019 Eq. 3]: eigenvalues (eps, 1, 1)
     assert np.allclose(np.linalg.eigvalsh(C), [params.epsilon, 1.0, 1.0])
 
 
