@@ -18,16 +18,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from minegeo.geometry import voxel_downsample
+from minegeo.geometry import NormalParams, voxel_downsample
 from minegeo.kernels.kdtree import KD_LEAF, kd_build, kd_knn
-from minegeo.registration import GICPParams
-from minegeo.slam._kernels_covariance import plane_covariances_from_lists
+from minegeo.registration import GICPParams, estimate_gicp_covariances
+from minegeo.slam._kernels_covariance import plane_normals_from_lists
 
 __all__ = ["covariances_with_history"]
 
 #: a neighbourhood is collinear (isotropic covariance) when its middle eigenvalue is at most this
-#: fraction of its largest (the rule of :func:`minegeo.registration.estimate_gicp_covariances`)
-COLLINEAR_RATIO = 1e-8
+#: fraction of its largest (the default of :class:`minegeo.geometry.NormalParams`, the rule of
+#: :func:`minegeo.registration.estimate_gicp_covariances`)
+COLLINEAR_RATIO = NormalParams().degenerate_ratio
 
 
 def covariances_with_history(points: np.ndarray, history: np.ndarray, params: GICPParams,
@@ -36,11 +37,13 @@ def covariances_with_history(points: np.ndarray, history: np.ndarray, params: GI
     m) from the PCA of each point's ``params.covariance_neighbours`` nearest points among ``points``
     and ``history`` (m, 3): the points of earlier frames moved into the same frame. The covariance
     is centred on the neighbourhood's mean; a collinear or coincident neighbourhood gets ``I``
-    (as :func:`minegeo.registration.estimate_gicp_covariances`)."""
+    (:func:`minegeo.registration.estimate_gicp_covariances` given these normals: its formula and
+    ``params.covariance_mode``)."""
     P = np.ascontiguousarray(points, dtype=np.float64)
     Q = np.ascontiguousarray(np.concatenate([P, np.asarray(history, dtype=np.float64).reshape(-1, 3)]))
     if voxel_m is not None:  # one density over the frames: the frame's own ring no longer fills the neighbourhood
         Q = np.ascontiguousarray(voxel_downsample(Q, voxel_m).points)
     k = min(int(params.covariance_neighbours), Q.shape[0])
     idx, _ = kd_knn(P, kd_build(Q, KD_LEAF), k)
-    return plane_covariances_from_lists(Q, np.ascontiguousarray(idx), float(params.epsilon), COLLINEAR_RATIO)
+    normals = plane_normals_from_lists(Q, np.ascontiguousarray(idx), float(COLLINEAR_RATIO))
+    return estimate_gicp_covariances(P, params, normals=normals)

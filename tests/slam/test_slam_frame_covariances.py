@@ -47,6 +47,23 @@ def test_without_history_the_covariances_are_the_frames_own():
     assert np.allclose(C, estimate_gicp_covariances(P, params), atol=1e-9)
 
 
+def test_covariances_with_history_match_a_naive_pca_of_the_union():
+    """Naive twin: scipy's kNN in the union of the frame and its history, NumPy's covariance and
+    ``eigh``, then ``C = I − (1 − ε) n nᵀ`` [Ren2019 Eq. 3]."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(11)
+    P = rng.uniform(-4.0, 4.0, size=(300, 3)) * [1.0, 1.0, 0.02]  # a rough floor patch, the frame
+    H = rng.uniform(-4.0, 4.0, size=(900, 3)) * [1.0, 1.0, 0.02] + [0.0, 0.0, 0.003]  # earlier sweeps
+    params = GICPParams(1.0)
+    C = covariances_with_history(P, H, params)
+    U = np.concatenate([P, H])
+    _, idx = cKDTree(U).query(P, k=params.covariance_neighbours)
+    n = np.array([np.linalg.eigh(np.cov(U[i].T, bias=True))[1][:, 0] for i in idx])
+    expected = np.eye(3) - (1.0 - params.epsilon) * n[:, :, None] * n[:, None, :]
+    assert np.allclose(C, expected, atol=1e-9)
+
+
 def test_collinear_neighbourhoods_are_isotropic():
     P = np.c_[np.linspace(0.0, 10.0, 50), np.zeros(50), np.zeros(50)]
     C = covariances_with_history(P, np.zeros((0, 3)), GICPParams(1.0))
