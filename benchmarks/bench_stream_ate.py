@@ -5,6 +5,11 @@ Issue 29's acceptance table: per sequence, ``minegeo slam`` (the CLI, default pa
 * ``raw``: ``--no-deskew`` (the sweeps as recorded, smeared by the motion);
 * ``deskewed``: the default (constant-velocity deskewing, two passes; docs/slam.md "Deskewing");
 * ``deskewed + IMU``: ``--imu imu.csv`` (gyro-aided odometry, IMU gate, preintegration graph);
+* ``deskewed by the truth`` (an oracle, ``--modes``): each sweep deskewed before the run by the simulator's
+  motion over it, the constant body twist ``Log(T*_k⁻¹ T*_{k+1}) / Δt`` from the true poses at its frame
+  time and the next (the last sweep by the motion into it), written without times
+  (``<stream>/frames_truth_deskewed``) and run as ``minegeo slam --frames``: the error left to the
+  registration when the deskewing is right, what separates the deskew's share of a row from the rest;
 
 and **KISS-ICP** (``KissICP.register_frame(points, times)``, its own deskewing from the same per-point
 times, configuration of ``benchmarks/bench_realtime.py``: ``kiss_config``), as it ships (voxel
@@ -52,7 +57,7 @@ SEQUENCES = {"vehicle, loop 3.2 m": ("vehicle", "loop"), "vehicle, junctions 3.5
              "drone, NIOSH 2.9 m": ("drone", "niosh"), "handheld, loop 3.2 m": ("handheld", "loop"),
              "vehicle, paper ring": ("vehicle", "paper-ring"), "vehicle, paper straight": ("vehicle", "paper-straight"),
              "vehicle, paper ramp": ("vehicle", "paper-ramp")}
-MODES = {"raw": ["--no-deskew"], "deskewed": [], "deskewed + IMU": ["--imu", "IMU"]}
+MODES = {"raw": ["--no-deskew"], "deskewed": [], "deskewed + IMU": ["--imu", "IMU"], "deskewed by the truth": ["TRUTH"]}
 #: KISS-ICP runs: label -> voxel size (m); None = as it ships (max_range / 100 = 1.0 m at 100 m range)
 KISS_VOXELS = {"KISS-ICP (its deskewing), voxel 1.0 m as shipped": None,
                "KISS-ICP (its deskewing), voxel 0.25 m for 3 m drifts": 0.25}
@@ -78,11 +83,38 @@ def _stream(work: Path, carrier: str, network: str, duration_s: float, seed: int
     return d
 
 
-def _minegeo(stream: Path, run: Path, opts: list[str], times: np.ndarray, truth) -> dict:
+def _truth_deskewed(stream: Path, frames: list, truth) -> Path:
+    """``stream/frames_truth_deskewed``: each sweep deskewed by the true constant twist over it (see the
+    module's ``deskewed by the truth``), PLY without times, and ``times.txt``; written once."""
+    from minegeo.io import PointCloud
+    from minegeo.io.pointcloud import write_point_cloud
+    from minegeo.slam.control_graph import interpolate_poses
+    from minegeo.slam.deskew import deskew_points, twist_from_motion
+
+    out = stream / "frames_truth_deskewed"
+    if (out / "times.txt").is_file():
+        return out
+    tmp = stream / "frames_truth_deskewed.part"
+    tmp.mkdir(exist_ok=True)
+    t = np.asarray([f[0] for f in frames])
+    G = interpolate_poses(truth.times_s, truth.poses, t)
+    for k, (_, pts, tau) in enumerate(frames):
+        a, b = (k, k + 1) if k + 1 < len(frames) else (k - 1, k)
+        twist = twist_from_motion(np.linalg.inv(G[a]) @ G[b], t[b] - t[a])
+        write_point_cloud(tmp / f"{k:06d}.ply", PointCloud(deskew_points(pts, tau, twist)))
+    (tmp / "times.txt").write_text("".join(f"{x:.9f}\n" for x in t))
+    tmp.rename(out)
+    return out
+
+
+def _minegeo(stream: Path, run: Path, opts: list[str], times: np.ndarray, truth, frames=None) -> dict:
     from minegeo.io.trajectory import read_trajectory
 
     opts = [str(stream / "imu.csv") if o == "IMU" else o for o in opts]
-    wall = _cli(["slam", "--frames", str(stream / "frames"), "--out", str(run), *opts])
+    src = stream / "frames"
+    if "TRUTH" in opts:
+        src, opts = _truth_deskewed(stream, frames, truth), [o for o in opts if o != "TRUTH"]
+    wall = _cli(["slam", "--frames", str(src), "--out", str(run), *opts])
     est = read_trajectory(run / "trajectory.tum")
     if est.times_s.size != times.size or np.abs(est.times_s - times).max() > 1e-6:
         raise SystemExit(f"{run}: the trajectory's times are not the frames'")
@@ -96,6 +128,9 @@ def main(argv=None) -> int:
     ap.add_argument("--duration-s", type=float, default=20.0)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--sequences", nargs="+", default=list(SEQUENCES), choices=list(SEQUENCES))
+    ap.add_argument("--modes", nargs="+", default=[m for m in MODES if m != "deskewed by the truth"], choices=list(MODES),
+                    help="minegeo's rows (default: raw, deskewed, deskewed + IMU; the oracle on request)")
+    ap.add_argument("--no-kiss", action="store_true", help="minegeo's rows only (no KISS-ICP rows)")
     ap.add_argument("--work", type=Path, default=Path.home() / ".cache" / "minegeo_bench" / "stream_ate")
     ap.add_argument("--kiss-threads", type=int, default=1)
     ap.add_argument("--json", type=Path, required=True)
@@ -123,16 +158,16 @@ def main(argv=None) -> int:
         stream = _stream(a.work, carrier, network, a.duration_s, a.seed)
         frames, truth = load_frames(stream)
         times = np.asarray([f[0] for f in frames])
-        for mode, opts in MODES.items():
+        for mode, opts in ((m, MODES[m]) for m in a.modes):
             run = a.work / f"{stream.name}_{mode.replace(' + ', '_').replace(' ', '_')}"
             opts = opts + (["--odometry", a.odometry] if a.odometry else [])
-            rows.append({"sequence": name, "mode": mode, **_minegeo(stream, run, opts, times, truth),
+            rows.append({"sequence": name, "mode": mode, **_minegeo(stream, run, opts, times, truth, frames),
                          "odometry_target": json.loads((run / "result.json").read_text())["result"]
                          ["odometry_target"]["frame_target"]})
             _log(f"{name} / {mode}: {rows[-1]['ate_aligned_pct']:.3f} % aligned")
         end = times + np.asarray([float(f[2].max()) for f in frames])
         keep = end <= truth.times_s[-1]  # KISS-ICP's pose time (the sweep's end) inside the truth
-        for label, voxel in KISS_VOXELS.items():
+        for label, voxel in ({} if a.no_kiss else KISS_VOXELS).items():
             if kiss_old is not None:
                 (r,) = [r for r in kiss_old["rows"] if r["sequence"] == name and r["mode"] == label]
                 rows.append({**r, "from": str(a.kiss_from)})
