@@ -7,9 +7,10 @@ Issue 29's acceptance table: per sequence, ``minegeo slam`` (the CLI, default pa
 * ``deskewed + IMU``: ``--imu imu.csv`` (gyro-aided odometry, IMU gate, preintegration graph);
 * ``deskewed by the truth`` (an oracle, ``--modes``): each sweep deskewed before the run by the simulator's
   motion over it, the constant body twist ``Log(T*_k⁻¹ T*_{k+1}) / Δt`` from the true poses at its frame
-  time and the next (the last sweep by the motion into it), written without times
-  (``<stream>/frames_truth_deskewed``) and run as ``minegeo slam --frames``: the error left to the
-  registration when the deskewing is right, what separates the deskew's share of a row from the rest;
+  time and the next (the last sweep by the motion into it), written with every point's time 0
+  (``<stream>/frames_truth_deskewed``) and run as ``minegeo slam --frames``: the same passes as the
+  ``deskewed`` row (its deskewing then moves nothing), so the row is the error left to the registration
+  when the deskewing is right, what separates the deskew's share of a row from the rest;
 
 and **KISS-ICP** (``KissICP.register_frame(points, times)``, its own deskewing from the same per-point
 times, configuration of ``benchmarks/bench_realtime.py``: ``kiss_config``), as it ships (voxel
@@ -85,7 +86,7 @@ def _stream(work: Path, carrier: str, network: str, duration_s: float, seed: int
 
 def _truth_deskewed(stream: Path, frames: list, truth) -> Path:
     """``stream/frames_truth_deskewed``: each sweep deskewed by the true constant twist over it (see the
-    module's ``deskewed by the truth``), PLY without times, and ``times.txt``; written once."""
+    module's ``deskewed by the truth``), PLY with every point's ``time`` 0, and ``times.txt``; written once."""
     from minegeo.io import PointCloud
     from minegeo.io.pointcloud import write_point_cloud
     from minegeo.slam.control_graph import interpolate_poses
@@ -101,7 +102,8 @@ def _truth_deskewed(stream: Path, frames: list, truth) -> Path:
     for k, (_, pts, tau) in enumerate(frames):
         a, b = (k, k + 1) if k + 1 < len(frames) else (k - 1, k)
         twist = twist_from_motion(np.linalg.inv(G[a]) @ G[b], t[b] - t[a])
-        write_point_cloud(tmp / f"{k:06d}.ply", PointCloud(deskew_points(pts, tau, twist)))
+        write_point_cloud(tmp / f"{k:06d}.ply", PointCloud(deskew_points(pts, tau, twist),
+                                                          attributes={"time": np.zeros(len(pts))}))
     (tmp / "times.txt").write_text("".join(f"{x:.9f}\n" for x in t))
     tmp.rename(out)
     return out
