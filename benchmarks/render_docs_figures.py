@@ -431,6 +431,29 @@ def md_copy(stem: str, tables: list[int] | None = None, extra: str = ""):
     return render
 
 
+def stream_ate_rows(parts: list[tuple[str, str, str, tuple[str, ...]]], extra: str = ""):
+    """A renderer of one table of ``bench_stream_ate.py`` rows gathered from several results files:
+    ``parts`` = ``(row label, results stem, sequence, modes)``; ATE unaligned and aligned (m and % of the
+    path), the conditions of every file used."""
+
+    def render(results: Path) -> str:
+        stems, lines = [], ["| stream | mode | path | ATE RMSE, unaligned | ATE RMSE, aligned | max error (unaligned) |",
+                            "|---|---|---|---|---|---|"]
+        for label, stem, seq, modes in parts:
+            rows = {r["mode"]: r for r in _load(stem + ".json", results)["rows"] if r["sequence"] == seq}
+            stems += [stem] if stem not in stems else []
+            for m in modes:
+                r = rows[m]
+                lines.append(f"| {label} | {m} | {r['path_m']:.1f} m | {r['ate_unaligned_m']:.3f} m "
+                             f"({r['ate_unaligned_pct']:.3f} %) | {r['ate_aligned_m']:.3f} m ({r['ate_aligned_pct']:.3f} %) "
+                             f"| {r['ate_max_m']:.3f} m |")
+        head = "\n".join(_json_conditions(st, results) for st in stems)
+        return head + ("\n\n" + extra if extra else "") + "\n\n" + "\n".join(lines)
+
+    render.__doc__ = "Rows of " + ", ".join(sorted({f"``{p[1]}``" for p in parts})) + "."
+    return render
+
+
 def md_columns(stem: str, columns: tuple[str, ...], table: int = 0):
     """A renderer of the named ``columns`` of table ``table`` of a committed results ``.md`` (a
     percentage written ``7.1%`` there is ``7.1 %`` here), under the conditions of its ``.json``."""
@@ -577,6 +600,29 @@ RENDERERS = {
                                         extra=f"`python benchmarks/bench_stream_ate.py --duration-s {d} --sequences "
                                               f"\"vehicle, paper {n}\"`")
        for n, d in (("ring", "41.8"), ("straight", "172"), ("ramp", "88.7"))},
+    "stream_ate_oracle": stream_ate_rows(
+        [(lab, st, seq, (mode,)) for lab, seq, ours, truth in (
+            ("vehicle, loop, 20 s", "vehicle, loop 3.2 m", "stream_ate_2026-11-30b_local_map", "stream_ate_2026-12-01_truth_deskewed"),
+            ("vehicle, junctions, 20 s", "vehicle, junctions 3.5 m", "stream_ate_2026-11-30b_local_map",
+             "stream_ate_2026-12-01_truth_deskewed"),
+            ("drone, NIOSH, 20 s", "drone, NIOSH 2.9 m", "stream_ate_2026-11-30b_local_map", "stream_ate_2026-12-01_truth_deskewed"),
+            ("handheld, loop, 20 s", "handheld, loop 3.2 m", "stream_ate_2026-11-30b_local_map", "stream_ate_2026-12-01_truth_deskewed"),
+            ("drone, NIOSH, 60 s, seed 1", "drone, NIOSH 2.9 m", "stream_ate_2026-11-30b_drone60",
+             "stream_ate_2026-12-01_truth_deskewed_drone60_seed1"),
+            *((f"drone, NIOSH, 60 s, seed {k}", "drone, NIOSH 2.9 m", f"stream_ate_2026-11-30b_drone60_seed{k}",
+               f"stream_ate_2026-12-01_truth_deskewed_drone60_seed{k}") for k in (2, 3)),
+            *((f"vehicle, paper {n}", f"vehicle, paper {n}", f"stream_ate_2026-11-30b_paper_{n}",
+               f"stream_ate_2026-12-01_truth_deskewed_paper_{n}") for n in ("ring", "straight", "ramp")))
+         for st, mode in ((ours, "deskewed"), (truth, "deskewed by the truth"))],
+        extra="`python benchmarks/bench_stream_ate.py --modes \"deskewed by the truth\" --no-kiss` with the duration, seed and "
+              "sequence of each stream (the deskewed rows: the files of the tables above)"),
+    "stream_ate_drone20_seeds": stream_ate_rows(
+        [(f"drone, NIOSH, 20 s, seed {k}", f"stream_ate_2026-12-01_drone20_seed{k}", "drone, NIOSH 2.9 m",
+          ("raw", "deskewed", "deskewed + IMU", "deskewed by the truth",
+           "KISS-ICP (its deskewing), voxel 1.0 m as shipped", "KISS-ICP (its deskewing), voxel 0.25 m for 3 m drifts"))
+         for k in (2, 3, 4, 5)],
+        extra="`python benchmarks/bench_stream_ate.py --duration-s 20 --seed K --sequences \"drone, NIOSH 2.9 m\" --modes raw "
+              "deskewed \"deskewed + IMU\" \"deskewed by the truth\"` for K = 2, 3, 4, 5"),
     "stream_ate": md_copy("stream_ate_2026-11-30b", [0],
                           extra=f"`python benchmarks/bench_stream_ate.py --duration-s 20 --sequences {NETWORK_SEQUENCES} "
                                 "--odometry frame --kiss-from benchmarks/results/stream_ate_2026-11-29.json`"),
