@@ -574,8 +574,10 @@ RENDERERS = {
     "control_similarity": control_table("control_2026-11-30_similarity"),
     "control_slam_model_noise": control_table("control_2026-11-30_slam_model_noise_only"),
     "control_slam_model_bias": control_table("control_2026-11-30_slam_model_bias"),
-    "control_records_vehicle": records_table("control_records_2026-11-30_vehicle"),
-    "control_records_handheld": records_table("control_records_2026-11-30_handheld"),
+    "control_records_vehicle": records_table("control_records_2026-12-01_vehicle"),
+    "control_records_handheld": records_table("control_records_2026-12-01_handheld"),
+    "control_records_vehicle_refit": records_table("control_records_2026-12-01_vehicle_refit"),
+    "control_records_handheld_refit": records_table("control_records_2026-12-01_handheld_refit"),
     "first_use_before_after": first_use_table("first_use_2026-11-29_before", "first_use_2026-11-29_after_head"),
     "first_use_after2": first_use_table("first_use_2026-11-29_after2_base", "first_use_2026-11-29_after2"),
     **{f"intersections_{k}": md_columns(f"intersections_{stem}", cols)
