@@ -554,18 +554,22 @@ RENDERERS = {
     "uncertainty_study": md_copy("uncertainty_study_2026-11-25", [0],
                                  extra="`python benchmarks/bench_uncertainty_study.py run --seeds 21,22 --n 6`"),
     "kernels_search": md_copy("kernels", [0], extra="`python benchmarks/bench_kernels.py`, median of 3, ms"),
-    "realtime_local_map": md_copy("realtime_2026-11-30b_local_map", [0, 1],
+    "realtime_local_map": md_copy("realtime_2026-12-01_local_map", [0, 1],
                                   extra="2 threads on both sides; per frame the minimum of 2 alternating runs; "
                                         "`NUMBA_NUM_THREADS=2 python benchmarks/bench_realtime.py --threads 2 "
                                         "--duration-s 20 --repeats 2 --odometry submap`"),
-    "realtime_idle": md_copy("realtime_2026-11-30b_idle", [0, 1],
+    "realtime_idle": md_copy("realtime_2026-12-01_idle", [0, 1],
                              extra="2 threads on both sides (minegeo: Numba omp layer, OMP_WAIT_POLICY PASSIVE; "
                                    "KISS-ICP max_num_threads 2); per frame the minimum of 2 alternating runs; "
                                    "`NUMBA_NUM_THREADS=2 python benchmarks/bench_realtime.py --threads 2 --repeats 2 "
                                    "--odometry frame`"),
-    "realtime_loaded": md_copy("realtime_2026-11-29", [0, 1],
-                               extra="2 threads on both sides, as above, with other jobs on the 2 cores"),
-    "realtime_t1": md_copy("realtime_2026-11-29_t1", [0], extra="1 thread on both sides"),
+    "realtime_loaded": md_copy("realtime_2026-12-01_loaded", [0, 1],
+                               extra="2 threads on both sides, as above, with 12 busy shell loops on the 2 cores "
+                                     "(started a minute before); `NUMBA_NUM_THREADS=2 python benchmarks/bench_realtime.py "
+                                     "--threads 2 --duration-s 20 --repeats 2 --odometry submap`"),
+    "realtime_t1": md_copy("realtime_2026-12-01_loaded_t1", [0, 1],
+                           extra="1 thread on both sides, the same 12 busy loops; `NUMBA_NUM_THREADS=1 python "
+                                 "benchmarks/bench_realtime.py --threads 1 --duration-s 20 --repeats 2 --odometry submap`"),
     "slam_deskew": md_copy("deskew_2026-11-30b", [0], extra="`python benchmarks/bench_deskew.py --duration-s 20`"),
     "slam_imu": md_copy("slam_imu_2026-11-30b", [0], extra="`python benchmarks/bench_slam_imu.py --duration-s 20`"),
     "control_driftauto": control_table("control_2026-11-29_driftauto_lr"),
