@@ -314,7 +314,7 @@ def render_mulran(results: Path) -> str:
     return "\n".join(lines)
 
 
-DEMO_FILE = "demo_2026-11-29.json"
+DEMO_FILE = "demo_2026-12-01.json"
 
 
 def render_demo(results: Path) -> str:
@@ -333,7 +333,7 @@ def render_demo(results: Path) -> str:
     return "\n".join(lines)
 
 
-FRESH_INSTALL_FILES = ("fresh_install_2026-11-29_idle.json", "fresh_install_2026-11-29_one-core-busy.json")
+FRESH_INSTALL_FILES = ("fresh_install_2026-12-01_idle.json", "fresh_install_2026-12-01_one-core-busy.json")
 
 
 def render_fresh_install(results: Path) -> str:
