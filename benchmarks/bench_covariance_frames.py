@@ -3,7 +3,7 @@
 ``OdometryParams.covariance_frames`` (docs/slam.md, "Odometry and loop closure"): each frame's GICP
 covariances come from its own points and those of the ``covariance_frames - 1`` registered frames
 before it (9 by default, made for 10 Hz sensor streams). This script runs the SLAM chain
-(:func:`minegeo.slam.pipeline.run_slam`, default ``SlamParams`` otherwise) on one frames folder for
+(:func:`minegeo.slam.pipeline.run_slam`'s two steps, default ``SlamParams`` otherwise) on one frames folder for
 each value given and scores the frame trajectory against a truth TUM file without alignment (both in
 their first pose's frame, as ``minegeo demo`` scores its SLAM step) and SE(3)-aligned, and the
 odometry alone (:func:`minegeo.slam.odometry.run_odometry`, the same front end) the same way and by its
@@ -28,6 +28,7 @@ import datetime as dt
 import json
 import os
 import subprocess
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -45,7 +46,7 @@ def main(argv=None) -> int:
     from minegeo.io.types import Trajectory
     from minegeo.slam.evaluate import evaluate_trajectory
     from minegeo.slam.odometry import run_odometry
-    from minegeo.slam.pipeline import SlamParams, run_slam
+    from minegeo.slam.pipeline import SlamParams, run_backend
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=Path, required=True)
@@ -64,12 +65,11 @@ def main(argv=None) -> int:
     for v in a.values:
         p = replace(base, odometry=replace(base.odometry, covariance_frames=v, frame_target=a.odometry))
         t0 = time.perf_counter()
-        r = run_slam(frames, p)
+        o = run_odometry(frames, p.odometry)  # the front end, scored alone, then the back end on it (run_slam's two steps)
+        r = run_backend(o, p, odometry_s=time.perf_counter() - t0)
         wall = time.perf_counter() - t0
-        ev = evaluate_trajectory(Trajectory(r.times_s, r.poses), gt, align=False)
-        ev_a = evaluate_trajectory(Trajectory(r.times_s, r.poses), gt, align=True)
-        o = run_odometry(frames, p.odometry)  # the odometry alone (the same as the SLAM's front end)
-        od = Trajectory(o.times_s, o.poses)
+        est, od = Trajectory(r.times_s, r.poses), Trajectory(o.times_s, o.poses)
+        ev, ev_a = evaluate_trajectory(est, gt, align=False), evaluate_trajectory(est, gt, align=True)
         eo, eo_a = evaluate_trajectory(od, gt, align=False), evaluate_trajectory(od, gt, align=True)
         rows.append({"covariance_frames": v, "default": v == base.odometry.covariance_frames,
                      "ate_rmse_m": float(ev.ate.rmse), "ate_max_m": float(ev.ate.max),
@@ -83,7 +83,7 @@ def main(argv=None) -> int:
     meta = {"date": dt.date.today().isoformat(), "commit": commit, "frames": str(a.frames), "n_frames": len(frames),
             "truth": str(a.truth), "frame_target": a.odometry, "numba_threads": os.environ.get("NUMBA_NUM_THREADS", "unset"),
             "uptime_before": up0, "uptime_after": _uptime(),
-            "command": "python benchmarks/bench_covariance_frames.py " + " ".join(argv or __import__("sys").argv[1:])}
+            "command": "python benchmarks/bench_covariance_frames.py " + " ".join(argv or sys.argv[1:])}
     a.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
     lines = [f"*{meta['date']}, commit {commit}, {len(frames)} frames of `{a.frames}`, odometry '{a.odometry}', "
              f"Numba threads {meta['numba_threads']}; load: `{up0}` → `{meta['uptime_after']}`.*", "",

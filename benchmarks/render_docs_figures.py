@@ -529,6 +529,17 @@ INTERSECTION_SHORT = ("Method", "MAE (m)", "RMSE (m)", "max (m)", "REP-5 (%)", "
                       "status")
 
 
+#: the oracle table's streams: (row label, sequence, results stem of the deskewed row, of the oracle's)
+ORACLE_STREAMS = (
+    *((f"{label}, 20 s", seq, "stream_ate_2026-11-30b_local_map", "stream_ate_2026-12-01_truth_deskewed")
+      for label, seq in (("vehicle, loop", "vehicle, loop 3.2 m"), ("vehicle, junctions", "vehicle, junctions 3.5 m"),
+                         ("drone, NIOSH", "drone, NIOSH 2.9 m"), ("handheld, loop", "handheld, loop 3.2 m"))),
+    *((f"drone, NIOSH, 60 s, seed {k}", "drone, NIOSH 2.9 m", "stream_ate_2026-11-30b_drone60" + ("" if k == 1 else f"_seed{k}"),
+       f"stream_ate_2026-12-01_truth_deskewed_drone60_seed{k}") for k in (1, 2, 3)),
+    *((f"vehicle, paper {n}", f"vehicle, paper {n}", f"stream_ate_2026-11-30b_paper_{n}",
+       f"stream_ate_2026-12-01_truth_deskewed_paper_{n}") for n in ("ring", "straight", "ramp")),
+)
+
 RENDERERS = {
     "registration_quick": render_registration_quick,
     "posegraph": render_posegraph,
@@ -607,19 +618,9 @@ RENDERERS = {
                                               f"\"vehicle, paper {n}\"`")
        for n, d in (("ring", "41.8"), ("straight", "172"), ("ramp", "88.7"))},
     "stream_ate_oracle": stream_ate_rows(
-        [(lab, st, seq, (mode,)) for lab, seq, ours, truth in (
-            ("vehicle, loop, 20 s", "vehicle, loop 3.2 m", "stream_ate_2026-11-30b_local_map", "stream_ate_2026-12-01_truth_deskewed"),
-            ("vehicle, junctions, 20 s", "vehicle, junctions 3.5 m", "stream_ate_2026-11-30b_local_map",
-             "stream_ate_2026-12-01_truth_deskewed"),
-            ("drone, NIOSH, 20 s", "drone, NIOSH 2.9 m", "stream_ate_2026-11-30b_local_map", "stream_ate_2026-12-01_truth_deskewed"),
-            ("handheld, loop, 20 s", "handheld, loop 3.2 m", "stream_ate_2026-11-30b_local_map", "stream_ate_2026-12-01_truth_deskewed"),
-            ("drone, NIOSH, 60 s, seed 1", "drone, NIOSH 2.9 m", "stream_ate_2026-11-30b_drone60",
-             "stream_ate_2026-12-01_truth_deskewed_drone60_seed1"),
-            *((f"drone, NIOSH, 60 s, seed {k}", "drone, NIOSH 2.9 m", f"stream_ate_2026-11-30b_drone60_seed{k}",
-               f"stream_ate_2026-12-01_truth_deskewed_drone60_seed{k}") for k in (2, 3)),
-            *((f"vehicle, paper {n}", f"vehicle, paper {n}", f"stream_ate_2026-11-30b_paper_{n}",
-               f"stream_ate_2026-12-01_truth_deskewed_paper_{n}") for n in ("ring", "straight", "ramp")))
-         for st, mode in ((ours, "deskewed"), (truth, "deskewed by the truth"))],
+        [(label, stem, seq, (mode,))
+         for label, seq, ours, truth in ORACLE_STREAMS
+         for stem, mode in ((ours, "deskewed"), (truth, "deskewed by the truth"))],
         extra="`python benchmarks/bench_stream_ate.py --modes \"deskewed by the truth\" --no-kiss` with the duration, seed and "
               "sequence of each stream (the deskewed rows: the files of the tables above)"),
     "stream_ate_drone20_seeds": stream_ate_rows(
