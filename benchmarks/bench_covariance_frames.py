@@ -19,6 +19,19 @@ Usage (the demo's frames: ``minegeo demo --out demo`` first)::
 ``--odometry`` is the frame target ``minegeo slam --odometry auto`` picks for the folder (``frame``
 for frames more than 0.25 s apart, ``submap`` otherwise; the ``result.json`` of a ``minegeo slam``
 run on it records it).
+
+One seed is one draw of the world's rock relief, the carrier's sway and the range noise. With
+``--demo-seeds`` instead of ``--frames``/``--truth`` the demo's own sequence (``minegeo demo``'s step
+2: :func:`minegeo.synth.world.build_world` ``("small", seed)``, the loop ``DEMO_LOOP``, VLP-16 frames
+at the demo's rate and azimuth step, simulated in memory by the same calls) is drawn for each seed
+given and every value run on each; the summary gives, per value, the median and the spread of the
+SLAM ATE over the seeds, and for each value against the first one the paired difference (mean and
+its standard error over the seeds) and on how many seeds it is lower::
+
+    NUMBA_NUM_THREADS=2 python benchmarks/bench_covariance_frames.py --demo-seeds $(seq 1 30) \
+        --odometry frame --values 9 1 \
+        --json benchmarks/results/covariance_frames_<date>_demo_seeds.json \
+        --md benchmarks/results/covariance_frames_<date>_demo_seeds.md
 """
 
 from __future__ import annotations
@@ -40,62 +53,150 @@ def _uptime() -> str:
     return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
 
 
-def main(argv=None) -> int:
-    from minegeo.io import read_trajectory
-    from minegeo.io.frames import iter_frames, list_frames
+def _demo_sequence(seed: int):
+    """The frames and true poses of ``minegeo demo --seed SEED``'s step 2, in memory (its calls)."""
+    from minegeo.cli.demo import AZIMUTH_STEP_DEG, FRAME_RATE_HZ
+    from minegeo.synth.sensors import Velodyne16
+    from minegeo.synth.sequence import DEMO_LOOP, route_path, simulate_sequence
+    from minegeo.synth.world import build_world
+
+    world = build_world("small", seed)
+    path = route_path(world, DEMO_LOOP["drifts"], DEMO_LOOP["start_m"], DEMO_LOOP["end_m"])
+    truth, frames = simulate_sequence(world, path, rate_hz=FRAME_RATE_HZ,
+                                      sensor=Velodyne16(azimuth_step_deg=AZIMUTH_STEP_DEG), seed=seed)
+    return [(float(t), P) for t, P in zip(truth.times_s, frames, strict=True)], truth
+
+
+def _score(frames, gt, v: int, frame_target: str) -> dict:
+    """The SLAM chain and its odometry with ``covariance_frames = v`` on ``frames``, scored against ``gt``."""
     from minegeo.io.types import Trajectory
     from minegeo.slam.evaluate import evaluate_trajectory
     from minegeo.slam.odometry import run_odometry
     from minegeo.slam.pipeline import SlamParams, run_backend
 
+    base = SlamParams()
+    p = replace(base, odometry=replace(base.odometry, covariance_frames=v, frame_target=frame_target))
+    t0 = time.perf_counter()
+    o = run_odometry(frames, p.odometry)  # the front end, scored alone, then the back end on it (run_slam's two steps)
+    r = run_backend(o, p, odometry_s=time.perf_counter() - t0)
+    wall = time.perf_counter() - t0
+    est, od = Trajectory(r.times_s, r.poses), Trajectory(o.times_s, o.poses)
+    ev, ev_a = evaluate_trajectory(est, gt, align=False), evaluate_trajectory(est, gt, align=True)
+    eo, eo_a = evaluate_trajectory(od, gt, align=False), evaluate_trajectory(od, gt, align=True)
+    return {"covariance_frames": v, "default": v == base.odometry.covariance_frames,
+            "ate_rmse_m": float(ev.ate.rmse), "ate_max_m": float(ev.ate.max), "ate_aligned_m": float(ev_a.ate.rmse),
+            "odometry_ate_m": float(eo.ate.rmse), "odometry_ate_aligned_m": float(eo_a.ate.rmse),
+            "odometry_end_error_m": float(np.linalg.norm(o.poses[-1][:3, 3] - gt.poses[-1][:3, 3])),
+            "keyframes": int(len(r.keyframes)), "wall_s": wall}
+
+
+def _relative_to_first(truth):
+    from minegeo.io.types import Trajectory
+
+    return Trajectory(truth.times_s, np.einsum("ij,njk->nik", np.linalg.inv(truth.poses[0]), truth.poses))
+
+
+def _summary(rows: list[dict], values: list[int]) -> list[dict]:
+    """Per value over the seeds: median / min / max of the SLAM and odometry ATE (no alignment), and
+    against the first value the paired difference (mean, its standard error) and the seeds it is lower on."""
+    out = []
+    for v in values:
+        mine = {r["seed"]: r for r in rows if r["covariance_frames"] == v}
+        first = {r["seed"]: r for r in rows if r["covariance_frames"] == values[0]}
+        seeds = sorted(mine)
+        row = {"covariance_frames": v, "seeds": len(seeds)}
+        for key in ("ate_rmse_m", "ate_aligned_m", "odometry_ate_m", "odometry_end_error_m"):
+            x = np.array([mine[s][key] for s in seeds])
+            d = x - np.array([first[s][key] for s in seeds])
+            row[key] = {"median": float(np.median(x)), "min": float(x.min()), "max": float(x.max()),
+                        "rms": float(np.sqrt(np.mean(x ** 2))),
+                        "paired_difference_mean": float(d.mean()),
+                        "paired_difference_se": float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else float("nan"),
+                        "seeds_lower_than_first": int(np.sum(d < 0))}
+        out.append(row)
+    return out
+
+
+def main(argv=None) -> int:
+    from minegeo.io import read_trajectory
+    from minegeo.io.frames import iter_frames, list_frames
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=Path, required=True)
-    ap.add_argument("--truth", type=Path, required=True, help="TUM file of the true sensor poses at the frame times")
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--frames", type=Path)
+    src.add_argument("--demo-seeds", type=int, nargs="+", help="draw the demo's sequence with each of these seeds")
+    ap.add_argument("--truth", type=Path, help="with --frames: TUM file of the true sensor poses at the frame times")
     ap.add_argument("--odometry", choices=("frame", "submap"), required=True)
     ap.add_argument("--values", type=int, nargs="+", default=[9, 1])
     ap.add_argument("--json", type=Path, required=True)
     ap.add_argument("--md", type=Path, required=True)
     a = ap.parse_args(argv)
+    if a.frames is not None and a.truth is None:
+        ap.error("--frames needs --truth")
 
-    truth = read_trajectory(a.truth)
-    gt = Trajectory(truth.times_s, np.einsum("ij,njk->nik", np.linalg.inv(truth.poses[0]), truth.poses))
-    frames = [(float(f[0].time_s), f[1]) for f in iter_frames(list_frames(a.frames))]
-    base = SlamParams()
     up0, rows = _uptime(), []
-    for v in a.values:
-        p = replace(base, odometry=replace(base.odometry, covariance_frames=v, frame_target=a.odometry))
-        t0 = time.perf_counter()
-        o = run_odometry(frames, p.odometry)  # the front end, scored alone, then the back end on it (run_slam's two steps)
-        r = run_backend(o, p, odometry_s=time.perf_counter() - t0)
-        wall = time.perf_counter() - t0
-        est, od = Trajectory(r.times_s, r.poses), Trajectory(o.times_s, o.poses)
-        ev, ev_a = evaluate_trajectory(est, gt, align=False), evaluate_trajectory(est, gt, align=True)
-        eo, eo_a = evaluate_trajectory(od, gt, align=False), evaluate_trajectory(od, gt, align=True)
-        rows.append({"covariance_frames": v, "default": v == base.odometry.covariance_frames,
-                     "ate_rmse_m": float(ev.ate.rmse), "ate_max_m": float(ev.ate.max),
-                     "ate_aligned_m": float(ev_a.ate.rmse),
-                     "odometry_ate_m": float(eo.ate.rmse), "odometry_ate_aligned_m": float(eo_a.ate.rmse),
-                     "odometry_end_error_m": float(np.linalg.norm(o.poses[-1][:3, 3] - gt.poses[-1][:3, 3])),
-                     "keyframes": int(len(r.keyframes)), "wall_s": wall})
-        print(rows[-1], flush=True)
+    if a.frames is not None:
+        gt = _relative_to_first(read_trajectory(a.truth))
+        frames = [(float(f[0].time_s), f[1]) for f in iter_frames(list_frames(a.frames))]
+        for v in a.values:
+            rows.append(_score(frames, gt, v, a.odometry))
+            print(rows[-1], flush=True)
+        n_frames = len(frames)
+    else:
+        n_frames = {}
+        for seed in a.demo_seeds:
+            frames, truth = _demo_sequence(seed)
+            n_frames[seed] = len(frames)
+            for v in a.values:
+                rows.append({"seed": seed, **_score(frames, _relative_to_first(truth), v, a.odometry)})
+                print(rows[-1], flush=True)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=Path(__file__).parent).stdout.strip()
-    meta = {"date": dt.date.today().isoformat(), "commit": commit, "frames": str(a.frames), "n_frames": len(frames),
-            "truth": str(a.truth), "frame_target": a.odometry, "numba_threads": os.environ.get("NUMBA_NUM_THREADS", "unset"),
+    source = str(a.frames) if a.frames is not None else f"the demo's sequence, seeds {a.demo_seeds}"
+    meta = {"date": dt.date.today().isoformat(), "commit": commit, "frames": source, "n_frames": n_frames,
+            "truth": str(a.truth) if a.truth else "the simulator's poses", "frame_target": a.odometry,
+            "numba_threads": os.environ.get("NUMBA_NUM_THREADS", "unset"),
             "uptime_before": up0, "uptime_after": _uptime(),
             "command": "python benchmarks/bench_covariance_frames.py " + " ".join(argv or sys.argv[1:])}
-    a.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
-    lines = [f"*{meta['date']}, commit {commit}, {len(frames)} frames of `{a.frames}`, odometry '{a.odometry}', "
-             f"Numba threads {meta['numba_threads']}; load: `{up0}` → `{meta['uptime_after']}`.*", "",
-             "| covariance_frames | SLAM ATE RMSE, no alignment / max | SLAM ATE aligned | odometry ATE, no alignment "
-             "/ aligned | odometry error at the last frame | keyframes | SLAM wall s |", "|---|---|---|---|---|---|---|"]
+    out = {"meta": meta, "rows": rows}
+    if a.demo_seeds is not None:
+        out["summary"] = _summary(rows, a.values)
+    a.json.write_text(json.dumps(out, indent=2) + "\n")
+    a.md.write_text("\n".join(_markdown(meta, rows, out.get("summary"), a.values)) + "\n")
+    return 0
+
+
+def _markdown(meta: dict, rows: list[dict], summary, values) -> list[str]:
+    n = meta["n_frames"]
+    what = f"{n} frames of `{meta['frames']}`" if isinstance(n, int) else f"{meta['frames']}"
+    lines = [f"*{meta['date']}, commit {meta['commit']}, {what}, odometry '{meta['frame_target']}', "
+             f"Numba threads {meta['numba_threads']}; load: `{meta['uptime_before']}` → `{meta['uptime_after']}`.*", ""]
+    if summary is not None:
+        lines += [f"Over {summary[0]['seeds']} seeds (no alignment, both in their first pose's frame; the paired "
+                  f"difference is against covariance_frames = {values[0]}, mean ± its standard error):", "",
+                  "| covariance_frames | SLAM ATE median (min-max) | SLAM ATE RMS over seeds | paired difference | "
+                  "seeds lower | odometry ATE median (min-max) | odometry paired difference | seeds lower |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for s in summary:
+            a, o = s["ate_rmse_m"], s["odometry_ate_m"]
+            lines.append(f"| {s['covariance_frames']} | {a['median']:.3f} m ({a['min']:.3f}-{a['max']:.3f}) | "
+                         f"{a['rms']:.3f} m | {a['paired_difference_mean'] * 1e3:+.1f} ± "
+                         f"{a['paired_difference_se'] * 1e3:.1f} mm | {a['seeds_lower_than_first']} | "
+                         f"{o['median']:.3f} m ({o['min']:.3f}-{o['max']:.3f}) | "
+                         f"{o['paired_difference_mean'] * 1e3:+.1f} ± {o['paired_difference_se'] * 1e3:.1f} mm | "
+                         f"{o['seeds_lower_than_first']} |")
+        lines += ["", "Per seed:", ""]
+    seed_col = summary is not None
+    lines += [("| seed " if seed_col else "") + "| covariance_frames | SLAM ATE RMSE, no alignment / max | SLAM ATE "
+              "aligned | odometry ATE, no alignment / aligned | odometry error at the last frame | keyframes | "
+              "SLAM wall s |", "|---" * (8 if seed_col else 7) + "|"]
     for r in rows:
-        lines.append(f"| {r['covariance_frames']}{' (default)' if r['default'] else ''} | {r['ate_rmse_m']:.3f} / "
+        lines.append((f"| {r['seed']} " if seed_col else "") +
+                     f"| {r['covariance_frames']}{' (default)' if r['default'] else ''} | {r['ate_rmse_m']:.3f} / "
                      f"{r['ate_max_m']:.3f} m | {r['ate_aligned_m']:.3f} m | {r['odometry_ate_m']:.3f} / "
                      f"{r['odometry_ate_aligned_m']:.3f} m | {r['odometry_end_error_m']:.3f} m | {r['keyframes']} | "
                      f"{r['wall_s']:.1f} |")
-    a.md.write_text("\n".join(lines) + "\n")
-    return 0
+    return lines
 
 
 if __name__ == "__main__":
