@@ -104,7 +104,7 @@ def main(argv=None) -> int:
                       "paired_difference_se_m": float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else float("nan"),
                       "seeds_lower_than_first": int(np.sum(d < 0))}
     meta = {"date": dt.date.today().isoformat(), "trees": {n: {"dir": str(t), "commit": _commit(t)} for n, t in trees},
-            "simulated_by": _commit(Path(__file__).parent), "seeds": a.seeds, "numba_threads": 1,
+            "commit": _commit(Path(__file__).parent), "simulated_by": _commit(Path(__file__).parent), "seeds": a.seeds, "numba_threads": 1,
             "uptime_before": up0, "uptime_after": _uptime(),
             "command": "python benchmarks/bench_demo_slam_seeds.py " + " ".join(argv or sys.argv[1:])}
     a.json.write_text(json.dumps({"meta": meta, "summary": summary, "rows": rows}, indent=2) + "\n")
