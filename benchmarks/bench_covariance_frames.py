@@ -87,7 +87,28 @@ def _score(frames, gt, v: int, frame_target: str) -> dict:
             "ate_rmse_m": float(ev.ate.rmse), "ate_max_m": float(ev.ate.max), "ate_aligned_m": float(ev_a.ate.rmse),
             "odometry_ate_m": float(eo.ate.rmse), "odometry_ate_aligned_m": float(eo_a.ate.rmse),
             "odometry_end_error_m": float(np.linalg.norm(o.poses[-1][:3, 3] - gt.poses[-1][:3, 3])),
-            "keyframes": int(len(r.keyframes)), "wall_s": wall}
+            "keyframes": int(len(r.keyframes)), **_edge_errors(o, gt),
+            "plane_nodes": None if r.planes is None else int(r.planes.n_planes), "wall_s": wall}
+
+
+def _edge_errors(o, gt) -> dict:
+    """RMS over the odometry's keyframe edges of the edge's error against the truth's relative pose,
+    split along the true step (horizontal), across it (horizontal) and vertical (m), and of its yaw (deg);
+    in the earlier keyframe's frame levelled by the truth."""
+    kf, out = o.keyframes, []
+    for i in range(len(kf) - 1):
+        A, B = gt.poses[kf[i]], gt.poses[kf[i + 1]]
+        T_est = A @ o.keyframe_edges[i]  # the later keyframe placed from the true earlier one by the edge
+        e = T_est[:3, 3] - B[:3, 3]  # world frame
+        step = B[:2, 3] - A[:2, 3]
+        u = step / max(np.linalg.norm(step), 1e-9)
+        R = B[:3, :3].T @ T_est[:3, :3]
+        yaw = np.degrees(np.arctan2(R[1, 0] - R[0, 1], R[0, 0] + R[1, 1]))
+        out.append((e[:2] @ u, e[0] * -u[1] + e[1] * u[0], e[2], yaw))
+    E = np.asarray(out).reshape(-1, 4)
+    rms = np.sqrt(np.mean(E ** 2, axis=0)) if len(E) else np.full(4, np.nan)
+    return {"edge_along_rms_m": float(rms[0]), "edge_across_rms_m": float(rms[1]), "edge_vertical_rms_m": float(rms[2]),
+            "edge_yaw_rms_deg": float(rms[3])}
 
 
 def _relative_to_first(truth):
@@ -105,9 +126,10 @@ def _summary(rows: list[dict], values: list[int]) -> list[dict]:
         first = {r["seed"]: r for r in rows if r["covariance_frames"] == values[0]}
         seeds = sorted(mine)
         row = {"covariance_frames": v, "seeds": len(seeds)}
-        for key in ("ate_rmse_m", "ate_aligned_m", "odometry_ate_m", "odometry_end_error_m"):
-            x = np.array([mine[s][key] for s in seeds])
-            d = x - np.array([first[s][key] for s in seeds])
+        for key in ("ate_rmse_m", "ate_aligned_m", "odometry_ate_m", "odometry_end_error_m", "edge_along_rms_m",
+                    "edge_across_rms_m", "edge_vertical_rms_m", "edge_yaw_rms_deg", "plane_nodes"):
+            x = np.array([np.nan if mine[s][key] is None else mine[s][key] for s in seeds], dtype=np.float64)
+            d = x - np.array([np.nan if first[s][key] is None else first[s][key] for s in seeds], dtype=np.float64)
             row[key] = {"median": float(np.median(x)), "min": float(x.min()), "max": float(x.max()),
                         "rms": float(np.sqrt(np.mean(x ** 2))),
                         "paired_difference_mean": float(d.mean()),
@@ -185,16 +207,28 @@ def _markdown(meta: dict, rows: list[dict], summary, values) -> list[str]:
                          f"{o['median']:.3f} m ({o['min']:.3f}-{o['max']:.3f}) | "
                          f"{o['paired_difference_mean'] * 1e3:+.1f} ± {o['paired_difference_se'] * 1e3:.1f} mm | "
                          f"{o['seeds_lower_than_first']} |")
+        lines += ["", "The odometry's keyframe edges against the truth (RMS over a run's edges, median over the seeds; "
+                  "along / across the true step and vertical, and yaw), and the floor plane nodes of the SLAM:", "",
+                  "| covariance_frames | edge error along | across | vertical | yaw | plane nodes |",
+                  "|---|---|---|---|---|---|"]
+        for s in summary:
+            lines.append(f"| {s['covariance_frames']} | {s['edge_along_rms_m']['median'] * 1e3:.1f} mm | "
+                         f"{s['edge_across_rms_m']['median'] * 1e3:.1f} mm | "
+                         f"{s['edge_vertical_rms_m']['median'] * 1e3:.1f} mm | {s['edge_yaw_rms_deg']['median']:.3f}° | "
+                         f"{s['plane_nodes']['median']:g} ({s['plane_nodes']['min']:g}-{s['plane_nodes']['max']:g}) |")
         lines += ["", "Per seed:", ""]
     seed_col = summary is not None
     lines += [("| seed " if seed_col else "") + "| covariance_frames | SLAM ATE RMSE, no alignment / max | SLAM ATE "
               "aligned | odometry ATE, no alignment / aligned | odometry error at the last frame | keyframes | "
-              "SLAM wall s |", "|---" * (8 if seed_col else 7) + "|"]
+              "keyframe edge error along / across / vertical | edge yaw | plane nodes | SLAM wall s |",
+              "|---" * (11 if seed_col else 10) + "|"]
     for r in rows:
         lines.append((f"| {r['seed']} " if seed_col else "") +
                      f"| {r['covariance_frames']}{' (default)' if r['default'] else ''} | {r['ate_rmse_m']:.3f} / "
                      f"{r['ate_max_m']:.3f} m | {r['ate_aligned_m']:.3f} m | {r['odometry_ate_m']:.3f} / "
                      f"{r['odometry_ate_aligned_m']:.3f} m | {r['odometry_end_error_m']:.3f} m | {r['keyframes']} | "
+                     f"{r['edge_along_rms_m'] * 1e3:.1f} / {r['edge_across_rms_m'] * 1e3:.1f} / "
+                     f"{r['edge_vertical_rms_m'] * 1e3:.1f} mm | {r['edge_yaw_rms_deg']:.3f}° | {r['plane_nodes']} | "
                      f"{r['wall_s']:.1f} |")
     return lines
 
