@@ -553,7 +553,7 @@ RENDERERS = {
     "demo_slam_seeds": md_copy("demo_slam_seeds_2026-12-01", [0], extra=(
         "`git worktree add /tmp/minegeo-6db6ec7 6db6ec7; python benchmarks/bench_demo_slam_seeds.py --seeds $(seq 1 30) "
         "--work /tmp/demo_seeds --trees 6db6ec7=/tmp/minegeo-6db6ec7 HEAD=. --json … --md …`")),
-    "covariance_frames_demo_seeds": md_copy("covariance_frames_2026-12-01_demo_seeds", [0], extra=(
+    "covariance_frames_demo_seeds": md_copy("covariance_frames_2026-12-01_demo_seeds", [0, 1], extra=(
         "`python benchmarks/bench_covariance_frames.py --demo-seeds $(seq 1 30) --odometry frame --values 9 1 "
         "--json … --md …`")),
     "fresh_install": render_fresh_install,
