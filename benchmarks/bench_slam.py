@@ -21,7 +21,8 @@ distance) over 10 m and 100 m of path; end-point drift (position error of the la
 alignment, m and % of path). The estimate and the truth share the first frame's pose as origin.
 
 Generated frames are cached under ``--cache`` (default ``~/.cache/minegeo_bench/slam``): one
-``.npz`` per sequence (about 150 MB in all), odometry as a pickle beside it.
+``.npz`` per sequence (about 150 MB in all), odometry as a pickle beside it (keyed by the parameters
+and the source of the installed ``minegeo``).
 
 Usage::
 
@@ -118,10 +119,15 @@ VARIANTS = {  # name: (use_loops, use_planes)
 
 
 def _odometry(name: str, frames, cache: Path, params):
-    """The odometry of ``name`` (cached as a pickle keyed by the parameters) and its time (s)."""
+    """The odometry of ``name`` (cached as a pickle keyed by the parameters and the library's source:
+    a changed odometry is run again, not read from the cache) and its time (s)."""
+    import minegeo
     from minegeo.slam.odometry import run_odometry
 
-    key = hashlib.sha256(repr(params).encode()).hexdigest()[:10]
+    h = hashlib.sha256(repr(params).encode())
+    for src in sorted(Path(minegeo.__file__).parent.rglob("*.py")):
+        h.update(src.read_bytes())
+    key = h.hexdigest()[:10]
     f = cache / f"{name}.odometry.{key}.pkl"
     if f.exists():
         with open(f, "rb") as fh:
