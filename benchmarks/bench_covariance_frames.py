@@ -92,9 +92,9 @@ def _score(frames, gt, v: int, frame_target: str) -> dict:
 
 
 def _edge_errors(o, gt) -> dict:
-    """RMS over the odometry's keyframe edges of the edge's error against the truth's relative pose,
-    split along the true step (horizontal), across it (horizontal) and vertical (m), and of its yaw (deg);
-    in the earlier keyframe's frame levelled by the truth."""
+    """RMS over the odometry's keyframe edges of the error of the later keyframe placed from the true
+    earlier one by the edge, against its true pose, in the world frame: along the true horizontal step,
+    across it (to its left) and vertical (m), and its rotation about the vertical (yaw, deg)."""
     kf, out = o.keyframes, []
     for i in range(len(kf) - 1):
         A, B = gt.poses[kf[i]], gt.poses[kf[i + 1]]
@@ -102,7 +102,7 @@ def _edge_errors(o, gt) -> dict:
         e = T_est[:3, 3] - B[:3, 3]  # world frame
         step = B[:2, 3] - A[:2, 3]
         u = step / max(np.linalg.norm(step), 1e-9)
-        R = B[:3, :3].T @ T_est[:3, :3]
+        R = T_est[:3, :3] @ B[:3, :3].T  # the rotation error in the world frame
         yaw = np.degrees(np.arctan2(R[1, 0] - R[0, 1], R[0, 0] + R[1, 1]))
         out.append((e[:2] @ u, e[0] * -u[1] + e[1] * u[0], e[2], yaw))
     E = np.asarray(out).reshape(-1, 4)
