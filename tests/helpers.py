@@ -16,7 +16,9 @@ extra to install, unless ``MINEGEO_REQUIRE_EXTRAS=1`` (set by ``.ci/run``), in w
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -99,3 +101,13 @@ def cli_localize_params(levelled: bool):
     opts = ["--profile", "fast"] + (["--levelled", "3"] if levelled else [])
     args = build_parser(["localize"]).parse_args(["localize", "--map", "m", "--scan", "s", "--out", "o", *opts])
     return params_from_args(args)
+
+
+def load_script(relpath: str, name: str):
+    """The script ``REPO/relpath`` (a benchmark or a docs tool, not a package module) imported as the
+    module ``name`` (registered in ``sys.modules``, as dataclasses need)."""
+    spec = importlib.util.spec_from_file_location(name, REPO / relpath)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod

@@ -8,24 +8,10 @@ the "Computed in" column (the hand-written columns are kept).
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
+from helpers import load_script
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location("_equations_index", ROOT / "docs" / "_equations_index.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-IX = _load()
+IX = load_script("docs/_equations_index.py", "_equations_index")
 
 
 @pytest.fixture(scope="module")

@@ -8,25 +8,17 @@ and the file disagree (``--check``).
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 from pathlib import Path
 
 import pytest
+from helpers import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("render_docs_figures",
-                                                  ROOT / "benchmarks" / "render_docs_figures.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-render = _script()
+render = load_script("benchmarks/render_docs_figures.py", "render_docs_figures")
 
 
 def test_every_figures_block_agrees_with_its_results_file():

@@ -10,23 +10,16 @@ each side of O; a right-angle crossing has one, at O (clearance r sqrt(2) to the
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
+from helpers import load_script
 
 from minegeo.synth.network import DriftNetwork
-
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_intersections.py"
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_intersections_truth", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks/bench_intersections.py", "bench_intersections_truth")
 
 
 def _cross(theta_deg: float, width: float = 2.9, half_len: float = 25.0) -> DriftNetwork:

@@ -8,22 +8,16 @@ with a tilted sensor, so an axis taken in the sensor frame or a sign swapped sho
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
-
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_covariance_frames.py"
+from helpers import load_script
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_covariance_frames_test", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks/bench_covariance_frames.py", "bench_covariance_frames_test")
 
 
 def _rot(axis: int, deg: float) -> np.ndarray:
