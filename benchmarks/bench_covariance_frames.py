@@ -117,24 +117,28 @@ def _relative_to_first(truth):
     return Trajectory(truth.times_s, np.einsum("ij,njk->nik", np.linalg.inv(truth.poses[0]), truth.poses))
 
 
+def paired_stats(x, ref) -> dict:
+    """Of a measure ``x`` over seeds and the same seeds' ``ref`` (paired by position): its median, min,
+    max and RMS, and ``x − ref``'s mean, that mean's standard error and the seeds where ``x < ref``."""
+    x, d = np.asarray(x, dtype=np.float64), np.asarray(x, dtype=np.float64) - np.asarray(ref, dtype=np.float64)
+    return {"median": float(np.median(x)), "min": float(x.min()), "max": float(x.max()),
+            "rms": float(np.sqrt(np.mean(x ** 2))), "paired_difference_mean": float(d.mean()),
+            "paired_difference_se": float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else float("nan"),
+            "seeds_lower_than_first": int(np.sum(d < 0))}
+
+
 def _summary(rows: list[dict], values: list[int]) -> list[dict]:
-    """Per value over the seeds: median / min / max of the SLAM and odometry ATE (no alignment), and
-    against the first value the paired difference (mean, its standard error) and the seeds it is lower on."""
+    """Per value over the seeds, of each measure, :func:`paired_stats` against the first value."""
+    first = {r["seed"]: r for r in rows if r["covariance_frames"] == values[0]}
     out = []
     for v in values:
         mine = {r["seed"]: r for r in rows if r["covariance_frames"] == v}
-        first = {r["seed"]: r for r in rows if r["covariance_frames"] == values[0]}
         seeds = sorted(mine)
         row = {"covariance_frames": v, "seeds": len(seeds)}
         for key in ("ate_rmse_m", "ate_aligned_m", "odometry_ate_m", "odometry_end_error_m", "edge_along_rms_m",
                     "edge_across_rms_m", "edge_vertical_rms_m", "edge_yaw_rms_deg", "plane_nodes"):
-            x = np.array([np.nan if mine[s][key] is None else mine[s][key] for s in seeds], dtype=np.float64)
-            d = x - np.array([np.nan if first[s][key] is None else first[s][key] for s in seeds], dtype=np.float64)
-            row[key] = {"median": float(np.median(x)), "min": float(x.min()), "max": float(x.max()),
-                        "rms": float(np.sqrt(np.mean(x ** 2))),
-                        "paired_difference_mean": float(d.mean()),
-                        "paired_difference_se": float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else float("nan"),
-                        "seeds_lower_than_first": int(np.sum(d < 0))}
+            row[key] = paired_stats([np.nan if mine[s][key] is None else mine[s][key] for s in seeds],
+                                    [np.nan if first[s][key] is None else first[s][key] for s in seeds])
         out.append(row)
     return out
 

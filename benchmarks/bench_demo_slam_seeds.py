@@ -34,7 +34,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from bench_covariance_frames import _demo_sequence, _relative_to_first, _uptime
+from bench_covariance_frames import _demo_sequence, _relative_to_first, _uptime, paired_stats
 
 
 def _commit(tree: Path) -> str:
@@ -97,14 +97,11 @@ def main(argv=None) -> int:
     ok = [r for r in rows if all("ate_rmse_m" in r[n] for n in names)]  # a failed run is listed, not scored
     summary = {"seeds_scored": len(ok), "seeds_failed": [r["seed"] for r in rows if r not in ok]}
     for n in names:
-        x = np.array([r[n]["ate_rmse_m"] for r in ok])
-        d = x - np.array([r[names[0]]["ate_rmse_m"] for r in ok])
-        summary[n] = {"median_m": float(np.median(x)), "min_m": float(x.min()), "max_m": float(x.max()),
-                      "rms_m": float(np.sqrt(np.mean(x ** 2))), "paired_difference_mean_m": float(d.mean()),
-                      "paired_difference_se_m": float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else float("nan"),
-                      "seeds_lower_than_first": int(np.sum(d < 0))}
+        s = paired_stats([r[n]["ate_rmse_m"] for r in ok], [r[names[0]]["ate_rmse_m"] for r in ok])
+        summary[n] = {(k if k == "seeds_lower_than_first" else k + "_m"): v for k, v in s.items()}
+    here = _commit(Path(__file__).parent)
     meta = {"date": dt.date.today().isoformat(), "trees": {n: {"dir": str(t), "commit": _commit(t)} for n, t in trees},
-            "commit": _commit(Path(__file__).parent), "simulated_by": _commit(Path(__file__).parent), "seeds": a.seeds, "numba_threads": 1,
+            "commit": here, "simulated_by": here, "seeds": a.seeds, "numba_threads": 1,
             "uptime_before": up0, "uptime_after": _uptime(),
             "command": "python benchmarks/bench_demo_slam_seeds.py " + " ".join(argv or sys.argv[1:])}
     a.json.write_text(json.dumps({"meta": meta, "summary": summary, "rows": rows}, indent=2) + "\n")
