@@ -122,7 +122,7 @@ FORMER_DEFAULTS = {
                          "vote_fraction": 1.0, "static_min_keyframes": 3, "static_radius_m": 0.2, "seed": 0},
     InertialParams: {"noise": ImuNoise(), "max_gap_s": 0.05, "gravity_window_s": 1.0, "roll_pitch_sigma_deg": 0.3,
                      "gyro_bias_sigma": 0.05, "accel_bias_sigma": 0.5, "rotation_sigma_deg": 0.05,
-                     "edge_sigma_deg": 0.2, "edge_sigma_m": 0.02, "gate_tolerance_deg": 2.0, "gate_sigmas": 4.0},
+                     "edge_sigma_deg": 0.05, "edge_sigma_m": 0.005, "gate_tolerance_deg": 2.0, "gate_sigmas": 4.0},
     LMParams: _LM,
     PoseGraphParams: {**_LM, "indefinite_information": "gtsam"},
     ControlParams: {"mode": "graph", "model": "rigid", "class_c": 50.0, "lm": LMParams(), "drift_states": False,

@@ -671,7 +671,7 @@ def run(args) -> int:
             "outputs": {n: str(out / n) for n in ("trajectory.tum", "keyframes.tum", "graph.g2o", "loops.csv", "map.ply",
                                                   "result.json", "report.html")},
             **({"control": control_rec} if control_rec is not None else {}),
-            **({"imu_noise": asdict(inertial.noise)} if inertial is not None else {}),
+            **({"imu_noise": asdict(inertial.noise), "inertial": asdict(inertial)} if inertial is not None else {}),
             "module_timings_s": res.timings_s,
             "timings_s": {**timer.as_dict(), **run_timings(args)},
             "provenance": provenance(seed=args.seed, inputs=inputs),

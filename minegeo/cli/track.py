@@ -369,7 +369,7 @@ def run(args) -> int:
                    "inputs": {"frames": str(args.frames), "db": str(args.db),
                               **({"map": str(args.map)} if args.map else {})}, "result": result,
                    "outputs": {n: str(out / n) for n in [*names, "result.json", "report.html"]},
-                   **({"imu_noise": asdict(inertial.noise)} if inertial is not None else {}),
+                   **({"imu_noise": asdict(inertial.noise), "inertial": asdict(inertial)} if inertial is not None else {}),
                    "module_timings_s": res.timings_s, "timings_s": {**timer.as_dict(), **run_timings(args)},
                    "provenance": provenance(seed=args.seed, origin=kb.georef.get("origin_m"), inputs=inputs)}
         write_json_atomic(stage / "result.json", summary)
