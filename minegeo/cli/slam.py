@@ -78,7 +78,7 @@ def add_arguments(parser) -> None:
                         help="1 (default): after registering a frame, deskew it again with its own estimated motion "
                         "and register once more; 0: one pass")
     parser.add_argument("--odometry", choices=("auto", "submap", "frame"), default="auto",
-                        help="what each frame registers to: 'submap' the local map of the last 5 keyframes, 'frame' "
+                        help="what each frame registers to: 'submap' the local map of the last keyframes, 'frame' "
                         "the previous frame (Ren2019 Eq. 7; keyframes refined against the local map); 'auto' "
                         f"(default): submap for a sensor stream (median frame interval up to {STREAM_INTERVAL_S:g} s), "
                         "frame for a log of keyframes farther apart")
