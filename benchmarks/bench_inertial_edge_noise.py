@@ -78,6 +78,10 @@ def _run(stream: Path, run: Path, pair) -> dict:
     return {"wall_s": wall, **_ate(est.times_s, est.poses, truth)}
 
 
+def _commit() -> str:
+    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, capture_output=True, text=True).stdout.strip()
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--work", type=Path, required=True)
@@ -86,7 +90,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     a.work.mkdir(parents=True, exist_ok=True)
     up0 = os.getloadavg()
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, capture_output=True, text=True).stdout.strip()
+    commit0 = _commit()
     rows = []
     for seq, seed in STREAMS:
         carrier, network = SEQUENCES[seq]
@@ -97,7 +101,12 @@ def main(argv=None) -> int:
             label = "no IMU" if pair is None else f"{pair[0]:g}°, {1000 * pair[1]:g} mm"
             _log(f"{seq}, seed {seed} / {label}: {r['ate_unaligned_pct']:.3f} % unaligned")
             rows.append({"sequence": seq, "seed": seed, "edge_sigma": pair, "label": label, **r})
-    meta = {"date": dt.date.today().isoformat(), "commit": commit, "duration_s": 20.0,
+    commit = _commit()
+    if subprocess.run(["git", "status", "--porcelain", "--", "../minegeo"], capture_output=True, text=True,
+                      cwd=HERE).stdout.strip():
+        commit += "+dirty"
+    meta = {"date": dt.date.today().isoformat(), "commit": commit if commit.startswith(commit0) else f"{commit0}..{commit}",
+            "duration_s": 20.0,
             "numba_threads": os.environ.get("NUMBA_NUM_THREADS", "default"), "load_before": up0,
             "load_after": os.getloadavg(), "cpus": os.cpu_count(),
             "command": "python benchmarks/bench_inertial_edge_noise.py " + " ".join(argv or sys.argv[1:])}

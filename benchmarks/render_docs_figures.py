@@ -529,15 +529,18 @@ INTERSECTION_SHORT = ("Method", "MAE (m)", "RMSE (m)", "max (m)", "REP-5 (%)", "
                       "status")
 
 
+#: bench_stream_ate's --modes of the re-measured tables (the oracle's rows in the same run)
+MODES4 = 'raw deskewed "deskewed + IMU" "deskewed by the truth"'
+
 #: the oracle table's streams: (row label, sequence, results stem of the deskewed row, of the oracle's)
 ORACLE_STREAMS = (
-    *((f"{label}, 20 s", seq, "stream_ate_2026-11-30b_local_map", "stream_ate_2026-12-01_truth_deskewed")
+    *((f"{label}, 20 s", seq, "stream_ate_2026-12-01b_local_map", "stream_ate_2026-12-01b_local_map")
       for label, seq in (("vehicle, loop", "vehicle, loop 3.2 m"), ("vehicle, junctions", "vehicle, junctions 3.5 m"),
                          ("drone, NIOSH", "drone, NIOSH 2.9 m"), ("handheld, loop", "handheld, loop 3.2 m"))),
-    *((f"drone, NIOSH, 60 s, seed {k}", "drone, NIOSH 2.9 m", "stream_ate_2026-11-30b_drone60" + ("" if k == 1 else f"_seed{k}"),
-       f"stream_ate_2026-12-01_truth_deskewed_drone60_seed{k}") for k in (1, 2, 3)),
-    *((f"vehicle, paper {n}", f"vehicle, paper {n}", f"stream_ate_2026-11-30b_paper_{n}",
-       f"stream_ate_2026-12-01_truth_deskewed_paper_{n}") for n in ("ring", "straight", "ramp")),
+    *((f"drone, NIOSH, 60 s, seed {k}", "drone, NIOSH 2.9 m", "stream_ate_2026-12-01b_drone60" + ("" if k == 1 else f"_seed{k}"),
+       "stream_ate_2026-12-01b_drone60" + ("" if k == 1 else f"_seed{k}")) for k in (1, 2, 3)),
+    *((f"vehicle, paper {n}", f"vehicle, paper {n}", f"stream_ate_2026-12-01b_paper_{n}",
+       f"stream_ate_2026-12-01b_paper_{n}") for n in ("ring", "straight", "ramp")),
 )
 
 RENDERERS = {
@@ -588,7 +591,7 @@ RENDERERS = {
                            extra="1 thread on both sides, the same 12 busy loops; `NUMBA_NUM_THREADS=1 python "
                                  "benchmarks/bench_realtime.py --threads 1 --duration-s 20 --repeats 2 --odometry submap`"),
     "slam_deskew": md_copy("deskew_2026-11-30b", [0], extra="`python benchmarks/bench_deskew.py --duration-s 20`"),
-    "slam_imu": md_copy("slam_imu_2026-11-30b", [0], extra="`python benchmarks/bench_slam_imu.py --duration-s 20`"),
+    "slam_imu": md_copy("slam_imu_2026-12-01", [0], extra="`python benchmarks/bench_slam_imu.py --duration-s 20`"),
     "control_driftauto": control_table("control_2026-11-29_driftauto_lr"),
     "control_driftauto_weakbias": control_table("control_2026-11-29_driftauto_lr_weakbias"),
     "control_driftauto_lownoise": control_table("control_2026-11-29_driftauto_lownoise"),
@@ -609,34 +612,40 @@ RENDERERS = {
                              ("niosh_08_noimu", "2026-11-29_niosh_0.8km_noimu", INTERSECTION_SHORT),
                              ("niosh_before", "2026-11-28_niosh", INTERSECTION_FULL),
                              ("corridor", "2026-11-28_corridor", INTERSECTION_FULL))},
-    "stream_ate_local_map": md_copy("stream_ate_2026-11-30b_local_map", [0],
+    "stream_ate_local_map": md_copy("stream_ate_2026-12-01b_local_map", [0],
                                     extra="`python benchmarks/bench_stream_ate.py --duration-s 20 --sequences "
-                                          f"{NETWORK_SEQUENCES} --kiss-from benchmarks/results/stream_ate_2026-11-29.json`"),
-    "stream_ate_drone60": md_copy("stream_ate_2026-11-30b_drone60", [0],
+                                          f"{NETWORK_SEQUENCES} --modes {MODES4} "
+                                          "--kiss-from benchmarks/results/stream_ate_2026-11-29.json`"),
+    "stream_ate_drone60": md_copy("stream_ate_2026-12-01b_drone60", [0],
                                   extra="`python benchmarks/bench_stream_ate.py --duration-s 60 --sequences "
-                                        "\"drone, NIOSH 2.9 m\" --kiss-from benchmarks/results/stream_ate_2026-11-29_drone60.json`"),
-    **{f"stream_ate_drone60_seed{k}": md_copy(f"stream_ate_2026-11-30b_drone60_seed{k}", [0],
+                                        f"\"drone, NIOSH 2.9 m\" --modes {MODES4} "
+                                        "--kiss-from benchmarks/results/stream_ate_2026-11-29_drone60.json`"),
+    **{f"stream_ate_drone60_seed{k}": md_copy(f"stream_ate_2026-12-01b_drone60_seed{k}", [0],
                                               extra=f"`python benchmarks/bench_stream_ate.py --duration-s 60 --seed {k} "
-                                                    "--sequences \"drone, NIOSH 2.9 m\"`")
+                                                    f"--sequences \"drone, NIOSH 2.9 m\" --modes {MODES4} --kiss-from "
+                                                    f"benchmarks/results/stream_ate_2026-11-30b_drone60_seed{k}.json`")
        for k in (2, 3)},
-    **{f"stream_ate_paper_{n}": md_copy(f"stream_ate_2026-11-30b_paper_{n}", [0],
+    **{f"stream_ate_paper_{n}": md_copy(f"stream_ate_2026-12-01b_paper_{n}", [0],
                                         extra=f"`python benchmarks/bench_stream_ate.py --duration-s {d} --sequences "
-                                              f"\"vehicle, paper {n}\"`")
+                                              f"\"vehicle, paper {n}\" --modes {MODES4} --kiss-from "
+                                              f"benchmarks/results/stream_ate_2026-11-30b_paper_{n}.json`")
        for n, d in (("ring", "41.8"), ("straight", "172"), ("ramp", "88.7"))},
     "stream_ate_oracle": stream_ate_rows(
         [(label, stem, seq, (mode,))
          for label, seq, ours, truth in ORACLE_STREAMS
          for stem, mode in ((ours, "deskewed"), (truth, "deskewed by the truth"))],
-        extra="`python benchmarks/bench_stream_ate.py --modes \"deskewed by the truth\" --no-kiss` with the duration, seed and "
-              "sequence of each stream (the deskewed rows: the files of the tables above)"),
+        extra="the deskewed and oracle rows of the files of the tables above (the same run, the same frames)"),
     "stream_ate_drone20_seeds": stream_ate_rows(
-        [(f"drone, NIOSH, 20 s, seed {k}", f"stream_ate_2026-12-01_drone20_seed{k}", "drone, NIOSH 2.9 m",
+        [(f"drone, NIOSH, 20 s, seed {k}", f"stream_ate_2026-12-01b_drone20_seed{k}", "drone, NIOSH 2.9 m",
           ("raw", "deskewed", "deskewed + IMU", "deskewed by the truth",
            "KISS-ICP (its deskewing), voxel 1.0 m as shipped", "KISS-ICP (its deskewing), voxel 0.25 m for 3 m drifts"))
          for k in (2, 3, 4, 5)],
-        extra="`python benchmarks/bench_stream_ate.py --duration-s 20 --seed K --sequences \"drone, NIOSH 2.9 m\" --modes raw "
-              "deskewed \"deskewed + IMU\" \"deskewed by the truth\"` for K = 2, 3, 4, 5"),
-    "stream_ate": md_copy("stream_ate_2026-11-30b", [0],
+        extra="`python benchmarks/bench_stream_ate.py --duration-s 20 --seed K --sequences \"drone, NIOSH 2.9 m\" "
+              f"--modes {MODES4} --kiss-from benchmarks/results/stream_ate_2026-12-01_drone20_seedK.json` "
+              "for K = 2, 3, 4, 5 (KISS-ICP run on the same frames in that file's run)"),
+    "inertial_edge_noise": md_copy("inertial_edge_noise_2026-12-01", [0],
+                                   extra="`NUMBA_NUM_THREADS=1 python benchmarks/bench_inertial_edge_noise.py --work W`"),
+    "stream_ate": md_copy("stream_ate_2026-12-01b", [0],
                           extra=f"`python benchmarks/bench_stream_ate.py --duration-s 20 --sequences {NETWORK_SEQUENCES} "
                                 "--odometry frame --kiss-from benchmarks/results/stream_ate_2026-11-29.json`"),
     "mast_coverage": md_copy("mast/mast_benchmark", [2]),
