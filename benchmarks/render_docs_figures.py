@@ -645,6 +645,11 @@ RENDERERS = {
               "for K = 2, 3, 4, 5 (KISS-ICP run on the same frames in that file's run)"),
     "inertial_edge_noise": md_copy("inertial_edge_noise_2026-12-01", [0],
                                    extra="`NUMBA_NUM_THREADS=1 python benchmarks/bench_inertial_edge_noise.py --work W`"),
+    **{f"imu_seeds_{k}": md_copy(f"imu_seeds_2026-12-01_{k}", [0],
+                                  extra=f"`NUMBA_NUM_THREADS=1 python benchmarks/bench_imu_seeds.py --sequence \"{seq}\" "
+                                        "--seeds 1-10 --work W`")
+       for k, seq in (("vehicle", "vehicle, loop 3.2 m"), ("handheld", "handheld, loop 3.2 m"),
+                      ("drone", "drone, NIOSH 2.9 m"))},
     "stream_ate": md_copy("stream_ate_2026-12-01b", [0],
                           extra=f"`python benchmarks/bench_stream_ate.py --duration-s 20 --sequences {NETWORK_SEQUENCES} "
                                 "--odometry frame --kiss-from benchmarks/results/stream_ate_2026-11-29.json`"),

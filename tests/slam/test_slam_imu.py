@@ -103,3 +103,33 @@ def test_gyro_deskew_kernel_matches_a_naive_twin():
             R = _twin_rotation(t_imu, gyro, aid.bias_g, t + tau[i], t).T
         np.testing.assert_allclose(q[i], R @ P[i] + tau[i] * v, rtol=0, atol=1e-10)
     assert np.abs(q - P).max() > 0.1  # the sweep did move
+
+
+def test_gyro_deskew_rotation_matches_the_simulators_motion(stream):
+    """The rotation part of the gyro deskewing against the simulator's continuous pose curve, point by
+    point: each point of a handheld sweep (turning at 12-20 °/s) taken into the sensor frame at the frame
+    time by ``R(t)ᵀ R(t + τ)`` of the curve. With the simulator's noise-free rates (``gyro_true``) the
+    gyro's rotation is the curve's; the constant twist of the true motion over the sweep is not (the walk
+    sways within a sweep)."""
+    from minegeo.slam.deskew import deskew_points, twist_from_motion
+    from minegeo.slam.inertial import GyroAid
+
+    sweeps, _truth, imu_true, _ft = stream
+    st = simulate_stream(StreamParams(preset="handheld", duration_s=20.0, lidar_hz=10.0, azimuth_step_deg=0.4, seed=1,
+                                      imu=ImuParams(gyroscope_bias_init=0.02)))
+    aid = GyroAid(ImuSamples(imu_true.t, imu_true.gyro_true, imu_true.accel_true))
+    worst_gyro, worst_cv = 0.0, 0.0
+    for t, P, tau in sweeps[::5]:
+        R0 = st.curve.poses(np.array([t]))[0][:3, :3]
+        Ri = st.curve.poses(t + tau)[:, :3, :3]
+        exact = np.einsum("ji,njk,nk->ni", R0, Ri, P)  # R(t)ᵀ R(t + τ) p
+        gyro = aid.deskew(P, tau, t, np.zeros(3))
+        T0, T1 = st.curve.poses(np.array([t, t + 0.1]))
+        tw = twist_from_motion(np.linalg.inv(T0) @ T1, 0.1)
+        cv = deskew_points(P, tau, np.r_[tw[:3], 0.0, 0.0, 0.0])
+        worst_gyro = max(worst_gyro, float(np.sqrt(np.mean(np.sum((gyro - exact) ** 2, axis=1)))))
+        worst_cv = max(worst_cv, float(np.sqrt(np.mean(np.sum((cv - exact) ** 2, axis=1)))))
+    # measured (three sweeps): 2.0e-5 m with the noise-free gyro (the midpoint rule at 200 Hz), 6.7e-3 m
+    # for the constant twist; stated: the gyro within 0.1 mm RMS and 10 times closer than the constant twist
+    assert worst_gyro < 1e-4, worst_gyro
+    assert worst_gyro < 0.1 * worst_cv, (worst_gyro, worst_cv)
