@@ -22,9 +22,15 @@ from minegeo.synth.stream import StreamParams, iter_sweeps, simulate_stream
 
 
 @pytest.fixture(scope="module")
-def stream():
-    st = simulate_stream(StreamParams(preset="handheld", duration_s=20.0, lidar_hz=10.0, azimuth_step_deg=0.4, seed=1,
-                                      imu=ImuParams(gyroscope_bias_init=0.02)))
+def simulated():
+    """The simulated handheld stream (its continuous pose curve, its IMU record)."""
+    return simulate_stream(StreamParams(preset="handheld", duration_s=20.0, lidar_hz=10.0, azimuth_step_deg=0.4, seed=1,
+                                        imu=ImuParams(gyroscope_bias_init=0.02)))
+
+
+@pytest.fixture(scope="module")
+def stream(simulated):
+    st = simulated
     ft = st.frame_times[130:145]
     sweeps = [(t, P, tau) for t, P, tau, _ring in iter_sweeps(NetworkWorld(st.net), st.sensor, st.curve, ft,
                                                                st.lidar_seed)]
@@ -105,7 +111,7 @@ def test_gyro_deskew_kernel_matches_a_naive_twin():
     assert np.abs(q - P).max() > 0.1  # the sweep did move
 
 
-def test_gyro_deskew_rotation_matches_the_simulators_motion(stream):
+def test_gyro_deskew_rotation_matches_the_simulators_motion(stream, simulated):
     """The rotation part of the gyro deskewing against the simulator's continuous pose curve, point by
     point: each point of a handheld sweep (turning at 12-20 °/s) taken into the sensor frame at the frame
     time by ``R(t)ᵀ R(t + τ)`` of the curve. With the simulator's noise-free rates (``gyro_true``) the
@@ -115,8 +121,7 @@ def test_gyro_deskew_rotation_matches_the_simulators_motion(stream):
     from minegeo.slam.inertial import GyroAid
 
     sweeps, _truth, imu_true, _ft = stream
-    st = simulate_stream(StreamParams(preset="handheld", duration_s=20.0, lidar_hz=10.0, azimuth_step_deg=0.4, seed=1,
-                                      imu=ImuParams(gyroscope_bias_init=0.02)))
+    st = simulated
     aid = GyroAid(ImuSamples(imu_true.t, imu_true.gyro_true, imu_true.accel_true))
     worst_gyro, worst_cv = 0.0, 0.0
     for t, P, tau in sweeps[::5]:
