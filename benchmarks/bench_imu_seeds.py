@@ -22,7 +22,6 @@ import argparse
 import datetime as dt
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -30,22 +29,8 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from bench_covariance_frames import paired_stats  # noqa: E402
-from bench_realtime import _ate  # noqa: E402
+from bench_inertial_edge_noise import _commit, commit_label, run_slam_ate  # noqa: E402
 from bench_stream_ate import SEQUENCES, _stream  # noqa: E402
-
-
-def _commit() -> str:
-    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, capture_output=True, text=True).stdout.strip()
-
-
-def _run(stream: Path, run: Path, imu: bool) -> dict:
-    from minegeo.io.trajectory import read_trajectory
-
-    cmd = [sys.executable, "-m", "minegeo.cli", "--quiet", "slam", "--frames", str(stream / "frames"), "--out", str(run)]
-    subprocess.run(cmd + (["--imu", str(stream / "imu.csv")] if imu else []), check=True)
-    truth = read_trajectory(stream / "groundtruth.txt")
-    est = read_trajectory(run / "trajectory.tum")
-    return _ate(est.times_s, est.poses, truth)
 
 
 def _seeds(text: str) -> list[int]:
@@ -70,7 +55,7 @@ def main(argv=None) -> int:
         r = {"seed": seed}
         for imu in (False, True):
             key = "imu" if imu else "lidar"
-            ate = _run(stream, a.work / f"{stream.name}_{key}", imu)
+            ate = run_slam_ate(stream, a.work / f"{stream.name}_{key}", "default" if imu else None)
             r["path_m"] = ate["path_m"]
             r[f"{key}_unaligned_pct"], r[f"{key}_aligned_pct"] = ate["ate_unaligned_pct"], ate["ate_aligned_pct"]
         print(f"[{time.strftime('%H:%M:%S')}] {a.sequence}, seed {seed}: {r['lidar_unaligned_pct']:.3f} -> "
@@ -78,11 +63,7 @@ def main(argv=None) -> int:
         rows.append(r)
     summary = {f"{k}_{m}": paired_stats([r[f"{k}_{m}_pct"] for r in rows], [r[f"lidar_{m}_pct"] for r in rows])
                for k in ("lidar", "imu") for m in ("unaligned", "aligned")}
-    commit = _commit()
-    if subprocess.run(["git", "status", "--porcelain", "--", "../minegeo"], capture_output=True, text=True,
-                      cwd=HERE).stdout.strip():
-        commit += "+dirty"
-    meta = {"date": dt.date.today().isoformat(), "commit": commit if commit.startswith(commit0) else f"{commit0}..{commit}",
+    meta = {"date": dt.date.today().isoformat(), "commit": commit_label(commit0),
             "sequence": a.sequence, "seeds": a.seeds, "duration_s": 20.0,
             "numba_threads": os.environ.get("NUMBA_NUM_THREADS", "default"), "load_before": load0,
             "load_after": os.getloadavg(), "cpus": os.cpu_count(),

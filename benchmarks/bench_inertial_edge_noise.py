@@ -57,14 +57,20 @@ def _log(msg: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
 
 
-def _run(stream: Path, run: Path, pair) -> dict:
+def run_slam_ate(stream: Path, run: Path, pair) -> dict:
+    """``minegeo slam`` on ``stream/frames`` into ``run``: without the IMU (``pair`` None), with ``--imu``
+    and the CLI's parameters (``"default"``), or with ``--imu`` and the edge noise ``pair = (deg, m)``
+    (checked in the run's ``result.json``); its wall time and ATE (``bench_realtime._ate``)."""
     from minegeo.io.trajectory import read_trajectory
 
     args = ["--quiet", "slam", "--frames", str(stream / "frames"), "--out", str(run)]
+    imu = ["--imu", str(stream / "imu.csv")]
     if pair is None:
         cmd = [sys.executable, "-m", "minegeo.cli", *args]
+    elif pair == "default":
+        cmd, pair = [sys.executable, "-m", "minegeo.cli", *args, *imu], None
     else:
-        cmd = [sys.executable, "-c", WRAPPER.format(d=pair[0], m=pair[1]), *args, "--imu", str(stream / "imu.csv")]
+        cmd = [sys.executable, "-c", WRAPPER.format(d=pair[0], m=pair[1]), *args, *imu]
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True)
     wall = time.perf_counter() - t0
@@ -82,6 +88,16 @@ def _commit() -> str:
     return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, capture_output=True, text=True).stdout.strip()
 
 
+def commit_label(commit0: str) -> str:
+    """The commit a run ended at, ``+dirty`` with uncommitted library changes, as ``start..end`` when it
+    is not the commit ``commit0`` the run started at."""
+    commit = _commit()
+    if subprocess.run(["git", "status", "--porcelain", "--", "../minegeo"], capture_output=True, text=True,
+                      cwd=HERE).stdout.strip():
+        commit += "+dirty"
+    return commit if commit.startswith(commit0) else f"{commit0}..{commit}"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--work", type=Path, required=True)
@@ -97,16 +113,11 @@ def main(argv=None) -> int:
         stream = _stream(a.work, carrier, network, 20.0, seed)
         for pair in PAIRS:
             tag = "no_imu" if pair is None else f"{pair[0]:g}deg_{pair[1]:g}m"
-            r = _run(stream, a.work / f"{stream.name}_{tag}", pair)
+            r = run_slam_ate(stream, a.work / f"{stream.name}_{tag}", pair)
             label = "no IMU" if pair is None else f"{pair[0]:g}°, {1000 * pair[1]:g} mm"
             _log(f"{seq}, seed {seed} / {label}: {r['ate_unaligned_pct']:.3f} % unaligned")
             rows.append({"sequence": seq, "seed": seed, "edge_sigma": pair, "label": label, **r})
-    commit = _commit()
-    if subprocess.run(["git", "status", "--porcelain", "--", "../minegeo"], capture_output=True, text=True,
-                      cwd=HERE).stdout.strip():
-        commit += "+dirty"
-    meta = {"date": dt.date.today().isoformat(), "commit": commit if commit.startswith(commit0) else f"{commit0}..{commit}",
-            "duration_s": 20.0,
+    meta = {"date": dt.date.today().isoformat(), "commit": commit_label(commit0), "duration_s": 20.0,
             "numba_threads": os.environ.get("NUMBA_NUM_THREADS", "default"), "load_before": up0,
             "load_after": os.getloadavg(), "cpus": os.cpu_count(),
             "command": "python benchmarks/bench_inertial_edge_noise.py " + " ".join(argv or sys.argv[1:])}
