@@ -168,6 +168,7 @@ BOUNDS = {
     (OdometryParams, "min_fitness"): (">=", 0.0, "<=", 1.0, False),
     (OdometryParams, "min_constraint_ratio"): (">=", 0.0, "<", 1.0, False),
     (OdometryParams, "deskew_iterations"): (">=", 0, "<=", 1, True),
+    (OdometryParams, "start_deskew_window_s"): (">=", 0.0, None, None, False),
     # LoopParams (its former __post_init__ checks, minegeo/slam/loops.py at 7fb575f: > 0, max_candidates >= 1,
     # min_fitness in [0, 1]; the re-optimisation limits >= 0)
     **{(LoopParams, n): (">", 0.0, None, None, False)

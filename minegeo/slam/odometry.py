@@ -416,6 +416,8 @@ def _result(times, poses, rows, kf, extra, timings, params, imu_aided: bool = Fa
     """The :class:`OdometryResult` of :func:`run_odometry`'s per-frame ``rows`` (ok, reason,
     fitness, weak, deskewed, twist, constraint ratio) and keyframe lists ``kf`` (indices, edges,
     information, clouds, covariances)."""
+    if not times:
+        raise InputError("no frames: the sequence is empty")
     ok, reasons, fitness, weak, deskewed, twists, cratio = (list(c) for c in zip(*rows, strict=True))
     kf_idx, kf_edges, kf_info, kf_clouds, kf_covs = kf
     return OdometryResult(
@@ -479,6 +481,66 @@ def _guesses(raw, velocity: np.ndarray, velocity_dt: float, poses: list, times: 
     pose guessed by that motion scaled to the time since the last frame (None for the first frame)."""
     twist = twist_from_motion(velocity, velocity_dt) if raw is not None and velocity_dt > 0 else np.zeros(6)
     return twist, (compose(poses[-1], _scaled_motion(velocity, t - times[-1], velocity_dt)) if poses else None)
+
+
+def start_velocity(times_s, positions_m) -> np.ndarray:
+    """Velocity (m/s) of the least-squares line through the positions of the frames after the first.
+
+    ``v = Σ (τ_i − τ̄)(p_i − p̄) / Σ (τ_i − τ̄)²`` over the frames at ``τ_i = t_i − t_0`` (the slope of
+    ``p(τ) = x_0 + v τ``). The first frame deskewed by it (:func:`run_odometry`, ``start_deskew_window_s``)
+    anchors the local map the frames after it are registered to: an error of its earlier deskewing
+    shifts them all alike, which moves ``x_0``, not ``v``.
+
+    Parameters
+    ----------
+    times_s : (n,) array
+        Frame times (s); n ≥ 2, not all equal.
+    positions_m : (n, 3) array
+        The frames' positions (m), in the first frame's sensor frame at its frame time (the odometry's
+        frame): the velocity is then the body velocity of the first sweep.
+
+    Returns
+    -------
+    (3,) float64
+    """
+    tau = np.asarray(times_s, dtype=np.float64)
+    P = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
+    d = tau - tau.mean()
+    return (d @ (P - P.mean(axis=0))) / float(d @ d)
+
+
+def _first_row(cur: PreparedFrame, raw, twist) -> list:
+    """The first frame's row (:func:`_result`): registered by definition unless it has too few points."""
+    return [cur.index is not None, "" if cur.index is not None else "too few points", 1.0, "", raw is not None,
+            twist, 1.0]
+
+
+def _start_redeskew(raw, frames, keyframes, last_kf, local, to_submap: bool, params: OdometryParams, aid):
+    """The first frame deskewed again from its raw points ``raw`` by its rotation rate as before (the first
+    motion's, or the gyro's) and the velocity :func:`start_velocity` of the registered frames since, put in
+    place of its cloud in the keyframes, as the last keyframe and in the local map when it still is in them.
+
+    ``frames = (times, poses, rows)`` (its row gets the twist used), ``keyframes = (indices, clouds,
+    covariances)`` (changed in place), ``local = (clouds, poses, local map)``. Returns ``(seconds, last
+    keyframe, local map clouds, local map)``."""
+    t0 = time.perf_counter()
+    times, poses, rows = frames
+    kf_idx, kf_clouds, kf_covs = keyframes
+    sub_clouds, sub_poses, submap = local
+    ok = [i for i in range(1, len(poses)) if rows[i][0]]
+    if len(ok) < 2:
+        return time.perf_counter() - t0, last_kf, sub_clouds, submap
+    v = start_velocity([times[i] for i in ok], [poses[i][:3, 3] for i in ok])
+    first, _, rows[0][5] = _deskew_prepare(raw, np.r_[np.asarray(rows[0][5], dtype=np.float64)[:3], v], times[0],
+                                           params, aid)
+    if first.index is not None:
+        if to_submap and sub_clouds and sub_clouds[0] is kf_clouds[0]:
+            sub_clouds = [first.points] + sub_clouds[1:]
+            submap = first if len(sub_clouds) == 1 else _keyframe_submap(sub_clouds, sub_poses, params,
+                                                                         params.local_map_keyframes)
+        kf_clouds[0], kf_covs[0] = first.points, first.covariances
+        last_kf = first if kf_idx == [0] else last_kf
+    return time.perf_counter() - t0, last_kf, sub_clouds, submap
 
 
 def _first_pass(cur, raw, twist, t: float, params: OdometryParams, aid, covs, T_guess):
@@ -630,8 +692,9 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
     sub_clouds, sub_poses = [], []  # the keyframes the local map is made of (registered ones only)
     T_sub, sub_kf = np.eye(4), 0  # pose and keyframe number of the local map's frame (its last keyframe)
     extra, covs = [], _CovarianceHistory(params)  # keyframe edges (i, j, T_i⁻¹ T_j, Ω) to an older keyframe's local map
-    # the last registered motion, its world velocity (m/s), the first frame's raw points until a motion is known
-    velocity, velocity_dt, v_prev_w, first_raw = np.eye(4), 0.0, None, None
+    # the last registered motion, its world velocity (m/s), the first frame's raw points until a motion is
+    # known and until it is deskewed again (start_deskew_window_s)
+    velocity, velocity_dt, v_prev_w, first_raw, start = np.eye(4), 0.0, None, None, None
 
     def register(cur: PreparedFrame, k: int, t: float):
         t_from = times[k - 1 if to_submap else prev_k]  # with an IMU: the gyro's rotation since the reference
@@ -644,16 +707,14 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
         t_prep += dt_prep + dt1
         times.append(float(t))
         if prev is None:
-            first_raw = raw
+            first_raw, start = raw, (raw if raw is not None and params.start_deskew_window_s > 0 else None)
             poses.append(np.eye(4))
-            rows.append([cur.index is not None, "" if cur.index is not None else "too few points", 1.0, "",
-                         raw is not None, twist, 1.0])
+            rows.append(_first_row(cur, raw, twist))
             kf_idx, kf_clouds, kf_covs = [0], [cur.points], [cur.covariances]
             prev = last_kf = submap = cur
             sub_clouds, sub_poses = [cur.points], [np.eye(4)]
             continue
-        t0 = time.perf_counter()
-        T_kf = poses[kf_idx[-1]]
+        t0, T_kf = time.perf_counter(), poses[kf_idx[-1]]
         reg, pose, via_prev = register(cur, k, t)
         if first_raw is not None and reg.ok and pose is not None and prev_k == 0:
             # the first frame had no motion to deskew by: both by the first one, then register again
@@ -689,9 +750,8 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
             pose = compose(poses[-1], _held_step(imu, velocity, velocity_dt, times[-2], t))
         rows.append([reg.ok, reg.reason, reg.fitness, reg.weak, raw is not None, twist,
                      reg.constraint_ratio if cur.index is not None and prev.index is not None else float("nan")])
-        rel = relative(T_kf, pose)
+        rel, t0 = relative(T_kf, pose), time.perf_counter()
         if _keyframe_due(rel, t - times[kf_idx[-1]], params):
-            t0 = time.perf_counter()
             if to_submap:  # the registration already was to the local map of the last keyframes
                 info, edge = _submap_keyframe_information(reg, via_prev, sub_kf, len(kf_idx), T_sub, pose)
                 extra += [edge] if edge is not None else []
@@ -715,13 +775,15 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
             if imu is not None:  # the registered rotation measures the gyro bias
                 imu.update(times[last_ok], t, velocity[:3, :3])
             last_ok = k
+        if start is not None and reg.ok and t - times[0] >= params.start_deskew_window_s:
+            dt1, last_kf, sub_clouds, submap = _start_redeskew(start, (times, poses, rows), (kf_idx, kf_clouds, kf_covs),
+                                                               last_kf, (sub_clouds, sub_poses, submap), to_submap, params, imu)
+            t_prep, start = t_prep + dt1, None
         if to_submap:
             prev = cur if cur.index is not None else prev
         elif cur.index is not None and reg.ok:  # a frame held by the prior is no registration target
             prev, prev_k = cur, k
         if progress is not None:
             progress(k)
-    if not times:
-        raise InputError("no frames: the sequence is empty")
     return _result(times, poses, rows, (kf_idx, kf_edges, kf_info, kf_clouds, kf_covs), extra,
                    {"prepare": t_prep, "frame_to_frame": t_f2f, "keyframe_refine": t_kf}, params, imu is not None)

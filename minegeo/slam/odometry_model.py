@@ -83,6 +83,13 @@ class OdometryParams:
     #: after a frame's registration, deskew it again with the twist of its own newly estimated motion
     #: (from the previous registered frame to it) and register once more (0: no second pass)
     deskew_iterations: int = bounded(1, ge=0, le=1, integer=True)
+    #: the first frame has no motion before it: it is deskewed by the first registered motion (to the
+    #: second frame), whose velocity one registration fixes poorly along a drift, and it anchors the
+    #: local map of the seconds after. Once the frames of this many seconds after it are registered, it
+    #: is deskewed again with the velocity of the least-squares line through their positions
+    #: (:func:`minegeo.slam.odometry.start_velocity`) and replaces itself in the keyframes and the local
+    #: map (0: never; docs/slam.md, "The first frame's deskewing")
+    start_deskew_window_s: float = bounded(0.5, ge=0.0)
     #: plausible-motion bounds (no silent runaway): a registration whose motion since the last
     #: registered frame exceeds a speed (m/s) or an angular rate (deg/s), or whose velocity differs
     #: from the previous motion's by more than an acceleration (m/s², between the middles of the two

@@ -135,3 +135,20 @@ def test_points_fired_together_are_deskewed_as_each_alone(xi, runs, seed, read_o
     G = {t: expm(t * _twist_matrix(xi)) for t, _ in runs}  # one per time (±0 give the same matrix)
     ref = np.array([G[t][:3, :3] @ p + G[t][:3, 3] for t, p in zip(tau, P, strict=True)])
     assert np.abs(Q - ref).max() < 1e-9 * (1 + np.abs(P).max())
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-3.0, 3.0), min_size=6, max_size=6), st.integers(2, 12), st.floats(-1e3, 1e3),
+       st.lists(st.floats(-0.2, 0.2), min_size=3, max_size=3))
+def test_start_velocity_is_the_slope_and_ignores_a_common_shift(c, n, t0, shift):
+    """Positions on a line ``x_0 + v τ`` at 10 Hz: :func:`start_velocity` returns ``v`` (the slope by hand);
+    every position shifted alike (the error an anchor's deskewing gives the frames registered to it)
+    leaves it unchanged, and so does a time origin anywhere."""
+    from minegeo.slam.odometry import start_velocity
+
+    x0, v = np.array(c[:3]), np.array(c[3:])
+    tau = 0.1 * np.arange(1, n + 1)
+    P = x0 + tau[:, None] * v
+    got = start_velocity(t0 + tau, P)
+    assert np.allclose(got, v, atol=1e-9 * (1 + abs(t0))), (got, v)
+    assert np.allclose(start_velocity(t0 + tau, P + np.array(shift)), got, atol=1e-9 * (1 + abs(t0)))
