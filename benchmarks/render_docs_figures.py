@@ -591,6 +591,9 @@ RENDERERS = {
                            extra="1 thread on both sides, the same 12 busy loops; `NUMBA_NUM_THREADS=1 python "
                                  "benchmarks/bench_realtime.py --threads 1 --duration-s 20 --repeats 2 --odometry submap`"),
     "slam_deskew": md_copy("deskew_2026-11-30b", [0], extra="`python benchmarks/bench_deskew.py --duration-s 20`"),
+    "start_velocity": md_copy("start_velocity_2026-12-01", [0],
+                              extra="`NUMBA_NUM_THREADS=1 python benchmarks/bench_start_velocity.py --seeds 1-10`; "
+                                    "median (min-max) over the seeds, m/s"),
     "slam_imu": md_copy("slam_imu_2026-12-01", [0], extra="`python benchmarks/bench_slam_imu.py --duration-s 20`"),
     "control_driftauto": control_table("control_2026-11-29_driftauto_lr"),
     "control_driftauto_weakbias": control_table("control_2026-11-29_driftauto_lr_weakbias"),

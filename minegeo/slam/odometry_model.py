@@ -88,8 +88,8 @@ class OdometryParams:
     #: local map of the seconds after. Once the frames of this many seconds after it are registered, it
     #: is deskewed again with the velocity of the least-squares line through their positions
     #: (:func:`minegeo.slam.odometry.start_velocity`) and replaces itself in the keyframes and the local
-    #: map (0: never; docs/slam.md, "The first frame's deskewing")
-    start_deskew_window_s: float = bounded(0.5, ge=0.0)
+    #: map (0, the default: never; docs/slam.md, "The first frame's deskewing": off until its ATE gain is shown)
+    start_deskew_window_s: float = bounded(0.0, ge=0.0)
     #: plausible-motion bounds (no silent runaway): a registration whose motion since the last
     #: registered frame exceeds a speed (m/s) or an angular rate (deg/s), or whose velocity differs
     #: from the previous motion's by more than an acceleration (m/s², between the middles of the two
