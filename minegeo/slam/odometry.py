@@ -571,7 +571,7 @@ def _retaken(own, cur, reg, pose, via, covs, register, kt, motion_args):
         return cur, reg, pose, via
     best = (own, _checked(reg_o, pose_o, *motion_args), pose_o, via_o)
     cur3 = covs.at(own, pose_o)
-    reg3, pose3, via3 = register(cur3, *kt)
+    reg3, pose3, via3 = register(cur3, *kt, pose_o)  # from the pose its covariances were taken at
     if reg3.ok and pose3 is not None:
         r3 = _checked(reg3, pose3, *motion_args)
         if r3.ok and r3.fitness >= best[1].fitness:
@@ -696,9 +696,15 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
     # known and until it is deskewed again (start_deskew_window_s)
     velocity, velocity_dt, v_prev_w, first_raw, start = np.eye(4), 0.0, None, None, None
 
-    def register(cur: PreparedFrame, k: int, t: float):
-        t_from = times[k - 1 if to_submap else prev_k]  # with an IMU: the gyro's rotation since the reference
-        m, m_dt = (velocity, velocity_dt) if imu is None else (_guess(imu, velocity, velocity_dt, t_from, t), t - t_from)
+    def register(cur: PreparedFrame, k: int, t: float, start: np.ndarray | None = None):
+        # from the constant-velocity guess (with an IMU: the gyro's rotation since the reference), or from
+        # the pose `start` (T_world_sensor) as the one guess
+        j = k - 1 if to_submap else prev_k
+        if start is not None:
+            m, m_dt = relative(poses[j], start), t - times[j]
+        else:
+            m, m_dt = (velocity, velocity_dt) if imu is None else (_guess(imu, velocity, velocity_dt, times[j], t),
+                                                                   t - times[j])
         return _register_step(cur, k, t, prev, prev_k, submap, T_sub, poses, times, m, m_dt, params)
     for k, (t, cur, dt_prep, raw) in enumerate(_prepared_frames(frames, params)):
         _check_time(k, t, times)
