@@ -28,6 +28,11 @@ Usage::
 
     python benchmarks/bench_mulran.py --json benchmarks/results/mulran_2026-11-25.json \\
         --md benchmarks/results/mulran_2026-11-25.md
+
+Another commit measured by this same script (``--code``: a checkout of it, e.g. a git worktree)::
+
+    git worktree add ../minegeo-f04d4e1 f04d4e1
+    NUMBA_NUM_THREADS=2 python benchmarks/bench_mulran.py --code ../minegeo-f04d4e1 --json J --md M
 """
 
 from __future__ import annotations
@@ -43,7 +48,9 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))  # this checkout's minegeo, not whatever copy is installed
+#: the checkout whose minegeo is measured: this one, or ``--code PATH`` (another checkout, e.g. an older
+#: commit in a git worktree, measured by this same script); its path goes first on sys.path in main()
+CODE = REPO
 DATA = REPO.parent / "shared" / "data" / "mulran_riverside02_keyframes"
 
 TRUST_T_M, TRUST_ROT_DEG = 0.30, 0.5  # as tests/slam/test_slam_mulran.py
@@ -217,7 +224,7 @@ def run_cli(times, params) -> dict:
 
 def git_state() -> dict:
     def git(*a):
-        return subprocess.run(["git", *a], cwd=REPO, capture_output=True, text=True).stdout.strip()
+        return subprocess.run(["git", *a], cwd=CODE, capture_output=True, text=True).stdout.strip()
 
     return {"commit": git("rev-parse", "HEAD"), "dirty_files": git("status", "--porcelain", "--", "minegeo").splitlines()}
 
@@ -237,7 +244,16 @@ def main(argv=None) -> int:
     ap.add_argument("--no-cli", action="store_true", help="skip the minegeo slam run")
     ap.add_argument("--frame-target", choices=("frame", "submap"), default="frame",
                     help="OdometryParams.frame_target of both variants (what each frame registers to; default frame)")
+    ap.add_argument("--code", default=str(REPO),
+                    help="root of the checkout whose minegeo is measured (default: this one); its commit is recorded")
     a = ap.parse_args(argv)
+    global CODE
+    CODE = Path(a.code).resolve()
+    if "minegeo" in sys.modules:
+        raise SystemExit("bench_mulran: minegeo was imported before --code took effect")
+    sys.path.insert(0, str(CODE))  # that checkout's minegeo, not whatever copy is installed
+
+    import numba
 
     from minegeo._provenance import atomic_write_text, to_jsonable, versions, write_json_atomic
     from minegeo.io.frames import read_frame
@@ -284,8 +300,12 @@ def main(argv=None) -> int:
         "trust_bounds": {"translation_m": TRUST_T_M, "rotation_deg": TRUST_ROT_DEG},
         "variants": [{k: v for k, v in r.items() if k not in ("poses", "err")} for r in runs],
         "cli": None if cli is None else {k: v for k, v in cli.items() if k != "poses"},
-        "git": git_state(), "versions": versions(), "load_average_1_5_15": list(os.getloadavg()),
-        "command": "python benchmarks/bench_mulran.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "git": git_state(), "code": shown(CODE), "versions": versions(),
+        "numba_threads": int(numba.config.NUMBA_NUM_THREADS),
+        "numba_num_threads_env": os.environ.get("NUMBA_NUM_THREADS"), "load_average_1_5_15": list(os.getloadavg()),
+        "command": shown(("NUMBA_NUM_THREADS=" + os.environ["NUMBA_NUM_THREADS"] + " "
+                          if "NUMBA_NUM_THREADS" in os.environ else "")
+                         + "python benchmarks/bench_mulran.py " + " ".join(argv if argv is not None else sys.argv[1:])),
         "cpu_count": os.cpu_count(),
     }
     write_json_atomic(a.json, to_jsonable(rec))

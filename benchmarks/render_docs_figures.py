@@ -277,7 +277,7 @@ def render_slam_ablation(results: Path) -> str:
     return "\n".join(lines)
 
 
-MULRAN_FILE = "mulran_2026-11-30b.json"
+MULRAN_FILE = "mulran_2026-12-01.json"
 #: the 20 s tables' sequences (the network streams; the paper world's have their own tables)
 NETWORK_SEQUENCES = '"vehicle, loop 3.2 m" "vehicle, junctions 3.5 m" "drone, NIOSH 2.9 m" "handheld, loop 3.2 m"'
 
@@ -287,9 +287,11 @@ def render_mulran(results: Path) -> str:
     d = _load(MULRAN_FILE, results)
     commit = d.get("git", {}).get("commit")
     dirty = d.get("git", {}).get("dirty_files")
+    threads = d.get("numba_threads")
     head = conditions(MULRAN_FILE, date=_date_from_name(MULRAN_FILE),
                       commit=(commit[:7] + ("+dirty" if dirty else "")) if commit else None,
-                      threads=None, load=_fmt_load([(d.get("load_average_1_5_15") or [None])[0]]),
+                      threads=None if threads is None else f"{threads} (Numba)",
+                      load=_fmt_load([(d.get("load_average_1_5_15") or [None])[0]]),
                       extra=f"{d['frames']} keyframes; trust bounds {d['trust_bounds']['translation_m']} m and "
                             f"{d['trust_bounds']['rotation_deg']}° per pair")
     lines = [head, "",
@@ -311,6 +313,41 @@ def render_mulran(results: Path) -> str:
     lines.append(row(f"`{c['command'].replace('minegeo -q', 'minegeo')}`", c["distribution"], c["within_trust"],
                      d["variants"][0]["pairs"], c["path_ratio"],
                      f"{c['wall_s'] / c['summary']['frames']:.2f} (whole command)"))
+    return "\n".join(lines)
+
+
+#: the same benchmark script on the same machine, one run after the other: the code before issue 29's
+#: first commit (5d8b3cd^ = f04d4e1, ``--code``) and the code of the current table (MULRAN_FILE)
+MULRAN_BEFORE_FILES = ("mulran_2026-12-01_f04d4e1.json", MULRAN_FILE)
+
+
+def render_mulran_before(results: Path) -> str:
+    """MulRan: the odometry before issue 29 and now, measured by the same script on the same machine."""
+    runs = [_load(f, results) for f in MULRAN_BEFORE_FILES]
+    heads = []
+    for f, d in zip(MULRAN_BEFORE_FILES, runs, strict=True):
+        commit, dirty = d["git"]["commit"], d["git"]["dirty_files"]
+        heads.append(conditions(f, date=_date_from_name(f), commit=commit[:7] + ("+dirty" if dirty else ""),
+                                threads=f"{d['numba_threads']} (Numba)",
+                                load=_fmt_load([d["load_average_1_5_15"][0]]),
+                                extra=f"`{d['command']}`"))
+    lines = [*heads, "", "| variant | commit | translation median / p95 (m) | rotation median / p95 (°) "
+             "| within bounds | path ratio | s per frame |", "|---|---|---|---|---:|---:|---:|"]
+    for i in range(len(runs[0]["variants"])):
+        for d in runs:
+            v = d["variants"][i]
+            p, t, r = v["params"], v["distribution"]["translation_m"], v["distribution"]["rotation_deg"]
+            lines.append(f"| odometry, voxel {p['voxel_size_m']} m, gate {p['max_correspondence_distance_m']} m "
+                         f"| {d['git']['commit'][:7]} | {t['median']:.3f} / {t['p95']:.3f} "
+                         f"| {r['median']:.2f} / {r['p95']:.2f} | {v['within_trust']} of {v['pairs']} "
+                         f"| {v['path_ratio']:.3f} | {v['time_per_frame_s']:.3f} |")
+    for d in (d for d in runs if d["cli"] is not None):
+        c = d["cli"]
+        t, r = c["distribution"]["translation_m"], c["distribution"]["rotation_deg"]
+        lines.append(f"| `minegeo slam`, voxel 1.0 m, gate 6.0 m | {d['git']['commit'][:7]} "
+                     f"| {t['median']:.3f} / {t['p95']:.3f} | {r['median']:.2f} / {r['p95']:.2f} "
+                     f"| {c['within_trust']} of {d['variants'][0]['pairs']} | {c['path_ratio']:.3f} "
+                     f"| {c['wall_s'] / c['summary']['frames']:.3f} (whole command) |")
     return "\n".join(lines)
 
 
@@ -552,6 +589,7 @@ RENDERERS = {
     "georef_scaling_las": render_georef_scaling_las,
     "slam_ablation": render_slam_ablation,
     "mulran": render_mulran,
+    "mulran_before": render_mulran_before,
     "demo": render_demo,
     "demo_slam_seeds": md_copy("demo_slam_seeds_2026-12-01", [0], extra=(
         "`git worktree add /tmp/minegeo-6db6ec7 6db6ec7; python benchmarks/bench_demo_slam_seeds.py --seeds $(seq 1 30) "
