@@ -71,6 +71,7 @@ from minegeo.optim import (
 )
 from minegeo.optim.imu import BiasRandomWalkFactors, ImuFactors, ImuNoise, preintegrate
 from minegeo.slam._kernels_inertial import gyro_deskew_kernel
+from minegeo.slam.odometry import start_velocity
 
 __all__ = ["GyroAid", "InertialParams", "InertialResult", "check_imu_for_frames", "optimize_inertial_graph"]
 
@@ -423,14 +424,12 @@ def _with_floor(info_rt, params: InertialParams) -> np.ndarray:
 
 
 def _velocity(times, positions, t: float, half_s: float = 0.25):
-    """Velocity at ``t`` (m/s): the slope of a straight line through the positions within ``± half_s``
-    (None with fewer than two)."""
+    """Velocity at ``t`` (m/s): the slope of the least-squares line through the positions within
+    ``± half_s`` (:func:`minegeo.slam.odometry.start_velocity`; None with fewer than two)."""
     sel = np.abs(times - t) <= half_s
     if sel.sum() < 2:
         return None
-    tt = times[sel] - t
-    A = np.c_[tt, np.ones(tt.size)]
-    return np.linalg.lstsq(A, positions[sel], rcond=None)[0][0]
+    return start_velocity(times[sel], positions[sel])
 
 
 def _initial_states(aid: GyroAid, kf_times, kf_poses, params: InertialParams, trajectory=None):
