@@ -636,6 +636,16 @@ def _held_step(aid, velocity: np.ndarray, velocity_dt: float, t_prev: float, t: 
     return velocity if step is None else step
 
 
+def _reference_motion(aid, velocity: np.ndarray, velocity_dt: float, T_ref: np.ndarray, t_ref: float, t: float,
+                      start: np.ndarray | None):
+    """``(motion, seconds)`` the registration of the frame at ``t`` starts from, from the reference frame
+    (at pose ``T_ref``, time ``t_ref``): the constant velocity (with an IMU its rotation the gyro's since
+    ``t_ref``, :func:`_guess`), or the move to the pose ``start`` (``T_world_sensor``) when given."""
+    if start is not None:
+        return relative(T_ref, start), t - t_ref
+    return (velocity, velocity_dt) if aid is None else (_guess(aid, velocity, velocity_dt, t_ref, t), t - t_ref)
+
+
 def _guess(aid, velocity: np.ndarray, velocity_dt: float, t_from: float, t: float) -> np.ndarray:
     """The motion from ``t_from`` to ``t``: the constant velocity's (:func:`_scaled_motion`), its rotation
     from the gyro with an IMU (:meth:`minegeo.slam.inertial.GyroAid.guess`)."""
@@ -697,14 +707,8 @@ def run_odometry(frames: Iterable, params: OdometryParams | None = None, progres
     velocity, velocity_dt, v_prev_w, first_raw, start = np.eye(4), 0.0, None, None, None
 
     def register(cur: PreparedFrame, k: int, t: float, start: np.ndarray | None = None):
-        # from the constant-velocity guess (with an IMU: the gyro's rotation since the reference), or from
-        # the pose `start` (T_world_sensor) as the one guess
-        j = k - 1 if to_submap else prev_k
-        if start is not None:
-            m, m_dt = relative(poses[j], start), t - times[j]
-        else:
-            m, m_dt = (velocity, velocity_dt) if imu is None else (_guess(imu, velocity, velocity_dt, times[j], t),
-                                                                   t - times[j])
+        j = k - 1 if to_submap else prev_k  # the reference frame of the guess
+        m, m_dt = _reference_motion(imu, velocity, velocity_dt, poses[j], times[j], t, start)
         return _register_step(cur, k, t, prev, prev_k, submap, T_sub, poses, times, m, m_dt, params)
     for k, (t, cur, dt_prep, raw) in enumerate(_prepared_frames(frames, params)):
         _check_time(k, t, times)
