@@ -51,8 +51,11 @@ import pytest
 
 from minegeo.cli import main
 
-#: one call may take this long before it is stopped (a failing run takes well under 5 s here)
-TIMEOUT_S = 60
+#: one call may take this long before it is stopped: a watchdog against a hang (a reader stuck on a
+#: stream), not a speed bound. A failing run takes well under 5 s, but a call that does the work (a
+#: stale lock taken over, then a whole localization) compiles its Numba kernels first on a fresh
+#: clone: 60 s was too little on a 2-core 2.0 GHz Xeon under the two test workers (CI, 2026-12-02)
+TIMEOUT_S = 600
 #: ... and this long when an argument is a stream (``/dev/zero``): refusing it needs no reading
 STREAM_TIMEOUT_S = 10
 #: address space one call may add to the test process (a reader slurping /dev/zero)
